@@ -1,0 +1,5 @@
+import sys
+
+from jaxnerf_grid.cli import main
+
+sys.exit(main())

@@ -1,0 +1,52 @@
+"""The single entry point `jaxnerf-grid` (also `python -m jaxnerf_grid`).
+
+Each subcommand lives in its own module and exposes `main(argv: list[str]) -> int`; this file
+only dispatches, so importing it is cheap and one subcommand's imports never slow another.
+Errors of type `DataError` / `ConfigError` are printed as one line, never as a traceback.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+SUBCOMMANDS = {
+    "synth": ("jaxnerf_grid.data.synthetic.cli", "render the procedural tower benchmark scene"),
+    "mask": ("jaxnerf_grid.mask_cli", "DPT foreground masks and weights for a dataset"),
+    "train": ("jaxnerf_grid.train_cli", "train a NeRF (ours | nerf | nerfw) on a dataset"),
+    "render": ("jaxnerf_grid.train_cli", "render views from a trained run"),
+    "eval": ("jaxnerf_grid.train_cli", "evaluate a trained run on its test views"),
+    "demo": ("jaxnerf_grid.train_cli", "synthetic scene -> masks -> train -> render -> report"),
+}
+
+USAGE = "usage: jaxnerf-grid {" + ",".join(SUBCOMMANDS) + "} [options]\n\n" + "\n".join(
+    f"  {name:8s} {help_text}" for name, (_, help_text) in SUBCOMMANDS.items()
+)
+
+
+def main(argv: list[str] | None = None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(USAGE)
+        return 0 if argv else 2
+    name, rest = argv[0], argv[1:]
+    if name not in SUBCOMMANDS:
+        print(f"jaxnerf-grid: unknown command {name!r}\n\n{USAGE}", file=sys.stderr)
+        return 2
+    module = importlib.import_module(SUBCOMMANDS[name][0])
+    entry = getattr(module, f"main_{name}", None) or getattr(module, "main")
+    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.config import ConfigError
+
+    try:
+        return int(entry(rest) or 0)
+    except (DataError, ConfigError) as err:
+        print(f"jaxnerf-grid {name}: error: {err}", file=sys.stderr)
+        return 1
+    except KeyboardInterrupt:
+        print(f"jaxnerf-grid {name}: interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

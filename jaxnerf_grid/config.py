@@ -1,0 +1,75 @@
+"""Frozen dataclasses for every stage, with a JSON round-trip.
+
+`to_dict(cfg)` / `from_dict(cls, d)` work for any (nested) frozen dataclass defined here or in
+other modules; unknown keys are an error naming the key, so a typo in a config file is caught.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from pathlib import Path
+from typing import Any, TypeVar
+
+T = TypeVar("T")
+
+
+class ConfigError(ValueError):
+    """A bad configuration value or file; the message names the field."""
+
+
+def to_dict(cfg: Any) -> dict:
+    """A (nested) dataclass as plain JSON-able dicts/lists."""
+    if dataclasses.is_dataclass(cfg):
+        return {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
+    if isinstance(cfg, (list, tuple)):
+        return [to_dict(v) for v in cfg]
+    if isinstance(cfg, dict):
+        return {k: to_dict(v) for k, v in cfg.items()}
+    return cfg
+
+
+def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
+    """Builds dataclass `cls` from a dict; nested dataclasses recurse, tuples are restored."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected an object, got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(names)}")
+    kwargs = {}
+    for name, value in data.items():
+        hint = hints[name]
+        if dataclasses.is_dataclass(hint):
+            value = from_dict(hint, value, f"{where}.{name}")
+        elif typing.get_origin(hint) is tuple and isinstance(value, list):
+            value = tuple(value)
+        kwargs[name] = value
+    return cls(**kwargs)
+
+
+def save_json(cfg: Any, path: str | Path) -> None:
+    from jaxnerf_grid.io import write_json
+
+    write_json(path, to_dict(cfg))
+
+
+def load_json(cls: type[T], path: str | Path) -> T:
+    from jaxnerf_grid.io import read_json
+
+    return from_dict(cls, read_json(path), where=str(path))
+
+
+def replace(cfg: T, **changes) -> T:
+    """dataclasses.replace with a clear error for an unknown field."""
+    names = {f.name for f in dataclasses.fields(cfg)}
+    bad = sorted(set(changes) - names)
+    if bad:
+        raise ConfigError(f"{type(cfg).__name__}: unknown field(s) {bad}")
+    return dataclasses.replace(cfg, **changes)
+
+
+def dumps(cfg: Any) -> str:
+    return json.dumps(to_dict(cfg), indent=2)
