@@ -1,0 +1,1 @@
+"""Datasets: loaders for transforms.json / Blender / COLMAP / LLFF, preprocessing, synthetic scenes."""
