@@ -1,0 +1,126 @@
+"""Shared pytest fixtures.
+
+torchvision stand-in: the `lpips` package (used only as a test reference) imports
+`torchvision.models` and builds its trunk with `torchvision.models.alexnet(pretrained=...)`.
+torchvision has no CPU build here (the installed one raises on import) and CI does not have it,
+so the `lpips_module` fixture installs a small stand-in into `sys.modules` *before* importing
+lpips, unless a working torchvision exists (probed in a subprocess, so a broken torchvision is
+never imported into the test process). The stand-in's `alexnet()` has the real torchvision
+AlexNet `.features` layout with torch's default random initialisation; it has no pretrained
+weights and refuses `pretrained=True`. Nothing here imports torch unless a fixture needs it.
+"""
+
+from __future__ import annotations
+
+import importlib.util
+import subprocess
+import sys
+import types
+
+import numpy as np
+import pytest
+
+
+def _real_torchvision_works() -> bool:
+    if importlib.util.find_spec("torchvision") is None:
+        return False
+    probe = subprocess.run([sys.executable, "-c", "import torchvision.models"],
+                           capture_output=True, timeout=300)
+    return probe.returncode == 0
+
+
+def _no_pretrained(name: str, pretrained, weights):
+    if pretrained or weights is not None:
+        raise RuntimeError(f"torchvision stand-in: {name} has no pretrained weights (offline test stub)")
+
+
+def _make_torchvision_stub() -> types.ModuleType:
+    """Modules `torchvision` and `torchvision.models` with random-init AlexNet / VGG16 trunks."""
+    from torch import nn
+
+    class _Trunk(nn.Module):
+        def __init__(self, features: nn.Sequential):
+            super().__init__()
+            self.features = features
+
+    def alexnet(pretrained: bool = False, weights=None, progress: bool = True, **kwargs):
+        """torchvision.models.alexnet stand-in: `.features` only, random init."""
+        _no_pretrained("alexnet", pretrained, weights)
+        return _Trunk(nn.Sequential(
+            nn.Conv2d(3, 64, kernel_size=11, stride=4, padding=2), nn.ReLU(inplace=True),
+            nn.MaxPool2d(kernel_size=3, stride=2),
+            nn.Conv2d(64, 192, kernel_size=5, padding=2), nn.ReLU(inplace=True),
+            nn.MaxPool2d(kernel_size=3, stride=2),
+            nn.Conv2d(192, 384, kernel_size=3, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(384, 256, kernel_size=3, padding=1), nn.ReLU(inplace=True),
+            nn.Conv2d(256, 256, kernel_size=3, padding=1), nn.ReLU(inplace=True),
+            nn.MaxPool2d(kernel_size=3, stride=2),
+        ))
+
+    def vgg16(pretrained: bool = False, weights=None, progress: bool = True, **kwargs):
+        """torchvision.models.vgg16 stand-in: `.features` only, random init."""
+        _no_pretrained("vgg16", pretrained, weights)
+        layers, c_in = [], 3
+        for v in (64, 64, "M", 128, 128, "M", 256, 256, 256, "M", 512, 512, 512, "M",
+                  512, 512, 512, "M"):
+            if v == "M":
+                layers.append(nn.MaxPool2d(kernel_size=2, stride=2))
+            else:
+                layers += [nn.Conv2d(c_in, v, kernel_size=3, padding=1), nn.ReLU(inplace=True)]
+                c_in = v
+        return _Trunk(nn.Sequential(*layers))
+
+    def _unavailable(name):
+        def f(*args, **kwargs):
+            raise NotImplementedError(f"torchvision stand-in: {name} is not provided")
+        f.__name__ = name
+        return f
+
+    tv = types.ModuleType("torchvision")
+    models = types.ModuleType("torchvision.models")
+    models.alexnet = alexnet
+    models.vgg16 = vgg16
+    for name in ("squeezenet1_1", "resnet18", "resnet34", "resnet50", "resnet101", "resnet152"):
+        setattr(models, name, _unavailable(name))
+    for name in ("AlexNet_Weights", "VGG16_Weights", "SqueezeNet1_1_Weights"):
+        setattr(models, name, types.SimpleNamespace(DEFAULT=None, IMAGENET1K_V1=None))
+    tv.models = models
+    tv.__version__ = "0.0+jaxnerf-grid-test-stub"
+    tv.__jaxnerf_grid_stub__ = True
+    return tv
+
+
+def install_torchvision_stub_if_needed() -> bool:
+    """Put the stand-in into sys.modules unless a working torchvision exists.
+    Returns True when the stand-in is in use."""
+    current = sys.modules.get("torchvision")
+    if current is not None:
+        return bool(getattr(current, "__jaxnerf_grid_stub__", False))
+    if _real_torchvision_works():
+        return False
+    tv = _make_torchvision_stub()
+    sys.modules["torchvision"] = tv
+    sys.modules["torchvision.models"] = tv.models
+    return True
+
+
+@pytest.fixture(scope="session")
+def lpips_module():
+    """The `lpips` reference package, imported with the torchvision stand-in when needed."""
+    pytest.importorskip("torch")
+    if importlib.util.find_spec("lpips") is None:
+        pytest.skip("lpips package not installed")
+    install_torchvision_stub_if_needed()
+    import lpips
+
+    return lpips
+
+
+@pytest.fixture(scope="session")
+def real_images():
+    """Real photographs from scikit-image, float32 [0,1] HWC: {"astronaut": [512,512,3],
+    "chelsea": [300,451,3]}."""
+    from skimage import data
+
+    return {name: getattr(data, name)().astype(np.float32) / 255.0
+            for name in ("astronaut", "chelsea")}
