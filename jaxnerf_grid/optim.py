@@ -1,0 +1,335 @@
+"""Optimiser pieces for NeRF training, driven by jaxopt (no optax anywhere).
+
+What is here:
+  * `lr_schedule`: linear warm-up, then log-linear (exponential) decay (mip-NeRF style).
+  * `clip_by_global_norm`, `global_norm`, `tree_all_finite`.
+  * `adam`: an Adam `GradientTransformation` written in this project: a NamedTuple with
+    `init(params) -> state` and `update(grads, state, params=None) -> (updates, state)`.
+    jaxopt's `OptaxSolver` only ever calls `opt.init` and `opt.update` and applies
+    `params + updates` itself, so it takes this object as its `opt`; jaxopt never imports
+    optax (optax is not even installed in the project's environment).
+  * Steps driven by jaxopt:
+      - `make_solver(loss_fn, opt)`: a `jaxopt.OptaxSolver` whose `fun(params, *args)`
+        returns `(loss, aux)`; `guarded_update(solver, params, state, *args)` does one
+        `solver.update` and rolls it back when anything is non-finite.
+      - `make_pmean_solver(loss_fn, opt, axis_name)`: the same solver for data parallel
+        training under `jax.pmap`; its `fun` is a value-and-grad that `pmean`s the loss, the
+        gradients and the floating aux over `axis_name`, so every device applies the same
+        averaged gradient and stays in sync.
+      - `apply_gradients` / `guarded_apply`: the optimiser step for gradients the caller has
+        already computed (and averaged); it still goes through `OptaxSolver.update`, fed by a
+        `fun` that hands back the given gradients.
+
+Example, single device (the trainer's step):
+
+    opt = adam(make_lr_schedule(5e-4, 5e-6, warmup_steps=500, max_steps=200_000),
+               eps=1e-6, max_grad_norm=1.0)
+
+    def loss_fn(params, batch, key):          # -> (scalar loss, aux pytree)
+        loss, stats = ...
+        return loss, stats
+
+    solver = make_solver(loss_fn, opt)        # has_aux=True
+    state = solver.init_state(params, batch, key)      # evaluates loss_fn once
+    step = jax.jit(lambda p, s, b, k: guarded_update(solver, p, s, b, k))
+    params, state, aux, finite = step(params, state, batch, key)
+    if not bool(finite):
+        log_nonfinite(global_step, aux)       # the step was skipped: params/state unchanged
+
+Example, data parallel with pmap (gradients averaged across devices):
+
+    solver = make_pmean_solver(loss_fn, opt, axis_name="batch")
+    p_init = jax.pmap(solver.init_state, axis_name="batch")
+    p_step = jax.pmap(lambda p, s, b, k: guarded_update(solver, p, s, b, k),
+                      axis_name="batch")
+    params_r = parallel.replicate(params)                    # [n_dev, ...]
+    state_r = p_init(params_r, parallel.shard(batch), keys)   # keys: [n_dev, 2]
+    params_r, state_r, aux, finite = p_step(params_r, state_r, parallel.shard(batch), keys)
+    # loss, grads and aux are pmean-ed inside, so `finite` and the new params are identical
+    # on every device: read finite[0], aux[0]; unreplicate with tree_map(lambda x: x[0], ...).
+
+  Alternatively compute and pmean the gradients yourself, then apply them:
+
+    def p_step(params, opt_state, batch, key):               # under pmap(axis_name="batch")
+        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch, key)
+        loss, grads = jax.lax.pmean((loss, grads), "batch")
+        params, opt_state, finite = guarded_apply(opt, params, opt_state, grads, loss)
+        return params, opt_state, loss, finite
+    opt_state = opt.init(params)                              # an AdamState
+
+A skipped step leaves the optimiser state untouched, so Adam's step count (and therefore the
+learning-rate schedule inside `adam`) does not advance on it; the trainer's own step does.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import Any, Callable, NamedTuple
+
+import jax
+import jax.numpy as jnp
+import jaxopt
+from jaxopt._src.optax_wrapper import OptaxState
+
+logger = logging.getLogger(__name__)
+
+Schedule = Callable[[jnp.ndarray], jnp.ndarray]
+
+__all__ = [
+    "AdamState",
+    "GradientTransformation",
+    "OptaxState",
+    "adam",
+    "apply_gradients",
+    "clip_by_global_norm",
+    "global_norm",
+    "guarded_apply",
+    "guarded_update",
+    "log_nonfinite",
+    "lr_schedule",
+    "make_lr_schedule",
+    "make_pmean_solver",
+    "make_solver",
+    "tree_all_finite",
+]
+
+
+# --------------------------------------------------------------------------- schedule
+
+
+def lr_schedule(step, lr_init: float, lr_final: float, warmup_steps: int, max_steps: int,
+                warmup_start: float = 0.01) -> jnp.ndarray:
+    """Learning rate at `step`: linear warm-up, then log-linear decay.
+
+    For step < warmup_steps: `lr_init * (warmup_start + (1 - warmup_start) * step / warmup_steps)`,
+    i.e. a straight line from `warmup_start * lr_init` (default 1 %) up to `lr_init`.
+    From warmup_steps to max_steps: `exp(lerp(log lr_init, log lr_final, u))` with
+    `u = (step - warmup_steps) / (max_steps - warmup_steps)`, clipped to [0, 1], so the rate
+    is `lr_final` at and after max_steps (the exponential decay of mip-NeRF / NeRF).
+
+    step: scalar (int or float, may be traced). Returns a float32 scalar. jit-safe.
+    """
+    if lr_init <= 0 or lr_final <= 0:
+        raise ValueError(f"lr_schedule: lr_init ({lr_init}) and lr_final ({lr_final}) must be > 0")
+    step = jnp.asarray(step, jnp.float32)
+    warm = float(max(warmup_steps, 0))
+    span = float(max(max_steps - max(warmup_steps, 0), 1))
+    ramp = warmup_start + (1.0 - warmup_start) * step / max(warm, 1.0)
+    u = jnp.clip((step - warm) / span, 0.0, 1.0)
+    decayed = jnp.exp((1.0 - u) * jnp.log(jnp.float32(lr_init)) + u * jnp.log(jnp.float32(lr_final)))
+    return jnp.where(step < warm, lr_init * ramp, decayed).astype(jnp.float32)
+
+
+def make_lr_schedule(lr_init: float, lr_final: float, warmup_steps: int, max_steps: int,
+                     warmup_start: float = 0.01) -> Schedule:
+    """`lr_schedule` with its constants bound: returns `step -> lr` (for `adam`)."""
+    lr_schedule(0, lr_init, lr_final, warmup_steps, max_steps, warmup_start)  # validate now
+
+    def schedule(step):
+        return lr_schedule(step, lr_init, lr_final, warmup_steps, max_steps, warmup_start)
+
+    return schedule
+
+
+# --------------------------------------------------------------------------- tree helpers
+
+
+def _inexact_leaves(tree) -> list:
+    return [x for x in jax.tree_util.tree_leaves(tree) if jnp.issubdtype(jnp.result_type(x), jnp.inexact)]
+
+
+def global_norm(tree) -> jnp.ndarray:
+    """L2 norm over every floating leaf of a pytree, as if concatenated. Returns float32 []."""
+    leaves = _inexact_leaves(tree)
+    if not leaves:
+        return jnp.float32(0.0)
+    return jnp.sqrt(sum(jnp.sum(jnp.square(jnp.asarray(x, jnp.float32))) for x in leaves))
+
+
+def tree_all_finite(tree) -> jnp.ndarray:
+    """True (bool []) when every floating leaf is free of NaN and inf. Integer leaves pass."""
+    leaves = _inexact_leaves(tree)
+    if not leaves:
+        return jnp.bool_(True)
+    return jnp.all(jnp.stack([jnp.all(jnp.isfinite(x)) for x in leaves]))
+
+
+def _tree_select(pred, on_true, on_false):
+    """Leafwise `jnp.where(pred, a, b)` over two pytrees of the same structure. pred: bool []."""
+    return jax.tree_util.tree_map(lambda a, b: jnp.where(pred, a, b).astype(jnp.result_type(b)),
+                                  on_true, on_false)
+
+
+def clip_by_global_norm(grads, max_norm: float):
+    """Scales the whole gradient pytree by `min(1, max_norm / global_norm(grads))`.
+
+    Same rule as `torch.nn.utils.clip_grad_norm_` (without its 1e-6). `max_norm <= 0`
+    disables clipping and returns `grads` unchanged. A non-finite norm gives non-finite
+    gradients, which the guards below then catch. Leaf dtypes are kept.
+    """
+    if max_norm is None or max_norm <= 0:
+        return grads
+    norm = global_norm(grads)
+    scale = jnp.where(norm > max_norm, max_norm / jnp.where(norm > 0, norm, 1.0), 1.0)
+    return jax.tree_util.tree_map(lambda g: (g * scale).astype(jnp.result_type(g)), grads)
+
+
+# --------------------------------------------------------------------------- adam
+
+
+class GradientTransformation(NamedTuple):
+    """The optax protocol, without optax: `init(params) -> state`,
+    `update(grads, state, params=None) -> (updates, new_state)`; apply as `params + updates`."""
+
+    init: Callable[[Any], Any]
+    update: Callable[..., tuple[Any, Any]]
+
+
+class AdamState(NamedTuple):
+    """count: int32 [] (steps taken so far); mu, nu: pytrees like params (1st / 2nd moments)."""
+
+    count: jnp.ndarray
+    mu: Any
+    nu: Any
+
+
+def adam(learning_rate: float | Schedule, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8,
+         max_grad_norm: float = 0.0) -> GradientTransformation:
+    """Adam (Kingma & Ba) with bias correction, optional global-norm clipping first.
+
+    With t = count + 1 after the step and g the (clipped) gradient:
+        mu = b1 * mu + (1 - b1) * g;  nu = b2 * nu + (1 - b2) * g**2
+        update = -lr(count) * (mu / (1 - b1**t)) / (sqrt(nu / (1 - b2**t)) + eps)
+    which is exactly `torch.optim.Adam`'s rule. `learning_rate` is a float or a schedule
+    `step -> lr` evaluated at the count *before* the step (0 on the first step). NeRF uses
+    eps in 1e-8 .. 1e-6. Moments have each parameter's dtype; count is int32.
+    """
+    if not callable(learning_rate):
+        lr_value = float(learning_rate)
+        learning_rate = lambda step: jnp.float32(lr_value)  # noqa: E731
+    schedule = learning_rate
+
+    def init(params) -> AdamState:
+        zeros = lambda p: jnp.zeros_like(jnp.asarray(p))  # noqa: E731
+        return AdamState(count=jnp.zeros([], jnp.int32),
+                         mu=jax.tree_util.tree_map(zeros, params),
+                         nu=jax.tree_util.tree_map(zeros, params))
+
+    def update(grads, state: AdamState, params=None):
+        del params
+        grads = clip_by_global_norm(grads, max_grad_norm)
+        mu = jax.tree_util.tree_map(lambda m, g: (b1 * m + (1.0 - b1) * g).astype(m.dtype), state.mu, grads)
+        nu = jax.tree_util.tree_map(lambda v, g: (b2 * v + (1.0 - b2) * jnp.square(g)).astype(v.dtype),
+                                    state.nu, grads)
+        count = state.count + 1
+        t = count.astype(jnp.float32)
+        correction1 = 1.0 - jnp.power(jnp.float32(b1), t)
+        correction2 = 1.0 - jnp.power(jnp.float32(b2), t)
+        lr = jnp.asarray(schedule(state.count), jnp.float32)
+
+        def step(m, v):
+            m_hat = m / correction1
+            v_hat = v / correction2
+            return (-lr * m_hat / (jnp.sqrt(v_hat) + eps)).astype(m.dtype)
+
+        updates = jax.tree_util.tree_map(step, mu, nu)
+        return updates, AdamState(count=count, mu=mu, nu=nu)
+
+    return GradientTransformation(init=init, update=update)
+
+
+# --------------------------------------------------------------------------- jaxopt-driven steps
+
+
+def make_solver(loss_fn: Callable, opt: GradientTransformation, has_aux: bool = True,
+                jit: bool = True) -> jaxopt.OptaxSolver:
+    """A `jaxopt.OptaxSolver` stepping `opt` on `loss_fn(params, *args) -> (loss, aux)`
+    (or just `loss` when has_aux=False). Start with `state = solver.init_state(params, *args)`
+    (evaluates loss_fn once); step with `guarded_update` (or `solver.update`)."""
+    return jaxopt.OptaxSolver(fun=loss_fn, opt=opt, has_aux=has_aux, jit=jit, maxiter=1)
+
+
+def make_pmean_solver(loss_fn: Callable, opt: GradientTransformation, axis_name: str = "batch",
+                      has_aux: bool = True) -> jaxopt.OptaxSolver:
+    """`make_solver` for use inside `jax.pmap(..., axis_name=axis_name)`.
+
+    The solver's `fun` is a value-and-grad (`value_and_grad=True` in jaxopt's terms) that
+    computes the per-device `loss_fn(params, *args)` and its gradient, then `pmean`s the loss,
+    the gradients and the floating leaves of aux over `axis_name`. So jaxopt drives the step
+    while the update uses the cross-device average gradient. Both `solver.init_state` and
+    `solver.update` (or `guarded_update`) must then run under that pmap.
+    """
+    vg = jax.value_and_grad(loss_fn, has_aux=has_aux)
+
+    def value_and_grad_pmean(params, *args, **kwargs):
+        if has_aux:
+            (loss, aux), grads = vg(params, *args, **kwargs)
+        else:
+            loss, grads = vg(params, *args, **kwargs)
+            aux = None
+        loss, grads = jax.lax.pmean((loss, grads), axis_name)
+        aux = jax.tree_util.tree_map(
+            lambda a: jax.lax.pmean(a, axis_name) if jnp.issubdtype(jnp.result_type(a), jnp.inexact) else a,
+            aux)
+        return (loss, aux), grads
+
+    return jaxopt.OptaxSolver(fun=value_and_grad_pmean, opt=opt, value_and_grad=True, has_aux=True,
+                              jit=False, maxiter=1)
+
+
+def guarded_update(solver: jaxopt.OptaxSolver, params, state: OptaxState, *args, **kwargs):
+    """One `solver.update` that is rolled back when it is not finite.
+
+    finite = loss finite & gradient norm finite (jaxopt's `state.error` is the L2 norm of the
+    gradient, non-finite iff some gradient is, or on overflow) & new params and new
+    optimiser state finite. When not finite, the old params and state are returned
+    (`jnp.where` over the pytrees, jit/pmap safe) and the caller should log the skip.
+
+    Returns (params, state, aux, finite): aux is this step's aux (from the attempted step,
+    even when skipped, for logging); finite: bool [].
+    """
+    new_params, new_state = solver.update(params, state, *args, **kwargs)
+    finite = (jnp.all(jnp.isfinite(new_state.value)) & jnp.all(jnp.isfinite(new_state.error))
+              & tree_all_finite(new_params) & tree_all_finite(new_state.internal_state))
+    aux = new_state.aux
+    out_params = _tree_select(finite, new_params, params)
+    out_state = _tree_select(finite, new_state, state)
+    return out_params, out_state, aux, finite
+
+
+def _given_gradients(params, grads, loss):
+    """jaxopt `fun` in value_and_grad form that hands back precomputed gradients."""
+    del params
+    return (loss, None), grads
+
+
+def apply_gradients(opt: GradientTransformation, params, opt_state, grads, loss=0.0):
+    """One optimiser step with gradients computed (and, under pmap, averaged) by the caller.
+
+    Runs through `jaxopt.OptaxSolver.update` with a `fun` that returns the given gradients,
+    so the arithmetic is jaxopt's (`params + opt.update(...)`, cast to each param's dtype).
+    params, grads: same pytree; opt_state: `opt.init(params)`. Returns (params, opt_state).
+    """
+    solver = jaxopt.OptaxSolver(fun=_given_gradients, opt=opt, value_and_grad=True, has_aux=True,
+                                jit=False, maxiter=1)
+    loss = jnp.asarray(loss, jnp.float32)
+    state = OptaxState(iter_num=jnp.zeros([], jnp.int32), value=loss, error=jnp.float32(0.0),
+                       internal_state=opt_state, aux=None)
+    params, state = solver.update(params, state, grads, loss)
+    return params, state.internal_state
+
+
+def guarded_apply(opt: GradientTransformation, params, opt_state, grads, loss):
+    """`apply_gradients`, skipped when the loss, any gradient or any new param/state is
+    non-finite. loss: scalar. Returns (params, opt_state, finite: bool [])."""
+    new_params, new_opt_state = apply_gradients(opt, params, opt_state, grads, loss)
+    finite = (jnp.all(jnp.isfinite(jnp.asarray(loss))) & tree_all_finite(grads)
+              & tree_all_finite(new_params) & tree_all_finite(new_opt_state))
+    return (_tree_select(finite, new_params, params), _tree_select(finite, new_opt_state, opt_state),
+            finite)
+
+
+def log_nonfinite(step: int, loss=None) -> None:
+    """Logs (WARNING, logger `jaxnerf_grid.optim`) that the step was skipped as non-finite."""
+    suffix = "" if loss is None else f" (loss={float(jnp.asarray(loss).reshape(-1)[0])})"
+    logger.warning("step %d: non-finite loss or gradient, update skipped%s", step, suffix)
