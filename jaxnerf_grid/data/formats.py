@@ -35,6 +35,8 @@ non-finite or degenerate pose, unknown camera model, empty split.
 
 from __future__ import annotations
 
+import dataclasses
+import functools
 import math
 import os
 from pathlib import Path
@@ -251,76 +253,116 @@ def _read_extra(kind: str, path: Path, background, honour_exif: bool) -> np.ndar
     return img
 
 
-def _load_frames(frames: list[_Frame], *, downscale: float, load_extras: bool, background,
-                 undistort: bool, honour_exif: bool, progress: str) -> dict:
-    """Reads pixels of every frame, checks sizes, undistorts, downscales. Returns arrays."""
-    from tqdm import tqdm
+@dataclasses.dataclass
+class Scene:
+    """A dataset before its pixels are read: what every loader collects first.
 
-    images, intrinsics, valid_masks = [], [], []
-    extras = {name: [None] * len(frames) for name in _EXTRAS}
-    ref = None  # (W, H, path) of the first frame
-    maps_cache = {}
-    any_undistorted = False
-    for i, frame in enumerate(tqdm(frames, desc=progress, disable=len(frames) < 32, leave=False)):
-        img = read_rgb(frame.image_path, background, honour_exif)
-        h, w = img.shape[:2]
-        if frame.size is not None and tuple(frame.size) != (w, h):
-            raise DataError(f"{frame.image_path}: image is {w}x{h} but its camera ({frame.source}) "
-                            f"says {frame.size[0]}x{frame.size[1]} (size mismatch)")
-        if callable(frame.intrinsics):
-            frame.intrinsics = frame.intrinsics(w, h)
-        if ref is None:
-            ref = (w, h, frame.image_path)
-        elif (w, h) != ref[:2]:
-            raise DataError(f"{frame.image_path}: image is {w}x{h} but {ref[2].name} is "
-                            f"{ref[0]}x{ref[1]}; every image of a dataset must have one size "
-                            f"(resize them with jaxnerf_grid.data.preprocess first)")
-        maps = None
-        if frame.dist is not None:
-            if not undistort:
-                raise DataError(f"{frame.source}: camera of {frame.image_path.name} has lens distortion "
-                                f"{frame.dist.tolist()}; undistortion was turned off (undistort=False)")
-            key = (tuple(frame.intrinsics), tuple(frame.dist), w, h)
-            if key not in maps_cache:
-                maps_cache[key] = undistort_maps(*frame.intrinsics, frame.dist, w, h)
-            maps = maps_cache[key]
-            img = _remap(img, maps, "linear")
-            valid = _remap(np.ones((h, w), np.float32), maps, "nearest")
-            any_undistorted = True
-        else:
-            valid = None
-        size = downscaled_size(w, h, downscale)
-        images.append(resize(img, size, "area"))
-        intrinsics.append(scale_intrinsics(frame.intrinsics, size[0] / w, size[1] / h))
-        valid_masks.append(None if valid is None else resize(valid, size, "area") > 0.999)
-        if not load_extras:
-            continue
+    frames: per-frame image path, pose, intrinsics (or a function of the image size), lens
+    distortion and extra-file paths; c2w: [N, 4, 4] normalised OpenGL poses; the rest as in
+    `Dataset`. `read_frame` reads one frame at its native size, `scene_to_dataset` all of them.
+    """
+
+    root: Path
+    frames: list
+    c2w: np.ndarray
+    split: dict
+    near: float
+    far: float
+    normalization: dict
+    meta: dict
+    background: object = None
+    undistort: bool = True
+    honour_exif: bool = True
+
+
+def read_frame(scene: Scene, index: int, load_extras: bool = True) -> dict:
+    """Reads frame `index` at its native size, undistorted when its camera has distortion.
+
+    Returns {"image": [H, W, 3], "intrinsics": [4] (fx, fy, cx, cy), "valid": [H, W] bool or
+    None (False where undistortion sampled outside the source), "extras": {field: [H, W(, 3)]}}
+    with fields named as in `Dataset` (masks, weights, depth, ...; raw, before binarising).
+    """
+    frame = scene.frames[index]
+    img = read_rgb(frame.image_path, scene.background, scene.honour_exif)
+    h, w = img.shape[:2]
+    if frame.size is not None and tuple(frame.size) != (w, h):
+        hint = " (EXIF orientation is applied; pass honour_exif=False if the cameras use the raw layout)" \
+            if frame.image_path.suffix.lower() in (".jpg", ".jpeg") else ""
+        raise DataError(f"{frame.image_path}: image is {w}x{h} but its camera ({frame.source}) "
+                        f"says {frame.size[0]}x{frame.size[1]} (size mismatch){hint}")
+    intr = frame.intrinsics(w, h) if callable(frame.intrinsics) else frame.intrinsics
+    maps = valid = None
+    if frame.dist is not None:
+        if not scene.undistort:
+            raise DataError(f"{frame.source}: camera of {frame.image_path.name} has lens distortion "
+                            f"{frame.dist.tolist()}; undistortion was turned off (undistort=False)")
+        cache = scene.meta.setdefault("_undistort_maps", {})
+        key = (tuple(intr), tuple(frame.dist), w, h)
+        if key not in cache:
+            cache[key] = undistort_maps(*intr, frame.dist, w, h)
+        maps = cache[key]
+        img = _remap(img, maps, "linear")
+        valid = _remap(np.ones((h, w), np.float32), maps, "nearest") > 0.5
+    extras = {}
+    if load_extras:
         for name, (key, kind, interp) in _EXTRAS.items():
             path = frame.extras.get(key)
             if path is None:
                 continue
-            arr = _read_extra(kind, path, background, honour_exif)
+            arr = _read_extra(kind, path, scene.background, scene.honour_exif)
             if arr.shape[:2] != (h, w):
                 raise DataError(f"{path}: is {arr.shape[1]}x{arr.shape[0]} but its image "
                                 f"{frame.image_path.name} is {w}x{h} (size mismatch)")
             if maps is not None:
-                arr = _remap(arr, maps, interp if kind != "rgb" else "linear")
-            extras[name][i] = resize(arr, size, interp)
-    out = {"images": np.stack(images).astype(np.float32),
-           "intrinsics": np.stack(intrinsics).astype(np.float32), "undistorted": any_undistorted}
+                arr = _remap(arr, maps, "linear" if kind == "rgb" else interp)
+            extras[name] = arr
+    return {"image": img, "intrinsics": np.asarray(intr, np.float64), "valid": valid, "extras": extras}
+
+
+def resize_frame(frame: dict, size: tuple[int, int]) -> dict:
+    """A `read_frame` result resized to size = (W', H'), intrinsics rescaled consistently."""
+    h, w = frame["image"].shape[:2]
+    extras = {name: resize(arr, size, _EXTRAS[name][2]) for name, arr in frame["extras"].items()}
+    valid = frame["valid"]
+    if valid is not None:
+        valid = resize(valid.astype(np.float32), size, "area") > 0.999
+    return {"image": resize(frame["image"], size, "area"),
+            "intrinsics": scale_intrinsics(frame["intrinsics"], size[0] / w, size[1] / h),
+            "valid": valid, "extras": extras}
+
+
+def _load_frames(scene: Scene, *, downscale: float, load_extras: bool) -> dict:
+    """Reads every frame, checks they share one size, downscales. Returns stacked arrays."""
+    from tqdm import tqdm
+
+    frames = scene.frames
+    read = []
+    ref = None  # (W, H, path) of the first frame
+    for i in tqdm(range(len(frames)), desc=f"loading {scene.meta.get('format', 'images')}",
+                  disable=len(frames) < 32, leave=False):
+        fr = read_frame(scene, i, load_extras)
+        h, w = fr["image"].shape[:2]
+        if ref is None:
+            ref = (w, h, frames[i].image_path)
+        elif (w, h) != ref[:2]:
+            raise DataError(f"{frames[i].image_path}: image is {w}x{h} but {ref[2].name} is "
+                            f"{ref[0]}x{ref[1]}; every image of a dataset must have one size "
+                            f"(resize them with jaxnerf_grid.data.preprocess first)")
+        read.append(resize_frame(fr, downscaled_size(w, h, downscale)))
+    scene.meta.pop("_undistort_maps", None)
+    out = {"images": np.stack([f["image"] for f in read]).astype(np.float32),
+           "intrinsics": np.stack([f["intrinsics"] for f in read]).astype(np.float32),
+           "undistorted": any(f["valid"] is not None for f in read)}
     n, hh, ww = out["images"].shape[:3]
-    for name, values in extras.items():
+    for name in _EXTRAS:
+        values = [f["extras"].get(name) for f in read]
         if all(v is None for v in values):
             out[name] = None
             continue
         fill = {"clean_images": None, "depth": np.nan, "semantics": SEMANTIC_UNKNOWN,
                 "distractor_masks": 0, "masks": 0.0, "weights": 1.0}[name]
-        arrs = []
-        for j, v in enumerate(values):
-            if v is None:
-                v = out["images"][j] if name == "clean_images" else np.full((hh, ww), fill)
-            arrs.append(v)
-        out[name] = np.stack(arrs)
+        out[name] = np.stack([(out["images"][j] if name == "clean_images" else np.full((hh, ww), fill))
+                              if v is None else v for j, v in enumerate(values)])
     if out["masks"] is not None:
         out["masks"] = (out["masks"] > 0.5).astype(np.float32)
     if out["distractor_masks"] is not None:
@@ -331,34 +373,33 @@ def _load_frames(frames: list[_Frame], *, downscale: float, load_extras: bool, b
         if out[name] is not None:
             out[name] = out[name].astype(np.float32)
     if out["weights"] is None and out["masks"] is not None:
-        has_weights = [f.extras.get("weight_path") is not None for f in frames]
-        if not any(has_weights):
-            out["weights"] = 1.0 - out["masks"]
-    if any(v is not None for v in valid_masks):
-        valid = np.stack([np.ones((hh, ww), bool) if v is None else v for v in valid_masks])
+        out["weights"] = 1.0 - out["masks"]  # only mask_path given: weights = 1 - M
+    if out["undistorted"]:
+        valid = np.stack([np.ones((hh, ww), bool) if f["valid"] is None else f["valid"] for f in read])
         base = out["weights"] if out["weights"] is not None else np.ones((n, hh, ww), np.float32)
         out["weights"] = (base * valid).astype(np.float32)
     return out
 
 
-def _assemble(root: Path, frames: list[_Frame], c2w: np.ndarray, arrays: dict, split: dict,
-              near: float, far: float, normalization: dict, meta: dict) -> Dataset:
+def scene_to_dataset(scene: Scene, *, downscale: float = 1, load_extras: bool = True) -> Dataset:
+    """Reads the pixels of a collected scene into a `Dataset`."""
+    arrays = _load_frames(scene, downscale=downscale, load_extras=load_extras)
     paths = []
-    for frame in frames:
+    for frame in scene.frames:
         try:
-            paths.append(os.path.relpath(frame.image_path, root))
+            paths.append(os.path.relpath(frame.image_path, scene.root))
         except ValueError:
             paths.append(str(frame.image_path))
-    meta = dict(meta)
+    meta = dict(scene.meta)
     meta["undistorted"] = arrays["undistorted"]
+    norm = scene.normalization
     return Dataset(
-        root=root, images=arrays["images"], c2w=np.asarray(c2w, np.float32),
-        intrinsics=arrays["intrinsics"], split=split, near=float(near), far=float(far),
+        root=scene.root, images=arrays["images"], c2w=np.asarray(scene.c2w, np.float32),
+        intrinsics=arrays["intrinsics"], split=scene.split, near=float(scene.near), far=float(scene.far),
         weights=arrays["weights"], masks=arrays["masks"], clean_images=arrays["clean_images"],
         depth=arrays["depth"], semantics=arrays["semantics"],
         distractor_masks=arrays["distractor_masks"],
-        normalization={"scale": float(normalization["scale"]),
-                       "translation": [float(v) for v in normalization["translation"]]},
+        normalization={"scale": float(norm["scale"]), "translation": [float(v) for v in norm["translation"]]},
         frame_paths=paths, meta=meta,
     )
 
@@ -443,12 +484,6 @@ def _json_intrinsics(fr: _Frame, json_path: Path, width: int, height: int) -> np
     return intr
 
 
-def _image_size(path: Path) -> tuple[int, int]:
-    """(W, H) of an image file, EXIF orientation applied (reads the pixels)."""
-    img = io.read_image(path)
-    return img.shape[1], img.shape[0]
-
-
 def _normalise_json(c2w: np.ndarray, top: dict, json_path: Path, normalize, near_far_default):
     """Applies the normalisation policy of transforms.json; returns (c2w, norm, near, far)."""
     near, far = top.get("near"), top.get("far")
@@ -472,26 +507,28 @@ def _normalise_json(c2w: np.ndarray, top: dict, json_path: Path, normalize, near
     return c2w, norm, near, far
 
 
-def _load_json_frames(entries, top: dict, json_path: Path, root: Path, *, downscale, load_extras,
-                      background, normalize, undistort, honour_exif, split, near_far_default, fmt,
-                      meta_extra=None) -> Dataset:
+def _collect_json(entries, top: dict, json_path: Path, root: Path, *, load_extras, background,
+                  normalize, undistort, honour_exif, split, near_far_default, fmt) -> Scene:
     frames = [_json_frame(top, fr, path, i, load_extras) for i, (path, fr) in enumerate(entries)]
     c2w = np.stack([f.c2w for f in frames])
     c2w, norm, near, far = _normalise_json(c2w, top, json_path, normalize, near_far_default)
-    arrays = _load_frames(frames, downscale=downscale, load_extras=load_extras, background=background,
-                          undistort=undistort, honour_exif=honour_exif, progress=f"loading {json_path.name}")
     meta = {"format": fmt, "source": str(json_path)}
     for key in ("generator", "tower_ply", "scene_normalization"):
         if key in top:
             meta[key] = top[key]
-    meta.update(meta_extra or {})
-    return _assemble(root, frames, c2w, arrays, split, near, far, norm, meta)
+    return Scene(root, frames, c2w, split, near, far, norm, meta, background, undistort, honour_exif)
 
 
-def load_transforms_json(path, *, downscale: float = 1, load_extras: bool = True, normalize=None,
-                         background=None, undistort: bool = True, honour_exif: bool = True,
-                         test_every: int = 8) -> Dataset:
-    """Loads a nerfstudio / instant-ngp `transforms.json` (docs/DATASET.md).
+def load_transforms_json(path, *, downscale: float = 1, load_extras: bool = True, **kwargs) -> Dataset:
+    """Loads a nerfstudio / instant-ngp `transforms.json` (docs/DATASET.md); options as in
+    `collect_transforms_json`; `downscale` divides the resolution (cv2.INTER_AREA)."""
+    scene = collect_transforms_json(path, load_extras=load_extras, **kwargs)
+    return scene_to_dataset(scene, downscale=downscale, load_extras=load_extras)
+
+
+def collect_transforms_json(path, *, load_extras: bool = True, normalize=None, background=None,
+                            undistort: bool = True, honour_exif: bool = True, test_every: int = 8) -> Scene:
+    """Collects a nerfstudio / instant-ngp `transforms.json` (docs/DATASET.md).
 
     path: the JSON file or its folder. normalize: None (normalise unless the file carries
     `scene_normalization`), True (always), False (never). background: [3] RGB to composite
@@ -506,10 +543,10 @@ def load_transforms_json(path, *, downscale: float = 1, load_extras: bool = True
     if not isinstance(frames, list) or not frames:
         raise DataError(f"{json_path}: no frames (empty split)")
     split = _json_split(top, json_path, test_every)
-    return _load_json_frames([(json_path, f) for f in frames], top, json_path, json_path.parent,
-                             downscale=downscale, load_extras=load_extras, background=background,
-                             normalize=normalize, undistort=undistort, honour_exif=honour_exif,
-                             split=split, near_far_default=None, fmt="transforms.json")
+    return _collect_json([(json_path, f) for f in frames], top, json_path, json_path.parent,
+                         load_extras=load_extras, background=background, normalize=normalize,
+                         undistort=undistort, honour_exif=honour_exif, split=split,
+                         near_far_default=None, fmt="transforms.json")
 
 
 def _json_split(top: dict, json_path: Path, test_every: int) -> dict:
@@ -543,9 +580,15 @@ def _json_split(top: dict, json_path: Path, test_every: int) -> dict:
     return _check_split(default_split(len(frames), test_every), json_path)
 
 
-def load_blender(path, *, downscale: float = 1, load_extras: bool = True, background=(1.0, 1.0, 1.0),
-                 normalize=None, honour_exif: bool = True) -> Dataset:
-    """Loads a Blender-synthetic folder (transforms_train.json, transforms_val.json,
+def load_blender(path, *, downscale: float = 1, load_extras: bool = True, **kwargs) -> Dataset:
+    """Loads a Blender-synthetic folder; options as in `collect_blender`."""
+    scene = collect_blender(path, load_extras=load_extras, **kwargs)
+    return scene_to_dataset(scene, downscale=downscale, load_extras=load_extras)
+
+
+def collect_blender(path, *, load_extras: bool = True, background=(1.0, 1.0, 1.0), normalize=None,
+                    honour_exif: bool = True) -> Scene:
+    """Collects a Blender-synthetic folder (transforms_train.json, transforms_val.json,
     transforms_test.json; `camera_angle_x`; file paths without extension; RGBA PNG composited
     over `background`). Split: the file each frame came from ("val" frames are kept as a
     "val" split and stand in for "test" when there is no test file)."""
@@ -579,10 +622,10 @@ def load_blender(path, *, downscale: float = 1, load_extras: bool = True, backgr
         split["test"] = list(split["val"])
     split = _check_split(split, root / "transforms_test.json")
     top.pop("frames", None)
-    return _load_json_frames(entries, top, root / "transforms_train.json", root, downscale=downscale,
-                             load_extras=load_extras, background=background, normalize=normalize,
-                             undistort=True, honour_exif=honour_exif, split=split,
-                             near_far_default=(BLENDER_NEAR, BLENDER_FAR), fmt="blender")
+    return _collect_json(entries, top, root / "transforms_train.json", root, load_extras=load_extras,
+                         background=background, normalize=normalize, undistort=True,
+                         honour_exif=honour_exif, split=split,
+                         near_far_default=(BLENDER_NEAR, BLENDER_FAR), fmt="blender")
 
 
 # ----------------------------------------------------------------------------------------
@@ -633,7 +676,7 @@ def _find_colmap(path: Path, images_dir) -> tuple[Path, str, Path, Path]:
     return model_dir, ext, image_root, image_root.parent
 
 
-def _near_far_from_points(c2w: np.ndarray, points: np.ndarray, intrinsics: np.ndarray, size,
+def _near_far_from_points(c2w: np.ndarray, points: np.ndarray, min_cos: float,
                           observed: list | None = None) -> tuple[float, float] | None:
     """Ray-distance bounds from point z-depths (see module docstring).
 
@@ -651,21 +694,26 @@ def _near_far_from_points(c2w: np.ndarray, points: np.ndarray, intrinsics: np.nd
         return None
     z = np.concatenate(depths)
     near = max(0.9 * float(np.percentile(z, 0.5)), 1e-3)
-    far = 1.1 * float(np.percentile(z, 99.5)) / min_ray_cosine(intrinsics, *size)
+    far = 1.1 * float(np.percentile(z, 99.5)) / min_cos
     return near, max(far, 2 * near)
 
 
-def load_colmap(path, *, images_dir=None, downscale: float = 1, undistort: bool = True,
-                normalize: str | bool = "cameras", honour_exif: bool = True, test_every: int = 8,
-                load_extras: bool = True) -> Dataset:
-    """Loads a COLMAP sparse model (text or binary) and its images.
+def load_colmap(path, *, downscale: float = 1, load_extras: bool = True, **kwargs) -> Dataset:
+    """Loads a COLMAP sparse model and its images; options as in `collect_colmap`."""
+    scene = collect_colmap(path, load_extras=load_extras, **kwargs)
+    return scene_to_dataset(scene, downscale=downscale, load_extras=False)
+
+
+def collect_colmap(path, *, images_dir=None, undistort: bool = True, normalize: str | bool = "cameras",
+                   honour_exif: bool = True, test_every: int = 8, load_extras: bool = True) -> Scene:
+    """Collects a COLMAP sparse model (text or binary) and its images.
 
     path: a scene folder with sparse/0 (or sparse/) and images/, or the model folder itself
     (images then in ../../images or ../images). Frames sorted by image name; every
     `test_every`-th is a test frame. normalize: "cameras" | "points" | False.
     `load_extras` is accepted for a uniform signature (COLMAP has no extras).
     """
-    del load_extras
+    del load_extras  # COLMAP has no extra per-frame files
     model_dir, ext, image_root, root = _find_colmap(Path(path), images_dir)
     cameras_file = model_dir / f"cameras{ext}"
     cameras, images, points3d = colmap_io.read_model(model_dir, ext)
@@ -697,19 +745,16 @@ def load_colmap(path, *, images_dir=None, downscale: float = 1, undistort: bool 
         method = "cameras" if normalize is True else normalize
         c2w, norm = normalize_poses(c2w, xyz if len(xyz) else None, method=method)
     xyz_norm = apply_normalization_to_points(xyz, norm)
-    size = frames[0].size
-    intr_all = np.stack([f.intrinsics for f in frames])
-    bounds = _near_far_from_points(c2w, xyz_norm, intr_all, size,
+    min_cos = min(min_ray_cosine(f.intrinsics, *f.size) for f in frames)
+    bounds = _near_far_from_points(c2w, xyz_norm, min_cos,
                                    observed if any(o is not None and len(o) for o in observed) else None)
     near, far = bounds if bounds is not None else (DEFAULT_NEAR, DEFAULT_FAR)
     split = _check_split(default_split(len(frames), test_every), model_dir)
-    arrays = _load_frames(frames, downscale=downscale, load_extras=False, background=None,
-                          undistort=undistort, honour_exif=honour_exif, progress="loading COLMAP images")
     meta = {"format": "colmap", "source": str(model_dir),
             "camera_models": sorted({cameras[im.camera_id].model for im in images.values()}),
             "points3d": xyz_norm.astype(np.float32),
             "points3d_rgb": np.array([p.rgb for p in points3d.values()], np.uint8).reshape(-1, 3)}
-    return _assemble(root, frames, c2w, arrays, split, near, far, norm, meta)
+    return Scene(root, frames, c2w, split, near, far, norm, meta, None, undistort, honour_exif)
 
 
 # ----------------------------------------------------------------------------------------
@@ -728,14 +773,29 @@ def llff_to_c2w_gl(pose_3x5) -> tuple[np.ndarray, tuple[float, float, float]]:
     return c2w, (float(p[0, 4]), float(p[1, 4]), float(p[2, 4]))
 
 
-def load_llff(path, *, images_dir=None, downscale: float = 1, normalize: str | bool = "cameras",
-              honour_exif: bool = True, test_every: int = 8, load_extras: bool = True) -> Dataset:
-    """Loads an LLFF scene: poses_bounds.npy [N, 17] and images/ (sorted names, one per row).
+def load_llff(path, *, downscale: float = 1, load_extras: bool = True, **kwargs) -> Dataset:
+    """Loads an LLFF scene; options as in `collect_llff`."""
+    scene = collect_llff(path, load_extras=load_extras, **kwargs)
+    return scene_to_dataset(scene, downscale=downscale, load_extras=False)
+
+
+def _llff_intrinsics(pose_intr, pose_size, image_path: Path, npy: Path, width: int, height: int):
+    """LLFF intrinsics rescaled from the poses' (W, H) to the image's actual size."""
+    sx, sy = width / pose_size[0], height / pose_size[1]
+    if abs(sx - sy) > 0.02 * max(sx, sy):
+        raise DataError(f"{image_path}: image is {width}x{height} but {npy.name} says "
+                        f"{pose_size[0]:g}x{pose_size[1]:g} (size mismatch: aspect ratios differ)")
+    return scale_intrinsics(pose_intr, sx, sy)
+
+
+def collect_llff(path, *, images_dir=None, normalize: str | bool = "cameras", honour_exif: bool = True,
+                 test_every: int = 8, load_extras: bool = True) -> Scene:
+    """Collects an LLFF scene: poses_bounds.npy [N, 17] and images/ (sorted names, one per row).
 
     Focal lengths are rescaled when the images are smaller than the (H, W) in the poses
     (e.g. images_4/). cx, cy = W/2, H/2.
     """
-    del load_extras
+    del load_extras  # LLFF has no extra per-frame files
     root = Path(path)
     npy = root / "poses_bounds.npy"
     if not npy.is_file():
@@ -752,25 +812,18 @@ def load_llff(path, *, images_dir=None, downscale: float = 1, normalize: str | b
     names = sorted(p for p in image_root.iterdir() if p.suffix in IMAGE_EXTENSIONS and p.is_file())
     if len(names) != len(arr):
         raise DataError(f"{npy}: {len(arr)} poses but {len(names)} images in {image_root}")
-    frames, bounds = [], arr[:, 15:17].astype(np.float64)
+    frames, bounds, min_cos = [], arr[:, 15:17].astype(np.float64), 1.0
     for i, (row, img_path) in enumerate(zip(arr, names)):
         source = f"{npy} (row {i}, {img_path.name})"
         if not np.all(np.isfinite(row)):
             raise DataError(f"{source}: degenerate pose (non-finite entries)")
         c2w, (h, w, focal) = llff_to_c2w_gl(row[:15].reshape(3, 5))
         c2w = validate_c2w(c2w, source)
-        frames.append(_Frame(img_path, c2w, [focal, focal, 0.5 * w, 0.5 * h], None, None, None, source))
-        frames[-1].pose_hw = (w, h)
-    # images may be a downsampled copy: rescale the intrinsics to the actual image size
-    img_w, img_h = _image_size(frames[0].image_path)
-    for fr in frames:
-        w, h = fr.pose_hw
-        sx, sy = img_w / w, img_h / h
-        if abs(sx - sy) > 0.02 * max(sx, sy):
-            raise DataError(f"{fr.image_path}: image is {img_w}x{img_h} but {npy.name} says "
-                            f"{w:g}x{h:g} (size mismatch: aspect ratios differ)")
-        fr.intrinsics = scale_intrinsics(fr.intrinsics, sx, sy)
-        fr.size = None
+        pose_intr = np.array([focal, focal, 0.5 * w, 0.5 * h])
+        min_cos = min(min_cos, min_ray_cosine(pose_intr, w, h))
+        # images may be a downsampled copy (images_4/): intrinsics follow the actual image size
+        frames.append(_Frame(img_path, c2w, functools.partial(_llff_intrinsics, pose_intr, (w, h), img_path, npy),
+                             None, None, None, source))
     c2w = np.stack([f.c2w for f in frames])
     if normalize is False:
         norm = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
@@ -778,14 +831,11 @@ def load_llff(path, *, images_dir=None, downscale: float = 1, normalize: str | b
         focus = float(np.median(bounds.mean(axis=1)))
         method = "cameras" if normalize is True else normalize
         c2w, norm = normalize_poses(c2w, None, method=method, focus_depth=focus)
-    intr_all = np.stack([f.intrinsics for f in frames])
     near = max(0.9 * float(bounds.min()) * norm["scale"], 1e-3)
-    far = 1.1 * float(bounds.max()) * norm["scale"] / min_ray_cosine(intr_all, img_w, img_h)
+    far = 1.1 * float(bounds.max()) * norm["scale"] / min_cos
     split = _check_split(default_split(len(frames), test_every), npy)
-    arrays = _load_frames(frames, downscale=downscale, load_extras=False, background=None,
-                          undistort=True, honour_exif=honour_exif, progress="loading LLFF images")
     meta = {"format": "llff", "source": str(npy)}
-    return _assemble(root, frames, c2w, arrays, split, near, far, norm, meta)
+    return Scene(root, frames, c2w, split, near, far, norm, meta, None, True, honour_exif)
 
 
 # ----------------------------------------------------------------------------------------
@@ -816,6 +866,17 @@ def detect_format(path) -> str:
                     f"or poses_bounds.npy: unknown dataset layout")
 
 
+def collect_scene(path, *, load_extras: bool = True, **kwargs) -> Scene:
+    """Collects any supported dataset (autodetected) without reading its pixels."""
+    path = Path(path)
+    fmt = detect_format(path)
+    if fmt == "llff" and path.is_file():
+        path = path.parent
+    collect = {"transforms.json": collect_transforms_json, "blender": collect_blender,
+               "colmap": collect_colmap, "llff": collect_llff}[fmt]
+    return collect(path, load_extras=load_extras, **kwargs)
+
+
 def load_dataset(path, split: str | None = None, *, downscale: float = 1, load_extras: bool = True,
                  **kwargs) -> Dataset:
     """Loads any supported dataset (autodetected, see `detect_format`).
@@ -823,13 +884,8 @@ def load_dataset(path, split: str | None = None, *, downscale: float = 1, load_e
     split: None (all frames, `Dataset.split` says which are which) or a split name, which
     returns only those frames (`Dataset.subset`). Other keyword arguments go to the loader.
     """
-    path = Path(path)
-    fmt = detect_format(path)
-    if fmt == "llff" and path.is_file():
-        path = path.parent
-    loader = {"transforms.json": load_transforms_json, "blender": load_blender,
-              "colmap": load_colmap, "llff": load_llff}[fmt]
-    ds = loader(path, downscale=downscale, load_extras=load_extras, **kwargs)
+    scene = collect_scene(path, load_extras=load_extras, **kwargs)
+    ds = scene_to_dataset(scene, downscale=downscale, load_extras=load_extras)
     if split is None:
         return ds
     if split not in ds.split or len(ds.split[split]) == 0:
@@ -841,49 +897,88 @@ def load_dataset(path, split: str | None = None, *, downscale: float = 1, load_e
 # Writing
 
 
-def save_transforms_json(ds: Dataset, out_dir, *, overwrite: bool = False, image_ext: str = ".png") -> Path:
+_EXTRA_FILES = {  # Dataset field -> (JSON key, folder, extension)
+    "clean_images": ("clean_file_path", "clean", ".png"),
+    "depth": ("depth_file_path", "depth", ".exr"),
+    "semantics": ("semantic_file_path", "semantic", ".png"),
+    "distractor_masks": ("distractor_mask_path", "distractor", ".png"),
+    "masks": ("mask_path", "masks", ".png"),
+    "weights": ("weight_path", "weights", ".exr"),
+}
+
+
+def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: str | None = None,
+                extras: dict | None = None) -> dict:
+    """Writes one frame's files under `out_dir` and returns its transforms.json entry.
+
+    image: [H, W, 3] in [0, 1]; intrinsics: [4]; c2w: [4, 4]; extras: {Dataset field: array}
+    (clean_images [H, W, 3]; depth, weights [H, W] float; masks [H, W] in [0, 1]; semantics,
+    distractor_masks [H, W] uint8 / bool, written losslessly).
+    """
+    out_dir = Path(out_dir)
+    rel = f"images/{stem}.png"
+    io.write_png(out_dir / rel, image)
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    frame = {"file_path": rel, "transform_matrix": np.asarray(c2w, float).tolist(),
+             "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": int(image.shape[1]), "h": int(image.shape[0])}
+    if split is not None:
+        frame["split"] = split
+    for name, arr in (extras or {}).items():
+        if arr is None:
+            continue
+        key, folder, ext = _EXTRA_FILES[name]
+        frame[key] = f"{folder}/{stem}{ext}"
+        if ext == ".exr":
+            io.write_exr(out_dir / frame[key], np.asarray(arr, np.float32))
+        elif name in ("semantics", "distractor_masks"):
+            raw = np.asarray(arr)
+            raw = raw.astype(np.uint8) * (255 if raw.dtype == bool else 1)
+            io.write_png(out_dir / frame[key], raw.astype(np.float32) / 255.0)
+        else:
+            io.write_png(out_dir / frame[key], np.asarray(arr, np.float32))
+    return frame
+
+
+def transforms_top(width: int, height: int, near: float, far: float, normalization: dict, meta: dict,
+                   root, out_dir) -> dict:
+    """Top-level keys of a written transforms.json (copies `tower_ply` next to it)."""
+    top = {"w": int(width), "h": int(height), "camera_model": "PINHOLE", "near": float(near), "far": float(far),
+           "scene_normalization": {"scale": float(normalization["scale"]),
+                                   "translation": [float(v) for v in normalization["translation"]]}}
+    if "generator" in meta:
+        top["generator"] = meta["generator"]
+    tower = meta.get("tower_ply")
+    if tower and (Path(root) / tower).is_file():
+        io.atomic_write_bytes(Path(out_dir) / tower, (Path(root) / tower).read_bytes())
+        top["tower_ply"] = tower
+    return top
+
+
+def split_names(split: dict, num_frames: int) -> list:
+    """Per frame its split name ("train" / "test", first match; None when in neither)."""
+    names = [None] * num_frames
+    for name in ("train", "test"):
+        for i in np.asarray(split.get(name, []), np.int64):
+            if names[int(i)] is None:
+                names[int(i)] = name
+    return names
+
+
+def save_transforms_json(ds: Dataset, out_dir, *, overwrite: bool = False) -> Path:
     """Writes `ds` as a transforms.json dataset (docs/DATASET.md) under `out_dir`.
 
-    Images as 8-bit PNG in images/, masks in masks/, weights / depth as EXR. Refuses a
+    Images and masks as 8-bit PNG, weights / depth as EXR, per-frame intrinsics. Refuses a
     non-empty `out_dir` unless `overwrite`. Returns the path of transforms.json.
     """
     out = io.ensure_writable(out_dir, overwrite)
     out.mkdir(parents=True, exist_ok=True)
-    split_of = {}
-    for name in ("train", "test"):
-        for i in np.asarray(ds.split.get(name, []), np.int64):
-            split_of.setdefault(int(i), name)
+    names = split_names(ds.split, ds.num_frames)
     frames = []
     for i in range(ds.num_frames):
-        stem = Path(ds.frame_paths[i]).stem if ds.frame_paths else f"frame_{i:05d}"
-        stem = f"{i:05d}_{stem}"
-        rel = f"images/{stem}{image_ext}"
-        io.write_png(out / rel, ds.images[i])
-        fx, fy, cx, cy = (float(v) for v in ds.intrinsics[i])
-        frame = {"file_path": rel, "transform_matrix": np.asarray(ds.c2w[i], float).tolist(),
-                 "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy}
-        if i in split_of:
-            frame["split"] = split_of[i]
-        if ds.masks is not None:
-            frame["mask_path"] = f"masks/{stem}.png"
-            io.write_png(out / frame["mask_path"], ds.masks[i])
-        if ds.weights is not None:
-            frame["weight_path"] = f"weights/{stem}.exr"
-            io.write_exr(out / frame["weight_path"], ds.weights[i])
-        if ds.depth is not None:
-            frame["depth_file_path"] = f"depth/{stem}.exr"
-            io.write_exr(out / frame["depth_file_path"], ds.depth[i])
-        frames.append(frame)
-    top = {"w": ds.width, "h": ds.height, "camera_model": "PINHOLE", "near": float(ds.near),
-           "far": float(ds.far),
-           "scene_normalization": {"scale": float(ds.normalization["scale"]),
-                                   "translation": [float(v) for v in ds.normalization["translation"]]},
-           "frames": frames}
-    if "generator" in ds.meta:
-        top["generator"] = ds.meta["generator"]
-    tower = ds.meta.get("tower_ply")
-    if tower and (Path(ds.root) / tower).is_file():
-        io.atomic_write_bytes(out / tower, (Path(ds.root) / tower).read_bytes())
-        top["tower_ply"] = tower
+        stem = f"{i:05d}_{Path(ds.frame_paths[i]).stem}" if ds.frame_paths else f"{i:05d}"
+        extras = {name: None if getattr(ds, name) is None else getattr(ds, name)[i] for name in _EXTRA_FILES}
+        frames.append(write_frame(out, stem, ds.images[i], ds.intrinsics[i], ds.c2w[i], names[i], extras))
+    top = transforms_top(ds.width, ds.height, ds.near, ds.far, ds.normalization, ds.meta, ds.root, out)
+    top["frames"] = frames
     io.write_json(out / "transforms.json", top)
     return out / "transforms.json"
