@@ -5,9 +5,11 @@ What is here:
   * `clip_by_global_norm`, `global_norm`, `tree_all_finite`.
   * `adam`: an Adam `GradientTransformation` written in this project: a NamedTuple with
     `init(params) -> state` and `update(grads, state, params=None) -> (updates, state)`.
-    jaxopt's `OptaxSolver` only ever calls `opt.init` and `opt.update` and applies
-    `params + updates` itself, so it takes this object as its `opt`; jaxopt never imports
-    optax (optax is not even installed in the project's environment).
+    jaxopt's `OptaxSolver` (jaxopt/_src/optax_wrapper.py) only ever calls
+    `opt.init(params)` in `init_state` and `opt.update(grad, opt_state, params)` in `update`,
+    then applies `params + updates` (cast to each param's dtype) itself, so it takes this
+    object as its `opt`; jaxopt never imports optax (optax is not installed in the project's
+    environment, and the tests check `"optax" not in sys.modules`).
   * Steps driven by jaxopt:
       - `make_solver(loss_fn, opt)`: a `jaxopt.OptaxSolver` whose `fun(params, *args)`
         returns `(loss, aux)`; `guarded_update(solver, params, state, *args)` does one
@@ -33,8 +35,10 @@ Example, single device (the trainer's step):
     state = solver.init_state(params, batch, key)      # evaluates loss_fn once
     step = jax.jit(lambda p, s, b, k: guarded_update(solver, p, s, b, k))
     params, state, aux, finite = step(params, state, batch, key)
-    if not bool(finite):
-        log_nonfinite(global_step, aux)       # the step was skipped: params/state unchanged
+    if not bool(finite):                      # the step was skipped: params/state unchanged
+        log_nonfinite(global_step)            # (put the loss into aux to log it too)
+    # state.value: this step's loss; state.error: L2 norm of the (unclipped) gradient;
+    # state.internal_state: the AdamState (count, mu, nu) to checkpoint with the params.
 
 Example, data parallel with pmap (gradients averaged across devices):
 
@@ -64,11 +68,15 @@ learning-rate schedule inside `adam`) does not advance on it; the trainer's own 
 from __future__ import annotations
 
 import logging
+import warnings
 from typing import Any, Callable, NamedTuple
 
 import jax
 import jax.numpy as jnp
-import jaxopt
+
+with warnings.catch_warnings():  # jaxopt 0.8.x warns on import that it is unmaintained
+    warnings.simplefilter("ignore", DeprecationWarning)
+    import jaxopt
 from jaxopt._src.optax_wrapper import OptaxState
 
 logger = logging.getLogger(__name__)

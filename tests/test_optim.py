@@ -69,8 +69,9 @@ def test_adam_schedule_and_clipping_match_torch_through_solver():
     solver = optim.make_solver(lambda p: (rosenbrock_jax(p), None), opt)
     params = {"x": jnp.asarray(X0), "y": jnp.asarray(Y0)}
     state = solver.init_state(params)
+    step = jax.jit(lambda p, s: optim.guarded_update(solver, p, s))
     for _ in range(50):
-        params, state, _, finite = optim.guarded_update(solver, params, state)
+        params, state, _, finite = step(params, state)
         assert bool(finite)
 
     def lam(i):  # the closed form, written independently of the code
@@ -163,13 +164,14 @@ def test_guarded_apply():
     opt = optim.adam(0.1)
     params = {"w": jnp.array([1.0, -1.0])}
     state = opt.init(params)
-    p1, s1, finite = optim.guarded_apply(opt, params, state, {"w": jnp.array([1.0, jnp.nan])}, 1.0)
+    apply = jax.jit(lambda p, s, g, l: optim.guarded_apply(opt, p, s, g, l))
+    p1, s1, finite = apply(params, state, {"w": jnp.array([1.0, jnp.nan])}, 1.0)
     assert not bool(finite)
     np.testing.assert_array_equal(np.asarray(p1["w"]), [1.0, -1.0])
     assert int(s1.count) == 0
-    p2, s2, finite = optim.guarded_apply(opt, params, state, {"w": jnp.array([1.0, -2.0])}, jnp.inf)
+    p2, s2, finite = apply(params, state, {"w": jnp.array([1.0, -2.0])}, jnp.inf)
     assert not bool(finite) and int(s2.count) == 0
-    p3, s3, finite = optim.guarded_apply(opt, params, state, {"w": jnp.array([1.0, -2.0])}, 1.0)
+    p3, s3, finite = apply(params, state, {"w": jnp.array([1.0, -2.0])}, 1.0)
     assert bool(finite) and int(s3.count) == 1
     np.testing.assert_allclose(np.asarray(p3["w"]), [0.9, -0.9], atol=1e-6)
 
@@ -209,8 +211,9 @@ def test_pmap_paths_match_single_device_full_batch():
     single = optim.make_solver(loss, opt)
     state = single.init_state(params, a, b)
     p_ref = params
+    single_step = jax.jit(lambda p, s, a, b: optim.guarded_update(single, p, s, a, b))
     for _ in range(5):
-        p_ref, state, _, _ = optim.guarded_update(single, p_ref, state, a, b)
+        p_ref, state, _, _ = single_step(p_ref, state, a, b)
 
     rep = lambda t: jax.tree_util.tree_map(lambda x: jnp.stack([x] * n), t)  # noqa: E731
     a_s, b_s = a.reshape(n, -1, 3), b.reshape(n, -1)
