@@ -32,7 +32,6 @@ import os
 import re
 import tempfile
 import warnings
-import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -189,7 +188,8 @@ def save_checkpoint(run_dir: str | os.PathLike, step: int, state: Any, keep: int
     """Writes `state` (any pytree of arrays / PRNG keys / scalars) as the checkpoint of `step`.
 
     Atomic (temporary file in the same folder + flush + fsync + os.replace + fsync of the
-    folder). Afterwards deletes the oldest `ckpt_*.npz` so that `keep` remain (never the one
+    folder); temporary files left by an earlier writer that was killed are removed first
+    (one writer per run directory is assumed). Afterwards deletes the oldest `ckpt_*.npz` so that `keep` remain (never the one
     just written); keep=None keeps all. Returns the checkpoint's path.
     """
     if int(step) < 0:
@@ -211,6 +211,11 @@ def save_checkpoint(run_dir: str | os.PathLike, step: int, state: Any, keep: int
     manifest = {"format": FORMAT, "version": VERSION, "step": int(step), "leaves": entries}
     arrays[_MANIFEST] = np.frombuffer(json.dumps(manifest).encode("utf-8"), dtype=np.uint8)
 
+    for stale in folder.glob(".ckpt_*.tmp"):  # left by a writer killed outright (SIGKILL)
+        try:
+            stale.unlink()
+        except OSError:
+            pass
     fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
     try:
         with os.fdopen(fd, "wb") as handle:
@@ -247,7 +252,9 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
         with np.load(io.BytesIO(raw), allow_pickle=False) as npz:
             arrays = {name: npz[name] for name in npz.files}  # reading checks each member's CRC
         manifest = json.loads(arrays.pop(_MANIFEST).tobytes().decode("utf-8"))
-    except (zipfile.BadZipFile, OSError, ValueError, KeyError, EOFError, UnicodeDecodeError) as err:
+    except Exception as err:  # noqa: BLE001 - any failure to parse the file means damage
+        # (seen: BadZipFile incl. bad CRC, NotImplementedError for a flipped compression
+        # field, ValueError / KeyError / EOFError / UnicodeDecodeError / JSONDecodeError)
         raise CorruptCheckpointError(f"{path}: unreadable checkpoint ({type(err).__name__}: {err})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise CorruptCheckpointError(f"{path}: not a {FORMAT} file (bad manifest)")

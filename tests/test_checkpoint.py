@@ -87,6 +87,7 @@ def test_crash_during_write_leaves_no_checkpoint_file(tmp_path, monkeypatch):
         handle.write(b"PK\x03\x04 partial zip bytes")
         raise OSError("disk full (simulated)")
 
+    (tmp_path / "checkpoints" / ".ckpt_00000009.npz.abc.tmp").write_bytes(b"stale")  # a killed writer's
     monkeypatch.setattr(ckpt, "_write_npz", broken_writer)
     with pytest.raises(OSError, match="simulated"):
         ckpt.save_checkpoint(tmp_path, 2, {"w": jnp.ones(2)}, keep=1)
@@ -95,21 +96,24 @@ def test_crash_during_write_leaves_no_checkpoint_file(tmp_path, monkeypatch):
     assert step == 1
 
 
-@pytest.mark.parametrize("damage", ["garbage", "truncate"])
+@pytest.mark.parametrize("damage", ["garbage", "truncate", "bitflip"])
 def test_corrupt_newest_falls_back_with_warning(tmp_path, damage):
     for step in (1, 2):
-        ckpt.save_checkpoint(tmp_path, step, {"w": jnp.full(4, float(step))})
+        ckpt.save_checkpoint(tmp_path, step, {"w": jnp.arange(4, dtype=jnp.float32) + step})
     newest = ckpt.latest_checkpoint(tmp_path)
+    raw = newest.read_bytes()
     if damage == "garbage":
         newest.write_bytes(b"this is not a zip file at all" * 10)
-    else:
-        raw = newest.read_bytes()
+    elif damage == "truncate":
         newest.write_bytes(raw[: len(raw) // 2])
+    else:  # one flipped bit inside the stored array data: caught by the zip member's CRC
+        at = raw.index((np.arange(4, dtype=np.float32) + 2).tobytes()) + 5
+        newest.write_bytes(raw[:at] + bytes([raw[at] ^ 0x01]) + raw[at + 1:])
     with pytest.raises(ckpt.CorruptCheckpointError, match="ckpt_00000002"):
         ckpt.load_checkpoint(newest, {"w": jnp.zeros(4)})
     with pytest.warns(RuntimeWarning, match="ckpt_00000002"):
         restored, step = ckpt.restore_latest(tmp_path, {"w": jnp.zeros(4)})
-    assert step == 1 and np.all(np.asarray(restored["w"]) == 1.0)
+    assert step == 1 and np.array_equal(np.asarray(restored["w"]), np.arange(4) + 1.0)
     # all unreadable -> a clear error rather than a silent restart
     ckpt.checkpoint_path(tmp_path, 1).write_bytes(b"junk")
     with pytest.warns(RuntimeWarning), pytest.raises(ckpt.CorruptCheckpointError, match="no readable"):
