@@ -266,6 +266,9 @@ def test_transforms_json_with_extras(tmp_path):
     assert ds.distractor_masks.dtype == bool and ds.distractor_masks[0, 6, 6] and ds.distractor_masks.sum() == 27
     np.testing.assert_array_equal(ds.clean_images[0], ds.images[0])  # no clean file: the image
     np.testing.assert_allclose(ds.clean_images[1], 0.5, atol=1 / 255)
+    keep = formats.load_dataset(tmp_path, mask_convention="keep")  # nerfstudio: 1 = keep the pixel
+    np.testing.assert_array_equal(keep.masks, 1.0 - ds.masks)
+    np.testing.assert_array_equal(keep.weights, ds.masks)
     bare = formats.load_transforms_json(tmp_path / "transforms.json", load_extras=False)
     assert bare.masks is None and bare.weights is None and bare.depth is None
 

@@ -310,6 +310,8 @@ def read_frame(scene: Scene, index: int, load_extras: bool = True) -> dict:
             if path is None:
                 continue
             arr = _read_extra(kind, path, scene.background, scene.honour_exif)
+            if name == "masks" and scene.meta.get("mask_convention") == "keep":
+                arr = 1.0 - arr  # nerfstudio: 1 = train on the pixel; M is the opposite
             if arr.shape[:2] != (h, w):
                 raise DataError(f"{path}: is {arr.shape[1]}x{arr.shape[0]} but its image "
                                 f"{frame.image_path.name} is {w}x{h} (size mismatch)")
@@ -527,13 +529,18 @@ def load_transforms_json(path, *, downscale: float = 1, load_extras: bool = True
 
 
 def collect_transforms_json(path, *, load_extras: bool = True, normalize=None, background=None,
-                            undistort: bool = True, honour_exif: bool = True, test_every: int = 8) -> Scene:
+                            undistort: bool = True, honour_exif: bool = True, test_every: int = 8,
+                            mask_convention: str = "foreground") -> Scene:
     """Collects a nerfstudio / instant-ngp `transforms.json` (docs/DATASET.md).
 
     path: the JSON file or its folder. normalize: None (normalise unless the file carries
     `scene_normalization`), True (always), False (never). background: [3] RGB to composite
-    RGBA images over (None: alpha dropped).
+    RGBA images over (None: alpha dropped). mask_convention: "foreground" (docs/DATASET.md:
+    `mask_path` is the foreground mask M, 1 = excluded) or "keep" (nerfstudio's own
+    convention: 1 = train on the pixel), which is inverted on load.
     """
+    if mask_convention not in ("foreground", "keep"):
+        raise ValueError(f"mask_convention must be 'foreground' or 'keep', got {mask_convention!r}")
     path = Path(path)
     json_path = path / "transforms.json" if path.is_dir() else path
     top = io.read_json(json_path)
@@ -543,10 +550,12 @@ def collect_transforms_json(path, *, load_extras: bool = True, normalize=None, b
     if not isinstance(frames, list) or not frames:
         raise DataError(f"{json_path}: no frames (empty split)")
     split = _json_split(top, json_path, test_every)
-    return _collect_json([(json_path, f) for f in frames], top, json_path, json_path.parent,
-                         load_extras=load_extras, background=background, normalize=normalize,
-                         undistort=undistort, honour_exif=honour_exif, split=split,
-                         near_far_default=None, fmt="transforms.json")
+    scene = _collect_json([(json_path, f) for f in frames], top, json_path, json_path.parent,
+                          load_extras=load_extras, background=background, normalize=normalize,
+                          undistort=undistort, honour_exif=honour_exif, split=split,
+                          near_far_default=None, fmt="transforms.json")
+    scene.meta["mask_convention"] = mask_convention
+    return scene
 
 
 def _json_split(top: dict, json_path: Path, test_every: int) -> dict:
