@@ -33,7 +33,8 @@ def unshard(tree):
 def replicate(tree, n: int | None = None):
     """Copies every leaf to each local device: [...] -> [n, ...]."""
     n = n or num_devices()
-    return jax.device_put_replicated(tree, jax.local_devices()[:n])
+    # jax.device_put_replicated is gone from current JAX; pmap shards a stacked leading axis.
+    return jax.tree_util.tree_map(lambda x: jnp.stack([jnp.asarray(x)] * n), tree)
 
 
 def pad_to_multiple(x: jnp.ndarray, multiple: int) -> tuple[jnp.ndarray, int]:

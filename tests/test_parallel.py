@@ -44,3 +44,12 @@ def test_shard_unshard_round_trip_and_errors():
     np.testing.assert_array_equal(np.asarray(parallel.unshard(parallel.shard(x, 2))), np.asarray(x))
     with pytest.raises(ValueError, match="does not divide"):
         parallel.shard(jnp.ones((5, 2)), 2)
+
+
+def test_replicate_feeds_pmap():
+    n = jax.local_device_count()
+    params = {"w": jnp.arange(3.0), "b": jnp.asarray(2.0)}
+    rep = parallel.replicate(params, n)
+    assert rep["w"].shape == (n, 3) and rep["b"].shape == (n,)
+    out = jax.pmap(lambda p: p["w"] * p["b"])(rep)
+    np.testing.assert_allclose(np.asarray(out), np.tile([0.0, 2.0, 4.0], (n, 1)))
