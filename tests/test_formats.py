@@ -266,6 +266,13 @@ def test_transforms_json_with_extras(tmp_path):
     assert ds.distractor_masks.dtype == bool and ds.distractor_masks[0, 6, 6] and ds.distractor_masks.sum() == 27
     np.testing.assert_array_equal(ds.clean_images[0], ds.images[0])  # no clean file: the image
     np.testing.assert_allclose(ds.clean_images[1], 0.5, atol=1 / 255)
+    again = formats.load_dataset(tmp_path, normalize=True, load_extras=False)  # composed maps
+    metric = np.array([[0.0, 0.0, 20.0], [1.0, -2.0, 3.0]])
+    np.testing.assert_allclose(
+        apply_normalization_to_points(metric, again.normalization),
+        apply_normalization_to_points(apply_normalization_to_points(metric, ds.normalization),
+                                      {"scale": again.normalization["scale"] / 0.05,
+                                       "translation": -optical_axis_focus(c2w_ref)[0]}), atol=1e-9)
     keep = formats.load_dataset(tmp_path, mask_convention="keep")  # nerfstudio: 1 = keep the pixel
     np.testing.assert_array_equal(keep.masks, 1.0 - ds.masks)
     np.testing.assert_array_equal(keep.weights, ds.masks)

@@ -46,7 +46,8 @@ import numpy as np
 from jaxnerf_grid import io
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.data.normalize import apply_normalization_to_points, normalize_poses
+from jaxnerf_grid.data.normalize import (apply_normalization_to_points, compose_normalization,
+                                         normalize_poses)
 from jaxnerf_grid.io import DataError
 
 DEFAULT_NEAR = 0.05   # normalised units; cameras usually sit 1.5-3 units from the centre
@@ -487,26 +488,34 @@ def _json_intrinsics(fr: _Frame, json_path: Path, width: int, height: int) -> np
 
 
 def _normalise_json(c2w: np.ndarray, top: dict, json_path: Path, normalize, near_far_default):
-    """Applies the normalisation policy of transforms.json; returns (c2w, norm, near, far)."""
+    """Applies the normalisation policy of transforms.json; returns (c2w, norm, near, far).
+
+    A file with `scene_normalization` is taken as normalised (its near/far as they are) unless
+    `normalize=True`, which normalises again and composes the two maps.
+    """
     near, far = top.get("near"), top.get("far")
-    if "scene_normalization" in top and normalize is not True:
+    base = None
+    if "scene_normalization" in top:
         sn = top["scene_normalization"]
         try:
-            norm = {"scale": float(sn["scale"]), "translation": [float(v) for v in sn["translation"]]}
+            base = {"scale": float(sn["scale"]), "translation": [float(v) for v in sn["translation"]]}
         except (KeyError, TypeError, ValueError):
             raise DataError(f"{json_path}: scene_normalization needs 'scale' and 'translation' [3]") from None
-        near = DEFAULT_NEAR if near is None else float(near)
-        far = DEFAULT_FAR if far is None else float(far)
-        return c2w, norm, near, far
-    if normalize is False:
-        norm = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
-    else:
-        c2w, norm = normalize_poses(c2w)
-    if near is None and near_far_default is not None:
+        if len(base["translation"]) != 3 or not base["scale"] > 0:
+            raise DataError(f"{json_path}: scene_normalization needs a positive scale and a 3-vector translation")
+        if normalize is not True:
+            near = DEFAULT_NEAR if near is None else float(near)
+            far = DEFAULT_FAR if far is None else float(far)
+            return c2w, base, near, far
+    base = base or {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
+    extra = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
+    if normalize is not False:
+        c2w, extra = normalize_poses(c2w)
+    if near is None and near_far_default is not None and "scene_normalization" not in top:
         near, far = near_far_default
-    near = DEFAULT_NEAR if near is None else float(near) * norm["scale"]
-    far = DEFAULT_FAR if far is None else float(far) * norm["scale"]
-    return c2w, norm, near, far
+    near = DEFAULT_NEAR if near is None else float(near) * extra["scale"]
+    far = DEFAULT_FAR if far is None else float(far) * extra["scale"]
+    return c2w, compose_normalization(base, extra), near, far
 
 
 def _collect_json(entries, top: dict, json_path: Path, root: Path, *, load_extras, background,
