@@ -214,7 +214,9 @@ class _Frame:
         self.image_path = image_path
         self.c2w = c2w
         # [4] at the stated size, or a function (W, H) -> [4] evaluated once the image is read
-        self.intrinsics = intrinsics if callable(intrinsics) or intrinsics is None else np.asarray(intrinsics, np.float64)
+        if not (callable(intrinsics) or intrinsics is None):
+            intrinsics = np.asarray(intrinsics, np.float64)
+        self.intrinsics = intrinsics
         self.size = size  # (W, H) the intrinsics refer to, or None (take the image's)
         self.dist = None if dist is None or not np.any(np.asarray(dist)) else np.asarray(dist, np.float64)
         self.extras = extras or {}  # field -> Path
@@ -502,7 +504,8 @@ def _normalise_json(c2w: np.ndarray, top: dict, json_path: Path, normalize, near
         except (KeyError, TypeError, ValueError):
             raise DataError(f"{json_path}: scene_normalization needs 'scale' and 'translation' [3]") from None
         if len(base["translation"]) != 3 or not base["scale"] > 0:
-            raise DataError(f"{json_path}: scene_normalization needs a positive scale and a 3-vector translation")
+            raise DataError(f"{json_path}: scene_normalization needs a positive scale and a "
+                            f"3-vector translation")
         if normalize is not True:
             near = DEFAULT_NEAR if near is None else float(near)
             far = DEFAULT_FAR if far is None else float(far)
@@ -746,6 +749,9 @@ def collect_colmap(path, *, images_dir=None, undistort: bool = True, normalize: 
                             f"{im.camera_id}, which {cameras_file.name} does not define")
         cam = cameras[im.camera_id]
         intr, dist = colmap_io.pinhole_and_distortion(cam, cameras_file)
+        if not np.all(np.isfinite(cam.params)) or min(intr[0], intr[1], cam.width, cam.height) <= 0:
+            raise DataError(f"{cameras_file}: camera {cam.id} has invalid parameters "
+                            f"{cam.model} {cam.width}x{cam.height} {cam.params.tolist()}")
         source = f"{model_dir / f'images{ext}'} (image {im.name})"
         q = np.asarray(im.qvec, np.float64)
         if not np.all(np.isfinite(q)) or not np.all(np.isfinite(im.tvec)) or np.linalg.norm(q) < 1e-8:
@@ -840,8 +846,8 @@ def collect_llff(path, *, images_dir=None, normalize: str | bool = "cameras", ho
         pose_intr = np.array([focal, focal, 0.5 * w, 0.5 * h])
         min_cos = min(min_cos, min_ray_cosine(pose_intr, w, h))
         # images may be a downsampled copy (images_4/): intrinsics follow the actual image size
-        frames.append(_Frame(img_path, c2w, functools.partial(_llff_intrinsics, pose_intr, (w, h), img_path, npy),
-                             None, None, None, source))
+        intr_fn = functools.partial(_llff_intrinsics, pose_intr, (w, h), img_path, npy)
+        frames.append(_Frame(img_path, c2w, intr_fn, None, None, None, source))
     c2w = np.stack([f.c2w for f in frames])
     if normalize is False:
         norm = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
@@ -960,7 +966,8 @@ def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: s
 def transforms_top(width: int, height: int, near: float, far: float, normalization: dict, meta: dict,
                    root, out_dir) -> dict:
     """Top-level keys of a written transforms.json (copies `tower_ply` next to it)."""
-    top = {"w": int(width), "h": int(height), "camera_model": "PINHOLE", "near": float(near), "far": float(far),
+    top = {"w": int(width), "h": int(height), "camera_model": "PINHOLE",
+           "near": float(near), "far": float(far),
            "scene_normalization": {"scale": float(normalization["scale"]),
                                    "translation": [float(v) for v in normalization["translation"]]}}
     if "generator" in meta:

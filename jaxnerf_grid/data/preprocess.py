@@ -153,7 +153,8 @@ def _preprocess_scene(scene: formats.Scene, out: Path, size, opts: dict, load_ex
     out.mkdir(parents=True, exist_ok=True)
     names = formats.split_names(scene.split, len(scene.frames))
     common, frames = None, []
-    for i in tqdm(range(len(scene.frames)), desc="preprocessing", disable=len(scene.frames) < 16, leave=False):
+    num = len(scene.frames)
+    for i in tqdm(range(num), desc="preprocessing", disable=num < 16, leave=False):
         fr = formats.read_frame(scene, i, load_extras)
         h, w = fr["image"].shape[:2]
         common = common or target_size(w, h, size)
@@ -202,7 +203,8 @@ def _preprocess_dataset(ds: Dataset, out: Path, size, opts: dict) -> Path:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="python -m jaxnerf_grid.data.preprocess",
                                      description="Uniform preprocessing: common size, normalisation, CLAHE.")
-    parser.add_argument("src", help="a folder of images or a dataset (transforms.json, Blender, COLMAP, LLFF)")
+    parser.add_argument("src", help="a folder of images, or a dataset (transforms.json, Blender, "
+                                    "COLMAP, LLFF)")
     parser.add_argument("out", help="output folder")
     group = parser.add_mutually_exclusive_group()
     group.add_argument("--size", type=int, nargs=2, metavar=("W", "H"), help="resize every image to W x H")
