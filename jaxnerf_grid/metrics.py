@@ -76,16 +76,29 @@ def gaussian_window(size: int = WIN_SIZE, sigma: float = WIN_SIGMA) -> np.ndarra
     return (g / g.sum()).astype(np.float32)
 
 
+def _shifted_sum(x, win, axis: int):
+    """'Valid' 1-D correlation along `axis`: sum_i win[i] * x[i : i + n - k + 1] (a fori_loop
+    over the k taps keeps XLA compile time small; the result does not depend on that choice).
+
+    x: [..., n, ...]; win: [k] -> [..., n - k + 1, ...].
+    """
+    k = win.shape[0]
+    n_out = x.shape[axis] - k + 1
+    out_shape = x.shape[:axis] + (n_out,) + x.shape[axis + 1:]
+
+    def tap(i, acc):
+        return acc + win[i] * jax.lax.dynamic_slice_in_dim(x, i, n_out, axis=axis)
+
+    return jax.lax.fori_loop(0, k, tap, jnp.zeros(out_shape, x.dtype))
+
+
 def _filter_valid(x, win: np.ndarray):
-    """Separable 'valid' filtering of the two spatial axes.
+    """Separable 'valid' filtering of the two spatial axes (no padding).
 
     x: [..., H, W, C]; win: [k] -> [..., H-k+1, W-k+1, C].
     """
-    k = win.shape[0]
-    h, w = x.shape[-3], x.shape[-2]
-    x = sum(float(win[i]) * x[..., i:i + h - k + 1, :, :] for i in range(k))
-    x = sum(float(win[i]) * x[..., :, i:i + w - k + 1, :] for i in range(k))
-    return x
+    win = jnp.asarray(win, x.dtype)
+    return _shifted_sum(_shifted_sum(x, win, x.ndim - 3), win, x.ndim - 2)
 
 
 def _ssim_and_cs(x, y):
@@ -93,15 +106,15 @@ def _ssim_and_cs(x, y):
 
     x, y: [..., H, W, C] with H, W >= 11 -> (ssim [..., C], cs [..., C]).
     """
-    win = gaussian_window()
+    c = x.shape[-1]
     c1 = K1**2
     c2 = K2**2
-    mu1 = _filter_valid(x, win)
-    mu2 = _filter_valid(y, win)
+    stats = _filter_valid(jnp.concatenate([x, y, x * x, y * y, x * y], axis=-1), gaussian_window())
+    mu1, mu2, xx, yy, xy = (stats[..., i * c:(i + 1) * c] for i in range(5))
     mu1_sq, mu2_sq, mu12 = mu1 * mu1, mu2 * mu2, mu1 * mu2
-    s1 = _filter_valid(x * x, win) - mu1_sq
-    s2 = _filter_valid(y * y, win) - mu2_sq
-    s12 = _filter_valid(x * y, win) - mu12
+    s1 = xx - mu1_sq
+    s2 = yy - mu2_sq
+    s12 = xy - mu12
     cs_map = (2.0 * s12 + c2) / (s1 + s2 + c2)
     ssim_map = (2.0 * mu12 + c1) / (mu1_sq + mu2_sq + c1) * cs_map
     return jnp.mean(ssim_map, axis=(-3, -2)), jnp.mean(cs_map, axis=(-3, -2))
@@ -122,6 +135,12 @@ def ssim(pred, target):
     target = jnp.asarray(target, jnp.float32)
     _check_pair(pred, target, "ssim")
     _check_min_size(pred.shape, "ssim")
+    return _ssim_core(pred, target)
+
+
+@jax.jit
+def _ssim_core(pred, target):
+    """pred, target: [..., H, W, C] -> [...]."""
     s, _ = _ssim_and_cs(pred, target)
     return jnp.mean(s, axis=-1)
 
@@ -186,6 +205,12 @@ def ms_ssim(pred, target, num_scales: int | None = None):
         raise ValueError(
             f"ms_ssim: {num_scales} scales need min(H, W) > {(WIN_SIZE - 1) * 2 ** (num_scales - 1)},"
             f" image is {h}x{w} (at most {max_scales} scales)")
+    return _ms_ssim_core(pred, target, num_scales)
+
+
+@functools.partial(jax.jit, static_argnums=2)
+def _ms_ssim_core(pred, target, num_scales: int):
+    """pred, target: [..., H, W, C] -> [...]."""
     weights = ms_ssim_weights(num_scales)
     x, y = pred, target
     terms = []
@@ -202,8 +227,6 @@ def ms_ssim(pred, target, num_scales: int | None = None):
 
 
 _psnr_jit = jax.jit(psnr)
-_ssim_jit = jax.jit(ssim)
-_ms_ssim_jit = jax.jit(ms_ssim, static_argnames=("num_scales",))
 
 
 def evaluate_image(pred, target, lpips_params=None, mask=None) -> dict:
@@ -223,8 +246,8 @@ def evaluate_image(pred, target, lpips_params=None, mask=None) -> dict:
     n = ms_ssim_scales(pred.shape[0], pred.shape[1])
     out = {
         "psnr": float(_psnr_jit(pred, target)),
-        "ssim": float(_ssim_jit(pred, target)),
-        "ms_ssim": float(_ms_ssim_jit(pred, target, num_scales=n)),
+        "ssim": float(ssim(pred, target)),
+        "ms_ssim": float(ms_ssim(pred, target, num_scales=n)),
         "ms_ssim_scales": n,
         "lpips": None,
     }
