@@ -373,3 +373,43 @@ def test_normalize_poses_conventions():
     ff = np.stack([np.asarray(rays.look_at([x, 0, 0], [x, 5.0, 0]), np.float64) for x in (-1, 0, 1)])
     _, norm_f = normalize_poses(ff, focus_depth=5.0)
     np.testing.assert_allclose(norm_f["translation"], [0, -5.0, 0], atol=1e-6)
+
+
+def test_colmap_text_as_colmap_writes_it(tmp_path):
+    """A hand-written model in COLMAP's documented text layout: comments, an image whose
+    points line is empty, a name with a sub-folder, points3D with tracks."""
+    sparse = tmp_path / "sparse" / "0"
+    sparse.mkdir(parents=True)
+    (sparse / "cameras.txt").write_text(
+        "# Camera list with one line of data per camera:\n"
+        "#   CAMERA_ID, MODEL, WIDTH, HEIGHT, PARAMS[]\n"
+        "# Number of cameras: 2\n"
+        f"1 SIMPLE_PINHOLE {W} {H} 30 20 15\n"
+        f"2 PINHOLE {W} {H} 31 32 19.5 14.5\n")
+    (sparse / "images.txt").write_text(
+        "# Image list with two lines of data per image:\n"
+        "#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n"
+        "#   POINTS2D[] as (X, Y, POINT3D_ID)\n"
+        "# Number of images: 2, mean observations per image: 1.5\n"
+        "1 1 0 0 0 0 0 4 1 sub/a.png\n"
+        "10.5 11.5 7 3.0 4.0 -1\n"
+        "2 0 1 0 0 0.5 0 4 2 sub/b.png\n"
+        "\n")
+    (sparse / "points3D.txt").write_text(
+        "# 3D point list with one line of data per point:\n"
+        "7 0.1 0.2 0.3 255 128 0 0.75 1 0 2 5\n")
+    cams, imgs, pts = colmap_io.read_model(sparse)
+    assert cams[1].model == "SIMPLE_PINHOLE" and cams[2].params.tolist() == [31, 32, 19.5, 14.5]
+    assert imgs[1].name == "sub/a.png" and imgs[1].point3D_ids.tolist() == [7, -1]
+    np.testing.assert_array_equal(imgs[1].xys, [[10.5, 11.5], [3.0, 4.0]])
+    assert imgs[2].name == "sub/b.png" and len(imgs[2].point3D_ids) == 0
+    assert pts[7].rgb.tolist() == [255, 128, 0] and pts[7].track.tolist() == [[1, 0], [2, 5]]
+    for name in ("a", "b"):
+        io.write_png(tmp_path / "images" / "sub" / f"{name}.png", np.zeros((H, W, 3), np.float32))
+    ds = formats.load_dataset(tmp_path, normalize=False, test_every=2)
+    assert ds.frame_paths == ["images/sub/a.png", "images/sub/b.png"]
+    np.testing.assert_allclose(ds.intrinsics, [[30, 30, 20, 15], [31, 32, 19.5, 14.5]])
+    # image 1: identity rotation, camera centre -R^T t = (0, 0, -4); OpenGL axes flip y and z
+    np.testing.assert_allclose(ds.c2w[0], [[1, 0, 0, 0], [0, -1, 0, 0], [0, 0, -1, -4], [0, 0, 0, 1]], atol=1e-6)
+    # image 2: 180 degrees about x (q = (0, 1, 0, 0)): R = diag(1, -1, -1); centre = -R^T t
+    np.testing.assert_allclose(ds.c2w[1], [[1, 0, 0, -0.5], [0, 1, 0, 0], [0, 0, 1, 4], [0, 0, 0, 1]], atol=1e-6)
