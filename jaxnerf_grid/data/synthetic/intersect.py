@@ -26,7 +26,7 @@ KINDS = ("capsule", "cylinder", "ellipsoid", "box")
 
 
 def _dot(x, y):
-    return np.sum(x * y, axis=-1)
+    return np.einsum("...i,...i->...", x, y)
 
 
 def _first_positive(*ts):
@@ -45,49 +45,46 @@ def intersect_ground(o: np.ndarray, d: np.ndarray) -> np.ndarray:
     return np.where((d[:, 2] < 0) & (o[:, 2] > 0) & (t > T_EPS), t, np.inf)
 
 
-def intersect_capsule(o, d, a, b, r):
-    """o, d: [N, 3]; a, b: [M, 3]; r: [M]. Returns t [N, M]."""
+def _axis_terms(o, d, a, b, r):
+    """Shared terms of the capsule / cylinder tests, all [N, M], from matrix products only
+    (no [N, M, 3] temporaries). d must be unit length."""
     axis = b - a
     length = np.linalg.norm(axis, axis=-1)
     u = axis / np.maximum(length, 1e-12)[:, None]                      # [M, 3]
-    oa = o[:, None, :] - a[None]                                      # [N, M, 3]
-    du = d @ u.T                                                      # [N, M]
-    oau = _dot(oa, u[None])                                           # [N, M]
-    d_perp = d[:, None, :] - du[..., None] * u[None]
-    oa_perp = oa - oau[..., None] * u[None]
-    qa = _dot(d_perp, d_perp)
-    qb = _dot(d_perp, oa_perp)
-    qc = _dot(oa_perp, oa_perp) - r[None] ** 2
+    du = d @ u.T                                                      # d.u
+    oau = o @ u.T - np.sum(a * u, -1)[None]                           # (o - a).u
+    d_oa = np.sum(d * o, -1)[:, None] - d @ a.T                       # d.(o - a)
+    oa2 = np.sum(o * o, -1)[:, None] - 2.0 * (o @ a.T) + np.sum(a * a, -1)[None]   # |o - a|^2
+    qa = 1.0 - du * du                                                # |d_perp|^2
+    qb = d_oa - du * oau                                              # d_perp . oa_perp
+    qc = oa2 - oau * oau - r[None] ** 2                               # |oa_perp|^2 - r^2
+    return length, du, oau, d_oa, oa2, qa, qb, qc
+
+
+def intersect_capsule(o, d, a, b, r):
+    """o, d: [N, 3]; a, b: [M, 3]; r: [M]. Returns t [N, M]."""
+    length, du, oau, d_oa, oa2, qa, qb, qc = _axis_terms(o, d, a, b, r)
     disc = qb * qb - qa * qc
     with np.errstate(divide="ignore", invalid="ignore"):
         sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
         t_body = (-qb - sq) / qa
         y = oau + t_body * du
-        t_body = np.where((y >= 0) & (y <= length[None]) & (qa > 1e-14), t_body, np.nan)
-    t_caps = []
-    for end in (a, b):
-        oc = o[:, None, :] - end[None]
-        sb = _dot(oc, d[:, None, :])
-        sc = _dot(oc, oc) - r[None] ** 2
-        sd = sb * sb - sc
-        with np.errstate(invalid="ignore"):
-            t_caps.append(-sb - np.sqrt(np.where(sd >= 0, sd, np.nan)))
-    return _first_positive(t_body, *t_caps)
+        t_body = np.where((y >= 0) & (y <= length[None]) & (qa > 1e-12), t_body, np.nan)
+        r2 = r[None] ** 2
+        # Sphere at a: |o - a + t d|^2 = r^2.
+        sd = d_oa * d_oa - (oa2 - r2)
+        t_a = -d_oa - np.sqrt(np.where(sd >= 0, sd, np.nan))
+        # Sphere at b: o - b = (o - a) - L u.
+        d_ob = d_oa - length[None] * du
+        ob2 = oa2 - 2.0 * length[None] * oau + length[None] ** 2
+        sd = d_ob * d_ob - (ob2 - r2)
+        t_b = -d_ob - np.sqrt(np.where(sd >= 0, sd, np.nan))
+    return _first_positive(t_body, t_a, t_b)
 
 
 def intersect_cylinder(o, d, a, b, r):
     """Capped cylinder. o, d: [N, 3]; a, b: [M, 3]; r: [M]. Returns t [N, M]."""
-    axis = b - a
-    length = np.linalg.norm(axis, axis=-1)
-    u = axis / np.maximum(length, 1e-12)[:, None]
-    oa = o[:, None, :] - a[None]
-    du = d @ u.T
-    oau = _dot(oa, u[None])
-    d_perp = d[:, None, :] - du[..., None] * u[None]
-    oa_perp = oa - oau[..., None] * u[None]
-    qa = _dot(d_perp, d_perp)
-    qb = _dot(d_perp, oa_perp)
-    qc = _dot(oa_perp, oa_perp) - r[None] ** 2
+    length, du, oau, d_oa, oa2, qa, qb, qc = _axis_terms(o, d, a, b, r)
     disc = qb * qb - qa * qc
     cands = []
     with np.errstate(divide="ignore", invalid="ignore"):
@@ -95,21 +92,29 @@ def intersect_cylinder(o, d, a, b, r):
         for sign in (-1.0, 1.0):
             t = (-qb + sign * sq) / qa
             y = oau + t * du
-            cands.append(np.where((y >= 0) & (y <= length[None]) & (qa > 1e-14), t, np.nan))
+            cands.append(np.where((y >= 0) & (y <= length[None]) & (qa > 1e-12), t, np.nan))
         for level in (np.zeros_like(length), length):
             t = (level[None] - oau) / du
-            radial = oa_perp + t[..., None] * d_perp
-            cands.append(np.where(_dot(radial, radial) <= r[None] ** 2, t, np.nan))
+            # squared distance from the axis at t: |oa_perp + t d_perp|^2
+            radial2 = (qc + r[None] ** 2) + 2.0 * t * qb + t * t * qa
+            cands.append(np.where(radial2 <= r[None] ** 2, t, np.nan))
     return _first_positive(*cands)
 
 
 def intersect_ellipsoid(o, d, c, A):
-    """o, d: [N, 3]; c: [M, 3]; A: [M, 3, 3]. Returns t [N, M]."""
-    ol = np.einsum("mij,nmj->nmi", A, o[:, None, :] - c[None])       # [N, M, 3]
-    dl = np.einsum("mij,nj->nmi", A, d)
-    qa = _dot(dl, dl)
-    qb = _dot(ol, dl)
-    qc = _dot(ol, ol) - 1.0
+    """o, d: [N, 3]; c: [M, 3]; A: [M, 3, 3]. Returns t [N, M].
+
+    Uses the quadratic form Q = A^T A: |A(o + t d - c)|^2 = 1, all terms as matrix products.
+    """
+    m = len(c)
+    Q = np.einsum("mki,mkj->mij", A, A).reshape(m, 9)                  # [M, 9]
+    Qc = np.einsum("mij,mj->mi", Q.reshape(m, 3, 3), c)               # [M, 3]
+    dd = (d[:, :, None] * d[:, None, :]).reshape(-1, 9)
+    od = (o[:, :, None] * d[:, None, :]).reshape(-1, 9)
+    oo = (o[:, :, None] * o[:, None, :]).reshape(-1, 9)
+    qa = dd @ Q.T
+    qb = od @ Q.T - d @ Qc.T
+    qc = oo @ Q.T - 2.0 * (o @ Qc.T) + np.sum(Qc * c, -1)[None] - 1.0
     disc = qb * qb - qa * qc
     with np.errstate(invalid="ignore"):
         sq = np.sqrt(np.where(disc >= 0, disc, np.nan))
@@ -365,3 +370,83 @@ def brute_force_closest(tables: dict, o: np.ndarray, d: np.ndarray):
         better = tm < t_out
         t_out[better], kind_out[better], idx_out[better] = tm[better], KIND_CODE[kind], j[better]
     return t_out, kind_out, idx_out
+
+
+# --- 2-D binning: rays grouped by a cell of a projection, primitives by their projected rect --
+
+def rect_pairs(rects: np.ndarray, grid_w: int) -> tuple[np.ndarray, np.ndarray]:
+    """Enumerates the cells of inclusive integer rectangles.
+
+    rects: [M, 4] (x0, y0, x1, y1), empty when x1 < x0 or y1 < y0; grid_w: cells per row.
+    Returns (cell [P] = y * grid_w + x, prim [P]).
+    """
+    rects = np.asarray(rects, np.int64)
+    wx = np.maximum(rects[:, 2] - rects[:, 0] + 1, 0)
+    wy = np.maximum(rects[:, 3] - rects[:, 1] + 1, 0)
+    count = wx * wy
+    prim = np.repeat(np.arange(len(rects)), count)
+    k = np.arange(len(prim)) - np.repeat(np.cumsum(count) - count, count)
+    cx = rects[prim, 0] + k % np.maximum(wx[prim], 1)
+    cy = rects[prim, 1] + k // np.maximum(wx[prim], 1)
+    return cy * grid_w + cx, prim
+
+
+def binned_trace(tables: dict, rects: dict, grid_w: int, ray_cell: np.ndarray, o: np.ndarray, d: np.ndarray,
+                 t_max: np.ndarray | None = None):
+    """Closest hits when rays can only hit primitives binned to their cell.
+
+    Valid whenever every primitive a ray can hit covers the ray's cell (e.g. cells of the
+    image for rays of one camera and the primitives' projected bounds; or cells of the plane
+    perpendicular to parallel shadow rays).
+    tables: {kind: geometry}; rects: {kind: [M, 4] inclusive cell rectangles};
+    ray_cell: [N] cell id of each ray (-1: no cell, never hits); o, d: [N, 3].
+    Returns (t [N], kind [N], index [N]) as `trace`.
+    """
+    n = len(o)
+    best = np.full(n, np.inf) if t_max is None else np.asarray(t_max, np.float64).copy()
+    t_out = np.full(n, np.inf)
+    kind_out = np.full(n, -1, np.int64)
+    idx_out = np.full(n, -1, np.int64)
+    cells, kinds, prims = [], [], []
+    for kind, r in rects.items():
+        if len(r) == 0:
+            continue
+        c, p = rect_pairs(r, grid_w)
+        cells.append(c)
+        kinds.append(np.full(len(c), KIND_CODE[kind]))
+        prims.append(p)
+    if not cells or n == 0:
+        return t_out, kind_out, idx_out
+    pc, pk, pi = np.concatenate(cells), np.concatenate(kinds), np.concatenate(prims)
+    order = np.lexsort((pi, pk, pc))
+    pc, pk, pi = pc[order], pk[order], pi[order]
+    rorder = np.argsort(ray_cell, kind="stable")
+    rc = ray_cell[rorder]
+    rcells, rstart, rcount = np.unique(rc, return_index=True, return_counts=True)
+    pcells, pstart, pcount = np.unique(pc, return_index=True, return_counts=True)
+    common, ri, pj = np.intersect1d(rcells, pcells, assume_unique=True, return_indices=True)
+    for cell, a, b in zip(common, ri, pj):
+        if cell < 0:
+            continue
+        ids = rorder[rstart[a]: rstart[a] + rcount[a]]
+        lo, hi = pstart[b], pstart[b] + pcount[b]
+        ks = pk[lo:hi]
+        bounds = np.flatnonzero(np.diff(ks)) + 1
+        for seg_lo, seg_hi in zip(np.r_[0, bounds], np.r_[bounds, hi - lo]):
+            kind = KINDS[ks[seg_lo]]
+            local = pi[lo + seg_lo: lo + seg_hi]
+            t = INTERSECT[kind](o[ids], d[ids], take(tables[kind], local))
+            j = np.argmin(t, axis=1)
+            tm = t[np.arange(len(ids)), j]
+            better = tm < best[ids]
+            sel = ids[better]
+            best[sel] = t_out[sel] = tm[better]
+            kind_out[sel] = KIND_CODE[kind]
+            idx_out[sel] = local[j[better]]
+    return t_out, kind_out, idx_out
+
+
+def box_corners(lo: np.ndarray, hi: np.ndarray) -> np.ndarray:
+    """Corners [M, 8, 3] of axis-aligned boxes lo, hi: [M, 3]."""
+    sel = np.array([[i >> 2 & 1, i >> 1 & 1, i & 1] for i in range(8)], bool)
+    return np.where(sel[None], hi[:, None, :], lo[:, None, :])
