@@ -18,6 +18,10 @@ MS-SSIM follows the TF / pytorch_msssim algorithm: at each scale the contrast-st
 full SSIM (relu-clamped) is taken; the result is prod_i value_i ** weight_i per channel, then the
 channel mean. Odd sizes are pooled as `torch.nn.functional.avg_pool2d(kernel_size=2,
 padding=1)` does (one zero row/column on each side, divisor always 4), to match pytorch_msssim.
+(TF's `tf.image.ssim_multiscale` instead repeats the last row/column (symmetric padding at the
+end), so the two references, and we with them, differ slightly when a scale has an odd side;
+for even sides at every scale, e.g. 512 x 512, they should agree; TF is not installed here, so
+that is not tested.)
 Five scales need min(H, W) > 10 * 2**4 = 160. For smaller images we use the largest number of
 scales n with min(H, W) > 10 * 2**(n-1) and the first n standard weights renormalised to sum to
 one; `ms_ssim_scales(h, w)` tells how many, and `evaluate_image` reports it.
