@@ -83,11 +83,16 @@ def main(argv=None) -> int:
     if args.out.exists() and not args.overwrite:
         print(f"error: {args.out} exists (pass --overwrite)", file=sys.stderr)
         return 2
-    import lpips  # needs a working torchvision with the ImageNet AlexNet weights
-
     from jaxnerf_grid import lpips as jl
 
-    model = lpips.LPIPS(net="alex", version="0.1", pretrained=True, pnet_rand=False, verbose=False)
+    try:  # needs torch, a working torchvision with the ImageNet AlexNet weights, and lpips
+        import lpips
+
+        model = lpips.LPIPS(net="alex", version="0.1", pretrained=True, pnet_rand=False, verbose=False)
+    except Exception as e:  # noqa: BLE001 - report any environment problem in one line
+        print(f"error: cannot build lpips.LPIPS(net='alex') with pretrained AlexNet "
+              f"(needs torch, torchvision and lpips): {type(e).__name__}: {e}", file=sys.stderr)
+        return 2
     arrays = arrays_from_torch_lpips(model)
     jl.save_lpips(args.out, arrays)
     worst = check_conversion(model, jl.load_lpips(args.out))
