@@ -15,11 +15,22 @@ def intrinsics(width: int, height: int, fov_deg: float) -> dict:
     return {"fl_x": float(f), "fl_y": float(f), "cx": width / 2.0, "cy": height / 2.0, "w": int(width), "h": int(height)}
 
 
+LINE_GAP_DEG = 30.0   # orbits skip this half-width around the line direction (+-y): no cables at the lens
+
+
+def orbit_azimuth(f: float) -> float:
+    """Maps f in [0, 1) to an azimuth (radians) outside the sectors around +-y (the line)."""
+    arc = 180.0 - 2.0 * LINE_GAP_DEG
+    a = (f % 1.0) * 2.0 * arc
+    deg = -90.0 + LINE_GAP_DEG + a if a < arc else 90.0 + LINE_GAP_DEG + (a - arc)
+    return math.radians(deg)
+
+
 def camera_path(num_train: int, num_test: int, orbits, low_pass, rng: np.random.Generator):
     """Metric camera-to-world poses on orbits plus a low pass, with interleaved test views.
 
-    orbits: ((radius, height, share), ...); low_pass: (radius, height, share), an arc over
-    140 degrees. Views are ordered along the path; test views are spread evenly among them
+    orbits: ((radius, height, share), ...), skipping +-LINE_GAP_DEG around the line;
+    low_pass: (radius, height, share), an arc over 140 degrees. Views are ordered along the path; test views are spread evenly among them
     (every k-th view), so they interpolate the training orbits.
     Returns (c2w [N, 4, 4] metric, split: list of "train"/"test").
     """
@@ -29,9 +40,9 @@ def camera_path(num_train: int, num_test: int, orbits, low_pass, rng: np.random.
     counts[np.argsort(-shares)[: total - counts.sum()]] += 1
     eyes, targets = [], []
     for (radius, height, _), n in zip(orbits, counts[:-1]):
-        phase = rng.uniform(0, 2 * np.pi)
+        phase = rng.uniform(0, 1)
         for k in range(n):
-            az = phase + 2 * np.pi * k / max(n, 1) + rng.uniform(-0.04, 0.04)
+            az = orbit_azimuth(phase + k / max(n, 1)) + rng.uniform(-0.04, 0.04)
             r = radius * rng.uniform(0.95, 1.05)
             eyes.append([r * np.cos(az), r * np.sin(az), height + rng.uniform(-1.5, 1.5)])
             targets.append([rng.uniform(-1, 1), rng.uniform(-1, 1), rng.uniform(12.0, 18.0)])
@@ -39,7 +50,7 @@ def camera_path(num_train: int, num_test: int, orbits, low_pass, rng: np.random.
     start = rng.uniform(0, 2 * np.pi)
     n = counts[-1]
     for k in range(n):
-        az = start + np.radians(140.0) * k / max(n - 1, 1)
+        az = start + np.radians(140.0) * k / max(n - 1, 1)   # low enough to pass under the cables
         eyes.append([radius * np.cos(az), radius * np.sin(az), height + rng.uniform(-0.5, 0.5)])
         targets.append([0.0, 0.0, rng.uniform(11.0, 15.0)])
     c2w = np.stack([np.asarray(rays_lib.look_at(e, t), np.float64) for e, t in zip(eyes, targets)])

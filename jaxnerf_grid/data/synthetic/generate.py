@@ -248,7 +248,7 @@ def _place_teleport(state: _ViewState, level: str, rng: np.random.Generator, sta
     weights = np.array(_KIND_WEIGHTS[level])
     if not ground_pool.size:
         weights = np.array([0.0, 0.0, 0.0, 1.0])
-    cap = hi_cov + 0.01
+    cap = hi_cov
     attempts = 0
     while state.coverage() < target and attempts < 500 and len(state.objects) < 400:
         attempts += 1
@@ -541,13 +541,33 @@ def _write_view(out: Path, name: str, split: str, views: dict, scale: float) -> 
     io.write_png(out / "shadow" / f"{name}.png", views["shadow"].astype(np.float32))
 
 
+_WORKER: dict = {}
+
+
+def _worker_init(cfg: SynthConfig, out: str) -> None:
+    _WORKER["world"] = StaticWorld(cfg)
+    _WORKER["cfg"] = cfg
+    _WORKER["out"] = Path(out)
+
+
+def _render_and_write(task) -> tuple[float, int]:
+    """Renders and writes one view; task = (index, name, split, c2w [4, 4] metric)."""
+    i, name, sp, c2w = task
+    cfg, world, out = _WORKER["cfg"], _WORKER["world"], _WORKER["out"]
+    intr = cameras.intrinsics(cfg.width, cfg.height, cfg.fov_deg)
+    views = render_view(world, cfg, c2w, intr, sp == "train", np.random.default_rng([cfg.seed, 2, i]))
+    _write_view(out, name, sp, views, NORMALIZATION["scale"])
+    return views["coverage"], views["num_objects"]
+
+
 def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None = None, overwrite: bool = False,
-                   progress: bool = True, **overrides) -> Path:
+                   progress: bool = True, workers: int = 1, **overrides) -> Path:
     """Renders a synthetic dataset; returns the path of its transforms.json.
 
     overrides: any SynthConfig field (width, height, num_train, num_test, supersample, mode,
-    shadows, fov_deg, trees, buildings). Refuses a non-empty `out_dir` unless `overwrite`
-    (then only this generator's own files and folders there are replaced).
+    shadows, fov_deg, trees, buildings). `workers` > 1 renders views in that many spawned
+    processes (the output is identical for any worker count). Refuses a non-empty `out_dir`
+    unless `overwrite` (then only this generator's own files and folders there are replaced).
     """
     from tqdm import tqdm
 
@@ -557,30 +577,42 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
         for sub in OUTPUT_DIRS:
             if (out / sub).is_dir():
                 shutil.rmtree(out / sub)
-        for f in ("transforms.json", "tower.ply"):
+        for f in ("transforms.json", "tower.ply", "preview.png"):
             if (out / f).is_file():
                 (out / f).unlink()
     out.mkdir(parents=True, exist_ok=True)
-    start = time.perf_counter()
-    world = StaticWorld(cfg)
+    start, cpu_start = time.perf_counter(), time.process_time()
     intr = cameras.intrinsics(cfg.width, cfg.height, cfg.fov_deg)
     c2w_all, split = cameras.camera_path(cfg.num_train, cfg.num_test, cfg.orbits, cfg.low_pass,
                                          np.random.default_rng([cfg.seed, 1]))
     scale, translation = NORMALIZATION["scale"], NORMALIZATION["translation"]
-    frames, coverages = [], []
     counters = {"train": 0, "test": 0}
-    for i in tqdm(range(len(c2w_all)), desc=f"synth {cfg.preset}", unit="view", disable=not progress):
-        sp = split[i]
-        name = f"{sp}_{counters[sp]:03d}"
+    tasks = []
+    for i, sp in enumerate(split):
+        tasks.append((i, f"{sp}_{counters[sp]:03d}", sp, c2w_all[i]))
         counters[sp] += 1
-        views = render_view(world, cfg, c2w_all[i], intr, sp == "train", np.random.default_rng([cfg.seed, 2, i]))
-        _write_view(out, name, sp, views, scale)
-        rec = _frame_record(name, sp, cameras.normalise_pose(c2w_all[i], scale, translation))
-        rec["distractor_coverage"] = round(views["coverage"], 6)
-        rec["num_distractors"] = views["num_objects"]
+    bar = dict(total=len(tasks), desc=f"synth {cfg.preset}", unit="view", disable=not progress)
+    workers = max(1, min(int(workers), len(tasks)))
+    if workers == 1:
+        _worker_init(cfg, str(out))
+        results = [_render_and_write(t) for t in tqdm(tasks, **bar)]
+        world = _WORKER["world"]
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        ctx = multiprocessing.get_context("spawn")
+        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(cfg, str(out))) as pool:
+            results = list(tqdm(pool.map(_render_and_write, tasks), **bar))
+        world = StaticWorld(cfg)
+    frames, coverages = [], []
+    for (i, name, sp, c2w), (coverage, num_objects) in zip(tasks, results):
+        rec = _frame_record(name, sp, cameras.normalise_pose(c2w, scale, translation))
+        rec["distractor_coverage"] = round(coverage, 6)
+        rec["num_distractors"] = num_objects
         frames.append(rec)
         if sp == "train":
-            coverages.append(views["coverage"])
+            coverages.append(coverage)
     tower = sc.main_tower_scene(0)
     pts = sc.sample_tower_points(tower, 60000, np.random.default_rng([cfg.seed, 4]))
     io.write_ply(out / "tower.ply", scale * (pts + np.asarray(translation)))
@@ -602,12 +634,16 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
             "distractor_coverage": {"mean": round(float(cov.mean()), 6), "min": round(float(cov.min()), 6),
                                     "max": round(float(cov.max()), 6)},
             "num_static_primitives": world.scene.count(),
-            "seconds": round(time.perf_counter() - start, 2),
         },
         "frames": frames,
     }
     io.write_json(out / "transforms.json", transforms)
+    _LAST_TIMING.update(wall_s=time.perf_counter() - start, main_process_cpu_s=time.process_time() - cpu_start,
+                        workers=workers)
     return out / "transforms.json"
+
+
+_LAST_TIMING: dict = {}
 
 
 def contact_sheet(dataset_dir, out_png, count: int = 4) -> Path:
