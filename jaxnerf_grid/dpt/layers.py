@@ -1,0 +1,126 @@
+"""Small pure layers shared by the DPT stages (NHWC images, plain-dict parameters).
+
+Conventions: a linear layer is {"w": [in, out], "b": [out]}; a conv is {"w": [kh, kw, in, out],
+"b": [out]} (bias optional); layer / batch norm is {"scale", "bias"} (+ "mean", "var").
+Every padding is explicit (torch's `padding=1` is ((1, 1), (1, 1)), which is not "SAME" for
+stride 2), GELU is the exact erf form, and bilinear resizing is written out (no antialiasing,
+both corner conventions) so it matches torch's `interpolate` bit for bit up to float rounding.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+
+def gelu(x):
+    """Exact GELU, x * Phi(x) (jax.nn.gelu defaults to the tanh approximation)."""
+    return jax.nn.gelu(x, approximate=False)
+
+
+def linear(p: dict, x):
+    """x: [..., in] -> [..., out]."""
+    y = x @ p["w"]
+    return y + p["b"] if "b" in p else y
+
+
+def layer_norm(p: dict, x, eps: float):
+    """Normalises the last axis. x: [..., C]; p: {"scale": [C], "bias": [C]}."""
+    mean = jnp.mean(x, axis=-1, keepdims=True)
+    var = jnp.mean(jnp.square(x - mean), axis=-1, keepdims=True)
+    return (x - mean) * jax.lax.rsqrt(var + eps) * p["scale"] + p["bias"]
+
+
+def batch_norm(p: dict, x, eps: float = 1e-5):
+    """Inference-mode batch norm with running statistics. x: [..., C]."""
+    inv = p["scale"] * jax.lax.rsqrt(p["var"] + eps)
+    return (x - p["mean"]) * inv + p["bias"]
+
+
+def conv2d(p: dict, x, stride: int = 1, padding: int = 0):
+    """Cross-correlation as torch.nn.Conv2d. x: [B, H, W, Cin]; p["w"]: [kh, kw, Cin, Cout]."""
+    y = jax.lax.conv_general_dilated(
+        x, p["w"].astype(x.dtype), window_strides=(stride, stride),
+        padding=((padding, padding), (padding, padding)),
+        dimension_numbers=("NHWC", "HWIO", "NHWC"))
+    return y + p["b"] if "b" in p else y
+
+
+def conv_transpose_nonoverlap(p: dict, x):
+    """torch.nn.ConvTranspose2d with kernel_size == stride == k and padding 0 (the patches do
+    not overlap, so it is an outer product per pixel).
+
+    x: [B, H, W, Cin]; p["w"]: [Cin, k, k, Cout]; returns [B, k*H, k*W, Cout].
+    """
+    b, h, w, _ = x.shape
+    k = p["w"].shape[1]
+    y = jnp.einsum("bhwi,iklo->bhkwlo", x, p["w"])
+    y = y.reshape(b, h * k, w * k, -1)
+    return y + p["b"] if "b" in p else y
+
+
+def _source_index(out_size: int, in_size: int, align_corners: bool):
+    """Static 1-D interpolation table as torch computes it: (i0, i1, frac), each [out_size]."""
+    dst = np.arange(out_size, dtype=np.float64)
+    if align_corners:
+        scale = (in_size - 1) / (out_size - 1) if out_size > 1 else 0.0
+        src = dst * scale
+    else:
+        src = (dst + 0.5) * (in_size / out_size) - 0.5
+        src = np.maximum(src, 0.0)
+    i0 = np.minimum(np.floor(src).astype(np.int32), in_size - 1)
+    i1 = np.minimum(i0 + 1, in_size - 1)
+    frac = (src - i0).astype(np.float32)
+    return i0, i1, frac
+
+
+def resize_bilinear(x, out_h: int, out_w: int, align_corners: bool):
+    """Bilinear resize without antialiasing, as torch's interpolate(mode="bilinear").
+
+    x: [B, H, W, C] -> [B, out_h, out_w, C]. `align_corners=True` maps corner pixel centres to
+    corner pixel centres ((in-1)/(out-1) scale); False uses half-pixel centres, clamped at 0.
+    """
+    _, h, w, _ = x.shape
+    if (h, w) == (out_h, out_w):
+        return x  # both conventions are the identity at equal size
+    a_h = jnp.asarray(_interp_matrix(out_h, h, align_corners), x.dtype)
+    a_w = jnp.asarray(_interp_matrix(out_w, w, align_corners), x.dtype)
+    x = jnp.einsum("oh,bhwc->bowc", a_h, x, precision=jax.lax.Precision.HIGHEST)
+    return jnp.einsum("pw,bowc->bopc", a_w, x, precision=jax.lax.Precision.HIGHEST)
+
+
+def _interp_matrix(out_size: int, in_size: int, align_corners: bool) -> np.ndarray:
+    """[out_size, in_size] matrix of 1-D linear interpolation weights (two per row)."""
+    i0, i1, f = _source_index(out_size, in_size, align_corners)
+    m = np.zeros((out_size, in_size), np.float32)
+    rows = np.arange(out_size)
+    np.add.at(m, (rows, i0), 1.0 - f)
+    np.add.at(m, (rows, i1), f)
+    return m
+
+
+# ----- initialisers (for training from scratch; imported checkpoints replace all of these) -----
+
+def init_linear(key, n_in: int, n_out: int, bias: bool = True, std: float = 0.02) -> dict:
+    p = {"w": std * jax.random.normal(key, (n_in, n_out), jnp.float32)}
+    if bias:
+        p["b"] = jnp.zeros((n_out,), jnp.float32)
+    return p
+
+
+def init_conv(key, k: int, n_in: int, n_out: int, bias: bool = True) -> dict:
+    """He-normal conv kernel [k, k, n_in, n_out]."""
+    std = float(np.sqrt(2.0 / (k * k * n_in)))
+    p = {"w": std * jax.random.normal(key, (k, k, n_in, n_out), jnp.float32)}
+    if bias:
+        p["b"] = jnp.zeros((n_out,), jnp.float32)
+    return p
+
+
+def init_norm(n: int, running: bool = False) -> dict:
+    p = {"scale": jnp.ones((n,), jnp.float32), "bias": jnp.zeros((n,), jnp.float32)}
+    if running:
+        p["mean"] = jnp.zeros((n,), jnp.float32)
+        p["var"] = jnp.ones((n,), jnp.float32)
+    return p
