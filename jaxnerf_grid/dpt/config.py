@@ -39,6 +39,10 @@ class DPTConfig:
     id2label: tuple = ()           # label names by id (may be empty)
 
     def __post_init__(self):
+        for f in dataclasses.fields(self):  # JSON gives lists; keep the config hashable
+            v = getattr(self, f.name)
+            if isinstance(v, list):
+                object.__setattr__(self, f.name, tuple(v))
         validate(self)
 
     @property

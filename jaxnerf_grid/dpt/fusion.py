@@ -14,12 +14,12 @@ from __future__ import annotations
 import jax
 import jax.nn
 
-from jaxnerf_grid.dpt.layers import batch_norm, conv2d, init_conv, init_norm, resize_bilinear
+from jaxnerf_grid.dpt.layers import batch_norm, conv2d, init_conv, init_norm, resize_bilinear, split
 
 
 def _init_rcu(key, cfg) -> dict:
     c = cfg.fusion_hidden_size
-    k1, k2 = jax.random.split(key)
+    k1, k2 = split(key, 2)
     p = {"conv1": init_conv(k1, 3, c, c, cfg.fusion_bias), "conv2": init_conv(k2, 3, c, c, cfg.fusion_bias)}
     p["conv2"]["w"] = p["conv2"]["w"] * 0.1  # start near the identity
     if cfg.use_batch_norm_in_fusion_residual:
@@ -30,8 +30,8 @@ def _init_rcu(key, cfg) -> dict:
 def init(key, cfg) -> list:
     c = cfg.fusion_hidden_size
     out = []
-    for k in jax.random.split(key, len(cfg.neck_hidden_sizes)):
-        k1, k2, k3 = jax.random.split(k, 3)
+    for k in split(key, len(cfg.neck_hidden_sizes)):
+        k1, k2, k3 = split(k, 3)
         out.append({"rcu1": _init_rcu(k1, cfg), "rcu2": _init_rcu(k2, cfg), "proj": init_conv(k3, 1, c, c)})
     return out
 

@@ -11,7 +11,7 @@ from __future__ import annotations
 import jax
 import jax.nn
 
-from jaxnerf_grid.dpt.layers import batch_norm, conv2d, init_conv, init_norm, resize_bilinear
+from jaxnerf_grid.dpt.layers import batch_norm, conv2d, init_conv, init_norm, resize_bilinear, split
 
 
 def _up2(x):
@@ -20,7 +20,7 @@ def _up2(x):
 
 def init_segmentation(key, cfg) -> dict:
     f, n = cfg.fusion_hidden_size, cfg.num_labels
-    k1, k2 = jax.random.split(key)
+    k1, k2 = split(key, 2)
     return {"conv": init_conv(k1, 3, f, f, bias=False), "bn": init_norm(f, running=True),
             "cls": init_conv(k2, 1, f, n)}
 
@@ -38,7 +38,7 @@ def auxiliary(p: dict, x):
 
 def init_depth(key, cfg) -> dict:
     f = cfg.fusion_hidden_size
-    k = jax.random.split(key, 4)
+    k = split(key, 4)
     p = {"conv1": init_conv(k[0], 3, f, f // 2), "conv2": init_conv(k[1], 3, f // 2, 32),
          "conv3": init_conv(k[2], 1, 32, 1)}
     if cfg.add_projection:

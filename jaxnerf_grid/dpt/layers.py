@@ -101,26 +101,55 @@ def _interp_matrix(out_size: int, in_size: int, align_corners: bool) -> np.ndarr
 
 
 # ----- initialisers (for training from scratch; imported checkpoints replace all of these) -----
+# Host-side numpy: `key` is a np.random.Generator (`rng(seed)`), or SHAPES to get zero-cost
+# placeholders of the right shapes (used to check checkpoint shapes without drawing numbers).
+# (Drawing with jax.random costs an XLA compile per call site: ~20 s for a small DPT on CPU.)
+
+class _ShapeOnly:
+    def spawn(self, n):
+        return [self] * n
+
+
+SHAPES = _ShapeOnly()
+
+
+def rng(seed) -> np.random.Generator:
+    """A numpy Generator from an int seed, a sequence of ints, or a jax PRNG key."""
+    if isinstance(seed, np.random.Generator):
+        return seed
+    if hasattr(seed, "dtype") and jax.dtypes.issubdtype(seed.dtype, jax.dtypes.prng_key):
+        seed = jax.random.key_data(seed)
+    return np.random.default_rng(np.asarray(seed, np.uint32).ravel().tolist() if np.ndim(seed) else int(seed))
+
+
+def split(key, n: int) -> list:
+    return key.spawn(n)
+
+
+def normal(key, shape, std: float = 1.0) -> np.ndarray:
+    if isinstance(key, _ShapeOnly):
+        return np.broadcast_to(np.float32(0), shape)
+    return (std * key.standard_normal(shape)).astype(np.float32)
+
 
 def init_linear(key, n_in: int, n_out: int, bias: bool = True, std: float = 0.02) -> dict:
-    p = {"w": std * jax.random.normal(key, (n_in, n_out), jnp.float32)}
+    p = {"w": normal(key, (n_in, n_out), std)}
     if bias:
-        p["b"] = jnp.zeros((n_out,), jnp.float32)
+        p["b"] = np.zeros((n_out,), np.float32)
     return p
 
 
 def init_conv(key, k: int, n_in: int, n_out: int, bias: bool = True) -> dict:
     """He-normal conv kernel [k, k, n_in, n_out]."""
-    std = float(np.sqrt(2.0 / (k * k * n_in)))
-    p = {"w": std * jax.random.normal(key, (k, k, n_in, n_out), jnp.float32)}
+    p = {"w": normal(key, (k, k, n_in, n_out), float(np.sqrt(2.0 / (k * k * n_in))))}
     if bias:
-        p["b"] = jnp.zeros((n_out,), jnp.float32)
+        p["b"] = np.zeros((n_out,), np.float32)
     return p
 
 
 def init_norm(n: int, running: bool = False) -> dict:
-    p = {"scale": jnp.ones((n,), jnp.float32), "bias": jnp.zeros((n,), jnp.float32)}
+    p = {"scale": np.ones((n,), np.float32), "bias": np.zeros((n,), np.float32)}
     if running:
-        p["mean"] = jnp.zeros((n,), jnp.float32)
-        p["var"] = jnp.ones((n,), jnp.float32)
+        p["mean"] = np.zeros((n,), np.float32)
+        p["var"] = np.ones((n,), np.float32)
     return p

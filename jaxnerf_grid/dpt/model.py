@@ -22,7 +22,7 @@ import jax.numpy as jnp
 
 from jaxnerf_grid.dpt import fusion, heads, reassemble, vit
 from jaxnerf_grid.dpt.config import DPTConfig
-from jaxnerf_grid.dpt.layers import resize_bilinear
+from jaxnerf_grid.dpt.layers import SHAPES, resize_bilinear, rng, split
 
 
 class Model(NamedTuple):
@@ -30,9 +30,20 @@ class Model(NamedTuple):
     params: dict
 
 
-def init(key, cfg: DPTConfig) -> Model:
-    """Random parameters for training from scratch. Returns Model(cfg, params)."""
-    k = jax.random.split(key, 6)
+def init(seed, cfg: DPTConfig) -> Model:
+    """Random parameters for training from scratch (host-side numpy; `seed`: int, jax PRNG key
+    or np.random.Generator). Returns Model(cfg, params)."""
+    return Model(cfg, init_params(rng(seed), cfg))
+
+
+def param_shapes(cfg: DPTConfig) -> dict:
+    """The params pytree with zero-cost placeholder leaves of the right shapes."""
+    return init_params(SHAPES, cfg)
+
+
+def init_params(key, cfg: DPTConfig) -> dict:
+    """The params pytree of `init`; `key`: np.random.Generator or layers.SHAPES."""
+    k = split(key, 6)
     params = {"vit": vit.init(k[0], cfg), "reassemble": reassemble.init(k[1], cfg),
               "fusion": fusion.init(k[2], cfg)}
     if "segmentation" in cfg.heads:
@@ -41,7 +52,7 @@ def init(key, cfg: DPTConfig) -> Model:
             params["auxiliary"] = heads.init_segmentation(k[4], cfg)
     if "depth" in cfg.heads:
         params["depth"] = heads.init_depth(k[5], cfg)
-    return Model(cfg, params)
+    return params
 
 
 def check_input_shape(cfg: DPTConfig, shape) -> None:

@@ -17,14 +17,16 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxnerf_grid.dpt.layers import (conv2d, conv_transpose_nonoverlap, gelu, init_conv, init_linear,
+import numpy as np
+
+from jaxnerf_grid.dpt.layers import (conv2d, conv_transpose_nonoverlap, gelu, init_conv, init_linear, split,
                                      linear)
 
 
 def init(key, cfg) -> dict:
     d = cfg.hidden_size
     n = len(cfg.neck_hidden_sizes)
-    keys = jax.random.split(key, 4 * n)
+    keys = split(key, 4 * n)
     params = {"proj": [], "resample": [], "convs": []}
     if cfg.readout_type == "project":
         params["readout"] = [init_linear(keys[4 * i], 2 * d, d) for i in range(n)]
@@ -33,7 +35,7 @@ def init(key, cfg) -> dict:
         if f > 1:
             k = int(f)
             w = init_conv(keys[4 * i + 2], k, c, c)
-            params["resample"].append({"w": jnp.transpose(w["w"], (2, 0, 1, 3)), "b": w["b"]})
+            params["resample"].append({"w": np.transpose(w["w"], (2, 0, 1, 3)), "b": w["b"]})
         elif f == 1:
             params["resample"].append({})
         else:

@@ -9,18 +9,18 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from jaxnerf_grid.dpt.layers import (conv2d, gelu, init_conv, init_linear, init_norm, layer_norm,
+from jaxnerf_grid.dpt.layers import (conv2d, gelu, init_conv, init_linear, init_norm, layer_norm, normal, split,
                                      linear, resize_bilinear)
 
 
 def init(key, cfg) -> dict:
     d, p = cfg.hidden_size, cfg.patch_size
-    keys = jax.random.split(key, cfg.num_hidden_layers + 3)
+    keys = split(key, cfg.num_hidden_layers + 3)
     patch = init_conv(keys[0], p, cfg.num_channels, d)
     patch["w"] = patch["w"] * 0.5
     blocks = []
     for i in range(cfg.num_hidden_layers):
-        k = jax.random.split(keys[3 + i], 6)
+        k = split(keys[3 + i], 6)
         blocks.append({
             "ln1": init_norm(d), "ln2": init_norm(d),
             "q": init_linear(k[0], d, d, cfg.qkv_bias), "k": init_linear(k[1], d, d, cfg.qkv_bias),
@@ -29,8 +29,8 @@ def init(key, cfg) -> dict:
         })
     return {
         "patch": patch,
-        "cls": 0.02 * jax.random.normal(keys[1], (d,), jnp.float32),
-        "pos": 0.02 * jax.random.normal(keys[2], (cfg.num_positions, d), jnp.float32),
+        "cls": normal(keys[1], (d,), 0.02),
+        "pos": normal(keys[2], (cfg.num_positions, d), 0.02),
         "blocks": blocks,
         "ln_final": init_norm(d),
     }
@@ -61,8 +61,8 @@ def attention(p: dict, x, num_heads: int):
     """Multi-head self-attention. x: [B, N, D] -> [B, N, D]."""
     b, n, d = x.shape
     hd = d // num_heads
-    split = lambda t: t.reshape(b, n, num_heads, hd)  # noqa: E731
-    q, k, v = split(linear(p["q"], x)), split(linear(p["k"], x)), split(linear(p["v"], x))
+    heads_of = lambda t: t.reshape(b, n, num_heads, hd)  # noqa: E731
+    q, k, v = heads_of(linear(p["q"], x)), heads_of(linear(p["k"], x)), heads_of(linear(p["v"], x))
     logits = jnp.einsum("bqhd,bkhd->bhqk", q, k) * (hd ** -0.5)
     weights = jax.nn.softmax(logits, axis=-1)
     out = jnp.einsum("bhqk,bkhd->bqhd", weights, v).reshape(b, n, d)

@@ -24,7 +24,7 @@ import numpy as np
 from jaxnerf_grid import safetensors_io
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.dpt.config import DPTConfig
-from jaxnerf_grid.dpt.model import Model, init
+from jaxnerf_grid.dpt.model import Model, param_shapes
 from jaxnerf_grid.io import DataError, atomic_write_bytes, read_json
 
 NATIVE_FORMAT = "jaxnerf_grid.dpt"
@@ -187,7 +187,7 @@ def params_from_hf(cfg: DPTConfig, tensors: dict, where: str = "model.safetensor
     if unexpected:
         raise DataError(f"{where}: unexpected key {unexpected[0]!r} ({len(unexpected)} unexpected in all) "
                         "-- does config.json match these weights?")
-    template = jax.eval_shape(lambda: init(jax.random.PRNGKey(0), cfg).params)
+    template = param_shapes(cfg)
     params = jax.tree_util.tree_map(lambda s: None, template)
     for key, path, kind in mapping:
         want = tuple(_get(template, path).shape)
@@ -239,7 +239,7 @@ def _load_native(folder: Path, meta: dict) -> Model:
 
     cfg = from_dict(DPTConfig, meta["config"], f"{folder / 'config.json'}: config")
     tensors, _ = safetensors_io.load(folder / "params.safetensors")
-    template = jax.eval_shape(lambda: init(jax.random.PRNGKey(0), cfg).params)
+    template = param_shapes(cfg)
     where = folder / "params.safetensors"
     expected = dict(_flatten(template))
     for k in expected:

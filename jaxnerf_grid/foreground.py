@@ -1,0 +1,179 @@
+"""Foreground exclusion (paper Eq. 6-8): dynamic-foreground probability, binary mask, depth
+weighting, filtered image, and per-pixel training weights.
+
+  Eq. 6  C = sum_{k in classes} softmax(logits)_k           (per pixel, classes configurable)
+         M = [C > T]                                        (`binary_mask`)
+  Eq. 7  M_w = M * max(floor, (Dmax - D) / Dmax)            (`depth_weighted_mask`; floor = 0 is
+                                                             Eq. 7 exactly, floor = 1 gives M_w = M)
+  Eq. 8  I_filtered = (1 - M_w) * I                         (`filter_image`, for visualisation)
+  training weight w = 1 - M_w                               (`training_weights`; 0 = ignored pixel)
+
+D is a depth (not disparity). DPT's depth head predicts *relative inverse depth* r (unknown scale
+and shift); `inverse_depth_to_depth` takes D = 1 / max(r, eps * max(r)) per image. Eq. 7 only
+uses D / Dmax, so the unknown scale cancels; the shift is ignored (assumed 0), and the clamp
+makes pixels with r ~ 0 (sky) the farthest, D = Dmax. Dmax is the per-image maximum by default.
+
+Eq. 7's weakness: a distractor far away (a bird against the sky) has D near Dmax and so keeps
+weight ~1 in training; `floor` > 0 guarantees masked pixels are down-weighted at least that much.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+# ADE20K-150 (0-based ids as in HF's Intel/dpt-large-ade id2label) classes that move.
+# ADE20K has no bird class: birds fall under "animal".
+ADE20K_DYNAMIC = {12: "person", 20: "car", 76: "boat", 80: "bus", 83: "truck", 90: "airplane",
+                  102: "van", 103: "ship", 116: "minibike", 126: "animal", 127: "bicycle"}
+# Classes of the synthetic benchmark (jaxnerf_grid.data.synthetic) that are distractors.
+SYNTHETIC_DYNAMIC = {6: "person", 7: "vehicle", 8: "bird"}
+
+
+def foreground_probability(logits, classes) -> jnp.ndarray:
+    """Eq. 6: C. logits: [..., L]; classes: sequence of class ids -> C: [...] in [0, 1]."""
+    idx = jnp.asarray(sorted(set(int(c) for c in classes)), jnp.int32)
+    prob = jax.nn.softmax(jnp.asarray(logits, jnp.float32), axis=-1)
+    return jnp.clip(jnp.sum(jnp.take(prob, idx, axis=-1), axis=-1), 0.0, 1.0)
+
+
+def binary_mask(prob, threshold: float) -> jnp.ndarray:
+    """M = [C > T] as float32 {0, 1}. prob: [...] -> [...]."""
+    return (jnp.asarray(prob) > threshold).astype(jnp.float32)
+
+
+def inverse_depth_to_depth(inv_depth, eps: float = 1e-3) -> jnp.ndarray:
+    """Relative inverse depth r: [..., H, W] (>= 0) -> depth D = 1 / max(r, eps * max_img(r)).
+
+    Up to an unknown global scale per image (harmless for Eq. 7). An all-zero map gives D = 1/eps.
+    """
+    r = jnp.asarray(inv_depth, jnp.float32)
+    rmax = jnp.max(r, axis=(-2, -1), keepdims=True)
+    lo = jnp.maximum(eps * rmax, 1e-12)
+    return 1.0 / jnp.maximum(r, jnp.where(rmax > 0, lo, eps))
+
+
+def depth_weighted_mask(mask, depth, floor: float = 0.0, dmax=None) -> jnp.ndarray:
+    """Eq. 7 with a floor: M_w = M * max(floor, (Dmax - D) / Dmax).
+
+    mask: [..., H, W] in {0, 1}; depth: [..., H, W] > 0; dmax: None (per-image max of `depth`)
+    or a scalar / [...] array. floor in [0, 1]. Returns M_w: [..., H, W] in [0, 1].
+    """
+    if not 0.0 <= floor <= 1.0:
+        raise ValueError(f"depth_weighted_mask: floor must be in [0, 1], got {floor}")
+    m = jnp.asarray(mask, jnp.float32)
+    d = jnp.asarray(depth, jnp.float32)
+    if dmax is None:
+        dmax = jnp.max(d, axis=(-2, -1), keepdims=True)
+    else:
+        dmax = jnp.asarray(dmax, jnp.float32)
+        dmax = dmax[..., None, None] if dmax.ndim else dmax
+    w = jnp.clip((dmax - d) / jnp.maximum(dmax, 1e-12), 0.0, 1.0)
+    return m * jnp.maximum(floor, w)
+
+
+def filter_image(image, weighted_mask) -> jnp.ndarray:
+    """Eq. 8: (1 - M_w) * I. image: [..., H, W, C]; weighted_mask: [..., H, W]."""
+    return (1.0 - jnp.asarray(weighted_mask, jnp.float32))[..., None] * jnp.asarray(image, jnp.float32)
+
+
+def training_weights(weighted_mask) -> jnp.ndarray:
+    """Per-pixel loss weights 1 - M_w: [..., H, W] (0 = never a training target)."""
+    return 1.0 - jnp.asarray(weighted_mask, jnp.float32)
+
+
+def dilate(mask: np.ndarray, pixels: int) -> np.ndarray:
+    """Grey dilation (max filter over an elliptical disc of radius `pixels`), OpenCV.
+
+    mask: [H, W] float (binary M or weighted M_w; on M_w it spreads each object's weight).
+    """
+    if pixels <= 0:
+        return np.asarray(mask, np.float32)
+    import cv2
+
+    k = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * pixels + 1, 2 * pixels + 1))
+    return cv2.dilate(np.asarray(mask, np.float32), k)
+
+
+def overlay(image: np.ndarray, mask: np.ndarray, weighted_mask: np.ndarray) -> np.ndarray:
+    """A check-at-a-glance picture: left the photo with M_w tinted red and M's outline in yellow,
+    right Eq. 8's filtered image. image: [H, W, 3]; mask, weighted_mask: [H, W] -> [H, 2W, 3]."""
+    import cv2
+
+    img = np.asarray(image, np.float32)
+    mw = np.asarray(weighted_mask, np.float32)[..., None]
+    tinted = img * (1 - 0.6 * mw) + 0.6 * mw * np.array([1.0, 0.0, 0.0], np.float32)
+    m8 = (np.asarray(mask) > 0.5).astype(np.uint8)
+    edge = cv2.morphologyEx(m8, cv2.MORPH_GRADIENT, np.ones((3, 3), np.uint8)) > 0
+    tinted[edge] = (1.0, 1.0, 0.0)
+    filtered = np.asarray(filter_image(img, mw[..., 0]))
+    return np.clip(np.concatenate([tinted, filtered], axis=1), 0.0, 1.0)
+
+
+# ----------------------------------------------------------------- inference on photos
+def working_size(height: int, width: int, max_side: int = 384, multiple: int = 32) -> tuple[int, int]:
+    """(h, w): aspect kept, longest side ~max_side, each a multiple of `multiple` (>= multiple)."""
+    s = max_side / max(height, width)
+    h = max(multiple, int(round(height * s / multiple)) * multiple)
+    w = max(multiple, int(round(width * s / multiple)) * multiple)
+    return h, w
+
+
+def resize_map(x: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Bilinear (half-pixel) resize of a float map [h, w] or [h, w, C] with OpenCV."""
+    import cv2
+
+    x = np.asarray(x, np.float32)
+    if x.shape[:2] == (height, width):
+        return x
+    interp = cv2.INTER_LINEAR if height >= x.shape[0] else cv2.INTER_AREA
+    return cv2.resize(x, (width, height), interpolation=interp)
+
+
+def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, batch_size: int = 4):
+    """Runs DPT on photos of any size in bounded memory.
+
+    Each image is resized to a working size (aspect kept, multiple of 2 x patch, longest side
+    ~max_side), images of the same working shape are batched (one compile per working shape),
+    and the outputs come back at full resolution: C (Eq. 6, computed at working size, then
+    bilinearly upsampled) and the relative inverse depth.
+
+    seg_model: a dpt.Model with a segmentation head; depth_model: a dpt.Model with a depth head,
+    the same model, or None. images: iterable of [H, W, 3] float in [0, 1].
+    Yields (C [H, W], inv_depth [H, W] or None) per image, in order.
+    """
+    from jaxnerf_grid import dpt
+
+    models = [seg_model] + ([depth_model] if depth_model is not None and depth_model is not seg_model else [])
+    multiple = 2 * max(m.config.patch_size for m in models)
+    both = depth_model is seg_model
+
+    def flush(batch):
+        x = np.stack([b[1] for b in batch])
+        if len(batch) < batch_size:  # pad so every batch of a working shape has one compiled shape
+            x = np.concatenate([x, np.repeat(x[-1:], batch_size - len(batch), axis=0)])
+        out = dpt.apply(seg_model, dpt.normalize(x))
+        prob = np.asarray(foreground_probability(out["logits"], classes))
+        if both:
+            inv = np.asarray(out["depth"])
+        elif depth_model is not None:
+            inv = np.asarray(dpt.apply(depth_model, dpt.normalize(x))["depth"])
+        else:
+            inv = None
+        for i, (shape, _) in enumerate(batch):
+            yield (resize_map(prob[i], *shape),
+                   None if inv is None else np.maximum(resize_map(inv[i], *shape), 0.0))
+
+    batch, key = [], None
+    for image in images:
+        image = np.asarray(image, np.float32)
+        h, w = image.shape[:2]
+        ws = working_size(h, w, max_side, multiple)
+        if batch and (ws != key or len(batch) == batch_size):
+            yield from flush(batch)
+            batch = []
+        key = ws
+        batch.append(((h, w), resize_map(image, *ws)))
+    if batch:
+        yield from flush(batch)

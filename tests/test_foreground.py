@@ -1,0 +1,94 @@
+"""Eq. 6-8 against hand-computed closed forms."""
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid import foreground as fg
+
+
+def test_probability_sums_softmax_over_classes():
+    # logits log(1), log(2), log(3), log(4): softmax = [0.1, 0.2, 0.3, 0.4]
+    logits = np.log(np.array([[[1.0, 2.0, 3.0, 4.0]]]))
+    c = np.asarray(fg.foreground_probability(logits, [1, 3]))
+    np.testing.assert_allclose(c, [[0.6]], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(fg.foreground_probability(logits, [2, 2])), [[0.3]], atol=1e-6)
+
+
+def test_binary_mask_is_strict_threshold():
+    prob = np.array([0.2, 0.5, 0.50001, 0.9])
+    np.testing.assert_array_equal(np.asarray(fg.binary_mask(prob, 0.5)), [0, 0, 1, 1])
+
+
+def test_depth_weighted_mask_eq7_exact_and_floor():
+    mask = np.array([[1.0, 1.0], [0.0, 1.0]])
+    depth = np.array([[1.0, 4.0], [2.0, 3.0]])  # Dmax = 4
+    # Eq. 7: (4 - D) / 4 -> [[0.75, 0], [., 0.25]]
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth)), [[0.75, 0.0], [0.0, 0.25]])
+    # floor 0.5: max(0.5, w) on masked pixels only
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth, floor=0.5)), [[0.75, 0.5], [0.0, 0.5]])
+    # floor 1: every masked pixel fully excluded
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth, floor=1.0)), mask)
+    # explicit Dmax
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth, dmax=8.0)),
+                               [[7 / 8, 4 / 8], [0.0, 5 / 8]])
+    with pytest.raises(ValueError, match="floor"):
+        fg.depth_weighted_mask(mask, depth, floor=1.5)
+
+
+def test_dmax_is_per_image_in_a_batch():
+    mask = np.ones((2, 1, 2))
+    depth = np.array([[[1.0, 2.0]], [[1.0, 10.0]]])
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth)), [[[0.5, 0.0]], [[0.9, 0.0]]])
+
+
+def test_filter_image_and_training_weights():
+    img = np.full((1, 2, 3), 0.8)
+    mw = np.array([[0.25, 1.0]])
+    np.testing.assert_allclose(np.asarray(fg.filter_image(img, mw)), [[[0.6] * 3, [0.0] * 3]], atol=1e-6)
+    np.testing.assert_allclose(np.asarray(fg.training_weights(mw)), [[0.75, 0.0]])
+
+
+def test_inverse_depth_to_depth():
+    inv = np.array([[4.0, 2.0], [1.0, 0.0]])
+    d = np.asarray(fg.inverse_depth_to_depth(inv, eps=0.01))
+    # 1/r, and r = 0 clamped to eps * max(r) = 0.04 -> 25
+    np.testing.assert_allclose(d, [[0.25, 0.5], [1.0, 25.0]], rtol=1e-6)
+
+
+def test_dilate_matches_disc_max_filter():
+    m = np.zeros((9, 9), np.float32)
+    m[4, 4] = 0.7
+    out = fg.dilate(m, 2)
+    # max filter of a single spike = the structuring element stamped at the spike (a 5x5 disc:
+    # the centre row and column fully, the corners never)
+    assert out[4, 2] == out[2, 4] == out[4, 6] == out[6, 4] == out[3, 3] == np.float32(0.7)
+    assert out[2, 2] == out[6, 6] == out[0, 0] == 0 and out[4, 1] == 0
+    assert np.count_nonzero(out) < 25 and out.max() == np.float32(0.7)
+
+
+def test_working_size_keeps_aspect_and_multiple():
+    for h, w in [(2160, 3840), (3648, 5472), (100, 60)]:
+        wh, ww = fg.working_size(h, w, 384, 32)
+        assert wh % 32 == 0 and ww % 32 == 0 and max(wh, ww) <= 400
+        assert abs(wh / ww - h / w) < 0.1
+    assert fg.working_size(2160, 3840, 384, 32) == (224, 384)
+
+
+def test_predict_maps_on_large_photo_bounded_and_full_resolution():
+    """A 3840x2160 photo through a tiny random DPT with both heads: outputs at full size, and one
+    compiled working shape for two photos of the same size."""
+    import jax
+    from jaxnerf_grid import dpt
+    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3,
+                        heads=("segmentation", "depth"))
+    model = dpt.init(jax.random.PRNGKey(0), cfg)
+    ramp = np.linspace(0, 1, 3840, dtype=np.float32)
+    photo = np.broadcast_to(ramp[None, :, None], (2160, 3840, 3))
+    outs = list(fg.predict_maps(model, model, [photo, photo], classes=[1], max_side=128, batch_size=2))
+    assert len(outs) == 2
+    c, inv = outs[0]
+    assert c.shape == inv.shape == (2160, 3840)
+    assert 0.0 <= c.min() and c.max() <= 1.0 and inv.min() >= 0
+    np.testing.assert_array_equal(outs[0][0], outs[1][0])
