@@ -311,12 +311,13 @@ def scene_bounds(scene: sc.Scene) -> dict:
     return {k: prim_bounds(k, scene.tables[k]) for k in KINDS}
 
 
-def screen_rects(bounds: dict, c2w: np.ndarray, intr: dict, tile: int = TILE) -> tuple[dict, int]:
+def screen_rects(bounds: dict, c2w: np.ndarray, intr: dict, tile: int | None = None) -> tuple[dict, int]:
     """Inclusive tile rectangles covering each primitive's projected bounds in one camera.
 
     A primitive whose bounds reach behind (or within 0.1 m of) the camera plane gets the whole
     screen. Returns ({kind: [M, 4]}, tiles per row).
     """
+    tile = tile or TILE
     gw, gh = -(-intr["w"] // tile), -(-intr["h"] // tile)
     rot, eye = c2w[:3, :3], c2w[:3, 3]
     rects = {}
@@ -345,7 +346,8 @@ class SunGrid:
     """Cells of the plane perpendicular to the sun: a shadow ray p + t * sun meets only the
     primitives whose projected bounds cover the projection of p."""
 
-    def __init__(self, sun: np.ndarray, bounds: dict, cell: float = SUN_CELL):
+    def __init__(self, sun: np.ndarray, bounds: dict, cell: float | None = None):
+        cell = cell or SUN_CELL
         helper = np.array([0.0, 0.0, 1.0]) if abs(sun[2]) < 0.9 else np.array([1.0, 0.0, 0.0])
         e1 = np.cross(sun, helper)
         e1 /= np.linalg.norm(e1)
@@ -446,11 +448,13 @@ def render_view(world: StaticWorld, cfg: SynthConfig, c2w: np.ndarray, intr: dic
     p_s, n_s, alb_s, cls_hit = surfaces(world.scene, source[hit], kind[hit], idx[hit], t_static[hit], hit)
     cls_static = np.zeros(n, np.int64)
     cls_static[hit] = cls_hit
-    vis_s = np.ones(len(hit))
+    # Shadow rays only where the sun can light the surface at all (n . sun > 0).
+    vis_s = (n_s @ world.sun > 0).astype(float)
     if cfg.shadows and len(hit):
-        occ = world.sun_grid.occluded(world.scene.tables, world.sun_rects, _shadow_offset(p_s, n_s, t_static[hit]),
-                                      world.sun)
-        vis_s = (~occ).astype(float)
+        facing = np.nonzero(vis_s)[0]
+        occ = world.sun_grid.occluded(world.scene.tables, world.sun_rects,
+                                      _shadow_offset(p_s[facing], n_s[facing], t_static[hit][facing]), world.sun)
+        vis_s[facing[occ]] = 0.0
     rad_static = np.zeros((n, 3))
     sky = np.nonzero(source == SKY_CODE)[0]
     rad_static[sky] = shading.sky_radiance(d[sky], world.sun, world.tex_seed)
@@ -478,12 +482,13 @@ def render_view(world: StaticWorld, cfg: SynthConfig, c2w: np.ndarray, intr: dic
                 gidx[m] += base
         d_rects = world.sun_grid.rects(scene_bounds(dscene))
         p_d, n_d, alb_d, cls_d = surfaces(dscene, state.kind[dhit], state.kind[dhit], gidx[dhit], state.t[dhit], dhit)
-        vis_d = np.ones(len(dhit))
+        vis_d = (n_d @ world.sun > 0).astype(float)
         if cfg.shadows:
-            origin = _shadow_offset(p_d, n_d, state.t[dhit])
+            facing = np.nonzero(vis_d)[0]
+            origin = _shadow_offset(p_d[facing], n_d[facing], state.t[dhit][facing])
             occ_a = world.sun_grid.occluded(world.scene.tables, world.sun_rects, origin, world.sun)
             occ_b = world.sun_grid.occluded(dscene.tables, d_rects, origin, world.sun)
-            vis_d = (~occ_a & ~occ_b).astype(float)
+            vis_d[facing[occ_a | occ_b]] = 0.0
             # Static surfaces in a distractor's shadow (only where the sun reached them).
             lit = np.nonzero(vis_s > 0)[0]
             occ_c = world.sun_grid.occluded(dscene.tables, d_rects,

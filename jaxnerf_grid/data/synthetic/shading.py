@@ -49,16 +49,19 @@ def value_noise(p: np.ndarray, seed: int = 0) -> np.ndarray:
 def fbm(p: np.ndarray, octaves: int, seed: int = 0, footprint: np.ndarray | None = None) -> np.ndarray:
     """Fractal noise in about [0, 1]. p: [N, 3] in noise units (feature size 1);
     footprint: optional [N] pixel size in the same units, fading octaves finer than ~2 pixels
-    towards their mean 0.5. Returns [N]."""
+    towards their mean 0.5 (faded-out octaves are not evaluated). Returns [N]."""
     out = np.zeros(len(p))
     amp, total = 0.5, 0.0
     for k in range(octaves):
         freq = 2.0 ** k
-        n = value_noise(p * freq, seed + 17 * k)
-        if footprint is not None:
+        if footprint is None:
+            out += amp * value_noise(p * freq, seed + 17 * k)
+        else:
             fade = np.clip(1.5 - 2.0 * footprint * freq, 0.0, 1.0)
-            n = 0.5 + fade * (n - 0.5)
-        out += amp * n
+            act = np.nonzero(fade > 0)[0]
+            out += amp * 0.5
+            if act.size:
+                out[act] += amp * fade[act] * (value_noise(p[act] * freq, seed + 17 * k) - 0.5)
         total += amp
         amp *= 0.5
     return out / total
@@ -99,9 +102,8 @@ def ground_albedo(p: np.ndarray, footprint: np.ndarray, seed: int) -> np.ndarray
     col = grass * (1 - mix) + dry * mix
     fine = fbm(p / 0.9, 5, seed + 2, footprint / 0.9)
     col = col * (0.6 + 0.8 * fine)[:, None]
-    pad = np.maximum(np.abs(p[:, 0]), np.abs(p[:, 1])) < 7.0
-    gravel = soil * (0.75 + 0.5 * fbm(p / 0.25, 3, seed + 3, footprint / 0.25))[:, None]
-    col = np.where(pad[:, None], gravel, col)
+    pad = np.nonzero(np.maximum(np.abs(p[:, 0]), np.abs(p[:, 1])) < 7.0)[0]
+    col[pad] = soil * (0.75 + 0.5 * fbm(p[pad] / 0.25, 3, seed + 3, footprint[pad] / 0.25))[:, None]
     track_x = 22.0 + 6.0 * np.sin(p[:, 1] / 45.0)
     track = np.abs(p[:, 0] - track_x) < 1.8
     col = np.where(track[:, None], soil * 1.25 * (0.8 + 0.4 * fine)[:, None], col)
