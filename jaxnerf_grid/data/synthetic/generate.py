@@ -130,6 +130,7 @@ def _merge(scenes: list[sc.Scene]) -> tuple[sc.Scene, list[dict]]:
 
 _KIND_WEIGHTS = {"low": (0.5, 0.22, 0.0, 0.28), "medium": (0.4, 0.25, 0.08, 0.27),
                  "high": (0.35, 0.25, 0.12, 0.28)}
+_FOOTPRINT = {"person": 0.4, "car": 2.5, "truck": 4.8}     # ground radius (m) kept free of others
 _GROUND_RANGE = {"low": (25.0, 110.0), "medium": (14.0, 110.0), "high": (11.0, 90.0)}
 
 
@@ -250,7 +251,8 @@ def _place_teleport(state: _ViewState, level: str, rng: np.random.Generator, sta
         weights = np.array([0.0, 0.0, 0.0, 1.0])
     cap = hi_cov
     attempts = 0
-    while state.coverage() < target and attempts < 500 and len(state.objects) < 400:
+    footprints = []
+    while state.coverage() < target and attempts < 800 and len(state.objects) < 400:
         attempts += 1
         kind = kinds[rng.choice(4, p=weights / weights.sum())]
         heading = rng.uniform(0, 2 * np.pi)
@@ -258,9 +260,9 @@ def _place_teleport(state: _ViewState, level: str, rng: np.random.Generator, sta
         if kind == "bird":
             ray = int(rng.choice(centre))
             far = min(state.static_t[ray] - 2.0, 90.0)
-            if far <= 12.0:
+            if far <= 16.0:
                 continue
-            pos = state.o[ray] + rng.uniform(12.0, far) * state.d[ray]
+            pos = state.o[ray] + rng.uniform(16.0, far) * state.d[ray]     # >= ~11 m after flock spread
             flock = int(rng.integers(1, 6))
             scale = rng.uniform(1.0, 2.2)
             for b in range(flock):
@@ -272,9 +274,11 @@ def _place_teleport(state: _ViewState, level: str, rng: np.random.Generator, sta
             continue
         ray = int(rng.choice(ground_pool))
         pos = state.o[ray] + state.static_t[ray] * state.d[ray]
-        if not _ground_ok(kind, pos[:2]):
-            continue
-        state.try_add(_object_scene(kind, pos, heading, np.random.default_rng(seed), 0), cap)
+        radius = _FOOTPRINT[kind]
+        if not _ground_ok(kind, pos[:2]) or any(np.hypot(*(pos[:2] - xy)) < radius + r for xy, r in footprints):
+            continue                                      # on a footing or overlapping another object
+        if state.try_add(_object_scene(kind, pos, heading, np.random.default_rng(seed), 0), cap):
+            footprints.append((pos[:2], radius))
 
 
 def jitter_base(level: str, rng: np.random.Generator) -> list[tuple]:
