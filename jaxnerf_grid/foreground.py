@@ -57,18 +57,21 @@ def inverse_depth_to_depth(inv_depth, eps: float = 1e-3) -> jnp.ndarray:
 def depth_weighted_mask(mask, depth, floor: float = 0.0, dmax=None) -> jnp.ndarray:
     """Eq. 7 with a floor: M_w = M * max(floor, (Dmax - D) / Dmax).
 
-    mask: [..., H, W] in {0, 1}; depth: [..., H, W] > 0; dmax: None (per-image max of `depth`)
+    mask: [..., H, W] in {0, 1}; depth: [..., H, W] > 0, +inf allowed (= Dmax); dmax: None
+    (per-image max of the finite depths)
     or a scalar / [...] array. floor in [0, 1]. Returns M_w: [..., H, W] in [0, 1].
     """
     if not 0.0 <= floor <= 1.0:
         raise ValueError(f"depth_weighted_mask: floor must be in [0, 1], got {floor}")
     m = jnp.asarray(mask, jnp.float32)
     d = jnp.asarray(depth, jnp.float32)
+    finite = jnp.isfinite(d)
     if dmax is None:
-        dmax = jnp.max(d, axis=(-2, -1), keepdims=True)
+        dmax = jnp.max(jnp.where(finite, d, 0.0), axis=(-2, -1), keepdims=True)
     else:
         dmax = jnp.asarray(dmax, jnp.float32)
         dmax = dmax[..., None, None] if dmax.ndim else dmax
+    d = jnp.where(finite, d, dmax)  # +inf (sky in synthetic ground truth) counts as the farthest
     w = jnp.clip((dmax - d) / jnp.maximum(dmax, 1e-12), 0.0, 1.0)
     return m * jnp.maximum(floor, w)
 

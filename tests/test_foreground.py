@@ -35,6 +35,13 @@ def test_depth_weighted_mask_eq7_exact_and_floor():
         fg.depth_weighted_mask(mask, depth, floor=1.5)
 
 
+def test_infinite_depth_is_the_farthest():
+    mask = np.ones((1, 3))
+    depth = np.array([[1.0, 4.0, np.inf]])
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth)), [[0.75, 0.0, 0.0]])
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth, floor=0.3)), [[0.75, 0.3, 0.3]])
+
+
 def test_dmax_is_per_image_in_a_batch():
     mask = np.ones((2, 1, 2))
     depth = np.array([[[1.0, 2.0]], [[1.0, 10.0]]])

@@ -1,0 +1,112 @@
+"""Images/s of our JAX DPT vs transformers' torch DPT with identical weights, same CPU, 384x384.
+
+Usage:
+  JAX_PLATFORMS=cpu python benchmarks/dpt_speed.py [--arch base|large] [--task segmentation|depth]
+      [--batch 1] [--iters 5] [--out benchmarks/results/dpt_speed.json]
+
+A random-weight DPTForSemanticSegmentation (150 labels) or DPTForDepthEstimation is built with
+transformers (arch "large" = Intel/dpt-large's shape: ViT-L/16, 24 layers; "base" = ViT-B/16,
+12 layers, the DPTConfig default), saved in the HF layout, loaded with `dpt.load_pretrained`, and
+both run on the same input. Timings exclude the first (compile / warm-up) call. Both frameworks
+use every core of the machine (torch.set_num_threads(os.cpu_count())). Also records the max
+difference between the two outputs and the machine's load average (the CI box is shared).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import platform
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+sys.modules.setdefault("torchvision", None)  # broken in the dev venv; transformers must not import it
+
+import numpy as np  # noqa: E402
+
+
+def _time(fn, iters):
+    fn()  # warm-up / compile
+    times = []
+    for _ in range(iters):
+        t = time.perf_counter()
+        fn()
+        times.append(time.perf_counter() - t)
+    return float(np.median(times)), times
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__)
+    p.add_argument("--arch", choices=["base", "large"], default="base")
+    p.add_argument("--task", choices=["segmentation", "depth"], default="segmentation")
+    p.add_argument("--size", type=int, default=384)
+    p.add_argument("--batch", type=int, default=1)
+    p.add_argument("--iters", type=int, default=5)
+    p.add_argument("--out", default=str(Path(__file__).parent / "results" / "dpt_speed.json"))
+    args = p.parse_args(argv)
+
+    import jax
+    import torch
+    import transformers
+
+    from jaxnerf_grid import dpt
+
+    torch.set_num_threads(os.cpu_count() or 1)
+    kw = dict(num_labels=150)
+    if args.arch == "large":
+        kw.update(hidden_size=1024, num_hidden_layers=24, num_attention_heads=16, intermediate_size=4096,
+                  backbone_out_indices=[5, 11, 17, 23], neck_hidden_sizes=[256, 512, 1024, 1024])
+    cfg = transformers.DPTConfig(**kw)
+    cls = transformers.DPTForSemanticSegmentation if args.task == "segmentation" else transformers.DPTForDepthEstimation
+    torch.manual_seed(0)
+    ref = cls(cfg).eval()
+    with tempfile.TemporaryDirectory() as tmp:
+        ref.save_pretrained(tmp)
+        model = dpt.load_pretrained(tmp)
+
+    x = np.random.default_rng(0).uniform(-1, 1, (args.batch, args.size, args.size, 3)).astype(np.float32)
+    xt = torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()
+    key = "logits_raw" if args.task == "segmentation" else "depth_raw"
+
+    def run_torch():
+        with torch.inference_mode():
+            out = ref(pixel_values=xt)
+        return out.logits if args.task == "segmentation" else out.predicted_depth
+
+    def run_jax():
+        return jax.block_until_ready(dpt.apply(model, x)[key])
+
+    t0 = time.perf_counter()
+    run_jax()
+    compile_s = time.perf_counter() - t0
+    jax_s, jax_all = _time(run_jax, args.iters)
+    torch_s, torch_all = _time(run_torch, args.iters)
+    a = np.asarray(run_jax())
+    b = run_torch().numpy()
+    b = b.transpose(0, 2, 3, 1) if b.ndim == 4 else b
+    result = {
+        "arch": args.arch, "task": args.task, "size": args.size, "batch": args.batch, "iters": args.iters,
+        "jax_images_per_s": args.batch / jax_s, "torch_images_per_s": args.batch / torch_s,
+        "ratio_jax_over_torch": torch_s / jax_s,
+        "jax_median_s": jax_s, "torch_median_s": torch_s, "jax_times_s": jax_all, "torch_times_s": torch_all,
+        "jax_first_call_s_incl_compile": compile_s,
+        "max_abs_diff": float(np.max(np.abs(a - b))), "max_abs_ref": float(np.max(np.abs(b))),
+        "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
+        "loadavg_after": os.getloadavg(), "jax": jax.__version__, "torch": torch.__version__,
+        "transformers": transformers.__version__, "torch_threads": torch.get_num_threads(),
+    }
+    print(f"DPT-{args.arch} {args.task} {args.size}x{args.size} batch {args.batch}: "
+          f"JAX {result['jax_images_per_s']:.3f} img/s, torch {result['torch_images_per_s']:.3f} img/s, "
+          f"ratio {result['ratio_jax_over_torch']:.2f}x (goal >= 1.5x); max |diff| {result['max_abs_diff']:.2e}; "
+          f"load avg {result['loadavg_after'][0]:.1f}")
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
