@@ -1,0 +1,452 @@
+"""Training and rendering: jaxopt-driven steps, pmap data parallelism, checkpoints, exact resume.
+
+Training step (one `jax.pmap` over the local devices, axis "batch"):
+  * the ray pool (every training pixel with loss weight > 0, as flat pixel ids, plus the
+    images, weights and cameras) is uploaded once to every device;
+  * from the state's PRNG key each device draws the same *global* batch of `batch_rays`
+    pixel ids (uniform, with replacement) and per-ray keys, and takes its own slice, so the
+    global batch does not depend on the device count;
+  * per-device loss = sum_r w_r l_r / W with W the psum of the weights over the global batch
+    (losses.weighted_mean), gradients psum-ed over devices (= the gradient of the global
+    loss), then `optim.guarded_apply` (jaxopt's OptaxSolver update with clipping inside Adam)
+    skips a non-finite step; the host logs every skipped step;
+  * the learning rate warms up linearly then decays log-linearly (optim.make_lr_schedule).
+
+The state is {"params", "opt_state", "key"} plus the host step counter; checkpoints
+(checkpoint.save_checkpoint: atomic, last k kept) hold exactly that, so a resumed run replays
+the same batches and reaches the same parameters as an uninterrupted one.
+
+Rendering: rays in fixed-size chunks (padded), deterministic samples (bin centres), split
+over devices; outputs rgb (static part for NeRF-W), z-depth (median depth along the ray
+times the cosine to the camera axis) and opacity.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import json
+import logging
+import math
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxnerf_grid import checkpoint, config as config_lib, losses, models, optim, rays as rays_lib
+from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.io import DataError
+
+logger = logging.getLogger(__name__)
+AXIS = "batch"
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and I/O settings.
+
+    batch_rays: global rays per step (split over devices; must divide by the device count).
+    lr_init, lr_final, warmup: learning-rate schedule; max_grad_norm: clipping (0 = off).
+    use_masks: weight the loss by the dataset's `1 - M_w` (False: every pixel weight 1).
+    mask_weight_floor: with masks, a masked pixel's weight is at most 1 - floor (DESIGN.md:
+      Eq. 7 gives a bird against the sky a weight near 1; floor 1 excludes every masked pixel).
+    checkpoint_every, keep_checkpoints, log_every: steps; chunk: rays per rendering chunk.
+    num_devices: devices to use (0 = all local devices).
+    appearance_steps, appearance_lr, appearance_rays: NeRF-W test-time embedding fit.
+    """
+
+    batch_rays: int = 1024
+    max_steps: int = 2000
+    lr_init: float = 5e-4
+    lr_final: float = 5e-5
+    warmup: int = 100
+    max_grad_norm: float = 1.0
+    adam_eps: float = 1e-6
+    use_masks: bool = True
+    mask_weight_floor: float = 0.0
+    coarse_loss_weight: float = 1.0
+    seed: int = 0
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+    log_every: int = 25
+    chunk: int = 4096
+    num_devices: int = 0
+    appearance_steps: int = 30
+    appearance_lr: float = 0.05
+    appearance_rays: int = 1024
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    model: models.ModelConfig = models.ModelConfig()
+    train: TrainConfig = TrainConfig()
+
+
+def _deep_merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def make_config(method: str, overrides: dict | None = None) -> RunConfig:
+    """The defaults of `method` with `overrides` (a nested dict, e.g. from --config) on top."""
+    base = {"model": models.method_defaults(method), "train": {"use_masks": method == "ours"}}
+    merged = _deep_merge(config_lib.to_dict(RunConfig()), base)
+    merged = _deep_merge(merged, overrides or {})
+    if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:
+        raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts --method {method!r}")
+    cfg = config_lib.from_dict(RunConfig, merged)
+    models.validate(dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, 1)))
+    return cfg
+
+
+# --------------------------------------------------------------------------- ray pool
+
+
+def loss_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
+    """Per-pixel loss weights of every frame. Returns [N, H, W] float32 in [0, 1]."""
+    shape = dataset.images.shape[:3]
+    if not cfg.use_masks or dataset.weights is None:
+        return np.ones(shape, np.float32)
+    w = np.clip(np.asarray(dataset.weights, np.float32), 0.0, 1.0)
+    if cfg.mask_weight_floor > 0 and dataset.masks is not None:
+        w = np.where(dataset.masks > 0.5, np.minimum(w, 1.0 - cfg.mask_weight_floor), w)
+    return w.astype(np.float32)
+
+
+def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
+    """Training data for on-device batch drawing (host NumPy arrays).
+
+    Returns {"pixels": [P] int32 flat ids (frame-in-train * H*W + row * W + col) of every
+    training pixel with weight > 0, "images": [T, H, W, 3], "weights": [T, H, W],
+    "c2w": [T, 4, 4], "intrinsics": [T, 4], "frame": [T] int32 dataset frame ids,
+    "near", "far": floats}.
+    """
+    train_ids = np.asarray(dataset.split["train"], np.int64)
+    if train_ids.size == 0:
+        raise DataError(f"{dataset.root}: the dataset has no training frames")
+    weights = loss_weights(dataset, cfg.train)[train_ids]
+    pixels = np.flatnonzero(weights.reshape(-1) > 0).astype(np.int32)
+    if pixels.size == 0:
+        raise DataError(f"{dataset.root}: every training pixel has loss weight 0 (check the masks)")
+    near = float(cfg.model.near if cfg.model.near is not None else dataset.near)
+    far = float(cfg.model.far if cfg.model.far is not None else dataset.far)
+    if not 0 < near < far:
+        raise ConfigError(f"near/far: need 0 < near < far, got {near}, {far}")
+    return {"pixels": pixels, "images": np.asarray(dataset.images[train_ids], np.float32),
+            "weights": weights, "c2w": np.asarray(dataset.c2w[train_ids], np.float32),
+            "intrinsics": np.asarray(dataset.intrinsics[train_ids], np.float32),
+            "frame": train_ids.astype(np.int32), "near": near, "far": far}
+
+
+def gather_batch(pool: dict, ids: jnp.ndarray) -> dict:
+    """Rays and targets of flat pixel ids. ids: [B] -> dict of [B, ...] (origins, directions,
+    near, far, rgb, weight, image_index)."""
+    _, height, width, _ = pool["images"].shape
+    frame = ids // (height * width)
+    pix = ids % (height * width)
+    row, col = pix // width, pix % width
+    intr = pool["intrinsics"][frame]
+    r = rays_lib.rays_for_pixels(pool["c2w"][frame], intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3],
+                                 col.astype(jnp.float32) + 0.5, row.astype(jnp.float32) + 0.5,
+                                 pool["near"], pool["far"])
+    return {"origins": r.origins, "directions": r.directions, "near": r.near, "far": r.far,
+            "rgb": pool["images"][frame, row, col], "weight": pool["weights"][frame, row, col],
+            "image_index": pool["frame"][frame]}
+
+
+# --------------------------------------------------------------------------- the step
+
+
+def make_optimizer(cfg: TrainConfig) -> optim.GradientTransformation:
+    schedule = optim.make_lr_schedule(cfg.lr_init, cfg.lr_final, cfg.warmup, cfg.max_steps)
+    return optim.adam(schedule, eps=cfg.adam_eps, max_grad_norm=cfg.max_grad_norm)
+
+
+def init_state(cfg: RunConfig) -> dict:
+    """{"params", "opt_state", "key"} on the host (unreplicated)."""
+    key = jax.random.PRNGKey(cfg.train.seed)
+    key, k_init = jax.random.split(key)
+    params = models.init(k_init, cfg.model)
+    return {"params": params, "opt_state": make_optimizer(cfg.train).init(params), "key": key}
+
+
+@functools.lru_cache(maxsize=8)
+def make_train_step(cfg: RunConfig, num_devices: int):
+    """The pmapped step: (state [n, ...], pool [n, ...]) -> (state, stats {loss, mse, finite}).
+
+    Cached per (config, device count), so runs with the same config share one compilation.
+    """
+    mcfg, tcfg = cfg.model, cfg.train
+    if tcfg.batch_rays % num_devices:
+        raise ConfigError(f"train.batch_rays ({tcfg.batch_rays}) must divide by the device count ({num_devices})")
+    per_device = tcfg.batch_rays // num_devices
+    opt = make_optimizer(tcfg)
+
+    def step(state, pool):
+        key, k_batch, k_rays = jax.random.split(state["key"], 3)
+        ids = jax.random.randint(k_batch, (tcfg.batch_rays,), 0, pool["pixels"].shape[0])
+        ray_keys = jax.random.split(k_rays, tcfg.batch_rays)
+        start = jax.lax.axis_index(AXIS) * per_device
+        ids = jax.lax.dynamic_slice_in_dim(ids, start, per_device)
+        ray_keys = jax.lax.dynamic_slice_in_dim(ray_keys, start, per_device)
+        batch = gather_batch(pool, pool["pixels"][ids])
+        total = jax.lax.psum(jnp.sum(batch["weight"]), AXIS)
+
+        def loss_fn(params):
+            out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
+                                     batch["far"], ray_keys, batch["image_index"])
+            terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
+                                        tcfg.coarse_loss_weight)
+            mse = terms.get("mse_fine", terms["mse_coarse"])
+            loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
+            return loss, losses.weighted_mean(mse, batch["weight"], total)
+
+        (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+        loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
+        params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
+        return {"params": params, "opt_state": opt_state, "key": key}, {"loss": loss, "mse": mse, "finite": finite}
+
+    return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=jax.local_devices()[:num_devices])
+
+
+def resolve_devices(cfg: TrainConfig) -> int:
+    available = jax.local_device_count()
+    n = cfg.num_devices or available
+    if n > available:
+        raise ConfigError(f"train.num_devices = {n} but only {available} local devices exist")
+    return n
+
+
+def _to_devices(tree, n: int):
+    """Replicates a pytree onto the first n local devices, laid out as pmap wants it (so the
+    arrays stay resident between steps): [...] -> [n, ...]."""
+    stacked = jax.tree_util.tree_map(lambda x: np.stack([np.asarray(x)] * n), tree)
+    return jax.pmap(lambda x: x, axis_name=AXIS, devices=jax.local_devices()[:n])(stacked)
+
+
+def _unreplicate(tree):
+    return jax.device_get(jax.tree_util.tree_map(lambda x: x[0], tree))
+
+
+def _trim_log(path: Path, step: int) -> None:
+    """Drops metrics.jsonl lines logged after `step` (they are replayed after a resume)."""
+    if not path.exists():
+        return
+    keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
+    path.write_text("".join(line + "\n" for line in keep))
+
+
+@dataclasses.dataclass
+class TrainResult:
+    params: dict
+    step: int
+    seconds: float
+    skipped_steps: list
+    last_loss: float
+    last_psnr: float
+
+
+def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
+          stop_at: int | None = None, on_step=None) -> TrainResult:
+    """Trains (or resumes) a run in `run_dir` up to cfg.train.max_steps (or `stop_at`).
+
+    Resumes from the newest checkpoint in run_dir when there is one. Writes checkpoints
+    every `checkpoint_every` steps and at the end, and metrics.jsonl every `log_every` steps.
+    on_step: optional callable(step) run on the host after each step (tests, callbacks).
+    """
+    run_dir = Path(run_dir)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    mcfg = dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, dataset.num_frames))
+    cfg = dataclasses.replace(cfg, model=mcfg)
+    tcfg = cfg.train
+    n = resolve_devices(tcfg)
+    pool_host = build_pool(dataset, cfg)
+    state = init_state(cfg)
+    step = 0
+    restored = checkpoint.restore_latest(run_dir, state)
+    if restored is not None:
+        state, step = restored
+        logger.info("resumed %s at step %d", run_dir, step)
+    log_path = run_dir / "metrics.jsonl"
+    _trim_log(log_path, step)
+    pool = _to_devices(pool_host, n)
+    state_r = _to_devices(state, n)
+    p_step = make_train_step(cfg, n)
+    end = min(tcfg.max_steps, stop_at if stop_at is not None else tcfg.max_steps)
+    schedule = optim.make_lr_schedule(tcfg.lr_init, tcfg.lr_final, tcfg.warmup, tcfg.max_steps)
+    skipped: list[int] = []
+    last_loss = last_psnr = float("nan")
+    bar = None
+    if progress:
+        from tqdm import tqdm
+
+        bar = tqdm(total=end, initial=step, desc=f"train {mcfg.method}", unit="step", dynamic_ncols=True)
+    start_time = time.perf_counter()
+    window_start, window_steps = time.perf_counter(), 0
+    try:
+        while step < end:
+            state_r, stats = p_step(state_r, pool)
+            step += 1
+            window_steps += 1
+            if not bool(stats["finite"][0]):
+                skipped.append(step)
+                optim.log_nonfinite(step, stats["loss"][0])
+            if step % tcfg.log_every == 0 or step == end:
+                last_loss = float(stats["loss"][0])
+                last_psnr = float(losses.mse_to_psnr(stats["mse"][0]))
+                elapsed = time.perf_counter() - window_start
+                record = {"step": step, "loss": last_loss, "psnr": last_psnr,
+                          "lr": float(schedule(step - 1)), "skipped_total": len(skipped),
+                          "rays_per_s": window_steps * tcfg.batch_rays / max(elapsed, 1e-9),
+                          "time": time.perf_counter() - start_time}
+                with open(log_path, "a") as fh:
+                    fh.write(json.dumps(record) + "\n")
+                window_start, window_steps = time.perf_counter(), 0
+                if bar is not None:
+                    bar.set_postfix(loss=f"{last_loss:.4f}", psnr=f"{last_psnr:.2f}")
+            if bar is not None:
+                bar.update(1)
+            if step % tcfg.checkpoint_every == 0 or step == end:
+                checkpoint.save_checkpoint(run_dir, step, _unreplicate(state_r), keep=tcfg.keep_checkpoints)
+            if on_step is not None:
+                on_step(step)
+    finally:
+        if bar is not None:
+            bar.close()
+    final = _unreplicate(state_r)
+    return TrainResult(params=final["params"], step=step, seconds=time.perf_counter() - start_time,
+                       skipped_steps=skipped, last_loss=last_loss, last_psnr=last_psnr)
+
+
+def load_params(run_dir, cfg: RunConfig, num_images: int) -> tuple[dict, int]:
+    """Parameters of the newest checkpoint of a run. Returns (params, step)."""
+    mcfg = dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, num_images))
+    template = init_state(dataclasses.replace(cfg, model=mcfg))
+    restored = checkpoint.restore_latest(run_dir, template)
+    if restored is None:
+        raise DataError(f"{Path(run_dir) / checkpoint.CHECKPOINT_DIR}: no checkpoint to load")
+    state, step = restored
+    return state["params"], step
+
+
+# --------------------------------------------------------------------------- rendering
+
+
+@functools.lru_cache(maxsize=32)
+def _render_chunk_fn(mcfg: models.ModelConfig, num_devices: int, with_appearance: bool):
+    def fn(params, batch):
+        out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
+                                 batch["far"], None, batch["image_index"],
+                                 batch["appearance"] if with_appearance else None)
+        final = models.final_pass(out)
+        return {"rgb": models.static_rgb(out), "depth": final["median_depth"] * batch["cos"],
+                "expected_depth": final["depth"] * batch["cos"], "opacity": final["opacity"]}
+
+    return jax.pmap(fn, in_axes=(None, 0), devices=jax.local_devices()[:num_devices])
+
+
+def render_rays_chunked(params, mcfg: models.ModelConfig, r: rays_lib.Rays, image_index: int = 0,
+                        appearance=None, chunk: int = 4096, num_devices: int | None = None,
+                        progress: bool = False) -> dict:
+    """Renders any number of rays in fixed-size chunks (one compiled shape).
+
+    r: Rays with batch shape [...]; appearance: [A] or None (NeRF-W: overrides the table).
+    Returns dict of NumPy arrays with batch shape [...]: rgb [..., 3], depth (z-depth from the
+    median ray depth), expected_depth (z-depth of the mean), opacity.
+    """
+    n = num_devices or jax.local_device_count()
+    shape = r.origins.shape[:-1]
+    count = int(np.prod(shape))
+    chunk = max(n, (chunk // n) * n)
+    flat = {"origins": np.asarray(r.origins, np.float32).reshape(count, 3),
+            "directions": np.asarray(r.directions, np.float32).reshape(count, 3),
+            "near": np.asarray(r.near, np.float32).reshape(count),
+            "far": np.asarray(r.far, np.float32).reshape(count),
+            "cos": np.asarray(r.cos_to_axis, np.float32).reshape(count),
+            "image_index": np.full((count,), image_index, np.int32)}
+    with_app = appearance is not None and mcfg.use_appearance
+    if with_app:
+        flat["appearance"] = np.broadcast_to(np.asarray(appearance, np.float32), (count, mcfg.appearance_dim))
+    fn = _render_chunk_fn(mcfg, n, with_app)
+    pieces = []
+    starts = range(0, count, chunk)
+    if progress:
+        from tqdm import tqdm
+
+        starts = tqdm(starts, desc="render", unit="chunk", leave=False)
+    for start in starts:
+        part = {k: v[start:start + chunk] for k, v in flat.items()}
+        valid = part["near"].shape[0]
+        if valid < chunk:
+            part = {k: np.concatenate([v, np.repeat(v[-1:], chunk - valid, axis=0)]) for k, v in part.items()}
+        part = {k: v.reshape(n, chunk // n, *v.shape[1:]) for k, v in part.items()}
+        out = jax.device_get(fn(params, part))
+        pieces.append({k: v.reshape(chunk, *v.shape[2:])[:valid] for k, v in out.items()})
+    return {k: np.concatenate([p[k] for p in pieces]).reshape(*shape, *pieces[0][k].shape[1:]) for k in pieces[0]}
+
+
+def camera_rays(dataset: Dataset, index: int, near: float, far: float) -> rays_lib.Rays:
+    """Rays [H, W] of frame `index` of a dataset."""
+    fx, fy, cx, cy = (float(v) for v in dataset.intrinsics[index])
+    return rays_lib.generate_rays(jnp.asarray(dataset.c2w[index]), fx, fy, cx, cy, dataset.width, dataset.height,
+                                  near, far)
+
+
+def render_view(params, cfg: RunConfig, dataset: Dataset, index: int, appearance=None,
+                progress: bool = False) -> dict:
+    """Renders frame `index` of the dataset. Returns rgb [H, W, 3], depth, expected_depth,
+    opacity [H, W] (NumPy)."""
+    near = float(cfg.model.near if cfg.model.near is not None else dataset.near)
+    far = float(cfg.model.far if cfg.model.far is not None else dataset.far)
+    r = camera_rays(dataset, index, near, far)
+    image_index = min(int(index), max(cfg.model.num_images - 1, 0))
+    return render_rays_chunked(params, cfg.model, r, image_index, appearance, cfg.train.chunk,
+                               resolve_devices(cfg.train), progress)
+
+
+# --------------------------------------------------------------------------- NeRF-W test-time
+
+
+def fit_appearance(params, mcfg: models.ModelConfig, tcfg: TrainConfig, r: rays_lib.Rays,
+                   target: np.ndarray, key) -> np.ndarray:
+    """Fits one appearance embedding to some pixels with the network frozen (NeRF-W's test
+    protocol, used on the left half of a test image).
+
+    r: Rays [M]; target: [M, 3]. Starts from the mean of the training embeddings, runs
+    `appearance_steps` Adam steps on batches of `appearance_rays` pixels against the static
+    rendering. Returns [A] NumPy.
+    """
+    if not mcfg.use_appearance:
+        raise ValueError("fit_appearance: the model has no appearance embedding")
+    count = r.origins.shape[0]
+    opt = optim.adam(tcfg.appearance_lr)
+    emb = jnp.mean(params["appearance"], axis=0)
+    opt_state = opt.init(emb)
+
+    @jax.jit
+    def step(emb, opt_state, ids):
+        def loss_fn(e):
+            out = models.render_rays(params, mcfg, r.origins[ids], r.directions[ids], r.near[ids], r.far[ids],
+                                     None, jnp.zeros(ids.shape, jnp.int32),
+                                     jnp.broadcast_to(e, (ids.shape[0], e.shape[0])))
+            return jnp.mean(jnp.square(models.static_rgb(out) - target[ids]))
+
+        loss, grad = jax.value_and_grad(loss_fn)(emb)
+        emb, opt_state, _ = optim.guarded_apply(opt, emb, opt_state, grad, loss)
+        return emb, opt_state
+
+    target = jnp.asarray(target, jnp.float32)
+    batch = min(tcfg.appearance_rays, count)
+    for i in range(tcfg.appearance_steps):
+        ids = jax.random.choice(jax.random.fold_in(key, i), count, (batch,), replace=batch > count)
+        emb, opt_state = step(emb, opt_state, ids)
+    return np.asarray(emb)
+
+
+def psnr_of(mse: float) -> float:
+    return float(-10.0 * math.log10(max(mse, 1e-10)))

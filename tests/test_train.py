@@ -1,0 +1,134 @@
+"""train.py: ray pool, data-parallel equivalence, the non-finite guard, rendering, learning."""
+
+import dataclasses
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnerf_grid import fields, rays as rays_lib, train
+from jaxnerf_grid.data.dataset import Dataset
+
+TINY_FIELD = {"depth": 2, "width": 32, "skip": 1, "pos_max_deg": 4, "dir_max_deg": 2, "view_width": 16}
+
+
+def tiny_dataset(width=16, height=12, frames=5, seed=0) -> Dataset:
+    """A ball of radius 0.7 coloured by its normal, in front of a sky gradient, seen from a ring
+    of cameras; the last frame is the test frame; a 3x3 corner of each frame has weight 0."""
+    c2w, images = [], []
+    fx = 0.5 * width / np.tan(np.radians(30))
+    for k in range(frames):
+        a = 2 * np.pi * k / frames
+        m = np.asarray(rays_lib.look_at([3 * np.cos(a), 3 * np.sin(a), 0.5], [0, 0, 0]))
+        r = rays_lib.generate_rays(jnp.asarray(m), fx, fx, width / 2, height / 2, width, height)
+        o, d = np.asarray(r.origins, np.float64), np.asarray(r.directions, np.float64)
+        b = np.sum(o * d, -1)
+        disc = b * b - (np.sum(o * o, -1) - 0.49)
+        t = -b - np.sqrt(np.maximum(disc, 0))
+        n = (o + t[..., None] * d) / 0.7
+        sky = np.stack([0.4 + 0.3 * d[..., 2], 0.6 + 0.2 * d[..., 2], np.full(d.shape[:-1], 0.9)], -1)
+        img = np.where((disc > 0)[..., None], 0.5 + 0.5 * n, sky)
+        c2w.append(m)
+        images.append(img)
+    weights = np.ones((frames, height, width), np.float32)
+    weights[:, :3, :3] = 0.0
+    return Dataset(root=Path("tiny"), images=np.asarray(images, np.float32), c2w=np.asarray(c2w, np.float32),
+                   intrinsics=np.tile(np.array([[fx, fx, width / 2, height / 2]], np.float32), (frames, 1)),
+                   split={"train": np.arange(frames - 1), "test": np.array([frames - 1])},
+                   near=1.0, far=8.0, weights=weights)
+
+
+def tiny_config(method="ours", **train_kw):
+    overrides = {"model": {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8},
+                 "train": {"batch_rays": 64, "max_steps": 30, "checkpoint_every": 10, "log_every": 5,
+                           "warmup": 5, "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256, "num_devices": 2,
+                           **train_kw}}
+    return train.make_config(method, overrides)
+
+
+def test_pool_holds_exactly_the_weighted_pixels_and_rays_match():
+    ds = tiny_dataset()
+    cfg = tiny_config()
+    pool = train.build_pool(ds, cfg)
+    expected = [(f * 12 + r) * 16 + c for f in range(4) for r in range(12) for c in range(16)
+                if ds.weights[f, r, c] > 0]
+    np.testing.assert_array_equal(pool["pixels"], expected)
+    ids = jnp.asarray([pool["pixels"][0], pool["pixels"][-1]])
+    batch = train.gather_batch({k: jnp.asarray(v) for k, v in pool.items()}, ids)
+    full = train.camera_rays(ds, 3, 1.0, 8.0)
+    np.testing.assert_allclose(batch["directions"][1], full.directions[11, 15], atol=1e-6)
+    np.testing.assert_allclose(batch["rgb"][1], ds.images[3, 11, 15])
+    np.testing.assert_allclose(batch["rgb"][0], ds.images[0, 0, 3])
+    # use_masks off (the baselines): every pixel is a target
+    assert train.build_pool(ds, tiny_config("nerf"))["pixels"].size == 4 * 12 * 16
+
+
+def test_two_devices_match_one_device(tmp_path):
+    assert jax.local_device_count() >= 2, "run with XLA_FLAGS=--xla_force_host_platform_device_count=2"
+    ds = tiny_dataset()
+    results = []
+    for n in (1, 2):
+        cfg = tiny_config(num_devices=n)
+        results.append(train.train(ds, cfg, tmp_path / f"dev{n}", progress=False, stop_at=4).params)
+    diffs = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(a - b))), *results)
+    moved = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(a - b))), results[0],
+                                   train.init_state(dataclasses.replace(
+                                       tiny_config(), model=dataclasses.replace(tiny_config().model, num_images=5)))["params"])
+    assert max(jax.tree_util.tree_leaves(diffs)) < 1e-5, diffs
+    assert max(jax.tree_util.tree_leaves(moved)) > 1e-3  # the steps did change the parameters
+
+
+def test_non_finite_steps_are_skipped_and_logged(tmp_path, caplog):
+    ds = tiny_dataset()
+    ds.images[:] = np.nan
+    cfg = tiny_config()
+    before = train.init_state(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=5)))
+    with caplog.at_level("WARNING"):
+        res = train.train(ds, cfg, tmp_path, progress=False, stop_at=3)
+    assert res.skipped_steps == [1, 2, 3]
+    assert "non-finite" in caplog.text
+    same = jax.tree_util.tree_map(lambda a, b: bool(np.array_equal(a, b)), res.params, before["params"])
+    assert all(jax.tree_util.tree_leaves(same))
+    lines = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert lines[-1]["skipped_total"] == 3
+
+
+def test_training_learns_and_chunked_render_is_consistent(tmp_path):
+    ds = tiny_dataset()
+    cfg = tiny_config()
+    res = train.train(ds, cfg, tmp_path, progress=False)
+    log = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
+    assert [x["step"] for x in log] == [5, 10, 15, 20, 25, 30]
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=5))
+    initial = train.init_state(cfg)["params"]
+    err = lambda p: float(np.mean((train.render_view(p, cfg, ds, 0)["rgb"] - ds.images[0]) ** 2))  # noqa: E731
+    assert err(res.params) < 0.6 * err(initial), (err(res.params), err(initial))
+    small = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, chunk=50))  # not a divisor of 192
+    a = train.render_view(res.params, cfg, ds, 4)
+    b = train.render_view(res.params, small, ds, 4)
+    assert a["rgb"].shape == (12, 16, 3) and a["depth"].shape == (12, 16)
+    np.testing.assert_allclose(a["rgb"], b["rgb"], atol=1e-5)
+    cos = np.asarray(train.camera_rays(ds, 4, 1.0, 8.0).cos_to_axis)
+    assert np.all(a["depth"] >= 1.0 * cos - 1e-4) and np.all(a["depth"] <= 8.0 * cos + 1e-4)
+    assert np.all((a["opacity"] >= 0) & (a["opacity"] <= 1 + 1e-5))
+    init_test = train.render_view(initial, cfg, ds, 4)["rgb"]
+    assert np.mean((a["rgb"] - ds.images[4]) ** 2) < np.mean((init_test - ds.images[4]) ** 2)
+
+
+def test_nerfw_appearance_fit_reduces_error():
+    ds = tiny_dataset()
+    cfg = tiny_config("nerfw")
+    mcfg = dataclasses.replace(cfg.model, num_images=5, appearance_dim=4, transient_dim=4)
+    params = train.init_state(dataclasses.replace(cfg, model=mcfg))["params"]
+    r = train.camera_rays(ds, 4, 1.0, 8.0)
+    flat = rays_lib.Rays(*(jnp.reshape(x, (-1, *x.shape[2:])) for x in r))
+    target = ds.images[4].reshape(-1, 3)
+    tcfg = dataclasses.replace(cfg.train, appearance_steps=40, appearance_lr=0.1, appearance_rays=64)
+    emb = train.fit_appearance(params, mcfg, tcfg, flat, target, jax.random.PRNGKey(0))
+    before = train.render_rays_chunked(params, mcfg, r, 0, np.asarray(params["appearance"]).mean(0), 256)
+    after = train.render_rays_chunked(params, mcfg, r, 0, emb, 256)
+    err = lambda out: float(np.mean((out["rgb"] - ds.images[4]) ** 2))  # noqa: E731
+    assert err(after) < err(before)
