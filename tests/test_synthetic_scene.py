@@ -131,3 +131,41 @@ def test_low_level_stays_under_five_percent_and_cli(tmp_path):
         assert math.isclose(cov, f["distractor_coverage"], abs_tol=1e-6)
         assert io.read_mask(out / f["shadow_mask_path"]).max() == 0        # shadows off
     assert main(["synth", "--preset", "tower-small", "--out", str(out), "--quiet"]) == 1   # refuses to overwrite
+
+
+def test_camera_path_looks_at_tower_and_interleaves_test_views():
+    from jaxnerf_grid.data.synthetic import PRESETS
+    from jaxnerf_grid.data.synthetic.cameras import camera_path, intrinsics
+
+    cfg = PRESETS["tower-small"]
+    c2w, split = camera_path(40, 8, cfg["orbits"], cfg["low_pass"], np.random.default_rng(0))
+    test_idx = np.nonzero(np.array(split) == "test")[0]
+    assert len(test_idx) == 8 and test_idx[0] > 0 and test_idx[-1] < len(split) - 1
+    assert np.diff(test_idx).min() >= 5                           # spread along the path
+    intr = intrinsics(160, 120, 60.0)
+    for pose in c2w:
+        eye = pose[:3, 3]
+        assert 35.0 < np.hypot(eye[0], eye[1]) < 75.0 and 2.0 < eye[2] < 45.0
+        cam = pose[:3, :3].T @ (np.array([0.0, 0.0, 15.0]) - eye)  # tower middle in camera axes
+        assert cam[2] < 0
+        u = intr["fl_x"] * cam[0] / -cam[2] + intr["cx"]
+        v = -intr["fl_y"] * cam[1] / -cam[2] + intr["cy"]
+        assert 0 < u < 160 and 0 < v < 120
+
+
+def test_tower_point_sample_lies_on_members():
+    from jaxnerf_grid.data.synthetic import intersect as ix
+    from jaxnerf_grid.data.synthetic.scene import main_tower_scene, sample_tower_points
+
+    tower = main_tower_scene(0)
+    pts = sample_tower_points(tower, 500, np.random.default_rng(0))
+    cap, cyl, box = tower.tables["capsule"], tower.tables["cylinder"], tower.tables["box"]
+    on_surface = np.zeros(len(pts), bool)
+    for a, b, r in zip(cap["a"], cap["b"], cap["r"]):
+        on_surface |= ix.inside_capsule(pts, a, b, r + 1e-6) & ~ix.inside_capsule(pts, a, b, r - 1e-6)
+    for a, b, r in zip(cyl["a"], cyl["b"], cyl["r"]):
+        on_surface |= ix.inside_cylinder(pts, a, b, r + 1e-6, 1e-6) & ~ix.inside_cylinder(pts, a, b, r - 1e-6, -1e-6)
+    for c, R, h in zip(box["c"], box["R"], box["h"]):
+        on_surface |= ix.inside_box(pts, c, R, h + 1e-6) & ~ix.inside_box(pts, c, R, h - 1e-6)
+    assert on_surface.all()
+    assert pts[:, 2].min() >= 0.0 and 29.0 < pts[:, 2].max() < 31.5

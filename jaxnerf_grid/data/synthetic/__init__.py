@@ -7,6 +7,28 @@ Rendering is exact ray-primitive intersection in NumPy (intersect.py) with a BVH
 sun + sky shading with cast shadows, and supersampled antialiasing (shading.py).
 
 Entry points: `generate.generate_scene(preset, out_dir, ...)` and `jaxnerf-grid synth`.
+
+World: metres, +z up, main tower base at the origin (about 30 m tall, 8 m base, cross-arms at
+17.5 / 21.5 / 25.5 m), the line along +-y with neighbouring towers at +-320 m. The dataset is
+normalised with x_norm = 0.05 * (x + (0, 0, -15)) (`NORMALIZATION`; the translation is metric),
+so the tower sits inside the unit sphere; near = 0.5 and far = 40 (normalised, along unit rays).
+
+What a dataset folder holds (docs/DATASET.md keys, plus the extras marked *):
+  images/NAME.png        cluttered image (train), = clean image (test)
+  clean/NAME.png         image without distractors
+  depth/NAME.exr         z-depth along the camera's -z, normalised units, +inf on sky, of what
+                         images/ shows (distractors included on train views)
+  clean_depth/NAME.exr * (train) z-depth of the clean scene   -> "clean_depth_file_path"
+  semantic/NAME.png      class ids (CLASSES order) of what images/ shows
+  distractor/NAME.png    255 where any colour subsample of the pixel sees a distractor
+  shadow/NAME.png      * 255 where (outside distractor/) a distractor's cast shadow darkens
+                         the pixel                               -> "shadow_mask_path"
+  tower.ply              60k points on the main tower's members (normalised units)
+Semantic class and depth come from the ray through the pixel centre; colours average
+`supersample`^2 subpixel rays in linear radiance. Outside distractor/ and shadow/ the cluttered
+and clean images are bit-identical. Per frame "distractor_coverage" and "num_distractors"*;
+top-level "generator" (preset, seed, level, mode, coverage mean/min/max, sun direction) and
+"semantic_classes"*.
 """
 
 from __future__ import annotations

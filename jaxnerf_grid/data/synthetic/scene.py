@@ -184,7 +184,7 @@ def tower_members(rng: np.random.Generator, offset=(0.0, 0.0, 0.0)):
         attachments.append(tip + off - np.array([0, 0, 0.1]))
     for i in range(4):                                                       # concrete footings
         c = _corner(0.0, i)
-        boxes.append((np.array([c[0], c[1], 0.2]) + off, np.array([0.7, 0.7, 0.25])))
+        boxes.append((np.array([c[0], c[1], 0.225]) + off, np.array([0.7, 0.7, 0.225])))
     return caps, cyls, boxes, np.array(attachments)
 
 
