@@ -1,0 +1,136 @@
+"""report.md for a run: metrics table, configuration summary, side-by-side views, provenance.
+
+Every figure referenced by the report is a file in the run directory (DESIGN.md):
+`report_views.png` (ground truth | render | depth, one row per test view, full frames) and
+`report_crops.png` (the same three panels cropped to the tower's bounding box from the
+semantic map, 2x nearest-neighbour, when semantics exist).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import io
+
+
+def colourise_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
+    """Depth [H, W] -> RGB [H, W, 3] in [0, 1]: inverse depth through OpenCV's TURBO map
+    (near = warm), scaled between the 2nd and 98th percentiles unless lo/hi are given."""
+    import cv2
+
+    inv = 1.0 / np.maximum(np.asarray(depth, np.float64), 1e-6)
+    finite = inv[np.isfinite(inv)]
+    lo = np.percentile(finite, 2) if lo is None else lo
+    hi = np.percentile(finite, 98) if hi is None else hi
+    unit = np.clip((inv - lo) / max(hi - lo, 1e-12), 0, 1)
+    bgr = cv2.applyColorMap(np.round(unit * 255).astype(np.uint8), cv2.COLORMAP_TURBO)
+    return bgr[..., ::-1].astype(np.float32) / 255.0
+
+
+def side_by_side(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], gap: int = 2) -> np.ndarray:
+    """Stacks (gt, render, depth-colour) triplets, each [H, W, 3], into one image with white gaps."""
+    lines = []
+    for gt, pred, depth in rows:
+        h = gt.shape[0]
+        sep = np.ones((h, gap, 3), np.float32)
+        lines.append(np.concatenate([gt, sep, pred, sep, depth], axis=1))
+    width = max(x.shape[1] for x in lines)
+    out = []
+    for x in lines:
+        pad = np.ones((x.shape[0], width - x.shape[1], 3), np.float32)
+        out += [np.concatenate([x, pad], axis=1), np.ones((gap, width, 3), np.float32)]
+    return np.concatenate(out[:-1], axis=0)
+
+
+def tower_box(semantic: np.ndarray, margin: int = 4) -> tuple[slice, slice] | None:
+    """Bounding box (rows, cols) of tower/conductor pixels (class 1 or 2), or None."""
+    ys, xs = np.nonzero(np.isin(semantic, (1, 2)))
+    if ys.size == 0:
+        return None
+    h, w = semantic.shape
+    return (slice(max(ys.min() - margin, 0), min(ys.max() + margin + 1, h)),
+            slice(max(xs.min() - margin, 0), min(xs.max() + margin + 1, w)))
+
+
+def _fmt(v, digits=2) -> str:
+    if v is None:
+        return "unavailable"
+    if isinstance(v, float):
+        if not np.isfinite(v):
+            return "n/a"
+        return f"{v:.{digits}f}"
+    return str(v)
+
+
+def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_lines: list[str] = ()) -> Path:
+    """Writes run_dir/report.md (and its PNGs).
+
+    metrics: the metrics.json dict (keys "mean", "regions", "protocol", ...);
+    config: the run's config dict; views: [{"name", "gt" [H,W,3], "rgb", "depth" [H,W],
+    optional "semantic" [H,W]}] for the figures; extra_lines: Markdown lines for the notes.
+    Returns the report's path.
+    """
+    run_dir = Path(run_dir)
+    rows, crops = [], []
+    for v in views[:4]:
+        dcol = colourise_depth(v["depth"])
+        rows.append((v["gt"], np.clip(v["rgb"], 0, 1), dcol))
+        if v.get("semantic") is not None:
+            box = tower_box(v["semantic"])
+            if box is not None:
+                up = lambda a: np.repeat(np.repeat(a[box], 2, axis=0), 2, axis=1)  # noqa: E731
+                crops.append((up(v["gt"]), up(np.clip(v["rgb"], 0, 1)), up(dcol)))
+    figure_lines = []
+    if rows:
+        io.write_png(run_dir / "report_views.png", side_by_side(rows))
+        figure_lines.append("![ground truth | render | depth](report_views.png)")
+    if crops:
+        io.write_png(run_dir / "report_crops.png", side_by_side(crops))
+        figure_lines.append("")
+        figure_lines.append("Tower crops (2x): ![tower crops](report_crops.png)")
+
+    model, train_cfg = config.get("model", {}), config.get("train", {})
+    mean = metrics.get("mean", {})
+    lines = [f"# Run report: {model.get('method', '?')}", ""]
+    lines += [f"Data: `{config.get('data', '?')}`  ", f"Trained steps: {metrics.get('step', '?')}  ",
+              f"Evaluated views: {metrics.get('num_views', '?')} ({metrics.get('target', 'images')})", ""]
+    lines += ["## Metrics (mean over test views)", "",
+              "| metric | value |", "|---|---|"]
+    for key in ("psnr", "ssim", "ms_ssim", "lpips"):
+        lines.append(f"| {key.upper().replace('_', '-')} | {_fmt(mean.get(key), 4 if key != 'psnr' else 2)} |")
+    if mean.get("ms_ssim_scales") is not None:
+        lines.append(f"| MS-SSIM scales | {mean['ms_ssim_scales']} |")
+    right = metrics.get("mean_right_half")
+    if right:
+        lines.append(f"| PSNR, right half | {_fmt(right.get('psnr'))} |")
+        lines.append(f"| SSIM, right half | {_fmt(right.get('ssim'), 4)} |")
+    regions = metrics.get("regions_mean") or {}
+    for name, value in regions.items():
+        lines.append(f"| PSNR, {name.replace('_', ' ')} | {_fmt(value)} |")
+    if metrics.get("distractor_psnr") is not None:
+        lines.append(f"| PSNR inside distractors (train views vs clean) | {_fmt(metrics['distractor_psnr'])} |")
+    lines += ["", f"Protocol: {metrics.get('protocol', '')}", ""]
+    if metrics.get("region_definition"):
+        lines += [f"Regions: {metrics['region_definition']}", ""]
+    lines += ["## Method and configuration", "",
+              f"- method `{model.get('method')}`: contraction {model.get('use_contraction')} "
+              f"(R = {model.get('contract_radius')}), warp `{model.get('warp')}`, samples "
+              f"{model.get('num_coarse')} coarse + {model.get('num_fine') if model.get('hierarchical') else 0} fine "
+              f"(hierarchical {model.get('hierarchical')}, union {model.get('fine_union')})",
+              f"- field: {model.get('field', {}).get('depth')} x {model.get('field', {}).get('width')} "
+              f"(skip after {model.get('field', {}).get('skip')}), PE {model.get('field', {}).get('pos_max_deg')} "
+              f"octaves, view dirs {model.get('field', {}).get('use_viewdirs')}",
+              f"- NeRF-W: appearance {model.get('use_appearance')}, transient {model.get('use_transient')}",
+              f"- loss weights from masks: {train_cfg.get('use_masks')} (floor {train_cfg.get('mask_weight_floor')})",
+              f"- batch {train_cfg.get('batch_rays')} rays, {train_cfg.get('max_steps')} steps, lr "
+              f"{train_cfg.get('lr_init')} -> {train_cfg.get('lr_final')} (warm-up {train_cfg.get('warmup')}), "
+              f"clip {train_cfg.get('max_grad_norm')}", ""]
+    if figure_lines:
+        lines += ["## Views (ground truth | render | depth)", ""] + figure_lines + [""]
+    if extra_lines:
+        lines += ["## Notes", ""] + list(extra_lines) + [""]
+    path = run_dir / "report.md"
+    io.atomic_write_bytes(path, "\n".join(lines).encode("utf-8"))
+    return path
