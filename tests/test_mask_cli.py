@@ -80,3 +80,16 @@ def test_dpt_source_with_native_weights(tmp_path):
 def test_missing_builtin_or_bad_data_is_one_line_error(tmp_path):
     with pytest.raises(DataError, match="transforms.json"):
         main(["--data", str(tmp_path), "--source", "gt"])
+
+
+def test_builtin_model_is_shipped_and_default():
+    """The built-in DPT (trained by experiments/train_builtin_dpt.py) loads as `mask`'s default."""
+    from jaxnerf_grid.mask_cli import BUILTIN, default_classes, load_models
+    if not (BUILTIN / "config.json").is_file():
+        pytest.skip("no built-in model in this build")
+    seg, depth, wdir = load_models(None, None)
+    assert depth is seg and seg.config.heads == ("segmentation", "depth")
+    assert default_classes(seg, wdir) == [6, 7, 8]
+    assert sum(f.stat().st_size for f in BUILTIN.iterdir()) < 5_000_000
+    meta = io.read_json(BUILTIN / "config.json")
+    assert meta["extra"]["steps"] > 0 and min(meta["extra"]["trained_on_seeds"]) >= 7000
