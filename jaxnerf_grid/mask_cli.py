@@ -49,7 +49,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--floor", type=float, default=0.0,
                    help="M_w = M * max(floor, (Dmax - D)/Dmax); 0 = Eq. 7 exactly, 1 = exclude fully")
     p.add_argument("--dilate", type=int, default=0, help="dilate M and M_w by this many pixels")
-    p.add_argument("--max-side", type=int, default=384, help="DPT working size (longest side, px)")
+    p.add_argument("--max-side", type=int, default=None,
+                   help="DPT working size (longest side, px); default: the model's training size "
+                        "(160 for the built-in model) or 384")
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--overwrite", action="store_true", help="replace existing mask outputs")
     p.add_argument("--quiet", action="store_true")
@@ -160,6 +162,9 @@ def main(argv: list[str] | None = None) -> int:
         seg, depth_model, wdir = load_models(args.weights, args.depth_weights)
         classes = ([int(c) for c in args.classes.split(",") if c.strip()] if args.classes
                    else default_classes(seg, wdir))
+        if args.max_side is None:
+            extra = io.read_json(Path(wdir) / "config.json").get("extra", {})
+            args.max_side = int(extra.get("max_side", 384))
         params.update(weights=str(wdir), depth_weights=args.depth_weights, classes=classes,
                       max_side=args.max_side, depth="relative (1 / DPT inverse depth)" if depth_model else None)
         if depth_model is None:
