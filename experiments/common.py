@@ -1,0 +1,549 @@
+"""Shared machinery of the paper's experiments (Section 4) and the sampling-scheme benchmark.
+
+Every table script does the same things, so they live here:
+  * `scene(...)`: a synthetic dataset generated once per (preset, seed, size, views,
+    distractors) under the cache (default experiments/.cache/scenes/);
+  * `mask_variant(...)`: a copy of a scene's transforms.json in its own folder whose image
+    paths point back at the scene's files (no image is copied) and whose masks / weights are
+    written by `jaxnerf-grid mask` (ground truth with or without Eq. 7's depth weighting, or a
+    DPT); `clean_variant(...)`: the same with the clean images as training targets;
+  * `run_condition(...)`: train + evaluate one (dataset, method, overrides, seed) in a run
+    directory named by a hash of all of it; a run whose metrics.json exists is skipped, one
+    that was killed resumes from its last checkpoint (so a table can be re-launched);
+  * `aggregate(...)`, `write_results(...)`: mean / standard deviation over seeds into
+    results/<name>.json and results/<name>.md with the command, settings, machine and wall time.
+
+Settings come in two sizes: "quick" (fits the 2-core CPU this was developed on) and "full"
+(what the issue asks for: 3 seeds, larger scenes and more steps; for a GPU machine).
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import hashlib
+import json
+import os
+import platform
+import sys
+import time
+from pathlib import Path
+
+os.environ.setdefault("JAX_PLATFORMS", "cpu")
+os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+
+ROOT = Path(__file__).resolve().parents[1]
+if str(ROOT) not in sys.path:
+    sys.path.insert(0, str(ROOT))
+
+import numpy as np  # noqa: E402
+
+from jaxnerf_grid import io  # noqa: E402
+
+EXPERIMENTS = Path(__file__).resolve().parent
+RESULTS = EXPERIMENTS / "results"
+CACHE = EXPERIMENTS / ".cache"
+
+# Scene sizes: (width, height, num_train, num_test, supersample) per preset and setting.
+SCENE_SIZES = {
+    "quick": {"tower-small": (80, 60, 20, 3, 1), "ttpla-like": (96, 54, 20, 3, 1), "plad-like": (84, 56, 20, 3, 1)},
+    "full": {"tower-small": (160, 120, 40, 8, 2), "ttpla-like": (320, 180, 60, 8, 2),
+             "plad-like": (300, 200, 60, 8, 2)},
+}
+
+# Model / optimiser settings shared by every table (a method's own flags come on top).
+TRAIN_SETTINGS = {
+    "quick": {"steps": 200, "seeds": 1, "distractor_views": 2, "overrides": {
+        "model": {"field": {"depth": 3, "width": 64, "skip": 0, "pos_max_deg": 7, "dir_max_deg": 2,
+                            "view_width": 32},
+                  "num_coarse": 16, "num_fine": 16},
+        "train": {"batch_rays": 256, "lr_init": 4e-3, "lr_final": 3e-4, "warmup": 20, "checkpoint_every": 100,
+                  "log_every": 20, "chunk": 4096, "appearance_steps": 20}}},
+    "full": {"steps": 5000, "seeds": 3, "distractor_views": 4, "overrides": {
+        "model": {"field": {"depth": 6, "width": 128, "skip": 3, "pos_max_deg": 10, "dir_max_deg": 4,
+                            "view_width": 64},
+                  "num_coarse": 48, "num_fine": 48},
+        "train": {"batch_rays": 2048, "lr_init": 2e-3, "lr_final": 5e-5, "warmup": 200, "checkpoint_every": 1000,
+                  "log_every": 50, "chunk": 8192}}},
+}
+
+
+# --------------------------------------------------------------------------- setup / provenance
+
+
+def enable_compile_cache(path: Path = CACHE / "jax_cache") -> None:
+    """Persistent XLA compilation cache: runs that differ only in the seed share compilations."""
+    import jax
+
+    path.mkdir(parents=True, exist_ok=True)
+    try:
+        jax.config.update("jax_compilation_cache_dir", str(path))
+        jax.config.update("jax_persistent_cache_min_compile_time_secs", 0.5)
+        jax.config.update("jax_persistent_cache_min_entry_size_bytes", 0)
+    except Exception as exc:  # an older/newer jax without these options: just slower
+        print(f"(no persistent compilation cache: {exc})", file=sys.stderr)
+
+
+def machine_info() -> dict:
+    import jax
+
+    info = {"date_utc": time.strftime("%Y-%m-%dT%H:%M:%SZ", time.gmtime()), "python": platform.python_version(),
+            "platform": platform.platform(), "cpu_count": os.cpu_count(), "jax": jax.__version__,
+            "backend": jax.default_backend(), "devices": [str(d) for d in jax.devices()]}
+    try:
+        info["load_avg_1min"] = os.getloadavg()[0]
+    except OSError:
+        pass
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                info["cpu_model"] = line.split(":", 1)[1].strip()
+                break
+    except OSError:
+        pass
+    return info
+
+
+def machine_line(info: dict) -> str:
+    cpu = info.get("cpu_model", "CPU")
+    load = f", 1-min load average {info['load_avg_1min']:.1f} at the start" if "load_avg_1min" in info else ""
+    return (f"{info['cpu_count']} x {cpu}, JAX {info['jax']} on {info['backend']} "
+            f"({len(info['devices'])} devices){load}, {info['date_utc']}")
+
+
+def base_parser(description: str) -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(description=description, formatter_class=argparse.RawDescriptionHelpFormatter)
+    g = p.add_mutually_exclusive_group()
+    g.add_argument("--quick", dest="setting", action="store_const", const="quick",
+                   help="small scenes and short training (2-core CPU; default)")
+    g.add_argument("--full", dest="setting", action="store_const", const="full",
+                   help="the issue's setting: 3 seeds, larger scenes, more steps (GPU machine)")
+    p.set_defaults(setting="quick")
+    p.add_argument("--seeds", type=int, default=None, help="number of seeds (default: 1 quick, 3 full)")
+    p.add_argument("--steps", type=int, default=None, help="training steps per run (default: by setting)")
+    p.add_argument("--cache", default=str(CACHE), help="scenes, mask variants and runs (default experiments/.cache)")
+    p.add_argument("--results", default=str(RESULTS), help="where <table>.json / .md / .png go")
+    p.add_argument("--budget-min", type=float, default=None,
+                   help="stop launching new runs after this many minutes; missing rows are marked 'not run'")
+    p.add_argument("--lpips-weights", default=None, help="LPIPS weights .npz (else LPIPS is reported unavailable)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+    return p
+
+
+@dataclasses.dataclass
+class Context:
+    """What one table invocation needs: setting, paths, budget, and what has been run."""
+
+    setting: str
+    seeds: int
+    steps: int
+    cache: Path
+    results: Path
+    budget_s: float | None
+    lpips_weights: str | None
+    progress: bool
+    command: str
+    start: float = dataclasses.field(default_factory=time.perf_counter)
+    machine: dict = dataclasses.field(default_factory=dict)
+    skipped_for_budget: list = dataclasses.field(default_factory=list)
+
+    @property
+    def overrides(self) -> dict:
+        return json.loads(json.dumps(TRAIN_SETTINGS[self.setting]["overrides"]))
+
+    @property
+    def distractor_views(self) -> int:
+        return TRAIN_SETTINGS[self.setting]["distractor_views"]
+
+    def out_of_budget(self) -> bool:
+        return self.budget_s is not None and time.perf_counter() - self.start > self.budget_s
+
+
+def make_context(args, script: str) -> Context:
+    setting = args.setting
+    seeds = args.seeds or TRAIN_SETTINGS[setting]["seeds"]
+    steps = args.steps or TRAIN_SETTINGS[setting]["steps"]
+    flags = [f"--{setting}"] + [a for a in sys.argv[1:] if a not in ("--quick", "--full")]
+    command = f"JAX_PLATFORMS=cpu python experiments/{script} " + " ".join(flags)
+    ctx = Context(setting, seeds, steps, Path(args.cache), Path(args.results),
+                  None if args.budget_min is None else args.budget_min * 60, args.lpips_weights, not args.quiet,
+                  command.strip())
+    ctx.cache.mkdir(parents=True, exist_ok=True)
+    ctx.results.mkdir(parents=True, exist_ok=True)
+    enable_compile_cache(ctx.cache / "jax_cache")
+    ctx.machine = machine_info()
+    return ctx
+
+
+# --------------------------------------------------------------------------- scenes and masks
+
+
+def scene(ctx: Context, preset: str, seed: int, distractors: str | None = None, size: tuple | None = None) -> Path:
+    """Dataset folder of a synthetic scene (generated on first use). size: (w, h, train, test, ss)."""
+    from jaxnerf_grid.data.synthetic.generate import generate_scene
+
+    w, h, n_train, n_test, ss = size or SCENE_SIZES[ctx.setting][preset]
+    name = f"{preset}_s{seed}_{w}x{h}_{n_train}+{n_test}_ss{ss}_{distractors or 'preset'}"
+    out = ctx.cache / "scenes" / name
+    if not (out / "transforms.json").is_file():
+        print(f"[scene] generating {name}", flush=True)
+        generate_scene(preset, out, seed=seed, distractors=distractors, overwrite=True, progress=ctx.progress,
+                       width=w, height=h, num_train=n_train, num_test=n_test, supersample=ss,
+                       workers=min(2, os.cpu_count() or 1))
+    return out
+
+
+def _relink(scene_dir: Path, variant_dir: Path, meta: dict, keys=("file_path", "clean_file_path",
+                                                                    "depth_file_path", "semantic_file_path",
+                                                                    "distractor_mask_path", "shadow_mask_path")) -> dict:
+    """transforms.json `meta` of scene_dir with every per-frame path rewritten relative to variant_dir."""
+    meta = json.loads(json.dumps(meta))
+    rel = os.path.relpath(scene_dir, variant_dir)
+    for frame in meta["frames"]:
+        for k in keys:
+            if k in frame:
+                frame[k] = f"{rel}/{frame[k]}"
+        for k in ("mask_path", "weight_path", "dpt_depth_path", "overlay_path"):
+            frame.pop(k, None)
+    for k in ("mask_source", "mask_params"):
+        meta.pop(k, None)
+    if "tower_ply" in meta:
+        meta["tower_ply"] = f"{rel}/{meta['tower_ply']}"
+    return meta
+
+
+def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", floor: float = 0.0,
+                 weights: str | None = None, max_side: int = 160) -> Path:
+    """A folder whose transforms.json points at scene_dir's images, with masks from `jaxnerf-grid mask`.
+
+    source "gt": ground-truth distractor masks and depth (floor 0 = Eq. 7, floor 1 = binary
+    masks, every masked pixel excluded); "dpt": a DPT (`weights` folder, default built-in).
+    """
+    from jaxnerf_grid import mask_cli
+
+    out = ctx.cache / "variants" / f"{scene_dir.name}__{name}"
+    meta_path = out / "transforms.json"
+    if meta_path.is_file() and "mask_source" in io.read_json(meta_path):
+        return out
+    out.mkdir(parents=True, exist_ok=True)
+    io.write_json(meta_path, _relink(scene_dir, out, io.read_json(scene_dir / "transforms.json")))
+    argv = ["--data", str(out), "--source", source, "--floor", str(floor), "--overwrite", "--max-side", str(max_side)]
+    if weights:
+        argv += ["--weights", str(weights)]
+    if not ctx.progress:
+        argv.append("--quiet")
+    print(f"[mask] {out.name}: jaxnerf-grid mask {' '.join(argv[2:])}", flush=True)
+    rc = mask_cli.main(argv)
+    if rc:
+        raise io.DataError(f"{out}: jaxnerf-grid mask failed with exit code {rc}")
+    return out
+
+
+def clean_variant(ctx: Context, scene_dir: Path) -> Path:
+    """A folder whose training targets are the scene's clean (distractor-free) images: the upper bound."""
+    out = ctx.cache / "variants" / f"{scene_dir.name}__clean"
+    meta_path = out / "transforms.json"
+    if not meta_path.is_file():
+        out.mkdir(parents=True, exist_ok=True)
+        meta = _relink(scene_dir, out, io.read_json(scene_dir / "transforms.json"))
+        for frame in meta["frames"]:
+            if "clean_file_path" in frame:
+                frame["file_path"] = frame["clean_file_path"]
+        io.write_json(meta_path, meta)
+    return out
+
+
+def mask_iou(variant_dir: Path, split: str = "train") -> dict:
+    """IoU / precision / recall of a variant's masks M against the synthetic distractor masks (bit 0),
+    pooled over the frames of `split`."""
+    import cv2
+
+    meta = io.read_json(variant_dir / "transforms.json")
+    tp = fp = fn = 0.0
+    for f in meta["frames"]:
+        if f.get("split", "train") != split or "mask_path" not in f or "distractor_mask_path" not in f:
+            continue
+        pred = io.read_mask(variant_dir / f["mask_path"]) > 0.5
+        raw = cv2.imread(str(variant_dir / f["distractor_mask_path"]), cv2.IMREAD_UNCHANGED)
+        gt = (raw.astype(np.int64) & 1).astype(bool)
+        tp += float(np.sum(pred & gt))
+        fp += float(np.sum(pred & ~gt))
+        fn += float(np.sum(~pred & gt))
+    return {"iou": tp / max(tp + fp + fn, 1.0), "precision": tp / max(tp + fp, 1.0),
+            "recall": tp / max(tp + fn, 1.0), "gt_pixels": tp + fn}
+
+
+# --------------------------------------------------------------------------- runs
+
+
+def _merge(base: dict, extra: dict) -> dict:
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def run_key(data_dir: Path, method: str, overrides: dict, steps: int) -> str:
+    """Hash of the dataset folder's name, the fully resolved RunConfig and the step count."""
+    from jaxnerf_grid import config as config_lib, train
+
+    cfg = config_lib.to_dict(train.make_config(method, _merge(overrides, {"train": {"max_steps": int(steps)}})))
+    blob = json.dumps({"data": Path(data_dir).name, "config": cfg}, sort_keys=True, default=str)
+    return hashlib.sha1(blob.encode()).hexdigest()[:10]
+
+
+def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: str,
+                  overrides: dict | None = None, steps: int | None = None) -> dict | None:
+    """Trains and evaluates one condition (skipped when its metrics.json exists).
+
+    Returns {"metrics": metrics.json, "run_dir", "train_seconds", "seconds_per_step", "cached"},
+    or None when the time budget is spent before the run starts.
+    """
+    from jaxnerf_grid import train_cli
+
+    steps = int(steps or ctx.steps)
+    ov = _merge(ctx.overrides, overrides or {})
+    ov = _merge(ov, {"train": {"seed": int(seed)}})
+    key = run_key(data_dir, method, ov, steps)
+    run_dir = ctx.cache / "runs" / f"{label}-s{seed}-{key}"
+    same = sorted((ctx.cache / "runs").glob(f"*-s{seed}-{key}"))
+    if not run_dir.exists() and same:  # the identical run made by another table
+        run_dir = same[0]
+    done = run_dir / "metrics.json"
+    info_path = run_dir / "experiment.json"
+    if done.is_file() and info_path.is_file():
+        return {**io.read_json(info_path), "metrics": io.read_json(done), "cached": True}
+    if ctx.out_of_budget():
+        ctx.skipped_for_budget.append(f"{label} seed {seed}")
+        print(f"[budget] not running {label} seed {seed}", flush=True)
+        return None
+    print(f"[run] {label} seed {seed} ({method}, {steps} steps) -> {run_dir}", flush=True)
+    t0 = time.perf_counter()
+    from jaxnerf_grid.data.formats import load_dataset
+
+    ds = load_dataset(data_dir)
+    _, cfg, result = train_cli.train_run(str(data_dir), method, run_dir, ov, steps, progress=ctx.progress, dataset=ds)
+    t_train = time.perf_counter() - t0
+    t1 = time.perf_counter()
+    metrics = train_cli.evaluate_run(run_dir, ctx.lpips_weights, progress=ctx.progress, dataset=ds,
+                                     distractor_views=ctx.distractor_views)
+    t_eval = time.perf_counter() - t1
+    info = {"label": label, "seed": seed, "method": method, "steps": steps, "data": str(data_dir),
+            "run_dir": str(run_dir), "overrides": ov, "train_wall_s": t_train, "eval_wall_s": t_eval,
+            "seconds_per_step": seconds_per_step(run_dir, cfg.train.batch_rays),
+            "samples_per_ray": cfg.model.num_coarse + (cfg.model.num_fine if cfg.model.hierarchical else 0)}
+    io.write_json(info_path, info)
+    print(f"[done] {label} seed {seed}: test PSNR {metrics['mean']['psnr']:.2f} dB "
+          f"(train {t_train:.0f} s, eval {t_eval:.0f} s)", flush=True)
+    return {**info, "metrics": metrics, "cached": False}
+
+
+def seconds_per_step(run_dir: Path, batch_rays: int) -> float | None:
+    """Median seconds per step over the logged windows after the first (which holds the compilation)."""
+    path = Path(run_dir) / "metrics.jsonl"
+    if not path.is_file():
+        return None
+    rates = [json.loads(line)["rays_per_s"] for line in path.read_text().splitlines() if line.strip()]
+    rates = rates[1:] or rates
+    return float(batch_rays / np.median(rates)) if rates else None
+
+
+# --------------------------------------------------------------------------- aggregation / output
+
+METRIC_PATHS = {
+    "psnr": ("metrics", "mean", "psnr"),
+    "ssim": ("metrics", "mean", "ssim"),
+    "ms_ssim": ("metrics", "mean", "ms_ssim"),
+    "lpips": ("metrics", "mean", "lpips"),
+    "psnr_tower": ("metrics", "regions_mean", "tower"),
+    "psnr_near_ground": ("metrics", "regions_mean", "near_ground"),
+    "psnr_far_background": ("metrics", "regions_mean", "far_background"),
+    "distractor_psnr": ("metrics", "distractor_psnr"),
+    "psnr_right_half": ("metrics", "mean_right_half", "psnr"),
+    "seconds_per_step": ("seconds_per_step",),
+}
+
+
+def _get(d, path):
+    for k in path:
+        if not isinstance(d, dict) or d.get(k) is None:
+            return None
+        d = d[k]
+    return d
+
+
+def aggregate(records: list[dict | None], extra: dict | None = None) -> dict:
+    """Mean / standard deviation (ddof 0) / values over the seeds of one condition.
+
+    records: run_condition results (None = not run). extra: {name: [value per record]}.
+    """
+    done = [r for r in records if r is not None]
+    out = {"n": len(done), "seeds": [r["seed"] for r in done], "runs": [r["run_dir"] for r in done]}
+    columns = {k: [_get(r, p) for r in done] for k, p in METRIC_PATHS.items()}
+    for k, vals in (extra or {}).items():
+        columns[k] = [v for v, r in zip(vals, records) if r is not None]
+    for k, vals in columns.items():
+        vals = [float(v) for v in vals if v is not None and np.isfinite(v)]
+        out[k] = ({"mean": float(np.mean(vals)), "std": float(np.std(vals)), "values": vals} if vals else None)
+    return out
+
+
+def fmt(cell: dict | None, digits: int = 2) -> str:
+    if cell is None:
+        return "n/a"
+    if len(cell["values"]) == 1:
+        return f"{cell['mean']:.{digits}f}"
+    return f"{cell['mean']:.{digits}f} ± {cell['std']:.{digits}f}"
+
+
+def markdown_table(rows: list[tuple[str, dict]], columns: list[tuple[str, str, int]]) -> list[str]:
+    """rows: (label, aggregate); columns: (aggregate key, header, digits). Missing rows: 'not run'."""
+    lines = ["| condition | n | " + " | ".join(h for _, h, _ in columns) + " |",
+             "|---|---|" + "---|" * len(columns)]
+    for label, agg in rows:
+        if agg is None or agg["n"] == 0:
+            lines.append(f"| {label} | 0 | " + " | ".join("not run" for _ in columns) + " |")
+        else:
+            lines.append(f"| {label} | {agg['n']} | " + " | ".join(fmt(agg.get(k), d) for k, _, d in columns) + " |")
+    return lines
+
+
+def settings_summary(ctx: Context) -> dict:
+    return {"setting": ctx.setting, "seeds": ctx.seeds, "steps": ctx.steps, "overrides": ctx.overrides,
+            "scene_sizes": {k: dict(zip(("width", "height", "num_train", "num_test", "supersample"), v))
+                            for k, v in SCENE_SIZES[ctx.setting].items()}}
+
+
+def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: list[str], notes: list[str]) -> Path:
+    """results/<name>.json (body + provenance) and results/<name>.md (title, command, machine, tables, notes)."""
+    wall = time.perf_counter() - ctx.start
+    lpips_note = ("LPIPS computed from " + ctx.lpips_weights) if ctx.lpips_weights else \
+        "LPIPS unavailable (no --lpips-weights given); never a made-up number"
+    payload = {"table": name, "title": title, "command": ctx.command, "machine": ctx.machine,
+               "settings": settings_summary(ctx), "wall_seconds": wall, "lpips": lpips_note,
+               "not_run_for_budget": ctx.skipped_for_budget, **body, "notes": notes}
+    io.write_json(ctx.results / f"{name}.json", payload)
+    o = TRAIN_SETTINGS[ctx.setting]["overrides"]
+    field = o["model"]["field"]
+    head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
+            f"Machine: {machine_line(ctx.machine)}. Wall time of this invocation: {wall / 60:.1f} min "
+            "(runs found already done in the cache are not re-run).", "",
+            f"Setting `{ctx.setting}`: {ctx.seeds} seed(s), {ctx.steps} steps per run, "
+            f"{o['train']['batch_rays']} rays per step, MLP {field['depth']}x{field['width']}, "
+            f"{o['model']['num_coarse']}+{o['model']['num_fine']} samples per ray unless stated; "
+            "scenes " + ", ".join(f"{k} {v[0]}x{v[1]} ({v[2]} train / {v[3]} test views)"
+                                  for k, v in SCENE_SIZES[ctx.setting].items()) + ".",
+            "Cells: mean ± standard deviation over seeds (one value when n = 1). " + lpips_note + ".", ""]
+    tail = [""] + [f"- {n}" for n in notes]
+    if ctx.skipped_for_budget:
+        tail.append(f"- Not run (time budget): {', '.join(ctx.skipped_for_budget)}.")
+    text = "\n".join(head + md_lines + tail) + "\n"
+    (ctx.results / f"{name}.md").write_text(text)
+    print(text)
+    return ctx.results / f"{name}.md"
+
+
+# --------------------------------------------------------------------------- figures (no matplotlib)
+
+
+def label_image(img: np.ndarray, text: str, height: int = 14) -> np.ndarray:
+    """img [H, W, 3] float -> [H + height, W, 3] with `text` above it on white."""
+    import cv2
+
+    bar = np.ones((height, img.shape[1], 3), np.float32)
+    scale = 0.35
+    cv2.putText(bar, text, (2, height - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([bar, img.astype(np.float32)], axis=0)
+
+
+def hstack(images: list[np.ndarray], gap: int = 3) -> np.ndarray:
+    h = max(i.shape[0] for i in images)
+    padded = [np.pad(i, ((0, h - i.shape[0]), (0, 0), (0, 0)), constant_values=1.0) for i in images]
+    out = []
+    for i, im in enumerate(padded):
+        if i:
+            out.append(np.ones((h, gap, 3), np.float32))
+        out.append(im)
+    return np.concatenate(out, axis=1)
+
+
+def vstack(images: list[np.ndarray], gap: int = 3) -> np.ndarray:
+    w = max(i.shape[1] for i in images)
+    padded = [np.pad(i, ((0, 0), (0, w - i.shape[1]), (0, 0)), constant_values=1.0) for i in images]
+    out = []
+    for i, im in enumerate(padded):
+        if i:
+            out.append(np.ones((gap, w, 3), np.float32))
+        out.append(im)
+    return np.concatenate(out, axis=0)
+
+
+PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),
+           (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
+
+
+def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(760, 480), log2_x: bool = True) -> np.ndarray:
+    """A line plot drawn with OpenCV. series: [{"label", "x": [...], "y": [...], "dashed": bool}].
+    Returns an RGB float image [H, W, 3] in [0, 1]."""
+    import cv2
+
+    w, h = size
+    img = np.full((h, w, 3), 255, np.uint8)
+    left, right, top, bottom = 60, 200, 30, 50
+    xs = [x for s in series for x in s["x"]]
+    ys = [y for s in series for y in s["y"] if y is not None]
+    if not xs or not ys:
+        return img.astype(np.float32) / 255
+    tx = (lambda v: np.log2(v)) if log2_x else (lambda v: v)
+    x0, x1 = tx(min(xs)), tx(max(xs))
+    x1 = x1 if x1 > x0 else x0 + 1
+    y0, y1 = np.floor(min(ys) - 0.5), np.ceil(max(ys) + 0.5)
+
+    def px(x, y):
+        return (int(left + (tx(x) - x0) / (x1 - x0) * (w - left - right)),
+                int(h - bottom - (y - y0) / (y1 - y0) * (h - top - bottom)))
+
+    black, grey = (0, 0, 0), (200, 200, 200)
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    for x in sorted(set(xs)):
+        p = px(x, y0)
+        cv2.line(img, (p[0], top), (p[0], h - bottom), grey, 1)
+        cv2.putText(img, f"{x:g}", (p[0] - 8, h - bottom + 16), font, 0.4, black, 1, cv2.LINE_AA)
+    step = max(1.0, np.ceil((y1 - y0) / 8))
+    for y in np.arange(y0, y1 + 1e-9, step):
+        p = px(min(xs), y)
+        cv2.line(img, (left, p[1]), (w - right, p[1]), grey, 1)
+        cv2.putText(img, f"{y:g}", (8, p[1] + 4), font, 0.4, black, 1, cv2.LINE_AA)
+    cv2.rectangle(img, (left, top), (w - right, h - bottom), black, 1)
+    cv2.putText(img, xlabel, (left + (w - left - right) // 2 - 60, h - 12), font, 0.45, black, 1, cv2.LINE_AA)
+    cv2.putText(img, ylabel, (8, top - 10), font, 0.45, black, 1, cv2.LINE_AA)
+    cv2.putText(img, title, (left + 70, top - 10), font, 0.45, black, 1, cv2.LINE_AA)
+    for i, s in enumerate(series):
+        colour = PALETTE[i % len(PALETTE)][::-1]
+        pts = [px(x, y) for x, y in zip(s["x"], s["y"]) if y is not None]
+        for a, b in zip(pts, pts[1:]):
+            if s.get("dashed"):
+                n = 8
+                for k in range(0, n, 2):
+                    pa = (int(a[0] + (b[0] - a[0]) * k / n), int(a[1] + (b[1] - a[1]) * k / n))
+                    pb = (int(a[0] + (b[0] - a[0]) * (k + 1) / n), int(a[1] + (b[1] - a[1]) * (k + 1) / n))
+                    cv2.line(img, pa, pb, colour, 2, cv2.LINE_AA)
+            else:
+                cv2.line(img, a, b, colour, 2, cv2.LINE_AA)
+        for p in pts:
+            cv2.circle(img, p, 3, colour, -1, cv2.LINE_AA)
+        ly = top + 10 + 18 * i
+        lx = w - right + 10
+        if s.get("dashed"):
+            cv2.line(img, (lx, ly), (lx + 8, ly), colour, 2)
+            cv2.line(img, (lx + 14, ly), (lx + 22, ly), colour, 2)
+        else:
+            cv2.line(img, (lx, ly), (lx + 22, ly), colour, 2)
+        cv2.putText(img, s["label"], (lx + 28, ly + 4), font, 0.4, black, 1, cv2.LINE_AA)
+    return np.ascontiguousarray(img[..., ::-1]).astype(np.float32) / 255.0
+
+
+def write_figure(ctx: Context, name: str, image: np.ndarray) -> Path:
+    path = ctx.results / f"{name}.png"
+    io.write_png(path, np.clip(image, 0, 1))
+    return path

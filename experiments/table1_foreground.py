@@ -1,0 +1,97 @@
+"""Table 1: dynamic-foreground removal on / off (ours with and without masks) on two scene sets.
+
+Conditions (all "ours": contraction + disparity warp + hierarchical sampling), per scene set:
+  no masks                 every pixel a training target (train.use_masks false)
+  binary GT masks          `jaxnerf-grid mask --source gt --floor 1`: masked pixels excluded, no Eq. 7
+  GT masks + Eq. 7         `jaxnerf-grid mask --source gt --floor 0`: M_w = M (Dmax - D) / Dmax
+  built-in DPT + Eq. 7     `jaxnerf-grid mask --source dpt` (jaxnerf_grid/assets/dpt_builtin; row
+                           "not run" when the build ships no built-in model)
+  clean images             trained on the distractor-free renders (upper bound)
+Scene sets: A = tower-small (medium distractors), B = plad-like (high distractors); seed k uses
+scene seed k and training seed k. Metrics on the clean test views (PSNR, SSIM, MS-SSIM, LPIPS
+with --lpips-weights) and PSNR inside the distractor regions of training views against the
+clean renders (how much of the passers-by is burnt in; higher = cleaner).
+
+  JAX_PLATFORMS=cpu python experiments/table1_foreground.py [--quick | --full] [--seeds N]
+"""
+
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+
+import common  # noqa: E402
+
+SETS = (("A: tower-small, medium distractors", "tower-small", None),
+        ("B: plad-like, high distractors", "plad-like", None))
+CONDITIONS = ("no masks", "binary GT masks (no Eq. 7)", "GT masks + Eq. 7", "built-in DPT masks + Eq. 7",
+              "clean training images (upper bound)")
+COLUMNS = [("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("ms_ssim", "MS-SSIM", 3), ("lpips", "LPIPS", 3),
+           ("distractor_psnr", "distractor-region PSNR (train views)", 2), ("mask_iou", "mask IoU", 3)]
+
+
+def builtin_available() -> bool:
+    from jaxnerf_grid import mask_cli
+
+    return (mask_cli.BUILTIN / "config.json").is_file()
+
+
+def condition_data(ctx, scene_dir: Path, condition: str):
+    """(dataset folder, train overrides, mask IoU or None) of a condition, or None if unavailable."""
+    if condition == "no masks":
+        return scene_dir, {"train": {"use_masks": False}}, None
+    if condition == "clean training images (upper bound)":
+        return common.clean_variant(ctx, scene_dir), {"train": {"use_masks": False}}, None
+    if condition == "binary GT masks (no Eq. 7)":
+        v = common.mask_variant(ctx, scene_dir, "gt_binary", "gt", floor=1.0)
+    elif condition == "GT masks + Eq. 7":
+        v = common.mask_variant(ctx, scene_dir, "gt_eq7", "gt", floor=0.0)
+    else:
+        if not builtin_available():
+            return None
+        v = common.mask_variant(ctx, scene_dir, "dpt_builtin_eq7", "dpt", floor=0.0)
+    return v, {"train": {"use_masks": True}}, common.mask_iou(v)["iou"]
+
+
+def main(argv=None) -> int:
+    args = common.base_parser(__doc__).parse_args(argv)
+    ctx = common.make_context(args, "table1_foreground.py")
+    records = {(s, c): [] for s, _, _ in SETS for c in CONDITIONS}
+    ious = {(s, c): [] for s, _, _ in SETS for c in CONDITIONS}
+    for seed in range(ctx.seeds):
+        for set_name, preset, distractors in SETS:
+            scene_dir = common.scene(ctx, preset, seed, distractors)
+            for cond in CONDITIONS:
+                got = condition_data(ctx, scene_dir, cond)
+                if got is None:
+                    continue
+                data, ov, iou = got
+                tag = "t1-" + preset + "-" + cond.split(" (")[0].replace(" ", "_").replace("+", "").replace(".", "")
+                rec = common.run_condition(ctx, data, "ours", seed, tag, ov)
+                records[(set_name, cond)].append(rec)
+                ious[(set_name, cond)].append(iou)
+    body, md = {"rows": []}, []
+    for set_name, _, _ in SETS:
+        rows = []
+        for cond in CONDITIONS:
+            recs = records[(set_name, cond)]
+            agg = common.aggregate(recs, {"mask_iou": ious[(set_name, cond)]}) if recs else None
+            rows.append((cond, agg))
+            body["rows"].append({"scene_set": set_name, "condition": cond, "aggregate": agg})
+        md += [f"## Scene set {set_name}", ""] + common.markdown_table(rows, COLUMNS) + [""]
+    notes = ["Test metrics against the clean test views; distractor-region PSNR on up to "
+             f"{ctx.distractor_views} training views with distractors, inside their ground-truth distractor "
+             "masks, against the clean renders.",
+             "Mask IoU: the condition's masks M against the synthetic distractor masks (bit 0), pooled over the "
+             "training views."]
+    if not builtin_available():
+        notes.append("Built-in DPT row not run: jaxnerf_grid/assets/dpt_builtin is not in this build "
+                     "(train it with experiments/train_builtin_dpt.py).")
+    common.write_results(ctx, "table1_foreground", "Table 1: dynamic-foreground removal", body, md, notes)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
