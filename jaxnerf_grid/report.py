@@ -2,8 +2,8 @@
 
 Every figure referenced by the report is a file in the run directory (DESIGN.md):
 `report_views.png` (ground truth | render | depth, one row per test view, full frames) and
-`report_crops.png` (the same three panels cropped to the tower's bounding box from the
-semantic map, 2x nearest-neighbour, when semantics exist).
+`report_crops.png` (the same three panels cropped to the bounding box of the tower class in
+the semantic map, 2x nearest-neighbour, when semantics exist).
 """
 
 from __future__ import annotations
@@ -45,8 +45,8 @@ def side_by_side(rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]], gap: int
 
 
 def tower_box(semantic: np.ndarray, margin: int = 4) -> tuple[slice, slice] | None:
-    """Bounding box (rows, cols) of tower/conductor pixels (class 1 or 2), or None."""
-    ys, xs = np.nonzero(np.isin(semantic, (1, 2)))
+    """Bounding box (rows, cols) of tower pixels (class 1; conductors span the frame), or None."""
+    ys, xs = np.nonzero(semantic == 1)
     if ys.size == 0:
         return None
     h, w = semantic.shape
