@@ -129,9 +129,9 @@ def _merge(scenes: list[sc.Scene]) -> tuple[sc.Scene, list[dict]]:
 # --- distractors ---------------------------------------------------------------------------
 
 _KIND_WEIGHTS = {"low": (0.5, 0.22, 0.0, 0.28), "medium": (0.4, 0.25, 0.08, 0.27),
-                 "high": (0.35, 0.25, 0.12, 0.28)}
+                 "high": (0.25, 0.3, 0.15, 0.3)}            # person, car, truck, bird flock
 _FOOTPRINT = {"person": 0.4, "car": 2.5, "truck": 4.8}     # ground radius (m) kept free of others
-_GROUND_RANGE = {"low": (25.0, 110.0), "medium": (14.0, 110.0), "high": (11.0, 90.0)}
+_GROUND_RANGE = {"low": (25.0, 110.0), "medium": (14.0, 110.0), "high": (11.0, 75.0)}
 
 
 def _object_scene(kind: str, pos, heading, rng, obj, bird_scale=1.0) -> sc.Scene:
@@ -252,7 +252,7 @@ def _place_teleport(state: _ViewState, level: str, rng: np.random.Generator, sta
     cap = hi_cov
     attempts = 0
     footprints = []
-    while state.coverage() < target and attempts < 800 and len(state.objects) < 400:
+    while state.coverage() < target and attempts < 1500 and len(state.objects) < 700:
         attempts += 1
         kind = kinds[rng.choice(4, p=weights / weights.sum())]
         heading = rng.uniform(0, 2 * np.pi)
@@ -608,12 +608,31 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
         world = _WORKER["world"]
     else:
         import multiprocessing
-        from concurrent.futures import ProcessPoolExecutor
+        import sys
+        from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures.process import BrokenProcessPool
 
         ctx = multiprocessing.get_context("spawn")
-        with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init, initargs=(cfg, str(out))) as pool:
-            results = list(tqdm(pool.map(_render_and_write, tasks), **bar))
-        world = StaticWorld(cfg)
+        done: dict = {}
+        with tqdm(**bar) as pbar:
+            try:
+                with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
+                                         initargs=(cfg, str(out))) as pool:
+                    futures = {pool.submit(_render_and_write, t): t[0] for t in tasks}
+                    for fut in as_completed(futures):
+                        done[futures[fut]] = fut.result()
+                        pbar.update(1)
+            except BrokenProcessPool:
+                # A worker was killed (e.g. by the OOM killer): finish the rest in this process.
+                print(f"synth: a worker process died; rendering the remaining {len(tasks) - len(done)} views "
+                      "in the main process", file=sys.stderr)
+                _worker_init(cfg, str(out))
+                for t in tasks:
+                    if t[0] not in done:
+                        done[t[0]] = _render_and_write(t)
+                        pbar.update(1)
+        results = [done[t[0]] for t in tasks]
+        world = _WORKER.get("world") or StaticWorld(cfg)
     frames, coverages = [], []
     for (i, name, sp, c2w), (coverage, num_objects) in zip(tasks, results):
         rec = _frame_record(name, sp, cameras.normalise_pose(c2w, scale, translation))
