@@ -154,3 +154,39 @@ def test_bvh_trace_matches_brute_force():
     np.testing.assert_array_equal(np.isfinite(ta), hit)
     tl, _, _ = ix.trace(bvh, o, d, t_max=np.full(len(o), 7.0))
     np.testing.assert_array_equal(np.isfinite(tl), tb < 7.0)
+
+
+def test_binned_trace_screen_and_sun_culling_match_brute_force():
+    """The renderer's culling (screen tiles for camera rays, sun-plane cells for shadow rays)."""
+    from jaxnerf_grid.data.synthetic import cameras
+    from jaxnerf_grid.data.synthetic.generate import SunGrid, TILE, scene_bounds, screen_rects
+    from jaxnerf_grid.data.synthetic.scene import Scene
+    from jaxnerf_grid.rays import look_at
+
+    rng = np.random.default_rng(6)
+    tables = _random_tables(rng, 40)
+    tables["capsule"]["a"][0], tables["capsule"]["b"][0] = [0.0, -30.0, 2.0], [0.0, 30.0, 2.0]  # crosses the camera plane
+    scene = Scene(tables, {k: {"cls": np.zeros(40)} for k in tables})
+    bounds = scene_bounds(scene)
+    intr = cameras.intrinsics(48, 36, 60.0)
+    c2w = np.asarray(look_at([0.0, 9.0, 3.0], [0.0, 0.0, 0.0]), np.float64)
+    o, d, _ = cameras.view_rays(c2w, intr, 2)
+    h, w, k = o.shape[:3]
+    o, d = o.reshape(-1, 3), d.reshape(-1, 3)
+    rects, gw = screen_rects(bounds, c2w, intr)
+    flat = np.arange(len(o))
+    tile = (flat // (w * k) // TILE) * gw + (flat // k % w) // TILE
+    t, kind, idx = ix.binned_trace(tables, rects, gw, tile, o, d)
+    tb, kb, ib = ix.brute_force_closest(tables, o, d)
+    np.testing.assert_allclose(t, tb, rtol=1e-10)
+    assert np.isfinite(t).mean() > 0.1
+    hit = np.isfinite(t)
+    np.testing.assert_array_equal(kind[hit], kb[hit])
+    # Shadow rays from points spread through the scene towards a sun direction.
+    sun = np.array([0.3, -0.4, 0.8]) / np.linalg.norm([0.3, -0.4, 0.8])
+    grid = SunGrid(sun, bounds, cell=0.7)
+    pts = rng.uniform(-4, 4, size=(4000, 3))
+    occ = grid.occluded(tables, grid.rects(bounds), pts, sun)
+    ts, _, _ = ix.brute_force_closest(tables, pts, np.broadcast_to(sun, pts.shape))
+    np.testing.assert_array_equal(occ, np.isfinite(ts))
+    assert 0.1 < occ.mean() < 0.9

@@ -13,9 +13,7 @@ from __future__ import annotations
 
 import dataclasses
 import math
-import os
 import shutil
-import time
 from pathlib import Path
 
 import numpy as np
@@ -590,7 +588,6 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
             if (out / f).is_file():
                 (out / f).unlink()
     out.mkdir(parents=True, exist_ok=True)
-    start, cpu_start = time.perf_counter(), time.process_time()
     intr = cameras.intrinsics(cfg.width, cfg.height, cfg.fov_deg)
     c2w_all, split = cameras.camera_path(cfg.num_train, cfg.num_test, cfg.orbits, cfg.low_pass,
                                          np.random.default_rng([cfg.seed, 1]))
@@ -666,12 +663,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
         "frames": frames,
     }
     io.write_json(out / "transforms.json", transforms)
-    _LAST_TIMING.update(wall_s=time.perf_counter() - start, main_process_cpu_s=time.process_time() - cpu_start,
-                        workers=workers)
     return out / "transforms.json"
-
-
-_LAST_TIMING: dict = {}
 
 
 def contact_sheet(dataset_dir, out_png, count: int = 4) -> Path:

@@ -13,6 +13,12 @@ returns t [N, M], the distance to the first boundary crossing with t > T_EPS, +i
 For rays starting outside a primitive this is the entry point. `normal_*` functions return
 outward unit normals [N, 3] at points on the surface of one primitive per point.
 `inside_*` functions are the plain point-membership tests the tests march rays with.
+
+Two culling schemes: `binned_trace` (used by the renderer) groups rays by a 2-D cell (a screen
+tile for one camera's rays, a cell of the plane perpendicular to the sun for shadow rays) and
+tests each group only against the primitives whose projected bounds cover that cell; `trace`
+walks a BVH with ray packets (general rays; kept as a second, independent culling path for
+tests). Both are exact: culling only skips primitives a ray cannot hit.
 """
 
 from __future__ import annotations

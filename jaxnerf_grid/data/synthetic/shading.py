@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxnerf_grid.data.synthetic.scene import FACADE, FOLIAGE, METAL
+from jaxnerf_grid.data.synthetic.scene import FOLIAGE, METAL
 
 SUN_COLOR = np.array([1.0, 0.95, 0.86]) * 1.05
 ZENITH = np.array([0.10, 0.24, 0.55])
