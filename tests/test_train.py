@@ -132,3 +132,14 @@ def test_nerfw_appearance_fit_reduces_error():
     after = train.render_rays_chunked(params, mcfg, r, 0, emb, 256)
     err = lambda out: float(np.mean((out["rgb"] - ds.images[4]) ** 2))  # noqa: E731
     assert err(after) < err(before)
+
+
+def test_loss_weights_floor_and_switch():
+    ds = tiny_dataset()
+    ds.weights = np.full(ds.images.shape[:3], 0.9, np.float32)
+    ds.weights[:, 0, 0] = 0.0
+    ds.masks = np.zeros(ds.images.shape[:3], np.float32)
+    ds.masks[:, :2, :2] = 1.0
+    w = train.loss_weights(ds, tiny_config(mask_weight_floor=0.5).train)
+    assert w[0, 0, 0] == 0.0 and w[0, 1, 1] == np.float32(0.5) and w[0, 5, 5] == np.float32(0.9)
+    np.testing.assert_array_equal(train.loss_weights(ds, tiny_config(use_masks=False).train), 1.0)
