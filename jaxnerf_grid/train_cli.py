@@ -179,7 +179,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     """Renders the test views, computes metrics.json and writes report.md. Returns the metrics."""
     import jax
 
-    from jaxnerf_grid import lpips, metrics, rays as rays_lib, report, train
+    from jaxnerf_grid import export, lpips, metrics, rays as rays_lib, report, train
 
     start = time.perf_counter()
     run_dir = Path(run_dir)
@@ -191,7 +191,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     fit_left = cfg.model.use_appearance
     near = float(cfg.model.near if cfg.model.near is not None else ds.near)
     far = float(cfg.model.far if cfg.model.far is not None else ds.far)
-    per_view, figures = [], []
+    per_view, figures, cloud = [], [], []
     for i in _bar(np.asarray(ds.split["test"]), progress, "eval"):
         i = int(i)
         target = np.asarray(targets[i], np.float32)
@@ -207,6 +207,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
         name = _frame_name(ds, i)
         _write_view(run_dir, name, view)
         rgb = np.clip(view["rgb"], 0, 1)
+        cloud.append(export.lift_view(train.camera_rays(ds, i, near, far), rgb, view["depth"], view["opacity"]))
         record = {"name": name, "index": i, **metrics.evaluate_image(rgb, target, lpips_params)}
         half = ds.width // 2
         if min(rgb.shape[0], rgb.shape[1] - half) >= metrics.WIN_SIZE:
@@ -249,7 +250,11 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
               "lpips": "computed" if lpips_params is not None else "unavailable",
               "eval_seconds": time.perf_counter() - start}
     io.write_json(run_dir / "metrics.json", result)
+    export.write_point_cloud(run_dir / "tower_points.ply", cloud)
     notes = list(extra_notes)
+    notes.append(f"Point cloud of the unit sphere (the tower region) lifted from the test depth maps "
+                 f"(opacity >= 0.5): `tower_points.ply`, {sum(len(p) for p, _ in cloud)} points, "
+                 "normalised scene units.")
     notes.append(f"LPIPS: {'computed from ' + str(lpips_weights) if lpips_params is not None else 'unavailable (no --lpips-weights)'}.")
     notes.append(f"Evaluation took {result['eval_seconds']:.0f} s.")
     report.write_report(run_dir, result, run_config_dict(cfg, data), figures, notes)
