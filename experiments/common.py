@@ -189,7 +189,7 @@ def scene(ctx: Context, preset: str, seed: int, distractors: str | None = None, 
         print(f"[scene] generating {name}", flush=True)
         generate_scene(preset, out, seed=seed, distractors=distractors, overwrite=True, progress=ctx.progress,
                        width=w, height=h, num_train=n_train, num_test=n_test, supersample=ss,
-                       workers=min(2, os.cpu_count() or 1))
+                       workers=min(2, os.cpu_count() or 1) if w * h * (n_train + n_test) > 100_000 else 1)
     return out
 
 
