@@ -7,7 +7,8 @@ Usage:
 A random-weight DPTForSemanticSegmentation (150 labels) or DPTForDepthEstimation is built with
 transformers (arch "large" = Intel/dpt-large's shape: ViT-L/16, 24 layers; "base" = ViT-B/16,
 12 layers, the DPTConfig default), saved in the HF layout, loaded with `dpt.load_pretrained`, and
-both run on the same input. Timings exclude the first (compile / warm-up) call. Both frameworks
+both run on the same input. Timings exclude the first (compile / warm-up) call; the two
+frameworks' calls are interleaved and the medians compared. Both frameworks
 use every core of the machine (torch.set_num_threads(os.cpu_count())). Also records the max
 difference between the two outputs and the machine's load average (the CI box is shared).
 """
@@ -27,16 +28,6 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.modules.setdefault("torchvision", None)  # broken in the dev venv; transformers must not import it
 
 import numpy as np  # noqa: E402
-
-
-def _time(fn, iters):
-    fn()  # warm-up / compile
-    times = []
-    for _ in range(iters):
-        t = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t)
-    return float(np.median(times)), times
 
 
 def main(argv=None) -> int:
@@ -83,8 +74,14 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     run_jax()
     compile_s = time.perf_counter() - t0
-    jax_s, jax_all = _time(run_jax, args.iters)
-    torch_s, torch_all = _time(run_torch, args.iters)
+    run_torch()  # warm-up
+    jax_all, torch_all = [], []
+    for _ in range(args.iters):  # interleaved, so both see the same (shared-machine) load
+        for fn, acc in ((run_jax, jax_all), (run_torch, torch_all)):
+            t = time.perf_counter()
+            fn()
+            acc.append(time.perf_counter() - t)
+    jax_s, torch_s = float(np.median(jax_all)), float(np.median(torch_all))
     a = np.asarray(run_jax())
     b = run_torch().numpy()
     b = b.transpose(0, 2, 3, 1) if b.ndim == 4 else b
