@@ -108,7 +108,7 @@ def main(argv=None) -> int:
         pts = [(n, table[(s, n)]["psnr"]["mean"]) for n in samples if table[(s, n)] and table[(s, n)].get("psnr")]
         if pts:
             series.append({"label": s.replace(" + hierarchical", " +hier"), "x": [x for x, _ in pts],
-                           "y": [y for _, y in pts], "dashed": h})
+                           "y": [y for _, y in pts], "dashed": h, "colour_index": WARPS.index(w)})
     img = common.line_plot(series, "samples per ray (log2 scale)", "test PSNR (dB)",
                            f"sampling schemes, {ctx.steps} steps, {ctx.setting} setting")
     common.write_figure(ctx, "sampling_schemes", img)

@@ -483,7 +483,8 @@ PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 1
 
 
 def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(760, 480), log2_x: bool = True) -> np.ndarray:
-    """A line plot drawn with OpenCV. series: [{"label", "x": [...], "y": [...], "dashed": bool}].
+    """A line plot drawn with OpenCV. series: [{"label", "x": [...], "y": [...], "dashed": bool,
+    optional "colour_index"}].
     Returns an RGB float image [H, W, 3] in [0, 1]."""
     import cv2
 
@@ -517,9 +518,9 @@ def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(76
     cv2.rectangle(img, (left, top), (w - right, h - bottom), black, 1)
     cv2.putText(img, xlabel, (left + (w - left - right) // 2 - 60, h - 12), font, 0.45, black, 1, cv2.LINE_AA)
     cv2.putText(img, ylabel, (8, top - 10), font, 0.45, black, 1, cv2.LINE_AA)
-    cv2.putText(img, title, (left + 70, top - 10), font, 0.45, black, 1, cv2.LINE_AA)
+    cv2.putText(img, title, (left + 120, top - 10), font, 0.45, black, 1, cv2.LINE_AA)
     for i, s in enumerate(series):
-        colour = PALETTE[i % len(PALETTE)][::-1]
+        colour = PALETTE[s.get("colour_index", i) % len(PALETTE)][::-1]
         pts = [px(x, y) for x, y in zip(s["x"], s["y"]) if y is not None]
         for a, b in zip(pts, pts[1:]):
             if s.get("dashed"):

@@ -8,7 +8,8 @@ For each direction (ttpla-like -> plad-like and plad-like -> ttpla-like):
   2. `jaxnerf-grid mask --source dpt --weights <that model>` masks the target family's scene
      (seed k; Eq. 7 with the DPT's own depth);
   3. ours is trained on the target scene with those masks.
-Reference rows on the same target scenes: ground-truth masks + Eq. 7, and no masks.
+Reference rows on the same target scenes: the other direction's DPT, which was trained on the
+target's own family (same family, seen scene-seed disjoint), ground-truth masks + Eq. 7, and no masks.
 Reported: mask IoU / precision / recall of M against the true distractor masks (training views of
 the target scene), and the NeRF metrics on the clean test views.
 
@@ -61,8 +62,8 @@ def main(argv=None) -> int:
     dset["steps"] = args.dpt_steps or dset["steps"]
     rows_spec = []
     for source, target, _ in DIRECTIONS:
-        rows_spec += [(target, f"{source} DPT -> {target} (crossover)"), (target, f"{target}: GT masks + Eq. 7"),
-                      (target, f"{target}: no masks")]
+        rows_spec += [(target, f"{source} DPT -> {target} (crossover)"), (target, f"{target} DPT -> {target} (same family)"),
+                      (target, f"{target}: GT masks + Eq. 7"), (target, f"{target}: no masks")]
     records = {label: [] for _, label in rows_spec}
     extras = {label: {"mask_iou": [], "mask_precision": [], "mask_recall": []} for _, label in rows_spec}
     dpt_results = {}
@@ -76,6 +77,18 @@ def main(argv=None) -> int:
             m = common.mask_iou(v)
             label = f"{source} DPT -> {target} (crossover)"
             records[label].append(common.run_condition(ctx, v, "ours", seed, f"t4-{source}-to-{target}",
+                                                       {"train": {"use_masks": True}}))
+            for k in ("iou", "precision", "recall"):
+                extras[label][f"mask_{k}"].append(m[k])
+        for source, target, dpt_seed in DIRECTIONS:  # same family: the other direction's DPT on its own family
+            target_dir = common.scene(ctx, target, seed)
+            other = next(d for d in DIRECTIONS if d[0] == target)
+            model_dir, _ = train_dpt(ctx, target, other[2], common.scene(ctx, other[1], seed), dset["minutes"],
+                                     dset["steps"], dset["views"])
+            v = common.mask_variant(ctx, target_dir, f"dpt_from_{target}", "dpt", floor=0.0, weights=str(model_dir))
+            m = common.mask_iou(v)
+            label = f"{target} DPT -> {target} (same family)"
+            records[label].append(common.run_condition(ctx, v, "ours", seed, f"t4-{target}-to-{target}",
                                                        {"train": {"use_masks": True}}))
             for k in ("iou", "precision", "recall"):
                 extras[label][f"mask_{k}"].append(m[k])
