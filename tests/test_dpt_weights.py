@@ -120,3 +120,12 @@ def test_primitives_against_torch():
     p = {"w": convt.weight.detach().numpy().transpose(0, 2, 3, 1), "b": convt.bias.detach().numpy()}
     np.testing.assert_allclose(np.asarray(layers.conv_transpose_nonoverlap(p, x)),
                                convt(xt).detach().permute(0, 2, 3, 1).numpy(), atol=1e-5)
+
+
+def test_forward_is_vmap_and_jit_safe():
+    import jax
+    model = dpt.init(1, dpt.DPTConfig(**TINY, heads=("segmentation", "depth")))
+    xs = np.random.default_rng(2).uniform(-1, 1, (3, 32, 48, 3)).astype(np.float32)
+    batched = dpt.apply(model, xs)
+    per_example = jax.jit(jax.vmap(lambda x: dpt.forward(model.params, model.config, x[None])["depth"][0]))(xs)
+    np.testing.assert_allclose(np.asarray(per_example), np.asarray(batched["depth"]), atol=1e-5)
