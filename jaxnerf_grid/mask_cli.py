@@ -8,6 +8,7 @@ Per frame (stem = the image's file name without extension) it writes, inside the
   dpt_depth/<stem>.exr  the depth D used by Eq. 7 (DPT: relative depth 1 / inverse depth, up to
                         scale; --source gt: the ground-truth z-depth)
   overlays/<stem>.png   the photo with M_w tinted red and M outlined | Eq. 8's filtered image
+                        (longest side at most 1600 px per panel)
 and rewrites transforms.json atomically, every other key preserved: each frame gains
 `mask_path`, `weight_path`, `dpt_depth_path`, `overlay_path`; the top level gains
 `mask_source` ("dpt" or "ground-truth") and `mask_params`.
@@ -32,6 +33,7 @@ from jaxnerf_grid.io import DataError
 
 OUTPUT_DIRS = ("masks", "weights", "dpt_depth", "overlays")
 BUILTIN = Path(__file__).parent / "assets" / "dpt_builtin"
+OVERLAY_MAX_SIDE = 1600
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -197,7 +199,11 @@ def main(argv: list[str] | None = None) -> int:
             io.write_exr(root / rel["dpt_depth_path"], depth)
         else:
             rel.pop("dpt_depth_path")
-        io.write_png(root / rel["overlay_path"], fg.overlay(image, mask, mw))
+        scale = min(1.0, OVERLAY_MAX_SIDE / max(h, w))  # overlays of 20 MP photos: a preview size
+        oh, ow = max(1, round(h * scale)), max(1, round(w * scale))
+        io.write_png(root / rel["overlay_path"], fg.overlay(fg.resize_map(image, oh, ow),
+                                                            fg.resize_map(mask, oh, ow), fg.resize_map(mw, oh, ow)))
+        del image
         frame.update(rel)
     meta["mask_source"] = source
     meta["mask_params"] = params
