@@ -4,9 +4,10 @@ A model is `Model(config, params)`; `params` is a plain pytree:
   {"vit": ..., "reassemble": ..., "fusion": ..., "segmentation"?: ..., "auxiliary"?: ..., "depth"?: ...}
 
 Output resolution (matches transformers' behaviour, checked by tests/test_dpt_parity.py): the
-finest fused map is at 8x the patch grid and both heads upsample it x2, so HF's raw logits /
-predicted depth are at `16 * (H / patch_size)` rows, i.e. exactly the input size for patch 16
-(Intel/dpt-large*) and twice the input for patch 8. `apply` returns the raw maps under
+finest fused map is at 8x the (deepest, halved) patch grid and both heads upsample it x2, so
+HF's raw logits / predicted depth have `32 * ceil(g / 2)` rows for a g-row patch grid, i.e.
+exactly the input size for patch 16 and inputs that are multiples of 32 (Intel/dpt-large*),
+twice the input for patch 8, and more than the input for odd grids. `apply` returns the raw maps under
 `logits_raw` / `depth_raw` and, under `logits` / `depth`, the same maps resized to the input
 size with half-pixel bilinear (what HF's post-processing does for logits; HF's depth
 post-processing uses bicubic, we use bilinear) -- a no-op for patch 16.
