@@ -146,6 +146,7 @@ class Context:
     start: float = dataclasses.field(default_factory=time.perf_counter)
     machine: dict = dataclasses.field(default_factory=dict)
     skipped_for_budget: list = dataclasses.field(default_factory=list)
+    run_seconds: dict = dataclasses.field(default_factory=dict)  # run dir -> recorded train + eval wall s
 
     @property
     def overrides(self) -> dict:
@@ -312,7 +313,9 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     done = run_dir / "metrics.json"
     info_path = run_dir / "experiment.json"
     if done.is_file() and info_path.is_file():
-        return {**io.read_json(info_path), "metrics": io.read_json(done), "cached": True}
+        info = io.read_json(info_path)
+        ctx.run_seconds[str(run_dir)] = info["train_wall_s"] + info["eval_wall_s"]
+        return {**info, "metrics": io.read_json(done), "cached": True}
     if ctx.out_of_budget():
         ctx.skipped_for_budget.append(f"{label} seed {seed}")
         print(f"[budget] not running {label} seed {seed}", flush=True)
@@ -333,6 +336,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
             "seconds_per_step": seconds_per_step(run_dir, cfg.train.batch_rays),
             "samples_per_ray": cfg.model.num_coarse + (cfg.model.num_fine if cfg.model.hierarchical else 0)}
     io.write_json(info_path, info)
+    ctx.run_seconds[str(run_dir)] = t_train + t_eval
     print(f"[done] {label} seed {seed}: test PSNR {metrics['mean']['psnr']:.2f} dB "
           f"(train {t_train:.0f} s, eval {t_eval:.0f} s)", flush=True)
     return {**info, "metrics": metrics, "cached": False}
@@ -420,14 +424,17 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
     lpips_note = ("LPIPS computed from " + ctx.lpips_weights) if ctx.lpips_weights else \
         "LPIPS unavailable (no --lpips-weights given); never a made-up number"
     payload = {"table": name, "title": title, "command": ctx.command, "machine": ctx.machine,
-               "settings": settings_summary(ctx), "wall_seconds": wall, "lpips": lpips_note,
+               "settings": settings_summary(ctx), "wall_seconds": wall,
+               "runs_seconds": sum(ctx.run_seconds.values()), "num_runs": len(ctx.run_seconds), "lpips": lpips_note,
                "not_run_for_budget": ctx.skipped_for_budget, **body, "notes": notes}
     io.write_json(ctx.results / f"{name}.json", payload)
     o = TRAIN_SETTINGS[ctx.setting]["overrides"]
     field = o["model"]["field"]
     head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
-            f"Machine: {machine_line(ctx.machine)}. Wall time of this invocation: {wall / 60:.1f} min "
-            "(runs found already done in the cache are not re-run).", "",
+            f"Machine: {machine_line(ctx.machine)}. The table's {len(ctx.run_seconds)} NeRF runs took "
+            f"{sum(ctx.run_seconds.values()) / 60:.1f} min of train + eval wall time as recorded when each ran "
+            f"(runs shared with another table counted in both); this invocation took {wall / 60:.1f} min "
+            "(runs already done in the cache are not re-run).", "",
             f"Setting `{ctx.setting}`: {ctx.seeds} seed(s), {ctx.steps} steps per run, "
             f"{o['train']['batch_rays']} rays per step, MLP {field['depth']}x{field['width']}, "
             f"{o['model']['num_coarse']}+{o['model']['num_fine']} samples per ray unless stated; "
@@ -450,10 +457,9 @@ def label_image(img: np.ndarray, text: str, height: int = 14) -> np.ndarray:
     """img [H, W, 3] float -> [H + height, W, 3] with `text` above it on white."""
     import cv2
 
-    bar = np.ones((height, img.shape[1], 3), np.float32)
-    scale = 0.35
-    cv2.putText(bar, text, (2, height - 4), cv2.FONT_HERSHEY_SIMPLEX, scale, (0, 0, 0), 1, cv2.LINE_AA)
-    return np.concatenate([bar, img.astype(np.float32)], axis=0)
+    bar = np.full((height, img.shape[1], 3), 255, np.uint8)
+    cv2.putText(bar, text, (2, height - 4), cv2.FONT_HERSHEY_SIMPLEX, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    return np.concatenate([bar.astype(np.float32) / 255.0, img.astype(np.float32)], axis=0)
 
 
 def hstack(images: list[np.ndarray], gap: int = 3) -> np.ndarray:
