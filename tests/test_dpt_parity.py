@@ -33,6 +33,8 @@ def _randomise(model, seed):
                 p.copy_(1.0 + 0.2 * r)
             else:                                   # biases, CLS token, position embeddings
                 p.copy_(0.2 * r if "embeddings" not in name else 0.5 * r)
+        if hasattr(model.head, "head") and isinstance(model, transformers.DPTForDepthEstimation):
+            model.head.head[4].bias.fill_(0.3)  # keep the final ReLU mostly active (else depth == 0)
         for name, b in model.named_buffers():
             if name.endswith("running_mean"):
                 b.copy_(0.2 * torch.randn(b.shape, generator=gen))
@@ -89,6 +91,7 @@ def test_parity_with_transformers(tmp_path, readout, batch_norm, task):
         got = dpt.apply(model, x)
         if task == "segmentation":
             raw = out.logits
+            assert raw.std() > 1e-2
             # HF's raw logits are larger than the input for patch 8 (2x for an even grid)
             assert raw.shape[-2:] == (_raw_size(size),) * 2
             np.testing.assert_allclose(np.asarray(got["logits_raw"]), raw.permute(0, 2, 3, 1).numpy(),
@@ -97,6 +100,7 @@ def test_parity_with_transformers(tmp_path, readout, batch_norm, task):
             np.testing.assert_allclose(np.asarray(got["logits"]), full, atol=TOL, rtol=0)
         else:
             raw = out.predicted_depth
+            assert (raw > 0).float().mean() > 0.3 and raw.std() > 1e-2  # a reference that can catch errors
             assert raw.shape[-2:] == (_raw_size(size),) * 2
             np.testing.assert_allclose(np.asarray(got["depth_raw"]), raw.numpy(), atol=TOL, rtol=0)
             full = _torch_resize(raw[:, None], (size, size))[:, 0].numpy()
