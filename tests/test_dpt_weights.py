@@ -127,5 +127,6 @@ def test_forward_is_vmap_and_jit_safe():
     model = dpt.init(1, dpt.DPTConfig(**TINY, heads=("segmentation", "depth")))
     xs = np.random.default_rng(2).uniform(-1, 1, (3, 32, 48, 3)).astype(np.float32)
     batched = dpt.apply(model, xs)
-    per_example = jax.jit(jax.vmap(lambda x: dpt.forward(model.params, model.config, x[None])["depth"][0]))(xs)
-    np.testing.assert_allclose(np.asarray(per_example), np.asarray(batched["depth"]), atol=1e-5)
+    per_example = jax.jit(jax.vmap(lambda x: dpt.forward(model.params, model.config, x[None])["logits"][0]))(xs)
+    assert np.std(np.asarray(batched["logits"])) > 1e-3
+    np.testing.assert_allclose(np.asarray(per_example), np.asarray(batched["logits"]), atol=1e-5)
