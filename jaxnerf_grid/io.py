@@ -7,6 +7,7 @@ Every reader raises `DataError` naming the file and what is wrong with it.
 
 from __future__ import annotations
 
+import contextlib
 import json
 import os
 import tempfile
@@ -26,6 +27,23 @@ def _cv2():
     return cv2
 
 
+def decode_raw(path: str | os.PathLike, what: str = "image", flags: int | None = None):
+    """Decodes a PNG / JPEG as OpenCV stores it (BGR(A), uint8 or uint16, no conversion).
+
+    Raises DataError naming the file when it is missing or not decodable. `what` names the
+    file's role in the message ("image", "mask", ...). Returns (array, raw bytes).
+    """
+    cv2 = _cv2()
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: {what} file not found")
+    data = np.fromfile(str(path), dtype=np.uint8)
+    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED if flags is None else flags) if data.size else None
+    if img is None:
+        raise DataError(f"{path}: not a readable {what} (corrupt or unsupported format)")
+    return img, data
+
+
 def read_image(path: str | os.PathLike, honour_exif: bool = True) -> np.ndarray:
     """Reads an 8/16-bit PNG or JPEG as float32 RGB in [0, 1].
 
@@ -34,15 +52,10 @@ def read_image(path: str | os.PathLike, honour_exif: bool = True) -> np.ndarray:
     """
     cv2 = _cv2()
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: image file not found")
     flags = cv2.IMREAD_UNCHANGED
     if not honour_exif:
         flags |= cv2.IMREAD_IGNORE_ORIENTATION
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, flags) if data.size else None
-    if img is None:
-        raise DataError(f"{path}: not a readable image (corrupt or unsupported format)")
+    img, data = decode_raw(path, "image", flags)
     if honour_exif and img.ndim == 3 and path.suffix.lower() in (".jpg", ".jpeg"):
         # IMREAD_UNCHANGED skips EXIF rotation; decode again with colour to honour it.
         img = cv2.imdecode(data, cv2.IMREAD_COLOR)
@@ -59,14 +72,7 @@ def read_image(path: str | os.PathLike, honour_exif: bool = True) -> np.ndarray:
 
 def read_mask(path: str | os.PathLike) -> np.ndarray:
     """Reads a single-channel PNG (8 or 16 bit) as float32 in [0, 1]. Returns: [H, W]."""
-    cv2 = _cv2()
-    path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: mask file not found")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is None:
-        raise DataError(f"{path}: not a readable mask image")
+    img, _ = decode_raw(path, "mask")
     scale = 65535.0 if img.dtype == np.uint16 else 255.0
     if img.ndim == 3:
         img = img[..., 0]
@@ -118,18 +124,9 @@ def write_exr(path: str | os.PathLike, data: np.ndarray, channel_names: tuple[st
         raise DataError(f"{path}: {num_channels} channels but {len(channel_names)} names")
     channels = {name: np.ascontiguousarray(arr[..., i]) for i, name in enumerate(channel_names)}
     header = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".exr")
-    os.close(fd)
-    try:
+    with atomic_path(path, suffix=".exr") as tmp:
         with OpenEXR.File(header, channels) as exr_file:
-            exr_file.write(tmp)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+            exr_file.write(str(tmp))
 
 
 def read_exr(path: str | os.PathLike) -> np.ndarray:
@@ -208,12 +205,20 @@ def read_ply_points(path: str | os.PathLike) -> np.ndarray:
 
 def atomic_write_bytes(path: str | os.PathLike, payload: bytes) -> None:
     """Writes bytes to `path` through a temporary file and a rename (never half-written)."""
+    with atomic_path(path) as tmp:
+        tmp.write_bytes(payload)
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike, suffix: str = ".tmp"):
+    """Yields a temporary path beside `path`; on success renames it over `path`, on any error
+    removes it, so `path` is either the old file or the complete new one."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+    os.close(fd)
     try:
-        with os.fdopen(fd, "wb") as handle:
-            handle.write(payload)
+        yield Path(tmp)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

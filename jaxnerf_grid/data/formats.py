@@ -106,13 +106,7 @@ def read_rgb(path, background=None, honour_exif: bool = True) -> np.ndarray:
     path = Path(path)
     if background is None or path.suffix.lower() != ".png":
         return io.read_image(path, honour_exif=honour_exif)
-    cv2 = _cv2()
-    if not path.is_file():
-        raise DataError(f"{path}: image file not found")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is None:
-        raise DataError(f"{path}: not a readable image (corrupt or unsupported format)")
+    img, _ = io.decode_raw(path, "image")
     if img.ndim != 3 or img.shape[-1] != 4:
         return io.read_image(path, honour_exif=honour_exif)
     img = img.astype(np.float32) / (65535.0 if img.dtype == np.uint16 else 255.0)
@@ -242,13 +236,7 @@ def _read_extra(kind: str, path: Path, background, honour_exif: bool) -> np.ndar
         return arr if arr.ndim == 2 else arr[..., 0]
     if kind == "mask":
         return io.read_mask(path)
-    cv2 = _cv2()
-    if not path.is_file():
-        raise DataError(f"{path}: file not found")
-    data = np.fromfile(str(path), dtype=np.uint8)
-    img = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
-    if img is None:
-        raise DataError(f"{path}: not a readable image")
+    img, _ = io.decode_raw(path, "image")
     if img.ndim == 3:
         img = img[..., 0]
     if img.dtype != np.uint8:
