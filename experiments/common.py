@@ -490,7 +490,7 @@ PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 1
 
 def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(760, 480), log2_x: bool = True) -> np.ndarray:
     """A line plot drawn with OpenCV. series: [{"label", "x": [...], "y": [...], "dashed": bool,
-    optional "colour_index"}].
+    optional "colour_index", optional "err": [...] (error bars, +- err)}].
     Returns an RGB float image [H, W, 3] in [0, 1]."""
     import cv2
 
@@ -504,7 +504,11 @@ def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(76
     tx = (lambda v: np.log2(v)) if log2_x else (lambda v: v)
     x0, x1 = tx(min(xs)), tx(max(xs))
     x1 = x1 if x1 > x0 else x0 + 1
-    y0, y1 = np.floor(min(ys) - 0.5), np.ceil(max(ys) + 0.5)
+    errs = [e for s in series for e in (s.get("err") or []) if e is not None]
+    pad = max(0.08 * (max(ys) - min(ys)), 0.1) + (max(errs) if errs else 0.0)
+    y0, y1 = min(ys) - pad, max(ys) + pad
+    step = next(v for v in (0.05, 0.1, 0.2, 0.25, 0.5, 1, 2, 5, 10, 20, 50) if (y1 - y0) / v <= 8)
+    y0, y1 = np.floor(y0 / step) * step, np.ceil(y1 / step) * step
 
     def px(x, y):
         return (int(left + (tx(x) - x0) / (x1 - x0) * (w - left - right)),
@@ -516,11 +520,10 @@ def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(76
         p = px(x, y0)
         cv2.line(img, (p[0], top), (p[0], h - bottom), grey, 1)
         cv2.putText(img, f"{x:g}", (p[0] - 8, h - bottom + 16), font, 0.4, black, 1, cv2.LINE_AA)
-    step = max(1.0, np.ceil((y1 - y0) / 8))
-    for y in np.arange(y0, y1 + 1e-9, step):
+    for y in np.arange(y0, y1 + step / 2, step):
         p = px(min(xs), y)
         cv2.line(img, (left, p[1]), (w - right, p[1]), grey, 1)
-        cv2.putText(img, f"{y:g}", (8, p[1] + 4), font, 0.4, black, 1, cv2.LINE_AA)
+        cv2.putText(img, f"{round(y, 2):g}", (8, p[1] + 4), font, 0.4, black, 1, cv2.LINE_AA)
     cv2.rectangle(img, (left, top), (w - right, h - bottom), black, 1)
     cv2.putText(img, xlabel, (left + (w - left - right) // 2 - 60, h - 12), font, 0.45, black, 1, cv2.LINE_AA)
     cv2.putText(img, ylabel, (8, top - 10), font, 0.45, black, 1, cv2.LINE_AA)
@@ -539,6 +542,11 @@ def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(76
                 cv2.line(img, a, b, colour, 2, cv2.LINE_AA)
         for p in pts:
             cv2.circle(img, p, 3, colour, -1, cv2.LINE_AA)
+        for x, y, e in zip(s["x"], s["y"], s.get("err") or []):  # error bars (+- e)
+            if y is not None and e:
+                (xa, ya), (_, yb) = px(x, y - e), px(x, y + e)
+                xa += (i % 8 - 3.5) * 1.5  # spread overlapping bars a little
+                cv2.line(img, (int(xa), ya), (int(xa), yb), colour, 1, cv2.LINE_AA)
         ly = top + 10 + 18 * i
         lx = w - right + 10
         if s.get("dashed"):
