@@ -29,7 +29,8 @@ SETS = (("A: tower-small, medium distractors", "tower-small", None),
 CONDITIONS = ("no masks", "binary GT masks (no Eq. 7)", "GT masks + Eq. 7", "built-in DPT masks + Eq. 7",
               "clean training images (upper bound)")
 COLUMNS = [("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("ms_ssim", "MS-SSIM", 3), ("lpips", "LPIPS", 3),
-           ("distractor_psnr", "distractor-region PSNR (train views)", 2), ("mask_iou", "mask IoU", 3)]
+           ("distractor_psnr", "distractor-region PSNR (train views)", 2), ("mask_iou", "mask IoU", 3),
+           ("delta_psnr", "Δ PSNR vs no masks (paired)", 2), ("delta_distractor_psnr", "Δ distractor PSNR (paired)", 2)]
 
 
 def builtin_available() -> bool:
@@ -79,13 +80,19 @@ def main(argv=None) -> int:
             recs = records[(set_name, cond)]
             agg = common.aggregate(recs, {"mask_iou": ious[(set_name, cond)]}) if recs else None
             rows.append((cond, agg))
+        for cond, agg in rows:
+            if cond != "no masks":
+                common.add_paired_delta(agg, rows[0][1])
+                common.add_paired_delta(agg, rows[0][1], "distractor_psnr", "delta_distractor_psnr")
             body["rows"].append({"scene_set": set_name, "condition": cond, "aggregate": agg})
         md += [f"## Scene set {set_name}", ""] + common.markdown_table(rows, COLUMNS) + [""]
     notes = ["Test metrics against the clean test views; distractor-region PSNR on up to "
              f"{ctx.distractor_views} training views with distractors, inside their ground-truth distractor "
              "masks, against the clean renders.",
              "Mask IoU: the condition's masks M against the synthetic distractor masks (bit 0), pooled over the "
-             "training views."]
+             "training views.",
+             "Δ columns: the per-seed difference to the 'no masks' row of the same scene and seed, mean ± std over "
+             "seeds (paired; each seed is a different scene, so the rows' own std is mostly scene-to-scene spread)."]
     if not builtin_available():
         notes.append("Built-in DPT row not run: jaxnerf_grid/assets/dpt_builtin is not in this build "
                      "(train it with experiments/train_builtin_dpt.py).")

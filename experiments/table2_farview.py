@@ -43,13 +43,16 @@ def main(argv=None) -> int:
             records[cond].append(common.run_condition(ctx, data, "ours", seed, tag,
                                                       {"model": model, "train": {"use_masks": True}}))
     rows = [(c, common.aggregate(records[c])) for c, _ in CONDITIONS]
+    for k, _, _ in COLUMNS[:4]:
+        for _, agg in rows[:1] + rows[2:]:
+            common.add_paired_delta(agg, rows[1][1], k, f"delta_{k}")
+    COLUMNS.extend([("delta_psnr", "Δ all vs off (paired)", 2), ("delta_psnr_far_background", "Δ far bg vs off (paired)", 2)])
     body = {"rows": [{"condition": c, "model": m, "aggregate": a} for (c, m), (_, a) in zip(CONDITIONS, rows)]}
     md = common.markdown_table(rows, COLUMNS)
-    on, off = rows[0][1], rows[1][1]
-    if on and off and on["n"] and off["n"]:
-        md += ["", "Difference on - off (dB): " + ", ".join(
-            f"{h} {on[k]['mean'] - off[k]['mean']:+.2f}" for k, h, _ in COLUMNS[:4]
-            if on.get(k) and off.get(k))]
+    on = rows[0][1]
+    if on and on.get("delta_psnr"):
+        md += ["", "Paired difference on - off (dB, mean ± std over seeds): " + ", ".join(
+            f"{h} {common.fmt(on.get('delta_' + k))}" for k, h, _ in COLUMNS[:4])]
     notes = ["Region definition (train_cli): " + "tower = classes 1-2; near ground = class 3; far background = "
              "sky + vegetation/buildings with ground-truth depth > 100 m.",
              "Masks: ground-truth distractor masks with Eq. 7 (`jaxnerf-grid mask --source gt`), the same for all rows."]

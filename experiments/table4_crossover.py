@@ -33,7 +33,7 @@ DPT_SETTINGS = {"quick": {"minutes": 3.0, "steps": 600, "views": 40}, "full": {"
                                                                               "views": 90}}
 COLUMNS = [("mask_iou", "mask IoU", 3), ("mask_precision", "precision", 3), ("mask_recall", "recall", 3),
            ("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("ms_ssim", "MS-SSIM", 3), ("lpips", "LPIPS", 3),
-           ("distractor_psnr", "distractor PSNR", 2)]
+           ("distractor_psnr", "distractor PSNR", 2), ("delta_psnr", "Δ PSNR vs no masks (paired)", 2)]
 
 
 def train_dpt(ctx, source: str, seed: int, eval_dir: Path, minutes: float, steps: int, views: int) -> tuple[Path, dict]:
@@ -114,6 +114,9 @@ def main(argv=None) -> int:
                 continue
             agg = common.aggregate(records[label], extras[label]) if records[label] else None
             rows.append((label, agg))
+        for label, agg in rows:
+            if label != rows[-1][0]:  # vs the no-mask row of the same target and seed
+                common.add_paired_delta(agg, rows[-1][1])
             body["rows"].append({"target": target, "condition": label, "aggregate": agg})
         md += [f"## Target family {target}", ""] + common.markdown_table(rows, COLUMNS) + [""]
     md += ["DPT training (experiments/train_builtin_dpt.py) and its own evaluation on the target scene's frames "
