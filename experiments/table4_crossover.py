@@ -120,7 +120,7 @@ def main(argv=None) -> int:
             body["rows"].append({"target": target, "condition": label, "aggregate": agg})
         md += [f"## Target family {target}", ""] + common.markdown_table(rows, COLUMNS) + [""]
     md += ["DPT training (experiments/train_builtin_dpt.py) and its own evaluation on the target scene's frames "
-           "(all splits, pooled IoU):", "", "| direction | steps | train min | IoU | precision | recall |",
+           "(the seed-0 target scene, all its frames, pooled IoU):", "", "| direction | steps | train min | IoU | precision | recall |",
            "|---|---|---|---|---|---|"]
     for k, r in dpt_results.items():
         pm = r["metrics"]["pooled"]
