@@ -58,6 +58,10 @@ def test_machinery_end_to_end(tmp_path, monkeypatch):
     assert agg["n"] == 2 and agg["psnr"]["values"] == vals
     assert abs(agg["psnr"]["std"] - np.std(vals)) < 1e-12 and abs(agg["mask_iou"]["mean"] - 0.3) < 1e-12
 
+    base = {"seeds": [1, 0], "psnr": {"values": [9.0, vals[0] - 0.5]}}  # paired by seed, not by position
+    common.add_paired_delta(agg, base)
+    assert np.allclose(agg["delta_psnr"]["values"], [0.5, 1.0])
+
     lines = common.markdown_table([("a", agg), ("b", None)], [("psnr", "PSNR", 2)])
     assert lines[2].startswith("| a | 2 |") and "±" in lines[2] and "not run" in lines[3]
     common.write_results(ctx, "smoke", "Smoke", {"rows": []}, lines, ["note"])
