@@ -474,26 +474,29 @@ def label_image(img: np.ndarray, text: str, height: int = 14) -> np.ndarray:
     return np.concatenate([bar.astype(np.float32) / 255.0, img.astype(np.float32)], axis=0)
 
 
-def hstack(images: list[np.ndarray], gap: int = 3) -> np.ndarray:
-    h = max(i.shape[0] for i in images)
-    padded = [np.pad(i, ((0, h - i.shape[0]), (0, 0), (0, 0)), constant_values=1.0) for i in images]
+def _stack(images: list[np.ndarray], axis: int, gap: int) -> np.ndarray:
+    """Concatenates [h, w, 3] images along `axis` (1: side by side, 0: top to bottom), padding the
+    other extent with white and putting a white gap between neighbours."""
+    other = 1 - axis
+    size = max(i.shape[other] for i in images)
     out = []
-    for i, im in enumerate(padded):
-        if i:
-            out.append(np.ones((h, gap, 3), np.float32))
-        out.append(im)
-    return np.concatenate(out, axis=1)
+    for k, im in enumerate(images):
+        pad = [(0, 0), (0, 0), (0, 0)]
+        pad[other] = (0, size - im.shape[other])
+        if k:
+            gap_shape = [0, 0, 3]
+            gap_shape[axis], gap_shape[other] = gap, size
+            out.append(np.ones(gap_shape, np.float32))
+        out.append(np.pad(im, pad, constant_values=1.0))
+    return np.concatenate(out, axis=axis)
+
+
+def hstack(images: list[np.ndarray], gap: int = 3) -> np.ndarray:
+    return _stack(images, 1, gap)
 
 
 def vstack(images: list[np.ndarray], gap: int = 3) -> np.ndarray:
-    w = max(i.shape[1] for i in images)
-    padded = [np.pad(i, ((0, 0), (0, w - i.shape[1]), (0, 0)), constant_values=1.0) for i in images]
-    out = []
-    for i, im in enumerate(padded):
-        if i:
-            out.append(np.ones((gap, w, 3), np.float32))
-        out.append(im)
-    return np.concatenate(out, axis=0)
+    return _stack(images, 0, gap)
 
 
 PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 103, 189), (140, 86, 75),

@@ -67,6 +67,15 @@ def main(argv=None) -> int:
     records = {label: [] for _, label in rows_spec}
     extras = {label: {"mask_iou": [], "mask_precision": [], "mask_recall": []} for _, label in rows_spec}
     dpt_results = {}
+
+    def masked_run(variant_dir, seed, label, run_name):
+        """Trains ours with the variant's masks; records the run and the masks' IoU / precision / recall."""
+        m = common.mask_iou(variant_dir)
+        records[label].append(common.run_condition(ctx, variant_dir, "ours", seed, run_name,
+                                                   {"train": {"use_masks": True}}))
+        for k in ("iou", "precision", "recall"):
+            extras[label][f"mask_{k}"].append(m[k])
+
     for seed in range(ctx.seeds):
         for source, target, dpt_seed in DIRECTIONS:  # crossover rows first (the table's subject)
             target_dir = common.scene(ctx, target, seed)
@@ -74,33 +83,18 @@ def main(argv=None) -> int:
             dpt_results[f"{source}->{target}"] = {k: res[k] for k in ("train_seeds", "eval_seeds", "steps",
                                                                       "train_seconds", "metrics")}
             v = common.mask_variant(ctx, target_dir, f"dpt_from_{source}", "dpt", floor=0.0, weights=str(model_dir))
-            m = common.mask_iou(v)
-            label = f"{source} DPT -> {target} (crossover)"
-            records[label].append(common.run_condition(ctx, v, "ours", seed, f"t4-{source}-to-{target}",
-                                                       {"train": {"use_masks": True}}))
-            for k in ("iou", "precision", "recall"):
-                extras[label][f"mask_{k}"].append(m[k])
+            masked_run(v, seed, f"{source} DPT -> {target} (crossover)", f"t4-{source}-to-{target}")
         for source, target, dpt_seed in DIRECTIONS:  # same family: the other direction's DPT on its own family
             target_dir = common.scene(ctx, target, seed)
             other = next(d for d in DIRECTIONS if d[0] == target)
             model_dir, _ = train_dpt(ctx, target, other[2], common.scene(ctx, other[1], seed), dset["minutes"],
                                      dset["steps"], dset["views"])
             v = common.mask_variant(ctx, target_dir, f"dpt_from_{target}", "dpt", floor=0.0, weights=str(model_dir))
-            m = common.mask_iou(v)
-            label = f"{target} DPT -> {target} (same family)"
-            records[label].append(common.run_condition(ctx, v, "ours", seed, f"t4-{target}-to-{target}",
-                                                       {"train": {"use_masks": True}}))
-            for k in ("iou", "precision", "recall"):
-                extras[label][f"mask_{k}"].append(m[k])
+            masked_run(v, seed, f"{target} DPT -> {target} (same family)", f"t4-{target}-to-{target}")
         for _, target, _ in DIRECTIONS:
             target_dir = common.scene(ctx, target, seed)
             v = common.mask_variant(ctx, target_dir, "gt_eq7", "gt", floor=0.0)
-            m = common.mask_iou(v)
-            label = f"{target}: GT masks + Eq. 7"
-            records[label].append(common.run_condition(ctx, v, "ours", seed, f"t1-{target}-GT_masks__Eq_7",
-                                                       {"train": {"use_masks": True}}))
-            for k in ("iou", "precision", "recall"):
-                extras[label][f"mask_{k}"].append(m[k])
+            masked_run(v, seed, f"{target}: GT masks + Eq. 7", f"t1-{target}-GT_masks__Eq_7")
             label = f"{target}: no masks"
             records[label].append(common.run_condition(ctx, target_dir, "ours", seed, f"t1-{target}-no_masks",
                                                        {"train": {"use_masks": False}}))

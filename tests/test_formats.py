@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from blobs import blob, centroid
 from jaxnerf_grid import io, rays
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
@@ -40,18 +41,6 @@ def _ray_miss(c2w, intr, u, v, x):
     o, d = np.asarray(r.origins, np.float64), np.asarray(r.directions, np.float64)
     rel = x - o
     return float(np.linalg.norm(rel - (rel @ d) * d))
-
-
-def _blob(u0, v0, w, h, sigma=1.5):
-    uu, vv = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    g = np.exp(-((uu - u0) ** 2 + (vv - v0) ** 2) / (2 * sigma**2))
-    return np.repeat(g[..., None], 3, axis=-1).astype(np.float32)
-
-
-def _centroid(img):
-    g = img[..., 0].astype(np.float64)
-    uu, vv = np.meshgrid(np.arange(g.shape[1]) + 0.5, np.arange(g.shape[0]) + 0.5)
-    return (g * uu).sum() / g.sum(), (g * vv).sum() / g.sum()
 
 
 def _write_colmap_scene(root, c2w_gl, ext, model="PINHOLE", params=(FX, FY, CX, CY), points=None,
@@ -159,7 +148,7 @@ def test_colmap_opencv_undistorted_on_load(tmp_path):
     np.testing.assert_allclose(_project(x, c2w_ref[0], FX, FY, CX, CY), (u, v), atol=1e-9)
     ud, vd = _distort(u, v, FX, FY, CX, CY, *dist)
     assert np.hypot(ud - u, vd - v) > 0.6  # the distortion matters at this pixel
-    imgs = [_blob(ud, vd, W, H), _blob(ud, vd, W, H)]
+    imgs = [blob(ud, vd, W, H), blob(ud, vd, W, H)]
     _write_colmap_scene(tmp_path, c2w_ref, ".txt", model="OPENCV", params=(FX, FY, CX, CY, *dist),
                         images=imgs)
     ds = formats.load_colmap(tmp_path, normalize=False)
@@ -167,8 +156,8 @@ def test_colmap_opencv_undistorted_on_load(tmp_path):
     uu, vv = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
     su, sv = _distort(uu, vv, FX, FY, CX, CY, *dist)
     ref = np.exp(-((su - ud) ** 2 + (sv - vd) ** 2) / (2 * 1.5**2))[..., None].repeat(3, -1)
-    uc, vc = _centroid(ds.images[0])
-    ur, vr = _centroid(ref)
+    uc, vc = centroid(ds.images[0])
+    ur, vr = centroid(ref)
     assert np.hypot(uc - ur, vc - vr) < 0.05, (uc, vc, ur, vr)
     assert np.hypot(uc - u, vc - v) < 0.5  # and near the pinhole projection of x
     np.testing.assert_allclose(ds.images[0][5:-5, 5:-5], ref[5:-5, 5:-5], atol=0.1)  # bilinear resampling error
@@ -310,7 +299,7 @@ def test_downscale_keeps_projection(tmp_path):
     frames = []
     for i in range(2):
         u, v = _project(x, c2w_ref[i], fx, fy, cx, cy)
-        io.write_png(tmp_path / f"im{i}.png", _blob(u, v, w, h, sigma=3.0), bits=16)
+        io.write_png(tmp_path / f"im{i}.png", blob(u, v, w, h, sigma=3.0), bits=16)
         frames.append({"file_path": f"im{i}.png", "transform_matrix": c2w_ref[i].tolist()})
     io.write_json(tmp_path / "transforms.json", {"fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": w, "h": h,
                                                   "scene_normalization": {"scale": 1, "translation": [0, 0, 0]},
@@ -320,7 +309,7 @@ def test_downscale_keeps_projection(tmp_path):
     np.testing.assert_allclose(ds.intrinsics[0], [fx / k, fy / k, cx / k, cy / k], rtol=1e-6)
     for i in range(2):
         u, v = _project(x, c2w_ref[i], *ds.intrinsics[i])
-        uc, vc = _centroid(ds.images[i])
+        uc, vc = centroid(ds.images[i])
         assert np.hypot(uc - u, vc - v) < 0.03, (uc, vc, u, v)
         # and the loader's ray through that pixel hits x
         assert _ray_miss(ds.c2w[i], ds.intrinsics[i], u, v, x) < 1e-4

@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 from skimage.color import rgb2lab
 
+from blobs import blob, centroid
 from jaxnerf_grid import io
 from jaxnerf_grid.data import formats, preprocess
 from jaxnerf_grid.io import DataError
@@ -53,18 +54,6 @@ def test_exif_orientation_honoured(tmp_path):
     assert written.shape == (32, 16, 3) and np.abs(written - expected).mean() < 0.05
 
 
-def _blob(u0, v0, w, h, sigma):
-    uu, vv = np.meshgrid(np.arange(w) + 0.5, np.arange(h) + 0.5)
-    g = np.exp(-((uu - u0) ** 2 + (vv - v0) ** 2) / (2 * sigma**2))
-    return np.repeat(g[..., None], 3, axis=-1).astype(np.float32)
-
-
-def _centroid(img):
-    g = img[..., 0].astype(np.float64)
-    uu, vv = np.meshgrid(np.arange(g.shape[1]) + 0.5, np.arange(g.shape[0]) + 0.5)
-    return (g * uu).sum() / g.sum(), (g * vv).sum() / g.sum()
-
-
 def _project(x, c2w, fx, fy, cx, cy):
     rel = np.linalg.inv(c2w) @ np.append(x, 1.0)
     return fx * rel[0] / -rel[2] + cx, fy * -rel[1] / -rel[2] + cy
@@ -80,7 +69,7 @@ def _mixed_size_scene(root):
     frames = []
     for i, (w, h, fx, fy, cx, cy) in enumerate((full, half)):
         u, v = _project(x, c2w, fx, fy, cx, cy)
-        io.write_png(root / f"im{i}.png", _blob(u, v, w, h, sigma=w / 16), bits=16)
+        io.write_png(root / f"im{i}.png", blob(u, v, w, h, sigma=w / 16), bits=16)
         io.write_png(root / f"mask{i}.png", (np.arange(w)[None].repeat(h, 0) < w // 2).astype(np.float32))
         frames.append({"file_path": f"im{i}.png", "transform_matrix": c2w.tolist(), "w": w, "h": h,
                        "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "mask_path": f"mask{i}.png",
@@ -102,7 +91,7 @@ def test_dataset_with_mixed_sizes_resized_consistently(tmp_path):
     np.testing.assert_allclose(ds.intrinsics[1], np.array([30, 30, 16.5, 11]) * 40 / 32, rtol=1e-6)
     for i in range(2):  # the blob still sits on the projection of x (non-integer scale 0.625, 1.25)
         u, v = _project(x, c2w, *ds.intrinsics[i])
-        uc, vc = _centroid(ds.images[i])
+        uc, vc = centroid(ds.images[i])
         assert np.hypot(uc - u, vc - v) < 0.1, (i, uc, vc, u, v)
     np.testing.assert_array_equal(ds.masks[:, :, :20], 1.0)  # extras resized with the images
     np.testing.assert_array_equal(ds.masks[:, :, 20:], 0.0)

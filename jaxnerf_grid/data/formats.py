@@ -40,6 +40,7 @@ import functools
 import math
 import os
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
@@ -217,14 +218,23 @@ class _Frame:
         self.source = source
 
 
-# field -> (reader kind, interpolation for downscaling / undistortion, fill for missing frames)
-_EXTRAS = {
-    "clean_images": ("clean_file_path", "rgb", "area"),
-    "depth": ("depth_file_path", "exr", "nearest"),
-    "semantics": ("semantic_file_path", "u8", "nearest"),
-    "distractor_masks": ("distractor_mask_path", "u8", "nearest"),
-    "masks": ("mask_path", "mask", "area"),
-    "weights": ("weight_path", "exr", "area"),
+class _Extra(NamedTuple):
+    """How one optional per-frame field is stored: its transforms.json key, how it is read and
+    resampled (interpolation for downscaling / undistortion), and where the writer puts it."""
+    key: str
+    kind: str
+    interp: str
+    folder: str
+    ext: str
+
+
+_EXTRAS = {  # Dataset field -> storage; one table for reading and writing
+    "clean_images": _Extra("clean_file_path", "rgb", "area", "clean", ".png"),
+    "depth": _Extra("depth_file_path", "exr", "nearest", "depth", ".exr"),
+    "semantics": _Extra("semantic_file_path", "u8", "nearest", "semantic", ".png"),
+    "distractor_masks": _Extra("distractor_mask_path", "u8", "nearest", "distractor", ".png"),
+    "masks": _Extra("mask_path", "mask", "area", "masks", ".png"),
+    "weights": _Extra("weight_path", "exr", "area", "weights", ".exr"),
 }
 
 
@@ -296,7 +306,7 @@ def read_frame(scene: Scene, index: int, load_extras: bool = True) -> dict:
         valid = _remap(np.ones((h, w), np.float32), maps, "nearest") > 0.5
     extras = {}
     if load_extras:
-        for name, (key, kind, interp) in _EXTRAS.items():
+        for name, (key, kind, interp, _, _) in _EXTRAS.items():
             path = frame.extras.get(key)
             if path is None:
                 continue
@@ -315,7 +325,7 @@ def read_frame(scene: Scene, index: int, load_extras: bool = True) -> dict:
 def resize_frame(frame: dict, size: tuple[int, int]) -> dict:
     """A `read_frame` result resized to size = (W', H'), intrinsics rescaled consistently."""
     h, w = frame["image"].shape[:2]
-    extras = {name: resize(arr, size, _EXTRAS[name][2]) for name, arr in frame["extras"].items()}
+    extras = {name: resize(arr, size, _EXTRAS[name].interp) for name, arr in frame["extras"].items()}
     valid = frame["valid"]
     if valid is not None:
         valid = resize(valid.astype(np.float32), size, "area") > 0.999
@@ -442,7 +452,7 @@ def _json_frame(top: dict, frame: dict, json_path: Path, index: int, load_extras
         raise DataError(f"{json_path}: distortion coefficient k4 is not supported (camera model {model})")
     extras = {}
     if load_extras:
-        for key, _, _ in _EXTRAS.values():
+        for key in (e.key for e in _EXTRAS.values()):
             if frame.get(key):
                 extras[key] = base / frame[key]
                 if not extras[key].is_file():
@@ -909,14 +919,6 @@ def load_dataset(path, split: str | None = None, *, downscale: float = 1, load_e
 # Writing
 
 
-_EXTRA_FILES = {  # Dataset field -> (JSON key, folder, extension)
-    "clean_images": ("clean_file_path", "clean", ".png"),
-    "depth": ("depth_file_path", "depth", ".exr"),
-    "semantics": ("semantic_file_path", "semantic", ".png"),
-    "distractor_masks": ("distractor_mask_path", "distractor", ".png"),
-    "masks": ("mask_path", "masks", ".png"),
-    "weights": ("weight_path", "weights", ".exr"),
-}
 
 
 def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: str | None = None,
@@ -938,7 +940,7 @@ def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: s
     for name, arr in (extras or {}).items():
         if arr is None:
             continue
-        key, folder, ext = _EXTRA_FILES[name]
+        key, _, _, folder, ext = _EXTRAS[name]
         frame[key] = f"{folder}/{stem}{ext}"
         if ext == ".exr":
             io.write_exr(out_dir / frame[key], np.asarray(arr, np.float32))
@@ -989,7 +991,7 @@ def save_transforms_json(ds: Dataset, out_dir, *, overwrite: bool = False) -> Pa
     frames = []
     for i in range(ds.num_frames):
         stem = f"{i:05d}_{Path(ds.frame_paths[i]).stem}" if ds.frame_paths else f"{i:05d}"
-        extras = {name: None if getattr(ds, name) is None else getattr(ds, name)[i] for name in _EXTRA_FILES}
+        extras = {name: None if getattr(ds, name) is None else getattr(ds, name)[i] for name in _EXTRAS}
         frames.append(write_frame(out, stem, ds.images[i], ds.intrinsics[i], ds.c2w[i], names[i], extras))
     top = transforms_top(ds.width, ds.height, ds.near, ds.far, ds.normalization, ds.meta, ds.root, out)
     top["frames"] = frames

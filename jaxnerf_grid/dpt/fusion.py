@@ -2,7 +2,7 @@
 align-corners bilinear upsampling, 1x1 projection.
 
 A stage's output is `proj(up2(rcu2(prev + rcu1(feature))))` (the deepest stage has no `prev`:
-`proj(up2(rcu2(feature)))`). If `feature` and `prev` differ in size (inputs whose patch grid is
+`proj(up2(rcu2(feature)))`), computed as the equal `up2(proj(...))`. If `feature` and `prev` differ in size (inputs whose patch grid is
 not a multiple of 2), the feature is resized to `prev`'s size with half-pixel bilinear, as HF does.
 
 params = [{"rcu1": rcu, "rcu2": rcu, "proj": conv1x1}] * 4 (index 0 = deepest stage), with
@@ -56,8 +56,11 @@ def fuse(p: dict, feature, prev=None):
             feature = resize_bilinear(feature, prev.shape[1], prev.shape[2], align_corners=False)
         x = prev + residual_conv_unit(p["rcu1"], feature)
     x = residual_conv_unit(p["rcu2"], x)
-    x = resize_bilinear(x, 2 * x.shape[1], 2 * x.shape[2], align_corners=True)
-    return conv2d(p["proj"], x)
+    # HF upsamples, then projects. Both are linear and the bilinear weights of each output pixel
+    # sum to 1 (so the bias passes through unchanged), hence they commute; projecting first costs
+    # a quarter of the multiply-adds.
+    x = conv2d(p["proj"], x)
+    return resize_bilinear(x, 2 * x.shape[1], 2 * x.shape[2], align_corners=True)
 
 
 def apply(params: list, features: list) -> list:

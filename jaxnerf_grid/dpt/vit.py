@@ -58,14 +58,18 @@ def embed(params: dict, cfg, pixel_values):
 
 
 def attention(p: dict, x, num_heads: int):
-    """Multi-head self-attention. x: [B, N, D] -> [B, N, D]."""
+    """Multi-head self-attention. x: [B, N, D] -> [B, N, D].
+
+    Heads are moved ahead of the tokens ([B, heads, N, hd]) so both products are plain batched
+    matmuls; on XLA CPU that is about twice as fast as the equivalent einsums over [B, N, heads, hd].
+    """
     b, n, d = x.shape
     hd = d // num_heads
-    heads_of = lambda t: t.reshape(b, n, num_heads, hd)  # noqa: E731
-    q, k, v = heads_of(linear(p["q"], x)), heads_of(linear(p["k"], x)), heads_of(linear(p["v"], x))
-    logits = jnp.einsum("bqhd,bkhd->bhqk", q, k) * (hd ** -0.5)
-    weights = jax.nn.softmax(logits, axis=-1)
-    out = jnp.einsum("bhqk,bkhd->bqhd", weights, v).reshape(b, n, d)
+    heads_first = lambda t: t.reshape(b, n, num_heads, hd).transpose(0, 2, 1, 3)  # noqa: E731
+    q = heads_first(linear(p["q"], x) * (hd ** -0.5))
+    k, v = heads_first(linear(p["k"], x)), heads_first(linear(p["v"], x))
+    weights = jax.nn.softmax(q @ k.swapaxes(-1, -2), axis=-1)                     # [B, heads, N, N]
+    out = (weights @ v).transpose(0, 2, 1, 3).reshape(b, n, d)
     return linear(p["o"], out)
 
 
