@@ -37,6 +37,8 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=384)
     p.add_argument("--batch", type=int, default=1)
     p.add_argument("--iters", type=int, default=5)
+    p.add_argument("--stages", action="store_true",
+                   help="also time the encoder (ViT), the neck (reassemble + fusion) and the head separately")
     p.add_argument("--out", default=str(Path(__file__).parent / "results" / "dpt_speed.json"))
     args = p.parse_args(argv)
 
@@ -96,6 +98,10 @@ def main(argv=None) -> int:
         "loadavg_after": os.getloadavg(), "jax": jax.__version__, "torch": torch.__version__,
         "transformers": transformers.__version__, "torch_threads": torch.get_num_threads(),
     }
+    if args.stages:
+        result["stages_s"] = stage_times(ref, model, x, xt, args.task, args.iters)
+        for name, t in result["stages_s"].items():
+            print(f"  {name}: JAX {t['jax']:.3f} s, torch {t['torch']:.3f} s, ratio {t['torch'] / t['jax']:.2f}x")
     print(f"DPT-{args.arch} {args.task} {args.size}x{args.size} batch {args.batch}: "
           f"JAX {result['jax_images_per_s']:.3f} img/s, torch {result['torch_images_per_s']:.3f} img/s, "
           f"ratio {result['ratio_jax_over_torch']:.2f}x (goal >= 1.5x); max |diff| {result['max_abs_diff']:.2e}; "
@@ -103,6 +109,49 @@ def main(argv=None) -> int:
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)
     Path(args.out).write_text(json.dumps(result, indent=2) + "\n")
     return 0
+
+
+def stage_times(ref, model, x, xt, task: str, iters: int) -> dict:
+    """Median seconds per stage, {stage: {"jax": s, "torch": s}}, the two frameworks interleaved.
+    Stages: encoder (embeddings + ViT blocks), neck (reassemble + fusion), head."""
+    import jax
+    import torch
+
+    from jaxnerf_grid.dpt import fusion, heads, reassemble, vit
+
+    cfg = model.config
+    p = model.params
+    gh, gw = x.shape[1] // cfg.patch_size, x.shape[2] // cfg.patch_size
+    head_name, head_fn = ("segmentation", heads.segmentation) if task == "segmentation" else ("depth", heads.depth)
+    enc = jax.jit(lambda q, v: vit.apply(q, cfg, v))
+    neck = jax.jit(lambda q, h: fusion.apply(q["fusion"], reassemble.apply(q["reassemble"], cfg, h, gh, gw)))
+    head = jax.jit(lambda q, f: head_fn(q, f))
+    hidden = enc(p["vit"], x)
+    fused = neck(p, hidden)[cfg.head_in_index]
+    with torch.inference_mode():
+        hs = ref.dpt(xt, output_hidden_states=True).hidden_states
+        t_hidden = [hs[i + 1] for i in cfg.backbone_out_indices]
+        t_fused = ref.neck(list(t_hidden), gh, gw)
+    t_head = ref.head
+    pairs = {
+        "encoder": (lambda: enc(p["vit"], x), lambda: ref.dpt(xt, output_hidden_states=True)),
+        "neck": (lambda: neck(p, hidden), lambda: ref.neck(list(t_hidden), gh, gw)),
+        "head": (lambda: head(p[head_name], fused), lambda: t_head(t_fused)),
+    }
+    out = {}
+    for name, (fj, ft) in pairs.items():
+        tj, tt = [], []
+        jax.block_until_ready(fj())
+        for _ in range(max(iters, 3)):
+            t = time.perf_counter()
+            jax.block_until_ready(fj())
+            tj.append(time.perf_counter() - t)
+            with torch.inference_mode():
+                t = time.perf_counter()
+                ft()
+                tt.append(time.perf_counter() - t)
+        out[name] = {"jax": float(np.median(tj)), "torch": float(np.median(tt))}
+    return out
 
 
 if __name__ == "__main__":
