@@ -127,6 +127,7 @@ def test_auxiliary_head_and_patch16_resolution(tmp_path):
         hidden = [h for i, h in enumerate(out.hidden_states[1:]) if i in cfg.backbone_out_indices]
         aux = ref.auxiliary_head(ref.neck(hidden)[-1])
     assert out.logits.shape[-2:] == (64, 64)
-    got_sq = dpt.apply(model, x_sq)
+    got_sq = dpt.apply(model, x_sq, auxiliary=True)
+    assert "aux_logits" not in dpt.apply(model, x_sq)  # skipped unless asked for
     np.testing.assert_allclose(np.asarray(got_sq["logits"]), out.logits.permute(0, 2, 3, 1).numpy(), atol=TOL, rtol=0)
     np.testing.assert_allclose(np.asarray(got_sq["aux_logits"]), aux.permute(0, 2, 3, 1).numpy(), atol=TOL, rtol=0)

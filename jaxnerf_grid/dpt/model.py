@@ -64,11 +64,14 @@ def check_input_shape(cfg: DPTConfig, shape) -> None:
         raise ValueError(f"dpt: input {h}x{w} is not a multiple of the patch size {cfg.patch_size}")
 
 
-def forward(params: dict, cfg: DPTConfig, pixel_values, train: bool = False) -> dict:
+def forward(params: dict, cfg: DPTConfig, pixel_values, auxiliary: bool = False) -> dict:
     """Pure forward pass. pixel_values: [B, H, W, 3], normalised with mean = std = 0.5.
 
-    Returns a dict with (per head) `logits_raw` [B, h, w, L], `aux_logits` [B, h/2, w/2, L],
-    `depth_raw` [B, h, w], and `logits` [B, H, W, L] / `depth` [B, H, W] at the input size.
+    Returns a dict with (per head) `logits_raw` [B, h, w, L], `depth_raw` [B, h, w], and
+    `logits` [B, H, W, L] / `depth` [B, H, W] at the input size; with `auxiliary=True` (and an
+    auxiliary head in `params`) also `aux_logits` [B, h/2, w/2, L]. The auxiliary head is a
+    training aid that costs as much as the main head (a 3x3 conv on the finest map); HF runs it
+    on every forward and drops the result, we run it only when asked.
     """
     check_input_shape(cfg, pixel_values.shape)
     _, h, w, _ = pixel_values.shape
@@ -82,7 +85,7 @@ def forward(params: dict, cfg: DPTConfig, pixel_values, train: bool = False) -> 
         logits = heads.segmentation(params["segmentation"], x)
         out["logits_raw"] = logits
         out["logits"] = resize_bilinear(logits, h, w, align_corners=False)
-        if "auxiliary" in params:
+        if auxiliary and "auxiliary" in params:
             out["aux_logits"] = heads.auxiliary(params["auxiliary"], fused[-1])
     if "depth" in cfg.heads:
         d = heads.depth(params["depth"], x)
@@ -91,17 +94,18 @@ def forward(params: dict, cfg: DPTConfig, pixel_values, train: bool = False) -> 
     return out
 
 
-@functools.partial(jax.jit, static_argnums=(1,))
-def _forward_jit(params, cfg, pixel_values):
-    return forward(params, cfg, pixel_values)
+@functools.partial(jax.jit, static_argnums=(1, 3))
+def _forward_jit(params, cfg, pixel_values, auxiliary):
+    return forward(params, cfg, pixel_values, auxiliary)
 
 
-def apply(model: Model, pixel_values) -> dict:
+def apply(model: Model, pixel_values, auxiliary: bool = False) -> dict:
     """Jitted forward (one compile per input shape). pixel_values: [B, H, W, 3] in HF's
-    normalisation ((rgb - 0.5) / 0.5). See `forward` for the returned keys."""
+    normalisation ((rgb - 0.5) / 0.5). See `forward` for the returned keys (`auxiliary=True`
+    adds `aux_logits`)."""
     pixel_values = jnp.asarray(pixel_values, jnp.float32)
     check_input_shape(model.config, pixel_values.shape)
-    return _forward_jit(model.params, model.config, pixel_values)
+    return _forward_jit(model.params, model.config, pixel_values, bool(auxiliary))
 
 
 def normalize(rgb):
