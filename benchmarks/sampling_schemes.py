@@ -2,7 +2,7 @@
 
 Warps (jaxnerf_grid.sampling): linear (uniform t), disparity (uniform 1/t, ours), log, piecewise
 (mip-NeRF 360's linear-then-disparity), each with and without hierarchical resampling, at 16,
-32, 64 and 128 samples per ray (--quick: 16, 32, 64), trained for the same steps with the same
+32, 64 and 128 samples per ray, trained for the same steps with the same
 batch, MLP and seed on the same scene (tower-small without distractors, so masks play no
 part; the model is ours otherwise: dual-sphere contraction).
 
@@ -31,7 +31,7 @@ import numpy as np  # noqa: E402
 import common  # noqa: E402
 
 WARPS = ("linear", "disparity", "log", "piecewise")
-SAMPLES = {"quick": (16, 32, 64), "full": (16, 32, 64, 128)}
+SAMPLES = {"quick": (16, 32, 64, 128), "full": (16, 32, 64, 128)}
 COLUMNS = [("psnr", "PSNR", 2), ("psnr_tower", "PSNR tower", 2), ("psnr_near_ground", "PSNR ground", 2),
            ("psnr_far_background", "PSNR far bg", 2), ("ssim", "SSIM", 3), ("seconds_per_step", "s / step", 3),
            ("delta_psnr_vs_linear", "Δ PSNR vs linear (paired)", 2),
