@@ -213,6 +213,19 @@ def _relink(scene_dir: Path, variant_dir: Path, meta: dict, keys=("file_path", "
     return meta
 
 
+BUILTIN_DPT = ROOT / "jaxnerf_grid" / "assets" / "dpt_builtin"
+
+
+def weights_digest(folder: Path) -> str:
+    """Short SHA-1 of every file in a weights folder (names and bytes), for cache keys."""
+    h = hashlib.sha1()
+    for f in sorted(Path(folder).iterdir()):
+        if f.is_file():
+            h.update(f.name.encode())
+            h.update(f.read_bytes())
+    return h.hexdigest()[:8]
+
+
 def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", floor: float = 0.0,
                  weights: str | None = None, max_side: int = 160) -> Path:
     """A folder whose transforms.json points at scene_dir's images, with masks from `jaxnerf-grid mask`.
@@ -222,6 +235,8 @@ def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", f
     """
     from jaxnerf_grid import mask_cli
 
+    if source == "dpt" and weights is None:  # the built-in weights can be retrained: key the cache on them
+        name = f"{name}_{weights_digest(BUILTIN_DPT)}"
     out = ctx.cache / "variants" / f"{scene_dir.name}__{name}"
     meta_path = out / "transforms.json"
     if meta_path.is_file() and "mask_source" in io.read_json(meta_path):

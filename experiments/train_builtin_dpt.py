@@ -27,6 +27,7 @@ all frames, and the mean per frame).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import sys
 import time
@@ -71,11 +72,11 @@ def load_scene(root: Path):
     return np.stack(imgs), np.stack(labels).astype(np.int32), np.stack(invs).astype(np.float32)
 
 
-def make_loss(class_weights):
+def make_loss(class_weights, cfg):
     cw = jnp.asarray(class_weights, jnp.float32)
 
     def loss_fn(params, x, labels, inv):
-        out = dpt.forward(params, CONFIG, x)
+        out = dpt.forward(params, cfg, x)
         logp = jax.nn.log_softmax(out["logits"], axis=-1)
         onehot = jax.nn.one_hot(labels, NUM_CLASSES)
         w = cw[labels]
@@ -132,6 +133,8 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, default=8)
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--patch-size", type=int, default=CONFIG.patch_size,
+                   help="ViT patch size (16: a 10x8 token grid at the working size; 8: 20x16, about 3x the cost)")
     p.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "jaxnerf_grid/assets/dpt_builtin"))
     p.add_argument("--results", default=str(Path(__file__).resolve().parent / "results/builtin_dpt"))
     args = p.parse_args(argv)
@@ -152,11 +155,12 @@ def main(argv=None) -> int:
     class_weights /= class_weights[freq > 0].min()
     print(f"{len(x_all)} training images from seeds {train_seeds}; class freq {np.round(freq, 4).tolist()}")
 
-    model = dpt.init(args.seed, CONFIG)
+    cfg = dataclasses.replace(CONFIG, patch_size=args.patch_size)
+    model = dpt.init(args.seed, cfg)
     params = jax.tree_util.tree_map(jnp.asarray, model.params)
     opt = optim.adam(optim.make_lr_schedule(args.lr, args.lr * 0.03, warmup_steps=100, max_steps=args.steps),
                      max_grad_norm=1.0)
-    solver = optim.make_solver(make_loss(class_weights), opt)
+    solver = optim.make_solver(make_loss(class_weights, cfg), opt)
     rng = np.random.default_rng(args.seed)
 
     def batch():
@@ -188,7 +192,7 @@ def main(argv=None) -> int:
             bar.set_postfix(loss=f"{rec['loss']:.3f}", acc=f"{rec['acc']:.3f}")
     bar.close()
     train_s = time.time() - t_train
-    trained = dpt.Model(CONFIG, jax.tree_util.tree_map(np.asarray, params))
+    trained = dpt.Model(cfg, jax.tree_util.tree_map(np.asarray, params))
 
     extra = {"dynamic_classes": sorted(SYNTHETIC_DYNAMIC), "trained_on_seeds": train_seeds,
              "steps": step, "max_side": max(H, W), "note": "trained by experiments/train_builtin_dpt.py on synthetic tower scenes; "
@@ -207,7 +211,7 @@ def main(argv=None) -> int:
               "steps": step, "batch": args.batch, "train_seconds": train_s,
               "total_seconds": time.time() - t_start, "weights_bytes": size_bytes,
               "num_params": int(sum(np.size(v) for v in jax.tree_util.tree_leaves(trained.params))),
-              "config": {k: v for k, v in json.loads(json.dumps(__import__("dataclasses").asdict(CONFIG))).items()},
+              "config": {k: v for k, v in json.loads(json.dumps(dataclasses.asdict(cfg))).items()},
               "metrics": metrics, "log": log}
     res = Path(args.results)
     res.parent.mkdir(parents=True, exist_ok=True)
