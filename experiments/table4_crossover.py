@@ -45,6 +45,7 @@ def train_dpt(ctx, source: str, seed: int, eval_dir: Path, minutes: float, steps
     if not (out / "config.json").is_file() or not result.with_suffix(".json").is_file():
         cmd = [sys.executable, str(common.EXPERIMENTS / "train_builtin_dpt.py"), "--train", str(train_dir),
                "--eval", str(eval_dir), "--minutes", str(minutes), "--steps", str(steps), "--out", str(out),
+               "--patch-size", "16",  # the quick crossover DPTs: patch 16 trains ~3x faster than the built-in's 8
                "--results", str(result)]
         print("[dpt] " + " ".join(cmd), flush=True)
         subprocess.run(cmd, check=True)
