@@ -76,10 +76,10 @@ def load_run(run_dir) -> tuple:
     return config_lib.from_dict(train.RunConfig, raw, where=str(path)), data
 
 
-def _load_dataset(path, downscale: float = 1):
+def _load_dataset(path, downscale: float = 1, progress: bool = True):
     from jaxnerf_grid.data.formats import load_dataset
 
-    return load_dataset(path, downscale=downscale)
+    return load_dataset(path, downscale=downscale, progress=progress)
 
 
 def train_run(data: str, method: str, out, overrides: dict | None = None, steps: int | None = None,
@@ -92,7 +92,7 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
         overrides.setdefault("train", {})
         overrides["train"] = {**overrides["train"], "max_steps": int(steps)}
     cfg = train.make_config(method, overrides)
-    ds = dataset if dataset is not None else _load_dataset(data)
+    ds = dataset if dataset is not None else _load_dataset(data, progress=progress)
     cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=ds.num_frames))
     run_dir = Path(out)
     wanted = run_config_dict(cfg, Path(data).resolve())
@@ -148,7 +148,7 @@ def render_split(run_dir, split: str = "test", progress: bool = True, dataset=No
 
     run_dir = Path(run_dir)
     cfg, data = load_run(run_dir)
-    ds = dataset if dataset is not None else _load_dataset(data)
+    ds = dataset if dataset is not None else _load_dataset(data, progress=progress)
     if params is None:
         params, _ = train.load_params(run_dir, cfg, ds.num_frames)
     ids = np.arange(ds.num_frames) if split == "all" else np.asarray(ds.split[split])
@@ -184,7 +184,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     start = time.perf_counter()
     run_dir = Path(run_dir)
     cfg, data = load_run(run_dir)
-    ds = dataset if dataset is not None else _load_dataset(data)
+    ds = dataset if dataset is not None else _load_dataset(data, progress=progress)
     params, step = train.load_params(run_dir, cfg, ds.num_frames)
     lpips_params = lpips.load_lpips(lpips_weights) if lpips_weights else None
     targets = ds.clean_images if ds.clean_images is not None else ds.images

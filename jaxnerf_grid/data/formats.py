@@ -334,7 +334,7 @@ def resize_frame(frame: dict, size: tuple[int, int]) -> dict:
             "valid": valid, "extras": extras}
 
 
-def _load_frames(scene: Scene, *, downscale: float, load_extras: bool) -> dict:
+def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress: bool = True) -> dict:
     """Reads every frame, checks they share one size, downscales. Returns stacked arrays."""
     from tqdm import tqdm
 
@@ -342,7 +342,7 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool) -> dict:
     read = []
     ref = None  # (W, H, path) of the first frame
     for i in tqdm(range(len(frames)), desc=f"loading {scene.meta.get('format', 'images')}",
-                  disable=len(frames) < 32, leave=False):
+                  disable=not progress or len(frames) < 32, leave=False):
         fr = read_frame(scene, i, load_extras)
         h, w = fr["image"].shape[:2]
         if ref is None:
@@ -384,9 +384,10 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool) -> dict:
     return out
 
 
-def scene_to_dataset(scene: Scene, *, downscale: float = 1, load_extras: bool = True) -> Dataset:
-    """Reads the pixels of a collected scene into a `Dataset`."""
-    arrays = _load_frames(scene, downscale=downscale, load_extras=load_extras)
+def scene_to_dataset(scene: Scene, *, downscale: float = 1, load_extras: bool = True,
+                     progress: bool = True) -> Dataset:
+    """Reads the pixels of a collected scene into a `Dataset` (`progress`: a bar for 32+ frames)."""
+    arrays = _load_frames(scene, downscale=downscale, load_extras=load_extras, progress=progress)
     paths = []
     for frame in scene.frames:
         try:
@@ -900,14 +901,14 @@ def collect_scene(path, *, load_extras: bool = True, **kwargs) -> Scene:
 
 
 def load_dataset(path, split: str | None = None, *, downscale: float = 1, load_extras: bool = True,
-                 **kwargs) -> Dataset:
+                 progress: bool = True, **kwargs) -> Dataset:
     """Loads any supported dataset (autodetected, see `detect_format`).
 
     split: None (all frames, `Dataset.split` says which are which) or a split name, which
     returns only those frames (`Dataset.subset`). Other keyword arguments go to the loader.
     """
     scene = collect_scene(path, load_extras=load_extras, **kwargs)
-    ds = scene_to_dataset(scene, downscale=downscale, load_extras=load_extras)
+    ds = scene_to_dataset(scene, downscale=downscale, load_extras=load_extras, progress=progress)
     if split is None:
         return ds
     if split not in ds.split or len(ds.split[split]) == 0:
