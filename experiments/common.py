@@ -339,7 +339,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     t0 = time.perf_counter()
     from jaxnerf_grid.data.formats import load_dataset
 
-    ds = load_dataset(data_dir)
+    ds = load_dataset(data_dir, progress=ctx.progress)
     _, cfg, result = train_cli.train_run(str(data_dir), method, run_dir, ov, steps, progress=ctx.progress, dataset=ds)
     t_train = time.perf_counter() - t0
     t1 = time.perf_counter()
