@@ -77,3 +77,30 @@ def test_machinery_end_to_end(tmp_path, monkeypatch):
     ctx.budget_s = 0.0  # out of budget: an unfinished condition is not started, and says so
     assert common.run_condition(ctx, variant, "ours", 5, "late") is None
     assert ctx.skipped_for_budget == ["late seed 5"]
+
+
+def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
+    """A retrained built-in DPT must not reuse masks cached from the old weights: the variant
+    folder name carries a digest of the weights folder's bytes."""
+    weights = tmp_path / "weights"
+    weights.mkdir()
+    (weights / "config.json").write_text("{}")
+    (weights / "params.safetensors").write_bytes(b"old")
+    before = common.weights_digest(weights)
+    assert common.weights_digest(weights) == before  # stable
+    (weights / "params.safetensors").write_bytes(b"new")
+    assert common.weights_digest(weights) != before
+
+    calls = []
+    monkeypatch.setattr(common, "BUILTIN_DPT", weights)
+    from jaxnerf_grid import mask_cli
+
+    monkeypatch.setattr(mask_cli, "main", lambda argv: calls.append(argv) or 0)
+    scene = tmp_path / "scene"
+    scene.mkdir()
+    (scene / "transforms.json").write_text(json.dumps({"frames": []}))
+    ctx = common.Context("quick", 1, 3, tmp_path / "cache", tmp_path / "results", None, None, False, "test")
+    out = common.mask_variant(ctx, scene, "dpt_builtin_eq7", "dpt")
+    assert out.name == f"scene__dpt_builtin_eq7_{common.weights_digest(weights)}" and len(calls) == 1
+    gt = common.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
+    assert gt.name == "scene__gt_eq7"
