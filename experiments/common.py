@@ -213,9 +213,6 @@ def _relink(scene_dir: Path, variant_dir: Path, meta: dict, keys=("file_path", "
     return meta
 
 
-BUILTIN_DPT = ROOT / "jaxnerf_grid" / "assets" / "dpt_builtin"
-
-
 def weights_digest(folder: Path) -> str:
     """Short SHA-1 of every file in a weights folder (names and bytes), for cache keys."""
     h = hashlib.sha1()
@@ -236,7 +233,7 @@ def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", f
     from jaxnerf_grid import mask_cli
 
     if source == "dpt" and weights is None:  # the built-in weights can be retrained: key the cache on them
-        name = f"{name}_{weights_digest(BUILTIN_DPT)}"
+        name = f"{name}_{weights_digest(mask_cli.BUILTIN)}"
     out = ctx.cache / "variants" / f"{scene_dir.name}__{name}"
     meta_path = out / "transforms.json"
     if meta_path.is_file() and "mask_source" in io.read_json(meta_path):

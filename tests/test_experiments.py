@@ -92,9 +92,9 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     assert common.weights_digest(weights) != before
 
     calls = []
-    monkeypatch.setattr(common, "BUILTIN_DPT", weights)
     from jaxnerf_grid import mask_cli
 
+    monkeypatch.setattr(mask_cli, "BUILTIN", weights)
     monkeypatch.setattr(mask_cli, "main", lambda argv: calls.append(argv) or 0)
     scene = tmp_path / "scene"
     scene.mkdir()

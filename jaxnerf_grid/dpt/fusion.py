@@ -2,8 +2,9 @@
 align-corners bilinear upsampling, 1x1 projection.
 
 A stage's output is `proj(up2(rcu2(prev + rcu1(feature))))` (the deepest stage has no `prev`:
-`proj(up2(rcu2(feature)))`), computed as the equal `up2(proj(...))`. If `feature` and `prev` differ in size (inputs whose patch grid is
-not a multiple of 2), the feature is resized to `prev`'s size with half-pixel bilinear, as HF does.
+`proj(up2(rcu2(feature)))`), computed as the equal `up2(proj(...))`. If `feature` and `prev`
+differ in size (inputs whose patch grid is not a multiple of 2), the feature is resized to
+`prev`'s size with half-pixel bilinear, as HF does.
 
 params = [{"rcu1": rcu, "rcu2": rcu, "proj": conv1x1}] * 4 (index 0 = deepest stage), with
 rcu = {"conv1", "conv2"[, "bn1", "bn2"]}.
