@@ -131,7 +131,9 @@ def main(argv=None) -> int:
 
 def stage_times(ref, model, x, xt, task: str, iters: int) -> dict:
     """Median seconds per stage, {stage: {"jax": s, "torch": s}}, the two frameworks interleaved.
-    Stages: encoder (embeddings + ViT blocks), neck (reassemble + fusion), head."""
+    Stages: encoder (embeddings + ViT blocks), neck (reassemble + fusion), head. (Our neck stops
+    before the last fusion stage's x2 upsampling, which our head folds into its first conv;
+    HF's neck includes it.)"""
     import jax
     import torch
 

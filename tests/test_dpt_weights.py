@@ -122,6 +122,25 @@ def test_primitives_against_torch():
                                convt(xt).detach().permute(0, 2, 3, 1).numpy(), atol=1e-5)
 
 
+def test_conv_of_upsampled_map_against_torch():
+    """`layers.conv2d_upsampled` (taps mixed at low resolution, then interpolated) against torch's
+    interpolate + Conv2d, for x2 and non-integer scales, 1x1 / 3x3 / 5x5 kernels, and sizes where
+    the zero padding and the interpolation's clamped last sample meet."""
+    sys.modules.setdefault("torchvision", None)
+    torch = pytest.importorskip("torch")
+    rng = np.random.default_rng(3)
+    for (h, w), (oh, ow), k in [((5, 7), (10, 14), 3), ((4, 3), (9, 5), 3), ((6, 6), (12, 12), 5),
+                                ((3, 4), (6, 8), 1), ((1, 2), (2, 4), 3)]:
+        x = rng.normal(size=(2, h, w, 3)).astype(np.float32)
+        conv = torch.nn.Conv2d(3, 4, k, padding=k // 2)
+        with torch.no_grad():
+            ref = conv(torch.nn.functional.interpolate(torch.from_numpy(x).permute(0, 3, 1, 2), size=(oh, ow),
+                                                       mode="bilinear", align_corners=True))
+        p = {"w": conv.weight.detach().numpy().transpose(2, 3, 1, 0), "b": conv.bias.detach().numpy()}
+        np.testing.assert_allclose(np.asarray(layers.conv2d_upsampled(p, x, oh, ow, padding=k // 2)),
+                                   ref.permute(0, 2, 3, 1).numpy(), atol=1e-5)
+
+
 def test_forward_is_vmap_and_jit_safe():
     import jax
     model = dpt.init(1, dpt.DPTConfig(**TINY, heads=("segmentation", "depth")))

@@ -1,10 +1,14 @@
 """Fusion (DPT's RefineNet-style decoder): residual conv units, deepest stage first, x2
 align-corners bilinear upsampling, 1x1 projection.
 
-A stage's output is `proj(up2(rcu2(prev + rcu1(feature))))` (the deepest stage has no `prev`:
-`proj(up2(rcu2(feature)))`), computed as the equal `up2(proj(...))`. If `feature` and `prev`
-differ in size (inputs whose patch grid is not a multiple of 2), the feature is resized to
-`prev`'s size with half-pixel bilinear, as HF does.
+HF's stage output is `proj(up2(rcu2(prev + rcu1(feature))))` (the deepest stage has no `prev`:
+`proj(up2(rcu2(feature)))`). Both `proj` (1x1) and `up2` are linear and the bilinear weights of
+each output pixel sum to 1 (so the bias passes through unchanged), hence they commute: a stage
+here returns `proj(rcu2(...))` at the feature's resolution, a quarter of the projection's
+multiply-adds, and leaves the x2 to its consumer: the next stage upsamples it, and the heads
+fold the last one into their first convolution (`layers.conv2d_upsampled`). If `feature` and
+the upsampled `prev` differ in size (inputs whose patch grid is not a multiple of 2), the
+feature is resized to that size with half-pixel bilinear, as HF does.
 
 params = [{"rcu1": rcu, "rcu2": rcu, "proj": conv1x1}] * 4 (index 0 = deepest stage), with
 rcu = {"conv1", "conv2"[, "bn1", "bn2"]}.
@@ -15,7 +19,7 @@ from __future__ import annotations
 import jax
 import jax.nn
 
-from jaxnerf_grid.dpt.layers import batch_norm, conv2d, init_conv, init_norm, resize_bilinear, split
+from jaxnerf_grid.dpt.layers import batch_norm, conv2d, init_conv, init_norm, resize_bilinear, split, up2
 
 
 def _init_rcu(key, cfg) -> dict:
@@ -49,24 +53,26 @@ def residual_conv_unit(p: dict, x):
 
 
 def fuse(p: dict, feature, prev=None):
-    """One fusion stage. feature: [B, h, w, C]; prev: [B, h', w', C] or None -> [B, 2h', 2w', C]."""
+    """One fusion stage, before its x2 upsampling (HF's output is `up2` of this).
+
+    feature: [B, h, w, C]; prev: the previous stage's result [B, h', w', C] (before its x2) or
+    None -> [B, h, w, C] (h, w = 2h', 2w' when prev is given).
+    """
     if prev is None:
         x = feature
     else:
+        prev = up2(prev)
         if feature.shape[1:3] != prev.shape[1:3]:
             feature = resize_bilinear(feature, prev.shape[1], prev.shape[2], align_corners=False)
         x = prev + residual_conv_unit(p["rcu1"], feature)
     x = residual_conv_unit(p["rcu2"], x)
-    # HF upsamples, then projects. Both are linear and the bilinear weights of each output pixel
-    # sum to 1 (so the bias passes through unchanged), hence they commute; projecting first costs
-    # a quarter of the multiply-adds.
-    x = conv2d(p["proj"], x)
-    return resize_bilinear(x, 2 * x.shape[1], 2 * x.shape[2], align_corners=True)
+    return conv2d(p["proj"], x)
 
 
 def apply(params: list, features: list) -> list:
-    """features: reassembled maps, shallowest (largest) first -> fused maps, deepest stage first
-    (the last one is the finest, at 8x the patch grid for the default factors)."""
+    """features: reassembled maps, shallowest (largest) first -> fused maps, deepest stage first,
+    each before its x2 upsampling (HF's fused map i is `up2(result[i])`; the last one, the finest,
+    is at 4x the patch grid for the default factors)."""
     fused, prev = [], None
     for p, feature in zip(params, features[::-1]):
         prev = fuse(p, feature, prev)

@@ -1,4 +1,7 @@
-"""Output heads on the finest fused map (x: [B, h, w, F], F = fusion_hidden_size).
+"""Output heads on the finest fused map. HF's heads take that map after the last fusion stage's
+x2 upsampling; ours take it before (x: [B, h, w, F], F = fusion_hidden_size) and fold the x2 into
+their first 3x3 conv (`layers.conv2d_upsampled`: the same numbers for a quarter of the
+multiply-adds). The depth head's second x2 is folded into its next conv the same way.
 
 segmentation: conv3x3 (no bias) -> BN -> ReLU -> conv1x1 -> x2 align-corners bilinear;
 auxiliary:    conv3x3 (no bias) -> BN -> ReLU -> conv1x1 (no upsampling; training aid in HF);
@@ -11,11 +14,12 @@ from __future__ import annotations
 import jax
 import jax.nn
 
-from jaxnerf_grid.dpt.layers import batch_norm, conv2d, init_conv, init_norm, resize_bilinear, split
+from jaxnerf_grid.dpt.layers import batch_norm, conv2d, conv2d_upsampled, init_conv, init_norm, split, up2
 
 
-def _up2(x):
-    return resize_bilinear(x, 2 * x.shape[1], 2 * x.shape[2], align_corners=True)
+def _conv3x3_up2(p: dict, x):
+    """conv3x3(up2(x)) with padding 1. x: [B, h, w, Cin] -> [B, 2h, 2w, Cout]."""
+    return conv2d_upsampled(p, x, 2 * x.shape[1], 2 * x.shape[2], padding=1)
 
 
 def init_segmentation(key, cfg) -> dict:
@@ -26,13 +30,14 @@ def init_segmentation(key, cfg) -> dict:
 
 
 def segmentation(p: dict, x):
-    """x: [B, h, w, F] -> logits [B, 2h, 2w, num_labels] (as HF: the x2 comes after the classifier)."""
-    return _up2(auxiliary(p, x))
+    """x: [B, h, w, F] (before the x2) -> logits [B, 4h, 4w, num_labels] (as HF: the head's own
+    x2 comes after the classifier)."""
+    return up2(auxiliary(p, x))
 
 
 def auxiliary(p: dict, x):
-    """x: [B, h, w, F] -> logits [B, h, w, num_labels]."""
-    y = jax.nn.relu(batch_norm(p["bn"], conv2d(p["conv"], x, padding=1)))
+    """x: [B, h, w, F] (before the x2) -> logits [B, 2h, 2w, num_labels]."""
+    y = jax.nn.relu(batch_norm(p["bn"], _conv3x3_up2(p["conv"], x)))
     return conv2d(p["cls"], y)
 
 
@@ -47,9 +52,10 @@ def init_depth(key, cfg) -> dict:
 
 
 def depth(p: dict, x):
-    """x: [B, h, w, F] -> relative inverse depth [B, 2h, 2w] (>= 0)."""
+    """x: [B, h, w, F] (before the x2) -> relative inverse depth [B, 4h, 4w] (>= 0)."""
     if "projection" in p:
-        x = jax.nn.relu(conv2d(p["projection"], x, padding=1))
-    y = _up2(conv2d(p["conv1"], x, padding=1))
-    y = jax.nn.relu(conv2d(p["conv2"], y, padding=1))
+        y = conv2d(p["conv1"], jax.nn.relu(_conv3x3_up2(p["projection"], x)), padding=1)
+    else:
+        y = _conv3x3_up2(p["conv1"], x)
+    y = jax.nn.relu(_conv3x3_up2(p["conv2"], y))
     return jax.nn.relu(conv2d(p["conv3"], y))[..., 0]

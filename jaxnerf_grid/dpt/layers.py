@@ -94,6 +94,52 @@ def resize_bilinear(x, out_h: int, out_w: int, align_corners: bool):
     return jnp.take(x, j0, axis=2) * (1 - g) + jnp.take(x, j1, axis=2) * g
 
 
+def up2(x):
+    """x2 align-corners bilinear upsampling (DPT's fusion and head upsampling). [B, h, w, C]."""
+    return resize_bilinear(x, 2 * x.shape[1], 2 * x.shape[2], align_corners=True)
+
+
+def _shifted_taps(out_size: int, in_size: int, kernel: int, padding: int):
+    """Interpolation table of an upsampled line seen through a kernel: for output position i and
+    tap t the upsampled sample i + t - padding, as two source indices and weights ([out, k] each;
+    weight 0 where the sample falls in the zero padding)."""
+    i0, i1, frac = _source_index(out_size, in_size, align_corners=True)
+    pos = np.arange(out_size)[:, None] + np.arange(kernel)[None, :] - padding     # [out, k]
+    valid = (pos >= 0) & (pos < out_size)
+    pos = np.clip(pos, 0, out_size - 1)
+    w1 = np.where(valid, frac[pos], 0.0).astype(np.float32)
+    w0 = np.where(valid, 1.0 - frac[pos], 0.0).astype(np.float32)
+    return i0[pos], i1[pos], w0, w1
+
+
+def conv2d_upsampled(p: dict, z, out_h: int, out_w: int, padding: int):
+    """`conv2d(p, resize_bilinear(z, out_h, out_w, align_corners=True), padding=padding)` (stride 1,
+    square odd kernel), computed without forming the upsampled map.
+
+    Both steps are linear, so each kernel tap's channel mixing is applied at the input resolution
+    (one [h*w, Cin] x [Cin, k*k*Cout] matmul) and the taps are then interpolated to their shifted
+    output positions and summed, rows then columns (two source samples per tap and axis). For a
+    x2 upsampling that is a quarter of the direct multiply-adds plus an elementwise pass.
+
+    z: [B, h, w, Cin]; p["w"]: [k, k, Cin, Cout] -> [B, out_h, out_w, Cout].
+    """
+    k = p["w"].shape[0]
+    taps = jnp.einsum("bhwc,yxco->bhwyxo", z, p["w"].astype(z.dtype))          # [B, h, w, k, k, Cout]
+    r0, r1, rw0, rw1 = _shifted_taps(out_h, z.shape[1], k, padding)
+    rows = 0.0
+    for dy in range(k):  # -> [B, out_h, w, k(dx), Cout]
+        t = taps[:, :, :, dy]
+        rows = rows + (jnp.take(t, r0[:, dy], axis=1) * rw0[None, :, dy, None, None, None]
+                       + jnp.take(t, r1[:, dy], axis=1) * rw1[None, :, dy, None, None, None])
+    c0, c1, cw0, cw1 = _shifted_taps(out_w, z.shape[2], k, padding)
+    out = 0.0
+    for dx in range(k):  # -> [B, out_h, out_w, Cout]
+        t = rows[:, :, :, dx]
+        out = out + (jnp.take(t, c0[:, dx], axis=2) * cw0[None, None, :, dx, None]
+                     + jnp.take(t, c1[:, dx], axis=2) * cw1[None, None, :, dx, None])
+    return out + p["b"] if "b" in p else out
+
+
 # ----- initialisers (for training from scratch; imported checkpoints replace all of these) -----
 # Host-side numpy: `key` is a np.random.Generator (`rng(seed)`), or SHAPES to get zero-cost
 # placeholders of the right shapes (used to check checkpoint shapes without drawing numbers).

@@ -3,8 +3,9 @@
 A model is `Model(config, params)`; `params` is a plain pytree:
   {"vit": ..., "reassemble": ..., "fusion": ..., "segmentation"?: ..., "auxiliary"?: ..., "depth"?: ...}
 
-Output resolution (matches transformers' behaviour, checked by tests/test_dpt_parity.py): the
-finest fused map is at 8x the (deepest, halved) patch grid and both heads upsample it x2, so
+Output resolution (matches transformers' behaviour, checked by tests/test_dpt_parity.py): HF's
+finest fused map is at 8x the (deepest, halved) patch grid (ours is kept at 4x, before its x2,
+which the heads fold into their first conv; see fusion.py) and both heads upsample it x2, so
 HF's raw logits / predicted depth have `32 * ceil(g / 2)` rows for a g-row patch grid, i.e.
 exactly the input size for patch 16 and inputs that are multiples of 32 (Intel/dpt-large*),
 twice the input for patch 8, and more than the input for odd grids. `apply` returns the raw maps under
