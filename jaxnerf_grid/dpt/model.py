@@ -34,8 +34,8 @@ class Model(NamedTuple):
 
 def init(seed, cfg: DPTConfig) -> Model:
     """Random parameters for training from scratch (host-side numpy; `seed`: int, jax PRNG key
-    or np.random.Generator). Returns Model(cfg, params)."""
-    return Model(cfg, init_params(rng(seed), cfg))
+    or np.random.Generator). Returns Model(cfg, params), params on the default device."""
+    return Model(cfg, jax.device_put(init_params(rng(seed), cfg)))
 
 
 def param_shapes(cfg: DPTConfig) -> dict:

@@ -255,7 +255,7 @@ def _load_native(folder: Path, meta: dict) -> Model:
             raise DataError(f"{where}: key {k!r} has shape {tuple(arr.shape)}, expected {tuple(shape.shape)}")
         path = tuple(int(p) if p.isdigit() else p for p in k.split("/"))
         _set(params, path, np.asarray(arr, np.float32))
-    return Model(cfg, params)
+    return Model(cfg, jax.device_put(params))
 
 
 def load_pretrained(folder) -> Model:
@@ -273,4 +273,6 @@ def load_pretrained(folder) -> Model:
             if (folder / "pytorch_model.bin").is_file() else ""
         raise DataError(f"{st}: file not found{extra}")
     tensors, _ = safetensors_io.load(st)
-    return Model(cfg, params_from_hf(cfg, tensors, str(st)))
+    # on the device once: numpy leaves would be copied on every `apply` (0.2 s per call for
+    # DPT-base on CPU, 1.3 GB per call for DPT-large)
+    return Model(cfg, jax.device_put(params_from_hf(cfg, tensors, str(st))))
