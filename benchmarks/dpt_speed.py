@@ -129,9 +129,30 @@ def main(argv=None) -> int:
     return 0
 
 
+def encoder_matmuls_only(params: dict, cfg, pixel_values) -> list:
+    """Our ViT encoder with only its matmuls: the per-block linear layers and the two attention
+    products, without softmax, GELU or LayerNorm (a timing lower bound; the numbers are meaningless)."""
+    from jaxnerf_grid.dpt import layers, vit
+
+    x = vit.embed(params, cfg, pixel_values)
+    b, n, d = x.shape
+    heads = cfg.num_attention_heads
+    split = lambda t: t.reshape(b, n, heads, d // heads).transpose(0, 2, 1, 3)  # noqa: E731
+    outs = []
+    for i, p in enumerate(params["blocks"][: max(cfg.backbone_out_indices) + 1]):
+        q, k, v = (split(layers.linear(p[name], x)) for name in "qkv")
+        attended = ((q @ k.swapaxes(-1, -2)) @ v).transpose(0, 2, 1, 3).reshape(b, n, d)
+        x = x + layers.linear(p["o"], attended)
+        x = x + layers.linear(p["fc2"], layers.linear(p["fc1"], x))
+        if i in cfg.backbone_out_indices:
+            outs.append(x)
+    return outs
+
+
 def stage_times(ref, model, x, xt, task: str, iters: int) -> dict:
     """Median seconds per stage, {stage: {"jax": s, "torch": s}}, the two frameworks interleaved.
-    Stages: encoder (embeddings + ViT blocks), neck (reassemble + fusion), head. (Our neck stops
+    Stages: encoder (embeddings + ViT blocks), encoder_matmuls_only (ours only; its torch column is
+    torch's whole encoder), neck (reassemble + fusion), head. (Our neck stops
     before the last fusion stage's x2 upsampling, which our head folds into its first conv;
     HF's neck includes it.)"""
     import jax
@@ -153,8 +174,12 @@ def stage_times(ref, model, x, xt, task: str, iters: int) -> dict:
         t_hidden = [hs[i + 1] for i in cfg.backbone_out_indices]
         t_fused = ref.neck(list(t_hidden), gh, gw)
     t_head = ref.head
+    enc_mm = jax.jit(lambda q, v: encoder_matmuls_only(q, cfg, v))
     pairs = {
         "encoder": (lambda: enc(p["vit"], x), lambda: ref.dpt(xt, output_hidden_states=True)),
+        # a lower bound for our encoder: the same matmuls with softmax, GELU and LayerNorm removed
+        # (its "torch" column is torch's whole encoder again)
+        "encoder_matmuls_only": (lambda: enc_mm(p["vit"], x), lambda: ref.dpt(xt, output_hidden_states=True)),
         "neck": (lambda: neck(p, hidden), lambda: ref.neck(list(t_hidden), gh, gw)),
         "head": (lambda: head(p[head_name], fused), lambda: t_head(t_fused)),
     }
