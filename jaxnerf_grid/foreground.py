@@ -19,6 +19,8 @@ weight ~1 in training; `floor` > 0 guarantees masked pixels are down-weighted at
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -134,13 +136,121 @@ def resize_map(x: np.ndarray, height: int, width: int) -> np.ndarray:
     return cv2.resize(x, (width, height), interpolation=interp)
 
 
-def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, batch_size: int = 4):
+def tile_starts(length: int, tile: int, overlap: int) -> list[int]:
+    """Starts of the fewest windows of size `tile` that cover [0, length) with neighbours sharing
+    at least `overlap` pixels, spread evenly: the first at 0, the last at length - tile.
+    (A single window at 0 when tile >= length.) Needs 0 <= overlap < tile."""
+    if not 0 <= overlap < tile:
+        raise ValueError(f"tile_starts: need 0 <= overlap < tile, got overlap {overlap}, tile {tile}")
+    if tile >= length:
+        return [0]
+    n = 1 + -(-(length - tile) // (tile - overlap))
+    return [round(k * (length - tile) / (n - 1)) for k in range(n)]
+
+
+class TileLayout(NamedTuple):
+    """How a photo is covered by DPT tiles: the photo is resized to `fine` (h, w), cut into windows
+    of `tile` (h, w) starting at every (y, x) in starts_y x starts_x (row-major), neighbours sharing
+    at least `overlap` pixels, over which they are cross-faded."""
+    fine: tuple[int, int]
+    tile: tuple[int, int]
+    starts_y: list[int]
+    starts_x: list[int]
+    overlap: int
+
+
+def tile_layout(height: int, width: int, max_side: int, multiple: int, tiles: int, overlap: float) -> TileLayout:
+    """`tiles` square windows along the photo's longer side, each of the working size (side ~max_side,
+    a multiple of `multiple`), sharing a fraction `overlap` of a window with each neighbour. The
+    photo is resized (aspect kept) so that they span its longer side exactly; the shorter side gets
+    as many windows as it needs, or one narrower window (a multiple too) when the side is shorter
+    than a window. tiles = 1: one window, the plain working size of `working_size`."""
+    if tiles == 1:
+        fine = working_size(height, width, max_side, multiple)
+        return TileLayout(fine, fine, [0], [0], 0)
+    side = working_size(max_side, max_side, max_side, multiple)[0]
+    over = int(round(overlap * side))
+    scale = (side + (tiles - 1) * (side - over)) / max(height, width)
+    fine = (max(multiple, round(height * scale)), max(multiple, round(width * scale)))
+    tile = tuple(min(side, f // multiple * multiple) for f in fine)
+    over = min(over, min(tile) - 1)
+    return TileLayout(fine, tile, tile_starts(fine[0], tile[0], over), tile_starts(fine[1], tile[1], over), over)
+
+
+def _ramp(size: int, overlap: int) -> np.ndarray:
+    """Cross-fade weights of one window along one axis: rising over the first `overlap` pixels,
+    1 in the middle, falling over the last `overlap`; never 0. [size]."""
+    dist = np.minimum(np.arange(size) + 1, size - np.arange(size)).astype(np.float32)
+    return np.minimum(1.0, dist / (overlap + 1))
+
+
+def blend_tiles(values: np.ndarray, layout: TileLayout) -> np.ndarray:
+    """Cross-fades per-window maps into one map at the fine size: each pixel is the average of the
+    windows covering it, weighted by their ramps (a window's weight falls towards its edges, so
+    no seam shows; a photo border, where no neighbour is, keeps whatever covers it).
+
+    values: [n_tiles, th, tw] in layout order -> [fine_h, fine_w].
+    """
+    (th, tw), fine = layout.tile, layout.fine
+    weight = _ramp(th, layout.overlap)[:, None] * _ramp(tw, layout.overlap)[None, :]
+    num = np.zeros(fine, np.float64)
+    den = np.zeros(fine, np.float64)
+    k = 0
+    for y in layout.starts_y:
+        for x in layout.starts_x:
+            num[y:y + th, x:x + tw] += weight * values[k]
+            den[y:y + th, x:x + tw] += weight
+            k += 1
+    return (num / den).astype(np.float32)
+
+
+def _padded_batch(x: np.ndarray, batch_size: int) -> np.ndarray:
+    """Repeats the last item so a batch has `batch_size` items (one compiled shape per input size)."""
+    if len(x) >= batch_size:
+        return x
+    return np.concatenate([x, np.repeat(x[-1:], batch_size - len(x), axis=0)])
+
+
+def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size, tiles, overlap, multiple):
+    """predict_maps with tiles > 1: C from overlapping windows of a finer copy of each photo,
+    depth (relative, so not comparable between windows) from the whole photo at working size."""
+    from jaxnerf_grid import dpt
+
+    for image in images:
+        image = np.asarray(image, np.float32)
+        h, w = image.shape[:2]
+        lay = tile_layout(h, w, max_side, multiple, tiles, overlap)
+        fine = resize_map(image, *lay.fine)
+        (th, tw) = lay.tile
+        crops = np.stack([fine[y:y + th, x:x + tw] for y in lay.starts_y for x in lay.starts_x])
+        probs = []
+        for i in range(0, len(crops), batch_size):
+            chunk = crops[i:i + batch_size]
+            out = dpt.apply(seg_model, dpt.normalize(_padded_batch(chunk, batch_size)))
+            probs.append(np.asarray(foreground_probability(out["logits"], classes))[:len(chunk)])
+        prob = resize_map(blend_tiles(np.concatenate(probs), lay), h, w)
+        inv = None
+        if depth_model is not None:
+            whole = resize_map(image, *working_size(h, w, max_side, multiple))
+            inv = np.maximum(resize_map(np.asarray(dpt.apply(depth_model, dpt.normalize(whole[None]))["depth"][0]),
+                                        h, w), 0.0)
+        yield prob, inv
+
+
+def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, batch_size: int = 4,
+                 tiles: int = 1, tile_overlap: float = 0.25):
     """Runs DPT on photos of any size in bounded memory.
 
     Each image is resized to a working size (aspect kept, multiple of 2 x patch, longest side
     ~max_side), images of the same working shape are batched (one compile per working shape),
     and the outputs come back at full resolution: C (Eq. 6, computed at working size, then
     bilinearly upsampled) and the relative inverse depth.
+
+    With tiles > 1, C comes instead from `tiles` overlapping windows along the photo's longer side
+    (each window the working size, `tile_overlap` of it shared with each neighbour, cross-faded;
+    see `tile_layout`), so small distractors (a bird in a 20 MP photo) keep more pixels; the
+    windows are batched. Depth still comes from the whole photo at the working size: DPT's
+    inverse depth is relative, with a scale of its own per window.
 
     seg_model: a dpt.Model with a segmentation head; depth_model: a dpt.Model with a depth head,
     the same model, or None. images: iterable of [H, W, 3] float in [0, 1].
@@ -150,12 +260,17 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
 
     models = [seg_model] + ([depth_model] if depth_model is not None and depth_model is not seg_model else [])
     multiple = 2 * max(m.config.patch_size for m in models)
+    if int(tiles) != tiles or tiles < 1 or not 0.0 <= tile_overlap <= 0.75:
+        raise ValueError(f"predict_maps: need an integer tiles >= 1 and 0 <= tile_overlap <= 0.75, "
+                         f"got tiles={tiles}, tile_overlap={tile_overlap}")
+    if tiles > 1:
+        yield from _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size, tiles,
+                                  tile_overlap, multiple)
+        return
     both = depth_model is seg_model
 
     def flush(batch):
-        x = np.stack([b[1] for b in batch])
-        if len(batch) < batch_size:  # pad so every batch of a working shape has one compiled shape
-            x = np.concatenate([x, np.repeat(x[-1:], batch_size - len(batch), axis=0)])
+        x = _padded_batch(np.stack([b[1] for b in batch]), batch_size)
         out = dpt.apply(seg_model, dpt.normalize(x))
         prob = np.asarray(foreground_probability(out["logits"], classes))
         if both:

@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import io
+from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.io import DataError
 
 OUTPUT_DIRS = ("masks", "weights", "dpt_depth", "overlays")
@@ -54,6 +55,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--max-side", type=int, default=None,
                    help="DPT working size (longest side, px); default: the model's training size "
                         "(160 for the built-in model) or 384")
+    p.add_argument("--tiles", type=int, default=1,
+                   help="C from this many overlapping windows along each photo's longer side, each at the "
+                        "working size (small distractors keep more pixels; costs about tiles^2 x aspect "
+                        "more DPT runs); depth still from the whole photo. 1 = the whole photo at once")
+    p.add_argument("--tile-overlap", type=float, default=0.25,
+                   help="fraction of a window shared with each neighbour, cross-faded (0 to 0.75)")
     p.add_argument("--batch-size", type=int, default=4)
     p.add_argument("--overwrite", action="store_true", help="replace existing mask outputs")
     p.add_argument("--quiet", action="store_true")
@@ -139,6 +146,9 @@ def _gt_frames(root: Path, frames: list):
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.tiles < 1 or not 0.0 <= args.tile_overlap <= 0.75:
+        raise ConfigError(f"jaxnerf-grid mask: --tiles must be >= 1 (got {args.tiles}) and --tile-overlap "
+                          f"between 0 and 0.75 (got {args.tile_overlap})")
     from tqdm import tqdm
 
     from jaxnerf_grid import foreground as fg
@@ -169,10 +179,13 @@ def main(argv: list[str] | None = None) -> int:
             args.max_side = int(extra.get("max_side", 384))
         params.update(weights=str(wdir), depth_weights=args.depth_weights, classes=classes,
                       max_side=args.max_side, depth="relative (1 / DPT inverse depth)" if depth_model else None)
+        if args.tiles > 1:
+            params.update(tiles=args.tiles, tile_overlap=args.tile_overlap)
         if depth_model is None:
             print("jaxnerf-grid mask: no depth head available; using M_w = M (pass --depth-weights for Eq. 7)")
         preds = fg.predict_maps(seg, depth_model, (io.read_image(p) for p in images), classes,
-                                max_side=args.max_side, batch_size=args.batch_size)
+                                max_side=args.max_side, batch_size=args.batch_size, tiles=args.tiles,
+                                tile_overlap=args.tile_overlap)
         maps = ((prob, None if inv is None else np.asarray(fg.inverse_depth_to_depth(inv)), prob)
                 for prob, inv in preds)
 

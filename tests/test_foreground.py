@@ -99,3 +99,92 @@ def test_predict_maps_on_large_photo_bounded_and_full_resolution():
     assert c.shape == inv.shape == (2160, 3840)
     assert 0.0 <= c.min() and c.max() <= 1.0 and inv.min() >= 0
     np.testing.assert_array_equal(outs[0][0], outs[1][0])
+
+
+def test_tile_starts_fewest_windows_that_cover_with_overlap():
+    """Brute force: every pixel covered, neighbours share >= overlap, first at 0 and last flush with
+    the end, and no smaller count of windows could do it."""
+    for length in range(1, 90, 7):
+        for tile in (8, 16, 33):
+            for overlap in (0, 3, tile // 2, tile - 1):
+                starts = fg.tile_starts(length, tile, overlap)
+                covered = np.zeros(length, bool)
+                for s in starts:
+                    covered[s:s + tile] = True
+                assert covered.all() and starts[0] == 0
+                if tile < length:
+                    assert starts[-1] == length - tile
+                    assert all(a + tile - b >= overlap for a, b in zip(starts, starts[1:]))
+                    n = len(starts) - 1  # n windows at the widest legal spacing fall short of the end
+                    assert n == 0 or tile + (n - 1) * (tile - overlap) < length
+                else:
+                    assert starts == [0]
+    with pytest.raises(ValueError, match="overlap"):
+        fg.tile_starts(100, 16, 16)
+
+
+def test_tile_layout_one_tile_is_the_working_size():
+    for h, w in [(2160, 3840), (3648, 5472), (120, 160)]:
+        lay = fg.tile_layout(h, w, 384, 32, 1, 0.25)
+        assert lay.fine == fg.working_size(h, w, 384, 32) == lay.tile
+        assert lay.starts_y == lay.starts_x == [0]
+    lay = fg.tile_layout(3648, 5472, 384, 32, 3, 0.25)
+    assert lay.tile == (384, 384) and lay.fine == (640, 960) and lay.overlap == 96
+    assert lay.starts_x == [0, 288, 576] and lay.starts_y == [0, 256]
+    lay = fg.tile_layout(100, 1000, 64, 32, 4, 0.25)   # a strip: one window, narrower, on the short side
+    assert lay.fine == (32, 64 + 3 * 48)                # 21 rows would be too few for one window
+    assert lay.tile == (32, 64) and lay.starts_y == [0] and len(lay.starts_x) == 4
+
+
+def test_blend_tiles_against_per_pixel_loop():
+    """Each pixel: the ramp-weighted mean of the windows that cover it (a loop over pixels)."""
+    lay = fg.tile_layout(70, 100, 32, 16, 3, 0.3)
+    th, tw = lay.tile
+    wins = [(y, x) for y in lay.starts_y for x in lay.starts_x]
+    values = np.random.default_rng(0).uniform(size=(len(wins), th, tw)).astype(np.float32)
+    out = fg.blend_tiles(values, lay)
+
+    def ramp(i, size):
+        return min(1.0, min(i + 1, size - i) / (lay.overlap + 1))
+
+    for py in range(lay.fine[0]):
+        for px in range(lay.fine[1]):
+            num = den = 0.0
+            for k, (y, x) in enumerate(wins):
+                if y <= py < y + th and x <= px < x + tw:
+                    wgt = ramp(py - y, th) * ramp(px - x, tw)
+                    num += wgt * values[k, py - y, px - x]
+                    den += wgt
+            assert abs(out[py, px] - num / den) < 1e-5
+    # a constant map stays constant (the weights are normalised everywhere, borders included)
+    np.testing.assert_allclose(fg.blend_tiles(np.full_like(values, 0.3), lay), 0.3, atol=1e-6)
+
+
+def test_predict_maps_tiled_against_per_window_reference():
+    """tiles=2: C equals DPT run on each window alone (batch of one), blended, resized; depth equals
+    the untiled whole-photo depth."""
+    from jaxnerf_grid import dpt
+    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3,
+                        heads=("segmentation", "depth"))
+    model = dpt.init(5, cfg)
+    photo = np.random.default_rng(1).uniform(size=(150, 230, 3)).astype(np.float32)
+    (c, inv), = fg.predict_maps(model, model, [photo], classes=[1, 2], max_side=64, batch_size=3, tiles=2)
+    (c1, inv1), = fg.predict_maps(model, model, [photo], classes=[1, 2], max_side=64, batch_size=3)
+    lay = fg.tile_layout(150, 230, 64, 32, 2, 0.25)
+    assert lay.tile == (64, 64) and lay.starts_x == [0, 48] and lay.starts_y == [0, 9]
+    fine = fg.resize_map(photo, *lay.fine)
+    th, tw = lay.tile
+    per_window = []
+    for y in lay.starts_y:
+        for x in lay.starts_x:
+            logits = dpt.apply(model, dpt.normalize(fine[None, y:y + th, x:x + tw]))["logits"]
+            per_window.append(np.asarray(fg.foreground_probability(logits, [1, 2]))[0])
+    expect = fg.resize_map(fg.blend_tiles(np.stack(per_window), lay), 150, 230)
+    assert c.shape == (150, 230) and np.std(c) > 1e-3
+    np.testing.assert_allclose(c, expect, atol=1e-5)
+    np.testing.assert_allclose(inv, inv1, atol=1e-6)
+    assert np.abs(c - c1).max() > 1e-3  # the windows do see something else than the whole photo
+    with pytest.raises(ValueError, match="tile_overlap"):
+        next(fg.predict_maps(model, model, [photo], classes=[1], tiles=2, tile_overlap=0.9))

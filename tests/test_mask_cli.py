@@ -75,11 +75,21 @@ def test_dpt_source_with_native_weights(tmp_path):
     assert main(["--data", str(tmp_path / "data"), "--weights", str(tmp_path / "w"), "--quiet",
                  "--max-side", "64", "--classes", "0", "--overwrite"]) == 0
     np.testing.assert_allclose(io.read_exr(tmp_path / "data/weights/f1.exr"), 1.0)
+    # tiled: same all-foreground answer, and the tiling recorded
+    assert main(["--data", str(tmp_path / "data"), "--weights", str(tmp_path / "w"), "--quiet",
+                 "--max-side", "32", "--tiles", "2", "--floor", "1", "--overwrite"]) == 0
+    meta = io.read_json(tmp_path / "data/transforms.json")
+    assert meta["mask_params"]["tiles"] == 2 and meta["mask_params"]["tile_overlap"] == 0.25
+    np.testing.assert_allclose(io.read_exr(tmp_path / "data/weights/f1.exr"), 0.0)
 
 
 def test_missing_builtin_or_bad_data_is_one_line_error(tmp_path):
+    from jaxnerf_grid.config import ConfigError
     with pytest.raises(DataError, match="transforms.json"):
         main(["--data", str(tmp_path), "--source", "gt"])
+    for bad in (["--tiles", "0"], ["--tiles", "2", "--tile-overlap", "0.9"]):
+        with pytest.raises(ConfigError, match="--tile"):
+            main(["--data", str(tmp_path)] + bad)
 
 
 def test_builtin_model_is_shipped_and_default():
