@@ -98,7 +98,7 @@ def mask_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
             "recall": tp / max(tp + fn, 1.0)}
 
 
-def evaluate(model, roots, threshold=0.5, max_side=160) -> dict:
+def evaluate(model, roots, threshold=0.5, max_side=160, tiles=1) -> dict:
     import cv2
 
     totals = {"tp": 0.0, "fp": 0.0, "fn": 0.0}
@@ -108,7 +108,7 @@ def evaluate(model, roots, threshold=0.5, max_side=160) -> dict:
         frames = [f for f in meta["frames"] if "distractor_mask_path" in f]
         imgs = (io.read_image(root / f["file_path"]) for f in frames)
         for f, (prob, _inv) in zip(frames, fg.predict_maps(model, model, imgs, sorted(SYNTHETIC_DYNAMIC),
-                                                           max_side=max_side, batch_size=8)):
+                                                           max_side=max_side, batch_size=8, tiles=tiles)):
             raw = cv2.imread(str(root / f["distractor_mask_path"]), cv2.IMREAD_UNCHANGED)
             gt = (raw & 1).astype(bool)
             pred = np.asarray(fg.binary_mask(prob, threshold)).astype(bool)
@@ -122,7 +122,7 @@ def evaluate(model, roots, threshold=0.5, max_side=160) -> dict:
                   recall=tp / max(tp + fn, 1))
     mean = {k: float(np.mean([m[k] for m in per_frame])) for k in ("iou", "precision", "recall")}
     return {"pooled": pooled, "mean_per_frame": mean, "num_frames": len(per_frame),
-            "threshold": threshold, "max_side": max_side}
+            "threshold": threshold, "max_side": max_side, "tiles": tiles}
 
 
 def main(argv=None) -> int:

@@ -224,9 +224,10 @@ def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size
         (th, tw) = lay.tile
         crops = np.stack([fine[y:y + th, x:x + tw] for y in lay.starts_y for x in lay.starts_x])
         probs = []
-        for i in range(0, len(crops), batch_size):
-            chunk = crops[i:i + batch_size]
-            out = dpt.apply(seg_model, dpt.normalize(_padded_batch(chunk, batch_size)))
+        size = min(batch_size, len(crops))  # same window count for every photo of a size: one compile
+        for i in range(0, len(crops), size):
+            chunk = crops[i:i + size]
+            out = dpt.apply(seg_model, dpt.normalize(_padded_batch(chunk, size)))
             probs.append(np.asarray(foreground_probability(out["logits"], classes))[:len(chunk)])
         prob = resize_map(blend_tiles(np.concatenate(probs), lay), h, w)
         inv = None
