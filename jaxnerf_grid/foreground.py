@@ -238,7 +238,17 @@ def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size
         yield prob, inv
 
 
-def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, batch_size: int = 4,
+def default_batch_size() -> int:
+    """Images per DPT call: 1 on CPU, 4 on an accelerator. On the 2-core CPU, batching made
+    DPT-base at 384 px slower: 0.46 images/s at batch 4, against 0.58-0.71 at batch 1
+    (benchmarks/dpt_speed.py --batch 4). The built-in model at a 320 px working size was slower
+    too: 0.26 s per photo at batch 2-8 against 0.17 at batch 1. At 160 px batching gained about
+    15 % (0.05 against 0.06 s; benchmarks/mask_speed.py). XLA CPU gains nothing from the larger
+    matmuls, and the intermediate maps outgrow the cache."""
+    return 1 if jax.default_backend() == "cpu" else 4
+
+
+def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, batch_size: int | None = None,
                  tiles: int = 1, tile_overlap: float = 0.25):
     """Runs DPT on photos of any size in bounded memory.
 
@@ -254,11 +264,15 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
     inverse depth is relative, with a scale of its own per window.
 
     seg_model: a dpt.Model with a segmentation head; depth_model: a dpt.Model with a depth head,
-    the same model, or None. images: iterable of [H, W, 3] float in [0, 1].
+    the same model, or None. images: iterable of [H, W, 3] float in [0, 1]. batch_size: images
+    (or windows) per DPT call, None for `default_batch_size()`.
     Yields (C [H, W], inv_depth [H, W] or None) per image, in order.
     """
     from jaxnerf_grid import dpt
 
+    batch_size = default_batch_size() if batch_size is None else int(batch_size)
+    if batch_size < 1:
+        raise ValueError(f"predict_maps: batch_size must be >= 1, got {batch_size}")
     models = [seg_model] + ([depth_model] if depth_model is not None and depth_model is not seg_model else [])
     multiple = 2 * max(m.config.patch_size for m in models)
     if int(tiles) != tiles or tiles < 1 or not 0.0 <= tile_overlap <= 0.75:
