@@ -42,6 +42,9 @@ def main(argv=None) -> int:
     p.add_argument("--iters", type=int, default=5)
     p.add_argument("--stages", action="store_true",
                    help="also time the encoder (ViT), the neck (reassemble + fusion) and the head separately")
+    p.add_argument("--torch-device", default="cpu",
+                   help="device for the torch reference: cpu, or cuda on a GPU machine (JAX then uses its default "
+                        "backend, the GPU; timings synchronise both)")
     p.add_argument("--out", default=str(Path(__file__).parent / "results" / "dpt_speed.json"))
     args = p.parse_args(argv)
 
@@ -65,12 +68,16 @@ def main(argv=None) -> int:
         model = dpt.load_pretrained(tmp)
 
     x = np.random.default_rng(0).uniform(-1, 1, (args.batch, args.size, args.size, 3)).astype(np.float32)
-    xt = torch.from_numpy(x).permute(0, 3, 1, 2).contiguous()
+    device = torch.device(args.torch_device)
+    ref = ref.to(device)
+    xt = torch.from_numpy(x).permute(0, 3, 1, 2).contiguous().to(device)
+    sync = torch.cuda.synchronize if device.type == "cuda" else (lambda: None)
     key = "logits_raw" if args.task == "segmentation" else "depth_raw"
 
     def run_torch():
         with torch.inference_mode():
             out = ref(pixel_values=xt)
+        sync()
         return out.logits if args.task == "segmentation" else out.predicted_depth
 
     def run_jax():
@@ -95,7 +102,7 @@ def main(argv=None) -> int:
     jax_all, torch_all = runs[0][1], runs[1][1]
     jax_s, torch_s = float(np.median(jax_all)), float(np.median(torch_all))
     a = np.asarray(run_jax())
-    b = run_torch().numpy()
+    b = run_torch().cpu().numpy()
     b = b.transpose(0, 2, 3, 1) if b.ndim == 4 else b
     result = {
         "arch": args.arch, "task": args.task, "size": args.size, "batch": args.batch, "iters": args.iters,
@@ -108,13 +115,15 @@ def main(argv=None) -> int:
         "cpu": platform.processor() or platform.machine(), "cpu_count": os.cpu_count(),
         "loadavg_after": os.getloadavg(), "jax": jax.__version__, "torch": torch.__version__,
         "transformers": transformers.__version__, "torch_threads": torch.get_num_threads(),
+        "torch_device": str(device), "jax_backend": jax.default_backend(),
+        "gpu": torch.cuda.get_device_name(0) if device.type == "cuda" else None,
     }
     if equal_work:
         aux_s = float(np.median(runs[2][1]))
         result.update(jax_with_aux_median_s=aux_s, jax_with_aux_times_s=runs[2][1],
                       ratio_equal_work=torch_s / aux_s)
     if args.stages:
-        result["stages_s"] = stage_times(ref, model, x, xt, args.task, args.iters)
+        result["stages_s"] = stage_times(ref, model, x, xt, args.task, args.iters, sync)
         for name, t in result["stages_s"].items():
             print(f"  {name}: JAX {t['jax']:.3f} s, torch {t['torch']:.3f} s, ratio {t['torch'] / t['jax']:.2f}x")
     print(f"DPT-{args.arch} {args.task} {args.size}x{args.size} batch {args.batch}: "
@@ -149,7 +158,7 @@ def encoder_matmuls_only(params: dict, cfg, pixel_values) -> list:
     return outs
 
 
-def stage_times(ref, model, x, xt, task: str, iters: int) -> dict:
+def stage_times(ref, model, x, xt, task: str, iters: int, sync=lambda: None) -> dict:
     """Median seconds per stage, {stage: {"jax": s, "torch": s}}, the two frameworks interleaved.
     Stages: encoder (embeddings + ViT blocks), encoder_matmuls_only (ours only; its torch column is
     torch's whole encoder), neck (reassemble + fusion), head. (Our neck stops
@@ -194,6 +203,7 @@ def stage_times(ref, model, x, xt, task: str, iters: int) -> dict:
             with torch.inference_mode():
                 t = time.perf_counter()
                 ft()
+                sync()
                 tt.append(time.perf_counter() - t)
         out[name] = {"jax": float(np.median(tj)), "torch": float(np.median(tt))}
     return out
