@@ -131,3 +131,24 @@ def test_auxiliary_head_and_patch16_resolution(tmp_path):
     assert "aux_logits" not in dpt.apply(model, x_sq)  # skipped unless asked for
     np.testing.assert_allclose(np.asarray(got_sq["logits"]), out.logits.permute(0, 2, 3, 1).numpy(), atol=TOL, rtol=0)
     np.testing.assert_allclose(np.asarray(got_sq["aux_logits"]), aux.permute(0, 2, 3, 1).numpy(), atol=TOL, rtol=0)
+
+
+def test_depth_head_with_projection(tmp_path):
+    """`add_projection` (a 3x3 256 -> 256 conv + ReLU ahead of the depth head, as DPT-hybrid has):
+    our head folds the fusion's last x2 into that conv instead of into conv1."""
+    cfg = _hf_config("project", False, fusion_hidden_size=256, add_projection=True)
+    ref = transformers.DPTForDepthEstimation(cfg).eval()
+    _randomise(ref, seed=11)
+    model = dpt.load_pretrained(_save(ref, tmp_path, "hfproj"))
+    assert "projection" in model.params["depth"]
+    x = np.random.default_rng(2).uniform(-1, 1, size=(1, 32, 32, 3)).astype(np.float32)
+    with torch.no_grad():
+        raw = ref(pixel_values=torch.from_numpy(x).permute(0, 3, 1, 2)).predicted_depth
+    # the 256-wide projection averages a lot, so the map varies less than in the cases above;
+    # its spread is still 50x the tolerance
+    assert (raw > 0).float().mean() > 0.3 and raw.std() > 50 * TOL
+    np.testing.assert_allclose(np.asarray(dpt.apply(model, x)["depth_raw"]), raw.numpy(), atol=TOL, rtol=0)
+    # a head that skipped the projection would be caught
+    without = dpt.Model(model.config, {**model.params, "depth": {k: v for k, v in model.params["depth"].items()
+                                                                  if k != "projection"}})
+    assert np.abs(np.asarray(dpt.apply(without, x)["depth_raw"]) - raw.numpy()).max() > 10 * TOL
