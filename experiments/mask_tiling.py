@@ -28,6 +28,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "experiments"))
 
+import common  # noqa: E402
 from train_builtin_dpt import evaluate  # noqa: E402
 
 from jaxnerf_grid.mask_cli import load_models  # noqa: E402
@@ -46,18 +47,13 @@ def main(argv=None) -> int:
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
 
-    from jaxnerf_grid.data.synthetic.generate import generate_scene
-
     t_start = time.time()
-    roots = []
-    for seed in SEEDS:
-        root = Path(args.cache) / "scenes" / f"tower-small_s{seed}_{args.width}x{args.height}_{args.views}+0_ss1_preset"
-        if not (root / "transforms.json").is_file():
-            print(f"[scene] generating {root.name}", flush=True)
-            generate_scene("tower-small", root, seed=seed, overwrite=True, progress=not args.quiet,
-                           width=args.width, height=args.height, num_train=args.views, num_test=0,
-                           supersample=1, workers=min(2, os.cpu_count() or 1))
-        roots.append(root)
+    command = "JAX_PLATFORMS=cpu python experiments/mask_tiling.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    ctx = common.Context(setting="quick", seeds=len(SEEDS), steps=0, cache=Path(args.cache),
+                         results=Path(args.results).parent, budget_s=None, lpips_weights=None,
+                         progress=not args.quiet, command=command.strip())
+    size = (args.width, args.height, args.views, 0, 1)  # (w, h, train views, test views, supersampling)
+    roots = [common.scene(ctx, "tower-small", seed, size=size) for seed in SEEDS]
 
     model, _, _ = load_models(None, None)
     rows = []
@@ -71,10 +67,9 @@ def main(argv=None) -> int:
         print(f"max_side {max_side} tiles {tiles}: IoU {pm['iou']:.3f} precision {pm['precision']:.3f} "
               f"recall {pm['recall']:.3f}; {per_photo:.2f} s/photo", flush=True)
 
-    command = "JAX_PLATFORMS=cpu python experiments/mask_tiling.py " + " ".join(argv if argv is not None else sys.argv[1:])
     out = Path(args.results)
     out.parent.mkdir(parents=True, exist_ok=True)
-    summary = {"command": command.strip(), "seeds": list(SEEDS), "size": [args.width, args.height],
+    summary = {"command": ctx.command, "seeds": list(SEEDS), "size": [args.width, args.height],
                "views_per_scene": args.views, "wall_s": time.time() - t_start, "rows": rows}
     out.with_suffix(".json").write_text(json.dumps(summary, indent=2) + "\n")
     lines = [

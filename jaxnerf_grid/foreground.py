@@ -238,6 +238,21 @@ def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size
         yield prob, inv
 
 
+MAX_TILE_OVERLAP = 0.75
+
+
+def settings_problem(batch_size: int | None, tiles: int, tile_overlap: float) -> str | None:
+    """What is wrong with `predict_maps`'s batch / tiling settings (named as in the code and the
+    CLI), or None. Callers raise it as their own error type."""
+    if batch_size is not None and (int(batch_size) != batch_size or batch_size < 1):
+        return f"batch_size (--batch-size) must be an integer >= 1, got {batch_size}"
+    if int(tiles) != tiles or tiles < 1:
+        return f"tiles (--tiles) must be an integer >= 1, got {tiles}"
+    if not 0.0 <= tile_overlap <= MAX_TILE_OVERLAP:
+        return f"tile_overlap (--tile-overlap) must be between 0 and {MAX_TILE_OVERLAP}, got {tile_overlap}"
+    return None
+
+
 def default_batch_size() -> int:
     """Images per DPT call: 1 on CPU, 4 on an accelerator. On the 2-core CPU, batching made
     DPT-base at 384 px slower: 0.46 images/s at batch 4, against 0.58-0.71 at batch 1
@@ -270,14 +285,12 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
     """
     from jaxnerf_grid import dpt
 
+    problem = settings_problem(batch_size, tiles, tile_overlap)
+    if problem:
+        raise ValueError(f"predict_maps: {problem}")
     batch_size = default_batch_size() if batch_size is None else int(batch_size)
-    if batch_size < 1:
-        raise ValueError(f"predict_maps: batch_size must be >= 1, got {batch_size}")
     models = [seg_model] + ([depth_model] if depth_model is not None and depth_model is not seg_model else [])
     multiple = 2 * max(m.config.patch_size for m in models)
-    if int(tiles) != tiles or tiles < 1 or not 0.0 <= tile_overlap <= 0.75:
-        raise ValueError(f"predict_maps: need an integer tiles >= 1 and 0 <= tile_overlap <= 0.75, "
-                         f"got tiles={tiles}, tile_overlap={tile_overlap}")
     if tiles > 1:
         yield from _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size, tiles,
                                   tile_overlap, multiple)

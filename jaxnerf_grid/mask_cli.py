@@ -147,14 +147,13 @@ def _gt_frames(root: Path, frames: list):
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    if args.batch_size is not None and args.batch_size < 1:
-        raise ConfigError(f"jaxnerf-grid mask: --batch-size must be >= 1 (got {args.batch_size})")
-    if args.tiles < 1 or not 0.0 <= args.tile_overlap <= 0.75:
-        raise ConfigError(f"jaxnerf-grid mask: --tiles must be >= 1 (got {args.tiles}) and --tile-overlap "
-                          f"between 0 and 0.75 (got {args.tile_overlap})")
     from tqdm import tqdm
 
     from jaxnerf_grid import foreground as fg
+
+    problem = fg.settings_problem(args.batch_size, args.tiles, args.tile_overlap)
+    if problem:  # before anything is read or written
+        raise ConfigError(f"jaxnerf-grid mask: {problem}")
 
     root = Path(args.data)
     tpath = root / "transforms.json"

@@ -920,8 +920,6 @@ def load_dataset(path, split: str | None = None, *, downscale: float = 1, load_e
 # Writing
 
 
-
-
 def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: str | None = None,
                 extras: dict | None = None) -> dict:
     """Writes one frame's files under `out_dir` and returns its transforms.json entry.
