@@ -184,22 +184,91 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     atomic_write_bytes(path, ("\n".join(header) + "\n").encode("ascii") + body)
 
 
-def read_ply_points(path: str | os.PathLike) -> np.ndarray:
-    """Reads the vertex positions of a PLY written by `write_ply`. Returns: [N, 3] float32."""
-    path = Path(path)
-    raw = path.read_bytes()
-    end = raw.find(b"end_header\n")
+_PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
+              "ushort": "u2", "uint16": "u2", "int": "i4", "int32": "i4", "uint": "u4", "uint32": "u4",
+              "float": "f4", "float32": "f4", "double": "f8", "float64": "f8"}
+
+
+def _ply_header(path: Path, raw: bytes) -> tuple[str, list, int]:
+    """(format, elements [(name, count, [(prop, type) | (prop, "list", count_type, item_type)])],
+    offset of the body) of a PLY file's bytes."""
+    end = raw.find(b"end_header")
     if not raw.startswith(b"ply") or end < 0:
         raise DataError(f"{path}: not a PLY file")
-    header = raw[:end].decode("ascii").splitlines()
-    count = next(int(line.split()[2]) for line in header if line.startswith("element vertex"))
-    props = [line.split() for line in header if line.startswith("property")]
-    vertex_props = []
-    for p in props:
-        if p[1] == "list":
-            break
-        vertex_props.append((p[2], "<f4" if p[1] == "float" else "u1"))
-    vertex = np.frombuffer(raw, dtype=vertex_props, count=count, offset=end + len(b"end_header\n"))
+    body = raw.find(b"\n", end) + 1
+    if body <= 0:
+        raise DataError(f"{path}: PLY header does not end with a newline")
+    fmt, elements = None, []
+    for line in raw[:end].decode("ascii", errors="replace").splitlines()[1:]:
+        words = line.split()
+        if not words or words[0] in ("comment", "obj_info"):
+            continue
+        try:
+            if words[0] == "format":
+                fmt = words[1]
+            elif words[0] == "element":
+                elements.append((words[1], int(words[2]), []))
+            elif words[0] == "property" and words[1] == "list":
+                elements[-1][2].append((words[4], "list", _PLY_TYPES[words[2]], _PLY_TYPES[words[3]]))
+            elif words[0] == "property":
+                elements[-1][2].append((words[2], _PLY_TYPES[words[1]]))
+            else:
+                raise DataError(f"{path}: unexpected PLY header line {line!r}")
+        except (IndexError, KeyError, ValueError):
+            raise DataError(f"{path}: bad PLY header line {line!r}") from None
+    if fmt not in ("ascii", "binary_little_endian", "binary_big_endian"):
+        raise DataError(f"{path}: unsupported PLY format {fmt!r}")
+    return fmt, elements, body
+
+
+def read_ply(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """Reads the vertex element of a PLY file (ascii, binary little- or big-endian).
+
+    Returns {property name: [N] array} for every scalar vertex property (x, y, z, and e.g.
+    red, green, blue, nx, ...), in the file's types. Elements listed before the vertex
+    element are skipped (in binary files only when they have no list properties).
+    """
+    path = Path(path)
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise DataError(f"{path}: cannot read ({e.strerror or e})") from None
+    fmt, elements, offset = _ply_header(path, raw)
+    names = [e[0] for e in elements]
+    if "vertex" not in names:
+        raise DataError(f"{path}: PLY file has no vertex element")
+    if fmt == "ascii":
+        lines = raw[offset:].decode("ascii", errors="replace").splitlines()
+        start = sum(e[1] for e in elements[:names.index("vertex")])
+        _, count, props = elements[names.index("vertex")]
+        if any(p[1] == "list" for p in props):
+            raise DataError(f"{path}: list properties in the vertex element are not supported")
+        rows = [line.split() for line in lines[start:start + count]]
+        if len(rows) != count or any(len(r) < len(props) for r in rows):
+            raise DataError(f"{path}: PLY file is truncated (expected {count} vertex lines)")
+        table = np.asarray([r[:len(props)] for r in rows], dtype=np.float64).reshape(count, len(props))
+        return {name: table[:, k].astype(kind) for k, (name, kind) in enumerate(props)}
+    order = "<" if fmt == "binary_little_endian" else ">"
+    for name, count, props in elements:
+        if any(p[1] == "list" for p in props):
+            raise DataError(f"{path}: binary PLY with list properties in element {name!r} before or in "
+                            "the vertex element is not supported")
+        dtype = np.dtype([(p[0], order + p[1]) for p in props])
+        if offset + count * dtype.itemsize > len(raw):
+            raise DataError(f"{path}: PLY file is truncated ({name} element)")
+        if name == "vertex":
+            table = np.frombuffer(raw, dtype=dtype, count=count, offset=offset)
+            return {p[0]: table[p[0]].astype(p[1]) for p in props}
+        offset += count * dtype.itemsize
+    raise AssertionError("unreachable")
+
+
+def read_ply_points(path: str | os.PathLike) -> np.ndarray:
+    """Vertex positions of a PLY file (see `read_ply`). Returns: [N, 3] float32."""
+    vertex = read_ply(path)
+    missing = [k for k in "xyz" if k not in vertex]
+    if missing:
+        raise DataError(f"{path}: PLY vertices have no {', '.join(missing)} property")
     return np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=-1).astype(np.float32)
 
 

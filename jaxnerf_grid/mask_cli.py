@@ -147,9 +147,7 @@ def _gt_frames(root: Path, frames: list):
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from tqdm import tqdm
-
-    from jaxnerf_grid import foreground as fg
+    from jaxnerf_grid import foreground as fg, progress
 
     problem = fg.settings_problem(args.batch_size, args.tiles, args.tile_overlap)
     if problem:  # before anything is read or written
@@ -194,7 +192,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in OUTPUT_DIRS:
         (root / name).mkdir(parents=True, exist_ok=True)
     for i, (frame, ipath, (a, depth, prob)) in enumerate(
-            tqdm(zip(frames, images, maps), total=len(frames), disable=args.quiet, desc="mask")):
+            progress.bar(zip(frames, images, maps), total=len(frames), desc="mask", unit="frame",
+                         enabled=not args.quiet)):
         image = io.read_image(ipath)
         h, w = image.shape[:2]
         mask = np.asarray(fg.binary_mask(a, args.threshold)) if prob is not None else a

@@ -41,6 +41,12 @@ from jaxnerf_grid import coords, fields, render, sampling
 from jaxnerf_grid.config import ConfigError
 
 METHODS = ("ours", "nerf", "nerfw")
+SAMPLERS = ("hierarchical", "proposal")
+
+# The proposal field of proposal sampling: a small density-only hash grid (nerfacto's sizes).
+PROPOSAL_FIELD = fields.FieldConfig(kind="grid", depth=1, width=16, density_activation="exp",
+                                    grid=fields.HashConfig(num_levels=5, features_per_level=2, log2_table_size=17,
+                                                           min_resolution=16, max_resolution=256))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -53,7 +59,14 @@ class ModelConfig:
     encoding_scale: points are encoded as z / encoding_scale; 0 = auto (R with contraction,
       1 without).
     warp: s-space warp "linear" | "disparity" | "log" | "piecewise" for the coarse samples.
-    num_coarse, num_fine: samples per ray; hierarchical: run the fine pass at all.
+    sampler: "hierarchical" (NeRF's coarse + fine passes, the flags below) or "proposal"
+      (mip-NeRF 360: density-only proposal fields resample in s, the main field runs once).
+    num_coarse, num_fine: samples per ray; hierarchical: run the fine pass at all. With the
+      proposal sampler num_fine is the main field's sample count (num_coarse is unused).
+    proposal_samples: with the proposal sampler, samples of each proposal round (the first
+      round is stratified in s through the warp, each later one resampled from the previous
+      round's weights); proposal_field: their field (kind "grid"); proposal_padding: weight
+      floor (relative to the mean) when resampling from a proposal, so no bin is unreachable.
     fine_union: fine pass over coarse + fine samples (True) or over the fine ones only.
     shared_field: one MLP for both passes (mip-NeRF) instead of two (NeRF).
     near, far: override the dataset's bounds (None: use the dataset's).
@@ -68,11 +81,15 @@ class ModelConfig:
     contract_radius: float = 2.0
     encoding_scale: float = 0.0
     warp: str = "disparity"
+    sampler: str = "hierarchical"
     num_coarse: int = 48
     num_fine: int = 48
     hierarchical: bool = True
     fine_union: bool = True
     shared_field: bool = False
+    proposal_samples: tuple[int, ...] = (64,)
+    proposal_field: fields.FieldConfig = PROPOSAL_FIELD
+    proposal_padding: float = 0.01
     near: float | None = None
     far: float | None = None
     background: float = 0.0
@@ -103,15 +120,33 @@ def validate(cfg: ModelConfig) -> None:
         raise ConfigError(f"model.method: unknown method {cfg.method!r}; choose from {list(METHODS)}")
     if cfg.warp not in sampling.WARP_FUNCTIONS:
         raise ConfigError(f"model.warp: unknown warp {cfg.warp!r}; choose from {sorted(sampling.WARP_FUNCTIONS)}")
+    if cfg.sampler not in SAMPLERS:
+        raise ConfigError(f"model.sampler: unknown sampler {cfg.sampler!r}; choose from {list(SAMPLERS)}")
     if cfg.use_contraction and not cfg.contract_radius > 1.0:
         raise ConfigError(f"model.contract_radius must be > 1, got {cfg.contract_radius}")
-    if cfg.num_coarse < 1 or (cfg.hierarchical and cfg.num_fine < 1):
-        raise ConfigError("model.num_coarse (and num_fine when hierarchical) must be >= 1")
-    if cfg.shared_field and (cfg.use_appearance or cfg.use_transient):
-        raise ConfigError("model.shared_field cannot be combined with NeRF-W embeddings")
-    if (cfg.use_appearance or cfg.use_transient) and not cfg.hierarchical:
-        raise ConfigError("model: NeRF-W embeddings live in the fine field; set hierarchical=true")
-    if (cfg.use_appearance or cfg.use_transient) and cfg.num_images < 1:
+    for name, field_cfg in (("model.field", cfg.field), ("model.proposal_field", cfg.proposal_field)):
+        try:
+            fields.check(field_cfg)
+            if field_cfg.kind == "grid":
+                fields.hashgrid.check(field_cfg.grid, f"{name}.grid")
+        except ValueError as exc:
+            raise ConfigError(f"{name}: {exc}") from None
+    embeddings = cfg.use_appearance or cfg.use_transient
+    if cfg.sampler == "proposal":
+        if not cfg.proposal_samples or min(cfg.proposal_samples) < 1 or cfg.num_fine < 1:
+            raise ConfigError("model.proposal_samples (each) and num_fine must be >= 1 with the proposal sampler")
+        if cfg.proposal_field.kind != "grid":
+            raise ConfigError("model.proposal_field.kind must be 'grid'")
+        if not 0 <= cfg.proposal_padding < 1:
+            raise ConfigError(f"model.proposal_padding must be in [0, 1), got {cfg.proposal_padding}")
+    else:
+        if cfg.num_coarse < 1 or (cfg.hierarchical and cfg.num_fine < 1):
+            raise ConfigError("model.num_coarse (and num_fine when hierarchical) must be >= 1")
+        if cfg.shared_field and embeddings:
+            raise ConfigError("model.shared_field cannot be combined with NeRF-W embeddings")
+        if embeddings and not cfg.hierarchical:
+            raise ConfigError("model: NeRF-W embeddings live in the fine field; set hierarchical=true")
+    if embeddings and cfg.num_images < 1:
         raise ConfigError("model.num_images must be set (>= 1) for NeRF-W embeddings")
     if cfg.near is not None and cfg.far is not None and not 0 < cfg.near < cfg.far:
         raise ConfigError(f"model: need 0 < near < far, got near={cfg.near}, far={cfg.far}")
@@ -127,18 +162,29 @@ def fine_field_config(cfg: ModelConfig) -> fields.FieldConfig:
                                transient_dim=cfg.transient_dim if cfg.use_transient else 0)
 
 
+def has_coarse_field(cfg: ModelConfig) -> bool:
+    return cfg.sampler == "hierarchical"
+
+
 def has_fine_field(cfg: ModelConfig) -> bool:
-    return cfg.hierarchical and not cfg.shared_field
+    return cfg.sampler == "proposal" or (cfg.hierarchical and not cfg.shared_field)
 
 
 def init(key, cfg: ModelConfig) -> dict:
-    """Parameters: {"coarse": field, ["fine": field], ["appearance": [N, A]], ["transient": [N, T]]}.
+    """Parameters: {["coarse": field], ["fine": field], ["proposal": [field per round]],
+    ["appearance": [N, A]], ["transient": [N, T]]}. The proposal sampler has no coarse field:
+    its main field is "fine".
 
     Embeddings start as N(0, 0.01^2) (small, so every image starts near the shared look).
     """
     validate(cfg)
     k_coarse, k_fine, k_app, k_tr = jax.random.split(key, 4)
-    params = {"coarse": fields.init(k_coarse, coarse_field_config(cfg))}
+    params = {}
+    if has_coarse_field(cfg):
+        params["coarse"] = fields.init(k_coarse, coarse_field_config(cfg))
+    else:
+        keys = jax.random.split(k_coarse, len(cfg.proposal_samples))
+        params["proposal"] = [fields.proposal.init(k, cfg.proposal_field) for k in keys]
     if has_fine_field(cfg):
         params["fine"] = fields.init(k_fine, fine_field_config(cfg))
     if cfg.use_appearance:
@@ -217,12 +263,16 @@ def render_ray(params: dict, cfg: ModelConfig, origin, direction, near, far, key
     table lookup (used when fitting a test image's embedding).
     Returns {"coarse": dict, "fine": dict (when hierarchical)} of render.composite outputs
     (rgb [..., 3], opacity, depth, median_depth, weights, s_edges, t_edges); a transient fine
-    pass adds rgb_static, beta, transient_sigma_mean, transient_opacity.
+    pass adds rgb_static, beta, transient_sigma_mean, transient_opacity. The proposal sampler
+    returns {"proposals": [{"s_edges", "weights"}, ...], "fine": dict} (no coarse pass).
     """
     near = jnp.asarray(near, jnp.float32)
     far = jnp.asarray(far, jnp.float32)
     batch_shape = jnp.broadcast_shapes(near.shape, far.shape, origin.shape[:-1])
     _, s_to_t = sampling.ray_warp(cfg.warp, near[..., None], far[..., None])
+    if cfg.sampler == "proposal":
+        return _render_ray_proposal(params, cfg, origin, direction, s_to_t, batch_shape, key, image_index,
+                                    appearance)
     if key is None:
         k_coarse = k_fine = None
     else:
@@ -241,7 +291,15 @@ def render_ray(params: dict, cfg: ModelConfig, origin, direction, near, far, key
     else:
         s_fine = sampling.resample_pdf(k_fine, s_coarse, weights, cfg.num_fine + 1, cfg.single_jitter)
     s_fine = jax.lax.stop_gradient(s_fine)
-    fine_cfg = fine_field_config(cfg)
+    app, tr = _embeddings(params, cfg, image_index, appearance)
+    fine_params = params["coarse"] if cfg.shared_field else params["fine"]
+    result["fine"] = _one_pass(fine_params, fine_field_config(cfg), cfg, origin, direction, s_fine, s_to_t,
+                               app, tr)
+    return result
+
+
+def _embeddings(params: dict, cfg: ModelConfig, image_index, appearance) -> tuple:
+    """NeRF-W's per-sample embeddings: (appearance [..., 1, A] or None, transient [..., 1, T] or None)."""
     app = tr = None
     if cfg.use_appearance:
         app = appearance if appearance is not None else params["appearance"][image_index]
@@ -250,9 +308,42 @@ def render_ray(params: dict, cfg: ModelConfig, origin, direction, near, far, key
         if image_index is None:
             raise ValueError("render_ray: a transient model needs image_index")
         tr = params["transient"][image_index][..., None, :]
-    fine_params = params["coarse"] if cfg.shared_field else params["fine"]
-    result["fine"] = _one_pass(fine_params, fine_cfg, cfg, origin, direction, s_fine, s_to_t, app, tr)
-    return result
+    return app, tr
+
+
+def proposal_rounds(params: dict, cfg: ModelConfig, origin, direction, s_to_t, batch_shape, key) -> tuple:
+    """The proposal sampler's rounds in s (mip-NeRF 360, with the paper's warp first).
+
+    Round 0 is stratified in s (uniform in disparity for "ours"), each later round resamples
+    from the previous round's weights; after the last round num_fine + 1 edges are resampled
+    for the main field. origin, direction: [..., 3]; key: PRNG key or None (deterministic).
+    Returns (rounds: [{"s_edges": [..., n_k + 1], "weights": [..., n_k]}], s_main: [..., num_fine + 1]).
+    """
+    count = len(cfg.proposal_samples)
+    keys = [None] * (count + 1) if key is None else list(jax.random.split(key, count + 1))
+    rounds = []
+    s_edges = sampling.stratified_s(keys[0], batch_shape, cfg.proposal_samples[0], cfg.single_jitter)
+    for k in range(count):
+        if k > 0:
+            s_edges = sampling.resample_pdf(keys[k], s_edges, rounds[-1]["weights"], cfg.proposal_samples[k] + 1,
+                                            cfg.single_jitter, cfg.proposal_padding)
+        t_edges = s_to_t(s_edges)
+        sigma = fields.proposal.density(params["proposal"][k], cfg.proposal_field,
+                                        field_inputs(cfg, origin, direction, t_edges))
+        rounds.append({"s_edges": s_edges, "weights": render.alpha_weights(sigma, t_edges)})
+    s_main = sampling.resample_pdf(keys[-1], s_edges, rounds[-1]["weights"], cfg.num_fine + 1, cfg.single_jitter,
+                                   cfg.proposal_padding)
+    return rounds, jax.lax.stop_gradient(s_main)
+
+
+def _render_ray_proposal(params, cfg: ModelConfig, origin, direction, s_to_t, batch_shape, key, image_index,
+                         appearance) -> dict:
+    """{"proposals": proposal rounds, "fine": the main field's pass} (see render_ray)."""
+    k_prop = None if key is None else jax.random.fold_in(key, 1)
+    rounds, s_main = proposal_rounds(params, cfg, origin, direction, s_to_t, batch_shape, k_prop)
+    app, tr = _embeddings(params, cfg, image_index, appearance)
+    fine = _one_pass(params["fine"], fine_field_config(cfg), cfg, origin, direction, s_main, s_to_t, app, tr)
+    return {"proposals": rounds, "fine": fine}
 
 
 def render_rays(params: dict, cfg: ModelConfig, origins, directions, near, far, keys=None,

@@ -64,6 +64,25 @@ def _fmt(v, digits=2) -> str:
     return str(v)
 
 
+def geometry_lines(geometry: dict | None) -> list[str]:
+    """Markdown lines of the "Tower geometry" section from metrics["geometry"] (`geometry.score_points`
+    plus "reference"); no lines when it is None."""
+    if not geometry:
+        return []
+    lines = ["## Tower geometry", "",
+             f"`tower_points.ply` against `{geometry.get('reference', 'the reference cloud')}`, "
+             f"{geometry.get('units', 'normalised scene units')}; both clouds cropped to the reference "
+             f"tower's box less a {_fmt(geometry.get('ground_strip'), 3)}-unit ground strip "
+             f"({geometry.get('num_pred', '?')} predicted, {geometry.get('num_ref', '?')} reference points).", "",
+             "| threshold | precision | recall | F-score |", "|---|---|---|---|"]
+    for tau, row in geometry.get("thresholds", {}).items():
+        lines.append(f"| {tau} | {_fmt(row.get('precision'), 4)} | {_fmt(row.get('recall'), 4)} | "
+                     f"{_fmt(row.get('fscore'), 4)} |")
+    lines += ["", f"Chamfer distance (mean of the two mean nearest-neighbour distances): "
+                  f"{_fmt(geometry.get('chamfer'), 4)}", ""]
+    return lines
+
+
 def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_lines: list[str] = ()) -> Path:
     """Writes run_dir/report.md (and its PNGs).
 
@@ -114,6 +133,7 @@ def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_
     lines += ["", f"Protocol: {metrics.get('protocol', '')}", ""]
     if metrics.get("region_definition"):
         lines += [f"Regions: {metrics['region_definition']}", ""]
+    lines += geometry_lines(metrics.get("geometry"))
     lines += ["## Method and configuration", "",
               f"- method `{model.get('method')}`: contraction {model.get('use_contraction')} "
               f"(R = {model.get('contract_radius')}), warp `{model.get('warp')}`, samples "

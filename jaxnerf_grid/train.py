@@ -56,6 +56,9 @@ class TrainConfig:
     checkpoint_every, keep_checkpoints, log_every: steps; chunk: rays per rendering chunk.
     num_devices: devices to use (0 = all local devices).
     appearance_steps, appearance_lr, appearance_rays: NeRF-W test-time embedding fit.
+    coarse_loss_weight: weight of the coarse pass's MSE (hierarchical sampler);
+    interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (proposal sampler);
+    distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
     """
 
     batch_rays: int = 1024
@@ -68,6 +71,8 @@ class TrainConfig:
     use_masks: bool = True
     mask_weight_floor: float = 0.0
     coarse_loss_weight: float = 1.0
+    interlevel_loss_weight: float = 1.0
+    distortion_loss_weight: float = 0.0
     seed: int = 0
     checkpoint_every: int = 500
     keep_checkpoints: int = 3
@@ -201,7 +206,8 @@ def make_train_step(cfg: RunConfig, num_devices: int):
             out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
                                      batch["far"], ray_keys, batch["image_index"])
             terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
-                                        tcfg.coarse_loss_weight)
+                                        tcfg.coarse_loss_weight, tcfg.interlevel_loss_weight,
+                                        tcfg.distortion_loss_weight)
             mse = terms.get("mse_fine", terms["mse_coarse"])
             loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
             return loss, losses.weighted_mean(mse, batch["weight"], total)

@@ -2,7 +2,7 @@
 
     jaxnerf-grid train --data DIR --method ours|nerf|nerfw [--config FILE] [--out RUN] [--steps N]
     jaxnerf-grid render --run RUN [--split test|train|all]
-    jaxnerf-grid eval --run RUN [--lpips-weights FILE]
+    jaxnerf-grid eval --run RUN [--lpips-weights FILE] [--reference-ply FILE]
     jaxnerf-grid demo [--out runs/demo] [--steps N] [--overwrite]
 
 A run directory holds config.json ({"data", "model", "train"}), checkpoints/, metrics.jsonl
@@ -20,7 +20,13 @@ Evaluation protocol (stored in metrics.json and the report):
     (normalised depth / scene scale); without a depth map only sky counts as far background;
   * "distractor_psnr": PSNR inside the distractor masks of (up to 4) training views against
     their clean images: how much of the passers-by the model burnt in (higher = cleaner);
-  * LPIPS only with --lpips-weights, else "unavailable".
+  * LPIPS only with --lpips-weights, else "unavailable";
+  * "geometry": the exported tower cloud (tower_points.ply) against a reference cloud, scored by
+    `geometry.score_points` in normalised scene units (precision / recall / F-score at 0.01,
+    0.02, 0.05 units and the Chamfer distance, both clouds cropped to the reference tower's box
+    less a ground strip). The reference is --reference-ply (a user's survey cloud, already in the
+    dataset's normalised units) or else the dataset's `tower_ply` (synthetic data; converted from
+    the file's `scene_normalization` to the loaded dataset's normalisation); None without one.
 """
 
 from __future__ import annotations
@@ -161,11 +167,9 @@ def render_split(run_dir, split: str = "test", progress: bool = True, dataset=No
 
 
 def _bar(items, progress: bool, desc: str):
-    if not progress:
-        return items
-    from tqdm import tqdm
+    from jaxnerf_grid import progress as progress_lib
 
-    return tqdm(items, desc=desc, unit="view", dynamic_ncols=True)
+    return progress_lib.bar(items, desc=desc, unit="view", enabled=progress)
 
 
 def _write_view(run_dir: Path, name: str, view: dict) -> None:
@@ -174,9 +178,48 @@ def _write_view(run_dir: Path, name: str, view: dict) -> None:
     io.write_png(run_dir / "opacity" / f"{name}.png", np.clip(view["opacity"], 0, 1))
 
 
+def reference_cloud(ds, reference_ply=None) -> tuple[Path, dict | None] | None:
+    """The reference tower cloud of an evaluation: (PLY path, the normalisation its points are
+    stored in, None = already in the dataset's units), or None when there is none.
+
+    reference_ply: a user's cloud in the dataset's normalised units (must exist); else the
+    dataset's `tower_ply` (relative to the dataset root; in the units of the file's
+    `scene_normalization`) when that file exists.
+    """
+    if reference_ply:
+        path = Path(reference_ply)
+        if not path.is_file():
+            raise DataError(f"{path}: reference point cloud not found (--reference-ply)")
+        return path, None
+    name = ds.meta.get("tower_ply") if ds.meta else None
+    if not name:
+        return None
+    path = Path(ds.root) / name
+    if not path.is_file():
+        return None
+    return path, ds.meta.get("scene_normalization")
+
+
+def score_geometry(ds, cloud: list, reference_ply=None) -> dict | None:
+    """metrics.json["geometry"]: the exported cloud parts [(points [K, 3], colours [K, 3])]
+    against `reference_cloud(ds, reference_ply)`; None without a reference."""
+    from jaxnerf_grid import geometry
+
+    ref = reference_cloud(ds, reference_ply)
+    if ref is None:
+        return None
+    path, file_norm = ref
+    return geometry.score_against_ply(cloud, path, file_normalization=file_norm,
+                                      scene_normalization=ds.normalization if file_norm else None)
+
+
 def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = True, dataset=None,
-                 distractor_views: int = 4, extra_notes: list[str] = ()) -> dict:
-    """Renders the test views, computes metrics.json and writes report.md. Returns the metrics."""
+                 distractor_views: int = 4, extra_notes: list[str] = (), reference_ply=None) -> dict:
+    """Renders the test views, computes metrics.json and writes report.md. Returns the metrics.
+
+    reference_ply: a reference tower cloud (normalised scene units) for metrics["geometry"];
+    default: the dataset's `tower_ply` when it has one.
+    """
     import jax
 
     from jaxnerf_grid import export, lpips, metrics, rays as rays_lib, report, train
@@ -185,6 +228,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     run_dir = Path(run_dir)
     cfg, data = load_run(run_dir)
     ds = dataset if dataset is not None else _load_dataset(data, progress=progress)
+    reference_cloud(ds, reference_ply)  # a missing --reference-ply fails before rendering
     params, step = train.load_params(run_dir, cfg, ds.num_frames)
     lpips_params = lpips.load_lpips(lpips_weights) if lpips_weights else None
     targets = ds.clean_images if ds.clean_images is not None else ds.images
@@ -246,8 +290,8 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
               "target": "clean images" if ds.clean_images is not None else "images",
               "protocol": protocol, "mean": mean, "mean_right_half": mean_right,
               "regions_mean": regions_mean, "region_definition": REGION_DEFINITION if regions_mean else None,
-              "distractor_psnr": distractor, "per_view": per_view,
-              "lpips": "computed" if lpips_params is not None else "unavailable",
+              "distractor_psnr": distractor, "geometry": score_geometry(ds, cloud, reference_ply),
+              "per_view": per_view, "lpips": "computed" if lpips_params is not None else "unavailable",
               "eval_seconds": time.perf_counter() - start}
     io.write_json(run_dir / "metrics.json", result)
     export.write_point_cloud(run_dir / "tower_points.ply", cloud)
@@ -321,11 +365,20 @@ def main_eval(argv: list[str]) -> int:
     p.add_argument("--run", required=True, help="run directory")
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights .npz (else LPIPS is unavailable)")
     p.add_argument("--distractor-views", type=int, default=4)
+    p.add_argument("--reference-ply", default=None,
+                   help="reference tower point cloud (PLY, the dataset's normalised scene units) to score "
+                        "tower_points.ply against (default: the dataset's tower_ply, if any)")
     p.add_argument("--quiet", action="store_true")
     args = p.parse_args(argv)
-    m = evaluate_run(args.run, args.lpips_weights, not args.quiet, distractor_views=args.distractor_views)
+    m = evaluate_run(args.run, args.lpips_weights, not args.quiet, distractor_views=args.distractor_views,
+                     reference_ply=args.reference_ply)
     print(f"test PSNR {m['mean']['psnr']:.2f} dB, SSIM {m['mean']['ssim']:.4f}; "
           f"report: {Path(args.run) / 'report.md'}")
+    geo = m.get("geometry")
+    if geo:
+        print("tower geometry: " + ", ".join(f"F@{tau} {row['fscore']:.3f}" for tau, row in geo["thresholds"].items())
+              + (f", Chamfer {geo['chamfer']:.4f}" if geo["chamfer"] is not None else ", Chamfer n/a")
+              + " (normalised scene units)")
     return 0
 
 

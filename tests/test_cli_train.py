@@ -1,13 +1,14 @@
 """The train / render / eval subcommands end to end on a tiny dataset written to disk."""
 
 import json
+import shutil
 import sys
 from pathlib import Path
 
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli
+from jaxnerf_grid import cli, io
 from jaxnerf_grid.data.formats import save_transforms_json
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -32,6 +33,10 @@ def data_dir(tmp_path_factory):
     ds.depth = np.full(ds.images.shape[:3], 3.0, np.float32)
     out = tmp_path_factory.mktemp("tiny") / "data"
     save_transforms_json(ds, out)
+    # a reference tower cloud named by transforms.json, as the synthetic datasets have
+    io.write_ply(out / "tower.ply", np.random.default_rng(0).uniform(-0.3, 0.3, (500, 3)))
+    meta = io.read_json(out / "transforms.json")
+    io.write_json(out / "transforms.json", {**meta, "tower_ply": "tower.ply"})
     return out
 
 
@@ -66,6 +71,19 @@ def test_train_render_eval(data_dir, tmp_path, capsys):
     assert "| PSNR |" in report and "report_views.png" in report and (run / "report_views.png").is_file()
     assert (run / "report_crops.png").is_file()   # the "tower" patch gives a crop
     assert (run / "tower_points.ply").is_file()
+    geo = m["geometry"]            # against the dataset's tower.ply
+    assert set(geo) >= {"thresholds", "chamfer", "num_pred", "num_ref", "box", "reference"}
+    assert set(geo["thresholds"]) == {"0.01", "0.02", "0.05"} and geo["reference"].endswith("tower.ply")
+    assert 0 < geo["num_ref"] <= 500 and "## Tower geometry" in report
+    # --reference-ply: the exported cloud as its own reference scores F = 1 at every threshold
+    shutil.copy(run / "tower_points.ply", tmp_path / "ref.ply")
+    assert cli.main(["eval", "--run", str(run), "--quiet", "--distractor-views", "0",
+                     "--reference-ply", str(tmp_path / "ref.ply")]) == 0
+    geo = json.loads((run / "metrics.json").read_text())["geometry"]
+    assert geo["num_pred"] == geo["num_ref"] > 0 and geo["chamfer"] == 0.0
+    assert all(row["fscore"] == 1.0 for row in geo["thresholds"].values())
+    assert cli.main(["eval", "--run", str(run), "--quiet", "--reference-ply", str(tmp_path / "no.ply")]) == 1
+    assert "no.ply" in capsys.readouterr().err
     # resuming the finished run is a no-op; a different config is refused
     assert cli.main(["train", "--data", str(data_dir), "--config", str(cfg_file), "--out", str(run), "--quiet"]) == 0
     assert cli.main(["train", "--data", str(data_dir), "--method", "nerf", "--config", str(cfg_file),

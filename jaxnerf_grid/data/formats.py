@@ -336,13 +336,13 @@ def resize_frame(frame: dict, size: tuple[int, int]) -> dict:
 
 def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress: bool = True) -> dict:
     """Reads every frame, checks they share one size, downscales. Returns stacked arrays."""
-    from tqdm import tqdm
+    from jaxnerf_grid import progress as progress_lib
 
     frames = scene.frames
     read = []
     ref = None  # (W, H, path) of the first frame
-    for i in tqdm(range(len(frames)), desc=f"loading {scene.meta.get('format', 'images')}",
-                  disable=not progress or len(frames) < 32, leave=False):
+    for i in progress_lib.bar(range(len(frames)), desc=f"loading {scene.meta.get('format', 'images')}",
+                              unit="frame", enabled=progress and len(frames) >= 32, leave=False):
         fr = read_frame(scene, i, load_extras)
         h, w = fr["image"].shape[:2]
         if ref is None:

@@ -113,7 +113,7 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
     (refused when it exists and is not empty, unless `overwrite`); size: (W, H), an int long
     side, or None (keep each dataset's first image size). Returns `out_dir` as a Path.
     """
-    from tqdm import tqdm
+    from jaxnerf_grid import progress
 
     out = io.ensure_writable(out_dir, overwrite)
     opts = dict(clahe=clahe, normalize=normalize, clahe_clip=clahe_clip, clahe_grid=clahe_grid)
@@ -134,7 +134,7 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
     files = _list_images(src)
     out.mkdir(parents=True, exist_ok=True)
     common, entries = None, []
-    for path in tqdm(files, desc="preprocessing", disable=len(files) < 16, leave=False):
+    for path in progress.bar(files, desc="preprocessing", unit="image", enabled=len(files) >= 16, leave=False):
         img = io.read_image(path)  # EXIF orientation honoured
         h, w = img.shape[:2]
         common = common or target_size(w, h, size)
@@ -148,13 +148,13 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
 
 
 def _preprocess_scene(scene: formats.Scene, out: Path, size, opts: dict, load_extras: bool) -> Path:
-    from tqdm import tqdm
+    from jaxnerf_grid import progress
 
     out.mkdir(parents=True, exist_ok=True)
     names = formats.split_names(scene.split, len(scene.frames))
     common, frames = None, []
     num = len(scene.frames)
-    for i in tqdm(range(num), desc="preprocessing", disable=num < 16, leave=False):
+    for i in progress.bar(range(num), desc="preprocessing", unit="frame", enabled=num >= 16, leave=False):
         fr = formats.read_frame(scene, i, load_extras)
         h, w = fr["image"].shape[:2]
         common = common or target_size(w, h, size)

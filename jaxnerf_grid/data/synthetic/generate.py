@@ -576,7 +576,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
     processes (the output is identical for any worker count). Refuses a non-empty `out_dir`
     unless `overwrite` (then only this generator's own files and folders there are replaced).
     """
-    from tqdm import tqdm
+    from jaxnerf_grid import progress as progress_lib
 
     cfg = make_config(preset, seed, distractors, **overrides)
     out = io.ensure_writable(out_dir, overwrite)
@@ -597,11 +597,11 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
     for i, sp in enumerate(split):
         tasks.append((i, f"{sp}_{counters[sp]:03d}", sp, c2w_all[i]))
         counters[sp] += 1
-    bar = dict(total=len(tasks), desc=f"synth {cfg.preset}", unit="view", disable=not progress)
+    bar = dict(total=len(tasks), desc=f"synth {cfg.preset}", unit="view", enabled=progress)
     workers = max(1, min(int(workers), len(tasks)))
     if workers == 1:
         _worker_init(cfg, str(out))
-        results = [_render_and_write(t) for t in tqdm(tasks, **bar)]
+        results = [_render_and_write(t) for t in progress_lib.bar(tasks, **bar)]
         world = _WORKER["world"]
     else:
         import multiprocessing
@@ -611,7 +611,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
 
         ctx = multiprocessing.get_context("spawn")
         done: dict = {}
-        with tqdm(**bar) as pbar:
+        with progress_lib.bar(**bar) as pbar:
             try:
                 with ProcessPoolExecutor(workers, mp_context=ctx, initializer=_worker_init,
                                          initargs=(cfg, str(out))) as pool:

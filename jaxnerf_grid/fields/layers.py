@@ -1,0 +1,102 @@
+"""Dense layers and heads shared by every field kind (plain dict pytrees).
+
+`he_dense` / `glorot_dense` initialise one layer {"w": [in, out], "b": [out]}; `dense` applies
+it. `transient_init` / `transient_apply` are NeRF-W's transient head (Martin-Brualla et al.
+2021): from a field's feature and a per-image transient embedding, a transient density, a
+transient colour and an uncertainty beta. `activate_density` is the density activation of
+every field.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+DENSITY_ACTIVATIONS = ("softplus", "relu", "exp")
+
+
+def he_dense(key, fan_in: int, fan_out: int) -> dict:
+    """ReLU layer: He-normal weights (std sqrt(2 / fan_in)), zero bias."""
+    w = jax.random.normal(key, (fan_in, fan_out), jnp.float32) * jnp.sqrt(2.0 / fan_in)
+    return {"w": w, "b": jnp.zeros((fan_out,), jnp.float32)}
+
+
+def glorot_dense(key, fan_in: int, fan_out: int) -> dict:
+    """Linear output layer: Glorot-uniform weights (limit sqrt(6 / (in + out))), zero bias."""
+    limit = jnp.sqrt(6.0 / (fan_in + fan_out))
+    w = jax.random.uniform(key, (fan_in, fan_out), jnp.float32, -limit, limit)
+    return {"w": w, "b": jnp.zeros((fan_out,), jnp.float32)}
+
+
+def dense(layer: dict, x: jnp.ndarray) -> jnp.ndarray:
+    """x: [..., in] -> [..., out]."""
+    return x @ layer["w"] + layer["b"]
+
+
+@jax.custom_jvp
+def trunc_exp(x: jnp.ndarray) -> jnp.ndarray:
+    """exp(x) whose derivative is exp(clip(x, -15, 15)) (Instant-NGP's density activation:
+    large densities without exploding gradients)."""
+    return jnp.exp(x)
+
+
+@trunc_exp.defjvp
+def _trunc_exp_jvp(primals, tangents):
+    (x,), (dx,) = primals, tangents
+    return jnp.exp(x), dx * jnp.exp(jnp.clip(x, -15.0, 15.0))
+
+
+def activate_density(raw: jnp.ndarray, activation: str, bias: float) -> jnp.ndarray:
+    """raw: [...] -> sigma [...] >= 0: softplus(raw + bias), relu(raw) or trunc_exp(raw + bias)."""
+    if activation == "softplus":
+        return jax.nn.softplus(raw + bias)
+    if activation == "exp":
+        return trunc_exp(jnp.minimum(raw + bias, 30.0))
+    return jax.nn.relu(raw)
+
+
+def transient_init(key, feature_dim: int, transient_dim: int, depth: int, width: int) -> dict:
+    """{"transient": [depth layers], "transient_out": {w: [width, 5], b}}."""
+    keys = jax.random.split(key, depth + 1)
+    layers, fan_in = [], feature_dim + transient_dim
+    for i in range(depth):
+        layers.append(he_dense(keys[i], fan_in, width))
+        fan_in = width
+    # outputs: transient density (1), transient colour (3), uncertainty beta (1)
+    return {"transient": layers, "transient_out": glorot_dense(keys[-1], width, 5)}
+
+
+def transient_apply(params: dict, feature: jnp.ndarray, transient: jnp.ndarray | None) -> dict:
+    """feature: [..., C]; transient: [..., T] (broadcast). Returns transient_sigma [...] >= 0,
+    transient_rgb [..., 3] in (0, 1), beta [...] > 0 (without beta_min)."""
+    if transient is None:
+        raise ValueError("fields.apply: this field has a transient head; pass transient")
+    size = params["transient"][0]["w"].shape[0] - feature.shape[-1]
+    t = jnp.concatenate([feature, jnp.broadcast_to(transient, (*feature.shape[:-1], size))], axis=-1)
+    for layer in params["transient"]:
+        t = jax.nn.relu(dense(layer, t))
+    raw = dense(params["transient_out"], t)
+    return {"transient_sigma": jax.nn.softplus(raw[..., 0]), "transient_rgb": jax.nn.sigmoid(raw[..., 1:4]),
+            "beta": jax.nn.softplus(raw[..., 4])}
+
+
+def colour_inputs(feature: jnp.ndarray, viewdirs, appearance, use_viewdirs: bool, dir_max_deg: int,
+                  appearance_dim: int) -> jnp.ndarray:
+    """The colour branch's input: [feature, encoded direction, appearance embedding].
+
+    feature: [..., C]; viewdirs: [..., 3] (broadcast) or None; appearance: [..., A] or None
+    (zeros). Returns [..., C + D + A].
+    """
+    from jaxnerf_grid import coords
+
+    branch = [feature]
+    if use_viewdirs:
+        if viewdirs is None:
+            raise ValueError("fields.apply: this field uses view directions; pass viewdirs")
+        dirs = jnp.broadcast_to(viewdirs, (*feature.shape[:-1], 3))
+        branch.append(coords.positional_encoding(dirs, 0, dir_max_deg))
+    if appearance_dim > 0:
+        if appearance is None:
+            appearance = jnp.zeros((appearance_dim,), feature.dtype)
+        branch.append(jnp.broadcast_to(appearance, (*feature.shape[:-1], appearance_dim)))
+    return jnp.concatenate(branch, axis=-1)
