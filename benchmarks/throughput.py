@@ -1,7 +1,11 @@
 """Training and rendering throughput (rays/s) per method and config on this machine.
 
     JAX_PLATFORMS=cpu XLA_FLAGS=--xla_force_host_platform_device_count=2 \
-        python benchmarks/throughput.py [--steps 5] [--configs demo,paper-small] [--methods ours,nerf,nerfw]
+        python benchmarks/throughput.py [--steps 5] [--configs mlp,grid-hierarchical,demo] [--methods ours]
+
+Configs: "mlp" (the MLP field with 32 + 32 hierarchical samples, the demo before the grid),
+"grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the demo recipe: hash
+grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128).
 
 For every (method, config): compiles the pmapped training step (time reported separately),
 then times `--steps` steps (block_until_ready) and rendering of `--render-rays` rays in
@@ -16,6 +20,7 @@ import dataclasses
 import json
 import os
 import platform
+import sys
 import time
 from pathlib import Path
 
@@ -26,7 +31,12 @@ from jaxnerf_grid import rays as rays_lib, train
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.train_cli import DEMO_CONFIG
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+from convergence import MLP_CONFIG, RUNS  # noqa: E402
+
 CONFIGS = {
+    "mlp": MLP_CONFIG,
+    "grid-hierarchical": RUNS["grid-hierarchical"],
     "demo": DEMO_CONFIG,
     "paper-small": {"model": {"field": {"depth": 8, "width": 256, "skip": 4, "view_width": 128},
                               "num_coarse": 64, "num_fine": 128},
@@ -45,6 +55,13 @@ def scene(width=160, height=120, frames=8) -> Dataset:
                    c2w=np.asarray(c2w, np.float32),
                    intrinsics=np.tile(np.array([[fx, fx, width / 2, height / 2]], np.float32), (frames, 1)),
                    split={"train": np.arange(frames - 1), "test": np.array([frames - 1])}, near=0.5, far=60.0)
+
+
+def samples_per_ray(mcfg) -> str:
+    """Field evaluations per ray, e.g. "64p+32" (proposal + main) or "32+32"."""
+    if mcfg.sampler == "proposal":
+        return "+".join(f"{n}p" for n in mcfg.proposal_samples) + f"+{mcfg.num_fine}"
+    return f"{mcfg.num_coarse}+{mcfg.num_fine}" if mcfg.hierarchical else str(mcfg.num_coarse)
 
 
 def bench(method: str, name: str, steps: int, render_rays: int) -> dict:
@@ -74,8 +91,9 @@ def bench(method: str, name: str, steps: int, render_rays: int) -> dict:
     train.render_rays_chunked(params, cfg.model, flat, 0, None, cfg.train.chunk, n)
     render_s = time.perf_counter() - t
     return {"method": method, "config": name, "devices": n, "batch_rays": cfg.train.batch_rays,
-            "samples_per_ray": cfg.model.num_coarse + (cfg.model.num_fine if cfg.model.hierarchical else 0),
-            "field": f"{cfg.model.field.depth}x{cfg.model.field.width}",
+            "samples_per_ray": samples_per_ray(cfg.model),
+            "field": f"{cfg.model.field.kind} {cfg.model.field.depth}x{cfg.model.field.width}",
+            "sampler": cfg.model.sampler,
             "compile_s": compile_s, "step_s": train_s, "train_rays_per_s": cfg.train.batch_rays / train_s,
             "render_rays_per_s": len(flat.near) / render_s}
 
@@ -84,8 +102,8 @@ def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--steps", type=int, default=5)
     p.add_argument("--render-rays", type=int, default=8192)
-    p.add_argument("--configs", default="demo")
-    p.add_argument("--methods", default="ours,nerf,nerfw")
+    p.add_argument("--configs", default="mlp,grid-hierarchical,demo")
+    p.add_argument("--methods", default="ours")
     p.add_argument("--out", default=str(Path(__file__).parent / "results" / "throughput.json"))
     args = p.parse_args()
     rows = []
@@ -93,7 +111,7 @@ def main() -> None:
         for method in args.methods.split(","):
             row = bench(method, name, args.steps, args.render_rays)
             rows.append(row)
-            print(f"{method:6s} {name:12s} {row['field']:7s} {row['samples_per_ray']:4d} samples  "
+            print(f"{method:6s} {name:18s} {row['field']:12s} {row['samples_per_ray']:>7s} samples  "
                   f"train {row['train_rays_per_s']:8.0f} rays/s ({row['step_s']:.2f} s/step, "
                   f"compile {row['compile_s']:.0f} s)  render {row['render_rays_per_s']:8.0f} rays/s", flush=True)
     out = {"machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),

@@ -369,7 +369,7 @@ def render_rays(params: dict, cfg: ModelConfig, origins, directions, near, far, 
 
 def final_pass(outputs: dict) -> dict:
     """The pass whose outputs are the picture: fine when present, else coarse."""
-    return outputs.get("fine", outputs["coarse"])
+    return outputs["fine"] if "fine" in outputs else outputs["coarse"]
 
 
 def static_rgb(outputs: dict) -> jnp.ndarray:

@@ -208,7 +208,7 @@ def make_train_step(cfg: RunConfig, num_devices: int):
             terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
                                         tcfg.coarse_loss_weight, tcfg.interlevel_loss_weight,
                                         tcfg.distortion_loss_weight)
-            mse = terms.get("mse_fine", terms["mse_coarse"])
+            mse = terms["mse_fine"] if "mse_fine" in terms else terms["mse_coarse"]
             loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
             return loss, losses.weighted_mean(mse, batch["weight"], total)
 
@@ -289,9 +289,9 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     last_loss = last_psnr = float("nan")
     bar = None
     if progress:
-        from tqdm import tqdm
+        from jaxnerf_grid import progress as progress_lib
 
-        bar = tqdm(total=end, initial=step, desc=f"train {mcfg.method}", unit="step", dynamic_ncols=True)
+        bar = progress_lib.bar(total=end, initial=step, desc=f"train {mcfg.method}", unit="step")
     start_time = time.perf_counter()
     window_start, window_steps = time.perf_counter(), 0
     try:
@@ -382,9 +382,9 @@ def render_rays_chunked(params, mcfg: models.ModelConfig, r: rays_lib.Rays, imag
     pieces = []
     starts = range(0, count, chunk)
     if progress:
-        from tqdm import tqdm
+        from jaxnerf_grid import progress as progress_lib
 
-        starts = tqdm(starts, desc="render", unit="chunk", leave=False)
+        starts = progress_lib.bar(starts, desc="render", unit="chunk", leave=False)
     for start in starts:
         part = {k: v[start:start + chunk] for k, v in flat.items()}
         valid = part["near"].shape[0]

@@ -171,3 +171,36 @@ def test_read_ply_ascii_and_big_endian_double(tmp_path):
     (tmp_path / "c.ply").write_bytes(header + pts.astype(">f8").tobytes()[:20])
     with pytest.raises(io.DataError, match="c.ply"):
         io.read_ply_points(tmp_path / "c.ply")
+
+
+def test_score_geometry_of_a_dataset(tmp_path):
+    """train_cli.score_geometry (what evaluate_run stores as metrics["geometry"]): the dataset's
+    tower_ply, stored in the file's normalisation, against a cloud in the dataset's (re-normalised)
+    frame; --reference-ply instead; None without a reference."""
+    from types import SimpleNamespace
+
+    from jaxnerf_grid import train_cli
+    from jaxnerf_grid.data.normalize import apply_normalization_to_points, compose_normalization
+
+    metric = np.random.default_rng(8).uniform([-4, -4, 0], [4, 4, 30], size=(300, 3))
+    file_norm = {"scale": 0.05, "translation": [0.0, 0.0, -15.0]}
+    scene_norm = compose_normalization(file_norm, {"scale": 0.8, "translation": [0.05, 0.0, 0.1]})
+    io.write_ply(tmp_path / "tower.ply", apply_normalization_to_points(metric, file_norm))
+    ds = SimpleNamespace(root=tmp_path, normalization=scene_norm,
+                         meta={"tower_ply": "tower.ply", "scene_normalization": file_norm})
+    # the reference in the scene's frame (checked against the metric points; bit-equal to what
+    # score_geometry computes, so no point sits a rounding error outside the crop box)
+    pred = geometry.reference_to_scene(io.read_ply_points(tmp_path / "tower.ply"), file_norm, scene_norm)
+    np.testing.assert_allclose(pred, apply_normalization_to_points(metric, scene_norm), atol=1e-5)
+    cloud = [(pred[:100], np.zeros((100, 3))), (pred[100:], np.zeros((200, 3)))]
+    res = train_cli.score_geometry(ds, cloud)
+    assert res["reference"] == str(tmp_path / "tower.ply") and res["num_pred"] == res["num_ref"] > 250
+    assert all(v["fscore"] == 1.0 for v in res["thresholds"].values()) and res["chamfer"] == 0.0
+    # the same points read as if already in the scene's units would be off: F < 1
+    off = train_cli.score_geometry(ds, cloud, reference_ply=tmp_path / "tower.ply")
+    assert off["thresholds"]["0.01"]["fscore"] < 0.5
+    assert train_cli.score_geometry(SimpleNamespace(root=tmp_path, normalization=scene_norm, meta={}), cloud) is None
+    ds.meta["tower_ply"] = "missing.ply"
+    assert train_cli.score_geometry(ds, cloud) is None
+    with pytest.raises(io.DataError, match="missing.ply"):
+        train_cli.score_geometry(ds, cloud, reference_ply=tmp_path / "missing.ply")

@@ -13,6 +13,11 @@ from jaxnerf_grid import fields, rays as rays_lib, train
 from jaxnerf_grid.data.dataset import Dataset
 
 TINY_FIELD = {"depth": 2, "width": 32, "skip": 1, "pos_max_deg": 4, "dir_max_deg": 2, "view_width": 16}
+TINY_GRID = {"kind": "grid", "depth": 1, "width": 16, "dir_max_deg": 2, "view_width": 16, "view_depth": 2,
+             "density_activation": "exp", "geo_features": 7,
+             "grid": {"num_levels": 4, "features_per_level": 2, "log2_table_size": 10, "min_resolution": 4,
+                      "max_resolution": 64, "init_scale": 0.1}}
+TINY_PROPOSAL = {**TINY_GRID, "width": 8, "grid": {**TINY_GRID["grid"], "num_levels": 2, "max_resolution": 16}}
 
 
 def tiny_dataset(width=16, height=12, frames=5, seed=0) -> Dataset:
@@ -41,8 +46,15 @@ def tiny_dataset(width=16, height=12, frames=5, seed=0) -> Dataset:
                    near=1.0, far=8.0, weights=weights)
 
 
-def tiny_config(method="ours", **train_kw):
-    overrides = {"model": {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8},
+def tiny_config(method="ours", field="mlp", **train_kw):
+    """field "mlp": the MLP with 8 + 8 hierarchical samples; "grid": a hash grid with one proposal
+    round of 12 samples -> 8, and the distortion loss on."""
+    model = {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8}
+    if field == "grid":
+        model.update({"field": TINY_GRID, "sampler": "proposal", "proposal_samples": [12],
+                      "proposal_field": TINY_PROPOSAL})
+        train_kw.setdefault("distortion_loss_weight", 0.01)
+    overrides = {"model": model,
                  "train": {"batch_rays": 64, "max_steps": 30, "checkpoint_every": 10, "log_every": 5,
                            "warmup": 5, "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256, "num_devices": 2,
                            **train_kw}}
@@ -66,19 +78,34 @@ def test_pool_holds_exactly_the_weighted_pixels_and_rays_match():
     assert train.build_pool(ds, tiny_config("nerf"))["pixels"].size == 4 * 12 * 16
 
 
-def test_two_devices_match_one_device(tmp_path):
+@pytest.mark.parametrize("field", ["mlp", "grid"])
+def test_two_devices_match_one_device(tmp_path, field):
     assert jax.local_device_count() >= 2, "run with XLA_FLAGS=--xla_force_host_platform_device_count=2"
     ds = tiny_dataset()
     results = []
     for n in (1, 2):
-        cfg = tiny_config(num_devices=n)
+        cfg = tiny_config(field=field, num_devices=n)
         results.append(train.train(ds, cfg, tmp_path / f"dev{n}", progress=False, stop_at=4).params)
     diffs = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(a - b))), *results)
-    moved = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(a - b))), results[0],
-                                   train.init_state(dataclasses.replace(
-                                       tiny_config(), model=dataclasses.replace(tiny_config().model, num_images=5)))["params"])
+    cfg = tiny_config(field=field)
+    initial = train.init_state(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=5)))["params"]
+    moved = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(a - b))), results[0], initial)
     assert max(jax.tree_util.tree_leaves(diffs)) < 1e-5, diffs
     assert max(jax.tree_util.tree_leaves(moved)) > 1e-3  # the steps did change the parameters
+    if field == "grid":  # the proposal field is trained too (by the interlevel loss)
+        assert max(jax.tree_util.tree_leaves(moved["proposal"])) > 1e-3
+
+
+def test_grid_proposal_run_resumes_exactly(tmp_path):
+    ds = tiny_dataset()
+    cfg = tiny_config(field="grid", max_steps=20)
+    train.train(ds, cfg, tmp_path / "resumed", progress=False, stop_at=10)   # checkpoint at step 10
+    resumed = train.train(ds, cfg, tmp_path / "resumed", progress=False)
+    straight = train.train(ds, cfg, tmp_path / "straight", progress=False)
+    assert resumed.step == straight.step == 20
+    diffs = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(np.asarray(a) - np.asarray(b)))),
+                                   resumed.params, straight.params)
+    assert max(jax.tree_util.tree_leaves(diffs)) <= 1e-6, diffs
 
 
 def test_non_finite_steps_are_skipped_and_logged(tmp_path, caplog):
@@ -96,9 +123,10 @@ def test_non_finite_steps_are_skipped_and_logged(tmp_path, caplog):
     assert lines[-1]["skipped_total"] == 3
 
 
-def test_training_learns_and_chunked_render_is_consistent(tmp_path):
+@pytest.mark.parametrize("field", ["mlp", "grid"])
+def test_training_learns_and_chunked_render_is_consistent(tmp_path, field):
     ds = tiny_dataset()
-    cfg = tiny_config()
+    cfg = tiny_config(field=field)
     res = train.train(ds, cfg, tmp_path, progress=False)
     log = [json.loads(x) for x in (tmp_path / "metrics.jsonl").read_text().splitlines()]
     assert [x["step"] for x in log] == [5, 10, 15, 20, 25, 30]

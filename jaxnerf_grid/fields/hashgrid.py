@@ -129,11 +129,17 @@ def corners(cfg: HashConfig, u: jnp.ndarray) -> tuple[jnp.ndarray, jnp.ndarray]:
     return row, weights
 
 
+def _mix(weights: jnp.ndarray, feats: jnp.ndarray) -> jnp.ndarray:
+    """weights: [..., L, 8]; feats: [..., L, 8, F] -> [..., L, F]."""
+    return jnp.einsum("...lk,...lkf->...lf", weights, feats)
+
+
 def encode(params: dict, cfg: HashConfig, x: jnp.ndarray) -> jnp.ndarray:
     """Hash-grid features of points. x: [..., 3] in [-1, 1] -> [..., L * F]."""
     rows, weights = corners(cfg, 0.5 * (x + 1.0))
-    feats = jnp.take(params["table"], rows, axis=0, mode="clip")           # [..., L, 8, F]
-    mixed = jnp.sum(weights[..., None] * feats, axis=-2)                  # [..., L, F]
+    # One gather for all levels and corners; the einsum (not a broadcast product and a sum)
+    # keeps XLA:CPU from fusing the gather into the reduction, which is 3x slower.
+    mixed = _mix(weights, params["table"].at[rows].get(mode="promise_in_bounds"))
     return mixed.reshape(*x.shape[:-1], cfg.num_levels * cfg.features_per_level)
 
 
