@@ -71,6 +71,9 @@ class ModelConfig:
     shared_field: one MLP for both passes (mip-NeRF) instead of two (NeRF).
     near, far: override the dataset's bounds (None: use the dataset's).
     background: grey level behind the last bin.
+    opaque_far: make the last bin of every pass opaque (its density infinite), so a ray that
+      reaches the far bound takes the colour of the field there: the sky is modelled at the far
+      sphere instead of as a dome of haze near the cameras (multinerf's opaque background).
     use_appearance, appearance_dim; use_transient, transient_dim; beta_min, lambda_u: NeRF-W.
     num_images: size of the embedding tables (set from the dataset by the trainer).
     """
@@ -93,6 +96,7 @@ class ModelConfig:
     near: float | None = None
     far: float | None = None
     background: float = 0.0
+    opaque_far: bool = False
     single_jitter: bool = False
     use_appearance: bool = False
     appearance_dim: int = 48
@@ -214,6 +218,14 @@ def field_inputs(cfg: ModelConfig, origin: jnp.ndarray, direction: jnp.ndarray,
     return x / encoding_scale(cfg)
 
 
+OPAQUE_DENSITY = 1e10
+
+
+def opaque_last_bin(sigma: jnp.ndarray) -> jnp.ndarray:
+    """sigma: [..., S] -> the same with the last bin's density set to OPAQUE_DENSITY (alpha 1)."""
+    return sigma.at[..., -1].set(OPAQUE_DENSITY)
+
+
 def _transient_composite(out: dict, t_edges: jnp.ndarray, background: float, beta_min: float) -> dict:
     """NeRF-W compositing of a static and a transient component with shared transmittance.
 
@@ -242,6 +254,8 @@ def _one_pass(field_params, field_cfg, cfg: ModelConfig, origin, direction, s_ed
     t_edges = s_to_t(s_edges)
     x = field_inputs(cfg, origin, direction, t_edges)
     out = fields.apply(field_params, field_cfg, x, direction[..., None, :], appearance, transient)
+    if cfg.opaque_far:
+        out = dict(out, sigma=opaque_last_bin(out["sigma"]))
     weights = render.alpha_weights(out["sigma"], t_edges)
     result = render.composite(weights, out["rgb"], t_edges, background=cfg.background)
     result["s_edges"] = s_edges
@@ -330,6 +344,8 @@ def proposal_rounds(params: dict, cfg: ModelConfig, origin, direction, s_to_t, b
         t_edges = s_to_t(s_edges)
         sigma = fields.proposal.density(params["proposal"][k], cfg.proposal_field,
                                         field_inputs(cfg, origin, direction, t_edges))
+        if cfg.opaque_far:
+            sigma = opaque_last_bin(sigma)
         rounds.append({"s_edges": s_edges, "weights": render.alpha_weights(sigma, t_edges)})
     s_main = sampling.resample_pdf(keys[-1], s_edges, rounds[-1]["weights"], cfg.num_fine + 1, cfg.single_jitter,
                                    cfg.proposal_padding)

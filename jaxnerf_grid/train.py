@@ -49,7 +49,8 @@ class TrainConfig:
     """Optimisation and I/O settings.
 
     batch_rays: global rays per step (split over devices; must divide by the device count).
-    lr_init, lr_final, warmup: learning-rate schedule; max_grad_norm: clipping (0 = off).
+    lr_init, lr_final, warmup: learning-rate schedule; max_grad_norm: clipping (0 = off);
+    adam_b1, adam_b2, adam_eps: Adam's moments and epsilon (Instant-NGP: 0.9, 0.99, 1e-15).
     use_masks: weight the loss by the dataset's `1 - M_w` (False: every pixel weight 1).
     mask_weight_floor: with masks, a masked pixel's weight is at most 1 - floor (DESIGN.md:
       Eq. 7 gives a bird against the sky a weight near 1; floor 1 excludes every masked pixel).
@@ -68,6 +69,8 @@ class TrainConfig:
     warmup: int = 100
     max_grad_norm: float = 1.0
     adam_eps: float = 1e-6
+    adam_b1: float = 0.9
+    adam_b2: float = 0.999
     use_masks: bool = True
     mask_weight_floor: float = 0.0
     coarse_loss_weight: float = 1.0
@@ -169,7 +172,7 @@ def gather_batch(pool: dict, ids: jnp.ndarray) -> dict:
 
 def make_optimizer(cfg: TrainConfig) -> optim.GradientTransformation:
     schedule = optim.make_lr_schedule(cfg.lr_init, cfg.lr_final, cfg.warmup, cfg.max_steps)
-    return optim.adam(schedule, eps=cfg.adam_eps, max_grad_norm=cfg.max_grad_norm)
+    return optim.adam(schedule, b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps, max_grad_norm=cfg.max_grad_norm)
 
 
 def init_state(cfg: RunConfig) -> dict:

@@ -179,3 +179,52 @@ def test_validation_errors():
     with pytest.raises(ConfigError, match="method"):
         models.method_defaults("mipnerf")
     assert dataclasses.asdict(_cfg("nerf"))["use_contraction"] is False
+
+
+def _sphere_density(params, cfg, x):
+    return jnp.where(jnp.linalg.norm(x, axis=-1) < 0.5, 200.0, 0.0)
+
+
+def _sphere_and_sky_field(params, cfg, x, viewdirs=None, appearance=None, transient=None):
+    """The red ball of _sphere_field, and blue everywhere outside (the colour the far bin shows)."""
+    out = _sphere_field(params, cfg, x, viewdirs, appearance, transient)
+    inside = (jnp.linalg.norm(x, axis=-1) < 0.5)[..., None]
+    out["rgb"] = jnp.where(inside, out["rgb"], jnp.array([0.0, 0.0, 1.0]))
+    return out
+
+
+@pytest.mark.parametrize("opaque_far", [False, True])
+def test_proposal_sampling_finds_sphere_surface_and_opaque_far_shows_the_far_colour(monkeypatch, opaque_far):
+    monkeypatch.setattr(fields, "apply", _sphere_and_sky_field)
+    monkeypatch.setattr(fields.proposal, "density", _sphere_density)
+    grid = fields.FieldConfig(kind="grid", depth=1, width=8, density_activation="exp",
+                              grid=fields.HashConfig(num_levels=2, log2_table_size=8, min_resolution=4,
+                                                     max_resolution=8))
+    cfg = _cfg("ours", sampler="proposal", proposal_samples=(64,), num_fine=16, field=grid, proposal_field=grid,
+               opaque_far=opaque_far)
+    params = models.init(jax.random.PRNGKey(0), cfg)
+    o, _ = _rays(8, seed=2)
+    d_hit = -o / np.linalg.norm(o, axis=-1, keepdims=True)   # through the centre: surface at t = 2
+    d_miss = o / np.linalg.norm(o, axis=-1, keepdims=True)   # straight away from the ball
+    d = np.concatenate([d_hit, d_miss])
+    o = np.concatenate([o, o])
+    out = _render(params, cfg, jnp.asarray(o), jnp.asarray(d), jnp.full(16, 0.5), jnp.full(16, 20.0),
+                  keys=jax.random.split(jax.random.PRNGKey(1), 16))
+    fine = out["fine"]
+    assert "coarse" not in out and len(out["proposals"]) == 1
+    np.testing.assert_allclose(fine["opacity"][:8], 1.0, atol=1e-3)
+    np.testing.assert_allclose(fine["rgb"][:8], np.tile([1.0, 0, 0], (8, 1)), atol=1e-3)
+    # 16 main samples resampled from the proposal: the surface bin is found to within a
+    # fraction of a proposal bin, and most main samples sit at the surface
+    assert np.abs(np.asarray(fine["depth"][:8]) - 2.0).max() < 0.1
+    t = np.asarray(fine["t_edges"][:8])
+    near_surface = np.mean(np.abs(0.5 * (t[:, 1:] + t[:, :-1]) - 2.0) < 0.3, axis=-1)
+    assert np.all(near_surface > 0.5), near_surface
+    # rays that miss: empty (background black) unless the far bin is opaque, then its colour
+    if opaque_far:
+        np.testing.assert_allclose(fine["opacity"][8:], 1.0, atol=1e-6)
+        np.testing.assert_allclose(fine["rgb"][8:], np.tile([0, 0, 1.0], (8, 1)), atol=1e-6)
+        np.testing.assert_allclose(np.asarray(out["proposals"][0]["weights"][8:]).sum(-1), 1.0, atol=1e-6)
+    else:
+        np.testing.assert_allclose(fine["opacity"][8:], 0.0, atol=1e-6)
+        np.testing.assert_allclose(fine["rgb"][8:], 0.0, atol=1e-6)
