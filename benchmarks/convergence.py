@@ -46,6 +46,7 @@ MLP_CONFIG = {  # the demo's recipe before the grid field (see git history of tr
 
 
 def _grid_hierarchical() -> dict:
+    """The demo recipe with NeRF's coarse + fine sampler (two grid fields, 32 + 32 samples)."""
     cfg = copy.deepcopy(DEMO_CONFIG)
     cfg["model"].update({"sampler": "hierarchical", "num_coarse": 32, "num_fine": 32, "fine_union": False})
     return cfg
@@ -83,8 +84,8 @@ def score(params, cfg, ds) -> dict:
 def run_one(name: str, overrides: dict, data: Path, ds, out: Path, every: int, scale: float) -> dict:
     overrides = copy.deepcopy(overrides)
     steps = max(2, int(round(overrides["train"]["max_steps"] * scale)))
-    overrides["train"].update({"max_steps": steps, "checkpoint_every": max(1, int(round(every * scale))),
-                               "keep_checkpoints": 1000})
+    every = max(1, int(round(every * scale)))
+    overrides["train"].update({"max_steps": steps, "checkpoint_every": every, "keep_checkpoints": 100000})
     stamps = {}
     start = time.perf_counter()
     run_dir = out / "runs" / name
@@ -102,6 +103,8 @@ def run_one(name: str, overrides: dict, data: Path, ds, out: Path, every: int, s
     points = []
     template = train.init_state(cfg)
     for step, path in checkpoint.list_checkpoints(run_dir):
+        if not (step <= 8 * every or step % (8 * every) == 0 or step == steps):
+            continue  # dense early, sparse later
         state = checkpoint.load_checkpoint(path, template)
         points.append({"step": step, "seconds": stamps.get(step), **score(state["params"], cfg, ds)})
         print(f"  {name:18s} step {step:5d}  {points[-1]['seconds']:6.0f} s  PSNR {points[-1]['psnr']:.2f}  "
@@ -122,7 +125,10 @@ def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=None, help="a masked dataset (default: tower-small, built and cached)")
     p.add_argument("--runs", default=",".join(RUNS))
-    p.add_argument("--every", type=int, default=200, help="checkpoint (and score) every N steps")
+    p.add_argument("--every", type=int, default=50,
+                   help="checkpoint every N steps; scored: the first 8, then every 8th, and the last")
+    p.add_argument("--steps", default=None,
+                   help="steps per run as name=N,... (default: each recipe's own max_steps)")
     p.add_argument("--scale", type=float, default=1.0, help="multiply every run's steps")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "convergence"))
     args = p.parse_args()
@@ -131,7 +137,13 @@ def main() -> int:
     from jaxnerf_grid.data.formats import load_dataset
 
     ds = load_dataset(data, progress=False)
-    rows = [run_one(name, RUNS[name], data, ds, out, args.every, args.scale) for name in args.runs.split(",")]
+    steps = dict(item.split("=") for item in args.steps.split(",")) if args.steps else {}
+    rows = []
+    for name in args.runs.split(","):
+        recipe = copy.deepcopy(RUNS[name])
+        if name in steps:
+            recipe["train"]["max_steps"] = int(steps[name])
+        rows.append(run_one(name, recipe, data, ds, out, args.every, args.scale))
     by_name = {r["name"]: r for r in rows}
     summary = []
     if "mlp-hierarchical" in by_name:
