@@ -42,25 +42,14 @@ def apply_trunk(params: dict, cfg: FieldConfig, x: jnp.ndarray) -> jnp.ndarray:
 
 def init(key, cfg: FieldConfig) -> dict:
     """Random parameters of a grid field."""
-    k_trunk, k_view, k_rgb, k_tr = jax.random.split(key, 4)
+    k_trunk, k_view, k_tr = jax.random.split(key, 3)
     params = init_trunk(k_trunk, cfg, 1 + cfg.geo_features)
-    keys = jax.random.split(k_view, cfg.view_depth)
-    view, fan_in = [], cfg.geo_features + dirs_size(cfg) + cfg.appearance_dim
-    for i in range(cfg.view_depth):
-        view.append(layers.he_dense(keys[i], fan_in, cfg.view_width))
-        fan_in = cfg.view_width
-    params["view"] = view
-    params["rgb"] = layers.glorot_dense(k_rgb, cfg.view_width, 3)
+    params.update(layers.init_colour_branch(k_view, cfg.geo_features + layers.dir_input_size(cfg) + cfg.appearance_dim,
+                                            cfg.view_depth, cfg.view_width))
     if cfg.transient_dim > 0:
         params.update(layers.transient_init(k_tr, cfg.geo_features, cfg.transient_dim, cfg.transient_depth,
                                             cfg.transient_width))
     return params
-
-
-def dirs_size(cfg: FieldConfig) -> int:
-    from jaxnerf_grid import coords
-
-    return coords.encoded_size(3, 0, cfg.dir_max_deg) if cfg.use_viewdirs else 0
 
 
 def apply(params: dict, cfg: FieldConfig, x: jnp.ndarray, viewdirs: jnp.ndarray | None = None,
@@ -68,11 +57,4 @@ def apply(params: dict, cfg: FieldConfig, x: jnp.ndarray, viewdirs: jnp.ndarray 
     """Evaluates the field at points; see fields.apply for the arguments and outputs."""
     raw = apply_trunk(params, cfg, x)
     sigma = layers.activate_density(raw[..., 0], cfg.density_activation, cfg.density_bias)
-    feature = raw[..., 1:]
-    v = layers.colour_inputs(feature, viewdirs, appearance, cfg.use_viewdirs, cfg.dir_max_deg, cfg.appearance_dim)
-    for layer in params["view"]:
-        v = jax.nn.relu(layers.dense(layer, v))
-    out = {"rgb": jax.nn.sigmoid(layers.dense(params["rgb"], v)), "sigma": sigma}
-    if cfg.transient_dim > 0:
-        out.update(layers.transient_apply(params, feature, transient))
-    return out
+    return layers.radiance_outputs(params, cfg, sigma, raw[..., 1:], viewdirs, appearance, transient)

@@ -80,6 +80,13 @@ def transient_apply(params: dict, feature: jnp.ndarray, transient: jnp.ndarray |
             "beta": jax.nn.softplus(raw[..., 4])}
 
 
+def dir_input_size(cfg) -> int:
+    """Width of the encoded view direction in the colour branch's input (0 without viewdirs)."""
+    from jaxnerf_grid import coords
+
+    return coords.encoded_size(3, 0, cfg.dir_max_deg) if cfg.use_viewdirs else 0
+
+
 def colour_inputs(feature: jnp.ndarray, viewdirs, appearance, use_viewdirs: bool, dir_max_deg: int,
                   appearance_dim: int) -> jnp.ndarray:
     """The colour branch's input: [feature, encoded direction, appearance embedding].
@@ -100,3 +107,27 @@ def colour_inputs(feature: jnp.ndarray, viewdirs, appearance, use_viewdirs: bool
             appearance = jnp.zeros((appearance_dim,), feature.dtype)
         branch.append(jnp.broadcast_to(appearance, (*feature.shape[:-1], appearance_dim)))
     return jnp.concatenate(branch, axis=-1)
+
+
+def init_colour_branch(key, fan_in: int, depth: int, width: int) -> dict:
+    """{"view": [depth ReLU layers of width], "rgb": {w: [width, 3], b}} on a [..., fan_in] input."""
+    keys = jax.random.split(key, depth + 1)
+    view = []
+    for i in range(depth):
+        view.append(he_dense(keys[i], fan_in, width))
+        fan_in = width
+    return {"view": view, "rgb": glorot_dense(keys[-1], width, 3)}
+
+
+def radiance_outputs(params: dict, cfg, sigma: jnp.ndarray, feature: jnp.ndarray, viewdirs, appearance,
+                     transient) -> dict:
+    """What every field kind returns, from its density and feature: the colour branch
+    (`colour_inputs` -> "view" layers -> sigmoid "rgb") and, with cfg.transient_dim > 0,
+    NeRF-W's transient head. sigma: [...]; feature: [..., C]. Returns fields.apply's dict."""
+    v = colour_inputs(feature, viewdirs, appearance, cfg.use_viewdirs, cfg.dir_max_deg, cfg.appearance_dim)
+    for layer in params["view"]:
+        v = jax.nn.relu(dense(layer, v))
+    out = {"rgb": jax.nn.sigmoid(dense(params["rgb"], v)), "sigma": sigma}
+    if cfg.transient_dim > 0:
+        out.update(transient_apply(params, feature, transient))
+    return out

@@ -27,8 +27,7 @@ def pos_input_size(cfg: FieldConfig) -> int:
     return coords.encoded_size(3, cfg.pos_min_deg, cfg.pos_max_deg)
 
 
-def dir_input_size(cfg: FieldConfig) -> int:
-    return coords.encoded_size(3, 0, cfg.dir_max_deg) if cfg.use_viewdirs else 0
+dir_input_size = layers.dir_input_size
 
 
 def init(key, cfg: FieldConfig) -> dict:
@@ -67,11 +66,5 @@ def apply(params: dict, cfg: FieldConfig, x: jnp.ndarray, viewdirs: jnp.ndarray 
             h = jnp.concatenate([h, encoded], axis=-1)
     sigma = layers.activate_density(layers.dense(params["density"], h)[..., 0], cfg.density_activation,
                                     cfg.density_bias)
-    feature = layers.dense(params["feature"], h)
-    v = layers.colour_inputs(feature, viewdirs, appearance, cfg.use_viewdirs, cfg.dir_max_deg, cfg.appearance_dim)
-    for layer in params["view"]:
-        v = jax.nn.relu(layers.dense(layer, v))
-    out = {"rgb": jax.nn.sigmoid(layers.dense(params["rgb"], v)), "sigma": sigma}
-    if cfg.transient_dim > 0:
-        out.update(layers.transient_apply(params, feature, transient))
-    return out
+    return layers.radiance_outputs(params, cfg, sigma, layers.dense(params["feature"], h), viewdirs, appearance,
+                                   transient)
