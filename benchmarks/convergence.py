@@ -10,7 +10,7 @@ mask-weighted loss), one process, the same machine:
   grid-hierarchical  the demo's hash grid with the same coarse + fine sampler
   grid-proposal      the demo recipe: hash grid + one proposal round (64 -> 32 samples)
 
-Each run keeps a checkpoint every `--every` steps, stamped with the training wall-clock time
+Each run keeps a checkpoint every `--every` steps (under benchmarks/.cache), stamped with the training wall-clock time
 when it was written (the trainer's own time, compile included; evaluation is not counted).
 After training every checkpoint is scored on the test views: PSNR against the clean images
 and PSNR inside the tower region. Prints a table, writes JSON and a PNG plot of PSNR and
@@ -88,7 +88,7 @@ def run_one(name: str, overrides: dict, data: Path, ds, out: Path, every: int, s
     overrides["train"].update({"max_steps": steps, "checkpoint_every": every, "keep_checkpoints": 100000})
     stamps = {}
     start = time.perf_counter()
-    run_dir = out / "runs" / name
+    run_dir = ROOT / "benchmarks" / ".cache" / "convergence_runs" / name  # checkpoints: not committed
     cfg = train.make_config("ours", overrides)
     import dataclasses
 
@@ -111,6 +111,14 @@ def run_one(name: str, overrides: dict, data: Path, ds, out: Path, every: int, s
               f"tower {points[-1]['tower_psnr'] or float('nan'):.2f}", flush=True)
     return {"name": name, "steps": steps, "batch_rays": cfg.train.batch_rays, "train_seconds": result.seconds,
             "rays_per_s": steps * cfg.train.batch_rays / result.seconds, "points": points}
+
+
+def _relative(path: Path) -> str:
+    """A path inside the repository as a relative one (no machine paths in committed results)."""
+    try:
+        return str(Path(path).resolve().relative_to(ROOT))
+    except ValueError:
+        return Path(path).name
 
 
 def time_to_reach(points: list[dict], target: float) -> float | None:
@@ -165,7 +173,7 @@ def main() -> int:
         print(line)
     result = {"machine": {"platform": platform.platform(), "cpu_count": os.cpu_count(),
                           "load_average": os.getloadavg()},
-              "data": str(data), "scale": args.scale, "runs": rows, "summary": summary}
+              "data": _relative(data), "scale": args.scale, "runs": rows, "summary": summary}
     out.mkdir(parents=True, exist_ok=True)
     io.write_json(out / "convergence.json", result)
     sys.path.insert(0, str(ROOT))
