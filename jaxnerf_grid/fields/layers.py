@@ -109,14 +109,15 @@ def colour_inputs(feature: jnp.ndarray, viewdirs, appearance, use_viewdirs: bool
     return jnp.concatenate(branch, axis=-1)
 
 
-def init_colour_branch(key, fan_in: int, depth: int, width: int) -> dict:
-    """{"view": [depth ReLU layers of width], "rgb": {w: [width, 3], b}} on a [..., fan_in] input."""
-    keys = jax.random.split(key, depth + 1)
+def init_colour_branch(view_key, rgb_key, fan_in: int, depth: int, width: int) -> dict:
+    """{"view": [depth ReLU layers of width], "rgb": {w: [width, 3], b}} on a [..., fan_in]
+    input; the view layers from split(view_key, depth), the output layer from rgb_key."""
+    keys = jax.random.split(view_key, depth)
     view = []
     for i in range(depth):
         view.append(he_dense(keys[i], fan_in, width))
         fan_in = width
-    return {"view": view, "rgb": glorot_dense(keys[-1], width, 3)}
+    return {"view": view, "rgb": glorot_dense(rgb_key, width, 3)}
 
 
 def radiance_outputs(params: dict, cfg, sigma: jnp.ndarray, feature: jnp.ndarray, viewdirs, appearance,
