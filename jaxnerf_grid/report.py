@@ -64,6 +64,28 @@ def _fmt(v, digits=2) -> str:
     return str(v)
 
 
+def _samples_line(model: dict) -> str:
+    """How a ray is sampled, from a run config's "model" dict."""
+    if model.get("sampler") == "proposal":
+        rounds = " -> ".join(str(n) for n in model.get("proposal_samples", []))
+        return (f"proposal sampling in s: {rounds} proposal samples -> {model.get('num_fine')} main samples"
+                f"{', opaque far bin' if model.get('opaque_far') else ''}")
+    return (f"samples {model.get('num_coarse')} coarse + {model.get('num_fine') if model.get('hierarchical') else 0} "
+            f"fine (hierarchical {model.get('hierarchical')}, union {model.get('fine_union')})")
+
+
+def _field_line(field: dict) -> str:
+    """The field's kind and shape, from a run config's "model.field" dict."""
+    if field.get("kind") == "grid":
+        grid = field.get("grid", {})
+        return (f"hash grid, {grid.get('num_levels')} levels x {grid.get('features_per_level')} features, "
+                f"table 2^{grid.get('log2_table_size')}, resolution {grid.get('min_resolution')}-"
+                f"{grid.get('max_resolution')}; MLPs {field.get('depth')} x {field.get('width')} (density), "
+                f"{field.get('view_depth')} x {field.get('view_width')} (colour)")
+    return (f"MLP {field.get('depth')} x {field.get('width')} (skip after {field.get('skip')}), PE "
+            f"{field.get('pos_max_deg')} octaves, view dirs {field.get('use_viewdirs')}")
+
+
 def geometry_lines(geometry: dict | None) -> list[str]:
     """Markdown lines of the "Tower geometry" section from metrics["geometry"] (`geometry.score_points`
     plus "reference"); no lines when it is None."""
@@ -136,12 +158,8 @@ def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_
     lines += geometry_lines(metrics.get("geometry"))
     lines += ["## Method and configuration", "",
               f"- method `{model.get('method')}`: contraction {model.get('use_contraction')} "
-              f"(R = {model.get('contract_radius')}), warp `{model.get('warp')}`, samples "
-              f"{model.get('num_coarse')} coarse + {model.get('num_fine') if model.get('hierarchical') else 0} fine "
-              f"(hierarchical {model.get('hierarchical')}, union {model.get('fine_union')})",
-              f"- field: {model.get('field', {}).get('depth')} x {model.get('field', {}).get('width')} "
-              f"(skip after {model.get('field', {}).get('skip')}), PE {model.get('field', {}).get('pos_max_deg')} "
-              f"octaves, view dirs {model.get('field', {}).get('use_viewdirs')}",
+              f"(R = {model.get('contract_radius')}), warp `{model.get('warp')}`, {_samples_line(model)}",
+              f"- field: {_field_line(model.get('field', {}))}",
               f"- NeRF-W: appearance {model.get('use_appearance')}, transient {model.get('use_transient')}",
               f"- loss weights from masks: {train_cfg.get('use_masks')} (floor {train_cfg.get('mask_weight_floor')})",
               f"- batch {train_cfg.get('batch_rays')} rays, {train_cfg.get('max_steps')} steps, lr "
