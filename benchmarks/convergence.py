@@ -34,10 +34,10 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from jaxnerf_grid import io, metrics, train, train_cli  # noqa: E402
-from jaxnerf_grid.train_cli import DEMO_CONFIG  # noqa: E402
+from jaxnerf_grid import config as config_lib, evaluate, io, metrics, runs, train, views  # noqa: E402
+from jaxnerf_grid.demo import DEMO_CONFIG  # noqa: E402
 
-MLP_CONFIG = {  # the demo's recipe before the grid field (see git history of train_cli.DEMO_CONFIG)
+MLP_CONFIG = {  # the demo's recipe before the grid field (see git history of DEMO_CONFIG, in train_cli.py then)
     "model": {"field": {"depth": 4, "width": 64, "skip": 2, "pos_max_deg": 8, "dir_max_deg": 3, "view_width": 32},
               "num_coarse": 32, "num_fine": 32, "fine_union": False, "contract_radius": 2.0, "near": 1.0},
     "train": {"batch_rays": 512, "max_steps": 1000, "lr_init": 4e-3, "lr_final": 2e-4, "warmup": 30,
@@ -56,15 +56,14 @@ RUNS = {"mlp-hierarchical": MLP_CONFIG, "grid-hierarchical": _grid_hierarchical(
 
 
 def dataset_dir(cache: Path) -> Path:
-    from jaxnerf_grid import mask_cli
+    from jaxnerf_grid import masking
     from jaxnerf_grid.data.synthetic.generate import generate_scene
 
     data = cache / "tower-small"
     if not (data / "transforms.json").is_file():
         generate_scene("tower-small", data, seed=0, overwrite=True, progress=False)
     if "mask_source" not in io.read_json(data / "transforms.json"):
-        if mask_cli.main(["--data", str(data), "--quiet"]):
-            raise SystemExit(f"{data}: masking failed")
+        masking.write_masks(data, progress=False)
     return data
 
 
@@ -73,9 +72,9 @@ def score(params, cfg, ds) -> dict:
     psnr, tower = [], []
     targets = ds.clean_images if ds.clean_images is not None else ds.images
     for i in np.asarray(ds.split["test"]):
-        rgb = np.clip(train.render_view(params, cfg, ds, int(i))["rgb"], 0, 1)
+        rgb = np.clip(views.render_view(params, cfg, ds, int(i))["rgb"], 0, 1)
         psnr.append(float(metrics.psnr(rgb, targets[i])))
-        region = train_cli._region_masks(ds, int(i)).get("tower")
+        region = evaluate.region_masks(ds, int(i)).get("tower")
         if region is not None and region.any():
             tower.append(float(metrics.psnr(rgb, targets[i], region.astype(np.float32))))
     return {"psnr": float(np.mean(psnr)), "tower_psnr": float(np.mean(tower)) if tower else None}
@@ -90,10 +89,8 @@ def run_one(name: str, overrides: dict, data: Path, ds, out: Path, every: int, s
     start = time.perf_counter()
     run_dir = ROOT / "benchmarks" / ".cache" / "convergence_runs" / name  # checkpoints: not committed
     cfg = train.make_config("ours", overrides)
-    import dataclasses
-
-    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=ds.num_frames))
-    io.write_json(run_dir / "config.json", train_cli.run_config_dict(cfg, data))
+    cfg = config_lib.resolve(cfg, ds, bounds=False)  # as runs.train_run stores it
+    io.write_json(run_dir / "config.json", runs.run_config_dict(cfg, data))
     for old in (run_dir / "checkpoints").glob("*") if (run_dir / "checkpoints").is_dir() else []:
         old.unlink()
     result = train.train(ds, cfg, run_dir, progress=False,

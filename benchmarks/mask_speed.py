@@ -36,7 +36,7 @@ def main(argv=None) -> int:
     import jax
 
     from jaxnerf_grid import foreground as fg
-    from jaxnerf_grid.mask_cli import default_classes, load_models
+    from jaxnerf_grid.masking import default_classes, load_models
 
     w, h = (int(v) for v in args.size.lower().split("x"))
     model, _, wdir = load_models(None, None)

@@ -2,9 +2,9 @@
 
     python benchmarks/recipe_trials.py [--trials A,B,...] [--steps 1000] [--data DIR]
 
-Each trial is `train_cli.DEMO_CONFIG` with some settings put back (the recipe as it was
-before that step), trained with `train_cli.train_run` on tower-small (the convergence
-benchmark's cached, DPT-masked copy) and scored with `train_cli.evaluate_run`. Prints one
+Each trial is `demo.DEMO_CONFIG` with some settings put back (the recipe as it was
+before that step), trained with `runs.train_run` on tower-small (the convergence
+benchmark's cached, DPT-masked copy) and scored with `evaluate.evaluate_run`. Prints one
 line per trial and writes benchmarks/results/recipe_trials.json. docs/GRID.md has the table.
 """
 
@@ -22,7 +22,7 @@ sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 
 from convergence import dataset_dir  # noqa: E402
-from jaxnerf_grid import io, train_cli  # noqa: E402
+from jaxnerf_grid import demo, evaluate, io, runs  # noqa: E402
 
 FIRST = {"model": {"opaque_far": False, "far": None, "field": {"density_bias": -1.0},
                    "proposal_field": {"density_bias": -1.0}},
@@ -40,7 +40,7 @@ TRIALS = {  # name: (what changed, settings that differ from DEMO_CONFIG)
 
 
 def merged(extra: dict) -> dict:
-    out = copy.deepcopy(train_cli.DEMO_CONFIG)
+    out = copy.deepcopy(demo.DEMO_CONFIG)
     for section, values in extra.items():
         for key, value in values.items():
             if isinstance(value, dict):
@@ -64,9 +64,9 @@ def main() -> int:
     for name in args.trials.split(","):
         what, extra = TRIALS[name]
         t = time.perf_counter()
-        run_dir, _, result = train_cli.train_run(str(data), "ours", ROOT / "benchmarks" / ".cache" / "trials" / name,
-                                                 merged(extra), args.steps, overwrite=True, progress=False)
-        m = train_cli.evaluate_run(run_dir, progress=False, distractor_views=0)
+        run_dir, _, result = runs.train_run(str(data), "ours", ROOT / "benchmarks" / ".cache" / "trials" / name,
+                                            merged(extra), args.steps, overwrite=True, progress=False)
+        m = evaluate.evaluate_run(run_dir, progress=False, distractor_views=0)
         f = ((m.get("geometry") or {}).get("thresholds") or {}).get("0.02", {}).get("fscore")
         rows.append({"trial": name, "what": what, "steps": args.steps, "train_s": result.seconds,
                      "psnr": m["mean"]["psnr"], "regions": m["regions_mean"], "fscore_0.02": f,

@@ -16,7 +16,6 @@ not depend on the content). Prints a table and writes benchmarks/results/through
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import json
 import os
 import platform
@@ -27,9 +26,9 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxnerf_grid import rays as rays_lib, train
+from jaxnerf_grid import config as config_lib, rays as rays_lib, train, views
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.train_cli import DEMO_CONFIG
+from jaxnerf_grid.demo import DEMO_CONFIG
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 from convergence import MLP_CONFIG, RUNS  # noqa: E402
@@ -69,7 +68,7 @@ def bench(method: str, name: str, steps: int, render_rays: int) -> dict:
     overrides.setdefault("train", {})["max_steps"] = 1000
     cfg = train.make_config(method, overrides)
     ds = scene()
-    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=ds.num_frames))
+    cfg = config_lib.resolve(cfg, ds)  # as train.train settles it
     n = train.resolve_devices(cfg.train)
     pool = train._to_devices(train.build_pool(ds, cfg), n)
     state = train._to_devices(train.init_state(cfg), n)
@@ -84,11 +83,11 @@ def bench(method: str, name: str, steps: int, render_rays: int) -> dict:
     jax.block_until_ready(stats)
     train_s = (time.perf_counter() - t) / steps
     params = jax.device_get(jax.tree_util.tree_map(lambda x: x[0], state["params"]))
-    r = train.camera_rays(ds, 7, ds.near, ds.far)
+    r = views.camera_rays(ds, 7, ds.near, ds.far)
     flat = rays_lib.Rays(*(np.asarray(x).reshape(-1, *np.asarray(x).shape[2:])[:render_rays] for x in r))
-    train.render_rays_chunked(params, cfg.model, flat, 0, None, cfg.train.chunk, n)  # compile
+    views.render_rays_chunked(params, cfg.model, flat, 0, None, cfg.train.chunk, n)  # compile
     t = time.perf_counter()
-    train.render_rays_chunked(params, cfg.model, flat, 0, None, cfg.train.chunk, n)
+    views.render_rays_chunked(params, cfg.model, flat, 0, None, cfg.train.chunk, n)
     render_s = time.perf_counter() - t
     return {"method": method, "config": name, "devices": n, "batch_rays": cfg.train.batch_rays,
             "samples_per_ray": samples_per_ray(cfg.model),

@@ -5,8 +5,9 @@ Every table script does the same things, so they live here:
     distractors) under the cache (default experiments/.cache/scenes/);
   * `mask_variant(...)`: a copy of a scene's transforms.json in its own folder whose image
     paths point back at the scene's files (no image is copied) and whose masks / weights are
-    written by `jaxnerf-grid mask` (ground truth with or without Eq. 7's depth weighting, or a
-    DPT); `clean_variant(...)`: the same with the clean images as training targets;
+    written by `masking.write_masks` (what `jaxnerf-grid mask` runs: ground truth with or
+    without Eq. 7's depth weighting, or a DPT); `clean_variant(...)`: the same with the clean
+    images as training targets;
   * `run_condition(...)`: train + evaluate one (dataset, method, overrides, seed) in a run
     directory named by a hash of all of it; a run whose metrics.json exists is skipped, one
     that was killed resumes from its last checkpoint (so a table can be re-launched);
@@ -225,30 +226,25 @@ def weights_digest(folder: Path) -> str:
 
 def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", floor: float = 0.0,
                  weights: str | None = None, max_side: int = 160) -> Path:
-    """A folder whose transforms.json points at scene_dir's images, with masks from `jaxnerf-grid mask`.
+    """A folder whose transforms.json points at scene_dir's images, with masks from `masking.write_masks`.
 
     source "gt": ground-truth distractor masks and depth (floor 0 = Eq. 7, floor 1 = binary
     masks, every masked pixel excluded); "dpt": a DPT (`weights` folder, default built-in).
     """
-    from jaxnerf_grid import mask_cli
+    from jaxnerf_grid import masking
 
     if source == "dpt" and weights is None:  # the built-in weights can be retrained: key the cache on them
-        name = f"{name}_{weights_digest(mask_cli.BUILTIN)}"
+        name = f"{name}_{weights_digest(masking.BUILTIN)}"
     out = ctx.cache / "variants" / f"{scene_dir.name}__{name}"
     meta_path = out / "transforms.json"
     if meta_path.is_file() and "mask_source" in io.read_json(meta_path):
         return out
     out.mkdir(parents=True, exist_ok=True)
     io.write_json(meta_path, _relink(scene_dir, out, io.read_json(scene_dir / "transforms.json")))
-    argv = ["--data", str(out), "--source", source, "--floor", str(floor), "--overwrite", "--max-side", str(max_side)]
-    if weights:
-        argv += ["--weights", str(weights)]
-    if not ctx.progress:
-        argv.append("--quiet")
-    print(f"[mask] {out.name}: jaxnerf-grid mask {' '.join(argv[2:])}", flush=True)
-    rc = mask_cli.main(argv)
-    if rc:
-        raise io.DataError(f"{out}: jaxnerf-grid mask failed with exit code {rc}")
+    settings = {"source": source, "floor": floor, "overwrite": True, "max_side": max_side,
+                "weights": str(weights) if weights else None}
+    print(f"[mask] {out.name}: masking.write_masks {settings}", flush=True)
+    masking.write_masks(out, progress=ctx.progress, **settings)
     return out
 
 
@@ -289,18 +285,12 @@ def mask_iou(variant_dir: Path, split: str = "train") -> dict:
 # --------------------------------------------------------------------------- runs
 
 
-def _merge(base: dict, extra: dict) -> dict:
-    out = dict(base)
-    for k, v in extra.items():
-        out[k] = _merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 def run_key(data_dir: Path, method: str, overrides: dict, steps: int) -> str:
     """Hash of the dataset folder's name, the fully resolved RunConfig and the step count."""
     from jaxnerf_grid import config as config_lib, train
 
-    cfg = config_lib.to_dict(train.make_config(method, _merge(overrides, {"train": {"max_steps": int(steps)}})))
+    with_steps = config_lib.merge(overrides, {"train": {"max_steps": int(steps)}})
+    cfg = config_lib.to_dict(train.make_config(method, with_steps))
     blob = json.dumps({"data": Path(data_dir).name, "config": cfg}, sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:10]
 
@@ -312,11 +302,12 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     Returns {"metrics": metrics.json, "run_dir", "train_seconds", "seconds_per_step", "cached"},
     or None when the time budget is spent before the run starts.
     """
-    from jaxnerf_grid import train_cli
+    from jaxnerf_grid import evaluate, runs
+    from jaxnerf_grid.config import merge
 
     steps = int(steps or ctx.steps)
-    ov = _merge(ctx.overrides, overrides or {})
-    ov = _merge(ov, {"train": {"seed": int(seed)}})
+    ov = merge(ctx.overrides, overrides or {})
+    ov = merge(ov, {"train": {"seed": int(seed)}})
     key = run_key(data_dir, method, ov, steps)
     run_dir = ctx.cache / "runs" / f"{label}-s{seed}-{key}"
     same = sorted((ctx.cache / "runs").glob(f"*-s{seed}-{key}"))
@@ -337,11 +328,11 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     from jaxnerf_grid.data.formats import load_dataset
 
     ds = load_dataset(data_dir, progress=ctx.progress)
-    _, cfg, result = train_cli.train_run(str(data_dir), method, run_dir, ov, steps, progress=ctx.progress, dataset=ds)
+    _, cfg, result = runs.train_run(str(data_dir), method, run_dir, ov, steps, progress=ctx.progress, dataset=ds)
     t_train = time.perf_counter() - t0
     t1 = time.perf_counter()
-    metrics = train_cli.evaluate_run(run_dir, ctx.lpips_weights, progress=ctx.progress, dataset=ds,
-                                     distractor_views=ctx.distractor_views)
+    metrics = evaluate.evaluate_run(run_dir, ctx.lpips_weights, progress=ctx.progress, dataset=ds,
+                                    distractor_views=ctx.distractor_views)
     t_eval = time.perf_counter() - t1
     info = {"label": label, "seed": seed, "method": method, "steps": steps, "data": str(data_dir),
             "run_dir": str(run_dir), "overrides": ov, "train_wall_s": t_train, "eval_wall_s": t_eval,

@@ -3,7 +3,7 @@
     python -m experiments.demo_recipe [--cases all|NAME,...] [--steps N] [--cache DIR] [--results DIR]
 
 Each case renders a synthetic scene (`synth`; the larger presets at a reduced size, said in
-the table), then runs exactly the demo's recipe through `train_cli.run_demo` (built-in DPT
+the table), then runs exactly the demo's recipe through `demo.run_demo` (built-in DPT
 masks, `DEMO_CONFIG`, the same number of steps), nothing tuned per scene. Writes
 results/demo_recipe.md and .json with test PSNR, tower / near-ground / far-background PSNR,
 the tower F-score at 0.01 / 0.02 / 0.05 scene units and the time of each stage.
@@ -20,7 +20,7 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from jaxnerf_grid import io, train_cli  # noqa: E402
+from jaxnerf_grid import demo, io  # noqa: E402
 
 # name: (preset, seed, clutter, (width, height, train views, test views) or None for the preset's)
 CASES = {
@@ -60,7 +60,7 @@ def main() -> int:
         t = time.perf_counter()
         data = build(cache, name)
         synth_s = time.perf_counter() - t
-        res = train_cli.run_demo(data, cache / "runs" / name, args.steps, overwrite=True, progress=False)
+        res = demo.run_demo(data, cache / "runs" / name, args.steps, overwrite=True, progress=False)
         m = res["metrics"]
         geometry = m.get("geometry") or {}
         rows.append({"case": name, "preset": CASES[name][0], "seed": CASES[name][1],
@@ -69,10 +69,10 @@ def main() -> int:
                      "fscore": {k: v["fscore"] for k, v in (geometry.get("thresholds") or {}).items()},
                      "chamfer": geometry.get("chamfer"), "synth_s": synth_s, **{f"{k}_s": v for k, v in res["timings"].items()},
                      "mask_source": res["mask_source"]})
-        print(f"{name}: {train_cli.demo_summary(res)}", flush=True)
+        print(f"{name}: {demo.demo_summary(res)}", flush=True)
     lines = ["# The demo recipe on other scenes", "",
              f"`python -m experiments.demo_recipe` ({'default steps' if args.steps is None else f'{args.steps} steps'}; "
-             "recipe `train_cli.DEMO_CONFIG`, built-in DPT masks, nothing tuned per scene).", "",
+             "recipe `demo.DEMO_CONFIG`, built-in DPT masks, nothing tuned per scene).", "",
              "| case | size | PSNR | SSIM | tower | near ground | far bg | F@0.01 | F@0.02 | F@0.05 | train s |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]
     fmt = lambda v, d=2: "n/a" if v is None else f"{v:.{d}f}"  # noqa: E731

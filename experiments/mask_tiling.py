@@ -31,7 +31,7 @@ sys.path.insert(0, str(ROOT / "experiments"))
 import common  # noqa: E402
 from train_builtin_dpt import evaluate  # noqa: E402
 
-from jaxnerf_grid.mask_cli import load_models  # noqa: E402
+from jaxnerf_grid.masking import load_models  # noqa: E402
 
 SEEDS = (7101, 7102)
 CONDITIONS = [(160, 1), (320, 1), (480, 1), (160, 2), (160, 3), (160, 4)]  # (max_side, tiles)

@@ -34,9 +34,9 @@ COLUMNS = [("psnr", "PSNR", 2), ("ssim", "SSIM", 3), ("ms_ssim", "MS-SSIM", 3), 
 
 
 def builtin_available() -> bool:
-    from jaxnerf_grid import mask_cli
+    from jaxnerf_grid import masking
 
-    return (mask_cli.BUILTIN / "config.json").is_file()
+    return (masking.BUILTIN / "config.json").is_file()
 
 
 def condition_data(ctx, scene_dir: Path, condition: str):

@@ -53,7 +53,7 @@ def main(argv=None) -> int:
     if on and on.get("delta_psnr"):
         md += ["", "Paired difference on - off (dB, mean ± std over seeds): " + ", ".join(
             f"{h} {common.fmt(on.get('delta_' + k))}" for k, h, _ in COLUMNS[:4])]
-    notes = ["Region definition (train_cli): " + "tower = classes 1-2; near ground = class 3; far background = "
+    notes = ["Region definition (evaluate.REGION_DEFINITION): " + "tower = classes 1-2; near ground = class 3; far background = "
              "sky + vegetation/buildings with ground-truth depth > 100 m.",
              "Masks: ground-truth distractor masks with Eq. 7 (`jaxnerf-grid mask --source gt`), the same for all rows."]
     common.write_results(ctx, "table2_farview", "Table 2: far-view blur constraint (contraction + differentiated "

@@ -1,7 +1,13 @@
-"""Frozen dataclasses for every stage, with a JSON round-trip.
+"""Frozen dataclasses for every stage, with a JSON round-trip, and where a config is settled.
 
 `to_dict(cfg)` / `from_dict(cls, d)` work for any (nested) frozen dataclass defined here or in
 other modules; unknown keys are an error naming the key, so a typo in a config file is caught.
+`merge(base, extra)` lays nested override dicts on top of each other (--config files, recipes).
+`resolve(cfg, dataset)` is the one place the dataset fills in a run config: the embedding
+tables' `model.num_images` and the ray bounds `model.near` / `model.far` (None = the dataset's).
+
+This module imports nothing of the NeRF side (models, train): it sits below them, so they
+import it and it only reads the duck-typed fields of the configs it is given.
 """
 
 from __future__ import annotations
@@ -69,6 +75,36 @@ def replace(cfg: T, **changes) -> T:
     if bad:
         raise ConfigError(f"{type(cfg).__name__}: unknown field(s) {bad}")
     return dataclasses.replace(cfg, **changes)
+
+
+def merge(base: dict, extra: dict) -> dict:
+    """`extra` laid over `base`, recursing into dicts both hold; neither input is changed."""
+    out = dict(base)
+    for k, v in extra.items():
+        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+    return out
+
+
+def near_far(model_cfg: Any, dataset: Any) -> tuple[float, float]:
+    """The ray bounds of a model config on a dataset: model.near / model.far, or the dataset's
+    near / far where they are None."""
+    near = model_cfg.near if model_cfg.near is not None else dataset.near
+    far = model_cfg.far if model_cfg.far is not None else dataset.far
+    return float(near), float(far)
+
+
+def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
+    """A run config (anything with a `.model` holding num_images / near / far) settled on a
+    dataset: model.num_images at least the dataset's frame count (the embedding tables' size),
+    and, with `bounds`, model.near / model.far filled from the dataset where None.
+
+    bounds=False keeps near / far as configured (None = the dataset's): what a run's
+    config.json stores, so it stays valid for the dataset however it is normalised.
+    """
+    changes = {"num_images": max(cfg.model.num_images, dataset.num_frames)}
+    if bounds:
+        changes["near"], changes["far"] = near_far(cfg.model, dataset)
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, **changes))
 
 
 def dumps(cfg: Any) -> str:

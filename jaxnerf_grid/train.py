@@ -1,4 +1,7 @@
-"""Training and rendering: jaxopt-driven steps, pmap data parallelism, checkpoints, exact resume.
+"""Training: jaxopt-driven steps, pmap data parallelism, checkpoints, exact resume.
+
+The run config (`RunConfig` = model + train) is made here (`make_config`: a method's defaults
+with overrides merged on top) and settled on the dataset by `config.resolve` inside `train`.
 
 Training step (one `jax.pmap` over the local devices, axis "batch"):
   * the ray pool (every training pixel with loss weight > 0, as flat pixel ids, plus the
@@ -16,9 +19,7 @@ The state is {"params", "opt_state", "key"} plus the host step counter; checkpoi
 (checkpoint.save_checkpoint: atomic, last k kept) hold exactly that, so a resumed run replays
 the same batches and reaches the same parameters as an uninterrupted one.
 
-Rendering: rays in fixed-size chunks (padded), deterministic samples (bin centres), split
-over devices; outputs rgb (static part for NeRF-W), z-depth (median depth along the ray
-times the cosine to the camera axis) and opacity.
+Rendering a trained model is `views.py`.
 """
 
 from __future__ import annotations
@@ -27,7 +28,6 @@ import dataclasses
 import functools
 import json
 import logging
-import math
 import time
 from pathlib import Path
 
@@ -93,18 +93,11 @@ class RunConfig:
     train: TrainConfig = TrainConfig()
 
 
-def _deep_merge(base: dict, extra: dict) -> dict:
-    out = dict(base)
-    for k, v in extra.items():
-        out[k] = _deep_merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
-    return out
-
-
 def make_config(method: str, overrides: dict | None = None) -> RunConfig:
     """The defaults of `method` with `overrides` (a nested dict, e.g. from --config) on top."""
     base = {"model": models.method_defaults(method), "train": {"use_masks": method == "ours"}}
-    merged = _deep_merge(config_lib.to_dict(RunConfig()), base)
-    merged = _deep_merge(merged, overrides or {})
+    merged = config_lib.merge(config_lib.to_dict(RunConfig()), base)
+    merged = config_lib.merge(merged, overrides or {})
     if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:
         raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts --method {method!r}")
     cfg = config_lib.from_dict(RunConfig, merged)
@@ -141,8 +134,7 @@ def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     pixels = np.flatnonzero(weights.reshape(-1) > 0).astype(np.int32)
     if pixels.size == 0:
         raise DataError(f"{dataset.root}: every training pixel has loss weight 0 (check the masks)")
-    near = float(cfg.model.near if cfg.model.near is not None else dataset.near)
-    far = float(cfg.model.far if cfg.model.far is not None else dataset.far)
+    near, far = config_lib.near_far(cfg.model, dataset)
     if not 0 < near < far:
         raise ConfigError(f"near/far: need 0 < near < far, got {near}, {far}")
     return {"pixels": pixels, "images": np.asarray(dataset.images[train_ids], np.float32),
@@ -270,9 +262,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     """
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
-    mcfg = dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, dataset.num_frames))
-    cfg = dataclasses.replace(cfg, model=mcfg)
-    tcfg = cfg.train
+    cfg = config_lib.resolve(cfg, dataset)
+    mcfg, tcfg = cfg.model, cfg.train
     n = resolve_devices(tcfg)
     pool_host = build_pool(dataset, cfg)
     state = init_state(cfg)
@@ -332,130 +323,11 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                        skipped_steps=skipped, last_loss=last_loss, last_psnr=last_psnr)
 
 
-def load_params(run_dir, cfg: RunConfig, num_images: int) -> tuple[dict, int]:
-    """Parameters of the newest checkpoint of a run. Returns (params, step)."""
-    mcfg = dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, num_images))
-    template = init_state(dataclasses.replace(cfg, model=mcfg))
+def load_params(run_dir, cfg: RunConfig, dataset: Dataset) -> tuple[dict, int]:
+    """Parameters of the newest checkpoint of a run of `cfg` on `dataset`. Returns (params, step)."""
+    template = init_state(config_lib.resolve(cfg, dataset, bounds=False))
     restored = checkpoint.restore_latest(run_dir, template)
     if restored is None:
         raise DataError(f"{Path(run_dir) / checkpoint.CHECKPOINT_DIR}: no checkpoint to load")
     state, step = restored
     return state["params"], step
-
-
-# --------------------------------------------------------------------------- rendering
-
-
-@functools.lru_cache(maxsize=32)
-def _render_chunk_fn(mcfg: models.ModelConfig, num_devices: int, with_appearance: bool):
-    def fn(params, batch):
-        out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
-                                 batch["far"], None, batch["image_index"],
-                                 batch["appearance"] if with_appearance else None)
-        final = models.final_pass(out)
-        return {"rgb": models.static_rgb(out), "depth": final["median_depth"] * batch["cos"],
-                "expected_depth": final["depth"] * batch["cos"], "opacity": final["opacity"]}
-
-    return jax.pmap(fn, in_axes=(None, 0), devices=jax.local_devices()[:num_devices])
-
-
-def render_rays_chunked(params, mcfg: models.ModelConfig, r: rays_lib.Rays, image_index: int = 0,
-                        appearance=None, chunk: int = 4096, num_devices: int | None = None,
-                        progress: bool = False) -> dict:
-    """Renders any number of rays in fixed-size chunks (one compiled shape).
-
-    r: Rays with batch shape [...]; appearance: [A] or None (NeRF-W: overrides the table).
-    Returns dict of NumPy arrays with batch shape [...]: rgb [..., 3], depth (z-depth from the
-    median ray depth), expected_depth (z-depth of the mean), opacity.
-    """
-    n = num_devices or jax.local_device_count()
-    shape = r.origins.shape[:-1]
-    count = int(np.prod(shape))
-    chunk = max(n, (chunk // n) * n)
-    flat = {"origins": np.asarray(r.origins, np.float32).reshape(count, 3),
-            "directions": np.asarray(r.directions, np.float32).reshape(count, 3),
-            "near": np.asarray(r.near, np.float32).reshape(count),
-            "far": np.asarray(r.far, np.float32).reshape(count),
-            "cos": np.asarray(r.cos_to_axis, np.float32).reshape(count),
-            "image_index": np.full((count,), image_index, np.int32)}
-    with_app = appearance is not None and mcfg.use_appearance
-    if with_app:
-        flat["appearance"] = np.broadcast_to(np.asarray(appearance, np.float32), (count, mcfg.appearance_dim))
-    fn = _render_chunk_fn(mcfg, n, with_app)
-    pieces = []
-    starts = range(0, count, chunk)
-    if progress:
-        from jaxnerf_grid import progress as progress_lib
-
-        starts = progress_lib.bar(starts, desc="render", unit="chunk", leave=False)
-    for start in starts:
-        part = {k: v[start:start + chunk] for k, v in flat.items()}
-        valid = part["near"].shape[0]
-        if valid < chunk:
-            part = {k: np.concatenate([v, np.repeat(v[-1:], chunk - valid, axis=0)]) for k, v in part.items()}
-        part = {k: v.reshape(n, chunk // n, *v.shape[1:]) for k, v in part.items()}
-        out = jax.device_get(fn(params, part))
-        pieces.append({k: v.reshape(chunk, *v.shape[2:])[:valid] for k, v in out.items()})
-    return {k: np.concatenate([p[k] for p in pieces]).reshape(*shape, *pieces[0][k].shape[1:]) for k in pieces[0]}
-
-
-def camera_rays(dataset: Dataset, index: int, near: float, far: float) -> rays_lib.Rays:
-    """Rays [H, W] of frame `index` of a dataset."""
-    fx, fy, cx, cy = (float(v) for v in dataset.intrinsics[index])
-    return rays_lib.generate_rays(jnp.asarray(dataset.c2w[index]), fx, fy, cx, cy, dataset.width, dataset.height,
-                                  near, far)
-
-
-def render_view(params, cfg: RunConfig, dataset: Dataset, index: int, appearance=None,
-                progress: bool = False) -> dict:
-    """Renders frame `index` of the dataset. Returns rgb [H, W, 3], depth, expected_depth,
-    opacity [H, W] (NumPy)."""
-    near = float(cfg.model.near if cfg.model.near is not None else dataset.near)
-    far = float(cfg.model.far if cfg.model.far is not None else dataset.far)
-    r = camera_rays(dataset, index, near, far)
-    image_index = min(int(index), max(cfg.model.num_images - 1, 0))
-    return render_rays_chunked(params, cfg.model, r, image_index, appearance, cfg.train.chunk,
-                               resolve_devices(cfg.train), progress)
-
-
-# --------------------------------------------------------------------------- NeRF-W test-time
-
-
-def fit_appearance(params, mcfg: models.ModelConfig, tcfg: TrainConfig, r: rays_lib.Rays,
-                   target: np.ndarray, key) -> np.ndarray:
-    """Fits one appearance embedding to some pixels with the network frozen (NeRF-W's test
-    protocol, used on the left half of a test image).
-
-    r: Rays [M]; target: [M, 3]. Starts from the mean of the training embeddings, runs
-    `appearance_steps` Adam steps on batches of `appearance_rays` pixels against the static
-    rendering. Returns [A] NumPy.
-    """
-    if not mcfg.use_appearance:
-        raise ValueError("fit_appearance: the model has no appearance embedding")
-    count = r.origins.shape[0]
-    opt = optim.adam(tcfg.appearance_lr)
-    emb = jnp.mean(params["appearance"], axis=0)
-    opt_state = opt.init(emb)
-
-    @jax.jit
-    def step(emb, opt_state, ids):
-        def loss_fn(e):
-            out = models.render_rays(params, mcfg, r.origins[ids], r.directions[ids], r.near[ids], r.far[ids],
-                                     None, jnp.zeros(ids.shape, jnp.int32),
-                                     jnp.broadcast_to(e, (ids.shape[0], e.shape[0])))
-            return jnp.mean(jnp.square(models.static_rgb(out) - target[ids]))
-
-        loss, grad = jax.value_and_grad(loss_fn)(emb)
-        emb, opt_state, _ = optim.guarded_apply(opt, emb, opt_state, grad, loss)
-        return emb, opt_state
-
-    target = jnp.asarray(target, jnp.float32)
-    batch = min(tcfg.appearance_rays, count)
-    for i in range(tcfg.appearance_steps):
-        ids = jax.random.choice(jax.random.fold_in(key, i), count, (batch,), replace=batch > count)
-        emb, opt_state = step(emb, opt_state, ids)
-    return np.asarray(emb)
-
-
-def psnr_of(mse: float) -> float:
-    return float(-10.0 * math.log10(max(mse, 1e-10)))

@@ -112,7 +112,7 @@ def test_demo_runs_the_recipe_on_a_given_dataset(data_dir, tmp_path, capsys):
     proposal sampler) trained and evaluated; a bad --data is a one-line error."""
     import shutil
 
-    from jaxnerf_grid import train_cli
+    from jaxnerf_grid import demo
 
     data = tmp_path / "data"
     shutil.copytree(data_dir, data)
@@ -132,6 +132,6 @@ def test_demo_runs_the_recipe_on_a_given_dataset(data_dir, tmp_path, capsys):
     assert "hash grid, 12 levels x 2 features" in report and "Tower geometry" in report
     assert m["cloud_views"]["test"] == [4] and m["cloud_views"]["train"] == [0, 1, 2, 3]  # 16 asked, 4 exist
     assert meta == io.read_json(data / "transforms.json")  # the dataset was not touched
-    assert train_cli.DEMO_CONFIG["model"]["sampler"] == "proposal"
+    assert demo.DEMO_CONFIG["model"]["sampler"] == "proposal"
     assert cli.main(["demo", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "x")]) == 1
     assert "--data is not a folder" in capsys.readouterr().err

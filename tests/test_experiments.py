@@ -92,10 +92,10 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     assert common.weights_digest(weights) != before
 
     calls = []
-    from jaxnerf_grid import mask_cli
+    from jaxnerf_grid import masking
 
-    monkeypatch.setattr(mask_cli, "BUILTIN", weights)
-    monkeypatch.setattr(mask_cli, "main", lambda argv: calls.append(argv) or 0)
+    monkeypatch.setattr(masking, "BUILTIN", weights)
+    monkeypatch.setattr(masking, "write_masks", lambda data, **kw: calls.append(kw) or {})
     scene = tmp_path / "scene"
     scene.mkdir()
     (scene / "transforms.json").write_text(json.dumps({"frames": []}))

@@ -174,12 +174,12 @@ def test_read_ply_ascii_and_big_endian_double(tmp_path):
 
 
 def test_score_geometry_of_a_dataset(tmp_path):
-    """train_cli.score_geometry (what evaluate_run stores as metrics["geometry"]): the dataset's
+    """evaluate.score_geometry (what evaluate_run stores as metrics["geometry"]): the dataset's
     tower_ply, stored in the file's normalisation, against a cloud in the dataset's (re-normalised)
     frame; --reference-ply instead; None without a reference."""
     from types import SimpleNamespace
 
-    from jaxnerf_grid import train_cli
+    from jaxnerf_grid import evaluate
     from jaxnerf_grid.data.normalize import apply_normalization_to_points, compose_normalization
 
     metric = np.random.default_rng(8).uniform([-4, -4, 0], [4, 4, 30], size=(300, 3))
@@ -193,14 +193,14 @@ def test_score_geometry_of_a_dataset(tmp_path):
     pred = geometry.reference_to_scene(io.read_ply_points(tmp_path / "tower.ply"), file_norm, scene_norm)
     np.testing.assert_allclose(pred, apply_normalization_to_points(metric, scene_norm), atol=1e-5)
     cloud = [(pred[:100], np.zeros((100, 3))), (pred[100:], np.zeros((200, 3)))]
-    res = train_cli.score_geometry(ds, cloud)
+    res = evaluate.score_geometry(ds, cloud)
     assert res["reference"] == str(tmp_path / "tower.ply") and res["num_pred"] == res["num_ref"] > 250
     assert all(v["fscore"] == 1.0 for v in res["thresholds"].values()) and res["chamfer"] == 0.0
     # the same points read as if already in the scene's units would be off: F < 1
-    off = train_cli.score_geometry(ds, cloud, reference_ply=tmp_path / "tower.ply")
+    off = evaluate.score_geometry(ds, cloud, reference_ply=tmp_path / "tower.ply")
     assert off["thresholds"]["0.01"]["fscore"] < 0.5
-    assert train_cli.score_geometry(SimpleNamespace(root=tmp_path, normalization=scene_norm, meta={}), cloud) is None
+    assert evaluate.score_geometry(SimpleNamespace(root=tmp_path, normalization=scene_norm, meta={}), cloud) is None
     ds.meta["tower_ply"] = "missing.ply"
-    assert train_cli.score_geometry(ds, cloud) is None
+    assert evaluate.score_geometry(ds, cloud) is None
     with pytest.raises(io.DataError, match="missing.ply"):
-        train_cli.score_geometry(ds, cloud, reference_ply=tmp_path / "missing.ply")
+        evaluate.score_geometry(ds, cloud, reference_ply=tmp_path / "missing.ply")

@@ -8,7 +8,7 @@ import pytest
 
 from jaxnerf_grid import io
 from jaxnerf_grid.io import DataError
-from jaxnerf_grid.mask_cli import main
+from jaxnerf_grid.cli.mask import main
 
 
 def _dataset(root, h=32, w=48, n=2):
@@ -94,7 +94,7 @@ def test_missing_builtin_or_bad_data_is_one_line_error(tmp_path):
 
 def test_builtin_model_is_shipped_and_default():
     """The built-in DPT (trained by experiments/train_builtin_dpt.py) loads as `mask`'s default."""
-    from jaxnerf_grid.mask_cli import BUILTIN, default_classes, load_models
+    from jaxnerf_grid.masking import BUILTIN, default_classes, load_models
     if not (BUILTIN / "config.json").is_file():
         pytest.skip("no built-in model in this build")
     seg, depth, wdir = load_models(None, None)

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import fields, rays as rays_lib, train
+from jaxnerf_grid import fields, rays as rays_lib, train, views
 from jaxnerf_grid.data.dataset import Dataset
 
 TINY_FIELD = {"depth": 2, "width": 32, "skip": 1, "pos_max_deg": 4, "dir_max_deg": 2, "view_width": 16}
@@ -70,7 +70,7 @@ def test_pool_holds_exactly_the_weighted_pixels_and_rays_match():
     np.testing.assert_array_equal(pool["pixels"], expected)
     ids = jnp.asarray([pool["pixels"][0], pool["pixels"][-1]])
     batch = train.gather_batch({k: jnp.asarray(v) for k, v in pool.items()}, ids)
-    full = train.camera_rays(ds, 3, 1.0, 8.0)
+    full = views.camera_rays(ds, 3, 1.0, 8.0)
     np.testing.assert_allclose(batch["directions"][1], full.directions[11, 15], atol=1e-6)
     np.testing.assert_allclose(batch["rgb"][1], ds.images[3, 11, 15])
     np.testing.assert_allclose(batch["rgb"][0], ds.images[0, 0, 3])
@@ -132,17 +132,17 @@ def test_training_learns_and_chunked_render_is_consistent(tmp_path, field):
     assert [x["step"] for x in log] == [5, 10, 15, 20, 25, 30]
     cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=5))
     initial = train.init_state(cfg)["params"]
-    err = lambda p: float(np.mean((train.render_view(p, cfg, ds, 0)["rgb"] - ds.images[0]) ** 2))  # noqa: E731
+    err = lambda p: float(np.mean((views.render_view(p, cfg, ds, 0)["rgb"] - ds.images[0]) ** 2))  # noqa: E731
     assert err(res.params) < 0.6 * err(initial), (err(res.params), err(initial))
     small = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, chunk=50))  # not a divisor of 192
-    a = train.render_view(res.params, cfg, ds, 4)
-    b = train.render_view(res.params, small, ds, 4)
+    a = views.render_view(res.params, cfg, ds, 4)
+    b = views.render_view(res.params, small, ds, 4)
     assert a["rgb"].shape == (12, 16, 3) and a["depth"].shape == (12, 16)
     np.testing.assert_allclose(a["rgb"], b["rgb"], atol=1e-5)
-    cos = np.asarray(train.camera_rays(ds, 4, 1.0, 8.0).cos_to_axis)
+    cos = np.asarray(views.camera_rays(ds, 4, 1.0, 8.0).cos_to_axis)
     assert np.all(a["depth"] >= 1.0 * cos - 1e-4) and np.all(a["depth"] <= 8.0 * cos + 1e-4)
     assert np.all((a["opacity"] >= 0) & (a["opacity"] <= 1 + 1e-5))
-    init_test = train.render_view(initial, cfg, ds, 4)["rgb"]
+    init_test = views.render_view(initial, cfg, ds, 4)["rgb"]
     assert np.mean((a["rgb"] - ds.images[4]) ** 2) < np.mean((init_test - ds.images[4]) ** 2)
 
 
@@ -151,13 +151,13 @@ def test_nerfw_appearance_fit_reduces_error():
     cfg = tiny_config("nerfw")
     mcfg = dataclasses.replace(cfg.model, num_images=5, appearance_dim=4, transient_dim=4)
     params = train.init_state(dataclasses.replace(cfg, model=mcfg))["params"]
-    r = train.camera_rays(ds, 4, 1.0, 8.0)
+    r = views.camera_rays(ds, 4, 1.0, 8.0)
     flat = rays_lib.Rays(*(jnp.reshape(x, (-1, *x.shape[2:])) for x in r))
     target = ds.images[4].reshape(-1, 3)
     tcfg = dataclasses.replace(cfg.train, appearance_steps=40, appearance_lr=0.1, appearance_rays=64)
-    emb = train.fit_appearance(params, mcfg, tcfg, flat, target, jax.random.PRNGKey(0))
-    before = train.render_rays_chunked(params, mcfg, r, 0, np.asarray(params["appearance"]).mean(0), 256)
-    after = train.render_rays_chunked(params, mcfg, r, 0, emb, 256)
+    emb = views.fit_appearance(params, mcfg, tcfg, flat, target, jax.random.PRNGKey(0))
+    before = views.render_rays_chunked(params, mcfg, r, 0, np.asarray(params["appearance"]).mean(0), 256)
+    after = views.render_rays_chunked(params, mcfg, r, 0, emb, 256)
     err = lambda out: float(np.mean((out["rgb"] - ds.images[4]) ** 2))  # noqa: E731
     assert err(after) < err(before)
 

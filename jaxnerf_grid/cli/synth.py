@@ -1,4 +1,7 @@
-"""`jaxnerf-grid synth`: render the procedural tower benchmark to a transforms.json dataset."""
+"""`jaxnerf-grid synth`: render the procedural tower benchmark to a transforms.json dataset.
+
+The work is `data.synthetic.generate.generate_scene`; this module parses the arguments.
+"""
 
 from __future__ import annotations
 
@@ -46,5 +49,3 @@ def main(argv: list[str] | None = None) -> int:
     print(f"wrote {path}")
     return 0
 
-
-main_synth = main

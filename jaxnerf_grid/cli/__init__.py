@@ -1,7 +1,10 @@
 """The single entry point `jaxnerf-grid` (also `python -m jaxnerf_grid`).
 
-Each subcommand lives in its own module and exposes `main(argv: list[str]) -> int`; this file
+Each subcommand lives in its own module of this package (cli/synth.py, mask.py, train.py,
+render.py, eval.py, demo.py) and exposes `main(argv: list[str]) -> int`; a subcommand only parses
+its arguments and calls the library (runs, evaluate, demo, masking, data.synthetic). This file
 only dispatches, so importing it is cheap and one subcommand's imports never slow another.
+Nothing else in the package imports a cli module.
 Errors of type `DataError` / `ConfigError` are printed as one line, never as a traceback.
 """
 
@@ -11,12 +14,12 @@ import importlib
 import sys
 
 SUBCOMMANDS = {
-    "synth": ("jaxnerf_grid.data.synthetic.cli", "render the procedural tower benchmark scene"),
-    "mask": ("jaxnerf_grid.mask_cli", "DPT foreground masks and weights for a dataset"),
-    "train": ("jaxnerf_grid.train_cli", "train a NeRF (ours | nerf | nerfw) on a dataset"),
-    "render": ("jaxnerf_grid.train_cli", "render views from a trained run"),
-    "eval": ("jaxnerf_grid.train_cli", "evaluate a trained run on its test views"),
-    "demo": ("jaxnerf_grid.train_cli", "synthetic scene -> masks -> train -> render -> report"),
+    "synth": ("jaxnerf_grid.cli.synth", "render the procedural tower benchmark scene"),
+    "mask": ("jaxnerf_grid.cli.mask", "DPT foreground masks and weights for a dataset"),
+    "train": ("jaxnerf_grid.cli.train", "train a NeRF (ours | nerf | nerfw) on a dataset"),
+    "render": ("jaxnerf_grid.cli.render", "render views from a trained run"),
+    "eval": ("jaxnerf_grid.cli.eval", "evaluate a trained run on its test views"),
+    "demo": ("jaxnerf_grid.cli.demo", "synthetic scene -> masks -> train -> render -> report"),
 }
 
 USAGE = "usage: jaxnerf-grid {" + ",".join(SUBCOMMANDS) + "} [options]\n\n" + "\n".join(
@@ -34,7 +37,7 @@ def main(argv: list[str] | None = None) -> int:
         print(f"jaxnerf-grid: unknown command {name!r}\n\n{USAGE}", file=sys.stderr)
         return 2
     module = importlib.import_module(SUBCOMMANDS[name][0])
-    entry = getattr(module, f"main_{name}", None) or getattr(module, "main")
+    entry = module.main
     from jaxnerf_grid.io import DataError
     from jaxnerf_grid.config import ConfigError
 
@@ -46,7 +49,3 @@ def main(argv: list[str] | None = None) -> int:
     except KeyboardInterrupt:
         print(f"jaxnerf-grid {name}: interrupted", file=sys.stderr)
         return 130
-
-
-if __name__ == "__main__":
-    sys.exit(main())

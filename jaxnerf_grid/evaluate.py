@@ -1,0 +1,259 @@
+"""Evaluating a trained run: test-view metrics, per-region PSNR, distractor PSNR, tower geometry.
+
+`evaluate_run(run_dir)` renders the test views, writes metrics.json, report.md and
+tower_points.ply into the run directory and returns the metrics.
+
+Evaluation protocol (stored in metrics.json and the report):
+  * targets are the clean images where the dataset has them (synthetic data), else the images;
+  * NeRF-W with an appearance embedding: the embedding of each test image is fitted on its
+    left half (network frozen) and the headline metrics are on the right half; every method
+    also reports right-half metrics ("mean_right_half") so methods can be compared alike;
+  * per-region PSNR with semantics: "tower" = classes 1 (tower) and 2 (conductor);
+    "near_ground" = class 3 (ground); "far_background" = class 0 (sky) plus classes 4
+    (vegetation) and 5 (building) whose ground-truth z-depth exceeds 100 m in metric units
+    (normalised depth / scene scale); without a depth map only sky counts as far background;
+  * "distractor_psnr": PSNR inside the distractor masks of (up to 4) training views against
+    their clean images: how much of the passers-by the model burnt in (higher = cleaner);
+  * LPIPS only with --lpips-weights, else "unavailable";
+  * "geometry": the exported tower cloud (tower_points.ply) against a reference cloud, scored by
+    `geometry.score_points` in normalised scene units (precision / recall / F-score at 0.01,
+    0.02, 0.05 units and the Chamfer distance, both clouds cropped to the reference tower's box
+    less a ground strip). The reference is --reference-ply (a user's survey cloud, already in the
+    dataset's normalised units) or else the dataset's `tower_ply` (synthetic data; converted from
+    the file's `scene_normalization` to the loaded dataset's normalisation); None without one.
+"""
+
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import config as config_lib, io
+from jaxnerf_grid.io import DataError
+from jaxnerf_grid.runs import bar, frame_name, load_dataset, load_run, run_config_dict, write_view
+
+FAR_BACKGROUND_METRES = 100.0
+REGION_DEFINITION = ("tower = classes 1-2 (tower, conductor); near_ground = class 3; far_background = "
+                     "class 0 (sky) + classes 4-5 (vegetation, building) with ground-truth z-depth > "
+                     f"{FAR_BACKGROUND_METRES:.0f} m")
+
+
+def region_masks(ds, index: int) -> dict:
+    """Boolean masks [H, W] of frame `index` for the per-region PSNR: {"tower", "near_ground",
+    "far_background"} (REGION_DEFINITION); {} when the dataset has no semantics."""
+    if ds.semantics is None:
+        return {}
+    sem = np.asarray(ds.semantics[index])
+    far = sem == 0
+    if ds.depth is not None:
+        scale = float(ds.normalization.get("scale", 1.0))
+        metric = np.asarray(ds.depth[index], np.float64) / max(scale, 1e-12)
+        far = far | (np.isin(sem, (4, 5)) & ~(metric <= FAR_BACKGROUND_METRES))
+    return {"tower": np.isin(sem, (1, 2)), "near_ground": sem == 3, "far_background": far}
+
+
+def reference_cloud(ds, reference_ply=None) -> tuple[Path, dict | None] | None:
+    """The reference tower cloud of an evaluation: (PLY path, the normalisation its points are
+    stored in, None = already in the dataset's units), or None when there is none.
+
+    reference_ply: a user's cloud in the dataset's normalised units (must exist); else the
+    dataset's `tower_ply` (relative to the dataset root; in the units of the file's
+    `scene_normalization`) when that file exists.
+    """
+    if reference_ply:
+        path = Path(reference_ply)
+        if not path.is_file():
+            raise DataError(f"{path}: reference point cloud not found (--reference-ply)")
+        return path, None
+    name = ds.meta.get("tower_ply") if ds.meta else None
+    if not name:
+        return None
+    path = Path(ds.root) / name
+    if not path.is_file():
+        return None
+    return path, ds.meta.get("scene_normalization")
+
+
+def score_geometry(ds, cloud: list, reference_ply=None) -> dict | None:
+    """metrics.json["geometry"]: the exported cloud parts [(points [K, 3], colours [K, 3])]
+    against `reference_cloud(ds, reference_ply)`; None without a reference."""
+    from jaxnerf_grid import geometry
+
+    ref = reference_cloud(ds, reference_ply)
+    if ref is None:
+        return None
+    path, file_norm = ref
+    return geometry.score_against_ply(cloud, path, file_normalization=file_norm,
+                                      scene_normalization=ds.normalization if file_norm else None)
+
+
+METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "lpips")
+
+
+def _fit_left_half(params, cfg, ds, index: int, target: np.ndarray, rays) -> np.ndarray:
+    """NeRF-W's test protocol: the appearance embedding [A] of a test image fitted on its left
+    half (network frozen). target: [H, W, 3]; rays: the view's Rays [H, W]."""
+    import jax
+
+    from jaxnerf_grid import rays as rays_lib, views
+
+    half = ds.width // 2
+    left = rays_lib.Rays(*(jax.numpy.asarray(np.asarray(x)[:, :half].reshape(-1, *np.asarray(x).shape[2:]))
+                           for x in rays))
+    return views.fit_appearance(params, cfg.model, cfg.train, left, target[:, :half].reshape(-1, 3),
+                                jax.random.PRNGKey(index))
+
+
+def _right_half_metrics(rgb: np.ndarray, target: np.ndarray, lpips_params) -> dict:
+    """PSNR / SSIM / MS-SSIM / LPIPS of the right halves of rgb, target [H, W, 3] (PSNR only
+    when the half is smaller than the SSIM window)."""
+    from jaxnerf_grid import metrics
+
+    half = rgb.shape[1] // 2
+    if min(rgb.shape[0], rgb.shape[1] - half) >= metrics.WIN_SIZE:
+        right = metrics.evaluate_image(rgb[:, half:], target[:, half:], lpips_params)
+    else:  # too small for the SSIM window: PSNR only
+        right = {"psnr": float(metrics.psnr(rgb[:, half:], target[:, half:])), "ssim": None,
+                 "ms_ssim": None, "lpips": None}
+    return {k: right[k] for k in METRIC_KEYS}
+
+
+def _region_psnr(rgb: np.ndarray, target: np.ndarray, masks: dict) -> dict:
+    """{region: PSNR of rgb against target [H, W, 3] inside its mask [H, W], None if empty}."""
+    from jaxnerf_grid import metrics
+
+    return {region: float(metrics.psnr(rgb, target, mask.astype(np.float32))) if mask.any() else None
+            for region, mask in masks.items()}
+
+
+def _mean_of(key: str, rows: list[dict]) -> float | None:
+    """Mean of the finite, non-None rows[...][key]; None when there is none."""
+    vals = [r[key] for r in rows if r.get(key) is not None and np.isfinite(r[key])]
+    return float(np.mean(vals)) if vals else None
+
+
+def _means(per_view: list[dict]) -> tuple[dict, dict, dict]:
+    """(mean, mean_right_half, regions_mean) over the per-view records."""
+    mean = {k: _mean_of(k, per_view) for k in METRIC_KEYS}
+    mean["ms_ssim_scales"] = per_view[0]["ms_ssim_scales"] if per_view else None
+    mean_right = {k: _mean_of(k, [r["right_half"] for r in per_view]) for k in METRIC_KEYS}
+    regions_mean = {}
+    if per_view and per_view[0]["regions"]:
+        for region in per_view[0]["regions"]:
+            regions_mean[region] = _mean_of(region, [r["regions"] for r in per_view])
+    return mean, mean_right, regions_mean
+
+
+def cloud_view_ids(ds, cloud_views: int) -> list[int]:
+    """`cloud_views` training frame ids, evenly spaced (all of them when there are fewer)."""
+    train_ids = np.asarray(ds.split["train"])
+    if cloud_views <= 0 or not len(train_ids):
+        return []
+    picks = np.linspace(0, len(train_ids) - 1, min(cloud_views, len(train_ids))).round().astype(int)
+    return [int(i) for i in train_ids[picks]]
+
+
+def _lift(ds, index: int, near: float, far: float, rgb: np.ndarray, view: dict):
+    """The tower points of one rendered view: export.lift_view -> (points [K, 3], colours [K, 3])."""
+    from jaxnerf_grid import export, views
+
+    return export.lift_view(views.camera_rays(ds, index, near, far), rgb, view["depth"], view["opacity"])
+
+
+def _protocol(ds, cfg) -> str:
+    protocol = ("targets are the clean images" if ds.clean_images is not None else "targets are the images")
+    if cfg.model.use_appearance:
+        protocol += ("; NeRF-W: the appearance embedding of each test image is fitted on its left half "
+                     "(network frozen) and the headline metrics are computed on the right half only")
+    return protocol + ("; rendering shows the static scene only" if cfg.model.use_transient else "")
+
+
+def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = True, dataset=None,
+                 distractor_views: int = 4, extra_notes: list[str] = (), reference_ply=None,
+                 cloud_views: int = 0) -> dict:
+    """Renders the test views, computes metrics.json and writes report.md. Returns the metrics.
+
+    reference_ply: a reference tower cloud (normalised scene units) for metrics["geometry"];
+    default: the dataset's `tower_ply` when it has one.
+    cloud_views: the tower cloud (tower_points.ply, and the geometry score) is lifted from the
+    test views' depth and also from this many training views, evenly spaced (more sides of
+    the tower); the images are not scored.
+    """
+    from jaxnerf_grid import export, lpips, metrics, report, train, views
+
+    start = time.perf_counter()
+    run_dir = Path(run_dir)
+    cfg, data = load_run(run_dir)
+    ds = dataset if dataset is not None else load_dataset(data, progress=progress)
+    reference_cloud(ds, reference_ply)  # a missing --reference-ply fails before rendering
+    params, step = train.load_params(run_dir, cfg, ds)
+    lpips_params = lpips.load_lpips(lpips_weights) if lpips_weights else None
+    targets = ds.clean_images if ds.clean_images is not None else ds.images
+    fit_left = cfg.model.use_appearance
+    near, far = config_lib.near_far(cfg.model, ds)
+    per_view, figures, cloud = [], [], []
+    for i in bar(np.asarray(ds.split["test"]), progress, "eval"):
+        i = int(i)
+        target = np.asarray(targets[i], np.float32)
+        appearance = (_fit_left_half(params, cfg, ds, i, target, views.camera_rays(ds, i, near, far))
+                      if fit_left else None)
+        view = views.render_view(params, cfg, ds, i, appearance=appearance)
+        name = frame_name(ds, i)
+        write_view(run_dir, name, view)
+        rgb = np.clip(view["rgb"], 0, 1)
+        cloud.append(_lift(ds, i, near, far, rgb, view))
+        per_view.append({"name": name, "index": i, **metrics.evaluate_image(rgb, target, lpips_params),
+                         "right_half": _right_half_metrics(rgb, target, lpips_params),
+                         "regions": _region_psnr(rgb, target, region_masks(ds, i))})
+        figures.append({"name": name, "gt": target, "rgb": rgb, "depth": view["depth"],
+                        "semantic": None if ds.semantics is None else np.asarray(ds.semantics[i])})
+    mean, mean_right, regions_mean = _means(per_view)
+    cloud_ids = cloud_view_ids(ds, cloud_views)
+    for i in bar(cloud_ids, progress, "tower points"):
+        view = views.render_view(params, cfg, ds, i)
+        cloud.append(_lift(ds, i, near, far, np.clip(view["rgb"], 0, 1), view))
+    distractor = distractor_psnr(params, cfg, ds, distractor_views, progress)
+    if fit_left:
+        mean = dict(mean_right, ms_ssim_scales=mean["ms_ssim_scales"])
+    result = {"method": cfg.model.method, "step": step, "num_views": len(per_view),
+              "target": "clean images" if ds.clean_images is not None else "images",
+              "protocol": _protocol(ds, cfg), "mean": mean, "mean_right_half": mean_right,
+              "regions_mean": regions_mean, "region_definition": REGION_DEFINITION if regions_mean else None,
+              "distractor_psnr": distractor, "geometry": score_geometry(ds, cloud, reference_ply),
+              "cloud_views": {"test": [int(r["index"]) for r in per_view], "train": cloud_ids},
+              "per_view": per_view, "lpips": "computed" if lpips_params is not None else "unavailable",
+              "eval_seconds": time.perf_counter() - start}
+    io.write_json(run_dir / "metrics.json", result)
+    export.write_point_cloud(run_dir / "tower_points.ply", cloud)
+    notes = list(extra_notes)
+    notes.append(f"Point cloud of the unit sphere (the tower region) lifted from the depth maps of the "
+                 f"{len(per_view)} test views" + (f" and {len(cloud_ids)} training views" if cloud_ids else "")
+                 + f" (opacity >= 0.5): `tower_points.ply`, {sum(len(p) for p, _ in cloud)} points, "
+                 "normalised scene units.")
+    notes.append(f"LPIPS: {'computed from ' + str(lpips_weights) if lpips_params is not None else 'unavailable (no --lpips-weights)'}.")
+    notes.append(f"Evaluation took {result['eval_seconds']:.0f} s.")
+    report.write_report(run_dir, result, run_config_dict(cfg, data), figures, notes)
+    return result
+
+
+def distractor_psnr(params, cfg, ds, max_views: int, progress: bool = False) -> float | None:
+    """PSNR inside the distractor masks of (up to max_views) training views against their clean
+    images, pooled over the views (how much of the passers-by the model burnt in); None
+    without distractor masks or clean images."""
+    from jaxnerf_grid import losses, views
+
+    if ds.distractor_masks is None or ds.clean_images is None or max_views <= 0:
+        return None
+    ids = [int(i) for i in ds.split["train"] if np.asarray(ds.distractor_masks[i]).any()][:max_views]
+    if not ids:
+        return None
+    sq, count = 0.0, 0.0
+    for i in bar(ids, progress, "distractor regions"):
+        view = views.render_view(params, cfg, ds, i)
+        m = np.asarray(ds.distractor_masks[i], np.float64)
+        err = np.mean((np.clip(view["rgb"], 0, 1) - ds.clean_images[i]) ** 2, axis=-1)
+        sq += float(np.sum(err * m))
+        count += float(np.sum(m))
+    return float(losses.mse_to_psnr(sq / count)) if count else None

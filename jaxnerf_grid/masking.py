@@ -1,0 +1,212 @@
+"""Foreground masks M, training weights 1 - M_w, depth and overlays for a dataset (the work of
+`jaxnerf-grid mask`, as `write_masks(data, ...)`).
+
+Per frame (stem = the image's file name without extension) it writes, inside the dataset:
+  masks/<stem>.png      binary foreground mask M (after optional dilation)
+  weights/<stem>.exr    per-pixel training weights 1 - M_w (0 = pixel ignored)
+  dpt_depth/<stem>.exr  the depth D used by Eq. 7 (DPT: relative depth 1 / inverse depth, up to
+                        scale; source "gt": the ground-truth z-depth)
+  overlays/<stem>.png   the photo with M_w tinted red and M outlined | Eq. 8's filtered image
+                        (longest side at most 1600 px per panel)
+and rewrites transforms.json atomically, every other key preserved: each frame gains
+`mask_path`, `weight_path`, `dpt_depth_path`, `overlay_path`; the top level gains
+`mask_source` ("dpt" or "ground-truth") and `mask_params`.
+
+source "dpt" (default) runs DPT: `weights` is a folder in the HF layout (e.g. a copy of
+Intel/dpt-large-ade) or the native format; default: the built-in model shipped in
+jaxnerf_grid/assets/dpt_builtin (if present). An HF segmentation checkpoint has no depth head:
+pass `depth_weights` (e.g. a copy of Intel/dpt-large) for Eq. 7, else M_w = M (floor 1).
+source "gt" builds M from the synthetic ground truth `distractor_mask_path` and D from
+`depth_file_path` (so training can run without any DPT model).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import io
+from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.io import DataError
+
+OUTPUT_DIRS = ("masks", "weights", "dpt_depth", "overlays")
+BUILTIN = Path(__file__).parent / "assets" / "dpt_builtin"
+OVERLAY_MAX_SIDE = 1600
+
+
+def _frame_stem(frame: dict, index: int) -> str:
+    return Path(frame.get("file_path", f"frame_{index:04d}")).stem or f"frame_{index:04d}"
+
+
+def _image_path(root: Path, frame: dict) -> Path:
+    p = root / frame["file_path"]
+    if not p.suffix:
+        for ext in (".png", ".jpg", ".jpeg", ".PNG", ".JPG"):
+            if p.with_suffix(ext).is_file():
+                return p.with_suffix(ext)
+    return p
+
+
+def load_models(weights: str | None, depth_weights: str | None):
+    """(seg_model, depth_model or None or seg_model itself, source label)."""
+    from jaxnerf_grid import dpt
+
+    if weights is None:
+        if not (BUILTIN / "config.json").is_file():
+            raise DataError(f"{BUILTIN}: no built-in DPT model is shipped in this build; pass --weights DIR "
+                            "(a copy of Intel/dpt-large-ade) or use --source gt on synthetic data")
+        weights = str(BUILTIN)
+    seg = dpt.load_pretrained(weights)
+    if "segmentation" not in seg.config.heads:
+        raise DataError(f"{weights}: this DPT has no segmentation head (heads: {seg.config.heads}); "
+                        "--weights must be a segmentation model (e.g. Intel/dpt-large-ade)")
+    if depth_weights is not None:
+        depth = dpt.load_pretrained(depth_weights)
+        if "depth" not in depth.config.heads:
+            raise DataError(f"{depth_weights}: this DPT has no depth head")
+    elif "depth" in seg.config.heads:
+        depth = seg
+    else:
+        depth = None
+    return seg, depth, weights
+
+
+def default_classes(seg_model, weights_dir: str) -> list[int]:
+    from jaxnerf_grid import foreground as fg
+
+    meta = io.read_json(Path(weights_dir) / "config.json")
+    extra = meta.get("extra", {}) if isinstance(meta, dict) else {}
+    if "dynamic_classes" in extra:
+        return [int(c) for c in extra["dynamic_classes"]]
+    if seg_model.config.num_labels == 150:
+        return sorted(fg.ADE20K_DYNAMIC)
+    raise DataError(f"{weights_dir}: {seg_model.config.num_labels}-label model with no known dynamic "
+                    "classes; pass --classes ID,ID,...")
+
+
+def _check_outputs(root: Path, meta: dict, overwrite: bool) -> None:
+    if overwrite:
+        return
+    for name in OUTPUT_DIRS:
+        d = root / name
+        if d.is_dir() and any(d.iterdir()):
+            raise DataError(f"{d}: mask outputs already exist; pass --overwrite to replace them")
+    if any("mask_path" in f for f in meta.get("frames", [])):
+        raise DataError(f"{root / 'transforms.json'}: frames already have mask_path; pass --overwrite")
+
+
+def _gt_frames(root: Path, frames: list):
+    import cv2
+
+    for frame in frames:
+        for key in ("distractor_mask_path", "depth_file_path"):
+            if key not in frame:
+                raise DataError(f"{root / 'transforms.json'}: frame {frame.get('file_path')!r} has no {key!r}; "
+                                "--source gt needs the synthetic ground truth")
+        mpath = root / frame["distractor_mask_path"]
+        raw = cv2.imread(str(mpath), cv2.IMREAD_UNCHANGED)
+        if raw is None:
+            raise DataError(f"{mpath}: not a readable mask image")
+        raw = raw[..., 0] if raw.ndim == 3 else raw
+        yield (raw.astype(np.int64) & 1).astype(np.float32), io.read_exr(root / frame["depth_file_path"])
+
+
+def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, batch_size, tiles,
+              tile_overlap, params: dict):
+    """Per image (C [H, W], depth [H, W] or None, C) from DPT; fills `params` (mask_params)."""
+    from jaxnerf_grid import foreground as fg
+
+    seg, depth_model, wdir = load_models(weights, depth_weights)
+    classes = list(classes) if classes is not None else default_classes(seg, wdir)
+    if max_side is None:
+        extra = io.read_json(Path(wdir) / "config.json").get("extra", {})
+        max_side = int(extra.get("max_side", 384))
+    params.update(weights=str(wdir), depth_weights=depth_weights, classes=classes,
+                  max_side=max_side, depth="relative (1 / DPT inverse depth)" if depth_model else None)
+    if tiles > 1:
+        params.update(tiles=tiles, tile_overlap=tile_overlap)
+    if depth_model is None:
+        print("jaxnerf-grid mask: no depth head available; using M_w = M (pass --depth-weights for Eq. 7)")
+    preds = fg.predict_maps(seg, depth_model, (io.read_image(p) for p in images), classes,
+                            max_side=max_side, batch_size=batch_size, tiles=tiles, tile_overlap=tile_overlap)
+    return ((prob, None if inv is None else np.asarray(fg.inverse_depth_to_depth(inv)), prob)
+            for prob, inv in preds)
+
+
+def _write_frame(root: Path, frame: dict, index: int, ipath: Path, a, depth, prob, threshold: float,
+                 floor: float, dilate: int) -> dict:
+    """Writes one frame's mask, weights, depth and overlay. a: C [H, W] (prob given) or the binary
+    mask itself; depth: [H, W] or None. Returns the frame's new relative paths."""
+    from jaxnerf_grid import foreground as fg
+
+    image = io.read_image(ipath)
+    h, w = image.shape[:2]
+    mask = np.asarray(fg.binary_mask(a, threshold)) if prob is not None else a
+    if mask.shape != (h, w):
+        raise DataError(f"{ipath}: mask is {mask.shape}, image is {(h, w)}")
+    mw = np.asarray(fg.depth_weighted_mask(mask, depth, floor=floor)) if depth is not None else mask.copy()
+    mask, mw = fg.dilate(mask, dilate), fg.dilate(mw, dilate)
+    stem = _frame_stem(frame, index)
+    rel = {"mask_path": f"masks/{stem}.png", "weight_path": f"weights/{stem}.exr",
+           "dpt_depth_path": f"dpt_depth/{stem}.exr", "overlay_path": f"overlays/{stem}.png"}
+    io.write_png(root / rel["mask_path"], mask)
+    io.write_exr(root / rel["weight_path"], np.asarray(fg.training_weights(mw)))
+    if depth is not None:
+        io.write_exr(root / rel["dpt_depth_path"], depth)
+    else:
+        rel.pop("dpt_depth_path")
+    scale = min(1.0, OVERLAY_MAX_SIDE / max(h, w))  # overlays of 20 MP photos: a preview size
+    oh, ow = max(1, round(h * scale)), max(1, round(w * scale))
+    io.write_png(root / rel["overlay_path"], fg.overlay(fg.resize_map(image, oh, ow),
+                                                        fg.resize_map(mask, oh, ow), fg.resize_map(mw, oh, ow)))
+    return rel
+
+
+def write_masks(data, source: str = "dpt", weights: str | None = None, depth_weights: str | None = None,
+                classes: list[int] | None = None, threshold: float = 0.5, floor: float = 0.0, dilate: int = 0,
+                max_side: int | None = None, tiles: int = 1, tile_overlap: float = 0.25,
+                batch_size: int | None = None, overwrite: bool = False, progress: bool = True) -> dict:
+    """Masks every frame of the dataset folder `data` (see the module docstring) and rewrites its
+    transforms.json. Returns {"root", "source" ("dpt" | "ground-truth"), "frames", "params"}.
+
+    source: "dpt" (weights / depth_weights: DPT folders, default the built-in model; classes:
+    dynamic class ids, default the model's) or "gt" (synthetic ground truth). threshold: T in
+    M = [C > T]; floor: M_w = M * max(floor, (Dmax - D) / Dmax); dilate: pixels; max_side: DPT
+    working size (default the model's); tiles, tile_overlap, batch_size: foreground.predict_maps.
+    """
+    from jaxnerf_grid import foreground as fg, progress as progress_lib
+
+    problem = fg.settings_problem(batch_size, tiles, tile_overlap)
+    if problem:  # before anything is read or written
+        raise ConfigError(f"jaxnerf-grid mask: {problem}")
+    root = Path(data)
+    tpath = root / "transforms.json"
+    meta = io.read_json(tpath)
+    frames = meta.get("frames") if isinstance(meta, dict) else None
+    if not frames:
+        raise DataError(f"{tpath}: no frames")
+    _check_outputs(root, meta, overwrite)
+    images = [_image_path(root, f) for f in frames]
+    for p in images:
+        if not p.is_file():
+            raise DataError(f"{p}: image file not found (listed in {tpath})")
+    params = {"threshold": threshold, "floor": floor, "dilate": dilate}
+    if source == "gt":
+        label = "ground-truth"
+        maps = ((m, d, None) for m, d in _gt_frames(root, frames))
+    else:
+        label = "dpt"
+        maps = _dpt_maps(images, weights, depth_weights, classes, max_side, batch_size, tiles, tile_overlap, params)
+    for name in OUTPUT_DIRS:
+        (root / name).mkdir(parents=True, exist_ok=True)
+    for i, (frame, ipath, (a, depth, prob)) in enumerate(
+            progress_lib.bar(zip(frames, images, maps), total=len(frames), desc="mask", unit="frame",
+                             enabled=progress)):
+        frame.update(_write_frame(root, frame, i, ipath, a, depth, prob, threshold, floor, dilate))
+    meta["mask_source"] = label
+    meta["mask_params"] = params
+    io.write_json(tpath, meta)
+    if progress:
+        print(f"wrote masks for {len(frames)} frames ({label}) into {root}")
+    return {"root": root, "source": label, "frames": len(frames), "params": params}

@@ -1,0 +1,27 @@
+"""config.merge and config.resolve: the one dict merge and the one place a dataset settles a run config."""
+
+from types import SimpleNamespace
+
+from jaxnerf_grid import config as config_lib, train
+
+
+def test_merge_recurses_and_leaves_its_inputs_alone():
+    base = {"model": {"field": {"width": 64, "depth": 4}, "near": None}, "train": {"lr_init": 1e-3}}
+    extra = {"model": {"field": {"width": 32}}, "train": 5}
+    out = config_lib.merge(base, extra)
+    assert out == {"model": {"field": {"width": 32, "depth": 4}, "near": None}, "train": 5}
+    assert base["model"]["field"]["width"] == 64 and base["train"] == {"lr_init": 1e-3}
+
+
+def test_resolve_fills_num_images_and_bounds_from_the_dataset():
+    ds = SimpleNamespace(num_frames=7, near=0.5, far=40.0)
+    cfg = train.make_config("nerfw")
+    assert cfg.model.num_images == 0 and cfg.model.near is None
+    full = config_lib.resolve(cfg, ds)
+    assert full.model.num_images == 7 and (full.model.near, full.model.far) == (0.5, 40.0)
+    stored = config_lib.resolve(cfg, ds, bounds=False)      # what a run's config.json keeps
+    assert stored.model.num_images == 7 and stored.model.near is None and stored.model.far is None
+    given = train.make_config("ours", {"model": {"near": 1.0, "num_images": 9}})
+    settled = config_lib.resolve(given, ds)
+    assert settled.model.num_images == 9 and (settled.model.near, settled.model.far) == (1.0, 40.0)
+    assert config_lib.near_far(given.model, ds) == (1.0, 40.0) and stored.train == cfg.train
