@@ -37,7 +37,8 @@ def main(argv: list[str] | None = None) -> int:
 
     m = evaluate.evaluate_run(args.run, args.lpips_weights, not args.quiet, distractor_views=args.distractor_views,
                               reference_ply=args.reference_ply)
-    print(f"test PSNR {m['mean']['psnr']:.2f} dB, SSIM {m['mean']['ssim']:.4f}; "
+    ssim = m["mean"]["ssim"]  # None when every view is smaller than the SSIM window
+    print(f"test PSNR {m['mean']['psnr']:.2f} dB, SSIM {'n/a' if ssim is None else f'{ssim:.4f}'}; "
           f"report: {Path(args.run) / 'report.md'}")
     if m.get("geometry"):
         print(geometry_line(m["geometry"]))
