@@ -17,6 +17,7 @@ same scale as the MSE used elsewhere). The coarse pass (a plain static field) us
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 
 
@@ -117,8 +118,6 @@ def interlevel_ray_loss(edges_main: jnp.ndarray, weights_main: jnp.ndarray, edge
     edges_main: [..., n + 1]; weights_main: [..., n]; edges_prop: [..., m + 1];
     weights_prop: [..., m]. Returns [...].
     """
-    import jax
-
     w = jax.lax.stop_gradient(weights_main)
     e_main = jax.lax.stop_gradient(edges_main)
     e_prop = jax.lax.stop_gradient(edges_prop)

@@ -131,8 +131,6 @@ def validate(cfg: ModelConfig) -> None:
     for name, field_cfg in (("model.field", cfg.field), ("model.proposal_field", cfg.proposal_field)):
         try:
             fields.check(field_cfg)
-            if field_cfg.kind == "grid":
-                fields.hashgrid.check(field_cfg.grid, f"{name}.grid")
         except ValueError as exc:
             raise ConfigError(f"{name}: {exc}") from None
     embeddings = cfg.use_appearance or cfg.use_transient

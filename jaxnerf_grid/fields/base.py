@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import dataclasses
 
-from jaxnerf_grid.fields.hashgrid import HashConfig
+from jaxnerf_grid.fields.hashgrid import HashConfig, check as check_grid
 
 FIELD_KINDS = ("mlp", "grid")
 
@@ -52,7 +52,8 @@ class FieldConfig:
 
 
 def check(cfg: FieldConfig) -> None:
-    """Checks what every kind shares; raises ValueError naming the setting."""
+    """Checks a field config (the hash encoding too, for kind "grid"); raises ValueError
+    naming the setting."""
     if cfg.kind not in FIELD_KINDS:
         raise ValueError(f"FieldConfig: unknown kind {cfg.kind!r}; choose from {list(FIELD_KINDS)}")
     if cfg.depth < (1 if cfg.kind == "mlp" else 0) or cfg.width < 1:
@@ -63,3 +64,5 @@ def check(cfg: FieldConfig) -> None:
     if cfg.density_activation not in allowed:
         raise ValueError(f"FieldConfig: density_activation must be one of {list(allowed)} for kind "
                          f"{cfg.kind!r}, got {cfg.density_activation!r}")
+    if cfg.kind == "grid":
+        check_grid(cfg.grid, "grid")

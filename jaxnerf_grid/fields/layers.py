@@ -12,6 +12,8 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from jaxnerf_grid import coords
+
 DENSITY_ACTIVATIONS = ("softplus", "relu", "exp")
 
 
@@ -82,8 +84,6 @@ def transient_apply(params: dict, feature: jnp.ndarray, transient: jnp.ndarray |
 
 def dir_input_size(cfg) -> int:
     """Width of the encoded view direction in the colour branch's input (0 without viewdirs)."""
-    from jaxnerf_grid import coords
-
     return coords.encoded_size(3, 0, cfg.dir_max_deg) if cfg.use_viewdirs else 0
 
 
@@ -94,8 +94,6 @@ def colour_inputs(feature: jnp.ndarray, viewdirs, appearance, use_viewdirs: bool
     feature: [..., C]; viewdirs: [..., 3] (broadcast) or None; appearance: [..., A] or None
     (zeros). Returns [..., C + D + A].
     """
-    from jaxnerf_grid import coords
-
     branch = [feature]
     if use_viewdirs:
         if viewdirs is None:

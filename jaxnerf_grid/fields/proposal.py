@@ -10,14 +10,12 @@ from __future__ import annotations
 import jax.numpy as jnp
 
 from jaxnerf_grid.fields import base, grid, layers
-from jaxnerf_grid.fields.hashgrid import check as check_grid
 
 
 def check(cfg: base.FieldConfig) -> None:
     if cfg.kind != "grid":
         raise ValueError(f"proposal field: kind must be 'grid', got {cfg.kind!r}")
     base.check(cfg)
-    check_grid(cfg.grid, "proposal field grid")
 
 
 def init(key, cfg: base.FieldConfig) -> dict:
