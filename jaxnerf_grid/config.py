@@ -13,9 +13,7 @@ import it and it only reads the duck-typed fields of the configs it is given.
 from __future__ import annotations
 
 import dataclasses
-import json
 import typing
-from pathlib import Path
 from typing import Any, TypeVar
 
 T = TypeVar("T")
@@ -56,27 +54,6 @@ def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
     return cls(**kwargs)
 
 
-def save_json(cfg: Any, path: str | Path) -> None:
-    from jaxnerf_grid.io import write_json
-
-    write_json(path, to_dict(cfg))
-
-
-def load_json(cls: type[T], path: str | Path) -> T:
-    from jaxnerf_grid.io import read_json
-
-    return from_dict(cls, read_json(path), where=str(path))
-
-
-def replace(cfg: T, **changes) -> T:
-    """dataclasses.replace with a clear error for an unknown field."""
-    names = {f.name for f in dataclasses.fields(cfg)}
-    bad = sorted(set(changes) - names)
-    if bad:
-        raise ConfigError(f"{type(cfg).__name__}: unknown field(s) {bad}")
-    return dataclasses.replace(cfg, **changes)
-
-
 def merge(base: dict, extra: dict) -> dict:
     """`extra` laid over `base`, recursing into dicts both hold; neither input is changed."""
     out = dict(base)
@@ -106,6 +83,3 @@ def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
         changes["near"], changes["far"] = near_far(cfg.model, dataset)
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, **changes))
 
-
-def dumps(cfg: Any) -> str:
-    return json.dumps(to_dict(cfg), indent=2)
