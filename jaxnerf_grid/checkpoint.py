@@ -8,7 +8,7 @@ matched by key path, so parameters, optimiser state, PRNG keys (raw uint32 ones 
 `jax.random.key` ones, stored as `jax.random.key_data`) and the step come back bit-for-bit.
 
 Writes go to a temporary file in the same folder (named `.ckpt_....tmp`, never matching
-`ckpt_*.npz`), are flushed and fsync-ed, then `os.replace`-d into place: a crash leaves
+`ckpt_*.npz`; `io.atomic_path(..., durable=True)`), fsync-ed, then `os.replace`-d into place: a crash leaves
 either the old set of checkpoints or the new one, never a half-written `ckpt_*.npz`.
 A checkpoint that is nevertheless unreadable (truncated copy, disk fault) is skipped by
 `restore_latest` with a warning, falling back to the previous one.
@@ -30,7 +30,6 @@ import io
 import json
 import os
 import re
-import tempfile
 import warnings
 from pathlib import Path
 from typing import Any
@@ -39,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .io import DataError
+from .io import DataError, atomic_path
 
 FORMAT = "jaxnerf-grid-checkpoint"
 VERSION = 1
@@ -171,19 +170,6 @@ def _write_npz(handle, arrays: dict[str, np.ndarray]) -> None:
     np.savez(handle, **arrays)
 
 
-def _fsync_dir(folder: Path) -> None:
-    try:
-        fd = os.open(folder, os.O_RDONLY)
-    except OSError:
-        return
-    try:
-        os.fsync(fd)
-    except OSError:
-        pass
-    finally:
-        os.close(fd)
-
-
 def save_checkpoint(run_dir: str | os.PathLike, step: int, state: Any, keep: int | None = 3) -> Path:
     """Writes `state` (any pytree of arrays / PRNG keys / scalars) as the checkpoint of `step`.
 
@@ -216,18 +202,9 @@ def save_checkpoint(run_dir: str | os.PathLike, step: int, state: Any, keep: int
             stale.unlink()
         except OSError:
             pass
-    fd, tmp = tempfile.mkstemp(dir=folder, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as handle:
+    with atomic_path(path, durable=True) as tmp:
+        with open(tmp, "wb") as handle:
             _write_npz(handle, arrays)
-            handle.flush()
-            os.fsync(handle.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    _fsync_dir(folder)
 
     if keep is not None:
         others = [p for _, p in list_checkpoints(run_dir) if p != path]

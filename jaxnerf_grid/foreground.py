@@ -25,6 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxnerf_grid import io
+
 # ADE20K-150 (0-based ids as in HF's Intel/dpt-large-ade id2label) classes that move.
 # ADE20K has no bird class: birds fall under "animal".
 ADE20K_DYNAMIC = {12: "person", 20: "car", 76: "boat", 80: "bus", 83: "truck", 90: "airplane",
@@ -126,14 +128,9 @@ def working_size(height: int, width: int, max_side: int = 384, multiple: int = 3
 
 
 def resize_map(x: np.ndarray, height: int, width: int) -> np.ndarray:
-    """Bilinear (half-pixel) resize of a float map [h, w] or [h, w, C] with OpenCV."""
-    import cv2
-
-    x = np.asarray(x, np.float32)
-    if x.shape[:2] == (height, width):
-        return x
-    interp = cv2.INTER_LINEAR if height >= x.shape[0] else cv2.INTER_AREA
-    return cv2.resize(x, (width, height), interpolation=interp)
+    """A float map [h, w] or [h, w, C] resized to (height, width): `io.resize` in float32,
+    taking the size height first as the rest of this module does."""
+    return io.resize(np.asarray(x, np.float32), (width, height))
 
 
 def tile_starts(length: int, tile: int, overlap: int) -> list[int]:

@@ -21,10 +21,31 @@ class DataError(ValueError):
     """Bad input data: the message names the file and what is wrong."""
 
 
-def _cv2():
-    import cv2  # imported lazily: OpenCV is slow to import
+def opencv():
+    """The cv2 module, imported on first use (OpenCV is slow to import)."""
+    import cv2
 
     return cv2
+
+
+def resize(array: np.ndarray, size: tuple[int, int], interpolation: str = "area") -> np.ndarray:
+    """Resizes [H, W] or [H, W, C] to size = (W', H') (OpenCV's order, width first).
+
+    interpolation: "area" (INTER_AREA when shrinking, bilinear when either side grows: OpenCV's
+    INTER_AREA only averages when shrinking), "linear" or "nearest". Returns the input itself
+    when the size is unchanged; a [H, W, 1] input keeps its channel axis.
+    """
+    cv2 = opencv()
+    width, height = size
+    if array.shape[1] == width and array.shape[0] == height:
+        return array
+    flag = {"area": cv2.INTER_AREA, "linear": cv2.INTER_LINEAR, "nearest": cv2.INTER_NEAREST}[interpolation]
+    if interpolation == "area" and (width > array.shape[1] or height > array.shape[0]):
+        flag = cv2.INTER_LINEAR
+    out = cv2.resize(array, (width, height), interpolation=flag)
+    if array.ndim == 3 and out.ndim == 2:
+        out = out[..., None]
+    return out
 
 
 def decode_raw(path: str | os.PathLike, what: str = "image", flags: int | None = None):
@@ -33,7 +54,7 @@ def decode_raw(path: str | os.PathLike, what: str = "image", flags: int | None =
     Raises DataError naming the file when it is missing or not decodable. `what` names the
     file's role in the message ("image", "mask", ...). Returns (array, raw bytes).
     """
-    cv2 = _cv2()
+    cv2 = opencv()
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: {what} file not found")
@@ -50,7 +71,7 @@ def read_image(path: str | os.PathLike, honour_exif: bool = True) -> np.ndarray:
     Returns: [H, W, 3] (alpha dropped, grey expanded). EXIF orientation is applied when
     `honour_exif` (OpenCV's default for JPEG).
     """
-    cv2 = _cv2()
+    cv2 = opencv()
     path = Path(path)
     flags = cv2.IMREAD_UNCHANGED
     if not honour_exif:
@@ -81,7 +102,7 @@ def read_mask(path: str | os.PathLike) -> np.ndarray:
 
 def write_png(path: str | os.PathLike, image: np.ndarray, bits: int = 8) -> None:
     """Writes an image in [0, 1] as PNG (atomic). image: [H, W], [H, W, 1], [H, W, 3] or [H, W, 4]."""
-    cv2 = _cv2()
+    cv2 = opencv()
     img = np.asarray(image, dtype=np.float32)
     if not np.all(np.isfinite(img)):
         raise DataError(f"{path}: refusing to write an image with non-finite values")
@@ -279,20 +300,43 @@ def atomic_write_bytes(path: str | os.PathLike, payload: bytes) -> None:
 
 
 @contextlib.contextmanager
-def atomic_path(path: str | os.PathLike, suffix: str = ".tmp"):
+def atomic_path(path: str | os.PathLike, suffix: str = ".tmp", durable: bool = False):
     """Yields a temporary path beside `path`; on success renames it over `path`, on any error
-    removes it, so `path` is either the old file or the complete new one."""
+    removes it, so `path` is either the old file or the complete new one.
+
+    The temporary file is named `.{name}.XXXX{suffix}` in the same folder. durable=True also
+    fsyncs the file before the rename and the folder after it, so the new file survives a
+    power cut as well as a killed process (checkpoints use it).
+    """
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
     try:
         yield Path(tmp)
+        if durable:
+            _fsync(tmp, os.O_RDONLY)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):
             os.unlink(tmp)
         raise
+    if durable:
+        _fsync(path.parent, os.O_RDONLY)
+
+
+def _fsync(path: str | os.PathLike, flags: int) -> None:
+    """fsync of a file or folder; a filesystem that cannot fsync a folder is not an error."""
+    try:
+        fd = os.open(path, flags)
+    except OSError:
+        return
+    try:
+        os.fsync(fd)
+    except OSError:
+        pass
+    finally:
+        os.close(fd)
 
 
 def write_json(path: str | os.PathLike, obj: Any) -> None:

@@ -4,7 +4,7 @@ A model is three files in one folder: `cameras`, `images`, `points3D`, each `.tx
 (the layouts of COLMAP's `src/colmap/scene/reconstruction_io`). Conventions kept as COLMAP has
 them: `qvec` (w, x, y, z) and `tvec` map world to camera, `x_cam = R(qvec) @ x_world + tvec`,
 camera axes OpenCV (x right, y down, z forward); pixel centres at +0.5 (so `cx`, `cy` use the
-same convention as `rays.py`). Conversion to c2w OpenGL lives in `formats.py`.
+same convention as `rays.py`). Conversion to c2w OpenGL lives in `formats/colmap.py`.
 
 Every reader raises `DataError` naming the file and what is wrong with it.
 """

@@ -35,12 +35,6 @@ from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
 
 
-def _cv2():
-    import cv2
-
-    return cv2
-
-
 def target_size(width: int, height: int, size) -> tuple[int, int]:
     """(W', H') for an image of (width, height): `size` is (W, H), an int long side, or None."""
     if size is None:
@@ -61,7 +55,7 @@ def clahe_lab(image: np.ndarray, clip_limit: float = 2.0, tile_grid: int = 8) ->
 
     L is equalised at 16-bit precision (OpenCV's CLAHE takes 8- or 16-bit input).
     """
-    cv2 = _cv2()
+    cv2 = io.opencv()
     img = np.clip(np.asarray(image, np.float32), 0.0, 1.0)
     lab = cv2.cvtColor(img, cv2.COLOR_RGB2LAB)  # float input: L in [0, 100]
     l16 = np.round(lab[..., 0] / 100.0 * 65535.0).astype(np.uint16)
@@ -138,7 +132,7 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
         img = io.read_image(path)  # EXIF orientation honoured
         h, w = img.shape[:2]
         common = common or target_size(w, h, size)
-        img = enhance(formats.resize(img, common, "area"), **opts)
+        img = enhance(io.resize(img, common, "area"), **opts)
         rel = f"images/{path.stem}.png"
         io.write_png(out / rel, img)
         entries.append({"source": path.name, "file_path": rel, "source_size": [w, h],
@@ -187,14 +181,14 @@ def _preprocess_dataset(ds: Dataset, out: Path, size, opts: dict) -> Path:
         arr = getattr(ds, name)
         if arr is not None:
             arr = arr.astype(np.uint8) if arr.dtype == bool else arr
-            arr = np.stack([formats.resize(a, common, interp) for a in arr])
+            arr = np.stack([io.resize(a, common, interp) for a in arr])
             if name == "clean_images":
                 arr = np.stack([enhance(a, **opts) for a in arr])
             resized[name] = arr
     import dataclasses
 
     new = dataclasses.replace(
-        ds, images=np.stack([enhance(formats.resize(a, common, "area"), **opts) for a in ds.images]),
+        ds, images=np.stack([enhance(io.resize(a, common, "area"), **opts) for a in ds.images]),
         intrinsics=formats.scale_intrinsics(ds.intrinsics, sx, sy).astype(np.float32), **resized)
     formats.save_transforms_json(new, out, overwrite=True)
     return out

@@ -1,0 +1,90 @@
+"""Writing datasets in the transforms.json layout (docs/DATASET.md): frames, the top-level
+keys, a whole `Dataset`."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import io
+from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.data.formats.frames import EXTRAS
+
+
+def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: str | None = None,
+                extras: dict | None = None) -> dict:
+    """Writes one frame's files under `out_dir` and returns its transforms.json entry.
+
+    image: [H, W, 3] in [0, 1]; intrinsics: [4]; c2w: [4, 4]; extras: {Dataset field: array}
+    (clean_images [H, W, 3]; depth, weights [H, W] float; masks [H, W] in [0, 1]; semantics,
+    distractor_masks [H, W] uint8 / bool, written losslessly).
+    """
+    out_dir = Path(out_dir)
+    rel = f"images/{stem}.png"
+    io.write_png(out_dir / rel, image)
+    fx, fy, cx, cy = (float(v) for v in intrinsics)
+    frame = {"file_path": rel, "transform_matrix": np.asarray(c2w, float).tolist(),
+             "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy, "w": int(image.shape[1]), "h": int(image.shape[0])}
+    if split is not None:
+        frame["split"] = split
+    for name, arr in (extras or {}).items():
+        if arr is None:
+            continue
+        key, _, _, folder, ext = EXTRAS[name]
+        frame[key] = f"{folder}/{stem}{ext}"
+        if ext == ".exr":
+            io.write_exr(out_dir / frame[key], np.asarray(arr, np.float32))
+        elif name in ("semantics", "distractor_masks"):
+            raw = np.asarray(arr)
+            raw = raw.astype(np.uint8) * (255 if raw.dtype == bool else 1)
+            io.write_png(out_dir / frame[key], raw.astype(np.float32) / 255.0)
+        else:
+            io.write_png(out_dir / frame[key], np.asarray(arr, np.float32))
+    return frame
+
+
+def transforms_top(width: int, height: int, near: float, far: float, normalization: dict, meta: dict,
+                   root, out_dir) -> dict:
+    """Top-level keys of a written transforms.json (copies `tower_ply` next to it)."""
+    top = {"w": int(width), "h": int(height), "camera_model": "PINHOLE",
+           "near": float(near), "far": float(far),
+           "scene_normalization": {"scale": float(normalization["scale"]),
+                                   "translation": [float(v) for v in normalization["translation"]]}}
+    if "generator" in meta:
+        top["generator"] = meta["generator"]
+    tower = meta.get("tower_ply")
+    if tower and (Path(root) / tower).is_file():
+        io.atomic_write_bytes(Path(out_dir) / tower, (Path(root) / tower).read_bytes())
+        top["tower_ply"] = tower
+    return top
+
+
+def split_names(split: dict, num_frames: int) -> list:
+    """Per frame its split name ("train" / "test", first match; None when in neither)."""
+    names = [None] * num_frames
+    for name in ("train", "test"):
+        for i in np.asarray(split.get(name, []), np.int64):
+            if names[int(i)] is None:
+                names[int(i)] = name
+    return names
+
+
+def save_transforms_json(ds: Dataset, out_dir, *, overwrite: bool = False) -> Path:
+    """Writes `ds` as a transforms.json dataset (docs/DATASET.md) under `out_dir`.
+
+    Images and masks as 8-bit PNG, weights / depth as EXR, per-frame intrinsics. Refuses a
+    non-empty `out_dir` unless `overwrite`. Returns the path of transforms.json.
+    """
+    out = io.ensure_writable(out_dir, overwrite)
+    out.mkdir(parents=True, exist_ok=True)
+    names = split_names(ds.split, ds.num_frames)
+    frames = []
+    for i in range(ds.num_frames):
+        stem = f"{i:05d}_{Path(ds.frame_paths[i]).stem}" if ds.frame_paths else f"{i:05d}"
+        extras = {name: None if getattr(ds, name) is None else getattr(ds, name)[i] for name in EXTRAS}
+        frames.append(write_frame(out, stem, ds.images[i], ds.intrinsics[i], ds.c2w[i], names[i], extras))
+    top = transforms_top(ds.width, ds.height, ds.near, ds.far, ds.normalization, ds.meta, ds.root, out)
+    top["frames"] = frames
+    io.write_json(out / "transforms.json", top)
+    return out / "transforms.json"
