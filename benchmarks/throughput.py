@@ -26,7 +26,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, rays as rays_lib, train, views
+from jaxnerf_grid import config as config_lib, parallel, rays as rays_lib, train, views
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.demo import DEMO_CONFIG
 
@@ -70,8 +70,8 @@ def bench(method: str, name: str, steps: int, render_rays: int) -> dict:
     ds = scene()
     cfg = config_lib.resolve(cfg, ds)  # as train.train settles it
     n = train.resolve_devices(cfg.train)
-    pool = train._to_devices(train.build_pool(ds, cfg), n)
-    state = train._to_devices(train.init_state(cfg), n)
+    pool = parallel.replicate(train.build_pool(ds, cfg), n)
+    state = parallel.replicate(train.init_state(cfg), n)
     step = train.make_train_step(cfg, n)
     t = time.perf_counter()
     state, stats = step(state, pool)

@@ -298,7 +298,7 @@ def render_ray(params: dict, cfg: ModelConfig, origin, direction, near, far, key
     if cfg.fine_union:
         s_new = sampling.resample_pdf(k_fine, s_coarse, weights, cfg.num_fine, cfg.single_jitter)
         s_mid = 0.5 * (s_coarse[..., 1:] + s_coarse[..., :-1])
-        s_points = jnp.sort(jnp.concatenate([s_mid, s_new], axis=-1), axis=-1)
+        s_points = sampling.merge_edges(s_mid, s_new)
         s_fine = sampling.intervals_from_samples(s_points, 0.0, 1.0)
     else:
         s_fine = sampling.resample_pdf(k_fine, s_coarse, weights, cfg.num_fine + 1, cfg.single_jitter)

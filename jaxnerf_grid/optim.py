@@ -13,53 +13,12 @@ What is here:
   * Steps driven by jaxopt:
       - `make_solver(loss_fn, opt)`: a `jaxopt.OptaxSolver` whose `fun(params, *args)`
         returns `(loss, aux)`; `guarded_update(solver, params, state, *args)` does one
-        `solver.update` and rolls it back when anything is non-finite.
-      - `make_pmean_solver(loss_fn, opt, axis_name)`: the same solver for data parallel
-        training under `jax.pmap`; its `fun` is a value-and-grad that `pmean`s the loss, the
-        gradients and the floating aux over `axis_name`, so every device applies the same
-        averaged gradient and stays in sync.
+        `solver.update` and rolls it back when anything is non-finite
+        (experiments/train_builtin_dpt.py steps this way).
       - `apply_gradients` / `guarded_apply`: the optimiser step for gradients the caller has
-        already computed (and averaged); it still goes through `OptaxSolver.update`, fed by a
-        `fun` that hands back the given gradients.
-
-Example, single device (the trainer's step):
-
-    opt = adam(make_lr_schedule(5e-4, 5e-6, warmup_steps=500, max_steps=200_000),
-               eps=1e-6, max_grad_norm=1.0)
-
-    def loss_fn(params, batch, key):          # -> (scalar loss, aux pytree)
-        loss, stats = ...
-        return loss, stats
-
-    solver = make_solver(loss_fn, opt)        # has_aux=True
-    state = solver.init_state(params, batch, key)      # evaluates loss_fn once
-    step = jax.jit(lambda p, s, b, k: guarded_update(solver, p, s, b, k))
-    params, state, aux, finite = step(params, state, batch, key)
-    if not bool(finite):                      # the step was skipped: params/state unchanged
-        log_nonfinite(global_step)            # (put the loss into aux to log it too)
-    # state.value: this step's loss; state.error: L2 norm of the (unclipped) gradient;
-    # state.internal_state: the AdamState (count, mu, nu) to checkpoint with the params.
-
-Example, data parallel with pmap (gradients averaged across devices):
-
-    solver = make_pmean_solver(loss_fn, opt, axis_name="batch")
-    p_init = jax.pmap(solver.init_state, axis_name="batch")
-    p_step = jax.pmap(lambda p, s, b, k: guarded_update(solver, p, s, b, k),
-                      axis_name="batch")
-    params_r = parallel.replicate(params)                    # [n_dev, ...]
-    state_r = p_init(params_r, parallel.shard(batch), keys)   # keys: [n_dev, 2]
-    params_r, state_r, aux, finite = p_step(params_r, state_r, parallel.shard(batch), keys)
-    # loss, grads and aux are pmean-ed inside, so `finite` and the new params are identical
-    # on every device: read finite[0], aux[0]; unreplicate with tree_map(lambda x: x[0], ...).
-
-  Alternatively compute and pmean the gradients yourself, then apply them:
-
-    def p_step(params, opt_state, batch, key):               # under pmap(axis_name="batch")
-        (loss, aux), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, batch, key)
-        loss, grads = jax.lax.pmean((loss, grads), "batch")
-        params, opt_state, finite = guarded_apply(opt, params, opt_state, grads, loss)
-        return params, opt_state, loss, finite
-    opt_state = opt.init(params)                              # an AdamState
+        already computed (and, under pmap, psum-ed over the devices: train.py's step); it
+        still goes through `OptaxSolver.update`, fed by a `fun` that hands back the given
+        gradients.
 
 A skipped step leaves the optimiser state untouched, so Adam's step count (and therefore the
 learning-rate schedule inside `adam`) does not advance on it; the trainer's own step does.
@@ -96,7 +55,6 @@ __all__ = [
     "log_nonfinite",
     "lr_schedule",
     "make_lr_schedule",
-    "make_pmean_solver",
     "make_solver",
     "tree_all_finite",
 ]
@@ -255,34 +213,6 @@ def make_solver(loss_fn: Callable, opt: GradientTransformation, has_aux: bool = 
     (or just `loss` when has_aux=False). Start with `state = solver.init_state(params, *args)`
     (evaluates loss_fn once); step with `guarded_update` (or `solver.update`)."""
     return jaxopt.OptaxSolver(fun=loss_fn, opt=opt, has_aux=has_aux, jit=jit, maxiter=1)
-
-
-def make_pmean_solver(loss_fn: Callable, opt: GradientTransformation, axis_name: str = "batch",
-                      has_aux: bool = True) -> jaxopt.OptaxSolver:
-    """`make_solver` for use inside `jax.pmap(..., axis_name=axis_name)`.
-
-    The solver's `fun` is a value-and-grad (`value_and_grad=True` in jaxopt's terms) that
-    computes the per-device `loss_fn(params, *args)` and its gradient, then `pmean`s the loss,
-    the gradients and the floating leaves of aux over `axis_name`. So jaxopt drives the step
-    while the update uses the cross-device average gradient. Both `solver.init_state` and
-    `solver.update` (or `guarded_update`) must then run under that pmap.
-    """
-    vg = jax.value_and_grad(loss_fn, has_aux=has_aux)
-
-    def value_and_grad_pmean(params, *args, **kwargs):
-        if has_aux:
-            (loss, aux), grads = vg(params, *args, **kwargs)
-        else:
-            loss, grads = vg(params, *args, **kwargs)
-            aux = None
-        loss, grads = jax.lax.pmean((loss, grads), axis_name)
-        aux = jax.tree_util.tree_map(
-            lambda a: jax.lax.pmean(a, axis_name) if jnp.issubdtype(jnp.result_type(a), jnp.inexact) else a,
-            aux)
-        return (loss, aux), grads
-
-    return jaxopt.OptaxSolver(fun=value_and_grad_pmean, opt=opt, value_and_grad=True, has_aux=True,
-                              jit=False, maxiter=1)
 
 
 def guarded_update(solver: jaxopt.OptaxSolver, params, state: OptaxState, *args, **kwargs):

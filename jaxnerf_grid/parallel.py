@@ -1,23 +1,53 @@
-"""Data parallelism over all local devices (pmap), shared by rendering and training."""
+"""Data parallelism over the local devices (pmap): the plumbing training and rendering share.
+
+Host-side arrays are laid out as `jax.pmap` wants them, a leading device axis [n, ...]:
+`replicate` copies a pytree onto n devices (parameters, optimiser state, the ray pool),
+`shard` / `unshard` split a batch's leading axis over the devices and join it back, and
+`run_sharded` does the whole round trip for a pmapped function of a batch of any size.
+The pmap axis is named `AXIS`; collectives inside a step (`jax.lax.psum`) use it.
+"""
 
 from __future__ import annotations
 
 from typing import Callable
 
 import jax
-import jax.numpy as jnp
+import numpy as np
+
+AXIS = "batch"
 
 
-def num_devices() -> int:
-    return jax.local_device_count()
+def devices(n: int) -> list:
+    """The first n local devices (what every pmap here runs on)."""
+    return jax.local_devices()[:n]
 
 
-def shard(tree, n: int | None = None):
-    """Splits every leaf's leading axis into [n, B / n, ...]. B must divide by n."""
-    n = n or num_devices()
+def replicate(tree, n: int):
+    """Copies every leaf onto the first n local devices: [...] -> [n, ...], resident there, so
+    a pmapped step does not copy it again each call."""
+    stacked = jax.tree_util.tree_map(lambda x: np.stack([np.asarray(x)] * n), tree)
+    return jax.pmap(lambda x: x, axis_name=AXIS, devices=devices(n))(stacked)
 
+
+def unreplicate(tree):
+    """The first device's copy of a replicated pytree, on the host: [n, ...] -> [...]."""
+    return jax.device_get(jax.tree_util.tree_map(lambda x: x[0], tree))
+
+
+def pad_to_multiple(x, multiple: int) -> tuple[np.ndarray, int]:
+    """Pads the leading axis to a multiple by repeating the last row. Returns (padded, B)."""
+    x = np.asarray(x)
+    count = x.shape[0]
+    remainder = (-count) % multiple
+    if remainder:
+        x = np.concatenate([x, np.repeat(x[-1:], remainder, axis=0)], axis=0)
+    return x, count
+
+
+def shard(tree, n: int):
+    """Splits every leaf's leading axis over n devices: [B, ...] -> [n, B / n, ...]."""
     def split(x):
-        x = jnp.asarray(x)
+        x = np.asarray(x)
         if x.shape[0] % n:
             raise ValueError(f"shard: leading axis {x.shape[0]} does not divide by {n} devices")
         return x.reshape(n, x.shape[0] // n, *x.shape[1:])
@@ -30,35 +60,15 @@ def unshard(tree):
     return jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[2:]), tree)
 
 
-def replicate(tree, n: int | None = None):
-    """Copies every leaf to each local device: [...] -> [n, ...]."""
-    n = n or num_devices()
-    # jax.device_put_replicated is gone from current JAX; pmap shards a stacked leading axis.
-    return jax.tree_util.tree_map(lambda x: jnp.stack([jnp.asarray(x)] * n), tree)
+def run_sharded(pmapped: Callable, batch, n: int):
+    """pmapped(batch [n, B' / n, ...]) for a batch [B, ...] of any size B: the batch is padded
+    to a multiple of n, sharded, run, fetched to the host, joined and trimmed back to B rows.
 
-
-def pad_to_multiple(x: jnp.ndarray, multiple: int) -> tuple[jnp.ndarray, int]:
-    """Pads the leading axis (repeating the last row) to a multiple. Returns (padded, original B)."""
-    count = x.shape[0]
-    remainder = (-count) % multiple
-    if remainder:
-        x = jnp.concatenate([x, jnp.repeat(x[-1:], remainder, axis=0)], axis=0)
-    return x, count
-
-
-def pmap_over_batch(fn: Callable, n: int | None = None) -> Callable:
-    """Wraps fn(batch_tree) -> out_tree so the batch is split over n devices and re-joined.
-
-    fn must act row-wise on its leading axis. Non-divisible batches are padded and trimmed.
+    `pmapped` must act row-wise and map over the leading axis of its one argument (close over
+    anything replicated). Returns the output pytree as NumPy [B, ...].
     """
-    n = n or num_devices()
-    mapped = jax.pmap(fn)
-
-    def run(batch):
-        leaves = jax.tree_util.tree_leaves(batch)
-        count = leaves[0].shape[0]
-        padded = jax.tree_util.tree_map(lambda x: pad_to_multiple(jnp.asarray(x), n)[0], batch)
-        out = unshard(mapped(shard(padded, n)))
-        return jax.tree_util.tree_map(lambda x: x[:count], out)
-
-    return run
+    leaves = jax.tree_util.tree_leaves(batch)
+    count = leaves[0].shape[0]
+    padded = jax.tree_util.tree_map(lambda x: pad_to_multiple(x, n)[0], batch)
+    out = unshard(jax.device_get(pmapped(shard(padded, n))))
+    return jax.tree_util.tree_map(lambda x: x[:count], out)

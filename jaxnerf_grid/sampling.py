@@ -87,21 +87,6 @@ def stratified_s(key, batch_shape: tuple, num_samples: int, single_jitter: bool 
     return jnp.concatenate([zeros, middle, zeros + 1.0], axis=-1)
 
 
-def stratified(key, t_near, t_far, num_samples: int, warp="disparity",
-               single_jitter: bool = False) -> tuple[jnp.ndarray, jnp.ndarray]:
-    """Stratified samples uniform in s-space, mapped back to metric t (Eq. 11).
-
-    key: PRNG key or None (deterministic, edges uniform in s); t_near, t_far: [...] per ray.
-    Returns (t_edges [..., N + 1], s_edges [..., N + 1]).
-    """
-    t_near = jnp.asarray(t_near, jnp.float32)
-    t_far = jnp.asarray(t_far, jnp.float32)
-    batch_shape = jnp.broadcast_shapes(t_near.shape, t_far.shape)
-    s_edges = stratified_s(key, batch_shape, num_samples, single_jitter)
-    _, s_to_t = ray_warp(warp, t_near[..., None], t_far[..., None])
-    return s_to_t(s_edges), s_edges
-
-
 def resample_pdf(key, edges: jnp.ndarray, weights: jnp.ndarray, num_samples: int,
                  single_jitter: bool = False, weight_floor: float = 1e-5) -> jnp.ndarray:
     """Hierarchical sampling: inverse-CDF samples of the piecewise-constant PDF over the bins.

@@ -35,13 +35,13 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import checkpoint, config as config_lib, losses, models, optim, rays as rays_lib
+from jaxnerf_grid import checkpoint, config as config_lib, losses, models, optim, parallel, rays as rays_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
 
 logger = logging.getLogger(__name__)
-AXIS = "batch"
+AXIS = parallel.AXIS
 
 
 @dataclasses.dataclass(frozen=True)
@@ -212,7 +212,7 @@ def make_train_step(cfg: RunConfig, num_devices: int):
         params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
         return {"params": params, "opt_state": opt_state, "key": key}, {"loss": loss, "mse": mse, "finite": finite}
 
-    return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=jax.local_devices()[:num_devices])
+    return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
 
 
 def resolve_devices(cfg: TrainConfig) -> int:
@@ -221,17 +221,6 @@ def resolve_devices(cfg: TrainConfig) -> int:
     if n > available:
         raise ConfigError(f"train.num_devices = {n} but only {available} local devices exist")
     return n
-
-
-def _to_devices(tree, n: int):
-    """Replicates a pytree onto the first n local devices, laid out as pmap wants it (so the
-    arrays stay resident between steps): [...] -> [n, ...]."""
-    stacked = jax.tree_util.tree_map(lambda x: np.stack([np.asarray(x)] * n), tree)
-    return jax.pmap(lambda x: x, axis_name=AXIS, devices=jax.local_devices()[:n])(stacked)
-
-
-def _unreplicate(tree):
-    return jax.device_get(jax.tree_util.tree_map(lambda x: x[0], tree))
 
 
 def _trim_log(path: Path, step: int) -> None:
@@ -274,8 +263,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
         logger.info("resumed %s at step %d", run_dir, step)
     log_path = run_dir / "metrics.jsonl"
     _trim_log(log_path, step)
-    pool = _to_devices(pool_host, n)
-    state_r = _to_devices(state, n)
+    pool = parallel.replicate(pool_host, n)
+    state_r = parallel.replicate(state, n)
     p_step = make_train_step(cfg, n)
     end = min(tcfg.max_steps, stop_at if stop_at is not None else tcfg.max_steps)
     schedule = optim.make_lr_schedule(tcfg.lr_init, tcfg.lr_final, tcfg.warmup, tcfg.max_steps)
@@ -312,13 +301,13 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
             if bar is not None:
                 bar.update(1)
             if step % tcfg.checkpoint_every == 0 or step == end:
-                checkpoint.save_checkpoint(run_dir, step, _unreplicate(state_r), keep=tcfg.keep_checkpoints)
+                checkpoint.save_checkpoint(run_dir, step, parallel.unreplicate(state_r), keep=tcfg.keep_checkpoints)
             if on_step is not None:
                 on_step(step)
     finally:
         if bar is not None:
             bar.close()
-    final = _unreplicate(state_r)
+    final = parallel.unreplicate(state_r)
     return TrainResult(params=final["params"], step=step, seconds=time.perf_counter() - start_time,
                        skipped_steps=skipped, last_loss=last_loss, last_psnr=last_psnr)
 

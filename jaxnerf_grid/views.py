@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, models, optim, rays as rays_lib, train
+from jaxnerf_grid import config as config_lib, models, optim, parallel, rays as rays_lib, train
 from jaxnerf_grid.data.dataset import Dataset
 
 
@@ -29,7 +29,7 @@ def _render_chunk_fn(mcfg: models.ModelConfig, num_devices: int, with_appearance
         return {"rgb": models.static_rgb(out), "depth": final["median_depth"] * batch["cos"],
                 "expected_depth": final["depth"] * batch["cos"], "opacity": final["opacity"]}
 
-    return jax.pmap(fn, in_axes=(None, 0), devices=jax.local_devices()[:num_devices])
+    return jax.pmap(fn, in_axes=(None, 0), devices=parallel.devices(num_devices))
 
 
 def render_rays_chunked(params, mcfg: models.ModelConfig, r: rays_lib.Rays, image_index: int = 0,
@@ -62,13 +62,10 @@ def render_rays_chunked(params, mcfg: models.ModelConfig, r: rays_lib.Rays, imag
 
         starts = progress_lib.bar(starts, desc="render", unit="chunk", leave=False)
     for start in starts:
-        part = {k: v[start:start + chunk] for k, v in flat.items()}
-        valid = part["near"].shape[0]
-        if valid < chunk:
-            part = {k: np.concatenate([v, np.repeat(v[-1:], chunk - valid, axis=0)]) for k, v in part.items()}
-        part = {k: v.reshape(n, chunk // n, *v.shape[1:]) for k, v in part.items()}
-        out = jax.device_get(fn(params, part))
-        pieces.append({k: v.reshape(chunk, *v.shape[2:])[:valid] for k, v in out.items()})
+        part = {k: parallel.pad_to_multiple(v[start:start + chunk], chunk)[0] for k, v in flat.items()}
+        valid = min(chunk, count - start)
+        out = parallel.run_sharded(functools.partial(fn, params), part, n)
+        pieces.append({k: v[:valid] for k, v in out.items()})
     return {k: np.concatenate([p[k] for p in pieces]).reshape(*shape, *pieces[0][k].shape[1:]) for k in pieces[0]}
 
 

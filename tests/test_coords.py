@@ -76,7 +76,8 @@ def test_radius_must_exceed_one():
 def test_disparity_warp_gives_linear_contracted_radius():
     """From t = 1 to far on a ray through the origin, uniform s gives |z| = 1 + (R - 1) s."""
     radius, far = 2.0, 1e9
-    t_edges, s_edges = sampling.stratified(None, jnp.asarray(1.0), jnp.asarray(far), 64, warp="disparity")
+    s_edges = sampling.stratified_s(None, (), 64)
+    t_edges = sampling.ray_warp("disparity", 1.0, far)[1](s_edges)
     direction = jnp.asarray([0.6, 0.0, 0.8])
     z = coords.contract(t_edges[:, None] * direction, radius)
     np.testing.assert_allclose(np.linalg.norm(np.asarray(z), axis=-1),

@@ -13,7 +13,7 @@ def toy_render(rays_o, rays_d, key_data):
     key = jax.random.wrap_key_data(key_data) if key_data is not None else None
     near = jnp.full(rays_o.shape[:-1], 0.2)
     far = jnp.full(rays_o.shape[:-1], 50.0)
-    t_edges, _ = sampling.stratified(None, near, far, 32, warp="disparity")
+    t_edges = sampling.ray_warp("disparity", near[..., None], far[..., None])[1](sampling.stratified_s(None, near.shape, 32))
     t_mid = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
     points = rays_o[..., None, :] + t_mid[..., None] * rays_d[..., None, :]
     z = coords.contract(points, 2.0)
@@ -32,7 +32,8 @@ def test_pmap_render_equals_single_device():
     dirs = rng.normal(size=(37, 3)) * 0.2 + np.array([0, 0, -1.0])
     dirs = jnp.asarray(dirs / np.linalg.norm(dirs, axis=-1, keepdims=True), jnp.float32)
     single = jax.jit(lambda o, d: toy_render(o, d, None))(origins, dirs)
-    sharded = parallel.pmap_over_batch(lambda batch: toy_render(batch[0], batch[1], None), n=2)((origins, dirs))
+    pmapped = jax.pmap(lambda batch: toy_render(batch[0], batch[1], None), devices=parallel.devices(2))
+    sharded = parallel.run_sharded(pmapped, (origins, dirs), 2)  # 37 rows: padded to 38, trimmed
     for name in single:
         assert sharded[name].shape == single[name].shape
         np.testing.assert_allclose(np.asarray(sharded[name]), np.asarray(single[name]), rtol=1e-6, atol=1e-6)
@@ -53,3 +54,14 @@ def test_replicate_feeds_pmap():
     assert rep["w"].shape == (n, 3) and rep["b"].shape == (n,)
     out = jax.pmap(lambda p: p["w"] * p["b"])(rep)
     np.testing.assert_allclose(np.asarray(out), np.tile([0.0, 2.0, 4.0], (n, 1)))
+    back = parallel.unreplicate(rep)
+    np.testing.assert_array_equal(back["w"], [0.0, 1.0, 2.0])
+    assert float(back["b"]) == 2.0
+
+
+def test_pad_to_multiple_repeats_the_last_row():
+    padded, count = parallel.pad_to_multiple(np.arange(10.0).reshape(5, 2), 4)
+    assert count == 5 and padded.shape == (8, 2)
+    np.testing.assert_array_equal(padded[5:], [[8.0, 9.0]] * 3)
+    same, _ = parallel.pad_to_multiple(np.ones((4, 1)), 4)
+    assert same.shape == (4, 1)

@@ -48,10 +48,17 @@ def test_custom_warp_and_bad_kind():
         sampling.ray_warp("cubic", 1.0, 2.0)
 
 
+def _edges_in_t(key, near, far, num_samples, warp="disparity"):
+    """Stratified s edges mapped to metric t with Eq. 11, as models.render_ray does."""
+    s_edges = sampling.stratified_s(key, near.shape, num_samples)
+    _, s_to_t = sampling.ray_warp(warp, near[..., None], far[..., None])
+    return s_to_t(s_edges), s_edges
+
+
 def test_stratified_deterministic_and_jittered():
     near = jnp.asarray([0.5, 1.0])
     far = jnp.asarray([10.0, 100.0])
-    t_edges, s_edges = sampling.stratified(None, near, far, 8, warp="disparity")
+    t_edges, s_edges = _edges_in_t(None, near, far, 8)
     np.testing.assert_allclose(np.asarray(s_edges), np.broadcast_to(np.linspace(0, 1, 9), (2, 9)), atol=1e-7)
     np.testing.assert_allclose(np.asarray(t_edges[:, 0]), near, rtol=1e-6)
     np.testing.assert_allclose(np.asarray(t_edges[:, -1]), far, rtol=1e-5)
@@ -59,7 +66,7 @@ def test_stratified_deterministic_and_jittered():
     disparity = 1 / np.asarray(t_edges)
     np.testing.assert_allclose(np.diff(disparity, axis=-1), np.diff(disparity, axis=-1)[:, :1] * np.ones((1, 8)),
                                rtol=1e-4)
-    t_j, s_j = sampling.stratified(jax.random.PRNGKey(0), near, far, 8, warp="disparity")
+    t_j, s_j = _edges_in_t(jax.random.PRNGKey(0), near, far, 8)
     s_j = np.asarray(s_j)
     assert np.all(np.diff(s_j, axis=-1) > 0) and np.all(s_j[:, 0] == 0) and np.all(s_j[:, -1] == 1)
     assert not np.allclose(s_j, np.asarray(s_edges))
@@ -67,7 +74,7 @@ def test_stratified_deterministic_and_jittered():
 
 def test_stratified_is_uniform_in_s():
     """Sample centres of jittered stratified sampling are uniform on [0, 1] (KS test)."""
-    _, s_edges = sampling.stratified(jax.random.PRNGKey(3), jnp.ones(4000), jnp.full(4000, 50.0), 4)
+    s_edges = sampling.stratified_s(jax.random.PRNGKey(3), (4000,), 4)
     s = np.asarray(s_edges)
     # centres c_i = (i + u_i) / N; the first interior edge (c_0 + c_1) / 2 = (u_0 + 1 + u_1) / (2N),
     # so 2N * edge - 1 = u_0 + u_1 follows the triangular law on [0, 2].
