@@ -1,6 +1,6 @@
 """Convergence against wall-clock time: the MLP field against the hash-grid field.
 
-    python benchmarks/convergence.py [--data DIR] [--scale 1.0] [--out benchmarks/results/convergence]
+    python -m benchmarks.convergence [--data DIR] [--scale 1.0] [--out benchmarks/results/convergence]
 
 One run each, on `tower-small` (built with `jaxnerf-grid synth` and masked with the built-in
 DPT on first use, cached under benchmarks/.cache), all "ours" (contraction, disparity warp,
@@ -22,17 +22,14 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
 import os
 import platform
-import sys
 import time
 from pathlib import Path
 
 import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
 from jaxnerf_grid import config as config_lib, evaluate, io, metrics, runs, train, views  # noqa: E402
 from jaxnerf_grid.demo import DEMO_CONFIG  # noqa: E402
@@ -173,7 +170,6 @@ def main() -> int:
               "data": _relative(data), "scale": args.scale, "runs": rows, "summary": summary}
     out.mkdir(parents=True, exist_ok=True)
     io.write_json(out / "convergence.json", result)
-    sys.path.insert(0, str(ROOT))
     from experiments.common import line_plot
 
     images = []

@@ -1,7 +1,7 @@
 """Images/s of our JAX DPT vs transformers' torch DPT with identical weights, same CPU, 384x384.
 
 Usage:
-  JAX_PLATFORMS=cpu python benchmarks/dpt_speed.py [--arch base|large] [--task segmentation|depth]
+  JAX_PLATFORMS=cpu python -m benchmarks.dpt_speed [--arch base|large] [--task segmentation|depth]
       [--batch 1] [--iters 5] [--out benchmarks/results/dpt_speed.json]
 
 A random-weight DPTForSemanticSegmentation (150 labels) or DPTForDepthEstimation is built with
@@ -27,7 +27,6 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 sys.modules.setdefault("torchvision", None)  # broken in the dev venv; transformers must not import it
 
 import numpy as np  # noqa: E402

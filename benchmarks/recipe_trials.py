@@ -1,6 +1,6 @@
 """The steps by which the demo recipe was chosen, each a change to the one before, at 1000 steps.
 
-    python benchmarks/recipe_trials.py [--trials A,B,...] [--steps 1000] [--data DIR]
+    python -m benchmarks.recipe_trials [--trials A,B,...] [--steps 1000] [--data DIR]
 
 Each trial is `demo.DEMO_CONFIG` with some settings put back (the recipe as it was
 before that step), trained with `runs.train_run` on tower-small (the convergence
@@ -12,16 +12,12 @@ from __future__ import annotations
 
 import argparse
 import copy
-import json
-import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(Path(__file__).resolve().parent))
 
-from convergence import dataset_dir  # noqa: E402
+from benchmarks.convergence import dataset_dir  # noqa: E402
 from jaxnerf_grid import demo, evaluate, io, runs  # noqa: E402
 
 FIRST = {"model": {"opaque_far": False, "far": None, "field": {"density_bias": -1.0},

@@ -11,11 +11,11 @@ samples; with it N/2 coarse + N/2 fine (the fine pass runs over the union, as in
 
 Reported: test PSNR overall and per region (tower / near ground / far background), seconds per
 training step (median over logged windows after the first; the machine may be shared, see the
-load average), and results/sampling_schemes.png, PSNR against samples per ray. The summary
+load average), and benchmarks/results/sampling_schemes.png, PSNR against samples per ray. The summary
 says which scheme wins and whether any scheme matches uniform-t's PSNR with a quarter of the
 samples.
 
-  JAX_PLATFORMS=cpu python benchmarks/sampling_schemes.py [--quick | --full] [--seeds N] [--samples 16 32 64]
+  JAX_PLATFORMS=cpu python -m benchmarks.sampling_schemes [--quick | --full] [--seeds N] [--samples 16 32 64]
 """
 
 from __future__ import annotations
@@ -24,11 +24,10 @@ import sys
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "experiments"))
 
 import numpy as np  # noqa: E402
 
-import common  # noqa: E402
+from experiments import common  # noqa: E402
 
 WARPS = ("linear", "disparity", "log", "piecewise")
 SAMPLES = {"quick": (16, 32, 64, 128), "full": (16, 32, 64, 128)}
@@ -95,9 +94,10 @@ def summary(table: dict, samples: tuple) -> list[str]:
 def main(argv=None) -> int:
     p = common.base_parser(__doc__)
     p.add_argument("--samples", type=int, nargs="+", default=None, help="samples per ray (even numbers)")
+    p.set_defaults(results=str(ROOT / "benchmarks" / "results"))
     args = p.parse_args(argv)
-    ctx = common.make_context(args, "../benchmarks/sampling_schemes.py")
-    ctx.command = ctx.command.replace("experiments/../benchmarks/", "benchmarks/")
+    ctx = common.make_context(args, "sampling_schemes.py")
+    ctx.command = ctx.command.replace("-m experiments.", "-m benchmarks.")
     samples = tuple(args.samples or SAMPLES[ctx.setting])
     schemes = [(w, h) for h in (False, True) for w in WARPS]
     records = {(scheme_name(w, h), n): [] for w, h in schemes for n in samples}

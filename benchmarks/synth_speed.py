@@ -1,7 +1,7 @@
 """Time `jaxnerf-grid synth --preset tower-small` and record the realised distractor coverages.
 
 Usage:
-  JAX_PLATFORMS=cpu python benchmarks/synth_speed.py [--workers 2] [--levels low medium high]
+  JAX_PLATFORMS=cpu python -m benchmarks.synth_speed [--workers 2] [--levels low medium high]
       [--preset tower-small] [--out benchmarks/results/synth_speed.json]
 
 For each distractor level it renders the preset into a temporary folder and records wall time,
@@ -22,7 +22,6 @@ import tempfile
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 
 def _cpu_seconds() -> float:

@@ -34,8 +34,6 @@ os.environ.setdefault("JAX_PLATFORMS", "cpu")
 os.environ.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
 
 ROOT = Path(__file__).resolve().parents[1]
-if str(ROOT) not in sys.path:
-    sys.path.insert(0, str(ROOT))
 
 import numpy as np  # noqa: E402
 
@@ -166,7 +164,7 @@ def make_context(args, script: str) -> Context:
     seeds = args.seeds or TRAIN_SETTINGS[setting]["seeds"]
     steps = args.steps or TRAIN_SETTINGS[setting]["steps"]
     flags = [f"--{setting}"] + [a for a in sys.argv[1:] if a not in ("--quick", "--full")]
-    command = f"JAX_PLATFORMS=cpu python experiments/{script} " + " ".join(flags)
+    command = f"JAX_PLATFORMS=cpu python -m experiments.{Path(script).stem} " + " ".join(flags)
     ctx = Context(setting, seeds, steps, Path(args.cache), Path(args.results),
                   None if args.budget_min is None else args.budget_min * 60, args.lpips_weights, not args.quiet,
                   command.strip())
@@ -433,8 +431,21 @@ def settings_summary(ctx: Context) -> dict:
                             for k, v in SCENE_SIZES[ctx.setting].items()}}
 
 
+def portable(obj):
+    """`obj` (JSON-able) with every string path inside the repository made relative to its root,
+    so committed results name no machine's folders."""
+    if isinstance(obj, dict):
+        return {k: portable(v) for k, v in obj.items()}
+    if isinstance(obj, (list, tuple)):
+        return [portable(v) for v in obj]
+    if isinstance(obj, str):
+        return obj.replace(str(ROOT) + os.sep, "")
+    return obj
+
+
 def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: list[str], notes: list[str]) -> Path:
-    """results/<name>.json (body + provenance) and results/<name>.md (title, command, machine, tables, notes)."""
+    """results/<name>.json (body + provenance) and results/<name>.md (title, command, machine, tables, notes).
+    Paths inside the repository are written relative to its root (`portable`)."""
     wall = time.perf_counter() - ctx.start
     lpips_note = ("LPIPS computed from " + ctx.lpips_weights) if ctx.lpips_weights else \
         "LPIPS unavailable (no --lpips-weights given); never a made-up number"
@@ -442,7 +453,7 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
                "settings": settings_summary(ctx), "wall_seconds": wall,
                "runs_seconds": sum(ctx.run_seconds.values()), "num_runs": len(ctx.run_seconds), "lpips": lpips_note,
                "not_run_for_budget": ctx.skipped_for_budget, **body, "notes": notes}
-    io.write_json(ctx.results / f"{name}.json", payload)
+    io.write_json(ctx.results / f"{name}.json", portable(payload))
     o = TRAIN_SETTINGS[ctx.setting]["overrides"]
     field = o["model"]["field"]
     head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
@@ -459,7 +470,7 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
     tail = [""] + [f"- {n}" for n in notes]
     if ctx.skipped_for_budget:
         tail.append(f"- Not run (time budget): {', '.join(ctx.skipped_for_budget)}.")
-    text = "\n".join(head + md_lines + tail) + "\n"
+    text = portable("\n".join(head + md_lines + tail) + "\n")
     (ctx.results / f"{name}.md").write_text(text)
     print(text)
     return ctx.results / f"{name}.md"

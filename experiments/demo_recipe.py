@@ -12,15 +12,12 @@ the tower F-score at 0.01 / 0.02 / 0.05 scene units and the time of each stage.
 from __future__ import annotations
 
 import argparse
-import json
-import sys
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
 
-from jaxnerf_grid import demo, io  # noqa: E402
+from jaxnerf_grid import demo, io
 
 # name: (preset, seed, clutter, (width, height, train views, test views) or None for the preset's)
 CASES = {

@@ -1,7 +1,7 @@
 """Does `jaxnerf-grid mask --tiles N` find more of the distractors in a large photo?
 
 Usage:
-  JAX_PLATFORMS=cpu python experiments/mask_tiling.py [--width 640 --height 480 --views 12]
+  JAX_PLATFORMS=cpu python -m experiments.mask_tiling [--width 640 --height 480 --views 12]
       [--cache experiments/.cache] [--results experiments/results/mask_tiling]
 
 The built-in DPT (trained at a 160 px working size) masks held-out synthetic scenes (seeds
@@ -25,11 +25,9 @@ from pathlib import Path
 
 os.environ.setdefault("JAX_PLATFORMS", "cpu")
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT))
-sys.path.insert(0, str(ROOT / "experiments"))
 
-import common  # noqa: E402
-from train_builtin_dpt import evaluate  # noqa: E402
+from experiments import common  # noqa: E402
+from experiments.train_builtin_dpt import evaluate  # noqa: E402
 
 from jaxnerf_grid.masking import load_models  # noqa: E402
 
@@ -48,7 +46,7 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     t_start = time.time()
-    command = "JAX_PLATFORMS=cpu python experiments/mask_tiling.py " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = "JAX_PLATFORMS=cpu python -m experiments.mask_tiling " + " ".join(argv if argv is not None else sys.argv[1:])
     ctx = common.Context(setting="quick", seeds=len(SEEDS), steps=0, cache=Path(args.cache),
                          results=Path(args.results).parent, budget_s=None, lpips_weights=None,
                          progress=not args.quiet, command=command.strip())

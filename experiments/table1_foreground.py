@@ -12,7 +12,7 @@ scene seed k and training seed k. Metrics on the clean test views (PSNR, SSIM, M
 with --lpips-weights) and PSNR inside the distractor regions of training views against the
 clean renders (how much of the passers-by is burnt in; higher = cleaner).
 
-  JAX_PLATFORMS=cpu python experiments/table1_foreground.py [--quick | --full] [--seeds N]
+  JAX_PLATFORMS=cpu python -m experiments.table1_foreground [--quick | --full] [--seeds N]
 """
 
 from __future__ import annotations
@@ -20,9 +20,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import common  # noqa: E402
+from experiments import common
 
 SETS = (("A: tower-small, medium distractors", "tower-small", None),
         ("B: plad-like, high distractors", "plad-like", None))

@@ -10,17 +10,14 @@ PSNR is reported on the whole clean test view and separately on the semantic reg
 tower (classes 1-2), near ground (class 3), far background (sky + vegetation / buildings
 beyond 100 m), so the claim about the background is tested where it lives.
 
-  JAX_PLATFORMS=cpu python experiments/table2_farview.py [--quick | --full] [--seeds N]
+  JAX_PLATFORMS=cpu python -m experiments.table2_farview [--quick | --full] [--seeds N]
 """
 
 from __future__ import annotations
 
 import sys
-from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import common  # noqa: E402
+from experiments import common
 
 CONDITIONS = (
     ("on: contraction + disparity sampling (ours)", {"use_contraction": True, "warp": "disparity"}),

@@ -11,7 +11,7 @@ The "PSNR right half" column is the like-for-like comparison (every method on th
 Figure: results/table3_methods.png, tower crops of the test views (clean ground truth | ours |
 NeRF | NeRF-W), nearest-neighbour upscaled.
 
-  JAX_PLATFORMS=cpu python experiments/table3_methods.py [--quick | --full] [--seeds N]
+  JAX_PLATFORMS=cpu python -m experiments.table3_methods [--quick | --full] [--seeds N]
 """
 
 from __future__ import annotations
@@ -19,11 +19,9 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
+import numpy as np
 
-import numpy as np  # noqa: E402
-
-import common  # noqa: E402
+from experiments import common
 
 METHODS = (("ours", "ours", {"train": {"use_masks": True}}), ("NeRF", "nerf", {}), ("NeRF-W", "nerfw", {}))
 COLUMNS = [("psnr", "PSNR", 2), ("psnr_right_half", "PSNR right half", 2), ("ssim", "SSIM", 3),

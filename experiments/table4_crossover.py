@@ -13,7 +13,7 @@ target's own family (same family, seen scene-seed disjoint), ground-truth masks 
 Reported: mask IoU / precision / recall of M against the true distractor masks (training views of
 the target scene), and the NeRF metrics on the clean test views.
 
-  JAX_PLATFORMS=cpu python experiments/table4_crossover.py [--quick | --full] [--seeds N]
+  JAX_PLATFORMS=cpu python -m experiments.table4_crossover [--quick | --full] [--seeds N]
       [--dpt-minutes M] [--dpt-steps N]
 """
 
@@ -23,9 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parent))
-
-import common  # noqa: E402
+from experiments import common
 from jaxnerf_grid import io  # noqa: E402
 
 DIRECTIONS = (("ttpla-like", "plad-like", 7201), ("plad-like", "ttpla-like", 7202))
@@ -43,12 +41,12 @@ def train_dpt(ctx, source: str, seed: int, eval_dir: Path, minutes: float, steps
     out = ctx.cache / "dpt" / f"{source}_s{seed}_{steps}steps_{minutes:g}min"
     result = out.with_name(out.name + "_result")
     if not (out / "config.json").is_file() or not result.with_suffix(".json").is_file():
-        cmd = [sys.executable, str(common.EXPERIMENTS / "train_builtin_dpt.py"), "--train", str(train_dir),
+        cmd = [sys.executable, "-m", "experiments.train_builtin_dpt", "--train", str(train_dir),
                "--eval", str(eval_dir), "--minutes", str(minutes), "--steps", str(steps), "--out", str(out),
                "--patch-size", "16",  # the quick crossover DPTs: patch 16 trains ~3x faster than the built-in's 8
                "--results", str(result)]
         print("[dpt] " + " ".join(cmd), flush=True)
-        subprocess.run(cmd, check=True)
+        subprocess.run(cmd, check=True, cwd=common.ROOT)
     return out, io.read_json(result.with_suffix(".json"))
 
 

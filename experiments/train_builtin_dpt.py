@@ -2,7 +2,7 @@
 and evaluate its distractor masks on held-out scenes.
 
 Usage:
-  JAX_PLATFORMS=cpu python experiments/train_builtin_dpt.py --train DIR [DIR ...] --eval DIR [DIR ...]
+  JAX_PLATFORMS=cpu python -m experiments.train_builtin_dpt --train DIR [DIR ...] --eval DIR [DIR ...]
       [--minutes 45] [--steps 1600] [--patch-size 8] [--out jaxnerf_grid/assets/dpt_builtin]
       [--results experiments/results/builtin_dpt]
 
@@ -34,7 +34,6 @@ import sys
 import time
 from pathlib import Path
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402

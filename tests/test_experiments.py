@@ -1,4 +1,4 @@
-"""Smoke test of experiments/common.py: toy scene -> mask variants -> train + eval -> resume/skip -> tables.
+"""Smoke test of experiments/common.py (imported as the package `experiments`): toy scene -> mask variants -> train + eval -> resume/skip -> tables.
 
 No numeric claims about the NeRF (3 steps of a tiny model); the checks are on the machinery:
 variants share the scene's images, the mask IoU of ground-truth masks is 1, a finished run
@@ -9,14 +9,11 @@ from __future__ import annotations
 
 import json
 import os
-import sys
 from pathlib import Path
 
 import numpy as np
 
-sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "experiments"))
-
-import common  # noqa: E402
+from experiments import common
 
 TINY = {"model": {"field": {"depth": 1, "width": 16, "skip": 0, "pos_max_deg": 2, "dir_max_deg": 1, "view_width": 8},
                   "num_coarse": 4, "num_fine": 4},
