@@ -405,9 +405,9 @@ def _shadow_offset(p, n, t):
     return p + n * (2e-3 + 2e-5 * t)[:, None]
 
 
-def render_view(world: StaticWorld, cfg: SynthConfig, c2w: np.ndarray, intr: dict, clutter: bool,
-                rng: np.random.Generator) -> dict:
-    """Renders one view. c2w: [4, 4] metric.
+def ray_trace_frame(world: StaticWorld, cfg: SynthConfig, c2w: np.ndarray, intr: dict, clutter: bool,
+                    rng: np.random.Generator) -> dict:
+    """Ray-traces one frame of the synthetic world (ground truth, not a NeRF render). c2w: [4, 4] metric.
 
     Returns {"clean" [H, W, 3], "image" [H, W, 3], "semantic" [H, W] uint8, "clean_semantic",
     "depth" [H, W] (metric z-depth, inf on sky), "clean_depth", "distractor" [H, W] bool,
@@ -562,7 +562,7 @@ def _render_and_write(task) -> tuple[float, int]:
     i, name, sp, c2w = task
     cfg, world, out = _WORKER["cfg"], _WORKER["world"], _WORKER["out"]
     intr = cameras.intrinsics(cfg.width, cfg.height, cfg.fov_deg)
-    views = render_view(world, cfg, c2w, intr, sp == "train", np.random.default_rng([cfg.seed, 2, i]))
+    views = ray_trace_frame(world, cfg, c2w, intr, sp == "train", np.random.default_rng([cfg.seed, 2, i]))
     _write_view(out, name, sp, views, NORMALIZATION["scale"])
     return views["coverage"], views["num_objects"]
 
