@@ -424,8 +424,11 @@ def _slow_mask_child(data: str, pause: str) -> None:
     pause_s = float(pause)
     write, rename = masking._write_frame, masking._rename
 
+    progress = Path(data + ".frames")  # frames written so far, outside the dataset
+
     def slow_write(*args, **kwargs):
         out = write(*args, **kwargs)
+        progress.write_text(str(int(progress.read_text() or 0) + 1) if progress.exists() else "1")
         time.sleep(pause_s)
         return out
 
@@ -458,8 +461,9 @@ def test_killed_mask_overwrite_leaves_old_or_new(scene, capsys, tmp_path, stage)
         stage_dir = data / masking.STAGING
         try:
             deadline = time.time() + 120
-            # "writing": once a frame or two is staged; "swapping": once the commit point is written
-            ready = (lambda: (stage_dir / "masks").is_dir() and len(list((stage_dir / "masks").iterdir())) >= 1 + attempt) \
+            # "writing": once a frame or two is written; "swapping": once the commit point is written
+            frames = Path(str(data) + ".frames")
+            ready = (lambda: frames.exists() and int(frames.read_text() or 0) >= 1 + attempt) \
                 if stage == "writing" else (lambda: (stage_dir / masking.COMPLETE).is_file())
             while not ready():
                 assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
