@@ -5,6 +5,11 @@ other modules; unknown keys are an error naming the key, so a typo in a config f
 `merge(base, extra)` lays nested override dicts on top of each other (--config files, recipes).
 `resolve(cfg, dataset)` is the one place the dataset fills in a run config: the embedding
 tables' `model.num_images` and the ray bounds `model.near` / `model.far` (None = the dataset's).
+`validate(cfg)` is the one type-and-range pass over a (nested) config: every field is checked
+against its type hint (an int rejects floats, strings and bools; a float rejects NaN, inf and
+strings) and against the `Range` its class lists in a `RANGES` class variable, with a one-line
+`ConfigError` naming the key, the value and the allowed range (docs/RELIABILITY.md).
+`parse_sets(["model.warp=log", ...], cls)` turns `--set key=value` flags into an override dict.
 
 This module imports nothing of the NeRF side (models, train): it sits below them, so they
 import it and it only reads the duck-typed fields of the configs it is given.
@@ -13,6 +18,9 @@ import it and it only reads the duck-typed fields of the configs it is given.
 from __future__ import annotations
 
 import dataclasses
+import json
+import math
+import types
 import typing
 from typing import Any, TypeVar
 
@@ -21,6 +29,146 @@ T = TypeVar("T")
 
 class ConfigError(ValueError):
     """A bad configuration value or file; the message names the field."""
+
+
+@dataclasses.dataclass(frozen=True)
+class Range:
+    """An allowed interval of a numeric config value: lo / hi (None = unbounded), open or closed."""
+
+    lo: float | None = None
+    hi: float | None = None
+    lo_open: bool = False
+    hi_open: bool = False
+
+    def contains(self, v: float) -> bool:
+        if self.lo is not None and (v <= self.lo if self.lo_open else v < self.lo):
+            return False
+        return not (self.hi is not None and (v >= self.hi if self.hi_open else v > self.hi))
+
+    def __str__(self) -> str:
+        if self.lo is not None and self.hi is not None:
+            return f"in {'(' if self.lo_open else '['}{self.lo:g}, {self.hi:g}{')' if self.hi_open else ']'}"
+        if self.lo is not None:
+            return f"{'>' if self.lo_open else '>='} {self.lo:g}"
+        if self.hi is not None:
+            return f"{'<' if self.hi_open else '<='} {self.hi:g}"
+        return "any value"
+
+
+POSITIVE = Range(0, lo_open=True)   # > 0
+NONNEGATIVE = Range(0)              # >= 0
+AT_LEAST_ONE = Range(1)             # >= 1 (counts)
+UNIT = Range(0, 1)                  # [0, 1]
+FRACTION = Range(0, 1, hi_open=True)  # [0, 1)
+
+
+def _type_problem(value: Any, hint: Any) -> str | None:
+    """Why `value` does not fit the type hint `hint` (int, float, bool, str, X | None,
+    tuple[X, ...]); None when it fits. Ints reject bools and floats; floats accept ints but
+    reject bools, NaN and inf."""
+    origin = typing.get_origin(hint)
+    if origin in (typing.Union, types.UnionType):
+        args = typing.get_args(hint)
+        if value is None and type(None) in args:
+            return None
+        problems = [_type_problem(value, a) for a in args if a is not type(None)]
+        return None if any(p is None for p in problems) else problems[0]
+    if origin is tuple:
+        if not isinstance(value, (tuple, list)):
+            return "must be a list"
+        args = typing.get_args(hint)
+        for v in value:
+            p = _type_problem(v, args[0])
+            if p:
+                return f"each entry {p}"
+        return None
+    if hint is bool:
+        return None if isinstance(value, bool) else "must be true or false"
+    if hint is int:
+        return None if isinstance(value, int) and not isinstance(value, bool) else "must be an integer"
+    if hint is float:
+        if isinstance(value, bool) or not isinstance(value, (int, float)):
+            return "must be a number"
+        return None if math.isfinite(value) else "must be a finite number"
+    if hint is str:
+        return None if isinstance(value, str) else "must be a string"
+    return None
+
+
+def validate(cfg: Any, where: str = "") -> None:
+    """Checks every field of a (nested) frozen dataclass against its type hint and the `Range`
+    of its class's `RANGES` class variable (tuples: each entry). Raises ConfigError naming the
+    key, e.g. "train.batch_rays = 0: must be > 0"."""
+    hints = typing.get_type_hints(type(cfg))
+    ranges = getattr(type(cfg), "RANGES", {})
+    for f in dataclasses.fields(cfg):
+        key = f"{where}.{f.name}" if where else f.name
+        value = getattr(cfg, f.name)
+        hint = hints[f.name]
+        if dataclasses.is_dataclass(hint):
+            if not dataclasses.is_dataclass(value):
+                raise ConfigError(f"{key} = {value!r}: must be an object")
+            validate(value, key)
+            continue
+        problem = _type_problem(value, hint)
+        if problem:
+            raise ConfigError(f"{key} = {_show(value)}: {problem}")
+        rng = ranges.get(f.name)
+        if rng is not None and value is not None:
+            for v in (value if isinstance(value, (tuple, list)) else (value,)):
+                if not rng.contains(v):
+                    raise ConfigError(f"{key} = {_show(value)}: must be {rng}")
+
+
+def _show(value: Any) -> str:
+    """A config value as it would be written in JSON (NaN as NaN)."""
+    try:
+        return json.dumps(value)
+    except (TypeError, ValueError):
+        return repr(value)
+
+
+def _parse_value(text: str) -> Any:
+    """A --set value: JSON when it parses (numbers, true/false, null, lists, quoted strings),
+    else the text itself as a string."""
+    try:
+        return json.loads(text)
+    except json.JSONDecodeError:
+        return text
+
+
+def parse_sets(items: list[str] | None, cls: type) -> dict:
+    """--set flags ["model.field.width=64", "train.lr_init=1e-3", ...] as a nested override dict
+    for the dataclass `cls` (later flags win). Each dotted key must name a field of `cls` (a
+    nested dataclass's fields below it); an unknown key is a ConfigError naming it."""
+    out: dict = {}
+    for item in items or []:
+        key, sep, text = item.partition("=")
+        key = key.strip()
+        if not sep or not key:
+            raise ConfigError(f"--set {item!r}: expected key=value, e.g. model.warp=log")
+        parts = key.split(".")
+        target, node = cls, out
+        for depth, part in enumerate(parts):
+            hints = typing.get_type_hints(target) if dataclasses.is_dataclass(target) else {}
+            names = {f.name for f in dataclasses.fields(target)} if dataclasses.is_dataclass(target) else set()
+            if part not in names:
+                prefix = ".".join(parts[:depth]) or "the config"
+                raise ConfigError(f"--set {key}: unknown key {part!r} in {prefix}; known: {sorted(names)}")
+            target = hints[part]
+            if depth < len(parts) - 1:
+                if not dataclasses.is_dataclass(target):
+                    raise ConfigError(f"--set {key}: {'.'.join(parts[:depth + 1])} is a value, not a section")
+                node = node.setdefault(part, {})
+            else:
+                if dataclasses.is_dataclass(target):
+                    value = _parse_value(text)
+                    if not isinstance(value, dict):
+                        raise ConfigError(f"--set {key}: a section; give a JSON object or set its keys")
+                    node[part] = merge(node.get(part, {}), value)
+                else:
+                    node[part] = _parse_value(text)
+    return out
 
 
 def to_dict(cfg: Any) -> dict:
@@ -78,8 +226,16 @@ def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
     bounds=False keeps near / far as configured (None = the dataset's): what a run's
     config.json stores, so it stays valid for the dataset however it is normalised.
     """
+    validate(cfg)
     changes = {"num_images": max(cfg.model.num_images, dataset.num_frames)}
     if bounds:
         changes["near"], changes["far"] = near_far(cfg.model, dataset)
+        if not 0 < changes["near"] < changes["far"]:
+            got = f"need 0 < near < far, got near={changes['near']:g}, far={changes['far']:g}"
+            if cfg.model.near is None and cfg.model.far is None:
+                from jaxnerf_grid.io import DataError
+
+                raise DataError(f"{getattr(dataset, 'root', 'dataset')}: the dataset's ray bounds: {got}")
+            raise ConfigError(f"model.near / model.far (with the dataset's where None): {got}")
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, **changes))
 

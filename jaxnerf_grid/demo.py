@@ -93,21 +93,28 @@ def _mask_note(mask_source: str) -> str:
 
 
 def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None, overwrite: bool = False,
-             progress: bool = True) -> dict:
+             progress: bool = True, sets: list[str] | None = None) -> dict:
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
     has no masks) -> train "ours" with DEMO_CONFIG -> evaluate. Returns {"run_dir", "metrics",
-    "timings" (s per stage), "total_seconds", "mask_source"}."""
-    if steps is not None and steps < 1:
-        raise ConfigError(f"--steps must be >= 1, got {steps}")
+    "timings" (s per stage), "total_seconds", "mask_source"}. sets: --set KEY=VALUE changes to
+    DEMO_CONFIG. The config is checked (train.make_config) before anything is written."""
+    from jaxnerf_grid import train
+
+    if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
+        raise ConfigError(f"--steps = {steps}: must be an integer >= 1")
+    recipe = runs.overrides_with_sets(DEMO_CONFIG, sets)
+    train.make_config("ours", runs._with_steps(recipe, steps))  # a bad --set fails before synth / mask
     start = time.perf_counter()
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise DataError(f"{out}: --out exists and is not a folder")
+    if (out / "run").exists() and not (out / "run").is_dir():
+        raise DataError(f"{out / 'run'}: exists and is not a folder")
     timings = {}
     data = _dataset_folder(data, out, progress, timings)
     mask_source = _ensure_masks(data, progress, timings)
     t = time.perf_counter()
-    run_dir, _, _ = runs.train_run(str(data), "ours", out / "run", DEMO_CONFIG, steps, overwrite, progress)
+    run_dir, _, _ = runs.train_run(str(data), "ours", out / "run", recipe, steps, overwrite, progress)
     timings["train"] = time.perf_counter() - t
     t = time.perf_counter()
     notes = [_mask_note(mask_source),

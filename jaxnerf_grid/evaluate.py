@@ -32,7 +32,7 @@ import numpy as np
 
 from jaxnerf_grid import config as config_lib, io
 from jaxnerf_grid.io import DataError
-from jaxnerf_grid.runs import bar, frame_name, load_dataset, load_run, run_config_dict, write_view
+from jaxnerf_grid.runs import bar, check_fingerprint, frame_name, load_dataset, load_run, run_config_dict, write_view
 
 FAR_BACKGROUND_METRES = 100.0
 REGION_DEFINITION = ("tower = classes 1-2 (tower, conductor); near_ground = class 3; far_background = "
@@ -172,7 +172,7 @@ def _protocol(ds, cfg) -> str:
 
 def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = True, dataset=None,
                  distractor_views: int = 4, extra_notes: list[str] = (), reference_ply=None,
-                 cloud_views: int = 0) -> dict:
+                 cloud_views: int = 0, allow_other_data: bool = False) -> dict:
     """Renders the test views, computes metrics.json and writes report.md. Returns the metrics.
 
     reference_ply: a reference tower cloud (normalised scene units) for metrics["geometry"];
@@ -180,6 +180,9 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     cloud_views: the tower cloud (tower_points.ply, and the geometry score) is lifted from the
     test views' depth and also from this many training views, evenly spaced (more sides of
     the tower); the images are not scored.
+    allow_other_data: score a dataset other than the run's (runs.check_fingerprint refuses it).
+    Everything is checked (the dataset's fingerprint, --reference-ply, the LPIPS weights file)
+    before anything is rendered or written.
     """
     from jaxnerf_grid import export, lpips, metrics, report, train, views
 
@@ -187,7 +190,10 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     run_dir = Path(run_dir)
     cfg, data = load_run(run_dir)
     ds = dataset if dataset is not None else load_dataset(data, progress=progress)
+    check_fingerprint(run_dir, ds, allow_other_data)
     reference_cloud(ds, reference_ply)  # a missing --reference-ply fails before rendering
+    if lpips_weights and not Path(lpips_weights).is_file():
+        raise DataError(f"{lpips_weights}: LPIPS weights file not found (--lpips-weights)")
     params, step = train.load_params(run_dir, cfg, ds)
     lpips_params = lpips.load_lpips(lpips_weights) if lpips_weights else None
     targets = ds.clean_images if ds.clean_images is not None else ds.images

@@ -12,6 +12,15 @@ and rewrites transforms.json atomically, every other key preserved: each frame g
 `mask_path`, `weight_path`, `dpt_depth_path`, `overlay_path`; the top level gains
 `mask_source` ("dpt" or "ground-truth") and `mask_params`.
 
+Crash safety (docs/RELIABILITY.md): every setting is checked (`check_settings`, the class ids
+against the model) before anything is written. The new set is written into a staging folder
+(STAGING: `.jaxnerf-grid-mask-new/`, beside a copy of the new transforms.json), marked complete
+(`COMPLETE`), then swapped in: the old output folders move aside, the new ones move in, and
+transforms.json is replaced last. `recover(root)` finishes an interrupted swap (a complete
+staging folder is rolled forward) or discards an incomplete one (the old set stays), so a
+kill at any moment leaves the old set or the new one; `runs.load_dataset` and `write_masks` call
+it before reading a dataset.
+
 source "dpt" (default) runs DPT: `weights` is a folder in the HF layout (e.g. a copy of
 Intel/dpt-large-ade) or the native format; default: the built-in model shipped in
 jaxnerf_grid/assets/dpt_builtin (if present). An HF segmentation checkpoint has no depth head:
@@ -22,6 +31,7 @@ source "gt" builds M from the synthetic ground truth `distractor_mask_path` and 
 
 from __future__ import annotations
 
+import os
 from pathlib import Path
 
 import numpy as np
@@ -31,6 +41,9 @@ from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.io import DataError
 
 OUTPUT_DIRS = ("masks", "weights", "dpt_depth", "overlays")
+STAGING = ".jaxnerf-grid-mask-new"
+RETIRED = ".jaxnerf-grid-mask-old"
+COMPLETE = "COMPLETE"
 BUILTIN = Path(__file__).parent / "assets" / "dpt_builtin"
 OVERLAY_MAX_SIDE = 1600
 
@@ -85,6 +98,99 @@ def default_classes(seg_model, weights_dir: str) -> list[int]:
                     "classes; pass --classes ID,ID,...")
 
 
+def check_settings(threshold: float, floor: float, dilate: int, max_side: int | None, classes) -> None:
+    """Raises ConfigError naming the flag when a mask setting is out of range: threshold and
+    floor in [0, 1], dilate >= 0, max_side >= 1 (or None), classes integers >= 0."""
+    def number(name, v):
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v or v in (float("inf"), float("-inf")):
+            raise ConfigError(f"{name} = {v!r}: must be a finite number")
+
+    for name, v in (("--threshold", threshold), ("--floor", floor)):
+        number(name, v)
+        if not 0 <= v <= 1:
+            raise ConfigError(f"{name} = {v}: must be in [0, 1]")
+    if isinstance(dilate, bool) or not isinstance(dilate, int) or dilate < 0:
+        raise ConfigError(f"--dilate = {dilate}: must be an integer >= 0")
+    if max_side is not None and (isinstance(max_side, bool) or not isinstance(max_side, int) or max_side < 1):
+        raise ConfigError(f"--max-side = {max_side}: must be an integer >= 1")
+    for c in classes or []:
+        if isinstance(c, bool) or not isinstance(c, int) or c < 0:
+            raise ConfigError(f"--classes: {c!r} is not a class id (an integer >= 0)")
+
+
+def parse_classes(text: str | None) -> list[int] | None:
+    """--classes "12,20,127" as [12, 20, 127]; None for None / empty; ConfigError naming the bad entry."""
+    if not text:
+        return None
+    out = []
+    for part in text.split(","):
+        part = part.strip()
+        if not part:
+            continue
+        try:
+            out.append(int(part))
+        except ValueError:
+            raise ConfigError(f"--classes: {part!r} is not a class id (comma-separated integers, e.g. 12,20)") from None
+    return out
+
+
+def check_classes(classes: list[int], num_labels: int, weights: str) -> None:
+    """Refuses class ids outside the segmentation model's labels 0..num_labels-1."""
+    bad = [c for c in classes if not 0 <= c < num_labels]
+    if bad:
+        raise ConfigError(f"--classes {bad}: outside the {num_labels} labels of {weights} (0..{num_labels - 1})")
+    if not classes:
+        raise ConfigError("--classes: no class id given")
+
+
+def _rename(src: Path, dst: Path) -> None:
+    dst.parent.mkdir(parents=True, exist_ok=True)
+    src.rename(dst)
+
+
+def _swap_in(root: Path) -> None:
+    """Rolls a complete staging folder forward (idempotent, so it may be re-run after a kill):
+    each old output folder moves to RETIRED and its staged one (COMPLETE lists them) into place,
+    then the staged transforms.json replaces the dataset's, then RETIRED and STAGING are removed."""
+    import shutil
+
+    stage, old = root / STAGING, root / RETIRED
+    staged = (stage / COMPLETE).read_text().split()  # the output folders of the new set
+    for name in OUTPUT_DIRS:
+        if name in staged and not (stage / name).exists():
+            continue  # moved in before a kill
+        if (root / name).exists():  # the old set's folder (or one the new set no longer has)
+            if (old / name).exists():
+                shutil.rmtree(old / name)
+            _rename(root / name, old / name)
+        if name in staged:
+            _rename(stage / name, root / name)
+    if (stage / "transforms.json").exists():
+        os.replace(stage / "transforms.json", root / "transforms.json")
+    shutil.rmtree(old, ignore_errors=True)
+    shutil.rmtree(stage, ignore_errors=True)
+
+
+def recover(root) -> str | None:
+    """Finishes what a killed `write_masks` left: a complete staging folder is swapped in
+    ("rolled forward"), an incomplete one removed ("discarded"); None when there was nothing."""
+    import shutil
+
+    root = Path(root)
+    stage = root / STAGING
+    if (stage / COMPLETE).is_file():
+        _swap_in(root)
+        return "rolled forward"
+    if stage.exists():
+        shutil.rmtree(stage, ignore_errors=True)
+        shutil.rmtree(root / RETIRED, ignore_errors=True)
+        return "discarded"
+    if (root / RETIRED).exists():
+        shutil.rmtree(root / RETIRED, ignore_errors=True)
+        return "discarded"
+    return None
+
+
 def _check_outputs(root: Path, meta: dict, overwrite: bool) -> None:
     if overwrite:
         return
@@ -119,6 +225,7 @@ def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, bat
 
     seg, depth_model, wdir = load_models(weights, depth_weights)
     classes = list(classes) if classes is not None else default_classes(seg, wdir)
+    check_classes(classes, seg.config.num_labels, str(wdir))
     if max_side is None:
         extra = io.read_json(Path(wdir) / "config.json").get("extra", {})
         max_side = int(extra.get("max_side", 384))
@@ -136,8 +243,9 @@ def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, bat
 
 def _write_frame(root: Path, frame: dict, index: int, ipath: Path, a, depth, prob, threshold: float,
                  floor: float, dilate: int) -> dict:
-    """Writes one frame's mask, weights, depth and overlay. a: C [H, W] (prob given) or the binary
-    mask itself; depth: [H, W] or None. Returns the frame's new relative paths."""
+    """Writes one frame's mask, weights, depth and overlay under `root` (the staging folder). a:
+    C [H, W] (prob given) or the binary mask itself; depth: [H, W] or None. Returns the frame's
+    new relative paths."""
     from jaxnerf_grid import foreground as fg
 
     image = io.read_image(ipath)
@@ -180,7 +288,13 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     problem = fg.settings_problem(batch_size, tiles, tile_overlap)
     if problem:  # before anything is read or written
         raise ConfigError(f"jaxnerf-grid mask: {problem}")
+    check_settings(threshold, floor, dilate, max_side, classes)
+    if source not in ("dpt", "gt"):
+        raise ConfigError(f"--source = {source!r}: must be dpt or gt")
     root = Path(data)
+    if not root.is_dir():
+        raise DataError(f"{root}: --data is not a folder")
+    recover(root)
     tpath = root / "transforms.json"
     meta = io.read_json(tpath)
     frames = meta.get("frames") if isinstance(meta, dict) else None
@@ -198,15 +312,24 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     else:
         label = "dpt"
         maps = _dpt_maps(images, weights, depth_weights, classes, max_side, batch_size, tiles, tile_overlap, params)
+    stage = root / STAGING
     for name in OUTPUT_DIRS:
-        (root / name).mkdir(parents=True, exist_ok=True)
+        (stage / name).mkdir(parents=True, exist_ok=True)
     for i, (frame, ipath, (a, depth, prob)) in enumerate(
             progress_lib.bar(zip(frames, images, maps), total=len(frames), desc="mask", unit="frame",
                              enabled=progress)):
-        frame.update(_write_frame(root, frame, i, ipath, a, depth, prob, threshold, floor, dilate))
+        frame.update(_write_frame(stage, frame, i, ipath, a, depth, prob, threshold, floor, dilate))
+    if not any((stage / "dpt_depth").iterdir()):
+        (stage / "dpt_depth").rmdir()
+        for frame in frames:
+            frame.pop("dpt_depth_path", None)
     meta["mask_source"] = label
     meta["mask_params"] = params
-    io.write_json(tpath, meta)
+    io.write_json(stage / "transforms.json", meta)
+    staged = [name for name in OUTPUT_DIRS if (stage / name).is_dir()]
+    # the commit point: from here on a kill is rolled forward by `recover`
+    io.atomic_write_bytes(stage / COMPLETE, ("\n".join(staged) + "\n").encode("utf-8"))
+    _swap_in(root)
     if progress:
         print(f"wrote masks for {len(frames)} frames ({label}) into {root}")
     return {"root": root, "source": label, "frames": len(frames), "params": params}

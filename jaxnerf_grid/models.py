@@ -33,11 +33,12 @@ modelled as density near the far sphere; for "nerf" the far plane is the dataset
 from __future__ import annotations
 
 import dataclasses
+import typing
 
 import jax
 import jax.numpy as jnp
 
-from jaxnerf_grid import coords, fields, render, sampling
+from jaxnerf_grid import config, coords, fields, render, sampling
 from jaxnerf_grid.config import ConfigError
 
 METHODS = ("ours", "nerf", "nerfw")
@@ -105,6 +106,15 @@ class ModelConfig:
     beta_min: float = 0.1
     lambda_u: float = 0.01
     num_images: int = 0
+
+    # allowed values, checked by config.validate (docs/RELIABILITY.md); `validate` below adds
+    # the rules between fields (near < far, the sampler's sample counts, ...)
+    RANGES: typing.ClassVar[dict] = {
+        "contract_radius": config.POSITIVE, "encoding_scale": config.NONNEGATIVE,
+        "num_coarse": config.NONNEGATIVE, "num_fine": config.NONNEGATIVE, "proposal_samples": config.AT_LEAST_ONE,
+        "proposal_padding": config.FRACTION, "near": config.POSITIVE, "far": config.POSITIVE,
+        "background": config.UNIT, "appearance_dim": config.AT_LEAST_ONE, "transient_dim": config.AT_LEAST_ONE,
+        "beta_min": config.NONNEGATIVE, "lambda_u": config.NONNEGATIVE, "num_images": config.NONNEGATIVE}
 
 
 def method_defaults(method: str) -> dict:

@@ -8,10 +8,21 @@ tower_points.ply.
 config.json stores the config as made by `train.make_config` with `model.num_images` set from
 the dataset; `model.near` / `model.far` stay as configured (None = the dataset's), see
 `config.resolve`.
+
+What keeps a run and its dataset safe (docs/RELIABILITY.md):
+  * `.jaxnerf-grid-run` (RUN_MARKER) is the first file a run writes; `--overwrite` clears only a
+    folder holding it, and then only the run's own outputs (RUN_OUTPUT_DIRS, RUN_OUTPUT_FILES);
+  * `check_run` validates the config, the dataset's cameras and the batch's memory before
+    anything is written or deleted;
+  * dataset.json (FINGERPRINT_FILE) is the dataset's fingerprint (`dataset_fingerprint`);
+    resume, `render_split` and `evaluate.evaluate_run` refuse another dataset unless
+    `allow_other_data`.
 """
 
 from __future__ import annotations
 
+import hashlib
+import shutil
 from pathlib import Path
 
 import numpy as np
@@ -20,8 +31,11 @@ from jaxnerf_grid import config as config_lib, io
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.io import DataError
 
+RUN_MARKER = ".jaxnerf-grid-run"
+FINGERPRINT_FILE = "dataset.json"
 RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity")
-RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "config.json")
+RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report_views.png", "report_crops.png",
+                    "tower_points.ply", "config.json", FINGERPRINT_FILE)
 
 
 def read_overrides(path: str | None) -> dict:
@@ -36,6 +50,14 @@ def read_overrides(path: str | None) -> dict:
     return data
 
 
+def overrides_with_sets(overrides: dict | None, sets: list[str] | None) -> dict:
+    """--config's overrides with the --set KEY=VALUE flags laid on top (config.parse_sets against
+    train.RunConfig: an unknown key is a ConfigError naming it)."""
+    from jaxnerf_grid import train
+
+    return config_lib.merge(overrides or {}, config_lib.parse_sets(sets, train.RunConfig))
+
+
 def run_config_dict(cfg, data_path) -> dict:
     """config.json's content: {"data": str(data_path), "model": {...}, "train": {...}}."""
     return {"data": str(data_path), **config_lib.to_dict(cfg)}
@@ -47,16 +69,92 @@ def load_run(run_dir) -> tuple:
 
     run_dir = Path(run_dir)
     path = run_dir / "config.json"
+    if not run_dir.is_dir():
+        raise DataError(f"{run_dir}: no such run directory")
     if not path.is_file():
         raise DataError(f"{path}: not a run directory (no config.json)")
-    raw = dict(io.read_json(path))
+    raw = io.read_json(path)
+    if not isinstance(raw, dict):
+        raise DataError(f"{path}: a run's config.json must hold a JSON object")
+    raw = dict(raw)
     data = raw.pop("data", None)
-    return config_lib.from_dict(train.RunConfig, raw, where=str(path)), data
+    cfg = config_lib.from_dict(train.RunConfig, raw, where=str(path))
+    try:
+        config_lib.validate(cfg)
+    except ConfigError as err:
+        raise ConfigError(f"{path}: {err}") from None
+    return cfg, data
+
+
+# --------------------------------------------------------------------------- the dataset's fingerprint
+
+
+def dataset_fingerprint(ds) -> dict:
+    """What identifies a dataset to a run: {"frames": N, "height": H, "width": W, "digest": sha256
+    of the frame names, the image size, the intrinsics [N, 4] and the poses [N, 4, 4] (rounded to
+    1e-5 normalised units / pixels), "names": sha256 of the frame names}. Masks, weights and
+    pixel values are not part of it (re-masking a dataset keeps it the same dataset)."""
+    names = "\n".join(str(p) for p in ds.frame_paths) if ds.frame_paths else str(ds.num_frames)
+    h = hashlib.sha256()
+    h.update(names.encode("utf-8"))
+    h.update(np.asarray([ds.num_frames, ds.height, ds.width], np.int64).tobytes())
+    for arr in (ds.intrinsics, ds.c2w):
+        h.update(np.round(np.asarray(arr, np.float64), 5).tobytes())
+    return {"frames": int(ds.num_frames), "height": int(ds.height), "width": int(ds.width),
+            "names": hashlib.sha256(names.encode("utf-8")).hexdigest(), "digest": h.hexdigest()}
+
+
+def _describe(fp: dict) -> str:
+    return f"{fp.get('frames')} frames of {fp.get('width')}x{fp.get('height')}"
+
+
+def check_fingerprint(run_dir, ds, allow_other_data: bool = False) -> None:
+    """Refuses (DataError naming run_dir/dataset.json) a dataset whose fingerprint differs from
+    the one the run was trained on; a run without a fingerprint (made before it existed) and
+    `allow_other_data` pass."""
+    path = Path(run_dir) / FINGERPRINT_FILE
+    if allow_other_data or not path.is_file():
+        return
+    old = io.read_json(path)
+    new = dataset_fingerprint(ds)
+    if not isinstance(old, dict) or old.get("digest") == new["digest"]:
+        return
+    if (old.get("frames"), old.get("height"), old.get("width")) != (new["frames"], new["height"], new["width"]):
+        what = f"{_describe(old)}, this one has {_describe(new)}"
+    elif old.get("names") != new["names"]:
+        what = f"other frame names ({_describe(new)} both)"
+    else:
+        what = f"the same frames with other cameras ({_describe(new)})"
+    raise DataError(f"{path}: the run was trained on another dataset than {ds.root} ({what}); "
+                    "pass --allow-other-data to use it anyway")
+
+
+# --------------------------------------------------------------------------- creating a run
+
+
+def check_run(cfg, ds, num_devices: int | None = None) -> None:
+    """The checks of a run before anything is written or deleted: the config's types and ranges
+    (config.validate), the ray bounds on this dataset (config.resolve), the camera centres
+    (data.dataset.check_camera_centres), the device count and the batch's memory
+    (train.check_batch)."""
+    from jaxnerf_grid import train
+    from jaxnerf_grid.data.dataset import check_camera_centres
+
+    config_lib.validate(cfg)
+    settled = config_lib.resolve(cfg, ds)
+    check_camera_centres(ds)
+    n = train.resolve_devices(cfg.train) if num_devices is None else num_devices
+    train.check_batch(settled, n)
 
 
 def load_dataset(path, downscale: float = 1, progress: bool = True):
-    """The dataset of a folder (formats.load_dataset)."""
+    """The dataset of a folder (formats.load_dataset), after finishing any `mask` run that was
+    killed while swapping its new masks in (masking.recover), so the masks are one set."""
+    from jaxnerf_grid import masking
     from jaxnerf_grid.data.formats import load_dataset as load
+
+    if Path(path).is_dir():
+        masking.recover(path)
 
     return load(path, downscale=downscale, progress=progress)
 
@@ -65,6 +163,8 @@ def _with_steps(overrides: dict | None, steps: int | None) -> dict:
     """overrides with train.max_steps = steps (when given); the input is not changed."""
     overrides = dict(overrides or {})
     if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ConfigError(f"--steps = {steps}: must be an integer >= 1")
         overrides["train"] = {**overrides.get("train", {}), "max_steps": int(steps)}
     return overrides
 
@@ -73,24 +173,52 @@ def _without(d: dict, key: str) -> dict:
     return {k: v for k, v in d.items() if k != key}
 
 
+def is_run_dir(run_dir) -> bool:
+    """True when run_dir holds the marker a run writes first (RUN_MARKER)."""
+    return (Path(run_dir) / RUN_MARKER).is_file()
+
+
+def _is_legacy_run(run_dir: Path) -> bool:
+    """A run made before the marker existed: config.json with "model" and "train", and checkpoints/."""
+    try:
+        raw = io.read_json(run_dir / "config.json")
+    except DataError:
+        return False
+    return isinstance(raw, dict) and {"model", "train"} <= set(raw) and (run_dir / "checkpoints").is_dir()
+
+
+def check_out(run_dir: Path, data=None) -> None:
+    """Refuses an --out that is a file, or that is the dataset folder itself."""
+    if run_dir.exists() and not run_dir.is_dir():
+        raise DataError(f"{run_dir}: --out exists and is not a folder")
+    if data is not None and run_dir.resolve() == Path(data).resolve():
+        raise DataError(f"{run_dir}: --out is the dataset folder; choose another folder for the run")
+
+
 def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
     """Makes run_dir ready for a run of config `wanted` (run_config_dict): with `overwrite`
-    clears a previous run's outputs; else an existing run must have the same config (the
-    step count included: the learning-rate schedule depends on it), so it is resumed."""
+    clears a previous run's outputs (only in a folder holding RUN_MARKER, and only the files a
+    run writes); else an existing run must have the same config (the step count included: the
+    learning-rate schedule depends on it), so it is resumed. A non-empty folder that is not a
+    run is never touched."""
     if not (run_dir.exists() and any(run_dir.iterdir())):
         return
     existing = run_dir / "config.json"
+    marked = is_run_dir(run_dir)
+    if not marked and not (not overwrite and _is_legacy_run(run_dir)):
+        raise DataError(f"{run_dir}: exists, is not empty and is not a jaxnerf-grid run (no {RUN_MARKER}); "
+                        "nothing was changed: choose another --out")
     if overwrite:
-        import shutil
-
         for sub in RUN_OUTPUT_DIRS:
             shutil.rmtree(run_dir / sub, ignore_errors=True)
         for f in RUN_OUTPUT_FILES:
             (run_dir / f).unlink(missing_ok=True)
     elif not existing.is_file():
-        raise DataError(f"{run_dir}: exists and is not a run directory; pass --overwrite or another --out")
+        return  # a marked run that was stopped before its config.json was written: start it
     else:
         old = io.read_json(existing)
+        if not isinstance(old, dict) or not isinstance(old.get("train"), dict):
+            raise DataError(f"{existing}: not a run's config (expected an object with \"train\")")
         if _without(old, "train") != _without(wanted, "train") or \
                 _without(old["train"], "max_steps") != _without(wanted["train"], "max_steps"):
             raise ConfigError(f"{existing}: the run exists with a different config; pass --overwrite "
@@ -101,21 +229,30 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
 
 
 def train_run(data: str, method: str, out, overrides: dict | None = None, steps: int | None = None,
-              overwrite: bool = False, progress: bool = True, dataset=None):
+              overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False):
     """Creates (or resumes) a run and trains it. Returns (run_dir, RunConfig, TrainResult).
 
     data: the dataset folder (loaded unless `dataset` is given); method: ours | nerf | nerfw;
-    overrides: nested dict over the method's defaults; steps: train.max_steps.
+    overrides: nested dict over the method's defaults; steps: train.max_steps;
+    allow_other_data: resume a run on a dataset whose fingerprint differs.
+    Everything is checked (`check_run`, `check_out`, the fingerprint) before the run folder is
+    created, cleared or written.
     """
     from jaxnerf_grid import train
 
+    run_dir = Path(out)
+    check_out(run_dir, data)
     cfg = train.make_config(method, _with_steps(overrides, steps))
     ds = dataset if dataset is not None else load_dataset(data, progress=progress)
     cfg = config_lib.resolve(cfg, ds, bounds=False)
-    run_dir = Path(out)
+    check_run(cfg, ds)
     wanted = run_config_dict(cfg, Path(data).resolve())
+    if not overwrite and is_run_dir(run_dir):
+        check_fingerprint(run_dir, ds, allow_other_data)
     check_existing(run_dir, wanted, overwrite)
     run_dir.mkdir(parents=True, exist_ok=True)
+    (run_dir / RUN_MARKER).write_text("a jaxnerf-grid run folder: `--overwrite` may clear the run's outputs here\n")
+    io.write_json(run_dir / FINGERPRINT_FILE, dataset_fingerprint(ds))
     io.write_json(run_dir / "config.json", wanted)
     result = train.train(ds, cfg, run_dir, progress=progress)
     return run_dir, cfg, result
@@ -145,14 +282,17 @@ def write_view(run_dir: Path, name: str, view: dict) -> None:
     io.write_png(run_dir / "opacity" / f"{name}.png", np.clip(view["opacity"], 0, 1))
 
 
-def render_split(run_dir, split: str = "test", progress: bool = True, dataset=None, params=None) -> list[dict]:
+def render_split(run_dir, split: str = "test", progress: bool = True, dataset=None, params=None,
+                 allow_other_data: bool = False) -> list[dict]:
     """Renders the frames of a split (test | train | all) into renders/, depth/, opacity/.
-    Returns per-view dicts {"index", "rgb", "depth", "expected_depth", "opacity"}."""
+    Returns per-view dicts {"index", "rgb", "depth", "expected_depth", "opacity"}.
+    A dataset other than the run's (its fingerprint) is refused unless `allow_other_data`."""
     from jaxnerf_grid import train, views
 
     run_dir = Path(run_dir)
     cfg, data = load_run(run_dir)
     ds = dataset if dataset is not None else load_dataset(data, progress=progress)
+    check_fingerprint(run_dir, ds, allow_other_data)
     if params is None:
         params, _ = train.load_params(run_dir, cfg, ds)
     ids = np.arange(ds.num_frames) if split == "all" else np.asarray(ds.split[split])

@@ -29,13 +29,14 @@ import functools
 import json
 import logging
 import time
+import typing
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import checkpoint, config as config_lib, losses, models, optim, parallel, rays as rays_lib
+from jaxnerf_grid import checkpoint, config as config_lib, fields, io, losses, models, optim, parallel, rays as rays_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
@@ -86,6 +87,19 @@ class TrainConfig:
     appearance_lr: float = 0.05
     appearance_rays: int = 1024
 
+    # allowed values, checked by config.validate (docs/RELIABILITY.md)
+    RANGES: typing.ClassVar[dict] = {
+        "batch_rays": config_lib.AT_LEAST_ONE, "max_steps": config_lib.AT_LEAST_ONE,
+        "lr_init": config_lib.POSITIVE, "lr_final": config_lib.POSITIVE, "warmup": config_lib.NONNEGATIVE,
+        "max_grad_norm": config_lib.NONNEGATIVE, "adam_eps": config_lib.POSITIVE,
+        "adam_b1": config_lib.FRACTION, "adam_b2": config_lib.FRACTION, "mask_weight_floor": config_lib.UNIT,
+        "coarse_loss_weight": config_lib.NONNEGATIVE, "interlevel_loss_weight": config_lib.NONNEGATIVE,
+        "distortion_loss_weight": config_lib.NONNEGATIVE, "seed": config_lib.Range(0, 2**32 - 1),
+        "checkpoint_every": config_lib.AT_LEAST_ONE, "keep_checkpoints": config_lib.AT_LEAST_ONE,
+        "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
+        "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
+        "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE}
+
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
@@ -101,6 +115,7 @@ def make_config(method: str, overrides: dict | None = None) -> RunConfig:
     if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:
         raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts --method {method!r}")
     cfg = config_lib.from_dict(RunConfig, merged)
+    config_lib.validate(cfg)
     models.validate(dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, 1)))
     return cfg
 
@@ -215,6 +230,59 @@ def make_train_step(cfg: RunConfig, num_devices: int):
     return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
 
 
+ACTIVATION_COPIES = 4  # a sample's activations: forward values, pre-activations and both gradients
+
+
+def field_floats(f: fields.FieldConfig) -> int:
+    """Rough float32 activations of one sample through a field (encoding, trunk, colour branch,
+    heads); a hash grid also gathers 8 corners per level."""
+    enc = (9 * fields.hashgrid.encoded_size(f.grid)) if f.kind == "grid" else fields.pos_input_size(f)
+    transient = f.transient_depth * f.transient_width if f.transient_dim else 0
+    return (enc + f.depth * f.width + fields.dir_input_size(f) + f.view_depth * f.view_width
+            + f.appearance_dim + f.transient_dim + transient + 8)
+
+
+def ray_bytes(cfg: models.ModelConfig) -> int:
+    """Rough bytes of one training ray's step (forward + backward) over every pass."""
+    if cfg.sampler == "proposal":
+        floats = sum(cfg.proposal_samples) * field_floats(cfg.proposal_field) + cfg.num_fine * field_floats(cfg.field)
+    else:
+        fine = (cfg.num_coarse + cfg.num_fine if cfg.fine_union else cfg.num_fine) if cfg.hierarchical else 0
+        floats = (cfg.num_coarse + fine) * field_floats(cfg.field)
+    return 4 * ACTIVATION_COPIES * (floats + 64)
+
+
+def device_memory() -> int:
+    """Bytes one step may use: the first device's memory limit (GPU), else the host's RAM (CPU
+    devices share it)."""
+    import os
+
+    dev = jax.local_devices()[0]
+    stats = dev.memory_stats() if hasattr(dev, "memory_stats") else None
+    if stats and stats.get("bytes_limit"):
+        return int(stats["bytes_limit"])
+    return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+
+
+def check_batch(cfg: RunConfig, num_devices: int, available: int | None = None) -> None:
+    """Refuses a batch that does not divide over the devices or whose estimated step memory
+    (`ray_bytes` x rays per device; on CPU all devices share the host's RAM) exceeds `available`
+    (default `device_memory()`), suggesting a batch_rays that fits. A rough estimate: it only
+    catches batches far too large, not a tight fit."""
+    tcfg = cfg.train
+    if tcfg.batch_rays % num_devices:
+        raise ConfigError(f"train.batch_rays = {tcfg.batch_rays}: must divide by the device count ({num_devices})")
+    available = device_memory() if available is None else available
+    shared = jax.local_devices()[0].platform == "cpu"
+    rays = tcfg.batch_rays if shared else tcfg.batch_rays // num_devices
+    need = rays * ray_bytes(cfg.model)
+    if need > available:
+        fit = max(1, available // ray_bytes(cfg.model) // (1 if shared else num_devices))
+        fit = max(num_devices, (2 ** int(np.log2(fit)) // num_devices) * num_devices)
+        raise ConfigError(f"train.batch_rays = {tcfg.batch_rays}: a step needs about {need / 2**30:.0f} GiB, "
+                          f"more than the {available / 2**30:.0f} GiB available; try batch_rays = {fit} or less")
+
+
 def resolve_devices(cfg: TrainConfig) -> int:
     available = jax.local_device_count()
     n = cfg.num_devices or available
@@ -223,22 +291,43 @@ def resolve_devices(cfg: TrainConfig) -> int:
     return n
 
 
-def _trim_log(path: Path, step: int) -> None:
-    """Drops metrics.jsonl lines logged after `step` (they are replayed after a resume)."""
+def _log_record(line: str) -> dict | None:
+    """One metrics.jsonl line as a dict; None for a blank, torn or foreign line."""
+    try:
+        record = json.loads(line)
+    except json.JSONDecodeError:
+        return None
+    return record if isinstance(record, dict) and isinstance(record.get("step", 0), (int, float)) else None
+
+
+def _trim_log(path: Path, step: int) -> dict | None:
+    """Drops metrics.jsonl lines logged after `step` (they are replayed after a resume) and any
+    line that does not parse (a torn last line from a kill or a full disk), rewriting the file
+    atomically. Returns the last record kept (None when none)."""
     if not path.exists():
-        return
-    keep = [line for line in path.read_text().splitlines() if line.strip() and json.loads(line).get("step", 0) <= step]
-    path.write_text("".join(line + "\n" for line in keep))
+        return None
+    text = path.read_text(encoding="utf-8", errors="replace")
+    records = [(line, _log_record(line)) for line in text.splitlines()]
+    keep = [(line, r) for line, r in records if r is not None and r.get("step", 0) <= step]
+    new = "".join(line + "\n" for line, _ in keep)
+    if new != text:
+        io.atomic_write_bytes(path, new.encode("utf-8"))
+    return keep[-1][1] if keep else None
 
 
 @dataclasses.dataclass
 class TrainResult:
+    """params; step: the step reached; seconds: this call's wall time; skipped_steps: non-finite
+    steps of this call; last_loss, last_psnr: the last logged values (NaN when none was logged);
+    steps_run: steps this call trained (0 when the run was already finished)."""
+
     params: dict
     step: int
     seconds: float
     skipped_steps: list
     last_loss: float
     last_psnr: float
+    steps_run: int = 0
 
 
 def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
@@ -262,14 +351,18 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
         state, step = restored
         logger.info("resumed %s at step %d", run_dir, step)
     log_path = run_dir / "metrics.jsonl"
-    _trim_log(log_path, step)
+    last_record = _trim_log(log_path, step)
+    check_batch(cfg, n)
     pool = parallel.replicate(pool_host, n)
     state_r = parallel.replicate(state, n)
     p_step = make_train_step(cfg, n)
     end = min(tcfg.max_steps, stop_at if stop_at is not None else tcfg.max_steps)
+    first_step = step
     schedule = optim.make_lr_schedule(tcfg.lr_init, tcfg.lr_final, tcfg.warmup, tcfg.max_steps)
     skipped: list[int] = []
-    last_loss = last_psnr = float("nan")
+    # a run already at its last step trains no step: report its last logged loss and PSNR
+    last_loss = float((last_record or {}).get("loss", float("nan")))
+    last_psnr = float((last_record or {}).get("psnr", float("nan")))
     bar = None
     if progress:
         from jaxnerf_grid import progress as progress_lib
@@ -309,7 +402,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
             bar.close()
     final = parallel.unreplicate(state_r)
     return TrainResult(params=final["params"], step=step, seconds=time.perf_counter() - start_time,
-                       skipped_steps=skipped, last_loss=last_loss, last_psnr=last_psnr)
+                       skipped_steps=skipped, last_loss=last_loss, last_psnr=last_psnr,
+                       steps_run=step - first_step)
 
 
 def load_params(run_dir, cfg: RunConfig, dataset: Dataset) -> tuple[dict, int]:

@@ -1,5 +1,6 @@
 """Exact resume: a training process killed (SIGKILL) after a checkpoint, then resumed, ends
-with the same parameters as an uninterrupted run."""
+with the same parameters as an uninterrupted run, even when metrics.jsonl ends in a torn line;
+a run resumed at its last step reports its last logged loss, not NaN."""
 
 import os
 import signal
@@ -40,6 +41,9 @@ def test_killed_run_resumes_exactly(tmp_path):
             proc.kill()
     steps = [s for s, _ in checkpoint.list_checkpoints(killed)]
     assert steps and max(steps) < 30, steps          # it really died mid-run
+    # a full disk or a kill while appending leaves half a line: the resume must trim it (issue 14)
+    with open(killed / "metrics.jsonl", "a") as fh:
+        fh.write('{"step": 7, "loss": 0.0')
     resumed = train.train(tiny_dataset(), tiny_config(), killed, progress=False)
     straight = train.train(tiny_dataset(), tiny_config(), tmp_path / "straight", progress=False)
     assert resumed.step == straight.step == 30
@@ -49,6 +53,9 @@ def test_killed_run_resumes_exactly(tmp_path):
     # the metrics log has each logged step once, in order, despite the replay
     lines = (killed / "metrics.jsonl").read_text().splitlines()
     assert [int(x.split('"step": ')[1].split(",")[0]) for x in lines] == [5, 10, 15, 20, 25, 30]
+    again = train.train(tiny_dataset(), tiny_config(), killed, progress=False)  # already finished
+    assert again.step == 30 and again.steps_run == 0
+    assert again.last_loss == resumed.last_loss and np.isfinite(again.last_psnr)
 
 
 if __name__ == "__main__":

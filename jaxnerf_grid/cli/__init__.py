@@ -5,7 +5,8 @@ render.py, eval.py, demo.py) and exposes `main(argv: list[str]) -> int`; a subco
 its arguments and calls the library (runs, evaluate, demo, masking, data.synthetic). This file
 only dispatches, so importing it is cheap and one subcommand's imports never slow another.
 Nothing else in the package imports a cli module.
-Errors of type `DataError` / `ConfigError` are printed as one line, never as a traceback.
+Errors of type `DataError` / `ConfigError` are printed as one line, never as a traceback; so
+are OS errors (a read-only folder, a full disk, a path that is a file): `error: PATH: reason`.
 """
 
 from __future__ import annotations
@@ -27,6 +28,13 @@ USAGE = "usage: jaxnerf-grid {" + ",".join(SUBCOMMANDS) + "} [options]\n\n" + "\
 )
 
 
+def os_error_line(err: OSError) -> str:
+    """An OSError as one line naming the path: "PATH: No space left on device"."""
+    reason = err.strerror or str(err)
+    paths = [p for p in (err.filename, err.filename2) if p]
+    return f"{' -> '.join(str(p) for p in paths)}: {reason}" if paths else reason
+
+
 def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     if not argv or argv[0] in ("-h", "--help"):
@@ -45,6 +53,9 @@ def main(argv: list[str] | None = None) -> int:
         return int(entry(rest) or 0)
     except (DataError, ConfigError) as err:
         print(f"jaxnerf-grid {name}: error: {err}", file=sys.stderr)
+        return 1
+    except OSError as err:  # read-only folder, full disk (ENOSPC), a file where a folder should be
+        print(f"jaxnerf-grid {name}: error: {os_error_line(err)}", file=sys.stderr)
         return 1
     except KeyboardInterrupt:
         print(f"jaxnerf-grid {name}: interrupted", file=sys.stderr)

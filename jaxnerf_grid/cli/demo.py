@@ -1,6 +1,6 @@
 """`jaxnerf-grid demo`: tower-small (or --data DIR) -> masks -> train ours -> render -> report (`demo.run_demo`).
 
-    jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N] [--overwrite]
+    jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N] [--set KEY=VALUE ...] [--overwrite]
 """
 
 from __future__ import annotations
@@ -19,6 +19,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/demo")
     p.add_argument("--steps", type=int, default=None,
                    help=f"training steps (default {DEMO_CONFIG['train']['max_steps']})")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="change one value of the demo's recipe, dotted key, JSON value (e.g. train.batch_rays=512); "
+                        "repeatable")
     p.add_argument("--overwrite", action="store_true", help="retrain the run (the data are kept)")
     p.add_argument("--quiet", action="store_true")
     return p
@@ -28,7 +31,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from jaxnerf_grid import demo
 
-    result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet)
+    result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=args.set)
     print(demo.demo_summary(result))
     print(f"report: {result['run_dir'] / 'report.md'}")
     return 0

@@ -20,6 +20,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--reference-ply", default=None,
                    help="reference tower point cloud (PLY, the dataset's normalised scene units) to score "
                         "tower_points.ply against (default: the dataset's tower_ply, if any)")
+    p.add_argument("--allow-other-data", action="store_true",
+                   help="score the run on a dataset other than the one it was trained on (its fingerprint differs)")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -36,7 +38,7 @@ def main(argv: list[str] | None = None) -> int:
     from jaxnerf_grid import evaluate
 
     m = evaluate.evaluate_run(args.run, args.lpips_weights, not args.quiet, distractor_views=args.distractor_views,
-                              reference_ply=args.reference_ply)
+                              reference_ply=args.reference_ply, allow_other_data=args.allow_other_data)
     ssim = m["mean"]["ssim"]  # None when every view is smaller than the SSIM window
     print(f"test PSNR {m['mean']['psnr']:.2f} dB, SSIM {'n/a' if ssim is None else f'{ssim:.4f}'}; "
           f"report: {Path(args.run) / 'report.md'}")

@@ -63,7 +63,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from jaxnerf_grid import masking
 
-    classes = [int(c) for c in args.classes.split(",") if c.strip()] if args.classes else None
+    classes = masking.parse_classes(args.classes)
     masking.write_masks(args.data, source=args.source, weights=args.weights, depth_weights=args.depth_weights,
                         classes=classes, threshold=args.threshold, floor=args.floor, dilate=args.dilate,
                         max_side=args.max_side, tiles=args.tiles, tile_overlap=args.tile_overlap,

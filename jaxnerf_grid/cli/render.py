@@ -13,6 +13,8 @@ def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxnerf-grid render", description="render views of a trained run")
     p.add_argument("--run", required=True, help="run directory")
     p.add_argument("--split", choices=["test", "train", "all"], default="test")
+    p.add_argument("--allow-other-data", action="store_true",
+                   help="render even though the run's dataset has changed (its fingerprint differs)")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -21,6 +23,6 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from jaxnerf_grid import runs
 
-    views = runs.render_split(args.run, args.split, not args.quiet)
+    views = runs.render_split(args.run, args.split, not args.quiet, allow_other_data=args.allow_other_data)
     print(f"rendered {len(views)} views into {Path(args.run) / 'renders'} (depth/, opacity/ alongside)")
     return 0

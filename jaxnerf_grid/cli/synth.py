@@ -33,8 +33,21 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def check_args(args) -> None:
+    """Refuses (ConfigError naming the flag) sizes and counts that would write a dataset
+    `train` cannot use: width / height >= 8, num-train, num-test, supersample >= 1, workers >= 0."""
+    from jaxnerf_grid.config import ConfigError
+
+    for flag, value, low in (("--width", args.width, 8), ("--height", args.height, 8), ("--num-train", args.num_train, 1),
+                             ("--num-test", args.num_test, 1), ("--supersample", args.supersample, 1),
+                             ("--workers", args.workers, 0)):
+        if value is not None and value < low:
+            raise ConfigError(f"{flag} = {value}: must be >= {low}")
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    check_args(args)
     from jaxnerf_grid.data.synthetic.generate import contact_sheet, generate_scene
 
     workers = args.workers or min(2, os.cpu_count() or 1)

@@ -1,6 +1,7 @@
 """`jaxnerf-grid train`: train a NeRF on a dataset into a run directory (`runs.train_run`).
 
-    jaxnerf-grid train --data DIR --method ours|nerf|nerfw [--config FILE] [--out RUN] [--steps N] [--eval]
+    jaxnerf-grid train --data DIR --method ours|nerf|nerfw [--config FILE] [--set KEY=VALUE ...] [--out RUN]
+                       [--steps N] [--overwrite] [--allow-other-data] [--eval]
 """
 
 from __future__ import annotations
@@ -14,12 +15,28 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--data", required=True, help="dataset folder (transforms.json, COLMAP, LLFF, Blender)")
     p.add_argument("--method", choices=["ours", "nerf", "nerfw"], default="ours")
     p.add_argument("--config", default=None, help="JSON file overriding defaults ({'model': {...}, 'train': {...}})")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="one config value, dotted key, JSON value (e.g. model.warp=log, train.batch_rays=2048, "
+                        "model.proposal_samples=[64,32]); repeatable; applied after --config")
     p.add_argument("--out", default=None, help="run directory (default runs/<method>)")
     p.add_argument("--steps", type=int, default=None, help="override train.max_steps")
-    p.add_argument("--overwrite", action="store_true", help="start the run again if it exists")
+    p.add_argument("--overwrite", action="store_true",
+                   help="start the run again if it exists (clears only the run's own outputs)")
+    p.add_argument("--allow-other-data", action="store_true",
+                   help="resume a run on a dataset other than the one it was trained on")
     p.add_argument("--eval", action="store_true", help="evaluate and write the report after training")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
+
+
+def train_summary(cfg, result, run_dir) -> str:
+    """One line on a finished `train_run`: steps, time, the last logged loss and PSNR."""
+    last = ("no step logged" if result.last_loss != result.last_loss  # NaN: nothing logged
+            else f"last logged loss {result.last_loss:.4f}, PSNR {result.last_psnr:.2f} dB")
+    if result.steps_run == 0:
+        return f"{run_dir}: already trained to step {result.step} ({last}); nothing to do"
+    return (f"trained {cfg.model.method} to step {result.step} in {result.seconds:.0f} s "
+            f"({last}, {len(result.skipped_steps)} skipped steps): {run_dir}")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -27,12 +44,11 @@ def main(argv: list[str] | None = None) -> int:
     from jaxnerf_grid import evaluate, runs
 
     out = args.out or f"runs/{args.method}"
-    run_dir, cfg, result = runs.train_run(args.data, args.method, out, runs.read_overrides(args.config),
-                                          args.steps, args.overwrite, not args.quiet)
-    print(f"trained {cfg.model.method} to step {result.step} in {result.seconds:.0f} s "
-          f"(last loss {result.last_loss:.4f}, PSNR {result.last_psnr:.2f} dB, "
-          f"{len(result.skipped_steps)} skipped steps): {run_dir}")
+    overrides = runs.overrides_with_sets(runs.read_overrides(args.config), args.set)
+    run_dir, cfg, result = runs.train_run(args.data, args.method, out, overrides, args.steps, args.overwrite,
+                                          not args.quiet, allow_other_data=args.allow_other_data)
+    print(train_summary(cfg, result, run_dir))
     if args.eval:
-        m = evaluate.evaluate_run(run_dir, progress=not args.quiet)
+        m = evaluate.evaluate_run(run_dir, progress=not args.quiet, allow_other_data=args.allow_other_data)
         print(f"test PSNR {m['mean']['psnr']:.2f} dB; report: {Path(run_dir) / 'report.md'}")
     return 0

@@ -7,6 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
+# A camera centre this many times farther from the median centre than the median camera is
+# an error (a pose translated 1e30 away, a unit mix-up); real orbits and strips stay within ~3x.
+CAMERA_OUTLIER_FACTOR = 1000.0
+
 
 @dataclasses.dataclass
 class Dataset:
@@ -68,3 +72,25 @@ class Dataset:
             frame_paths=[self.frame_paths[i] for i in idx] if self.frame_paths else [],
             split={"train": np.arange(len(idx)), "test": np.arange(len(idx))},
         )
+
+
+def check_camera_centres(ds: Dataset, factor: float = CAMERA_OUTLIER_FACTOR) -> None:
+    """Raises DataError naming the frame whose camera centre (c2w[:3, 3]) lies more than `factor`
+    times the median distance from the median centre (robust: one far camera cannot hide
+    itself). Needs 3 or more frames and cameras that are not all at one point."""
+    from jaxnerf_grid.io import DataError
+
+    centres = np.asarray(ds.c2w, np.float64)[:, :3, 3]
+    if len(centres) < 3:
+        return
+    dist = np.linalg.norm(centres - np.median(centres, axis=0), axis=-1)
+    typical = float(np.median(dist))
+    if not np.all(np.isfinite(dist)):
+        bad = int(np.flatnonzero(~np.isfinite(dist))[0])
+    elif dist.max() > factor * typical:  # typical 0: most cameras at one point, one elsewhere
+        bad = int(np.argmax(dist))
+    else:
+        return
+    name = ds.frame_paths[bad] if ds.frame_paths else f"frame {bad}"
+    raise DataError(f"{Path(ds.root) / name}: its camera centre is {dist[bad]:.3g} units from the others' "
+                    f"median (they lie within {typical:.3g}); check this frame's pose")

@@ -3,7 +3,9 @@
 from __future__ import annotations
 
 import dataclasses
+import typing
 
+from jaxnerf_grid import config
 from jaxnerf_grid.fields.hashgrid import HashConfig, check as check_grid
 
 FIELD_KINDS = ("mlp", "grid")
@@ -49,6 +51,16 @@ class FieldConfig:
     transient_width: int = 64
     grid: HashConfig = HashConfig()
     geo_features: int = 15
+
+    # allowed values, checked by config.validate (docs/RELIABILITY.md); `check` adds the
+    # rules between fields (an MLP needs depth >= 1)
+    RANGES: typing.ClassVar[dict] = {
+        "depth": config.NONNEGATIVE, "width": config.AT_LEAST_ONE, "skip": config.NONNEGATIVE,
+        "pos_min_deg": config.NONNEGATIVE, "pos_max_deg": config.NONNEGATIVE, "dir_max_deg": config.NONNEGATIVE,
+        "view_width": config.AT_LEAST_ONE, "view_depth": config.AT_LEAST_ONE,
+        "appearance_dim": config.NONNEGATIVE, "transient_dim": config.NONNEGATIVE,
+        "transient_depth": config.AT_LEAST_ONE, "transient_width": config.AT_LEAST_ONE,
+        "geo_features": config.AT_LEAST_ONE}
 
 
 def check(cfg: FieldConfig) -> None:

@@ -24,10 +24,13 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import typing
 
 import jax
 import jax.numpy as jnp
 import numpy as np
+
+from jaxnerf_grid import config
 
 PRIMES = (1, 2654435761, 805459861)
 
@@ -44,6 +47,12 @@ class HashConfig:
     min_resolution: int = 16
     max_resolution: int = 1024
     init_scale: float = 1e-4
+
+    # allowed values, checked by config.validate (docs/RELIABILITY.md)
+    RANGES: typing.ClassVar[dict] = {
+        "num_levels": config.AT_LEAST_ONE, "features_per_level": config.AT_LEAST_ONE,
+        "log2_table_size": config.Range(1, 26), "min_resolution": config.AT_LEAST_ONE,
+        "max_resolution": config.AT_LEAST_ONE, "init_scale": config.NONNEGATIVE}
 
 
 def check(cfg: HashConfig, where: str = "grid") -> None:

@@ -72,6 +72,12 @@ def collect_llff(path, *, images_dir=None, normalize: str | bool = "cameras", ho
         if not np.all(np.isfinite(row)):
             raise DataError(f"{source}: degenerate pose (non-finite entries)")
         c2w, (h, w, focal) = llff_to_c2w_gl(row[:15].reshape(3, 5))
+        if not (h >= 1 and w >= 1):
+            raise DataError(f"{source}: image size H, W = {h:g}, {w:g}: both must be >= 1")
+        if not focal > 0:
+            raise DataError(f"{source}: focal length {focal:g}: must be > 0")
+        if not 0 < row[15] < row[16]:
+            raise DataError(f"{source}: depth bounds near, far = {row[15]:g}, {row[16]:g}: need 0 < near < far")
         c2w = validate_c2w(c2w, source)
         pose_intr = np.array([focal, focal, 0.5 * w, 0.5 * h])
         min_cos = min(min_cos, min_ray_cosine(pose_intr, w, h))

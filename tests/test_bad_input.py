@@ -1,0 +1,488 @@
+"""The bad-input corpus of issue 14 (docs/RELIABILITY.md): every broken dataset, config and flag,
+built from one tiny `synth` scene and one tiny finished run, goes through the real CLI entry
+point (`jaxnerf_grid.cli.main`). Each case asserts a non-zero exit, one line of error naming the
+file or key, no traceback, and that no file that was there before is lost or changed.
+
+A fault-injection test kills `mask --overwrite` (SIGKILL) while it writes and while it swaps the
+new set in, and checks that the dataset then holds the old mask set or the new one, never a mix.
+"""
+
+from __future__ import annotations
+
+import errno
+import hashlib
+import json
+import os
+import shutil
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid import cli, io, masking, runs
+
+ROOT = Path(__file__).resolve().parents[1]
+# a 2x32 MLP, 8 + 8 samples, 64 rays, 10 steps: the whole run takes seconds
+TINY = {"model": {"field": {"depth": 2, "width": 32, "skip": 0, "view_width": 16}, "num_coarse": 8, "num_fine": 8},
+        "train": {"batch_rays": 64, "max_steps": 10, "checkpoint_every": 5, "log_every": 5, "warmup": 2,
+                  "chunk": 512}}
+SYNTH = ["--width", "32", "--height", "24", "--num-train", "6", "--num-test", "2", "--supersample", "1",
+         "--workers", "1", "--quiet"]
+
+
+def snapshot(*roots: Path) -> dict:
+    """{path: sha256 of the file} of every file under the roots (directories as "dir")."""
+    out = {}
+    for root in roots:
+        if root.is_file():
+            out[str(root)] = hashlib.sha256(root.read_bytes()).hexdigest()
+            continue
+        for p in sorted(root.rglob("*")):
+            out[str(p)] = "dir" if p.is_dir() else hashlib.sha256(p.read_bytes()).hexdigest()
+    return out
+
+
+def run_cli(argv: list[str], capsys) -> tuple[int, str]:
+    """(exit code, stderr) of cli.main(argv); argparse's SystemExit counts as its code."""
+    capsys.readouterr()
+    try:
+        rc = cli.main([str(a) for a in argv])
+    except SystemExit as exit_:
+        rc = exit_.code if isinstance(exit_.code, int) else 1
+    return rc, capsys.readouterr().err
+
+
+def assert_one_line_error(rc: int, err: str, *names: str) -> str:
+    """A non-zero exit, no traceback, one line of error naming each of `names`."""
+    assert rc != 0, err
+    assert "Traceback" not in err, err
+    lines = [line for line in err.strip().splitlines() if line.strip()]
+    assert len(lines) == 1, err
+    for name in names:
+        assert name in lines[0], (name, lines[0])
+    return lines[0]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """{"data": a tiny synth scene, "run": a finished 10-step run on it, "cfg": TINY's file,
+    "tmp": a scratch folder}; shared by every case, which must leave them unchanged."""
+    tmp = tmp_path_factory.mktemp("bad_input")
+    data, run, cfg = tmp / "data", tmp / "run", tmp / "tiny.json"
+    assert cli.main(["synth", "--out", str(data), *SYNTH]) == 0
+    cfg.write_text(json.dumps(TINY))
+    assert cli.main(["train", "--data", str(data), "--method", "nerf", "--config", str(cfg), "--out", str(run),
+                     "--quiet"]) == 0
+    return {"data": data, "run": run, "cfg": cfg, "tmp": tmp}
+
+
+def config_file(scene, name: str, change: dict) -> Path:
+    """TINY with `change` merged in, written as <name>.json (NaN / Infinity as JSON allows)."""
+    from jaxnerf_grid.config import merge
+
+    path = scene["tmp"] / f"{name}.json"
+    path.write_text(json.dumps(merge(TINY, change)))
+    return path
+
+
+# (case id, config change, words the error must name)
+BAD_CONFIGS = [
+    ("batch_rays_0", {"train": {"batch_rays": 0}}, ["train.batch_rays", "0", ">= 1"]),
+    ("batch_rays_negative", {"train": {"batch_rays": -64}}, ["train.batch_rays", "-64"]),
+    ("batch_rays_huge", {"train": {"batch_rays": 4_000_000}}, ["train.batch_rays", "GiB", "try batch_rays"]),
+    ("batch_rays_float", {"train": {"batch_rays": 64.5}}, ["train.batch_rays", "integer"]),
+    ("checkpoint_every_0", {"train": {"checkpoint_every": 0}}, ["train.checkpoint_every"]),
+    ("log_every_0", {"train": {"log_every": 0}}, ["train.log_every"]),
+    ("keep_checkpoints_0", {"train": {"keep_checkpoints": 0}}, ["train.keep_checkpoints"]),
+    ("lr_nan", {"train": {"lr_init": float("nan")}}, ["train.lr_init", "NaN", "finite"]),
+    ("lr_inf", {"train": {"lr_final": float("inf")}}, ["train.lr_final", "finite"]),
+    ("lr_string", {"train": {"lr_init": "fast"}}, ["train.lr_init", "fast", "number"]),
+    ("lr_negative", {"train": {"lr_init": -1e-3}}, ["train.lr_init", "> 0"]),
+    ("seed_float", {"train": {"seed": 1.5}}, ["train.seed", "1.5", "integer"]),
+    ("max_steps_string", {"train": {"max_steps": "10"}}, ["train.max_steps", "integer"]),
+    ("use_masks_int", {"train": {"use_masks": 1}}, ["train.use_masks", "true or false"]),
+    ("mask_weight_floor_2", {"train": {"mask_weight_floor": 2}}, ["train.mask_weight_floor", "[0, 1]"]),
+    ("field_depth_0", {"model": {"field": {"depth": 0}}}, ["model.field", "depth"]),
+    ("field_width_0", {"model": {"field": {"width": 0}}}, ["model.field.width", ">= 1"]),
+    ("near_ge_far", {"model": {"near": 5.0, "far": 1.0}}, ["near", "far"]),
+    ("near_negative", {"model": {"near": -1.0}}, ["model.near", "> 0"]),
+    ("samples_negative", {"model": {"num_fine": -8}}, ["model.num_fine"]),
+    ("unknown_key", {"train": {"batch_size": 64}}, ["batch_size"]),
+]
+
+
+@pytest.mark.parametrize("change, names", [c[1:] for c in BAD_CONFIGS], ids=[c[0] for c in BAD_CONFIGS])
+def test_bad_config_is_refused_before_the_run_is_touched(scene, capsys, change, names):
+    """Each bad value, even with --overwrite on a finished run, exits 1 with a line naming the
+    key, and the run is left exactly as it was (issue 14, items 2-4)."""
+    cfg = config_file(scene, "bad", change)
+    before = snapshot(scene["run"], scene["data"])
+    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", cfg, "--out", scene["run"],
+                       "--overwrite", "--quiet"], capsys)
+    assert_one_line_error(rc, err, *names)
+    assert snapshot(scene["run"], scene["data"]) == before
+
+
+BAD_FLAGS = [
+    ("steps_0", ["--steps", "0"], ["--steps", "0"]),
+    ("steps_negative", ["--steps", "-5"], ["--steps", "-5"]),
+    ("set_unknown", ["--set", "model.sampling.warp=log"], ["model.sampling.warp", "sampling"]),
+    ("set_no_value", ["--set", "model.warp"], ["model.warp", "key=value"]),
+    ("set_bad_value", ["--set", "train.batch_rays=many"], ["train.batch_rays", "many"]),
+    ("set_bad_warp", ["--set", "model.warp=spiral"], ["model.warp", "spiral"]),
+    ("steps_text", ["--steps", "ten"], ["--steps"]),
+]
+
+
+@pytest.mark.parametrize("flags, names", [c[1:] for c in BAD_FLAGS], ids=[c[0] for c in BAD_FLAGS])
+def test_bad_train_flag_is_refused(scene, capsys, flags, names):
+    before = snapshot(scene["run"], scene["data"])
+    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"],
+                       "--out", scene["run"], "--overwrite", "--quiet", *flags], capsys)
+    if flags[0] == "--steps" and flags[1] == "ten":  # argparse: usage line + error line, exit 2
+        assert rc == 2 and "Traceback" not in err and "--steps" in err
+    else:
+        assert_one_line_error(rc, err, *names)
+    assert snapshot(scene["run"], scene["data"]) == before
+
+
+def test_set_changes_the_config(scene, capsys, tmp_path):
+    """--set reaches the config (dotted keys, JSON values) and is applied after --config."""
+    from jaxnerf_grid import config, train
+
+    sets = config.parse_sets(["model.warp=log", "train.lr_init=1e-3", "model.proposal_samples=[32,16]",
+                              "model.field.kind=\"grid\"", "model.near=null"], train.RunConfig)
+    assert sets == {"model": {"warp": "log", "proposal_samples": [32, 16], "field": {"kind": "grid"}, "near": None},
+                    "train": {"lr_init": 1e-3}}
+    run = tmp_path / "run"
+    # --config says 10 steps and log_every 5; --set wins for the keys it names
+    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
+                       "--set", "train.max_steps=4", "--set", "train.log_every=2", "--set", "model.warp=log",
+                       "--quiet"], capsys)
+    assert rc == 0, err
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["train"]["max_steps"] == 4 and saved["train"]["log_every"] == 2
+    assert saved["model"]["warp"] == "log" and saved["model"]["field"]["width"] == 32
+
+
+def test_overwrite_never_clears_the_dataset(scene, capsys):
+    """Issue 14, item 1: `train --data D --out D --overwrite` deleted D's depth/."""
+    before = snapshot(scene["data"])
+    for extra in ([], ["--overwrite"]):
+        rc, err = run_cli(["train", "--data", scene["data"], "--config", scene["cfg"], "--out", scene["data"],
+                           "--quiet", *extra], capsys)
+        assert_one_line_error(rc, err, str(scene["data"]))
+    assert snapshot(scene["data"]) == before
+
+
+def test_overwrite_never_clears_a_folder_that_is_not_a_run(scene, capsys, tmp_path):
+    """A folder without the run marker is never cleared, with or without --overwrite; even a
+    folder holding a depth/ and a config.json of the user's."""
+    other = tmp_path / "mine"
+    (other / "depth").mkdir(parents=True)
+    (other / "depth" / "survey.exr").write_bytes(b"precious")
+    (other / "config.json").write_text('{"camera": "mine"}')
+    (other / "checkpoints").mkdir()
+    before = snapshot(other)
+    for extra in ([], ["--overwrite"]):
+        rc, err = run_cli(["train", "--data", scene["data"], "--config", scene["cfg"], "--out", other, "--quiet",
+                           *extra], capsys)
+        assert_one_line_error(rc, err, str(other), runs.RUN_MARKER)
+    assert snapshot(other) == before
+
+
+def test_overwrite_clears_only_the_runs_own_outputs(scene, capsys, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    (run / "notes.txt").write_text("the user's own file")
+    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
+                       "--steps", "5", "--overwrite", "--quiet"], capsys)
+    assert rc == 0, err
+    assert (run / "notes.txt").read_text() == "the user's own file"
+    assert (run / runs.RUN_MARKER).is_file()
+    assert json.loads((run / "config.json").read_text())["train"]["max_steps"] == 5
+
+
+def test_rerun_of_a_finished_run_says_so(scene, capsys):
+    rc = cli.main(["train", "--data", str(scene["data"]), "--method", "nerf", "--config", str(scene["cfg"]),
+                   "--out", str(scene["run"]), "--quiet"])
+    out = capsys.readouterr().out
+    assert rc == 0 and "already trained to step 10" in out and "nan" not in out.lower(), out
+
+
+def test_out_is_a_file(scene, capsys, tmp_path):
+    f = tmp_path / "a_file"
+    f.write_text("keep me")
+    for argv in (["train", "--data", scene["data"], "--config", scene["cfg"], "--out", f, "--quiet"],
+                 ["demo", "--out", f, "--quiet"]):
+        rc, err = run_cli(argv, capsys)
+        assert_one_line_error(rc, err, str(f))
+    assert f.read_text() == "keep me"
+
+
+def test_camera_far_outside_the_others(scene, capsys, tmp_path):
+    """Issue 14, item 3: a camera translated 1e30 away trained on a garbage frame."""
+    data = tmp_path / "data"
+    shutil.copytree(scene["data"], data)
+    meta = io.read_json(data / "transforms.json")
+    meta["frames"][2]["transform_matrix"][0][3] = 1e30
+    io.write_json(data / "transforms.json", meta)
+    rc, err = run_cli(["train", "--data", data, "--config", scene["cfg"], "--out", tmp_path / "run", "--quiet"],
+                      capsys)
+    assert_one_line_error(rc, err, Path(meta["frames"][2]["file_path"]).name)
+    assert not (tmp_path / "run").exists()
+
+
+def test_os_errors_are_one_line(scene, capsys, tmp_path, monkeypatch):
+    """A read-only folder and a full disk (simulated: the tests run as root, which ignores
+    permissions) give one line naming the path; the run left behind resumes."""
+    run = tmp_path / "run"
+    real = io.write_json
+
+    def full_disk(path, obj):
+        if Path(path).name == "config.json":
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(path))
+        return real(path, obj)
+
+    monkeypatch.setattr(io, "write_json", full_disk)
+    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
+                       "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(run / "config.json"), "No space left on device")
+    monkeypatch.setattr(io, "write_json", real)
+
+    def read_only(self, *args, **kwargs):
+        raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(self))
+
+    monkeypatch.setattr(Path, "mkdir", read_only)
+    rc, err = run_cli(["train", "--data", scene["data"], "--config", scene["cfg"], "--out", tmp_path / "ro" / "run",
+                       "--quiet"], capsys)
+    assert_one_line_error(rc, err, "Permission denied", "ro")
+    monkeypatch.undo()
+    # the run stopped by the full disk (marker and fingerprint written, no config.json) starts again
+    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
+                       "--steps", "5", "--quiet"], capsys)
+    assert rc == 0, err
+
+
+def test_eval_writes_over_a_folder(scene, capsys, tmp_path):
+    """An OSError from deep inside (metrics.json is a folder) is one line naming the path."""
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    (run / "metrics.json").mkdir()
+    rc, err = run_cli(["eval", "--run", run, "--quiet", "--distractor-views", "0"], capsys)
+    assert_one_line_error(rc, err, "metrics.json")
+
+
+def test_eval_and_render_refuse_another_dataset(scene, capsys, tmp_path):
+    """Issue 14, item 7: a run trained on 8 frames of 32x24 scored on another dataset."""
+    other = tmp_path / "other"
+    assert cli.main(["synth", "--out", str(other), "--width", "40", "--height", "30", "--num-train", "8",
+                     "--num-test", "2", "--supersample", "1", "--workers", "1", "--quiet"]) == 0
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    saved = io.read_json(run / "config.json")
+    io.write_json(run / "config.json", {**saved, "data": str(other)})
+    before = snapshot(run)
+    for argv in (["eval", "--run", run, "--quiet"], ["render", "--run", run, "--quiet"],
+                 ["train", "--data", other, "--method", "nerf", "--config", scene["cfg"], "--out", run, "--quiet"]):
+        rc, err = run_cli(argv, capsys)
+        assert_one_line_error(rc, err, runs.FINGERPRINT_FILE, "--allow-other-data", "10 frames of 40x30")
+    assert snapshot(run) == before
+    rc, err = run_cli(["render", "--run", run, "--quiet", "--allow-other-data"], capsys)
+    assert rc == 0, err
+
+
+def test_missing_files_and_unknown_commands(scene, capsys, tmp_path):
+    cases = [
+        (["render", "--run", tmp_path / "nope"], ["nope"]),
+        (["eval", "--run", tmp_path / "nope"], ["nope"]),
+        (["eval", "--run", scene["run"], "--lpips-weights", tmp_path / "alex.npz"], ["alex.npz"]),
+        (["eval", "--run", scene["run"], "--reference-ply", tmp_path / "tower.ply"], ["tower.ply"]),
+        (["demo", "--data", tmp_path / "nope", "--out", tmp_path / "demo"], ["nope"]),
+        (["train", "--data", tmp_path / "nope", "--out", tmp_path / "r"], ["nope"]),
+        (["mask", "--data", tmp_path / "nope", "--source", "gt"], ["nope"]),
+        (["train", "--data", scene["data"], "--config", tmp_path / "cfg.json", "--out", tmp_path / "r"], ["cfg.json"]),
+    ]
+    before = snapshot(scene["run"], scene["data"])
+    for argv, names in cases:
+        rc, err = run_cli(argv + ["--quiet"], capsys)
+        assert_one_line_error(rc, err, *names)
+    assert snapshot(scene["run"], scene["data"]) == before
+    rc, err = run_cli(["bogus"], capsys)
+    assert rc == 2 and "unknown command 'bogus'" in err and "Traceback" not in err
+
+
+def test_broken_run_config(scene, capsys, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    (run / "config.json").write_text('{"data": "x", "model": {')
+    rc, err = run_cli(["render", "--run", run, "--quiet"], capsys)
+    assert_one_line_error(rc, err, "config.json", "invalid JSON")
+    io.write_json(run / "config.json", {**io.read_json(scene["run"] / "config.json"), "train": {"batch_rays": 0}})
+    rc, err = run_cli(["eval", "--run", run, "--quiet"], capsys)
+    assert_one_line_error(rc, err, "config.json", "train.batch_rays")
+
+
+BAD_MASK_FLAGS = [
+    ("threshold_2", ["--threshold", "2"], ["--threshold", "[0, 1]"]),
+    ("floor_negative", ["--floor", "-3"], ["--floor"]),
+    ("classes_letters", ["--classes", "a,b", "--source", "dpt"], ["--classes", "'a'"]),
+    ("classes_out_of_range", ["--classes", "999", "--source", "dpt"], ["--classes", "999", "labels"]),
+    ("max_side_negative", ["--max-side", "-16"], ["--max-side"]),
+    ("dilate_negative", ["--dilate", "-2"], ["--dilate"]),
+    ("tiles_0", ["--tiles", "0"], ["--tiles"]),
+]
+
+
+@pytest.mark.parametrize("flags, names", [c[1:] for c in BAD_MASK_FLAGS], ids=[c[0] for c in BAD_MASK_FLAGS])
+def test_bad_mask_flag(scene, capsys, flags, names):
+    if "--classes" in flags and "999" in flags and not (masking.BUILTIN / "config.json").is_file():
+        pytest.skip("no built-in DPT model in this build")
+    before = snapshot(scene["data"])
+    argv = ["mask", "--data", scene["data"], "--overwrite", "--quiet", *flags]
+    if "--source" not in flags:
+        argv += ["--source", "gt"]
+    rc, err = run_cli(argv, capsys)
+    assert_one_line_error(rc, err, *names)
+    assert snapshot(scene["data"]) == before
+
+
+def test_synth_refuses_a_dataset_train_cannot_use(capsys, tmp_path):
+    for flags, name in ((["--num-test", "0"], "--num-test"), (["--num-train", "0"], "--num-train"),
+                        (["--width", "0"], "--width")):
+        rc, err = run_cli(["synth", "--out", tmp_path / "d", "--quiet", *flags], capsys)
+        assert_one_line_error(rc, err, name)
+        assert not (tmp_path / "d").exists()
+
+
+def _llff(tmp_path: Path, scene, change) -> Path:
+    """An LLFF copy of the tiny scene (poses_bounds.npy + images/) with `change(arr)` applied."""
+    from jaxnerf_grid.data.formats import load_dataset
+
+    ds = load_dataset(scene["data"], progress=False)
+    root = tmp_path / "llff"
+    (root / "images").mkdir(parents=True)
+    rows = []
+    for i in range(ds.num_frames):
+        io.write_png(root / "images" / f"{i:03d}.png", ds.images[i])
+        c2w = np.asarray(ds.c2w[i], np.float64)
+        pose = np.stack([-c2w[:3, 1], c2w[:3, 0], c2w[:3, 2], c2w[:3, 3],
+                         [ds.height, ds.width, float(ds.intrinsics[i, 0])]], axis=1)
+        rows.append(np.concatenate([pose.reshape(-1), [0.5, 6.0]]))
+    arr = np.asarray(rows)
+    change(arr)
+    np.save(root / "poses_bounds.npy", arr)
+    return root
+
+
+LLFF_CASES = [
+    ("focal_negative", lambda a: a.__setitem__((0, 14), -a[0, 14]), "focal"),
+    ("focal_zero", lambda a: a.__setitem__((1, 14), 0.0), "focal"),
+    ("size_zero", lambda a: a.__setitem__((0, 4), 0.0), "H, W"),
+    ("bounds_negative", lambda a: a.__setitem__((0, 15), -1.0), "near, far"),
+]
+
+
+@pytest.mark.parametrize("change, name", [c[1:] for c in LLFF_CASES], ids=[c[0] for c in LLFF_CASES])
+def test_bad_llff(scene, capsys, tmp_path, change, name):
+    root = _llff(tmp_path, scene, change)
+    before = snapshot(root)
+    rc, err = run_cli(["train", "--data", root, "--config", scene["cfg"], "--out", tmp_path / "run", "--quiet"], capsys)
+    assert_one_line_error(rc, err, "poses_bounds.npy", name)
+    assert snapshot(root) == before
+
+
+def test_good_llff_copy_loads(scene, tmp_path):
+    """The corpus's LLFF writer makes a loadable dataset, so the cases above fail for their one change."""
+    from jaxnerf_grid.data.formats import load_dataset
+
+    ds = load_dataset(_llff(tmp_path, scene, lambda a: None), progress=False)
+    assert ds.num_frames == 8
+
+
+# --------------------------------------------------------------------------- kill -9 of mask --overwrite
+
+
+MASK_SETS = ("masks", "weights", "dpt_depth", "overlays", "transforms.json")
+
+
+def mask_state(data: Path) -> dict:
+    return snapshot(*[data / name for name in MASK_SETS if (data / name).exists()])
+
+
+def _relative(state: dict, root: Path) -> dict:
+    return {str(Path(k).relative_to(root)): v for k, v in state.items()}
+
+
+def _slow_mask_child(data: str, pause: str) -> None:
+    """`mask --source gt --overwrite --dilate 2` with a pause after each frame written and after
+    each folder renamed in the swap, so the parent can kill it at either stage."""
+    pause_s = float(pause)
+    write, rename = masking._write_frame, masking._rename
+
+    progress = Path(data + ".frames")  # frames written so far, outside the dataset
+
+    def slow_write(*args, **kwargs):
+        out = write(*args, **kwargs)
+        progress.write_text(str(int(progress.read_text() or 0) + 1) if progress.exists() else "1")
+        time.sleep(pause_s)
+        return out
+
+    def slow_rename(src, dst):
+        rename(src, dst)
+        time.sleep(pause_s)
+
+    masking._write_frame, masking._rename = slow_write, slow_rename
+    sys.exit(cli.main(["mask", "--data", data, "--source", "gt", "--overwrite", "--dilate", "2", "--quiet"]))
+
+
+@pytest.mark.parametrize("stage", ["writing", "swapping"])
+def test_killed_mask_overwrite_leaves_old_or_new(scene, capsys, tmp_path, stage):
+    """Issue 14, item 6: a killed `mask --overwrite` left 4 masks of one set and 6 of another."""
+    old_data, new_data = tmp_path / "old", tmp_path / "new"
+    shutil.copytree(scene["data"], old_data)
+    assert cli.main(["mask", "--data", str(old_data), "--source", "gt", "--quiet"]) == 0
+    shutil.copytree(old_data, new_data)
+    assert cli.main(["mask", "--data", str(new_data), "--source", "gt", "--overwrite", "--dilate", "2",
+                     "--quiet"]) == 0
+    old, new = _relative(mask_state(old_data), old_data), _relative(mask_state(new_data), new_data)
+    assert old != new
+    outcomes = []
+    for attempt in range(2):
+        data = tmp_path / f"killed{attempt}"
+        shutil.copytree(old_data, data)
+        env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+        proc = subprocess.Popen([sys.executable, __file__, str(data), "0.4"], env=env,
+                                stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+        stage_dir = data / masking.STAGING
+        try:
+            deadline = time.time() + 120
+            # "writing": once a frame or two is written; "swapping": once the commit point is written
+            frames = Path(str(data) + ".frames")
+            ready = (lambda: frames.exists() and int(frames.read_text() or 0) >= 1 + attempt) \
+                if stage == "writing" else (lambda: (stage_dir / masking.COMPLETE).is_file())
+            while not ready():
+                assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+                assert time.time() < deadline, "the child never reached the stage"
+                time.sleep(0.02)
+            time.sleep(0.2 + 0.4 * attempt)  # inside a frame's pause / between two renames
+            proc.send_signal(signal.SIGKILL)
+            proc.wait(timeout=30)
+        finally:
+            if proc.poll() is None:
+                proc.kill()
+        assert proc.returncode == -signal.SIGKILL  # it really died mid-way
+        runs.load_dataset(data, progress=False)  # what train does: finishes the swap, then loads
+        state = _relative(mask_state(data), data)
+        assert state in (old, new), "a mix of two mask sets"
+        assert not (data / masking.STAGING).exists() and not (data / masking.RETIRED).exists()
+        outcomes.append("new" if state == new else "old")
+    assert outcomes == (["old", "old"] if stage == "writing" else ["new", "new"]), outcomes
+
+
+if __name__ == "__main__":
+    _slow_mask_child(sys.argv[1], sys.argv[2])
