@@ -126,6 +126,14 @@ def _data_lines(path: Path) -> list[str]:
     return [line for line in text.splitlines() if not line.lstrip().startswith("#")]
 
 
+def _token_rows(path: Path):
+    """(line, tokens) of each non-empty, non-comment line of a COLMAP text file."""
+    for line in _data_lines(path):
+        tokens = line.split()
+        if tokens:
+            yield line, tokens
+
+
 def _check_model(path: Path, model: str, num_params: int) -> None:
     if model not in MODEL_IDS:
         raise DataError(f"{path}: unknown camera model {model!r} (known: {', '.join(MODEL_IDS)})")
@@ -138,10 +146,7 @@ def read_cameras_text(path) -> dict[int, Camera]:
     """Reads `cameras.txt`: lines `CAMERA_ID MODEL WIDTH HEIGHT PARAMS[]`."""
     path = Path(path)
     cameras = {}
-    for line in _data_lines(path):
-        tokens = line.split()
-        if not tokens:
-            continue
+    for line, tokens in _token_rows(path):
         try:
             cam_id, model = int(tokens[0]), tokens[1]
             width, height = int(tokens[2]), int(tokens[3])
@@ -192,10 +197,7 @@ def read_points3D_text(path) -> dict[int, Point3D]:
     """Reads `points3D.txt`: `ID X Y Z R G B ERROR TRACK[] as (IMAGE_ID, POINT2D_IDX)`."""
     path = Path(path)
     points = {}
-    for line in _data_lines(path):
-        tokens = line.split()
-        if not tokens:
-            continue
+    for line, tokens in _token_rows(path):
         try:
             pid = int(tokens[0])
             xyz = np.array([float(v) for v in tokens[1:4]])
