@@ -44,9 +44,10 @@ def _softmax(x):
 
 
 def _reference_maps(model, photo, classes, work_hw):
-    """C and r at full resolution, by hand: the photo resized to the working size with OpenCV's
-    area filter, DPT on it alone (batch of one), Eq. 6 in NumPy, both maps resized back with
-    OpenCV's bilinear filter, r clipped at 0."""
+    """C and r at full resolution, by hand: the photo shrunk to the working size with OpenCV's
+    area filter, DPT on it alone (batch of one), Eq. 6 in NumPy, both maps enlarged back with
+    OpenCV's bilinear filter, r clipped at 0. (Photos here are larger than the working size on
+    both sides.)"""
     h, w = photo.shape[:2]
     small = cv2.resize(photo, (work_hw[1], work_hw[0]), interpolation=cv2.INTER_AREA)
     out = dpt.apply(model, dpt.normalize(small[None]))
@@ -114,9 +115,9 @@ def test_mask_command_dpt_source_against_eq6_to_8(tmp_path, floor):
     model = _model()
     dpt.save(model, tmp_path / "w", dtype="float32", extra={"dynamic_classes": [1, 2]})
     loaded = dpt.load_pretrained(str(tmp_path / "w"))
-    h, w = 40, 60
+    h, w = 50, 70     # both sides shrink to the working size and grow back (area, then bilinear)
     _dataset(tmp_path / "data", [_photo(h, w, 4), _photo(h, w, 5)])
-    work = (32, 64)   # longest side 60 -> 64; 40 * 64 / 60 = 42.7 -> 32
+    work = (32, 64)   # longest side 70 -> 64; 50 * 64 / 70 = 45.7 -> 32
     refs = [_reference_maps(loaded, io.read_image(tmp_path / f"data/images/f{i}.png"), [1, 2], work) for i in range(2)]
     threshold = float(np.median(refs[0][0]))
     masking.write_masks(tmp_path / "data", weights=str(tmp_path / "w"), threshold=threshold, floor=floor,
@@ -137,4 +138,4 @@ def test_mask_command_dpt_source_against_eq6_to_8(tmp_path, floor):
         np.testing.assert_allclose(got_w[sure], weight[sure], atol=1e-3)
         masked = m.astype(bool) & sure
         # Eq. 7 does vary the weights of the masked pixels (not all 0 as with floor 1)
-        assert np.std(weight[masked]) > 0.05
+        assert np.std(weight[masked]) > 0.02
