@@ -62,9 +62,11 @@ def test_train_render_eval(data_dir, tmp_path, capsys):
     # the stored PSNR is the PSNR of the written render against the target (8-bit rounding aside)
     from jaxnerf_grid.io import read_image
     pred = read_image(run / "renders" / f"{names[0]}.png")
-    target = tiny_dataset().images[4]
+    from jaxnerf_grid.runs import load_dataset
+    target = load_dataset(data_dir, progress=False).clean_images[4]   # the target as stored (8-bit)
     ref = -10 * np.log10(np.mean((pred - target) ** 2))
-    assert abs(ref - view["psnr"]) < 0.3
+    # rounding the render to 8 bits adds about 1 / (12 * 255^2) to an MSE of ~0.02: ~0.002 dB
+    assert abs(ref - view["psnr"]) < 0.01
     assert m["distractor_psnr"] is not None and np.isfinite(m["distractor_psnr"])
     report = (run / "report.md").read_text()
     assert "| PSNR |" in report and "report_views.png" in report and (run / "report_views.png").is_file()

@@ -1,0 +1,86 @@
+#!/usr/bin/env bash
+# Mutation testing (mutmut 3) of the modules where the blocks are joined, each against the fast
+# tests that cover it (docs/TESTING.md). Not part of CI: it runs for tens of minutes to hours.
+#
+#   scripts/mutation.sh                         every group below, all of each module
+#   scripts/mutation.sh foreground models       some groups
+#   scripts/mutation.sh evaluate -- 'jaxnerf_grid.evaluate.x_region_masks*'
+#                                               one group, only the mutants of some functions
+#                                               (mutmut's names: module.x_function__mutmut_N)
+#
+# Each group runs in its own copy of the working tree (tracked and untracked, not ignored files)
+# under $MUTATION_DIR (default /tmp/jaxnerf-grid-mutation/<group>), so the tree itself is never
+# mutated; a copy keeps mutmut's cache, so a second run only retries what changed. Summary per
+# group: $MUTATION_DIR/<group>/summary.txt (counts by status) and survivors.txt (mutmut show of
+# each survivor). Environment: PYTHON (default python), MAX_CHILDREN (default 2), TESTS (test
+# files replacing the group's own, e.g. only the join tests for a quicker run).
+set -euo pipefail
+
+ROOT=$(cd "$(dirname "$0")/.." && pwd)
+PYTHON=${PYTHON:-python}
+MUTATION_DIR=${MUTATION_DIR:-/tmp/jaxnerf-grid-mutation}
+MAX_CHILDREN=${MAX_CHILDREN:-2}
+
+# group -> "module to mutate|fast tests that cover it"
+declare -A GROUPS_=(
+  [foreground]="jaxnerf_grid/foreground.py|tests/test_foreground.py tests/test_join_foreground.py"
+  [masking]="jaxnerf_grid/masking.py|tests/test_join_foreground.py tests/test_mask_cli.py"
+  [models]="jaxnerf_grid/models.py|tests/test_join_nerfw.py tests/test_models.py"
+  [evaluate]="jaxnerf_grid/evaluate.py|tests/test_join_eval.py"
+  [report]="jaxnerf_grid/report.py|tests/test_join_eval.py"
+  [demo]="jaxnerf_grid/demo.py|tests/test_join_demo.py"
+)
+ORDER=(foreground masking models evaluate report demo)
+
+groups=()
+globs=()
+while (($#)); do
+  if [[ $1 == -- ]]; then shift; globs=("$@"); break; fi
+  [[ -n ${GROUPS_[$1]:-} ]] || { echo "mutation.sh: unknown group $1 (choose from ${ORDER[*]})" >&2; exit 2; }
+  groups+=("$1"); shift
+done
+((${#groups[@]})) || groups=("${ORDER[@]}")
+
+"$PYTHON" -c "import mutmut" 2>/dev/null || { echo "mutation.sh: mutmut missing: pip install -e '.[test]'" >&2; exit 2; }
+export JAX_PLATFORMS=${JAX_PLATFORMS:-cpu}
+export XLA_FLAGS=${XLA_FLAGS:---xla_force_host_platform_device_count=2}
+
+for group in "${groups[@]}"; do
+  module=${GROUPS_[$group]%%|*}
+  tests=${TESTS:-${GROUPS_[$group]#*|}}
+  work=$MUTATION_DIR/$group
+  mkdir -p "$work"
+  # a fresh copy of the tree (mutmut's own state under mutants/ is kept)
+  (cd "$ROOT" && git ls-files -co --exclude-standard -z | tar --null -T - -cf -) | tar -xf - -C "$work"
+  "$PYTHON" - "$work/pyproject.toml" "$module" $tests <<'EOF'
+import sys
+path, module, tests = sys.argv[1], sys.argv[2], sys.argv[3:]
+text = open(path).read().split("\n[tool.mutmut]")[0].rstrip("\n")
+quote = lambda xs: "[" + ", ".join(f'"{x}"' for x in xs) + "]"
+text += ("\n\n[tool.mutmut]\n"
+         'source_paths = ["jaxnerf_grid"]\n'
+         f"only_mutate = {quote([module])}\n"
+         f"pytest_add_cli_args_test_selection = {quote(tests)}\n"
+         'pytest_add_cli_args = ["-p", "no:cacheprovider"]\n'
+         'process_isolation = "forkserver"\n'
+         "use_git_change_detection = false\n")
+open(path, "w").write(text)
+EOF
+  echo "== mutation.sh: $group: $module against $tests"
+  (cd "$work" && "$PYTHON" -m mutmut run --max-children "$MAX_CHILDREN" "${globs[@]}") || true
+  (cd "$work" && "$PYTHON" -m mutmut results --all true > results.txt 2>&1) || true
+  "$PYTHON" - "$work" "$module" <<'EOF'
+import collections, pathlib, re, subprocess, sys
+work, module = pathlib.Path(sys.argv[1]), sys.argv[2]
+rows = [l.strip().rsplit(": ", 1) for l in (work / "results.txt").read_text().splitlines() if ": " in l]
+counts = collections.Counter(status for _, status in rows)
+survivors = [name for name, status in rows if status == "survived"]
+summary = f"{module}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) + f" (of {len(rows)})"
+(work / "summary.txt").write_text(summary + "\n")
+with open(work / "survivors.txt", "w") as f:
+    for name in survivors:
+        shown = subprocess.run([sys.executable, "-m", "mutmut", "show", name], cwd=work, capture_output=True, text=True)
+        f.write(shown.stdout + "\n")
+print(summary)
+EOF
+done

@@ -1,0 +1,56 @@
+"""The demo (the README's first command) end to end as `demo.run_demo(None, out)`: synth (a
+small tower scene instead of tower-small's 48 views at 160x120) -> mask (the built-in DPT, or
+ground-truth stand-ins when no model is shipped) -> train "ours" with the demo recipe for a
+few steps -> evaluate; then its report's figures and tables are read back and checked against
+the renders, depth maps and metrics.json it wrote (docs: `demo.py`, `report.py`)."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import demo, io, masking, runs
+from jaxnerf_grid.data.synthetic import generate as synth_generate
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_join_eval import _table, check_report_figures  # noqa: E402
+
+SMALL_SCENE = dict(width=40, height=30, num_train=4, num_test=1, supersample=1, buildings=4, trees=0.3)
+
+
+def test_tiny_demo_end_to_end_and_its_report(tmp_path, monkeypatch, capsys):
+    real = synth_generate.generate_scene
+    asked = []
+
+    def small_scene(preset, out_dir, **kw):
+        asked.append(preset)
+        return real(preset, out_dir, **{**kw, **SMALL_SCENE})
+
+    monkeypatch.setattr(synth_generate, "generate_scene", small_scene)
+    result = demo.run_demo(None, tmp_path / "demo", steps=2, progress=False)
+    assert asked == ["tower-small"] and set(result["timings"]) == {"synth", "mask", "train", "eval"}
+    run = Path(result["run_dir"])
+    meta = io.read_json(tmp_path / "demo/data/transforms.json")
+    assert result["mask_source"] == meta["mask_source"] == ("dpt" if masking.BUILTIN.exists() else "ground-truth")
+    assert all("weight_path" in f for f in meta["frames"])
+    cfg = io.read_json(run / "config.json")
+    assert cfg["model"]["sampler"] == "proposal" and cfg["train"]["max_steps"] == 2
+    m = io.read_json(run / "metrics.json")
+    assert m["step"] == 2 and m["num_views"] == 1
+    assert m["target"] == "clean images" and abs(m["mean"]["psnr"] - result["metrics"]["mean"]["psnr"]) < 1e-12
+    # the report's figures are the clean target, the render and the depth it wrote
+    ds = runs.load_dataset(tmp_path / "demo/data", progress=False)
+    i = int(ds.split["test"][0])
+    check_report_figures(run, runs.frame_name(ds, i), ds.clean_images[i], ds.semantics[i])
+    # its table is metrics.json's
+    report = (run / "report.md").read_text()
+    rows = _table(report)
+    assert rows["PSNR"] == f"{m['mean']['psnr']:.2f}" and rows["SSIM"] == f"{m['mean']['ssim']:.4f}"
+    for name, value in m["regions_mean"].items():
+        assert rows[f"PSNR, {name.replace('_', ' ')}"] == (f"{value:.2f}" if value is not None else "unavailable")
+    assert demo._mask_note(result["mask_source"]) in report
+    # the one-line summary quotes the same numbers
+    line = demo.demo_summary(result)
+    assert f"test PSNR {m['mean']['psnr']:.2f} dB" in line
+    if m["regions_mean"].get("tower") is not None:
+        assert f"tower {m['regions_mean']['tower']:.2f} dB" in line
