@@ -27,20 +27,16 @@ import json
 import os
 import platform
 import statistics
-import sys
 import time
 from pathlib import Path
 
 import jax
 import numpy as np
 
-if __package__ in (None, ""):  # run as a file (python benchmarks/throughput.py): the repository root
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-
-from benchmarks.convergence import MLP_CONFIG, RUNS  # noqa: E402
-from jaxnerf_grid import config as config_lib, parallel, rays as rays_lib, train, views  # noqa: E402
-from jaxnerf_grid.data.dataset import Dataset  # noqa: E402
-from jaxnerf_grid.demo import DEMO_CONFIG  # noqa: E402
+from benchmarks.convergence import MLP_CONFIG, RUNS
+from jaxnerf_grid import config as config_lib, parallel, rays as rays_lib, train, views
+from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.demo import DEMO_CONFIG
 
 CONFIGS = {
     "mlp": MLP_CONFIG,

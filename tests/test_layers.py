@@ -64,3 +64,12 @@ def test_experiments_and_benchmarks_call_the_library_not_a_cli():
         for path in sorted((ROOT / folder).glob("*.py")):
             bad = {m for m in imports_of(path) if top(m) == "cli"}
             assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_experiments_and_benchmarks_are_packages_without_path_hacks():
+    """Run as `python -m experiments.X` / `python -m benchmarks.X` from the repository root
+    (docs/ARCHITECTURE.md): no script edits sys.path to find its neighbours."""
+    for folder in ("experiments", "benchmarks"):
+        assert (ROOT / folder / "__init__.py").is_file(), f"{folder}/ is not a package"
+        for path in sorted((ROOT / folder).glob("*.py")):
+            assert "sys.path.insert" not in path.read_text(), f"{path.relative_to(ROOT)} edits sys.path"
