@@ -12,7 +12,7 @@ with the ground plane n . x + d = 0 (|n| = 1, n_z > 0; `export.ground`).
   belongs to the cross-arm region when its width along the footprint's first axis or second
   axis exceeds `ratio` times the body width (the other axis's width in that slice). Within that
   region, a cross-arm level is a slice holding a local maximum of vertices (arms are horizontal
-  members, dense in height) with at least 1.5 times the region's median count; its span is the
+  members, dense in height) with at least 1.5 times the median count of all slices; its span is the
   extent of the vertices within one slice of it along the wide axis.
 * `orthographic_views`: front (x-z), side (y-z) and top (x-y) views of coloured points, drawn
   with a z-buffer (nearest point wins), shaded by the normal when given.
@@ -106,7 +106,7 @@ def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_heigh
     if len(wide) == 0:
         return out
     out["region"] = [float(edges[wide.min()]), float(edges[wide.max() + 1])]
-    median = float(np.median(counts[wide]))
+    median = float(np.median(counts[counts > 0]))
     separation = 0.06 * float(np.ptp(h)) if separation is None else float(separation)
     peaks = []
     for s in wide:

@@ -16,7 +16,8 @@ would be half opaque.
 
 Marching cubes (`extract_mesh`): skimage's Lewiner variant on the node grid padded by one layer
 of zero density, so every surface is closed where it meets the box; the normals point out of
-the dense side (`gradient_direction="descent"`).
+the dense side (`gradient_direction="descent"`) and the faces are wound counter-clockwise seen
+from outside (the orientation viewers derive face normals from; skimage's is the opposite).
 
 Floaters (`remove_small_components`): the connected components of the mesh (faces sharing a
 vertex) with fewer than `min_fraction` of all faces are dropped.
@@ -67,8 +68,8 @@ def extract_mesh(density: np.ndarray, level: float, origin, h: float) -> tuple[n
     """Marching cubes of the level set density = level, closed at the grid's border.
 
     density: [nx, ny, nz] at the nodes origin + h * (i, j, k). Returns (vertices [V, 3] float64
-    in the grid's coordinates, faces [F, 3] int64, normals [V, 3] pointing out of the dense
-    side); empty arrays when the density never reaches `level`.
+    in the grid's coordinates, faces [F, 3] int64 counter-clockwise seen from outside, normals
+    [V, 3] pointing out of the dense side); empty arrays when the density never reaches `level`.
     """
     from skimage import measure
 
@@ -80,7 +81,7 @@ def extract_mesh(density: np.ndarray, level: float, origin, h: float) -> tuple[n
     verts, faces, normals, _ = measure.marching_cubes(padded, level=pad_level, spacing=(h, h, h),
                                                       gradient_direction="descent", allow_degenerate=False)
     verts = verts.astype(np.float64) + (np.asarray(origin, np.float64) - h)
-    return verts, faces.astype(np.int64), normals.astype(np.float64)
+    return verts, faces[:, ::-1].astype(np.int64), normals.astype(np.float64)
 
 
 def face_components(faces: np.ndarray, num_vertices: int) -> np.ndarray:
