@@ -127,10 +127,11 @@ def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_heigh
 
 
 def orthographic_views(points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None = None,
-                       size: int = 320, background: float = 1.0, labels: bool = True) -> np.ndarray:
+                       size: int = 400, background: float = 1.0, labels: bool = True, splat: int = 0) -> np.ndarray:
     """Front (x-z, seen from -y), side (y-z, seen from +x) and top (x-y, seen from +z) views of
     points [N, 3] with colours [N, 3] in [0, 1], side by side, one scale for all three (the
-    largest extent fills `size` pixels). normals [N, 3] (optional) shade by |n . view|.
+    largest extent fills `size` pixels). normals [N, 3] (optional) shade by |n . view|; splat:
+    each point covers the (2 splat + 1)^2 pixels around it (still nearest first).
     Returns an image [size, 3 * size + gaps, 3] float32 in [0, 1]."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     c = np.clip(np.asarray(colours, np.float64).reshape(-1, 3), 0, 1)
@@ -152,6 +153,10 @@ def orthographic_views(points: np.ndarray, colours: np.ndarray, normals: np.ndar
         if normals is not None:
             n = np.asarray(normals, np.float64).reshape(-1, 3)
             shade = c * (0.35 + 0.65 * np.abs(n @ view_dirs[k]))[:, None]
+        offsets = [(du, dv) for dv in range(-splat, splat + 1) for du in range(-splat, splat + 1)]
+        u = np.concatenate([u + du for du, _ in offsets])
+        v = np.concatenate([v + dv for _, dv in offsets])
+        depth, shade = np.tile(depth, len(offsets)), np.tile(shade, (len(offsets), 1))
         ok = (u >= 0) & (u < size) & (v >= 0) & (v < size)
         order = np.flatnonzero(ok)[np.argsort(-depth[ok], kind="stable")]   # nearest first
         pix = v[order] * size + u[order]

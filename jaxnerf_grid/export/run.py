@@ -226,7 +226,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                                            f"{min_views} other views",))
     io.write_json(out / "box.json", {**meas["box"], "units": units, "normalised": {
         "min": [float(v) for v in lo], "max": [float(v) for v in hi]}})
-    picture = measure.orthographic_views(verts_m, vcolours, normals)
+    picture = measure.orthographic_views(verts_m, vcolours, normals, splat=1)
     io.write_png(out / "export_views.png", picture)
     meas["seconds"] = time.perf_counter() - start
     meas["peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
