@@ -152,8 +152,10 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     scale = float(norm.get("scale", 1.0))
 
     # 1-2. the dense cloud and the ground
+    timings = {"load": time.perf_counter() - start}
     ids = evaluate.cloud_view_ids(ds, views)
     parts, cameras = _render_cloud(params, cfg, ds, ids, progress)
+    timings["views"] = time.perf_counter() - start - sum(timings.values())
     points, colours, fuse_stats = fuse.fuse(parts, cameras, min_views=min_views)
     plane = _ground(points)
 
@@ -175,6 +177,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     level = mesh_lib.density_threshold(h, float(opacity))
     with progress_lib.bar(total=int(np.prod(shape)), desc="export: density", unit="point", enabled=progress) as pbar:
         density = field.density_grid(params, cfg.model, origin, h, shape, progress=pbar)
+    timings["density"] = time.perf_counter() - start - sum(timings.values())
     verts, faces, normals = mesh_lib.extract_mesh(density, level, origin, h)
     del density
     if len(faces) == 0:
@@ -183,7 +186,9 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     verts, faces, (normals,), comp = mesh_lib.remove_small_components(verts, faces, min_component_fraction, (normals,))
     train_ids = np.asarray(ds.split["train"]) if len(ds.split["train"]) else np.arange(ds.num_frames)
     centres = np.asarray(ds.c2w)[train_ids, :3, 3]
+    timings["mesh"] = time.perf_counter() - start - sum(timings.values())
     vcolours = field.colours_from_cameras(params, cfg.model, verts, centres, k=colour_cameras)
+    timings["colours"] = time.perf_counter() - start - sum(timings.values())
 
     # 5. measurements and files, in the export's units
     verts_m = to_metric64(verts, norm)
@@ -229,6 +234,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     picture = measure.orthographic_views(verts_m, vcolours, normals, splat=1)
     io.write_png(out / "export_views.png", picture)
     meas["seconds"] = time.perf_counter() - start
+    meas["timings"] = {**timings, "write": meas["seconds"] - sum(timings.values())}
     meas["peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     io.write_json(out / "measurements.json", meas)
     _update_report(run_dir, out, meas)
