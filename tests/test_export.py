@@ -40,7 +40,8 @@ def test_density_threshold_gives_the_opacity_of_one_voxel():
     for h, a in ((0.01, 0.5), (0.2, 0.05), (1.0, 0.9)):
         sigma = mesh.density_threshold(h, a)
         assert 1 - np.exp(-sigma * h) == pytest.approx(a)
-    assert mesh.density_threshold(0.01) == pytest.approx(np.log(2) / 0.01)
+    assert mesh.density_threshold(0.01, 0.5) == pytest.approx(np.log(2) / 0.01)
+    assert mesh.density_threshold(0.01) == pytest.approx(-np.log(0.95) / 0.01)   # the default: 5 %
 
 
 def test_marching_cubes_on_a_sphere_lies_on_the_surface_and_is_closed():
@@ -399,6 +400,12 @@ def test_eval_scores_the_export(tiny_run, capsys):
     assert set(sc["mesh"]["thresholds"]) == {"0.2", "0.4", "1"} and sc["reference_points"] == 400
     if "height" in sc:                 # only when a ground plane was fitted under the ball
         assert sc["height"]["reference"] == pytest.approx(2 * 0.7 / NORM["scale"], rel=0.05)
+    # eval rewrites report.md with the section and the score, and stores them in metrics.json
+    assert cli.main(["eval", "--run", str(tiny_run), "--quiet", "--distractor-views", "0"]) == 0
+    m = io.read_json(tiny_run / "metrics.json")
+    assert m["export"]["score"]["mesh"]["num_ref"] == sc["mesh"]["num_ref"]
+    report = (tiny_run / "report.md").read_text()
+    assert report.count("## Tower model (export)") == 1 and "Against the reference tower" in report
 
 
 def test_export_refuses_a_run_without_a_checkpoint(tiny_run, tmp_path, capsys):
