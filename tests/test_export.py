@@ -442,3 +442,26 @@ def test_export_auto_box_without_ground_is_a_one_line_error(tiny_run, tmp_path, 
         assert (out / "box.json").is_file() and io.read_json(out / "box.json")["source"] == "auto"
     else:
         assert code == 1 and "--box" in _error_line(capsys) and not out.exists()
+
+
+def test_units_are_metres_only_when_the_dataset_states_its_normalisation():
+    from jaxnerf_grid import report
+    from jaxnerf_grid.export import run as export_run
+
+    ds = tiny_dataset()
+    assert export_run.units_of(ds) == "unknown" and "unknown" in export_run.units_comment("unknown")
+    ds.meta = {"scene_normalization": NORM}
+    assert export_run.units_of(ds) == "metres" and "metres" in export_run.units_comment("metres")
+    lines = "\n".join(report.export_lines({"measurements": {"units": "unknown", "height": 2.0}}))
+    assert "units unknown" in lines and "2.00 units" in lines
+
+
+def test_parse_box():
+    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.export.run import parse_box
+
+    assert parse_box("auto") is None and parse_box(" AUTO ") is None
+    np.testing.assert_array_equal(parse_box("-1,-2,-3,4,5,6.5"), [-1, -2, -3, 4, 5, 6.5])
+    for bad in ("1,2,3,4,5", "a,b,c,d,e,f", "0,0,0,1,1,nan", "0,0,1,1,1,1"):
+        with pytest.raises(ConfigError):
+            parse_box(bad)
