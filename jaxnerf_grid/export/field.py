@@ -71,7 +71,7 @@ def evaluate(params: dict, mcfg: models.ModelConfig, points: np.ndarray, viewdir
             else np.broadcast_to(np.float32([0, 0, 1]), points.shape))
     fn = _fn_for(params, mcfg, with_rgb)
     count = len(points)
-    chunk = int(max(1, min(chunk, count))) if count else 1
+    chunk = int(max(1, chunk))          # one compiled shape: every call pads to it
     pieces = {"sigma": []} | ({"rgb": []} if with_rgb else {})
     for start in range(0, count, chunk):
         part_p, part_d = points[start:start + chunk], dirs[start:start + chunk]
@@ -90,12 +90,9 @@ def evaluate(params: dict, mcfg: models.ModelConfig, points: np.ndarray, viewdir
 
 
 def density_grid(params: dict, mcfg: models.ModelConfig, origin, h: float, shape, chunk: int = DEFAULT_CHUNK,
-                 progress=None, mask: np.ndarray | None = None) -> np.ndarray:
+                 progress=None) -> np.ndarray:
     """The density at the nodes origin + h (i, j, k) of a grid of `shape` (export.mesh.grid_spec),
-    evaluated slab by slab (memory: one slab of points at a time).
-
-    mask: optional [nx, ny, nz] bool; nodes outside it are not evaluated (density 0).
-    Returns [nx, ny, nz] float32.
+    evaluated slab by slab (memory: one slab of points at a time). Returns [nx, ny, nz] float32.
     """
     origin = np.asarray(origin, np.float64)
     nx, ny, nz = (int(s) for s in shape)
@@ -106,16 +103,7 @@ def density_grid(params: dict, mcfg: models.ModelConfig, origin, h: float, shape
     for i0 in range(0, nx, slabs):
         xs = origin[0] + h * np.arange(i0, min(i0 + slabs, nx))
         pts = np.concatenate([np.repeat(xs, len(yz))[:, None], np.tile(yz, (len(xs), 1))], axis=1)
-        sel = None if mask is None else mask[i0:i0 + len(xs)].reshape(-1)
-        sigma = np.zeros(len(pts), np.float32)
-        if sel is None:
-            sigma = evaluate(params, mcfg, pts, chunk=chunk, progress=progress)["sigma"]
-        elif sel.any():
-            sigma[sel] = evaluate(params, mcfg, pts[sel], chunk=chunk)["sigma"]
-            if progress is not None:
-                progress.update(int((~sel).sum()))
-        elif progress is not None:
-            progress.update(len(pts))
+        sigma = evaluate(params, mcfg, pts, chunk=chunk, progress=progress)["sigma"]
         out[i0:i0 + len(xs)] = sigma.reshape(len(xs), ny, nz)
     return out
 
