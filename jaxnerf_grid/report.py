@@ -121,7 +121,7 @@ def export_lines(info: dict | None) -> list[str]:
     m = info["measurements"]
     unit = "m" if m.get("units") == "metres" else "units"
     lines = [EXPORT_HEADING, "",
-             f"`jaxnerf-grid export`: `tower_mesh.ply`, `tower_points.ply`, `box.json`, `measurements.json`; "
+             "`jaxnerf-grid export`: `tower_mesh.ply`, `tower_points.ply`, `box.json`, `measurements.json`; "
              + ("metres." if m.get("units") == "metres" else
                 "**units unknown** (the dataset has no metric scale: its original units)."), "",
              "| measurement | value |", "|---|---|",

@@ -2,7 +2,6 @@
 metric round trip, the RANSAC ground, depth fusion, the measurements, the scores against brute
 force, the PLY read back by plyfile, and the command's refusals on bad input."""
 
-import json
 import sys
 from pathlib import Path
 
