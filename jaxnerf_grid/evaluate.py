@@ -21,6 +21,9 @@ Evaluation protocol (stored in metrics.json and the report):
     less a ground strip). The reference is --reference-ply (a user's survey cloud, already in the
     dataset's normalised units) or else the dataset's `tower_ply` (synthetic data; converted from
     the file's `scene_normalization` to the loaded dataset's normalisation); None without one.
+  * "export": when the run has been exported (`jaxnerf-grid export`, RUN/export/), its
+    measurements and, with a reference, its score in the export's units (`export.score`: F-score
+    at 0.2, 0.4, 1.0 m, Chamfer, height error; docs/EXPORT.md).
 """
 
 from __future__ import annotations
@@ -87,6 +90,24 @@ def score_geometry(ds, cloud: list, reference_ply=None) -> dict | None:
     path, file_norm = ref
     return geometry.score_against_ply(cloud, path, file_normalization=file_norm,
                                       scene_normalization=ds.normalization if file_norm else None)
+
+
+def export_section(ds, run_dir, reference_ply=None) -> dict | None:
+    """metrics.json["export"] when the run has an export (RUN/export/measurements.json, written by
+    `jaxnerf-grid export`): {"measurements", "image", "score"}, the score (`export.score`, in
+    the export's units) only with a reference tower; None without an export."""
+    from jaxnerf_grid.export import score
+
+    folder = Path(run_dir) / "export"
+    if not (folder / "measurements.json").is_file():
+        return None
+    info = {"measurements": io.read_json(folder / "measurements.json"), "image": "export/export_views.png"}
+    ref = reference_cloud(ds, reference_ply)
+    if ref is not None:
+        path, file_norm = ref
+        points = score.reference_in_export_units(io.read_ply_points(path), file_norm, ds.normalization)
+        info["score"] = score.score_export(folder, points, float(ds.normalization.get("scale", 1.0)))
+    return info
 
 
 METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "lpips")
@@ -228,6 +249,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
               "protocol": _protocol(ds, cfg), "mean": mean, "mean_right_half": mean_right,
               "regions_mean": regions_mean, "region_definition": REGION_DEFINITION if regions_mean else None,
               "distractor_psnr": distractor, "geometry": score_geometry(ds, cloud, reference_ply),
+              "export": export_section(ds, run_dir, reference_ply),
               "cloud_views": {"test": [int(r["index"]) for r in per_view], "train": cloud_ids},
               "per_view": per_view, "lpips": "computed" if lpips_params is not None else "unavailable",
               "eval_seconds": time.perf_counter() - start}

@@ -173,15 +173,18 @@ def read_exr(path: str | os.PathLike) -> np.ndarray:
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | None = None,
-              faces: np.ndarray | None = None) -> None:
+              faces: np.ndarray | None = None, comments: tuple[str, ...] = ()) -> None:
     """Writes a binary little-endian PLY (atomic).
 
-    points: [N, 3] float; colors: optional [N, 3] in [0, 1]; faces: optional [F, 3] int.
+    points: [N, 3] float; colors: optional [N, 3] in [0, 1]; faces: optional [F, 3] int;
+    comments: header comment lines (one line each, e.g. the units).
     """
     points = np.asarray(points, dtype=np.float32)
     if points.ndim != 2 or points.shape[1] != 3:
         raise DataError(f"{path}: points must be [N, 3], got {points.shape}")
-    header = ["ply", "format binary_little_endian 1.0", f"element vertex {len(points)}",
+    header = ["ply", "format binary_little_endian 1.0"]
+    header += [f"comment {' '.join(str(c).split())}" for c in comments]
+    header += [f"element vertex {len(points)}",
               "property float x", "property float y", "property float z"]
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
     if colors is not None:

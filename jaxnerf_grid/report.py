@@ -105,6 +105,86 @@ def geometry_lines(geometry: dict | None) -> list[str]:
     return lines
 
 
+EXPORT_HEADING = "## Tower model (export)"
+
+
+def _xyz(v, digits=2) -> str:
+    return "(" + ", ".join(_fmt(x, digits) for x in v) + ")" if v is not None else "n/a"
+
+
+def export_lines(info: dict | None) -> list[str]:
+    """Markdown lines of the "Tower model (export)" section (docs/EXPORT.md) from
+    {"measurements": measurements.json, "image": the picture's path relative to the report,
+    optional "score": `export.score.score_export`}; no lines when it is None."""
+    if not info or not info.get("measurements"):
+        return []
+    m = info["measurements"]
+    unit = "m" if m.get("units") == "metres" else "units"
+    lines = [EXPORT_HEADING, "",
+             "`jaxnerf-grid export`: `tower_mesh.ply`, `tower_points.ply`, `box.json`, `measurements.json`; "
+             + ("metres." if m.get("units") == "metres" else
+                "**units unknown** (the dataset has no metric scale: its original units)."), "",
+             "| measurement | value |", "|---|---|",
+             f"| tower height above the fitted ground | {_fmt(m.get('height'))} {unit} |"]
+    fp = m.get("footprint") or {}
+    if fp:
+        lines.append(f"| base footprint (minimum-area rectangle of the lowest band) | {_fmt(fp.get('width_a'))} x "
+                     f"{_fmt(fp.get('width_b'))} {unit} |")
+    arms = (m.get("cross_arms") or {}).get("levels") or []
+    if arms:
+        lines.append("| cross-arm levels (height: span, heuristic) | " + "; ".join(
+            f"{_fmt(a['height'], 1)}: {_fmt(a['span'], 1)}" for a in arms) + f" {unit} |")
+    g = m.get("ground") or {}
+    if g:
+        lines.append(f"| ground plane n . x + d = 0 | n = {_xyz(g.get('normal'), 4)}, d = {_fmt(g.get('offset'), 3)} "
+                     f"(tilt {_fmt(g.get('tilt_degrees'), 2)} deg) |")
+    mesh = m.get("mesh") or {}
+    lines += [f"| mesh | {mesh.get('vertices', '?')} vertices, {mesh.get('faces', '?')} faces, "
+              f"{_fmt(100 * mesh.get('kept_face_fraction', float('nan')), 1)} % of the faces kept after removing "
+              f"small components, closed: {mesh.get('closed')} |",
+              f"| fused points | {(m.get('points') or {}).get('count', '?')} |",
+              f"| box ({(m.get('box') or {}).get('source', '?')}) | {_xyz((m.get('box') or {}).get('min'))} - "
+              f"{_xyz((m.get('box') or {}).get('max'))} {unit} |",
+              f"| voxel, threshold | {_fmt(m.get('voxel_size'), 3)} {unit}, density "
+              f"{_fmt((m.get('threshold') or {}).get('density'), 1)} per normalised unit (one voxel "
+              f"{_fmt((m.get('threshold') or {}).get('opacity_per_voxel'), 2)} opaque) |", ""]
+    score = info.get("score")
+    if score:
+        lines += [f"Against the reference tower ({score.get('reference_points', '?')} points; both cropped to its box "
+                  f"less a {_fmt(score.get('ground_strip'))} {unit} ground strip):", "",
+                  "| cloud | " + " | ".join(f"F@{t}" for t in (score.get("mesh") or score.get("points") or {})
+                                            .get("thresholds", {})) + " | Chamfer |",
+                  "|---|" + "---|" * (len((score.get("mesh") or score.get("points") or {}).get("thresholds", {})) + 1)]
+        for key in ("mesh", "points"):
+            sc = score.get(key)
+            if sc:
+                lines.append(f"| {'mesh vertices' if key == 'mesh' else 'fused points'} | " + " | ".join(
+                    _fmt(r["fscore"], 3) for r in sc["thresholds"].values()) + f" | {_fmt(sc.get('chamfer'), 3)} |")
+        hgt = score.get("height")
+        if hgt:
+            lines += ["", f"Height: {_fmt(hgt['export'])} against {_fmt(hgt['reference'])} {unit}, error "
+                          f"{_fmt(hgt['error'])} {unit} ({_fmt(hgt['error_percent'])} %)."]
+        lines.append("")
+    if info.get("image"):
+        lines += [f"![front | side | top]({info['image']})", ""]
+    return lines
+
+
+def set_section(path, heading: str, lines: list[str]) -> Path:
+    """Replaces the section `heading` (a "## " line up to the next "## " line) of the Markdown
+    file `path` by `lines`, or appends them; creates the file when it does not exist."""
+    path = Path(path)
+    old = path.read_text(encoding="utf-8").split("\n") if path.is_file() else []
+    if heading in old:
+        start = old.index(heading)
+        end = next((k for k in range(start + 1, len(old)) if old[k].startswith("## ")), len(old))
+        new = old[:start] + list(lines) + old[end:]
+    else:
+        new = old + ([""] if old and old[-1] != "" else []) + list(lines)
+    io.atomic_write_bytes(path, "\n".join(new).encode("utf-8"))
+    return path
+
+
 def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_lines: list[str] = ()) -> Path:
     """Writes run_dir/report.md (and its PNGs).
 
@@ -156,6 +236,7 @@ def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_
     if metrics.get("region_definition"):
         lines += [f"Regions: {metrics['region_definition']}", ""]
     lines += geometry_lines(metrics.get("geometry"))
+    lines += export_lines(metrics.get("export"))
     lines += ["## Method and configuration", "",
               f"- method `{model.get('method')}`: contraction {model.get('use_contraction')} "
               f"(R = {model.get('contract_radius')}), warp `{model.get('warp')}`, {_samples_line(model)}",

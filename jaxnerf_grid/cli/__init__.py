@@ -20,6 +20,7 @@ SUBCOMMANDS = {
     "train": ("jaxnerf_grid.cli.train", "train a NeRF (ours | nerf | nerfw) on a dataset"),
     "render": ("jaxnerf_grid.cli.render", "render views from a trained run"),
     "eval": ("jaxnerf_grid.cli.eval", "evaluate a trained run on its test views"),
+    "export": ("jaxnerf_grid.cli.export", "metric mesh, point cloud and measurements of the tower"),
     "demo": ("jaxnerf_grid.cli.demo", "synthetic scene -> masks -> train -> render -> report"),
 }
 

@@ -1,0 +1,83 @@
+"""3D export of the tower: point clouds lifted from depth maps, and the metric model of
+`jaxnerf-grid export` (docs/EXPORT.md).
+
+This file holds the small pieces `evaluate.py` uses (no JAX at import time):
+
+* `lift_view`: each rendered pixel with opacity >= `min_opacity` is lifted to the world point
+  x = o + d * (z_depth / cos_to_axis) (the depth maps are z-depth along the camera's -z axis)
+  and kept when |x| <= `radius` (the scene is normalised so the tower sits inside the unit
+  sphere). Points are in normalised scene units.
+* `to_metric` / `to_scene`: the dataset's normalisation x_norm = scale * (x + translation)
+  (docs/DATASET.md) undone / applied; `plane_to_metric` does it for a plane.
+* `write_point_cloud`: (points, colours) parts -> a binary PLY.
+
+The export itself lives in submodules, imported on use:
+`export.field` (the trained density and colour, sampled in chunks; JAX), `export.mesh`
+(marching cubes, thresholds, components), `export.ground` (RANSAC ground plane, the tower's box),
+`export.fuse` (multi-view consistent depth fusion), `export.measure` (height, footprint,
+cross-arms, the orthographic picture), `export.score` (the export against a reference tower) and
+`export.run` (`export_run`, the `jaxnerf-grid export` pipeline).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import io
+
+
+def lift_view(rays, rgb: np.ndarray, depth: np.ndarray, opacity: np.ndarray, min_opacity: float = 0.5,
+              radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
+    """Points of one view. rays: Rays [H, W]; rgb [H, W, 3]; depth, opacity [H, W].
+    Returns (points [M, 3], colours [M, 3])."""
+    o = np.asarray(rays.origins, np.float64)
+    d = np.asarray(rays.directions, np.float64)
+    t = np.asarray(depth, np.float64) / np.asarray(rays.cos_to_axis, np.float64)
+    x = o + d * t[..., None]
+    keep = (np.asarray(opacity) >= min_opacity) & (np.linalg.norm(x, axis=-1) <= radius) & np.isfinite(t)
+    return x[keep].astype(np.float32), np.asarray(rgb)[keep].astype(np.float32)
+
+
+def _scale_translation(normalization: dict | None) -> tuple[float, np.ndarray]:
+    normalization = normalization or {}
+    scale = float(normalization.get("scale", 1.0))
+    translation = np.asarray(normalization.get("translation", [0.0, 0.0, 0.0]), np.float64)
+    return scale, translation
+
+
+def to_metric(points: np.ndarray, normalization: dict) -> np.ndarray:
+    """Normalised scene points [M, 3] -> metric world points (inverse of x_norm = s (x + t)).
+    Returns [M, 3] float32."""
+    return to_metric64(points, normalization).astype(np.float32)
+
+
+def to_metric64(points: np.ndarray, normalization: dict | None) -> np.ndarray:
+    """`to_metric` in float64 (for measurements). points [..., 3] -> [..., 3]."""
+    scale, translation = _scale_translation(normalization)
+    return np.asarray(points, np.float64) / scale - translation
+
+
+def to_scene(points: np.ndarray, normalization: dict | None) -> np.ndarray:
+    """Metric world points [..., 3] -> normalised scene points, x_norm = s (x + t). float64."""
+    scale, translation = _scale_translation(normalization)
+    return scale * (np.asarray(points, np.float64) + translation)
+
+
+def plane_to_metric(normal, offset: float, normalization: dict | None) -> tuple[np.ndarray, float]:
+    """A plane n . x + d = 0 of the normalised scene (n [3] unit) -> the same plane in metric
+    units: n . x_m + (n . t + d / s) = 0 (the normal is unchanged: the map is a similarity
+    without rotation). Returns (normal [3], offset)."""
+    scale, translation = _scale_translation(normalization)
+    n = np.asarray(normal, np.float64)
+    return n, float(n @ translation + float(offset) / scale)
+
+
+def write_point_cloud(path, parts: list[tuple[np.ndarray, np.ndarray]], comments: tuple[str, ...] = ()) -> Path:
+    """Concatenates (points, colours) parts and writes a binary PLY (with header comments).
+    Returns the path."""
+    points = np.concatenate([p for p, _ in parts]) if parts else np.zeros((0, 3), np.float32)
+    colours = np.concatenate([c for _, c in parts]) if parts else np.zeros((0, 3), np.float32)
+    io.write_ply(path, points, np.clip(colours, 0, 1), comments=comments)
+    return Path(path)

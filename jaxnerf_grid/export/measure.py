@@ -1,0 +1,185 @@
+"""Measurements of the exported tower, and its orthographic picture (pure NumPy + SciPy).
+
+All inputs are in the export's units (metres when the dataset's scale is known, docs/EXPORT.md)
+with the ground plane n . x + d = 0 (|n| = 1, n_z > 0; `export.ground`).
+
+* height: the highest mesh vertex above the plane.
+* footprint (`footprint`): the vertices in the lowest `band` of the mesh (default 5 % of the
+  height, at least one voxel), projected on the plane; the minimum-area rectangle around them
+  (`min_area_rectangle`, exact: one side lies on an edge of the convex hull) gives the base
+  width along its two sides.
+* cross-arms (`cross_arms`, a heuristic): the mesh is cut into horizontal slices; a slice
+  belongs to the cross-arm region when its width along the footprint's first axis or second
+  axis exceeds `ratio` times the body width (the other axis's width in that slice). Within that
+  region, a cross-arm level is a slice holding a local maximum of vertices (arms are horizontal
+  members, dense in height) with at least 1.5 times the median count of all slices; its span is the
+  extent of the vertices within one slice of it along the wide axis.
+* `orthographic_views`: front (x-z), side (y-z) and top (x-y) views of coloured points, drawn
+  with a z-buffer (nearest point wins), shaded by the normal when given.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+
+def plane_basis(normal) -> tuple[np.ndarray, np.ndarray]:
+    """Two unit vectors (e1, e2) spanning the plane with normal n [3]: e1 = the world x axis
+    projected on the plane (y when n is along x), e2 = n x e1."""
+    n = np.asarray(normal, np.float64)
+    n = n / np.linalg.norm(n)
+    ref = np.array([1.0, 0.0, 0.0]) if abs(n[0]) < 0.9 else np.array([0.0, 1.0, 0.0])
+    e1 = ref - (ref @ n) * n
+    e1 /= np.linalg.norm(e1)
+    return e1, np.cross(n, e1)
+
+
+def min_area_rectangle(points2d: np.ndarray) -> tuple[float, float, np.ndarray]:
+    """The minimum-area rectangle around points [N, 2] (N >= 1).
+    Returns (width_a >= width_b, the unit direction [2] of side a)."""
+    p = np.asarray(points2d, np.float64).reshape(-1, 2)
+    if len(p) < 3 or np.linalg.matrix_rank(p - p.mean(axis=0)) < 2:
+        if len(p) < 2:
+            return 0.0, 0.0, np.array([1.0, 0.0])
+        centred = p - p.mean(axis=0)
+        direction = np.linalg.svd(centred, full_matrices=False)[2][0]
+        return float(np.ptp(centred @ direction)), 0.0, direction
+    from scipy.spatial import ConvexHull
+
+    hull = p[ConvexHull(p).vertices]
+    edges = np.roll(hull, -1, axis=0) - hull
+    dirs = edges / np.maximum(np.linalg.norm(edges, axis=1, keepdims=True), 1e-300)
+    normals = np.stack([-dirs[:, 1], dirs[:, 0]], axis=1)
+    along, across = hull @ dirs.T, hull @ normals.T            # [H, E]
+    w1, w2 = np.ptp(along, axis=0), np.ptp(across, axis=0)
+    k = int(np.argmin(w1 * w2))
+    if w1[k] >= w2[k]:
+        return float(w1[k]), float(w2[k]), dirs[k]
+    return float(w2[k]), float(w1[k]), normals[k]
+
+
+def footprint(points: np.ndarray, normal, d: float, band: float) -> dict:
+    """The base of a tower: points [N, 3] within `band` of the lowest point's height above the
+    plane, their minimum-area rectangle on the plane.
+    Returns {"width_a", "width_b" (width_a >= width_b), "axis_a" [3], "axis_b" [3] (unit, in the
+    plane), "band": [low, high] heights, "points": count}."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    n = np.asarray(normal, np.float64)
+    h = p @ n + d
+    low = float(h.min())
+    base = p[h <= low + band]
+    e1, e2 = plane_basis(n)
+    wa, wb, direction = min_area_rectangle(np.stack([base @ e1, base @ e2], axis=1))
+    axis_a = direction[0] * e1 + direction[1] * e2
+    return {"width_a": wa, "width_b": wb, "axis_a": [float(v) for v in axis_a],
+            "axis_b": [float(v) for v in np.cross(n, axis_a)], "band": [low, low + band], "points": int(len(base))}
+
+
+def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_height: float, ratio: float = 1.5,
+               separation: float | None = None) -> dict:
+    """The cross-arm region and levels of a tower (module docstring). points [N, 3]; axis_a,
+    axis_b: the footprint's axes [3]; separation: levels closer than this keep only the one
+    with more vertices (default 6 % of the points' height range).
+    Returns {"region": [low, high] | None, "levels": [{"height", "span", "axis"}],
+    "slice_height", "ratio"} (heights above the plane)."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    out = {"region": None, "levels": [], "slice_height": float(slice_height), "ratio": float(ratio)}
+    if len(p) < 10:
+        return out
+    h = p @ np.asarray(normal, np.float64) + d
+    a, b = p @ np.asarray(axis_a, np.float64), p @ np.asarray(axis_b, np.float64)
+    edges = np.arange(h.min(), h.max() + slice_height, slice_height)
+    idx = np.clip(np.digitize(h, edges) - 1, 0, len(edges) - 2)
+    nslices = len(edges) - 1
+    wide_axis = np.full(nslices, -1)
+    counts = np.bincount(idx, minlength=nslices)
+    for s in range(nslices):
+        sel = idx == s
+        if sel.sum() < 2:
+            continue
+        wa, wb = np.ptp(a[sel]), np.ptp(b[sel])
+        if wa > ratio * max(wb, 1e-9):
+            wide_axis[s] = 0
+        elif wb > ratio * max(wa, 1e-9):
+            wide_axis[s] = 1
+    wide = np.flatnonzero(wide_axis >= 0)
+    if len(wide) == 0:
+        return out
+    out["region"] = [float(edges[wide.min()]), float(edges[wide.max() + 1])]
+    median = float(np.median(counts[counts > 0]))
+    separation = 0.06 * float(np.ptp(h)) if separation is None else float(separation)
+    peaks = []
+    for s in wide:
+        lo_count = counts[s - 1] if s > 0 else -1
+        hi_count = counts[s + 1] if s + 1 < nslices else -1
+        if counts[s] >= 1.5 * median and counts[s] >= lo_count and counts[s] > hi_count:
+            peaks.append(int(s))
+    kept = []
+    for s in sorted(peaks, key=lambda s: -counts[s]):        # the strongest first
+        if all(abs(edges[s] - edges[k]) >= separation for k in kept):
+            kept.append(s)
+    for s in sorted(kept):
+        sel = (idx >= s - 1) & (idx <= s + 1)
+        values = a[sel] if wide_axis[s] == 0 else b[sel]
+        out["levels"].append({"height": float(0.5 * (edges[s] + edges[s + 1])), "span": float(np.ptp(values)),
+                              "axis": "a" if wide_axis[s] == 0 else "b"})
+    return out
+
+
+def orthographic_views(points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None = None,
+                       size: int = 400, background: float = 1.0, labels: bool = True, splat: int = 0) -> np.ndarray:
+    """Front (x-z, seen from -y), side (y-z, seen from +x) and top (x-y, seen from +z) views of
+    points [N, 3] with colours [N, 3] in [0, 1], side by side, one scale for all three (the
+    largest extent fills `size` pixels). normals [N, 3] (optional) shade by |n . view|; splat:
+    each point covers the (2 splat + 1)^2 pixels around it (still nearest first).
+    Returns an image [size, 3 * size + gaps, 3] float32 in [0, 1]."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    c = np.clip(np.asarray(colours, np.float64).reshape(-1, 3), 0, 1)
+    gap = 4
+    canvas = np.full((size, 3 * size + 2 * gap, 3), background, np.float32)
+    if len(p) == 0:
+        return canvas
+    lo, hi = p.min(axis=0), p.max(axis=0)
+    scale = (size - 8) / max(float((hi - lo).max()), 1e-12)
+    # (horizontal axis, sign), (vertical axis, sign), (depth axis, +1 = nearer the viewer)
+    layouts = [((0, 1), (2, 1), (1, -1)), ((1, 1), (2, 1), (0, 1)), ((0, 1), (1, 1), (2, 1))]
+    view_dirs = [np.array([0, -1.0, 0]), np.array([1.0, 0, 0]), np.array([0, 0, 1.0])]
+    for k, ((ax_u, su), (ax_v, sv), (ax_d, sd)) in enumerate(layouts):
+        mid = 0.5 * (lo + hi)
+        u = np.round(size / 2 + su * (p[:, ax_u] - mid[ax_u]) * scale).astype(np.int64)
+        v = np.round(size / 2 - sv * (p[:, ax_v] - mid[ax_v]) * scale).astype(np.int64)
+        depth = sd * p[:, ax_d]
+        shade = c
+        if normals is not None:
+            n = np.asarray(normals, np.float64).reshape(-1, 3)
+            shade = c * (0.35 + 0.65 * np.abs(n @ view_dirs[k]))[:, None]
+        offsets = [(du, dv) for dv in range(-splat, splat + 1) for du in range(-splat, splat + 1)]
+        u = np.concatenate([u + du for du, _ in offsets])
+        v = np.concatenate([v + dv for _, dv in offsets])
+        depth, shade = np.tile(depth, len(offsets)), np.tile(shade, (len(offsets), 1))
+        ok = (u >= 0) & (u < size) & (v >= 0) & (v < size)
+        order = np.flatnonzero(ok)[np.argsort(-depth[ok], kind="stable")]   # nearest first
+        pix = v[order] * size + u[order]
+        _, first = np.unique(pix, return_index=True)                       # nearest point per pixel
+        panel = np.full((size * size, 3), background, np.float32)
+        panel[pix[first]] = shade[order[first]]
+        x0 = k * (size + gap)
+        canvas[:, x0:x0 + size] = panel.reshape(size, size, 3)
+    if labels:
+        canvas = _label(canvas, ["front (x-z)", "side (y-z)", "top (x-y)"], size, gap)
+    return canvas
+
+
+def _label(canvas: np.ndarray, names: list[str], size: int, gap: int) -> np.ndarray:
+    """Writes a name in the corner of each panel (OpenCV when available; unchanged otherwise)."""
+    try:
+        from jaxnerf_grid import io
+
+        cv2 = io.opencv()
+    except Exception:  # noqa: BLE001 - the picture is still useful without its labels
+        return canvas
+    img = np.ascontiguousarray((canvas * 255).astype(np.uint8))
+    for k, name in enumerate(names):
+        cv2.putText(img, name, (k * (size + gap) + 6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (40, 40, 40), 1,
+                    cv2.LINE_AA)
+    return img.astype(np.float32) / 255.0

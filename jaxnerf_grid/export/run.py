@@ -1,0 +1,253 @@
+"""`export_run`: the metric 3D model of a trained run's tower (`jaxnerf-grid export`, docs/EXPORT.md).
+
+Steps, all in the normalised scene until the files are written:
+
+1. render `views` training views (evenly spaced, `evaluate.cloud_view_ids`), lift their depth
+   (`export.lift_view`, inside the unit sphere) and keep the points confirmed by at least
+   `min_views` other views (`export.fuse`): the dense cloud;
+2. the ground plane: RANSAC on the lowest points of the dense cloud (`export.ground`);
+3. the box: `auto` = the largest cluster standing more than the ground's clearance above the
+   plane (`ground.tower_box`); or the given box (in the export's units);
+4. the density of the main field on a grid over the box (`export.field.density_grid`,
+   `export.mesh.grid_spec`: `resolution` voxels along the longest side), marching cubes at the
+   density where one voxel is `opacity` opaque (`export.mesh.density_threshold`), components
+   under `min_component_fraction` of the faces dropped, vertex colours from the field seen
+   from the `colour_cameras` nearest training cameras;
+5. the files, in the dataset's original units (`export.to_metric`): tower_mesh.ply,
+   tower_points.ply (the dense cloud inside the box), box.json, measurements.json,
+   export_views.png; and the "Tower model" section of the run's report.md.
+
+Every check (the output folder, the checkpoint, the box) runs before anything is written.
+"""
+
+from __future__ import annotations
+
+import math
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import io
+from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.export import mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
+from jaxnerf_grid.io import DataError
+
+DEFAULT_RESOLUTION = 256
+DEFAULT_VIEWS = 16
+DEFAULT_COLOUR_CAMERAS = 3
+GROUND_CELL = 0.02          # normalised units: columns of the ground fit, cells of the tower cluster
+GROUND_INLIER = 0.025       # normalised units: RANSAC inlier distance
+SCENE_LIMIT = 1.0           # the region of interest: the unit sphere's cube [-1, 1]^3 (normalised)
+FILES = ("tower_mesh.ply", "tower_points.ply", "box.json", "measurements.json", "export_views.png")
+
+
+def parse_box(text) -> np.ndarray | None:
+    """--box: "auto" (None) or "xmin,ymin,zmin,xmax,ymax,zmax" -> [6] float64. ConfigError for
+    a malformed or empty box (any max <= min)."""
+    if text is None or (isinstance(text, str) and text.strip().lower() == "auto"):
+        return None
+    try:
+        values = np.asarray([float(v) for v in (text.split(",") if isinstance(text, str) else text)], np.float64)
+    except (TypeError, ValueError):
+        raise ConfigError(f"--box: expected 'auto' or six numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}") from None
+    if values.shape != (6,) or not np.all(np.isfinite(values)):
+        raise ConfigError(f"--box: expected six finite numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}")
+    if np.any(values[3:] <= values[:3]):
+        raise ConfigError(f"--box: the box is empty (each max must exceed its min): {text!r}")
+    return values
+
+
+def units_of(ds) -> str:
+    """'metres' when the dataset states its metric normalisation (transforms.json's
+    `scene_normalization`, docs/DATASET.md), else 'unknown'."""
+    return "metres" if (ds.meta or {}).get("scene_normalization") else "unknown"
+
+
+def units_comment(units: str) -> str:
+    if units == "metres":
+        return "units: metres (the dataset's scene_normalization undone: x = x_norm / scale - translation)"
+    return ("units: unknown (the dataset has no metric scale; coordinates are in its original units, "
+            "its loader's normalisation undone)")
+
+
+def check_box_in_scene(lo: np.ndarray, hi: np.ndarray) -> None:
+    """ConfigError when the box (normalised) does not meet the region of interest [-1, 1]^3."""
+    if np.any(hi <= -SCENE_LIMIT) or np.any(lo >= SCENE_LIMIT):
+        raise ConfigError("--box lies outside the scene: it does not meet the region of interest (the unit "
+                          "sphere of the normalised scene, i.e. the tower's surroundings); give it in the "
+                          "dataset's original units (metres for the synthetic scenes)")
+
+
+def _render_cloud(params, cfg, ds, ids, progress: bool):
+    """The views' lifted points and cameras for `export.fuse`."""
+    from jaxnerf_grid import config as config_lib, progress as progress_lib, views
+    from jaxnerf_grid.export import lift_view
+
+    near, far = config_lib.near_far(cfg.model, ds)
+    parts, cameras = [], []
+    for i in progress_lib.bar(ids, desc="export: views", unit="view", enabled=progress):
+        view = views.render_view(params, cfg, ds, int(i))
+        parts.append(lift_view(views.camera_rays(ds, int(i), near, far), np.clip(view["rgb"], 0, 1), view["depth"],
+                               view["opacity"], radius=SCENE_LIMIT))
+        cameras.append({"c2w": np.asarray(ds.c2w[i]), "intrinsics": np.asarray(ds.intrinsics[i]),
+                        "depth": view["depth"], "opacity": view["opacity"]})
+    return parts, cameras
+
+
+def _ground(points: np.ndarray) -> dict | None:
+    """The ground plane of the dense cloud (normalised): {"normal", "offset", "clearance",
+    "inliers", "candidates"}, or None when it cannot be fitted. clearance = max(GROUND_CELL,
+    3 x the robust spread (1.4826 MAD) of the inliers' heights)."""
+    from jaxnerf_grid.export import ground
+
+    low = ground.lowest_points(points, GROUND_CELL)
+    try:
+        n, d, inliers = ground.fit_plane_ransac(low, GROUND_INLIER, iterations=1000)
+    except ValueError:
+        return None
+    res = ground.heights(low[inliers], n, d)
+    spread = 1.4826 * float(np.median(np.abs(res - np.median(res)))) if len(res) else 0.0
+    return {"normal": n, "offset": d, "clearance": max(GROUND_CELL, 3.0 * spread), "inliers": int(inliers.sum()),
+            "candidates": int(len(low))}
+
+
+def _inside(points: np.ndarray, lo, hi) -> np.ndarray:
+    return np.all((points >= lo) & (points <= hi), axis=-1)
+
+
+def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="auto",
+               opacity: float = mesh_lib.DEFAULT_OPACITY, views: int = DEFAULT_VIEWS, min_views: int = 2,
+               colour_cameras: int = DEFAULT_COLOUR_CAMERAS,
+               min_component_fraction: float = mesh_lib.DEFAULT_MIN_COMPONENT_FRACTION,
+               overwrite: bool = False, progress: bool = True, dataset=None) -> dict:
+    """Exports the tower of a trained run (module docstring). Returns measurements.json's dict.
+
+    out: the folder (default RUN/export; refused when it holds files, unless `overwrite`);
+    box: "auto" or "xmin,ymin,zmin,xmax,ymax,zmax" (or 6 numbers) in the export's units.
+    DataError / ConfigError for a run without a checkpoint, an empty box or one outside the
+    scene, an occupied folder, or a box without a surface; nothing is written then.
+    """
+    from jaxnerf_grid import evaluate, progress as progress_lib, runs, train
+    from jaxnerf_grid.export import field, fuse, ground, measure, write_point_cloud
+
+    start = time.perf_counter()
+    run_dir = Path(run_dir)
+    cfg, data = runs.load_run(run_dir)
+    given = parse_box(box)
+    if not int(resolution) >= 8:
+        raise ConfigError(f"--resolution must be >= 8, got {resolution}")
+    if not 0 < float(opacity) < 1:
+        raise ConfigError(f"--threshold (the opacity of one voxel) must be in (0, 1), got {opacity}")
+    out = Path(out) if out is not None else run_dir / "export"
+    io.ensure_writable(out, overwrite)
+    ds = dataset if dataset is not None else runs.load_dataset(data, progress=progress)
+    norm = ds.normalization
+    if given is not None:
+        lo_given, hi_given = to_scene(given[:3], norm), to_scene(given[3:], norm)
+        check_box_in_scene(lo_given, hi_given)
+    params, step = train.load_params(run_dir, cfg, ds)
+    units = units_of(ds)
+    scale = float(norm.get("scale", 1.0))
+
+    # 1-2. the dense cloud and the ground
+    timings = {"load": time.perf_counter() - start}
+    ids = evaluate.cloud_view_ids(ds, views)
+    parts, cameras = _render_cloud(params, cfg, ds, ids, progress)
+    timings["views"] = time.perf_counter() - start - sum(timings.values())
+    points, colours, fuse_stats = fuse.fuse(parts, cameras, min_views=min_views)
+    plane = _ground(points)
+
+    # 3. the box
+    if given is not None:
+        lo, hi, box_stats = lo_given, hi_given, {}
+    else:
+        if plane is None:
+            raise DataError(f"{run_dir}: --box auto found no ground in the rendered views ({len(points)} points "
+                            "inside the unit sphere); give --box")
+        try:
+            lo, hi, box_stats = ground.tower_box(points, plane["normal"], plane["offset"], plane["clearance"],
+                                                 GROUND_CELL)
+        except ValueError as err:
+            raise DataError(f"{run_dir}: --box auto: {err}; give --box") from None
+
+    # 4. the mesh
+    origin, h, shape = mesh_lib.grid_spec(lo, hi, int(resolution))
+    level = mesh_lib.density_threshold(h, float(opacity))
+    with progress_lib.bar(total=int(np.prod(shape)), desc="export: density", unit="point", enabled=progress) as pbar:
+        density = field.density_grid(params, cfg.model, origin, h, shape, progress=pbar)
+    timings["density"] = time.perf_counter() - start - sum(timings.values())
+    verts, faces, normals = mesh_lib.extract_mesh(density, level, origin, h)
+    del density
+    if len(faces) == 0:
+        raise DataError(f"{run_dir}: no surface in the box: the density never reaches {level:.4g} (one voxel "
+                        f"{opacity:g} opaque); lower --threshold or check --box")
+    verts, faces, (normals,), comp = mesh_lib.remove_small_components(verts, faces, min_component_fraction, (normals,))
+    train_ids = np.asarray(ds.split["train"]) if len(ds.split["train"]) else np.arange(ds.num_frames)
+    centres = np.asarray(ds.c2w)[train_ids, :3, 3]
+    timings["mesh"] = time.perf_counter() - start - sum(timings.values())
+    vcolours = field.colours_from_cameras(params, cfg.model, verts, centres, k=colour_cameras)
+    timings["colours"] = time.perf_counter() - start - sum(timings.values())
+
+    # 5. measurements and files, in the export's units
+    verts_m = to_metric64(verts, norm)
+    inside = _inside(points, lo, hi)
+    tower_pts, tower_cols = to_metric64(points[inside], norm), colours[inside]
+    box_m = {"min": [float(v) for v in to_metric64(lo, norm)], "max": [float(v) for v in to_metric64(hi, norm)]}
+    meas = {"units": units, "run": str(run_dir), "step": int(step),
+            "box": {**box_m, "source": "given" if given is not None else "auto"},
+            "resolution": int(resolution), "grid": list(shape), "voxel_size": h / scale,
+            "threshold": {"opacity_per_voxel": float(opacity), "density": level,
+                          "density_per_unit": level * scale,
+                          "definition": "sigma = -ln(1 - opacity) / voxel_size (docs/EXPORT.md); 'density' per "
+                                        "normalised scene unit, 'density_per_unit' per export unit"},
+            "mesh": {"vertices": int(len(verts)), "faces": int(len(faces)), "closed": mesh_lib.is_closed(faces),
+                     **comp, "min_component_fraction": float(min_component_fraction)},
+            "points": {"count": int(len(tower_pts)), "views": [int(i) for i in ids], "min_views": int(min_views),
+                       **fuse_stats},
+            "ground": None, "height": None, "footprint": None, "cross_arms": None}
+    if plane is not None:
+        n_m, d_m = plane_to_metric(plane["normal"], plane["offset"], norm)
+        meas["ground"] = {"normal": [float(v) for v in n_m], "offset": d_m, "equation": "normal . x + offset = 0",
+                          "tilt_degrees": math.degrees(math.acos(min(1.0, abs(float(n_m[2]))))),
+                          "clearance": plane["clearance"] / scale, "inliers": plane["inliers"],
+                          "candidates": plane["candidates"]}
+        heights = verts_m @ n_m + d_m
+        height = float(heights.max())
+        meas["height"] = height
+        fp = measure.footprint(verts_m, n_m, d_m, max(0.05 * (height - float(heights.min())), 2 * h / scale))
+        meas["footprint"] = fp
+        meas["cross_arms"] = measure.cross_arms(verts_m, n_m, d_m, fp["axis_a"], fp["axis_b"],
+                                                max(0.01 * height, 2 * h / scale))
+    meas["box"].update(box_stats)
+    comments = (units_comment(units), f"jaxnerf-grid export of {run_dir} at step {step}")
+    out.mkdir(parents=True, exist_ok=True)
+    io.write_ply(out / "tower_mesh.ply", verts_m, vcolours, faces,
+                 comments=comments + (f"marching cubes at density {level:.6g} per normalised unit "
+                                      f"(one voxel {opacity:g} opaque), voxel {h / scale:.4g}",))
+    write_point_cloud(out / "tower_points.ply", [(tower_pts, tower_cols)],
+                      comments=comments + (f"depth of {len(ids)} views fused, each point confirmed by >= "
+                                           f"{min_views} other views",))
+    io.write_json(out / "box.json", {**meas["box"], "units": units, "normalised": {
+        "min": [float(v) for v in lo], "max": [float(v) for v in hi]}})
+    picture = measure.orthographic_views(verts_m, vcolours, normals, splat=1)
+    io.write_png(out / "export_views.png", picture)
+    meas["seconds"] = time.perf_counter() - start
+    meas["timings"] = {**timings, "write": meas["seconds"] - sum(timings.values())}
+    meas["peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+    io.write_json(out / "measurements.json", meas)
+    _update_report(run_dir, out, meas)
+    return meas
+
+
+def _update_report(run_dir: Path, out: Path, meas: dict) -> None:
+    """Writes the "Tower model" section into RUN/report.md when the export is RUN/export (the
+    default), else into OUT/report.md."""
+    from jaxnerf_grid import report
+
+    if out.resolve() == (run_dir / "export").resolve():
+        path, image = run_dir / "report.md", "export/export_views.png"
+    else:
+        path, image = out / "report.md", "export_views.png"
+    report.set_section(path, report.EXPORT_HEADING, report.export_lines({"measurements": meas, "image": image}))

@@ -1,0 +1,466 @@
+"""`jaxnerf-grid export` (issue 15, docs/EXPORT.md): marching cubes on analytic densities, the
+metric round trip, the RANSAC ground, depth fusion, the measurements, the scores against brute
+force, the PLY read back by plyfile, and the command's refusals on bad input."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid import cli, geometry, io
+from jaxnerf_grid.data.normalize import apply_normalization_to_points
+from jaxnerf_grid.export import fuse, ground, lift_view, measure, mesh, plane_to_metric, to_metric, to_scene
+from jaxnerf_grid.export import score as score_lib
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_train import TINY_FIELD, tiny_dataset  # noqa: E402
+
+NORM = {"scale": 0.05, "translation": [3.0, -2.0, -15.0]}
+
+
+# --------------------------------------------------------------------------- marching cubes
+
+
+def _grid(resolution=40, half=1.0):
+    origin, h, shape = mesh.grid_spec([-half] * 3, [half] * 3, resolution)
+    return origin, h, shape, mesh.grid_points(origin, h, shape).astype(np.float64)
+
+
+def test_grid_spec_covers_the_box_with_resolution_voxels_on_the_longest_side():
+    origin, h, shape = mesh.grid_spec([0, 0, 0], [2.0, 1.0, 0.35], 20)
+    assert h == pytest.approx(0.1) and shape[0] == 21 and shape[1] == 11 and shape[2] == 5
+    last = origin + h * (np.array(shape) - 1)
+    assert np.all(origin <= 1e-9) and np.all(last >= np.array([2.0, 1.0, 0.35]) - 1e-9)
+    np.testing.assert_allclose(0.5 * (origin + last), [1.0, 0.5, 0.175])      # centred on the box
+
+
+def test_density_threshold_gives_the_opacity_of_one_voxel():
+    for h, a in ((0.01, 0.5), (0.2, 0.05), (1.0, 0.9)):
+        sigma = mesh.density_threshold(h, a)
+        assert 1 - np.exp(-sigma * h) == pytest.approx(a)
+    assert mesh.density_threshold(0.01, 0.5) == pytest.approx(np.log(2) / 0.01)
+    assert mesh.density_threshold(0.01) == pytest.approx(-np.log(0.95) / 0.01)   # the default: 5 %
+
+
+def test_marching_cubes_on_a_sphere_lies_on_the_surface_and_is_closed():
+    origin, h, shape, p = _grid(40)
+    r0 = 0.6
+    level = mesh.density_threshold(h)
+    density = level * np.exp(-8.0 * (np.linalg.norm(p, axis=-1) - r0))   # = level exactly on |x| = r0
+    verts, faces, normals = mesh.extract_mesh(density, level, origin, h)
+    radius = np.linalg.norm(verts, axis=1)
+    assert len(faces) > 1000 and np.max(np.abs(radius - r0)) <= h
+    assert mesh.is_closed(faces)
+    assert np.all(np.sum(normals * verts, axis=1) > 0)          # normals point out of the dense side
+    # the enclosed volume (divergence theorem) is the ball's
+    tri = verts[faces]
+    volume = np.sum(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) / 6
+    assert volume == pytest.approx(4 / 3 * np.pi * r0 ** 3, rel=0.03)
+
+
+def test_marching_cubes_on_a_box_closes_at_the_grid_border():
+    origin, h, shape, p = _grid(30)
+    level = mesh.density_threshold(h)
+    half = np.array([0.5, 0.3, 2.0])                          # taller than the grid: cut by its border
+    density = np.where(np.all(np.abs(p) <= half, axis=-1), 50.0 * level, 0.0)
+    verts, faces, _ = mesh.extract_mesh(density, level, origin, h)
+    assert mesh.is_closed(faces)
+    clipped = np.minimum(half, 1.0)
+    # distance to the (clipped) box's surface: outside, or inside to the nearest face
+    q = np.abs(verts) - clipped
+    outside = np.linalg.norm(np.maximum(q, 0), axis=1)
+    inside = -np.max(np.minimum(q, 0), axis=1)
+    dist = np.where(np.any(q > 0, axis=1), outside, inside)
+    assert np.max(dist) <= h + 1e-9
+
+
+def test_no_surface_gives_an_empty_mesh():
+    origin, h, shape, _ = _grid(8)
+    verts, faces, _ = mesh.extract_mesh(np.zeros(shape), 1.0, origin, h)
+    assert verts.shape == (0, 3) and faces.shape == (0, 3) and not mesh.is_closed(faces)
+
+
+def test_small_components_are_removed():
+    origin, h, shape, p = _grid(40)
+    level = 1.0
+    big = np.linalg.norm(p - [0.3, 0, 0], axis=-1) < 0.5
+    small = np.linalg.norm(p - [-0.75, 0.6, 0.6], axis=-1) < 0.12
+    verts, faces, normals = mesh.extract_mesh(np.where(big | small, 10.0, 0.0), level, origin, h)
+    labels = mesh.face_components(faces, len(verts))
+    assert labels.max() == 1
+    sizes = np.bincount(labels)
+    v2, f2, (n2,), stats = mesh.remove_small_components(verts, faces, 0.2, (normals,))
+    assert stats["components"] == 2 and stats["kept_components"] == 1
+    assert stats["kept_face_fraction"] == pytest.approx(sizes.max() / sizes.sum())
+    assert len(f2) == sizes.max() and mesh.is_closed(f2) and len(n2) == len(v2)
+    assert np.all(v2[:, 0] > -0.3)                            # the small one is gone
+    np.testing.assert_array_equal(np.unique(f2), np.arange(len(v2)))   # every vertex used
+
+
+# --------------------------------------------------------------------------- metric units
+
+
+def test_metric_round_trip():
+    rng = np.random.default_rng(0)
+    metric = rng.uniform(-20, 40, (100, 3))
+    scene = apply_normalization_to_points(metric, NORM)              # the loaders' map
+    np.testing.assert_allclose(to_metric(scene, NORM), metric, atol=1e-4)
+    np.testing.assert_allclose(to_scene(metric, NORM), scene, atol=1e-12)
+    # a plane: points of a metric plane, normalised, fitted there and mapped back
+    n = np.array([0.1, -0.05, 1.0]) / np.linalg.norm([0.1, -0.05, 1.0])
+    pts = rng.uniform(-10, 10, (50, 3))
+    pts -= ((pts @ n) + 2.5)[:, None] * n                           # on n . x + 2.5 = 0
+    n_s, d_s = ground.refine_plane(apply_normalization_to_points(pts, NORM))
+    n_m, d_m = plane_to_metric(n_s, d_s, NORM)
+    np.testing.assert_allclose(n_m, n, atol=1e-9)
+    assert d_m == pytest.approx(2.5, abs=1e-6)
+
+
+# --------------------------------------------------------------------------- ground and box
+
+
+def test_lowest_points_match_brute_force():
+    rng = np.random.default_rng(1)
+    p = rng.uniform(-1, 1, (500, 3))
+    low = ground.lowest_points(p, 0.25)
+    keys = {tuple(k) for k in np.floor(p[:, :2] / 0.25).astype(int)}
+    expected = []
+    for k in keys:
+        col = p[np.all(np.floor(p[:, :2] / 0.25).astype(int) == k, axis=1)]
+        expected.append(col[np.argmin(col[:, 2])])
+    assert len(low) == len(keys)
+    np.testing.assert_allclose(sorted(map(tuple, low)), sorted(map(tuple, expected)))
+
+
+def test_ransac_ground_against_the_true_plane():
+    rng = np.random.default_rng(2)
+    n_true = np.array([np.sin(np.radians(5)), 0.0, np.cos(np.radians(5))])
+    d_true = 0.75
+    xy = rng.uniform(-0.7, 0.7, (600, 2))
+    z = -(n_true[0] * xy[:, 0] + n_true[1] * xy[:, 1] + d_true) / n_true[2]
+    ground_pts = np.column_stack([xy, z + rng.normal(0, 0.005, len(xy))])
+    tower = np.column_stack([rng.uniform(-0.1, 0.1, (250, 2)), rng.uniform(-0.7, 0.8, 250)])
+    floaters = rng.uniform(-1, 1, (100, 3))
+    pts = np.concatenate([ground_pts, tower, floaters])             # 35 % outliers
+    n, d, inliers = ground.fit_plane_ransac(pts, 0.02)
+    assert np.degrees(np.arccos(np.clip(n @ n_true, -1, 1))) < 0.5
+    assert d == pytest.approx(d_true, abs=0.005)
+    assert inliers[:600].mean() > 0.95
+    np.testing.assert_allclose(ground.heights(ground_pts, n, d), 0, atol=0.03)
+
+
+def test_tower_box_finds_the_largest_cluster_above_the_ground():
+    rng = np.random.default_rng(3)
+    floor = np.column_stack([rng.uniform(-0.8, 0.8, (2000, 2)), np.full(2000, -0.7)])
+    legs = np.column_stack([rng.uniform(-0.2, 0.2, (3000, 2)), rng.uniform(-0.7, 0.6, 3000)])
+    bush = np.column_stack([rng.uniform(0.6, 0.65, (40, 2)), rng.uniform(-0.7, -0.6, 40)])
+    n, d = np.array([0, 0, 1.0]), 0.7
+    lo, hi, stats = ground.tower_box(np.concatenate([floor, legs, bush]), n, d, clearance=0.03, cell=0.02)
+    np.testing.assert_allclose(lo[:2], [-0.22, -0.22], atol=0.01)
+    np.testing.assert_allclose(hi, [0.22, 0.22, 0.62], atol=0.01)
+    assert lo[2] == pytest.approx(-0.67)                           # clearance above the ground
+    assert stats["tower_points"] < stats["above_ground"]          # the bush is not the tower
+    with pytest.raises(ValueError):
+        ground.tower_box(floor, n, d, 0.03, 0.02)
+
+
+# --------------------------------------------------------------------------- fusion
+
+
+def _plane_views(count=4, width=24, height=18):
+    """Cameras around the origin looking at the plane z = -0.5; exact z-depth maps of it."""
+    import jax.numpy as jnp
+
+    from jaxnerf_grid import rays as rays_lib
+
+    fx = 20.0
+    cams, parts = [], []
+    for k in range(count):
+        a = 2 * np.pi * k / count
+        c2w = np.asarray(rays_lib.look_at([1.5 * np.cos(a), 1.5 * np.sin(a), 1.0], [0, 0, -0.5]))
+        r = rays_lib.generate_rays(jnp.asarray(c2w), fx, fx, width / 2, height / 2, width, height)
+        o, dirs = np.asarray(r.origins, np.float64), np.asarray(r.directions, np.float64)
+        t = (-0.5 - o[..., 2]) / dirs[..., 2]
+        depth = (t * np.asarray(r.cos_to_axis)).astype(np.float32)
+        opacity = np.ones((height, width), np.float32)
+        parts.append(lift_view(r, np.full((height, width, 3), 0.5), depth, opacity, radius=10.0))
+        cams.append({"c2w": c2w, "intrinsics": (fx, fx, width / 2, height / 2), "depth": depth, "opacity": opacity})
+    return parts, cams
+
+
+def test_project_inverts_lift_view():
+    parts, cams = _plane_views(1)
+    u, v, z = fuse.project(parts[0][0], cams[0]["c2w"], cams[0]["intrinsics"])
+    cols, rows = np.meshgrid(np.arange(24) + 0.5, np.arange(18) + 0.5)
+    np.testing.assert_allclose(u, cols.ravel(), atol=1e-3)
+    np.testing.assert_allclose(v, rows.ravel(), atol=1e-3)
+    np.testing.assert_allclose(z, cams[0]["depth"].ravel(), rtol=1e-5)
+
+
+def test_fusion_keeps_the_surface_and_drops_floaters():
+    parts, cams = _plane_views(4)
+    floaters = np.random.default_rng(4).uniform(-0.4, 0.4, (50, 3)) + [0, 0, 0.3]
+    parts[0] = (np.concatenate([parts[0][0], floaters]), np.concatenate([parts[0][1], np.zeros((50, 3))]))
+    pts, cols, stats = fuse.fuse(parts, cams, min_views=2)
+    assert stats["lifted"] == sum(len(p) for p, _ in parts)
+    assert np.all(np.abs(pts[:, 2] + 0.5) < 1e-4)                # no floater survives
+    source = np.concatenate([np.full(len(p), i) for i, (p, _) in enumerate(parts)])
+    counts = fuse.confirmations(np.concatenate([p for p, _ in parts]), source, cams)
+    assert np.all(counts[len(parts[0][0]) - 50:len(parts[0][0])] == 0)
+    assert stats["kept"] > 0.5 * (stats["lifted"] - 50)          # most of the plane is seen by 2 others
+
+
+# --------------------------------------------------------------------------- measurements
+
+
+def test_min_area_rectangle_against_brute_force():
+    rng = np.random.default_rng(5)
+    theta = np.radians(27)
+    rot = np.array([[np.cos(theta), -np.sin(theta)], [np.sin(theta), np.cos(theta)]])
+    pts = rng.uniform([-4, -1.5], [4, 1.5], (300, 2)) @ rot.T
+    corners = np.array([[-4, -1.5], [4, -1.5], [4, 1.5], [-4, 1.5]]) @ rot.T
+    wa, wb, direction = measure.min_area_rectangle(np.concatenate([pts, corners]))
+    assert wa == pytest.approx(8.0) and wb == pytest.approx(3.0)
+    assert abs(direction @ rot[:, 0]) == pytest.approx(1.0)
+    angles = np.radians(np.arange(0, 180, 0.05))                   # brute force over directions
+    areas = [np.ptp(pts @ [np.cos(a), np.sin(a)]) * np.ptp(pts @ [-np.sin(a), np.cos(a)]) for a in angles]
+    wa2, wb2, _ = measure.min_area_rectangle(pts)
+    assert wa2 * wb2 <= min(areas) + 1e-9 and wa2 * wb2 == pytest.approx(min(areas), rel=1e-3)
+
+
+def _synthetic_tower(rng, tilt=np.zeros(3)):
+    """A tapering square body 30 high (base 8 x 8), arms of span 16 at heights 17, 21, 25 (x axis)."""
+    z = rng.uniform(0, 30, 20000)
+    half = 4.0 - 3.0 * z / 30
+    side = rng.integers(0, 4, len(z))
+    s = rng.uniform(-1, 1, len(z)) * half
+    x = np.where(side == 0, half, np.where(side == 1, -half, s))
+    y = np.where(side == 2, half, np.where(side == 3, -half, s))
+    body = np.column_stack([x, y, z])
+    arms = [np.column_stack([rng.uniform(-8, 8, 1500), rng.uniform(-0.3, 0.3, 1500), rng.uniform(h - 0.3, h + 0.3, 1500)])
+            for h in (17.0, 21.0, 25.0)]
+    return np.concatenate([body] + arms)
+
+
+def test_footprint_and_cross_arms_of_a_synthetic_tower():
+    rng = np.random.default_rng(6)
+    pts = _synthetic_tower(rng)
+    n, d = np.array([0, 0, 1.0]), 0.0
+    fp = measure.footprint(pts, n, d, band=0.5)
+    assert fp["width_a"] == pytest.approx(8.0, abs=0.15) and fp["width_b"] == pytest.approx(8.0, abs=0.15)
+    arms = measure.cross_arms(pts, n, d, [1.0, 0, 0], [0, 1.0, 0], slice_height=0.3)
+    heights = [a["height"] for a in arms["levels"]]
+    assert len(heights) == 3 and np.allclose(heights, [17, 21, 25], atol=0.5)
+    assert all(a["span"] == pytest.approx(16.0, abs=0.2) and a["axis"] == "a" for a in arms["levels"])
+    assert arms["region"][0] == pytest.approx(16.7, abs=0.4)
+
+
+def test_orthographic_views_draw_the_nearest_point():
+    pts = np.array([[0.0, 0.0, 0.0], [0.0, -1.0, 0.0], [1.0, 1.0, 1.0], [-1.0, -1.0, -1.0], [0, 0, 0.5]])
+    cols = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, 1.0], [1.0, 1.0, 0]])
+    img = measure.orthographic_views(pts, cols, size=41, labels=False)
+    assert img.shape == (41, 3 * 41 + 8, 3)
+    np.testing.assert_allclose(img[20, 20], [0, 1, 0])      # front, seen from -y: y = -1 is nearer
+    np.testing.assert_allclose(img[20, 45 + 20], [1, 0, 0])  # side, from +x: the red point alone there
+    np.testing.assert_allclose(img[20, 90 + 20], [1, 1, 0])  # top, from +z: z = 0.5 is nearer than 0
+    np.testing.assert_allclose(img[0, 0], [1, 1, 1])         # background
+
+
+
+# --------------------------------------------------------------------------- scores
+
+
+def test_export_score_matches_brute_force(tmp_path):
+    rng = np.random.default_rng(7)
+    ref = np.column_stack([rng.uniform(-3, 3, (400, 2)), rng.uniform(0, 30, 400)])
+    verts = ref[:300] + rng.normal(0, 0.3, (300, 3))
+    io.write_ply(tmp_path / "tower_mesh.ply", verts, faces=np.zeros((0, 3), int))
+    io.write_ply(tmp_path / "tower_points.ply", ref[100:] + rng.normal(0, 0.1, (300, 3)))
+    io.write_json(tmp_path / "measurements.json", {"units": "metres", "height": 31.2})
+    scale = 0.05
+    out = score_lib.score_export(tmp_path, ref, scale)
+    strip = geometry.DEFAULT_GROUND_STRIP / scale
+    lo, hi = ref.min(0), ref.max(0)
+    lo[2] += strip
+    pred = io.read_ply_points(tmp_path / "tower_mesh.ply").astype(np.float64)
+    p = pred[np.all((pred >= lo) & (pred <= hi), axis=1)]
+    r = ref[np.all((ref >= lo) & (ref <= hi), axis=1)]
+    dist = np.linalg.norm(p[:, None] - r[None], axis=-1)           # brute force
+    for tau in (0.2, 0.4, 1.0):
+        prec, rec = np.mean(dist.min(1) <= tau), np.mean(dist.min(0) <= tau)
+        f = 2 * prec * rec / (prec + rec)
+        assert out["mesh"]["thresholds"][f"{tau:g}"]["fscore"] == pytest.approx(f)
+    assert out["mesh"]["chamfer"] == pytest.approx(0.5 * (dist.min(1).mean() + dist.min(0).mean()))
+    assert out["height"]["reference"] == pytest.approx(np.ptp(ref[:, 2]))
+    assert out["height"]["error"] == pytest.approx(31.2 - np.ptp(ref[:, 2]))
+    assert out["height"]["error_percent"] == pytest.approx(100 * abs(31.2 - np.ptp(ref[:, 2])) / np.ptp(ref[:, 2]))
+    assert "points" in out and score_lib.score_export(tmp_path / "none", ref, scale) is None
+
+
+def test_reference_in_export_units():
+    rng = np.random.default_rng(8)
+    metric = rng.uniform(-10, 30, (20, 3))
+    file_norm = {"scale": 0.05, "translation": [0, 0, -15.0]}
+    stored = apply_normalization_to_points(metric, file_norm)
+    np.testing.assert_allclose(score_lib.reference_in_export_units(stored, file_norm, NORM), metric, atol=1e-9)
+    np.testing.assert_allclose(score_lib.reference_in_export_units(apply_normalization_to_points(metric, NORM), None, NORM),
+                               metric, atol=1e-9)
+
+
+# --------------------------------------------------------------------------- PLY
+
+
+def test_mesh_ply_read_back_by_plyfile(tmp_path):
+    plyfile = pytest.importorskip("plyfile")
+    origin, h, shape, p = _grid(12)
+    verts, faces, _ = mesh.extract_mesh(np.where(np.linalg.norm(p, axis=-1) < 0.6, 5.0, 0.0), 1.0, origin, h)
+    colours = np.random.default_rng(9).uniform(0, 1, (len(verts), 3))
+    io.write_ply(tmp_path / "m.ply", verts, colours, faces, comments=("units: metres", "second line"))
+    data = plyfile.PlyData.read(str(tmp_path / "m.ply"))
+    assert data.comments == ["units: metres", "second line"]
+    v = data["vertex"]
+    np.testing.assert_allclose(np.column_stack([v["x"], v["y"], v["z"]]), verts, atol=1e-6)
+    np.testing.assert_array_equal(np.column_stack([v["red"], v["green"], v["blue"]]),
+                                  np.round(colours * 255).astype(np.uint8))
+    np.testing.assert_array_equal(np.stack(data["face"]["vertex_indices"]), faces)
+    np.testing.assert_allclose(io.read_ply_points(tmp_path / "m.ply"), verts, atol=1e-6)   # ours agrees
+
+
+# --------------------------------------------------------------------------- the command
+
+
+@pytest.fixture(scope="module")
+def tiny_run(tmp_path_factory):
+    """A tiny trained run (a ball of radius 0.7, 2 x 32 MLP, 30 steps) on a dataset that states
+    its metric normalisation and names a reference tower.ply."""
+    from jaxnerf_grid import runs
+    from jaxnerf_grid.data.formats import save_transforms_json
+
+    root = tmp_path_factory.mktemp("export")
+    ds = tiny_dataset()
+    ds.frame_paths = [f"images/frame_{i:03d}.png" for i in range(ds.num_frames)]
+    data = root / "data"
+    save_transforms_json(ds, data)
+    rng = np.random.default_rng(0)
+    ball = rng.normal(size=(400, 3))
+    io.write_ply(data / "tower.ply", 0.7 * ball / np.linalg.norm(ball, axis=1, keepdims=True))
+    meta = io.read_json(data / "transforms.json")
+    io.write_json(data / "transforms.json", {**meta, "tower_ply": "tower.ply", "scene_normalization": NORM})
+    overrides = {"model": {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8},
+                 "train": {"batch_rays": 64, "max_steps": 30, "checkpoint_every": 30, "log_every": 10, "warmup": 5,
+                           "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256, "num_devices": 1}}  # one device compiles faster
+    run, _, _ = runs.train_run(str(data), "ours", root / "run", overrides, progress=False)
+    return run
+
+
+def _metric_box(lo, hi):
+    return ",".join(f"{v:.6f}" for v in np.concatenate([to_metric(np.array([lo]), NORM)[0],
+                                                        to_metric(np.array([hi]), NORM)[0]]))
+
+
+def _error_line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "Traceback" not in err, err
+    return err
+
+
+def test_export_writes_metric_files_inside_the_given_box(tiny_run, tmp_path, capsys):
+    out = tmp_path / "export"
+    box = _metric_box([-0.9] * 3, [0.9] * 3)
+    assert cli.main(["export", "--run", str(tiny_run), "--out", str(out), f"--box={box}", "--resolution", "24",
+                     "--threshold", "0.02", "--views", "4", "--quiet"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == sorted(["box.json", "export_views.png", "measurements.json",
+                                                            "report.md", "tower_mesh.ply", "tower_points.ply"])
+    saved = io.read_json(out / "box.json")
+    np.testing.assert_allclose(saved["min"] + saved["max"], [float(v) for v in box.split(",")], atol=1e-4)
+    np.testing.assert_allclose(saved["normalised"]["min"], [-0.9] * 3, atol=1e-6)   # the round trip
+    m = io.read_json(out / "measurements.json")
+    assert m["units"] == "metres" and m["box"]["source"] == "given"
+    verts = io.read_ply_points(out / "tower_mesh.ply")
+    voxel = m["voxel_size"]
+    assert len(verts) == m["mesh"]["vertices"] > 0
+    assert np.all(verts >= np.array(saved["min"]) - 1.5 * voxel) and np.all(verts <= np.array(saved["max"]) + 1.5 * voxel)
+    header = (out / "tower_mesh.ply").read_bytes()[:400].decode("ascii", "replace")
+    assert "comment units: metres" in header
+    assert "## Tower model (export)" in (out / "report.md").read_text()
+
+
+def test_eval_scores_the_export(tiny_run, capsys):
+    from jaxnerf_grid import evaluate, runs
+
+    assert cli.main(["export", "--run", str(tiny_run), f"--box={_metric_box([-0.9] * 3, [0.9] * 3)}", "--resolution",
+                     "16", "--threshold", "0.02", "--views", "3", "--quiet"]) == 0
+    assert "## Tower model (export)" in (tiny_run / "report.md").read_text()
+    cfg, data = runs.load_run(tiny_run)
+    info = evaluate.export_section(runs.load_dataset(data, progress=False), tiny_run)
+    assert info["measurements"]["mesh"]["faces"] > 0
+    sc = info["score"]
+    assert set(sc["mesh"]["thresholds"]) == {"0.2", "0.4", "1"} and sc["reference_points"] == 400
+    if "height" in sc:                 # only when a ground plane was fitted under the ball
+        assert sc["height"]["reference"] == pytest.approx(2 * 0.7 / NORM["scale"], rel=0.05)
+    # eval rewrites report.md with the section and the score, and stores them in metrics.json
+    assert cli.main(["eval", "--run", str(tiny_run), "--quiet", "--distractor-views", "0"]) == 0
+    m = io.read_json(tiny_run / "metrics.json")
+    assert m["export"]["score"]["mesh"]["num_ref"] == sc["mesh"]["num_ref"]
+    report = (tiny_run / "report.md").read_text()
+    assert report.count("## Tower model (export)") == 1 and "Against the reference tower" in report
+
+
+def test_export_refuses_a_run_without_a_checkpoint(tiny_run, tmp_path, capsys):
+    bare = tmp_path / "bare"
+    bare.mkdir()
+    (bare / "config.json").write_bytes((tiny_run / "config.json").read_bytes())
+    assert cli.main(["export", "--run", str(bare), "--quiet"]) == 1
+    assert "no checkpoint" in _error_line(capsys)
+    assert sorted(p.name for p in bare.iterdir()) == ["config.json"]
+
+
+@pytest.mark.parametrize("box, words", [("0,0,0,0,1,1", "empty"), ("1,2,3", "six finite numbers"),
+                                        ("5000,5000,5000,5100,5100,5100", "outside the scene")])
+def test_export_refuses_a_bad_box(tiny_run, tmp_path, capsys, box, words):
+    out = tmp_path / "out"
+    assert cli.main(["export", "--run", str(tiny_run), "--out", str(out), f"--box={box}", "--quiet"]) == 1
+    assert words in _error_line(capsys)
+    assert not out.exists()
+
+
+def test_export_refuses_a_folder_with_files(tiny_run, tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "notes.txt").write_text("mine")
+    assert cli.main(["export", "--run", str(tiny_run), "--out", str(out), "--quiet"]) == 1
+    assert "--overwrite" in _error_line(capsys)
+    assert sorted(p.name for p in out.iterdir()) == ["notes.txt"]
+
+
+def test_export_auto_box_without_ground_is_a_one_line_error(tiny_run, tmp_path, capsys):
+    out = tmp_path / "out"
+    code = cli.main(["export", "--run", str(tiny_run), "--out", str(out), "--views", "3", "--quiet"])
+    if code == 0:                      # the ball's lower half may pass for a ground: then files exist
+        assert (out / "box.json").is_file() and io.read_json(out / "box.json")["source"] == "auto"
+    else:
+        assert code == 1 and "--box" in _error_line(capsys) and not out.exists()
+
+
+def test_units_are_metres_only_when_the_dataset_states_its_normalisation():
+    from jaxnerf_grid import report
+    from jaxnerf_grid.export import run as export_run
+
+    ds = tiny_dataset()
+    assert export_run.units_of(ds) == "unknown" and "unknown" in export_run.units_comment("unknown")
+    ds.meta = {"scene_normalization": NORM}
+    assert export_run.units_of(ds) == "metres" and "metres" in export_run.units_comment("metres")
+    lines = "\n".join(report.export_lines({"measurements": {"units": "unknown", "height": 2.0}}))
+    assert "units unknown" in lines and "2.00 units" in lines
+
+
+def test_parse_box():
+    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.export.run import parse_box
+
+    assert parse_box("auto") is None and parse_box(" AUTO ") is None
+    np.testing.assert_array_equal(parse_box("-1,-2,-3,4,5,6.5"), [-1, -2, -3, 4, 5, 6.5])
+    for bad in ("1,2,3,4,5", "a,b,c,d,e,f", "0,0,0,1,1,nan", "0,0,1,1,1,1"):
+        with pytest.raises(ConfigError):
+            parse_box(bad)
