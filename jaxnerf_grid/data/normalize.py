@@ -126,29 +126,45 @@ def compose_normalization(first: dict, second: dict) -> dict:
 # The up axis of a capture, for scenes whose world frame is arbitrary (structure from motion)
 
 
-def up_from_cameras(c2w: np.ndarray, *, flatness: float = 0.25, max_tilt_deg: float = 45.0) -> np.ndarray:
+def up_from_cameras(c2w: np.ndarray, *, spread: float = 0.05, flatness: float = 0.25,
+                    max_tilt_deg: float = 45.0) -> np.ndarray:
     """World up direction of a capture, from its cameras. Returns a unit vector [3].
 
-    c2w: [N, 3|4, 4] OpenGL axes (camera +y is up in the image). The mean of the cameras' up
-    vectors (`c2w[:, :3, 1]`) is the estimate a level-held camera gives; an orbit tilts each
-    camera towards its centre, which averages out only over a full circle. So when the camera
-    centres lie near a plane (N >= 3, the smallest eigenvalue of their covariance at most
-    `flatness` times the middle one, which itself is at least `flatness` times the largest:
-    a plane, not a line) and that plane's normal is within `max_tilt_deg` of the mean up, the
-    normal is the up axis, its sign chosen to agree with the mean up (an orbit at one or
-    several heights around a tower). Otherwise the mean up vector.
+    c2w: [N, 3|4, 4] OpenGL axes (camera +x right, +y up in the image). Three estimates, the
+    first that applies (each must lie within `max_tilt_deg` of the mean up vector, whose
+    side it takes):
+    1. level cameras (a drone's gimbal holds the roll at zero): every camera's right vector
+       `c2w[:, :3, 0]` is horizontal, so up is the direction most perpendicular to all of
+       them, the eigenvector of the smallest eigenvalue of sum(x x^T) over the right vectors.
+       It needs the headings to vary (the middle eigenvalue at least `spread` times the
+       largest); any pitch, any part of an orbit, any heights;
+    2. the normal of a plane fitted to the camera centres, when they lie near one (N >= 3;
+       the smallest eigenvalue of their covariance at most `flatness` times the middle one,
+       which is at least `flatness` times the largest: a plane, not a line): one heading
+       over a flat survey pattern;
+    3. the mean of the cameras' up vectors `c2w[:, :3, 1]` (exact for level, unpitched cameras).
     """
     c2w = np.asarray(c2w, dtype=np.float64)
     mean_up = c2w[:, :3, 1].mean(0)
     norm = np.linalg.norm(mean_up)
     mean_up = mean_up / norm if norm > 1e-9 else np.array([0.0, 0.0, 1.0])
+    min_cos = np.cos(np.radians(max_tilt_deg))
+
+    def oriented(v):
+        v = v / np.linalg.norm(v)
+        v = v if v @ mean_up >= 0 else -v
+        return v if v @ mean_up >= min_cos else None
+
+    right = c2w[:, :3, 0] / np.linalg.norm(c2w[:, :3, 0], axis=-1, keepdims=True)
+    eig, vec = np.linalg.eigh(right.T @ right / len(right))
+    if eig[1] >= spread * eig[2] and (up := oriented(vec[:, 0])) is not None:
+        return up
     centres = c2w[:, :3, 3]
     if len(centres) >= 3:
         eig, vec = np.linalg.eigh(np.cov((centres - centres.mean(0)).T, bias=True))
         if eig[2] > 1e-12 and eig[0] <= flatness * eig[1] and eig[1] >= flatness * eig[2]:
-            normal = vec[:, 0] * (1.0 if vec[:, 0] @ mean_up >= 0 else -1.0)
-            if normal @ mean_up >= np.cos(np.radians(max_tilt_deg)):
-                return normal / np.linalg.norm(normal)
+            if (up := oriented(vec[:, 0])) is not None:
+                return up
     return mean_up
 
 

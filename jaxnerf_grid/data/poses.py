@@ -177,10 +177,10 @@ def check_options(matcher: str, camera_model: str, vocab_tree) -> None:
 
 
 def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
-               camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True):
+               camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None):
     """Features, matching and incremental mapping. Returns the largest pycolmap.Reconstruction.
 
-    DataError when no model could be built.
+    DataError (naming `source`, the input folder) when no model could be built.
     """
     database = work_dir / "database.db"
     pycolmap.set_random_seed(0)
@@ -207,7 +207,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         if best is not None and best.num_reg_images() >= RELAX_BELOW * len(names):
             break
     if best is None:
-        raise DataError(f"{photo_dir}: no reconstruction: the photos share too few features (more overlap, "
+        raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
     return best
 
@@ -372,14 +372,14 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
         raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another --out")
     io.ensure_writable(out, overwrite)
     pycolmap = import_pycolmap()
-    pycolmap.logging.minloglevel = 2  # COLMAP's own log: errors only; progress is ours
+    pycolmap.logging.minloglevel = 3  # COLMAP's own log: fatal only; progress and errors are ours
     out.parent.mkdir(parents=True, exist_ok=True)
     stage_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.poses-", dir=out.parent))
     try:
         photo_dir, names, skipped = prepare_photos(photos, stage_dir / "_work" / "photos", max_side, progress)
         model = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
                            camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
-                           show=progress)
+                           show=progress, source=images_dir)
         registered = sorted(im.name for im in model.images.values())
         unregistered = sorted(set(names) - set(registered))
         if len(registered) < MIN_REGISTERED:
