@@ -159,6 +159,15 @@ def orbit_run(tmp_path_factory):
     return dict(code=code, out=out, photos=photos, views=views, names=names, before=before)
 
 
+@pytest.fixture(scope="module")
+def per_photo_run(orbit_run):
+    """The same photos with one camera per photo: each undistorts to its own size, and the
+    dataset is cropped to one size."""
+    out = orbit_run["out"].parent / "data_per_photo"
+    code = cli.main(["poses", "--images", str(orbit_run["photos"]), "--out", str(out), "--quiet"])
+    return dict(orbit_run, code=code, out=out)
+
+
 def test_poses_recovers_the_orbit(orbit_run):
     """All 16 views register; after a similarity alignment the rotations are within 1 degree
     (median; 2 at most) and the centres within 1 % of the orbit radius (median; 3 % at most)."""
@@ -196,12 +205,15 @@ def test_poses_summary_names_skipped_and_unregistered(orbit_run, capsys):
     # nothing of the input was touched
     assert {p.name: p.read_bytes() for p in orbit_run["photos"].iterdir()} == orbit_run["before"]
     # only the dataset is left in the parent folder (the hidden build folder is gone)
-    assert sorted(p.name for p in orbit_run["out"].parent.iterdir()) == ["data", "photos"]
+    assert not [p.name for p in orbit_run["out"].parent.iterdir() if p.name.startswith(".")]
 
 
-def test_poses_dataset_loads_and_reprojects_within_a_pixel(orbit_run):
-    """load_dataset reads DATA_DIR (the same names, the undistorted images); its cameras project
-    the sparse/0 points onto their observations within a pixel."""
+@pytest.mark.parametrize("run", ["orbit_run", "per_photo_run"])
+def test_poses_dataset_loads_and_reprojects_within_a_pixel(run, request):
+    """load_dataset reads DATA_DIR (the same names, the undistorted images, one size); its
+    cameras project the sparse/0 points onto their observations within a pixel."""
+    orbit_run = request.getfixturevalue(run)
+    assert orbit_run["code"] == 0
     out = orbit_run["out"]
     ds = formats.load_dataset(out, progress=False)
     assert ds.num_frames == NUM_VIEWS
@@ -210,6 +222,7 @@ def test_poses_dataset_loads_and_reprojects_within_a_pixel(orbit_run):
     assert len(ds.split["train"]) and len(ds.split["test"])
     cams, imgs, pts = colmap_io.read_model(out / "sparse" / "0")
     assert {c.model for c in cams.values()} == {"PINHOLE"}
+    assert {(c.width, c.height) for c in cams.values()} == {ds.images.shape[2:0:-1]}
     xyz = {pid: p.xyz for pid, p in pts.items()}
     s, tr = ds.normalization["scale"], np.asarray(ds.normalization["translation"])
     index = {p: i for i, p in enumerate(ds.frame_paths)}

@@ -284,6 +284,51 @@ def undistort(pycolmap, model, photo_dir: Path, stage_dir: Path) -> None:
     os.replace(out / "images", stage_dir / "images")
     (stage_dir / "sparse").mkdir()
     os.replace(out / "sparse", stage_dir / "sparse" / "0")
+    crop_to_common_size(pycolmap, stage_dir / "sparse" / "0", stage_dir / "images")
+
+
+def crop_offsets(sizes: dict) -> tuple[tuple[int, int], dict]:
+    """The common size of undistorted photos and each camera's crop.
+
+    sizes: {camera id: (W, H)}. Returns ((W0, H0) = the smallest width and height,
+    {camera id: (left, top)}: the columns and rows cut before the kept window, which is
+    centred: (W - W0) // 2, (H - H0) // 2).
+    """
+    w0, h0 = min(w for w, _ in sizes.values()), min(h for _, h in sizes.values())
+    return (w0, h0), {cid: ((w - w0) // 2, (h - h0) // 2) for cid, (w, h) in sizes.items()}
+
+
+def crop_to_common_size(pycolmap, model_dir: Path, images_dir: Path) -> tuple[int, int]:
+    """Crops undistorted photos to one size (a dataset has one image size, docs/DATASET.md).
+
+    With one camera per photo, COLMAP's undistortion gives each photo its own size; every photo
+    is cut to the smallest width and height, centred (`crop_offsets`), and the model follows:
+    the cameras' size and principal point, the observations' pixel positions. Returns (W, H).
+    """
+    model = pycolmap.Reconstruction(model_dir)
+    sizes = {cid: (int(cam.width), int(cam.height)) for cid, cam in model.cameras.items()}
+    (w0, h0), offsets = crop_offsets(sizes)
+    if all(size == (w0, h0) for size in sizes.values()):
+        return w0, h0
+    cv2 = io.opencv()
+    for cid, cam in model.cameras.items():
+        left, top = offsets[cid]
+        params = np.array(cam.params, np.float64)
+        params[2:4] -= (left, top)  # PINHOLE: fx, fy, cx, cy
+        cam.width, cam.height, cam.params = w0, h0, params
+    for im in model.images.values():
+        left, top = offsets[im.camera_id]
+        for point in im.points2D:
+            point.xy = point.xy - np.array([left, top], np.float64)
+        path = images_dir / im.name
+        pixels, _ = io.decode_raw(path, "undistorted photo", cv2.IMREAD_UNCHANGED)
+        params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if path.suffix.lower() in (".jpg", ".jpeg") else []
+        ok, buf = cv2.imencode(path.suffix.lower(), pixels[top:top + h0, left:left + w0], params)
+        if not ok:
+            raise DataError(f"{path}: could not encode the cropped photo")
+        io.atomic_write_bytes(path, buf.tobytes())
+    model.write(model_dir)
+    return w0, h0
 
 
 # ----------------------------------------------------------------------------------------
