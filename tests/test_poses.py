@@ -22,7 +22,7 @@ from jaxnerf_grid import cli, io
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.normalize import normalize_orbit, rotate_scene, rotation_between, up_from_cameras
-from jaxnerf_grid.data.poses import prepare_photo
+from jaxnerf_grid.data.poses import crop_offsets, prepare_photo, working_size
 
 W, H, FOCAL = 200, 150, 180.0
 RADIUS, HEIGHT, TARGET = 5.0, 2.5, np.array([0.0, 0.0, 0.8])
@@ -364,6 +364,15 @@ def test_prepare_photo_honours_exif_orientation(tmp_path):
     assert prepare_photo(png, tmp_path / "work", None) == (png, (80, 60))
     used, size = prepare_photo(png, tmp_path / "work", 40)
     assert size == (40, 30) and cv2.imread(str(used)).shape == (30, 40, 3) and used.name == "flat.png"
+
+
+def test_working_size_and_crop_offsets():
+    assert working_size(4000, 3000, None) == (4000, 3000)
+    assert working_size(4000, 3000, 800) == (800, 600)
+    assert working_size(3000, 4000, 800) == (600, 800)
+    assert working_size(320, 240, 800) == (320, 240)  # never enlarged
+    size, offsets = crop_offsets({1: (197, 147), 2: (193, 144), 3: (200, 150)})
+    assert size == (193, 144) and offsets == {1: (2, 1), 2: (0, 0), 3: (3, 3)}
 
 
 # ----------------------------------------------------------------------------------------
