@@ -268,7 +268,8 @@ def c2w_gl_from_cam_from_world(matrix) -> np.ndarray:
 
 def orient_z_up(pycolmap, model) -> np.ndarray:
     """Rotates a pycolmap.Reconstruction in place so its cameras' up axis is +z. Returns R [3, 3]."""
-    c2w = np.stack([c2w_gl_from_cam_from_world(im.cam_from_world().matrix()) for im in model.images.values()])
+    c2w = np.stack([c2w_gl_from_cam_from_world(model.images[i].cam_from_world().matrix())
+                    for i in model.reg_image_ids()])
     rot = rotation_between(up_from_cameras(c2w), [0.0, 0.0, 1.0])
     model.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rot), np.zeros(3)))
     return rot
@@ -425,7 +426,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
         model = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
                            camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
                            show=progress, source=images_dir)
-        registered = sorted(im.name for im in model.images.values())
+        registered = sorted(model.images[i].name for i in model.reg_image_ids())
         unregistered = sorted(set(names) - set(registered))
         if len(registered) < MIN_REGISTERED:
             raise DataError(f"{images_dir}: only {len(registered)} of {len(names)} photos registered; a dataset "
