@@ -22,7 +22,7 @@ from jaxnerf_grid import cli, io
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.normalize import normalize_orbit, rotate_scene, rotation_between, up_from_cameras
-from jaxnerf_grid.data.poses import crop_offsets, prepare_photo, working_size
+from jaxnerf_grid.data.poses import crop_offsets, poses_agree, prepare_photo, similarity_fit, working_size
 
 W, H, FOCAL = 200, 150, 180.0
 RADIUS, HEIGHT, TARGET = 5.0, 2.5, np.array([0.0, 0.0, 0.8])
@@ -373,6 +373,27 @@ def test_working_size_and_crop_offsets():
     assert working_size(320, 240, 800) == (320, 240)  # never enlarged
     size, offsets = crop_offsets({1: (197, 147), 2: (193, 144), 3: (200, 150)})
     assert size == (193, 144) and offsets == {1: (2, 1), 2: (0, 0), 3: (3, 3)}
+
+
+def test_similarity_fit_and_poses_agree():
+    """Poses moved by a known similarity agree with the originals (and the fit recovers it);
+    3 degrees of rotation noise on every camera, or a fifth of them swapped, do not."""
+    views = _orbit(10)
+    rot, scale, shift = _random_rotation(7), 0.37, np.array([1.0, -2.0, 0.5])
+    moved = views.copy()
+    moved[:, :3, :3] = rot @ views[:, :3, :3]
+    moved[:, :3, 3] = scale * views[:, :3, 3] @ rot.T + shift
+    s, r, t = similarity_fit(views[:, :3, 3], moved[:, :3, 3])
+    assert s == pytest.approx(scale) and np.allclose(r, rot, atol=1e-9) and np.allclose(t, shift, atol=1e-9)
+    a = {f"p{i}": m for i, m in enumerate(views)}
+    b = {f"p{i}": m for i, m in enumerate(moved)}
+    assert poses_agree(a, b) and poses_agree(b, a)
+    assert poses_agree(a, dict(b, extra=np.eye(4)))  # names only one side holds are ignored
+    assert not poses_agree(a, {k: b[k] for k in ("p0", "p1")})  # fewer than 3 in common
+    noisy = {k: _roll(m, 3.0) for k, m in b.items()}
+    assert not poses_agree(a, noisy)
+    swapped = dict(b, p0=b["p5"], p5=b["p0"], p2=b["p7"], p7=b["p2"], p3=b["p8"], p8=b["p3"])
+    assert not poses_agree(a, swapped)
 
 
 # ----------------------------------------------------------------------------------------

@@ -57,6 +57,10 @@ JPEG_QUALITY = 95
 # COLMAP's defaults of 30 inliers to register a photo); the run registering more is kept.
 RELAX_BELOW = 0.9
 RELAXED = {"abs_pose_min_num_inliers": 15, "init_min_num_inliers": 50, "init_min_tri_angle": 8.0}
+# ... and kept only when it agrees with the first run's model on the photos both register
+# (median rotation difference and centre distance, `poses_agree`), or when the first failed.
+AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
+MIN_COMPARED = 8  # a smaller first model is no judge: the relaxed one is kept
 
 
 def import_pycolmap():
@@ -198,18 +202,76 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
             pairing = pycolmap.VocabTreePairingOptions()
             pairing.vocab_tree_path = str(vocab_tree)
             pycolmap.match_vocabtree(database, pairing_options=pairing)
-    best = None
-    for attempt, relaxed in enumerate((False, True)):
-        label = "mapping" if not relaxed else "mapping again (relaxed thresholds)"
-        model = _map(pycolmap, database, photo_dir, work_dir / f"sparse{attempt}", len(names), relaxed, label, show)
-        if model is not None and (best is None or model.num_reg_images() > best.num_reg_images()):
-            best = model
-        if best is not None and best.num_reg_images() >= RELAX_BELOW * len(names):
-            break
+    n = len(names)
+    default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", n, False, "mapping", show)
+    best = default
+    if default is None or default.num_reg_images() < RELAX_BELOW * n:
+        relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", n, True,
+                       "mapping again (relaxed thresholds)", show)
+        best = choose_model(default, relaxed, show)
     if best is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
     return best
+
+
+def choose_model(default, relaxed, show: bool = False):
+    """The default mapping's model or the relaxed one's (either may be None).
+
+    The relaxed model is kept when it registers more photos and either the default model is
+    too small to judge it (fewer than MIN_COMPARED photos) or it agrees with the default model
+    on the photos both hold (`poses_agree`): relaxed thresholds can also register photos
+    wrongly, e.g. across the look-alike faces of a lattice tower.
+    """
+    if relaxed is None or (default is not None and relaxed.num_reg_images() <= default.num_reg_images()):
+        return default
+    if default is None or default.num_reg_images() < MIN_COMPARED:
+        return relaxed
+    if poses_agree(model_poses(default), model_poses(relaxed)):
+        _say(f"poses: kept the relaxed model ({relaxed.num_reg_images()} photos)", show)
+        return relaxed
+    _say(f"poses: the relaxed model ({relaxed.num_reg_images()} photos) disagrees with the default one; "
+         f"kept the default ({default.num_reg_images()} photos)", show)
+    return default
+
+
+def model_poses(model) -> dict:
+    """{photo name: camera-to-world [4, 4] OpenGL} of a pycolmap.Reconstruction's registered photos."""
+    return {model.images[i].name: c2w_gl_from_cam_from_world(model.images[i].cam_from_world().matrix())
+            for i in model.reg_image_ids()}
+
+
+def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity dst ~ s R src + t (Umeyama 1991). src, dst: [N, 3], N >= 3.
+    Returns (s, R [3, 3], t [3])."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    mean_s, mean_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mean_s, dst - mean_d
+    u, sig, vt = np.linalg.svd(xd.T @ xs / len(src))
+    d = np.eye(3)
+    d[2, 2] = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0
+    rot = u @ d @ vt
+    var = float((xs ** 2).sum(1).mean())
+    scale = float((sig * np.diag(d)).sum() / var) if var > 0 else 1.0
+    return scale, rot, mean_d - scale * rot @ mean_s
+
+
+def poses_agree(a: dict, b: dict, *, max_deg: float = AGREE_DEG, max_centre: float = AGREE_CENTRE) -> bool:
+    """Whether two sets of poses ({name: c2w [4, 4]}) describe the same cameras up to a
+    similarity: on the names both hold (at least 3), after aligning b's centres to a's
+    (`similarity_fit`), the median rotation difference is at most `max_deg` and the median
+    centre distance at most `max_centre` times the spread of a's centres (their median
+    distance to their mean)."""
+    common = sorted(set(a) & set(b))
+    if len(common) < 3:
+        return False
+    pa, pb = np.stack([a[k] for k in common]), np.stack([b[k] for k in common])
+    scale, rot, t = similarity_fit(pb[:, :3, 3], pa[:, :3, 3])
+    spread = float(np.median(np.linalg.norm(pa[:, :3, 3] - pa[:, :3, 3].mean(0), axis=1)))
+    centre = np.linalg.norm(scale * pb[:, :3, 3] @ rot.T + t - pa[:, :3, 3], axis=1)
+    cos = (np.einsum("nij,nij->n", rot @ pb[:, :3, :3], pa[:, :3, :3]) - 1.0) / 2.0
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return bool(np.median(angle) <= max_deg and np.median(centre) <= max_centre * max(spread, 1e-12))
 
 
 def mapper_options(pycolmap, relaxed: bool):
@@ -268,8 +330,7 @@ def c2w_gl_from_cam_from_world(matrix) -> np.ndarray:
 
 def orient_z_up(pycolmap, model) -> np.ndarray:
     """Rotates a pycolmap.Reconstruction in place so its cameras' up axis is +z. Returns R [3, 3]."""
-    c2w = np.stack([c2w_gl_from_cam_from_world(model.images[i].cam_from_world().matrix())
-                    for i in model.reg_image_ids()])
+    c2w = np.stack(list(model_poses(model).values()))
     rot = rotation_between(up_from_cameras(c2w), [0.0, 0.0, 1.0])
     model.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rot), np.zeros(3)))
     return rot
