@@ -16,8 +16,7 @@ from __future__ import annotations
 
 import argparse
 
-MATCHERS = ("exhaustive", "sequential", "vocab")
-CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+from jaxnerf_grid.data.poses import CAMERA_MODELS, MATCHERS
 
 
 def build_parser() -> argparse.ArgumentParser:
