@@ -10,10 +10,13 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      `single_camera`, else COLMAP's per-photo cameras;
   3. matching: exhaustive, sequential (photos in name order, as a flight records them) or a
      vocabulary tree (`vocab_tree`: a file; none is downloaded);
-  4. mapping: incremental mapping (`pycolmap.incremental_mapping`); the largest model is kept,
-     the photos outside it are named;
+  4. mapping: incremental mapping (`pycolmap.incremental_mapping`), once more with relaxed
+     thresholds when under 90 % of the photos register (`choose_model` keeps the relaxed
+     model only when it is consistent with the first); the largest model is kept, the photos
+     outside it are named;
   5. undistortion to PINHOLE (`pycolmap.undistort_images`): DATA_DIR/images/ holds the
-     undistorted photos under their input names;
+     undistorted photos under their input names, cropped to one size when each photo has its
+     own camera (`crop_to_common_size`);
   6. orientation and normalisation: the model is rotated so the cameras' up axis is +z
      (`normalize.up_from_cameras`) and written to DATA_DIR/sparse/0; transforms.json carries
      OpenGL camera-to-world poses normalised for an orbit (`normalize.normalize_orbit`:
