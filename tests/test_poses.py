@@ -11,7 +11,6 @@ installs it).
 
 from __future__ import annotations
 
-import json
 import struct
 import sys
 

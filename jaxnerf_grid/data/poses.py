@@ -43,8 +43,8 @@ import numpy as np
 from jaxnerf_grid import io, progress
 from jaxnerf_grid.data.formats.colmap import collect_colmap
 from jaxnerf_grid.data.formats.writing import transforms_top
-from jaxnerf_grid.data.normalize import (apply_normalization_to_points, normalize_orbit, rotate_scene,
-                                         rotation_between, up_from_cameras)
+from jaxnerf_grid.data.normalize import (apply_normalization_to_points, normalize_orbit, rotation_between,
+                                         up_from_cameras)
 from jaxnerf_grid.io import DataError
 
 MIN_PHOTOS = 3        # fewer readable photos: refused before any work
