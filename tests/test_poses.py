@@ -11,6 +11,7 @@ installs it).
 
 from __future__ import annotations
 
+import shutil
 import struct
 import sys
 
@@ -21,7 +22,7 @@ from jaxnerf_grid import cli, io
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.normalize import normalize_orbit, rotate_scene, rotation_between, up_from_cameras
-from jaxnerf_grid.data.poses import crop_offsets, poses_agree, prepare_photo, similarity_fit, working_size
+from jaxnerf_grid.data.poses import MARKER, crop_offsets, poses_agree, prepare_photo, similarity_fit, working_size
 
 W, H, FOCAL = 200, 150, 180.0
 RADIUS, HEIGHT, TARGET = 5.0, 2.5, np.array([0.0, 0.0, 0.8])
@@ -250,6 +251,21 @@ def test_poses_refuses_existing_data_dir_and_keeps_it(orbit_run, capsys):
     assert (out / "transforms.json").read_bytes() == before
 
 
+def test_poses_overwrite_replaces_only_its_outputs(orbit_run, tmp_path, capsys):
+    """--overwrite on a dataset poses wrote: images/, sparse/, transforms.json and the top view
+    are new; the user's other files stay."""
+    out = tmp_path / "again"
+    shutil.copytree(orbit_run["out"], out)
+    (out / "notes.txt").write_text("mine")
+    (out / "images" / "stale.png").write_bytes(b"old")
+    code = cli.main(["poses", "--images", str(orbit_run["photos"]), "--out", str(out), "--single-camera",
+                     "--overwrite", "--quiet"])
+    assert code == 0, capsys.readouterr().err
+    assert (out / "notes.txt").read_text() == "mine" and not (out / "images" / "stale.png").exists()
+    assert len(io.read_json(out / "transforms.json")["frames"]) == NUM_VIEWS and (out / MARKER).is_file()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["again"]
+
+
 def test_poses_too_few_registered_keeps_old_data_dir(tmp_path, capsys):
     """Photos that share nothing: a one-line error, and --overwrite leaves the old DATA_DIR."""
     pytest.importorskip("pycolmap")
@@ -260,10 +276,12 @@ def test_poses_too_few_registered_keeps_old_data_dir(tmp_path, capsys):
     out = tmp_path / "data"
     out.mkdir()
     (out / "keep.txt").write_text("old dataset")
+    (out / MARKER).write_text("")  # as if poses wrote it, so --overwrite may replace it
     code = cli.main(["poses", "--images", str(photos), "--out", str(out), "--overwrite", "--quiet"])
     err = capsys.readouterr().err.strip()
     assert code == 1 and "\n" not in err and str(photos) in err, err
-    assert (out / "keep.txt").read_text() == "old dataset" and sorted(p.name for p in out.iterdir()) == ["keep.txt"]
+    assert (out / "keep.txt").read_text() == "old dataset"
+    assert sorted(p.name for p in out.iterdir()) == sorted(["keep.txt", MARKER])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "photos"]
 
 
@@ -310,6 +328,18 @@ def test_poses_vocab_needs_a_tree_file(tmp_path, capsys):
     err = _one_line_error(capsys, ["--images", str(tmp_path / "p"), "--out", str(tmp_path / "d"),
                                    "--matcher", "vocab", "--vocab-tree", str(tmp_path / "tree.bin")])
     assert str(tmp_path / "tree.bin") in err and "not found" in err
+
+
+def test_poses_overwrite_refuses_a_folder_it_did_not_write(tmp_path, capsys):
+    _few_photos(tmp_path / "p", 3)
+    (tmp_path / "d").mkdir()
+    (tmp_path / "d" / "thesis.tex").write_text("years of work")
+    err = _one_line_error(capsys, ["--images", str(tmp_path / "p"), "--out", str(tmp_path / "d"), "--overwrite"])
+    assert str(tmp_path / "d") in err and MARKER in err
+    assert [p.name for p in (tmp_path / "d").iterdir()] == ["thesis.tex"]
+    (tmp_path / "f").write_text("a file")
+    err = _one_line_error(capsys, ["--images", str(tmp_path / "p"), "--out", str(tmp_path / "f"), "--overwrite"])
+    assert "is a file" in err and (tmp_path / "f").read_text() == "a file"
 
 
 def test_poses_never_writes_over_its_input(tmp_path, capsys):

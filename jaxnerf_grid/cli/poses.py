@@ -34,7 +34,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one camera (intrinsics) shared by all photos: right for one drone camera at one zoom")
     p.add_argument("--max-side", type=int, default=None,
                    help="scale the photos so the longer side is at most N pixels (the dataset keeps this size)")
-    p.add_argument("--overwrite", action="store_true", help="replace an existing DATA_DIR")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a DATA_DIR written by poses (its outputs only; other folders are refused)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 

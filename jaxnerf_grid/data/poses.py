@@ -26,8 +26,9 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
   7. DATA_DIR/poses_topview.png: camera centres and sparse points seen from above.
 
 Everything is built in a hidden folder next to DATA_DIR and moved into place at the end, so
-a failed run leaves an existing DATA_DIR (replaced only with `overwrite`) as it was, and the
-input photos are never written to.
+a failed run leaves an existing DATA_DIR as it was, and the input photos are never written
+to. `overwrite` replaces only a dataset this command wrote (MARKER), and in it only its own
+outputs (OUTPUTS); other files stay (docs/RELIABILITY.md).
 """
 
 from __future__ import annotations
@@ -54,6 +55,10 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
 TOPVIEW = "poses_topview.png"
+# `--overwrite` replaces only a dataset this command wrote (it holds MARKER), and in it only
+# OUTPUTS; the user's other files stay (docs/RELIABILITY.md).
+MARKER = ".jaxnerf-grid-poses"
+OUTPUTS = ("images", "sparse", "transforms.json", TOPVIEW, MARKER)
 JPEG_QUALITY = 95
 # Mapping runs again with RELAXED mapper thresholds when the first run registers fewer than
 # RELAX_BELOW of the photos (small working sizes give a few hundred features per photo, below
@@ -480,7 +485,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     photos = list_photos(images_dir)
     if _inside(images_dir, out):
         raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another --out")
-    io.ensure_writable(out, overwrite)
+    check_out(out, overwrite)
     pycolmap = import_pycolmap()
     pycolmap.logging.minloglevel = 3  # COLMAP's own log: fatal only; progress and errors are ours
     out.parent.mkdir(parents=True, exist_ok=True)
@@ -507,7 +512,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
             shutil.rmtree(stage_dir / "_work")
             summary["seconds"] = round(time.monotonic() - start, 1)
             write_dataset(stage_dir, summary)
-        _replace_dir(stage_dir, out)
+            (stage_dir / MARKER).write_text("written by jaxnerf-grid poses; --overwrite replaces its outputs\n")
+        move_into_place(stage_dir, out)
     except BaseException:
         shutil.rmtree(stage_dir, ignore_errors=True)
         raise
@@ -521,14 +527,33 @@ def _inside(path: Path, folder: Path) -> bool:
     return path == folder or folder in path.parents
 
 
-def _replace_dir(src: Path, dst: Path) -> None:
-    """Moves the finished `src` folder to `dst`, replacing what `dst` held."""
-    if dst.is_dir():
-        old = Path(tempfile.mkdtemp(prefix=f".{dst.name}.old-", dir=dst.parent))
-        os.replace(dst, old / dst.name)
-        os.replace(src, dst)
-        shutil.rmtree(old, ignore_errors=True)
-    else:
-        if dst.exists():
-            dst.unlink()
-        os.replace(src, dst)
+def check_out(out: Path, overwrite: bool) -> None:
+    """DataError unless `out` may receive the dataset: absent, an empty folder, or with
+    `overwrite` a dataset this command wrote (it holds MARKER)."""
+    if out.is_file():
+        raise DataError(f"{out}: is a file; --out must be a folder")
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    if not overwrite:
+        raise DataError(f"{out}: already exists and is not empty; pass --overwrite to replace it")
+    if not (out / MARKER).is_file():
+        raise DataError(f"{out}: not a dataset written by jaxnerf-grid poses (no {MARKER}); --overwrite "
+                        f"replaces only those: choose another --out")
+
+
+def move_into_place(stage: Path, out: Path) -> None:
+    """Moves the finished dataset from `stage` to `out`: the whole folder when `out` does not
+    exist, else entry by entry (OUTPUTS), the old entries of that name removed and every other
+    file of `out` kept."""
+    if not out.exists():
+        os.replace(stage, out)
+        return
+    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    for name in OUTPUTS:
+        if (out / name).exists() or (out / name).is_symlink():
+            os.replace(out / name, trash / name)
+    for name in OUTPUTS:
+        if (stage / name).exists():
+            os.replace(stage / name, out / name)
+    shutil.rmtree(trash, ignore_errors=True)
+    shutil.rmtree(stage, ignore_errors=True)
