@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import sys
 import tempfile
 import time
 from pathlib import Path
@@ -164,9 +165,8 @@ def _link_or_copy(src: Path, dst: Path) -> None:
 
 
 def _say(message: str, show: bool) -> None:
+    """One progress or warning line on stderr (when `show`)."""
     if show:
-        import sys
-
         print(message, file=sys.stderr, flush=True)
 
 
