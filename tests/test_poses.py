@@ -22,7 +22,8 @@ from jaxnerf_grid import cli, io
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.normalize import normalize_orbit, rotate_scene, rotation_between, up_from_cameras
-from jaxnerf_grid.data.poses import MARKER, crop_offsets, poses_agree, prepare_photo, similarity_fit, working_size
+from jaxnerf_grid.data.poses import (MARKER, crop_offsets, enough_registered, poses_agree, prepare_photo,
+                                    similarity_fit, working_size)
 
 W, H, FOCAL = 200, 150, 180.0
 RADIUS, HEIGHT, TARGET = 5.0, 2.5, np.array([0.0, 0.0, 0.8])
@@ -201,6 +202,7 @@ def test_poses_summary_names_skipped_and_unregistered(orbit_run, capsys):
     assert summary["unregistered"] == ["zz_blank.png"]
     assert summary["skipped"] == ["broken.jpg"]
     assert 0 < summary["mean_reprojection_error"] < 1.0 and summary["points3d"] > 100
+    assert isinstance(summary["relaxed_mapping"], bool)
     assert (orbit_run["out"] / "poses_topview.png").is_file()
     # nothing of the input was touched
     assert {p.name: p.read_bytes() for p in orbit_run["photos"].iterdir()} == orbit_run["before"]
@@ -400,6 +402,7 @@ def test_working_size_and_crop_offsets():
     assert working_size(4000, 3000, 800) == (800, 600)
     assert working_size(3000, 4000, 800) == (600, 800)
     assert working_size(320, 240, 800) == (320, 240)  # never enlarged
+    assert [enough_registered(n) for n in (3, 12, 13, 30, 120)] == [3, 3, 4, 8, 30]
     size, offsets = crop_offsets({1: (197, 147), 2: (193, 144), 3: (200, 150)})
     assert size == (193, 144) and offsets == {1: (2, 1), 2: (0, 0), 3: (3, 3)}
 

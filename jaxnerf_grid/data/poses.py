@@ -50,7 +50,8 @@ from jaxnerf_grid.data.normalize import (apply_normalization_to_points, normaliz
 from jaxnerf_grid.io import DataError
 
 MIN_PHOTOS = 3        # fewer readable photos: refused before any work
-MIN_REGISTERED = 3    # fewer registered photos: no dataset is written
+MIN_REGISTERED = 3    # fewer registered photos: no dataset is written ...
+MIN_REGISTERED_FRACTION = 0.25  # ... nor below a quarter of the readable photos (`enough_registered`)
 MATCHERS = ("exhaustive", "sequential", "vocab")
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
@@ -190,7 +191,8 @@ def check_options(matcher: str, camera_model: str, vocab_tree) -> None:
 
 def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
                camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None):
-    """Features, matching and incremental mapping. Returns the largest pycolmap.Reconstruction.
+    """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
+    whether it comes from the relaxed mapping).
 
     DataError (naming `source`, the input folder) when no model could be built.
     """
@@ -220,7 +222,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     if best is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
-    return best
+    return best, best is not default
 
 
 def choose_model(default, relaxed, show: bool = False):
@@ -460,6 +462,9 @@ def format_summary(summary: dict) -> str:
         lines.append(f"not registered ({len(summary['unregistered'])}): {', '.join(summary['unregistered'])}")
     if summary["skipped"]:
         lines.append(f"unreadable, skipped ({len(summary['skipped'])}): {', '.join(summary['skipped'])}")
+    if summary.get("relaxed_mapping"):
+        lines.append("registered with relaxed mapper thresholds: check the cameras in "
+                     f"{TOPVIEW} (a ring around the tower) before training (docs/POSES.md)")
     return "\n".join(lines)
 
 
@@ -473,8 +478,9 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
 
     Returns the summary: photos, registered, unregistered (names), skipped (names of unreadable
-    files), mean_reprojection_error (px), points3d, matcher, camera_model, seconds, up_rotation
-    ([3, 3] applied to COLMAP's frame), transforms (path).
+    files), mean_reprojection_error (px), points3d, matcher, camera_model, relaxed_mapping
+    (the model came from the relaxed second mapping), seconds, up_rotation ([3, 3] applied to
+    COLMAP's frame), transforms (path).
     DataError (one line, naming the path) for bad input; nothing is written then.
     """
     start = time.monotonic()
@@ -492,21 +498,23 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     stage_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.poses-", dir=out.parent))
     try:
         photo_dir, names, skipped = prepare_photos(photos, stage_dir / "_work" / "photos", max_side, progress)
-        model = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
+        model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
                            camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
                            show=progress, source=images_dir)
         registered = sorted(model.images[i].name for i in model.reg_image_ids())
         unregistered = sorted(set(names) - set(registered))
-        if len(registered) < MIN_REGISTERED:
-            raise DataError(f"{images_dir}: only {len(registered)} of {len(names)} photos registered; a dataset "
-                            f"needs at least {MIN_REGISTERED} (more overlap between photos helps; docs/POSES.md)")
+        if len(registered) < enough_registered(len(names)):
+            shown = ", ".join(unregistered[:5]) + (", ..." if len(unregistered) > 5 else "")
+            raise DataError(f"{images_dir}: only {len(registered)} of {len(names)} photos registered (a dataset needs "
+                            f"{enough_registered(len(names))}; not registered: {shown}); more overlap and texture "
+                            f"between photos help (docs/POSES.md)")
         with _stage("undistortion to PINHOLE, orientation, transforms.json", progress):
             rot = orient_z_up(pycolmap, model)
             summary = {"photos": len(photos), "registered": len(registered), "unregistered": unregistered,
                        "skipped": sorted(skipped), "points3d": int(model.num_points3D()),
                        "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
                        "matcher": matcher, "camera_model": camera_model, "single_camera": bool(single_camera),
-                       "max_side": max_side, "up_rotation": rot.tolist(),
+                       "max_side": max_side, "relaxed_mapping": bool(relaxed), "up_rotation": rot.tolist(),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown"))}
             undistort(pycolmap, model, photo_dir, stage_dir)
             shutil.rmtree(stage_dir / "_work")
@@ -519,6 +527,13 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
         raise
     summary["transforms"] = str(out / "transforms.json")
     return summary
+
+
+def enough_registered(num_photos: int) -> int:
+    """The fewest registered photos that make a dataset: MIN_REGISTERED, and a quarter of the
+    photos (MIN_REGISTERED_FRACTION): a small partial model is rarely useful and often wrong
+    (on the ttpla-like scene 5 of 30 registered, turned over, docs/POSES.md)."""
+    return max(MIN_REGISTERED, int(np.ceil(MIN_REGISTERED_FRACTION * num_photos)))
 
 
 def _inside(path: Path, folder: Path) -> bool:
