@@ -16,6 +16,7 @@ import sys
 
 SUBCOMMANDS = {
     "synth": ("jaxnerf_grid.cli.synth", "render the procedural tower benchmark scene"),
+    "poses": ("jaxnerf_grid.cli.poses", "camera poses for a folder of photos (COLMAP via pycolmap)"),
     "mask": ("jaxnerf_grid.cli.mask", "DPT foreground masks and weights for a dataset"),
     "train": ("jaxnerf_grid.cli.train", "train a NeRF (ours | nerf | nerfw) on a dataset"),
     "render": ("jaxnerf_grid.cli.render", "render views from a trained run"),

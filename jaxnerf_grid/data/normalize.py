@@ -120,3 +120,111 @@ def compose_normalization(first: dict, second: dict) -> dict:
     s1, s2 = float(first["scale"]), float(second["scale"])
     t1, t2 = np.asarray(first["translation"], float), np.asarray(second["translation"], float)
     return {"scale": s1 * s2, "translation": [float(v) for v in t1 + t2 / s1]}
+
+
+# ----------------------------------------------------------------------------------------
+# The up axis of a capture, for scenes whose world frame is arbitrary (structure from motion)
+
+
+def up_from_cameras(c2w: np.ndarray, *, spread: float = 0.05, flatness: float = 0.25,
+                    max_tilt_deg: float = 45.0) -> np.ndarray:
+    """World up direction of a capture, from its cameras. Returns a unit vector [3].
+
+    c2w: [N, 3|4, 4] OpenGL axes (camera +x right, +y up in the image). Three estimates, the
+    first that applies (each must lie within `max_tilt_deg` of the mean up vector, whose
+    side it takes):
+    1. level cameras (a drone's gimbal holds the roll at zero): every camera's right vector
+       `c2w[:, :3, 0]` is horizontal, so up is the direction most perpendicular to all of
+       them, the eigenvector of the smallest eigenvalue of sum(x x^T) over the right vectors.
+       It needs the headings to vary (the middle eigenvalue at least `spread` times the
+       largest); any pitch, any part of an orbit, any heights;
+    2. the normal of a plane fitted to the camera centres, when they lie near one (N >= 3;
+       the smallest eigenvalue of their covariance at most `flatness` times the middle one,
+       which is at least `flatness` times the largest: a plane, not a line): one heading
+       over a flat survey pattern;
+    3. the mean of the cameras' up vectors `c2w[:, :3, 1]` (exact for level, unpitched cameras).
+    """
+    c2w = np.asarray(c2w, dtype=np.float64)
+    mean_up = c2w[:, :3, 1].mean(0)
+    norm = np.linalg.norm(mean_up)
+    mean_up = mean_up / norm if norm > 1e-9 else np.array([0.0, 0.0, 1.0])
+    min_cos = np.cos(np.radians(max_tilt_deg))
+
+    def oriented(v):
+        v = v / np.linalg.norm(v)
+        v = v if v @ mean_up >= 0 else -v
+        return v if v @ mean_up >= min_cos else None
+
+    right = c2w[:, :3, 0] / np.linalg.norm(c2w[:, :3, 0], axis=-1, keepdims=True)
+    eig, vec = np.linalg.eigh(right.T @ right / len(right))
+    if eig[1] >= spread * eig[2] and (up := oriented(vec[:, 0])) is not None:
+        return up
+    centres = c2w[:, :3, 3]
+    if len(centres) >= 3:
+        eig, vec = np.linalg.eigh(np.cov((centres - centres.mean(0)).T, bias=True))
+        if eig[2] > 1e-12 and eig[0] <= flatness * eig[1] and eig[1] >= flatness * eig[2]:
+            if (up := oriented(vec[:, 0])) is not None:
+                return up
+    return mean_up
+
+
+def rotation_between(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The smallest rotation [3, 3] taking direction a [3] to direction b [3] (Rodrigues).
+
+    Opposite directions: a half turn about an axis perpendicular to a.
+    """
+    a = np.asarray(a, np.float64) / np.linalg.norm(a)
+    b = np.asarray(b, np.float64) / np.linalg.norm(b)
+    axis = np.cross(a, b)
+    s, c = np.linalg.norm(axis), float(a @ b)
+    if s < 1e-12:
+        if c > 0:
+            return np.eye(3)
+        perp = np.cross(a, [1.0, 0.0, 0.0] if abs(a[0]) < 0.9 else [0.0, 1.0, 0.0])
+        perp /= np.linalg.norm(perp)
+        return 2.0 * np.outer(perp, perp) - np.eye(3)
+    k = axis / s
+    kx = np.array([[0.0, -k[2], k[1]], [k[2], 0.0, -k[0]], [-k[1], k[0], 0.0]])
+    return np.eye(3) + s * kx + (1.0 - c) * kx @ kx
+
+
+def rotate_scene(c2w: np.ndarray, rotation: np.ndarray, points: np.ndarray | None = None):
+    """Rotates a whole scene about the origin: x' = R x.
+
+    c2w: [N, 3|4, 4]; rotation: [3, 3]; points: optional [P, 3].
+    Returns (c2w' [N, 4, 4], points' [P, 3] or None).
+    """
+    c2w = np.asarray(c2w, np.float64)
+    r = np.asarray(rotation, np.float64)
+    out = np.tile(np.eye(4), (len(c2w), 1, 1))
+    out[:, :3, :3] = r @ c2w[:, :3, :3]
+    out[:, :3, 3] = c2w[:, :3, 3] @ r.T
+    pts = None if points is None else np.asarray(points, np.float64).reshape(-1, 3) @ r.T
+    return out, pts
+
+
+def normalize_orbit(c2w: np.ndarray, points: np.ndarray | None = None, *, percentile: float = 95.0,
+                    camera_fraction: float = 1.0 / 3.0) -> tuple[np.ndarray, dict]:
+    """Normalisation for an orbit around a tower (`jaxnerf-grid poses`, docs/POSES.md).
+
+    c2w: [N, 3|4, 4] OpenGL, already z-up (`up_from_cameras`, `rotate_scene`); points:
+    optional [P, 3]. The centre is the point the cameras look at (`scene_center`, cameras
+    method); the radius is the `percentile`-th percentile of the points' distances to it,
+    capped at `camera_fraction` times the median camera distance (the synthetic scenes put
+    the cameras about 3 radii away: docs/DATASET.md, `data.synthetic.NORMALIZATION`); without
+    points, that cap. Returns (c2w_norm [N, 4, 4], {"scale", "translation"}) as `normalize_poses`.
+    """
+    c2w = np.asarray(c2w, dtype=np.float64)
+    if c2w.ndim != 3 or c2w.shape[1:] not in ((3, 4), (4, 4)) or len(c2w) == 0:
+        raise DataError(f"normalize_orbit: c2w must be [N, 3|4, 4] with N > 0, got {c2w.shape}")
+    pts = None if points is None or len(points) == 0 else np.asarray(points, np.float64).reshape(-1, 3)
+    centre = scene_center(c2w, pts, "cameras")
+    cap = camera_fraction * float(np.median(np.linalg.norm(c2w[:, :3, 3] - centre, axis=-1)))
+    radius = cap
+    if pts is not None:
+        radius = float(np.percentile(np.linalg.norm(pts - centre, axis=-1), percentile))
+        radius = min(radius, cap) if cap > 0 else radius
+    if not np.isfinite(radius) or radius <= 1e-12:
+        radius = 1.0
+    norm = {"scale": 1.0 / radius, "translation": [float(v) for v in -centre]}
+    return apply_normalization_to_poses(c2w, norm), norm

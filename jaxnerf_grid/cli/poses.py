@@ -1,0 +1,52 @@
+"""`jaxnerf-grid poses`: camera poses for a folder of photos (structure from motion with COLMAP's
+Python bindings, pycolmap), written as a dataset that `mask`, `train` and `demo --data` read.
+
+The work is `data.poses.poses_from_images`; this module parses the arguments.
+
+    jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher exhaustive|sequential|vocab]
+                       [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--overwrite]
+
+DATA_DIR gets images/ (the undistorted photos, same names), transforms.json (docs/DATASET.md,
+OpenGL camera-to-world, normalised for an orbit: z up, the looked-at point in the unit
+sphere), sparse/0 (the COLMAP model, z up) and poses_topview.png. Needs the `sfm` extra
+(pycolmap); docs/POSES.md has the stages, the limits and measured times.
+"""
+
+from __future__ import annotations
+
+import argparse
+
+from jaxnerf_grid.data.poses import CAMERA_MODELS, MATCHERS
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="jaxnerf-grid poses", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--images", required=True, help="folder of photos (PNG / JPEG; subfolders are ignored)")
+    p.add_argument("--out", required=True, help="dataset folder to write (DATA_DIR)")
+    p.add_argument("--matcher", choices=MATCHERS, default="exhaustive",
+                   help="exhaustive: every pair (up to a few hundred photos); sequential: neighbours in "
+                        "name order (a flight's sequence); vocab: a vocabulary tree (needs --vocab-tree)")
+    p.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file for --matcher vocab")
+    p.add_argument("--camera-model", choices=CAMERA_MODELS, default="SIMPLE_RADIAL",
+                   help="COLMAP camera model fitted to the photos (undistorted to PINHOLE afterwards)")
+    p.add_argument("--single-camera", action="store_true",
+                   help="one camera (intrinsics) shared by all photos: right for one drone camera at one zoom")
+    p.add_argument("--max-side", type=int, default=None,
+                   help="scale the photos so the longer side is at most N pixels (the dataset keeps this size)")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace a DATA_DIR written by poses (its outputs only; other folders are refused)")
+    p.add_argument("--quiet", action="store_true", help="no progress output")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from jaxnerf_grid.data.poses import format_summary, poses_from_images
+
+    summary = poses_from_images(args.images, args.out, matcher=args.matcher, camera_model=args.camera_model,
+                                single_camera=args.single_camera, max_side=args.max_side,
+                                vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet)
+    print(format_summary(summary))
+    print(f"wrote {summary['transforms']}")
+    return 0

@@ -1,0 +1,574 @@
+"""Camera poses from a folder of photos: structure from motion with COLMAP's own Python
+bindings (pycolmap, the optional extra `sfm`), written as a dataset in the transforms.json
+layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
+
+`poses_from_images(images_dir, out_dir)` runs the stages in order:
+  1. photos: the images of `images_dir` (not its subfolders), sorted by name; unreadable files
+     are named and skipped; EXIF orientation is applied and, with `max_side`, the photos are
+     scaled to a working size (working copies are written only for the photos that need it);
+  2. features: SIFT (`pycolmap.extract_features`), one camera for all photos with
+     `single_camera`, else COLMAP's per-photo cameras;
+  3. matching: exhaustive, sequential (photos in name order, as a flight records them) or a
+     vocabulary tree (`vocab_tree`: a file; none is downloaded);
+  4. mapping: incremental mapping (`pycolmap.incremental_mapping`), once more with relaxed
+     thresholds when under 90 % of the photos register (`choose_model` keeps the relaxed
+     model only when it is consistent with the first); the largest model is kept, the photos
+     outside it are named;
+  5. undistortion to PINHOLE (`pycolmap.undistort_images`): DATA_DIR/images/ holds the
+     undistorted photos under their input names, cropped to one size when each photo has its
+     own camera (`crop_to_common_size`);
+  6. orientation and normalisation: the model is rotated so the cameras' up axis is +z
+     (`normalize.up_from_cameras`) and written to DATA_DIR/sparse/0; transforms.json carries
+     OpenGL camera-to-world poses normalised for an orbit (`normalize.normalize_orbit`:
+     the point the cameras look at in the unit sphere), `scene_normalization` mapping the
+     sparse/0 frame to them, near / far from the points each photo sees (as the COLMAP
+     loader computes them), and a `poses` record (the summary below);
+  7. DATA_DIR/poses_topview.png: camera centres and sparse points seen from above.
+
+Everything is built in a hidden folder next to DATA_DIR and moved into place at the end, so
+a failed run leaves an existing DATA_DIR as it was, and the input photos are never written
+to. `overwrite` replaces only a dataset this command wrote (MARKER), and in it only its own
+outputs (OUTPUTS); other files stay (docs/RELIABILITY.md).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import io, progress
+from jaxnerf_grid.data.formats.colmap import collect_colmap
+from jaxnerf_grid.data.formats.writing import transforms_top
+from jaxnerf_grid.data.normalize import (apply_normalization_to_points, normalize_orbit, rotation_between,
+                                         up_from_cameras)
+from jaxnerf_grid.io import DataError
+
+MIN_PHOTOS = 3        # fewer readable photos: refused before any work
+MIN_REGISTERED = 3    # fewer registered photos: no dataset is written ...
+MIN_REGISTERED_FRACTION = 0.25  # ... nor below a quarter of the readable photos (`enough_registered`)
+MATCHERS = ("exhaustive", "sequential", "vocab")
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
+TOPVIEW = "poses_topview.png"
+# `--overwrite` replaces only a dataset this command wrote (it holds MARKER), and in it only
+# OUTPUTS; the user's other files stay (docs/RELIABILITY.md).
+MARKER = ".jaxnerf-grid-poses"
+OUTPUTS = ("images", "sparse", "transforms.json", TOPVIEW, MARKER)
+JPEG_QUALITY = 95
+# Mapping runs again with RELAXED mapper thresholds when the first run registers fewer than
+# RELAX_BELOW of the photos (small working sizes give a few hundred features per photo, below
+# COLMAP's defaults of 30 inliers to register a photo); the run registering more is kept.
+RELAX_BELOW = 0.9
+RELAXED = {"abs_pose_min_num_inliers": 15, "init_min_num_inliers": 50, "init_min_tri_angle": 8.0}
+# ... and kept only when it agrees with the first run's model on the photos both register
+# (median rotation difference and centre distance, `poses_agree`), or when the first failed.
+AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
+MIN_COMPARED = 8  # a smaller first model is no judge: the relaxed one is kept
+
+
+def import_pycolmap():
+    """The pycolmap module, or a one-line DataError saying how to install it."""
+    try:
+        import pycolmap
+    except ImportError:
+        raise DataError(f"pycolmap is not installed (jaxnerf-grid poses needs it): {INSTALL_HINT}") from None
+    return pycolmap
+
+
+# ----------------------------------------------------------------------------------------
+# Stage 1: the photos
+
+
+def list_photos(images_dir) -> list[Path]:
+    """The photo files of a folder (PNG / JPEG, not recursive), sorted by name.
+
+    DataError naming the folder when it is missing or holds fewer than MIN_PHOTOS photos.
+    """
+    folder = Path(images_dir)
+    if not folder.is_dir():
+        raise DataError(f"{folder}: photo folder not found")
+    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
+    if not photos:
+        raise DataError(f"{folder}: no photos (PNG or JPEG) in this folder")
+    if len(photos) < MIN_PHOTOS:
+        raise DataError(f"{folder}: {len(photos)} photo(s); camera poses need at least {MIN_PHOTOS}")
+    return photos
+
+
+def working_size(width: int, height: int, max_side: int | None) -> tuple[int, int]:
+    """(W', H'): the size scaled so the longer side is at most `max_side` (never enlarged)."""
+    if max_side is None or max(width, height) <= max_side:
+        return width, height
+    s = max_side / max(width, height)
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
+def prepare_photo(path: Path, work_dir: Path, max_side: int | None) -> tuple[Path, tuple[int, int]]:
+    """The file COLMAP should read for one photo, and its size (W, H).
+
+    The photo itself when it is upright (its EXIF orientation changes nothing) and within
+    `max_side`; else an upright, scaled copy in `work_dir` under the same name. DataError
+    naming the file when it cannot be decoded.
+    """
+    cv2 = io.opencv()
+    upright, data = io.decode_raw(path, "photo", cv2.IMREAD_COLOR)
+    stored = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    height, width = upright.shape[:2]
+    size = working_size(width, height, max_side)
+    if size == (width, height) and stored is not None and np.array_equal(stored, upright):
+        return path, size
+    out = upright if size == (width, height) else io.resize(upright, size, "area")
+    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if path.suffix.lower() in (".jpg", ".jpeg") else []
+    ok, buf = cv2.imencode(path.suffix.lower(), out, params)
+    if not ok:
+        raise DataError(f"{path}: could not encode a working copy")
+    io.atomic_write_bytes(work_dir / path.name, buf.tobytes())
+    return work_dir / path.name, size
+
+
+def prepare_photos(photos: list[Path], work_dir: Path, max_side: int | None, show: bool = True):
+    """Stage 1 over all photos. Returns (folder COLMAP reads, names read, {name: why skipped}).
+
+    Photos needing no copy are hard-linked (or copied) into `work_dir` too, so COLMAP reads one
+    folder. DataError when fewer than MIN_PHOTOS are readable.
+    """
+    work_dir.mkdir(parents=True, exist_ok=True)
+    names, skipped = [], {}
+    for path in progress.bar(photos, desc="poses: photos", unit="photo", enabled=show):
+        try:
+            used, _ = prepare_photo(path, work_dir, max_side)
+        except DataError as err:
+            skipped[path.name] = str(err)
+            _say(f"poses: skipping {path}: not a readable image", show=True)
+            continue
+        if used == path:
+            _link_or_copy(path, work_dir / path.name)
+        names.append(path.name)
+    if len(names) < MIN_PHOTOS:
+        folder = photos[0].parent
+        raise DataError(f"{folder}: only {len(names)} readable photo(s) of {len(photos)} "
+                        f"(unreadable: {', '.join(skipped) or 'none'}); camera poses need at least {MIN_PHOTOS}")
+    return work_dir, names, skipped
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def _say(message: str, show: bool) -> None:
+    """One progress or warning line on stderr (when `show`)."""
+    if show:
+        print(message, file=sys.stderr, flush=True)
+
+
+# ----------------------------------------------------------------------------------------
+# Stages 2-5: COLMAP
+
+
+def check_options(matcher: str, camera_model: str, vocab_tree) -> None:
+    """DataError for an unknown matcher / camera model, or `vocab` without a readable tree file."""
+    if matcher not in MATCHERS:
+        raise DataError(f"unknown matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
+    if camera_model not in CAMERA_MODELS:
+        raise DataError(f"unknown camera model {camera_model!r}; choose one of {', '.join(CAMERA_MODELS)}")
+    if matcher == "vocab":
+        if vocab_tree is None:
+            raise DataError("--matcher vocab needs a vocabulary tree file (--vocab-tree FILE, e.g. COLMAP's "
+                            "vocab_tree_flickr100K_words32K.bin); none is downloaded: use exhaustive or sequential")
+        if not Path(vocab_tree).is_file():
+            raise DataError(f"{vocab_tree}: vocabulary tree file not found")
+
+
+def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
+               camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None):
+    """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
+    whether it comes from the relaxed mapping).
+
+    DataError (naming `source`, the input folder) when no model could be built.
+    """
+    database = work_dir / "database.db"
+    pycolmap.set_random_seed(0)
+    with _stage(f"features (SIFT, {len(names)} photos)", show):
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
+        pycolmap.extract_features(database, photo_dir, image_names=names, camera_mode=mode, reader_options=reader)
+    with _stage(f"matching ({matcher})", show):
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(database)
+        elif matcher == "sequential":
+            pycolmap.match_sequential(database)
+        else:
+            pairing = pycolmap.VocabTreePairingOptions()
+            pairing.vocab_tree_path = str(vocab_tree)
+            pycolmap.match_vocabtree(database, pairing_options=pairing)
+    n = len(names)
+    default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", n, False, "mapping", show)
+    best = default
+    if default is None or default.num_reg_images() < RELAX_BELOW * n:
+        relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", n, True,
+                       "mapping again (relaxed thresholds)", show)
+        best = choose_model(default, relaxed, show)
+    if best is None:
+        raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
+                        f"more texture or more photos help; see docs/POSES.md)")
+    return best, best is not default
+
+
+def choose_model(default, relaxed, show: bool = False):
+    """The default mapping's model or the relaxed one's (either may be None).
+
+    The relaxed model is kept when it registers more photos and either the default model is
+    too small to judge it (fewer than MIN_COMPARED photos) or it agrees with the default model
+    on the photos both hold (`poses_agree`): relaxed thresholds can also register photos
+    wrongly, e.g. across the look-alike faces of a lattice tower.
+    """
+    if relaxed is None or (default is not None and relaxed.num_reg_images() <= default.num_reg_images()):
+        return default
+    if default is None or default.num_reg_images() < MIN_COMPARED:
+        return relaxed
+    if poses_agree(model_poses(default), model_poses(relaxed)):
+        _say(f"poses: kept the relaxed model ({relaxed.num_reg_images()} photos)", show)
+        return relaxed
+    _say(f"poses: the relaxed model ({relaxed.num_reg_images()} photos) disagrees with the default one; "
+         f"kept the default ({default.num_reg_images()} photos)", show)
+    return default
+
+
+def model_poses(model) -> dict:
+    """{photo name: camera-to-world [4, 4] OpenGL} of a pycolmap.Reconstruction's registered photos."""
+    return {model.images[i].name: c2w_gl_from_cam_from_world(model.images[i].cam_from_world().matrix())
+            for i in model.reg_image_ids()}
+
+
+def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity dst ~ s R src + t (Umeyama 1991). src, dst: [N, 3], N >= 3.
+    Returns (s, R [3, 3], t [3])."""
+    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
+    mean_s, mean_d = src.mean(0), dst.mean(0)
+    xs, xd = src - mean_s, dst - mean_d
+    u, sig, vt = np.linalg.svd(xd.T @ xs / len(src))
+    d = np.eye(3)
+    d[2, 2] = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0
+    rot = u @ d @ vt
+    var = float((xs ** 2).sum(1).mean())
+    scale = float((sig * np.diag(d)).sum() / var) if var > 0 else 1.0
+    return scale, rot, mean_d - scale * rot @ mean_s
+
+
+def poses_agree(a: dict, b: dict, *, max_deg: float = AGREE_DEG, max_centre: float = AGREE_CENTRE) -> bool:
+    """Whether two sets of poses ({name: c2w [4, 4]}) describe the same cameras up to a
+    similarity: on the names both hold (at least 3), after aligning b's centres to a's
+    (`similarity_fit`), the median rotation difference is at most `max_deg` and the median
+    centre distance at most `max_centre` times the spread of a's centres (their median
+    distance to their mean)."""
+    common = sorted(set(a) & set(b))
+    if len(common) < 3:
+        return False
+    pa, pb = np.stack([a[k] for k in common]), np.stack([b[k] for k in common])
+    scale, rot, t = similarity_fit(pb[:, :3, 3], pa[:, :3, 3])
+    spread = float(np.median(np.linalg.norm(pa[:, :3, 3] - pa[:, :3, 3].mean(0), axis=1)))
+    centre = np.linalg.norm(scale * pb[:, :3, 3] @ rot.T + t - pa[:, :3, 3], axis=1)
+    cos = (np.einsum("nij,nij->n", rot @ pb[:, :3, :3], pa[:, :3, :3]) - 1.0) / 2.0
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return bool(np.median(angle) <= max_deg and np.median(centre) <= max_centre * max(spread, 1e-12))
+
+
+def mapper_options(pycolmap, relaxed: bool):
+    """COLMAP's incremental mapper options: its defaults, or with `relaxed` the thresholds for
+    small or texture-poor photos (RELAXED: fewer inliers to start a model and to register a
+    photo, a smaller starting triangulation angle)."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = 0
+    if relaxed:
+        for key, value in RELAXED.items():
+            setattr(options.mapper, key, value)
+    return options
+
+
+def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show):
+    """One incremental mapping run. Returns its largest model or None."""
+    bar = progress.bar(total=total, desc=f"poses: {label}", unit="photo", enabled=show)
+
+    def next_image():
+        bar.update(1)
+
+    try:
+        models = pycolmap.incremental_mapping(database, photo_dir, out_dir, options=mapper_options(pycolmap, relaxed),
+                                              next_image_callback=next_image)
+    finally:
+        bar.close()
+    if not models:
+        return None
+    return max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+
+
+class _stage:
+    """Prints `poses: NAME ...` and `poses: NAME done in 1.2 s` around a block."""
+
+    def __init__(self, name: str, show: bool):
+        self.name, self.show = name, show
+
+    def __enter__(self):
+        self.start = time.monotonic()
+        _say(f"poses: {self.name} ...", self.show)
+
+    def __exit__(self, kind, value, tb):
+        if kind is None:
+            _say(f"poses: {self.name} done in {progress.format_seconds(time.monotonic() - self.start)}", self.show)
+        return False
+
+
+def c2w_gl_from_cam_from_world(matrix) -> np.ndarray:
+    """COLMAP world-to-camera [3, 4] (OpenCV axes) -> camera-to-world [4, 4] (OpenGL axes)."""
+    m = np.asarray(matrix, np.float64)
+    c2w = np.eye(4)
+    c2w[:3, :3] = m[:3, :3].T
+    c2w[:3, 3] = -m[:3, :3].T @ m[:3, 3]
+    return c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def orient_z_up(pycolmap, model) -> np.ndarray:
+    """Rotates a pycolmap.Reconstruction in place so its cameras' up axis is +z. Returns R [3, 3]."""
+    c2w = np.stack(list(model_poses(model).values()))
+    rot = rotation_between(up_from_cameras(c2w), [0.0, 0.0, 1.0])
+    model.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rot), np.zeros(3)))
+    return rot
+
+
+def undistort(pycolmap, model, photo_dir: Path, stage_dir: Path) -> None:
+    """Stage 5: undistorted photos in stage_dir/images, the PINHOLE model in stage_dir/sparse/0."""
+    raw = stage_dir / "_work" / "model"
+    raw.mkdir(parents=True, exist_ok=True)
+    model.write(raw)
+    out = stage_dir / "_work" / "undistorted"
+    pycolmap.undistort_images(out, raw, photo_dir, output_type="COLMAP", jpeg_quality=JPEG_QUALITY)
+    os.replace(out / "images", stage_dir / "images")
+    (stage_dir / "sparse").mkdir()
+    os.replace(out / "sparse", stage_dir / "sparse" / "0")
+    crop_to_common_size(pycolmap, stage_dir / "sparse" / "0", stage_dir / "images")
+
+
+def crop_offsets(sizes: dict) -> tuple[tuple[int, int], dict]:
+    """The common size of undistorted photos and each camera's crop.
+
+    sizes: {camera id: (W, H)}. Returns ((W0, H0) = the smallest width and height,
+    {camera id: (left, top)}: the columns and rows cut before the kept window, which is
+    centred: (W - W0) // 2, (H - H0) // 2).
+    """
+    w0, h0 = min(w for w, _ in sizes.values()), min(h for _, h in sizes.values())
+    return (w0, h0), {cid: ((w - w0) // 2, (h - h0) // 2) for cid, (w, h) in sizes.items()}
+
+
+def crop_to_common_size(pycolmap, model_dir: Path, images_dir: Path) -> tuple[int, int]:
+    """Crops undistorted photos to one size (a dataset has one image size, docs/DATASET.md).
+
+    With one camera per photo, COLMAP's undistortion gives each photo its own size; every photo
+    is cut to the smallest width and height, centred (`crop_offsets`), and the model follows:
+    the cameras' size and principal point, the observations' pixel positions. Returns (W, H).
+    """
+    model = pycolmap.Reconstruction(model_dir)
+    sizes = {cid: (int(cam.width), int(cam.height)) for cid, cam in model.cameras.items()}
+    (w0, h0), offsets = crop_offsets(sizes)
+    if all(size == (w0, h0) for size in sizes.values()):
+        return w0, h0
+    cv2 = io.opencv()
+    for cid, cam in model.cameras.items():
+        left, top = offsets[cid]
+        params = np.array(cam.params, np.float64)
+        params[2:4] -= (left, top)  # PINHOLE: fx, fy, cx, cy
+        cam.width, cam.height, cam.params = w0, h0, params
+    for im in model.images.values():
+        left, top = offsets[im.camera_id]
+        for point in im.points2D:
+            point.xy = point.xy - np.array([left, top], np.float64)
+        path = images_dir / im.name
+        pixels, _ = io.decode_raw(path, "undistorted photo", cv2.IMREAD_UNCHANGED)
+        params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if path.suffix.lower() in (".jpg", ".jpeg") else []
+        ok, buf = cv2.imencode(path.suffix.lower(), pixels[top:top + h0, left:left + w0], params)
+        if not ok:
+            raise DataError(f"{path}: could not encode the cropped photo")
+        io.atomic_write_bytes(path, buf.tobytes())
+    model.write(model_dir)
+    return w0, h0
+
+
+# ----------------------------------------------------------------------------------------
+# Stages 6-7: the dataset
+
+
+def write_dataset(stage_dir: Path, summary: dict) -> dict:
+    """transforms.json from stage_dir/sparse/0 + images/ (orbit normalisation). Returns its dict."""
+    scene = collect_colmap(stage_dir, normalize=False, test_every=8)
+    points = np.asarray(scene.meta["points3d"], np.float64)
+    c2w, norm = normalize_orbit(scene.c2w, points if len(points) else None)
+    scale = norm["scale"]
+    frames = []
+    for frame, pose in zip(scene.frames, c2w):
+        fx, fy, cx, cy = (float(v) for v in frame.intrinsics)
+        frames.append({"file_path": f"images/{frame.image_path.name}", "transform_matrix": pose.tolist(),
+                       "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy,
+                       "w": int(frame.size[0]), "h": int(frame.size[1])})
+    width, height = scene.frames[0].size
+    top = transforms_top(width, height, scene.near * scale, scene.far * scale, norm, {}, stage_dir, stage_dir)
+    top["poses"] = summary
+    top["frames"] = frames
+    io.write_json(stage_dir / "transforms.json", top)
+    draw_topview(stage_dir / TOPVIEW, c2w, apply_normalization_to_points(points, norm))
+    return top
+
+
+def draw_topview(path, c2w: np.ndarray, points: np.ndarray, size: int = 640) -> None:
+    """A PNG of the scene seen from +z: the unit circle, sparse points (grey), camera centres
+    (red) with their viewing directions. c2w: [N, 4, 4] normalised, z-up; points: [P, 3]."""
+    cv2 = io.opencv()
+    centres = c2w[:, :3, 3]
+    extent = max(1.2, 1.1 * float(np.abs(centres[:, :2]).max()) if len(centres) else 1.2)
+    img = np.full((size, size, 3), 255, np.uint8)
+
+    def pix(xy):
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        return np.stack([(xy[:, 0] / extent + 1) * size / 2, (1 - xy[:, 1] / extent) * size / 2], -1).round().astype(int)
+
+    cv2.circle(img, tuple(pix([0.0, 0.0])[0]), int(round(size / 2 / extent)), (200, 200, 200), 1, cv2.LINE_AA)
+    inside = points[np.all(np.abs(points[:, :2]) < extent, axis=1)] if len(points) else points
+    for u, v in pix(inside[:, :2]) if len(inside) else []:
+        img[max(v, 0):v + 2, max(u, 0):u + 2] = (120, 120, 120)
+    for m, (u, v) in zip(c2w, pix(centres[:, :2])):
+        look = -m[:3, 2][:2]
+        tip = pix(m[:2, 3] + 0.08 * extent * look / max(np.linalg.norm(look), 1e-9))[0]
+        cv2.line(img, (int(u), int(v)), (int(tip[0]), int(tip[1])), (0, 0, 200), 1, cv2.LINE_AA)
+        cv2.circle(img, (int(u), int(v)), 3, (0, 0, 220), -1, cv2.LINE_AA)
+    cv2.putText(img, "top view (+z up): cameras red, points grey, unit circle", (8, 18),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    io.write_png(path, img[..., ::-1].astype(np.float32) / 255.0)
+
+
+def format_summary(summary: dict) -> str:
+    """The end-of-run summary as a few lines of text."""
+    lines = [f"registered {summary['registered']}/{summary['photos']} photos, "
+             f"{summary['points3d']} 3-D points, mean reprojection error {summary['mean_reprojection_error']:.3f} px"]
+    if summary["unregistered"]:
+        lines.append(f"not registered ({len(summary['unregistered'])}): {', '.join(summary['unregistered'])}")
+    if summary["skipped"]:
+        lines.append(f"unreadable, skipped ({len(summary['skipped'])}): {', '.join(summary['skipped'])}")
+    if summary.get("relaxed_mapping"):
+        lines.append("registered with relaxed mapper thresholds: check the cameras in "
+                     f"{TOPVIEW} (a ring around the tower) before training (docs/POSES.md)")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------
+# The whole step
+
+
+def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camera_model: str = "SIMPLE_RADIAL",
+                      single_camera: bool = False, max_side: int | None = None, vocab_tree=None,
+                      overwrite: bool = False, progress: bool = True) -> dict:
+    """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
+
+    Returns the summary: photos, registered, unregistered (names), skipped (names of unreadable
+    files), mean_reprojection_error (px), points3d, matcher, camera_model, relaxed_mapping
+    (the model came from the relaxed second mapping), seconds, up_rotation ([3, 3] applied to
+    COLMAP's frame), transforms (path).
+    DataError (one line, naming the path) for bad input; nothing is written then.
+    """
+    start = time.monotonic()
+    check_options(matcher, camera_model, vocab_tree)
+    if max_side is not None and max_side < 16:
+        raise DataError(f"--max-side must be at least 16 pixels, got {max_side}")
+    images_dir, out = Path(images_dir), Path(out_dir)
+    photos = list_photos(images_dir)
+    if _inside(images_dir, out):
+        raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another --out")
+    check_out(out, overwrite)
+    pycolmap = import_pycolmap()
+    pycolmap.logging.minloglevel = 3  # COLMAP's own log: fatal only; progress and errors are ours
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.poses-", dir=out.parent))
+    try:
+        photo_dir, names, skipped = prepare_photos(photos, stage_dir / "_work" / "photos", max_side, progress)
+        model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
+                           camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
+                           show=progress, source=images_dir)
+        registered = sorted(model.images[i].name for i in model.reg_image_ids())
+        unregistered = sorted(set(names) - set(registered))
+        if len(registered) < enough_registered(len(names)):
+            shown = ", ".join(unregistered[:5]) + (", ..." if len(unregistered) > 5 else "")
+            raise DataError(f"{images_dir}: only {len(registered)} of {len(names)} photos registered (a dataset needs "
+                            f"{enough_registered(len(names))}; not registered: {shown}); more overlap and texture "
+                            f"between photos help (docs/POSES.md)")
+        with _stage("undistortion to PINHOLE, orientation, transforms.json", progress):
+            rot = orient_z_up(pycolmap, model)
+            summary = {"photos": len(photos), "registered": len(registered), "unregistered": unregistered,
+                       "skipped": sorted(skipped), "points3d": int(model.num_points3D()),
+                       "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
+                       "matcher": matcher, "camera_model": camera_model, "single_camera": bool(single_camera),
+                       "max_side": max_side, "relaxed_mapping": bool(relaxed), "up_rotation": rot.tolist(),
+                       "pycolmap": str(getattr(pycolmap, "__version__", "unknown"))}
+            undistort(pycolmap, model, photo_dir, stage_dir)
+            shutil.rmtree(stage_dir / "_work")
+            summary["seconds"] = round(time.monotonic() - start, 1)
+            write_dataset(stage_dir, summary)
+            (stage_dir / MARKER).write_text("written by jaxnerf-grid poses; --overwrite replaces its outputs\n")
+        move_into_place(stage_dir, out)
+    except BaseException:
+        shutil.rmtree(stage_dir, ignore_errors=True)
+        raise
+    summary["transforms"] = str(out / "transforms.json")
+    return summary
+
+
+def enough_registered(num_photos: int) -> int:
+    """The fewest registered photos that make a dataset: MIN_REGISTERED, and a quarter of the
+    photos (MIN_REGISTERED_FRACTION): a small partial model is rarely useful and often wrong
+    (on the ttpla-like scene 5 of 30 registered, turned over, docs/POSES.md)."""
+    return max(MIN_REGISTERED, int(np.ceil(MIN_REGISTERED_FRACTION * num_photos)))
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether `path` is `folder` or lies inside it (after resolving links)."""
+    path, folder = path.resolve(), folder.resolve()
+    return path == folder or folder in path.parents
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """DataError unless `out` may receive the dataset: absent, an empty folder, or with
+    `overwrite` a dataset this command wrote (it holds MARKER)."""
+    if out.is_file():
+        raise DataError(f"{out}: is a file; --out must be a folder")
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    if not overwrite:
+        raise DataError(f"{out}: already exists and is not empty; pass --overwrite to replace it")
+    if not (out / MARKER).is_file():
+        raise DataError(f"{out}: not a dataset written by jaxnerf-grid poses (no {MARKER}); --overwrite "
+                        f"replaces only those: choose another --out")
+
+
+def move_into_place(stage: Path, out: Path) -> None:
+    """Moves the finished dataset from `stage` to `out`: the whole folder when `out` does not
+    exist, else entry by entry (OUTPUTS), the old entries of that name removed and every other
+    file of `out` kept."""
+    if not out.exists():
+        os.replace(stage, out)
+        return
+    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
+    for name in OUTPUTS:
+        if (out / name).exists() or (out / name).is_symlink():
+            os.replace(out / name, trash / name)
+    for name in OUTPUTS:
+        if (stage / name).exists():
+            os.replace(stage / name, out / name)
+    shutil.rmtree(trash, ignore_errors=True)
+    shutil.rmtree(stage, ignore_errors=True)
