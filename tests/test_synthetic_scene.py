@@ -120,7 +120,7 @@ def test_low_level_stays_under_five_percent_and_cli(tmp_path):
 
     out = tmp_path / "low"
     rc = main(["synth", "--preset", "tower-small", "--out", str(out), "--seed", "1", "--distractors", "low",
-               "--width", "64", "--height", "48", "--num-train", "2", "--num-test", "0", "--supersample", "1",
+               "--width", "64", "--height", "48", "--num-train", "2", "--num-test", "1", "--supersample", "1",
                "--no-shadows", "--workers", "1", "--quiet"])
     assert rc == 0
     meta, train = _frames(out, "train")
