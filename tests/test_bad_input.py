@@ -224,6 +224,16 @@ def test_out_is_a_file(scene, capsys, tmp_path):
     assert f.read_text() == "keep me"
 
 
+def test_demo_checks_its_recipe_before_writing(capsys, tmp_path):
+    """A bad --set or --steps of the demo fails before it synthesises or masks anything."""
+    for flags, names in ((["--set", "train.batch_rays=0"], ["train.batch_rays"]),
+                         (["--set", "model.sampling.warp=log"], ["model.sampling.warp"]),
+                         (["--steps", "0"], ["--steps"])):
+        rc, err = run_cli(["demo", "--out", tmp_path / "demo", "--quiet", *flags], capsys)
+        assert_one_line_error(rc, err, *names)
+        assert not (tmp_path / "demo").exists()
+
+
 def test_camera_far_outside_the_others(scene, capsys, tmp_path):
     """Issue 14, item 3: a camera translated 1e30 away trained on a garbage frame."""
     data = tmp_path / "data"
