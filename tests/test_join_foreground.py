@@ -84,6 +84,10 @@ def test_predict_maps_untiled_against_dpt_on_the_resized_photo():
     (c2, inv2), = fg.predict_maps(model, other, photos[:1], classes=[1, 2], max_side=64, batch_size=1)
     np.testing.assert_allclose(c2, _reference_maps(model, photos[0], [1, 2], work)[0], atol=2e-5)
     np.testing.assert_allclose(inv2, _reference_maps(other, photos[0], [1, 2], work)[1], rtol=1e-4, atol=1e-5)
+    # no depth model (an HF segmentation checkpoint without --depth-weights): C alone, depth None
+    (c3, inv3), = fg.predict_maps(model, None, photos[1:], classes=[1, 2], max_side=64, batch_size=1)
+    assert inv3 is None
+    np.testing.assert_allclose(c3, _reference_maps(model, photos[1], [1, 2], work)[0], atol=2e-5)
 
 
 def _dataset(root, photos):
