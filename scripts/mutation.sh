@@ -69,10 +69,12 @@ EOF
   echo "== mutation.sh: $group: $module against $tests"
   (cd "$work" && "$PYTHON" -m mutmut run --max-children "$MAX_CHILDREN" "${globs[@]}") || true
   (cd "$work" && "$PYTHON" -m mutmut results --all true > results.txt 2>&1) || true
-  "$PYTHON" - "$work" "$module" <<'EOF'
-import collections, pathlib, re, subprocess, sys
-work, module = pathlib.Path(sys.argv[1]), sys.argv[2]
+  "$PYTHON" - "$work" "$module" "${globs[@]}" <<'EOF'
+import collections, fnmatch, pathlib, re, subprocess, sys
+work, module, picked = pathlib.Path(sys.argv[1]), sys.argv[2], sys.argv[3:]
 rows = [l.strip().rsplit(": ", 1) for l in (work / "results.txt").read_text().splitlines() if ": " in l]
+if picked:  # only the mutants asked for
+    rows = [r for r in rows if any(fnmatch.fnmatch(r[0], g) for g in picked)]
 counts = collections.Counter(status for _, status in rows)
 survivors = [name for name, status in rows if status == "survived"]
 summary = f"{module}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) + f" (of {len(rows)})"
