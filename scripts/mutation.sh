@@ -13,7 +13,9 @@
 # mutated; a copy keeps mutmut's cache, so a second run only retries what changed. Summary per
 # group: $MUTATION_DIR/<group>/summary.txt (counts by status) and survivors.txt (mutmut show of
 # each survivor). Environment: PYTHON (default python), MAX_CHILDREN (default 2), TESTS (test
-# files replacing the group's own, e.g. only the join tests for a quicker run).
+# files or test ids replacing the group's own, e.g. only the join tests for a quicker run),
+# TIMEOUT_MULTIPLIER (mutmut's timeout_multiplier, default 15; raise it for tests whose
+# module-scoped fixture trains a run, or mutants there end as timeouts instead of verdicts).
 set -euo pipefail
 
 ROOT=$(cd "$(dirname "$0")/.." && pwd)
@@ -52,9 +54,9 @@ for group in "${groups[@]}"; do
   mkdir -p "$work"
   # a fresh copy of the tree (mutmut's own state under mutants/ is kept)
   (cd "$ROOT" && git ls-files -co --exclude-standard -z | tar --null -T - -cf -) | tar -xf - -C "$work"
-  "$PYTHON" - "$work/pyproject.toml" "$module" $tests <<'EOF'
+  "$PYTHON" - "$work/pyproject.toml" "${TIMEOUT_MULTIPLIER:-15}" "$module" $tests <<'EOF'
 import sys
-path, module, tests = sys.argv[1], sys.argv[2], sys.argv[3:]
+path, timeout, module, tests = sys.argv[1], sys.argv[2], sys.argv[3], sys.argv[4:]
 text = open(path).read().split("\n[tool.mutmut]")[0].rstrip("\n")
 quote = lambda xs: "[" + ", ".join(f'"{x}"' for x in xs) + "]"
 text += ("\n\n[tool.mutmut]\n"
@@ -63,16 +65,19 @@ text += ("\n\n[tool.mutmut]\n"
          f"pytest_add_cli_args_test_selection = {quote(tests)}\n"
          'pytest_add_cli_args = ["-p", "no:cacheprovider"]\n'
          'process_isolation = "forkserver"\n'
-         "use_git_change_detection = false\n")
+         "use_git_change_detection = false\n"
+         f"timeout_multiplier = {float(timeout)}\n")
 open(path, "w").write(text)
 EOF
   echo "== mutation.sh: $group: $module against $tests"
   (cd "$work" && "$PYTHON" -m mutmut run --max-children "$MAX_CHILDREN" "${globs[@]}") || true
   (cd "$work" && "$PYTHON" -m mutmut results --all true > results.txt 2>&1) || true
-  "$PYTHON" - "$work" "$module" <<'EOF'
-import collections, pathlib, re, subprocess, sys
-work, module = pathlib.Path(sys.argv[1]), sys.argv[2]
+  "$PYTHON" - "$work" "$module" "${globs[@]}" <<'EOF'
+import collections, fnmatch, pathlib, re, subprocess, sys
+work, module, picked = pathlib.Path(sys.argv[1]), sys.argv[2], sys.argv[3:]
 rows = [l.strip().rsplit(": ", 1) for l in (work / "results.txt").read_text().splitlines() if ": " in l]
+if picked:  # only the mutants asked for
+    rows = [r for r in rows if any(fnmatch.fnmatch(r[0], g) for g in picked)]
 counts = collections.Counter(status for _, status in rows)
 survivors = [name for name, status in rows if status == "survived"]
 summary = f"{module}: " + ", ".join(f"{k} {v}" for k, v in sorted(counts.items())) + f" (of {len(rows)})"

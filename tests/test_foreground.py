@@ -62,6 +62,15 @@ def test_inverse_depth_to_depth():
     np.testing.assert_allclose(d, [[0.25, 0.5], [1.0, 25.0]], rtol=1e-6)
 
 
+def test_inverse_depth_to_depth_per_image_of_a_batch():
+    """[B, H, W]: the clamp eps * max(r) is each image's own (found by mutation testing: a
+    maximum over the whole batch, or over the wrong axes, passed every single-image test)."""
+    inv = np.array([[[4.0, 0.0], [1.0, 2.0]], [[0.5, 0.25], [0.0, 1.0]]], np.float32)
+    d = np.asarray(fg.inverse_depth_to_depth(inv, eps=0.1))
+    expect = [[[0.25, 1 / 0.4], [1.0, 0.5]], [[2.0, 4.0], [1 / 0.1, 1.0]]]
+    np.testing.assert_allclose(d, expect, rtol=1e-6)
+
+
 def test_dilate_matches_disc_max_filter():
     m = np.zeros((9, 9), np.float32)
     m[4, 4] = 0.7

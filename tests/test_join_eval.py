@@ -171,6 +171,15 @@ def test_region_masks_are_the_regions_painted_by_hand():
     assert set(got) == set(expected_regions())
     for name, mask in expected_regions().items():
         np.testing.assert_array_equal(got[name], mask, err_msg=name)
+    # a normalisation without a scale: the depth is taken as metres (found by mutation testing)
+    far_px = ds.depth[TEST] == FAR_M * SCALE
+    ds.normalization = {"translation": [0.0, 0.0, 0.0]}
+    ds.depth = np.where(far_px, 150.0, 60.0).astype(np.float32)[None].repeat(ds.num_frames, 0)
+    for name, mask in expected_regions().items():
+        np.testing.assert_array_equal(evaluate.region_masks(ds, TEST)[name], mask, err_msg=name)
+    # an empty region scores None, not nan (found by mutation testing)
+    assert evaluate._region_psnr(ds.images[TEST], ds.clean_images[TEST], {"tower": np.zeros((H, W), bool)}) == {
+        "tower": None}
     # without depth only the sky is far background
     ds.depth = None
     sky = np.zeros((H, W), bool)

@@ -84,6 +84,10 @@ def test_predict_maps_untiled_against_dpt_on_the_resized_photo():
     (c2, inv2), = fg.predict_maps(model, other, photos[:1], classes=[1, 2], max_side=64, batch_size=1)
     np.testing.assert_allclose(c2, _reference_maps(model, photos[0], [1, 2], work)[0], atol=2e-5)
     np.testing.assert_allclose(inv2, _reference_maps(other, photos[0], [1, 2], work)[1], rtol=1e-4, atol=1e-5)
+    # no depth model (an HF segmentation checkpoint without --depth-weights): C alone, depth None
+    (c3, inv3), = fg.predict_maps(model, None, photos[1:], classes=[1, 2], max_side=64, batch_size=1)
+    assert inv3 is None
+    np.testing.assert_allclose(c3, _reference_maps(model, photos[1], [1, 2], work)[0], atol=2e-5)
 
 
 def _dataset(root, photos):
@@ -124,6 +128,8 @@ def test_mask_command_dpt_source_against_eq6_to_8(tmp_path, floor):
                         max_side=64, batch_size=1, progress=False)
     meta = io.read_json(tmp_path / "data/transforms.json")
     assert meta["mask_source"] == "dpt" and meta["mask_params"]["classes"] == [1, 2]
+    assert meta["mask_params"]["weights"] == str(tmp_path / "w") and meta["mask_params"]["max_side"] == 64
+    assert meta["mask_params"]["depth"] == "relative (1 / DPT inverse depth)"
     for i, (c, inv) in enumerate(refs):
         m, d, weight = _eq6_to_8(c, inv, threshold, floor)
         frame = meta["frames"][i]
@@ -139,3 +145,27 @@ def test_mask_command_dpt_source_against_eq6_to_8(tmp_path, floor):
         masked = m.astype(bool) & sure
         # Eq. 7 does vary the weights of the masked pixels (not all 0 as with floor 1)
         assert np.std(weight[masked]) > 0.02
+
+
+def test_mask_command_takes_the_working_size_from_the_model(tmp_path):
+    """Without max_side, `write_masks` uses the model's own (config.json "extra": "max_side"),
+    else 384; the maps are then DPT's at that working size (found by mutation testing: that
+    branch was never taken)."""
+    from jaxnerf_grid import masking
+
+    model = _model()
+    dpt.save(model, tmp_path / "w32", dtype="float32", extra={"dynamic_classes": [1, 2], "max_side": 32})
+    dpt.save(model, tmp_path / "plain", dtype="float32")          # no "extra" at all
+    _dataset(tmp_path / "data", [_photo(50, 70, 6)])
+    loaded = dpt.load_pretrained(str(tmp_path / "w32"))
+    c, inv = _reference_maps(loaded, io.read_image(tmp_path / "data/images/f0.png"), [1, 2], (32, 32))
+    threshold = float(np.median(c))
+    masking.write_masks(tmp_path / "data", weights=str(tmp_path / "w32"), threshold=threshold, progress=False)
+    meta = io.read_json(tmp_path / "data/transforms.json")
+    assert meta["mask_params"]["max_side"] == 32
+    sure = np.abs(c - threshold) > 1e-4
+    _, _, weight = _eq6_to_8(c, inv, threshold, 0.0)
+    np.testing.assert_allclose(io.read_exr(tmp_path / "data/weights/f0.exr")[sure], weight[sure], atol=1e-3)
+    masking.write_masks(tmp_path / "data", weights=str(tmp_path / "plain"), classes=[1], overwrite=True,
+                        progress=False)
+    assert io.read_json(tmp_path / "data/transforms.json")["mask_params"]["max_side"] == 384
