@@ -7,7 +7,6 @@ the renders, depth maps and metrics.json it wrote (docs: `demo.py`, `report.py`)
 import sys
 from pathlib import Path
 
-import numpy as np
 
 from jaxnerf_grid import demo, io, masking, runs
 from jaxnerf_grid.data.synthetic import generate as synth_generate

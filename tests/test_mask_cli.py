@@ -1,7 +1,6 @@
 """`jaxnerf-grid mask` on a hand-made dataset: ground-truth source against closed forms, the
 DPT source with a native model, overwrite protection, transforms.json preservation."""
 
-import json
 
 import numpy as np
 import pytest
@@ -54,7 +53,6 @@ def test_gt_source_closed_form_and_overwrite(tmp_path):
 
 def test_dpt_source_with_native_weights(tmp_path):
     from jaxnerf_grid import dpt
-    import jax
     _dataset(tmp_path / "data")
     cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
                         image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),

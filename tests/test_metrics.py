@@ -75,7 +75,6 @@ def pairs(real_images):
 
 
 def test_psnr_matches_skimage_and_batches(pairs):
-    preds, targets = [], []
     for _, pred, target in pairs[:2]:
         ref = skm.peak_signal_noise_ratio(target.astype(np.float64), pred.astype(np.float64), data_range=1.0)
         assert float(metrics.psnr(pred, target)) == pytest.approx(ref, abs=1e-3)

@@ -10,7 +10,6 @@ from jaxnerf_grid import coords, parallel, render, sampling
 
 def toy_render(rays_o, rays_d, key_data):
     """A closed-form density field (a soft ball) rendered with the s-space sampler."""
-    key = jax.random.wrap_key_data(key_data) if key_data is not None else None
     near = jnp.full(rays_o.shape[:-1], 0.2)
     far = jnp.full(rays_o.shape[:-1], 50.0)
     t_edges = sampling.ray_warp("disparity", near[..., None], far[..., None])[1](sampling.stratified_s(None, near.shape, 32))

@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import fields, rays as rays_lib, train, views
+from jaxnerf_grid import rays as rays_lib, train, views
 from jaxnerf_grid.data.dataset import Dataset
 
 TINY_FIELD = {"depth": 2, "width": 32, "skip": 1, "pos_max_deg": 4, "dir_max_deg": 2, "view_width": 16}

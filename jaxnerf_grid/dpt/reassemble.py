@@ -14,7 +14,6 @@ params = {"readout": [linear 2D -> D] * 4 (project only), "proj": [conv1x1] * 4,
 
 from __future__ import annotations
 
-import jax
 import jax.numpy as jnp
 
 import numpy as np

@@ -164,7 +164,6 @@ def tower_members(rng: np.random.Generator, offset=(0.0, 0.0, 0.0)):
                 for bb, tt in zip(b0, t0):
                     member(bb, tt, 0.04)
                 prev_b = [rb + (stations[q_i - 1] if q_i else 0.0) * (tp - rb) for rb, tp in zip(root_b, tips)]
-                prev_t = [rt + (stations[q_i - 1] if q_i else 0.0) * (tp - rt) for rt, tp in zip(root_t, tips)]
                 for side in range(2):
                     member(prev_b[side], t0[side], 0.04)                     # side zig-zag
                 member(prev_b[q_i % 2], b0[1 - q_i % 2], 0.04)               # bottom zig-zag
