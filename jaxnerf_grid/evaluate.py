@@ -35,7 +35,7 @@ import numpy as np
 
 from jaxnerf_grid import config as config_lib, io
 from jaxnerf_grid.io import DataError
-from jaxnerf_grid.runs import bar, check_fingerprint, frame_name, load_dataset, load_run, run_config_dict, write_view
+from jaxnerf_grid.runs import bar, check_fingerprint, frame_name, load_dataset, load_run, write_view
 
 FAR_BACKGROUND_METRES = 100.0
 REGION_DEFINITION = ("tower = classes 1-2 (tower, conductor); near_ground = class 3; far_background = "
@@ -262,7 +262,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
                  "normalised scene units.")
     notes.append(f"LPIPS: {'computed from ' + str(lpips_weights) if lpips_params is not None else 'unavailable (no --lpips-weights)'}.")
     notes.append(f"Evaluation took {result['eval_seconds']:.0f} s.")
-    report.write_report(run_dir, result, run_config_dict(cfg, data), figures, notes)
+    report.write_report(run_dir, result, cfg, data, figures, notes)
     return result
 
 

@@ -64,26 +64,26 @@ def _fmt(v, digits=2) -> str:
     return str(v)
 
 
-def _samples_line(model: dict) -> str:
-    """How a ray is sampled, from a run config's "model" dict."""
-    if model.get("sampler") == "proposal":
-        rounds = " -> ".join(str(n) for n in model.get("proposal_samples", []))
-        return (f"proposal sampling in s: {rounds} proposal samples -> {model.get('num_fine')} main samples"
-                f"{', opaque far bin' if model.get('opaque_far') else ''}")
-    return (f"samples {model.get('num_coarse')} coarse + {model.get('num_fine') if model.get('hierarchical') else 0} "
-            f"fine (hierarchical {model.get('hierarchical')}, union {model.get('fine_union')})")
+def _samples_line(model) -> str:
+    """How a ray is sampled, from a run config's `model` (models.ModelConfig)."""
+    if model.sampler == "proposal":
+        rounds = " -> ".join(str(n) for n in model.proposal_samples)
+        return (f"proposal sampling in s: {rounds} proposal samples -> {model.num_fine} main samples"
+                f"{', opaque far bin' if model.opaque_far else ''}")
+    return (f"samples {model.num_coarse} coarse + {model.num_fine if model.hierarchical else 0} "
+            f"fine (hierarchical {model.hierarchical}, union {model.fine_union})")
 
 
-def _field_line(field: dict) -> str:
-    """The field's kind and shape, from a run config's "model.field" dict."""
-    if field.get("kind") == "grid":
-        grid = field.get("grid", {})
-        return (f"hash grid, {grid.get('num_levels')} levels x {grid.get('features_per_level')} features, "
-                f"table 2^{grid.get('log2_table_size')}, resolution {grid.get('min_resolution')}-"
-                f"{grid.get('max_resolution')}; MLPs {field.get('depth')} x {field.get('width')} (density), "
-                f"{field.get('view_depth')} x {field.get('view_width')} (colour)")
-    return (f"MLP {field.get('depth')} x {field.get('width')} (skip after {field.get('skip')}), PE "
-            f"{field.get('pos_max_deg')} octaves, view dirs {field.get('use_viewdirs')}")
+def _field_line(field) -> str:
+    """The field's kind and shape, from a run config's `model.field` (fields.FieldConfig)."""
+    if field.kind == "grid":
+        grid = field.grid
+        return (f"hash grid, {grid.num_levels} levels x {grid.features_per_level} features, "
+                f"table 2^{grid.log2_table_size}, resolution {grid.min_resolution}-"
+                f"{grid.max_resolution}; MLPs {field.depth} x {field.width} (density), "
+                f"{field.view_depth} x {field.view_width} (colour)")
+    return (f"MLP {field.depth} x {field.width} (skip after {field.skip}), PE "
+            f"{field.pos_max_deg} octaves, view dirs {field.use_viewdirs}")
 
 
 def geometry_lines(geometry: dict | None) -> list[str]:
@@ -185,11 +185,11 @@ def set_section(path, heading: str, lines: list[str]) -> Path:
     return path
 
 
-def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_lines: list[str] = ()) -> Path:
+def write_report(run_dir, metrics: dict, cfg, data, views: list[dict], extra_lines: list[str] = ()) -> Path:
     """Writes run_dir/report.md (and its PNGs).
 
     metrics: the metrics.json dict (keys "mean", "regions", "protocol", ...);
-    config: the run's config dict; views: [{"name", "gt" [H,W,3], "rgb", "depth" [H,W],
+    cfg: the run's config (train.RunConfig, read by attribute); data: the dataset path; views: [{"name", "gt" [H,W,3], "rgb", "depth" [H,W],
     optional "semantic" [H,W]}] for the figures; extra_lines: Markdown lines for the notes.
     Returns the report's path.
     """
@@ -212,10 +212,10 @@ def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_
         figure_lines.append("")
         figure_lines.append("Tower crops (2x): ![tower crops](report_crops.png)")
 
-    model, train_cfg = config.get("model", {}), config.get("train", {})
+    model, train_cfg = cfg.model, cfg.train
     mean = metrics.get("mean", {})
-    lines = [f"# Run report: {model.get('method', '?')}", ""]
-    lines += [f"Data: `{config.get('data', '?')}`  ", f"Trained steps: {metrics.get('step', '?')}  ",
+    lines = [f"# Run report: {model.method}", ""]
+    lines += [f"Data: `{data}`  ", f"Trained steps: {metrics.get('step', '?')}  ",
               f"Evaluated views: {metrics.get('num_views', '?')} ({metrics.get('target', 'images')})", ""]
     lines += ["## Metrics (mean over test views)", "",
               "| metric | value |", "|---|---|"]
@@ -238,14 +238,14 @@ def write_report(run_dir, metrics: dict, config: dict, views: list[dict], extra_
     lines += geometry_lines(metrics.get("geometry"))
     lines += export_lines(metrics.get("export"))
     lines += ["## Method and configuration", "",
-              f"- method `{model.get('method')}`: contraction {model.get('use_contraction')} "
-              f"(R = {model.get('contract_radius')}), warp `{model.get('warp')}`, {_samples_line(model)}",
-              f"- field: {_field_line(model.get('field', {}))}",
-              f"- NeRF-W: appearance {model.get('use_appearance')}, transient {model.get('use_transient')}",
-              f"- loss weights from masks: {train_cfg.get('use_masks')} (floor {train_cfg.get('mask_weight_floor')})",
-              f"- batch {train_cfg.get('batch_rays')} rays, {train_cfg.get('max_steps')} steps, lr "
-              f"{train_cfg.get('lr_init')} -> {train_cfg.get('lr_final')} (warm-up {train_cfg.get('warmup')}), "
-              f"clip {train_cfg.get('max_grad_norm')}", ""]
+              f"- method `{model.method}`: contraction {model.use_contraction} "
+              f"(R = {model.contract_radius}), warp `{model.warp}`, {_samples_line(model)}",
+              f"- field: {_field_line(model.field)}",
+              f"- NeRF-W: appearance {model.use_appearance}, transient {model.use_transient}",
+              f"- loss weights from masks: {train_cfg.use_masks} (floor {train_cfg.mask_weight_floor})",
+              f"- batch {train_cfg.batch_rays} rays, {train_cfg.max_steps} steps, lr "
+              f"{train_cfg.lr_init} -> {train_cfg.lr_final} (warm-up {train_cfg.warmup}), "
+              f"clip {train_cfg.max_grad_norm}", ""]
     if figure_lines:
         lines += ["## Views (ground truth | render | depth)", ""] + figure_lines + [""]
     if extra_lines:
