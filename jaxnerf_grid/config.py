@@ -117,7 +117,8 @@ def validate(cfg: Any, where: str = "") -> None:
         if rng is not None and value is not None:
             for v in (value if isinstance(value, (tuple, list)) else (value,)):
                 if not rng.contains(v):
-                    raise ConfigError(f"{key} = {_show(value)}: must be {rng}")
+                    kind = "an integer " if _type_problem(1.5, hint) else ""  # int keys say so
+                    raise ConfigError(f"{key} = {_show(value)}: must be {kind}{rng}")
 
 
 def _show(value: Any) -> str:
