@@ -195,6 +195,25 @@ def test_overwrite_never_clears_a_folder_that_is_not_a_run(scene, capsys, tmp_pa
     assert snapshot(other) == before
 
 
+def test_synth_overwrite_never_clears_a_folder_it_did_not_write(scene, capsys, tmp_path):
+    """synth --overwrite clears only a dataset synth wrote (its marker): a user's dataset with
+    images/, depth/ and a transforms.json of its own is left as it was."""
+    theirs = tmp_path / "survey"
+    shutil.copytree(scene["data"], theirs)
+    (theirs / ".jaxnerf-grid-synth").unlink()
+    meta = json.loads((theirs / "transforms.json").read_text())
+    meta.pop("generator")
+    (theirs / "transforms.json").write_text(json.dumps(meta))
+    before = snapshot(theirs)
+    rc, err = run_cli(["synth", "--out", theirs, *SYNTH, "--overwrite"], capsys)
+    assert_one_line_error(rc, err, str(theirs), ".jaxnerf-grid-synth")
+    assert snapshot(theirs) == before
+    again = tmp_path / "again"
+    shutil.copytree(scene["data"], again)
+    rc, err = run_cli(["synth", "--out", again, *SYNTH, "--overwrite"], capsys)   # its own: replaced
+    assert rc == 0, err
+
+
 def test_overwrite_clears_only_the_runs_own_outputs(scene, capsys, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(scene["run"], run)

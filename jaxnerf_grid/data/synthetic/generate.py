@@ -27,6 +27,21 @@ from jaxnerf_grid.data.synthetic.intersect import (INTERSECT, KIND_CODE, KINDS, 
 
 SKY_CODE, GROUND_CODE = -1, -2
 OUTPUT_DIRS = ("images", "clean", "depth", "clean_depth", "semantic", "distractor", "shadow")
+# Written first into every dataset this generator makes: --overwrite clears only a folder that has
+# it (or, from before the marker, a transforms.json with a "generator" record); docs/RELIABILITY.md.
+SYNTH_MARKER = ".jaxnerf-grid-synth"
+
+
+def is_synthetic_dataset(folder: Path) -> bool:
+    """Whether `folder` was written by this generator (its marker, or an older dataset's
+    transforms.json naming the generator)."""
+    if (folder / SYNTH_MARKER).is_file():
+        return True
+    try:
+        meta = io.read_json(folder / "transforms.json")
+    except io.DataError:
+        return False
+    return isinstance(meta, dict) and isinstance(meta.get("generator"), dict)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -580,7 +595,10 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
 
     cfg = make_config(preset, seed, distractors, **overrides)
     out = io.ensure_writable(out_dir, overwrite)
-    if overwrite and out.is_dir():
+    if overwrite and out.is_dir() and any(out.iterdir()):
+        if not is_synthetic_dataset(out):
+            raise io.DataError(f"{out}: not a dataset written by synth (no {SYNTH_MARKER} marker); "
+                               "refusing to clear it, even with --overwrite")
         for sub in OUTPUT_DIRS:
             if (out / sub).is_dir():
                 shutil.rmtree(out / sub)
@@ -588,6 +606,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
             if (out / f).is_file():
                 (out / f).unlink()
     out.mkdir(parents=True, exist_ok=True)
+    (out / SYNTH_MARKER).write_text("written by jaxnerf-grid synth; --overwrite may clear this folder\n")
     intr = cameras.intrinsics(cfg.width, cfg.height, cfg.fov_deg)
     c2w_all, split = cameras.camera_path(cfg.num_train, cfg.num_test, cfg.orbits, cfg.low_pass,
                                          np.random.default_rng([cfg.seed, 1]))
