@@ -250,6 +250,8 @@ def test_report_tables_match_metrics_json(ours, nerfw):
         rows = _table((r["run"] / "report.md").read_text())
         assert rows["PSNR"] == f"{m['mean']['psnr']:.2f}" and rows["SSIM"] == f"{m['mean']['ssim']:.4f}"
         assert rows["MS-SSIM"] == f"{m['mean']['ms_ssim']:.4f}" and rows["LPIPS"] == "unavailable"
+        scales = m["per_view"][0]["ms_ssim_scales"]         # the scales MS-SSIM used, carried to the mean
+        assert scales and m["mean"]["ms_ssim_scales"] == scales and rows["MS-SSIM scales"] == str(scales)
         assert rows["PSNR, right half"] == f"{m['mean_right_half']['psnr']:.2f}"
         assert rows["SSIM, right half"] == f"{m['mean_right_half']['ssim']:.4f}"
         for name in ("tower", "near_ground", "far_background"):
