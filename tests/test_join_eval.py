@@ -304,3 +304,14 @@ def check_report_figures(run: Path, name: str, target: np.ndarray, semantic: np.
 def test_report_figures_are_the_target_render_and_depth(ours):
     ds = ours["ds"]
     check_report_figures(ours["run"], runs.frame_name(ds, TEST), ds.clean_images[TEST], ds.semantics[TEST])
+
+
+def test_tower_box_of_one_pixel_and_of_none():
+    """The crop box: class-1 pixels' bounding box grown by the margin, clipped to the frame; None
+    without tower pixels (found by mutation testing: one pixel gave no crop, none crashed)."""
+    from jaxnerf_grid import report
+
+    sem = np.zeros((H, W), np.uint8)
+    assert report.tower_box(sem) is None
+    sem[2, 20] = 1
+    assert report.tower_box(sem, margin=4) == (slice(0, 7), slice(16, 24))
