@@ -53,3 +53,5 @@ def test_tiny_demo_end_to_end_and_its_report(tmp_path, monkeypatch, capsys):
     assert f"test PSNR {m['mean']['psnr']:.2f} dB" in line
     if m["regions_mean"].get("tower") is not None:
         assert f"tower {m['regions_mean']['tower']:.2f} dB" in line
+    # the synthetic scene has a reference tower cloud, so the line quotes its F-score at 0.02
+    assert f"tower F-score@0.02 {m['geometry']['thresholds']['0.02']['fscore']:.3f}" in line
