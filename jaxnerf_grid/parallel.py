@@ -17,15 +17,28 @@ import numpy as np
 AXIS = "batch"
 
 
+def spans_processes(n: int) -> bool:
+    """True when n devices means every device of a multi-process run (jax.distributed): then
+    a pmap runs on all of them, each process feeding its own local devices."""
+    return jax.process_count() > 1 and n == jax.device_count()
+
+
 def devices(n: int) -> list:
-    """The first n local devices (what every pmap here runs on)."""
-    return jax.local_devices()[:n]
+    """The first n local devices (what every pmap here runs on); in a multi-process run with
+    n = the global device count, every device of every process (`spans_processes`)."""
+    return jax.devices() if spans_processes(n) else jax.local_devices()[:n]
+
+
+def local_count(n: int) -> int:
+    """How many of the n devices of a pmap are this process's (n itself in one process)."""
+    return jax.local_device_count() if spans_processes(n) else n
 
 
 def replicate(tree, n: int):
     """Copies every leaf onto the first n local devices: [...] -> [n, ...], resident there, so
-    a pmapped step does not copy it again each call."""
-    stacked = jax.tree_util.tree_map(lambda x: np.stack([np.asarray(x)] * n), tree)
+    a pmapped step does not copy it again each call. When n spans processes, each process
+    holds its local copies [local_count(n), ...] of the global [n, ...] (what pmap takes)."""
+    stacked = jax.tree_util.tree_map(lambda x: np.stack([np.asarray(x)] * local_count(n)), tree)
     return jax.pmap(lambda x: x, axis_name=AXIS, devices=devices(n))(stacked)
 
 

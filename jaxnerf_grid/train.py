@@ -36,7 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import checkpoint, config as config_lib, fields, io, losses, models, optim, parallel, rays as rays_lib
+from jaxnerf_grid import checkpoint, config as config_lib, distributed, fields, io, losses, models, optim, parallel, rays as rays_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
@@ -274,7 +274,9 @@ def check_batch(cfg: RunConfig, num_devices: int, available: int | None = None) 
         raise ConfigError(f"train.batch_rays = {tcfg.batch_rays}: must divide by the device count ({num_devices})")
     available = device_memory() if available is None else available
     shared = jax.local_devices()[0].platform == "cpu"
-    rays = tcfg.batch_rays if shared else tcfg.batch_rays // num_devices
+    # on CPU this process's devices share its host's RAM (all of n in one process)
+    rays = tcfg.batch_rays * parallel.local_count(num_devices) // num_devices if shared \
+        else tcfg.batch_rays // num_devices
     need = rays * ray_bytes(cfg.model)
     if need > available:
         fit = max(1, available // ray_bytes(cfg.model) // (1 if shared else num_devices))
@@ -284,7 +286,15 @@ def check_batch(cfg: RunConfig, num_devices: int, available: int | None = None) 
 
 
 def resolve_devices(cfg: TrainConfig) -> int:
+    """Devices of the step: cfg.num_devices local devices (0 = all); in a multi-process run
+    (docs/DISTRIBUTED.md) every device of every process, the global count (then num_devices
+    must be 0 or this process's local device count)."""
     available = jax.local_device_count()
+    if distributed.is_distributed():
+        if cfg.num_devices not in (0, available):
+            raise ConfigError(f"train.num_devices = {cfg.num_devices}: a multi-process run uses every local "
+                              f"device ({available} here); leave it 0")
+        return jax.device_count()
     n = cfg.num_devices or available
     if n > available:
         raise ConfigError(f"train.num_devices = {n} but only {available} local devices exist")
@@ -313,6 +323,22 @@ def _trim_log(path: Path, step: int) -> dict | None:
     if new != text:
         io.atomic_write_bytes(path, new.encode("utf-8"))
     return keep[-1][1] if keep else None
+
+
+def _run_step(p_step, state_r, pool, step: int):
+    """One pmapped step; in a multi-process run a failed collective (a peer died) becomes a
+    DistributedError naming the step, and the result is waited for so it surfaces here."""
+    if not distributed.is_distributed():
+        return p_step(state_r, pool)
+    try:
+        out = p_step(state_r, pool)
+        jax.block_until_ready(out[1]["loss"])
+        return out
+    except Exception as err:  # XlaRuntimeError / ValueError from gloo or NCCL
+        raise distributed.DistributedError(
+            f"step {step + 1}: a collective across the {jax.process_count()} processes failed; another "
+            f"process of the run has probably died or lost its network ({type(err).__name__}: "
+            f"{str(err).splitlines()[0][:300]})") from err
 
 
 @dataclasses.dataclass
@@ -346,12 +372,16 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     pool_host = build_pool(dataset, cfg)
     state = init_state(cfg)
     step = 0
-    restored = checkpoint.restore_latest(run_dir, state)
+    main = distributed.is_main()  # process 0 (always, in one process) writes logs and checkpoints
+    restored = checkpoint.restore_latest(run_dir, state) if main else None
     if restored is not None:
         state, step = restored
         logger.info("resumed %s at step %d", run_dir, step)
+    if distributed.is_distributed():  # every process resumes from process 0's checkpoint
+        state, step = distributed.broadcast_from_main((state, np.int32(step)))
+        step = int(step)
     log_path = run_dir / "metrics.jsonl"
-    last_record = _trim_log(log_path, step)
+    last_record = _trim_log(log_path, step) if main else None
     check_batch(cfg, n)
     pool = parallel.replicate(pool_host, n)
     state_r = parallel.replicate(state, n)
@@ -364,7 +394,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     last_loss = float((last_record or {}).get("loss", float("nan")))
     last_psnr = float((last_record or {}).get("psnr", float("nan")))
     bar = None
-    if progress:
+    if progress and main:
         from jaxnerf_grid import progress as progress_lib
 
         bar = progress_lib.bar(total=end, initial=step, desc=f"train {mcfg.method}", unit="step")
@@ -372,7 +402,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     window_start, window_steps = time.perf_counter(), 0
     try:
         while step < end:
-            state_r, stats = p_step(state_r, pool)
+            state_r, stats = _run_step(p_step, state_r, pool, step)
             step += 1
             window_steps += 1
             if not bool(stats["finite"][0]):
@@ -386,14 +416,15 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                           "lr": float(schedule(step - 1)), "skipped_total": len(skipped),
                           "rays_per_s": window_steps * tcfg.batch_rays / max(elapsed, 1e-9),
                           "time": time.perf_counter() - start_time}
-                with open(log_path, "a") as fh:
-                    fh.write(json.dumps(record) + "\n")
+                if main:
+                    with open(log_path, "a") as fh:
+                        fh.write(json.dumps(record) + "\n")
                 window_start, window_steps = time.perf_counter(), 0
                 if bar is not None:
                     bar.set_postfix(loss=f"{last_loss:.4f}", psnr=f"{last_psnr:.2f}")
             if bar is not None:
                 bar.update(1)
-            if step % tcfg.checkpoint_every == 0 or step == end:
+            if (step % tcfg.checkpoint_every == 0 or step == end) and main:
                 checkpoint.save_checkpoint(run_dir, step, parallel.unreplicate(state_r), keep=tcfg.keep_checkpoints)
             if on_step is not None:
                 on_step(step)
