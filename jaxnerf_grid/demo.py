@@ -111,11 +111,22 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     if (out / "run").exists() and not (out / "run").is_dir():
         raise DataError(f"{out / 'run'}: exists and is not a folder")
     timings = {}
-    data = _dataset_folder(data, out, progress, timings)
-    mask_source = _ensure_masks(data, progress, timings)
+    from jaxnerf_grid import distributed
+
+    # multi-process (docs/DISTRIBUTED.md): process 0 makes the data, every process trains, process 0 evaluates
+    if distributed.is_main():
+        data = _dataset_folder(data, out, progress, timings)
+        mask_source = _ensure_masks(data, progress, timings)
+    distributed.barrier("jaxnerf_grid.demo.data")
+    if not distributed.is_main():
+        data = Path(data) if data is not None else out / "data"
+        mask_source = None
     t = time.perf_counter()
     run_dir, _, _ = runs.train_run(str(data), "ours", out / "run", recipe, steps, overwrite, progress)
     timings["train"] = time.perf_counter() - t
+    if not distributed.is_main():
+        return {"run_dir": run_dir, "metrics": None, "timings": timings,
+                "total_seconds": time.perf_counter() - start, "mask_source": mask_source}
     t = time.perf_counter()
     notes = [_mask_note(mask_source),
              "Timings so far (s): " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items())]

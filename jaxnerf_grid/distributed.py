@@ -72,8 +72,12 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     # cross-process collectives on CPU devices need gloo (the default CPU client has none);
     # the setting only concerns the CPU client, so it is harmless on GPU hosts
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    # everything given: no cluster detection (on SLURM it would pin each process to one device,
+    # SLURM_LOCALID; explicit flags mean one process per host with all its devices)
+    explicit = None not in (coordinator, num_processes, process_id)
     jax.distributed.initialize(coordinator_address=coordinator, num_processes=num_processes,
                                process_id=process_id, initialization_timeout=INIT_TIMEOUT_S,
+                               cluster_detection_method="deactivate" if explicit else None,
                                heartbeat_timeout_seconds=heartbeat_timeout_s or HEARTBEAT_TIMEOUT_S,
                                shutdown_timeout_seconds=SHUTDOWN_TIMEOUT_S)
     return jax.process_count() > 1

@@ -238,7 +238,7 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
     Everything is checked (`check_run`, `check_out`, the fingerprint) before the run folder is
     created, cleared or written.
     """
-    from jaxnerf_grid import train
+    from jaxnerf_grid import distributed, train
 
     run_dir = Path(out)
     check_out(run_dir, data)
@@ -247,13 +247,15 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
     cfg = config_lib.resolve(cfg, ds, bounds=False)
     check_run(cfg, ds)
     wanted = run_config_dict(cfg, Path(data).resolve())
-    if not overwrite and is_run_dir(run_dir):
-        check_fingerprint(run_dir, ds, allow_other_data)
-    check_existing(run_dir, wanted, overwrite)
-    run_dir.mkdir(parents=True, exist_ok=True)
-    (run_dir / RUN_MARKER).write_text("a jaxnerf-grid run folder: `--overwrite` may clear the run's outputs here\n")
-    io.write_json(run_dir / FINGERPRINT_FILE, dataset_fingerprint(ds))
-    io.write_json(run_dir / "config.json", wanted)
+    if distributed.is_main():  # in a multi-process run only process 0 writes the run folder
+        if not overwrite and is_run_dir(run_dir):
+            check_fingerprint(run_dir, ds, allow_other_data)
+        check_existing(run_dir, wanted, overwrite)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        (run_dir / RUN_MARKER).write_text("a jaxnerf-grid run folder: `--overwrite` may clear the run's outputs here\n")
+        io.write_json(run_dir / FINGERPRINT_FILE, dataset_fingerprint(ds))
+        io.write_json(run_dir / "config.json", wanted)
+    distributed.barrier("jaxnerf_grid.runs.train_run")
     result = train.train(ds, cfg, run_dir, progress=progress)
     return run_dir, cfg, result
 

@@ -1,6 +1,7 @@
 """`jaxnerf-grid demo`: tower-small (or --data DIR) -> masks -> train ours -> render -> report (`demo.run_demo`).
 
     jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N] [--set KEY=VALUE ...] [--overwrite]
+                      [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
 """
 
 from __future__ import annotations
@@ -24,14 +25,26 @@ def build_parser() -> argparse.ArgumentParser:
                         "repeatable")
     p.add_argument("--overwrite", action="store_true", help="retrain the run (the data are kept)")
     p.add_argument("--quiet", action="store_true")
+    from jaxnerf_grid.cli.train import add_distributed_flags
+
+    add_distributed_flags(p)
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from jaxnerf_grid import demo
+    from jaxnerf_grid.cli.train import exit_on_distributed_error, start_distributed
 
-    result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=args.set)
+    start_distributed(args)
+    from jaxnerf_grid import demo, distributed
+
+    try:
+        result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=args.set)
+    except distributed.DistributedError as err:
+        exit_on_distributed_error("demo", err)
+    if not distributed.is_main():
+        print(f"process {distributed.jax.process_index()}: trained {result['run_dir']}; process 0 writes the report")
+        return 0
     print(demo.demo_summary(result))
     print(f"report: {result['run_dir'] / 'report.md'}")
     return 0

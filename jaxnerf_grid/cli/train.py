@@ -2,12 +2,47 @@
 
     jaxnerf-grid train --data DIR --method ours|nerf|nerfw [--config FILE] [--set KEY=VALUE ...] [--out RUN]
                        [--steps N] [--overwrite] [--allow-other-data] [--eval]
+                       [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
 """
 
 from __future__ import annotations
 
 import argparse
+import os
+import sys
 from pathlib import Path
+
+
+def add_distributed_flags(p: argparse.ArgumentParser) -> None:
+    """--coordinator / --num-processes / --process-id (docs/DISTRIBUTED.md); train and demo."""
+    g = p.add_argument_group("multi-process training (jax.distributed; docs/DISTRIBUTED.md)")
+    g.add_argument("--coordinator", default=None, metavar="HOST:PORT",
+                   help="address of process 0's coordinator; 'auto' lets JAX detect SLURM / Open MPI / "
+                        "Kubernetes; default: $JAX_COORDINATOR_ADDRESS, else a single process")
+    g.add_argument("--num-processes", type=int, default=None, metavar="N",
+                   help="processes of the run, one per host (default $JAX_NUM_PROCESSES or the cluster's)")
+    g.add_argument("--process-id", type=int, default=None, metavar="I",
+                   help="this process's rank in [0, N) (default $JAX_PROCESS_ID or the cluster's)")
+
+
+def start_distributed(args) -> bool:
+    """Starts jax.distributed when the flags or the environment ask for it (before any device
+    is touched). Returns True in a multi-process run."""
+    from jaxnerf_grid import distributed
+    from jaxnerf_grid.config import ConfigError
+
+    try:
+        return distributed.initialize(args.coordinator, args.num_processes, args.process_id)
+    except ValueError as err:
+        raise ConfigError(str(err)) from err
+
+
+def exit_on_distributed_error(name: str, err) -> None:
+    """A dead peer: one line, then exit at once (not waiting for the runtime's shutdown barrier,
+    which would only fail after the heartbeat timeout)."""
+    print(f"jaxnerf-grid {name}: error: {err}", file=sys.stderr, flush=True)
+    sys.stdout.flush()
+    os._exit(1)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -26,6 +61,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="resume a run on a dataset other than the one it was trained on")
     p.add_argument("--eval", action="store_true", help="evaluate and write the report after training")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    add_distributed_flags(p)
     return p
 
 
@@ -41,12 +77,19 @@ def train_summary(cfg, result, run_dir) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from jaxnerf_grid import evaluate, runs
+    multi = start_distributed(args)
+    from jaxnerf_grid import distributed, evaluate, runs
 
     out = args.out or f"runs/{args.method}"
     overrides = runs.overrides_with_sets(runs.read_overrides(args.config), args.set)
-    run_dir, cfg, result = runs.train_run(args.data, args.method, out, overrides, args.steps, args.overwrite,
-                                          not args.quiet, allow_other_data=args.allow_other_data)
+    try:
+        run_dir, cfg, result = runs.train_run(args.data, args.method, out, overrides, args.steps, args.overwrite,
+                                              not args.quiet, allow_other_data=args.allow_other_data)
+    except distributed.DistributedError as err:
+        exit_on_distributed_error("train", err)
+    if multi and not distributed.is_main():
+        print(f"process {distributed.jax.process_index()}: trained to step {result.step}; process 0 writes {run_dir}")
+        return 0
     print(train_summary(cfg, result, run_dir))
     if args.eval:
         m = evaluate.evaluate_run(run_dir, progress=not args.quiet, allow_other_data=args.allow_other_data)
