@@ -1,6 +1,6 @@
 """Multi-process training (jax.distributed, docs/DISTRIBUTED.md): two local CPU processes with one
-device each reach the parameters of one process with two devices (same seed, same steps), also
-after both are killed and resumed; a process that dies makes the survivor stop with an error
+device each reach the parameters of one process with two devices (same seed, same steps), after
+both are killed mid-run and resumed (the steps before the kill ran straight); a process that dies makes the survivor stop with an error
 within the stated time instead of hanging.
 
 The children run this file as a script: `python test_distributed.py MODE PORT PROCESS_ID RUN_DIR`,
@@ -20,7 +20,7 @@ import pytest
 
 sys.path.insert(0, str(Path(__file__).parent))
 
-STEPS = 20        # steps of the equality test (the issue asks 50; 20 keeps the test under CI's limit)
+STEPS = 12        # steps of the equality test (the issue asks 50; 12 keeps the test under CI's limit)
 HEARTBEAT_S = 10  # the children's heartbeat timeout for the death test
 ROOT = Path(__file__).parents[1]
 
@@ -34,7 +34,7 @@ def _free_port() -> int:
 def _config(num_devices: int, **kw):
     from test_train import tiny_config
 
-    return tiny_config(max_steps=STEPS, num_devices=num_devices, checkpoint_every=5, **kw)
+    return tiny_config(max_steps=STEPS, num_devices=num_devices, checkpoint_every=4, **kw)
 
 
 def _child(mode: str, port: int, pid: int, run_dir: str) -> None:
@@ -45,7 +45,7 @@ def _child(mode: str, port: int, pid: int, run_dir: str) -> None:
     assert jax.process_count() == 2 and jax.device_count() == 2
     on_step = None
     if mode == "slow":          # pause after each step so the parent can kill it mid-run
-        on_step = lambda s: time.sleep(0.3)  # noqa: E731
+        on_step = lambda s: time.sleep(0.2)  # noqa: E731
     if mode == "die":           # process 1 exits abruptly after step 3; process 0 must stop
         def on_step(s):
             if pid == 1 and s == 3:
@@ -59,10 +59,19 @@ def _child(mode: str, port: int, pid: int, run_dir: str) -> None:
              *[np.asarray(x) for x in jax.tree_util.tree_leaves(result.params)])
 
 
-def _launch(mode: str, run_dirs: list[Path]) -> list[subprocess.Popen]:
+@pytest.fixture(scope="module")
+def cache(tmp_path_factory) -> Path:
+    """A JAX compilation cache the children share: only the first launch compiles the step."""
+    return tmp_path_factory.mktemp("jax-cache")
+
+
+def _launch(mode: str, run_dirs: list[Path], cache: Path) -> list[subprocess.Popen]:
+    """Two child processes on a free port, sharing the compilation cache `cache`."""
     port = _free_port()
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
-               JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1")
+               JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1",
+               JAX_COMPILATION_CACHE_DIR=str(cache),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
     env.pop("JAX_COORDINATOR_ADDRESS", None)
     return [subprocess.Popen([sys.executable, __file__, mode, str(port), str(i), str(run_dirs[i])], env=env,
                              stdout=subprocess.DEVNULL, stderr=subprocess.PIPE) for i in range(2)]
@@ -101,25 +110,19 @@ def _reference(tmp_path: Path) -> list[np.ndarray]:
 def _assert_close(got: list[np.ndarray], want: list[np.ndarray]) -> None:
     assert len(got) == len(want)
     worst = max(float(np.max(np.abs(a - b))) for a, b in zip(got, want))
+    print(f"max |2 processes x 1 device - 1 process x 2 devices| = {worst:.3g}")
     assert worst <= 1e-5, worst
 
 
-def test_two_processes_match_one_process_with_two_devices_and_resume(tmp_path):
+def test_two_processes_match_one_process_with_two_devices_after_kill_and_resume(tmp_path, cache):
+    """Both processes SIGKILLed after a checkpoint mid-run, then restarted: the steps before the
+    kill ran straight, those after it from process 0's checkpoint; process 1's run folder is a
+    different, empty one (it resumes from process 0's broadcast) and stays without checkpoints."""
     from jaxnerf_grid import checkpoint
 
     want = _reference(tmp_path)
-    # straight: 2 processes x 1 device; process 0 writes into run0, process 1 writes nothing
-    dirs = [tmp_path / "run0", tmp_path / "run1"]
-    results = _wait(_launch("plain", dirs), 180)
-    assert all(rc == 0 for rc, _ in results), [err[-3000:] for _, err in results]
-    assert checkpoint.list_checkpoints(dirs[0]) and not checkpoint.list_checkpoints(dirs[1])
-    for i in range(2):
-        _assert_close(_leaves(dirs[i] / f"params_{i}.npz"), want)
-
-    # killed (both, SIGKILL) after a checkpoint mid-run, then resumed: the same parameters;
-    # process 1's run folder is a different, empty one: it resumes from process 0's broadcast
     dirs = [tmp_path / "k0", tmp_path / "k1"]
-    procs = _launch("slow", dirs)
+    procs = _launch("slow", dirs, cache)
     try:
         deadline = time.time() + 150
         while not checkpoint.list_checkpoints(dirs[0]):
@@ -131,16 +134,18 @@ def test_two_processes_match_one_process_with_two_devices_and_resume(tmp_path):
             p.kill()
             p.wait()
     steps = [s for s, _ in checkpoint.list_checkpoints(dirs[0])]
-    assert steps and max(steps) < STEPS, steps
-    results = _wait(_launch("plain", dirs), 180)
+    assert steps and max(steps) < STEPS, steps     # it really died mid-run
+    results = _wait(_launch("plain", dirs, cache), 180)
     assert all(rc == 0 for rc, _ in results), [err[-3000:] for _, err in results]
+    assert [s for s, _ in checkpoint.list_checkpoints(dirs[0])][-1] == STEPS
+    assert not checkpoint.list_checkpoints(dirs[1])  # only process 0 writes
     for i in range(2):
         _assert_close(_leaves(dirs[i] / f"params_{i}.npz"), want)
 
 
-def test_a_dead_process_stops_the_survivor_with_an_error(tmp_path):
+def test_a_dead_process_stops_the_survivor_with_an_error(tmp_path, cache):
     start = time.time()
-    results = _wait(_launch("die", [tmp_path / "d0", tmp_path / "d1"]), 90)
+    results = _wait(_launch("die", [tmp_path / "d0", tmp_path / "d1"], cache), 90)
     elapsed = time.time() - start
     (rc0, err0), (rc1, _) = results
     assert rc1 == 3
