@@ -18,6 +18,12 @@ compare, as absolute rays/s move with whatever else runs on a shared machine. Th
 (os.getloadavg) before and after and the CPU count are written with the results. The scene is a
 160x120, 8-frame synthetic dataset of random pixels (throughput does not depend on the content).
 Prints a table and writes benchmarks/results/throughput.json.
+
+`--processes` (issue 18, docs/DISTRIBUTED.md) instead compares, on this machine, training with
+1 process x 2 CPU devices against 2 processes x 1 device (jax.distributed, gloo), each in fresh
+subprocesses, for the first --configs entry: rays/s of each and their ratio, and the cost of the
+cross-process collective (the median time of a psum of a parameter-sized pytree, both ways).
+Writes benchmarks/results/throughput_processes.json.
 """
 
 from __future__ import annotations
@@ -78,7 +84,7 @@ class Case:
         ds = scene()
         self.cfg = cfg = config_lib.resolve(cfg, ds)  # as train.train settles it
         self.method, self.name = method, name
-        self.n = n = train.resolve_devices(cfg.train)
+        self.n = n = train.step_devices(cfg.train)  # every process's devices under jax.distributed
         self.pool = parallel.replicate(train.build_pool(ds, cfg), n)
         self.state = parallel.replicate(train.init_state(cfg), n)
         self.step = train.make_train_step(cfg, n)
@@ -101,7 +107,8 @@ class Case:
         """Seconds to render the case's rays."""
         params = jax.device_get(jax.tree_util.tree_map(lambda x: x[0], self.state["params"]))
         t = time.perf_counter()
-        views.render_rays_chunked(params, self.cfg.model, self.rays, 0, None, self.cfg.train.chunk, self.n)
+        views.render_rays_chunked(params, self.cfg.model, self.rays, 0, None, self.cfg.train.chunk,
+                                  train.resolve_devices(self.cfg.train))
         return time.perf_counter() - t
 
     def describe(self) -> dict:
@@ -141,8 +148,85 @@ def machine_load() -> dict:
     return {"load_average": list(os.getloadavg()), "cpu_count": os.cpu_count()}
 
 
+def _process_child(config: str, steps: int, port: int, pid: int, nproc: int) -> None:
+    """One process of the --processes comparison: prints a JSON line {rays_per_s, psum_s}."""
+    import sys
+
+    from jaxnerf_grid import distributed
+
+    if nproc > 1:
+        distributed.initialize(f"127.0.0.1:{port}", nproc, pid)
+    case = Case("ours", config, 16)
+    n = case.n
+    case.train_steps(2)  # warm
+    times = [case.train_steps(steps) for _ in range(3)]
+    params = case.state["params"]
+    psum = jax.pmap(lambda t: jax.lax.psum(t, parallel.AXIS), axis_name=parallel.AXIS,
+                    devices=parallel.devices(n))
+    jax.block_until_ready(psum(params))
+    psum_times = []
+    for _ in range(20):
+        t = time.perf_counter()
+        jax.block_until_ready(psum(params))
+        psum_times.append(time.perf_counter() - t)
+    floats = sum(int(np.prod(x.shape[1:])) for x in jax.tree_util.tree_leaves(params))
+    print("RESULT " + json.dumps({"process": pid, "processes": nproc, "devices": n,
+                                  "step_s": statistics.median(times),
+                                  "rays_per_s": case.cfg.train.batch_rays / statistics.median(times),
+                                  "psum_s": statistics.median(psum_times), "param_floats": floats}), flush=True)
+    sys.stdout.flush()
+
+
+def compare_processes(config: str, steps: int, out_path: str) -> dict:
+    """1 process x 2 devices against 2 processes x 1 device (see the module's docstring)."""
+    import socket
+    import subprocess
+    import sys
+
+    root = Path(__file__).resolve().parents[1]
+
+    def launch(nproc: int, devices: int) -> list[dict]:
+        with socket.socket() as s:
+            s.bind(("127.0.0.1", 0))
+            port = s.getsockname()[1]
+        env = dict(os.environ, PYTHONPATH=str(root), JAX_PLATFORMS="cpu",
+                   XLA_FLAGS=f"--xla_force_host_platform_device_count={devices}")
+        procs = [subprocess.Popen([sys.executable, "-m", "benchmarks.throughput", "--child",
+                                   f"{config},{steps},{port},{i},{nproc}"], env=env, cwd=root,
+                                  stdout=subprocess.PIPE, stderr=subprocess.PIPE) for i in range(nproc)]
+        rows = []
+        for proc in procs:
+            out, err = proc.communicate(timeout=900)
+            lines = [x for x in out.decode().splitlines() if x.startswith("RESULT ")]
+            if proc.returncode or not lines:
+                raise RuntimeError(f"child failed ({proc.returncode}): {err.decode()[-2000:]}")
+            rows.append(json.loads(lines[-1][7:]))
+        return rows
+
+    one = launch(1, 2)[0]
+    two = launch(2, 1)
+    two_rays = min(r["rays_per_s"] for r in two)  # the processes step together: the slower one's pace
+    result = {"config": config, "steps_timed": f"3 x {steps}, median", "one_process_two_devices": one,
+              "two_processes_one_device": two, "ratio_two_processes_to_one": two_rays / one["rays_per_s"],
+              "psum_ms_one_process": 1e3 * one["psum_s"],
+              "psum_ms_two_processes": 1e3 * max(r["psum_s"] for r in two),
+              "machine": machine_load()}
+    print(f"{config}: 1 process x 2 devices {one['rays_per_s']:.0f} rays/s; 2 processes x 1 device "
+          f"{two_rays:.0f} rays/s (x{result['ratio_two_processes_to_one']:.2f}); psum of the "
+          f"{one['param_floats']} parameter floats: {result['psum_ms_one_process']:.2f} ms in one process, "
+          f"{result['psum_ms_two_processes']:.2f} ms across two (gloo over TCP), per step "
+          f"{one['step_s'] * 1e3:.0f} ms", flush=True)
+    Path(out_path).parent.mkdir(parents=True, exist_ok=True)
+    Path(out_path).write_text(json.dumps(result, indent=2) + "\n")
+    print(f"wrote {out_path}")
+    return result
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--processes", action="store_true",
+                   help="compare 1 process x 2 devices with 2 processes x 1 device (jax.distributed)")
+    p.add_argument("--child", default=None, help=argparse.SUPPRESS)
     p.add_argument("--steps", type=int, default=5, help="training steps timed per case per round")
     p.add_argument("--repeats", type=int, default=3, help="rounds over all cases")
     p.add_argument("--render-rays", type=int, default=8192)
@@ -150,6 +234,14 @@ def main(argv=None) -> None:
     p.add_argument("--methods", default="ours")
     p.add_argument("--out", default=str(Path(__file__).parent / "results" / "throughput.json"))
     args = p.parse_args(argv)
+    if args.child:
+        config, steps, port, pid, nproc = args.child.split(",")
+        _process_child(config, int(steps), int(port), int(pid), int(nproc))
+        return
+    if args.processes:
+        compare_processes(args.configs.split(",")[0], args.steps,
+                          str(Path(args.out).with_name("throughput_processes.json")))
+        return
     load_before = machine_load()
     cases = [Case(method, name, args.render_rays) for name in args.configs.split(",")
              for method in args.methods.split(",")]

@@ -143,7 +143,7 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
     config_lib.validate(cfg)
     settled = config_lib.resolve(cfg, ds)
     check_camera_centres(ds)
-    n = train.resolve_devices(cfg.train) if num_devices is None else num_devices
+    n = train.step_devices(cfg.train) if num_devices is None else num_devices
     train.check_batch(settled, n)
 
 

@@ -285,16 +285,22 @@ def check_batch(cfg: RunConfig, num_devices: int, available: int | None = None) 
                           f"more than the {available / 2**30:.0f} GiB available; try batch_rays = {fit} or less")
 
 
-def resolve_devices(cfg: TrainConfig) -> int:
-    """Devices of the step: cfg.num_devices local devices (0 = all); in a multi-process run
+def step_devices(cfg: TrainConfig) -> int:
+    """Devices of the train step: `resolve_devices` in one process; in a multi-process run
     (docs/DISTRIBUTED.md) every device of every process, the global count (then num_devices
-    must be 0 or this process's local device count)."""
+    must be 0 or this process's local device count). Rendering stays on the local devices."""
+    if not distributed.is_distributed():
+        return resolve_devices(cfg)
     available = jax.local_device_count()
-    if distributed.is_distributed():
-        if cfg.num_devices not in (0, available):
-            raise ConfigError(f"train.num_devices = {cfg.num_devices}: a multi-process run uses every local "
-                              f"device ({available} here); leave it 0")
-        return jax.device_count()
+    if cfg.num_devices not in (0, available):
+        raise ConfigError(f"train.num_devices = {cfg.num_devices}: a multi-process run uses every local "
+                          f"device ({available} here); leave it 0")
+    return jax.device_count()
+
+
+def resolve_devices(cfg: TrainConfig) -> int:
+    """Local devices used: cfg.num_devices (0 = all)."""
+    available = jax.local_device_count()
     n = cfg.num_devices or available
     if n > available:
         raise ConfigError(f"train.num_devices = {n} but only {available} local devices exist")
@@ -368,7 +374,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     run_dir.mkdir(parents=True, exist_ok=True)
     cfg = config_lib.resolve(cfg, dataset)
     mcfg, tcfg = cfg.model, cfg.train
-    n = resolve_devices(tcfg)
+    n = step_devices(tcfg)
     pool_host = build_pool(dataset, cfg)
     state = init_state(cfg)
     step = 0
