@@ -16,7 +16,8 @@ a collective whose peer died fails at once on the survivors (gloo on CPU: "Conne
 peer"; `train` turns it into `DistributedError`); a peer that stops sending heartbeats for
 `HEARTBEAT_TIMEOUT_S` is declared dead by the coordination service, which then terminates every
 other process ("Terminating process because the JAX distributed service detected fatal
-errors"). `INIT_TIMEOUT_S` bounds the wait for all processes to connect at start-up.
+errors"). `INIT_TIMEOUT_S` bounds the wait for all processes to connect at start-up;
+`SHUTDOWN_TIMEOUT_S` the wait at exit for the others (process 0 evaluates after training).
 """
 
 from __future__ import annotations
@@ -27,7 +28,10 @@ import jax
 
 HEARTBEAT_TIMEOUT_S = int(os.environ.get("JAXNERF_HEARTBEAT_TIMEOUT", "60"))
 INIT_TIMEOUT_S = int(os.environ.get("JAXNERF_INIT_TIMEOUT", "300"))
-SHUTDOWN_TIMEOUT_S = int(os.environ.get("JAXNERF_SHUTDOWN_TIMEOUT", "60"))
+# at exit every process waits for the others in the runtime's shutdown barrier; processes 1..N-1
+# finish training while process 0 still evaluates / writes the report, and a barrier that times out
+# aborts *every* process (process 0 mid-report included: seen with 1 s), so it is long
+SHUTDOWN_TIMEOUT_S = int(os.environ.get("JAXNERF_SHUTDOWN_TIMEOUT", "7200"))
 
 
 class DistributedError(RuntimeError):
