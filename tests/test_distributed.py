@@ -154,5 +154,25 @@ def test_a_dead_process_stops_the_survivor_with_an_error(tmp_path, cache):
     assert elapsed < 60 + 2 * HEARTBEAT_S, elapsed
 
 
+def test_without_flags_or_environment_nothing_starts(monkeypatch):
+    from jaxnerf_grid import distributed
+
+    for var in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"):
+        monkeypatch.delenv(var, raising=False)
+    assert not distributed.wanted()
+    assert distributed.initialize() is False and jax.process_count() == 1 and distributed.is_main()
+    distributed.barrier("nothing")                    # no-ops in one process
+    assert distributed.broadcast_from_main({"a": 1})["a"] == 1
+
+
+def test_a_bad_process_id_is_a_one_line_error(capsys):
+    from jaxnerf_grid import cli
+
+    rc = cli.main(["train", "--data", "nowhere", "--coordinator", "127.0.0.1:1", "--num-processes", "2",
+                   "--process-id", "2", "--quiet"])
+    assert rc == 1
+    assert "--process-id = 2: must be in [0, 2)" in capsys.readouterr().err
+
+
 if __name__ == "__main__":
     _child(sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), sys.argv[4])
