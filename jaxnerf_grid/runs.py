@@ -21,6 +21,7 @@ What keeps a run and its dataset safe (docs/RELIABILITY.md):
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import shutil
 from pathlib import Path
@@ -58,13 +59,16 @@ def overrides_with_sets(overrides: dict | None, sets: list[str] | None) -> dict:
     return config_lib.merge(overrides or {}, config_lib.parse_sets(sets, train.RunConfig))
 
 
-def run_config_dict(cfg, data_path) -> dict:
-    """config.json's content: {"data": str(data_path), "model": {...}, "train": {...}}."""
-    return {"data": str(data_path), **config_lib.to_dict(cfg)}
+def run_config_dict(cfg, data_path=None) -> dict:
+    """config.json's content, `to_dict` of the RunConfig: {"data", "model", "train"}; data_path,
+    when given, replaces cfg.data."""
+    if data_path is not None:
+        cfg = dataclasses.replace(cfg, data=str(data_path))
+    return config_lib.to_dict(cfg)
 
 
 def load_run(run_dir) -> tuple:
-    """(RunConfig, data path) of a run directory."""
+    """(RunConfig, its data path `cfg.data`) of a run directory."""
     from jaxnerf_grid import train
 
     run_dir = Path(run_dir)
@@ -76,14 +80,12 @@ def load_run(run_dir) -> tuple:
     raw = io.read_json(path)
     if not isinstance(raw, dict):
         raise DataError(f"{path}: a run's config.json must hold a JSON object")
-    raw = dict(raw)
-    data = raw.pop("data", None)
     cfg = config_lib.from_dict(train.RunConfig, raw, where=str(path))
     try:
         config_lib.validate(cfg)
     except ConfigError as err:
         raise ConfigError(f"{path}: {err}") from None
-    return cfg, data
+    return cfg, cfg.data
 
 
 # --------------------------------------------------------------------------- the dataset's fingerprint
@@ -244,9 +246,9 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
     check_out(run_dir, data)
     cfg = train.make_config(method, _with_steps(overrides, steps))
     ds = dataset if dataset is not None else load_dataset(data, progress=progress)
-    cfg = config_lib.resolve(cfg, ds, bounds=False)
+    cfg = dataclasses.replace(config_lib.resolve(cfg, ds, bounds=False), data=str(Path(data).resolve()))
     check_run(cfg, ds)
-    wanted = run_config_dict(cfg, Path(data).resolve())
+    wanted = run_config_dict(cfg)
     if distributed.is_main():  # in a multi-process run only process 0 writes the run folder
         if not overwrite and is_run_dir(run_dir):
             check_fingerprint(run_dir, ds, allow_other_data)

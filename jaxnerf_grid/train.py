@@ -103,6 +103,10 @@ class TrainConfig:
 
 @dataclasses.dataclass(frozen=True)
 class RunConfig:
+    """Everything that decides a run: the dataset folder (set by `runs.train_run`; None in a
+    recipe or a bare config), the model and the training. config.json is its `to_dict`."""
+
+    data: str | None = None
     model: models.ModelConfig = models.ModelConfig()
     train: TrainConfig = TrainConfig()
 
@@ -190,8 +194,15 @@ def init_state(cfg: RunConfig) -> dict:
     return {"params": params, "opt_state": make_optimizer(cfg.train).init(params), "key": key}
 
 
-@functools.lru_cache(maxsize=8)
 def make_train_step(cfg: RunConfig, num_devices: int):
+    """The pmapped step of `cfg` on `num_devices` devices (see `_make_train_step`). The dataset
+    path does not shape the step, so it is left out of the cache key: the same model on two
+    copies of a dataset shares one compilation."""
+    return _make_train_step(dataclasses.replace(cfg, data=None), num_devices)
+
+
+@functools.lru_cache(maxsize=8)
+def _make_train_step(cfg: RunConfig, num_devices: int):
     """The pmapped step: (state [n, ...], pool [n, ...]) -> (state, stats {loss, mse, finite}).
 
     Cached per (config, device count), so runs with the same config share one compilation.

@@ -25,3 +25,21 @@ def test_resolve_fills_num_images_and_bounds_from_the_dataset():
     settled = config_lib.resolve(given, ds)
     assert settled.model.num_images == 9 and (settled.model.near, settled.model.far) == (1.0, 40.0)
     assert config_lib.near_far(given.model, ds) == (1.0, 40.0) and stored.train == cfg.train
+
+
+def test_run_config_holds_the_data_path_and_the_compiled_step_ignores_it():
+    """config.json is `to_dict` of the RunConfig, the data path included (docs/ARCHITECTURE.md);
+    two runs of one model on two dataset folders share one compiled step."""
+    import dataclasses
+
+    from jaxnerf_grid import runs
+
+    a = dataclasses.replace(train.RunConfig(), data="/surveys/a")
+    b = dataclasses.replace(train.RunConfig(), data="/surveys/b")
+    written = runs.run_config_dict(a)
+    assert list(written) == ["data", "model", "train"] and written["data"] == "/surveys/a"
+    assert config_lib.from_dict(train.RunConfig, written) == a
+    assert runs.run_config_dict(a, "/elsewhere")["data"] == "/elsewhere"
+    assert train.make_train_step(a, 1) is train.make_train_step(b, 1)
+    assert train.make_train_step(a, 1) is not train.make_train_step(
+        dataclasses.replace(a, train=dataclasses.replace(a.train, seed=a.train.seed + 1)), 1)
