@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid import io, parallel
 
 # ADE20K-150 (0-based ids as in HF's Intel/dpt-large-ade id2label) classes that move.
 # ADE20K has no bird class: birds fall under "animal".
@@ -201,13 +201,6 @@ def blend_tiles(values: np.ndarray, layout: TileLayout) -> np.ndarray:
     return (num / den).astype(np.float32)
 
 
-def _padded_batch(x: np.ndarray, batch_size: int) -> np.ndarray:
-    """Repeats the last item so a batch has `batch_size` items (one compiled shape per input size)."""
-    if len(x) >= batch_size:
-        return x
-    return np.concatenate([x, np.repeat(x[-1:], batch_size - len(x), axis=0)])
-
-
 def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size, tiles, overlap, multiple):
     """predict_maps with tiles > 1: C from overlapping windows of a finer copy of each photo,
     depth (relative, so not comparable between windows) from the whole photo at working size."""
@@ -224,7 +217,7 @@ def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size
         size = min(batch_size, len(crops))  # same window count for every photo of a size: one compile
         for i in range(0, len(crops), size):
             chunk = crops[i:i + size]
-            out = dpt.apply(seg_model, dpt.normalize(_padded_batch(chunk, size)))
+            out = dpt.apply(seg_model, dpt.normalize(parallel.pad_to_multiple(chunk, size)[0]))
             probs.append(np.asarray(foreground_probability(out["logits"], classes))[:len(chunk)])
         prob = resize_map(blend_tiles(np.concatenate(probs), lay), h, w)
         inv = None
@@ -295,7 +288,7 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
     both = depth_model is seg_model
 
     def flush(batch):
-        x = _padded_batch(np.stack([b[1] for b in batch]), batch_size)
+        x = parallel.pad_to_multiple(np.stack([b[1] for b in batch]), batch_size)[0]  # one compiled shape
         out = dpt.apply(seg_model, dpt.normalize(x))
         prob = np.asarray(foreground_probability(out["logits"], classes))
         if both:

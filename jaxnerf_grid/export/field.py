@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import fields, models
+from jaxnerf_grid import fields, models, parallel
 
 DEFAULT_CHUNK = 1 << 16
 
@@ -74,11 +74,8 @@ def evaluate(params: dict, mcfg: models.ModelConfig, points: np.ndarray, viewdir
     chunk = int(max(1, chunk))          # one compiled shape: every call pads to it
     pieces = {"sigma": []} | ({"rgb": []} if with_rgb else {})
     for start in range(0, count, chunk):
-        part_p, part_d = points[start:start + chunk], dirs[start:start + chunk]
-        valid = len(part_p)
-        if valid < chunk:
-            part_p = np.concatenate([part_p, np.zeros((chunk - valid, 3), np.float32)])
-            part_d = np.concatenate([part_d, np.broadcast_to(np.float32([0, 0, 1]), (chunk - valid, 3))])
+        part_p, valid = parallel.pad_to_multiple(points[start:start + chunk], chunk)
+        part_d, _ = parallel.pad_to_multiple(dirs[start:start + chunk], chunk)
         out = fn(jnp.asarray(part_p), jnp.asarray(part_d))
         for k in pieces:
             pieces[k].append(np.asarray(out[k])[:valid])
