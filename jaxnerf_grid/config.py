@@ -110,15 +110,21 @@ def validate(cfg: Any, where: str = "") -> None:
                 raise ConfigError(f"{key} = {value!r}: must be an object")
             validate(value, key)
             continue
-        problem = _type_problem(value, hint)
-        if problem:
-            raise ConfigError(f"{key} = {_show(value)}: {problem}")
-        rng = ranges.get(f.name)
-        if rng is not None and value is not None:
-            for v in (value if isinstance(value, (tuple, list)) else (value,)):
-                if not rng.contains(v):
-                    kind = "an integer " if _type_problem(1.5, hint) else ""  # int keys say so
-                    raise ConfigError(f"{key} = {_show(value)}: must be {kind}{rng}")
+        check_value(key, value, hint, ranges.get(f.name))
+
+
+def check_value(key: str, value: Any, hint: Any, rng: Range | None = None) -> None:
+    """One value against a type hint (as `validate` reads them) and an optional `Range` (a tuple
+    or list: each entry). Raises ConfigError naming `key` (a config key or a command-line flag),
+    e.g. "--dilate = -2: must be an integer >= 0"."""
+    problem = _type_problem(value, hint)
+    if problem:
+        raise ConfigError(f"{key} = {_show(value)}: {problem}")
+    if rng is not None and value is not None:
+        for v in (value if isinstance(value, (tuple, list)) else (value,)):
+            if not rng.contains(v):
+                kind = "an integer " if _type_problem(1.5, hint) else ""  # int keys say so
+                raise ConfigError(f"{key} = {_show(value)}: must be {kind}{rng}")
 
 
 def _show(value: Any) -> str:

@@ -36,7 +36,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid import config, io
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.io import DataError
 
@@ -101,21 +101,12 @@ def default_classes(seg_model, weights_dir: str) -> list[int]:
 def check_settings(threshold: float, floor: float, dilate: int, max_side: int | None, classes) -> None:
     """Raises ConfigError naming the flag when a mask setting is out of range: threshold and
     floor in [0, 1], dilate >= 0, max_side >= 1 (or None), classes integers >= 0."""
-    def number(name, v):
-        if isinstance(v, bool) or not isinstance(v, (int, float)) or v != v or v in (float("inf"), float("-inf")):
-            raise ConfigError(f"{name} = {v!r}: must be a finite number")
-
-    for name, v in (("--threshold", threshold), ("--floor", floor)):
-        number(name, v)
-        if not 0 <= v <= 1:
-            raise ConfigError(f"{name} = {v}: must be in [0, 1]")
-    if isinstance(dilate, bool) or not isinstance(dilate, int) or dilate < 0:
-        raise ConfigError(f"--dilate = {dilate}: must be an integer >= 0")
-    if max_side is not None and (isinstance(max_side, bool) or not isinstance(max_side, int) or max_side < 1):
-        raise ConfigError(f"--max-side = {max_side}: must be an integer >= 1")
+    config.check_value("--threshold", threshold, float, config.UNIT)
+    config.check_value("--floor", floor, float, config.UNIT)
+    config.check_value("--dilate", dilate, int, config.NONNEGATIVE)
+    config.check_value("--max-side", max_side, int | None, config.AT_LEAST_ONE)
     for c in classes or []:
-        if isinstance(c, bool) or not isinstance(c, int) or c < 0:
-            raise ConfigError(f"--classes: {c!r} is not a class id (an integer >= 0)")
+        config.check_value("--classes", c, int, config.NONNEGATIVE)
 
 
 def parse_classes(text: str | None) -> list[int] | None:
