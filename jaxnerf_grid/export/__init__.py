@@ -26,6 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import io
+from jaxnerf_grid.data.normalize import apply_normalization_to_points
 
 
 def lift_view(rays, rgb: np.ndarray, depth: np.ndarray, opacity: np.ndarray, min_opacity: float = 0.5,
@@ -60,9 +61,11 @@ def to_metric64(points: np.ndarray, normalization: dict | None) -> np.ndarray:
 
 
 def to_scene(points: np.ndarray, normalization: dict | None) -> np.ndarray:
-    """Metric world points [..., 3] -> normalised scene points, x_norm = s (x + t). float64."""
+    """Metric world points [..., 3] -> normalised scene points, x_norm = s (x + t). float64.
+    The dataset's own map (`data.normalize.apply_normalization_to_points`), with a missing
+    normalisation taken as the identity."""
     scale, translation = _scale_translation(normalization)
-    return scale * (np.asarray(points, np.float64) + translation)
+    return apply_normalization_to_points(points, {"scale": scale, "translation": translation})
 
 
 def plane_to_metric(normal, offset: float, normalization: dict | None) -> tuple[np.ndarray, float]:
