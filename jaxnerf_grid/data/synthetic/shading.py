@@ -89,8 +89,37 @@ def sky_radiance(d: np.ndarray, sun: np.ndarray, seed: int) -> np.ndarray:
     return col * (1 - cover[:, None]) + cloud * cover[:, None]
 
 
+SHRUB = np.array([0.035, 0.06, 0.02])
+ROCK = np.array([0.45, 0.43, 0.38])
+SCATTER_CELL = 2.0  # m: one shrub or stone at most per cell
+
+
+def ground_scatter(p: np.ndarray, footprint: np.ndarray, seed: int, cell: float = SCATTER_CELL):
+    """Shrubs and stones scattered over the field: round patches of 0.36-0.8 m radius (for the
+    2 m cell), dark or light, at most one per `cell`-metre square (75 % of squares hold one),
+    each inside its square. They give the ground the distinct, repeatable spots that real drone photos of grass
+    and gravel have and that SIFT needs to match photos (docs/POSES.md); fBm alone is too smooth.
+    A patch's edge is smoothed over a pixel and a patch smaller than about a pixel fades out.
+
+    p: [N, 3] points on z = 0; footprint: [N] metres per pixel.
+    Returns (cover [N] in [0, 1], albedo [N, 3]).
+    """
+    ij = np.floor(p[:, :2] / cell).astype(np.int64)
+    h = [_hash(ij[:, 0], ij[:, 1], np.full(len(p), k, np.int64), seed + 31) for k in range(5)]
+    radius = cell * (0.18 + 0.22 * h[4])
+    margin = radius / cell
+    centre = (ij + margin[:, None] + (1 - 2 * margin[:, None]) * np.stack([h[2], h[3]], -1)) * cell
+    dist = np.linalg.norm(p[:, :2] - centre, axis=1)
+    fp = np.maximum(footprint, 1e-4)
+    edge = np.clip((radius - dist) / fp + 0.5, 0.0, 1.0)
+    cover = np.where(h[0] < 0.75, edge, 0.0) * np.clip(1.5 - fp / radius, 0.0, 1.0)
+    albedo = np.where((h[1] < 0.6)[:, None], SHRUB[None], ROCK[None]) * (0.8 + 0.4 * h[4])[:, None]
+    return cover, albedo
+
+
 def ground_albedo(p: np.ndarray, footprint: np.ndarray, seed: int) -> np.ndarray:
-    """Grass/dry patches, fine detail, a gravel pad under the tower and a dirt track.
+    """Grass/dry patches, fine detail, scattered shrubs and stones, a gravel pad under the tower
+    and a dirt track.
 
     p: [N, 3] points on z = 0; footprint: [N] metres per pixel. Returns [N, 3].
     """
@@ -101,7 +130,10 @@ def ground_albedo(p: np.ndarray, footprint: np.ndarray, seed: int) -> np.ndarray
     mix = np.clip((large - 0.42) * 3.0, 0.0, 1.0)[:, None]
     col = grass * (1 - mix) + dry * mix
     fine = fbm(p / 0.9, 5, seed + 2, footprint / 0.9)
-    col = col * (0.6 + 0.8 * fine)[:, None]
+    tufts = fbm(p / 5.0, 3, seed + 4, footprint / 5.0)
+    col = col * ((0.35 + 1.3 * fine) * (0.55 + 0.9 * tufts))[:, None]
+    cover, scatter = ground_scatter(p, footprint, seed)
+    col = col * (1 - cover[:, None]) + scatter * cover[:, None]
     pad = np.nonzero(np.maximum(np.abs(p[:, 0]), np.abs(p[:, 1])) < 7.0)[0]
     col[pad] = soil * (0.75 + 0.5 * fbm(p[pad] / 0.25, 3, seed + 3, footprint[pad] / 0.25))[:, None]
     track_x = 22.0 + 6.0 * np.sin(p[:, 1] / 45.0)

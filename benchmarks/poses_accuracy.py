@@ -1,0 +1,134 @@
+"""Accuracy of `jaxnerf-grid poses` on synthetic scenes, where the true cameras are known.
+
+    python -m benchmarks.poses_accuracy [--cases NAME,...] [--views 30] [--out benchmarks/results/poses_accuracy.json]
+
+Each case renders a synthetic scene (`generate_scene`), copies its photos (train and test, in
+the order of the flight, true poses hidden) into a bare folder, runs
+`data.poses.poses_from_images` on it (exhaustive matching, one camera) and compares the
+recovered cameras with the true ones after a similarity alignment of the centres (Umeyama
+1991): the share of photos registered, the rotation error per camera (degrees), the centre
+error as a fraction of the orbit radius (the median distance of the true centres to the
+tower's axis) and the tilt of the recovered +z from the true up. Prints a table and writes JSON.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import shutil
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+
+# name: (preset, clutter, width, height)
+CASES = {
+    "tower-small-low": ("tower-small", "low", 320, 240),
+    "tower-small-medium": ("tower-small", "medium", 320, 240),
+    "tower-small-high": ("tower-small", "high", 320, 240),
+    "ttpla-like-medium": ("ttpla-like", "medium", 320, 180),
+}
+
+
+def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Similarity (s, R, t) minimising sum |s R src + t - dst|^2. src, dst: [N, 3]."""
+    ms, md = src.mean(0), dst.mean(0)
+    xs, xd = src - ms, dst - md
+    u, sig, vt = np.linalg.svd(xd.T @ xs / len(src))
+    d = np.eye(3)
+    d[2, 2] = np.sign(np.linalg.det(u @ vt))
+    rot = u @ d @ vt
+    scale = float((sig * np.diag(d)).sum() / xs.var(0).sum())
+    return scale, rot, md - scale * rot @ ms
+
+
+def angle_deg(r1: np.ndarray, r2: np.ndarray) -> float:
+    return float(np.degrees(np.arccos(np.clip((np.trace(r1 @ r2.T) - 1.0) / 2.0, -1.0, 1.0))))
+
+
+def frames_by_name(transforms: Path) -> dict:
+    meta = json.loads(transforms.read_text())
+    return {Path(f["file_path"]).name: np.asarray(f["transform_matrix"], np.float64) for f in meta["frames"]}
+
+
+def compare(true: dict, found: dict) -> dict:
+    """Errors of `found` ({name: c2w [4, 4]}) against `true` after a similarity alignment."""
+    names = sorted(set(true) & set(found))
+    t = np.stack([true[n] for n in names])
+    f = np.stack([found[n] for n in names])
+    scale, rot, shift = umeyama(f[:, :3, 3], t[:, :3, 3])
+    centres = scale * f[:, :3, 3] @ rot.T + shift
+    radius = float(np.median(np.linalg.norm(t[:, :2, 3], axis=1)))  # the tower's axis is x = y = 0
+    centre_err = np.linalg.norm(centres - t[:, :3, 3], axis=1) / radius
+    rot_err = np.array([angle_deg(rot @ f[i, :3, :3], t[i, :3, :3]) for i in range(len(names))])
+    up = rot @ np.array([0.0, 0.0, 1.0])
+    return {"aligned": len(names), "rotation_deg_median": float(np.median(rot_err)),
+            "rotation_deg_max": float(rot_err.max()), "centre_median": float(np.median(centre_err)),
+            "centre_max": float(centre_err.max()), "up_tilt_deg": float(np.degrees(np.arccos(np.clip(up[2], -1, 1))))}
+
+
+def run_case(name: str, views: int, work: Path, seed: int) -> dict:
+    from jaxnerf_grid.data.poses import poses_from_images
+    from jaxnerf_grid.data.synthetic.generate import generate_scene
+    from jaxnerf_grid.io import DataError
+
+    preset, clutter, w, h = CASES[name]
+    scene = work / f"{name}-s{seed}-{views}"
+    if not (scene / "transforms.json").is_file():
+        num_test = max(1, views // 8)
+        generate_scene(preset, scene, seed=seed, distractors=clutter, overwrite=True, progress=False,
+                       width=w, height=h, num_train=views - num_test, num_test=num_test)
+    photos = work / f"{scene.name}-photos"
+    shutil.rmtree(photos, ignore_errors=True)
+    photos.mkdir(parents=True)
+    true = frames_by_name(scene / "transforms.json")
+    for n in true:
+        shutil.copy(scene / "images" / n, photos / n)
+    out = work / f"{scene.name}-poses"
+    t0, c0 = time.perf_counter(), time.process_time()
+    row = {"case": name, "preset": preset, "clutter": clutter, "size": [w, h], "views": views, "seed": seed}
+    try:
+        summary = poses_from_images(photos, out, single_camera=True, overwrite=True, progress=False)
+    except DataError as exc:
+        row.update(registered=0, error=str(exc), wall_s=time.perf_counter() - t0)
+        return row
+    row.update(registered=summary["registered"], relaxed=summary["relaxed_mapping"],
+               points3d=summary["points3d"], reprojection_px=summary["mean_reprojection_error"],
+               wall_s=time.perf_counter() - t0, cpu_s=time.process_time() - c0)
+    row.update(compare(true, frames_by_name(out / "transforms.json")))
+    return row
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    p.add_argument("--cases", default="all")
+    p.add_argument("--views", type=int, default=30)
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--work", default=str(ROOT / "benchmarks" / ".cache" / "poses"))
+    p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "poses_accuracy.json"))
+    args = p.parse_args(argv)
+    names = list(CASES) if args.cases == "all" else args.cases.split(",")
+    rows = []
+    for name in names:
+        row = run_case(name, args.views, Path(args.work), args.seed)
+        rows.append(row)
+        if "rotation_deg_median" in row:
+            print(f"{name}: {row['registered']}/{row['views']} registered, rotation {row['rotation_deg_median']:.2f} / "
+                  f"{row['rotation_deg_max']:.2f} deg, centre {100 * row['centre_median']:.2f} / "
+                  f"{100 * row['centre_max']:.2f} % of the orbit radius, up tilt {row['up_tilt_deg']:.2f} deg, "
+                  f"{row['wall_s']:.1f} s wall", flush=True)
+        else:
+            print(f"{name}: {row['error']} ({row['wall_s']:.1f} s)", flush=True)
+    payload = {"command": "python -m benchmarks.poses_accuracy " + " ".join(sys.argv[1:] if argv is None else argv),
+               "cpu_count": os.cpu_count(), "load_avg_1min_end": os.getloadavg()[0], "rows": rows}
+    Path(args.out).parent.mkdir(parents=True, exist_ok=True)
+    Path(args.out).write_text(json.dumps(payload, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
