@@ -8,6 +8,11 @@ part; the model is ours otherwise: dual-sphere contraction).
 
 Samples per ray N = the network's sample budget: without hierarchical resampling N coarse
 samples; with it N/2 coarse + N/2 fine (the fine pass runs over the union, as in NeRF).
+At `--standard` (the grid field of the demo's recipe) the two samplers are proposal sampling
+(the setting's proposal round, its first samples stratified in s through the warp, then N
+samples of the main field) and coarse/fine (N/2 + N/2, both on the main field), N from 8 to
+128; the summary adds the samples each scheme needs to come within 0.5 dB of its own
+128-sample PSNR.
 
 Reported: test PSNR overall and per region (tower / near ground / far background), seconds per
 training step (median over logged windows after the first; the machine may be shared, see the
@@ -30,24 +35,46 @@ import numpy as np  # noqa: E402
 from experiments import common  # noqa: E402
 
 WARPS = ("linear", "disparity", "log", "piecewise")
-SAMPLES = {"quick": (16, 32, 64, 128), "full": (16, 32, 64, 128)}
+SAMPLES = {"quick": (16, 32, 64, 128), "standard": (8, 16, 32, 64, 128), "full": (16, 32, 64, 128)}
+SAMPLERS = {"quick": ("coarse", "hierarchical"), "standard": ("proposal", "hierarchical"),
+            "full": ("coarse", "hierarchical")}
 COLUMNS = [("psnr", "PSNR", 2), ("psnr_tower", "PSNR tower", 2), ("psnr_near_ground", "PSNR ground", 2),
            ("psnr_far_background", "PSNR far bg", 2), ("ssim", "SSIM", 3), ("seconds_per_step", "s / step", 3),
            ("delta_psnr_vs_linear", "Δ PSNR vs linear (paired)", 2),
            ("delta_far_vs_linear", "Δ far bg vs linear (paired)", 2)]
 
 
-def scheme_name(warp: str, hierarchical: bool) -> str:
-    return f"{warp}{' + hierarchical' if hierarchical else ''}"
-
-
-def model_overrides(warp: str, hierarchical: bool, n: int) -> dict:
+def scheme_name(warp: str, hierarchical: bool, setting: str = "quick") -> str:
     if hierarchical:
-        return {"warp": warp, "hierarchical": True, "num_coarse": n // 2, "num_fine": n - n // 2}
+        return f"{warp} + hierarchical"
+    return f"{warp} + proposal" if SAMPLERS[setting][0] == "proposal" else warp
+
+
+def model_overrides(warp: str, hierarchical: bool, n: int, setting: str = "quick") -> dict:
+    """The model flags of a scheme at n samples per ray (the second sampler of the setting when
+    `hierarchical`, its first otherwise)."""
+    if hierarchical:
+        return {"warp": warp, "sampler": "hierarchical", "hierarchical": True, "num_coarse": n // 2,
+                "num_fine": n - n // 2}
+    if SAMPLERS[setting][0] == "proposal":
+        return {"warp": warp, "sampler": "proposal", "num_fine": n}
     return {"warp": warp, "hierarchical": False, "num_coarse": n, "num_fine": 0}
 
 
-def summary(table: dict, samples: tuple) -> list[str]:
+def samples_to_reach(table: dict, scheme: str, samples: tuple, within: float = 0.5) -> int | None:
+    """The fewest samples per ray at which `scheme`'s mean PSNR is within `within` dB of its own
+    PSNR at the largest sample count (None when that is not run)."""
+    top = table.get((scheme, max(samples)))
+    if not top or not top.get("psnr"):
+        return None
+    for n in sorted(samples):
+        a = table.get((scheme, n))
+        if a and a.get("psnr") and a["psnr"]["mean"] >= top["psnr"]["mean"] - within:
+            return n
+    return None
+
+
+def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
     """Plain statements computed from the aggregated table {(scheme, n): aggregate}."""
     lines = []
     have = {k: v for k, v in table.items() if v is not None and v["n"] and v.get("psnr")}
@@ -60,10 +87,13 @@ def summary(table: dict, samples: tuple) -> list[str]:
             ranked = sorted(at_n.values(), reverse=True)
             margin = ranked[0] - ranked[1] if len(ranked) > 1 else 0.0
             lines.append(f"{n} samples/ray: best {best} at {at_n[best]:.2f} dB ({margin:+.2f} dB over the runner-up).")
-    gains = [have[(scheme_name(w, True), n)]["psnr"]["mean"] - have[(scheme_name(w, False), n)]["psnr"]["mean"]
-             for w in WARPS for n in samples if (scheme_name(w, True), n) in have and (scheme_name(w, False), n) in have]
+    gains = [have[(scheme_name(w, True, setting), n)]["psnr"]["mean"] -
+             have[(scheme_name(w, False, setting), n)]["psnr"]["mean"]
+             for w in WARPS for n in samples
+             if (scheme_name(w, True, setting), n) in have and (scheme_name(w, False, setting), n) in have]
     if gains:
-        lines.append(f"Hierarchical resampling vs none at equal samples per ray: {np.mean(gains):+.2f} dB on average "
+        other = "proposal sampling" if SAMPLERS[setting][0] == "proposal" else "none"
+        lines.append(f"Hierarchical resampling vs {other} at equal samples per ray: {np.mean(gains):+.2f} dB on average "
                      f"(range {min(gains):+.2f} to {max(gains):+.2f}) over {len(gains)} (warp, N) pairs.")
     stds = [a["psnr"]["std"] for a in have.values() if a["n"] > 1]
     if stds:
@@ -73,7 +103,13 @@ def summary(table: dict, samples: tuple) -> list[str]:
         lines.append("One seed per cell: the seed-to-seed spread is not measured, so differences of a few hundredths "
                      "of a dB are not evidence either way.")
     for hier in (False, True):
-        base = scheme_name("linear", hier)
+        for warp in WARPS:
+            s = scheme_name(warp, hier, setting)
+            need = samples_to_reach(have, s, samples)
+            if need is not None:
+                lines.append(f"{s} comes within 0.5 dB of its own {max(samples)}-sample PSNR at {need} samples/ray.")
+    for hier in (False, True):
+        base = scheme_name("linear", hier, setting)
         for n in samples:
             if n * 4 not in samples or (base, n * 4) not in have:
                 continue
@@ -82,7 +118,7 @@ def summary(table: dict, samples: tuple) -> list[str]:
                 lines.append(f"Caveat: {base} itself at {n} samples/ray is within 0.1 dB of {base} at {n * 4}, so at "
                              "this setting the quarter-samples test below does not discriminate between schemes.")
             for warp in WARPS:
-                s = scheme_name(warp, hier)
+                s = scheme_name(warp, hier, setting)
                 if (s, n) in have:
                     got = have[(s, n)]["psnr"]["mean"]
                     verdict = "matches (within 0.1 dB) or beats" if got >= target - 0.1 else "falls short of"
@@ -100,19 +136,20 @@ def main(argv=None) -> int:
     ctx.command = ctx.command.replace("-m experiments.", "-m benchmarks.")
     samples = tuple(args.samples or SAMPLES[ctx.setting])
     schemes = [(w, h) for h in (False, True) for w in WARPS]
-    records = {(scheme_name(w, h), n): [] for w, h in schemes for n in samples}
+    records = {(scheme_name(w, h, ctx.setting), n): [] for w, h in schemes for n in samples}
     # smallest and largest budgets first, so a time budget still leaves the quarter-samples comparison
     order = sorted(samples, key=lambda n: (n not in (min(samples), min(samples) * 4), n))
     for seed in range(ctx.seeds):
         data = common.scene(ctx, "tower-small", seed, distractors="none")
         for n in order:
             for w, h in schemes:
-                rec = common.run_condition(ctx, data, "ours", seed, f"bench-{w}-{'h' if h else 'c'}{n}",
-                                           {"model": model_overrides(w, h, n), "train": {"use_masks": False}})
-                records[(scheme_name(w, h), n)].append(rec)
+                tag = f"bench-{w}-{'h' if h else SAMPLERS[ctx.setting][0][0]}{n}"
+                rec = common.run_condition(ctx, data, "ours", seed, tag,
+                                           {"model": model_overrides(w, h, n, ctx.setting), "train": {"use_masks": False}})
+                records[(scheme_name(w, h, ctx.setting), n)].append(rec)
     table = {k: (common.aggregate(v) if any(r is not None for r in v) else None) for k, v in records.items()}
     for (name, n), agg in table.items():  # paired (same scene and seed) difference to uniform t
-        base = scheme_name("linear", name.endswith("hierarchical"))
+        base = scheme_name("linear", name.endswith("hierarchical"), ctx.setting)
         if name != base:
             common.add_paired_delta(agg, table[(base, n)], "psnr", "delta_psnr_vs_linear")
             common.add_paired_delta(agg, table[(base, n)], "psnr_far_background", "delta_far_vs_linear")
@@ -121,17 +158,18 @@ def main(argv=None) -> int:
     md = []
     for n in samples:
         md += [f"## {n} samples per ray", ""]
-        md += common.markdown_table([(scheme_name(w, h), table[(scheme_name(w, h), n)]) for w, h in schemes], COLUMNS)
+        md += common.markdown_table([(scheme_name(w, h, ctx.setting), table[(scheme_name(w, h, ctx.setting), n)])
+                                     for w, h in schemes], COLUMNS)
         md += [""]
-    lines = summary(table, samples)
+    lines = summary(table, samples, ctx.setting)
     body["summary"] = lines
     md += ["## Summary (computed from the table)", ""] + [f"- {x}" for x in lines]
     series = []
     for w, h in schemes:
-        s = scheme_name(w, h)
+        s = scheme_name(w, h, ctx.setting)
         pts = [(n, table[(s, n)]["psnr"]) for n in samples if table[(s, n)] and table[(s, n)].get("psnr")]
         if pts:
-            series.append({"label": s.replace(" + hierarchical", " +hier"), "x": [x for x, _ in pts],
+            series.append({"label": s.replace(" + hierarchical", " +hier").replace(" + proposal", " +prop"), "x": [x for x, _ in pts],
                            "y": [c["mean"] for _, c in pts], "err": [c["std"] for _, c in pts], "dashed": h,
                            "colour_index": WARPS.index(w)})
     img = common.line_plot(series, "samples per ray (log2 scale)", "test PSNR (dB)",

@@ -14,8 +14,14 @@ Every table script does the same things, so they live here:
   * `aggregate(...)`, `write_results(...)`: mean / standard deviation over seeds into
     results/<name>.json and results/<name>.md with the command, settings, machine and wall time.
 
-Settings come in two sizes: "quick" (fits the 2-core CPU this was developed on) and "full"
-(what the issue asks for: 3 seeds, larger scenes and more steps; for a GPU machine).
+Settings come in three sizes:
+  * "quick": CI's smoke setting (an MLP 3x64, 200 steps, 80x60 scenes; no run resolves the tower);
+  * "standard": the paper's tables on the 2-core CPU. Every method uses the demo's grid field and
+    proposal sampling (`demo.DEMO_CONFIG`) with the same steps, rays and samples per ray; the
+    methods differ only in what defines them (contraction and warp, masks, NeRF-W's embeddings;
+    `method_overrides`). 1200 steps x 1024 rays on the demo's 160x120 scenes: ours resolves the
+    tower there (docs/GRID.md, experiments/README.md);
+  * "full": 3 seeds, larger scenes and more steps of the MLP, for a GPU machine.
 """
 
 from __future__ import annotations
@@ -38,6 +44,7 @@ ROOT = Path(__file__).resolve().parents[1]
 import numpy as np  # noqa: E402
 
 from jaxnerf_grid import io  # noqa: E402
+from jaxnerf_grid.config import merge  # noqa: E402
 
 EXPERIMENTS = Path(__file__).resolve().parent
 RESULTS = EXPERIMENTS / "results"
@@ -46,9 +53,20 @@ CACHE = EXPERIMENTS / ".cache"
 # Scene sizes: (width, height, num_train, num_test, supersample) per preset and setting.
 SCENE_SIZES = {
     "quick": {"tower-small": (80, 60, 20, 3, 1), "ttpla-like": (96, 54, 20, 3, 1), "plad-like": (84, 56, 20, 3, 1)},
+    "standard": {"tower-small": (160, 120, 40, 8, 2), "ttpla-like": (192, 108, 40, 8, 2),
+                 "plad-like": (180, 120, 40, 8, 2)},
     "full": {"tower-small": (160, 120, 40, 8, 2), "ttpla-like": (320, 180, 60, 8, 2),
              "plad-like": (300, 200, 60, 8, 2)},
 }
+
+
+def _standard_overrides() -> dict:
+    """The demo's recipe (grid field, proposal sampling in s, opaque far bin) without its step count."""
+    from jaxnerf_grid.demo import DEMO_CONFIG
+
+    recipe = json.loads(json.dumps(DEMO_CONFIG))
+    recipe["train"].pop("max_steps", None)
+    return recipe
 
 # Model / optimiser settings shared by every table (a method's own flags come on top).
 TRAIN_SETTINGS = {
@@ -58,6 +76,8 @@ TRAIN_SETTINGS = {
                   "num_coarse": 16, "num_fine": 16},
         "train": {"batch_rays": 256, "lr_init": 4e-3, "lr_final": 3e-4, "warmup": 20, "checkpoint_every": 100,
                   "log_every": 20, "chunk": 4096, "appearance_steps": 20}}},
+    "standard": {"steps": 1200, "seeds": 3, "distractor_views": 4, "cloud_views": 16,
+                 "overrides": _standard_overrides()},
     "full": {"steps": 5000, "seeds": 3, "distractor_views": 4, "overrides": {
         "model": {"field": {"depth": 6, "width": 128, "skip": 3, "pos_max_deg": 10, "dir_max_deg": 4,
                             "view_width": 64},
@@ -65,6 +85,30 @@ TRAIN_SETTINGS = {
         "train": {"batch_rays": 2048, "lr_init": 2e-3, "lr_final": 5e-5, "warmup": 200, "checkpoint_every": 1000,
                   "log_every": 50, "chunk": 8192}}},
 }
+
+
+# Without contraction a grid field must cover every sample point: at `standard` NeRF and NeRF-W
+# sample linearly from 1 to the far plane at 40 units (800 m, past the tree line and buildings;
+# the sky is the opaque far bin), and their grid spans +-44 units: the far plane plus the
+# farthest camera (3.7 units). That is NeRF's bounded parameterisation; contraction is what
+# "ours" has and they lack.
+NERF_FAR = 40.0
+NERF_GRID_HALF_WIDTH = 44.0
+
+
+def space_overrides(setting: str, method: str, overrides: dict | None = None) -> dict:
+    """The bounded space of a run without contraction. At `standard` the demo's recipe is ours
+    (near 1, far 1000, contracted); a run without contraction (NeRF, NeRF-W, Table 2's rows
+    without it) keeps its field, sampler, samples, steps and rays, in a bounded space instead
+    (far NERF_FAR, the grid over +-NERF_GRID_HALF_WIDTH). `overrides`: the condition's own."""
+    from jaxnerf_grid import models
+
+    if setting != "standard":
+        return {}
+    own = (overrides or {}).get("model", {})
+    if own.get("use_contraction", models.method_defaults(method).get("use_contraction", False)):
+        return {}
+    return {"model": {"far": NERF_FAR, "encoding_scale": NERF_GRID_HALF_WIDTH}}
 
 
 # --------------------------------------------------------------------------- setup / provenance
@@ -115,6 +159,9 @@ def base_parser(description: str) -> argparse.ArgumentParser:
     g = p.add_mutually_exclusive_group()
     g.add_argument("--quick", dest="setting", action="store_const", const="quick",
                    help="small scenes and short training (2-core CPU; default)")
+    g.add_argument("--standard", dest="setting", action="store_const", const="standard",
+                   help="the grid field and proposal sampling for every method, sized to resolve the tower on "
+                        "the 2-core CPU (about 5 min per run)")
     g.add_argument("--full", dest="setting", action="store_const", const="full",
                    help="the issue's setting: 3 seeds, larger scenes, more steps (GPU machine)")
     p.set_defaults(setting="quick")
@@ -155,6 +202,11 @@ class Context:
     def distractor_views(self) -> int:
         return TRAIN_SETTINGS[self.setting]["distractor_views"]
 
+    @property
+    def cloud_views(self) -> int:
+        """Training views whose depth joins the test views' in the tower cloud (eval's geometry_f)."""
+        return TRAIN_SETTINGS[self.setting].get("cloud_views", 0)
+
     def out_of_budget(self) -> bool:
         return self.budget_s is not None and time.perf_counter() - self.start > self.budget_s
 
@@ -163,7 +215,7 @@ def make_context(args, script: str) -> Context:
     setting = args.setting
     seeds = args.seeds or TRAIN_SETTINGS[setting]["seeds"]
     steps = args.steps or TRAIN_SETTINGS[setting]["steps"]
-    flags = [f"--{setting}"] + [a for a in sys.argv[1:] if a not in ("--quick", "--full")]
+    flags = [f"--{setting}"] + [a for a in sys.argv[1:] if a not in ("--quick", "--standard", "--full")]
     command = f"JAX_PLATFORMS=cpu python -m experiments.{Path(script).stem} " + " ".join(flags)
     ctx = Context(setting, seeds, steps, Path(args.cache), Path(args.results),
                   None if args.budget_min is None else args.budget_min * 60, args.lpips_weights, not args.quiet,
@@ -183,7 +235,7 @@ def scene(ctx: Context, preset: str, seed: int, distractors: str | None = None, 
     from jaxnerf_grid.data.synthetic.generate import generate_scene
 
     w, h, n_train, n_test, ss = size or SCENE_SIZES[ctx.setting][preset]
-    name = f"{preset}_s{seed}_{w}x{h}_{n_train}+{n_test}_ss{ss}_{distractors or 'preset'}"
+    name = f"{preset}_s{seed}_{w}x{h}_{n_train}+{n_test}_ss{ss}_{distractors or 'preset'}_g{generator_digest()}"
     out = ctx.cache / "scenes" / name
     if not (out / "transforms.json").is_file():
         print(f"[scene] generating {name}", flush=True)
@@ -191,6 +243,16 @@ def scene(ctx: Context, preset: str, seed: int, distractors: str | None = None, 
                        width=w, height=h, num_train=n_train, num_test=n_test, supersample=ss,
                        workers=min(2, os.cpu_count() or 1) if w * h * (n_train + n_test) > 100_000 else 1)
     return out
+
+
+def generator_digest() -> str:
+    """Short SHA-1 of the synthetic generator's source: a cached scene made by other code is not reused."""
+    from jaxnerf_grid.data import synthetic
+
+    h = hashlib.sha1()
+    for f in sorted(Path(synthetic.__file__).parent.glob("*.py")):
+        h.update(f.read_bytes())
+    return h.hexdigest()[:6]
 
 
 def _relink(scene_dir: Path, variant_dir: Path, meta: dict, keys=("file_path", "clean_file_path",
@@ -301,10 +363,9 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     or None when the time budget is spent before the run starts.
     """
     from jaxnerf_grid import evaluate, runs
-    from jaxnerf_grid.config import merge
 
     steps = int(steps or ctx.steps)
-    ov = merge(ctx.overrides, overrides or {})
+    ov = merge(merge(ctx.overrides, space_overrides(ctx.setting, method, overrides)), overrides or {})
     ov = merge(ov, {"train": {"seed": int(seed)}})
     key = run_key(data_dir, method, ov, steps)
     run_dir = ctx.cache / "runs" / f"{label}-s{seed}-{key}"
@@ -330,7 +391,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     t_train = time.perf_counter() - t0
     t1 = time.perf_counter()
     metrics = evaluate.evaluate_run(run_dir, ctx.lpips_weights, progress=ctx.progress, dataset=ds,
-                                    distractor_views=ctx.distractor_views)
+                                    distractor_views=ctx.distractor_views, cloud_views=ctx.cloud_views)
     t_eval = time.perf_counter() - t1
     info = {"label": label, "seed": seed, "method": method, "steps": steps, "data": str(data_dir),
             "run_dir": str(run_dir), "overrides": ov, "train_wall_s": t_train, "eval_wall_s": t_eval,
@@ -366,6 +427,7 @@ METRIC_PATHS = {
     "distractor_psnr": ("metrics", "distractor_psnr"),
     "psnr_right_half": ("metrics", "mean_right_half", "psnr"),
     "seconds_per_step": ("seconds_per_step",),
+    "geometry_f": ("metrics", "geometry", "thresholds", "0.02", "fscore"),
 }
 
 
@@ -405,6 +467,36 @@ def add_paired_delta(agg: dict | None, base: dict | None, key: str = "psnr", nam
         agg[name] = {"mean": float(np.mean(d)), "std": float(np.std(d)), "values": d}
 
 
+VERDICT_RULE = ("Verdict on a paired effect (dB) over seeds: 'reproduced' when every seed's effect is positive and "
+                "the mean is at least half the paper's figure; 'partly' when the mean is positive and at least two "
+                "thirds of the seeds are, but the mean is below half the paper's figure or a seed is not positive; "
+                "'not reproduced' otherwise (the mean is not positive, or the seeds disagree).")
+
+
+def verdict(effect: dict | None, paper: float) -> str:
+    """'reproduced' | 'partly' | 'not reproduced' | 'not run' for a paired effect {mean, std, values}
+    against the paper's figure `paper` (same sign convention: positive = the paper's method is better).
+    The rule is VERDICT_RULE."""
+    if not effect or not effect.get("values"):
+        return "not run"
+    values = np.asarray(effect["values"], np.float64)
+    mean, positive = float(values.mean()), float(np.mean(values > 0))
+    if positive == 1.0 and mean >= 0.5 * paper:
+        return "reproduced"
+    if mean > 0 and positive >= 2 / 3:
+        return "partly"
+    return "not reproduced"
+
+
+def claim_line(name: str, effect: dict | None, paper: float) -> str:
+    """One markdown line: the claim, the paper's figure, ours (mean ± std, n) and the verdict."""
+    if not effect or not effect.get("values"):
+        return f"- {name}: paper {paper:+.2f} dB; ours not run."
+    return (f"- {name}: paper {paper:+.2f} dB; ours {effect['mean']:+.2f} ± {effect['std']:.2f} dB over "
+            f"{len(effect['values'])} seed(s) (values {', '.join(f'{v:+.2f}' for v in effect['values'])}): "
+            f"**{verdict(effect, paper)}**.")
+
+
 def fmt(cell: dict | None, digits: int = 2) -> str:
     if cell is None:
         return "n/a"
@@ -423,6 +515,20 @@ def markdown_table(rows: list[tuple[str, dict]], columns: list[tuple[str, str, i
         else:
             lines.append(f"| {label} | {agg['n']} | " + " | ".join(fmt(agg.get(k), d) for k, _, d in columns) + " |")
     return lines
+
+
+def field_summary(model: dict) -> str:
+    """One phrase for a setting's field and sampler, e.g. 'MLP 3x64, 16+16 samples per ray'."""
+    field = model["field"]
+    if field.get("kind") == "grid":
+        g = field["grid"]
+        text = (f"hash-grid field ({g['num_levels']} levels, 2^{g['log2_table_size']} entries, resolution "
+                f"{g['min_resolution']}-{g['max_resolution']}) with a {field['depth']}x{field['width']} MLP")
+    else:
+        text = f"MLP {field['depth']}x{field['width']}"
+    if model.get("sampler") == "proposal":
+        return text + f", proposal sampling {'+'.join(map(str, model['proposal_samples']))} -> {model['num_fine']} samples"
+    return text + f", {model['num_coarse']}+{model['num_fine']} samples per ray"
 
 
 def settings_summary(ctx: Context) -> dict:
@@ -455,15 +561,13 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
                "not_run_for_budget": ctx.skipped_for_budget, **body, "notes": notes}
     io.write_json(ctx.results / f"{name}.json", portable(payload))
     o = TRAIN_SETTINGS[ctx.setting]["overrides"]
-    field = o["model"]["field"]
     head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
             f"Machine: {machine_line(ctx.machine)}. The table's {len(ctx.run_seconds)} NeRF runs took "
             f"{sum(ctx.run_seconds.values()) / 60:.1f} min of train + eval wall time as recorded when each ran "
             f"(runs shared with another table counted in both); this invocation took {wall / 60:.1f} min "
             "(runs already done in the cache are not re-run).", "",
             f"Setting `{ctx.setting}`: {ctx.seeds} seed(s), {ctx.steps} steps per run, "
-            f"{o['train']['batch_rays']} rays per step, MLP {field['depth']}x{field['width']}, "
-            f"{o['model']['num_coarse']}+{o['model']['num_fine']} samples per ray unless stated; "
+            f"{o['train']['batch_rays']} rays per step, {field_summary(o['model'])} unless stated; "
             "scenes " + ", ".join(f"{k} {v[0]}x{v[1]} ({v[2]} train / {v[3]} test views)"
                                   for k, v in SCENE_SIZES[ctx.setting].items()) + ".",
             "Cells: mean ± standard deviation over seeds (one value when n = 1). " + lpips_note + ".", ""]

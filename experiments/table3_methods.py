@@ -26,7 +26,8 @@ from experiments import common
 METHODS = (("ours", "ours", {"train": {"use_masks": True}}), ("NeRF", "nerf", {}), ("NeRF-W", "nerfw", {}))
 COLUMNS = [("psnr", "PSNR", 2), ("psnr_right_half", "PSNR right half", 2), ("ssim", "SSIM", 3),
            ("ms_ssim", "MS-SSIM", 3), ("lpips", "LPIPS", 3), ("psnr_tower", "PSNR tower", 2),
-           ("psnr_far_background", "PSNR far bg", 2), ("distractor_psnr", "distractor PSNR", 2),
+           ("psnr_near_ground", "PSNR near ground", 2), ("psnr_far_background", "PSNR far bg", 2),
+           ("geometry_f", "tower F@0.02", 3), ("distractor_psnr", "distractor PSNR", 2),
            ("seconds_per_step", "s / step", 3), ("delta_psnr_right_half", "Δ right-half PSNR vs NeRF (paired)", 2)]
 
 
@@ -53,9 +54,21 @@ def crops_figure(records: dict, data_dir: Path, scale: int = 3, max_views: int =
     return common.vstack(rows) if rows else None
 
 
+PAPER_VS_NERF, PAPER_VS_NERFW = 10.68, 4.30
+# --field mlp: the paper's kind of field (an MLP on positional encodings), same sampler, steps and rays.
+MLP_FIELD = {"model": {"field": {"kind": "mlp", "depth": 4, "width": 64, "skip": 0, "pos_max_deg": 10,
+                                 "dir_max_deg": 4, "view_width": 32, "density_activation": "softplus",
+                                 "density_bias": 0.0}},
+             "train": {"lr_init": 5e-3, "lr_final": 5e-4}}
+
+
 def main(argv=None) -> int:
-    args = common.base_parser(__doc__).parse_args(argv)
+    p = common.base_parser(__doc__)
+    p.add_argument("--field", choices=("setting", "mlp"), default="setting",
+                   help="the setting's field (default), or an MLP field for every method (results: table3_methods_mlp)")
+    args = p.parse_args(argv)
     ctx = common.make_context(args, "table3_methods.py")
+    field_ov = MLP_FIELD if args.field == "mlp" else {}
     records = {label: [] for label, _, _ in METHODS}
     data0 = None
     for seed in range(ctx.seeds):
@@ -63,23 +76,37 @@ def main(argv=None) -> int:
         data0 = data0 or data
         for label, method, ov in METHODS:
             tag = "t1-tower-small-GT_masks__Eq_7" if method == "ours" else f"t3-{method}"
-            records[label].append(common.run_condition(ctx, data, method, seed, tag, ov))
+            if args.field == "mlp":
+                tag = f"t3-mlp-{method}"
+            records[label].append(common.run_condition(ctx, data, method, seed, tag, common.merge(field_ov, ov)))
     rows = [(label, common.aggregate(records[label])) for label, _, _ in METHODS]
     for _, agg in rows[:1] + rows[2:]:
         common.add_paired_delta(agg, rows[1][1], "psnr_right_half", "delta_psnr_right_half")
-    body = {"rows": [{"method": label, "aggregate": a} for label, a in rows]}
+    common.add_paired_delta(rows[0][1], rows[2][1], "psnr_right_half", "delta_psnr_right_half_vs_nerfw")
+    ours = rows[0][1] or {}
+    claims = [("ours vs NeRF (right-half PSNR)", ours.get("delta_psnr_right_half"), PAPER_VS_NERF),
+              ("ours vs NeRF-W (right-half PSNR)", ours.get("delta_psnr_right_half_vs_nerfw"), PAPER_VS_NERFW)]
+    body = {"rows": [{"method": label, "aggregate": a} for label, a in rows], "field": args.field,
+            "claims": [{"claim": c, "paper_db": p, "effect": e, "verdict": common.verdict(e, p)} for c, e, p in claims]}
     md = common.markdown_table(rows, COLUMNS)
+    md += ["", "## The paper's claim (Table 3: +10.68 dB over NeRF, +4.30 dB over NeRF-W, scenario (b))", ""]
+    md += [common.claim_line(c, e, p) for c, e, p in claims] + ["", common.VERDICT_RULE]
     first = {label: recs[0] for label, recs in records.items() if recs and recs[0] is not None}
+    name = "table3_methods" + ("_mlp" if args.field == "mlp" else "")
     fig = crops_figure(first, data0) if first else None
     notes = ["Equal steps, batch, MLP and samples per ray for all methods (coarse + fine as in the settings).",
              "NeRF-W's PSNR / SSIM / MS-SSIM / LPIPS columns are on the right halves (appearance fitted on the left "
              "halves); the other methods' are on full views; compare methods on 'PSNR right half'.",
              "Ours uses ground-truth masks + Eq. 7 (the built-in DPT is Table 1's and Table 4's subject)."]
+    if args.field == "mlp":
+        notes.append("Field: an MLP (4x64, positional encoding to 2^10) for every method instead of the setting's "
+                     "hash grid; everything else as the setting (`--field mlp`, table3_methods.MLP_FIELD).")
     if fig is not None:
-        common.write_figure(ctx, "table3_methods", fig)
-        md += ["", "![tower crops: ground truth | ours | NeRF | NeRF-W](table3_methods.png)"]
-        notes.append("Figure: results/table3_methods.png (seed 0; tower crops of the test views).")
-    common.write_results(ctx, "table3_methods", "Table 3: ours vs NeRF vs NeRF-W", body, md, notes)
+        common.write_figure(ctx, name, fig)
+        md += ["", f"![tower crops: ground truth | ours | NeRF | NeRF-W]({name}.png)"]
+        notes.append(f"Figure: results/{name}.png (seed 0; tower crops of the test views).")
+    common.write_results(ctx, name, "Table 3: ours vs NeRF vs NeRF-W" + (" (MLP field)" if args.field == "mlp" else ""),
+                         body, md, notes)
     return 0
 
 

@@ -101,3 +101,123 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     assert out.name == f"scene__dpt_builtin_eq7_{common.weights_digest(weights)}" and len(calls) == 1
     gt = common.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
     assert gt.name == "scene__gt_eq7"
+
+
+def test_verdict_follows_the_stated_rule():
+    """The verdict on a paired effect, case by case against VERDICT_RULE's wording."""
+    cell = lambda *v: {"mean": float(np.mean(v)), "std": float(np.std(v)), "values": list(v)}  # noqa: E731
+    assert common.verdict(cell(2.0, 1.5, 1.2), 2.22) == "reproduced"      # all > 0, mean 1.57 >= 1.11
+    assert common.verdict(cell(1.0, 1.2, 1.1), 2.22) == "partly"          # all > 0, mean 1.1 < 1.11
+    assert common.verdict(cell(3.0, 2.0, -0.1), 2.22) == "partly"         # a seed not positive
+    assert common.verdict(cell(3.0, -0.5, -0.1), 2.22) == "not reproduced"  # 1 of 3 positive
+    assert common.verdict(cell(-0.2, 0.1, 0.05), 2.22) == "not reproduced"  # mean <= 0
+    assert common.verdict(None, 2.22) == "not run"
+    line = common.claim_line("x", cell(2.0, 1.5, 1.2), 2.22)
+    assert "+2.22" in line and "+1.57" in line and "reproduced" in line
+
+
+def test_standard_setting_is_one_recipe_for_every_method():
+    """At --standard every method trains the same field, sampler, samples, rays and steps; the
+    methods differ only in contraction / warp / masks / embeddings, and a run without contraction
+    gets a grid that covers every point it samples (the synthetic orbits' farthest camera plus
+    the far plane, computed here from the generator's orbits)."""
+    from jaxnerf_grid import train
+    from jaxnerf_grid.data import synthetic
+
+    ov = common.TRAIN_SETTINGS["standard"]["overrides"]
+    cfgs = {m: train.make_config(m, common.merge(ov, common.space_overrides("standard", m)))
+            for m in ("ours", "nerf", "nerfw")}
+    for cfg in cfgs.values():
+        assert cfg.model.field.kind == "grid" and cfg.model.sampler == "proposal"
+        assert (cfg.model.num_fine, tuple(cfg.model.proposal_samples)) == (32, (64,))
+        assert cfg.train.batch_rays == 1024
+    assert cfgs["ours"].model.use_contraction and cfgs["ours"].model.warp == "disparity" and cfgs["ours"].train.use_masks
+    scale = synthetic.NORMALIZATION["scale"]
+    shift = np.asarray(synthetic.NORMALIZATION["translation"])
+    farthest = max(np.linalg.norm((np.array([r * 1.05, 0.0, h + 1.5]) + shift) * scale)
+                   for r, h, _ in synthetic._ORBITS + (synthetic._LOW_PASS,))
+    for m in ("nerf", "nerfw"):
+        model = cfgs[m].model
+        assert not model.use_contraction and model.warp == "linear" and not cfgs[m].train.use_masks
+        assert model.encoding_scale >= model.far + farthest
+    # Table 2's rows without contraction get the bounded space too; rows with it do not
+    assert common.space_overrides("standard", "ours", {"model": {"use_contraction": False}})["model"]["far"] == 40.0
+    assert common.space_overrides("standard", "ours", {"model": {"use_contraction": True}}) == {}
+    assert common.space_overrides("quick", "nerf") == {}
+
+
+def test_samples_to_reach_its_own_best():
+    from benchmarks import sampling_schemes as bench
+
+    cell = lambda v: {"n": 1, "psnr": {"mean": v, "std": 0.0, "values": [v]}}  # noqa: E731
+    table = {("a", 8): cell(20.0), ("a", 16): cell(22.6), ("a", 32): cell(23.0), ("a", 128): cell(23.0)}
+    assert bench.samples_to_reach(table, "a", (8, 16, 32, 64, 128)) == 16  # 22.6 >= 23.0 - 0.5
+    assert bench.samples_to_reach(table, "b", (8, 128)) is None
+    assert bench.model_overrides("log", False, 16, "standard") == {"warp": "log", "sampler": "proposal", "num_fine": 16}
+    assert bench.model_overrides("log", True, 16, "standard")["num_coarse"] == 8
+
+
+def _fake_tables(monkeypatch, tmp_path, psnr_of):
+    """Replaces training with records whose metrics come from psnr_of(label, method, overrides, seed),
+    so a table's assembly (rows, paired deltas, claims, verdicts, files) is checked on known numbers."""
+    def run_condition(ctx, data, method, seed, label, overrides=None, steps=None):
+        v = float(psnr_of(label, method, overrides or {}, seed))
+        metrics = {"mean": {"psnr": v, "ssim": 0.5}, "mean_right_half": {"psnr": v},
+                   "regions_mean": {"tower": v - 3, "near_ground": v + 1, "far_background": v + 2},
+                   "geometry": {"thresholds": {"0.02": {"fscore": 0.7}}}, "distractor_psnr": v, "per_view": []}
+        return {"seed": seed, "run_dir": str(tmp_path / f"{label}-{seed}"), "metrics": metrics,
+                "seconds_per_step": 0.1}
+
+    monkeypatch.setattr(common, "run_condition", run_condition)
+    monkeypatch.setattr(common, "scene", lambda ctx, preset, seed, distractors=None, size=None: tmp_path / preset)
+    monkeypatch.setattr(common, "mask_variant", lambda ctx, scene_dir, name, *a, **k: tmp_path / f"{scene_dir.name}-{name}")
+    monkeypatch.setattr(common, "clean_variant", lambda ctx, scene_dir: tmp_path / f"{scene_dir.name}-clean")
+    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 1.0, "precision": 1.0, "recall": 1.0})
+    monkeypatch.setattr(common, "enable_compile_cache", lambda path=None: None)
+
+
+def test_tables_turn_known_runs_into_the_right_claims(tmp_path, monkeypatch):
+    """Table 1 / 2 / 3 at --standard on fake runs with known PSNRs: the claim's effect is the paired
+    difference of the right rows, and its verdict follows."""
+    from experiments import table1_foreground as t1, table2_farview as t2, table3_methods as t3
+
+    def psnr_of(label, method, overrides, seed):
+        if label.startswith("t3-"):
+            return {"nerf": 15.0, "nerfw": 21.0}[method] + seed  # ours: Table 1's GT + Eq. 7 run, 25 + seed
+        if "DPT" in label:
+            return 22.0 + seed
+        if "no_masks" in label:
+            return 20.5 + seed + (0.5 if seed == 1 else 0.0)  # DPT - none: 1.5, 1.0, 1.5
+        if label.startswith("t2-off") or label.startswith("t2-disparity"):
+            return 24.0 + seed - 0.2 * seed  # on - off: 1.0, 1.2, 1.4
+        return 25.0 + seed
+
+    _fake_tables(monkeypatch, tmp_path, psnr_of)
+    monkeypatch.setattr(t1, "builtin_available", lambda: True)
+    monkeypatch.setattr(t2, "far_background_share", lambda ctx, seed: 0.25)
+    monkeypatch.setattr(t3, "crops_figure", lambda records, data_dir: None)
+    out = tmp_path / "results"
+    common_args = ["--standard", "--seeds", "3", "--cache", str(tmp_path / "cache"), "--results", str(out), "--quiet"]
+    assert t1.main(common_args) == 0 and t2.main(common_args) == 0 and t3.main(common_args) == 0
+
+    table1 = json.loads((out / "table1_foreground.json").read_text())
+    assert table1["settings"]["setting"] == "standard"
+    claim_a = table1["claims"][0]
+    np.testing.assert_allclose(claim_a["effect"]["values"], [1.5, 1.0, 1.5])
+    assert claim_a["paper_db"] == 2.22 and claim_a["verdict"] == "reproduced"
+    assert {c["scene_set"].split(":")[0] for c in table1["claims"]} == {"A", "B", "A-low", "A-high"}
+    row = next(r for r in table1["rows"] if r["condition"] == "no masks")
+    np.testing.assert_allclose([row["aggregate"]["geometry_f"]["mean"], row["aggregate"]["psnr_tower"]["mean"]],
+                               [0.7, 20.5 + 1 - 3 + 0.5 / 3])
+
+    table2 = json.loads((out / "table2_farview.json").read_text())
+    np.testing.assert_allclose(table2["claim"]["effect"]["values"], [1.0, 1.2, 1.4])
+    assert table2["claim"]["verdict"] == "partly"  # all positive, mean 1.2 < 3.43 / 2
+    assert table2["far_background_share_of_test_pixels"] == [0.25, 0.25, 0.25]
+
+    table3 = json.loads((out / "table3_methods.json").read_text())
+    vs_nerf, vs_nerfw = table3["claims"]
+    np.testing.assert_allclose(vs_nerf["effect"]["values"], [10.0, 10.0, 10.0])
+    np.testing.assert_allclose(vs_nerfw["effect"]["values"], [4.0, 4.0, 4.0])
+    assert vs_nerf["verdict"] == "reproduced" and vs_nerfw["verdict"] == "reproduced"
+    assert "paper +10.68 dB" in (out / "table3_methods.md").read_text()
