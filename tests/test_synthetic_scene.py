@@ -169,3 +169,23 @@ def test_tower_point_sample_lies_on_members():
         on_surface |= ix.inside_box(pts, c, R, h + 1e-6) & ~ix.inside_box(pts, c, R, h - 1e-6)
     assert on_surface.all()
     assert pts[:, 2].min() >= 0.0 and 29.0 < pts[:, 2].max() < 31.5
+
+
+def test_ground_scatter_covers_its_expected_share_and_fades_below_a_pixel():
+    """Shrubs and stones: the share of the ground they cover against its closed form (75 % of the
+    cells hold a disc of radius cell * (0.18 + 0.22 u), u uniform: 0.75 pi E[(0.18 + 0.22 u)^2]),
+    no disc crosses its cell's border, and discs smaller than about a pixel fade out."""
+    from jaxnerf_grid.data.synthetic import shading
+
+    rng = np.random.default_rng(0)
+    cell = shading.SCATTER_CELL
+    p = np.concatenate([rng.uniform(-500, 500, (200_000, 2)), np.zeros((200_000, 1))], 1)
+    cover, albedo = shading.ground_scatter(p, np.full(len(p), 1e-4), seed=3)
+    expected = 0.75 * np.pi * (0.18 ** 2 + 0.18 * 0.22 + 0.22 ** 2 / 3)
+    assert abs(cover.mean() - expected) < 0.01, (cover.mean(), expected)
+    assert albedo.min() >= 0 and cover.min() >= 0 and cover.max() <= 1
+    border = p.copy()
+    border[:, 0] = np.round(border[:, 0] / cell) * cell  # points on the cells' borders
+    assert shading.ground_scatter(border, np.full(len(p), 1e-4), seed=3)[0].max() <= 0.5 + 1e-9
+    far = shading.ground_scatter(p, np.full(len(p), 10.0), seed=3)[0]  # a 10 m pixel: no disc shows
+    assert far.max() == 0.0
