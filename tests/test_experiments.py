@@ -221,3 +221,31 @@ def test_tables_turn_known_runs_into_the_right_claims(tmp_path, monkeypatch):
     np.testing.assert_allclose(vs_nerfw["effect"]["values"], [4.0, 4.0, 4.0])
     assert vs_nerf["verdict"] == "reproduced" and vs_nerfw["verdict"] == "reproduced"
     assert "paper +10.68 dB" in (out / "table3_methods.md").read_text()
+
+
+def test_poses_chain_true_pose_dataset_matches_the_registered_frames(tmp_path):
+    """Chain B holds exactly chain A's frames in A's order, with the generator's poses and its
+    intrinsics scaled to A's image size, and the photos scaled to that size."""
+    from experiments import poses_chain
+    from jaxnerf_grid import io
+
+    scene, chain_a = tmp_path / "scene", tmp_path / "A"
+    (scene / "images").mkdir(parents=True)
+    chain_a.mkdir()
+    frames = []
+    for k in range(4):
+        io.write_png(scene / "images" / f"v{k}.png", np.full((40, 60, 3), k / 4.0, np.float32))
+        pose = np.eye(4)
+        pose[0, 3] = k
+        frames.append({"file_path": f"images/v{k}.png", "transform_matrix": pose.tolist()})
+    io.write_json(scene / "transforms.json", {"fl_x": 50.0, "fl_y": 52.0, "cx": 30.0, "cy": 20.0, "w": 60, "h": 40,
+                                              "near": 0.5, "far": 40.0, "frames": frames,
+                                              "scene_normalization": {"scale": 0.05, "translation": [0, 0, -15]}})
+    io.write_json(chain_a / "transforms.json", {"frames": [{"file_path": "images/v3.png"}, {"file_path": "images/v1.png"}]})
+    out = poses_chain.true_pose_dataset(scene, chain_a, tmp_path / "B", (30, 20))
+    meta = io.read_json(out / "transforms.json")
+    assert [f["file_path"] for f in meta["frames"]] == ["images/v3.png", "images/v1.png"]
+    assert [f["transform_matrix"][0][3] for f in meta["frames"]] == [3.0, 1.0]
+    assert (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"]) == (25.0, 26.0, 15.0, 10.0, 30, 20)
+    img = io.read_image(out / "images" / "v3.png")
+    assert img.shape == (20, 30, 3) and abs(float(img.mean()) - 0.75) < 0.01
