@@ -32,6 +32,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxnerf_grid.data.normalize import apply_normalization_to_points, compose_normalization, invert_normalization
+
 UP_AXIS = 2
 DEFAULT_THRESHOLDS = (0.01, 0.02, 0.05)
 # 0.05 normalised units = 1 m in the synthetic scenes: the ground plane and its reconstruction
@@ -144,10 +146,13 @@ def reference_to_scene(points, file_normalization: dict | None, scene_normalizat
     """Reference points [M, 3] stored in the normalised frame `file_normalization` (metric ->
     file units, e.g. a transforms.json's `scene_normalization`) -> the frame
     `scene_normalization` the model was trained in (the loaded dataset's `normalization`).
-    Identity when either is None. Returns [M, 3] float64."""
+    Identity when either is None. Records may carry a "rotation" (docs/DATASET.md). Returns [M, 3] float64."""
     p = _as_points(points)
     if file_normalization is None or scene_normalization is None:
         return p
+    if "rotation" in file_normalization or "rotation" in scene_normalization:
+        return apply_normalization_to_points(
+            p, compose_normalization(invert_normalization(file_normalization), scene_normalization))
     s1, t1 = float(file_normalization["scale"]), np.asarray(file_normalization["translation"], np.float64)
     s2, t2 = float(scene_normalization["scale"]), np.asarray(scene_normalization["translation"], np.float64)
     if s1 == s2 and np.array_equal(t1, t2):

@@ -117,6 +117,29 @@ def test_metric_round_trip():
     assert d_m == pytest.approx(2.5, abs=1e-6)
 
 
+def test_metric_round_trip_with_rotation():
+    """A record with a rotation (docs/DATASET.md: x_norm = s R (x + t)): to_scene, to_metric and
+    plane_to_metric against that formula written out; without one, the old formula bit for bit."""
+    rng = np.random.default_rng(2)
+    q = np.linalg.qr(rng.normal(size=(3, 3)))[0]
+    r = q * np.sign(np.linalg.det(q))                                # a random rotation
+    norm = {"scale": 0.05, "translation": [3.0, -1.0, -15.0], "rotation": r.tolist()}
+    metric = rng.uniform(-20, 40, (100, 3))
+    scene = np.stack([0.05 * r @ (x + norm["translation"]) for x in metric])
+    np.testing.assert_allclose(to_scene(metric, norm), scene, atol=1e-12)
+    np.testing.assert_allclose(to_metric(scene, norm), metric, atol=1e-4)
+    n = np.array([0.1, -0.05, 1.0]) / np.linalg.norm([0.1, -0.05, 1.0])
+    pts = rng.uniform(-10, 10, (50, 3))
+    pts -= ((pts @ n) + 2.5)[:, None] * n                           # on n . x + 2.5 = 0
+    n_s, d_s = ground.refine_plane(to_scene(pts, norm))
+    n_m, d_m = plane_to_metric(n_s, d_s, norm)
+    np.testing.assert_allclose(n_m * np.sign(n_m @ n), n, atol=1e-9)
+    assert d_m * np.sign(n_m @ n) == pytest.approx(2.5, abs=1e-6)
+    s, t = NORM["scale"], np.asarray(NORM["translation"], np.float64)
+    np.testing.assert_array_equal(to_metric(scene, NORM), (scene / s - t).astype(np.float32))
+    np.testing.assert_array_equal(to_scene(metric, NORM), s * (metric + t))
+
+
 # --------------------------------------------------------------------------- ground and box
 
 

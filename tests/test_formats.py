@@ -12,6 +12,7 @@ from blobs import blob, centroid
 from jaxnerf_grid import io, rays
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
+from jaxnerf_grid.data import normalize as formats_normalize
 from jaxnerf_grid.data.normalize import (apply_normalization_to_points, compose_normalization,
                                          invert_normalization, normalize_poses, optical_axis_focus)
 from jaxnerf_grid.io import DataError
@@ -362,6 +363,130 @@ def test_normalize_poses_conventions():
     ff = np.stack([np.asarray(rays.look_at([x, 0, 0], [x, 5.0, 0]), np.float64) for x in (-1, 0, 1)])
     _, norm_f = normalize_poses(ff, focus_depth=5.0)
     np.testing.assert_allclose(norm_f["translation"], [0, -5.0, 0], atol=1e-6)
+
+
+def _random_record(seed):
+    """A normalisation record with a random rotation, and its parts (s, R, t)."""
+    rng = np.random.default_rng(seed)
+    s, r, t = float(rng.uniform(0.05, 3.0)), Rotation.random(random_state=seed).as_matrix(), rng.normal(0, 5, 3)
+    return {"scale": s, "translation": t.tolist(), "rotation": r.tolist()}, s, r, t
+
+
+def test_normalization_rotation_closed_form():
+    """x_norm = s R (x + t): apply, invert and compose against the formula written out."""
+    a, s1, r1, t1 = _random_record(1)
+    b, s2, r2, t2 = _random_record(2)
+    pts = np.random.default_rng(3).normal(0, 10, (20, 3))
+    ref_a = np.stack([s1 * r1 @ (x + t1) for x in pts])
+    np.testing.assert_allclose(apply_normalization_to_points(pts, a), ref_a, atol=1e-9)
+    inv = invert_normalization(a)
+    np.testing.assert_allclose(inv["rotation"], r1.T, atol=1e-12)
+    np.testing.assert_allclose(apply_normalization_to_points(ref_a, inv), pts, atol=1e-9)
+    ref_ab = np.stack([s2 * r2 @ (y + t2) for y in ref_a])
+    np.testing.assert_allclose(apply_normalization_to_points(pts, compose_normalization(a, b)), ref_ab, atol=1e-9)
+    # invert then compose: the identity, with and without a rotation on one side
+    for first, second in ((a, inv), (inv, a), ({"scale": 2.0, "translation": [1.0, 2.0, 3.0]}, a)):
+        both = compose_normalization(first, second)
+        ref = apply_normalization_to_points(apply_normalization_to_points(pts, first), second)
+        np.testing.assert_allclose(apply_normalization_to_points(pts, both), ref, atol=1e-9)
+    # poses: centres move like points, rotations turn by R
+    c2w, _ = _look_at_poses(n=4)
+    out = formats_normalize.apply_normalization_to_poses(c2w, a)
+    np.testing.assert_allclose(out[:, :3, :3], np.einsum("ij,njk->nik", r1, c2w[:, :3, :3]), atol=1e-12)
+    np.testing.assert_allclose(out[:, :3, 3], [s1 * r1 @ (c + t1) for c in c2w[:, :3, 3]], atol=1e-9)
+
+
+def test_normalization_without_rotation_unchanged():
+    """A record without "rotation" maps exactly as the formula before rotations existed."""
+    norm = {"scale": 0.37, "translation": [1.5, -2.25, 0.1]}
+    other = {"scale": 3.0, "translation": [1.0, -2.0, 0.5]}
+    pts = np.random.default_rng(5).normal(0, 10, (30, 3))
+    s, t = norm["scale"], np.asarray(norm["translation"])
+    np.testing.assert_array_equal(apply_normalization_to_points(pts, norm), s * (pts + t))
+    inv = invert_normalization(norm)
+    assert inv == {"scale": 1.0 / s, "translation": [float(-s * v) for v in t]}
+    both = compose_normalization(norm, other)
+    assert both == {"scale": s * 3.0, "translation": [float(v) for v in t + np.asarray(other["translation"]) / s]}
+    c2w, _ = _look_at_poses(n=3)
+    out = formats_normalize.apply_normalization_to_poses(c2w, norm)
+    np.testing.assert_array_equal(out[:, :3, :3], c2w[:, :3, :3])
+    np.testing.assert_array_equal(out[:, :3, 3], s * (c2w[:, :3, 3] + t))
+
+
+def _tilt(c2w, pts, rot):
+    """The whole scene turned by rot [3, 3] (x' = rot x), written out."""
+    out = c2w.copy()
+    out[:, :3, :3] = np.einsum("ij,njk->nik", rot, c2w[:, :3, :3])
+    out[:, :3, 3] = c2w[:, :3, 3] @ rot.T
+    return out, pts @ rot.T
+
+
+def _angle_deg(a, b):
+    return float(np.degrees(np.arccos(np.clip(a @ b / np.linalg.norm(a) / np.linalg.norm(b), -1, 1))))
+
+
+@pytest.mark.parametrize("ext", [".txt", ".bin"])
+def test_colmap_tilted_world_loads_z_up(tmp_path, ext):
+    """A COLMAP world turned 35 degrees off z-up loads with its up axis on +z again."""
+    c2w_ref, eyes = _look_at_poses(n=8)  # level cameras, z up, 1.5 above TARGET
+    pts = TARGET + np.random.default_rng(6).uniform(-0.6, 0.6, size=(200, 3))
+    tilt = Rotation.from_rotvec(np.radians(35.0) * np.array([0.6, -0.8, 0.0])).as_matrix()
+    c2w_t, pts_t = _tilt(c2w_ref, pts, tilt)
+    _write_colmap_scene(tmp_path, c2w_t, ext, points=pts_t)
+    ds = formats.load_colmap(tmp_path)
+    r = np.asarray(ds.normalization["rotation"])
+    assert _angle_deg(r @ tilt @ [0.0, 0.0, 1.0], np.array([0.0, 0.0, 1.0])) < 1.0  # the true up is +z
+    for m in ds.c2w:
+        assert abs(90.0 - _angle_deg(m[:3, 0], np.array([0.0, 0.0, 1.0]))) < 1.0  # level: right is horizontal
+    # the cameras sit 1.5 above the centre, all at one height: s * 1.5
+    s = ds.normalization["scale"]
+    np.testing.assert_allclose(ds.c2w[:, 2, 3], s * 1.5, atol=2e-3)
+    # the record maps the file's frame to the loaded scene: points and camera centres
+    np.testing.assert_allclose(ds.meta["points3d"], apply_normalization_to_points(pts_t, ds.normalization), atol=1e-5)
+    np.testing.assert_allclose(ds.c2w[:, :3, 3], apply_normalization_to_points(c2w_t[:, :3, 3], ds.normalization),
+                               atol=1e-5)
+    np.testing.assert_allclose(ds.normalization["translation"], -(tilt @ TARGET), atol=1e-5)
+    # written as transforms.json and read back: the same record, the same cameras
+    formats.save_transforms_json(ds, tmp_path / "out")
+    again = formats.load_dataset(tmp_path / "out")
+    np.testing.assert_allclose(again.normalization["rotation"], r, atol=1e-12)
+    assert again.normalization["scale"] == s
+    np.testing.assert_allclose(again.c2w, ds.c2w, atol=1e-6)
+
+
+def test_llff_tilted_world_loads_z_up(tmp_path):
+    c2w_ref, _ = _look_at_poses(n=6, target=np.zeros(3))
+    tilt = Rotation.from_rotvec(np.radians(25.0) * np.array([1.0, 0.0, 0.0])).as_matrix()
+    c2w_t, _ = _tilt(c2w_ref, np.zeros((0, 3)), tilt)
+    rows = [np.concatenate([np.stack([-m[:3, 1], m[:3, 0], m[:3, 2], m[:3, 3], [H, W, 35.0]], 1).ravel(),
+                            [2.5, 6.0]]) for m in c2w_t]
+    np.save(tmp_path / "poses_bounds.npy", np.array(rows))
+    for i in range(len(rows)):
+        io.write_png(tmp_path / "images" / f"{i:03d}.png", np.full((H, W, 3), 0.3, np.float32))
+    ds = formats.load_llff(tmp_path)
+    r = np.asarray(ds.normalization["rotation"])
+    assert _angle_deg(r @ tilt @ [0.0, 0.0, 1.0], np.array([0.0, 0.0, 1.0])) < 1.0
+    np.testing.assert_allclose(ds.c2w[:, :3, 3], apply_normalization_to_points(c2w_t[:, :3, 3], ds.normalization),
+                               atol=1e-5)
+
+
+def test_transforms_json_rotation_checked(tmp_path):
+    c2w_ref, _ = _look_at_poses(n=2, target=np.zeros(3))
+    frames = [{"file_path": f"im{i}.png", "transform_matrix": m.tolist()} for i, m in enumerate(c2w_ref)]
+    for i in range(2):
+        io.write_png(tmp_path / f"im{i}.png", np.full((H, W, 3), 0.3, np.float32))
+    top = {"fl_x": FX, "fl_y": FY, "cx": CX, "cy": CY, "w": W, "h": H, "frames": frames}
+    for bad in ([[1, 0, 0], [0, 1, 0]], [[2, 0, 0], [0, 1, 0], [0, 0, 1]], [[1, 0, 0], [0, 1, 0], [0, 0, -1]]):
+        top["scene_normalization"] = {"scale": 0.5, "translation": [0, 0, 0], "rotation": bad}
+        io.write_json(tmp_path / "transforms.json", top)
+        with pytest.raises(DataError, match="transforms.json: scene_normalization 'rotation'"):
+            formats.load_dataset(tmp_path)
+    rot, _, r, _ = _random_record(7)
+    top["scene_normalization"] = rot
+    io.write_json(tmp_path / "transforms.json", top)
+    ds = formats.load_dataset(tmp_path)
+    np.testing.assert_allclose(ds.normalization["rotation"], r, atol=1e-12)
+    np.testing.assert_allclose(ds.c2w, c2w_ref, atol=1e-6)  # a normalised file is taken as it is
 
 
 def test_colmap_text_as_colmap_writes_it(tmp_path):

@@ -116,6 +116,12 @@ def test_reference_units_conversion():
                                apply_normalization_to_points(metric, scene_norm), atol=1e-9)
     np.testing.assert_array_equal(geometry.reference_to_scene(stored, file_norm, dict(file_norm)), stored)
     np.testing.assert_array_equal(geometry.reference_to_scene(stored, None, scene_norm), stored)
+    # records with a rotation (x_norm = s R (x + t)): the formula written out
+    rot = np.array([[0.0, -1.0, 0.0], [0.6, 0.0, 0.8], [-0.8, 0.0, 0.6]])
+    rotated = {"scale": 0.2, "translation": [1.0, 2.0, -3.0], "rotation": rot.tolist()}
+    expect = np.stack([0.2 * rot @ (x + [1.0, 2.0, -3.0]) for x in metric])
+    np.testing.assert_allclose(geometry.reference_to_scene(stored, file_norm, rotated), expect, atol=1e-9)
+    np.testing.assert_allclose(geometry.reference_to_scene(expect, rotated, file_norm), stored, atol=1e-9)
 
 
 def test_score_against_ply(tmp_path):

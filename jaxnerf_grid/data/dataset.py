@@ -27,7 +27,8 @@ class Dataset:
     depth: optional [N, H, W] float32 z-depth (normalised units)
     semantics: optional [N, H, W] uint8 class ids
     distractor_masks: optional [N, H, W] bool
-    normalization: {"scale": float, "translation": [3]} metric -> normalised
+    normalization: {"scale": float, "translation": [3]} metric -> normalised, plus an optional
+        "rotation" [3][3] (x_norm = scale * R (x + translation); absent: the identity)
     frame_paths: image path of each frame (relative to root)
     """
 

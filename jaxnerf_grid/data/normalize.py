@@ -1,8 +1,10 @@
-"""Scene normalisation: a similarity (scale + translation, no rotation) that puts the region
-of interest inside the unit sphere.
+"""Scene normalisation: a similarity that puts the region of interest inside the unit sphere.
 
-Convention (docs/DATASET.md): `x_norm = scale * (x + translation)`. Camera rotations are
-unchanged; camera centres move like points. Metric ray distances scale by `scale`.
+Convention (docs/DATASET.md): `x_norm = scale * R (x + translation)`, a record
+{"scale": s, "translation": [3], "rotation": [[3] x 3]} whose "rotation" R is optional: absent
+means the identity, and every map below then computes exactly what it did before rotations
+existed (`x_norm = scale * (x + translation)`, bit for bit). Camera centres move like points;
+camera rotations turn by R (unchanged without one). Metric ray distances scale by `scale`.
 
 How the region of interest is found (`normalize_poses`):
 - centre, method "cameras": the least-squares point closest to every camera's optical axis
@@ -95,31 +97,90 @@ def normalize_poses(c2w: np.ndarray, points: np.ndarray | None = None, method: s
     return apply_normalization_to_poses(c2w, norm), norm
 
 
+def normalization_rotation(norm: dict) -> np.ndarray | None:
+    """The record's rotation R [3, 3] float64, or None when it has none (the identity)."""
+    r = norm.get("rotation")
+    return None if r is None else np.asarray(r, np.float64).reshape(3, 3)
+
+
+def _record(scale: float, translation, rotation: np.ndarray | None) -> dict:
+    out = {"scale": float(scale), "translation": [float(v) for v in np.asarray(translation).reshape(3)]}
+    if rotation is not None:
+        out["rotation"] = [[float(v) for v in row] for row in np.asarray(rotation, np.float64)]
+    return out
+
+
 def apply_normalization_to_points(points: np.ndarray, norm: dict) -> np.ndarray:
-    """x_norm = scale * (x + translation). points: [..., 3]. Returns [..., 3]."""
-    return norm["scale"] * (np.asarray(points, np.float64) + np.asarray(norm["translation"], np.float64))
+    """x_norm = scale * R (x + translation) (R: the optional "rotation"). points: [..., 3]. Returns [..., 3]."""
+    moved = norm["scale"] * (np.asarray(points, np.float64) + np.asarray(norm["translation"], np.float64))
+    r = normalization_rotation(norm)
+    return moved if r is None else moved @ r.T
 
 
 def apply_normalization_to_poses(c2w: np.ndarray, norm: dict) -> np.ndarray:
-    """Moves camera centres like points, keeps rotations. c2w: [N, 3|4, 4]. Returns [N, 4, 4]."""
+    """Moves camera centres like points and turns the camera rotations by R (kept without one).
+    c2w: [N, 3|4, 4]. Returns [N, 4, 4]."""
     c2w = np.asarray(c2w, dtype=np.float64)
+    r = normalization_rotation(norm)
     out = np.tile(np.eye(4), (len(c2w), 1, 1))
-    out[:, :3, :3] = c2w[:, :3, :3]
+    out[:, :3, :3] = c2w[:, :3, :3] if r is None else r @ c2w[:, :3, :3]
     out[:, :3, 3] = apply_normalization_to_points(c2w[:, :3, 3], norm)
     return out
 
 
 def invert_normalization(norm: dict) -> dict:
-    """The inverse map in the same convention: x = s' * (x_norm + t') with s' = 1/s, t' = -s t."""
+    """The inverse map in the same convention: x = s' R' (x_norm + t') with s' = 1/s,
+    R' = R^T, t' = -s R t (without a rotation: t' = -s t, and no rotation in the result)."""
     scale = float(norm["scale"])
-    return {"scale": 1.0 / scale, "translation": [float(-scale * v) for v in norm["translation"]]}
+    r = normalization_rotation(norm)
+    if r is None:
+        return {"scale": 1.0 / scale, "translation": [float(-scale * v) for v in norm["translation"]]}
+    return _record(1.0 / scale, -scale * r @ np.asarray(norm["translation"], np.float64), r.T)
 
 
 def compose_normalization(first: dict, second: dict) -> dict:
-    """The map `second(first(x))` in the same convention: s = s2 s1, t = t1 + t2 / s1."""
+    """The map `second(first(x))` in the same convention: s = s2 s1, R = R2 R1,
+    t = t1 + R1^T t2 / s1 (a rotation in the result only when either has one)."""
     s1, s2 = float(first["scale"]), float(second["scale"])
     t1, t2 = np.asarray(first["translation"], float), np.asarray(second["translation"], float)
-    return {"scale": s1 * s2, "translation": [float(v) for v in t1 + t2 / s1]}
+    r1, r2 = normalization_rotation(first), normalization_rotation(second)
+    if r1 is None and r2 is None:
+        return {"scale": s1 * s2, "translation": [float(v) for v in t1 + t2 / s1]}
+    r1 = np.eye(3) if r1 is None else r1
+    r2 = np.eye(3) if r2 is None else r2
+    return _record(s1 * s2, t1 + r1.T @ t2 / s1, r2 @ r1)
+
+
+def check_rotation(rotation, source: str, tol: float = 1e-5) -> np.ndarray:
+    """A record's "rotation" checked: a 3x3 of finite numbers, orthonormal with determinant +1
+    (within `tol`). Returns it [3, 3] float64; a DataError naming `source` otherwise."""
+    try:
+        r = np.asarray(rotation, np.float64)
+    except (TypeError, ValueError):
+        raise DataError(f"{source}: scene_normalization 'rotation' must be a 3x3 list of numbers") from None
+    if r.shape != (3, 3) or not np.all(np.isfinite(r)):
+        raise DataError(f"{source}: scene_normalization 'rotation' must be a 3x3 list of finite numbers, "
+                        f"got shape {r.shape}")
+    if np.abs(r @ r.T - np.eye(3)).max() > tol or abs(np.linalg.det(r) - 1.0) > tol:
+        raise DataError(f"{source}: scene_normalization 'rotation' is not a rotation (R R^T != I or det != 1)")
+    return r
+
+
+def z_up_normalization(c2w: np.ndarray, points: np.ndarray | None = None, method: str = "cameras",
+                       **kwargs) -> tuple[np.ndarray, dict]:
+    """`normalize_poses` after turning the scene so the up axis found from the cameras
+    (`up_from_cameras`) is +z; the record carries that turn as its "rotation" (none when the
+    up axis is +z already). c2w: [N, 3|4, 4] OpenGL; points: optional [P, 3]; kwargs go to
+    `normalize_poses`. Returns (c2w_norm [N, 4, 4], record)."""
+    c2w = np.asarray(c2w, dtype=np.float64)
+    if c2w.ndim != 3 or c2w.shape[1:] not in ((3, 4), (4, 4)) or len(c2w) == 0:
+        raise DataError(f"z_up_normalization: c2w must be [N, 3|4, 4] with N > 0, got {c2w.shape}")
+    rot = rotation_between(up_from_cameras(c2w), np.array([0.0, 0.0, 1.0]))
+    if np.array_equal(rot, np.eye(3)):
+        return normalize_poses(c2w, points, method, **kwargs)
+    turned, pts = rotate_scene(c2w, rot, points)
+    c2w_norm, extra = normalize_poses(turned, pts, method, **kwargs)
+    return c2w_norm, compose_normalization(_record(1.0, np.zeros(3), rot), extra)
 
 
 # ----------------------------------------------------------------------------------------

@@ -74,9 +74,16 @@ AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
 # across the strong foreshortening of ground seen from an oblique drone camera: on tower-small
 # at 320x240 (30 photos, low clutter) they registered 19 photos against 16 without
 # (benchmarks/poses_accuracy.py; docs/POSES.md). Guided matching is left off: there it built
-# a model turned over by 54 degrees.
+# a model turned over by 54 degrees. MATCHING_SIFT loosens Lowe's ratio test from COLMAP's 0.8
+# to 0.9: there 23 of 30 registered, 0.1-0.2 degrees median error; 0.93 and 0.95 registered
+# more (25, 29) but the first model was turned by 22 degrees and the second had photos 5
+# degrees and a quarter of the orbit radius off (look-alike tower faces matched).
 SIFT = {"estimate_affine_shape": True}
 MATCHING = {}
+MATCHING_SIFT = {"max_ratio": 0.9}
+# MAPPER: observations reprojecting more than 2 px off (COLMAP: 4) are dropped; with the looser
+# ratio test the test scene's 95th-percentile reprojection error otherwise reached 1.3 px.
+MAPPER = {"filter_max_reproj_error": 2.0}
 MIN_COMPARED = 8  # a smaller first model is no judge: the relaxed one is kept
 
 
@@ -218,6 +225,8 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         matching = pycolmap.FeatureMatchingOptions()
         for key, value in MATCHING.items():
             setattr(matching, key, value)
+        for key, value in MATCHING_SIFT.items():
+            setattr(matching.sift, key, value)
         if matcher == "exhaustive":
             pycolmap.match_exhaustive(database, matching_options=matching)
         elif matcher == "sequential":
@@ -304,6 +313,8 @@ def mapper_options(pycolmap, relaxed: bool):
     photo, a smaller starting triangulation angle)."""
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = 0
+    for key, value in MAPPER.items():
+        setattr(options.mapper, key, value)
     if relaxed:
         for key, value in RELAXED.items():
             setattr(options.mapper, key, value)

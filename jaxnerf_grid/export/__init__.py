@@ -7,8 +7,8 @@ This file holds the small pieces `evaluate.py` uses (no JAX at import time):
   x = o + d * (z_depth / cos_to_axis) (the depth maps are z-depth along the camera's -z axis)
   and kept when |x| <= `radius` (the scene is normalised so the tower sits inside the unit
   sphere). Points are in normalised scene units.
-* `to_metric` / `to_scene`: the dataset's normalisation x_norm = scale * (x + translation)
-  (docs/DATASET.md) undone / applied; `plane_to_metric` does it for a plane.
+* `to_metric` / `to_scene`: the dataset's normalisation x_norm = scale * R (x + translation)
+  (R: the optional rotation; docs/DATASET.md) undone / applied; `plane_to_metric` does it for a plane.
 * `write_point_cloud`: (points, colours) parts -> a binary PLY.
 
 The export itself lives in submodules, imported on use:
@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import io
-from jaxnerf_grid.data.normalize import apply_normalization_to_points
+from jaxnerf_grid.data.normalize import apply_normalization_to_points, normalization_rotation
 
 
 def lift_view(rays, rgb: np.ndarray, depth: np.ndarray, opacity: np.ndarray, min_opacity: float = 0.5,
@@ -41,39 +41,49 @@ def lift_view(rays, rgb: np.ndarray, depth: np.ndarray, opacity: np.ndarray, min
     return x[keep].astype(np.float32), np.asarray(rgb)[keep].astype(np.float32)
 
 
-def _scale_translation(normalization: dict | None) -> tuple[float, np.ndarray]:
+def _scale_translation(normalization: dict | None) -> tuple[float, np.ndarray, np.ndarray | None]:
+    """(scale, translation [3], rotation [3, 3] or None) of a record; a missing one is the identity."""
     normalization = normalization or {}
     scale = float(normalization.get("scale", 1.0))
     translation = np.asarray(normalization.get("translation", [0.0, 0.0, 0.0]), np.float64)
-    return scale, translation
+    return scale, translation, normalization_rotation(normalization)
 
 
 def to_metric(points: np.ndarray, normalization: dict) -> np.ndarray:
-    """Normalised scene points [M, 3] -> metric world points (inverse of x_norm = s (x + t)).
+    """Normalised scene points [M, 3] -> metric world points (inverse of x_norm = s R (x + t)).
     Returns [M, 3] float32."""
     return to_metric64(points, normalization).astype(np.float32)
 
 
 def to_metric64(points: np.ndarray, normalization: dict | None) -> np.ndarray:
-    """`to_metric` in float64 (for measurements). points [..., 3] -> [..., 3]."""
-    scale, translation = _scale_translation(normalization)
-    return np.asarray(points, np.float64) / scale - translation
+    """`to_metric` in float64 (for measurements): x = R^T x_norm / s - t (without a rotation,
+    x_norm / s - t). points [..., 3] -> [..., 3]."""
+    scale, translation, rotation = _scale_translation(normalization)
+    points = np.asarray(points, np.float64)
+    if rotation is not None:
+        points = points @ rotation  # R^T x for row vectors
+    return points / scale - translation
 
 
 def to_scene(points: np.ndarray, normalization: dict | None) -> np.ndarray:
-    """Metric world points [..., 3] -> normalised scene points, x_norm = s (x + t). float64.
+    """Metric world points [..., 3] -> normalised scene points, x_norm = s R (x + t). float64.
     The dataset's own map (`data.normalize.apply_normalization_to_points`), with a missing
     normalisation taken as the identity."""
-    scale, translation = _scale_translation(normalization)
-    return apply_normalization_to_points(points, {"scale": scale, "translation": translation})
+    scale, translation, rotation = _scale_translation(normalization)
+    record = {"scale": scale, "translation": translation}
+    if rotation is not None:
+        record["rotation"] = rotation
+    return apply_normalization_to_points(points, record)
 
 
 def plane_to_metric(normal, offset: float, normalization: dict | None) -> tuple[np.ndarray, float]:
     """A plane n . x + d = 0 of the normalised scene (n [3] unit) -> the same plane in metric
-    units: n . x_m + (n . t + d / s) = 0 (the normal is unchanged: the map is a similarity
-    without rotation). Returns (normal [3], offset)."""
-    scale, translation = _scale_translation(normalization)
+    units: n' . x_m + (n' . t + d / s) = 0 with n' = R^T n (n itself without a rotation).
+    Returns (normal [3], offset)."""
+    scale, translation, rotation = _scale_translation(normalization)
     n = np.asarray(normal, np.float64)
+    if rotation is not None:
+        n = rotation.T @ n
     return n, float(n @ translation + float(offset) / scale)
 
 

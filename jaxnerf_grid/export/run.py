@@ -67,7 +67,8 @@ def units_of(ds) -> str:
 
 def units_comment(units: str) -> str:
     if units == "metres":
-        return "units: metres (the dataset's scene_normalization undone: x = x_norm / scale - translation)"
+        return ("units: metres (the dataset's scene_normalization undone: x = R^T x_norm / scale - translation, "
+                "R the identity without a rotation)")
     return ("units: unknown (the dataset has no metric scale; coordinates are in its original units, "
             "its loader's normalisation undone)")
 

@@ -3,7 +3,8 @@
 Every loader returns a `Dataset` (dataset.py): c2w camera-to-world with OpenGL camera axes
 (x right, y up, looking down -z), intrinsics (fx, fy, cx, cy) in pixels with pixel centres at
 +0.5, images float32 RGB in [0, 1], the scene normalised so the region of interest lies in the
-unit sphere (`normalization` maps metric points to it: x_norm = scale * (x + translation)).
+unit sphere (`normalization` maps metric points to it: x_norm = scale * R (x + translation), R
+the optional "rotation", the identity when absent; docs/DATASET.md).
 
 Formats, and how each gets its normalisation and near/far (distances along unit rays in the
 normalised scene):
@@ -17,13 +18,14 @@ normalised scene):
 - COLMAP sparse model (text or binary): OpenCV-axis world-to-camera (qvec, tvec) converted to
   OpenGL c2w; distorted models (SIMPLE_RADIAL, RADIAL, OPENCV) are undistorted with OpenCV on
   load (pixels that fall outside the source image get loss weight 0) or refused with
-  `undistort=False`. Normalised with the points3D (robust extent). near/far: from the z-depths
+  `undistort=False`. Turned so the cameras' up axis is +z (`normalize.up_from_cameras`; the turn is
+  the record's "rotation") and normalised with the points3D (robust extent). near/far: from the z-depths
   of the points each image observes: near = 0.9 x the 0.5th percentile, far = 1.1 x the 99.5th
   percentile divided by the smallest cosine between a pixel ray and the optical axis (z-depth
   -> ray distance); DEFAULT_NEAR / DEFAULT_FAR without points.
 - LLFF poses_bounds.npy: [N, 17], a [3, 5] matrix per image (columns down, right, backwards,
   centre, (H, W, focal)) and (near, far) z-depth bounds. near/far from the bounds, as for
-  COLMAP (0.9 x min, 1.1 x max / cos).
+  COLMAP (0.9 x min, 1.1 x max / cos). Turned z-up as COLMAP.
 
 Splits: a frame's `split` key, or the Blender file a frame came from, or `train_filenames` /
 `test_filenames` lists; otherwise every `test_every`-th frame (0, 8, 16, ...) is a test frame.

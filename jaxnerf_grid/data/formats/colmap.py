@@ -9,7 +9,7 @@ import numpy as np
 
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.data.normalize import apply_normalization_to_points, normalize_poses
+from jaxnerf_grid.data.normalize import apply_normalization_to_points, z_up_normalization
 from jaxnerf_grid.data.formats.frames import (CV_TO_GL, DEFAULT_FAR, DEFAULT_NEAR, check_split, default_split,
                                               Frame, min_ray_cosine, Scene, scene_to_dataset, validate_c2w)
 from jaxnerf_grid.io import DataError
@@ -85,7 +85,9 @@ def collect_colmap(path, *, images_dir=None, undistort: bool = True, normalize: 
 
     path: a scene folder with sparse/0 (or sparse/) and images/, or the model folder itself
     (images then in ../../images or ../images). Frames sorted by image name; every
-    `test_every`-th is a test frame. normalize: "cameras" | "points" | False.
+    `test_every`-th is a test frame. normalize: "cameras" | "points" | False; when normalising,
+    the scene is also turned so the up axis found from the cameras is +z (COLMAP's world frame
+    is arbitrary; `normalize.z_up_normalization`, the turn recorded as the "rotation").
     `load_extras` is accepted for a uniform signature (COLMAP has no extras).
     """
     del load_extras  # COLMAP has no extra per-frame files
@@ -121,7 +123,7 @@ def collect_colmap(path, *, images_dir=None, undistort: bool = True, normalize: 
         norm = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
     else:
         method = "cameras" if normalize is True else normalize
-        c2w, norm = normalize_poses(c2w, xyz if len(xyz) else None, method=method)
+        c2w, norm = z_up_normalization(c2w, xyz if len(xyz) else None, method=method)
     xyz_norm = apply_normalization_to_points(xyz, norm)
     min_cos = min(min_ray_cosine(f.intrinsics, *f.size) for f in frames)
     bounds = _near_far_from_points(c2w, xyz_norm, min_cos,

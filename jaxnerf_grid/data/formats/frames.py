@@ -339,13 +339,16 @@ def scene_to_dataset(scene: Scene, *, downscale: float = 1, load_extras: bool = 
             paths.append(str(frame.image_path))
     meta = dict(scene.meta)
     meta["undistorted"] = arrays["undistorted"]
-    norm = scene.normalization
+    norm = {"scale": float(scene.normalization["scale"]),
+            "translation": [float(v) for v in scene.normalization["translation"]]}
+    if scene.normalization.get("rotation") is not None:  # absent: the identity (docs/DATASET.md)
+        norm["rotation"] = [[float(v) for v in row] for row in np.asarray(scene.normalization["rotation"]).reshape(3, 3)]
     return Dataset(
         root=scene.root, images=arrays["images"], c2w=np.asarray(scene.c2w, np.float32),
         intrinsics=arrays["intrinsics"], split=scene.split, near=float(scene.near), far=float(scene.far),
         weights=arrays["weights"], masks=arrays["masks"], clean_images=arrays["clean_images"],
         depth=arrays["depth"], semantics=arrays["semantics"],
         distractor_masks=arrays["distractor_masks"],
-        normalization={"scale": float(norm["scale"]), "translation": [float(v) for v in norm["translation"]]},
+        normalization=norm,
         frame_paths=paths, meta=meta,
     )

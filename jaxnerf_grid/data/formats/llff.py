@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.data.normalize import normalize_poses
+from jaxnerf_grid.data.normalize import z_up_normalization
 from jaxnerf_grid.data.formats.frames import (IMAGE_EXTENSIONS, check_split, default_split, Frame,
                                               min_ray_cosine, scale_intrinsics, Scene, scene_to_dataset,
                                               validate_c2w)
@@ -47,7 +47,8 @@ def collect_llff(path, *, images_dir=None, normalize: str | bool = "cameras", ho
     """Collects an LLFF scene: poses_bounds.npy [N, 17] and images/ (sorted names, one per row).
 
     Focal lengths are rescaled when the images are smaller than the (H, W) in the poses
-    (e.g. images_4/). cx, cy = W/2, H/2.
+    (e.g. images_4/). cx, cy = W/2, H/2. When normalising, the scene is also turned so the up
+    axis found from the cameras is +z (`normalize.z_up_normalization`, recorded as the "rotation").
     """
     del load_extras  # LLFF has no extra per-frame files
     root = Path(path)
@@ -90,7 +91,7 @@ def collect_llff(path, *, images_dir=None, normalize: str | bool = "cameras", ho
     else:
         focus = float(np.median(bounds.mean(axis=1)))
         method = "cameras" if normalize is True else normalize
-        c2w, norm = normalize_poses(c2w, None, method=method, focus_depth=focus)
+        c2w, norm = z_up_normalization(c2w, None, method=method, focus_depth=focus)
     near = max(0.9 * float(bounds.min()) * norm["scale"], 1e-3)
     far = 1.1 * float(bounds.max()) * norm["scale"] / min_cos
     split = check_split(default_split(len(frames), test_every), npy)

@@ -10,7 +10,7 @@ import numpy as np
 
 from jaxnerf_grid import io
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.data.normalize import compose_normalization, normalize_poses
+from jaxnerf_grid.data.normalize import check_rotation, compose_normalization, normalize_poses
 from jaxnerf_grid.data.formats.frames import (DEFAULT_FAR, DEFAULT_NEAR, EXTRAS, IMAGE_EXTENSIONS,
                                               check_split, default_split, Frame, Scene, scene_to_dataset,
                                               validate_c2w)
@@ -110,6 +110,8 @@ def _normalise_json(c2w: np.ndarray, top: dict, json_path: Path, normalize, near
         if len(base["translation"]) != 3 or not base["scale"] > 0:
             raise DataError(f"{json_path}: scene_normalization needs a positive scale and a "
                             f"3-vector translation")
+        if sn.get("rotation") is not None:  # absent: the identity (docs/DATASET.md)
+            base["rotation"] = check_rotation(sn["rotation"], str(json_path)).tolist()
         if normalize is not True:
             near = DEFAULT_NEAR if near is None else float(near)
             far = DEFAULT_FAR if far is None else float(far)

@@ -51,6 +51,9 @@ def transforms_top(width: int, height: int, near: float, far: float, normalizati
            "near": float(near), "far": float(far),
            "scene_normalization": {"scale": float(normalization["scale"]),
                                    "translation": [float(v) for v in normalization["translation"]]}}
+    if normalization.get("rotation") is not None:
+        top["scene_normalization"]["rotation"] = [[float(v) for v in row] for row in
+                                                  np.asarray(normalization["rotation"], np.float64).reshape(3, 3)]
     if "generator" in meta:
         top["generator"] = meta["generator"]
     tower = meta.get("tower_ply")
