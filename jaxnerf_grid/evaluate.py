@@ -35,7 +35,7 @@ import numpy as np
 
 from jaxnerf_grid import config as config_lib, io
 from jaxnerf_grid.io import DataError
-from jaxnerf_grid.runs import bar, check_fingerprint, frame_name, load_dataset, load_run, write_view
+from jaxnerf_grid.runs import bar, frame_name, load_run_and_dataset, write_view
 
 FAR_BACKGROUND_METRES = 100.0
 REGION_DEFINITION = ("tower = classes 1-2 (tower, conductor); near_ground = class 3; far_background = "
@@ -209,9 +209,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
 
     start = time.perf_counter()
     run_dir = Path(run_dir)
-    cfg, data = load_run(run_dir)
-    ds = dataset if dataset is not None else load_dataset(data, progress=progress)
-    check_fingerprint(run_dir, ds, allow_other_data)
+    cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
     reference_cloud(ds, reference_ply)  # a missing --reference-ply fails before rendering
     if lpips_weights and not Path(lpips_weights).is_file():
         raise DataError(f"{lpips_weights}: LPIPS weights file not found (--lpips-weights)")

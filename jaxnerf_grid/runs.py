@@ -131,6 +131,16 @@ def check_fingerprint(run_dir, ds, allow_other_data: bool = False) -> None:
                     "pass --allow-other-data to use it anyway")
 
 
+def load_run_and_dataset(run_dir, dataset=None, progress: bool = True, allow_other_data: bool = False) -> tuple:
+    """(cfg, data path, dataset) of a trained run: its config (load_run), its dataset (`dataset`
+    when given, else loaded from the run's data path), refused when the dataset is not the one
+    the run was trained on (check_fingerprint), unless `allow_other_data`."""
+    cfg, data = load_run(run_dir)
+    ds = dataset if dataset is not None else load_dataset(data, progress=progress)
+    check_fingerprint(run_dir, ds, allow_other_data)
+    return cfg, data, ds
+
+
 # --------------------------------------------------------------------------- creating a run
 
 
@@ -294,9 +304,7 @@ def render_split(run_dir, split: str = "test", progress: bool = True, dataset=No
     from jaxnerf_grid import train, views
 
     run_dir = Path(run_dir)
-    cfg, data = load_run(run_dir)
-    ds = dataset if dataset is not None else load_dataset(data, progress=progress)
-    check_fingerprint(run_dir, ds, allow_other_data)
+    cfg, _, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
     if params is None:
         params, _ = train.load_params(run_dir, cfg, ds)
     ids = np.arange(ds.num_frames) if split == "all" else np.asarray(ds.split[split])

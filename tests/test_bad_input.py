@@ -306,8 +306,8 @@ def test_eval_writes_over_a_folder(scene, capsys, tmp_path):
     assert_one_line_error(rc, err, "metrics.json")
 
 
-def test_eval_and_render_refuse_another_dataset(scene, capsys, tmp_path):
-    """Issue 14, item 7: a run trained on 8 frames of 32x24 scored on another dataset."""
+def test_eval_render_and_export_refuse_another_dataset(scene, capsys, tmp_path):
+    """Issue 14, item 7: a run trained on 8 frames of 32x24 scored (or exported) on another dataset."""
     other = tmp_path / "other"
     assert cli.main(["synth", "--out", str(other), "--width", "40", "--height", "30", "--num-train", "8",
                      "--num-test", "2", "--supersample", "1", "--workers", "1", "--quiet"]) == 0
@@ -317,6 +317,7 @@ def test_eval_and_render_refuse_another_dataset(scene, capsys, tmp_path):
     io.write_json(run / "config.json", {**saved, "data": str(other)})
     before = snapshot(run)
     for argv in (["eval", "--run", run, "--quiet"], ["render", "--run", run, "--quiet"],
+                 ["export", "--run", run, "--quiet", "--out", tmp_path / "export"],
                  ["train", "--data", other, "--method", "nerf", "--config", scene["cfg"], "--out", run, "--quiet"]):
         rc, err = run_cli(argv, capsys)
         assert_one_line_error(rc, err, runs.FINGERPRINT_FILE, "--allow-other-data", "10 frames of 40x30")

@@ -31,6 +31,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--views", type=int, default=run.DEFAULT_VIEWS,
                    help="training views rendered for the fused point cloud and the auto box (default %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="write into an output folder that holds files")
+    p.add_argument("--allow-other-data", action="store_true",
+                   help="export from a dataset other than the one the run was trained on (its fingerprint differs)")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -42,7 +44,8 @@ def main(argv: list[str] | None = None) -> int:
     from jaxnerf_grid.export import run
 
     m = run.export_run(args.run, args.out, resolution=args.resolution, box=args.box, opacity=args.threshold,
-                       views=args.views, overwrite=args.overwrite, progress=not args.quiet)
+                       views=args.views, overwrite=args.overwrite, progress=not args.quiet,
+                       allow_other_data=args.allow_other_data)
     out = Path(args.out) if args.out else Path(args.run) / "export"
     unit = "m" if m["units"] == "metres" else "units (unknown scale)"
     height = "n/a" if m["height"] is None else f"{m['height']:.2f} {unit}"

@@ -122,8 +122,9 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                opacity: float = mesh_lib.DEFAULT_OPACITY, views: int = DEFAULT_VIEWS, min_views: int = 2,
                colour_cameras: int = DEFAULT_COLOUR_CAMERAS,
                min_component_fraction: float = mesh_lib.DEFAULT_MIN_COMPONENT_FRACTION,
-               overwrite: bool = False, progress: bool = True, dataset=None) -> dict:
+               overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False) -> dict:
     """Exports the tower of a trained run (module docstring). Returns measurements.json's dict.
+    A dataset other than the run's (its fingerprint) is refused unless `allow_other_data`.
 
     out: the folder (default RUN/export; refused when it holds files, unless `overwrite`);
     box: "auto" or "xmin,ymin,zmin,xmax,ymax,zmax" (or 6 numbers) in the export's units.
@@ -135,7 +136,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
 
     start = time.perf_counter()
     run_dir = Path(run_dir)
-    cfg, data = runs.load_run(run_dir)
+    cfg, data = runs.load_run(run_dir)  # the config first: a bad run folder fails before the dataset loads
     given = parse_box(box)
     if not int(resolution) >= 8:
         raise ConfigError(f"--resolution must be >= 8, got {resolution}")
@@ -143,7 +144,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         raise ConfigError(f"--threshold (the opacity of one voxel) must be in (0, 1), got {opacity}")
     out = Path(out) if out is not None else run_dir / "export"
     io.ensure_writable(out, overwrite)
-    ds = dataset if dataset is not None else runs.load_dataset(data, progress=progress)
+    _, _, ds = runs.load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
     norm = ds.normalization
     if given is not None:
         lo_given, hi_given = to_scene(given[:3], norm), to_scene(given[3:], norm)
