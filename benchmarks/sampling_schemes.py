@@ -130,8 +130,8 @@ def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
 def main(argv=None) -> int:
     p = common.base_parser(__doc__)
     p.add_argument("--samples", type=int, nargs="+", default=None, help="samples per ray (even numbers)")
-    p.set_defaults(results=str(ROOT / "benchmarks" / "results"))
     args = p.parse_args(argv)
+    args.results = args.results or str(common.results_folder(ROOT / "benchmarks" / "results", args.setting))
     ctx = common.make_context(args, "sampling_schemes.py")
     ctx.command = ctx.command.replace("-m experiments.", "-m benchmarks.")
     samples = tuple(args.samples or SAMPLES[ctx.setting])

@@ -168,7 +168,9 @@ def base_parser(description: str) -> argparse.ArgumentParser:
     p.add_argument("--seeds", type=int, default=None, help="number of seeds (default: 1 quick, 3 full)")
     p.add_argument("--steps", type=int, default=None, help="training steps per run (default: by setting)")
     p.add_argument("--cache", default=str(CACHE), help="scenes, mask variants and runs (default experiments/.cache)")
-    p.add_argument("--results", default=str(RESULTS), help="where <table>.json / .md / .png go")
+    p.add_argument("--results", default=None,
+                   help="where <table>.json / .md / .png go (default experiments/results/ for --quick, "
+                        "experiments/results/<setting>/ otherwise)")
     p.add_argument("--budget-min", type=float, default=None,
                    help="stop launching new runs after this many minutes; missing rows are marked 'not run'")
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights .npz (else LPIPS is reported unavailable)")
@@ -211,13 +213,20 @@ class Context:
         return self.budget_s is not None and time.perf_counter() - self.start > self.budget_s
 
 
+def results_folder(root: Path, setting: str) -> Path:
+    """Where a setting's results go by default: `root` for quick (CI's smoke setting, whose files
+    came first), root/<setting>/ for the others, so a table at one setting never overwrites another's."""
+    return Path(root) if setting == "quick" else Path(root) / setting
+
+
 def make_context(args, script: str) -> Context:
     setting = args.setting
     seeds = args.seeds or TRAIN_SETTINGS[setting]["seeds"]
     steps = args.steps or TRAIN_SETTINGS[setting]["steps"]
     flags = [f"--{setting}"] + [a for a in sys.argv[1:] if a not in ("--quick", "--standard", "--full")]
     command = f"JAX_PLATFORMS=cpu python -m experiments.{Path(script).stem} " + " ".join(flags)
-    ctx = Context(setting, seeds, steps, Path(args.cache), Path(args.results),
+    results = Path(args.results) if args.results else results_folder(RESULTS, setting)
+    ctx = Context(setting, seeds, steps, Path(args.cache), results,
                   None if args.budget_min is None else args.budget_min * 60, args.lpips_weights, not args.quiet,
                   command.strip())
     ctx.cache.mkdir(parents=True, exist_ok=True)
