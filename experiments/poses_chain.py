@@ -1,18 +1,20 @@
 """The whole chain from bare photos against the same run on the true poses (docs/POSES.md).
 
-    python -m experiments.poses_chain [--clutter low] [--views 48] [--size 320x240] [--max-side 160]
+    python -m experiments.poses_chain [--clutter low] [--views 48] [--size 320x240] [--max-side N]
                                       [--steps N] [--cache DIR] [--results DIR]
 
 1. A synthetic tower-small scene is rendered at --size (seed 0; its train and test views are
    the "photos", so a few of them hold passers-by, as a survey would).
-2. Chain A, from the bare photos: `poses` (exhaustive, one camera, --max-side) -> the demo
+2. Chain A, from the bare photos: `poses` (exhaustive, one camera) -> the demo
    (built-in DPT masks, the demo's recipe, evaluation), as `jaxnerf-grid poses` then
    `jaxnerf-grid demo --data` run it.
-3. Chain B, the true poses: the same photos scaled the same way (OpenCV area), the same
-   registered subset in the same order (so the same test views: every 8th), the generator's
-   own cameras and intrinsics -> the same demo.
+3. Chain B, the true poses: the same photos (scaled like A's with --max-side, by OpenCV area;
+   as they are otherwise), the same registered subset in the same order (so the same test
+   views: every 8th), the generator's own cameras and intrinsics -> the same demo.
 Both are scored on the same test photos (whole-image PSNR; the photos are the targets, so the
-test views that hold passers-by count them). Writes results/poses_chain.json and .md.
+test views that hold passers-by count them): A on its undistorted photos, B on the photos as
+rendered (undistortion to PINHOLE may crop A's by a pixel or two). Writes
+results/poses_chain.json and .md.
 """
 
 from __future__ import annotations
@@ -57,7 +59,8 @@ def main(argv=None) -> int:
     p.add_argument("--clutter", default="low", choices=("none", "low", "medium", "high"))
     p.add_argument("--views", type=int, default=48, help="photos (train + test views of the synthetic scene)")
     p.add_argument("--size", default="320x240", help="photo size WxH")
-    p.add_argument("--max-side", type=int, default=160, help="poses --max-side (the NeRF's image size)")
+    p.add_argument("--max-side", type=int, default=None,
+                   help="poses --max-side (scales the photos before structure from motion; default: none)")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: the demo's)")
     p.add_argument("--cache", default=str(ROOT / "experiments" / ".cache" / "poses_chain"))
     p.add_argument("--results", default=str(ROOT / "experiments" / "results"))
@@ -78,13 +81,14 @@ def main(argv=None) -> int:
     photos.mkdir(parents=True)
     for f in io.read_json(scene / "transforms.json")["frames"]:
         shutil.copy(scene / f["file_path"], photos / Path(f["file_path"]).name)
+    shutil.rmtree(cache / "A", ignore_errors=True)  # masks of an earlier chain would be refused, not replaced
     t = time.perf_counter()
     summary = poses_from_images(photos, cache / "A", single_camera=True, max_side=args.max_side, overwrite=True,
                                 progress=False)
     poses_s = time.perf_counter() - t
     top = io.read_json(cache / "A" / "transforms.json")
-    size = (int(top["w"]), int(top["h"]))
-    true_pose_dataset(scene, cache / "A", cache / "B", size)
+    size = (int(top["w"]), int(top["h"]))  # undistortion may crop a pixel or two
+    true_pose_dataset(scene, cache / "A", cache / "B", (w, h) if args.max_side is None else size)
     rows = {}
     for name in ("A", "B"):
         shutil.rmtree(cache / f"run_{name}", ignore_errors=True)
