@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxnerf_grid.data.poses import similarity_fit  # Umeyama 1991
+
 ROOT = Path(__file__).resolve().parents[1]
 
 # name: (preset, clutter, width, height)
@@ -32,18 +34,6 @@ CASES = {
     "tower-small-high": ("tower-small", "high", 320, 240),
     "ttpla-like-medium": ("ttpla-like", "medium", 320, 180),
 }
-
-
-def umeyama(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Similarity (s, R, t) minimising sum |s R src + t - dst|^2. src, dst: [N, 3]."""
-    ms, md = src.mean(0), dst.mean(0)
-    xs, xd = src - ms, dst - md
-    u, sig, vt = np.linalg.svd(xd.T @ xs / len(src))
-    d = np.eye(3)
-    d[2, 2] = np.sign(np.linalg.det(u @ vt))
-    rot = u @ d @ vt
-    scale = float((sig * np.diag(d)).sum() / xs.var(0).sum())
-    return scale, rot, md - scale * rot @ ms
 
 
 def angle_deg(r1: np.ndarray, r2: np.ndarray) -> float:
@@ -60,7 +50,7 @@ def compare(true: dict, found: dict) -> dict:
     names = sorted(set(true) & set(found))
     t = np.stack([true[n] for n in names])
     f = np.stack([found[n] for n in names])
-    scale, rot, shift = umeyama(f[:, :3, 3], t[:, :3, 3])
+    scale, rot, shift = similarity_fit(f[:, :3, 3], t[:, :3, 3])
     centres = scale * f[:, :3, 3] @ rot.T + shift
     radius = float(np.median(np.linalg.norm(t[:, :2, 3], axis=1)))  # the tower's axis is x = y = 0
     centre_err = np.linalg.norm(centres - t[:, :3, 3], axis=1) / radius
