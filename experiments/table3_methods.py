@@ -91,6 +91,10 @@ def main(argv=None) -> int:
     ours = rows[0][1] or {}
     claims = [("ours vs NeRF (right-half PSNR)", ours.get("delta_psnr_right_half"), PAPER_VS_NERF),
               ("ours vs NeRF-W (right-half PSNR)", ours.get("delta_psnr_right_half_vs_nerfw"), PAPER_VS_NERFW)]
+    if len(rows) > 3:  # the check row: ours against the stronger NeRF too
+        common.add_paired_delta(rows[0][1], rows[3][1], "psnr_right_half", "delta_psnr_right_half_vs_check")
+        claims.append((f"ours vs {rows[3][0]} (right-half PSNR)", ours.get("delta_psnr_right_half_vs_check"),
+                       PAPER_VS_NERF))
     body = {"rows": [{"method": label, "aggregate": a} for label, a in rows], "field": args.field,
             "claims": [{"claim": c, "paper_db": p, "effect": e, "verdict": common.verdict(e, p)} for c, e, p in claims]}
     md = common.markdown_table(rows, COLUMNS)

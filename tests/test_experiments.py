@@ -216,7 +216,8 @@ def test_tables_turn_known_runs_into_the_right_claims(tmp_path, monkeypatch):
     assert table2["far_background_share_of_test_pixels"] == [0.25, 0.25, 0.25]
 
     table3 = json.loads((out / "table3_methods.json").read_text())
-    vs_nerf, vs_nerfw = table3["claims"]
+    vs_nerf, vs_nerfw, vs_check = table3["claims"]  # the check row (NeRF without the far bin) at --standard
+    np.testing.assert_allclose(vs_check["effect"]["values"], [10.0, 10.0, 10.0])
     np.testing.assert_allclose(vs_nerf["effect"]["values"], [10.0, 10.0, 10.0])
     np.testing.assert_allclose(vs_nerfw["effect"]["values"], [4.0, 4.0, 4.0])
     assert vs_nerf["verdict"] == "reproduced" and vs_nerfw["verdict"] == "reproduced"
