@@ -106,8 +106,14 @@ def normalization_rotation(norm: dict) -> np.ndarray | None:
 def _record(scale: float, translation, rotation: np.ndarray | None) -> dict:
     out = {"scale": float(scale), "translation": [float(v) for v in np.asarray(translation).reshape(3)]}
     if rotation is not None:
-        out["rotation"] = [[float(v) for v in row] for row in np.asarray(rotation, np.float64)]
+        out["rotation"] = [[float(v) for v in row] for row in np.asarray(rotation, np.float64).reshape(3, 3)]
     return out
+
+
+def normalization_record(norm: dict) -> dict:
+    """A record as plain JSON numbers: {"scale", "translation" [3], and "rotation" [3][3] only when
+    it has one} (what datasets hold and transforms.json files store)."""
+    return _record(norm["scale"], norm["translation"], normalization_rotation(norm))
 
 
 def apply_normalization_to_points(points: np.ndarray, norm: dict) -> np.ndarray:

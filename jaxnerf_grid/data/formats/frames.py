@@ -12,6 +12,7 @@ import numpy as np
 
 from jaxnerf_grid import io
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.data.normalize import normalization_record
 from jaxnerf_grid.io import DataError
 
 
@@ -339,16 +340,12 @@ def scene_to_dataset(scene: Scene, *, downscale: float = 1, load_extras: bool = 
             paths.append(str(frame.image_path))
     meta = dict(scene.meta)
     meta["undistorted"] = arrays["undistorted"]
-    norm = {"scale": float(scene.normalization["scale"]),
-            "translation": [float(v) for v in scene.normalization["translation"]]}
-    if scene.normalization.get("rotation") is not None:  # absent: the identity (docs/DATASET.md)
-        norm["rotation"] = [[float(v) for v in row] for row in np.asarray(scene.normalization["rotation"]).reshape(3, 3)]
     return Dataset(
         root=scene.root, images=arrays["images"], c2w=np.asarray(scene.c2w, np.float32),
         intrinsics=arrays["intrinsics"], split=scene.split, near=float(scene.near), far=float(scene.far),
         weights=arrays["weights"], masks=arrays["masks"], clean_images=arrays["clean_images"],
         depth=arrays["depth"], semantics=arrays["semantics"],
         distractor_masks=arrays["distractor_masks"],
-        normalization=norm,
+        normalization=normalization_record(scene.normalization),
         frame_paths=paths, meta=meta,
     )

@@ -9,6 +9,7 @@ import numpy as np
 
 from jaxnerf_grid import io
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.data.normalize import normalization_record
 from jaxnerf_grid.data.formats.frames import EXTRAS
 
 
@@ -49,11 +50,7 @@ def transforms_top(width: int, height: int, near: float, far: float, normalizati
     """Top-level keys of a written transforms.json (copies `tower_ply` next to it)."""
     top = {"w": int(width), "h": int(height), "camera_model": "PINHOLE",
            "near": float(near), "far": float(far),
-           "scene_normalization": {"scale": float(normalization["scale"]),
-                                   "translation": [float(v) for v in normalization["translation"]]}}
-    if normalization.get("rotation") is not None:
-        top["scene_normalization"]["rotation"] = [[float(v) for v in row] for row in
-                                                  np.asarray(normalization["rotation"], np.float64).reshape(3, 3)]
+           "scene_normalization": normalization_record(normalization)}
     if "generator" in meta:
         top["generator"] = meta["generator"]
     tower = meta.get("tower_ply")
