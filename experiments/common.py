@@ -32,6 +32,7 @@ import hashlib
 import json
 import os
 import platform
+import re
 import sys
 import time
 from pathlib import Path
@@ -173,6 +174,9 @@ def base_parser(description: str) -> argparse.ArgumentParser:
                         "experiments/results/<setting>/ otherwise)")
     p.add_argument("--budget-min", type=float, default=None,
                    help="stop launching new runs after this many minutes; missing rows are marked 'not run'")
+    p.add_argument("--train-only", default=None, metavar="REGEX",
+                   help="train only the runs whose 'LABEL seed N' matches this regular expression (re.search); "
+                        "the others come from the cache or are marked 'not run' (to queue runs in a chosen order)")
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights .npz (else LPIPS is reported unavailable)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
@@ -195,6 +199,11 @@ class Context:
     machine: dict = dataclasses.field(default_factory=dict)
     skipped_for_budget: list = dataclasses.field(default_factory=list)
     run_seconds: dict = dataclasses.field(default_factory=dict)  # run dir -> recorded train + eval wall s
+    train_only: str | None = None  # regex on "LABEL seed N": runs that may be trained; None = all
+
+    def may_train(self, name: str) -> bool:
+        """Whether the run called `name` ("LABEL seed N") may be trained in this invocation."""
+        return self.train_only is None or re.search(self.train_only, name) is not None
 
     @property
     def overrides(self) -> dict:
@@ -228,7 +237,7 @@ def make_context(args, script: str) -> Context:
     results = Path(args.results) if args.results else results_folder(RESULTS, setting)
     ctx = Context(setting, seeds, steps, Path(args.cache), results,
                   None if args.budget_min is None else args.budget_min * 60, args.lpips_weights, not args.quiet,
-                  command.strip())
+                  command.strip(), train_only=getattr(args, "train_only", None))
     ctx.cache.mkdir(parents=True, exist_ok=True)
     ctx.results.mkdir(parents=True, exist_ok=True)
     enable_compile_cache(ctx.cache / "jax_cache")
@@ -387,7 +396,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
         info = io.read_json(info_path)
         ctx.run_seconds[str(run_dir)] = info["train_wall_s"] + info["eval_wall_s"]
         return {**info, "metrics": io.read_json(done), "cached": True}
-    if ctx.out_of_budget():
+    if ctx.out_of_budget() or not ctx.may_train(f"{label} seed {seed}"):
         ctx.skipped_for_budget.append(f"{label} seed {seed}")
         print(f"[budget] not running {label} seed {seed}", flush=True)
         return None
@@ -582,7 +591,7 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
             "Cells: mean ± standard deviation over seeds (one value when n = 1). " + lpips_note + ".", ""]
     tail = [""] + [f"- {n}" for n in notes]
     if ctx.skipped_for_budget:
-        tail.append(f"- Not run (time budget): {', '.join(ctx.skipped_for_budget)}.")
+        tail.append(f"- Not run (time budget, or not chosen by --train-only): {', '.join(ctx.skipped_for_budget)}.")
     text = portable("\n".join(head + md_lines + tail) + "\n")
     (ctx.results / f"{name}.md").write_text(text)
     print(text)

@@ -250,3 +250,37 @@ def test_poses_chain_true_pose_dataset_matches_the_registered_frames(tmp_path):
     assert (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"]) == (25.0, 26.0, 15.0, 10.0, 30, 20)
     img = io.read_image(out / "images" / "v3.png")
     assert img.shape == (20, 30, 3) and abs(float(img.mean()) - 0.75) < 0.01
+
+
+def test_train_only_trains_the_chosen_runs_and_reads_the_others_from_the_cache(tmp_path, monkeypatch):
+    """--train-only REGEX: a run whose 'LABEL seed N' does not match is not trained (listed as not
+    run), a matching one is, and a cached run is read back whether or not it matches."""
+    from jaxnerf_grid import evaluate, runs, train
+
+    trained = []
+
+    def fake_train_run(data, method, run_dir, ov, steps, progress=False, dataset=None):
+        trained.append(Path(run_dir).name)
+        Path(run_dir).mkdir(parents=True)
+        return run_dir, train.make_config(method, ov), None
+
+    monkeypatch.setattr(runs, "train_run", fake_train_run)
+    def fake_evaluate_run(run_dir, *a, **k):  # like evaluate_run, leaves metrics.json in the run
+        (Path(run_dir) / "metrics.json").write_text(json.dumps({"mean": {"psnr": 20.0}}))
+        return {"mean": {"psnr": 20.0}}
+
+    monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluate_run)
+    monkeypatch.setattr("jaxnerf_grid.data.formats.load_dataset", lambda data, progress=False: None)
+    monkeypatch.setattr(common, "enable_compile_cache", lambda path=None: None)
+    monkeypatch.setattr(common, "seconds_per_step", lambda run_dir, batch: 0.1)
+    args = common.base_parser("t").parse_args(["--standard", "--cache", str(tmp_path / "cache"), "--results",
+                                              str(tmp_path / "out"), "--quiet", "--train-only", "seed 1$"])
+    ctx = common.make_context(args, "table_x.py")
+    data = tmp_path / "scene"
+    assert common.run_condition(ctx, data, "ours", 0, "t9-a") is None
+    assert ctx.skipped_for_budget == ["t9-a seed 0"] and trained == []
+    got = common.run_condition(ctx, data, "ours", 1, "t9-a")
+    assert got["metrics"]["mean"]["psnr"] == 20.0 and not got["cached"] and len(trained) == 1
+    ctx.train_only = "nothing matches this"
+    again = common.run_condition(ctx, data, "ours", 1, "t9-a")
+    assert again["cached"] and len(trained) == 1 and ctx.skipped_for_budget == ["t9-a seed 0"]
