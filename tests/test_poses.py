@@ -255,16 +255,21 @@ def test_poses_refuses_existing_data_dir_and_keeps_it(orbit_run, capsys):
 
 def test_poses_overwrite_replaces_only_its_outputs(orbit_run, tmp_path, capsys):
     """--overwrite on a dataset poses wrote: images/, sparse/, transforms.json and the top view
-    are new; the user's other files stay."""
+    are new, the old photos' mask outputs are gone (so `mask` runs without --overwrite); the
+    user's other files stay."""
     out = tmp_path / "again"
     shutil.copytree(orbit_run["out"], out)
     (out / "notes.txt").write_text("mine")
     (out / "images" / "stale.png").write_bytes(b"old")
+    for name in ("masks", "weights", "dpt_depth", "overlays"):  # as `jaxnerf-grid mask` leaves them
+        (out / name).mkdir()
+        (out / name / "0000.png").write_bytes(b"old")
     code = cli.main(["poses", "--images", str(orbit_run["photos"]), "--out", str(out), "--single-camera",
                      "--overwrite", "--quiet"])
     assert code == 0, capsys.readouterr().err
     assert (out / "notes.txt").read_text() == "mine" and not (out / "images" / "stale.png").exists()
     assert len(io.read_json(out / "transforms.json")["frames"]) == NUM_VIEWS and (out / MARKER).is_file()
+    assert not any((out / name).exists() for name in ("masks", "weights", "dpt_depth", "overlays"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again"]
 
 

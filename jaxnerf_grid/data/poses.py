@@ -28,7 +28,8 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
 Everything is built in a hidden folder next to DATA_DIR and moved into place at the end, so
 a failed run leaves an existing DATA_DIR as it was, and the input photos are never written
 to. `overwrite` replaces only a dataset this command wrote (MARKER), and in it only its own
-outputs (OUTPUTS); other files stay (docs/RELIABILITY.md).
+outputs (OUTPUTS) and the outputs of `jaxnerf-grid mask` made from the photos it replaces
+(STALE); other files stay (docs/RELIABILITY.md).
 """
 
 from __future__ import annotations
@@ -48,6 +49,7 @@ from jaxnerf_grid.data.formats.writing import transforms_top
 from jaxnerf_grid.data.normalize import (apply_normalization_to_points, normalize_orbit, rotation_between,
                                          up_from_cameras)
 from jaxnerf_grid.io import DataError
+from jaxnerf_grid.masking import OUTPUT_DIRS as MASK_OUTPUTS
 
 MIN_PHOTOS = 3        # fewer readable photos: refused before any work
 MIN_REGISTERED = 3    # fewer registered photos: no dataset is written ...
@@ -61,6 +63,10 @@ TOPVIEW = "poses_topview.png"
 # OUTPUTS; the user's other files stay (docs/RELIABILITY.md).
 MARKER = ".jaxnerf-grid-poses"
 OUTPUTS = ("images", "sparse", "transforms.json", TOPVIEW, MARKER)
+# `jaxnerf-grid mask` outputs in an old DATA_DIR describe the photos being replaced: --overwrite
+# removes them with OUTPUTS (the new transforms.json names no masks), so `mask` runs again
+# without --overwrite.
+STALE = MASK_OUTPUTS
 JPEG_QUALITY = 95
 # Mapping runs again with RELAXED mapper thresholds when the first run registers fewer than
 # RELAX_BELOW of the photos (small working sizes give a few hundred features per photo, below
@@ -583,13 +589,13 @@ def check_out(out: Path, overwrite: bool) -> None:
 
 def move_into_place(stage: Path, out: Path) -> None:
     """Moves the finished dataset from `stage` to `out`: the whole folder when `out` does not
-    exist, else entry by entry (OUTPUTS), the old entries of that name removed and every other
-    file of `out` kept."""
+    exist, else entry by entry (OUTPUTS), the old entries of that name and the stale mask outputs
+    (STALE) removed and every other file of `out` kept."""
     if not out.exists():
         os.replace(stage, out)
         return
     trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-    for name in OUTPUTS:
+    for name in OUTPUTS + STALE:
         if (out / name).exists() or (out / name).is_symlink():
             os.replace(out / name, trash / name)
     for name in OUTPUTS:
