@@ -80,9 +80,10 @@ def main(argv=None) -> int:
         data = common.mask_variant(ctx, common.scene(ctx, "tower-small", seed), "gt_eq7", "gt", floor=0.0)
         data0 = data0 or data
         for label, method, ov in methods:
-            tag = "t1-tower-small-GT_masks__Eq_7" if method == "ours" else f"t3-{method}" + ("-check" if ov else "")
+            check = "-check" if (label, method, ov) in CHECKS.get(ctx.setting, ()) else ""
+            tag = "t1-tower-small-GT_masks__Eq_7" if method == "ours" else f"t3-{method}{check}"
             if args.field == "mlp":
-                tag = f"t3-mlp-{method}"
+                tag = f"t3-mlp-{method}{check}"
             records[label].append(common.run_condition(ctx, data, method, seed, tag, common.merge(field_ov, ov)))
     rows = [(label, common.aggregate(records[label])) for label, _, _ in methods]
     for _, agg in rows[:1] + rows[2:]:
