@@ -8,7 +8,7 @@ samples per ray, same steps and batch for the three methods:
   NeRF-W   NeRF + appearance and transient embeddings, no masks; at test time the appearance
            embedding is fitted on the left half of each view and the metrics use the right half
 The "PSNR right half" column is the like-for-like comparison (every method on the right halves).
-Figure: results/table3_methods.png, tower crops of the test views (clean ground truth | ours |
+Figure: results/[<setting>/]table3_methods.png, tower crops of the test views (clean ground truth | ours |
 NeRF | NeRF-W), nearest-neighbour upscaled.
 
   JAX_PLATFORMS=cpu python -m experiments.table3_methods [--quick | --full] [--seeds N]
@@ -114,7 +114,9 @@ def main(argv=None) -> int:
     if fig is not None:
         common.write_figure(ctx, name, fig)
         md += ["", f"![tower crops: ground truth | ours | NeRF | NeRF-W]({name}.png)"]
-        notes.append(f"Figure: results/{name}.png (seed 0; tower crops of the test views).")
+        where = ctx.results.resolve()
+        shown = where.relative_to(common.ROOT) if where.is_relative_to(common.ROOT) else where
+        notes.append(f"Figure: {shown.as_posix()}/{name}.png (seed 0; tower crops of the test views).")
     common.write_results(ctx, name, "Table 3: ours vs NeRF vs NeRF-W" + (" (MLP field)" if args.field == "mlp" else ""),
                          body, md, notes)
     return 0
