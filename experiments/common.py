@@ -197,7 +197,7 @@ class Context:
     command: str
     start: float = dataclasses.field(default_factory=time.perf_counter)
     machine: dict = dataclasses.field(default_factory=dict)
-    skipped_for_budget: list = dataclasses.field(default_factory=list)
+    not_run: list = dataclasses.field(default_factory=list)  # "LABEL seed N": over budget or not --train-only
     run_seconds: dict = dataclasses.field(default_factory=dict)  # run dir -> recorded train + eval wall s
     train_only: str | None = None  # regex on "LABEL seed N": runs that may be trained; None = all
 
@@ -237,7 +237,7 @@ def make_context(args, script: str) -> Context:
     results = Path(args.results) if args.results else results_folder(RESULTS, setting)
     ctx = Context(setting, seeds, steps, Path(args.cache), results,
                   None if args.budget_min is None else args.budget_min * 60, args.lpips_weights, not args.quiet,
-                  command.strip(), train_only=getattr(args, "train_only", None))
+                  command.strip(), train_only=args.train_only)
     ctx.cache.mkdir(parents=True, exist_ok=True)
     ctx.results.mkdir(parents=True, exist_ok=True)
     enable_compile_cache(ctx.cache / "jax_cache")
@@ -397,8 +397,8 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
         ctx.run_seconds[str(run_dir)] = info["train_wall_s"] + info["eval_wall_s"]
         return {**info, "metrics": io.read_json(done), "cached": True}
     if ctx.out_of_budget() or not ctx.may_train(f"{label} seed {seed}"):
-        ctx.skipped_for_budget.append(f"{label} seed {seed}")
-        print(f"[budget] not running {label} seed {seed}", flush=True)
+        ctx.not_run.append(f"{label} seed {seed}")
+        print(f"[not run] {label} seed {seed} (time budget, or not chosen by --train-only)", flush=True)
         return None
     print(f"[run] {label} seed {seed} ({method}, {steps} steps) -> {run_dir}", flush=True)
     t0 = time.perf_counter()
@@ -576,7 +576,7 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
     payload = {"table": name, "title": title, "command": ctx.command, "machine": ctx.machine,
                "settings": settings_summary(ctx), "wall_seconds": wall,
                "runs_seconds": sum(ctx.run_seconds.values()), "num_runs": len(ctx.run_seconds), "lpips": lpips_note,
-               "not_run_for_budget": ctx.skipped_for_budget, **body, "notes": notes}
+               "not_run_for_budget": ctx.not_run, **body, "notes": notes}
     io.write_json(ctx.results / f"{name}.json", portable(payload))
     o = TRAIN_SETTINGS[ctx.setting]["overrides"]
     head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
@@ -590,8 +590,8 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
                                   for k, v in SCENE_SIZES[ctx.setting].items()) + ".",
             "Cells: mean ± standard deviation over seeds (one value when n = 1). " + lpips_note + ".", ""]
     tail = [""] + [f"- {n}" for n in notes]
-    if ctx.skipped_for_budget:
-        tail.append(f"- Not run (time budget, or not chosen by --train-only): {', '.join(ctx.skipped_for_budget)}.")
+    if ctx.not_run:
+        tail.append(f"- Not run (time budget, or not chosen by --train-only): {', '.join(ctx.not_run)}.")
     text = portable("\n".join(head + md_lines + tail) + "\n")
     (ctx.results / f"{name}.md").write_text(text)
     print(text)

@@ -73,7 +73,7 @@ def test_machinery_end_to_end(tmp_path, monkeypatch):
 
     ctx.budget_s = 0.0  # out of budget: an unfinished condition is not started, and says so
     assert common.run_condition(ctx, variant, "ours", 5, "late") is None
-    assert ctx.skipped_for_budget == ["late seed 5"]
+    assert ctx.not_run == ["late seed 5"]
 
 
 def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
@@ -278,9 +278,9 @@ def test_train_only_trains_the_chosen_runs_and_reads_the_others_from_the_cache(t
     ctx = common.make_context(args, "table_x.py")
     data = tmp_path / "scene"
     assert common.run_condition(ctx, data, "ours", 0, "t9-a") is None
-    assert ctx.skipped_for_budget == ["t9-a seed 0"] and trained == []
+    assert ctx.not_run == ["t9-a seed 0"] and trained == []
     got = common.run_condition(ctx, data, "ours", 1, "t9-a")
     assert got["metrics"]["mean"]["psnr"] == 20.0 and not got["cached"] and len(trained) == 1
     ctx.train_only = "nothing matches this"
     again = common.run_condition(ctx, data, "ours", 1, "t9-a")
-    assert again["cached"] and len(trained) == 1 and ctx.skipped_for_budget == ["t9-a seed 0"]
+    assert again["cached"] and len(trained) == 1 and ctx.not_run == ["t9-a seed 0"]
