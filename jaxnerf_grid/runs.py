@@ -136,9 +136,16 @@ def load_run_and_dataset(run_dir, dataset=None, progress: bool = True, allow_oth
     when given, else loaded from the run's data path), refused when the dataset is not the one
     the run was trained on (check_fingerprint), unless `allow_other_data`."""
     cfg, data = load_run(run_dir)
+    return cfg, data, dataset_of_run(run_dir, data, dataset, progress, allow_other_data)
+
+
+def dataset_of_run(run_dir, data, dataset=None, progress: bool = True, allow_other_data: bool = False):
+    """The dataset of a run whose config is already loaded (`data`: its `cfg.data`): `dataset` when
+    given, else loaded from `data`; refused when it is not the one the run was trained on
+    (check_fingerprint), unless `allow_other_data`."""
     ds = dataset if dataset is not None else load_dataset(data, progress=progress)
     check_fingerprint(run_dir, ds, allow_other_data)
-    return cfg, data, ds
+    return ds
 
 
 # --------------------------------------------------------------------------- creating a run

@@ -10,7 +10,7 @@ import pytest
 
 from jaxnerf_grid import cli, geometry, io
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
-from jaxnerf_grid.export import fuse, ground, lift_view, measure, mesh, plane_to_metric, to_metric, to_scene
+from jaxnerf_grid.export import fuse, ground, lift_view, measure, mesh, plane_to_metric, to_metric, to_metric64, to_scene
 from jaxnerf_grid.export import score as score_lib
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -138,6 +138,16 @@ def test_metric_round_trip_with_rotation():
     s, t = NORM["scale"], np.asarray(NORM["translation"], np.float64)
     np.testing.assert_array_equal(to_metric(scene, NORM), (scene / s - t).astype(np.float32))
     np.testing.assert_array_equal(to_scene(metric, NORM), s * (metric + t))
+
+
+def test_metric_map_of_a_missing_or_partial_record_is_the_identity_in_what_is_missing():
+    """No record: the identity both ways; a record with only a scale: x_norm / s, in float64."""
+    pts = np.random.default_rng(3).uniform(-5, 5, (20, 3))
+    np.testing.assert_array_equal(to_metric64(pts, None), pts)
+    np.testing.assert_array_equal(to_scene(pts, None), pts)
+    np.testing.assert_allclose(to_metric64(pts, {"scale": 4.0}), pts / 4.0, rtol=1e-15)
+    np.testing.assert_allclose(to_scene(pts, {"translation": [1.0, 2.0, 3.0]}), pts + [1.0, 2.0, 3.0], rtol=1e-15)
+    assert to_metric64(pts, NORM).dtype == np.float64
 
 
 # --------------------------------------------------------------------------- ground and box

@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import io
-from jaxnerf_grid.data.normalize import apply_normalization_to_points, normalization_rotation
+from jaxnerf_grid.data.normalize import apply_normalization_to_points, invert_normalization, normalization_rotation
 
 
 def lift_view(rays, rgb: np.ndarray, depth: np.ndarray, opacity: np.ndarray, min_opacity: float = 0.5,
@@ -49,6 +49,15 @@ def _scale_translation(normalization: dict | None) -> tuple[float, np.ndarray, n
     return scale, translation, normalization_rotation(normalization)
 
 
+def _record_or_identity(normalization: dict | None) -> dict:
+    """The record as `data.normalize` takes it, with a missing one (or missing fields) the identity."""
+    scale, translation, rotation = _scale_translation(normalization)
+    record = {"scale": scale, "translation": translation}
+    if rotation is not None:
+        record["rotation"] = rotation
+    return record
+
+
 def to_metric(points: np.ndarray, normalization: dict) -> np.ndarray:
     """Normalised scene points [M, 3] -> metric world points (inverse of x_norm = s R (x + t)).
     Returns [M, 3] float32."""
@@ -57,23 +66,16 @@ def to_metric(points: np.ndarray, normalization: dict) -> np.ndarray:
 
 def to_metric64(points: np.ndarray, normalization: dict | None) -> np.ndarray:
     """`to_metric` in float64 (for measurements): x = R^T x_norm / s - t (without a rotation,
-    x_norm / s - t). points [..., 3] -> [..., 3]."""
-    scale, translation, rotation = _scale_translation(normalization)
-    points = np.asarray(points, np.float64)
-    if rotation is not None:
-        points = points @ rotation  # R^T x for row vectors
-    return points / scale - translation
+    x_norm / s - t), the dataset's inverse map (`data.normalize.invert_normalization`).
+    points [..., 3] -> [..., 3]."""
+    return apply_normalization_to_points(points, invert_normalization(_record_or_identity(normalization)))
 
 
 def to_scene(points: np.ndarray, normalization: dict | None) -> np.ndarray:
     """Metric world points [..., 3] -> normalised scene points, x_norm = s R (x + t). float64.
     The dataset's own map (`data.normalize.apply_normalization_to_points`), with a missing
     normalisation taken as the identity."""
-    scale, translation, rotation = _scale_translation(normalization)
-    record = {"scale": scale, "translation": translation}
-    if rotation is not None:
-        record["rotation"] = rotation
-    return apply_normalization_to_points(points, record)
+    return apply_normalization_to_points(points, _record_or_identity(normalization))
 
 
 def plane_to_metric(normal, offset: float, normalization: dict | None) -> tuple[np.ndarray, float]:
