@@ -10,6 +10,7 @@ from __future__ import annotations
 import contextlib
 import json
 import os
+import stat
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -316,6 +317,7 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp", durable: bool = F
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
     try:
+        os.chmod(tmp, _mode_for(path))  # mkstemp makes it 0600; the file gets the mode open() would give
         yield Path(tmp)
         if durable:
             _fsync(tmp, os.O_RDONLY)
@@ -326,6 +328,24 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp", durable: bool = F
         raise
     if durable:
         _fsync(path.parent, os.O_RDONLY)
+
+
+def _read_umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _read_umask()  # read once, at import: os.umask can only be read by setting it
+
+
+def _mode_for(path: Path) -> int:
+    """The permission bits a written file gets: those of the file it replaces, else 0666 less
+    the process's umask (what open() gives a new file)."""
+    try:
+        return stat.S_IMODE(path.stat().st_mode)
+    except OSError:
+        return 0o666 & ~_UMASK
 
 
 def _fsync(path: str | os.PathLike, flags: int) -> None:

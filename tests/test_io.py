@@ -52,3 +52,22 @@ def test_errors_name_the_file(tmp_path):
     with pytest.raises(io.DataError, match="--overwrite"):
         io.ensure_writable(out, overwrite=False)
     assert (out / "keep.txt").read_text() == "x"
+
+
+def test_atomic_writes_give_the_mode_open_gives_and_keep_a_replaced_files_mode(tmp_path):
+    """A written file is not left with mkstemp's 0600: a new one gets what a plain open() gives
+    (0666 less the umask), a replaced one keeps its own mode."""
+    import os
+    import stat
+
+    plain = tmp_path / "plain.json"
+    plain.write_text("{}")  # open()'s mode under this process's umask: the reference
+    io.write_json(tmp_path / "new.json", {"a": 1})
+    io.write_png(tmp_path / "new.png", np.zeros((2, 2, 3), np.float32))
+    want = stat.S_IMODE(plain.stat().st_mode)
+    assert stat.S_IMODE((tmp_path / "new.json").stat().st_mode) == want
+    assert stat.S_IMODE((tmp_path / "new.png").stat().st_mode) == want
+    os.chmod(tmp_path / "new.json", 0o640)
+    io.write_json(tmp_path / "new.json", {"a": 2})
+    assert stat.S_IMODE((tmp_path / "new.json").stat().st_mode) == 0o640
+    assert io.read_json(tmp_path / "new.json") == {"a": 2}
