@@ -317,7 +317,10 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp", durable: bool = F
     fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
     os.close(fd)
     try:
-        os.chmod(tmp, _mode_for(path))  # mkstemp makes it 0600; the file gets the mode open() would give
+        try:  # mkstemp makes it 0600; the file gets the mode open() would give
+            os.chmod(tmp, _mode_for(path))
+        except OSError:  # a filesystem without permissions (FAT, some network shares): keep going
+            pass
         yield Path(tmp)
         if durable:
             _fsync(tmp, os.O_RDONLY)
