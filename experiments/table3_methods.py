@@ -114,9 +114,8 @@ def main(argv=None) -> int:
     if fig is not None:
         common.write_figure(ctx, name, fig)
         md += ["", f"![tower crops: ground truth | ours | NeRF | NeRF-W]({name}.png)"]
-        where = ctx.results.resolve()
-        shown = where.relative_to(common.ROOT) if where.is_relative_to(common.ROOT) else where
-        notes.append(f"Figure: {shown.as_posix()}/{name}.png (seed 0; tower crops of the test views).")
+        # write_results makes the path relative to the repository (common.portable)
+        notes.append(f"Figure: {(ctx.results / f'{name}.png').as_posix()} (seed 0; tower crops of the test views).")
     common.write_results(ctx, name, "Table 3: ours vs NeRF vs NeRF-W" + (" (MLP field)" if args.field == "mlp" else ""),
                          body, md, notes)
     return 0
