@@ -131,7 +131,7 @@ def main(argv=None) -> int:
     p = common.base_parser(__doc__)
     p.add_argument("--samples", type=int, nargs="+", default=None, help="samples per ray (even numbers)")
     args = p.parse_args(argv)
-    args.results = args.results or str(common.results_folder(ROOT / "benchmarks" / "results", args.setting))
+    args.results = args.results or str(common.results_folder(common.BENCH_RESULTS, args.setting))
     ctx = common.make_context(args, "sampling_schemes.py")
     ctx.command = ctx.command.replace("-m experiments.", "-m benchmarks.")
     samples = tuple(args.samples or SAMPLES[ctx.setting])

@@ -49,6 +49,7 @@ from jaxnerf_grid.config import merge  # noqa: E402
 
 EXPERIMENTS = Path(__file__).resolve().parent
 RESULTS = EXPERIMENTS / "results"
+BENCH_RESULTS = ROOT / "benchmarks" / "results"
 CACHE = EXPERIMENTS / ".cache"
 
 # Scene sizes: (width, height, num_train, num_test, supersample) per preset and setting.
@@ -177,6 +178,9 @@ def base_parser(description: str) -> argparse.ArgumentParser:
     p.add_argument("--train-only", default=None, metavar="REGEX",
                    help="train only the runs whose 'LABEL seed N' matches this regular expression (re.search); "
                         "the others come from the cache or are marked 'not run' (to queue runs in a chosen order)")
+    p.add_argument("--ignore-recorded", action="store_true",
+                   help="train runs that are missing from the cache even when a committed results file records "
+                        "them (by default such a run is read back from the results file: `recorded_runs`)")
     p.add_argument("--lpips-weights", default=None, help="LPIPS weights .npz (else LPIPS is reported unavailable)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     return p
@@ -200,6 +204,8 @@ class Context:
     not_run: list = dataclasses.field(default_factory=list)  # "LABEL seed N": over budget or not --train-only
     run_seconds: dict = dataclasses.field(default_factory=dict)  # run dir -> recorded train + eval wall s
     train_only: str | None = None  # regex on "LABEL seed N": runs that may be trained; None = all
+    recorded: dict | None = None  # (seed, run key) -> a run read back from committed results (`recorded_runs`)
+    restored: list = dataclasses.field(default_factory=list)  # run dirs taken from `recorded` in this invocation
 
     def may_train(self, name: str) -> bool:
         """Whether the run called `name` ("LABEL seed N") may be trained in this invocation."""
@@ -242,6 +248,9 @@ def make_context(args, script: str) -> Context:
     ctx.results.mkdir(parents=True, exist_ok=True)
     enable_compile_cache(ctx.cache / "jax_cache")
     ctx.machine = machine_info()
+    if not getattr(args, "ignore_recorded", False):
+        folders = {ctx.results, results_folder(RESULTS, setting), results_folder(BENCH_RESULTS, setting)}
+        ctx.recorded = recorded_runs(sorted(folders))
     return ctx
 
 
@@ -395,7 +404,14 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     if done.is_file() and info_path.is_file():
         info = io.read_json(info_path)
         ctx.run_seconds[str(run_dir)] = info["train_wall_s"] + info["eval_wall_s"]
-        return {**info, "metrics": io.read_json(done), "cached": True}
+        return {**info, "wall_s": ctx.run_seconds[str(run_dir)], "metrics": io.read_json(done), "cached": True}
+    restored = (ctx.recorded or {}).get((int(seed), key))
+    if restored is not None:
+        ctx.restored.append(restored["run_dir"])
+        if restored.get("wall_s") is not None:
+            ctx.run_seconds[restored["run_dir"]] = restored["wall_s"]
+        print(f"[recorded] {label} seed {seed}: from {restored['recorded_in']}", flush=True)
+        return restored
     if ctx.out_of_budget() or not ctx.may_train(f"{label} seed {seed}"):
         ctx.not_run.append(f"{label} seed {seed}")
         print(f"[not run] {label} seed {seed} (time budget, or not chosen by --train-only)", flush=True)
@@ -419,7 +435,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     ctx.run_seconds[str(run_dir)] = t_train + t_eval
     print(f"[done] {label} seed {seed}: test PSNR {metrics['mean']['psnr']:.2f} dB "
           f"(train {t_train:.0f} s, eval {t_eval:.0f} s)", flush=True)
-    return {**info, "metrics": metrics, "cached": False}
+    return {**info, "wall_s": t_train + t_eval, "metrics": metrics, "cached": False}
 
 
 def seconds_per_step(run_dir: Path, batch_rays: int) -> float | None:
@@ -446,6 +462,7 @@ METRIC_PATHS = {
     "psnr_right_half": ("metrics", "mean_right_half", "psnr"),
     "seconds_per_step": ("seconds_per_step",),
     "geometry_f": ("metrics", "geometry", "thresholds", "0.02", "fscore"),
+    "wall_s": ("wall_s",),  # train + eval wall seconds when the run ran (what `recorded_runs` reads back)
 }
 
 
@@ -470,6 +487,73 @@ def aggregate(records: list[dict | None], extra: dict | None = None) -> dict:
     for k, vals in columns.items():
         vals = [float(v) for v in vals if v is not None and np.isfinite(v)]
         out[k] = ({"mean": float(np.mean(vals)), "std": float(np.std(vals)), "values": vals} if vals else None)
+    return out
+
+
+RUN_DIR_NAME = re.compile(r"-s(\d+)-([0-9a-f]{10})$")  # LABEL-sSEED-KEY, as run_condition names run folders
+
+
+def _put(tree: dict, path: tuple, value) -> None:
+    for k in path[:-1]:
+        tree = tree.setdefault(k, {})
+    tree[path[-1]] = value
+
+
+def _aggregates(obj):
+    """Every aggregate (a dict with aligned "seeds" and "runs" lists) anywhere inside a results JSON."""
+    if isinstance(obj, dict):
+        if isinstance(obj.get("runs"), list) and isinstance(obj.get("seeds"), list) \
+                and len(obj["runs"]) == len(obj["seeds"]):
+            yield obj
+        for v in obj.values():
+            yield from _aggregates(v)
+    elif isinstance(obj, list):
+        for v in obj:
+            yield from _aggregates(v)
+
+
+def recorded_runs(folders) -> dict:
+    """Finished runs as the committed results files record them: {(seed, run key): record}.
+
+    The cache (experiments/.cache) is git-ignored, so a fresh clone has no finished run; the
+    results files have every run's numbers. Each aggregate in each *.json directly under `folders`
+    lists its run folders (LABEL-sSEED-KEY, KEY = `run_key`: the dataset folder's name, the fully
+    resolved config and the step count, so an equal key is the identical run) and, per metric of
+    METRIC_PATHS, the values in the same order. A record is shaped like run_condition's return
+    (each metric at its METRIC_PATHS place, "recorded_in" the file); a metric is taken only where
+    its values line up one-to-one with the runs (aggregate drops missing values, so a shorter list
+    cannot be assigned). Where two files record one run differently (a table assembled before the
+    run was evaluated again), the newest file (machine.date_utc) wins, with a warning.
+    """
+    files = [f for folder in folders if Path(folder).is_dir() for f in sorted(Path(folder).glob("*.json"))]
+    loaded = []
+    for f in files:
+        try:
+            loaded.append((f, json.loads(f.read_text())))
+        except (OSError, ValueError) as exc:
+            print(f"(results file {f} not read as a record of runs: {exc})", file=sys.stderr)
+    loaded.sort(key=lambda fd: str((fd[1].get("machine") or {}).get("date_utc", "")) if isinstance(fd[1], dict) else "",
+                reverse=True)
+    out: dict = {}
+    for f, data in loaded:
+        where = str(portable(str(f.resolve())))
+        for agg in _aggregates(data):
+            aligned = {k: agg[k]["values"] for k in METRIC_PATHS
+                       if isinstance(agg.get(k), dict) and len(agg[k].get("values", [])) == len(agg["runs"])}
+            for i, (seed, run) in enumerate(zip(agg["seeds"], agg["runs"])):
+                m = RUN_DIR_NAME.search(Path(str(run)).name)
+                if m is None or int(m.group(1)) != int(seed):
+                    continue
+                rec = out.setdefault((int(seed), m.group(2)), {"seed": int(seed), "run_dir": str(run),
+                                                              "label": Path(str(run)).name[:m.start()],
+                                                              "cached": True, "recorded_in": where})
+                for k, vals in aligned.items():
+                    old = _get(rec, METRIC_PATHS[k])
+                    if old is None:
+                        _put(rec, METRIC_PATHS[k], vals[i])
+                    elif abs(float(old) - float(vals[i])) > 1e-9 * max(1.0, abs(float(old))):
+                        print(f"(run {Path(str(run)).name}: {k} is {old} in {rec['recorded_in']} but {vals[i]} in "
+                              f"{where}; the newer file's is kept)", file=sys.stderr)
     return out
 
 
@@ -573,16 +657,21 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
     wall = time.perf_counter() - ctx.start
     lpips_note = ("LPIPS computed from " + ctx.lpips_weights) if ctx.lpips_weights else \
         "LPIPS unavailable (no --lpips-weights given); never a made-up number"
+    num_runs = len(set(ctx.run_seconds) | set(ctx.restored))
     payload = {"table": name, "title": title, "command": ctx.command, "machine": ctx.machine,
                "settings": settings_summary(ctx), "wall_seconds": wall,
-               "runs_seconds": sum(ctx.run_seconds.values()), "num_runs": len(ctx.run_seconds), "lpips": lpips_note,
-               "not_run_for_budget": ctx.not_run, **body, "notes": notes}
+               "runs_seconds": sum(ctx.run_seconds.values()), "num_runs": num_runs, "lpips": lpips_note,
+               "not_run_for_budget": ctx.not_run, "runs_from_results_files": sorted(set(ctx.restored)),
+               **body, "notes": notes}
     io.write_json(ctx.results / f"{name}.json", portable(payload))
     o = TRAIN_SETTINGS[ctx.setting]["overrides"]
+    n_untimed = len(set(ctx.restored) - set(ctx.run_seconds))
+    untimed = (f"; {len(set(ctx.restored))} of them read back from the committed results files, "
+               f"{n_untimed} of those with no recorded wall time, not counted") if ctx.restored else ""
     head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
-            f"Machine: {machine_line(ctx.machine)}. The table's {len(ctx.run_seconds)} NeRF runs took "
+            f"Machine: {machine_line(ctx.machine)}. The table's {num_runs} NeRF runs took "
             f"{sum(ctx.run_seconds.values()) / 60:.1f} min of train + eval wall time as recorded when each ran "
-            f"(runs shared with another table counted in both); this invocation took {wall / 60:.1f} min "
+            f"(runs shared with another table counted in both{untimed}); this invocation took {wall / 60:.1f} min "
             "(runs already done in the cache are not re-run).", "",
             f"Setting `{ctx.setting}`: {ctx.seeds} seed(s), {ctx.steps} steps per run, "
             f"{o['train']['batch_rays']} rays per step, {field_summary(o['model'])} unless stated; "

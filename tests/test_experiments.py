@@ -284,3 +284,92 @@ def test_train_only_trains_the_chosen_runs_and_reads_the_others_from_the_cache(t
     ctx.train_only = "nothing matches this"
     again = common.run_condition(ctx, data, "ours", 1, "t9-a")
     assert again["cached"] and len(trained) == 1 and ctx.not_run == ["t9-a seed 0"]
+
+
+def test_recorded_runs_stand_in_for_a_lost_cache(tmp_path, monkeypatch):
+    """A fresh clone has no experiments/.cache: the runs a committed results file lists are read
+    back from it (same seed and run key = the identical run), give the same aggregate as the
+    runs themselves did, and are not trained again; a run the file does not list is still
+    missing, a metric whose values do not line up with the runs is not guessed, and
+    --ignore-recorded trains instead."""
+    from jaxnerf_grid import evaluate, runs, train
+
+    trained = []
+
+    def fake_train_run(data, method, run_dir, ov, steps, progress=False, dataset=None):
+        trained.append(Path(run_dir).name)
+        Path(run_dir).mkdir(parents=True)
+        return run_dir, train.make_config(method, ov), None
+
+    def fake_evaluate_run(run_dir, *a, **k):  # numbers that differ by seed, at the places eval writes them
+        seed = int(Path(run_dir).name.split("-s")[-1].split("-")[0])
+        m = {"mean": {"psnr": 20.0 + 1.5 * seed, "ssim": 0.5 + 0.1 * seed},
+             "regions_mean": {"tower": 18.0 + seed, "far_background": 25.0 - seed},
+             "geometry": {"thresholds": {"0.02": {"fscore": 0.7 + 0.05 * seed}}}}
+        (Path(run_dir) / "metrics.json").write_text(json.dumps(m))
+        return m
+
+    monkeypatch.setattr(runs, "train_run", fake_train_run)
+    monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluate_run)
+    monkeypatch.setattr("jaxnerf_grid.data.formats.load_dataset", lambda data, progress=False: None)
+    monkeypatch.setattr(common, "enable_compile_cache", lambda path=None: None)
+    monkeypatch.setattr(common, "seconds_per_step", lambda run_dir, batch: 0.1)
+    monkeypatch.setattr(common, "RESULTS", tmp_path / "results")  # not the repository's committed results
+    monkeypatch.setattr(common, "BENCH_RESULTS", tmp_path / "bench-results")
+
+    def context(cache, *extra):
+        args = common.base_parser("t").parse_args(["--standard", "--cache", str(tmp_path / cache), "--results",
+                                                  str(tmp_path / "out"), "--quiet", *extra])
+        return common.make_context(args, "table_x.py")
+
+    data, other = tmp_path / "scene", tmp_path / "other-scene"
+    ctx = context("cache-a")
+    first = common.aggregate([common.run_condition(ctx, data, "ours", s, "t9-a") for s in (0, 1)])
+    common.write_results(ctx, "table_x", "T", {"rows": [{"condition": "a", "aggregate": first}]}, [], [])
+    assert len(trained) == 2
+
+    ctx = context("cache-b", "--train-only", "nothing matches this")  # the clone: an empty cache
+    recs = [common.run_condition(ctx, data, "ours", s, "t9-a") for s in (0, 1)]
+    again = common.aggregate(recs)
+    assert len(trained) == 2 and ctx.not_run == [] and len(ctx.restored) == 2
+    for k in ("psnr", "ssim", "psnr_tower", "psnr_far_background", "geometry_f", "seconds_per_step", "wall_s"):
+        assert again[k]["values"] == first[k]["values"], k
+    assert again["psnr"]["values"] == [20.0, 21.5] and again["seeds"] == [0, 1]
+    assert again["runs"] == [str(Path(r).relative_to(common.ROOT)) if Path(r).is_relative_to(common.ROOT) else r
+                             for r in first["runs"]]
+    # not recorded: another seed, or the same seed on another dataset (another run key)
+    assert common.run_condition(ctx, data, "ours", 2, "t9-a") is None
+    assert common.run_condition(ctx, other, "ours", 0, "t9-a") is None
+    assert ctx.not_run == ["t9-a seed 2", "t9-a seed 0"]
+    # the written table says how many of its runs came from a results file
+    common.write_results(ctx, "table_y", "T", {"rows": []}, [], [])
+    assert json.loads((tmp_path / "out" / "table_y.json").read_text())["runs_from_results_files"] == sorted(again["runs"])
+
+    # a metric with a value missing cannot be assigned to runs: it is left out, the others stay
+    path = tmp_path / "out" / "table_x.json"
+    table = json.loads(path.read_text())
+    table["rows"][0]["aggregate"]["ssim"]["values"] = [0.5]
+    path.write_text(json.dumps(table))
+    rec = context("cache-c", "--train-only", "nothing matches this").recorded
+    assert {k[0] for k in rec} == {0, 1}
+    assert all("ssim" not in r["metrics"]["mean"] and "psnr" in r["metrics"]["mean"] for r in rec.values())
+
+    ctx = context("cache-d", "--ignore-recorded")
+    assert common.run_condition(ctx, data, "ours", 0, "t9-a")["cached"] is False and len(trained) == 3
+
+
+def test_recorded_runs_prefer_the_newest_file_and_read_nested_aggregates(tmp_path):
+    """Two results files record one run with different numbers (a table assembled before an
+    evaluation was redone): the newer file's number is kept. Aggregates are found at any depth."""
+    def results(date, psnr, nested=False):
+        agg = {"n": 1, "seeds": [3], "runs": ["experiments/.cache/runs/t9-b-s3-0123456789"],
+               "psnr": {"mean": psnr, "std": 0.0, "values": [psnr]}}
+        return {"machine": {"date_utc": date}, "rows": [{"deep": {"aggregate": agg}} if nested else {"aggregate": agg}]}
+
+    (tmp_path / "old.json").write_text(json.dumps(results("2026-11-20T00:00:00Z", 21.0)))
+    (tmp_path / "new.json").write_text(json.dumps(results("2026-11-22T00:00:00Z", 22.0, nested=True)))
+    (tmp_path / "notes.json").write_text("not json")  # a stray file is skipped, not fatal
+    got = common.recorded_runs([tmp_path])
+    assert list(got) == [(3, "0123456789")]
+    assert got[(3, "0123456789")]["metrics"]["mean"]["psnr"] == 22.0
+    assert got[(3, "0123456789")]["label"] == "t9-b"
