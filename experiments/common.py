@@ -320,8 +320,9 @@ def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", f
     """
     from jaxnerf_grid import masking
 
-    if source == "dpt" and weights is None:  # the built-in weights can be retrained: key the cache on them
-        name = f"{name}_{weights_digest(masking.BUILTIN)}"
+    if source == "dpt":  # any DPT can be retrained (the built-in; Table 4's time-capped models): key the
+        # cached masks, and so the run key of every run on them, on the weights' bytes
+        name = f"{name}_{weights_digest(Path(weights) if weights else masking.BUILTIN)}"
     out = ctx.cache / "variants" / f"{scene_dir.name}__{name}"
     meta_path = out / "transforms.json"
     if meta_path.is_file() and "mask_source" in io.read_json(meta_path):

@@ -101,6 +101,11 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     assert out.name == f"scene__dpt_builtin_eq7_{common.weights_digest(weights)}" and len(calls) == 1
     gt = common.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
     assert gt.name == "scene__gt_eq7"
+    other = tmp_path / "crossover"  # a DPT given by folder (Table 4's) is keyed on its bytes too
+    other.mkdir()
+    (other / "params.safetensors").write_bytes(b"crossover")
+    out = common.mask_variant(ctx, scene, "dpt_from_x", "dpt", weights=str(other))
+    assert out.name == f"scene__dpt_from_x_{common.weights_digest(other)}" and len(calls) == 2
 
 
 def test_verdict_follows_the_stated_rule():
