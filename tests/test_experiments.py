@@ -105,7 +105,7 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     other.mkdir()
     (other / "params.safetensors").write_bytes(b"crossover")
     out = common.mask_variant(ctx, scene, "dpt_from_x", "dpt", weights=str(other))
-    assert out.name == f"scene__dpt_from_x_{common.weights_digest(other)}" and len(calls) == 2
+    assert out.name == f"scene__dpt_from_x_{common.weights_digest(other)}" and len(calls) == 3
 
 
 def test_verdict_follows_the_stated_rule():
