@@ -320,7 +320,7 @@ def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", f
     """
     from jaxnerf_grid import masking
 
-    if source == "dpt":  # any DPT can be retrained (the built-in; Table 4's time-capped models): key the
+    if source == "dpt":  # any DPT can be retrained (the built-in; Table 4's crossover models): key the
         # cached masks, and so the run key of every run on them, on the weights' bytes
         name = f"{name}_{weights_digest(Path(weights) if weights else masking.BUILTIN)}"
     out = ctx.cache / "variants" / f"{scene_dir.name}__{name}"
@@ -658,17 +658,17 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
     wall = time.perf_counter() - ctx.start
     lpips_note = ("LPIPS computed from " + ctx.lpips_weights) if ctx.lpips_weights else \
         "LPIPS unavailable (no --lpips-weights given); never a made-up number"
-    num_runs = len(set(ctx.run_seconds) | set(ctx.restored))
+    restored = set(ctx.restored)
+    num_runs = len(set(ctx.run_seconds) | restored)
     payload = {"table": name, "title": title, "command": ctx.command, "machine": ctx.machine,
                "settings": settings_summary(ctx), "wall_seconds": wall,
                "runs_seconds": sum(ctx.run_seconds.values()), "num_runs": num_runs, "lpips": lpips_note,
-               "not_run_for_budget": ctx.not_run, "runs_from_results_files": sorted(set(ctx.restored)),
+               "not_run_for_budget": ctx.not_run, "runs_from_results_files": sorted(restored),
                **body, "notes": notes}
     io.write_json(ctx.results / f"{name}.json", portable(payload))
     o = TRAIN_SETTINGS[ctx.setting]["overrides"]
-    n_untimed = len(set(ctx.restored) - set(ctx.run_seconds))
-    untimed = (f"; {len(set(ctx.restored))} of them read back from the committed results files, "
-               f"{n_untimed} of those with no recorded wall time, not counted") if ctx.restored else ""
+    untimed = (f"; {len(restored)} of them read back from the committed results files, "
+               f"{len(restored - set(ctx.run_seconds))} of those with no recorded wall time, not counted") if restored else ""
     head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
             f"Machine: {machine_line(ctx.machine)}. The table's {num_runs} NeRF runs took "
             f"{sum(ctx.run_seconds.values()) / 60:.1f} min of train + eval wall time as recorded when each ran "
