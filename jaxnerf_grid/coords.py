@@ -1,6 +1,6 @@
 """Coordinate maps: the dual-sphere contraction (Eq. 9, corrected) and positional encoding.
 
-The paper's Eq. 9 is misprinted (see DESIGN.md). Here, with a near sphere of radius 1 and a far
+The paper's Eq. 9 is misprinted (docs/CONVENTIONS.md). Here, with a near sphere of radius 1 and a far
 sphere of radius R > 1:
 
     contract(x) = x                                 if |x| <= 1

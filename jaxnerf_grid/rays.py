@@ -1,6 +1,6 @@
 """Cameras to rays: pinhole intrinsics, camera-to-world poses, OpenGL axes.
 
-Conventions (DESIGN.md): `c2w` is camera-to-world, [3, 4] or [4, 4]; camera axes are
+Conventions (docs/CONVENTIONS.md): `c2w` is camera-to-world, [3, 4] or [4, 4]; camera axes are
 x right, y up, looking down -z (OpenGL / Blender / transforms.json). Pixel (i, j) with
 column i and row j has its centre at (i + 0.5, j + 0.5) in pixel units; image row 0 is the
 top of the picture. Ray directions are unit length, so `t` along a ray is metric distance;

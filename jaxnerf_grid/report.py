@@ -1,6 +1,6 @@
 """report.md for a run: metrics table, configuration summary, side-by-side views, provenance.
 
-Every figure referenced by the report is a file in the run directory (DESIGN.md):
+Every figure referenced by the report is a file in the run directory (docs/CONVENTIONS.md):
 `report_views.png` (ground truth | render | depth, one row per test view, full frames) and
 `report_crops.png` (the same three panels cropped to the bounding box of the tower class in
 the semantic map, 2x nearest-neighbour, when semantics exist).

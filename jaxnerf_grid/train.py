@@ -53,7 +53,7 @@ class TrainConfig:
     lr_init, lr_final, warmup: learning-rate schedule; max_grad_norm: clipping (0 = off);
     adam_b1, adam_b2, adam_eps: Adam's moments and epsilon (Instant-NGP: 0.9, 0.99, 1e-15).
     use_masks: weight the loss by the dataset's `1 - M_w` (False: every pixel weight 1).
-    mask_weight_floor: with masks, a masked pixel's weight is at most 1 - floor (DESIGN.md:
+    mask_weight_floor: with masks, a masked pixel's weight is at most 1 - floor (docs/CONVENTIONS.md:
       Eq. 7 gives a bird against the sky a weight near 1; floor 1 excludes every masked pixel).
     checkpoint_every, keep_checkpoints, log_every: steps; chunk: rays per rendering chunk.
     num_devices: devices to use (0 = all local devices).
