@@ -7,7 +7,10 @@ in one run with the cases interleaved.
 
 Configs: "mlp" (the MLP field with 32 + 32 hierarchical samples, the demo before the grid),
 "grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the demo recipe: hash
-grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128).
+grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128);
+"demo-linear", "demo-log", "demo-piecewise" (the demo with that ray warp instead of disparity);
+any of them + "-fused" (e.g. "demo-piecewise-fused"): traced without
+fields.hashgrid.computed_once, to measure what it saves.
 
 Every (method, config) is set up and compiled first (compile time reported separately). Then
 `--repeats` rounds, each timing `--steps` training steps (block_until_ready) and the rendering
@@ -29,6 +32,8 @@ Writes benchmarks/results/throughput_processes.json.
 from __future__ import annotations
 
 import argparse
+import contextlib
+import dataclasses
 import json
 import os
 import platform
@@ -43,6 +48,7 @@ from benchmarks.convergence import MLP_CONFIG, RUNS
 from jaxnerf_grid import config as config_lib, parallel, rays as rays_lib, train, views
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.demo import DEMO_CONFIG
+from jaxnerf_grid.fields import hashgrid
 
 CONFIGS = {
     "mlp": MLP_CONFIG,
@@ -52,6 +58,24 @@ CONFIGS = {
                               "num_coarse": 64, "num_fine": 128},
                     "train": {"batch_rays": 1024}},
 }
+# The demo recipe with each of the other ray warps (the demo's own is disparity).
+for _warp in ("linear", "log", "piecewise"):
+    CONFIGS[f"demo-{_warp}"] = {**DEMO_CONFIG, "model": {**DEMO_CONFIG["model"], "warp": _warp}}
+# A config name ending in FUSED (e.g. "demo-piecewise-fused") is that config traced with
+# fields.hashgrid.computed_once as a no-op: the code before it, where XLA:CPU recomputed the
+# points' chain (warp, contraction) in every corner fusion of the hash grid.
+FUSED = "-fused"
+
+
+@contextlib.contextmanager
+def _tracing_without_computed_once(active: bool):
+    saved = hashgrid.computed_once
+    if active:
+        hashgrid.computed_once = lambda x: x
+    try:
+        yield
+    finally:
+        hashgrid.computed_once = saved
 
 
 def scene(width=160, height=120, frames=8) -> Dataset:
@@ -78,7 +102,8 @@ class Case:
     """One (method, config): its compiled training step and renderer, state and rays, ready to time."""
 
     def __init__(self, method: str, name: str, render_rays: int):
-        overrides = json.loads(json.dumps(CONFIGS[name]))
+        self.fused = name.endswith(FUSED)
+        overrides = json.loads(json.dumps(CONFIGS[name.removesuffix(FUSED)]))
         overrides.setdefault("train", {})["max_steps"] = 1000
         cfg = train.make_config(method, overrides)
         ds = scene()
@@ -88,11 +113,16 @@ class Case:
         self.pool = parallel.replicate(train.build_pool(ds, cfg), n)
         self.state = parallel.replicate(train.init_state(cfg), n)
         self.step = train.make_train_step(cfg, n)
+        self.render_fn = None  # views' cached renderer for this config
+        if self.fused:  # fresh (uncached) functions, traced below without computed_once
+            self.step = train._make_train_step.__wrapped__(dataclasses.replace(cfg, data=None), n)
+            self.render_fn = views._render_chunk_fn.__wrapped__(cfg.model, n, False)
         r = views.camera_rays(ds, 7, ds.near, ds.far)
         self.rays = rays_lib.Rays(*(np.asarray(x).reshape(-1, *np.asarray(x).shape[2:])[:render_rays] for x in r))
         t = time.perf_counter()
-        self.train_steps(1)
-        self.render()
+        with _tracing_without_computed_once(self.fused):
+            self.train_steps(1)
+            self.render()
         self.compile_s = time.perf_counter() - t
 
     def train_steps(self, steps: int) -> float:
@@ -106,10 +136,16 @@ class Case:
     def render(self) -> float:
         """Seconds to render the case's rays."""
         params = jax.device_get(jax.tree_util.tree_map(lambda x: x[0], self.state["params"]))
-        t = time.perf_counter()
-        views.render_rays_chunked(params, self.cfg.model, self.rays, 0, None, self.cfg.train.chunk,
-                                  train.resolve_devices(self.cfg.train))
-        return time.perf_counter() - t
+        cached = views._render_chunk_fn
+        if self.render_fn is not None:
+            views._render_chunk_fn = lambda *args: self.render_fn
+        try:
+            t = time.perf_counter()
+            views.render_rays_chunked(params, self.cfg.model, self.rays, 0, None, self.cfg.train.chunk,
+                                      train.resolve_devices(self.cfg.train))
+            return time.perf_counter() - t
+        finally:
+            views._render_chunk_fn = cached
 
     def describe(self) -> dict:
         m = self.cfg.model

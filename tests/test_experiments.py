@@ -378,3 +378,28 @@ def test_recorded_runs_prefer_the_newest_file_and_read_nested_aggregates(tmp_pat
     assert list(got) == [(3, "0123456789")]
     assert got[(3, "0123456789")]["metrics"]["mean"]["psnr"] == 22.0
     assert got[(3, "0123456789")]["label"] == "t9-b"
+
+
+def test_throughput_times_a_case_with_and_without_computed_once(tmp_path):
+    # benchmarks/throughput.py's "-fused" cases trace fields.hashgrid.computed_once as a no-op:
+    # the no-op must reach the traced encode (fewer dots in the HLO) and must not leak out.
+    import jax
+
+    from benchmarks import throughput
+    from jaxnerf_grid.fields import hashgrid
+
+    original = hashgrid.computed_once
+    out = tmp_path / "t.json"
+    throughput.main(["--configs", "demo-piecewise,demo-piecewise-fused", "--steps", "1", "--repeats", "1",
+                     "--render-rays", "64", "--out", str(out)])
+    assert hashgrid.computed_once is original
+    rows = json.loads(out.read_text())["results"]
+    assert [r["config"] for r in rows] == ["demo-piecewise", "demo-piecewise-fused"]
+    assert all(r["train_rays_per_s"] > 0 and r["render_rays_per_s"] > 0 for r in rows)
+    x = jax.numpy.zeros((4, 3))
+    cfg = hashgrid.HashConfig(num_levels=2, log2_table_size=6, min_resolution=2, max_resolution=4)
+    params = hashgrid.init(jax.random.PRNGKey(0), cfg)
+    dots = [jax.jit(lambda p: hashgrid.encode(p, cfg, x)).lower(params).as_text().count("dot_general")]
+    with throughput._tracing_without_computed_once(True):
+        dots.append(jax.jit(lambda p: hashgrid.encode(p, cfg, x)).lower(params).as_text().count("dot_general"))
+    assert dots[0] == dots[1] + 1

@@ -122,6 +122,14 @@ def test_encoding_gradient_matches_finite_differences():
         np.testing.assert_allclose(float(jnp.sum(g_x[:, i])), float(fd), rtol=2e-2, atol=2e-3)
 
 
+def test_computed_once_is_the_identity_bit_for_bit():
+    # encode materialises its points through it (an XLA:CPU fusion fix): it must not move them.
+    rng = np.random.default_rng(3)
+    x = (rng.uniform(-1, 1, (5, 7, 3)) * 10.0 ** rng.integers(-30, 30, (5, 7, 3))).astype(np.float32)
+    x[0, 0] = [0.0, -0.0, 1.0]
+    np.testing.assert_array_equal(np.asarray(jax.jit(hashgrid.computed_once)(jnp.asarray(x))), x)
+
+
 def _grid_cfg(**kw):
     base = dict(kind="grid", depth=1, width=16, view_depth=2, view_width=16, dir_max_deg=2,
                 density_activation="exp", geo_features=7,

@@ -143,9 +143,26 @@ def _mix(weights: jnp.ndarray, feats: jnp.ndarray) -> jnp.ndarray:
     return jnp.einsum("...lk,...lkf->...lf", weights, feats)
 
 
+def computed_once(x: jnp.ndarray) -> jnp.ndarray:
+    """x [..., D], unchanged in value (a matmul by the identity at full precision: exact for
+    finite x), but materialised once.
+
+    XLA:CPU fuses the elementwise chain that made the points (the ray warp's g^-1, the
+    contraction, the PDF resampling's interpolation) into the fusions that compute the L x 8
+    corner rows and weights, so that chain runs once per corner instead of once per point. For
+    a cheap-looking chain such as the piecewise warp's (a select and a division) that made the
+    whole training step 1.9x slower than with the log warp; a dot is not fused into its
+    consumers, so it stops the recomputation. Measured side by side, with and without it, by
+    `python -m benchmarks.throughput --configs demo-piecewise,demo-piecewise-fused,...`
+    (a "-fused" case traces encode without this function; benchmarks/results/throughput_warps.json).
+    """
+    eye = jnp.eye(x.shape[-1], dtype=x.dtype)
+    return jnp.einsum("...i,ij->...j", x, eye, precision=jax.lax.Precision.HIGHEST)
+
+
 def encode(params: dict, cfg: HashConfig, x: jnp.ndarray) -> jnp.ndarray:
     """Hash-grid features of points. x: [..., 3] in [-1, 1] -> [..., L * F]."""
-    rows, weights = corners(cfg, 0.5 * (x + 1.0))
+    rows, weights = corners(cfg, 0.5 * (computed_once(x) + 1.0))
     # One gather for all levels and corners; the einsum (not a broadcast product and a sum)
     # keeps XLA:CPU from fusing the gather into the reduction, which is 3x slower.
     mixed = _mix(weights, params["table"].at[rows].get(mode="promise_in_bounds"))
