@@ -74,6 +74,19 @@ def samples_to_reach(table: dict, scheme: str, samples: tuple, within: float = 0
     return None
 
 
+def paired_text(agg: dict, base: dict) -> str:
+    """", paired over seeds [0, 1, 2]: +a +- b dB (each seed +x, +y, +z)" for the PSNR of agg minus
+    base on the seeds both ran (same scene and seed), or "" when they share fewer than two."""
+    both = {"seeds": agg["seeds"], "psnr": agg["psnr"]}
+    common.add_paired_delta(both, base, "psnr", "delta")
+    d = both.get("delta")
+    if not d or len(d["values"]) < 2:
+        return ""
+    seeds = sorted(set(agg["seeds"]) & set(base["seeds"]))
+    each = ", ".join(f"{v:+.2f}" for v in d["values"])
+    return f", paired over seeds {seeds}: {d['mean']:+.2f} +- {d['std']:.2f} dB (each seed {each})"
+
+
 def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
     """Plain statements computed from the aggregated table {(scheme, n): aggregate}."""
     lines = []
@@ -123,7 +136,8 @@ def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
                     got = have[(s, n)]["psnr"]["mean"]
                     verdict = "matches (within 0.1 dB) or beats" if got >= target - 0.1 else "falls short of"
                     lines.append(f"Quarter-samples test: {s} at {n} samples/ray ({got:.2f} dB) {verdict} "
-                                 f"{base} at {n * 4} ({target:.2f} dB), {got - target:+.2f} dB.")
+                                 f"{base} at {n * 4} ({target:.2f} dB), {got - target:+.2f} dB"
+                                 f"{paired_text(have[(s, n)], have[(base, n * 4)])}.")
     return lines
 
 

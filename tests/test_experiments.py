@@ -159,6 +159,17 @@ def test_samples_to_reach_its_own_best():
     assert bench.samples_to_reach(table, "a", (8, 16, 32, 64, 128)) == 16  # 22.6 >= 23.0 - 0.5
     assert bench.samples_to_reach(table, "b", (8, 128)) is None
     assert bench.model_overrides("log", False, 16, "standard") == {"warp": "log", "sampler": "proposal", "num_fine": 16}
+    # the quarter-samples line pairs the two cells by seed, on the seeds both ran
+    cells = lambda seeds, vals: {"n": len(vals), "seeds": seeds,  # noqa: E731
+                                 "psnr": {"mean": float(np.mean(vals)), "std": float(np.std(vals)), "values": vals}}
+    dis, lin = cells([0, 1, 2], [27.0, 26.0, 25.0]), cells([0, 2], [24.0, 24.5])
+    assert bench.paired_text(dis, lin) == ", paired over seeds [0, 2]: +1.75 +- 1.25 dB (each seed +3.00, +0.50)"
+    assert bench.paired_text(dis, cells([1], [20.0])) == ""
+    table = {("disparity + proposal", 8): dis, ("linear + proposal", 32): lin}
+    line = [x for x in bench.summary(table, (8, 32), "standard") if x.startswith("Quarter")]
+    assert line == ["Quarter-samples test: disparity + proposal at 8 samples/ray (26.00 dB) matches (within 0.1 dB) "
+                    "or beats linear + proposal at 32 (24.25 dB), +1.75 dB, paired over seeds [0, 2]: +1.75 +- 1.25 dB "
+                    "(each seed +3.00, +0.50)."]
     assert bench.model_overrides("log", True, 16, "standard")["num_coarse"] == 8
 
 
