@@ -8,7 +8,7 @@ in one run with the cases interleaved.
 Configs: "mlp" (the MLP field with 32 + 32 hierarchical samples, the demo before the grid),
 "grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the demo recipe: hash
 grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128);
-"demo-linear", "demo-log", "demo-piecewise" (the demo with that ray warp instead of disparity);
+"demo-linear", "demo-log", "demo-piecewise", "mlp-linear", ... (that ray warp instead of disparity);
 any of them + "-fused" (e.g. "demo-piecewise-fused"): traced without
 fields.hashgrid.computed_once, to measure what it saves.
 
@@ -58,9 +58,10 @@ CONFIGS = {
                               "num_coarse": 64, "num_fine": 128},
                     "train": {"batch_rays": 1024}},
 }
-# The demo recipe with each of the other ray warps (the demo's own is disparity).
+# The demo recipe and the MLP with each of the other ray warps (their own is disparity).
 for _warp in ("linear", "log", "piecewise"):
-    CONFIGS[f"demo-{_warp}"] = {**DEMO_CONFIG, "model": {**DEMO_CONFIG["model"], "warp": _warp}}
+    for _name in ("demo", "mlp"):
+        CONFIGS[f"{_name}-{_warp}"] = {**CONFIGS[_name], "model": {**CONFIGS[_name]["model"], "warp": _warp}}
 # A config name ending in FUSED (e.g. "demo-piecewise-fused") is that config traced with
 # fields.hashgrid.computed_once as a no-op: the code before it, where XLA:CPU recomputed the
 # points' chain (warp, contraction) in every corner fusion of the hash grid.
