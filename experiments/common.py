@@ -652,6 +652,20 @@ def portable(obj):
     return obj
 
 
+def not_run_text(entries: list[str]) -> str:
+    """"LABEL seed N" entries, each label once, grouped by the seeds it misses:
+    ["a seed 0", "b seed 0", "a seed 1"] -> "seeds 0, 1: a; seed 0: b"."""
+    seeds_of: dict[str, list[int]] = {}
+    for e in entries:
+        label, _, seed = e.rpartition(" seed ")
+        seeds_of.setdefault(label, []).append(int(seed))
+    groups: dict[tuple, list[str]] = {}
+    for label, seeds in seeds_of.items():
+        groups.setdefault(tuple(sorted(seeds)), []).append(label)
+    order = sorted(groups, key=lambda k: (-len(k), k))
+    return "; ".join(f"seed{'s' if len(k) > 1 else ''} {', '.join(map(str, k))}: {', '.join(groups[k])}" for k in order)
+
+
 def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: list[str], notes: list[str]) -> Path:
     """results/<name>.json (body + provenance) and results/<name>.md (title, command, machine, tables, notes).
     Paths inside the repository are written relative to its root (`portable`)."""
@@ -681,7 +695,8 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
             "Cells: mean ± standard deviation over seeds (one value when n = 1). " + lpips_note + ".", ""]
     tail = [""] + [f"- {n}" for n in notes]
     if ctx.not_run:
-        tail.append(f"- Not run (time budget, or not chosen by --train-only): {', '.join(ctx.not_run)}.")
+        tail.append(f"- Not run (time budget, or not chosen by --train-only; {len(ctx.not_run)} runs): "
+                    f"{not_run_text(ctx.not_run)}.")
     text = portable("\n".join(head + md_lines + tail) + "\n")
     (ctx.results / f"{name}.md").write_text(text)
     print(text)

@@ -151,6 +151,11 @@ def test_standard_setting_is_one_recipe_for_every_method():
     assert common.space_overrides("quick", "nerf") == {}
 
 
+def test_not_run_text_names_each_label_once_by_the_seeds_it_misses():
+    entries = ["a seed 0", "b seed 0", "a seed 1", "c-d seed 2", "b seed 1", "e seed 0", "a seed 2"]
+    assert common.not_run_text(entries) == "seeds 0, 1, 2: a; seeds 0, 1: b; seed 0: e; seed 2: c-d"
+
+
 def test_samples_to_reach_its_own_best():
     from benchmarks import sampling_schemes as bench
 
@@ -165,6 +170,8 @@ def test_samples_to_reach_its_own_best():
     dis, lin = cells([0, 1, 2], [27.0, 26.0, 25.0]), cells([0, 2], [24.0, 24.5])
     assert bench.paired_text(dis, lin) == ", paired over seeds [0, 2]: +1.75 +- 1.25 dB (each seed +3.00, +0.50)"
     assert bench.paired_text(dis, cells([1], [20.0])) == ""
+    assert bench.seeds_text(dis, cells([1], [20.0])) == " (means over 3 and 1 seeds)"
+    assert bench.seeds_text(dis, dis) == ""
     table = {("disparity + proposal", 8): dis, ("linear + proposal", 32): lin}
     line = [x for x in bench.summary(table, (8, 32), "standard") if x.startswith("Quarter")]
     assert line == ["Quarter-samples test: disparity + proposal at 8 samples/ray (26.00 dB) matches (within 0.1 dB) "
