@@ -104,8 +104,11 @@ def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
         if at_n:
             best = max(at_n, key=at_n.get)
             ranked = sorted(at_n.values(), reverse=True)
-            margin = ranked[0] - ranked[1] if len(ranked) > 1 else 0.0
-            lines.append(f"{n} samples/ray: best {best} at {at_n[best]:.2f} dB ({margin:+.2f} dB over the runner-up).")
+            if len(ranked) == 1:
+                lines.append(f"{n} samples/ray: only {best} ran, {at_n[best]:.2f} dB.")
+                continue
+            lines.append(f"{n} samples/ray: best {best} at {at_n[best]:.2f} dB "
+                         f"({ranked[0] - ranked[1]:+.2f} dB over the runner-up).")
     gains = [have[(scheme_name(w, True, setting), n)]["psnr"]["mean"] -
              have[(scheme_name(w, False, setting), n)]["psnr"]["mean"]
              for w in WARPS for n in samples

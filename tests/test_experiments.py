@@ -173,7 +173,10 @@ def test_samples_to_reach_its_own_best():
     assert bench.seeds_text(dis, cells([1], [20.0])) == " (means over 3 and 1 seeds)"
     assert bench.seeds_text(dis, dis) == ""
     table = {("disparity + proposal", 8): dis, ("linear + proposal", 32): lin}
-    line = [x for x in bench.summary(table, (8, 32), "standard") if x.startswith("Quarter")]
+    lines = bench.summary(table, (8, 32), "standard")
+    assert lines[:2] == ["8 samples/ray: only disparity + proposal ran, 26.00 dB.",
+                         "32 samples/ray: only linear + proposal ran, 24.25 dB."]
+    line = [x for x in lines if x.startswith("Quarter")]
     assert line == ["Quarter-samples test: disparity + proposal at 8 samples/ray (26.00 dB) matches (within 0.1 dB) "
                     "or beats linear + proposal at 32 (24.25 dB), +1.75 dB, paired over seeds [0, 2]: +1.75 +- 1.25 dB "
                     "(each seed +3.00, +0.50)."]
