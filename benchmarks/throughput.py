@@ -114,7 +114,7 @@ class Case:
         self.pool = parallel.replicate(train.build_pool(ds, cfg), n)
         self.state = parallel.replicate(train.init_state(cfg), n)
         self.step = train.make_train_step(cfg, n)
-        self.render_fn = None  # views' cached renderer for this config
+        self.render_fn = None  # None: render through views' renderer, cached per config
         if self.fused:  # fresh (uncached) functions, traced below without computed_once
             self.step = train._make_train_step.__wrapped__(dataclasses.replace(cfg, data=None), n)
             self.render_fn = views._render_chunk_fn.__wrapped__(cfg.model, n, False)
