@@ -312,11 +312,12 @@ def weights_digest(folder: Path) -> str:
 
 
 def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", floor: float = 0.0,
-                 weights: str | None = None, max_side: int = 160) -> Path:
+                 weights: str | None = None, max_side: int = 160, dilate: int = 0) -> Path:
     """A folder whose transforms.json points at scene_dir's images, with masks from `masking.write_masks`.
 
     source "gt": ground-truth distractor masks and depth (floor 0 = Eq. 7, floor 1 = binary
     masks, every masked pixel excluded); "dpt": a DPT (`weights` folder, default built-in).
+    dilate: pixels of `mask --dilate` (M and M_w grown by a disc); 0 keeps the folder name of old.
     """
     from jaxnerf_grid import masking
 
@@ -330,7 +331,7 @@ def mask_variant(ctx: Context, scene_dir: Path, name: str, source: str = "gt", f
     out.mkdir(parents=True, exist_ok=True)
     io.write_json(meta_path, _relink(scene_dir, out, io.read_json(scene_dir / "transforms.json")))
     settings = {"source": source, "floor": floor, "overwrite": True, "max_side": max_side,
-                "weights": str(weights) if weights else None}
+                "weights": str(weights) if weights else None, "dilate": dilate}
     print(f"[mask] {out.name}: masking.write_masks {settings}", flush=True)
     masking.write_masks(out, progress=ctx.progress, **settings)
     return out

@@ -99,6 +99,14 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     ctx = common.Context("quick", 1, 3, tmp_path / "cache", tmp_path / "results", None, None, False, "test")
     out = common.mask_variant(ctx, scene, "dpt_builtin_eq7", "dpt")
     assert out.name == f"scene__dpt_builtin_eq7_{common.weights_digest(weights)}" and len(calls) == 1
+    assert calls[0]["dilate"] == 0
+    from experiments import table1_foreground as t1  # Table 1's dilated row asks write_masks for --dilate 2
+
+    monkeypatch.setattr(t1, "builtin_available", lambda: True)
+    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 0.5})
+    data, ov, _ = t1.condition_data(ctx, scene, t1.DILATED)
+    assert calls[-1]["dilate"] == 2 and "dilate2" in data.name and ov == {"train": {"use_masks": True}}
+    calls[:] = calls[:1]
     gt = common.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
     assert gt.name == "scene__gt_eq7"
     other = tmp_path / "crossover"  # a DPT given by folder (Table 4's) is keyed on its bytes too
@@ -232,6 +240,12 @@ def test_tables_turn_known_runs_into_the_right_claims(tmp_path, monkeypatch):
     np.testing.assert_allclose(claim_a["effect"]["values"], [1.5, 1.0, 1.5])
     assert claim_a["paper_db"] == 2.22 and claim_a["verdict"] == "reproduced"
     assert {c["scene_set"].split(":")[0] for c in table1["claims"]} == {"A", "B", "A-low", "A-high"}
+    dilated = [r["scene_set"].split(":")[0] for r in table1["rows"] if r["condition"] == t1.DILATED]
+    assert dilated == ["B", "A-high"]  # the sets where the DPT's masks leave the tower under target
+    quick = ["--quick", "--seeds", "1", "--cache", str(tmp_path / "cache"), "--results", str(tmp_path / "q"), "--quiet"]
+    assert t1.main(quick) == 0  # CI's smoke setting: sets A and B, no dilated row
+    rows = json.loads((tmp_path / "q" / "table1_foreground.json").read_text())["rows"]
+    assert {r["scene_set"].split(":")[0] for r in rows} == {"A", "B"} and t1.DILATED not in {r["condition"] for r in rows}
     row = next(r for r in table1["rows"] if r["condition"] == "no masks")
     np.testing.assert_allclose([row["aggregate"]["geometry_f"]["mean"], row["aggregate"]["psnr_tower"]["mean"]],
                                [0.7, 20.5 + 1 - 3 + 0.5 / 3])
