@@ -43,6 +43,7 @@ COLUMNS = [("psnr", "PSNR", 2), ("psnr_tower", "PSNR tower", 2), ("psnr_near_gro
            ("psnr_far_background", "PSNR far bg", 2), ("geometry_f", "tower F@0.02", 3),
            ("ssim", "SSIM", 3), ("ms_ssim", "MS-SSIM", 3), ("lpips", "LPIPS", 3),
            ("distractor_psnr", "distractor-region PSNR (train views)", 2), ("mask_iou", "mask IoU", 3),
+           ("mask_recall", "mask recall", 3),
            ("delta_psnr", "Δ PSNR vs no masks (paired)", 2), ("delta_distractor_psnr", "Δ distractor PSNR (paired)", 2)]
 
 
@@ -53,7 +54,8 @@ def builtin_available() -> bool:
 
 
 def condition_data(ctx, scene_dir: Path, condition: str):
-    """(dataset folder, train overrides, mask IoU or None) of a condition, or None if unavailable."""
+    """(dataset folder, train overrides, the masks' {iou, precision, recall} or None) of a condition,
+    or None if unavailable."""
     if condition == "no masks":
         return scene_dir, {"train": {"use_masks": False}}, None
     if condition == "clean training images (upper bound)":
@@ -69,7 +71,7 @@ def condition_data(ctx, scene_dir: Path, condition: str):
                                 dilate=DILATE_PX)
     else:
         v = common.mask_variant(ctx, scene_dir, "dpt_builtin_eq7", "dpt", floor=0.0)
-    return v, {"train": {"use_masks": True}}, common.mask_iou(v)["iou"]
+    return v, {"train": {"use_masks": True}}, common.mask_iou(v)
 
 
 def main(argv=None) -> int:
@@ -87,18 +89,20 @@ def main(argv=None) -> int:
                 got = condition_data(ctx, scene_dir, cond)
                 if got is None:
                     continue
-                data, ov, iou = got
+                data, ov, mask_stats = got
                 tag = "t1-" + preset + ("-" + distractors if distractors else "") + "-" + \
                     cond.split(" (")[0].replace(" ", "_").replace("+", "").replace(".", "").replace(",", "")
                 rec = common.run_condition(ctx, data, "ours", seed, tag, ov)
                 records[(set_name, cond)].append(rec)
-                ious[(set_name, cond)].append(iou)
+                ious[(set_name, cond)].append(mask_stats or {})
     body, md, claims = {"rows": [], "claims": []}, [], []
     for set_name, _, _, conditions, paper in sets:
         rows = []
         for cond in conditions:
             recs = records[(set_name, cond)]
-            agg = common.aggregate(recs, {"mask_iou": ious[(set_name, cond)]}) if recs else None
+            stats = ious[(set_name, cond)]
+            agg = common.aggregate(recs, {"mask_iou": [m.get("iou") for m in stats],
+                                          "mask_recall": [m.get("recall") for m in stats]}) if recs else None
             rows.append((cond, agg))
         for cond, agg in rows:
             if cond != "no masks":
@@ -121,8 +125,8 @@ def main(argv=None) -> int:
     notes = ["Test metrics against the clean test views; distractor-region PSNR on up to "
              f"{ctx.distractor_views} training views with distractors, inside their ground-truth distractor "
              "masks, against the clean renders.",
-             "Mask IoU: the condition's masks M against the synthetic distractor masks (bit 0), pooled over the "
-             "training views.",
+             "Mask IoU / recall: the condition's masks M against the synthetic distractor masks (bit 0), pooled "
+             "over the training views (recall: the share of distractor pixels masked).",
              "Δ columns: the per-seed difference to the 'no masks' row of the same scene and seed, mean ± std over "
              "seeds (paired; each seed is a different scene, so the rows' own std is mostly scene-to-scene spread)."]
     if not builtin_available():

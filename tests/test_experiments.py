@@ -103,8 +103,9 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     from experiments import table1_foreground as t1  # Table 1's dilated row asks write_masks for --dilate 2
 
     monkeypatch.setattr(t1, "builtin_available", lambda: True)
-    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 0.5})
-    data, ov, _ = t1.condition_data(ctx, scene, t1.DILATED)
+    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 0.5, "recall": 0.8})
+    data, ov, stats = t1.condition_data(ctx, scene, t1.DILATED)
+    assert stats["recall"] == 0.8
     assert calls[-1]["dilate"] == 2 and "dilate2" in data.name and ov == {"train": {"use_masks": True}}
     calls[:] = calls[:1]
     gt = common.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
@@ -206,7 +207,7 @@ def _fake_tables(monkeypatch, tmp_path, psnr_of):
     monkeypatch.setattr(common, "scene", lambda ctx, preset, seed, distractors=None, size=None: tmp_path / preset)
     monkeypatch.setattr(common, "mask_variant", lambda ctx, scene_dir, name, *a, **k: tmp_path / f"{scene_dir.name}-{name}")
     monkeypatch.setattr(common, "clean_variant", lambda ctx, scene_dir: tmp_path / f"{scene_dir.name}-clean")
-    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 1.0, "precision": 1.0, "recall": 1.0})
+    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 1.0, "precision": 1.0, "recall": 0.75})
     monkeypatch.setattr(common, "enable_compile_cache", lambda path=None: None)
 
 
@@ -240,6 +241,9 @@ def test_tables_turn_known_runs_into_the_right_claims(tmp_path, monkeypatch):
     np.testing.assert_allclose(claim_a["effect"]["values"], [1.5, 1.0, 1.5])
     assert claim_a["paper_db"] == 2.22 and claim_a["verdict"] == "reproduced"
     assert {c["scene_set"].split(":")[0] for c in table1["claims"]} == {"A", "B", "A-low", "A-high"}
+    gt_row = next(r for r in table1["rows"] if r["condition"] == "GT masks + Eq. 7")
+    assert gt_row["aggregate"]["mask_recall"]["values"] == [0.75] * 3
+    assert next(r for r in table1["rows"] if r["condition"] == "no masks")["aggregate"]["mask_recall"] is None
     dilated = [r["scene_set"].split(":")[0] for r in table1["rows"] if r["condition"] == t1.DILATED]
     assert dilated == ["B", "A-high"]  # the sets where the DPT's masks leave the tower under target
     quick = ["--quick", "--seeds", "1", "--cache", str(tmp_path / "cache"), "--results", str(tmp_path / "q"), "--quiet"]
