@@ -29,8 +29,8 @@ from experiments import common
 CONDITIONS = ("no masks", "binary GT masks (no Eq. 7)", "GT masks + Eq. 7", "built-in DPT masks + Eq. 7",
               "clean training images (upper bound)")
 CLUTTER_CONDITIONS = ("no masks", "GT masks + Eq. 7", "built-in DPT masks + Eq. 7")
-DILATED = "built-in DPT masks + Eq. 7, dilated 2 px"
 DILATE_PX = 2
+DILATED = f"built-in DPT masks + Eq. 7, dilated {DILATE_PX} px"
 # (name, preset, distractor level or None for the preset's, conditions, the paper's gain in dB or None)
 SETS = (("A: tower-small, medium distractors", "tower-small", None, CONDITIONS, 2.22),
         ("B: plad-like, high distractors", "plad-like", None, CONDITIONS + (DILATED,), 2.83),
@@ -74,14 +74,20 @@ def condition_data(ctx, scene_dir: Path, condition: str):
     return v, {"train": {"use_masks": True}}, common.mask_iou(v)
 
 
+def sets_for(setting: str) -> list[tuple]:
+    """SETS at `setting`: --quick (CI's smoke run) has neither the clutter levels nor the dilated masks."""
+    if setting != "quick":
+        return list(SETS)
+    return [(name, preset, level, tuple(c for c in conditions if c != DILATED), paper)
+            for name, preset, level, conditions, paper in SETS if level is None]
+
+
 def main(argv=None) -> int:
     args = common.base_parser(__doc__).parse_args(argv)
     ctx = common.make_context(args, "table1_foreground.py")
-    # clutter levels and the dilated masks: not in CI's smoke run
-    sets = [s if ctx.setting != "quick" else s[:3] + (tuple(c for c in s[3] if c != DILATED),) + s[4:]
-            for s in SETS if s[2] is None or ctx.setting != "quick"]
+    sets = sets_for(ctx.setting)
     records = {(s[0], c): [] for s in sets for c in s[3]}
-    ious = {(s[0], c): [] for s in sets for c in s[3]}
+    mask_stats_of = {(s[0], c): [] for s in sets for c in s[3]}
     for seed in range(ctx.seeds):
         for set_name, preset, distractors, conditions, _ in sets:
             scene_dir = common.scene(ctx, preset, seed, distractors)
@@ -94,13 +100,13 @@ def main(argv=None) -> int:
                     cond.split(" (")[0].replace(" ", "_").replace("+", "").replace(".", "").replace(",", "")
                 rec = common.run_condition(ctx, data, "ours", seed, tag, ov)
                 records[(set_name, cond)].append(rec)
-                ious[(set_name, cond)].append(mask_stats or {})
+                mask_stats_of[(set_name, cond)].append(mask_stats or {})
     body, md, claims = {"rows": [], "claims": []}, [], []
     for set_name, _, _, conditions, paper in sets:
         rows = []
         for cond in conditions:
             recs = records[(set_name, cond)]
-            stats = ious[(set_name, cond)]
+            stats = mask_stats_of[(set_name, cond)]
             agg = common.aggregate(recs, {"mask_iou": [m.get("iou") for m in stats],
                                           "mask_recall": [m.get("recall") for m in stats]}) if recs else None
             rows.append((cond, agg))

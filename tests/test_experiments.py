@@ -100,14 +100,6 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     out = common.mask_variant(ctx, scene, "dpt_builtin_eq7", "dpt")
     assert out.name == f"scene__dpt_builtin_eq7_{common.weights_digest(weights)}" and len(calls) == 1
     assert calls[0]["dilate"] == 0
-    from experiments import table1_foreground as t1  # Table 1's dilated row asks write_masks for --dilate 2
-
-    monkeypatch.setattr(t1, "builtin_available", lambda: True)
-    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 0.5, "recall": 0.8})
-    data, ov, stats = t1.condition_data(ctx, scene, t1.DILATED)
-    assert stats["recall"] == 0.8
-    assert calls[-1]["dilate"] == 2 and "dilate2" in data.name and ov == {"train": {"use_masks": True}}
-    calls[:] = calls[:1]
     gt = common.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
     assert gt.name == "scene__gt_eq7"
     other = tmp_path / "crossover"  # a DPT given by folder (Table 4's) is keyed on its bytes too
@@ -115,6 +107,13 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     (other / "params.safetensors").write_bytes(b"crossover")
     out = common.mask_variant(ctx, scene, "dpt_from_x", "dpt", weights=str(other))
     assert out.name == f"scene__dpt_from_x_{common.weights_digest(other)}" and len(calls) == 3
+    from experiments import table1_foreground as t1  # Table 1's dilated row asks write_masks for --dilate 2
+
+    monkeypatch.setattr(t1, "builtin_available", lambda: True)
+    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 0.5, "recall": 0.8})
+    data, ov, stats = t1.condition_data(ctx, scene, t1.DILATED)
+    assert stats["recall"] == 0.8
+    assert calls[-1]["dilate"] == 2 and "dilate2" in data.name and ov == {"train": {"use_masks": True}}
 
 
 def test_verdict_follows_the_stated_rule():
