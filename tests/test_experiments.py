@@ -441,3 +441,18 @@ def test_throughput_times_a_case_with_and_without_computed_once(tmp_path):
     with throughput._tracing_without_computed_once(True):
         dots.append(jax.jit(lambda p: hashgrid.encode(p, cfg, x)).lower(params).as_text().count("dot_general"))
     assert dots[0] == dots[1] + 1
+
+
+def test_mask_tower_overlap_counts_a_hand_made_view():
+    """Tower pixels covered, distractor recall and wholly missed regions, on a 6x8 view counted by hand."""
+    from experiments import mask_tower_overlap as mto
+
+    semantic = np.zeros((6, 8), np.int32)
+    semantic[:, 0:2] = 1  # a 2-pixel-wide tower column: 12 pixels
+    distractor = np.zeros((6, 8), bool)
+    distractor[0:2, 1:3] = True  # a 2x2 person over the tower's edge: hides 2 tower pixels
+    distractor[5, 6:8] = True  # a 2-pixel bird nobody masked
+    mask = np.zeros((6, 8), bool)
+    mask[0:3, 1:3] = True  # covers the person (4) and one visible tower pixel (row 2, col 1)
+    got = mto.frame_counts(mask, distractor, semantic)
+    np.testing.assert_array_equal(got, [10, 1, 6, 4, 2, 2])
