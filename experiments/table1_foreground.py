@@ -1,6 +1,8 @@
 """Table 1: dynamic-foreground removal on / off (ours with and without masks) on two scene sets.
 
-Conditions (all "ours": contraction + disparity warp + hierarchical sampling), per scene set:
+Conditions (all "ours": contraction + disparity warp + the setting's sampler: coarse/fine with the
+MLP at --quick and --full, proposal sampling with the grid field at --standard; the table's
+settings line says which), per scene set:
   no masks                 every pixel a training target (train.use_masks false)
   binary GT masks          `jaxnerf-grid mask --source gt --floor 1`: masked pixels excluded, no Eq. 7
   GT masks + Eq. 7         `jaxnerf-grid mask --source gt --floor 0`: M_w = M (Dmax - D) / Dmax
