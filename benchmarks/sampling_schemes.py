@@ -61,17 +61,41 @@ def model_overrides(warp: str, hierarchical: bool, n: int, setting: str = "quick
     return {"warp": warp, "hierarchical": False, "num_coarse": n, "num_fine": 0}
 
 
-def samples_to_reach(table: dict, scheme: str, samples: tuple, within: float = 0.5) -> int | None:
-    """The fewest samples per ray at which `scheme`'s mean PSNR is within `within` dB of its own
-    PSNR at the largest sample count (None when that is not run)."""
-    top = table.get((scheme, max(samples)))
-    if not top or not top.get("psnr"):
+def gap_to_top(cell: dict | None, top: dict | None) -> dict | None:
+    """cell's PSNR minus top's: {"delta": dB, "seeds": n or None}. Paired over the seeds both ran
+    when both cells list their seeds (a mean over different seeds would mix the scenes' spread,
+    about 0.5 dB, into the gap); the difference of the means when either does not; None when
+    either has no PSNR or they share no seed."""
+    if not cell or not top or not cell.get("psnr") or not top.get("psnr"):
         return None
+    if "seeds" not in cell or "seeds" not in top:
+        return {"delta": cell["psnr"]["mean"] - top["psnr"]["mean"], "seeds": None}
+    both = {"seeds": cell["seeds"], "psnr": cell["psnr"]}
+    common.add_paired_delta(both, top, "psnr", "delta")
+    d = both.get("delta")
+    return {"delta": d["mean"], "seeds": len(d["values"])} if d else None
+
+
+def samples_to_reach(table: dict, scheme: str, samples: tuple, within: float = 0.5) -> int | None:
+    """The fewest samples per ray at which `scheme`'s PSNR is within `within` dB of its own PSNR
+    at the largest sample count (`gap_to_top`: paired by seed), or None when that is not run."""
+    top = table.get((scheme, max(samples)))
     for n in sorted(samples):
-        a = table.get((scheme, n))
-        if a and a.get("psnr") and a["psnr"]["mean"] >= top["psnr"]["mean"] - within:
+        gap = gap_to_top(table.get((scheme, n)), top)
+        if gap is not None and gap["delta"] >= -within:
             return n
     return None
+
+
+def gaps_text(table: dict, scheme: str, samples: tuple) -> str:
+    """"8: -5.08 dB over 3 seeds, 16: -1.40 dB over 1 seed, ...": `gap_to_top` at each count below the largest."""
+    top, parts = table.get((scheme, max(samples))), []
+    for n in sorted(samples)[:-1]:
+        gap = gap_to_top(table.get((scheme, n)), top)
+        if gap is not None:
+            over = f" over {gap['seeds']} seed{'s' if gap['seeds'] != 1 else ''}" if gap["seeds"] else ""
+            parts.append(f"{n}: {gap['delta']:+.2f} dB{over}")
+    return ", ".join(parts)
 
 
 def paired_text(agg: dict, base: dict) -> str:
@@ -129,7 +153,8 @@ def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
             s = scheme_name(warp, hier, setting)
             need = samples_to_reach(have, s, samples)
             if need is not None:
-                lines.append(f"{s} comes within 0.5 dB of its own {max(samples)}-sample PSNR at {need} samples/ray.")
+                lines.append(f"{s} comes within 0.5 dB of its own {max(samples)}-sample PSNR at {need} samples/ray "
+                             f"(PSNR minus that, paired by seed: {gaps_text(have, s, samples)}).")
     for hier in (False, True):
         base = scheme_name("linear", hier, setting)
         for n in samples:

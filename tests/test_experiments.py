@@ -171,6 +171,15 @@ def test_samples_to_reach_its_own_best():
     table = {("a", 8): cell(20.0), ("a", 16): cell(22.6), ("a", 32): cell(23.0), ("a", 128): cell(23.0)}
     assert bench.samples_to_reach(table, "a", (8, 16, 32, 64, 128)) == 16  # 22.6 >= 23.0 - 0.5
     assert bench.samples_to_reach(table, "b", (8, 128)) is None
+    # cells that list their seeds are compared on the seeds both ran: at 32 the mean over three
+    # seeds (27.93) is within 0.5 dB of the 128-sample run's 27.5 but seed 0 alone is 0.7 short;
+    # the 16-sample cell shares no seed with it and is not compared
+    seeded = lambda seeds, vals: {"n": len(vals), "seeds": seeds,  # noqa: E731
+                                  "psnr": {"mean": float(np.mean(vals)), "std": 0.0, "values": vals}}
+    table = {("c", 16): seeded([1], [27.4]), ("c", 32): seeded([0, 1, 2], [26.8, 28.5, 28.5]),
+             ("c", 64): seeded([0], [27.2]), ("c", 128): seeded([0], [27.5])}
+    assert bench.samples_to_reach(table, "c", (16, 32, 64, 128)) == 64
+    assert bench.gaps_text(table, "c", (16, 32, 64, 128)) == "32: -0.70 dB over 1 seed, 64: -0.30 dB over 1 seed"
     assert bench.model_overrides("log", False, 16, "standard") == {"warp": "log", "sampler": "proposal", "num_fine": 16}
     # the quarter-samples line pairs the two cells by seed, on the seeds both ran
     cells = lambda seeds, vals: {"n": len(vals), "seeds": seeds,  # noqa: E731
