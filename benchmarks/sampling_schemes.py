@@ -61,6 +61,14 @@ def model_overrides(warp: str, hierarchical: bool, n: int, setting: str = "quick
     return {"warp": warp, "hierarchical": False, "num_coarse": n, "num_fine": 0}
 
 
+def paired_psnr_delta(agg: dict, base: dict) -> dict | None:
+    """{mean, std, values} of agg's PSNR minus base's on the seeds both ran (`common.add_paired_delta`),
+    or None when they share none."""
+    both = {"seeds": agg["seeds"], "psnr": agg["psnr"]}
+    common.add_paired_delta(both, base, "psnr", "delta")
+    return both.get("delta")
+
+
 def gap_to_top(cell: dict | None, top: dict | None) -> dict | None:
     """cell's PSNR minus top's: {"delta": dB, "seeds": n or None}. Paired over the seeds both ran
     when both cells list their seeds (a mean over different seeds would mix the scenes' spread,
@@ -70,9 +78,7 @@ def gap_to_top(cell: dict | None, top: dict | None) -> dict | None:
         return None
     if "seeds" not in cell or "seeds" not in top:
         return {"delta": cell["psnr"]["mean"] - top["psnr"]["mean"], "seeds": None}
-    both = {"seeds": cell["seeds"], "psnr": cell["psnr"]}
-    common.add_paired_delta(both, top, "psnr", "delta")
-    d = both.get("delta")
+    d = paired_psnr_delta(cell, top)
     return {"delta": d["mean"], "seeds": len(d["values"])} if d else None
 
 
@@ -101,9 +107,7 @@ def gaps_text(table: dict, scheme: str, samples: tuple) -> str:
 def paired_text(agg: dict, base: dict) -> str:
     """", paired over seeds [0, 1, 2]: +a +- b dB (each seed +x, +y, +z)" for the PSNR of agg minus
     base on the seeds both ran (same scene and seed), or "" when they share fewer than two."""
-    both = {"seeds": agg["seeds"], "psnr": agg["psnr"]}
-    common.add_paired_delta(both, base, "psnr", "delta")
-    d = both.get("delta")
+    d = paired_psnr_delta(agg, base)
     if not d or len(d["values"]) < 2:
         return ""
     seeds = sorted(set(agg["seeds"]) & set(base["seeds"]))

@@ -43,15 +43,13 @@ def frame_counts(mask: np.ndarray, distractor: np.ndarray, semantic: np.ndarray)
 
 def variant_shares(variant: Path) -> dict:
     """{tower_covered, recall, missed_whole, missed_whole_specks} pooled over the training views."""
-    import cv2
-
     total = np.zeros(6)
     for f in io.read_json(variant / "transforms.json")["frames"]:
         if f.get("split", "train") != "train" or "mask_path" not in f:
             continue
         mask = io.read_mask(variant / f["mask_path"]) > 0.5
-        raw = cv2.imread(str(variant / f["distractor_mask_path"]), cv2.IMREAD_UNCHANGED)
-        semantic = cv2.imread(str(variant / f["semantic_file_path"]), cv2.IMREAD_UNCHANGED)
+        raw, _ = io.decode_raw(variant / f["distractor_mask_path"], "distractor mask")
+        semantic, _ = io.decode_raw(variant / f["semantic_file_path"], "semantic map")
         total += frame_counts(mask, (raw.astype(np.int64) & 1).astype(bool), semantic)
     return {"tower_covered": total[1] / max(total[0], 1.0), "recall": total[3] / max(total[2], 1.0),
             "missed_whole": total[4] / max(total[2], 1.0), "missed_whole_specks": total[5] / max(total[4], 1.0)}
