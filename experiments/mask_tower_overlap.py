@@ -48,9 +48,9 @@ def variant_shares(variant: Path) -> dict:
         if f.get("split", "train") != "train" or "mask_path" not in f:
             continue
         mask = io.read_mask(variant / f["mask_path"]) > 0.5
-        raw, _ = io.decode_raw(variant / f["distractor_mask_path"], "distractor mask")
+        distractor = io.read_distractor_mask(variant / f["distractor_mask_path"])
         semantic, _ = io.decode_raw(variant / f["semantic_file_path"], "semantic map")
-        total += frame_counts(mask, (raw.astype(np.int64) & 1).astype(bool), semantic)
+        total += frame_counts(mask, distractor, semantic)
     return {"tower_covered": total[1] / max(total[0], 1.0), "recall": total[3] / max(total[2], 1.0),
             "missed_whole": total[4] / max(total[2], 1.0), "missed_whole_specks": total[5] / max(total[4], 1.0)}
 

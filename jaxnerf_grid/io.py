@@ -101,6 +101,23 @@ def read_mask(path: str | os.PathLike) -> np.ndarray:
     return img.astype(np.float32) / scale
 
 
+def distractor_bit(raw: np.ndarray) -> np.ndarray:
+    """The synthetic scenes' distractor mask from its stored pixels: the low bit of channel 0.
+
+    The generator (jaxnerf_grid/data/synthetic/generate.py) writes 0 / 255, so the low bit is the
+    mask whether the PNG was decoded raw or resized with nearest-neighbour. raw: integers of
+    any shape (one channel: [H, W], or a stack [N, H, W]). Returns: bool, raw's shape.
+    """
+    return (np.asarray(raw).astype(np.int64) & 1).astype(bool)
+
+
+def read_distractor_mask(path: str | os.PathLike) -> np.ndarray:
+    """Reads a synthetic scene's distractor mask PNG (see `distractor_bit`); of a colour PNG,
+    channel 0. Returns: bool [H, W]."""
+    raw, _ = decode_raw(path, "distractor mask")
+    return distractor_bit(raw[..., 0] if raw.ndim == 3 else raw)
+
+
 def write_png(path: str | os.PathLike, image: np.ndarray, bits: int = 8) -> None:
     """Writes an image in [0, 1] as PNG (atomic). image: [H, W], [H, W, 1], [H, W, 3] or [H, W, 4]."""
     cv2 = opencv()

@@ -194,19 +194,13 @@ def _check_outputs(root: Path, meta: dict, overwrite: bool) -> None:
 
 
 def _gt_frames(root: Path, frames: list):
-    import cv2
-
     for frame in frames:
         for key in ("distractor_mask_path", "depth_file_path"):
             if key not in frame:
                 raise DataError(f"{root / 'transforms.json'}: frame {frame.get('file_path')!r} has no {key!r}; "
                                 "--source gt needs the synthetic ground truth")
-        mpath = root / frame["distractor_mask_path"]
-        raw = cv2.imread(str(mpath), cv2.IMREAD_UNCHANGED)
-        if raw is None:
-            raise DataError(f"{mpath}: not a readable mask image")
-        raw = raw[..., 0] if raw.ndim == 3 else raw
-        yield (raw.astype(np.int64) & 1).astype(np.float32), io.read_exr(root / frame["depth_file_path"])
+        mask = io.read_distractor_mask(root / frame["distractor_mask_path"])
+        yield mask.astype(np.float32), io.read_exr(root / frame["depth_file_path"])
 
 
 def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, batch_size, tiles,

@@ -71,3 +71,19 @@ def test_atomic_writes_give_the_mode_open_gives_and_keep_a_replaced_files_mode(t
     io.write_json(tmp_path / "new.json", {"a": 2})
     assert stat.S_IMODE((tmp_path / "new.json").stat().st_mode) == 0o640
     assert io.read_json(tmp_path / "new.json") == {"a": 2}
+
+
+def test_distractor_mask_reads_the_generators_0_255_png(tmp_path):
+    """The synthetic generator writes distractor masks as 0 / 255 PNGs (io.write_png of a bool
+    image); reading one back gives the same pixels, in grey or in colour, and a missing file is
+    a DataError naming it."""
+    truth = np.zeros((5, 6), bool)
+    truth[1:3, 2:5] = True
+    truth[4, 0] = True
+    io.write_png(tmp_path / "d.png", truth.astype(np.float32))
+    np.testing.assert_array_equal(io.read_distractor_mask(tmp_path / "d.png"), truth)
+    io.write_png(tmp_path / "c.png", np.repeat(truth[..., None], 3, -1).astype(np.float32))
+    np.testing.assert_array_equal(io.read_distractor_mask(tmp_path / "c.png"), truth)
+    assert io.distractor_bit(np.where(truth, 255, 0).astype(np.uint8)).tolist() == truth.tolist()
+    with pytest.raises(io.DataError, match="gone.png: distractor mask file not found"):
+        io.read_distractor_mask(tmp_path / "gone.png")

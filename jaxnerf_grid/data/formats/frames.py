@@ -313,7 +313,7 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress:
     if out["masks"] is not None:
         out["masks"] = (out["masks"] > 0.5).astype(np.float32)
     if out["distractor_masks"] is not None:
-        out["distractor_masks"] = (out["distractor_masks"].astype(np.uint8) & 1).astype(bool)
+        out["distractor_masks"] = io.distractor_bit(out["distractor_masks"])
     if out["semantics"] is not None:
         out["semantics"] = out["semantics"].astype(np.uint8)
     for name in ("clean_images", "depth", "weights"):
