@@ -2,6 +2,7 @@
 
 Usage:
   python -m experiments.mask_tower_overlap VARIANT [VARIANT ...]
+  python -m experiments.mask_tower_overlap --tower-rules SCENE [SCENE ...]
 
 VARIANT: a folder made by Table 1 / Table 4 (`experiments/.cache/variants/<scene>__<name>`), whose
 transforms.json keeps the synthetic scene's semantic and distractor-mask paths. Over its training
@@ -11,6 +12,12 @@ views it prints:
   * recall: the share of distractor pixels (bit 0 of the distractor mask) that M covers;
   * missed_whole: the share of distractor pixels lying in connected distractor regions that M does
     not touch at all (no dilation reaches those), and the share of those in regions under 10 px.
+
+--tower-rules runs the built-in DPT on a synthetic scene's training views (at its working size,
+160 px, the class probabilities upsampled bilinearly as `jaxnerf-grid mask` upsamples C) and prints
+tower_covered and recall for masks that use the DPT's own tower classes (`rule_masks`): plain
+C > 0.5, and C > 0.5 less the pixels whose argmax is a tower class, or whose tower probability
+is at least 0.1 or 0.2. Analysis only; `mask` has no such rule.
 """
 
 from __future__ import annotations
@@ -23,6 +30,7 @@ import numpy as np
 from jaxnerf_grid import io
 
 TOWER_CLASSES = (1, 2)
+DISTRACTOR_CLASSES = (6, 7, 8)  # jaxnerf_grid.data.synthetic.CLASSES: person, vehicle, bird
 SPECK_PX = 10
 
 
@@ -55,8 +63,54 @@ def variant_shares(variant: Path) -> dict:
             "missed_whole": total[4] / max(total[2], 1.0), "missed_whole_specks": total[5] / max(total[4], 1.0)}
 
 
+def rule_masks(prob: np.ndarray, threshold: float = 0.5) -> dict:
+    """Masks from class probabilities by rules that spare the tower. prob: [H, W, L] (softmax over
+    the synthetic classes) -> {rule name: bool [H, W]}."""
+    c = prob[..., list(DISTRACTOR_CLASSES)].sum(-1)
+    tower_p = prob[..., list(TOWER_CLASSES)].sum(-1)
+    base = c > threshold
+    return {"C > T": base,
+            "C > T, argmax not tower": base & ~np.isin(prob.argmax(-1), TOWER_CLASSES),
+            "C > T, P(tower) < 0.1": base & (tower_p < 0.1),
+            "C > T, P(tower) < 0.2": base & (tower_p < 0.2)}
+
+
+def tower_rule_shares(scene: Path) -> dict:
+    """{rule: {tower_covered, recall}} over a synthetic scene's training views, built-in DPT at
+    its own working size (as `mask` runs it)."""
+    import jax
+
+    from jaxnerf_grid import dpt, masking
+    from jaxnerf_grid import foreground as fg
+
+    seg, _, wdir = masking.load_models(None, None)
+    max_side = int(io.read_json(Path(wdir) / "config.json").get("extra", {}).get("max_side", 384))
+    multiple = 2 * seg.config.patch_size
+    totals = {}
+    for f in io.read_json(scene / "transforms.json")["frames"]:
+        if f.get("split", "train") != "train":
+            continue
+        image = io.read_image(scene / f["file_path"])
+        h, w = image.shape[:2]
+        x = fg.resize_map(image, *fg.working_size(h, w, max_side, multiple))[None]
+        prob = np.asarray(jax.nn.softmax(dpt.apply(seg, dpt.normalize(x))["logits"][0], axis=-1))
+        prob = np.stack([fg.resize_map(prob[..., k], h, w) for k in range(prob.shape[-1])], -1)
+        distractor = io.read_distractor_mask(scene / f["distractor_mask_path"])
+        semantic, _ = io.decode_raw(scene / f["semantic_file_path"], "semantic map")
+        for name, mask in rule_masks(prob).items():
+            totals[name] = totals.get(name, 0) + frame_counts(mask, distractor, semantic)
+    return {name: {"tower_covered": t[1] / max(t[0], 1.0), "recall": t[3] / max(t[2], 1.0)}
+            for name, t in totals.items()}
+
+
 def main(argv=None) -> int:
-    for v in argv if argv is not None else sys.argv[1:]:
+    args = list(argv if argv is not None else sys.argv[1:])
+    if args[:1] == ["--tower-rules"]:
+        for scene in args[1:]:
+            for name, shares in tower_rule_shares(Path(scene)).items():
+                print(f"{Path(scene).name}: {name}: " + ", ".join(f"{k} {x:.3f}" for k, x in shares.items()))
+        return 0
+    for v in args:
         shares = variant_shares(Path(v))
         print(Path(v).name + ": " + ", ".join(f"{k} {x:.3f}" for k, x in shares.items()))
     return 0

@@ -465,3 +465,20 @@ def test_mask_tower_overlap_counts_a_hand_made_view():
     mask[0:3, 1:3] = True  # covers the person (4) and one visible tower pixel (row 2, col 1)
     got = mto.frame_counts(mask, distractor, semantic)
     np.testing.assert_array_equal(got, [10, 1, 6, 4, 2, 2])
+
+
+def test_mask_tower_overlap_rules_spare_tower_pixels_by_hand():
+    """rule_masks on four hand-made pixels: a clear person, a person-vs-tower tie the argmax gives
+    the tower, a pixel over T with tower probability 0.15, and a clear tower."""
+    from experiments import mask_tower_overlap as mto
+
+    prob = np.zeros((1, 4, 9))
+    prob[0, 0, 6] = 1.0                                    # person: masked by every rule
+    prob[0, 1, [6, 8, 1]] = [0.3, 0.25, 0.45]              # C 0.55, argmax tower
+    prob[0, 2, [7, 1, 3]] = [0.8, 0.15, 0.05]              # C 0.8, P(tower) 0.15
+    prob[0, 3, 1] = 1.0                                    # tower: never masked
+    got = {k: v[0].tolist() for k, v in mto.rule_masks(prob).items()}
+    assert got == {"C > T": [True, True, True, False],
+                   "C > T, argmax not tower": [True, False, True, False],
+                   "C > T, P(tower) < 0.1": [True, False, False, False],
+                   "C > T, P(tower) < 0.2": [True, False, True, False]}
