@@ -28,9 +28,11 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import io
+from jaxnerf_grid.data.synthetic import CLASSES
+from jaxnerf_grid.data.synthetic import DISTRACTOR_CLASSES as DISTRACTOR_NAMES
 
 TOWER_CLASSES = (1, 2)
-DISTRACTOR_CLASSES = (6, 7, 8)  # jaxnerf_grid.data.synthetic.CLASSES: person, vehicle, bird
+DISTRACTOR_CLASSES = tuple(CLASSES.index(name) for name in DISTRACTOR_NAMES)
 SPECK_PX = 10
 
 
@@ -59,8 +61,13 @@ def variant_shares(variant: Path) -> dict:
         distractor = io.read_distractor_mask(variant / f["distractor_mask_path"])
         semantic, _ = io.decode_raw(variant / f["semantic_file_path"], "semantic map")
         total += frame_counts(mask, distractor, semantic)
-    return {"tower_covered": total[1] / max(total[0], 1.0), "recall": total[3] / max(total[2], 1.0),
-            "missed_whole": total[4] / max(total[2], 1.0), "missed_whole_specks": total[5] / max(total[4], 1.0)}
+    return {**covered_and_recall(total), "missed_whole": total[4] / max(total[2], 1.0),
+            "missed_whole_specks": total[5] / max(total[4], 1.0)}
+
+
+def covered_and_recall(total: np.ndarray) -> dict:
+    """{tower_covered, recall} from pooled `frame_counts`."""
+    return {"tower_covered": total[1] / max(total[0], 1.0), "recall": total[3] / max(total[2], 1.0)}
 
 
 def rule_masks(prob: np.ndarray, threshold: float = 0.5) -> dict:
@@ -84,7 +91,7 @@ def tower_rule_shares(scene: Path) -> dict:
     from jaxnerf_grid import foreground as fg
 
     seg, _, wdir = masking.load_models(None, None)
-    max_side = int(io.read_json(Path(wdir) / "config.json").get("extra", {}).get("max_side", 384))
+    max_side = masking.model_max_side(wdir)
     multiple = 2 * seg.config.patch_size
     totals = {}
     for f in io.read_json(scene / "transforms.json")["frames"]:
@@ -94,25 +101,27 @@ def tower_rule_shares(scene: Path) -> dict:
         h, w = image.shape[:2]
         x = fg.resize_map(image, *fg.working_size(h, w, max_side, multiple))[None]
         prob = np.asarray(jax.nn.softmax(dpt.apply(seg, dpt.normalize(x))["logits"][0], axis=-1))
-        prob = np.stack([fg.resize_map(prob[..., k], h, w) for k in range(prob.shape[-1])], -1)
+        prob = fg.resize_map(prob, h, w)  # every class at once, each as `mask` upsamples C
         distractor = io.read_distractor_mask(scene / f["distractor_mask_path"])
         semantic, _ = io.decode_raw(scene / f["semantic_file_path"], "semantic map")
         for name, mask in rule_masks(prob).items():
             totals[name] = totals.get(name, 0) + frame_counts(mask, distractor, semantic)
-    return {name: {"tower_covered": t[1] / max(t[0], 1.0), "recall": t[3] / max(t[2], 1.0)}
-            for name, t in totals.items()}
+    return {name: covered_and_recall(t) for name, t in totals.items()}
 
 
 def main(argv=None) -> int:
     args = list(argv if argv is not None else sys.argv[1:])
+
+    def line(label: str, shares: dict) -> None:
+        print(label + ": " + ", ".join(f"{k} {x:.3f}" for k, x in shares.items()))
+
     if args[:1] == ["--tower-rules"]:
         for scene in args[1:]:
             for name, shares in tower_rule_shares(Path(scene)).items():
-                print(f"{Path(scene).name}: {name}: " + ", ".join(f"{k} {x:.3f}" for k, x in shares.items()))
+                line(f"{Path(scene).name}: {name}", shares)
         return 0
     for v in args:
-        shares = variant_shares(Path(v))
-        print(Path(v).name + ": " + ", ".join(f"{k} {x:.3f}" for k, x in shares.items()))
+        line(Path(v).name, variant_shares(Path(v)))
     return 0
 
 

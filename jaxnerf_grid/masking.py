@@ -203,6 +203,11 @@ def _gt_frames(root: Path, frames: list):
         yield mask.astype(np.float32), io.read_exr(root / frame["depth_file_path"])
 
 
+def model_max_side(wdir) -> int:
+    """The working size a DPT folder asks for (its config.json's extra.max_side), else 384."""
+    return int(io.read_json(Path(wdir) / "config.json").get("extra", {}).get("max_side", 384))
+
+
 def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, batch_size, tiles,
               tile_overlap, params: dict):
     """Per image (C [H, W], depth [H, W] or None, C) from DPT; fills `params` (mask_params)."""
@@ -212,8 +217,7 @@ def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, bat
     classes = list(classes) if classes is not None else default_classes(seg, wdir)
     check_classes(classes, seg.config.num_labels, str(wdir))
     if max_side is None:
-        extra = io.read_json(Path(wdir) / "config.json").get("extra", {})
-        max_side = int(extra.get("max_side", 384))
+        max_side = model_max_side(wdir)
     params.update(weights=str(wdir), depth_weights=depth_weights, classes=classes,
                   max_side=max_side, depth="relative (1 / DPT inverse depth)" if depth_model else None)
     if tiles > 1:
