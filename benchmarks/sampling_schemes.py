@@ -69,35 +69,50 @@ def paired_psnr_delta(agg: dict, base: dict) -> dict | None:
     return both.get("delta")
 
 
-def gap_to_top(cell: dict | None, top: dict | None) -> dict | None:
-    """cell's PSNR minus top's: {"delta": dB, "seeds": n or None}. Paired over the seeds both ran
+def psnr_gap(cell: dict | None, ref: dict | None) -> dict | None:
+    """cell's PSNR minus ref's: {"delta": dB, "seeds": n or None}. Paired over the seeds both ran
     when both cells list their seeds (a mean over different seeds would mix the scenes' spread,
     about 0.5 dB, into the gap); the difference of the means when either does not; None when
     either has no PSNR or they share no seed."""
-    if not cell or not top or not cell.get("psnr") or not top.get("psnr"):
+    if not cell or not ref or not cell.get("psnr") or not ref.get("psnr"):
         return None
-    if "seeds" not in cell or "seeds" not in top:
-        return {"delta": cell["psnr"]["mean"] - top["psnr"]["mean"], "seeds": None}
-    d = paired_psnr_delta(cell, top)
+    if "seeds" not in cell or "seeds" not in ref:
+        return {"delta": cell["psnr"]["mean"] - ref["psnr"]["mean"], "seeds": None}
+    d = paired_psnr_delta(cell, ref)
     return {"delta": d["mean"], "seeds": len(d["values"])} if d else None
+
+
+def psnr_on_common_seeds(cells: dict) -> tuple[dict, list]:
+    """({scheme: mean PSNR}, seeds) for cells {scheme: aggregate} that ran at one sample count. When
+    they ran different seeds, each mean is over the seeds all of them ran (ranking means over
+    different seeds would rank the seeds' scenes, which differ by about 1 dB) and `seeds` lists
+    them; when they ran the same seeds, share none, or do not list them: their own means and []."""
+    listed = [a.get("seeds") for a in cells.values()]
+    if any(not s or len(s) != len(a["psnr"]["values"]) for s, a in zip(listed, cells.values())):
+        return {k: a["psnr"]["mean"] for k, a in cells.items()}, []
+    common_seeds = sorted(set.intersection(*(set(s) for s in listed)))
+    if not common_seeds or all(sorted(s) == common_seeds for s in listed):
+        return {k: a["psnr"]["mean"] for k, a in cells.items()}, []
+    by_seed = {k: dict(zip(a["seeds"], a["psnr"]["values"])) for k, a in cells.items()}
+    return {k: float(np.mean([v[s] for s in common_seeds])) for k, v in by_seed.items()}, common_seeds
 
 
 def samples_to_reach(table: dict, scheme: str, samples: tuple, within: float = 0.5) -> int | None:
     """The fewest samples per ray at which `scheme`'s PSNR is within `within` dB of its own PSNR
-    at the largest sample count (`gap_to_top`: paired by seed), or None when that is not run."""
+    at the largest sample count (`psnr_gap`: paired by seed), or None when that is not run."""
     top = table.get((scheme, max(samples)))
     for n in sorted(samples):
-        gap = gap_to_top(table.get((scheme, n)), top)
+        gap = psnr_gap(table.get((scheme, n)), top)
         if gap is not None and gap["delta"] >= -within:
             return n
     return None
 
 
 def gaps_text(table: dict, scheme: str, samples: tuple) -> str:
-    """"8: -5.08 dB over 3 seeds, 16: -1.40 dB over 1 seed, ...": `gap_to_top` at each count below the largest."""
+    """"8: -5.08 dB over 3 seeds, 16: -1.40 dB over 1 seed, ...": `psnr_gap` at each count below the largest."""
     top, parts = table.get((scheme, max(samples))), []
     for n in sorted(samples)[:-1]:
-        gap = gap_to_top(table.get((scheme, n)), top)
+        gap = psnr_gap(table.get((scheme, n)), top)
         if gap is not None:
             over = f" over {gap['seeds']} seed{'s' if gap['seeds'] != 1 else ''}" if gap["seeds"] else ""
             parts.append(f"{n}: {gap['delta']:+.2f} dB{over}")
@@ -128,23 +143,27 @@ def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
     if not have:
         return ["No run finished."]
     for n in samples:
-        at_n = {s: a["psnr"]["mean"] for (s, m), a in have.items() if m == n}
-        if at_n:
-            best = max(at_n, key=at_n.get)
-            ranked = sorted(at_n.values(), reverse=True)
-            if len(ranked) == 1:
-                lines.append(f"{n} samples/ray: only {best} ran, {at_n[best]:.2f} dB.")
-                continue
-            lines.append(f"{n} samples/ray: best {best} at {at_n[best]:.2f} dB "
-                         f"({ranked[0] - ranked[1]:+.2f} dB over the runner-up).")
-    gains = [have[(scheme_name(w, True, setting), n)]["psnr"]["mean"] -
-             have[(scheme_name(w, False, setting), n)]["psnr"]["mean"]
-             for w in WARPS for n in samples
-             if (scheme_name(w, True, setting), n) in have and (scheme_name(w, False, setting), n) in have]
+        cells = {s: a for (s, m), a in have.items() if m == n}
+        if not cells:
+            continue
+        at_n, seeds = psnr_on_common_seeds(cells)
+        best = max(at_n, key=at_n.get)
+        ranked = sorted(at_n.values(), reverse=True)
+        if len(ranked) == 1:
+            lines.append(f"{n} samples/ray: only {best} ran, {at_n[best]:.2f} dB.")
+            continue
+        on = (f" on seed{'s' if len(seeds) != 1 else ''} {seeds} (the seeds every scheme at {n} ran; "
+              if seeds else " (")
+        lines.append(f"{n} samples/ray: best {best} at {at_n[best]:.2f} dB{on}"
+                     f"{ranked[0] - ranked[1]:+.2f} dB over the runner-up).")
+    gaps = [psnr_gap(have.get((scheme_name(w, True, setting), n)), have.get((scheme_name(w, False, setting), n)))
+            for w in WARPS for n in samples]
+    gains = [g["delta"] for g in gaps if g is not None]
     if gains:
         other = "proposal sampling" if SAMPLERS[setting][0] == "proposal" else "none"
+        paired = " (each pair on the seeds both ran)" if all(g["seeds"] for g in gaps if g is not None) else ""
         lines.append(f"Hierarchical resampling vs {other} at equal samples per ray: {np.mean(gains):+.2f} dB on average "
-                     f"(range {min(gains):+.2f} to {max(gains):+.2f}) over {len(gains)} (warp, N) pairs.")
+                     f"(range {min(gains):+.2f} to {max(gains):+.2f}) over {len(gains)} (warp, N) pairs{paired}.")
     stds = [a["psnr"]["std"] for a in have.values() if a["n"] > 1]
     if stds:
         lines.append(f"Seed-to-seed standard deviation of PSNR: {np.mean(stds):.2f} dB on average; differences "

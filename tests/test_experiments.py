@@ -198,6 +198,19 @@ def test_samples_to_reach_its_own_best():
                     "or beats linear + proposal at 32 (24.25 dB), +1.75 dB, paired over seeds [0, 2]: +1.75 +- 1.25 dB "
                     "(each seed +3.00, +0.50)."]
     assert bench.model_overrides("log", True, 16, "standard")["num_coarse"] == 8
+    # coarse/fine against proposal sampling at equal samples: paired on the seeds both ran. Seed 1
+    # scores high on both (28.5 against 29.0): the difference of the means (+1.50) would credit
+    # coarse/fine with the seed's scene
+    hier, prop = cells([1], [28.5]), cells([0, 1, 2], [27.0, 29.0, 25.0])
+    lines = bench.summary({("disparity + hierarchical", 8): hier, ("disparity + proposal", 8): prop}, (8,), "standard")
+    assert ("Hierarchical resampling vs proposal sampling at equal samples per ray: -0.50 dB on average "
+            "(range -0.50 to -0.50) over 1 (warp, N) pairs (each pair on the seeds both ran).") in lines
+    # and the best scheme at a count is picked on the seeds every scheme there ran (seed 1: 29.0
+    # against 28.5), not by means over different seeds (27.0 against 28.5)
+    assert lines[0] == ("8 samples/ray: best disparity + proposal at 29.00 dB on seed [1] (the seeds every scheme "
+                        "at 8 ran; +0.50 dB over the runner-up).")
+    same = bench.summary({("a", 8): cells([0, 1], [20.0, 22.0]), ("b", 8): cells([0, 1], [20.5, 20.5])}, (8,))
+    assert same[0] == "8 samples/ray: best a at 21.00 dB (+0.50 dB over the runner-up)."
 
 
 def _fake_tables(monkeypatch, tmp_path, psnr_of):
