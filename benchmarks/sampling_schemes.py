@@ -87,13 +87,13 @@ def psnr_on_common_seeds(cells: dict) -> tuple[dict, list]:
     they ran different seeds, each mean is over the seeds all of them ran (ranking means over
     different seeds would rank the seeds' scenes, which differ by about 1 dB) and `seeds` lists
     them; when they ran the same seeds, share none, or do not list them: their own means and []."""
-    listed = [a.get("seeds") for a in cells.values()]
-    if any(not s or len(s) != len(a["psnr"]["values"]) for s, a in zip(listed, cells.values())):
-        return {k: a["psnr"]["mean"] for k, a in cells.items()}, []
-    common_seeds = sorted(set.intersection(*(set(s) for s in listed)))
-    if not common_seeds or all(sorted(s) == common_seeds for s in listed):
-        return {k: a["psnr"]["mean"] for k, a in cells.items()}, []
-    by_seed = {k: dict(zip(a["seeds"], a["psnr"]["values"])) for k, a in cells.items()}
+    own = {k: a["psnr"]["mean"] for k, a in cells.items()}
+    by_seed = {k: common.values_by_seed(a) if a.get("seeds") else {} for k, a in cells.items()}
+    if not all(by_seed.values()):
+        return own, []
+    common_seeds = sorted(set.intersection(*(set(v) for v in by_seed.values())))
+    if not common_seeds or all(sorted(v) == common_seeds for v in by_seed.values()):
+        return own, []
     return {k: float(np.mean([v[s] for s in common_seeds])) for k, v in by_seed.items()}, common_seeds
 
 

@@ -559,13 +559,18 @@ def recorded_runs(folders) -> dict:
     return out
 
 
+def values_by_seed(agg: dict, key: str = "psnr") -> dict:
+    """{seed: value} from agg["seeds"] and agg[key]["values"], or {} when they are not one value per seed."""
+    seeds, values = agg["seeds"], agg[key]["values"]
+    return dict(zip(seeds, values)) if len(seeds) == len(values) else {}
+
+
 def add_paired_delta(agg: dict | None, base: dict | None, key: str = "psnr", name: str = "delta_psnr") -> None:
     """agg[name] = mean / std of (agg - base) over the seeds both have (a paired difference: the
     scene-to-scene spread that dominates the per-row std cancels). Nothing when no seed is shared."""
     if not agg or not base or not agg.get(key) or not base.get(key):
         return
-    a = dict(zip(agg["seeds"], agg[key]["values"])) if len(agg["seeds"]) == len(agg[key]["values"]) else {}
-    b = dict(zip(base["seeds"], base[key]["values"])) if len(base["seeds"]) == len(base[key]["values"]) else {}
+    a, b = values_by_seed(agg, key), values_by_seed(base, key)
     d = [a[s] - b[s] for s in sorted(set(a) & set(b))]
     if d:
         agg[name] = {"mean": float(np.mean(d)), "std": float(np.std(d)), "values": d}
