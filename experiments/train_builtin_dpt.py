@@ -42,6 +42,8 @@ import numpy as np  # noqa: E402
 from jaxnerf_grid import dpt, foreground as fg, io, optim  # noqa: E402
 from jaxnerf_grid.foreground import SYNTHETIC_DYNAMIC  # noqa: E402
 
+TOWER_CLASSES = (1, 2)  # tower, conductor (see id2label below)
+
 H, W = 128, 160
 NUM_CLASSES = 9
 CONFIG = dpt.DPTConfig(
@@ -98,9 +100,12 @@ def mask_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
 
 
 def evaluate(model, roots, threshold=0.5, max_side=160, tiles=1) -> dict:
+    """Masks M = [C > threshold] of held-out scenes against their ground truth: IoU, precision,
+    recall pooled over all pixels and as a mean per frame, and tower_covered (the share of the
+    visible tower / conductor pixels that M covers: training signal the tower would lose)."""
     import cv2
 
-    totals = {"tp": 0.0, "fp": 0.0, "fn": 0.0}
+    totals = {"tp": 0.0, "fp": 0.0, "fn": 0.0, "tower": 0.0, "tower_masked": 0.0}
     per_frame = []
     for root in roots:
         meta = io.read_json(root / "transforms.json")
@@ -113,21 +118,47 @@ def evaluate(model, roots, threshold=0.5, max_side=160, tiles=1) -> dict:
             pred = np.asarray(fg.binary_mask(prob, threshold)).astype(bool)
             m = mask_metrics(pred, gt)
             per_frame.append(m)
-            for k in totals:
+            for k in ("tp", "fp", "fn"):
                 totals[k] += m[k]
+            if "semantic_file_path" in f:  # the visible tower pixels the mask takes from training
+                semantic = cv2.imread(str(root / f["semantic_file_path"]), cv2.IMREAD_UNCHANGED)
+                tower = np.isin(semantic, TOWER_CLASSES) & ~gt
+                totals["tower"] += float(tower.sum())
+                totals["tower_masked"] += float((tower & pred).sum())
     pooled = mask_metrics(np.zeros(1, bool), np.zeros(1, bool))
     tp, fp, fn = totals["tp"], totals["fp"], totals["fn"]
     pooled.update(tp=tp, fp=fp, fn=fn, iou=tp / max(tp + fp + fn, 1), precision=tp / max(tp + fp, 1),
-                  recall=tp / max(tp + fn, 1))
+                  recall=tp / max(tp + fn, 1), tower_covered=totals["tower_masked"] / max(totals["tower"], 1.0))
     mean = {k: float(np.mean([m[k] for m in per_frame])) for k in ("iou", "precision", "recall")}
     return {"pooled": pooled, "mean_per_frame": mean, "num_frames": len(per_frame),
             "threshold": threshold, "max_side": max_side, "tiles": tiles}
 
 
+def evaluate_only(weights: Path, eval_roots: list[Path], eval_seeds: list, results: Path) -> int:
+    """Scores a trained DPT on held-out scenes, pooled and per scene; writes results.json / .md."""
+    model = dpt.load_pretrained(str(weights))
+    metrics = evaluate(model, eval_roots)
+    by_scene = {r.name: evaluate(model, [r])["pooled"] for r in eval_roots}
+    result = {"weights": str(weights), "eval_seeds": eval_seeds, "metrics": metrics, "metrics_by_scene": by_scene}
+    results.parent.mkdir(parents=True, exist_ok=True)
+    results.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
+    rows = [("all", metrics["pooled"])] + list(by_scene.items())
+    md = [f"# DPT masks of `{weights}` on held-out scenes (seeds {eval_seeds})", "",
+          "| scenes | IoU | precision | recall | tower covered |", "|---|---|---|---|---|"]
+    md += [f"| {name} | {m['iou']:.3f} | {m['precision']:.3f} | {m['recall']:.3f} | {m['tower_covered']:.3f} |"
+           for name, m in rows]
+    results.with_suffix(".md").write_text("\n".join(md) + "\n")
+    print("\n".join(md))
+    return 0
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--train", nargs="+", required=True)
+    p.add_argument("--train", nargs="+", help="training scenes (required unless --eval-weights)")
     p.add_argument("--eval", nargs="+", required=True)
+    p.add_argument("--eval-weights", metavar="DIR",
+                   help="no training: evaluate the DPT in DIR (e.g. the shipped jaxnerf_grid/assets/dpt_builtin) "
+                        "on the --eval scenes and write --results")
     p.add_argument("--steps", type=int, default=1600, help="the learning-rate schedule spans these steps")
     p.add_argument("--minutes", type=float, default=45.0, help="stop early after this much training time")
     p.add_argument("--batch", type=int, default=8)
@@ -138,9 +169,13 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "jaxnerf_grid/assets/dpt_builtin"))
     p.add_argument("--results", default=str(Path(__file__).resolve().parent / "results/builtin_dpt"))
     args = p.parse_args(argv)
-    train_roots = [Path(r) for r in args.train]
     eval_roots = [Path(r) for r in args.eval]
     seeds = lambda roots: [io.read_json(r / "transforms.json").get("generator", {}).get("seed") for r in roots]  # noqa: E731
+    if args.eval_weights:
+        return evaluate_only(Path(args.eval_weights), eval_roots, seeds(eval_roots), Path(args.results))
+    if not args.train:
+        p.error("--train is required (or --eval-weights DIR to evaluate a trained model)")
+    train_roots = [Path(r) for r in args.train]
     train_seeds = seeds(train_roots)
     if set(train_seeds) & {7101, 7102, 7103, 7104}:
         raise SystemExit(f"training seeds {train_seeds} include a held-out seed (7101+)")
@@ -206,13 +241,14 @@ def main(argv=None) -> int:
     if set(train_seeds) & set(eval_seeds):
         raise SystemExit(f"training seeds {train_seeds} overlap evaluation seeds {eval_seeds}")
     metrics = evaluate(reloaded, eval_roots)
+    by_scene = {r.name: evaluate(reloaded, [r])["pooled"] for r in eval_roots} if len(eval_roots) > 1 else {}
     size_bytes = sum(f.stat().st_size for f in Path(args.out).iterdir())
     result = {"train_seeds": train_seeds, "eval_seeds": eval_seeds, "num_train_images": int(len(x_all)),
               "steps": step, "batch": args.batch, "train_seconds": train_s,
               "total_seconds": time.time() - t_start, "weights_bytes": size_bytes,
               "num_params": int(sum(np.size(v) for v in jax.tree_util.tree_leaves(trained.params))),
               "config": {k: v for k, v in json.loads(json.dumps(dataclasses.asdict(cfg))).items()},
-              "metrics": metrics, "log": log}
+              "metrics": metrics, "metrics_by_scene": by_scene, "log": log}
     res = Path(args.results)
     res.parent.mkdir(parents=True, exist_ok=True)
     res.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
@@ -230,10 +266,13 @@ def main(argv=None) -> int:
         "Mask M = [C > 0.5], C = softmax mass on {person, vehicle, bird}, computed at a 160x128 working size "
         "and upsampled to 160x120, against the ground-truth distractor mask (bit 0):",
         "",
-        "| | IoU | precision | recall |",
-        "|---|---|---|---|",
-        f"| pooled over all pixels | {pm['iou']:.3f} | {pm['precision']:.3f} | {pm['recall']:.3f} |",
-        f"| mean per frame | {mm['iou']:.3f} | {mm['precision']:.3f} | {mm['recall']:.3f} |",
+        "| | IoU | precision | recall | tower covered |",
+        "|---|---|---|---|---|",
+        f"| pooled over all pixels | {pm['iou']:.3f} | {pm['precision']:.3f} | {pm['recall']:.3f} | "
+        f"{pm['tower_covered']:.3f} |",
+        f"| mean per frame | {mm['iou']:.3f} | {mm['precision']:.3f} | {mm['recall']:.3f} | |",
+        *[f"| {name} (pooled) | {m['iou']:.3f} | {m['precision']:.3f} | {m['recall']:.3f} | {m['tower_covered']:.3f} |"
+          for name, m in by_scene.items()],
         "",
         f"Final training loss {log[-1]['loss']:.3f} (cross-entropy {log[-1]['ce']:.3f}, inverse-depth L1 "
         f"{log[-1]['l1']:.3f}, pixel accuracy {log[-1]['acc']:.3f} on the last batch).",
