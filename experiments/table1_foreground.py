@@ -18,7 +18,8 @@ grow with clutter), with the three rows that test it: no masks, GT masks + Eq. 7
 with --lpips-weights) and PSNR inside the distractor regions of training views against the
 clean renders (how much of the passers-by is burnt in; higher = cleaner).
 
-  JAX_PLATFORMS=cpu python -m experiments.table1_foreground [--quick | --full] [--seeds N]
+  JAX_PLATFORMS=cpu python -m experiments.table1_foreground [--quick | --standard | --full] [--seeds N]
+      [--dpt-weights DIR]   (the DPT rows with another DPT than the shipped one)
 """
 
 from __future__ import annotations
@@ -55,9 +56,9 @@ def builtin_available() -> bool:
     return (masking.BUILTIN / "config.json").is_file()
 
 
-def condition_data(ctx, scene_dir: Path, condition: str):
+def condition_data(ctx, scene_dir: Path, condition: str, dpt_weights: str | None = None):
     """(dataset folder, train overrides, the masks' {iou, precision, recall} or None) of a condition,
-    or None if unavailable."""
+    or None if unavailable. dpt_weights: a DPT folder the DPT rows use instead of the built-in."""
     if condition == "no masks":
         return scene_dir, {"train": {"use_masks": False}}, None
     if condition == "clean training images (upper bound)":
@@ -66,13 +67,13 @@ def condition_data(ctx, scene_dir: Path, condition: str):
         v = common.mask_variant(ctx, scene_dir, "gt_binary", "gt", floor=1.0)
     elif condition == "GT masks + Eq. 7":
         v = common.mask_variant(ctx, scene_dir, "gt_eq7", "gt", floor=0.0)
-    elif not builtin_available():
+    elif dpt_weights is None and not builtin_available():
         return None
     elif condition == DILATED:
         v = common.mask_variant(ctx, scene_dir, f"dpt_builtin_eq7_dilate{DILATE_PX}", "dpt", floor=0.0,
-                                dilate=DILATE_PX)
+                                dilate=DILATE_PX, weights=dpt_weights)
     else:
-        v = common.mask_variant(ctx, scene_dir, "dpt_builtin_eq7", "dpt", floor=0.0)
+        v = common.mask_variant(ctx, scene_dir, "dpt_builtin_eq7", "dpt", floor=0.0, weights=dpt_weights)
     return v, {"train": {"use_masks": True}}, common.mask_iou(v)
 
 
@@ -85,7 +86,11 @@ def sets_for(setting: str) -> list[tuple]:
 
 
 def main(argv=None) -> int:
-    args = common.base_parser(__doc__).parse_args(argv)
+    parser = common.base_parser(__doc__)
+    parser.add_argument("--dpt-weights", default=None, metavar="DIR",
+                        help="the DPT rows use the DPT in DIR instead of the shipped built-in "
+                             "(to measure a retrained model before shipping it; use another --results)")
+    args = parser.parse_args(argv)
     ctx = common.make_context(args, "table1_foreground.py")
     sets = sets_for(ctx.setting)
     records = {(s[0], c): [] for s in sets for c in s[3]}
@@ -94,7 +99,7 @@ def main(argv=None) -> int:
         for set_name, preset, distractors, conditions, _ in sets:
             scene_dir = common.scene(ctx, preset, seed, distractors)
             for cond in conditions:
-                got = condition_data(ctx, scene_dir, cond)
+                got = condition_data(ctx, scene_dir, cond, args.dpt_weights)
                 if got is None:
                     continue
                 data, ov, mask_stats = got
@@ -137,7 +142,9 @@ def main(argv=None) -> int:
              "over the training views (recall: the share of distractor pixels masked).",
              "Δ columns: the per-seed difference to the 'no masks' row of the same scene and seed, mean ± std over "
              "seeds (paired; each seed is a different scene, so the rows' own std is mostly scene-to-scene spread)."]
-    if not builtin_available():
+    if args.dpt_weights:
+        notes.append(f"The DPT rows use the DPT in `{args.dpt_weights}`, not the shipped built-in model.")
+    elif not builtin_available():
         notes.append("Built-in DPT row not run: jaxnerf_grid/assets/dpt_builtin is not in this build "
                      "(train it with experiments/train_builtin_dpt.py).")
     common.write_results(ctx, "table1_foreground", "Table 1: dynamic-foreground removal", body, md, notes)

@@ -114,6 +114,10 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     data, ov, stats = t1.condition_data(ctx, scene, t1.DILATED)
     assert stats["recall"] == 0.8
     assert calls[-1]["dilate"] == 2 and "dilate2" in data.name and ov == {"train": {"use_masks": True}}
+    # --dpt-weights: the DPT rows mask with that model, under a name keyed on its bytes
+    data, _, _ = t1.condition_data(ctx, scene, "built-in DPT masks + Eq. 7", str(other))
+    assert calls[-1]["weights"] == str(other) and calls[-1]["dilate"] == 0
+    assert data.name == f"scene__dpt_builtin_eq7_{common.weights_digest(other)}"
 
 
 def test_verdict_follows_the_stated_rule():
