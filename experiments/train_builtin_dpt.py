@@ -39,10 +39,9 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+from experiments.mask_tower_overlap import TOWER_CLASSES  # noqa: E402  (tower, conductor)
 from jaxnerf_grid import dpt, foreground as fg, io, optim  # noqa: E402
 from jaxnerf_grid.foreground import SYNTHETIC_DYNAMIC  # noqa: E402
-
-TOWER_CLASSES = (1, 2)  # tower, conductor (see id2label below)
 
 H, W = 128, 160
 NUM_CLASSES = 9
