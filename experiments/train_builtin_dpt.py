@@ -3,7 +3,7 @@ and evaluate its distractor masks on held-out scenes.
 
 Usage:
   JAX_PLATFORMS=cpu python -m experiments.train_builtin_dpt --train DIR [DIR ...] --eval DIR [DIR ...]
-      [--minutes 45] [--steps 1600] [--patch-size 8] [--out jaxnerf_grid/assets/dpt_builtin]
+      [--minutes 45] [--steps 1600] [--patch-size 8] [--init DIR] [--lr 2e-3] [--out jaxnerf_grid/assets/dpt_builtin]
       [--results experiments/results/builtin_dpt]
 
 Data: folders written by `jaxnerf-grid synth` (DATASET.md layout) with `semantic_file_path`
@@ -165,6 +165,9 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--patch-size", type=int, default=CONFIG.patch_size,
                    help="ViT patch size (8: a 20x16 token grid at the working size; 16: 10x8, about 1/3 of the cost)")
+    p.add_argument("--init", metavar="DIR", default=None,
+                   help="start from the DPT in DIR (e.g. the shipped model, to fine-tune it on more scenes) "
+                        "instead of a random initialisation; its config wins over --patch-size")
     p.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "jaxnerf_grid/assets/dpt_builtin"))
     p.add_argument("--results", default=str(Path(__file__).resolve().parent / "results/builtin_dpt"))
     args = p.parse_args(argv)
@@ -189,9 +192,16 @@ def main(argv=None) -> int:
     class_weights /= class_weights[freq > 0].min()
     print(f"{len(x_all)} training images from seeds {train_seeds}; class freq {np.round(freq, 4).tolist()}")
 
-    cfg = dataclasses.replace(CONFIG, patch_size=args.patch_size)
-    model = dpt.init(args.seed, cfg)
-    params = jax.tree_util.tree_map(jnp.asarray, model.params)
+    if args.init:
+        model = dpt.load_pretrained(args.init)
+        cfg = model.config
+        if cfg.num_labels != NUM_CLASSES or "depth" not in cfg.heads:
+            raise SystemExit(f"--init {args.init}: not a built-in-style DPT ({cfg.num_labels} labels, heads "
+                             f"{cfg.heads}; need {NUM_CLASSES} labels and a depth head)")
+    else:
+        cfg = dataclasses.replace(CONFIG, patch_size=args.patch_size)
+        model = dpt.init(args.seed, cfg)
+    params = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float32), model.params)
     opt = optim.adam(optim.make_lr_schedule(args.lr, args.lr * 0.03, warmup_steps=100, max_steps=args.steps),
                      max_grad_norm=1.0)
     solver = optim.make_solver(make_loss(class_weights, cfg), opt)
@@ -228,7 +238,7 @@ def main(argv=None) -> int:
     train_s = time.time() - t_train
     trained = dpt.Model(cfg, jax.tree_util.tree_map(np.asarray, params))
 
-    extra = {"dynamic_classes": sorted(SYNTHETIC_DYNAMIC), "trained_on_seeds": train_seeds,
+    extra = {"dynamic_classes": sorted(SYNTHETIC_DYNAMIC), "trained_on_seeds": train_seeds, "init": args.init,
              "steps": step, "max_side": max(H, W), "note": "trained by experiments/train_builtin_dpt.py on synthetic tower scenes; "
                                     "inputs are resized to a working size with longest side ~160 px"}
     dpt.save(trained, args.out, dtype="float16", extra=extra)
@@ -242,7 +252,8 @@ def main(argv=None) -> int:
     metrics = evaluate(reloaded, eval_roots)
     by_scene = {r.name: evaluate(reloaded, [r])["pooled"] for r in eval_roots} if len(eval_roots) > 1 else {}
     size_bytes = sum(f.stat().st_size for f in Path(args.out).iterdir())
-    result = {"train_seeds": train_seeds, "eval_seeds": eval_seeds, "num_train_images": int(len(x_all)),
+    result = {"train_seeds": train_seeds, "eval_seeds": eval_seeds, "init": args.init, "lr": args.lr,
+              "num_train_images": int(len(x_all)),
               "steps": step, "batch": args.batch, "train_seconds": train_s,
               "total_seconds": time.time() - t_start, "weights_bytes": size_bytes,
               "num_params": int(sum(np.size(v) for v in jax.tree_util.tree_leaves(trained.params))),
