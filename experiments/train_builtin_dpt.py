@@ -268,7 +268,8 @@ def main(argv=None) -> int:
         "",
         f"Trained by `experiments/train_builtin_dpt.py` on {len(x_all)} images from training seeds "
         f"{train_seeds}; evaluated on {metrics['num_frames']} frames of held-out seeds {eval_seeds} "
-        f"(disjoint). {step} Adam steps (jaxopt OptaxSolver), batch {args.batch}, "
+        f"(disjoint). {step} Adam steps (jaxopt OptaxSolver), batch {args.batch}, peak learning rate {args.lr:g}, "
+        + (f"starting from the DPT in `{args.init}`, " if args.init else "from a random initialisation, ") +
         f"{train_s / 60:.1f} min of training on this CPU ({result['total_seconds'] / 60:.1f} min in all). "
         f"Weights: {result['num_params']} parameters, {size_bytes / 1e6:.2f} MB (float16) in "
         f"`{args.out}`; ViT patch size {cfg.patch_size}.",
