@@ -8,7 +8,7 @@ Usage:
 
 Data: folders written by `jaxnerf-grid synth` (DATASET.md layout) with `semantic_file_path`
 (classes 0 sky .. 8 bird) and `depth_file_path`. Training scenes must use seeds disjoint from
-every evaluation scene (this project reserves seeds >= 7000 for the built-in model: 7001-7004
+every evaluation scene (this project reserves seeds >= 7000 for the built-in model: 7001-7099
 train, 7101+ held out). Every frame of a training scene is used (cluttered images).
 
 Model: the same DPT code as the HF import (jaxnerf_grid.dpt), a small config (patch 8, 4 ViT
