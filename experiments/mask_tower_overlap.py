@@ -36,12 +36,18 @@ DISTRACTOR_CLASSES = tuple(CLASSES.index(name) for name in DISTRACTOR_NAMES)
 SPECK_PX = 10
 
 
+def visible_tower(semantic: np.ndarray, distractor: np.ndarray) -> np.ndarray:
+    """The tower pixels a view trains on: semantic [H, W] int in TOWER_CLASSES, not behind a
+    distractor (distractor: [H, W] bool) -> [H, W] bool."""
+    return np.isin(semantic, TOWER_CLASSES) & ~distractor
+
+
 def frame_counts(mask: np.ndarray, distractor: np.ndarray, semantic: np.ndarray) -> np.ndarray:
     """Pixel counts of one view. mask, distractor: [H, W] bool; semantic: [H, W] int ->
     [tower, tower covered, distractor, distractor covered, in untouched regions, in untouched specks]."""
     import cv2
 
-    tower = np.isin(semantic, TOWER_CLASSES) & ~distractor
+    tower = visible_tower(semantic, distractor)
     n, labels = cv2.connectedComponents(distractor.astype(np.uint8))
     sizes = np.bincount(labels.ravel(), minlength=n)
     touched = np.bincount(labels.ravel(), weights=mask.ravel().astype(float), minlength=n) > 0

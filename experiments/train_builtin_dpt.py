@@ -39,7 +39,7 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
-from experiments.mask_tower_overlap import TOWER_CLASSES  # noqa: E402  (tower, conductor)
+from experiments.mask_tower_overlap import visible_tower  # noqa: E402
 from jaxnerf_grid import dpt, foreground as fg, io, optim  # noqa: E402
 from jaxnerf_grid.foreground import SYNTHETIC_DYNAMIC  # noqa: E402
 
@@ -98,54 +98,64 @@ def mask_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
             "recall": tp / max(tp + fn, 1.0)}
 
 
+def pooled_scores(totals: dict) -> dict:
+    """IoU / precision / recall / tower_covered from pixel counts summed over frames
+    ({tp, fp, fn, tower, tower_masked})."""
+    tp, fp, fn = totals["tp"], totals["fp"], totals["fn"]
+    return {"tp": tp, "fp": fp, "fn": fn, "iou": tp / max(tp + fp + fn, 1.0), "precision": tp / max(tp + fp, 1.0),
+            "recall": tp / max(tp + fn, 1.0), "tower_covered": totals["tower_masked"] / max(totals["tower"], 1.0)}
+
+
 def evaluate(model, roots, threshold=0.5, max_side=160, tiles=1) -> dict:
     """Masks M = [C > threshold] of held-out scenes against their ground truth: IoU, precision,
-    recall pooled over all pixels and as a mean per frame, and tower_covered (the share of the
-    visible tower / conductor pixels that M covers: training signal the tower would lose)."""
-    import cv2
-
-    totals = {"tp": 0.0, "fp": 0.0, "fn": 0.0, "tower": 0.0, "tower_masked": 0.0}
-    per_frame = []
+    recall pooled over all pixels (and per scene, `by_scene`) and as a mean per frame, and
+    tower_covered (the share of the visible tower / conductor pixels that M covers: training
+    signal the tower would lose). One DPT pass over every frame."""
+    keys = ("tp", "fp", "fn", "tower", "tower_masked")
+    by_scene, per_frame = {}, []
     for root in roots:
+        totals = dict.fromkeys(keys, 0.0)
         meta = io.read_json(root / "transforms.json")
         frames = [f for f in meta["frames"] if "distractor_mask_path" in f]
         imgs = (io.read_image(root / f["file_path"]) for f in frames)
         for f, (prob, _inv) in zip(frames, fg.predict_maps(model, model, imgs, sorted(SYNTHETIC_DYNAMIC),
                                                            max_side=max_side, batch_size=8, tiles=tiles)):
-            raw = cv2.imread(str(root / f["distractor_mask_path"]), cv2.IMREAD_UNCHANGED)
-            gt = (raw & 1).astype(bool)
+            gt = io.read_distractor_mask(root / f["distractor_mask_path"])
             pred = np.asarray(fg.binary_mask(prob, threshold)).astype(bool)
             m = mask_metrics(pred, gt)
             per_frame.append(m)
             for k in ("tp", "fp", "fn"):
                 totals[k] += m[k]
             if "semantic_file_path" in f:  # the visible tower pixels the mask takes from training
-                semantic = cv2.imread(str(root / f["semantic_file_path"]), cv2.IMREAD_UNCHANGED)
-                tower = np.isin(semantic, TOWER_CLASSES) & ~gt
+                semantic, _ = io.decode_raw(root / f["semantic_file_path"], "semantic map")
+                tower = visible_tower(semantic, gt)
                 totals["tower"] += float(tower.sum())
                 totals["tower_masked"] += float((tower & pred).sum())
-    pooled = mask_metrics(np.zeros(1, bool), np.zeros(1, bool))
-    tp, fp, fn = totals["tp"], totals["fp"], totals["fn"]
-    pooled.update(tp=tp, fp=fp, fn=fn, iou=tp / max(tp + fp + fn, 1), precision=tp / max(tp + fp, 1),
-                  recall=tp / max(tp + fn, 1), tower_covered=totals["tower_masked"] / max(totals["tower"], 1.0))
+        by_scene[root.name] = totals
+    pooled = pooled_scores({k: sum(t[k] for t in by_scene.values()) for k in keys})
     mean = {k: float(np.mean([m[k] for m in per_frame])) for k in ("iou", "precision", "recall")}
     return {"pooled": pooled, "mean_per_frame": mean, "num_frames": len(per_frame),
-            "threshold": threshold, "max_side": max_side, "tiles": tiles}
+            "threshold": threshold, "max_side": max_side, "tiles": tiles,
+            "by_scene": {name: pooled_scores(t) for name, t in by_scene.items()}}
+
+
+def score_row(name: str, m: dict) -> str:
+    """A markdown table row: name | IoU | precision | recall | tower covered."""
+    return f"| {name} | {m['iou']:.3f} | {m['precision']:.3f} | {m['recall']:.3f} | {m['tower_covered']:.3f} |"
 
 
 def evaluate_only(weights: Path, eval_roots: list[Path], eval_seeds: list, results: Path) -> int:
     """Scores a trained DPT on held-out scenes, pooled and per scene; writes results.json / .md."""
     model = dpt.load_pretrained(str(weights))
     metrics = evaluate(model, eval_roots)
-    by_scene = {r.name: evaluate(model, [r])["pooled"] for r in eval_roots}
+    by_scene = metrics.pop("by_scene")
     result = {"weights": str(weights), "eval_seeds": eval_seeds, "metrics": metrics, "metrics_by_scene": by_scene}
     results.parent.mkdir(parents=True, exist_ok=True)
     results.with_suffix(".json").write_text(json.dumps(result, indent=2) + "\n")
     rows = [("all", metrics["pooled"])] + list(by_scene.items())
     md = [f"# DPT masks of `{weights}` on held-out scenes (seeds {eval_seeds})", "",
           "| scenes | IoU | precision | recall | tower covered |", "|---|---|---|---|---|"]
-    md += [f"| {name} | {m['iou']:.3f} | {m['precision']:.3f} | {m['recall']:.3f} | {m['tower_covered']:.3f} |"
-           for name, m in rows]
+    md += [score_row(name, m) for name, m in rows]
     results.with_suffix(".md").write_text("\n".join(md) + "\n")
     print("\n".join(md))
     return 0
@@ -250,7 +260,8 @@ def main(argv=None) -> int:
     if set(train_seeds) & set(eval_seeds):
         raise SystemExit(f"training seeds {train_seeds} overlap evaluation seeds {eval_seeds}")
     metrics = evaluate(reloaded, eval_roots)
-    by_scene = {r.name: evaluate(reloaded, [r])["pooled"] for r in eval_roots} if len(eval_roots) > 1 else {}
+    by_scene = metrics.pop("by_scene")
+    by_scene = by_scene if len(eval_roots) > 1 else {}  # one scene: its row would repeat the pooled one
     size_bytes = sum(f.stat().st_size for f in Path(args.out).iterdir())
     result = {"train_seeds": train_seeds, "eval_seeds": eval_seeds, "init": args.init, "lr": args.lr,
               "num_train_images": int(len(x_all)),
@@ -279,11 +290,9 @@ def main(argv=None) -> int:
         "",
         "| | IoU | precision | recall | tower covered |",
         "|---|---|---|---|---|",
-        f"| pooled over all pixels | {pm['iou']:.3f} | {pm['precision']:.3f} | {pm['recall']:.3f} | "
-        f"{pm['tower_covered']:.3f} |",
+        score_row("pooled over all pixels", pm),
         f"| mean per frame | {mm['iou']:.3f} | {mm['precision']:.3f} | {mm['recall']:.3f} | |",
-        *[f"| {name} (pooled) | {m['iou']:.3f} | {m['precision']:.3f} | {m['recall']:.3f} | {m['tower_covered']:.3f} |"
-          for name, m in by_scene.items()],
+        *[score_row(f"{name} (pooled)", m) for name, m in by_scene.items()],
         "",
         f"Final training loss {log[-1]['loss']:.3f} (cross-entropy {log[-1]['ce']:.3f}, inverse-depth L1 "
         f"{log[-1]['l1']:.3f}, pixel accuracy {log[-1]['acc']:.3f} on the last batch).",

@@ -4,6 +4,8 @@ The DPT is replaced by fixed probability maps, so what is tested is the scoring:
 count as hits, misses, false alarms, and as visible tower the mask takes from training.
 """
 
+import json
+
 import cv2
 import numpy as np
 import pytest
@@ -28,30 +30,42 @@ def brute_force_scores(preds, gts, semantics):
             "tower_covered": tower_masked / tower}
 
 
+def write_scene(root, rng, gts, semantics):
+    """A scene folder holding just what evaluate reads: images, distractor masks, semantic maps."""
+    root.mkdir()
+    frames = []
+    for k, (gt, sem) in enumerate(zip(gts, semantics)):
+        cv2.imwrite(str(root / f"im{k}.png"), np.zeros(gt.shape + (3,), np.uint8))
+        # bit 0 marks a distractor; bit 1 set on some pixels must not count
+        raw = gt.astype(np.uint8) | (2 * (rng.uniform(size=gt.shape) < 0.5)).astype(np.uint8)
+        cv2.imwrite(str(root / f"dm{k}.png"), raw)
+        cv2.imwrite(str(root / f"sem{k}.png"), sem)
+        frames.append({"file_path": f"im{k}.png", "distractor_mask_path": f"dm{k}.png",
+                       "semantic_file_path": f"sem{k}.png"})
+    (root / "transforms.json").write_text(json.dumps({"frames": frames}))
+
+
 def test_evaluate_scores_match_a_pixel_count(tmp_path, monkeypatch):
     rng = np.random.default_rng(3)
-    h, w, n = 6, 8, 3
+    h, w, n = 6, 8, 5
     probs = [rng.uniform(size=(h, w)).astype(np.float32) for _ in range(n)]
     gts = [rng.uniform(size=(h, w)) < 0.4 for _ in range(n)]
     semantics = [rng.integers(0, 9, size=(h, w)).astype(np.uint8) for _ in range(n)]
-    frames = []
-    for k in range(n):
-        cv2.imwrite(str(tmp_path / f"im{k}.png"), np.zeros((h, w, 3), np.uint8))
-        # bit 0 marks a distractor; bit 1 set on some pixels must not count
-        raw = gts[k].astype(np.uint8) | (2 * (rng.uniform(size=(h, w)) < 0.5)).astype(np.uint8)
-        cv2.imwrite(str(tmp_path / f"dm{k}.png"), raw)
-        cv2.imwrite(str(tmp_path / f"sem{k}.png"), semantics[k])
-        frames.append({"file_path": f"im{k}.png", "distractor_mask_path": f"dm{k}.png",
-                       "semantic_file_path": f"sem{k}.png"})
-    (tmp_path / "transforms.json").write_text(__import__("json").dumps({"frames": frames}))
+    split = 3  # frames 0-2 in scene "a", 3-4 in scene "b"
+    write_scene(tmp_path / "a", rng, gts[:split], semantics[:split])
+    write_scene(tmp_path / "b", rng, gts[split:], semantics[split:])
+    served = iter(probs)
 
     def fake_predict_maps(seg, depth, images, classes, **kw):
-        for prob, _ in zip(probs, images):
-            yield prob, None
+        for _ in images:
+            yield next(served), None
 
     monkeypatch.setattr(tbd.fg, "predict_maps", fake_predict_maps)
-    got = tbd.evaluate(None, [tmp_path], threshold=0.5)
-    want = brute_force_scores([p > 0.5 for p in probs], gts, semantics)
+    got = tbd.evaluate(None, [tmp_path / "a", tmp_path / "b"], threshold=0.5)
+    preds = [p > 0.5 for p in probs]
     assert got["num_frames"] == n
-    for key, value in want.items():
-        assert got["pooled"][key] == pytest.approx(value, abs=1e-12), key
+    for where, want in [(got["pooled"], brute_force_scores(preds, gts, semantics)),
+                        (got["by_scene"]["a"], brute_force_scores(preds[:split], gts[:split], semantics[:split])),
+                        (got["by_scene"]["b"], brute_force_scores(preds[split:], gts[split:], semantics[split:]))]:
+        for key, value in want.items():
+            assert where[key] == pytest.approx(value, abs=1e-12), key
