@@ -12,6 +12,7 @@ import os
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from experiments import common
 
@@ -499,3 +500,21 @@ def test_mask_tower_overlap_rules_spare_tower_pixels_by_hand():
                    "C > T, argmax not tower": [True, False, True, False],
                    "C > T, P(tower) < 0.1": [True, False, False, False],
                    "C > T, P(tower) < 0.2": [True, False, True, False]}
+
+
+def test_paired_rows_differences_by_seed():
+    """experiments.paired_rows: OTHER - BASE per seed both ran, matched on the row's labels."""
+    from experiments import paired_rows as pr
+
+    def row(cond, seeds, psnr):
+        return {"scene_set": "B", "condition": cond,
+                "aggregate": {"seeds": seeds, "psnr": {"mean": float(np.mean(psnr)), "std": 0.0, "values": psnr}}}
+    base = {"rows": [row("dpt", [0, 1, 2], [20.0, 21.0, 22.0]), row("gt", [0], [25.0])]}
+    other = {"rows": [row("dpt", [1, 2, 0], [21.5, 22.1, 20.3]), row("gt", [3], [26.0]), row("new", [0], [1.0])]}
+    got = {(c["row"], c["metric"]): c for c in pr.paired_rows(base, other, metrics=("psnr",))}
+    assert set(got) == {("B / dpt", "psnr"), ("B / gt", "psnr")}  # "new" is not in the base
+    d = got[("B / dpt", "psnr")]["delta"]
+    assert d["values"] == pytest.approx([0.3, 0.5, 0.1])  # seeds 0, 1, 2, whatever the order in the file
+    assert d["mean"] == pytest.approx(0.3) and d["std"] == pytest.approx(np.std([0.3, 0.5, 0.1]))
+    assert got[("B / gt", "psnr")]["delta"] is None  # no seed in common
+    assert [c["row"] for c in pr.paired_rows(base, other, ("psnr",), rows="gt")] == ["B / gt"]
