@@ -91,23 +91,16 @@ def rule_masks(prob: np.ndarray, threshold: float = 0.5) -> dict:
 def tower_rule_shares(scene: Path) -> dict:
     """{rule: {tower_covered, recall}} over a synthetic scene's training views, built-in DPT at
     its own working size (as `mask` runs it)."""
-    import jax
-
-    from jaxnerf_grid import dpt, masking
     from jaxnerf_grid import foreground as fg
+    from jaxnerf_grid import masking
 
     seg, _, wdir = masking.load_models(None, None)
     max_side = masking.model_max_side(wdir)
-    multiple = 2 * seg.config.patch_size
     totals = {}
     for f in io.read_json(scene / "transforms.json")["frames"]:
         if f.get("split", "train") != "train":
             continue
-        image = io.read_image(scene / f["file_path"])
-        h, w = image.shape[:2]
-        x = fg.resize_map(image, *fg.working_size(h, w, max_side, multiple))[None]
-        prob = np.asarray(jax.nn.softmax(dpt.apply(seg, dpt.normalize(x))["logits"][0], axis=-1))
-        prob = fg.resize_map(prob, h, w)  # every class at once, each as `mask` upsamples C
+        prob = fg.class_probabilities(seg, io.read_image(scene / f["file_path"]), max_side)
         distractor = io.read_distractor_mask(scene / f["distractor_mask_path"])
         semantic, _ = io.decode_raw(scene / f["semantic_file_path"], "semantic map")
         for name, mask in rule_masks(prob).items():

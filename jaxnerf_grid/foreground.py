@@ -253,6 +253,27 @@ def default_batch_size() -> int:
     return 1 if jax.default_backend() == "cpu" else 4
 
 
+def to_working_size(image: np.ndarray, max_side: int, multiple: int) -> np.ndarray:
+    """One photo [H, W, 3] resized to the working size DPT sees (`working_size`) -> [h, w, 3]
+    float32. `predict_maps` and `class_probabilities` both go through it."""
+    image = np.asarray(image, np.float32)
+    return resize_map(image, *working_size(image.shape[0], image.shape[1], max_side, multiple))
+
+
+def class_probabilities(seg_model, image, max_side: int = 384) -> np.ndarray:
+    """Every class's softmax probability for one photo, at full resolution: [H, W, 3] -> [H, W, L].
+
+    The same working size and bilinear upsampling as `predict_maps` (bilinear resizing is
+    linear, so summing this over `classes` gives predict_maps' C to float rounding). For studies
+    of rules that use more classes than Eq. 6's sum (experiments/mask_tower_overlap.py)."""
+    from jaxnerf_grid import dpt
+
+    image = np.asarray(image, np.float32)
+    x = to_working_size(image, max_side, 2 * seg_model.config.patch_size)[None]
+    prob = np.asarray(jax.nn.softmax(dpt.apply(seg_model, dpt.normalize(x))["logits"][0], axis=-1))
+    return resize_map(prob, *image.shape[:2])
+
+
 def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, batch_size: int | None = None,
                  tiles: int = 1, tile_overlap: float = 0.25):
     """Runs DPT on photos of any size in bounded memory.
@@ -310,6 +331,6 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
             yield from flush(batch)
             batch = []
         key = ws
-        batch.append(((h, w), resize_map(image, *ws)))
+        batch.append(((h, w), to_working_size(image, max_side, multiple)))
     if batch:
         yield from flush(batch)

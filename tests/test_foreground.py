@@ -197,3 +197,21 @@ def test_predict_maps_tiled_against_per_window_reference():
     assert np.abs(c - c1).max() > 1e-3  # the windows do see something else than the whole photo
     with pytest.raises(ValueError, match="tile_overlap"):
         next(fg.predict_maps(model, model, [photo], classes=[1], tiles=2, tile_overlap=0.9))
+
+
+def test_class_probabilities_sum_to_predict_maps_c():
+    """class_probabilities (every class, full resolution) summed over Eq. 6's classes is the C that
+    predict_maps gives for the same photo: the two share the working size and the upsampling, so
+    a study of other class rules (experiments/mask_tower_overlap.py) sees what `mask` sees."""
+    from jaxnerf_grid import dpt
+    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3)
+    model = dpt.init(7, cfg)
+    photo = np.random.default_rng(2).uniform(size=(90, 170, 3)).astype(np.float32)
+    (c, _), = fg.predict_maps(model, None, [photo], classes=[1, 2], max_side=64, batch_size=1)
+    prob = fg.class_probabilities(model, photo, max_side=64)
+    assert prob.shape == (90, 170, 3)
+    np.testing.assert_allclose(prob.sum(-1), 1.0, atol=1e-5)
+    assert np.std(c) > 1e-3
+    np.testing.assert_allclose(prob[..., 1] + prob[..., 2], c, atol=1e-5)
