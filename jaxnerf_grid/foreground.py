@@ -325,12 +325,11 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
     batch, key = [], None
     for image in images:
         image = np.asarray(image, np.float32)
-        h, w = image.shape[:2]
-        ws = working_size(h, w, max_side, multiple)
-        if batch and (ws != key or len(batch) == batch_size):
+        x = to_working_size(image, max_side, multiple)
+        if batch and (x.shape[:2] != key or len(batch) == batch_size):
             yield from flush(batch)
             batch = []
-        key = ws
-        batch.append(((h, w), to_working_size(image, max_side, multiple)))
+        key = x.shape[:2]
+        batch.append((image.shape[:2], x))
     if batch:
         yield from flush(batch)
