@@ -89,21 +89,23 @@ def make_loss(class_weights, cfg):
     return loss_fn
 
 
-def mask_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
-    tp = float(np.sum(pred & gt))
-    fp = float(np.sum(pred & ~gt))
-    fn = float(np.sum(~pred & gt))
+def count_scores(tp: float, fp: float, fn: float) -> dict:
+    """{tp, fp, fn, iou, precision, recall} from pixel counts (of one frame or summed over many)."""
     return {"tp": tp, "fp": fp, "fn": fn,
             "iou": tp / max(tp + fp + fn, 1.0), "precision": tp / max(tp + fp, 1.0),
             "recall": tp / max(tp + fn, 1.0)}
 
 
+def mask_metrics(pred: np.ndarray, gt: np.ndarray) -> dict:
+    """`count_scores` of one predicted mask against its ground truth, both [H, W] bool."""
+    return count_scores(float(np.sum(pred & gt)), float(np.sum(pred & ~gt)), float(np.sum(~pred & gt)))
+
+
 def pooled_scores(totals: dict) -> dict:
     """IoU / precision / recall / tower_covered from pixel counts summed over frames
     ({tp, fp, fn, tower, tower_masked})."""
-    tp, fp, fn = totals["tp"], totals["fp"], totals["fn"]
-    return {"tp": tp, "fp": fp, "fn": fn, "iou": tp / max(tp + fp + fn, 1.0), "precision": tp / max(tp + fp, 1.0),
-            "recall": tp / max(tp + fn, 1.0), "tower_covered": totals["tower_masked"] / max(totals["tower"], 1.0)}
+    return {**count_scores(totals["tp"], totals["fp"], totals["fn"]),
+            "tower_covered": totals["tower_masked"] / max(totals["tower"], 1.0)}
 
 
 def evaluate(model, roots, threshold=0.5, max_side=160, tiles=1) -> dict:
