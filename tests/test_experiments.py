@@ -518,3 +518,36 @@ def test_paired_rows_differences_by_seed():
     assert d["mean"] == pytest.approx(0.3) and d["std"] == pytest.approx(np.std([0.3, 0.5, 0.1]))
     assert got[("B / gt", "psnr")]["delta"] is None  # no seed in common
     assert [c["row"] for c in pr.paired_rows(base, other, ("psnr",), rows="gt")] == ["B / gt"]
+
+
+def test_paired_rows_within_one_file_by_label_replacement(capsys, tmp_path):
+    """experiments.paired_rows --replace: two rows of one results file (integer fields are part of
+    the label), NEW row minus OLD row per shared seed, population std as the tables' Δ columns."""
+    from experiments import paired_rows as pr
+
+    def row(scheme, n, seeds, psnr):
+        return {"scheme": scheme, "samples_per_ray": n,
+                "aggregate": {"seeds": seeds, "psnr": {"mean": float(np.mean(psnr)), "std": 0.0, "values": psnr}}}
+    results = {"rows": [row("log + hierarchical", 16, [0, 1, 2], [23.0, 24.0, 22.0]),
+                        row("log + proposal", 16, [2, 0, 1], [25.0, 26.0, 26.5]),
+                        row("log + hierarchical", 32, [0], [25.0]),
+                        row("log + proposal", 32, [1], [27.0]),
+                        row("log + proposal", 64, [0], [28.0])]}
+    got = pr.paired_rows(results, results, ("psnr",), replace=("hierarchical", "proposal"))
+    assert [(c["row"], c["other_row"]) for c in got] == [
+        ("log + hierarchical / 16", "log + proposal / 16"), ("log + hierarchical / 32", "log + proposal / 32")]
+    want = [26.0 - 23.0, 26.5 - 24.0, 25.0 - 22.0]           # seeds 0, 1, 2
+    assert got[0]["delta"]["values"] == pytest.approx(want)
+    assert got[0]["delta"]["std"] == pytest.approx(np.std(want))  # population std, ddof=0
+    assert got[1]["delta"] is None                            # seeds 0 and 1: none shared
+    assert pr.paired_rows(results, results, ("psnr",), rows="/ 32", replace=("hierarchical", "proposal"))[0]["row"] \
+        == "log + hierarchical / 32"
+
+    path = tmp_path / "r.json"
+    path.write_text(json.dumps(results))
+    assert pr.main([str(path), "--replace", "hierarchical", "proposal", "--metrics", "psnr"]) == 0
+    out = capsys.readouterr().out
+    assert "log + proposal / 16  against  log + hierarchical / 16" in out and "+2.833 ± 0.236" in out
+    assert pr.main([str(path), "--replace", "nothing", "else", "--metrics", "psnr"]) == 1
+    with pytest.raises(SystemExit):
+        pr.main([str(path)])                                  # one file needs --replace
