@@ -8,6 +8,7 @@ module (`.py` or a trailing "/"), at a package folder (`dpt/reassemble.py`). Wor
 placeholders (`<setting>`, `{json,md}`, `*`, `...`) and git-ignored caches are not paths.
 """
 
+import json
 import re
 from pathlib import Path
 
@@ -106,3 +107,36 @@ def test_readme_test_command_is_what_ci_runs():
     readme = (ROOT / "README.md").read_text().split("```bash\n", 1)[1].split("```", 1)[0].splitlines()
     assert readme[0] == "bash scripts/setup.sh && .venv/bin/jaxnerf-grid demo"
     assert readme[1] == f"{setup} && {env} {pytest}"
+
+
+def cited_rows(doc: Path) -> list[tuple[list[str], Path]]:
+    """The table rows of `doc` whose last cell cites a results file in backticks: (cells, file),
+    the file resolved as test_every_cited_repo_path_exists does."""
+    rows = []
+    for line in doc.read_text().splitlines():
+        cells = [c.strip() for c in line.strip().strip("|").split("|")]
+        last = re.fullmatch(r"`([\w./-]+\.(?:md|json))`", cells[-1]) if line.startswith("|") else None
+        if last:
+            rows.append((cells, repo_path_base(last.group(1), doc.parent) / last.group(1)))
+    return rows
+
+
+def test_readme_results_are_copied_from_the_files_they_cite():
+    """Every 'mean ± std' effect in the README's and experiments/README.md's results tables is
+    printed in the results file the row cites (the generated tables write '+a ± b' or '+a +- b')."""
+    rows = cited_rows(ROOT / "README.md") + cited_rows(ROOT / "experiments" / "README.md")
+    assert len(rows) >= 12
+    for cells, path in rows:
+        text = path.read_text()
+        for figure in re.findall(r"[-+]\d+\.\d+ ± \d+\.\d+", " | ".join(cells[1:-1])):
+            assert figure in text or figure.replace("±", "+-") in text, (figure, path.name)
+
+
+def test_readme_demo_row_is_the_demo_results_file():
+    """The README's demo row, rounded as printed, from experiments/results/demo/demo_recipe.json."""
+    row = json.loads((ROOT / "experiments/results/demo/demo_recipe.json").read_text())["rows"][0]
+    f = row["fscore"]
+    expected = (f"| {row['psnr']:.2f} dB | {row['ssim']:.3f} | {row['regions']['tower']:.2f} dB | "
+                f"{row['regions']['near_ground']:.2f} dB | {row['regions']['far_background']:.2f} dB | "
+                f"{f['0.01']:.3f} / {f['0.02']:.3f} / {f['0.05']:.3f} | {row['chamfer']:.4f} |")
+    assert expected in (ROOT / "README.md").read_text()
