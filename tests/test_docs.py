@@ -38,7 +38,7 @@ def link_targets(text: str) -> list[str]:
 def backtick_words(text: str) -> list[str]:
     """The whitespace-separated words inside `...` spans (code fences excluded), outer
     punctuation stripped."""
-    text = re.sub(r"```.*?```", "", text, flags=re.S)
+    text = re.sub(r"```.*?```", "", text, flags=re.DOTALL)
     words = []
     for span in re.findall(r"`([^`\n]+)`", text):
         words += [w.strip("()[],;:'\"") for w in span.split()]
@@ -57,7 +57,7 @@ def repo_path_base(word: str, doc_dir: Path) -> Path | None:
         return ROOT
     if doc_dir != ROOT and (doc_dir / first).exists():
         return doc_dir
-    if (word.endswith(".py") or word.endswith("/")) and (ROOT / "jaxnerf_grid" / first).exists():
+    if word.endswith((".py", "/")) and (ROOT / "jaxnerf_grid" / first).exists():
         return ROOT / "jaxnerf_grid"
     return None
 
