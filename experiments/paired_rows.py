@@ -16,7 +16,7 @@ One file with `--replace OLD NEW`: two rows of the same file, each row whose lab
 benchmark's results (labels such as 'disparity + hierarchical / 16'), `--replace hierarchical
 proposal` pairs proposal sampling against coarse/fine at each warp and sample count, and
 `--replace disparity log --rows hierarchical` pairs log against disparity with coarse/fine
-(experiments/README.md, sampling-scheme benchmark).
+(docs/EXPERIMENTS.md, sampling-scheme benchmark).
 """
 
 from __future__ import annotations

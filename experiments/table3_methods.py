@@ -25,7 +25,7 @@ from experiments import common
 
 METHODS = (("ours", "ours", {"train": {"use_masks": True}}), ("NeRF", "nerf", {}), ("NeRF-W", "nerfw", {}))
 # A check on the baseline at --standard: NeRF without the recipe's opaque far bin and distortion
-# loss, which could let a model paint the views onto the far plane (docs in experiments/README.md).
+# loss, which could let a model paint the views onto the far plane (docs in docs/EXPERIMENTS.md).
 CHECKS = {"standard": (("NeRF, no far bin or distortion loss", "nerf",
                         {"model": {"opaque_far": False}, "train": {"distortion_loss_weight": 0.0}}),)}
 COLUMNS = [("psnr", "PSNR", 2), ("psnr_right_half", "PSNR right half", 2), ("ssim", "SSIM", 3),
