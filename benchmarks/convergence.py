@@ -32,9 +32,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 from jaxnerf_grid import config as config_lib, evaluate, io, metrics, runs, train, views  # noqa: E402
-from jaxnerf_grid.demo import DEMO_CONFIG  # noqa: E402
+from jaxnerf_grid import recipes  # noqa: E402
 
-MLP_CONFIG = {  # the demo's recipe before the grid field (see git history of DEMO_CONFIG, in train_cli.py then)
+# The demo's recipe before the grid field (see git history of DEMO_CONFIG, in train_cli.py then): changes
+# to the `ours-paper-mlp` recipe (RunConfig's defaults for ours): a smaller MLP, 32 + 32 samples, fewer steps.
+MLP_CONFIG = {
     "model": {"field": {"depth": 4, "width": 64, "skip": 2, "pos_max_deg": 8, "dir_max_deg": 3, "view_width": 32},
               "num_coarse": 32, "num_fine": 32, "fine_union": False, "contract_radius": 2.0, "near": 1.0},
     "train": {"batch_rays": 512, "max_steps": 1000, "lr_init": 4e-3, "lr_final": 2e-4, "warmup": 30,
@@ -43,13 +45,14 @@ MLP_CONFIG = {  # the demo's recipe before the grid field (see git history of DE
 
 
 def _grid_hierarchical() -> dict:
-    """The demo recipe with NeRF's coarse + fine sampler (two grid fields, 32 + 32 samples)."""
-    cfg = copy.deepcopy(DEMO_CONFIG)
+    """The `ours` recipe (the demo's) with NeRF's coarse + fine sampler (two grid fields, 32 + 32 samples)."""
+    cfg = recipes.overrides("ours")
     cfg["model"].update({"sampler": "hierarchical", "num_coarse": 32, "num_fine": 32, "fine_union": False})
     return cfg
 
 
-RUNS = {"mlp-hierarchical": MLP_CONFIG, "grid-hierarchical": _grid_hierarchical(), "grid-proposal": DEMO_CONFIG}
+RUNS = {"mlp-hierarchical": MLP_CONFIG, "grid-hierarchical": _grid_hierarchical(),
+        "grid-proposal": recipes.overrides("ours")}
 
 
 def dataset_dir(cache: Path) -> Path:
@@ -170,7 +173,7 @@ def main() -> int:
               "data": _relative(data), "scale": args.scale, "runs": rows, "summary": summary}
     out.mkdir(parents=True, exist_ok=True)
     io.write_json(out / "convergence.json", result)
-    from experiments.common import line_plot
+    from experiments.figures import line_plot
 
     images = []
     for key, label in (("psnr", "test PSNR (dB)"), ("tower_psnr", "tower PSNR (dB)")):
