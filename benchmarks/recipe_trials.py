@@ -2,7 +2,8 @@
 
     python -m benchmarks.recipe_trials [--trials A,B,...] [--steps 1000] [--data DIR]
 
-Each trial is the `ours` recipe (`recipes.overrides("ours")`, the demo's) with some settings put back (the recipe as it was
+Each trial is the `ours` recipe (`recipes.overrides("ours")`, the demo's) with some settings put back
+(the recipe as it was
 before that step), trained with `runs.train_run` on tower-small (the convergence
 benchmark's cached, DPT-masked copy) and scored with `evaluate.evaluate_run`. Prints one
 line per trial and writes benchmarks/results/recipe_trials.json. docs/GRID.md has the table.

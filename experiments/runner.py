@@ -88,7 +88,8 @@ def base_parser(description: str) -> argparse.ArgumentParser:
     p.set_defaults(setting="quick")
     p.add_argument("--seeds", type=int, default=None, help="number of seeds (default: 1 quick, 3 full)")
     p.add_argument("--steps", type=int, default=None, help="training steps per run (default: by setting)")
-    p.add_argument("--cache", default=str(settings.CACHE), help="scenes, mask variants and runs (default experiments/.cache)")
+    p.add_argument("--cache", default=str(settings.CACHE),
+                   help="scenes, mask variants and runs (default experiments/.cache)")
     p.add_argument("--results", default=None,
                    help="where <table>.json / .md / .png go (default experiments/results/ for --quick, "
                         "experiments/results/<setting>/ otherwise)")
@@ -162,7 +163,8 @@ def make_context(args, script: str) -> Context:
     enable_compile_cache(ctx.cache / "jax_cache")
     ctx.machine = machine_info()
     if not getattr(args, "ignore_recorded", False):
-        folders = {ctx.results, settings.results_folder(settings.RESULTS, setting), settings.results_folder(settings.BENCH_RESULTS, setting)}
+        folders = {ctx.results, settings.results_folder(settings.RESULTS, setting),
+                   settings.results_folder(settings.BENCH_RESULTS, setting)}
         ctx.recorded = recorded_runs(sorted(folders))
     return ctx
 

@@ -47,9 +47,11 @@ def generator_digest() -> str:
     return h.hexdigest()[:6]
 
 
-def _relink(scene_dir: Path, variant_dir: Path, meta: dict, keys=("file_path", "clean_file_path",
-                                                                    "depth_file_path", "semantic_file_path",
-                                                                    "distractor_mask_path", "shadow_mask_path")) -> dict:
+RELINKED = ("file_path", "clean_file_path", "depth_file_path", "semantic_file_path", "distractor_mask_path",
+            "shadow_mask_path")
+
+
+def _relink(scene_dir: Path, variant_dir: Path, meta: dict, keys=RELINKED) -> dict:
     """transforms.json `meta` of scene_dir with every per-frame path rewritten relative to variant_dir."""
     meta = json.loads(json.dumps(meta))
     rel = os.path.relpath(scene_dir, variant_dir)

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import figures, runner, scenes, settings, tables
+from experiments import figures, runner, scenes, tables
 from jaxnerf_grid.config import merge
 
 METHODS = (("ours", "ours", {"train": {"use_masks": True}}), ("NeRF", "nerf", {}), ("NeRF-W", "nerfw", {}))

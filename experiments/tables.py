@@ -9,8 +9,8 @@
 
 from __future__ import annotations
 
-import sys
 import time
+from pathlib import Path
 
 import numpy as np
 
@@ -135,7 +135,8 @@ def field_summary(model: dict) -> str:
     else:
         text = f"MLP {field['depth']}x{field['width']}"
     if model.get("sampler") == "proposal":
-        return text + f", proposal sampling {'+'.join(map(str, model['proposal_samples']))} -> {model['num_fine']} samples"
+        rounds = "+".join(map(str, model["proposal_samples"]))
+        return text + f", proposal sampling {rounds} -> {model['num_fine']} samples"
     return text + f", {model['num_coarse']}+{model['num_fine']} samples per ray"
 
 
@@ -182,7 +183,8 @@ def write_results(ctx, name: str, title: str, body: dict, md_lines: list[str], n
     io.write_json(ctx.results / f"{name}.json", settings.portable(payload))
     o = settings.TRAIN_SETTINGS[ctx.setting]["overrides"]
     untimed = (f"; {len(restored)} of them read back from the committed results files, "
-               f"{len(restored - set(ctx.run_seconds))} of those with no recorded wall time, not counted") if restored else ""
+               f"{len(restored - set(ctx.run_seconds))} of those with no recorded wall time, not counted"
+               ) if restored else ""
     head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
             f"Machine: {machine_line(ctx.machine)}. The table's {num_runs} NeRF runs took "
             f"{sum(ctx.run_seconds.values()) / 60:.1f} min of train + eval wall time as recorded when each ran "

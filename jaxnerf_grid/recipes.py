@@ -88,7 +88,8 @@ RECIPES = {r.name: r for r in (
     Recipe("ours", "ours", "the tower recipe (the demo's): hash grid on contracted space, proposal sampling "
                            "64 -> 32 in disparity, opaque far bin at 1000 units, masked loss; 2400 steps x 1024 rays"),
     Recipe("ours-paper-mlp", "ours", "the paper's MLP setting: MLP 4x128 on positional encoding, coarse + fine "
-                                     "48 + 48 samples, contraction, disparity warp, masked loss; 2000 steps x 1024 rays"),
+                                     "48 + 48 samples, contraction, disparity warp, masked loss; "
+                                     "2000 steps x 1024 rays"),
     Recipe("nerf", "nerf", "NeRF as the tables compare it: ours' grid, sampler, steps and rays without "
                            "contraction (linear t to a far plane at 40 units, grid over +-44), no masks"),
     Recipe("nerfw", "nerfw", "NeRF-W: the nerf recipe plus appearance and transient embeddings "

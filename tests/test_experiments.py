@@ -1,4 +1,6 @@
-"""Smoke test of the experiments' machinery (settings, scenes, runner, tables, figures): toy scene -> mask variants -> train + eval -> resume/skip -> tables.
+"""Smoke test of the experiments' machinery (settings, scenes, runner, tables, figures).
+
+Toy scene -> mask variants -> train + eval -> resume/skip -> tables.
 
 No numeric claims about the NeRF (3 steps of a tiny model); the checks are on the machinery:
 variants share the scene's images, the mask IoU of ground-truth masks is 1, a finished run
@@ -15,6 +17,7 @@ import numpy as np
 import pytest
 
 from experiments import figures, runner, scenes, settings, tables
+from jaxnerf_grid import config, recipes
 from jaxnerf_grid.config import merge
 
 TINY = {"model": {"field": {"depth": 1, "width": 16, "skip": 0, "pos_max_deg": 2, "dir_max_deg": 1, "view_width": 8},
@@ -163,6 +166,30 @@ def test_standard_setting_is_one_recipe_for_every_method():
     assert settings.space_overrides("standard", "ours", {"model": {"use_contraction": False}})["model"]["far"] == 40.0
     assert settings.space_overrides("standard", "ours", {"model": {"use_contraction": True}}) == {}
     assert settings.space_overrides("quick", "nerf") == {}
+    # every method at --standard is the recipe of its name (docs/RECIPES.md) at the setting's steps
+    for m, cfg in cfgs.items():
+        assert config.to_dict(cfg) == config.to_dict(recipes.make_config(m, {"train": {"max_steps": 2000}}))
+    assert cfgs["ours"].train.max_steps == 2000  # RunConfig's; run_condition sets the setting's own
+
+
+def test_importing_the_experiments_changes_no_environment_variable():
+    """Only the scripts' entry points (`runner.cpu_defaults`) choose JAX's platform and devices."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_PLATFORMS", "XLA_FLAGS")}
+    code = ("import os, sys; before = dict(os.environ)\n"
+            "import experiments.table1_foreground, experiments.table2_farview, experiments.table3_methods, "
+            "experiments.table4_crossover, experiments.mask_tiling, experiments.paired_rows, "
+            "benchmarks.sampling_schemes\n"
+            "assert dict(os.environ) == before, set(os.environ) ^ set(before)\n"
+            "import jax\n"
+            "from experiments import runner\n"
+            "runner.cpu_defaults()\n"
+            "print(os.environ['JAX_PLATFORMS'], os.environ['XLA_FLAGS'], jax.config.jax_platforms)\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=settings.ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["cpu", "--xla_force_host_platform_device_count=2", "cpu"]
 
 
 def test_not_run_text_names_each_label_once_by_the_seeds_it_misses():
@@ -232,7 +259,8 @@ def _fake_tables(monkeypatch, tmp_path, psnr_of):
 
     monkeypatch.setattr(runner, "run_condition", run_condition)
     monkeypatch.setattr(scenes, "scene", lambda ctx, preset, seed, distractors=None, size=None: tmp_path / preset)
-    monkeypatch.setattr(scenes, "mask_variant", lambda ctx, scene_dir, name, *a, **k: tmp_path / f"{scene_dir.name}-{name}")
+    monkeypatch.setattr(scenes, "mask_variant",
+                        lambda ctx, scene_dir, name, *a, **k: tmp_path / f"{scene_dir.name}-{name}")
     monkeypatch.setattr(scenes, "clean_variant", lambda ctx, scene_dir: tmp_path / f"{scene_dir.name}-clean")
     monkeypatch.setattr(scenes, "mask_iou", lambda v, split="train": {"iou": 1.0, "precision": 1.0, "recall": 0.75})
     monkeypatch.setattr(runner, "enable_compile_cache", lambda path=None: None)
