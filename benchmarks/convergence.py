@@ -126,6 +126,19 @@ def time_to_reach(points: list[dict], target: float) -> float | None:
     return None
 
 
+def figure(rows: list[dict]) -> np.ndarray:
+    """Test PSNR over tower PSNR, each against training seconds, one line per run (the rows of
+    convergence.json). Returns an RGB image [H, W, 3] in [0, 1]."""
+    from experiments.figures import line_plot
+
+    images = []
+    for key, label in (("psnr", "test PSNR (dB)"), ("tower_psnr", "tower PSNR (dB)")):
+        series = [{"label": r["name"], "x": [p["seconds"] for p in r["points"]],
+                   "y": [p[key] for p in r["points"]], "colour_index": i} for i, r in enumerate(rows)]
+        images.append(line_plot(series, "training seconds", label, f"{label} vs wall clock", log2_x=False))
+    return np.concatenate(images, axis=0)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=None, help="a masked dataset (default: tower-small, built and cached)")
@@ -136,8 +149,14 @@ def main() -> int:
                    help="steps per run as name=N,... (default: each recipe's own max_steps)")
     p.add_argument("--scale", type=float, default=1.0, help="multiply every run's steps")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "convergence"))
+    p.add_argument("--replot", action="store_true",
+                   help="only redraw convergence.png from --out's convergence.json (no run)")
     args = p.parse_args()
     out = Path(args.out)
+    if args.replot:
+        io.write_png(out / "convergence.png", figure(io.read_json(out / "convergence.json")["runs"]))
+        print(f"wrote {out / 'convergence.png'}")
+        return 0
     data = Path(args.data) if args.data else dataset_dir(ROOT / "benchmarks" / ".cache")
     from jaxnerf_grid.data.formats import load_dataset
 
@@ -173,14 +192,7 @@ def main() -> int:
               "data": _relative(data), "scale": args.scale, "runs": rows, "summary": summary}
     out.mkdir(parents=True, exist_ok=True)
     io.write_json(out / "convergence.json", result)
-    from experiments.figures import line_plot
-
-    images = []
-    for key, label in (("psnr", "test PSNR (dB)"), ("tower_psnr", "tower PSNR (dB)")):
-        series = [{"label": r["name"], "x": [p["seconds"] for p in r["points"]],
-                   "y": [p[key] for p in r["points"]], "colour_index": i} for i, r in enumerate(rows)]
-        images.append(line_plot(series, "training seconds", label, f"{label} vs wall clock", log2_x=False))
-    io.write_png(out / "convergence.png", np.concatenate(images, axis=0))
+    io.write_png(out / "convergence.png", figure(rows))
     print(f"wrote {out / 'convergence.json'} and {out / 'convergence.png'}")
     return 0
 

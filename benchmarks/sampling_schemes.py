@@ -199,11 +199,43 @@ def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
     return lines
 
 
+def figure(table: dict, samples: tuple, setting: str, steps: int) -> np.ndarray:
+    """PSNR against samples per ray, one line per scheme (dashed: hierarchical), +-1 std bars;
+    table: {(scheme, n): aggregate or None}. Returns an RGB image [H, W, 3] in [0, 1]."""
+    series = []
+    for h in (False, True):
+        for w in WARPS:
+            s = scheme_name(w, h, setting)
+            pts = [(n, table[(s, n)]["psnr"]) for n in samples if table.get((s, n)) and table[(s, n)].get("psnr")]
+            if pts:
+                series.append({"label": s.replace(" + hierarchical", " +hier").replace(" + proposal", " +prop"),
+                               "x": [x for x, _ in pts], "y": [c["mean"] for _, c in pts],
+                               "err": [c["std"] for _, c in pts], "dashed": h, "colour_index": WARPS.index(w)})
+    return figures.line_plot(series, "samples per ray (log2 scale)", "test PSNR (dB)",
+                             f"sampling schemes, {steps} steps, {setting} setting, bars: +-1 std over seeds")
+
+
+def replot(results: Path) -> Path:
+    """Redraws results/sampling_schemes.png from results/sampling_schemes.json (no run)."""
+    from jaxnerf_grid import io
+
+    body = io.read_json(results / "sampling_schemes.json")
+    table = {(r["scheme"], r["samples_per_ray"]): r["aggregate"] for r in body["rows"]}
+    img = figure(table, tuple(body["samples"]), body["settings"]["setting"], body["settings"]["steps"])
+    io.write_png(results / "sampling_schemes.png", np.clip(img, 0, 1))
+    return results / "sampling_schemes.png"
+
+
 def main(argv=None) -> int:
     p = runner.base_parser(__doc__)
     p.add_argument("--samples", type=int, nargs="+", default=None, help="samples per ray (even numbers)")
+    p.add_argument("--replot", action="store_true",
+                   help="only redraw sampling_schemes.png from the results folder's sampling_schemes.json (no run)")
     args = p.parse_args(argv)
     args.results = args.results or str(settings.results_folder(settings.BENCH_RESULTS, args.setting))
+    if args.replot:
+        print(f"wrote {replot(Path(args.results))}")
+        return 0
     ctx = runner.make_context(args, "sampling_schemes.py")
     ctx.command = ctx.command.replace("-m experiments.", "-m benchmarks.")
     samples = tuple(args.samples or SAMPLES[ctx.setting])
@@ -236,16 +268,7 @@ def main(argv=None) -> int:
     lines = summary(table, samples, ctx.setting)
     body["summary"] = lines
     md += ["## Summary (computed from the table)", ""] + [f"- {x}" for x in lines]
-    series = []
-    for w, h in schemes:
-        s = scheme_name(w, h, ctx.setting)
-        pts = [(n, table[(s, n)]["psnr"]) for n in samples if table[(s, n)] and table[(s, n)].get("psnr")]
-        if pts:
-            series.append({"label": s.replace(" + hierarchical", " +hier").replace(" + proposal", " +prop"), "x": [x for x, _ in pts],
-                           "y": [c["mean"] for _, c in pts], "err": [c["std"] for _, c in pts], "dashed": h,
-                           "colour_index": WARPS.index(w)})
-    img = figures.line_plot(series, "samples per ray (log2 scale)", "test PSNR (dB)",
-                           f"sampling schemes, {ctx.steps} steps, {ctx.setting} setting, bars: +-1 std over seeds")
+    img = figure(table, samples, ctx.setting, ctx.steps)
     figures.write_figure(ctx, "sampling_schemes", img)
     md += ["", "![PSNR against samples per ray](sampling_schemes.png)"]
     notes = ["Scene: tower-small without distractors (no masks); contraction on for every scheme.",

@@ -67,10 +67,13 @@ def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(76
         if not pts:
             continue
         x, y, err = zip(*pts)
-        has_err = any(e for e in err)
-        ax.errorbar(x, y, yerr=[e or 0.0 for e in err] if has_err else None, label=s["label"],
-                    color=palette[s.get("colour_index", i) % len(palette)], marker="o", markersize=3,
-                    linestyle="--" if s.get("dashed") else "-", linewidth=1.5, capsize=2 if has_err else 0)
+        colour = palette[s.get("colour_index", i) % len(palette)]
+        ax.plot(x, y, label=s["label"], color=colour, marker="o", markersize=3,
+                linestyle="--" if s.get("dashed") else "-", linewidth=1.5)
+        if any(e for e in err):  # +- err, each series' bars nudged sideways so overlapping ones show
+            nudge = (i % 8 - 3.5) * 0.012
+            bar_x = [v * 2 ** nudge for v in x] if log2_x else [v + nudge * (max(xs) - min(xs)) for v in x]
+            ax.errorbar(bar_x, y, yerr=[e or 0.0 for e in err], fmt="none", ecolor=colour, elinewidth=1, capsize=2)
     if log2_x and xs:
         ax.set_xscale("log", base=2)
         ax.set_xticks(xs, [f"{x:g}" for x in xs])

@@ -73,12 +73,38 @@ def test_machinery_end_to_end(tmp_path, monkeypatch):
     img = figures.line_plot([{"label": "a", "x": [16, 32], "y": [20.0, 21.0]},
                             {"label": "b", "x": [16, 32], "y": [19.0, 22.0], "dashed": True}], "x", "y", "t")
     assert img.shape == (480, 760, 3) and img.min() < 0.5  # something was drawn
+    assert has_colour(img, C0) and has_colour(img, C1)  # both series, in matplotlib's first two colours
     figures.write_figure(ctx, "plot", img)
     assert (ctx.results / "plot.png").stat().st_size > 0
 
     ctx.budget_s = 0.0  # out of budget: an unfinished condition is not started, and says so
     assert runner.run_condition(ctx, variant, "ours", 5, "late") is None
     assert ctx.not_run == ["late seed 5"]
+
+
+C0, C1 = (0x1F, 0x77, 0xB4), (0xFF, 0x7F, 0x0E)  # matplotlib's default first two line colours
+
+
+def has_colour(img: np.ndarray, rgb: tuple, pixels: int = 20) -> bool:
+    """At least `pixels` pixels of img [H, W, 3] in [0, 1] within 2/255 of the 8-bit colour rgb."""
+    return int(np.sum(np.all(np.abs(img * 255 - np.asarray(rgb)) <= 2, axis=-1))) >= pixels
+
+
+def test_sampling_figure_is_redrawn_from_its_results_file(tmp_path):
+    """`benchmarks.sampling_schemes --replot`: the PNG from the JSON alone, one line per scheme
+    that has cells (linear in C0, disparity in C1), nothing for a scheme without any."""
+    from benchmarks import sampling_schemes as bench
+    from jaxnerf_grid import io
+
+    cell = lambda v: {"n": 1, "seeds": [0], "psnr": {"mean": v, "std": 0.1, "values": [v]}}  # noqa: E731
+    rows = [{"scheme": "linear + proposal", "samples_per_ray": n, "aggregate": cell(20.0 + n / 16)} for n in (8, 16)]
+    body = {"samples": [8, 16], "settings": {"setting": "standard", "steps": 10}, "rows": rows}
+    io.write_json(tmp_path / "sampling_schemes.json", body)
+    img = io.read_image(bench.replot(tmp_path))
+    assert img.shape == (480, 760, 3) and has_colour(img, C0) and not has_colour(img, C1)
+    rows += [{"scheme": "disparity + proposal", "samples_per_ray": 8, "aggregate": cell(21.0)}]
+    io.write_json(tmp_path / "sampling_schemes.json", body)
+    assert has_colour(io.read_image(bench.replot(tmp_path)), C1)
 
 
 def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
