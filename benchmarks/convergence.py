@@ -32,9 +32,11 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 
 from jaxnerf_grid import config as config_lib, evaluate, io, metrics, runs, train, views  # noqa: E402
-from jaxnerf_grid.demo import DEMO_CONFIG  # noqa: E402
+from jaxnerf_grid import recipes  # noqa: E402
 
-MLP_CONFIG = {  # the demo's recipe before the grid field (see git history of DEMO_CONFIG, in train_cli.py then)
+# The demo's recipe before the grid field (see git history of DEMO_CONFIG, in train_cli.py then): changes
+# to the `ours-paper-mlp` recipe (RunConfig's defaults for ours): a smaller MLP, 32 + 32 samples, fewer steps.
+MLP_CONFIG = {
     "model": {"field": {"depth": 4, "width": 64, "skip": 2, "pos_max_deg": 8, "dir_max_deg": 3, "view_width": 32},
               "num_coarse": 32, "num_fine": 32, "fine_union": False, "contract_radius": 2.0, "near": 1.0},
     "train": {"batch_rays": 512, "max_steps": 1000, "lr_init": 4e-3, "lr_final": 2e-4, "warmup": 30,
@@ -43,13 +45,14 @@ MLP_CONFIG = {  # the demo's recipe before the grid field (see git history of DE
 
 
 def _grid_hierarchical() -> dict:
-    """The demo recipe with NeRF's coarse + fine sampler (two grid fields, 32 + 32 samples)."""
-    cfg = copy.deepcopy(DEMO_CONFIG)
+    """The `ours` recipe (the demo's) with NeRF's coarse + fine sampler (two grid fields, 32 + 32 samples)."""
+    cfg = recipes.overrides("ours")
     cfg["model"].update({"sampler": "hierarchical", "num_coarse": 32, "num_fine": 32, "fine_union": False})
     return cfg
 
 
-RUNS = {"mlp-hierarchical": MLP_CONFIG, "grid-hierarchical": _grid_hierarchical(), "grid-proposal": DEMO_CONFIG}
+RUNS = {"mlp-hierarchical": MLP_CONFIG, "grid-hierarchical": _grid_hierarchical(),
+        "grid-proposal": recipes.overrides("ours")}
 
 
 def dataset_dir(cache: Path) -> Path:
@@ -123,6 +126,19 @@ def time_to_reach(points: list[dict], target: float) -> float | None:
     return None
 
 
+def figure(rows: list[dict]) -> np.ndarray:
+    """Test PSNR over tower PSNR, each against training seconds, one line per run (the rows of
+    convergence.json). Returns an RGB image [H, W, 3] in [0, 1]."""
+    from experiments.figures import line_plot
+
+    images = []
+    for key, label in (("psnr", "test PSNR (dB)"), ("tower_psnr", "tower PSNR (dB)")):
+        series = [{"label": r["name"], "x": [p["seconds"] for p in r["points"]],
+                   "y": [p[key] for p in r["points"]], "colour_index": i} for i, r in enumerate(rows)]
+        images.append(line_plot(series, "training seconds", label, f"{label} vs wall clock", log2_x=False))
+    return np.concatenate(images, axis=0)
+
+
 def main() -> int:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--data", default=None, help="a masked dataset (default: tower-small, built and cached)")
@@ -133,8 +149,14 @@ def main() -> int:
                    help="steps per run as name=N,... (default: each recipe's own max_steps)")
     p.add_argument("--scale", type=float, default=1.0, help="multiply every run's steps")
     p.add_argument("--out", default=str(ROOT / "benchmarks" / "results" / "convergence"))
+    p.add_argument("--replot", action="store_true",
+                   help="only redraw convergence.png from --out's convergence.json (no run)")
     args = p.parse_args()
     out = Path(args.out)
+    if args.replot:
+        io.write_png(out / "convergence.png", figure(io.read_json(out / "convergence.json")["runs"]))
+        print(f"wrote {out / 'convergence.png'}")
+        return 0
     data = Path(args.data) if args.data else dataset_dir(ROOT / "benchmarks" / ".cache")
     from jaxnerf_grid.data.formats import load_dataset
 
@@ -170,14 +192,7 @@ def main() -> int:
               "data": _relative(data), "scale": args.scale, "runs": rows, "summary": summary}
     out.mkdir(parents=True, exist_ok=True)
     io.write_json(out / "convergence.json", result)
-    from experiments.common import line_plot
-
-    images = []
-    for key, label in (("psnr", "test PSNR (dB)"), ("tower_psnr", "tower PSNR (dB)")):
-        series = [{"label": r["name"], "x": [p["seconds"] for p in r["points"]],
-                   "y": [p[key] for p in r["points"]], "colour_index": i} for i, r in enumerate(rows)]
-        images.append(line_plot(series, "training seconds", label, f"{label} vs wall clock", log2_x=False))
-    io.write_png(out / "convergence.png", np.concatenate(images, axis=0))
+    io.write_png(out / "convergence.png", figure(rows))
     print(f"wrote {out / 'convergence.json'} and {out / 'convergence.png'}")
     return 0
 

@@ -2,7 +2,8 @@
 
     python -m benchmarks.recipe_trials [--trials A,B,...] [--steps 1000] [--data DIR]
 
-Each trial is `demo.DEMO_CONFIG` with some settings put back (the recipe as it was
+Each trial is the `ours` recipe (`recipes.overrides("ours")`, the demo's) with some settings put back
+(the recipe as it was
 before that step), trained with `runs.train_run` on tower-small (the convergence
 benchmark's cached, DPT-masked copy) and scored with `evaluate.evaluate_run`. Prints one
 line per trial and writes benchmarks/results/recipe_trials.json. docs/GRID.md has the table.
@@ -11,19 +12,18 @@ line per trial and writes benchmarks/results/recipe_trials.json. docs/GRID.md ha
 from __future__ import annotations
 
 import argparse
-import copy
 import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 
 from benchmarks.convergence import dataset_dir  # noqa: E402
-from jaxnerf_grid import demo, evaluate, io, runs  # noqa: E402
+from jaxnerf_grid import evaluate, io, recipes, runs  # noqa: E402
 
 FIRST = {"model": {"opaque_far": False, "far": None, "field": {"density_bias": -1.0},
                    "proposal_field": {"density_bias": -1.0}},
          "train": {"adam_b2": 0.999, "lr_init": 1e-2, "lr_final": 1e-3}}
-TRIALS = {  # name: (what changed, settings that differ from DEMO_CONFIG)
+TRIALS = {  # name: (what changed, settings that differ from the ours recipe)
     "A": ("first grid recipe: grid + proposal, sky at the dataset's far (40 units)", FIRST),
     "B": ("+ opaque far bin, density bias -4", {"model": {"far": None}, "train": FIRST["train"]}),
     "C": ("+ Adam b2 0.99", {"model": {"far": None}, "train": {"lr_init": 1e-2, "lr_final": 1e-3}}),
@@ -36,7 +36,7 @@ TRIALS = {  # name: (what changed, settings that differ from DEMO_CONFIG)
 
 
 def merged(extra: dict) -> dict:
-    out = copy.deepcopy(demo.DEMO_CONFIG)
+    out = recipes.overrides("ours")
     for section, values in extra.items():
         for key, value in values.items():
             if isinstance(value, dict):

@@ -32,7 +32,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 import numpy as np  # noqa: E402
 
-from experiments import common  # noqa: E402
+from experiments import figures, runner, scenes, settings, tables  # noqa: E402
 
 WARPS = ("linear", "disparity", "log", "piecewise")
 SAMPLES = {"quick": (16, 32, 64, 128), "standard": (8, 16, 32, 64, 128), "full": (16, 32, 64, 128)}
@@ -62,10 +62,10 @@ def model_overrides(warp: str, hierarchical: bool, n: int, setting: str = "quick
 
 
 def paired_psnr_delta(agg: dict, base: dict) -> dict | None:
-    """{mean, std, values} of agg's PSNR minus base's on the seeds both ran (`common.add_paired_delta`),
+    """{mean, std, values} of agg's PSNR minus base's on the seeds both ran (`tables.add_paired_delta`),
     or None when they share none."""
     both = {"seeds": agg["seeds"], "psnr": agg["psnr"]}
-    common.add_paired_delta(both, base, "psnr", "delta")
+    tables.add_paired_delta(both, base, "psnr", "delta")
     return both.get("delta")
 
 
@@ -88,7 +88,7 @@ def psnr_on_common_seeds(cells: dict) -> tuple[dict, list]:
     different seeds would rank the seeds' scenes, which differ by about 1 dB) and `seeds` lists
     them; when they ran the same seeds, share none, or do not list them: their own means and []."""
     own = {k: a["psnr"]["mean"] for k, a in cells.items()}
-    by_seed = {k: common.values_by_seed(a) if a.get("seeds") else {} for k, a in cells.items()}
+    by_seed = {k: tables.values_by_seed(a) if a.get("seeds") else {} for k, a in cells.items()}
     if not all(by_seed.values()):
         return own, []
     common_seeds = sorted(set.intersection(*(set(v) for v in by_seed.values())))
@@ -199,12 +199,44 @@ def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
     return lines
 
 
+def figure(table: dict, samples: tuple, setting: str, steps: int) -> np.ndarray:
+    """PSNR against samples per ray, one line per scheme (dashed: hierarchical), +-1 std bars;
+    table: {(scheme, n): aggregate or None}. Returns an RGB image [H, W, 3] in [0, 1]."""
+    series = []
+    for h in (False, True):
+        for w in WARPS:
+            s = scheme_name(w, h, setting)
+            pts = [(n, table[(s, n)]["psnr"]) for n in samples if table.get((s, n)) and table[(s, n)].get("psnr")]
+            if pts:
+                series.append({"label": s.replace(" + hierarchical", " +hier").replace(" + proposal", " +prop"),
+                               "x": [x for x, _ in pts], "y": [c["mean"] for _, c in pts],
+                               "err": [c["std"] for _, c in pts], "dashed": h, "colour_index": WARPS.index(w)})
+    return figures.line_plot(series, "samples per ray (log2 scale)", "test PSNR (dB)",
+                             f"sampling schemes, {steps} steps, {setting} setting, bars: +-1 std over seeds")
+
+
+def replot(results: Path) -> Path:
+    """Redraws results/sampling_schemes.png from results/sampling_schemes.json (no run)."""
+    from jaxnerf_grid import io
+
+    body = io.read_json(results / "sampling_schemes.json")
+    table = {(r["scheme"], r["samples_per_ray"]): r["aggregate"] for r in body["rows"]}
+    img = figure(table, tuple(body["samples"]), body["settings"]["setting"], body["settings"]["steps"])
+    io.write_png(results / "sampling_schemes.png", np.clip(img, 0, 1))
+    return results / "sampling_schemes.png"
+
+
 def main(argv=None) -> int:
-    p = common.base_parser(__doc__)
+    p = runner.base_parser(__doc__)
     p.add_argument("--samples", type=int, nargs="+", default=None, help="samples per ray (even numbers)")
+    p.add_argument("--replot", action="store_true",
+                   help="only redraw sampling_schemes.png from the results folder's sampling_schemes.json (no run)")
     args = p.parse_args(argv)
-    args.results = args.results or str(common.results_folder(common.BENCH_RESULTS, args.setting))
-    ctx = common.make_context(args, "sampling_schemes.py")
+    args.results = args.results or str(settings.results_folder(settings.BENCH_RESULTS, args.setting))
+    if args.replot:
+        print(f"wrote {replot(Path(args.results))}")
+        return 0
+    ctx = runner.make_context(args, "sampling_schemes.py")
     ctx.command = ctx.command.replace("-m experiments.", "-m benchmarks.")
     samples = tuple(args.samples or SAMPLES[ctx.setting])
     schemes = [(w, h) for h in (False, True) for w in WARPS]
@@ -212,49 +244,41 @@ def main(argv=None) -> int:
     # smallest and largest budgets first, so a time budget still leaves the quarter-samples comparison
     order = sorted(samples, key=lambda n: (n not in (min(samples), min(samples) * 4), n))
     for seed in range(ctx.seeds):
-        data = common.scene(ctx, "tower-small", seed, distractors="none")
+        data = scenes.scene(ctx, "tower-small", seed, distractors="none")
         for n in order:
             for w, h in schemes:
                 tag = f"bench-{w}-{'h' if h else SAMPLERS[ctx.setting][0][0]}{n}"
-                rec = common.run_condition(ctx, data, "ours", seed, tag,
+                rec = runner.run_condition(ctx, data, "ours", seed, tag,
                                            {"model": model_overrides(w, h, n, ctx.setting), "train": {"use_masks": False}})
                 records[(scheme_name(w, h, ctx.setting), n)].append(rec)
-    table = {k: (common.aggregate(v) if any(r is not None for r in v) else None) for k, v in records.items()}
+    table = {k: (tables.aggregate(v) if any(r is not None for r in v) else None) for k, v in records.items()}
     for (name, n), agg in table.items():  # paired (same scene and seed) difference to uniform t
         base = scheme_name("linear", name.endswith("hierarchical"), ctx.setting)
         if name != base:
-            common.add_paired_delta(agg, table[(base, n)], "psnr", "delta_psnr_vs_linear")
-            common.add_paired_delta(agg, table[(base, n)], "psnr_far_background", "delta_far_vs_linear")
+            tables.add_paired_delta(agg, table[(base, n)], "psnr", "delta_psnr_vs_linear")
+            tables.add_paired_delta(agg, table[(base, n)], "psnr_far_background", "delta_far_vs_linear")
     body = {"samples": list(samples), "rows": [{"scheme": s, "samples_per_ray": n, "aggregate": a}
                                                for (s, n), a in table.items()]}
     md = []
     for n in samples:
         md += [f"## {n} samples per ray", ""]
-        md += common.markdown_table([(scheme_name(w, h, ctx.setting), table[(scheme_name(w, h, ctx.setting), n)])
+        md += tables.markdown_table([(scheme_name(w, h, ctx.setting), table[(scheme_name(w, h, ctx.setting), n)])
                                      for w, h in schemes], COLUMNS)
         md += [""]
     lines = summary(table, samples, ctx.setting)
     body["summary"] = lines
     md += ["## Summary (computed from the table)", ""] + [f"- {x}" for x in lines]
-    series = []
-    for w, h in schemes:
-        s = scheme_name(w, h, ctx.setting)
-        pts = [(n, table[(s, n)]["psnr"]) for n in samples if table[(s, n)] and table[(s, n)].get("psnr")]
-        if pts:
-            series.append({"label": s.replace(" + hierarchical", " +hier").replace(" + proposal", " +prop"), "x": [x for x, _ in pts],
-                           "y": [c["mean"] for _, c in pts], "err": [c["std"] for _, c in pts], "dashed": h,
-                           "colour_index": WARPS.index(w)})
-    img = common.line_plot(series, "samples per ray (log2 scale)", "test PSNR (dB)",
-                           f"sampling schemes, {ctx.steps} steps, {ctx.setting} setting, bars: +-1 std over seeds")
-    common.write_figure(ctx, "sampling_schemes", img)
+    img = figure(table, samples, ctx.setting, ctx.steps)
+    figures.write_figure(ctx, "sampling_schemes", img)
     md += ["", "![PSNR against samples per ray](sampling_schemes.png)"]
     notes = ["Scene: tower-small without distractors (no masks); contraction on for every scheme.",
              "Samples per ray: N coarse without hierarchical resampling, N/2 coarse + N/2 fine with it.",
              "s / step: wall seconds per training step on this machine, shared with other jobs, so only roughly "
              "comparable between rows."]
-    common.write_results(ctx, "sampling_schemes", "Sampling-scheme benchmark", body, md, notes)
+    tables.write_results(ctx, "sampling_schemes", "Sampling-scheme benchmark", body, md, notes)
     return 0
 
 
 if __name__ == "__main__":
+    runner.cpu_defaults()
     sys.exit(main())

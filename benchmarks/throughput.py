@@ -45,15 +45,14 @@ import jax
 import numpy as np
 
 from benchmarks.convergence import MLP_CONFIG, RUNS
-from jaxnerf_grid import config as config_lib, parallel, rays as rays_lib, train, views
+from jaxnerf_grid import config as config_lib, parallel, rays as rays_lib, recipes, train, views
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.demo import DEMO_CONFIG
 from jaxnerf_grid.fields import hashgrid
 
 CONFIGS = {
     "mlp": MLP_CONFIG,
     "grid-hierarchical": RUNS["grid-hierarchical"],
-    "demo": DEMO_CONFIG,
+    "demo": recipes.overrides("ours"),
     "paper-small": {"model": {"field": {"depth": 8, "width": 256, "skip": 4, "view_width": 128},
                               "num_coarse": 64, "num_fine": 128},
                     "train": {"batch_rays": 1024}},

@@ -18,15 +18,13 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
 import time
 from pathlib import Path
 
-os.environ.setdefault("JAX_PLATFORMS", "cpu")
 ROOT = Path(__file__).resolve().parents[1]
 
-from experiments import common  # noqa: E402
+from experiments import runner, scenes  # noqa: E402
 from experiments.train_builtin_dpt import evaluate  # noqa: E402
 
 from jaxnerf_grid.masking import load_models  # noqa: E402
@@ -47,11 +45,11 @@ def main(argv=None) -> int:
 
     t_start = time.time()
     command = "JAX_PLATFORMS=cpu python -m experiments.mask_tiling " + " ".join(argv if argv is not None else sys.argv[1:])
-    ctx = common.Context(setting="quick", seeds=len(SEEDS), steps=0, cache=Path(args.cache),
+    ctx = runner.Context(setting="quick", seeds=len(SEEDS), steps=0, cache=Path(args.cache),
                          results=Path(args.results).parent, budget_s=None, lpips_weights=None,
                          progress=not args.quiet, command=command.strip())
     size = (args.width, args.height, args.views, 0, 1)  # (w, h, train views, test views, supersampling)
-    roots = [common.scene(ctx, "tower-small", seed, size=size) for seed in SEEDS]
+    roots = [scenes.scene(ctx, "tower-small", seed, size=size) for seed in SEEDS]
 
     model, _, _ = load_models(None, None)
     rows = []
@@ -91,4 +89,5 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
+    runner.cpu_defaults()
     raise SystemExit(main())

@@ -7,7 +7,7 @@ Usage:
 Two files: for every row present in both (matched on the row's labels, e.g. Table 1's scene set
 and condition) with `--rows` matching its label, and every metric in both aggregates, it prints
 the base mean, the other mean and OTHER - BASE paired by seed (mean ± std over the seeds both ran,
-and each seed's difference), as `common.add_paired_delta` computes the tables' Δ columns. Used to
+and each seed's difference), as `tables.add_paired_delta` computes the tables' Δ columns. Used to
 compare Table 1 with the fine-tuned DPT candidate's masks against the shipped model's
 (experiments/results/builtin_dpt.md).
 
@@ -26,7 +26,7 @@ import json
 import re
 import sys
 
-from experiments import common
+from experiments import tables
 
 DEFAULT_METRICS = ("psnr", "psnr_tower", "geometry_f", "distractor_psnr", "psnr_near_ground",
                    "psnr_far_background", "mask_iou", "mask_recall")
@@ -60,7 +60,7 @@ def paired_rows(base: dict, other: dict, metrics=DEFAULT_METRICS, rows: str | No
             if not agg.get(m) or not base_agg.get(m):
                 continue
             paired = dict(agg)
-            common.add_paired_delta(paired, base_agg, m, "delta")
+            tables.add_paired_delta(paired, base_agg, m, "delta")
             out.append({"row": label, "other_row": other_label, "metric": m, "base": base_agg[m],
                         "other": agg[m], "delta": paired.get("delta")})
     return out

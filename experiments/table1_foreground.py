@@ -27,7 +27,7 @@ from __future__ import annotations
 import sys
 from pathlib import Path
 
-from experiments import common
+from experiments import runner, scenes, tables
 
 CONDITIONS = ("no masks", "binary GT masks (no Eq. 7)", "GT masks + Eq. 7", "built-in DPT masks + Eq. 7",
               "clean training images (upper bound)")
@@ -62,19 +62,19 @@ def condition_data(ctx, scene_dir: Path, condition: str, dpt_weights: str | None
     if condition == "no masks":
         return scene_dir, {"train": {"use_masks": False}}, None
     if condition == "clean training images (upper bound)":
-        return common.clean_variant(ctx, scene_dir), {"train": {"use_masks": False}}, None
+        return scenes.clean_variant(ctx, scene_dir), {"train": {"use_masks": False}}, None
     if condition == "binary GT masks (no Eq. 7)":
-        v = common.mask_variant(ctx, scene_dir, "gt_binary", "gt", floor=1.0)
+        v = scenes.mask_variant(ctx, scene_dir, "gt_binary", "gt", floor=1.0)
     elif condition == "GT masks + Eq. 7":
-        v = common.mask_variant(ctx, scene_dir, "gt_eq7", "gt", floor=0.0)
+        v = scenes.mask_variant(ctx, scene_dir, "gt_eq7", "gt", floor=0.0)
     elif dpt_weights is None and not builtin_available():
         return None
     elif condition == DILATED:
-        v = common.mask_variant(ctx, scene_dir, f"dpt_builtin_eq7_dilate{DILATE_PX}", "dpt", floor=0.0,
+        v = scenes.mask_variant(ctx, scene_dir, f"dpt_builtin_eq7_dilate{DILATE_PX}", "dpt", floor=0.0,
                                 dilate=DILATE_PX, weights=dpt_weights)
     else:
-        v = common.mask_variant(ctx, scene_dir, "dpt_builtin_eq7", "dpt", floor=0.0, weights=dpt_weights)
-    return v, {"train": {"use_masks": True}}, common.mask_iou(v)
+        v = scenes.mask_variant(ctx, scene_dir, "dpt_builtin_eq7", "dpt", floor=0.0, weights=dpt_weights)
+    return v, {"train": {"use_masks": True}}, scenes.mask_iou(v)
 
 
 def sets_for(setting: str) -> list[tuple]:
@@ -86,18 +86,18 @@ def sets_for(setting: str) -> list[tuple]:
 
 
 def main(argv=None) -> int:
-    parser = common.base_parser(__doc__)
+    parser = runner.base_parser(__doc__)
     parser.add_argument("--dpt-weights", default=None, metavar="DIR",
                         help="the DPT rows use the DPT in DIR instead of the shipped built-in "
                              "(to measure a retrained model before shipping it; use another --results)")
     args = parser.parse_args(argv)
-    ctx = common.make_context(args, "table1_foreground.py")
+    ctx = runner.make_context(args, "table1_foreground.py")
     sets = sets_for(ctx.setting)
     records = {(s[0], c): [] for s in sets for c in s[3]}
     mask_stats_of = {(s[0], c): [] for s in sets for c in s[3]}
     for seed in range(ctx.seeds):
         for set_name, preset, distractors, conditions, _ in sets:
-            scene_dir = common.scene(ctx, preset, seed, distractors)
+            scene_dir = scenes.scene(ctx, preset, seed, distractors)
             for cond in conditions:
                 got = condition_data(ctx, scene_dir, cond, args.dpt_weights)
                 if got is None:
@@ -105,7 +105,7 @@ def main(argv=None) -> int:
                 data, ov, mask_stats = got
                 tag = "t1-" + preset + ("-" + distractors if distractors else "") + "-" + \
                     cond.split(" (")[0].replace(" ", "_").replace("+", "").replace(".", "").replace(",", "")
-                rec = common.run_condition(ctx, data, "ours", seed, tag, ov)
+                rec = runner.run_condition(ctx, data, "ours", seed, tag, ov)
                 records[(set_name, cond)].append(rec)
                 mask_stats_of[(set_name, cond)].append(mask_stats or {})
     body, md, claims = {"rows": [], "claims": []}, [], []
@@ -114,27 +114,27 @@ def main(argv=None) -> int:
         for cond in conditions:
             recs = records[(set_name, cond)]
             stats = mask_stats_of[(set_name, cond)]
-            agg = common.aggregate(recs, {"mask_iou": [m.get("iou") for m in stats],
+            agg = tables.aggregate(recs, {"mask_iou": [m.get("iou") for m in stats],
                                           "mask_recall": [m.get("recall") for m in stats]}) if recs else None
             rows.append((cond, agg))
         for cond, agg in rows:
             if cond != "no masks":
-                common.add_paired_delta(agg, rows[0][1])
-                common.add_paired_delta(agg, rows[0][1], "distractor_psnr", "delta_distractor_psnr")
+                tables.add_paired_delta(agg, rows[0][1])
+                tables.add_paired_delta(agg, rows[0][1], "distractor_psnr", "delta_distractor_psnr")
             body["rows"].append({"scene_set": set_name, "condition": cond, "aggregate": agg})
-        md += [f"## Scene set {set_name}", ""] + common.markdown_table(rows, COLUMNS) + [""]
+        md += [f"## Scene set {set_name}", ""] + tables.markdown_table(rows, COLUMNS) + [""]
         effect = dict(rows)[PAPER_METHOD].get("delta_psnr") if dict(rows).get(PAPER_METHOD) else None
         claim = {"scene_set": set_name, "paper_db": paper, "effect": effect}
         if paper is not None:
-            claim["verdict"] = common.verdict(effect, paper)
-            claims.append(common.claim_line(f"Foreground removal, set {set_name.split(':')[0]} ({PAPER_METHOD} "
+            claim["verdict"] = tables.verdict(effect, paper)
+            claims.append(tables.claim_line(f"Foreground removal, set {set_name.split(':')[0]} ({PAPER_METHOD} "
                                             "vs no masks, test PSNR)", effect, paper))
         else:
             claims.append(f"- Foreground removal at {set_name.split(': ')[1]}: ours "
                           + (f"{effect['mean']:+.2f} ± {effect['std']:.2f} dB" if effect else "not run") + ".")
         body["claims"].append(claim)
     md += ["## The paper's claim (Table 1: +2.22 / +2.83 dB from foreground removal)", ""] + claims + \
-        ["", common.VERDICT_RULE, ""]
+        ["", tables.VERDICT_RULE, ""]
     notes = ["Test metrics against the clean test views; distractor-region PSNR on up to "
              f"{ctx.distractor_views} training views with distractors, inside their ground-truth distractor "
              "masks, against the clean renders.",
@@ -147,9 +147,10 @@ def main(argv=None) -> int:
     elif not builtin_available():
         notes.append("Built-in DPT row not run: jaxnerf_grid/assets/dpt_builtin is not in this build "
                      "(train it with experiments/train_builtin_dpt.py).")
-    common.write_results(ctx, "table1_foreground", "Table 1: dynamic-foreground removal", body, md, notes)
+    tables.write_results(ctx, "table1_foreground", "Table 1: dynamic-foreground removal", body, md, notes)
     return 0
 
 
 if __name__ == "__main__":
+    runner.cpu_defaults()
     sys.exit(main())

@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import sys
 
-from experiments import common
+from experiments import runner, scenes, tables
 
 CONDITIONS = (
     ("on: contraction + disparity sampling (ours)", {"use_contraction": True, "warp": "disparity"}),
@@ -41,42 +41,42 @@ def far_background_share(ctx, seed: int) -> float:
     from jaxnerf_grid import evaluate
     from jaxnerf_grid.data.formats import load_dataset
 
-    ds = load_dataset(common.scene(ctx, "tower-small", seed), progress=False)
+    ds = load_dataset(scenes.scene(ctx, "tower-small", seed), progress=False)
     test = [int(i) for i in ds.split["test"]]
     far = sum(int(np.sum(evaluate.region_masks(ds, i)["far_background"])) for i in test)
     return far / float(len(test) * ds.images.shape[1] * ds.images.shape[2])
 
 
 def main(argv=None) -> int:
-    args = common.base_parser(__doc__).parse_args(argv)
-    ctx = common.make_context(args, "table2_farview.py")
+    args = runner.base_parser(__doc__).parse_args(argv)
+    ctx = runner.make_context(args, "table2_farview.py")
     records = {c: [] for c, _ in CONDITIONS}
     for seed in range(ctx.seeds):
-        data = common.mask_variant(ctx, common.scene(ctx, "tower-small", seed), "gt_eq7", "gt", floor=0.0)
+        data = scenes.mask_variant(ctx, scenes.scene(ctx, "tower-small", seed), "gt_eq7", "gt", floor=0.0)
         for cond, model in CONDITIONS:
             tag = "t2-" + cond.split(":")[0].split(" (")[0].replace(" ", "_")
-            records[cond].append(common.run_condition(ctx, data, "ours", seed, tag,
+            records[cond].append(runner.run_condition(ctx, data, "ours", seed, tag,
                                                       {"model": model, "train": {"use_masks": True}}))
-    rows = [(c, common.aggregate(records[c])) for c, _ in CONDITIONS]
+    rows = [(c, tables.aggregate(records[c])) for c, _ in CONDITIONS]
     for k, _, _ in COLUMNS[:4]:
         for _, agg in rows[:1] + rows[2:]:
-            common.add_paired_delta(agg, rows[1][1], k, f"delta_{k}")
+            tables.add_paired_delta(agg, rows[1][1], k, f"delta_{k}")
     body = {"rows": [{"condition": c, "model": m, "aggregate": a} for (c, m), (_, a) in zip(CONDITIONS, rows)]}
-    md = common.markdown_table(rows, COLUMNS)
+    md = tables.markdown_table(rows, COLUMNS)
     on = rows[0][1]
     if on and on.get("delta_psnr"):
         md += ["", "Paired difference on - off (dB, mean ± std over seeds): " + ", ".join(
-            f"{h} {common.fmt(on.get('delta_' + k))}" for k, h, _ in COLUMNS[:4])]
+            f"{h} {tables.fmt(on.get('delta_' + k))}" for k, h, _ in COLUMNS[:4])]
     shares = [far_background_share(ctx, seed) for seed in range(ctx.seeds)]
     body["far_background_share_of_test_pixels"] = shares
     effect = on.get("delta_psnr") if on else None
-    body["claim"] = {"paper_db": PAPER_DB, "effect": effect, "verdict": common.verdict(effect, PAPER_DB),
+    body["claim"] = {"paper_db": PAPER_DB, "effect": effect, "verdict": tables.verdict(effect, PAPER_DB),
                      "far_background_effect": on.get("delta_psnr_far_background") if on else None}
     md += ["", "## The paper's claim (Table 2: +3.14 / +3.43 dB from the far-view constraint)", "",
-           common.claim_line("Far-view constraint (on vs off, test PSNR)", effect, PAPER_DB),
-           common.claim_line("... in the far background itself (region PSNR)",
+           tables.claim_line("Far-view constraint (on vs off, test PSNR)", effect, PAPER_DB),
+           tables.claim_line("... in the far background itself (region PSNR)",
                              on.get("delta_psnr_far_background") if on else None, PAPER_DB), "",
-           common.VERDICT_RULE, "",
+           tables.VERDICT_RULE, "",
            "The test views see the far background: it is "
            + ", ".join(f"{100 * v:.1f} %" for v in shares) + " of the test pixels (by seed; sky and vegetation "
            "/ buildings beyond 100 m). The paper's figure is its set (b); on its set (a) the gain was +3.14 dB. "
@@ -84,10 +84,11 @@ def main(argv=None) -> int:
     notes = ["Region definition (evaluate.REGION_DEFINITION): " + "tower = classes 1-2; near ground = class 3; far background = "
              "sky + vegetation/buildings with ground-truth depth > 100 m.",
              "Masks: ground-truth distractor masks with Eq. 7 (`jaxnerf-grid mask --source gt`), the same for all rows."]
-    common.write_results(ctx, "table2_farview", "Table 2: far-view blur constraint (contraction + differentiated "
+    tables.write_results(ctx, "table2_farview", "Table 2: far-view blur constraint (contraction + differentiated "
                          "sampling)", body, md, notes)
     return 0
 
 
 if __name__ == "__main__":
+    runner.cpu_defaults()
     sys.exit(main())

@@ -21,7 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from experiments import common
+from experiments import figures, runner, scenes, tables
+from jaxnerf_grid.config import merge
 
 METHODS = (("ours", "ours", {"train": {"use_masks": True}}), ("NeRF", "nerf", {}), ("NeRF-W", "nerfw", {}))
 # A check on the baseline at --standard: NeRF without the recipe's opaque far bin and distortion
@@ -48,14 +49,14 @@ def crops_figure(records: dict, data_dir: Path, scale: int = 3, max_views: int =
         box = box or (slice(None), slice(None))
         up = lambda a: np.repeat(np.repeat(np.asarray(a, np.float32)[box], scale, 0), scale, 1)  # noqa: E731
         target = ds.clean_images[i] if ds.clean_images is not None else ds.images[i]
-        panels = [common.label_image(up(target), "ground truth")]
+        panels = [figures.label_image(up(target), "ground truth")]
         for label, rec in records.items():
             png = Path(rec["run_dir"]) / "renders" / f"{name}.png"
             if png.is_file():
                 psnr = next((v["psnr"] for v in rec["metrics"]["per_view"] if v["name"] == name), None)
-                panels.append(common.label_image(up(io.read_image(png)), f"{label} {psnr:.1f} dB" if psnr else label))
-        rows.append(common.hstack(panels))
-    return common.vstack(rows) if rows else None
+                panels.append(figures.label_image(up(io.read_image(png)), f"{label} {psnr:.1f} dB" if psnr else label))
+        rows.append(figures.hstack(panels))
+    return figures.vstack(rows) if rows else None
 
 
 PAPER_VS_NERF, PAPER_VS_NERFW = 10.68, 4.30
@@ -67,43 +68,43 @@ MLP_FIELD = {"model": {"field": {"kind": "mlp", "depth": 4, "width": 64, "skip":
 
 
 def main(argv=None) -> int:
-    p = common.base_parser(__doc__)
+    p = runner.base_parser(__doc__)
     p.add_argument("--field", choices=("setting", "mlp"), default="setting",
                    help="the setting's field (default), or an MLP field for every method (results: table3_methods_mlp)")
     args = p.parse_args(argv)
-    ctx = common.make_context(args, "table3_methods.py")
+    ctx = runner.make_context(args, "table3_methods.py")
     field_ov = MLP_FIELD if args.field == "mlp" else {}
     methods = METHODS + CHECKS.get(ctx.setting, ())
     records = {label: [] for label, _, _ in methods}
     data0 = None
     for seed in range(ctx.seeds):
-        data = common.mask_variant(ctx, common.scene(ctx, "tower-small", seed), "gt_eq7", "gt", floor=0.0)
+        data = scenes.mask_variant(ctx, scenes.scene(ctx, "tower-small", seed), "gt_eq7", "gt", floor=0.0)
         data0 = data0 or data
         for label, method, ov in methods:
             check = "-check" if (label, method, ov) in CHECKS.get(ctx.setting, ()) else ""
             tag = "t1-tower-small-GT_masks__Eq_7" if method == "ours" else f"t3-{method}{check}"
             if args.field == "mlp":
                 tag = f"t3-mlp-{method}{check}"
-            records[label].append(common.run_condition(ctx, data, method, seed, tag, common.merge(field_ov, ov)))
-    rows = [(label, common.aggregate(records[label])) for label, _, _ in methods]
+            records[label].append(runner.run_condition(ctx, data, method, seed, tag, merge(field_ov, ov)))
+    rows = [(label, tables.aggregate(records[label])) for label, _, _ in methods]
     for _, agg in rows[:1] + rows[2:]:
-        common.add_paired_delta(agg, rows[1][1], "psnr_right_half", "delta_psnr_right_half")
-    common.add_paired_delta(rows[0][1], rows[2][1], "psnr_right_half", "delta_psnr_right_half_vs_nerfw")
+        tables.add_paired_delta(agg, rows[1][1], "psnr_right_half", "delta_psnr_right_half")
+    tables.add_paired_delta(rows[0][1], rows[2][1], "psnr_right_half", "delta_psnr_right_half_vs_nerfw")
     ours = rows[0][1] or {}
     claims = [("ours vs NeRF (right-half PSNR)", ours.get("delta_psnr_right_half"), PAPER_VS_NERF),
               ("ours vs NeRF-W (right-half PSNR)", ours.get("delta_psnr_right_half_vs_nerfw"), PAPER_VS_NERFW)]
     if len(rows) > 3:  # the check row: ours against the stronger NeRF too
-        common.add_paired_delta(rows[0][1], rows[3][1], "psnr_right_half", "delta_psnr_right_half_vs_check")
+        tables.add_paired_delta(rows[0][1], rows[3][1], "psnr_right_half", "delta_psnr_right_half_vs_check")
         claims.append((f"ours vs {rows[3][0]} (right-half PSNR)", ours.get("delta_psnr_right_half_vs_check"),
                        PAPER_VS_NERF))
     body = {"rows": [{"method": label, "aggregate": a} for label, a in rows], "field": args.field,
-            "claims": [{"claim": c, "paper_db": p, "effect": e, "verdict": common.verdict(e, p)} for c, e, p in claims]}
-    md = common.markdown_table(rows, COLUMNS)
+            "claims": [{"claim": c, "paper_db": p, "effect": e, "verdict": tables.verdict(e, p)} for c, e, p in claims]}
+    md = tables.markdown_table(rows, COLUMNS)
     md += ["", "## The paper's claim (Table 3: +10.68 dB over NeRF, +4.30 dB over NeRF-W, scenario (b))", ""]
-    md += [common.claim_line(c, e, p) for c, e, p in claims] + ["", common.VERDICT_RULE]
+    md += [tables.claim_line(c, e, p) for c, e, p in claims] + ["", tables.VERDICT_RULE]
     first = {label: recs[0] for label, recs in records.items() if recs and recs[0] is not None}
     name = "table3_methods" + ("_mlp" if args.field == "mlp" else "")
-    # a run read back from a results file (common.recorded_runs) has no renders: keep the figure drawn
+    # a run read back from a results file (runner.recorded_runs) has no renders: keep the figure drawn
     # when every first-seed run was on this machine rather than draw one with panels missing
     rendered = bool(first) and all((Path(r["run_dir"]) / "renders").is_dir() for r in first.values())
     fig = crops_figure(first, data0) if rendered else None
@@ -115,15 +116,16 @@ def main(argv=None) -> int:
         notes.append("Field: an MLP (4x64, positional encoding to 2^10) for every method instead of the setting's "
                      "hash grid; everything else as the setting (`--field mlp`, table3_methods.MLP_FIELD).")
     if fig is not None:
-        common.write_figure(ctx, name, fig)
+        figures.write_figure(ctx, name, fig)
     if fig is not None or (ctx.results / f"{name}.png").is_file():
         md += ["", f"![tower crops: ground truth | ours | NeRF | NeRF-W]({name}.png)"]
-        # write_results makes the path relative to the repository (common.portable)
+        # write_results makes the path relative to the repository (settings.portable)
         notes.append(f"Figure: {(ctx.results / f'{name}.png').as_posix()} (seed 0; tower crops of the test views).")
-    common.write_results(ctx, name, "Table 3: ours vs NeRF vs NeRF-W" + (" (MLP field)" if args.field == "mlp" else ""),
+    tables.write_results(ctx, name, "Table 3: ours vs NeRF vs NeRF-W" + (" (MLP field)" if args.field == "mlp" else ""),
                          body, md, notes)
     return 0
 
 
 if __name__ == "__main__":
+    runner.cpu_defaults()
     sys.exit(main())

@@ -23,7 +23,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from experiments import common
+from experiments import runner, scenes, settings, tables
 from jaxnerf_grid import io  # noqa: E402
 
 DIRECTIONS = (("ttpla-like", "plad-like", 7201), ("plad-like", "ttpla-like", 7202))
@@ -43,8 +43,8 @@ COLUMNS = [("mask_iou", "mask IoU", 3), ("mask_precision", "precision", 3), ("ma
 
 def train_dpt(ctx, source: str, seed: int, eval_dir: Path, minutes: float, steps: int, views: int) -> tuple[Path, dict]:
     """Trains (once) a DPT on a `source` scene with experiments/train_builtin_dpt.py. Returns (model dir, its result)."""
-    w, h, _, n_test, ss = common.SCENE_SIZES[ctx.setting][source]
-    train_dir = common.scene(ctx, source, seed, size=(w, h, views, n_test, ss))
+    w, h, _, n_test, ss = settings.SCENE_SIZES[ctx.setting][source]
+    train_dir = scenes.scene(ctx, source, seed, size=(w, h, views, n_test, ss))
     out = ctx.cache / "dpt" / f"{source}_s{seed}_{steps}steps_{minutes:g}min"
     result = out.with_name(out.name + "_result")
     if not (out / "config.json").is_file() or not result.with_suffix(".json").is_file():
@@ -53,16 +53,16 @@ def train_dpt(ctx, source: str, seed: int, eval_dir: Path, minutes: float, steps
                "--patch-size", "16",  # the quick crossover DPTs: patch 16 trains ~3x faster than the built-in's 8
                "--results", str(result)]
         print("[dpt] " + " ".join(cmd), flush=True)
-        subprocess.run(cmd, check=True, cwd=common.ROOT)
+        subprocess.run(cmd, check=True, cwd=settings.ROOT)
     return out, io.read_json(result.with_suffix(".json"))
 
 
 def main(argv=None) -> int:
-    p = common.base_parser(__doc__)
+    p = runner.base_parser(__doc__)
     p.add_argument("--dpt-minutes", type=float, default=None, help="DPT training time limit per direction")
     p.add_argument("--dpt-steps", type=int, default=None, help="DPT training steps per direction")
     args = p.parse_args(argv)
-    ctx = common.make_context(args, "table4_crossover.py")
+    ctx = runner.make_context(args, "table4_crossover.py")
     dset = dict(DPT_SETTINGS[ctx.setting])
     dset["minutes"] = args.dpt_minutes or dset["minutes"]
     dset["steps"] = args.dpt_steps or dset["steps"]
@@ -76,33 +76,33 @@ def main(argv=None) -> int:
 
     def masked_run(variant_dir, seed, label, run_name):
         """Trains ours with the variant's masks; records the run and the masks' IoU / precision / recall."""
-        m = common.mask_iou(variant_dir)
-        records[label].append(common.run_condition(ctx, variant_dir, "ours", seed, run_name,
+        m = scenes.mask_iou(variant_dir)
+        records[label].append(runner.run_condition(ctx, variant_dir, "ours", seed, run_name,
                                                    {"train": {"use_masks": True}}))
         for k in ("iou", "precision", "recall"):
             extras[label][f"mask_{k}"].append(m[k])
 
     for seed in range(ctx.seeds):
         for source, target, dpt_seed in DIRECTIONS:  # crossover rows first (the table's subject)
-            target_dir = common.scene(ctx, target, seed)
+            target_dir = scenes.scene(ctx, target, seed)
             model_dir, res = train_dpt(ctx, source, dpt_seed, target_dir, dset["minutes"], dset["steps"], dset["views"])
             dpt_results[f"{source}->{target}"] = {k: res[k] for k in ("train_seeds", "eval_seeds", "steps",
                                                                       "train_seconds", "metrics")}
-            v = common.mask_variant(ctx, target_dir, f"dpt_from_{source}", "dpt", floor=0.0, weights=str(model_dir))
+            v = scenes.mask_variant(ctx, target_dir, f"dpt_from_{source}", "dpt", floor=0.0, weights=str(model_dir))
             masked_run(v, seed, f"{source} DPT -> {target} (crossover)", f"t4-{source}-to-{target}")
         for source, target, dpt_seed in DIRECTIONS:  # same family: the other direction's DPT on its own family
-            target_dir = common.scene(ctx, target, seed)
+            target_dir = scenes.scene(ctx, target, seed)
             other = next(d for d in DIRECTIONS if d[0] == target)
-            model_dir, _ = train_dpt(ctx, target, other[2], common.scene(ctx, other[1], seed), dset["minutes"],
+            model_dir, _ = train_dpt(ctx, target, other[2], scenes.scene(ctx, other[1], seed), dset["minutes"],
                                      dset["steps"], dset["views"])
-            v = common.mask_variant(ctx, target_dir, f"dpt_from_{target}", "dpt", floor=0.0, weights=str(model_dir))
+            v = scenes.mask_variant(ctx, target_dir, f"dpt_from_{target}", "dpt", floor=0.0, weights=str(model_dir))
             masked_run(v, seed, f"{target} DPT -> {target} (same family)", f"t4-{target}-to-{target}")
         for _, target, _ in DIRECTIONS:
-            target_dir = common.scene(ctx, target, seed)
-            v = common.mask_variant(ctx, target_dir, "gt_eq7", "gt", floor=0.0)
+            target_dir = scenes.scene(ctx, target, seed)
+            v = scenes.mask_variant(ctx, target_dir, "gt_eq7", "gt", floor=0.0)
             masked_run(v, seed, f"{target}: GT masks + Eq. 7", f"t1-{target}-GT_masks__Eq_7")
             label = f"{target}: no masks"
-            records[label].append(common.run_condition(ctx, target_dir, "ours", seed, f"t1-{target}-no_masks",
+            records[label].append(runner.run_condition(ctx, target_dir, "ours", seed, f"t1-{target}-no_masks",
                                                        {"train": {"use_masks": False}}))
             for k in extras[label]:
                 extras[label][k].append(None)
@@ -112,24 +112,24 @@ def main(argv=None) -> int:
         for t, label in rows_spec:
             if t != target:
                 continue
-            agg = common.aggregate(records[label], extras[label]) if records[label] else None
+            agg = tables.aggregate(records[label], extras[label]) if records[label] else None
             rows.append((label, agg))
         for label, agg in rows:
             if label != rows[-1][0]:  # vs the no-mask row of the same target and seed
-                common.add_paired_delta(agg, rows[-1][1])
+                tables.add_paired_delta(agg, rows[-1][1])
             body["rows"].append({"target": target, "condition": label, "aggregate": agg})
-        md += [f"## Target family {target}", ""] + common.markdown_table(rows, COLUMNS) + [""]
+        md += [f"## Target family {target}", ""] + tables.markdown_table(rows, COLUMNS) + [""]
     cross = {lbl: a for lbl, a in [(r["condition"], r["aggregate"]) for r in body["rows"]] if "(crossover)" in lbl}
     a = cross.get("ttpla-like DPT -> plad-like (crossover)")
     b = cross.get("plad-like DPT -> ttpla-like (crossover)")
     holder = dict(a) if a else None
-    common.add_paired_delta(holder, b, "psnr", "asymmetry")
+    tables.add_paired_delta(holder, b, "psnr", "asymmetry")
     effect = holder.get("asymmetry") if holder else None
-    body["claim"] = {"paper_db": PAPER_ASYMMETRY_DB, "effect": effect, "verdict": common.verdict(effect, PAPER_ASYMMETRY_DB)}
+    body["claim"] = {"paper_db": PAPER_ASYMMETRY_DB, "effect": effect, "verdict": tables.verdict(effect, PAPER_ASYMMETRY_DB)}
     md += ["## The paper's claim (Table 4: a DPT trained on TTPLA transfers to STN PLAD better than the reverse)", "",
-           common.claim_line("Crossover asymmetry (PSNR of ttpla-like DPT -> plad-like minus plad-like DPT -> "
+           tables.claim_line("Crossover asymmetry (PSNR of ttpla-like DPT -> plad-like minus plad-like DPT -> "
                              "ttpla-like, paired by seed)", effect, PAPER_ASYMMETRY_DB),
-           "", common.VERDICT_RULE, "The two directions are scored on different target families, so the "
+           "", tables.VERDICT_RULE, "The two directions are scored on different target families, so the "
            "difference mixes the DPT's transfer with how hard each family is; the same-family rows separate them.", ""]
     md += ["DPT training (experiments/train_builtin_dpt.py) and its own evaluation on the target scene's frames "
            "(the seed-0 target scene, all its frames, pooled IoU):", "", "| direction | steps | train min | IoU | precision | recall |",
@@ -146,9 +146,10 @@ def main(argv=None) -> int:
              "Mask IoU columns: pooled over the target scene's training views, M = [C > 0.5] against the "
              "synthetic distractor masks (bit 0); Eq. 7 uses the DPT's own inverse depth (GT rows: true depth).",
              "The GT and no-mask rows on plad-like are the same runs as Table 1's scene set B."]
-    common.write_results(ctx, "table4_crossover", "Table 4: DPT crossover between scene families", body, md, notes)
+    tables.write_results(ctx, "table4_crossover", "Table 4: DPT crossover between scene families", body, md, notes)
     return 0
 
 
 if __name__ == "__main__":
+    runner.cpu_defaults()
     sys.exit(main())

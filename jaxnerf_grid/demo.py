@@ -1,7 +1,7 @@
 """The demo: the CPU recipe (`DEMO_CONFIG`) end to end, as library calls.
 
 `run_demo(data, out)`: synthetic tower-small (when no data is given) -> masks (when the dataset
-has none; `masking.write_masks`) -> train "ours" with DEMO_CONFIG (`runs.train_run`) ->
+has none; `masking.write_masks`) -> train the `ours` recipe (DEMO_CONFIG; `runs.train_run`) ->
 evaluate (`evaluate.evaluate_run`). `demo_summary(result)` is its one-line summary.
 """
 
@@ -11,31 +11,15 @@ import json
 import time
 from pathlib import Path
 
-from jaxnerf_grid import evaluate, io, runs
+from jaxnerf_grid import evaluate, io, recipes, runs
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.io import DataError
 
-# The CPU recipe of the demo (docs/GRID.md): a hash-grid field on the contracted coordinates
-# (fields/grid.py), one density-only proposal round of 64 samples stratified in s (disparity
-# warp) feeding 32 samples of the main field, the interlevel and distortion losses (in s), an
-# opaque far bin at 1000 units so the sky sits at infinity, and Instant-NGP's Adam settings.
-# Each choice was measured at 1000 steps on tower-small (docs/GRID.md, "How the recipe was chosen").
-DEMO_CONFIG = {
-    "model": {"sampler": "proposal", "proposal_samples": [64], "num_fine": 32, "contract_radius": 2.0,
-              "field": {"kind": "grid", "depth": 1, "width": 64, "view_depth": 2, "view_width": 64,
-                        "dir_max_deg": 3, "density_activation": "exp", "density_bias": -4.0,
-                        "grid": {"num_levels": 12, "features_per_level": 2, "log2_table_size": 17,
-                                 "min_resolution": 16, "max_resolution": 1024}},
-              "proposal_field": {"density_bias": -4.0},
-              # The drone orbits 45-70 m (2.2-3.5 units) from the tower; with the dataset's near of
-              # 0.5 the disparity warp puts 3/4 of the samples in the empty first 2 units. Rays
-              # start at 1 unit (20 m): birds nearer than that are distractors, masked anyway.
-              # They end at 1000 units (20 km) in an opaque bin: the sky, at the far sphere.
-              "near": 1.0, "far": 1000.0, "opaque_far": True},
-    "train": {"batch_rays": 1024, "max_steps": 2400, "lr_init": 2e-2, "lr_final": 2e-3, "warmup": 50,
-              "adam_eps": 1e-15, "adam_b2": 0.99, "max_grad_norm": 0.0, "distortion_loss_weight": 0.002,
-              "checkpoint_every": 300, "log_every": 50, "chunk": 4096},
-}
+# The demo's recipe: `recipes.overrides("ours")`, the recipe that resolves the tower (docs/GRID.md,
+# docs/RECIPES.md): a hash grid on the contracted coordinates, one proposal round of 64 samples
+# stratified in s feeding 32 samples of the main field, an opaque far bin at 1000 units.
+DEMO_RECIPE = "ours"
+DEMO_CONFIG = recipes.overrides(DEMO_RECIPE)
 
 
 # Training views whose depth also goes into the demo's tower cloud (evaluate_run's cloud_views).
@@ -95,15 +79,16 @@ def _mask_note(mask_source: str) -> str:
 def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None, overwrite: bool = False,
              progress: bool = True, sets: list[str] | None = None) -> dict:
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
-    has no masks) -> train "ours" with DEMO_CONFIG -> evaluate. Returns {"run_dir", "metrics",
+    has no masks) -> train the `ours` recipe (DEMO_RECIPE) -> evaluate. Returns {"run_dir", "metrics",
     "timings" (s per stage), "total_seconds", "mask_source"}. sets: --set KEY=VALUE changes to
     DEMO_CONFIG. The config is checked (train.make_config) before anything is written."""
     from jaxnerf_grid import train
 
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
         raise ConfigError(f"--steps = {steps}: must be an integer >= 1")
-    recipe = runs.overrides_with_sets(DEMO_CONFIG, sets)
-    train.make_config("ours", runs._with_steps(recipe, steps))  # a bad --set fails before synth / mask
+    method = recipes.get(DEMO_RECIPE).method
+    recipe = runs.overrides_with_sets(recipes.overrides(DEMO_RECIPE), sets)
+    train.make_config(method, runs._with_steps(recipe, steps))  # a bad --set fails before synth / mask
     start = time.perf_counter()
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -122,7 +107,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         data = Path(data) if data is not None else out / "data"
         mask_source = None
     t = time.perf_counter()
-    run_dir, _, _ = runs.train_run(str(data), "ours", out / "run", recipe, steps, overwrite, progress)
+    run_dir, _, _ = runs.train_run(str(data), method, out / "run", recipe, steps, overwrite, progress)
     timings["train"] = time.perf_counter() - t
     if not distributed.is_main():
         return {"run_dir": run_dir, "metrics": None, "timings": timings,

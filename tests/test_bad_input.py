@@ -27,6 +27,8 @@ from jaxnerf_grid import cli, io, masking, runs
 
 ROOT = Path(__file__).resolve().parents[1]
 # a 2x32 MLP, 8 + 8 samples, 64 rays, 10 steps: the whole run takes seconds
+# the paper's MLP setting, which TINY shrinks (`train` alone trains the grid recipe `ours`)
+PAPER_MLP = ["--recipe", "ours-paper-mlp"]
 TINY = {"model": {"field": {"depth": 2, "width": 32, "skip": 0, "view_width": 16}, "num_coarse": 8, "num_fine": 8},
         "train": {"batch_rays": 64, "max_steps": 10, "checkpoint_every": 5, "log_every": 5, "warmup": 2,
                   "chunk": 512}}
@@ -75,7 +77,8 @@ def scene(tmp_path_factory):
     data, run, cfg = tmp / "data", tmp / "run", tmp / "tiny.json"
     assert cli.main(["synth", "--out", str(data), *SYNTH]) == 0
     cfg.write_text(json.dumps(TINY))
-    assert cli.main(["train", "--data", str(data), "--method", "nerf", "--config", str(cfg), "--out", str(run),
+    assert cli.main(["train", *PAPER_MLP,
+                     "--data", str(data), "--method", "nerf", "--config", str(cfg), "--out", str(run),
                      "--quiet"]) == 0
     return {"data": data, "run": run, "cfg": cfg, "tmp": tmp}
 
@@ -121,7 +124,8 @@ def test_bad_config_is_refused_before_the_run_is_touched(scene, capsys, change, 
     key, and the run is left exactly as it was (issue 14, items 2-4)."""
     cfg = config_file(scene, "bad", change)
     before = snapshot(scene["run"], scene["data"])
-    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", cfg, "--out", scene["run"],
+    rc, err = run_cli(["train", *PAPER_MLP,
+                       "--data", scene["data"], "--method", "nerf", "--config", cfg, "--out", scene["run"],
                        "--overwrite", "--quiet"], capsys)
     assert_one_line_error(rc, err, *names)
     assert snapshot(scene["run"], scene["data"]) == before
@@ -141,7 +145,7 @@ BAD_FLAGS = [
 @pytest.mark.parametrize("flags, names", [c[1:] for c in BAD_FLAGS], ids=[c[0] for c in BAD_FLAGS])
 def test_bad_train_flag_is_refused(scene, capsys, flags, names):
     before = snapshot(scene["run"], scene["data"])
-    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"],
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"],
                        "--out", scene["run"], "--overwrite", "--quiet", *flags], capsys)
     if flags[0] == "--steps" and flags[1] == "ten":  # argparse: usage line + error line, exit 2
         assert rc == 2 and "Traceback" not in err and "--steps" in err
@@ -160,7 +164,8 @@ def test_set_changes_the_config(scene, capsys, tmp_path):
                     "train": {"lr_init": 1e-3}}
     run = tmp_path / "run"
     # --config says 10 steps and log_every 5; --set wins for the keys it names
-    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
+    rc, err = run_cli(["train", *PAPER_MLP,
+                       "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
                        "--set", "train.max_steps=4", "--set", "train.log_every=2", "--set", "model.warp=log",
                        "--quiet"], capsys)
     assert rc == 0, err
@@ -173,7 +178,8 @@ def test_overwrite_never_clears_the_dataset(scene, capsys):
     """Issue 14, item 1: `train --data D --out D --overwrite` deleted D's depth/."""
     before = snapshot(scene["data"])
     for extra in ([], ["--overwrite"]):
-        rc, err = run_cli(["train", "--data", scene["data"], "--config", scene["cfg"], "--out", scene["data"],
+        rc, err = run_cli(["train", *PAPER_MLP,
+                           "--data", scene["data"], "--config", scene["cfg"], "--out", scene["data"],
                            "--quiet", *extra], capsys)
         assert_one_line_error(rc, err, str(scene["data"]))
     assert snapshot(scene["data"]) == before
@@ -189,7 +195,8 @@ def test_overwrite_never_clears_a_folder_that_is_not_a_run(scene, capsys, tmp_pa
     (other / "checkpoints").mkdir()
     before = snapshot(other)
     for extra in ([], ["--overwrite"]):
-        rc, err = run_cli(["train", "--data", scene["data"], "--config", scene["cfg"], "--out", other, "--quiet",
+        rc, err = run_cli(["train", *PAPER_MLP,
+                           "--data", scene["data"], "--config", scene["cfg"], "--out", other, "--quiet",
                            *extra], capsys)
         assert_one_line_error(rc, err, str(other), runs.RUN_MARKER)
     assert snapshot(other) == before
@@ -218,7 +225,8 @@ def test_overwrite_clears_only_the_runs_own_outputs(scene, capsys, tmp_path):
     run = tmp_path / "run"
     shutil.copytree(scene["run"], run)
     (run / "notes.txt").write_text("the user's own file")
-    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
+    rc, err = run_cli(["train", *PAPER_MLP,
+                       "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
                        "--steps", "5", "--overwrite", "--quiet"], capsys)
     assert rc == 0, err
     assert (run / "notes.txt").read_text() == "the user's own file"
@@ -227,7 +235,7 @@ def test_overwrite_clears_only_the_runs_own_outputs(scene, capsys, tmp_path):
 
 
 def test_rerun_of_a_finished_run_says_so(scene, capsys):
-    rc = cli.main(["train", "--data", str(scene["data"]), "--method", "nerf", "--config", str(scene["cfg"]),
+    rc = cli.main(["train", *PAPER_MLP, "--data", str(scene["data"]), "--method", "nerf", "--config", str(scene["cfg"]),
                    "--out", str(scene["run"]), "--quiet"])
     out = capsys.readouterr().out
     assert rc == 0 and "already trained to step 10" in out and "nan" not in out.lower(), out
@@ -236,7 +244,7 @@ def test_rerun_of_a_finished_run_says_so(scene, capsys):
 def test_out_is_a_file(scene, capsys, tmp_path):
     f = tmp_path / "a_file"
     f.write_text("keep me")
-    for argv in (["train", "--data", scene["data"], "--config", scene["cfg"], "--out", f, "--quiet"],
+    for argv in (["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", f, "--quiet"],
                  ["demo", "--out", f, "--quiet"]):
         rc, err = run_cli(argv, capsys)
         assert_one_line_error(rc, err, str(f))
@@ -260,7 +268,8 @@ def test_camera_far_outside_the_others(scene, capsys, tmp_path):
     meta = io.read_json(data / "transforms.json")
     meta["frames"][2]["transform_matrix"][0][3] = 1e30
     io.write_json(data / "transforms.json", meta)
-    rc, err = run_cli(["train", "--data", data, "--config", scene["cfg"], "--out", tmp_path / "run", "--quiet"],
+    rc, err = run_cli(["train", *PAPER_MLP,
+                       "--data", data, "--config", scene["cfg"], "--out", tmp_path / "run", "--quiet"],
                       capsys)
     assert_one_line_error(rc, err, Path(meta["frames"][2]["file_path"]).name)
     assert not (tmp_path / "run").exists()
@@ -278,7 +287,8 @@ def test_os_errors_are_one_line(scene, capsys, tmp_path, monkeypatch):
         return real(path, obj)
 
     monkeypatch.setattr(io, "write_json", full_disk)
-    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
+    rc, err = run_cli(["train", *PAPER_MLP,
+                       "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
                        "--quiet"], capsys)
     assert_one_line_error(rc, err, str(run / "config.json"), "No space left on device")
     monkeypatch.setattr(io, "write_json", real)
@@ -287,12 +297,14 @@ def test_os_errors_are_one_line(scene, capsys, tmp_path, monkeypatch):
         raise PermissionError(errno.EACCES, os.strerror(errno.EACCES), str(self))
 
     monkeypatch.setattr(Path, "mkdir", read_only)
-    rc, err = run_cli(["train", "--data", scene["data"], "--config", scene["cfg"], "--out", tmp_path / "ro" / "run",
+    rc, err = run_cli(["train", *PAPER_MLP,
+                       "--data", scene["data"], "--config", scene["cfg"], "--out", tmp_path / "ro" / "run",
                        "--quiet"], capsys)
     assert_one_line_error(rc, err, "Permission denied", "ro")
     monkeypatch.undo()
     # the run stopped by the full disk (marker and fingerprint written, no config.json) starts again
-    rc, err = run_cli(["train", "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
+    rc, err = run_cli(["train", *PAPER_MLP,
+                       "--data", scene["data"], "--method", "nerf", "--config", scene["cfg"], "--out", run,
                        "--steps", "5", "--quiet"], capsys)
     assert rc == 0, err
 
@@ -318,7 +330,8 @@ def test_eval_render_and_export_refuse_another_dataset(scene, capsys, tmp_path):
     before = snapshot(run)
     for argv in (["eval", "--run", run, "--quiet"], ["render", "--run", run, "--quiet"],
                  ["export", "--run", run, "--quiet", "--out", tmp_path / "export"],
-                 ["train", "--data", other, "--method", "nerf", "--config", scene["cfg"], "--out", run, "--quiet"]):
+                 ["train", *PAPER_MLP,
+                  "--data", other, "--method", "nerf", "--config", scene["cfg"], "--out", run, "--quiet"]):
         rc, err = run_cli(argv, capsys)
         assert_one_line_error(rc, err, runs.FINGERPRINT_FILE, "--allow-other-data", "10 frames of 40x30")
     assert snapshot(run) == before
@@ -333,9 +346,10 @@ def test_missing_files_and_unknown_commands(scene, capsys, tmp_path):
         (["eval", "--run", scene["run"], "--lpips-weights", tmp_path / "alex.npz"], ["alex.npz"]),
         (["eval", "--run", scene["run"], "--reference-ply", tmp_path / "tower.ply"], ["tower.ply"]),
         (["demo", "--data", tmp_path / "nope", "--out", tmp_path / "demo"], ["nope"]),
-        (["train", "--data", tmp_path / "nope", "--out", tmp_path / "r"], ["nope"]),
+        (["train", *PAPER_MLP, "--data", tmp_path / "nope", "--out", tmp_path / "r"], ["nope"]),
         (["mask", "--data", tmp_path / "nope", "--source", "gt"], ["nope"]),
-        (["train", "--data", scene["data"], "--config", tmp_path / "cfg.json", "--out", tmp_path / "r"], ["cfg.json"]),
+        (["train", *PAPER_MLP,
+          "--data", scene["data"], "--config", tmp_path / "cfg.json", "--out", tmp_path / "r"], ["cfg.json"]),
     ]
     before = snapshot(scene["run"], scene["data"])
     for argv, names in cases:
@@ -421,7 +435,8 @@ LLFF_CASES = [
 def test_bad_llff(scene, capsys, tmp_path, change, name):
     root = _llff(tmp_path, scene, change)
     before = snapshot(root)
-    rc, err = run_cli(["train", "--data", root, "--config", scene["cfg"], "--out", tmp_path / "run", "--quiet"], capsys)
+    rc, err = run_cli(["train", *PAPER_MLP,
+                       "--data", root, "--config", scene["cfg"], "--out", tmp_path / "run", "--quiet"], capsys)
     assert_one_line_error(rc, err, "poses_bounds.npy", name)
     assert snapshot(root) == before
 

@@ -13,6 +13,8 @@ from jaxnerf_grid.data.formats import save_transforms_json
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import TINY_FIELD, tiny_dataset  # noqa: E402
 
+# the paper's MLP setting, which TINY shrinks (`train` alone trains the grid recipe `ours`)
+PAPER_MLP = ["--recipe", "ours-paper-mlp"]
 TINY = {"model": {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8},
         "train": {"batch_rays": 64, "max_steps": 30, "checkpoint_every": 10, "log_every": 5, "warmup": 5,
                   "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256, "num_devices": 2}}
@@ -43,7 +45,7 @@ def test_train_render_eval(data_dir, tmp_path, capsys):
     cfg_file = tmp_path / "cfg.json"
     cfg_file.write_text(json.dumps(TINY))
     run = tmp_path / "run"
-    assert cli.main(["train", "--data", str(data_dir), "--method", "ours", "--config", str(cfg_file),
+    assert cli.main(["train", *PAPER_MLP, "--data", str(data_dir), "--method", "ours", "--config", str(cfg_file),
                      "--out", str(run), "--quiet"]) == 0
     saved = json.loads((run / "config.json").read_text())
     assert saved["model"]["method"] == "ours" and saved["model"]["warp"] == "disparity"
@@ -80,8 +82,9 @@ def test_train_render_eval(data_dir, tmp_path, capsys):
     assert cli.main(["eval", "--run", str(run), "--quiet", "--reference-ply", str(tmp_path / "no.ply")]) == 1
     assert "no.ply" in capsys.readouterr().err    # refused before rendering
     # resuming the finished run is a no-op; a different config is refused
-    assert cli.main(["train", "--data", str(data_dir), "--config", str(cfg_file), "--out", str(run), "--quiet"]) == 0
-    assert cli.main(["train", "--data", str(data_dir), "--method", "nerf", "--config", str(cfg_file),
+    assert cli.main(["train", *PAPER_MLP,
+                     "--data", str(data_dir), "--config", str(cfg_file), "--out", str(run), "--quiet"]) == 0
+    assert cli.main(["train", *PAPER_MLP, "--data", str(data_dir), "--method", "nerf", "--config", str(cfg_file),
                      "--out", str(run), "--quiet"]) == 1
     assert "different config" in capsys.readouterr().err
 
@@ -89,7 +92,8 @@ def test_train_render_eval(data_dir, tmp_path, capsys):
 def test_bad_config_key_is_one_line_error(data_dir, tmp_path, capsys):
     bad = tmp_path / "bad.json"
     bad.write_text(json.dumps({"model": {"num_corase": 4}}))
-    assert cli.main(["train", "--data", str(data_dir), "--config", str(bad), "--out", str(tmp_path / "r")]) == 1
+    assert cli.main(["train", *PAPER_MLP,
+                     "--data", str(data_dir), "--config", str(bad), "--out", str(tmp_path / "r")]) == 1
     assert "num_corase" in capsys.readouterr().err
 
 

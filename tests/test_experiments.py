@@ -1,4 +1,6 @@
-"""Smoke test of experiments/common.py (imported as the package `experiments`): toy scene -> mask variants -> train + eval -> resume/skip -> tables.
+"""Smoke test of the experiments' machinery (settings, scenes, runner, tables, figures).
+
+Toy scene -> mask variants -> train + eval -> resume/skip -> tables.
 
 No numeric claims about the NeRF (3 steps of a tiny model); the checks are on the machinery:
 variants share the scene's images, the mask IoU of ground-truth masks is 1, a finished run
@@ -14,7 +16,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from experiments import common
+from experiments import figures, runner, scenes, settings, tables
+from jaxnerf_grid import config, recipes
+from jaxnerf_grid.config import merge
 
 TINY = {"model": {"field": {"depth": 1, "width": 16, "skip": 0, "pos_max_deg": 2, "dir_max_deg": 1, "view_width": 8},
                   "num_coarse": 4, "num_fine": 4},
@@ -22,15 +26,15 @@ TINY = {"model": {"field": {"depth": 1, "width": 16, "skip": 0, "pos_max_deg": 2
 
 
 def test_machinery_end_to_end(tmp_path, monkeypatch):
-    monkeypatch.setitem(common.TRAIN_SETTINGS, "quick", {"steps": 3, "seeds": 1, "distractor_views": 1,
+    monkeypatch.setitem(settings.TRAIN_SETTINGS, "quick", {"steps": 3, "seeds": 1, "distractor_views": 1,
                                                         "overrides": TINY})
-    monkeypatch.setitem(common.SCENE_SIZES, "quick", {"tower-small": (24, 16, 2, 1, 1)})
-    ctx = common.Context("quick", 1, 3, tmp_path / "cache", tmp_path / "results", None, None, False, "test")
-    ctx.machine = common.machine_info()
+    monkeypatch.setitem(settings.SCENE_SIZES, "quick", {"tower-small": (24, 16, 2, 1, 1)})
+    ctx = runner.Context("quick", 1, 3, tmp_path / "cache", tmp_path / "results", None, None, False, "test")
+    ctx.machine = runner.machine_info()
 
-    scene = common.scene(ctx, "tower-small", 0, distractors="high")
-    variant = common.mask_variant(ctx, scene, "gt_binary", "gt", floor=1.0)
-    clean = common.clean_variant(ctx, scene)
+    scene = scenes.scene(ctx, "tower-small", 0, distractors="high")
+    variant = scenes.mask_variant(ctx, scene, "gt_binary", "gt", floor=1.0)
+    clean = scenes.clean_variant(ctx, scene)
     for v in (variant, clean):  # no image copied: every frame points back at the scene folder
         meta = json.loads((v / "transforms.json").read_text())
         assert all(f["file_path"].startswith("../../scenes/") for f in meta["frames"])
@@ -38,43 +42,69 @@ def test_machinery_end_to_end(tmp_path, monkeypatch):
     clean_meta = json.loads((clean / "transforms.json").read_text())
     assert all("/clean/" in f["file_path"] for f in clean_meta["frames"] if "clean_file_path" in f)
 
-    iou = common.mask_iou(variant)  # ground-truth masks against the ground truth they came from
+    iou = scenes.mask_iou(variant)  # ground-truth masks against the ground truth they came from
     if iou["gt_pixels"] > 0:
         assert iou["iou"] == 1.0
 
-    rec = common.run_condition(ctx, variant, "ours", 0, "smoke", {"train": {"use_masks": True}})
+    rec = runner.run_condition(ctx, variant, "ours", 0, "smoke", {"train": {"use_masks": True}})
     assert not rec["cached"] and (Path(rec["run_dir"]) / "metrics.json").is_file()
     assert np.isfinite(rec["metrics"]["mean"]["psnr"]) and rec["samples_per_ray"] == 8
     mtime = os.path.getmtime(Path(rec["run_dir"]) / "metrics.json")
-    again = common.run_condition(ctx, variant, "ours", 0, "other-label", {"train": {"use_masks": True}})
+    again = runner.run_condition(ctx, variant, "ours", 0, "other-label", {"train": {"use_masks": True}})
     assert again["cached"] and again["run_dir"] == rec["run_dir"]
     assert os.path.getmtime(Path(rec["run_dir"]) / "metrics.json") == mtime
 
     fake = dict(rec, seed=1, metrics=dict(rec["metrics"], mean=dict(rec["metrics"]["mean"], psnr=10.0)))
-    agg = common.aggregate([rec, fake, None], {"mask_iou": [0.2, 0.4, None]})
+    agg = tables.aggregate([rec, fake, None], {"mask_iou": [0.2, 0.4, None]})
     vals = [rec["metrics"]["mean"]["psnr"], 10.0]
     assert agg["n"] == 2 and agg["psnr"]["values"] == vals
     assert abs(agg["psnr"]["std"] - np.std(vals)) < 1e-12 and abs(agg["mask_iou"]["mean"] - 0.3) < 1e-12
 
     base = {"seeds": [1, 0], "psnr": {"values": [9.0, vals[0] - 0.5]}}  # paired by seed, not by position
-    common.add_paired_delta(agg, base)
+    tables.add_paired_delta(agg, base)
     assert np.allclose(agg["delta_psnr"]["values"], [0.5, 1.0])
 
-    lines = common.markdown_table([("a", agg), ("b", None)], [("psnr", "PSNR", 2)])
+    lines = tables.markdown_table([("a", agg), ("b", None)], [("psnr", "PSNR", 2)])
     assert lines[2].startswith("| a | 2 |") and "±" in lines[2] and "not run" in lines[3]
-    common.write_results(ctx, "smoke", "Smoke", {"rows": []}, lines, ["note"])
+    tables.write_results(ctx, "smoke", "Smoke", {"rows": []}, lines, ["note"])
     assert json.loads((ctx.results / "smoke.json").read_text())["command"] == "test"
     assert "LPIPS unavailable" in (ctx.results / "smoke.md").read_text()
 
-    img = common.line_plot([{"label": "a", "x": [16, 32], "y": [20.0, 21.0]},
+    img = figures.line_plot([{"label": "a", "x": [16, 32], "y": [20.0, 21.0]},
                             {"label": "b", "x": [16, 32], "y": [19.0, 22.0], "dashed": True}], "x", "y", "t")
     assert img.shape == (480, 760, 3) and img.min() < 0.5  # something was drawn
-    common.write_figure(ctx, "plot", img)
+    assert has_colour(img, C0) and has_colour(img, C1)  # both series, in matplotlib's first two colours
+    figures.write_figure(ctx, "plot", img)
     assert (ctx.results / "plot.png").stat().st_size > 0
 
     ctx.budget_s = 0.0  # out of budget: an unfinished condition is not started, and says so
-    assert common.run_condition(ctx, variant, "ours", 5, "late") is None
+    assert runner.run_condition(ctx, variant, "ours", 5, "late") is None
     assert ctx.not_run == ["late seed 5"]
+
+
+C0, C1 = (0x1F, 0x77, 0xB4), (0xFF, 0x7F, 0x0E)  # matplotlib's default first two line colours
+
+
+def has_colour(img: np.ndarray, rgb: tuple, pixels: int = 20) -> bool:
+    """At least `pixels` pixels of img [H, W, 3] in [0, 1] within 2/255 of the 8-bit colour rgb."""
+    return int(np.sum(np.all(np.abs(img * 255 - np.asarray(rgb)) <= 2, axis=-1))) >= pixels
+
+
+def test_sampling_figure_is_redrawn_from_its_results_file(tmp_path):
+    """`benchmarks.sampling_schemes --replot`: the PNG from the JSON alone, one line per scheme
+    that has cells (linear in C0, disparity in C1), nothing for a scheme without any."""
+    from benchmarks import sampling_schemes as bench
+    from jaxnerf_grid import io
+
+    cell = lambda v: {"n": 1, "seeds": [0], "psnr": {"mean": v, "std": 0.1, "values": [v]}}  # noqa: E731
+    rows = [{"scheme": "linear + proposal", "samples_per_ray": n, "aggregate": cell(20.0 + n / 16)} for n in (8, 16)]
+    body = {"samples": [8, 16], "settings": {"setting": "standard", "steps": 10}, "rows": rows}
+    io.write_json(tmp_path / "sampling_schemes.json", body)
+    img = io.read_image(bench.replot(tmp_path))
+    assert img.shape == (480, 760, 3) and has_colour(img, C0) and not has_colour(img, C1)
+    rows += [{"scheme": "disparity + proposal", "samples_per_ray": 8, "aggregate": cell(21.0)}]
+    io.write_json(tmp_path / "sampling_schemes.json", body)
+    assert has_colour(io.read_image(bench.replot(tmp_path)), C1)
 
 
 def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
@@ -84,10 +114,10 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     weights.mkdir()
     (weights / "config.json").write_text("{}")
     (weights / "params.safetensors").write_bytes(b"old")
-    before = common.weights_digest(weights)
-    assert common.weights_digest(weights) == before  # stable
+    before = scenes.weights_digest(weights)
+    assert scenes.weights_digest(weights) == before  # stable
     (weights / "params.safetensors").write_bytes(b"new")
-    assert common.weights_digest(weights) != before
+    assert scenes.weights_digest(weights) != before
 
     calls = []
     from jaxnerf_grid import masking
@@ -97,40 +127,40 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     scene = tmp_path / "scene"
     scene.mkdir()
     (scene / "transforms.json").write_text(json.dumps({"frames": []}))
-    ctx = common.Context("quick", 1, 3, tmp_path / "cache", tmp_path / "results", None, None, False, "test")
-    out = common.mask_variant(ctx, scene, "dpt_builtin_eq7", "dpt")
-    assert out.name == f"scene__dpt_builtin_eq7_{common.weights_digest(weights)}" and len(calls) == 1
+    ctx = runner.Context("quick", 1, 3, tmp_path / "cache", tmp_path / "results", None, None, False, "test")
+    out = scenes.mask_variant(ctx, scene, "dpt_builtin_eq7", "dpt")
+    assert out.name == f"scene__dpt_builtin_eq7_{scenes.weights_digest(weights)}" and len(calls) == 1
     assert calls[0]["dilate"] == 0
-    gt = common.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
+    gt = scenes.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
     assert gt.name == "scene__gt_eq7"
     other = tmp_path / "crossover"  # a DPT given by folder (Table 4's) is keyed on its bytes too
     other.mkdir()
     (other / "params.safetensors").write_bytes(b"crossover")
-    out = common.mask_variant(ctx, scene, "dpt_from_x", "dpt", weights=str(other))
-    assert out.name == f"scene__dpt_from_x_{common.weights_digest(other)}" and len(calls) == 3
+    out = scenes.mask_variant(ctx, scene, "dpt_from_x", "dpt", weights=str(other))
+    assert out.name == f"scene__dpt_from_x_{scenes.weights_digest(other)}" and len(calls) == 3
     from experiments import table1_foreground as t1  # Table 1's dilated row asks write_masks for --dilate 2
 
     monkeypatch.setattr(t1, "builtin_available", lambda: True)
-    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 0.5, "recall": 0.8})
+    monkeypatch.setattr(scenes, "mask_iou", lambda v, split="train": {"iou": 0.5, "recall": 0.8})
     data, ov, stats = t1.condition_data(ctx, scene, t1.DILATED)
     assert stats["recall"] == 0.8
     assert calls[-1]["dilate"] == 2 and "dilate2" in data.name and ov == {"train": {"use_masks": True}}
     # --dpt-weights: the DPT rows mask with that model, under a name keyed on its bytes
     data, _, _ = t1.condition_data(ctx, scene, "built-in DPT masks + Eq. 7", str(other))
     assert calls[-1]["weights"] == str(other) and calls[-1]["dilate"] == 0
-    assert data.name == f"scene__dpt_builtin_eq7_{common.weights_digest(other)}"
+    assert data.name == f"scene__dpt_builtin_eq7_{scenes.weights_digest(other)}"
 
 
 def test_verdict_follows_the_stated_rule():
     """The verdict on a paired effect, case by case against VERDICT_RULE's wording."""
     cell = lambda *v: {"mean": float(np.mean(v)), "std": float(np.std(v)), "values": list(v)}  # noqa: E731
-    assert common.verdict(cell(2.0, 1.5, 1.2), 2.22) == "reproduced"      # all > 0, mean 1.57 >= 1.11
-    assert common.verdict(cell(1.0, 1.2, 1.1), 2.22) == "partly"          # all > 0, mean 1.1 < 1.11
-    assert common.verdict(cell(3.0, 2.0, -0.1), 2.22) == "partly"         # a seed not positive
-    assert common.verdict(cell(3.0, -0.5, -0.1), 2.22) == "not reproduced"  # 1 of 3 positive
-    assert common.verdict(cell(-0.2, 0.1, 0.05), 2.22) == "not reproduced"  # mean <= 0
-    assert common.verdict(None, 2.22) == "not run"
-    line = common.claim_line("x", cell(2.0, 1.5, 1.2), 2.22)
+    assert tables.verdict(cell(2.0, 1.5, 1.2), 2.22) == "reproduced"      # all > 0, mean 1.57 >= 1.11
+    assert tables.verdict(cell(1.0, 1.2, 1.1), 2.22) == "partly"          # all > 0, mean 1.1 < 1.11
+    assert tables.verdict(cell(3.0, 2.0, -0.1), 2.22) == "partly"         # a seed not positive
+    assert tables.verdict(cell(3.0, -0.5, -0.1), 2.22) == "not reproduced"  # 1 of 3 positive
+    assert tables.verdict(cell(-0.2, 0.1, 0.05), 2.22) == "not reproduced"  # mean <= 0
+    assert tables.verdict(None, 2.22) == "not run"
+    line = tables.claim_line("x", cell(2.0, 1.5, 1.2), 2.22)
     assert "+2.22" in line and "+1.57" in line and "reproduced" in line
 
 
@@ -142,8 +172,8 @@ def test_standard_setting_is_one_recipe_for_every_method():
     from jaxnerf_grid import train
     from jaxnerf_grid.data import synthetic
 
-    ov = common.TRAIN_SETTINGS["standard"]["overrides"]
-    cfgs = {m: train.make_config(m, common.merge(ov, common.space_overrides("standard", m)))
+    ov = settings.TRAIN_SETTINGS["standard"]["overrides"]
+    cfgs = {m: train.make_config(m, merge(ov, settings.space_overrides("standard", m)))
             for m in ("ours", "nerf", "nerfw")}
     for cfg in cfgs.values():
         assert cfg.model.field.kind == "grid" and cfg.model.sampler == "proposal"
@@ -159,14 +189,38 @@ def test_standard_setting_is_one_recipe_for_every_method():
         assert not model.use_contraction and model.warp == "linear" and not cfgs[m].train.use_masks
         assert model.encoding_scale >= model.far + farthest
     # Table 2's rows without contraction get the bounded space too; rows with it do not
-    assert common.space_overrides("standard", "ours", {"model": {"use_contraction": False}})["model"]["far"] == 40.0
-    assert common.space_overrides("standard", "ours", {"model": {"use_contraction": True}}) == {}
-    assert common.space_overrides("quick", "nerf") == {}
+    assert settings.space_overrides("standard", "ours", {"model": {"use_contraction": False}})["model"]["far"] == 40.0
+    assert settings.space_overrides("standard", "ours", {"model": {"use_contraction": True}}) == {}
+    assert settings.space_overrides("quick", "nerf") == {}
+    # every method at --standard is the recipe of its name (docs/RECIPES.md) at the setting's steps
+    for m, cfg in cfgs.items():
+        assert config.to_dict(cfg) == config.to_dict(recipes.make_config(m, {"train": {"max_steps": 2000}}))
+    assert cfgs["ours"].train.max_steps == 2000  # RunConfig's; run_condition sets the setting's own
+
+
+def test_importing_the_experiments_changes_no_environment_variable():
+    """Only the scripts' entry points (`runner.cpu_defaults`) choose JAX's platform and devices."""
+    import subprocess
+    import sys
+
+    env = {k: v for k, v in os.environ.items() if k not in ("JAX_PLATFORMS", "XLA_FLAGS")}
+    code = ("import os, sys; before = dict(os.environ)\n"
+            "import experiments.table1_foreground, experiments.table2_farview, experiments.table3_methods, "
+            "experiments.table4_crossover, experiments.mask_tiling, experiments.paired_rows, "
+            "benchmarks.sampling_schemes\n"
+            "assert dict(os.environ) == before, set(os.environ) ^ set(before)\n"
+            "import jax\n"
+            "from experiments import runner\n"
+            "runner.cpu_defaults()\n"
+            "print(os.environ['JAX_PLATFORMS'], os.environ['XLA_FLAGS'], jax.config.jax_platforms)\n")
+    out = subprocess.run([sys.executable, "-c", code], env=env, cwd=settings.ROOT, capture_output=True, text=True)
+    assert out.returncode == 0, out.stderr
+    assert out.stdout.split() == ["cpu", "--xla_force_host_platform_device_count=2", "cpu"]
 
 
 def test_not_run_text_names_each_label_once_by_the_seeds_it_misses():
     entries = ["a seed 0", "b seed 0", "a seed 1", "c-d seed 2", "b seed 1", "e seed 0", "a seed 2"]
-    assert common.not_run_text(entries) == "seeds 0, 1, 2: a; seeds 0, 1: b; seed 0: e; seed 2: c-d"
+    assert tables.not_run_text(entries) == "seeds 0, 1, 2: a; seeds 0, 1: b; seed 0: e; seed 2: c-d"
 
 
 def test_samples_to_reach_its_own_best():
@@ -229,12 +283,13 @@ def _fake_tables(monkeypatch, tmp_path, psnr_of):
         return {"seed": seed, "run_dir": str(tmp_path / f"{label}-{seed}"), "metrics": metrics,
                 "seconds_per_step": 0.1}
 
-    monkeypatch.setattr(common, "run_condition", run_condition)
-    monkeypatch.setattr(common, "scene", lambda ctx, preset, seed, distractors=None, size=None: tmp_path / preset)
-    monkeypatch.setattr(common, "mask_variant", lambda ctx, scene_dir, name, *a, **k: tmp_path / f"{scene_dir.name}-{name}")
-    monkeypatch.setattr(common, "clean_variant", lambda ctx, scene_dir: tmp_path / f"{scene_dir.name}-clean")
-    monkeypatch.setattr(common, "mask_iou", lambda v, split="train": {"iou": 1.0, "precision": 1.0, "recall": 0.75})
-    monkeypatch.setattr(common, "enable_compile_cache", lambda path=None: None)
+    monkeypatch.setattr(runner, "run_condition", run_condition)
+    monkeypatch.setattr(scenes, "scene", lambda ctx, preset, seed, distractors=None, size=None: tmp_path / preset)
+    monkeypatch.setattr(scenes, "mask_variant",
+                        lambda ctx, scene_dir, name, *a, **k: tmp_path / f"{scene_dir.name}-{name}")
+    monkeypatch.setattr(scenes, "clean_variant", lambda ctx, scene_dir: tmp_path / f"{scene_dir.name}-clean")
+    monkeypatch.setattr(scenes, "mask_iou", lambda v, split="train": {"iou": 1.0, "precision": 1.0, "recall": 0.75})
+    monkeypatch.setattr(runner, "enable_compile_cache", lambda path=None: None)
 
 
 def test_tables_turn_known_runs_into_the_right_claims(tmp_path, monkeypatch):
@@ -341,18 +396,18 @@ def test_train_only_trains_the_chosen_runs_and_reads_the_others_from_the_cache(t
 
     monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluate_run)
     monkeypatch.setattr("jaxnerf_grid.data.formats.load_dataset", lambda data, progress=False: None)
-    monkeypatch.setattr(common, "enable_compile_cache", lambda path=None: None)
-    monkeypatch.setattr(common, "seconds_per_step", lambda run_dir, batch: 0.1)
-    args = common.base_parser("t").parse_args(["--standard", "--cache", str(tmp_path / "cache"), "--results",
+    monkeypatch.setattr(runner, "enable_compile_cache", lambda path=None: None)
+    monkeypatch.setattr(runner, "seconds_per_step", lambda run_dir, batch: 0.1)
+    args = runner.base_parser("t").parse_args(["--standard", "--cache", str(tmp_path / "cache"), "--results",
                                               str(tmp_path / "out"), "--quiet", "--train-only", "seed 1$"])
-    ctx = common.make_context(args, "table_x.py")
+    ctx = runner.make_context(args, "table_x.py")
     data = tmp_path / "scene"
-    assert common.run_condition(ctx, data, "ours", 0, "t9-a") is None
+    assert runner.run_condition(ctx, data, "ours", 0, "t9-a") is None
     assert ctx.not_run == ["t9-a seed 0"] and trained == []
-    got = common.run_condition(ctx, data, "ours", 1, "t9-a")
+    got = runner.run_condition(ctx, data, "ours", 1, "t9-a")
     assert got["metrics"]["mean"]["psnr"] == 20.0 and not got["cached"] and len(trained) == 1
     ctx.train_only = "nothing matches this"
-    again = common.run_condition(ctx, data, "ours", 1, "t9-a")
+    again = runner.run_condition(ctx, data, "ours", 1, "t9-a")
     assert again["cached"] and len(trained) == 1 and ctx.not_run == ["t9-a seed 0"]
 
 
@@ -382,37 +437,37 @@ def test_recorded_runs_stand_in_for_a_lost_cache(tmp_path, monkeypatch):
     monkeypatch.setattr(runs, "train_run", fake_train_run)
     monkeypatch.setattr(evaluate, "evaluate_run", fake_evaluate_run)
     monkeypatch.setattr("jaxnerf_grid.data.formats.load_dataset", lambda data, progress=False: None)
-    monkeypatch.setattr(common, "enable_compile_cache", lambda path=None: None)
-    monkeypatch.setattr(common, "seconds_per_step", lambda run_dir, batch: 0.1)
-    monkeypatch.setattr(common, "RESULTS", tmp_path / "results")  # not the repository's committed results
-    monkeypatch.setattr(common, "BENCH_RESULTS", tmp_path / "bench-results")
+    monkeypatch.setattr(runner, "enable_compile_cache", lambda path=None: None)
+    monkeypatch.setattr(runner, "seconds_per_step", lambda run_dir, batch: 0.1)
+    monkeypatch.setattr(settings, "RESULTS", tmp_path / "results")  # not the repository's committed results
+    monkeypatch.setattr(settings, "BENCH_RESULTS", tmp_path / "bench-results")
 
     def context(cache, *extra):
-        args = common.base_parser("t").parse_args(["--standard", "--cache", str(tmp_path / cache), "--results",
+        args = runner.base_parser("t").parse_args(["--standard", "--cache", str(tmp_path / cache), "--results",
                                                   str(tmp_path / "out"), "--quiet", *extra])
-        return common.make_context(args, "table_x.py")
+        return runner.make_context(args, "table_x.py")
 
     data, other = tmp_path / "scene", tmp_path / "other-scene"
     ctx = context("cache-a")
-    first = common.aggregate([common.run_condition(ctx, data, "ours", s, "t9-a") for s in (0, 1)])
-    common.write_results(ctx, "table_x", "T", {"rows": [{"condition": "a", "aggregate": first}]}, [], [])
+    first = tables.aggregate([runner.run_condition(ctx, data, "ours", s, "t9-a") for s in (0, 1)])
+    tables.write_results(ctx, "table_x", "T", {"rows": [{"condition": "a", "aggregate": first}]}, [], [])
     assert len(trained) == 2
 
     ctx = context("cache-b", "--train-only", "nothing matches this")  # the clone: an empty cache
-    recs = [common.run_condition(ctx, data, "ours", s, "t9-a") for s in (0, 1)]
-    again = common.aggregate(recs)
+    recs = [runner.run_condition(ctx, data, "ours", s, "t9-a") for s in (0, 1)]
+    again = tables.aggregate(recs)
     assert len(trained) == 2 and ctx.not_run == [] and len(ctx.restored) == 2
     for k in ("psnr", "ssim", "psnr_tower", "psnr_far_background", "geometry_f", "seconds_per_step", "wall_s"):
         assert again[k]["values"] == first[k]["values"], k
     assert again["psnr"]["values"] == [20.0, 21.5] and again["seeds"] == [0, 1]
-    assert again["runs"] == [str(Path(r).relative_to(common.ROOT)) if Path(r).is_relative_to(common.ROOT) else r
+    assert again["runs"] == [str(Path(r).relative_to(settings.ROOT)) if Path(r).is_relative_to(settings.ROOT) else r
                              for r in first["runs"]]
     # not recorded: another seed, or the same seed on another dataset (another run key)
-    assert common.run_condition(ctx, data, "ours", 2, "t9-a") is None
-    assert common.run_condition(ctx, other, "ours", 0, "t9-a") is None
+    assert runner.run_condition(ctx, data, "ours", 2, "t9-a") is None
+    assert runner.run_condition(ctx, other, "ours", 0, "t9-a") is None
     assert ctx.not_run == ["t9-a seed 2", "t9-a seed 0"]
     # the written table says how many of its runs came from a results file
-    common.write_results(ctx, "table_y", "T", {"rows": []}, [], [])
+    tables.write_results(ctx, "table_y", "T", {"rows": []}, [], [])
     assert json.loads((tmp_path / "out" / "table_y.json").read_text())["runs_from_results_files"] == sorted(again["runs"])
 
     # a metric with a value missing cannot be assigned to runs: it is left out, the others stay
@@ -425,7 +480,7 @@ def test_recorded_runs_stand_in_for_a_lost_cache(tmp_path, monkeypatch):
     assert all("ssim" not in r["metrics"]["mean"] and "psnr" in r["metrics"]["mean"] for r in rec.values())
 
     ctx = context("cache-d", "--ignore-recorded")
-    assert common.run_condition(ctx, data, "ours", 0, "t9-a")["cached"] is False and len(trained) == 3
+    assert runner.run_condition(ctx, data, "ours", 0, "t9-a")["cached"] is False and len(trained) == 3
 
 
 def test_recorded_runs_prefer_the_newest_file_and_read_nested_aggregates(tmp_path):
@@ -439,7 +494,7 @@ def test_recorded_runs_prefer_the_newest_file_and_read_nested_aggregates(tmp_pat
     (tmp_path / "old.json").write_text(json.dumps(results("2026-11-20T00:00:00Z", 21.0)))
     (tmp_path / "new.json").write_text(json.dumps(results("2026-11-22T00:00:00Z", 22.0, nested=True)))
     (tmp_path / "notes.json").write_text("not json")  # a stray file is skipped, not fatal
-    got = common.recorded_runs([tmp_path])
+    got = runner.recorded_runs([tmp_path])
     assert list(got) == [(3, "0123456789")]
     assert got[(3, "0123456789")]["metrics"]["mean"]["psnr"] == 22.0
     assert got[(3, "0123456789")]["label"] == "t9-b"

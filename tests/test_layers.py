@@ -1,6 +1,6 @@
 """The import layers of docs/ARCHITECTURE.md, checked on the source (no module is imported).
 
-cli -> runs / evaluate / demo / masking -> train / views -> models -> fields / sampling / render /
+cli -> runs / evaluate / demo / masking / recipes -> train / views -> models -> fields / sampling / render /
 coords -> jax; data/ and dpt/ never import the NeRF side; config.py imports nothing of it; no
 module but the dispatcher reaches a cli module, and experiments/ and benchmarks/ call the library.
 """
@@ -11,8 +11,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxnerf_grid"
 NERF_SIDE = {"models", "fields", "sampling", "render", "coords", "losses", "optim", "checkpoint", "train",
-             "views", "runs", "evaluate", "demo", "export", "report"}
-LIBRARY_TOP = {"runs", "evaluate", "demo", "masking"}
+             "views", "runs", "evaluate", "demo", "export", "report", "recipes"}
+LIBRARY_TOP = {"runs", "evaluate", "demo", "masking", "recipes"}
 
 
 def imports_of(path: Path) -> set[str]:

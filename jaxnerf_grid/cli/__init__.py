@@ -18,11 +18,12 @@ SUBCOMMANDS = {
     "synth": ("jaxnerf_grid.cli.synth", "render the procedural tower benchmark scene"),
     "poses": ("jaxnerf_grid.cli.poses", "camera poses for a folder of photos (COLMAP via pycolmap)"),
     "mask": ("jaxnerf_grid.cli.mask", "DPT foreground masks and weights for a dataset"),
-    "train": ("jaxnerf_grid.cli.train", "train a NeRF (ours | nerf | nerfw) on a dataset"),
+    "train": ("jaxnerf_grid.cli.train", "train a NeRF (a recipe: ours | ours-paper-mlp | nerf | nerfw) on a dataset"),
     "render": ("jaxnerf_grid.cli.render", "render views from a trained run"),
     "eval": ("jaxnerf_grid.cli.eval", "evaluate a trained run on its test views"),
     "export": ("jaxnerf_grid.cli.export", "metric mesh, point cloud and measurements of the tower"),
     "demo": ("jaxnerf_grid.cli.demo", "synthetic scene -> masks -> train -> render -> report"),
+    "recipes": ("jaxnerf_grid.cli.recipes", "the named training recipes, one line each"),
 }
 
 USAGE = "usage: jaxnerf-grid {" + ",".join(SUBCOMMANDS) + "} [options]\n\n" + "\n".join(

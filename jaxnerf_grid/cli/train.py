@@ -1,8 +1,14 @@
 """`jaxnerf-grid train`: train a NeRF on a dataset into a run directory (`runs.train_run`).
 
-    jaxnerf-grid train --data DIR --method ours|nerf|nerfw [--config FILE] [--set KEY=VALUE ...] [--out RUN]
+    jaxnerf-grid train --data DIR [--recipe NAME] [--method ours|nerf|nerfw] [--config FILE] [--set KEY=VALUE ...]
+                       [--out RUN]
                        [--steps N] [--overwrite] [--allow-other-data] [--eval]
                        [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
+
+The settings start from a recipe (`recipes`, docs/RECIPES.md; `jaxnerf-grid recipes` lists them):
+--recipe NAME, or with only --method M the recipe named M; neither: `ours`, the recipe that
+resolves the tower (the demo's). --method with --recipe trains that recipe's settings as method M.
+--config and --set are laid on top.
 """
 
 from __future__ import annotations
@@ -48,12 +54,18 @@ def exit_on_distributed_error(name: str, err) -> None:
 def build_parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="jaxnerf-grid train", description="train a NeRF on a dataset")
     p.add_argument("--data", required=True, help="dataset folder (transforms.json, COLMAP, LLFF, Blender)")
-    p.add_argument("--method", choices=["ours", "nerf", "nerfw"], default="ours")
-    p.add_argument("--config", default=None, help="JSON file overriding defaults ({'model': {...}, 'train': {...}})")
+    p.add_argument("--recipe", default=None, metavar="NAME",
+                   help="the settings to start from (`jaxnerf-grid recipes` lists them; default: the recipe named "
+                        "by --method, else ours, the recipe that resolves the tower)")
+    p.add_argument("--method", choices=["ours", "nerf", "nerfw"], default=None,
+                   help="the method (contraction, warp, masks, NeRF-W's embeddings); alone it picks the recipe of "
+                        "its name; with --recipe it replaces the recipe's method")
+    p.add_argument("--config", default=None,
+                   help="JSON file laid over the recipe ({'model': {...}, 'train': {...}})")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="one config value, dotted key, JSON value (e.g. model.warp=log, train.batch_rays=2048, "
                         "model.proposal_samples=[64,32]); repeatable; applied after --config")
-    p.add_argument("--out", default=None, help="run directory (default runs/<method>)")
+    p.add_argument("--out", default=None, help="run directory (default runs/<recipe>)")
     p.add_argument("--steps", type=int, default=None, help="override train.max_steps")
     p.add_argument("--overwrite", action="store_true",
                    help="start the run again if it exists (clears only the run's own outputs)")
@@ -78,12 +90,14 @@ def train_summary(cfg, result, run_dir) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     multi = start_distributed(args)
-    from jaxnerf_grid import distributed, evaluate, runs
+    from jaxnerf_grid import config as config_lib, distributed, evaluate, recipes, runs
 
-    out = args.out or f"runs/{args.method}"
-    overrides = runs.overrides_with_sets(runs.read_overrides(args.config), args.set)
+    recipe, method = recipes.resolve(args.recipe, args.method)
+    out = args.out or f"runs/{recipe}"
+    overrides = config_lib.merge(recipes.overrides(recipe), runs.read_overrides(args.config))
+    overrides = runs.overrides_with_sets(overrides, args.set)
     try:
-        run_dir, cfg, result = runs.train_run(args.data, args.method, out, overrides, args.steps, args.overwrite,
+        run_dir, cfg, result = runs.train_run(args.data, method, out, overrides, args.steps, args.overwrite,
                                               not args.quiet, allow_other_data=args.allow_other_data)
     except distributed.DistributedError as err:
         exit_on_distributed_error("train", err)
