@@ -624,3 +624,22 @@ def test_normalize_orbit_closed_forms():
     far_points = TARGET + 50.0 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)  # background only
     _, norm = normalize_orbit(views, far_points)
     assert norm["scale"] == pytest.approx(3.0 / np.median(dist))
+
+
+def test_strecha_cameras_reads_the_surveyed_format(tmp_path):
+    """benchmarks.poses_accuracy.strecha_cameras on a hand-written `.camera` file (K, distortion,
+    R camera-to-world with OpenCV axes, centre, size): the centre is the camera's position and a
+    point 5 m along R's third column (OpenCV's viewing axis) lies 5 m down the OpenGL -z axis."""
+    from benchmarks.poses_accuracy import strecha_cameras
+
+    a = np.radians(30.0)
+    rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]) @ \
+        np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    centre = np.array([-7.25, -7.5, 0.2])
+    rows = ["2759.48 0 1520.69", "0 2764.16 1006.81", "0 0 1", "0 0 0",
+            *(" ".join(f"{v:.17g}" for v in row) for row in rot), " ".join(f"{v:g}" for v in centre), "3072 2048"]
+    (tmp_path / "0000.jpg.camera").write_text("\n".join(rows) + "\n")
+    c2w = strecha_cameras(tmp_path)["0000.jpg"]
+    np.testing.assert_allclose(c2w[:3, 3], centre)
+    ahead = np.linalg.inv(c2w) @ np.append(centre + 5.0 * rot[:, 2], 1.0)
+    np.testing.assert_allclose(ahead[:3], [0.0, 0.0, -5.0], atol=1e-9)
