@@ -11,8 +11,9 @@ The rule:
 - region of interest (ROI): a sphere centred on the point the cameras look at (the
   least-squares point nearest every optical axis, `normalize.scene_center`), of radius the
   ROI_PERCENTILE-th percentile of the points' distances to that centre, at most
-  ROI_CAMERA_FRACTION of the median camera distance: `normalize.normalize_orbit`'s rule, so in a
-  dataset written by `poses` the ROI is the unit sphere (centre 0, radius 1);
+  ROI_CAMERA_FRACTION of the median camera distance (`normalize.orbit_roi`, the rule
+  `normalize.normalize_orbit` scales to the unit sphere, so in a dataset written by `poses`
+  the ROI is the unit sphere: centre 0, radius 1);
 - near: NEAR_FACTOR x the distance from the nearest camera to the ROI sphere (rays start just
   short of where the ROI can begin; nearer things are outside it: birds, the ground under a low
   pass), and never below `points_near` (the dataset's own near: 0.9 x the 0.5th percentile of
@@ -30,7 +31,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxnerf_grid.data.normalize import scene_center
+from jaxnerf_grid.data.normalize import orbit_roi
 from jaxnerf_grid.io import DataError
 
 ROI_PERCENTILE = 95.0
@@ -42,19 +43,10 @@ BOUND_KEYS = ("near", "far", "contract_radius")
 
 
 def roi_sphere(c2w: np.ndarray, points: np.ndarray | None) -> tuple[np.ndarray, float]:
-    """(centre [3], radius) of the region of interest. c2w: [N, 3|4, 4] OpenGL; points:
-    optional [P, 3]. Without points the radius is the camera cap alone."""
-    c2w = np.asarray(c2w, np.float64)
-    pts = None if points is None or len(points) == 0 else np.asarray(points, np.float64).reshape(-1, 3)
-    centre = scene_center(c2w, pts, "cameras")
-    cap = ROI_CAMERA_FRACTION * float(np.median(np.linalg.norm(c2w[:, :3, 3] - centre, axis=-1)))
-    radius = cap
-    if pts is not None:
-        radius = float(np.percentile(np.linalg.norm(pts - centre, axis=-1), ROI_PERCENTILE))
-        radius = min(radius, cap) if cap > 0 else radius
-    if not np.isfinite(radius) or radius <= 1e-12:
-        radius = 1.0
-    return centre, radius
+    """(centre [3], radius) of the region of interest: `normalize.orbit_roi` with ROI_PERCENTILE
+    and ROI_CAMERA_FRACTION. c2w: [N, 3|4, 4] OpenGL; points: optional [P, 3]. Without points
+    the radius is the camera cap alone."""
+    return orbit_roi(c2w, points, percentile=ROI_PERCENTILE, camera_fraction=ROI_CAMERA_FRACTION)
 
 
 def far_for_radius(contract_radius: float) -> float:
