@@ -1,7 +1,8 @@
 """The demo: the CPU recipe (`DEMO_CONFIG`) end to end, as library calls.
 
 `run_demo(data, out)`: synthetic tower-small (when no data is given) -> masks (when the dataset
-has none; `masking.write_masks`) -> train the `ours` recipe (DEMO_CONFIG; `runs.train_run`) ->
+has none; `masking.write_masks`) -> train the `ours` recipe (DEMO_CONFIG; `runs.train_run`; near,
+far and contract_radius from the dataset's `scene_bounds` when it records them, `data.bounds`) ->
 evaluate (`evaluate.evaluate_run`). `demo_summary(result)` is its one-line summary.
 """
 
@@ -13,6 +14,7 @@ from pathlib import Path
 
 from jaxnerf_grid import evaluate, io, recipes, runs
 from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.data.bounds import bounds_line, read_bounds, recipe_with_bounds
 from jaxnerf_grid.io import DataError
 
 # The demo's recipe: `recipes.overrides("ours")`, the recipe that resolves the tower (docs/GRID.md,
@@ -106,6 +108,8 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     if not distributed.is_main():
         data = Path(data) if data is not None else out / "data"
         mask_source = None
+    bounds = read_bounds(_read_meta(data), data / "transforms.json")
+    recipe = runs.overrides_with_sets(recipe_with_bounds(DEMO_CONFIG, bounds), sets)
     t = time.perf_counter()
     run_dir, _, _ = runs.train_run(str(data), method, out / "run", recipe, steps, overwrite, progress)
     timings["train"] = time.perf_counter() - t
@@ -113,7 +117,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         return {"run_dir": run_dir, "metrics": None, "timings": timings,
                 "total_seconds": time.perf_counter() - start, "mask_source": mask_source}
     t = time.perf_counter()
-    notes = [_mask_note(mask_source),
+    notes = [_mask_note(mask_source), bounds_line(bounds),
              "Timings so far (s): " + ", ".join(f"{k} {v:.0f}" for k, v in timings.items())]
     metrics_out = evaluate.evaluate_run(run_dir, progress=progress, extra_notes=notes, distractor_views=2,
                                         cloud_views=DEMO_CLOUD_VIEWS)

@@ -55,10 +55,23 @@ _GRID = {
                         "dir_max_deg": 3, "density_activation": "exp", "density_bias": -4.0,
                         "grid": {"num_levels": 12, "features_per_level": 2, "log2_table_size": 17,
                                  "min_resolution": 16, "max_resolution": 1024}},
-              # The drone orbits 45-70 m (2.2-3.5 units) from the tower; with the dataset's near of
-              # 0.5 the disparity warp puts 3/4 of the samples in the empty first 2 units. Rays
-              # start at 1 unit (20 m): birds nearer than that are distractors, masked anyway.
-              # They end at 1000 units (20 km) in an opaque bin: the sky, at the far sphere.
+              # The three distances below are used as they are only for a dataset that records no
+              # `scene_bounds` (the synthetic tower); a dataset from `jaxnerf-grid poses` records
+              # them from its points and cameras and they replace these (data/bounds.py,
+              # docs/BOUNDS.md; the user's --set flags still win).
+              # near: the drone orbits 45-70 m (2.2-3.5 units) from the tower; with the dataset's
+              # near of 0.5 the disparity warp puts 3/4 of the samples in the empty first 2 units.
+              # Rays start at 1 unit (20 m): birds nearer than that are distractors, masked anyway.
+              # The data rule (0.9 x the nearest camera's distance to the unit sphere) gives 1.05
+              # on tower-small's cameras (its low pass, 2.16 units from the centre).
+              # far: 1000 units (20 km), an opaque bin: the sky, at the far sphere. Holds for any
+              # capture normalised so the region of interest is the unit ball: with contract_radius
+              # R = 2 a point 1000 units out is contracted to within 0.05 % of the outer radius R, so
+              # farther changes nothing (data.bounds.far_for_radius).
+              # contract_radius: not a distance in the scene but the outer radius of the contracted
+              # space (coords.contract keeps the unit ball, maps the rest into the shell 1..R); 2
+              # gives the background a shell as thick as the region of interest's radius, for any
+              # capture normalised that way.
               "near": 1.0, "far": 1000.0, "opaque_far": True},
     "train": {"batch_rays": 1024, "max_steps": 2400, "lr_init": 2e-2, "lr_final": 2e-3, "warmup": 50,
               "adam_eps": 1e-15, "adam_b2": 0.99, "max_grad_norm": 0.0, "distortion_loss_weight": 0.002,

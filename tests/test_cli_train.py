@@ -141,3 +141,28 @@ def test_demo_runs_the_recipe_on_a_given_dataset(data_dir, tmp_path, capsys):
     assert demo.DEMO_CONFIG["model"]["sampler"] == "proposal"
     assert cli.main(["demo", "--data", str(tmp_path / "missing"), "--out", str(tmp_path / "x")]) == 1
     assert "--data is not a folder" in capsys.readouterr().err
+
+
+def test_demo_takes_the_bounds_a_dataset_records(data_dir, tmp_path, capsys):
+    """A dataset with `scene_bounds` (docs/BOUNDS.md): its near / far / contract_radius replace the
+    recipe's, --set still wins, the report says where they came from; a bad record is a one-line
+    error naming the file and key."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(data_dir, data)
+    meta = io.read_json(data / "transforms.json")
+    meta["scene_bounds"] = {"near": 0.6, "far": 300.0, "contract_radius": 1.5, "roi_radius": 1.0,
+                            "roi_centre": [0.0, 0.0, 0.0], "nearest_camera_to_roi": 0.7}
+    io.write_json(data / "transforms.json", meta)
+    rc = cli.main(["demo", "--data", str(data), "--out", str(tmp_path / "demo"), "--steps", "1", "--quiet",
+                   "--set", "model.far=400"])
+    assert rc == 0, capsys.readouterr().err
+    cfg = io.read_json(tmp_path / "demo" / "run" / "config.json")
+    assert (cfg["model"]["near"], cfg["model"]["far"], cfg["model"]["contract_radius"]) == (0.6, 400.0, 1.5)
+    assert "Scene bounds from the data" in (tmp_path / "demo" / "run" / "report.md").read_text()
+    meta["scene_bounds"]["near"] = "close"
+    io.write_json(data / "transforms.json", meta)
+    assert cli.main(["demo", "--data", str(data), "--out", str(tmp_path / "demo2"), "--steps", "1", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and str(data / "transforms.json") in err and "scene_bounds.near" in err

@@ -22,8 +22,9 @@ from jaxnerf_grid import cli, io
 from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.normalize import normalize_orbit, rotate_scene, rotation_between, up_from_cameras
-from jaxnerf_grid.data.poses import (MARKER, crop_offsets, enough_registered, poses_agree, prepare_photo,
-                                    similarity_fit, working_size)
+from jaxnerf_grid.data import vetting
+from jaxnerf_grid.data.poses import (MARKER, REPORT, choose_model, crop_offsets, enough_registered, poses_agree,
+                                    prepare_photo, similarity_fit, working_size)
 
 W, H, FOCAL = 200, 150, 180.0
 RADIUS, HEIGHT, TARGET = 5.0, 2.5, np.array([0.0, 0.0, 0.8])
@@ -293,6 +294,102 @@ def test_poses_too_few_registered_keeps_old_data_dir(tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------------------
+# Vetting and scene bounds (data/vetting.py, data/bounds.py)
+
+
+def _turned_20_degrees(cam_from_world: np.ndarray) -> np.ndarray:
+    """A world-to-camera pose [3, 4] turned by 20 degrees about the camera's own y axis, the
+    centre kept."""
+    a = np.radians(20.0)
+    ry = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+    centre = -cam_from_world[:, :3].T @ cam_from_world[:, 3]
+    rot = ry @ cam_from_world[:, :3]
+    return np.concatenate([rot, -(rot @ centre)[:, None]], 1)
+
+
+def test_poses_vets_every_photo_and_records_bounds(orbit_run):
+    """Every registered photo is scored and kept; scene_bounds follow the rule's closed form on
+    the written cameras: the region of interest is the unit sphere about the origin (the orbit
+    normalisation), near = max(0.9 x (nearest camera distance - 1), the dataset's near)."""
+    out = orbit_run["out"]
+    top = io.read_json(out / "transforms.json")
+    vet = top["poses"]["vetting"]
+    assert vet["left_out"] == [] and vet["keep_all"] is False
+    assert sorted(r["name"] for r in vet["photos"]) == sorted(orbit_run["names"])
+    assert all(r["kept"] and r["reprojection_px"] < 1.0 and r["observations"] > 30 for r in vet["photos"])
+    centres = np.array([f["transform_matrix"] for f in top["frames"]])[:, :3, 3]
+    b = top["scene_bounds"]
+    assert np.linalg.norm(b["roi_centre"]) < 1e-6 and b["roi_radius"] == pytest.approx(1.0, rel=1e-6)
+    nearest = float(np.linalg.norm(centres, axis=1).min())
+    assert b["near"] == pytest.approx(max(0.9 * (nearest - 1.0), top["near"]), rel=1e-6)
+    assert (b["far"], b["contract_radius"]) == (1000.0, 2.0)
+    report = (out / REPORT).read_text()
+    assert all(f"| {n} |" in report for n in orbit_run["names"]) and "## Scene bounds" in report
+
+
+def test_vetting_catches_a_turned_camera_in_a_colmap_model(orbit_run):
+    """The orbit's COLMAP model: all kept; the same with one camera turned by 20 degrees: that
+    one is left out for its reprojection error, the others kept."""
+    pycolmap = pytest.importorskip("pycolmap")
+    rec = vetting.records_from_pycolmap(pycolmap.Reconstruction(orbit_run["out"] / "sparse" / "0"))
+    assert all(r["kept"] for r in vetting.vet(rec))
+    rec.cam_from_world[5] = _turned_20_degrees(rec.cam_from_world[5])
+    rows = vetting.vet(rec)
+    assert [r["name"] for r in rows if not r["kept"]] == [rec.names[5]]
+    assert "reprojection" in rows[5]["reasons"][0] and rows[5]["reprojection_px"] > 20
+
+
+def test_poses_leaves_out_a_wrong_camera_unless_keep_all(orbit_run, tmp_path, monkeypatch, capsys):
+    """COLMAP's model with view_05 turned by 20 degrees (planted in what the vetting reads): the
+    dataset leaves it out and the report says why; --keep-all keeps it."""
+    original = vetting.records_from_pycolmap
+
+    def planted(model):
+        rec = original(model)
+        i = rec.names.index("view_05.png")
+        rec.cam_from_world[i] = _turned_20_degrees(rec.cam_from_world[i])
+        return rec
+
+    monkeypatch.setattr(vetting, "records_from_pycolmap", planted)
+    out = tmp_path / "vetted"
+    code = cli.main(["poses", "--images", str(orbit_run["photos"]), "--out", str(out), "--single-camera", "--quiet"])
+    printed = capsys.readouterr().out
+    assert code == 0
+    top = io.read_json(out / "transforms.json")
+    assert len(top["frames"]) == NUM_VIEWS - 1 and "images/view_05.png" not in [f["file_path"] for f in top["frames"]]
+    assert not (out / "images" / "view_05.png").exists()
+    assert top["poses"]["vetting"]["left_out"] == ["view_05.png"] and top["poses"]["in_dataset"] == NUM_VIEWS - 1
+    row = next(line for line in (out / REPORT).read_text().splitlines() if line.startswith("| view_05.png |"))
+    assert "| no | reprojection" in row
+    assert "left out by the vetting (1; " in printed and "view_05.png (reprojection" in printed
+    kept = tmp_path / "kept"
+    code = cli.main(["poses", "--images", str(orbit_run["photos"]), "--out", str(kept), "--single-camera",
+                     "--keep-all", "--quiet"])
+    assert code == 0
+    top = io.read_json(kept / "transforms.json")
+    assert len(top["frames"]) == NUM_VIEWS and top["poses"]["vetting"]["left_out"] == []
+    assert "--keep-all" in (kept / REPORT).read_text()
+
+
+class _FakeModel:
+    def __init__(self, n):
+        self.n = n
+
+    def num_reg_images(self):
+        return self.n
+
+
+def test_choose_model_counts_only_vetted_photos():
+    """The relaxed model is taken only when it counts more photos; counted by the vetting, a
+    relaxed model with more registered but fewer vetted photos loses."""
+    default, relaxed = _FakeModel(5), _FakeModel(7)
+    assert choose_model(default, relaxed) is relaxed
+    vetted = {id(default): 5, id(relaxed): 4}
+    assert choose_model(default, relaxed, count=lambda m: vetted[id(m)]) is default
+    assert choose_model(None, relaxed, count=lambda m: vetted[id(m)]) is relaxed
+
+
+# ----------------------------------------------------------------------------------------
 # Bad input that is refused before COLMAP runs (no pycolmap needed)
 
 
@@ -527,3 +624,22 @@ def test_normalize_orbit_closed_forms():
     far_points = TARGET + 50.0 * dirs / np.linalg.norm(dirs, axis=1, keepdims=True)  # background only
     _, norm = normalize_orbit(views, far_points)
     assert norm["scale"] == pytest.approx(3.0 / np.median(dist))
+
+
+def test_strecha_cameras_reads_the_surveyed_format(tmp_path):
+    """benchmarks.poses_accuracy.strecha_cameras on a hand-written `.camera` file (K, distortion,
+    R camera-to-world with OpenCV axes, centre, size): the centre is the camera's position and a
+    point 5 m along R's third column (OpenCV's viewing axis) lies 5 m down the OpenGL -z axis."""
+    from benchmarks.poses_accuracy import strecha_cameras
+
+    a = np.radians(30.0)
+    rot = np.array([[np.cos(a), -np.sin(a), 0.0], [np.sin(a), np.cos(a), 0.0], [0.0, 0.0, 1.0]]) @ \
+        np.array([[1.0, 0.0, 0.0], [0.0, 0.0, 1.0], [0.0, -1.0, 0.0]])
+    centre = np.array([-7.25, -7.5, 0.2])
+    rows = ["2759.48 0 1520.69", "0 2764.16 1006.81", "0 0 1", "0 0 0",
+            *(" ".join(f"{v:.17g}" for v in row) for row in rot), " ".join(f"{v:g}" for v in centre), "3072 2048"]
+    (tmp_path / "0000.jpg.camera").write_text("\n".join(rows) + "\n")
+    c2w = strecha_cameras(tmp_path)["0000.jpg"]
+    np.testing.assert_allclose(c2w[:3, 3], centre)
+    ahead = np.linalg.inv(c2w) @ np.append(centre + 5.0 * rot[:, 2], 1.0)
+    np.testing.assert_allclose(ahead[:3], [0.0, 0.0, -5.0], atol=1e-9)

@@ -4,11 +4,13 @@ Python bindings, pycolmap), written as a dataset that `mask`, `train` and `demo 
 The work is `data.poses.poses_from_images`; this module parses the arguments.
 
     jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher exhaustive|sequential|vocab]
-                       [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--overwrite]
+                       [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--keep-all] [--overwrite]
 
 DATA_DIR gets images/ (the undistorted photos, same names), transforms.json (docs/DATASET.md,
 OpenGL camera-to-world, normalised for an orbit: z up, the looked-at point in the unit
-sphere), sparse/0 (the COLMAP model, z up) and poses_topview.png. Needs the `sfm` extra
+sphere, and the scene bounds), sparse/0 (the COLMAP model, z up), poses_topview.png and
+poses_report.md (the vetting table: registered photos that fail it are left out unless
+--keep-all). Needs the `sfm` extra
 (pycolmap); docs/POSES.md has the stages, the limits and measured times.
 """
 
@@ -36,6 +38,8 @@ def build_parser() -> argparse.ArgumentParser:
                    help="scale the photos so the longer side is at most N pixels (the dataset keeps this size)")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a DATA_DIR written by poses (its outputs only; other folders are refused)")
+    p.add_argument("--keep-all", action="store_true",
+                   help="keep every registered photo, also those the vetting would leave out (docs/POSES.md)")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 
@@ -46,7 +50,8 @@ def main(argv: list[str] | None = None) -> int:
 
     summary = poses_from_images(args.images, args.out, matcher=args.matcher, camera_model=args.camera_model,
                                 single_camera=args.single_camera, max_side=args.max_side,
-                                vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet)
+                                vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet,
+                                keep_all=args.keep_all)
     print(format_summary(summary))
     print(f"wrote {summary['transforms']}")
     return 0

@@ -284,6 +284,19 @@ def normalize_orbit(c2w: np.ndarray, points: np.ndarray | None = None, *, percen
     c2w = np.asarray(c2w, dtype=np.float64)
     if c2w.ndim != 3 or c2w.shape[1:] not in ((3, 4), (4, 4)) or len(c2w) == 0:
         raise DataError(f"normalize_orbit: c2w must be [N, 3|4, 4] with N > 0, got {c2w.shape}")
+    centre, radius = orbit_roi(c2w, points, percentile=percentile, camera_fraction=camera_fraction)
+    norm = {"scale": 1.0 / radius, "translation": [float(v) for v in -centre]}
+    return apply_normalization_to_poses(c2w, norm), norm
+
+
+def orbit_roi(c2w: np.ndarray, points: np.ndarray | None = None, *, percentile: float = 95.0,
+              camera_fraction: float = 1.0 / 3.0) -> tuple[np.ndarray, float]:
+    """The region of interest of an orbit, (centre [3], radius): the point the cameras look at
+    (`scene_center`, cameras method) and the `percentile`-th percentile of the points' distances
+    to it, capped at `camera_fraction` times the median camera distance; without points, that
+    cap (1 when it is not positive). c2w: [N, 3|4, 4] OpenGL; points: optional [P, 3].
+    `normalize_orbit` scales it to the unit sphere; `data.bounds` records it (docs/BOUNDS.md)."""
+    c2w = np.asarray(c2w, dtype=np.float64)
     pts = None if points is None or len(points) == 0 else np.asarray(points, np.float64).reshape(-1, 3)
     centre = scene_center(c2w, pts, "cameras")
     cap = camera_fraction * float(np.median(np.linalg.norm(c2w[:, :3, 3] - centre, axis=-1)))
@@ -293,5 +306,4 @@ def normalize_orbit(c2w: np.ndarray, points: np.ndarray | None = None, *, percen
         radius = min(radius, cap) if cap > 0 else radius
     if not np.isfinite(radius) or radius <= 1e-12:
         radius = 1.0
-    norm = {"scale": 1.0 / radius, "translation": [float(v) for v in -centre]}
-    return apply_normalization_to_poses(c2w, norm), norm
+    return centre, radius

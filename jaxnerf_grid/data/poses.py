@@ -44,6 +44,8 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import io, progress
+from jaxnerf_grid.data import vetting
+from jaxnerf_grid.data.bounds import scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap
 from jaxnerf_grid.data.formats.writing import transforms_top
 from jaxnerf_grid.data.normalize import (apply_normalization_to_points, normalize_orbit, rotation_between,
@@ -59,10 +61,11 @@ CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
 TOPVIEW = "poses_topview.png"
+REPORT = "poses_report.md"
 # `--overwrite` replaces only a dataset this command wrote (it holds MARKER), and in it only
 # OUTPUTS; the user's other files stay (docs/RELIABILITY.md).
 MARKER = ".jaxnerf-grid-poses"
-OUTPUTS = ("images", "sparse", "transforms.json", TOPVIEW, MARKER)
+OUTPUTS = ("images", "sparse", "transforms.json", TOPVIEW, REPORT, MARKER)
 # `jaxnerf-grid mask` outputs in an old DATA_DIR describe the photos being replaced: --overwrite
 # removes them with OUTPUTS (the new transforms.json names no masks), so `mask` runs again
 # without --overwrite.
@@ -210,9 +213,11 @@ def check_options(matcher: str, camera_model: str, vocab_tree) -> None:
 
 
 def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
-               camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None):
+               camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None,
+               keep_all: bool = False):
     """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
-    whether it comes from the relaxed mapping).
+    whether it comes from the relaxed mapping). The relaxed model is judged by its photos that
+    pass the vetting (`vetted_count`; all its photos with `keep_all`).
 
     DataError (naming `source`, the input folder) when no model could be built.
     """
@@ -247,22 +252,33 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     if default is None or default.num_reg_images() < RELAX_BELOW * n:
         relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", n, True,
                        "mapping again (relaxed thresholds)", show)
-        best = choose_model(default, relaxed, show)
+        best = choose_model(default, relaxed, show, count=_registered_count if keep_all else vetted_count)
     if best is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
     return best, best is not default
 
 
-def choose_model(default, relaxed, show: bool = False):
+def _registered_count(model) -> int:
+    return model.num_reg_images()
+
+
+def vetted_count(model) -> int:
+    """The number of a model's registered photos that pass the vetting (`data.vetting`)."""
+    return sum(row["kept"] for row in vetting.vet(vetting.records_from_pycolmap(model)))
+
+
+def choose_model(default, relaxed, show: bool = False, count=_registered_count):
     """The default mapping's model or the relaxed one's (either may be None).
 
-    The relaxed model is kept when it registers more photos and either the default model is
+    `count(model)`: the photos a model is worth (its registered photos, or those that pass the
+    vetting: relaxed thresholds may add photos only when they pass it).
+    The relaxed model is kept when it counts more photos and either the default model is
     too small to judge it (fewer than MIN_COMPARED photos) or it agrees with the default model
     on the photos both hold (`poses_agree`): relaxed thresholds can also register photos
     wrongly, e.g. across the look-alike faces of a lattice tower.
     """
-    if relaxed is None or (default is not None and relaxed.num_reg_images() <= default.num_reg_images()):
+    if relaxed is None or (default is not None and count(relaxed) <= count(default)):
         return default
     if default is None or default.num_reg_images() < MIN_COMPARED:
         return relaxed
@@ -452,11 +468,30 @@ def write_dataset(stage_dir: Path, summary: dict) -> dict:
                        "w": int(frame.size[0]), "h": int(frame.size[1])})
     width, height = scene.frames[0].size
     top = transforms_top(width, height, scene.near * scale, scene.far * scale, norm, {}, stage_dir, stage_dir)
+    points_norm = apply_normalization_to_points(points, norm)
+    top["scene_bounds"] = scene_bounds(c2w, points_norm if len(points) else None, scene.near * scale)
     top["poses"] = summary
     top["frames"] = frames
     io.write_json(stage_dir / "transforms.json", top)
-    draw_topview(stage_dir / TOPVIEW, c2w, apply_normalization_to_points(points, norm))
+    draw_topview(stage_dir / TOPVIEW, c2w, points_norm)
+    io.atomic_write_bytes(stage_dir / REPORT, "\n".join(report_lines(summary, top["scene_bounds"])).encode("utf-8"))
     return top
+
+
+def report_lines(summary: dict, bounds: dict) -> list[str]:
+    """DATA_DIR/poses_report.md: the summary, the vetting table (every registered photo, the
+    left-out ones with their reasons) and the scene bounds (docs/POSES.md, docs/BOUNDS.md)."""
+    vet = summary.get("vetting") or {}
+    lines = ["# Camera poses", "", *format_summary(summary).splitlines(), "",
+             "## Vetting (docs/POSES.md)", ""]
+    if vet.get("keep_all"):
+        lines += ["`--keep-all`: every registered photo kept, whatever its scores.", ""]
+    lines += vetting.format_table(vet.get("photos", [])) + ["", "## Scene bounds (docs/BOUNDS.md)", "",
+                                                             "| bound | value (normalised units) |", "|---|---|"]
+    for key in ("near", "far", "contract_radius", "roi_radius", "nearest_camera_to_roi"):
+        lines.append(f"| {key} | {bounds[key]:.4g} |")
+    lines.append(f"| roi_centre | {', '.join(f'{v:.3g}' for v in bounds['roi_centre'])} |")
+    return lines + [""]
 
 
 def draw_topview(path, c2w: np.ndarray, points: np.ndarray, size: int = 640) -> None:
@@ -491,6 +526,11 @@ def format_summary(summary: dict) -> str:
              f"{summary['points3d']} 3-D points, mean reprojection error {summary['mean_reprojection_error']:.3f} px"]
     if summary["unregistered"]:
         lines.append(f"not registered ({len(summary['unregistered'])}): {', '.join(summary['unregistered'])}")
+    vet = summary.get("vetting") or {}
+    if vet.get("left_out"):
+        why = {row["name"]: "; ".join(row["reasons"]) for row in vet.get("photos", [])}
+        lines.append(f"left out by the vetting ({len(vet['left_out'])}; table in {REPORT}, --keep-all keeps them): "
+                     + ", ".join(f"{name} ({why.get(name, '?')})" for name in vet["left_out"]))
     if summary["skipped"]:
         lines.append(f"unreadable, skipped ({len(summary['skipped'])}): {', '.join(summary['skipped'])}")
     if summary.get("relaxed_mapping"):
@@ -505,10 +545,13 @@ def format_summary(summary: dict) -> str:
 
 def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camera_model: str = "SIMPLE_RADIAL",
                       single_camera: bool = False, max_side: int | None = None, vocab_tree=None,
-                      overwrite: bool = False, progress: bool = True) -> dict:
+                      overwrite: bool = False, progress: bool = True, keep_all: bool = False) -> dict:
     """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
 
-    Returns the summary: photos, registered, unregistered (names), skipped (names of unreadable
+    Returns the summary: photos, registered, in_dataset (registered less those left out),
+    unregistered (names),
+    vetting ({"keep_all", "left_out": names, "photos": a row per registered photo, `data.vetting.vet`;
+    photos that fail are left out of the dataset unless `keep_all`}), skipped (names of unreadable
     files), mean_reprojection_error (px), points3d, matcher, camera_model, relaxed_mapping
     (the model came from the relaxed second mapping), seconds, up_rotation ([3, 3] applied to
     COLMAP's frame), transforms (path).
@@ -531,17 +574,24 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
         photo_dir, names, skipped = prepare_photos(photos, stage_dir / "_work" / "photos", max_side, progress)
         model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
                            camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
-                           show=progress, source=images_dir)
+                           show=progress, source=images_dir, keep_all=keep_all)
         registered = sorted(model.images[i].name for i in model.reg_image_ids())
         unregistered = sorted(set(names) - set(registered))
-        if len(registered) < enough_registered(len(names)):
-            shown = ", ".join(unregistered[:5]) + (", ..." if len(unregistered) > 5 else "")
-            raise DataError(f"{images_dir}: only {len(registered)} of {len(names)} photos registered (a dataset needs "
-                            f"{enough_registered(len(names))}; not registered: {shown}); more overlap and texture "
-                            f"between photos help (docs/POSES.md)")
+        rows = vetting.vet(vetting.records_from_pycolmap(model))
+        left_out = [] if keep_all else [row["name"] for row in rows if not row["kept"]]
+        leave_out(model, left_out)
+        kept = len(registered) - len(left_out)
+        if kept < enough_registered(len(names)):
+            missing = unregistered + left_out
+            shown = ", ".join(missing[:5]) + (", ..." if len(missing) > 5 else "")
+            raise DataError(f"{images_dir}: only {kept} of {len(names)} photos registered and passed the vetting "
+                            f"(a dataset needs {enough_registered(len(names))}; not registered or left out: "
+                            f"{shown}); more overlap and texture between photos help (docs/POSES.md)")
         with _stage("undistortion to PINHOLE, orientation, transforms.json", progress):
             rot = orient_z_up(pycolmap, model)
-            summary = {"photos": len(photos), "registered": len(registered), "unregistered": unregistered,
+            summary = {"photos": len(photos), "registered": len(registered), "in_dataset": kept,
+                       "unregistered": unregistered,
+                       "vetting": {"keep_all": bool(keep_all), "left_out": left_out, "photos": rows},
                        "skipped": sorted(skipped), "points3d": int(model.num_points3D()),
                        "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
                        "matcher": matcher, "camera_model": camera_model, "single_camera": bool(single_camera),
@@ -558,6 +608,14 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
         raise
     summary["transforms"] = str(out / "transforms.json")
     return summary
+
+
+def leave_out(model, names: list[str]) -> None:
+    """Deregisters the named photos from a pycolmap.Reconstruction (in place): they are then not
+    undistorted nor written, and their observations leave the 3-D points' tracks."""
+    for i in list(model.reg_image_ids()):
+        if model.images[i].name in names:
+            model.deregister_frame(model.images[i].frame_id)
 
 
 def enough_registered(num_photos: int) -> int:

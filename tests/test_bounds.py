@@ -1,0 +1,104 @@
+"""Scene bounds from the data (data/bounds.py) against the rule's closed form, and how the demo's
+recipe takes them (docs/BOUNDS.md)."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid import coords, demo
+from jaxnerf_grid.data import bounds
+from jaxnerf_grid.io import DataError
+
+
+def _look_at_origin(eye) -> np.ndarray:
+    """OpenGL camera-to-world [4, 4] at eye looking at the origin, z up."""
+    eye = np.asarray(eye, float)
+    f = -eye / np.linalg.norm(eye)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, np.cross(r, f), -f, eye
+    return m
+
+
+def _cloud_with_outliers(seed=0):
+    """1000 points at radii k / 1000 (k = 1..1000, random directions) and 20 outliers at radius 50."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(1020, 3))
+    d /= np.linalg.norm(d, axis=1, keepdims=True)
+    radii = np.concatenate([np.arange(1, 1001) / 1000.0, np.full(20, 50.0)])
+    return d * radii[:, None]
+
+
+def _ring(radius=3.0, n=10, closest=None):
+    angles = 2 * np.pi * np.arange(n) / n
+    eyes = [radius * np.array([np.cos(a), np.sin(a), 0.0]) for a in angles]
+    if closest is not None:
+        eyes[3] = closest * eyes[3] / radius
+    return np.stack([_look_at_origin(e) for e in eyes])
+
+
+def test_bounds_of_a_point_cloud_with_outliers_closed_form():
+    """ROI radius: the 95th percentile of 1020 distances (linear interpolation at rank
+    0.95 x 1019 = 968.05: 0.969 + 0.05 x 0.001), the 20 outliers at 50 change nothing beyond
+    their share; below the camera cap (1/3 of the median camera distance 3 = 1). near: 0.9 x
+    (2.5 - ROI radius), the closest camera at 2.5; far: (R - 1) / (R 5e-4) = 1000 for R = 2."""
+    c2w = _ring(closest=2.5)
+    got = bounds.scene_bounds(c2w, _cloud_with_outliers(), points_near=0.2)
+    roi = 0.969 + 0.05 * 0.001
+    assert np.allclose(got["roi_centre"], 0.0, atol=1e-9)
+    assert got["roi_radius"] == pytest.approx(roi, abs=1e-9)
+    assert got["near"] == pytest.approx(0.9 * (2.5 - roi), abs=1e-9)
+    assert got["nearest_camera_to_roi"] == pytest.approx(2.5 - roi, abs=1e-9)
+    assert got["far"] == pytest.approx(1000.0) and got["contract_radius"] == 2.0
+    # the points' near wins when it is larger; the camera cap when the points spread wider
+    assert bounds.scene_bounds(c2w, _cloud_with_outliers(), points_near=1.7)["near"] == 1.7
+    assert bounds.scene_bounds(c2w, 5 * _cloud_with_outliers())["roi_radius"] == pytest.approx(1.0)
+
+
+def test_far_is_where_contraction_stops_changing():
+    """contract(far) lies within FAR_GAP of the outer radius, for any radius R > 1."""
+    for r in (1.5, 2.0, 4.0):
+        far = bounds.far_for_radius(r)
+        z = float(np.linalg.norm(coords.contract(np.array([far, 0.0, 0.0]), r)))
+        assert (r - z) / r == pytest.approx(bounds.FAR_GAP, rel=1e-3)  # float32 contraction
+
+
+def test_no_positive_near_is_a_data_error():
+    c2w = _ring(closest=0.5)
+    with pytest.raises(DataError, match="scene_bounds: no positive near"):
+        bounds.scene_bounds(c2w, _cloud_with_outliers())
+
+
+def test_the_demo_recipe_without_recorded_bounds_is_unchanged():
+    """tower-small records no scene_bounds: DEMO_CONFIG's near 1, far 1000, radius 2 stay."""
+    assert bounds.read_bounds({"near": 0.5, "far": 40.0}, "transforms.json") is None
+    assert bounds.recipe_with_bounds(demo.DEMO_CONFIG, None) is demo.DEMO_CONFIG
+    model = demo.DEMO_CONFIG["model"]
+    assert (model["near"], model["far"], model["contract_radius"]) == (1.0, 1000.0, 2.0)
+
+
+def test_recorded_bounds_replace_the_recipe_and_sets_win():
+    from jaxnerf_grid import runs
+
+    recorded = {"near": 0.7, "far": 1000.0, "contract_radius": 2.0, "roi_radius": 1.0, "roi_centre": [0, 0, 0]}
+    got = bounds.read_bounds({"scene_bounds": recorded}, "t.json")
+    recipe = bounds.recipe_with_bounds(demo.DEMO_CONFIG, got)
+    assert recipe["model"]["near"] == 0.7 and recipe["model"]["far"] == 1000.0
+    assert recipe["model"]["field"] == demo.DEMO_CONFIG["model"]["field"]
+    assert demo.DEMO_CONFIG["model"]["near"] == 1.0  # not changed in place
+    with_set = runs.overrides_with_sets(recipe, ["model.near=1.5"])
+    assert with_set["model"]["near"] == 1.5 and with_set["model"]["far"] == 1000.0
+    assert "near 0.7" in bounds.bounds_line(got) and "constants" in bounds.bounds_line(None)
+
+
+@pytest.mark.parametrize("bad, key", [({"near": "x"}, "scene_bounds.near"), ({"near": 2000.0}, "near < far"),
+                                      ({"roi_centre": [0, 0]}, "scene_bounds.roi_centre"),
+                                      ({"contract_radius": 1.0}, "contract_radius > 1")])
+def test_bad_recorded_bounds_name_the_file_and_key(bad, key):
+    recorded = {"near": 0.7, "far": 1000.0, "contract_radius": 2.0, "roi_radius": 1.0, "roi_centre": [0, 0, 0]}
+    with pytest.raises(DataError, match=f"^data/t.json: .*{key}"):
+        bounds.read_bounds({"scene_bounds": {**recorded, **bad}}, "data/t.json")
+    with pytest.raises(DataError, match="^data/t.json: 'scene_bounds' must be an object"):
+        bounds.read_bounds({"scene_bounds": [1, 2]}, "data/t.json")
