@@ -284,7 +284,8 @@ def generator_digest() -> str:
 
 def _relink(scene_dir: Path, variant_dir: Path, meta: dict, keys=("file_path", "clean_file_path",
                                                                     "depth_file_path", "semantic_file_path",
-                                                                    "distractor_mask_path", "shadow_mask_path")) -> dict:
+                                                                    "distractor_mask_path", "shadow_mask_path")
+                  ) -> dict:
     """transforms.json `meta` of scene_dir with every per-frame path rewritten relative to variant_dir."""
     meta = json.loads(json.dumps(meta))
     rel = os.path.relpath(scene_dir, variant_dir)
@@ -636,7 +637,8 @@ def field_summary(model: dict) -> str:
     else:
         text = f"MLP {field['depth']}x{field['width']}"
     if model.get("sampler") == "proposal":
-        return text + f", proposal sampling {'+'.join(map(str, model['proposal_samples']))} -> {model['num_fine']} samples"
+        return (text + f", proposal sampling {'+'.join(map(str, model['proposal_samples']))}"
+                f" -> {model['num_fine']} samples")
     return text + f", {model['num_coarse']}+{model['num_fine']} samples per ray"
 
 
@@ -688,7 +690,8 @@ def write_results(ctx: Context, name: str, title: str, body: dict, md_lines: lis
     io.write_json(ctx.results / f"{name}.json", portable(payload))
     o = TRAIN_SETTINGS[ctx.setting]["overrides"]
     untimed = (f"; {len(restored)} of them read back from the committed results files, "
-               f"{len(restored - set(ctx.run_seconds))} of those with no recorded wall time, not counted") if restored else ""
+               f"{len(restored - set(ctx.run_seconds))} of those with no recorded wall time, not counted"
+               ) if restored else ""
     head = [f"# {title}", "", f"Command: `{ctx.command}`", "",
             f"Machine: {machine_line(ctx.machine)}. The table's {num_runs} NeRF runs took "
             f"{sum(ctx.run_seconds.values()) / 60:.1f} min of train + eval wall time as recorded when each ran "
@@ -750,7 +753,8 @@ PALETTE = [(31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40), (148, 1
            (227, 119, 194), (127, 127, 127), (188, 189, 34), (23, 190, 207)]
 
 
-def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(760, 480), log2_x: bool = True) -> np.ndarray:
+def line_plot(series: list[dict], xlabel: str, ylabel: str, title: str, size=(760, 480),
+              log2_x: bool = True) -> np.ndarray:
     """A line plot drawn with OpenCV. series: [{"label", "x": [...], "y": [...], "dashed": bool,
     optional "colour_index", optional "err": [...] (error bars, +- err)}].
     Returns an RGB float image [H, W, 3] in [0, 1]."""

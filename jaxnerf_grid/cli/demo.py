@@ -13,7 +13,8 @@ def build_parser() -> argparse.ArgumentParser:
     from jaxnerf_grid.demo import DEMO_CONFIG
 
     p = argparse.ArgumentParser(prog="jaxnerf-grid demo",
-                                description="tower-small scene (or --data DIR) -> masks -> train ours -> render -> report")
+                                description="tower-small scene (or --data DIR) -> masks -> train ours -> render "
+                                            "-> report")
     p.add_argument("--data", default=None,
                    help="run the same recipe on this dataset instead of the synthetic tower (skips synth; "
                         "skips mask when the dataset already has masks)")

@@ -469,7 +469,8 @@ def draw_topview(path, c2w: np.ndarray, points: np.ndarray, size: int = 640) -> 
 
     def pix(xy):
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
-        return np.stack([(xy[:, 0] / extent + 1) * size / 2, (1 - xy[:, 1] / extent) * size / 2], -1).round().astype(int)
+        pixels = np.stack([(xy[:, 0] / extent + 1) * size / 2, (1 - xy[:, 1] / extent) * size / 2], -1)
+        return pixels.round().astype(int)
 
     cv2.circle(img, tuple(pix([0.0, 0.0])[0]), int(round(size / 2 / extent)), (200, 200, 200), 1, cv2.LINE_AA)
     inside = points[np.all(np.abs(points[:, :2]) < extent, axis=1)] if len(points) else points

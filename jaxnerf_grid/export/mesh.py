@@ -101,7 +101,8 @@ def face_components(faces: np.ndarray, num_vertices: int) -> np.ndarray:
     return vertex_labels[faces[:, 0]]
 
 
-def remove_small_components(vertices: np.ndarray, faces: np.ndarray, min_fraction: float = DEFAULT_MIN_COMPONENT_FRACTION,
+def remove_small_components(vertices: np.ndarray, faces: np.ndarray,
+                            min_fraction: float = DEFAULT_MIN_COMPONENT_FRACTION,
                             extra: tuple = ()) -> tuple[np.ndarray, np.ndarray, tuple, dict]:
     """Drops the components with fewer than min_fraction * F faces (floaters).
 

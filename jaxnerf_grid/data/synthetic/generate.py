@@ -650,7 +650,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
         results = [done[t[0]] for t in tasks]
         world = _WORKER.get("world") or StaticWorld(cfg)
     frames, coverages = [], []
-    for (i, name, sp, c2w), (coverage, num_objects) in zip(tasks, results):
+    for (_, name, sp, c2w), (coverage, num_objects) in zip(tasks, results):
         rec = _frame_record(name, sp, cameras.normalise_pose(c2w, scale, translation))
         rec["distractor_coverage"] = round(coverage, 6)
         rec["num_distractors"] = num_objects
@@ -674,7 +674,8 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
             "distractors": cfg.distractors, "distractor_mode": cfg.mode, "shadows": cfg.shadows,
             "supersample": cfg.supersample, "fov_deg": cfg.fov_deg,
             "sun_direction": [round(float(x), 6) for x in world.sun],
-            "depth": "z-depth along camera -z, normalised units, +inf on sky; semantic and depth from the pixel-centre ray",
+            "depth": "z-depth along camera -z, normalised units, +inf on sky; "
+                     "semantic and depth from the pixel-centre ray",
             "distractor_coverage": {"mean": round(float(cov.mean()), 6), "min": round(float(cov.min()), 6),
                                     "max": round(float(cov.max()), 6)},
             "num_static_primitives": world.scene.count(),
