@@ -24,6 +24,8 @@ import types
 import typing
 from typing import Any, TypeVar
 
+from jaxnerf_grid.io import DataError
+
 T = TypeVar("T")
 
 
@@ -240,8 +242,6 @@ def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
         if not 0 < changes["near"] < changes["far"]:
             got = f"need 0 < near < far, got near={changes['near']:g}, far={changes['far']:g}"
             if cfg.model.near is None and cfg.model.far is None:
-                from jaxnerf_grid.io import DataError
-
                 raise DataError(f"{getattr(dataset, 'root', 'dataset')}: the dataset's ray bounds: {got}")
             raise ConfigError(f"model.near / model.far (with the dataset's where None): {got}")
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, **changes))

@@ -36,11 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config, io
+from jaxnerf_grid import config, dpt, foreground as fg, io, progress as progress_lib
 from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS
 from jaxnerf_grid.io import DataError
 
-OUTPUT_DIRS = ("masks", "weights", "dpt_depth", "overlays")
+OUTPUT_DIRS = MASK_OUTPUT_DIRS  # the dataset layout's names (data/formats/writing.py)
 STAGING = ".jaxnerf-grid-mask-new"
 RETIRED = ".jaxnerf-grid-mask-old"
 COMPLETE = "COMPLETE"
@@ -63,8 +64,6 @@ def _image_path(root: Path, frame: dict) -> Path:
 
 def load_models(weights: str | None, depth_weights: str | None):
     """(seg_model, depth_model or None or seg_model itself, source label)."""
-    from jaxnerf_grid import dpt
-
     if weights is None:
         if not (BUILTIN / "config.json").is_file():
             raise DataError(f"{BUILTIN}: no built-in DPT model is shipped in this build; pass --weights DIR "
@@ -86,8 +85,6 @@ def load_models(weights: str | None, depth_weights: str | None):
 
 
 def default_classes(seg_model, weights_dir: str) -> list[int]:
-    from jaxnerf_grid import foreground as fg
-
     meta = io.read_json(Path(weights_dir) / "config.json")
     extra = meta.get("extra", {}) if isinstance(meta, dict) else {}
     if "dynamic_classes" in extra:
@@ -211,8 +208,6 @@ def model_max_side(wdir) -> int:
 def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, batch_size, tiles,
               tile_overlap, params: dict):
     """Per image (C [H, W], depth [H, W] or None, C) from DPT; fills `params` (mask_params)."""
-    from jaxnerf_grid import foreground as fg
-
     seg, depth_model, wdir = load_models(weights, depth_weights)
     classes = list(classes) if classes is not None else default_classes(seg, wdir)
     check_classes(classes, seg.config.num_labels, str(wdir))
@@ -235,8 +230,6 @@ def _write_frame(root: Path, frame: dict, index: int, ipath: Path, a, depth, pro
     """Writes one frame's mask, weights, depth and overlay under `root` (the staging folder). a:
     C [H, W] (prob given) or the binary mask itself; depth: [H, W] or None. Returns the frame's
     new relative paths."""
-    from jaxnerf_grid import foreground as fg
-
     image = io.read_image(ipath)
     h, w = image.shape[:2]
     mask = np.asarray(fg.binary_mask(a, threshold)) if prob is not None else a
@@ -272,8 +265,6 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     M = [C > T]; floor: M_w = M * max(floor, (Dmax - D) / Dmax); dilate: pixels; max_side: DPT
     working size (default the model's); tiles, tile_overlap, batch_size: foreground.predict_maps.
     """
-    from jaxnerf_grid import foreground as fg, progress as progress_lib
-
     problem = fg.settings_problem(batch_size, tiles, tile_overlap)
     if problem:  # before anything is read or written
         raise ConfigError(f"jaxnerf-grid mask: {problem}")

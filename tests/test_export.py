@@ -10,8 +10,8 @@ import pytest
 
 from jaxnerf_grid import cli, geometry, io
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
-from jaxnerf_grid.export import (fuse, ground, lift_view, measure, mesh, plane_to_metric, to_metric, to_metric64,
-                                 to_scene)
+from jaxnerf_grid.clouds import lift_view
+from jaxnerf_grid.export import fuse, ground, measure, mesh, plane_to_metric, to_metric, to_metric64, to_scene
 from jaxnerf_grid.export import score as score_lib
 
 sys.path.insert(0, str(Path(__file__).parent))

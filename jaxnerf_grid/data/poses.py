@@ -45,11 +45,10 @@ import numpy as np
 
 from jaxnerf_grid import io, progress
 from jaxnerf_grid.data.formats.colmap import collect_colmap
-from jaxnerf_grid.data.formats.writing import transforms_top
+from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
 from jaxnerf_grid.data.normalize import (apply_normalization_to_points, normalize_orbit, rotation_between,
                                          up_from_cameras)
 from jaxnerf_grid.io import DataError
-from jaxnerf_grid.masking import OUTPUT_DIRS as MASK_OUTPUTS
 
 MIN_PHOTOS = 3        # fewer readable photos: refused before any work
 MIN_REGISTERED = 3    # fewer registered photos: no dataset is written ...
@@ -66,7 +65,7 @@ OUTPUTS = ("images", "sparse", "transforms.json", TOPVIEW, MARKER)
 # `jaxnerf-grid mask` outputs in an old DATA_DIR describe the photos being replaced: --overwrite
 # removes them with OUTPUTS (the new transforms.json names no masks), so `mask` runs again
 # without --overwrite.
-STALE = MASK_OUTPUTS
+STALE = MASK_OUTPUT_DIRS
 JPEG_QUALITY = 95
 # Mapping runs again with RELAXED mapper thresholds when the first run registers fewer than
 # RELAX_BELOW of the photos (small working sizes give a few hundred features per photo, below

@@ -1,6 +1,6 @@
 """Depth fusion with a multi-view consistency check (pure NumPy).
 
-Each view's rendered depth is lifted to points (`export.lift_view`). A point from view i is
+Each view's rendered depth is lifted to points (`clouds.lift_view`). A point from view i is
 *confirmed* by another view j when it projects inside j's image, in front of j's camera, onto a
 pixel with opacity >= `min_opacity` whose rendered z-depth d_j agrees with the point's z-depth
 z_j in that camera:

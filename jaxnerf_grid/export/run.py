@@ -2,8 +2,8 @@
 
 Steps, all in the normalised scene until the files are written:
 
-1. render `views` training views (evenly spaced, `evaluate.cloud_view_ids`), lift their depth
-   (`export.lift_view`, inside the unit sphere) and keep the points confirmed by at least
+1. render `views` training views (evenly spaced, `clouds.cloud_view_ids`), lift their depth
+   (`clouds.lift_view`, inside the unit sphere) and keep the points confirmed by at least
    `min_views` other views (`export.fuse`): the dense cloud;
 2. the ground plane: RANSAC on the lowest points of the dense cloud (`export.ground`);
 3. the box: `auto` = the largest cluster standing more than the ground's clearance above the
@@ -29,9 +29,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid import clouds, config as config_lib, io, progress as progress_lib, report, runs, train, views as views_lib
 from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.export import mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
+from jaxnerf_grid.export import field, fuse, ground, measure, mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
 from jaxnerf_grid.io import DataError
 
 DEFAULT_RESOLUTION = 256
@@ -83,15 +83,12 @@ def check_box_in_scene(lo: np.ndarray, hi: np.ndarray) -> None:
 
 def _render_cloud(params, cfg, ds, ids, progress: bool):
     """The views' lifted points and cameras for `export.fuse`."""
-    from jaxnerf_grid import config as config_lib, progress as progress_lib, views
-    from jaxnerf_grid.export import lift_view
-
     near, far = config_lib.near_far(cfg.model, ds)
     parts, cameras = [], []
     for i in progress_lib.bar(ids, desc="export: views", unit="view", enabled=progress):
-        view = views.render_view(params, cfg, ds, int(i))
-        parts.append(lift_view(views.camera_rays(ds, int(i), near, far), np.clip(view["rgb"], 0, 1), view["depth"],
-                               view["opacity"], radius=SCENE_LIMIT))
+        view = views_lib.render_view(params, cfg, ds, int(i))
+        parts.append(clouds.lift_view(views_lib.camera_rays(ds, int(i), near, far), np.clip(view["rgb"], 0, 1),
+                                      view["depth"], view["opacity"], radius=SCENE_LIMIT))
         cameras.append({"c2w": np.asarray(ds.c2w[i]), "intrinsics": np.asarray(ds.intrinsics[i]),
                         "depth": view["depth"], "opacity": view["opacity"]})
     return parts, cameras
@@ -101,8 +98,6 @@ def _ground(points: np.ndarray) -> dict | None:
     """The ground plane of the dense cloud (normalised): {"normal", "offset", "clearance",
     "inliers", "candidates"}, or None when it cannot be fitted. clearance = max(GROUND_CELL,
     3 x the robust spread (1.4826 MAD) of the inliers' heights)."""
-    from jaxnerf_grid.export import ground
-
     low = ground.lowest_points(points, GROUND_CELL)
     try:
         n, d, inliers = ground.fit_plane_ransac(low, GROUND_INLIER, iterations=1000)
@@ -131,9 +126,6 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     DataError / ConfigError for a run without a checkpoint, an empty box or one outside the
     scene, an occupied folder, or a box without a surface; nothing is written then.
     """
-    from jaxnerf_grid import evaluate, progress as progress_lib, runs, train
-    from jaxnerf_grid.export import field, fuse, ground, measure, write_point_cloud
-
     start = time.perf_counter()
     run_dir = Path(run_dir)
     cfg, data = runs.load_run(run_dir)  # the config first: a bad run folder fails before the dataset loads
@@ -155,7 +147,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
 
     # 1-2. the dense cloud and the ground
     timings = {"load": time.perf_counter() - start}
-    ids = evaluate.cloud_view_ids(ds, views)
+    ids = clouds.cloud_view_ids(ds, views)
     parts, cameras = _render_cloud(params, cfg, ds, ids, progress)
     timings["views"] = time.perf_counter() - start - sum(timings.values())
     points, colours, fuse_stats = fuse.fuse(parts, cameras, min_views=min_views)
@@ -228,7 +220,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     io.write_ply(out / "tower_mesh.ply", verts_m, vcolours, faces,
                  comments=comments + (f"marching cubes at density {level:.6g} per normalised unit "
                                       f"(one voxel {opacity:g} opaque), voxel {h / scale:.4g}",))
-    write_point_cloud(out / "tower_points.ply", [(tower_pts, tower_cols)],
+    clouds.write_point_cloud(out / "tower_points.ply", [(tower_pts, tower_cols)],
                       comments=comments + (f"depth of {len(ids)} views fused, each point confirmed by >= "
                                            f"{min_views} other views",))
     io.write_json(out / "box.json", {**meas["box"], "units": units, "normalised": {
@@ -246,8 +238,6 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
 def _update_report(run_dir: Path, out: Path, meas: dict) -> None:
     """Writes the "Tower model" section into RUN/report.md when the export is RUN/export (the
     default), else into OUT/report.md."""
-    from jaxnerf_grid import report
-
     if out.resolve() == (run_dir / "export").resolve():
         path, image = run_dir / "report.md", "export/export_views.png"
     else:
