@@ -50,7 +50,7 @@ def _dataset_folder(data, out: Path, progress: bool, timings: dict) -> Path:
     if data is not None:
         data = Path(data)
         if not data.is_dir():
-            raise DataError(f"{data}: --data is not a folder")
+            raise DataError(f"{data}: demo.data is not a folder")
         return data
     data = out / "data"
     if not (data / "transforms.json").is_file():
@@ -97,13 +97,13 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     "timings" (s per stage), "total_seconds", "mask_source"}. sets: --set KEY=VALUE changes to
     DEMO_CONFIG. The config is checked (run_config.make_config) before anything is written."""
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
-        raise ConfigError(f"--steps = {steps}: must be an integer >= 1")
+        raise ConfigError(f"demo.steps = {steps}: must be an integer >= 1")
     recipe = runs.overrides_with_sets(DEMO_CONFIG, sets)
     make_config("ours", runs._with_steps(recipe, steps))  # a bad --set fails before synth / mask
     start = time.perf_counter()
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise DataError(f"{out}: --out exists and is not a folder")
+        raise DataError(f"{out}: demo.out exists and is not a folder")
     if (out / "run").exists() and not (out / "run").is_dir():
         raise DataError(f"{out / 'run'}: exists and is not a folder")
     timings = {}

@@ -71,7 +71,7 @@ def reference_cloud(ds, reference_ply=None) -> tuple[Path, dict | None] | None:
     if reference_ply:
         path = Path(reference_ply)
         if not path.is_file():
-            raise DataError(f"{path}: reference point cloud not found (--reference-ply)")
+            raise DataError(f"{path}: reference point cloud not found (eval.reference_ply)")
         return path, None
     name = ds.meta.get("tower_ply") if ds.meta else None
     if not name:
@@ -190,7 +190,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
     reference_cloud(ds, reference_ply)  # a missing --reference-ply fails before rendering
     if lpips_weights and not Path(lpips_weights).is_file():
-        raise DataError(f"{lpips_weights}: LPIPS weights file not found (--lpips-weights)")
+        raise DataError(f"{lpips_weights}: LPIPS weights file not found (eval.lpips_weights)")
     params, step = train.load_params(run_dir, cfg, ds)
     lpips_params = lpips.load_lpips(lpips_weights) if lpips_weights else None
     targets = ds.clean_images if ds.clean_images is not None else ds.images
@@ -236,7 +236,9 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
                  f"{len(per_view)} test views" + (f" and {len(cloud_ids)} training views" if cloud_ids else "")
                  + f" (opacity >= 0.5): `tower_points.ply`, {sum(len(p) for p, _ in cloud)} points, "
                  "normalised scene units.")
-    notes.append(f"LPIPS: {'computed from ' + str(lpips_weights) if lpips_params is not None else 'unavailable (no --lpips-weights)'}.")
+    lpips_note = (f"computed from {lpips_weights}" if lpips_params is not None
+                  else "unavailable (no LPIPS weights given)")
+    notes.append(f"LPIPS: {lpips_note}.")
     notes.append(f"Evaluation took {result['eval_seconds']:.0f} s.")
     report.write_report(run_dir, result, cfg, data, figures, notes)
     return result

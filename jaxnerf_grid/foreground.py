@@ -230,14 +230,14 @@ MAX_TILE_OVERLAP = 0.75
 
 
 def settings_problem(batch_size: int | None, tiles: int, tile_overlap: float) -> str | None:
-    """What is wrong with `predict_maps`'s batch / tiling settings (named as in the code and the
-    CLI), or None. Callers raise it as their own error type."""
+    """What is wrong with `predict_maps`'s batch / tiling settings (named by their keys,
+    `mask.batch_size`, ...; the CLI shows its flags), or None. Callers raise it as their own error type."""
     if batch_size is not None and (int(batch_size) != batch_size or batch_size < 1):
-        return f"batch_size (--batch-size) must be an integer >= 1, got {batch_size}"
+        return f"mask.batch_size must be an integer >= 1, got {batch_size}"
     if int(tiles) != tiles or tiles < 1:
-        return f"tiles (--tiles) must be an integer >= 1, got {tiles}"
+        return f"mask.tiles must be an integer >= 1, got {tiles}"
     if not 0.0 <= tile_overlap <= MAX_TILE_OVERLAP:
-        return f"tile_overlap (--tile-overlap) must be between 0 and {MAX_TILE_OVERLAP}, got {tile_overlap}"
+        return f"mask.tile_overlap must be between 0 and {MAX_TILE_OVERLAP}, got {tile_overlap}"
     return None
 
 

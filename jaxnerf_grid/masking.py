@@ -66,13 +66,13 @@ def load_models(weights: str | None, depth_weights: str | None):
     """(seg_model, depth_model or None or seg_model itself, source label)."""
     if weights is None:
         if not (BUILTIN / "config.json").is_file():
-            raise DataError(f"{BUILTIN}: no built-in DPT model is shipped in this build; pass --weights DIR "
-                            "(a copy of Intel/dpt-large-ade) or use --source gt on synthetic data")
+            raise DataError(f"{BUILTIN}: no built-in DPT model is shipped in this build; give mask.weights "
+                            "(a folder: a copy of Intel/dpt-large-ade) or use mask.source gt on synthetic data")
         weights = str(BUILTIN)
     seg = dpt.load_pretrained(weights)
     if "segmentation" not in seg.config.heads:
         raise DataError(f"{weights}: this DPT has no segmentation head (heads: {seg.config.heads}); "
-                        "--weights must be a segmentation model (e.g. Intel/dpt-large-ade)")
+                        "mask.weights must be a segmentation model (e.g. Intel/dpt-large-ade)")
     if depth_weights is not None:
         depth = dpt.load_pretrained(depth_weights)
         if "depth" not in depth.config.heads:
@@ -92,22 +92,22 @@ def default_classes(seg_model, weights_dir: str) -> list[int]:
     if seg_model.config.num_labels == 150:
         return sorted(fg.ADE20K_DYNAMIC)
     raise DataError(f"{weights_dir}: {seg_model.config.num_labels}-label model with no known dynamic "
-                    "classes; pass --classes ID,ID,...")
+                    "classes; give mask.classes ID,ID,...")
 
 
 def check_settings(threshold: float, floor: float, dilate: int, max_side: int | None, classes) -> None:
-    """Raises ConfigError naming the flag when a mask setting is out of range: threshold and
+    """Raises ConfigError naming the key (mask.threshold, ...) when a mask setting is out of range: threshold and
     floor in [0, 1], dilate >= 0, max_side >= 1 (or None), classes integers >= 0."""
-    config.check_value("--threshold", threshold, float, config.UNIT)
-    config.check_value("--floor", floor, float, config.UNIT)
-    config.check_value("--dilate", dilate, int, config.NONNEGATIVE)
-    config.check_value("--max-side", max_side, int | None, config.AT_LEAST_ONE)
+    config.check_value("mask.threshold", threshold, float, config.UNIT)
+    config.check_value("mask.floor", floor, float, config.UNIT)
+    config.check_value("mask.dilate", dilate, int, config.NONNEGATIVE)
+    config.check_value("mask.max_side", max_side, int | None, config.AT_LEAST_ONE)
     for c in classes or []:
-        config.check_value("--classes", c, int, config.NONNEGATIVE)
+        config.check_value("mask.classes", c, int, config.NONNEGATIVE)
 
 
 def parse_classes(text: str | None) -> list[int] | None:
-    """--classes "12,20,127" as [12, 20, 127]; None for None / empty; ConfigError naming the bad entry."""
+    """mask.classes "12,20,127" as [12, 20, 127]; None for None / empty; ConfigError naming the bad entry."""
     if not text:
         return None
     out = []
@@ -118,7 +118,8 @@ def parse_classes(text: str | None) -> list[int] | None:
         try:
             out.append(int(part))
         except ValueError:
-            raise ConfigError(f"--classes: {part!r} is not a class id (comma-separated integers, e.g. 12,20)") from None
+            raise ConfigError(f"mask.classes: {part!r} is not a class id (comma-separated integers, e.g. 12,20)"
+                              ) from None
     return out
 
 
@@ -126,9 +127,9 @@ def check_classes(classes: list[int], num_labels: int, weights: str) -> None:
     """Refuses class ids outside the segmentation model's labels 0..num_labels-1."""
     bad = [c for c in classes if not 0 <= c < num_labels]
     if bad:
-        raise ConfigError(f"--classes {bad}: outside the {num_labels} labels of {weights} (0..{num_labels - 1})")
+        raise ConfigError(f"mask.classes {bad}: outside the {num_labels} labels of {weights} (0..{num_labels - 1})")
     if not classes:
-        raise ConfigError("--classes: no class id given")
+        raise ConfigError("mask.classes: no class id given")
 
 
 def _rename(src: Path, dst: Path) -> None:
@@ -185,9 +186,9 @@ def _check_outputs(root: Path, meta: dict, overwrite: bool) -> None:
     for name in OUTPUT_DIRS:
         d = root / name
         if d.is_dir() and any(d.iterdir()):
-            raise DataError(f"{d}: mask outputs already exist; pass --overwrite to replace them")
+            raise DataError(f"{d}: mask outputs already exist; pass overwrite=True to replace them")
     if any("mask_path" in f for f in meta.get("frames", [])):
-        raise DataError(f"{root / 'transforms.json'}: frames already have mask_path; pass --overwrite")
+        raise DataError(f"{root / 'transforms.json'}: frames already have mask_path; pass overwrite=True")
 
 
 def _gt_frames(root: Path, frames: list):
@@ -195,7 +196,7 @@ def _gt_frames(root: Path, frames: list):
         for key in ("distractor_mask_path", "depth_file_path"):
             if key not in frame:
                 raise DataError(f"{root / 'transforms.json'}: frame {frame.get('file_path')!r} has no {key!r}; "
-                                "--source gt needs the synthetic ground truth")
+                                "mask.source gt needs the synthetic ground truth")
         mask = io.read_distractor_mask(root / frame["distractor_mask_path"])
         yield mask.astype(np.float32), io.read_exr(root / frame["depth_file_path"])
 
@@ -267,13 +268,13 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     """
     problem = fg.settings_problem(batch_size, tiles, tile_overlap)
     if problem:  # before anything is read or written
-        raise ConfigError(f"jaxnerf-grid mask: {problem}")
+        raise ConfigError(problem)
     check_settings(threshold, floor, dilate, max_side, classes)
     if source not in ("dpt", "gt"):
-        raise ConfigError(f"--source = {source!r}: must be dpt or gt")
+        raise ConfigError(f"mask.source = {source!r}: must be dpt or gt")
     root = Path(data)
     if not root.is_dir():
-        raise DataError(f"{root}: --data is not a folder")
+        raise DataError(f"{root}: mask.data is not a folder")
     recover(root)
     tpath = root / "transforms.json"
     meta = io.read_json(tpath)

@@ -90,7 +90,7 @@ def make_config(method: str, overrides: dict | None = None) -> RunConfig:
     merged = config_lib.merge(config_lib.to_dict(RunConfig()), base)
     merged = config_lib.merge(merged, overrides or {})
     if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:
-        raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts --method {method!r}")
+        raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts run.method {method!r}")
     cfg = config_lib.from_dict(RunConfig, merged)
     config_lib.validate(cfg)
     models.validate(dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, 1)))

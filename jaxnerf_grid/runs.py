@@ -127,7 +127,7 @@ def check_fingerprint(run_dir, ds, allow_other_data: bool = False) -> None:
     else:
         what = f"the same frames with other cameras ({_describe(new)})"
     raise DataError(f"{path}: the run was trained on another dataset than {ds.root} ({what}); "
-                    "pass --allow-other-data to use it anyway")
+                    "pass allow_other_data=True to use it anyway")
 
 
 def load_run_and_dataset(run_dir, dataset=None, progress: bool = True, allow_other_data: bool = False) -> tuple:
@@ -176,7 +176,7 @@ def _with_steps(overrides: dict | None, steps: int | None) -> dict:
     overrides = dict(overrides or {})
     if steps is not None:
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-            raise ConfigError(f"--steps = {steps}: must be an integer >= 1")
+            raise ConfigError(f"run.steps = {steps}: must be an integer >= 1")
         overrides["train"] = {**overrides.get("train", {}), "max_steps": int(steps)}
     return overrides
 
@@ -200,11 +200,11 @@ def _is_legacy_run(run_dir: Path) -> bool:
 
 
 def check_out(run_dir: Path, data=None) -> None:
-    """Refuses an --out that is a file, or that is the dataset folder itself."""
+    """Refuses a run folder (run.out) that is a file, or that is the dataset folder itself."""
     if run_dir.exists() and not run_dir.is_dir():
-        raise DataError(f"{run_dir}: --out exists and is not a folder")
+        raise DataError(f"{run_dir}: run.out exists and is not a folder")
     if data is not None and run_dir.resolve() == Path(data).resolve():
-        raise DataError(f"{run_dir}: --out is the dataset folder; choose another folder for the run")
+        raise DataError(f"{run_dir}: run.out is the dataset folder; choose another folder for the run")
 
 
 def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
@@ -219,7 +219,7 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
     marked = is_run_dir(run_dir)
     if not marked and not (not overwrite and _is_legacy_run(run_dir)):
         raise DataError(f"{run_dir}: exists, is not empty and is not a jaxnerf-grid run (no {RUN_MARKER}); "
-                        "nothing was changed: choose another --out")
+                        "nothing was changed: choose another run.out")
     if overwrite:
         for sub in RUN_OUTPUT_DIRS:
             shutil.rmtree(run_dir / sub, ignore_errors=True)
@@ -233,11 +233,11 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
             raise DataError(f"{existing}: not a run's config (expected an object with \"train\")")
         if _without(old, "train") != _without(wanted, "train") or \
                 _without(old["train"], "max_steps") != _without(wanted["train"], "max_steps"):
-            raise ConfigError(f"{existing}: the run exists with a different config; pass --overwrite "
-                              "to start again or another --out")
+            raise ConfigError(f"{existing}: the run exists with a different config; pass overwrite=True "
+                              "to start again or another run.out")
         if old["train"]["max_steps"] != wanted["train"]["max_steps"]:
             raise ConfigError(f"{existing}: the run was configured for {old['train']['max_steps']} steps "
-                              "(the learning-rate schedule depends on it); pass --overwrite to change it")
+                              "(the learning-rate schedule depends on it); pass overwrite=True to change it")
 
 
 def train_run(data: str, method: str, out, overrides: dict | None = None, steps: int | None = None,

@@ -202,7 +202,7 @@ def check_options(matcher: str, camera_model: str, vocab_tree) -> None:
         raise DataError(f"unknown camera model {camera_model!r}; choose one of {', '.join(CAMERA_MODELS)}")
     if matcher == "vocab":
         if vocab_tree is None:
-            raise DataError("--matcher vocab needs a vocabulary tree file (--vocab-tree FILE, e.g. COLMAP's "
+            raise DataError("poses.matcher vocab needs a vocabulary tree file (poses.vocab_tree, e.g. COLMAP's "
                             "vocab_tree_flickr100K_words32K.bin); none is downloaded: use exhaustive or sequential")
         if not Path(vocab_tree).is_file():
             raise DataError(f"{vocab_tree}: vocabulary tree file not found")
@@ -517,11 +517,11 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     start = time.monotonic()
     check_options(matcher, camera_model, vocab_tree)
     if max_side is not None and max_side < 16:
-        raise DataError(f"--max-side must be at least 16 pixels, got {max_side}")
+        raise DataError(f"poses.max_side must be at least 16 pixels, got {max_side}")
     images_dir, out = Path(images_dir), Path(out_dir)
     photos = list_photos(images_dir)
     if _inside(images_dir, out):
-        raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another --out")
+        raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another poses.out")
     check_out(out, overwrite)
     pycolmap = import_pycolmap()
     pycolmap.logging.minloglevel = 3  # COLMAP's own log: fatal only; progress and errors are ours
@@ -577,14 +577,14 @@ def check_out(out: Path, overwrite: bool) -> None:
     """DataError unless `out` may receive the dataset: absent, an empty folder, or with
     `overwrite` a dataset this command wrote (it holds MARKER)."""
     if out.is_file():
-        raise DataError(f"{out}: is a file; --out must be a folder")
+        raise DataError(f"{out}: is a file; poses.out must be a folder")
     if not out.is_dir() or not any(out.iterdir()):
         return
     if not overwrite:
-        raise DataError(f"{out}: already exists and is not empty; pass --overwrite to replace it")
+        raise DataError(f"{out}: already exists and is not empty; pass overwrite=True to replace it")
     if not (out / MARKER).is_file():
-        raise DataError(f"{out}: not a dataset written by jaxnerf-grid poses (no {MARKER}); --overwrite "
-                        f"replaces only those: choose another --out")
+        raise DataError(f"{out}: not a dataset written by jaxnerf-grid poses (no {MARKER}); overwrite=True "
+                        f"replaces only those: choose another poses.out")
 
 
 def move_into_place(stage: Path, out: Path) -> None:

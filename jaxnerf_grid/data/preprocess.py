@@ -216,5 +216,5 @@ if __name__ == "__main__":
     try:
         sys.exit(main())
     except DataError as err:
-        print(f"preprocess: error: {err}", file=sys.stderr)
+        print(f"preprocess: error: {str(err).replace('overwrite=True', '--overwrite')}", file=sys.stderr)
         sys.exit(1)

@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import clouds, config as config_lib, io, progress as progress_lib, report, runs, train, views as views_lib
+from jaxnerf_grid import clouds, config as config_lib, io, progress as progress_lib, report, runs, train
+from jaxnerf_grid import views as views_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.export import field, fuse, ground, measure, mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
 from jaxnerf_grid.io import DataError
@@ -44,18 +45,19 @@ FILES = ("tower_mesh.ply", "tower_points.ply", "box.json", "measurements.json", 
 
 
 def parse_box(text) -> np.ndarray | None:
-    """--box: "auto" (None) or "xmin,ymin,zmin,xmax,ymax,zmax" -> [6] float64. ConfigError for
+    """box: "auto" (None) or "xmin,ymin,zmin,xmax,ymax,zmax" -> [6] float64. ConfigError for
     a malformed or empty box (any max <= min)."""
     if text is None or (isinstance(text, str) and text.strip().lower() == "auto"):
         return None
     try:
         values = np.asarray([float(v) for v in (text.split(",") if isinstance(text, str) else text)], np.float64)
     except (TypeError, ValueError):
-        raise ConfigError(f"--box: expected 'auto' or six numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}") from None
+        raise ConfigError(f"export.box: expected 'auto' or six numbers xmin,ymin,zmin,xmax,ymax,zmax, "
+                          f"got {text!r}") from None
     if values.shape != (6,) or not np.all(np.isfinite(values)):
-        raise ConfigError(f"--box: expected six finite numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}")
+        raise ConfigError(f"export.box: expected six finite numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}")
     if np.any(values[3:] <= values[:3]):
-        raise ConfigError(f"--box: the box is empty (each max must exceed its min): {text!r}")
+        raise ConfigError(f"export.box: the box is empty (each max must exceed its min): {text!r}")
     return values
 
 
@@ -76,7 +78,7 @@ def units_comment(units: str) -> str:
 def check_box_in_scene(lo: np.ndarray, hi: np.ndarray) -> None:
     """ConfigError when the box (normalised) does not meet the region of interest [-1, 1]^3."""
     if np.any(hi <= -SCENE_LIMIT) or np.any(lo >= SCENE_LIMIT):
-        raise ConfigError("--box lies outside the scene: it does not meet the region of interest (the unit "
+        raise ConfigError("export.box lies outside the scene: it does not meet the region of interest (the unit "
                           "sphere of the normalised scene, i.e. the tower's surroundings); give it in the "
                           "dataset's original units (metres for the synthetic scenes)")
 
@@ -131,9 +133,9 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     cfg, data = runs.load_run(run_dir)  # the config first: a bad run folder fails before the dataset loads
     given = parse_box(box)
     if not int(resolution) >= 8:
-        raise ConfigError(f"--resolution must be >= 8, got {resolution}")
+        raise ConfigError(f"export.resolution must be >= 8, got {resolution}")
     if not 0 < float(opacity) < 1:
-        raise ConfigError(f"--threshold (the opacity of one voxel) must be in (0, 1), got {opacity}")
+        raise ConfigError(f"export.opacity (of one voxel) must be in (0, 1), got {opacity}")
     out = Path(out) if out is not None else run_dir / "export"
     io.ensure_writable(out, overwrite)
     ds = runs.dataset_of_run(run_dir, data, dataset, progress, allow_other_data)
@@ -158,13 +160,13 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         lo, hi, box_stats = lo_given, hi_given, {}
     else:
         if plane is None:
-            raise DataError(f"{run_dir}: --box auto found no ground in the rendered views ({len(points)} points "
-                            "inside the unit sphere); give --box")
+            raise DataError(f"{run_dir}: export.box auto found no ground in the rendered views ({len(points)} "
+                            "points inside the unit sphere); give export.box")
         try:
             lo, hi, box_stats = ground.tower_box(points, plane["normal"], plane["offset"], plane["clearance"],
                                                  GROUND_CELL)
         except ValueError as err:
-            raise DataError(f"{run_dir}: --box auto: {err}; give --box") from None
+            raise DataError(f"{run_dir}: export.box auto: {err}; give export.box") from None
 
     # 4. the mesh
     origin, h, shape = mesh_lib.grid_spec(lo, hi, int(resolution))
@@ -176,7 +178,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     del density
     if len(faces) == 0:
         raise DataError(f"{run_dir}: no surface in the box: the density never reaches {level:.4g} (one voxel "
-                        f"{opacity:g} opaque); lower --threshold or check --box")
+                        f"{opacity:g} opaque); lower export.opacity or check export.box")
     verts, faces, (normals,), comp = mesh_lib.remove_small_components(verts, faces, min_component_fraction, (normals,))
     train_ids = np.asarray(ds.split["train"]) if len(ds.split["train"]) else np.arange(ds.num_frames)
     centres = np.asarray(ds.c2w)[train_ids, :3, 3]

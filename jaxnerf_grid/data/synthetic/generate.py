@@ -596,7 +596,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
     if overwrite and out.is_dir() and any(out.iterdir()):
         if not is_synthetic_dataset(out):
             raise io.DataError(f"{out}: not a dataset written by synth (no {SYNTH_MARKER} marker); "
-                               "refusing to clear it, even with --overwrite")
+                               "refusing to clear it, even with overwrite=True")
         for sub in OUTPUT_DIRS:
             if (out / sub).is_dir():
                 shutil.rmtree(out / sub)
