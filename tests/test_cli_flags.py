@@ -7,6 +7,9 @@ messages written out here.
 
 import ast
 import importlib
+import os
+import subprocess
+import sys
 from pathlib import Path
 
 import pytest
@@ -62,3 +65,14 @@ def test_the_dispatcher_prints_flags(tmp_path, capsys):
     assert cli.main(["mask", "--data", str(tmp_path), "--source", "gt", "--threshold", "2"]) == 1
     err = capsys.readouterr().err
     assert err == "jaxnerf-grid mask: error: --threshold = 2.0: must be in [0, 1]\n", err
+
+
+def test_parsers_load_no_jax():
+    """Why cli/ imports the library inside `main` (docs/ARCHITECTURE.md): every subcommand's
+    parser, so `jaxnerf-grid X --help` and argument errors, runs without loading JAX."""
+    code = ("import importlib, sys\nfrom jaxnerf_grid import cli\n"
+            "for module, _ in cli.SUBCOMMANDS.values():\n    importlib.import_module(module).build_parser()\n"
+            "print(sorted(m for m in ('jax', 'torch') if m in sys.modules))")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
+                         cwd=PACKAGE.parent, env={**os.environ, "JAX_PLATFORMS": "cpu"})
+    assert out.stdout.strip() == "[]", out.stdout + out.stderr

@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+DEFAULT_VIEWS = 16  # training views rendered and fused by `jaxnerf-grid export`
 DEFAULT_MIN_VIEWS = 2
 DEFAULT_TOL_PIXELS = 1.0
 

@@ -31,6 +31,7 @@ import math
 import numpy as np
 
 DEFAULT_OPACITY = 0.05
+DEFAULT_RESOLUTION = 256     # voxels along the box's longest side (`grid_spec`)
 DEFAULT_MIN_COMPONENT_FRACTION = 0.002
 
 

@@ -35,8 +35,8 @@ from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.export import field, fuse, ground, measure, mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
 from jaxnerf_grid.io import DataError
 
-DEFAULT_RESOLUTION = 256
-DEFAULT_VIEWS = 16
+DEFAULT_RESOLUTION = mesh_lib.DEFAULT_RESOLUTION  # the defaults live where `jaxnerf-grid export --help` reads
+DEFAULT_VIEWS = fuse.DEFAULT_VIEWS              # them without loading JAX (cli/export.py)
 DEFAULT_COLOUR_CAMERAS = 3
 GROUND_CELL = 0.02          # normalised units: columns of the ground fit, cells of the tower cluster
 GROUND_INLIER = 0.025       # normalised units: RANSAC inlier distance
