@@ -129,7 +129,8 @@ def main(argv=None) -> int:
             print(f"  {name}: JAX {t['jax']:.3f} s, torch {t['torch']:.3f} s, ratio {t['torch'] / t['jax']:.2f}x")
     print(f"DPT-{args.arch} {args.task} {args.size}x{args.size} batch {args.batch}: "
           f"JAX {result['jax_images_per_s']:.3f} img/s, torch {result['torch_images_per_s']:.3f} img/s, "
-          f"ratio {result['ratio_jax_over_torch']:.2f}x (median of paired calls {result['ratio_median_of_pairs']:.2f}x; "
+          f"ratio {result['ratio_jax_over_torch']:.2f}x "
+          f"(median of paired calls {result['ratio_median_of_pairs']:.2f}x; "
           f"goal >= 1.5x); max |diff| {result['max_abs_diff']:.2e}; "
           f"load avg {result['loadavg_after'][0]:.1f}")
     if equal_work:

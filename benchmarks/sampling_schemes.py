@@ -162,7 +162,8 @@ def summary(table: dict, samples: tuple, setting: str = "quick") -> list[str]:
     if gains:
         other = "proposal sampling" if SAMPLERS[setting][0] == "proposal" else "none"
         paired = " (each pair on the seeds both ran)" if all(g["seeds"] for g in gaps if g is not None) else ""
-        lines.append(f"Hierarchical resampling vs {other} at equal samples per ray: {np.mean(gains):+.2f} dB on average "
+        lines.append(f"Hierarchical resampling vs {other} at equal samples per ray: "
+                     f"{np.mean(gains):+.2f} dB on average "
                      f"(range {min(gains):+.2f} to {max(gains):+.2f}) over {len(gains)} (warp, N) pairs{paired}.")
     stds = [a["psnr"]["std"] for a in have.values() if a["n"] > 1]
     if stds:
@@ -249,7 +250,8 @@ def main(argv=None) -> int:
             for w, h in schemes:
                 tag = f"bench-{w}-{'h' if h else SAMPLERS[ctx.setting][0][0]}{n}"
                 rec = runner.run_condition(ctx, data, "ours", seed, tag,
-                                           {"model": model_overrides(w, h, n, ctx.setting), "train": {"use_masks": False}})
+                                           {"model": model_overrides(w, h, n, ctx.setting),
+                                            "train": {"use_masks": False}})
                 records[(scheme_name(w, h, ctx.setting), n)].append(rec)
     table = {k: (tables.aggregate(v) if any(r is not None for r in v) else None) for k, v in records.items()}
     for (name, n), agg in table.items():  # paired (same scene and seed) difference to uniform t

@@ -15,9 +15,9 @@ import argparse
 import time
 from pathlib import Path
 
-ROOT = Path(__file__).resolve().parents[1]
-
 from jaxnerf_grid import demo, io
+
+ROOT = Path(__file__).resolve().parents[1]
 
 # name: (preset, seed, clutter, (width, height, train views, test views) or None for the preset's)
 CASES = {
@@ -64,11 +64,13 @@ def main() -> int:
                      "clutter": CASES[name][2] or "preset", "size": CASES[name][3],
                      "psnr": m["mean"]["psnr"], "ssim": m["mean"]["ssim"], "regions": m["regions_mean"],
                      "fscore": {k: v["fscore"] for k, v in (geometry.get("thresholds") or {}).items()},
-                     "chamfer": geometry.get("chamfer"), "synth_s": synth_s, **{f"{k}_s": v for k, v in res["timings"].items()},
+                     "chamfer": geometry.get("chamfer"), "synth_s": synth_s,
+                     **{f"{k}_s": v for k, v in res["timings"].items()},
                      "mask_source": res["mask_source"]})
         print(f"{name}: {demo.demo_summary(res)}", flush=True)
     lines = ["# The demo recipe on other scenes", "",
-             f"`python -m experiments.demo_recipe` ({'default steps' if args.steps is None else f'{args.steps} steps'}; "
+             "`python -m experiments.demo_recipe` "
+             f"({'default steps' if args.steps is None else f'{args.steps} steps'}; "
              "recipe `demo.DEMO_CONFIG`, built-in DPT masks, nothing tuned per scene).", "",
              "| case | size | PSNR | SSIM | tower | near ground | far bg | F@0.01 | F@0.02 | F@0.05 | train s |",
              "|---|---|---|---|---|---|---|---|---|---|---|"]

@@ -44,7 +44,8 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     t_start = time.time()
-    command = "JAX_PLATFORMS=cpu python -m experiments.mask_tiling " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = ("JAX_PLATFORMS=cpu python -m experiments.mask_tiling "
+               + " ".join(argv if argv is not None else sys.argv[1:]))
     ctx = runner.Context(setting="quick", seeds=len(SEEDS), steps=0, cache=Path(args.cache),
                          results=Path(args.results).parent, budget_s=None, lpips_weights=None,
                          progress=not args.quiet, command=command.strip())

@@ -109,7 +109,8 @@ def main(argv=None) -> int:
     md = ["# The whole chain from bare photos against the true poses", "",
           f"`{payload['command']}`", "",
           f"tower-small seed 0, {args.clutter} clutter, {args.views} photos at {w}x{h}; `poses` registered "
-          f"{summary['registered']} of {args.views} in {poses_s:.0f} s and undistorted them to {size[0]}x{size[1]}; both "
+          f"{summary['registered']} of {args.views} in {poses_s:.0f} s "
+          f"and undistorted them to {size[0]}x{size[1]}; both "
           f"chains then ran the demo's recipe ({'its steps' if args.steps is None else f'{args.steps} steps'}) on "
           f"those {summary['registered']} photos with the same {len(rows['A']['test_views'])} test views.", "",
           "| chain | test PSNR | SSIM |", "|---|---|---|",

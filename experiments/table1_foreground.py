@@ -14,7 +14,8 @@ settings line says which), per scene set:
   clean images             trained on the distractor-free renders (upper bound)
 Scene sets: A = tower-small (medium distractors), B = plad-like (high distractors); seed k uses
 scene seed k and training seed k. Set A also at low and high clutter (the paper's gain should
-grow with clutter), with the three rows that test it: no masks, GT masks + Eq. 7, built-in DPT + Eq. 7. Metrics on the clean test views (PSNR, SSIM, MS-SSIM, LPIPS
+grow with clutter), with the three rows that test it: no masks, GT masks + Eq. 7, built-in DPT + Eq. 7.
+Metrics on the clean test views (PSNR, SSIM, MS-SSIM, LPIPS
 with --lpips-weights) and PSNR inside the distractor regions of training views against the
 clean renders (how much of the passers-by is burnt in; higher = cleaner).
 

@@ -81,9 +81,11 @@ def main(argv=None) -> int:
            + ", ".join(f"{100 * v:.1f} %" for v in shares) + " of the test pixels (by seed; sky and vegetation "
            "/ buildings beyond 100 m). The paper's figure is its set (b); on its set (a) the gain was +3.14 dB. "
            "Ours is one scene family (tower-small)."]
-    notes = ["Region definition (evaluate.REGION_DEFINITION): " + "tower = classes 1-2; near ground = class 3; far background = "
+    notes = ["Region definition (evaluate.REGION_DEFINITION): "
+             + "tower = classes 1-2; near ground = class 3; far background = "
              "sky + vegetation/buildings with ground-truth depth > 100 m.",
-             "Masks: ground-truth distractor masks with Eq. 7 (`jaxnerf-grid mask --source gt`), the same for all rows."]
+             "Masks: ground-truth distractor masks with Eq. 7 (`jaxnerf-grid mask --source gt`), "
+             "the same for all rows."]
     tables.write_results(ctx, "table2_farview", "Table 2: far-view blur constraint (contraction + differentiated "
                          "sampling)", body, md, notes)
     return 0

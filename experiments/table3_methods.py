@@ -47,7 +47,7 @@ def crops_figure(records: dict, data_dir: Path, scale: int = 3, max_views: int =
         name = Path(ds.frame_paths[i]).stem
         box = report.tower_box(np.asarray(ds.semantics[i])) if ds.semantics is not None else None
         box = box or (slice(None), slice(None))
-        up = lambda a: np.repeat(np.repeat(np.asarray(a, np.float32)[box], scale, 0), scale, 1)  # noqa: E731
+        up = lambda a: np.repeat(np.repeat(np.asarray(a, np.float32)[box], scale, 0), scale, 1)  # noqa: E731, B023 (used in this iteration)
         target = ds.clean_images[i] if ds.clean_images is not None else ds.images[i]
         panels = [figures.label_image(up(target), "ground truth")]
         for label, rec in records.items():

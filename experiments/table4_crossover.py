@@ -37,12 +37,14 @@ DPT_SETTINGS = {"quick": {"minutes": 3.0, "steps": 600, "views": 40},
 # on TTPLA 19.34 dB: an asymmetry of +6.46 dB between the two crossover directions.
 PAPER_ASYMMETRY_DB = 25.80 - 19.34
 COLUMNS = [("mask_iou", "mask IoU", 3), ("mask_precision", "precision", 3), ("mask_recall", "recall", 3),
-           ("psnr", "PSNR", 2), ("psnr_tower", "PSNR tower", 2), ("geometry_f", "tower F@0.02", 3), ("ssim", "SSIM", 3), ("ms_ssim", "MS-SSIM", 3), ("lpips", "LPIPS", 3),
+           ("psnr", "PSNR", 2), ("psnr_tower", "PSNR tower", 2), ("geometry_f", "tower F@0.02", 3), ("ssim", "SSIM", 3),
+           ("ms_ssim", "MS-SSIM", 3), ("lpips", "LPIPS", 3),
            ("distractor_psnr", "distractor PSNR", 2), ("delta_psnr", "Δ PSNR vs no masks (paired)", 2)]
 
 
 def train_dpt(ctx, source: str, seed: int, eval_dir: Path, minutes: float, steps: int, views: int) -> tuple[Path, dict]:
-    """Trains (once) a DPT on a `source` scene with experiments/train_builtin_dpt.py. Returns (model dir, its result)."""
+    """Trains (once) a DPT on a `source` scene with experiments/train_builtin_dpt.py.
+    Returns (model dir, its result)."""
     w, h, _, n_test, ss = settings.SCENE_SIZES[ctx.setting][source]
     train_dir = scenes.scene(ctx, source, seed, size=(w, h, views, n_test, ss))
     out = ctx.cache / "dpt" / f"{source}_s{seed}_{steps}steps_{minutes:g}min"
@@ -68,7 +70,8 @@ def main(argv=None) -> int:
     dset["steps"] = args.dpt_steps or dset["steps"]
     rows_spec = []
     for source, target, _ in DIRECTIONS:
-        rows_spec += [(target, f"{source} DPT -> {target} (crossover)"), (target, f"{target} DPT -> {target} (same family)"),
+        rows_spec += [(target, f"{source} DPT -> {target} (crossover)"),
+                      (target, f"{target} DPT -> {target} (same family)"),
                       (target, f"{target}: GT masks + Eq. 7"), (target, f"{target}: no masks")]
     records = {label: [] for _, label in rows_spec}
     extras = {label: {"mask_iou": [], "mask_precision": [], "mask_recall": []} for _, label in rows_spec}
@@ -90,7 +93,7 @@ def main(argv=None) -> int:
                                                                       "train_seconds", "metrics")}
             v = scenes.mask_variant(ctx, target_dir, f"dpt_from_{source}", "dpt", floor=0.0, weights=str(model_dir))
             masked_run(v, seed, f"{source} DPT -> {target} (crossover)", f"t4-{source}-to-{target}")
-        for source, target, dpt_seed in DIRECTIONS:  # same family: the other direction's DPT on its own family
+        for _, target, _ in DIRECTIONS:  # same family: the other direction's DPT on its own family
             target_dir = scenes.scene(ctx, target, seed)
             other = next(d for d in DIRECTIONS if d[0] == target)
             model_dir, _ = train_dpt(ctx, target, other[2], scenes.scene(ctx, other[1], seed), dset["minutes"],
@@ -125,14 +128,16 @@ def main(argv=None) -> int:
     holder = dict(a) if a else None
     tables.add_paired_delta(holder, b, "psnr", "asymmetry")
     effect = holder.get("asymmetry") if holder else None
-    body["claim"] = {"paper_db": PAPER_ASYMMETRY_DB, "effect": effect, "verdict": tables.verdict(effect, PAPER_ASYMMETRY_DB)}
+    body["claim"] = {"paper_db": PAPER_ASYMMETRY_DB, "effect": effect,
+                     "verdict": tables.verdict(effect, PAPER_ASYMMETRY_DB)}
     md += ["## The paper's claim (Table 4: a DPT trained on TTPLA transfers to STN PLAD better than the reverse)", "",
            tables.claim_line("Crossover asymmetry (PSNR of ttpla-like DPT -> plad-like minus plad-like DPT -> "
                              "ttpla-like, paired by seed)", effect, PAPER_ASYMMETRY_DB),
            "", tables.VERDICT_RULE, "The two directions are scored on different target families, so the "
            "difference mixes the DPT's transfer with how hard each family is; the same-family rows separate them.", ""]
     md += ["DPT training (experiments/train_builtin_dpt.py) and its own evaluation on the target scene's frames "
-           "(the seed-0 target scene, all its frames, pooled IoU):", "", "| direction | steps | train min | IoU | precision | recall |",
+           "(the seed-0 target scene, all its frames, pooled IoU):", "",
+           "| direction | steps | train min | IoU | precision | recall |",
            "|---|---|---|---|---|---|"]
     for k, r in dpt_results.items():
         pm = r["metrics"]["pooled"]

@@ -251,7 +251,8 @@ def main(argv=None) -> int:
     trained = dpt.Model(cfg, jax.tree_util.tree_map(np.asarray, params))
 
     extra = {"dynamic_classes": sorted(SYNTHETIC_DYNAMIC), "trained_on_seeds": train_seeds, "init": args.init,
-             "steps": step, "max_side": max(H, W), "note": "trained by experiments/train_builtin_dpt.py on synthetic tower scenes; "
+             "steps": step, "max_side": max(H, W),
+             "note": "trained by experiments/train_builtin_dpt.py on synthetic tower scenes; "
                                     "inputs are resized to a working size with longest side ~160 px"}
     dpt.save(trained, args.out, dtype="float16", extra=extra)
     reloaded = dpt.load_pretrained(args.out)  # evaluate exactly what ships (float16 weights)

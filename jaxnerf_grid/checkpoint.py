@@ -175,8 +175,8 @@ def save_checkpoint(run_dir: str | os.PathLike, step: int, state: Any, keep: int
 
     Atomic (temporary file in the same folder + flush + fsync + os.replace + fsync of the
     folder); temporary files left by an earlier writer that was killed are removed first
-    (one writer per run directory is assumed). Afterwards deletes the oldest `ckpt_*.npz` so that `keep` remain (never the one
-    just written); keep=None keeps all. Returns the checkpoint's path.
+    (one writer per run directory is assumed). Afterwards deletes the oldest `ckpt_*.npz` so that
+    `keep` remain (never the one just written); keep=None keeps all. Returns the checkpoint's path.
     """
     if int(step) < 0:
         raise ValueError(f"save_checkpoint: step must be >= 0, got {step}")

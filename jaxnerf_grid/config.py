@@ -24,6 +24,8 @@ import types
 import typing
 from typing import Any, TypeVar
 
+from jaxnerf_grid.io import DataError
+
 T = TypeVar("T")
 
 
@@ -115,8 +117,8 @@ def validate(cfg: Any, where: str = "") -> None:
 
 def check_value(key: str, value: Any, hint: Any, rng: Range | None = None) -> None:
     """One value against a type hint (as `validate` reads them) and an optional `Range` (a tuple
-    or list: each entry). Raises ConfigError naming `key` (a config key or a command-line flag),
-    e.g. "--dilate = -2: must be an integer >= 0"."""
+    or list: each entry). Raises ConfigError naming `key` (a config key, or a command's key such as
+    mask.dilate: the CLI shows its flag), e.g. "mask.dilate = -2: must be an integer >= 0"."""
     problem = _type_problem(value, hint)
     if problem:
         raise ConfigError(f"{key} = {_show(value)}: {problem}")
@@ -153,7 +155,7 @@ def parse_sets(items: list[str] | None, cls: type) -> dict:
         key, sep, text = item.partition("=")
         key = key.strip()
         if not sep or not key:
-            raise ConfigError(f"--set {item!r}: expected key=value, e.g. model.warp=log")
+            raise ConfigError(f"{item!r}: expected key=value, e.g. model.warp=log")
         parts = key.split(".")
         target, node = cls, out
         for depth, part in enumerate(parts):
@@ -161,17 +163,17 @@ def parse_sets(items: list[str] | None, cls: type) -> dict:
             names = {f.name for f in dataclasses.fields(target)} if dataclasses.is_dataclass(target) else set()
             if part not in names:
                 prefix = ".".join(parts[:depth]) or "the config"
-                raise ConfigError(f"--set {key}: unknown key {part!r} in {prefix}; known: {sorted(names)}")
+                raise ConfigError(f"{key}: unknown key {part!r} in {prefix}; known: {sorted(names)}")
             target = hints[part]
             if depth < len(parts) - 1:
                 if not dataclasses.is_dataclass(target):
-                    raise ConfigError(f"--set {key}: {'.'.join(parts[:depth + 1])} is a value, not a section")
+                    raise ConfigError(f"{key}: {'.'.join(parts[:depth + 1])} is a value, not a section")
                 node = node.setdefault(part, {})
             else:
                 if dataclasses.is_dataclass(target):
                     value = _parse_value(text)
                     if not isinstance(value, dict):
-                        raise ConfigError(f"--set {key}: a section; give a JSON object or set its keys")
+                        raise ConfigError(f"{key}: a section; give a JSON object or set its keys")
                     node[part] = merge(node.get(part, {}), value)
                 else:
                     node[part] = _parse_value(text)
@@ -240,8 +242,6 @@ def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
         if not 0 < changes["near"] < changes["far"]:
             got = f"need 0 < near < far, got near={changes['near']:g}, far={changes['far']:g}"
             if cfg.model.near is None and cfg.model.far is None:
-                from jaxnerf_grid.io import DataError
-
                 raise DataError(f"{getattr(dataset, 'root', 'dataset')}: the dataset's ray bounds: {got}")
             raise ConfigError(f"model.near / model.far (with the dataset's where None): {got}")
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, **changes))

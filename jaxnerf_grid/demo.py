@@ -12,10 +12,12 @@ import json
 import time
 from pathlib import Path
 
-from jaxnerf_grid import evaluate, io, recipes, runs
+from jaxnerf_grid import distributed, evaluate, io, masking, recipes, runs
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.bounds import bounds_line, read_bounds, recipe_with_bounds
+from jaxnerf_grid.data.synthetic import generate as synth_generate
 from jaxnerf_grid.io import DataError
+from jaxnerf_grid.run_config import make_config
 
 # The demo's recipe: `recipes.overrides("ours")`, the recipe that resolves the tower (docs/GRID.md,
 # docs/RECIPES.md): a hash grid on the contracted coordinates, one proposal round of 64 samples
@@ -34,14 +36,12 @@ def _dataset_folder(data, out: Path, progress: bool, timings: dict) -> Path:
     if data is not None:
         data = Path(data)
         if not data.is_dir():
-            raise DataError(f"{data}: --data is not a folder")
+            raise DataError(f"{data}: demo.data is not a folder")
         return data
     data = out / "data"
     if not (data / "transforms.json").is_file():
-        from jaxnerf_grid.data.synthetic.generate import generate_scene
-
         t = time.perf_counter()
-        generate_scene("tower-small", data, seed=0, overwrite=True, progress=progress)
+        synth_generate.generate_scene("tower-small", data, seed=0, overwrite=True, progress=progress)
         timings["synth"] = time.perf_counter() - t
     return data
 
@@ -58,8 +58,6 @@ def _ensure_masks(data: Path, progress: bool, timings: dict) -> str:
     has_masks = "mask_source" in meta or any(isinstance(f, dict) and (f.get("weight_path") or f.get("mask_path"))
                                              for f in meta.get("frames", []))
     if not has_masks:
-        from jaxnerf_grid import masking
-
         t = time.perf_counter()
         gt = not masking.BUILTIN.exists() and "distractor_mask_path" in json.dumps(meta.get("frames", []))
         masking.write_masks(data, source="gt" if gt else "dpt", progress=progress)
@@ -83,23 +81,19 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
     has no masks) -> train the `ours` recipe (DEMO_RECIPE) -> evaluate. Returns {"run_dir", "metrics",
     "timings" (s per stage), "total_seconds", "mask_source"}. sets: --set KEY=VALUE changes to
-    DEMO_CONFIG. The config is checked (train.make_config) before anything is written."""
-    from jaxnerf_grid import train
-
+    DEMO_CONFIG. The config is checked (run_config.make_config) before anything is written."""
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
-        raise ConfigError(f"--steps = {steps}: must be an integer >= 1")
+        raise ConfigError(f"demo.steps = {steps}: must be an integer >= 1")
     method = recipes.get(DEMO_RECIPE).method
     recipe = runs.overrides_with_sets(recipes.overrides(DEMO_RECIPE), sets)
-    train.make_config(method, runs._with_steps(recipe, steps))  # a bad --set fails before synth / mask
+    make_config(method, runs._with_steps(recipe, steps))  # a bad --set fails before synth / mask
     start = time.perf_counter()
     out = Path(out)
     if out.exists() and not out.is_dir():
-        raise DataError(f"{out}: --out exists and is not a folder")
+        raise DataError(f"{out}: demo.out exists and is not a folder")
     if (out / "run").exists() and not (out / "run").is_dir():
         raise DataError(f"{out / 'run'}: exists and is not a folder")
     timings = {}
-    from jaxnerf_grid import distributed
-
     # multi-process (docs/DISTRIBUTED.md): process 0 makes the data, every process trains, process 0 evaluates
     if distributed.is_main():
         data = _dataset_folder(data, out, progress, timings)

@@ -70,9 +70,9 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
     if coordinator == "auto":
         coordinator = None
     if num_processes is not None and num_processes < 1:
-        raise ValueError(f"--num-processes = {num_processes}: must be >= 1")
+        raise ValueError(f"distributed.num_processes = {num_processes}: must be >= 1")
     if process_id is not None and num_processes is not None and not 0 <= process_id < num_processes:
-        raise ValueError(f"--process-id = {process_id}: must be in [0, {num_processes})")
+        raise ValueError(f"distributed.process_id = {process_id}: must be in [0, {num_processes})")
     # cross-process collectives on CPU devices need gloo (the default CPU client has none);
     # the setting only concerns the CPU client, so it is harmless on GPU hosts
     jax.config.update("jax_cpu_collectives_implementation", "gloo")

@@ -31,9 +31,12 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, io
+from jaxnerf_grid import (clouds, config as config_lib, geometry, io, losses, lpips, metrics, rays as rays_lib, report,
+                          train, views)
+from jaxnerf_grid.export import score
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.runs import bar, frame_name, load_run_and_dataset, write_view
 
@@ -68,7 +71,7 @@ def reference_cloud(ds, reference_ply=None) -> tuple[Path, dict | None] | None:
     if reference_ply:
         path = Path(reference_ply)
         if not path.is_file():
-            raise DataError(f"{path}: reference point cloud not found (--reference-ply)")
+            raise DataError(f"{path}: reference point cloud not found (eval.reference_ply)")
         return path, None
     name = ds.meta.get("tower_ply") if ds.meta else None
     if not name:
@@ -82,8 +85,6 @@ def reference_cloud(ds, reference_ply=None) -> tuple[Path, dict | None] | None:
 def score_geometry(ds, cloud: list, reference_ply=None) -> dict | None:
     """metrics.json["geometry"]: the exported cloud parts [(points [K, 3], colours [K, 3])]
     against `reference_cloud(ds, reference_ply)`; None without a reference."""
-    from jaxnerf_grid import geometry
-
     ref = reference_cloud(ds, reference_ply)
     if ref is None:
         return None
@@ -96,8 +97,6 @@ def export_section(ds, run_dir, reference_ply=None) -> dict | None:
     """metrics.json["export"] when the run has an export (RUN/export/measurements.json, written by
     `jaxnerf-grid export`): {"measurements", "image", "score"}, the score (`export.score`, in
     the export's units) only with a reference tower; None without an export."""
-    from jaxnerf_grid.export import score
-
     folder = Path(run_dir) / "export"
     if not (folder / "measurements.json").is_file():
         return None
@@ -116,10 +115,6 @@ METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "lpips")
 def _fit_left_half(params, cfg, ds, index: int, target: np.ndarray, rays) -> np.ndarray:
     """NeRF-W's test protocol: the appearance embedding [A] of a test image fitted on its left
     half (network frozen). target: [H, W, 3]; rays: the view's Rays [H, W]."""
-    import jax
-
-    from jaxnerf_grid import rays as rays_lib, views
-
     half = ds.width // 2
     left = rays_lib.Rays(*(jax.numpy.asarray(np.asarray(x)[:, :half].reshape(-1, *np.asarray(x).shape[2:]))
                            for x in rays))
@@ -130,8 +125,6 @@ def _fit_left_half(params, cfg, ds, index: int, target: np.ndarray, rays) -> np.
 def _right_half_metrics(rgb: np.ndarray, target: np.ndarray, lpips_params) -> dict:
     """PSNR / SSIM / MS-SSIM / LPIPS of the right halves of rgb, target [H, W, 3] (PSNR only
     when the half is smaller than the SSIM window)."""
-    from jaxnerf_grid import metrics
-
     half = rgb.shape[1] // 2
     if min(rgb.shape[0], rgb.shape[1] - half) >= metrics.WIN_SIZE:
         right = metrics.evaluate_image(rgb[:, half:], target[:, half:], lpips_params)
@@ -143,8 +136,6 @@ def _right_half_metrics(rgb: np.ndarray, target: np.ndarray, lpips_params) -> di
 
 def _region_psnr(rgb: np.ndarray, target: np.ndarray, masks: dict) -> dict:
     """{region: PSNR of rgb against target [H, W, 3] inside its mask [H, W], None if empty}."""
-    from jaxnerf_grid import metrics
-
     return {region: float(metrics.psnr(rgb, target, mask.astype(np.float32))) if mask.any() else None
             for region, mask in masks.items()}
 
@@ -167,20 +158,9 @@ def _means(per_view: list[dict]) -> tuple[dict, dict, dict]:
     return mean, mean_right, regions_mean
 
 
-def cloud_view_ids(ds, cloud_views: int) -> list[int]:
-    """`cloud_views` training frame ids, evenly spaced (all of them when there are fewer)."""
-    train_ids = np.asarray(ds.split["train"])
-    if cloud_views <= 0 or not len(train_ids):
-        return []
-    picks = np.linspace(0, len(train_ids) - 1, min(cloud_views, len(train_ids))).round().astype(int)
-    return [int(i) for i in train_ids[picks]]
-
-
 def _lift(ds, index: int, near: float, far: float, rgb: np.ndarray, view: dict):
-    """The tower points of one rendered view: export.lift_view -> (points [K, 3], colours [K, 3])."""
-    from jaxnerf_grid import export, views
-
-    return export.lift_view(views.camera_rays(ds, index, near, far), rgb, view["depth"], view["opacity"])
+    """The tower points of one rendered view: clouds.lift_view -> (points [K, 3], colours [K, 3])."""
+    return clouds.lift_view(views.camera_rays(ds, index, near, far), rgb, view["depth"], view["opacity"])
 
 
 def _protocol(ds, cfg) -> str:
@@ -205,14 +185,12 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     Everything is checked (the dataset's fingerprint, --reference-ply, the LPIPS weights file)
     before anything is rendered or written.
     """
-    from jaxnerf_grid import export, lpips, metrics, report, train, views
-
     start = time.perf_counter()
     run_dir = Path(run_dir)
     cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
     reference_cloud(ds, reference_ply)  # a missing --reference-ply fails before rendering
     if lpips_weights and not Path(lpips_weights).is_file():
-        raise DataError(f"{lpips_weights}: LPIPS weights file not found (--lpips-weights)")
+        raise DataError(f"{lpips_weights}: LPIPS weights file not found (eval.lpips_weights)")
     params, step = train.load_params(run_dir, cfg, ds)
     lpips_params = lpips.load_lpips(lpips_weights) if lpips_weights else None
     targets = ds.clean_images if ds.clean_images is not None else ds.images
@@ -235,7 +213,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
         figures.append({"name": name, "gt": target, "rgb": rgb, "depth": view["depth"],
                         "semantic": None if ds.semantics is None else np.asarray(ds.semantics[i])})
     mean, mean_right, regions_mean = _means(per_view)
-    cloud_ids = cloud_view_ids(ds, cloud_views)
+    cloud_ids = clouds.cloud_view_ids(ds, cloud_views)
     for i in bar(cloud_ids, progress, "tower points"):
         view = views.render_view(params, cfg, ds, i)
         cloud.append(_lift(ds, i, near, far, np.clip(view["rgb"], 0, 1), view))
@@ -252,13 +230,15 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
               "per_view": per_view, "lpips": "computed" if lpips_params is not None else "unavailable",
               "eval_seconds": time.perf_counter() - start}
     io.write_json(run_dir / "metrics.json", result)
-    export.write_point_cloud(run_dir / "tower_points.ply", cloud)
+    clouds.write_point_cloud(run_dir / "tower_points.ply", cloud)
     notes = list(extra_notes)
     notes.append(f"Point cloud of the unit sphere (the tower region) lifted from the depth maps of the "
                  f"{len(per_view)} test views" + (f" and {len(cloud_ids)} training views" if cloud_ids else "")
                  + f" (opacity >= 0.5): `tower_points.ply`, {sum(len(p) for p, _ in cloud)} points, "
                  "normalised scene units.")
-    notes.append(f"LPIPS: {'computed from ' + str(lpips_weights) if lpips_params is not None else 'unavailable (no --lpips-weights)'}.")
+    lpips_note = (f"computed from {lpips_weights}" if lpips_params is not None
+                  else "unavailable (no LPIPS weights given)")
+    notes.append(f"LPIPS: {lpips_note}.")
     notes.append(f"Evaluation took {result['eval_seconds']:.0f} s.")
     report.write_report(run_dir, result, cfg, data, figures, notes)
     return result
@@ -268,8 +248,6 @@ def distractor_psnr(params, cfg, ds, max_views: int, progress: bool = False) -> 
     """PSNR inside the distractor masks of (up to max_views) training views against their clean
     images, pooled over the views (how much of the passers-by the model burnt in); None
     without distractor masks or clean images."""
-    from jaxnerf_grid import losses, views
-
     if ds.distractor_masks is None or ds.clean_images is None or max_views <= 0:
         return None
     ids = [int(i) for i in ds.split["train"] if np.asarray(ds.distractor_masks[i]).any()][:max_views]

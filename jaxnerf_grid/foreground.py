@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import io, parallel
+from jaxnerf_grid import dpt, io, parallel
 
 # ADE20K-150 (0-based ids as in HF's Intel/dpt-large-ade id2label) classes that move.
 # ADE20K has no bird class: birds fall under "animal".
@@ -204,8 +204,6 @@ def blend_tiles(values: np.ndarray, layout: TileLayout) -> np.ndarray:
 def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size, tiles, overlap, multiple):
     """predict_maps with tiles > 1: C from overlapping windows of a finer copy of each photo,
     depth (relative, so not comparable between windows) from the whole photo at working size."""
-    from jaxnerf_grid import dpt
-
     for image in images:
         image = np.asarray(image, np.float32)
         h, w = image.shape[:2]
@@ -232,14 +230,14 @@ MAX_TILE_OVERLAP = 0.75
 
 
 def settings_problem(batch_size: int | None, tiles: int, tile_overlap: float) -> str | None:
-    """What is wrong with `predict_maps`'s batch / tiling settings (named as in the code and the
-    CLI), or None. Callers raise it as their own error type."""
+    """What is wrong with `predict_maps`'s batch / tiling settings (named by their keys,
+    `mask.batch_size`, ...; the CLI shows its flags), or None. Callers raise it as their own error type."""
     if batch_size is not None and (int(batch_size) != batch_size or batch_size < 1):
-        return f"batch_size (--batch-size) must be an integer >= 1, got {batch_size}"
+        return f"mask.batch_size must be an integer >= 1, got {batch_size}"
     if int(tiles) != tiles or tiles < 1:
-        return f"tiles (--tiles) must be an integer >= 1, got {tiles}"
+        return f"mask.tiles must be an integer >= 1, got {tiles}"
     if not 0.0 <= tile_overlap <= MAX_TILE_OVERLAP:
-        return f"tile_overlap (--tile-overlap) must be between 0 and {MAX_TILE_OVERLAP}, got {tile_overlap}"
+        return f"mask.tile_overlap must be between 0 and {MAX_TILE_OVERLAP}, got {tile_overlap}"
     return None
 
 
@@ -266,8 +264,6 @@ def class_probabilities(seg_model, image, max_side: int = 384) -> np.ndarray:
     The same working size and bilinear upsampling as `predict_maps` (bilinear resizing is
     linear, so summing this over `classes` gives predict_maps' C to float rounding). For studies
     of rules that use more classes than Eq. 6's sum (experiments/mask_tower_overlap.py)."""
-    from jaxnerf_grid import dpt
-
     image = np.asarray(image, np.float32)
     x = to_working_size(image, max_side, 2 * seg_model.config.patch_size)[None]
     prob = np.asarray(jax.nn.softmax(dpt.apply(seg_model, dpt.normalize(x))["logits"][0], axis=-1))
@@ -294,8 +290,6 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
     (or windows) per DPT call, None for `default_batch_size()`.
     Yields (C [H, W], inv_depth [H, W] or None) per image, in order.
     """
-    from jaxnerf_grid import dpt
-
     problem = settings_problem(batch_size, tiles, tile_overlap)
     if problem:
         raise ValueError(f"predict_maps: {problem}")

@@ -32,6 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxnerf_grid import io
 from jaxnerf_grid.data.normalize import apply_normalization_to_points, compose_normalization, invert_normalization
 
 UP_AXIS = 2
@@ -171,8 +172,6 @@ def score_against_ply(cloud_parts, ply_path, *, file_normalization: dict | None 
     `reference_to_scene` (None: the reference is already in the scene's units).
     Returns `score_points`'s dict plus "reference" (the path) and "units".
     """
-    from jaxnerf_grid import io
-
     parts = [np.asarray(p, np.float64).reshape(-1, 3) for p, _ in cloud_parts]
     pred = np.concatenate(parts) if parts else np.zeros((0, 3))
     ref = reference_to_scene(io.read_ply_points(ply_path), file_normalization, scene_normalization)

@@ -403,5 +403,5 @@ def ensure_writable(path: str | os.PathLike, overwrite: bool) -> Path:
     path = Path(path)
     if path.exists() and not overwrite:
         if path.is_file() or any(path.iterdir()):
-            raise DataError(f"{path}: already exists and is not empty; pass --overwrite to replace it")
+            raise DataError(f"{path}: already exists and is not empty; pass overwrite=True to replace it")
     return path

@@ -97,7 +97,7 @@ def load_lpips(path: str | os.PathLike | None) -> dict | None:
         return None
     p = Path(path)
     if not p.exists():
-        warnings.warn(f"{p}: LPIPS weights file not found; LPIPS reported as unavailable")
+        warnings.warn(f"{p}: LPIPS weights file not found; LPIPS reported as unavailable", stacklevel=2)
         return None
     try:
         with np.load(p, allow_pickle=False) as z:

@@ -36,11 +36,12 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config, io
+from jaxnerf_grid import config, dpt, foreground as fg, io, progress as progress_lib
 from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS
 from jaxnerf_grid.io import DataError
 
-OUTPUT_DIRS = ("masks", "weights", "dpt_depth", "overlays")
+OUTPUT_DIRS = MASK_OUTPUT_DIRS  # the dataset layout's names (data/formats/writing.py)
 STAGING = ".jaxnerf-grid-mask-new"
 RETIRED = ".jaxnerf-grid-mask-old"
 COMPLETE = "COMPLETE"
@@ -63,17 +64,15 @@ def _image_path(root: Path, frame: dict) -> Path:
 
 def load_models(weights: str | None, depth_weights: str | None):
     """(seg_model, depth_model or None or seg_model itself, source label)."""
-    from jaxnerf_grid import dpt
-
     if weights is None:
         if not (BUILTIN / "config.json").is_file():
-            raise DataError(f"{BUILTIN}: no built-in DPT model is shipped in this build; pass --weights DIR "
-                            "(a copy of Intel/dpt-large-ade) or use --source gt on synthetic data")
+            raise DataError(f"{BUILTIN}: no built-in DPT model is shipped in this build; give mask.weights "
+                            "(a folder: a copy of Intel/dpt-large-ade) or use mask.source gt on synthetic data")
         weights = str(BUILTIN)
     seg = dpt.load_pretrained(weights)
     if "segmentation" not in seg.config.heads:
         raise DataError(f"{weights}: this DPT has no segmentation head (heads: {seg.config.heads}); "
-                        "--weights must be a segmentation model (e.g. Intel/dpt-large-ade)")
+                        "mask.weights must be a segmentation model (e.g. Intel/dpt-large-ade)")
     if depth_weights is not None:
         depth = dpt.load_pretrained(depth_weights)
         if "depth" not in depth.config.heads:
@@ -86,8 +85,6 @@ def load_models(weights: str | None, depth_weights: str | None):
 
 
 def default_classes(seg_model, weights_dir: str) -> list[int]:
-    from jaxnerf_grid import foreground as fg
-
     meta = io.read_json(Path(weights_dir) / "config.json")
     extra = meta.get("extra", {}) if isinstance(meta, dict) else {}
     if "dynamic_classes" in extra:
@@ -95,22 +92,22 @@ def default_classes(seg_model, weights_dir: str) -> list[int]:
     if seg_model.config.num_labels == 150:
         return sorted(fg.ADE20K_DYNAMIC)
     raise DataError(f"{weights_dir}: {seg_model.config.num_labels}-label model with no known dynamic "
-                    "classes; pass --classes ID,ID,...")
+                    "classes; give mask.classes ID,ID,...")
 
 
 def check_settings(threshold: float, floor: float, dilate: int, max_side: int | None, classes) -> None:
-    """Raises ConfigError naming the flag when a mask setting is out of range: threshold and
+    """Raises ConfigError naming the key (mask.threshold, ...) when a mask setting is out of range: threshold and
     floor in [0, 1], dilate >= 0, max_side >= 1 (or None), classes integers >= 0."""
-    config.check_value("--threshold", threshold, float, config.UNIT)
-    config.check_value("--floor", floor, float, config.UNIT)
-    config.check_value("--dilate", dilate, int, config.NONNEGATIVE)
-    config.check_value("--max-side", max_side, int | None, config.AT_LEAST_ONE)
+    config.check_value("mask.threshold", threshold, float, config.UNIT)
+    config.check_value("mask.floor", floor, float, config.UNIT)
+    config.check_value("mask.dilate", dilate, int, config.NONNEGATIVE)
+    config.check_value("mask.max_side", max_side, int | None, config.AT_LEAST_ONE)
     for c in classes or []:
-        config.check_value("--classes", c, int, config.NONNEGATIVE)
+        config.check_value("mask.classes", c, int, config.NONNEGATIVE)
 
 
 def parse_classes(text: str | None) -> list[int] | None:
-    """--classes "12,20,127" as [12, 20, 127]; None for None / empty; ConfigError naming the bad entry."""
+    """mask.classes "12,20,127" as [12, 20, 127]; None for None / empty; ConfigError naming the bad entry."""
     if not text:
         return None
     out = []
@@ -121,7 +118,8 @@ def parse_classes(text: str | None) -> list[int] | None:
         try:
             out.append(int(part))
         except ValueError:
-            raise ConfigError(f"--classes: {part!r} is not a class id (comma-separated integers, e.g. 12,20)") from None
+            raise ConfigError(f"mask.classes: {part!r} is not a class id (comma-separated integers, e.g. 12,20)"
+                              ) from None
     return out
 
 
@@ -129,9 +127,9 @@ def check_classes(classes: list[int], num_labels: int, weights: str) -> None:
     """Refuses class ids outside the segmentation model's labels 0..num_labels-1."""
     bad = [c for c in classes if not 0 <= c < num_labels]
     if bad:
-        raise ConfigError(f"--classes {bad}: outside the {num_labels} labels of {weights} (0..{num_labels - 1})")
+        raise ConfigError(f"mask.classes {bad}: outside the {num_labels} labels of {weights} (0..{num_labels - 1})")
     if not classes:
-        raise ConfigError("--classes: no class id given")
+        raise ConfigError("mask.classes: no class id given")
 
 
 def _rename(src: Path, dst: Path) -> None:
@@ -188,9 +186,9 @@ def _check_outputs(root: Path, meta: dict, overwrite: bool) -> None:
     for name in OUTPUT_DIRS:
         d = root / name
         if d.is_dir() and any(d.iterdir()):
-            raise DataError(f"{d}: mask outputs already exist; pass --overwrite to replace them")
+            raise DataError(f"{d}: mask outputs already exist; pass overwrite=True to replace them")
     if any("mask_path" in f for f in meta.get("frames", [])):
-        raise DataError(f"{root / 'transforms.json'}: frames already have mask_path; pass --overwrite")
+        raise DataError(f"{root / 'transforms.json'}: frames already have mask_path; pass overwrite=True")
 
 
 def _gt_frames(root: Path, frames: list):
@@ -198,7 +196,7 @@ def _gt_frames(root: Path, frames: list):
         for key in ("distractor_mask_path", "depth_file_path"):
             if key not in frame:
                 raise DataError(f"{root / 'transforms.json'}: frame {frame.get('file_path')!r} has no {key!r}; "
-                                "--source gt needs the synthetic ground truth")
+                                "mask.source gt needs the synthetic ground truth")
         mask = io.read_distractor_mask(root / frame["distractor_mask_path"])
         yield mask.astype(np.float32), io.read_exr(root / frame["depth_file_path"])
 
@@ -211,8 +209,6 @@ def model_max_side(wdir) -> int:
 def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, batch_size, tiles,
               tile_overlap, params: dict):
     """Per image (C [H, W], depth [H, W] or None, C) from DPT; fills `params` (mask_params)."""
-    from jaxnerf_grid import foreground as fg
-
     seg, depth_model, wdir = load_models(weights, depth_weights)
     classes = list(classes) if classes is not None else default_classes(seg, wdir)
     check_classes(classes, seg.config.num_labels, str(wdir))
@@ -235,8 +231,6 @@ def _write_frame(root: Path, frame: dict, index: int, ipath: Path, a, depth, pro
     """Writes one frame's mask, weights, depth and overlay under `root` (the staging folder). a:
     C [H, W] (prob given) or the binary mask itself; depth: [H, W] or None. Returns the frame's
     new relative paths."""
-    from jaxnerf_grid import foreground as fg
-
     image = io.read_image(ipath)
     h, w = image.shape[:2]
     mask = np.asarray(fg.binary_mask(a, threshold)) if prob is not None else a
@@ -272,17 +266,15 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     M = [C > T]; floor: M_w = M * max(floor, (Dmax - D) / Dmax); dilate: pixels; max_side: DPT
     working size (default the model's); tiles, tile_overlap, batch_size: foreground.predict_maps.
     """
-    from jaxnerf_grid import foreground as fg, progress as progress_lib
-
     problem = fg.settings_problem(batch_size, tiles, tile_overlap)
     if problem:  # before anything is read or written
-        raise ConfigError(f"jaxnerf-grid mask: {problem}")
+        raise ConfigError(problem)
     check_settings(threshold, floor, dilate, max_side, classes)
     if source not in ("dpt", "gt"):
-        raise ConfigError(f"--source = {source!r}: must be dpt or gt")
+        raise ConfigError(f"mask.source = {source!r}: must be dpt or gt")
     root = Path(data)
     if not root.is_dir():
-        raise DataError(f"{root}: --data is not a folder")
+        raise DataError(f"{root}: mask.data is not a folder")
     recover(root)
     tpath = root / "transforms.json"
     meta = io.read_json(tpath)

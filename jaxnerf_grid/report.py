@@ -189,8 +189,9 @@ def write_report(run_dir, metrics: dict, cfg, data, views: list[dict], extra_lin
     """Writes run_dir/report.md (and its PNGs).
 
     metrics: the metrics.json dict (keys "mean", "regions", "protocol", ...);
-    cfg: the run's config (train.RunConfig, read by attribute); data: the dataset path; views: [{"name", "gt" [H,W,3], "rgb", "depth" [H,W],
-    optional "semantic" [H,W]}] for the figures; extra_lines: Markdown lines for the notes.
+    cfg: the run's config (RunConfig, read by attribute); data: the dataset path;
+    views: [{"name", "gt" [H,W,3], "rgb", "depth" [H,W], optional "semantic" [H,W]}] for the figures;
+    extra_lines: Markdown lines for the notes.
     Returns the report's path.
     """
     run_dir = Path(run_dir)
@@ -201,7 +202,7 @@ def write_report(run_dir, metrics: dict, cfg, data, views: list[dict], extra_lin
         if v.get("semantic") is not None:
             box = tower_box(v["semantic"])
             if box is not None:
-                up = lambda a: np.repeat(np.repeat(a[box], 2, axis=0), 2, axis=1)  # noqa: E731
+                up = lambda a: np.repeat(np.repeat(a[box], 2, axis=0), 2, axis=1)  # noqa: E731, B023 (used in this iteration)
                 crops.append((up(v["gt"]), up(np.clip(v["rgb"], 0, 1)), up(dcol)))
     figure_lines = []
     if rows:

@@ -5,7 +5,7 @@ A run directory holds config.json ({"data", "model", "train"}), checkpoints/, me
 (PNG), and, once evaluated (`evaluate.evaluate_run`), metrics.json, report.md and
 tower_points.ply.
 
-config.json stores the config as made by `train.make_config` with `model.num_images` set from
+config.json stores the config as made by `run_config.make_config` with `model.num_images` set from
 the dataset; `model.near` / `model.far` stay as configured (None = the dataset's), see
 `config.resolve`.
 
@@ -28,9 +28,12 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, io
+from jaxnerf_grid import config as config_lib, distributed, io, masking, progress as progress_lib, train, views
 from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.data import formats
+from jaxnerf_grid.data.dataset import check_camera_centres
 from jaxnerf_grid.io import DataError
+from jaxnerf_grid.run_config import RunConfig, make_config
 
 RUN_MARKER = ".jaxnerf-grid-run"
 FINGERPRINT_FILE = "dataset.json"
@@ -53,10 +56,8 @@ def read_overrides(path: str | None) -> dict:
 
 def overrides_with_sets(overrides: dict | None, sets: list[str] | None) -> dict:
     """--config's overrides with the --set KEY=VALUE flags laid on top (config.parse_sets against
-    train.RunConfig: an unknown key is a ConfigError naming it)."""
-    from jaxnerf_grid import train
-
-    return config_lib.merge(overrides or {}, config_lib.parse_sets(sets, train.RunConfig))
+    RunConfig: an unknown key is a ConfigError naming it)."""
+    return config_lib.merge(overrides or {}, config_lib.parse_sets(sets, RunConfig))
 
 
 def run_config_dict(cfg, data_path=None) -> dict:
@@ -69,8 +70,6 @@ def run_config_dict(cfg, data_path=None) -> dict:
 
 def load_run(run_dir) -> tuple:
     """(RunConfig, its data path `cfg.data`) of a run directory."""
-    from jaxnerf_grid import train
-
     run_dir = Path(run_dir)
     path = run_dir / "config.json"
     if not run_dir.is_dir():
@@ -80,7 +79,7 @@ def load_run(run_dir) -> tuple:
     raw = io.read_json(path)
     if not isinstance(raw, dict):
         raise DataError(f"{path}: a run's config.json must hold a JSON object")
-    cfg = config_lib.from_dict(train.RunConfig, raw, where=str(path))
+    cfg = config_lib.from_dict(RunConfig, raw, where=str(path))
     try:
         config_lib.validate(cfg)
     except ConfigError as err:
@@ -128,7 +127,7 @@ def check_fingerprint(run_dir, ds, allow_other_data: bool = False) -> None:
     else:
         what = f"the same frames with other cameras ({_describe(new)})"
     raise DataError(f"{path}: the run was trained on another dataset than {ds.root} ({what}); "
-                    "pass --allow-other-data to use it anyway")
+                    "pass allow_other_data=True to use it anyway")
 
 
 def load_run_and_dataset(run_dir, dataset=None, progress: bool = True, allow_other_data: bool = False) -> tuple:
@@ -156,9 +155,6 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
     (config.validate), the ray bounds on this dataset (config.resolve), the camera centres
     (data.dataset.check_camera_centres), the device count and the batch's memory
     (train.check_batch)."""
-    from jaxnerf_grid import train
-    from jaxnerf_grid.data.dataset import check_camera_centres
-
     config_lib.validate(cfg)
     settled = config_lib.resolve(cfg, ds)
     check_camera_centres(ds)
@@ -169,13 +165,10 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
 def load_dataset(path, downscale: float = 1, progress: bool = True):
     """The dataset of a folder (formats.load_dataset), after finishing any `mask` run that was
     killed while swapping its new masks in (masking.recover), so the masks are one set."""
-    from jaxnerf_grid import masking
-    from jaxnerf_grid.data.formats import load_dataset as load
-
     if Path(path).is_dir():
         masking.recover(path)
 
-    return load(path, downscale=downscale, progress=progress)
+    return formats.load_dataset(path, downscale=downscale, progress=progress)
 
 
 def _with_steps(overrides: dict | None, steps: int | None) -> dict:
@@ -183,7 +176,7 @@ def _with_steps(overrides: dict | None, steps: int | None) -> dict:
     overrides = dict(overrides or {})
     if steps is not None:
         if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-            raise ConfigError(f"--steps = {steps}: must be an integer >= 1")
+            raise ConfigError(f"run.steps = {steps}: must be an integer >= 1")
         overrides["train"] = {**overrides.get("train", {}), "max_steps": int(steps)}
     return overrides
 
@@ -207,11 +200,11 @@ def _is_legacy_run(run_dir: Path) -> bool:
 
 
 def check_out(run_dir: Path, data=None) -> None:
-    """Refuses an --out that is a file, or that is the dataset folder itself."""
+    """Refuses a run folder (run.out) that is a file, or that is the dataset folder itself."""
     if run_dir.exists() and not run_dir.is_dir():
-        raise DataError(f"{run_dir}: --out exists and is not a folder")
+        raise DataError(f"{run_dir}: run.out exists and is not a folder")
     if data is not None and run_dir.resolve() == Path(data).resolve():
-        raise DataError(f"{run_dir}: --out is the dataset folder; choose another folder for the run")
+        raise DataError(f"{run_dir}: run.out is the dataset folder; choose another folder for the run")
 
 
 def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
@@ -226,7 +219,7 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
     marked = is_run_dir(run_dir)
     if not marked and not (not overwrite and _is_legacy_run(run_dir)):
         raise DataError(f"{run_dir}: exists, is not empty and is not a jaxnerf-grid run (no {RUN_MARKER}); "
-                        "nothing was changed: choose another --out")
+                        "nothing was changed: choose another run.out")
     if overwrite:
         for sub in RUN_OUTPUT_DIRS:
             shutil.rmtree(run_dir / sub, ignore_errors=True)
@@ -240,11 +233,11 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
             raise DataError(f"{existing}: not a run's config (expected an object with \"train\")")
         if _without(old, "train") != _without(wanted, "train") or \
                 _without(old["train"], "max_steps") != _without(wanted["train"], "max_steps"):
-            raise ConfigError(f"{existing}: the run exists with a different config; pass --overwrite "
-                              "to start again or another --out")
+            raise ConfigError(f"{existing}: the run exists with a different config; pass overwrite=True "
+                              "to start again or another run.out")
         if old["train"]["max_steps"] != wanted["train"]["max_steps"]:
             raise ConfigError(f"{existing}: the run was configured for {old['train']['max_steps']} steps "
-                              "(the learning-rate schedule depends on it); pass --overwrite to change it")
+                              "(the learning-rate schedule depends on it); pass overwrite=True to change it")
 
 
 def train_run(data: str, method: str, out, overrides: dict | None = None, steps: int | None = None,
@@ -257,11 +250,9 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
     Everything is checked (`check_run`, `check_out`, the fingerprint) before the run folder is
     created, cleared or written.
     """
-    from jaxnerf_grid import distributed, train
-
     run_dir = Path(out)
     check_out(run_dir, data)
-    cfg = train.make_config(method, _with_steps(overrides, steps))
+    cfg = make_config(method, _with_steps(overrides, steps))
     ds = dataset if dataset is not None else load_dataset(data, progress=progress)
     cfg = dataclasses.replace(config_lib.resolve(cfg, ds, bounds=False), data=str(Path(data).resolve()))
     check_run(cfg, ds)
@@ -291,8 +282,6 @@ def frame_name(ds, index: int) -> str:
 
 def bar(items, progress: bool, desc: str):
     """A progress bar over views (progress.bar, off when not `progress`)."""
-    from jaxnerf_grid import progress as progress_lib
-
     return progress_lib.bar(items, desc=desc, unit="view", enabled=progress)
 
 
@@ -308,8 +297,6 @@ def render_split(run_dir, split: str = "test", progress: bool = True, dataset=No
     """Renders the frames of a split (test | train | all) into renders/, depth/, opacity/.
     Returns per-view dicts {"index", "rgb", "depth", "expected_depth", "opacity"}.
     A dataset other than the run's (its fingerprint) is refused unless `allow_other_data`."""
-    from jaxnerf_grid import train, views
-
     run_dir = Path(run_dir)
     cfg, _, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
     if params is None:

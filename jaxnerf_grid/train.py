@@ -1,7 +1,7 @@
 """Training: jaxopt-driven steps, pmap data parallelism, checkpoints, exact resume.
 
-The run config (`RunConfig` = model + train) is made here (`make_config`: a method's defaults
-with overrides merged on top) and settled on the dataset by `config.resolve` inside `train`.
+The run config (`RunConfig` = model + train) is made by `run_config.make_config` (a method's
+defaults with overrides merged on top) and settled on the dataset by `config.resolve` inside `train`.
 
 Training step (one `jax.pmap` over the local devices, axis "batch"):
   * the ray pool (every training pixel with loss weight > 0, as flat pixel ids, plus the
@@ -29,99 +29,22 @@ import functools
 import json
 import logging
 import time
-import typing
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import checkpoint, config as config_lib, distributed, fields, io, losses, models, optim, parallel, rays as rays_lib
+from jaxnerf_grid import (checkpoint, config as config_lib, distributed, fields, io, losses, models, optim, parallel,
+                          progress as progress_lib, rays as rays_lib)
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
+# the run config lives in run_config.py; train.RunConfig / train.make_config stay for their callers
+from jaxnerf_grid.run_config import RunConfig, TrainConfig, make_config, resolve_devices  # noqa: F401
 
 logger = logging.getLogger(__name__)
 AXIS = parallel.AXIS
-
-
-@dataclasses.dataclass(frozen=True)
-class TrainConfig:
-    """Optimisation and I/O settings.
-
-    batch_rays: global rays per step (split over devices; must divide by the device count).
-    lr_init, lr_final, warmup: learning-rate schedule; max_grad_norm: clipping (0 = off);
-    adam_b1, adam_b2, adam_eps: Adam's moments and epsilon (Instant-NGP: 0.9, 0.99, 1e-15).
-    use_masks: weight the loss by the dataset's `1 - M_w` (False: every pixel weight 1).
-    mask_weight_floor: with masks, a masked pixel's weight is at most 1 - floor (docs/CONVENTIONS.md:
-      Eq. 7 gives a bird against the sky a weight near 1; floor 1 excludes every masked pixel).
-    checkpoint_every, keep_checkpoints, log_every: steps; chunk: rays per rendering chunk.
-    num_devices: devices to use (0 = all local devices).
-    appearance_steps, appearance_lr, appearance_rays: NeRF-W test-time embedding fit.
-    coarse_loss_weight: weight of the coarse pass's MSE (hierarchical sampler);
-    interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (proposal sampler);
-    distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
-    """
-
-    batch_rays: int = 1024
-    max_steps: int = 2000
-    lr_init: float = 5e-4
-    lr_final: float = 5e-5
-    warmup: int = 100
-    max_grad_norm: float = 1.0
-    adam_eps: float = 1e-6
-    adam_b1: float = 0.9
-    adam_b2: float = 0.999
-    use_masks: bool = True
-    mask_weight_floor: float = 0.0
-    coarse_loss_weight: float = 1.0
-    interlevel_loss_weight: float = 1.0
-    distortion_loss_weight: float = 0.0
-    seed: int = 0
-    checkpoint_every: int = 500
-    keep_checkpoints: int = 3
-    log_every: int = 25
-    chunk: int = 4096
-    num_devices: int = 0
-    appearance_steps: int = 30
-    appearance_lr: float = 0.05
-    appearance_rays: int = 1024
-
-    # allowed values, checked by config.validate (docs/RELIABILITY.md)
-    RANGES: typing.ClassVar[dict] = {
-        "batch_rays": config_lib.AT_LEAST_ONE, "max_steps": config_lib.AT_LEAST_ONE,
-        "lr_init": config_lib.POSITIVE, "lr_final": config_lib.POSITIVE, "warmup": config_lib.NONNEGATIVE,
-        "max_grad_norm": config_lib.NONNEGATIVE, "adam_eps": config_lib.POSITIVE,
-        "adam_b1": config_lib.FRACTION, "adam_b2": config_lib.FRACTION, "mask_weight_floor": config_lib.UNIT,
-        "coarse_loss_weight": config_lib.NONNEGATIVE, "interlevel_loss_weight": config_lib.NONNEGATIVE,
-        "distortion_loss_weight": config_lib.NONNEGATIVE, "seed": config_lib.Range(0, 2**32 - 1),
-        "checkpoint_every": config_lib.AT_LEAST_ONE, "keep_checkpoints": config_lib.AT_LEAST_ONE,
-        "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
-        "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
-        "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE}
-
-
-@dataclasses.dataclass(frozen=True)
-class RunConfig:
-    """Everything that decides a run: the dataset folder (set by `runs.train_run`; None in a
-    recipe or a bare config), the model and the training. config.json is its `to_dict`."""
-
-    data: str | None = None
-    model: models.ModelConfig = models.ModelConfig()
-    train: TrainConfig = TrainConfig()
-
-
-def make_config(method: str, overrides: dict | None = None) -> RunConfig:
-    """The defaults of `method` with `overrides` (a nested dict, e.g. from --config) on top."""
-    base = {"model": models.method_defaults(method), "train": {"use_masks": method == "ours"}}
-    merged = config_lib.merge(config_lib.to_dict(RunConfig()), base)
-    merged = config_lib.merge(merged, overrides or {})
-    if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:
-        raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts --method {method!r}")
-    cfg = config_lib.from_dict(RunConfig, merged)
-    config_lib.validate(cfg)
-    models.validate(dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, 1)))
-    return cfg
 
 
 # --------------------------------------------------------------------------- ray pool
@@ -309,15 +232,6 @@ def step_devices(cfg: TrainConfig) -> int:
     return jax.device_count()
 
 
-def resolve_devices(cfg: TrainConfig) -> int:
-    """Local devices used: cfg.num_devices (0 = all)."""
-    available = jax.local_device_count()
-    n = cfg.num_devices or available
-    if n > available:
-        raise ConfigError(f"train.num_devices = {n} but only {available} local devices exist")
-    return n
-
-
 def _log_record(line: str) -> dict | None:
     """One metrics.jsonl line as a dict; None for a blank, torn or foreign line."""
     try:
@@ -412,8 +326,6 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     last_psnr = float((last_record or {}).get("psnr", float("nan")))
     bar = None
     if progress and main:
-        from jaxnerf_grid import progress as progress_lib
-
         bar = progress_lib.bar(total=end, initial=step, desc=f"train {mcfg.method}", unit="step")
     start_time = time.perf_counter()
     window_start, window_steps = time.perf_counter(), 0

@@ -15,8 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, models, optim, parallel, rays as rays_lib, train
+from jaxnerf_grid import config as config_lib, models, optim, parallel, progress as progress_lib, rays as rays_lib
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.run_config import RunConfig, TrainConfig, resolve_devices
 
 
 @functools.lru_cache(maxsize=32)
@@ -58,8 +59,6 @@ def render_rays_chunked(params, mcfg: models.ModelConfig, r: rays_lib.Rays, imag
     pieces = []
     starts = range(0, count, chunk)
     if progress:
-        from jaxnerf_grid import progress as progress_lib
-
         starts = progress_lib.bar(starts, desc="render", unit="chunk", leave=False)
     for start in starts:
         part = {k: parallel.pad_to_multiple(v[start:start + chunk], chunk)[0] for k, v in flat.items()}
@@ -76,20 +75,20 @@ def camera_rays(dataset: Dataset, index: int, near: float, far: float) -> rays_l
                                   near, far)
 
 
-def render_view(params, cfg: train.RunConfig, dataset: Dataset, index: int, appearance=None,
+def render_view(params, cfg: RunConfig, dataset: Dataset, index: int, appearance=None,
                 progress: bool = False) -> dict:
     """Renders frame `index` of the dataset. Returns rgb [H, W, 3], depth, expected_depth,
     opacity [H, W] (NumPy)."""
     r = camera_rays(dataset, index, *config_lib.near_far(cfg.model, dataset))
     image_index = min(int(index), max(cfg.model.num_images - 1, 0))
     return render_rays_chunked(params, cfg.model, r, image_index, appearance, cfg.train.chunk,
-                               train.resolve_devices(cfg.train), progress)
+                               resolve_devices(cfg.train), progress)
 
 
 # --------------------------------------------------------------------------- NeRF-W test-time
 
 
-def fit_appearance(params, mcfg: models.ModelConfig, tcfg: train.TrainConfig, r: rays_lib.Rays,
+def fit_appearance(params, mcfg: models.ModelConfig, tcfg: TrainConfig, r: rays_lib.Rays,
                    target: np.ndarray, key) -> np.ndarray:
     """Fits one appearance embedding to some pixels with the network frozen (NeRF-W's test
     protocol, used on the left half of a test image).

@@ -508,8 +508,8 @@ def test_killed_mask_overwrite_leaves_old_or_new(scene, capsys, tmp_path, stage)
             deadline = time.time() + 120
             # "writing": once a frame or two is written; "swapping": once the commit point is written
             frames = Path(str(data) + ".frames")
-            ready = (lambda: frames.exists() and int(frames.read_text() or 0) >= 1 + attempt) \
-                if stage == "writing" else (lambda: (stage_dir / masking.COMPLETE).is_file())
+            ready = ((lambda: frames.exists() and int(frames.read_text() or 0) >= 1 + attempt)  # noqa: B023
+                     if stage == "writing" else (lambda: (stage_dir / masking.COMPLETE).is_file()))  # noqa: B023
             while not ready():
                 assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
                 assert time.time() < deadline, "the child never reached the stage"

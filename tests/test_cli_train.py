@@ -98,15 +98,15 @@ def test_bad_config_key_is_one_line_error(data_dir, tmp_path, capsys):
 
 
 def test_lift_view_recovers_points_on_a_plane():
-    """export.lift_view against a closed form: a camera at z = 0.8 looking down at the plane z = 0."""
+    """clouds.lift_view against a closed form: a camera at z = 0.8 looking down at the plane z = 0."""
     import jax.numpy as jnp
 
-    from jaxnerf_grid import export, rays as rays_lib
+    from jaxnerf_grid import clouds, export, rays as rays_lib
 
     c2w = rays_lib.look_at([0.0, 0.0, 0.8], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
     r = rays_lib.generate_rays(jnp.asarray(c2w), 10.0, 10.0, 8.0, 6.0, 16, 12)
     depth = np.full((12, 16), 0.8, np.float32)      # z-depth of the plane everywhere
-    pts, cols = export.lift_view(r, np.ones((12, 16, 3)), depth, np.ones((12, 16)), radius=1.0)
+    pts, cols = clouds.lift_view(r, np.ones((12, 16, 3)), depth, np.ones((12, 16)), radius=1.0)
     assert len(pts) == 16 * 12
     np.testing.assert_allclose(pts[:, 2], 0.0, atol=1e-5)
     metric = export.to_metric(pts, {"scale": 0.05, "translation": [0, 0, -15.0]})

@@ -1,7 +1,7 @@
 """Multi-process training (jax.distributed, docs/DISTRIBUTED.md): two local CPU processes with one
 device each reach the parameters of one process with two devices (same seed, same steps), after
-both are killed mid-run and resumed (the steps before the kill ran straight); a process that dies makes the survivor stop with an error
-within the stated time instead of hanging.
+both are killed mid-run and resumed (the steps before the kill ran straight); a process that dies
+makes the survivor stop with an error within the stated time instead of hanging.
 
 The children run this file as a script: `python test_distributed.py MODE PORT PROCESS_ID RUN_DIR`,
 with XLA_FLAGS giving them one CPU device each and gloo for the collectives.

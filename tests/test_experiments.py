@@ -179,7 +179,8 @@ def test_standard_setting_is_one_recipe_for_every_method():
         assert cfg.model.field.kind == "grid" and cfg.model.sampler == "proposal"
         assert (cfg.model.num_fine, tuple(cfg.model.proposal_samples)) == (32, (64,))
         assert cfg.train.batch_rays == 1024
-    assert cfgs["ours"].model.use_contraction and cfgs["ours"].model.warp == "disparity" and cfgs["ours"].train.use_masks
+    assert cfgs["ours"].model.use_contraction and cfgs["ours"].model.warp == "disparity"
+    assert cfgs["ours"].train.use_masks
     scale = synthetic.NORMALIZATION["scale"]
     shift = np.asarray(synthetic.NORMALIZATION["translation"])
     farthest = max(np.linalg.norm((np.array([r * 1.05, 0.0, h + 1.5]) + shift) * scale)
@@ -330,7 +331,8 @@ def test_tables_turn_known_runs_into_the_right_claims(tmp_path, monkeypatch):
     quick = ["--quick", "--seeds", "1", "--cache", str(tmp_path / "cache"), "--results", str(tmp_path / "q"), "--quiet"]
     assert t1.main(quick) == 0  # CI's smoke setting: sets A and B, no dilated row
     rows = json.loads((tmp_path / "q" / "table1_foreground.json").read_text())["rows"]
-    assert {r["scene_set"].split(":")[0] for r in rows} == {"A", "B"} and t1.DILATED not in {r["condition"] for r in rows}
+    assert {r["scene_set"].split(":")[0] for r in rows} == {"A", "B"}
+    assert t1.DILATED not in {r["condition"] for r in rows}
     row = next(r for r in table1["rows"] if r["condition"] == "no masks")
     np.testing.assert_allclose([row["aggregate"]["geometry_f"]["mean"], row["aggregate"]["psnr_tower"]["mean"]],
                                [0.7, 20.5 + 1 - 3 + 0.5 / 3])
@@ -367,12 +369,14 @@ def test_poses_chain_true_pose_dataset_matches_the_registered_frames(tmp_path):
     io.write_json(scene / "transforms.json", {"fl_x": 50.0, "fl_y": 52.0, "cx": 30.0, "cy": 20.0, "w": 60, "h": 40,
                                               "near": 0.5, "far": 40.0, "frames": frames,
                                               "scene_normalization": {"scale": 0.05, "translation": [0, 0, -15]}})
-    io.write_json(chain_a / "transforms.json", {"frames": [{"file_path": "images/v3.png"}, {"file_path": "images/v1.png"}]})
+    io.write_json(chain_a / "transforms.json",
+                  {"frames": [{"file_path": "images/v3.png"}, {"file_path": "images/v1.png"}]})
     out = poses_chain.true_pose_dataset(scene, chain_a, tmp_path / "B", (30, 20))
     meta = io.read_json(out / "transforms.json")
     assert [f["file_path"] for f in meta["frames"]] == ["images/v3.png", "images/v1.png"]
     assert [f["transform_matrix"][0][3] for f in meta["frames"]] == [3.0, 1.0]
-    assert (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"]) == (25.0, 26.0, 15.0, 10.0, 30, 20)
+    intrinsics = (meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"], meta["w"], meta["h"])
+    assert intrinsics == (25.0, 26.0, 15.0, 10.0, 30, 20)
     img = io.read_image(out / "images" / "v3.png")
     assert img.shape == (20, 30, 3) and abs(float(img.mean()) - 0.75) < 0.01
 
@@ -468,7 +472,8 @@ def test_recorded_runs_stand_in_for_a_lost_cache(tmp_path, monkeypatch):
     assert ctx.not_run == ["t9-a seed 2", "t9-a seed 0"]
     # the written table says how many of its runs came from a results file
     tables.write_results(ctx, "table_y", "T", {"rows": []}, [], [])
-    assert json.loads((tmp_path / "out" / "table_y.json").read_text())["runs_from_results_files"] == sorted(again["runs"])
+    written = json.loads((tmp_path / "out" / "table_y.json").read_text())
+    assert written["runs_from_results_files"] == sorted(again["runs"])
 
     # a metric with a value missing cannot be assigned to runs: it is left out, the others stay
     path = tmp_path / "out" / "table_x.json"

@@ -10,7 +10,8 @@ import pytest
 
 from jaxnerf_grid import cli, geometry, io
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
-from jaxnerf_grid.export import fuse, ground, lift_view, measure, mesh, plane_to_metric, to_metric, to_metric64, to_scene
+from jaxnerf_grid.clouds import lift_view
+from jaxnerf_grid.export import fuse, ground, measure, mesh, plane_to_metric, to_metric, to_metric64, to_scene
 from jaxnerf_grid.export import score as score_lib
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -262,7 +263,7 @@ def test_min_area_rectangle_against_brute_force():
     assert wa2 * wb2 <= min(areas) + 1e-9 and wa2 * wb2 == pytest.approx(min(areas), rel=1e-3)
 
 
-def _synthetic_tower(rng, tilt=np.zeros(3)):
+def _synthetic_tower(rng):
     """A tapering square body 30 high (base 8 x 8), arms of span 16 at heights 17, 21, 25 (x axis)."""
     z = rng.uniform(0, 30, 20000)
     half = 4.0 - 3.0 * z / 30
@@ -271,7 +272,8 @@ def _synthetic_tower(rng, tilt=np.zeros(3)):
     x = np.where(side == 0, half, np.where(side == 1, -half, s))
     y = np.where(side == 2, half, np.where(side == 3, -half, s))
     body = np.column_stack([x, y, z])
-    arms = [np.column_stack([rng.uniform(-8, 8, 1500), rng.uniform(-0.3, 0.3, 1500), rng.uniform(h - 0.3, h + 0.3, 1500)])
+    arms = [np.column_stack([rng.uniform(-8, 8, 1500), rng.uniform(-0.3, 0.3, 1500),
+                             rng.uniform(h - 0.3, h + 0.3, 1500)])
             for h in (17.0, 21.0, 25.0)]
     return np.concatenate([body] + arms)
 
@@ -337,8 +339,8 @@ def test_reference_in_export_units():
     file_norm = {"scale": 0.05, "translation": [0, 0, -15.0]}
     stored = apply_normalization_to_points(metric, file_norm)
     np.testing.assert_allclose(score_lib.reference_in_export_units(stored, file_norm, NORM), metric, atol=1e-9)
-    np.testing.assert_allclose(score_lib.reference_in_export_units(apply_normalization_to_points(metric, NORM), None, NORM),
-                               metric, atol=1e-9)
+    normalized = apply_normalization_to_points(metric, NORM)
+    np.testing.assert_allclose(score_lib.reference_in_export_units(normalized, None, NORM), metric, atol=1e-9)
 
 
 # --------------------------------------------------------------------------- PLY
@@ -382,7 +384,8 @@ def tiny_run(tmp_path_factory):
     io.write_json(data / "transforms.json", {**meta, "tower_ply": "tower.ply", "scene_normalization": NORM})
     overrides = {"model": {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8},
                  "train": {"batch_rays": 64, "max_steps": 30, "checkpoint_every": 30, "log_every": 10, "warmup": 5,
-                           "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256, "num_devices": 1}}  # one device compiles faster
+                           "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256,
+                           "num_devices": 1}}  # one device compiles faster
     run, _, _ = runs.train_run(str(data), "ours", root / "run", overrides, progress=False)
     return run
 
@@ -413,7 +416,8 @@ def test_export_writes_metric_files_inside_the_given_box(tiny_run, tmp_path, cap
     verts = io.read_ply_points(out / "tower_mesh.ply")
     voxel = m["voxel_size"]
     assert len(verts) == m["mesh"]["vertices"] > 0
-    assert np.all(verts >= np.array(saved["min"]) - 1.5 * voxel) and np.all(verts <= np.array(saved["max"]) + 1.5 * voxel)
+    assert np.all(verts >= np.array(saved["min"]) - 1.5 * voxel)
+    assert np.all(verts <= np.array(saved["max"]) + 1.5 * voxel)
     header = (out / "tower_mesh.ply").read_bytes()[:400].decode("ascii", "replace")
     assert "comment units: metres" in header
     assert "## Tower model (export)" in (out / "report.md").read_text()

@@ -215,7 +215,7 @@ def test_save_refuses_to_overwrite(tmp_path):
     _scene(tmp_path / "src")
     ds = formats.load_dataset(tmp_path / "src")
     out = formats.save_transforms_json(ds, tmp_path / "out")
-    with pytest.raises(DataError, match=r"out.*--overwrite"):
+    with pytest.raises(DataError, match=r"out.*overwrite=True"):
         formats.save_transforms_json(ds, tmp_path / "out")
     formats.save_transforms_json(ds, tmp_path / "out", overwrite=True)
     again = formats.load_dataset(out.parent)

@@ -49,7 +49,8 @@ def _brute_encode(table, cfg, x):
                              * (frac[2] if dz else 1 - frac[2]))
                         rows.append(offset + row)
                         ws.append(w)
-                        out[n, level * cfg.features_per_level:(level + 1) * cfg.features_per_level] += w * table[offset + row]
+                        span = slice(level * cfg.features_per_level, (level + 1) * cfg.features_per_level)
+                        out[n, span] += w * table[offset + row]
             rows_level.append(rows)
             weights_level.append(ws)
         rows_all.append(rows_level)
@@ -81,7 +82,8 @@ def test_encoding_matches_per_point_loop(cfg):
 
 
 def test_dense_and_hashed_levels_and_table_layout():
-    cfg = hashgrid.HashConfig(num_levels=3, features_per_level=2, log2_table_size=10, min_resolution=4, max_resolution=16)
+    cfg = hashgrid.HashConfig(num_levels=3, features_per_level=2, log2_table_size=10, min_resolution=4,
+                              max_resolution=16)
     lay = hashgrid.layout(cfg)
     assert lay.resolutions == (4, 8, 16)
     assert lay.dense == (True, True, False)          # 5^3, 9^3 = 729 <= 1024 < 17^3
@@ -98,7 +100,8 @@ def test_dense_and_hashed_levels_and_table_layout():
 
 
 def test_encoding_gradient_matches_finite_differences():
-    cfg = hashgrid.HashConfig(num_levels=3, features_per_level=2, log2_table_size=8, min_resolution=3, max_resolution=12)
+    cfg = hashgrid.HashConfig(num_levels=3, features_per_level=2, log2_table_size=8, min_resolution=3,
+                              max_resolution=12)
     params = hashgrid.init(jax.random.PRNGKey(1), dataclasses.replace(cfg, init_scale=0.5))
     x = jnp.asarray(np.random.default_rng(1).uniform(-0.9, 0.9, (7, 3)), jnp.float32)
     probe = jnp.asarray(np.random.default_rng(2).normal(size=(7, 6)), jnp.float32)

@@ -49,7 +49,7 @@ def test_errors_name_the_file(tmp_path):
     out = tmp_path / "out"
     out.mkdir()
     (out / "keep.txt").write_text("x")
-    with pytest.raises(io.DataError, match="--overwrite"):
+    with pytest.raises(io.DataError, match="overwrite=True"):
         io.ensure_writable(out, overwrite=False)
     assert (out / "keep.txt").read_text() == "x"
 

@@ -26,7 +26,8 @@ def _analytic_field(params, cfg, x, viewdirs=None, appearance=None, transient=No
     the static one) and beta from the position and the transient embedding."""
     r = jnp.linalg.norm(x, axis=-1)
     out = {"sigma": 3.0 * jnp.exp(-((r - 0.8) ** 2) / 0.1),
-           "rgb": jnp.stack([0.2 + 0.6 * jax.nn.sigmoid(x[..., 0]), 0.5 + 0.4 * jnp.sin(r), 0.3 * jnp.ones_like(r)], -1)}
+           "rgb": jnp.stack([0.2 + 0.6 * jax.nn.sigmoid(x[..., 0]), 0.5 + 0.4 * jnp.sin(r),
+                             0.3 * jnp.ones_like(r)], -1)}
     if cfg.transient_dim > 0:
         e = transient[..., 0]
         out["transient_sigma"] = 2.0 * jnp.exp(-((r - 1.4) ** 2) / 0.2) * (1.0 + e)

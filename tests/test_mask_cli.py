@@ -45,7 +45,7 @@ def test_gt_source_closed_form_and_overwrite(tmp_path):
     expect_w = 1 - expect_m * np.maximum(0.2, (5.0 - d) / 5.0)
     np.testing.assert_allclose(weight, expect_w, atol=1e-6)
     assert (tmp_path / "overlays/f1.png").is_file() and (tmp_path / "dpt_depth/f1.exr").is_file()
-    with pytest.raises(DataError, match="--overwrite"):
+    with pytest.raises(DataError, match="overwrite=True"):
         main(["--data", str(tmp_path), "--source", "gt", "--quiet"])
     assert main(["--data", str(tmp_path), "--source", "gt", "--quiet", "--overwrite", "--floor", "1"]) == 0
     np.testing.assert_allclose(io.read_exr(tmp_path / "weights/f0.exr"), 1 - io.read_mask(tmp_path / "masks/f0.png"))
@@ -86,7 +86,7 @@ def test_missing_builtin_or_bad_data_is_one_line_error(tmp_path):
     with pytest.raises(DataError, match="transforms.json"):
         main(["--data", str(tmp_path), "--source", "gt"])
     for bad in (["--tiles", "0"], ["--tiles", "2", "--tile-overlap", "0.9"]):
-        with pytest.raises(ConfigError, match="--tile"):
+        with pytest.raises(ConfigError, match="mask.tile"):
             main(["--data", str(tmp_path)] + bad)
 
 

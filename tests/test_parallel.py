@@ -12,7 +12,8 @@ def toy_render(rays_o, rays_d, key_data):
     """A closed-form density field (a soft ball) rendered with the s-space sampler."""
     near = jnp.full(rays_o.shape[:-1], 0.2)
     far = jnp.full(rays_o.shape[:-1], 50.0)
-    t_edges = sampling.ray_warp("disparity", near[..., None], far[..., None])[1](sampling.stratified_s(None, near.shape, 32))
+    s_to_t = sampling.ray_warp("disparity", near[..., None], far[..., None])[1]
+    t_edges = s_to_t(sampling.stratified_s(None, near.shape, 32))
     t_mid = 0.5 * (t_edges[..., 1:] + t_edges[..., :-1])
     points = rays_o[..., None, :] + t_mid[..., None] * rays_d[..., None, :]
     z = coords.contract(points, 2.0)

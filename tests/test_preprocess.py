@@ -137,7 +137,7 @@ def test_normalize_intensity():
 def test_no_overwrite_without_flag_and_dataset_input(tmp_path):
     x, c2w = _mixed_size_scene(tmp_path / "src")
     preprocess.preprocess_images(tmp_path / "src", tmp_path / "out", size=(32, 24))
-    with pytest.raises(DataError, match=r"out.*--overwrite"):
+    with pytest.raises(DataError, match=r"out.*overwrite=True"):
         preprocess.preprocess_images(tmp_path / "src", tmp_path / "out", size=(32, 24))
     assert preprocess.main([str(tmp_path / "src"), str(tmp_path / "out"), "--size", "16", "12",
                             "--clahe", "--overwrite"]) == 0

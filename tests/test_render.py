@@ -21,7 +21,7 @@ def brute_force(density, t_edges, rgb, dir_norm=1.0):
 
 def test_weights_and_colour_match_loop():
     rng = np.random.default_rng(0)
-    for trial in range(20):
+    for _ in range(20):
         n = 16
         t_edges = np.sort(rng.uniform(0.5, 6.0, n + 1))
         density = rng.exponential(2.0, n) * rng.integers(0, 2, n)

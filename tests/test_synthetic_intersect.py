@@ -165,7 +165,8 @@ def test_binned_trace_screen_and_sun_culling_match_brute_force():
 
     rng = np.random.default_rng(6)
     tables = _random_tables(rng, 40)
-    tables["capsule"]["a"][0], tables["capsule"]["b"][0] = [0.0, -30.0, 2.0], [0.0, 30.0, 2.0]  # crosses the camera plane
+    # crosses the camera plane
+    tables["capsule"]["a"][0], tables["capsule"]["b"][0] = [0.0, -30.0, 2.0], [0.0, 30.0, 2.0]
     scene = Scene(tables, {k: {"cls": np.zeros(40)} for k in tables})
     bounds = scene_bounds(scene)
     intr = cameras.intrinsics(48, 36, 60.0)

@@ -5,7 +5,8 @@ render.py, eval.py, demo.py) and exposes `main(argv: list[str]) -> int`; a subco
 its arguments and calls the library (runs, evaluate, demo, masking, data.synthetic). This file
 only dispatches, so importing it is cheap and one subcommand's imports never slow another.
 Nothing else in the package imports a cli module.
-Errors of type `DataError` / `ConfigError` are printed as one line, never as a traceback; so
+Errors of type `DataError` / `ConfigError` are printed as one line, never as a traceback, with
+the library's keys turned into the subcommand's flags (`cli/flags.py`: `export.box` -> `--box`); so
 are OS errors (a read-only folder, a full disk, a path that is a file): `error: PATH: reason`.
 """
 
@@ -13,6 +14,8 @@ from __future__ import annotations
 
 import importlib
 import sys
+
+from jaxnerf_grid.cli.flags import to_flags
 
 SUBCOMMANDS = {
     "synth": ("jaxnerf_grid.cli.synth", "render the procedural tower benchmark scene"),
@@ -49,13 +52,13 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     module = importlib.import_module(SUBCOMMANDS[name][0])
     entry = module.main
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.io import DataError  # after the subcommand: `jaxnerf-grid --help` loads no NumPy
     from jaxnerf_grid.config import ConfigError
 
     try:
         return int(entry(rest) or 0)
     except (DataError, ConfigError) as err:
-        print(f"jaxnerf-grid {name}: error: {err}", file=sys.stderr)
+        print(f"jaxnerf-grid {name}: error: {to_flags(name, str(err))}", file=sys.stderr)
         return 1
     except OSError as err:  # read-only folder, full disk (ENOSPC), a file where a folder should be
         print(f"jaxnerf-grid {name}: error: {os_error_line(err)}", file=sys.stderr)

@@ -10,16 +10,15 @@ import argparse
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from jaxnerf_grid.demo import DEMO_CONFIG
-
     p = argparse.ArgumentParser(prog="jaxnerf-grid demo",
-                                description="tower-small scene (or --data DIR) -> masks -> train ours -> render -> report")
+                                description="tower-small scene (or --data DIR) -> masks -> train ours -> render "
+                                            "-> report")
     p.add_argument("--data", default=None,
                    help="run the same recipe on this dataset instead of the synthetic tower (skips synth; "
                         "skips mask when the dataset already has masks)")
     p.add_argument("--out", default="runs/demo")
     p.add_argument("--steps", type=int, default=None,
-                   help=f"training steps (default {DEMO_CONFIG['train']['max_steps']})")
+                   help="training steps (default: the recipe's, demo.DEMO_CONFIG)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change one value of the demo's recipe, dotted key, JSON value (e.g. train.batch_rays=512); "
                         "repeatable")

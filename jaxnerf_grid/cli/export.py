@@ -14,13 +14,13 @@ import argparse
 
 
 def build_parser() -> argparse.ArgumentParser:
-    from jaxnerf_grid.export import mesh, run
+    from jaxnerf_grid.export import fuse, mesh  # NumPy only: --help does not load JAX
 
     p = argparse.ArgumentParser(prog="jaxnerf-grid export",
                                 description="metric mesh, point cloud and measurements of a trained run's tower")
     p.add_argument("--run", required=True, help="run directory")
     p.add_argument("--out", default=None, help="output folder (default RUN/export)")
-    p.add_argument("--resolution", type=int, default=run.DEFAULT_RESOLUTION,
+    p.add_argument("--resolution", type=int, default=mesh.DEFAULT_RESOLUTION,
                    help="voxels along the box's longest side (default %(default)s)")
     p.add_argument("--box", default="auto",
                    help="'auto' (find the tower above the fitted ground) or xmin,ymin,zmin,xmax,ymax,zmax in the "
@@ -28,7 +28,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--threshold", type=float, default=mesh.DEFAULT_OPACITY,
                    help="surface level as the opacity a ray gets crossing one voxel, in (0, 1) "
                         "(density = -ln(1 - opacity) / voxel; default %(default)s)")
-    p.add_argument("--views", type=int, default=run.DEFAULT_VIEWS,
+    p.add_argument("--views", type=int, default=fuse.DEFAULT_VIEWS,
                    help="training views rendered for the fused point cloud and the auto box (default %(default)s)")
     p.add_argument("--overwrite", action="store_true", help="write into an output folder that holds files")
     p.add_argument("--allow-other-data", action="store_true",

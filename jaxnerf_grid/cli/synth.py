@@ -38,7 +38,8 @@ def check_args(args) -> None:
     `train` cannot use: width / height >= 8, num-train, num-test, supersample >= 1, workers >= 0."""
     from jaxnerf_grid.config import ConfigError
 
-    for flag, value, low in (("--width", args.width, 8), ("--height", args.height, 8), ("--num-train", args.num_train, 1),
+    for flag, value, low in (("--width", args.width, 8), ("--height", args.height, 8),
+                             ("--num-train", args.num_train, 1),
                              ("--num-test", args.num_test, 1), ("--supersample", args.supersample, 1),
                              ("--workers", args.workers, 0)):
         if value is not None and value < low:

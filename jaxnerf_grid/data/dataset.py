@@ -7,6 +7,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxnerf_grid.io import DataError
+
 # A camera centre this many times farther from the median centre than the median camera is
 # an error (a pose translated 1e30 away, a unit mix-up); real orbits and strips stay within ~3x.
 CAMERA_OUTLIER_FACTOR = 1000.0
@@ -79,8 +81,6 @@ def check_camera_centres(ds: Dataset, factor: float = CAMERA_OUTLIER_FACTOR) -> 
     """Raises DataError naming the frame whose camera centre (c2w[:3, 3]) lies more than `factor`
     times the median distance from the median centre (robust: one far camera cannot hide
     itself). Needs 3 or more frames and cameras that are not all at one point."""
-    from jaxnerf_grid.io import DataError
-
     centres = np.asarray(ds.c2w, np.float64)[:, :3, 3]
     if len(centres) < 3:
         return

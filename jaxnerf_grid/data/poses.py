@@ -47,11 +47,10 @@ from jaxnerf_grid import io, progress
 from jaxnerf_grid.data import vetting
 from jaxnerf_grid.data.bounds import scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap
-from jaxnerf_grid.data.formats.writing import transforms_top
+from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
 from jaxnerf_grid.data.normalize import (apply_normalization_to_points, normalize_orbit, rotation_between,
                                          up_from_cameras)
 from jaxnerf_grid.io import DataError
-from jaxnerf_grid.masking import OUTPUT_DIRS as MASK_OUTPUTS
 
 MIN_PHOTOS = 3        # fewer readable photos: refused before any work
 MIN_REGISTERED = 3    # fewer registered photos: no dataset is written ...
@@ -69,7 +68,7 @@ OUTPUTS = ("images", "sparse", "transforms.json", TOPVIEW, REPORT, MARKER)
 # `jaxnerf-grid mask` outputs in an old DATA_DIR describe the photos being replaced: --overwrite
 # removes them with OUTPUTS (the new transforms.json names no masks), so `mask` runs again
 # without --overwrite.
-STALE = MASK_OUTPUTS
+STALE = MASK_OUTPUT_DIRS
 JPEG_QUALITY = 95
 # Mapping runs again with RELAXED mapper thresholds when the first run registers fewer than
 # RELAX_BELOW of the photos (small working sizes give a few hundred features per photo, below
@@ -206,7 +205,7 @@ def check_options(matcher: str, camera_model: str, vocab_tree) -> None:
         raise DataError(f"unknown camera model {camera_model!r}; choose one of {', '.join(CAMERA_MODELS)}")
     if matcher == "vocab":
         if vocab_tree is None:
-            raise DataError("--matcher vocab needs a vocabulary tree file (--vocab-tree FILE, e.g. COLMAP's "
+            raise DataError("poses.matcher vocab needs a vocabulary tree file (poses.vocab_tree, e.g. COLMAP's "
                             "vocab_tree_flickr100K_words32K.bin); none is downloaded: use exhaustive or sequential")
         if not Path(vocab_tree).is_file():
             raise DataError(f"{vocab_tree}: vocabulary tree file not found")
@@ -504,7 +503,8 @@ def draw_topview(path, c2w: np.ndarray, points: np.ndarray, size: int = 640) -> 
 
     def pix(xy):
         xy = np.asarray(xy, np.float64).reshape(-1, 2)
-        return np.stack([(xy[:, 0] / extent + 1) * size / 2, (1 - xy[:, 1] / extent) * size / 2], -1).round().astype(int)
+        pixels = np.stack([(xy[:, 0] / extent + 1) * size / 2, (1 - xy[:, 1] / extent) * size / 2], -1)
+        return pixels.round().astype(int)
 
     cv2.circle(img, tuple(pix([0.0, 0.0])[0]), int(round(size / 2 / extent)), (200, 200, 200), 1, cv2.LINE_AA)
     inside = points[np.all(np.abs(points[:, :2]) < extent, axis=1)] if len(points) else points
@@ -560,11 +560,11 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     start = time.monotonic()
     check_options(matcher, camera_model, vocab_tree)
     if max_side is not None and max_side < 16:
-        raise DataError(f"--max-side must be at least 16 pixels, got {max_side}")
+        raise DataError(f"poses.max_side must be at least 16 pixels, got {max_side}")
     images_dir, out = Path(images_dir), Path(out_dir)
     photos = list_photos(images_dir)
     if _inside(images_dir, out):
-        raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another --out")
+        raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another poses.out")
     check_out(out, overwrite)
     pycolmap = import_pycolmap()
     pycolmap.logging.minloglevel = 3  # COLMAP's own log: fatal only; progress and errors are ours
@@ -635,14 +635,14 @@ def check_out(out: Path, overwrite: bool) -> None:
     """DataError unless `out` may receive the dataset: absent, an empty folder, or with
     `overwrite` a dataset this command wrote (it holds MARKER)."""
     if out.is_file():
-        raise DataError(f"{out}: is a file; --out must be a folder")
+        raise DataError(f"{out}: is a file; poses.out must be a folder")
     if not out.is_dir() or not any(out.iterdir()):
         return
     if not overwrite:
-        raise DataError(f"{out}: already exists and is not empty; pass --overwrite to replace it")
+        raise DataError(f"{out}: already exists and is not empty; pass overwrite=True to replace it")
     if not (out / MARKER).is_file():
-        raise DataError(f"{out}: not a dataset written by jaxnerf-grid poses (no {MARKER}); --overwrite "
-                        f"replaces only those: choose another --out")
+        raise DataError(f"{out}: not a dataset written by jaxnerf-grid poses (no {MARKER}); overwrite=True "
+                        f"replaces only those: choose another poses.out")
 
 
 def move_into_place(stage: Path, out: Path) -> None:

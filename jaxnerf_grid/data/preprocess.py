@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid import io, progress
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
@@ -107,8 +107,6 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
     (refused when it exists and is not empty, unless `overwrite`); size: (W, H), an int long
     side, or None (keep each dataset's first image size). Returns `out_dir` as a Path.
     """
-    from jaxnerf_grid import progress
-
     out = io.ensure_writable(out_dir, overwrite)
     opts = dict(clahe=clahe, normalize=normalize, clahe_clip=clahe_clip, clahe_grid=clahe_grid)
     record = {"size": list(size) if isinstance(size, (tuple, list)) else size, **opts}
@@ -142,8 +140,6 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
 
 
 def _preprocess_scene(scene: formats.Scene, out: Path, size, opts: dict, load_extras: bool) -> Path:
-    from jaxnerf_grid import progress
-
     out.mkdir(parents=True, exist_ok=True)
     names = formats.split_names(scene.split, len(scene.frames))
     common, frames = None, []
@@ -220,5 +216,5 @@ if __name__ == "__main__":
     try:
         sys.exit(main())
     except DataError as err:
-        print(f"preprocess: error: {err}", file=sys.stderr)
+        print(f"preprocess: error: {str(err).replace('overwrite=True', '--overwrite')}", file=sys.stderr)
         sys.exit(1)

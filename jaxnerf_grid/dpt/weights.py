@@ -22,7 +22,7 @@ import jax
 import numpy as np
 
 from jaxnerf_grid import safetensors_io
-from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.config import ConfigError, from_dict, to_dict
 from jaxnerf_grid.dpt.config import DPTConfig
 from jaxnerf_grid.dpt.model import Model, param_shapes
 from jaxnerf_grid.io import DataError, atomic_write_bytes, read_json
@@ -226,8 +226,6 @@ def save(model: Model, folder, dtype: str = "float32", extra: dict | None = None
     np_dtype = {"float32": np.float32, "float16": np.float16}[dtype]
     tensors = {k: np.asarray(v).astype(np_dtype) for k, v in _flatten(model.params)}
     safetensors_io.save(folder / "params.safetensors", tensors, {"format": NATIVE_FORMAT})
-    from jaxnerf_grid.config import to_dict
-
     meta = {"format": NATIVE_FORMAT, "version": 1, "config": to_dict(model.config)}
     if extra:
         meta["extra"] = extra
@@ -235,8 +233,6 @@ def save(model: Model, folder, dtype: str = "float32", extra: dict | None = None
 
 
 def _load_native(folder: Path, meta: dict) -> Model:
-    from jaxnerf_grid.config import from_dict
-
     cfg = from_dict(DPTConfig, meta["config"], f"{folder / 'config.json'}: config")
     tensors, _ = safetensors_io.load(folder / "params.safetensors")
     template = param_shapes(cfg)

@@ -1,17 +1,12 @@
-"""3D export of the tower: point clouds lifted from depth maps, and the metric model of
-`jaxnerf-grid export` (docs/EXPORT.md).
+"""3D export of the tower: the metric model of `jaxnerf-grid export` (docs/EXPORT.md).
 
-This file holds the small pieces `evaluate.py` uses (no JAX at import time):
+This file holds the dataset's normalisation, used by the submodules and by `evaluate.py` through
+`export.score` (no JAX at import time); the depth clouds it shares with evaluation are `clouds.py`:
 
-* `lift_view`: each rendered pixel with opacity >= `min_opacity` is lifted to the world point
-  x = o + d * (z_depth / cos_to_axis) (the depth maps are z-depth along the camera's -z axis)
-  and kept when |x| <= `radius` (the scene is normalised so the tower sits inside the unit
-  sphere). Points are in normalised scene units.
 * `to_metric` / `to_scene`: the dataset's normalisation x_norm = scale * R (x + translation)
   (R: the optional rotation; docs/DATASET.md) undone / applied; `plane_to_metric` does it for a plane.
-* `write_point_cloud`: (points, colours) parts -> a binary PLY.
 
-The export itself lives in submodules, imported on use:
+The export itself lives in submodules, each imported by its user:
 `export.field` (the trained density and colour, sampled in chunks; JAX), `export.mesh`
 (marching cubes, thresholds, components), `export.ground` (RANSAC ground plane, the tower's box),
 `export.fuse` (multi-view consistent depth fusion), `export.measure` (height, footprint,
@@ -21,24 +16,9 @@ cross-arms, the orthographic picture), `export.score` (the export against a refe
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 
-from jaxnerf_grid import io
 from jaxnerf_grid.data.normalize import apply_normalization_to_points, invert_normalization, normalization_rotation
-
-
-def lift_view(rays, rgb: np.ndarray, depth: np.ndarray, opacity: np.ndarray, min_opacity: float = 0.5,
-              radius: float = 1.0) -> tuple[np.ndarray, np.ndarray]:
-    """Points of one view. rays: Rays [H, W]; rgb [H, W, 3]; depth, opacity [H, W].
-    Returns (points [M, 3], colours [M, 3])."""
-    o = np.asarray(rays.origins, np.float64)
-    d = np.asarray(rays.directions, np.float64)
-    t = np.asarray(depth, np.float64) / np.asarray(rays.cos_to_axis, np.float64)
-    x = o + d * t[..., None]
-    keep = (np.asarray(opacity) >= min_opacity) & (np.linalg.norm(x, axis=-1) <= radius) & np.isfinite(t)
-    return x[keep].astype(np.float32), np.asarray(rgb)[keep].astype(np.float32)
 
 
 def _scale_translation(normalization: dict | None) -> tuple[float, np.ndarray, np.ndarray | None]:
@@ -87,12 +67,3 @@ def plane_to_metric(normal, offset: float, normalization: dict | None) -> tuple[
     if rotation is not None:
         n = rotation.T @ n
     return n, float(n @ translation + float(offset) / scale)
-
-
-def write_point_cloud(path, parts: list[tuple[np.ndarray, np.ndarray]], comments: tuple[str, ...] = ()) -> Path:
-    """Concatenates (points, colours) parts and writes a binary PLY (with header comments).
-    Returns the path."""
-    points = np.concatenate([p for p, _ in parts]) if parts else np.zeros((0, 3), np.float32)
-    colours = np.concatenate([c for _, c in parts]) if parts else np.zeros((0, 3), np.float32)
-    io.write_ply(path, points, np.clip(colours, 0, 1), comments=comments)
-    return Path(path)

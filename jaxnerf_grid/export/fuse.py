@@ -1,6 +1,6 @@
 """Depth fusion with a multi-view consistency check (pure NumPy).
 
-Each view's rendered depth is lifted to points (`export.lift_view`). A point from view i is
+Each view's rendered depth is lifted to points (`clouds.lift_view`). A point from view i is
 *confirmed* by another view j when it projects inside j's image, in front of j's camera, onto a
 pixel with opacity >= `min_opacity` whose rendered z-depth d_j agrees with the point's z-depth
 z_j in that camera:
@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import numpy as np
 
+DEFAULT_VIEWS = 16  # training views rendered and fused by `jaxnerf-grid export`
 DEFAULT_MIN_VIEWS = 2
 DEFAULT_TOL_PIXELS = 1.0
 

@@ -119,7 +119,8 @@ def largest_cluster(points: np.ndarray, cell: float) -> np.ndarray:
     return point_labels == int(np.argmax(counts))
 
 
-def tower_box(points: np.ndarray, normal, d: float, clearance: float, cell: float) -> tuple[np.ndarray, np.ndarray, dict]:
+def tower_box(points: np.ndarray, normal, d: float, clearance: float,
+              cell: float) -> tuple[np.ndarray, np.ndarray, dict]:
     """The tower's box from a dense cloud points [N, 3] and the ground plane (module docstring).
     Returns (box_min [3], box_max [3], stats {"above_ground", "tower_points"}). Raises
     ValueError when nothing stands above the ground."""

@@ -22,6 +22,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxnerf_grid import io
+
 
 def plane_basis(normal) -> tuple[np.ndarray, np.ndarray]:
     """Two unit vectors (e1, e2) spanning the plane with normal n [3]: e1 = the world x axis
@@ -173,8 +175,6 @@ def orthographic_views(points: np.ndarray, colours: np.ndarray, normals: np.ndar
 def _label(canvas: np.ndarray, names: list[str], size: int, gap: int) -> np.ndarray:
     """Writes a name in the corner of each panel (OpenCV when available; unchanged otherwise)."""
     try:
-        from jaxnerf_grid import io
-
         cv2 = io.opencv()
     except Exception:  # noqa: BLE001 - the picture is still useful without its labels
         return canvas

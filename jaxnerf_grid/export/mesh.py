@@ -31,6 +31,7 @@ import math
 import numpy as np
 
 DEFAULT_OPACITY = 0.05
+DEFAULT_RESOLUTION = 256     # voxels along the box's longest side (`grid_spec`)
 DEFAULT_MIN_COMPONENT_FRACTION = 0.002
 
 
@@ -101,7 +102,8 @@ def face_components(faces: np.ndarray, num_vertices: int) -> np.ndarray:
     return vertex_labels[faces[:, 0]]
 
 
-def remove_small_components(vertices: np.ndarray, faces: np.ndarray, min_fraction: float = DEFAULT_MIN_COMPONENT_FRACTION,
+def remove_small_components(vertices: np.ndarray, faces: np.ndarray,
+                            min_fraction: float = DEFAULT_MIN_COMPONENT_FRACTION,
                             extra: tuple = ()) -> tuple[np.ndarray, np.ndarray, tuple, dict]:
     """Drops the components with fewer than min_fraction * F faces (floaters).
 

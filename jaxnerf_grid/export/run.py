@@ -2,8 +2,8 @@
 
 Steps, all in the normalised scene until the files are written:
 
-1. render `views` training views (evenly spaced, `evaluate.cloud_view_ids`), lift their depth
-   (`export.lift_view`, inside the unit sphere) and keep the points confirmed by at least
+1. render `views` training views (evenly spaced, `clouds.cloud_view_ids`), lift their depth
+   (`clouds.lift_view`, inside the unit sphere) and keep the points confirmed by at least
    `min_views` other views (`export.fuse`): the dense cloud;
 2. the ground plane: RANSAC on the lowest points of the dense cloud (`export.ground`);
 3. the box: `auto` = the largest cluster standing more than the ground's clearance above the
@@ -29,13 +29,14 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid import clouds, config as config_lib, io, progress as progress_lib, report, runs, train
+from jaxnerf_grid import views as views_lib
 from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.export import mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
+from jaxnerf_grid.export import field, fuse, ground, measure, mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
 from jaxnerf_grid.io import DataError
 
-DEFAULT_RESOLUTION = 256
-DEFAULT_VIEWS = 16
+DEFAULT_RESOLUTION = mesh_lib.DEFAULT_RESOLUTION  # the defaults live where `jaxnerf-grid export --help` reads
+DEFAULT_VIEWS = fuse.DEFAULT_VIEWS              # them without loading JAX (cli/export.py)
 DEFAULT_COLOUR_CAMERAS = 3
 GROUND_CELL = 0.02          # normalised units: columns of the ground fit, cells of the tower cluster
 GROUND_INLIER = 0.025       # normalised units: RANSAC inlier distance
@@ -44,18 +45,19 @@ FILES = ("tower_mesh.ply", "tower_points.ply", "box.json", "measurements.json", 
 
 
 def parse_box(text) -> np.ndarray | None:
-    """--box: "auto" (None) or "xmin,ymin,zmin,xmax,ymax,zmax" -> [6] float64. ConfigError for
+    """box: "auto" (None) or "xmin,ymin,zmin,xmax,ymax,zmax" -> [6] float64. ConfigError for
     a malformed or empty box (any max <= min)."""
     if text is None or (isinstance(text, str) and text.strip().lower() == "auto"):
         return None
     try:
         values = np.asarray([float(v) for v in (text.split(",") if isinstance(text, str) else text)], np.float64)
     except (TypeError, ValueError):
-        raise ConfigError(f"--box: expected 'auto' or six numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}") from None
+        raise ConfigError(f"export.box: expected 'auto' or six numbers xmin,ymin,zmin,xmax,ymax,zmax, "
+                          f"got {text!r}") from None
     if values.shape != (6,) or not np.all(np.isfinite(values)):
-        raise ConfigError(f"--box: expected six finite numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}")
+        raise ConfigError(f"export.box: expected six finite numbers xmin,ymin,zmin,xmax,ymax,zmax, got {text!r}")
     if np.any(values[3:] <= values[:3]):
-        raise ConfigError(f"--box: the box is empty (each max must exceed its min): {text!r}")
+        raise ConfigError(f"export.box: the box is empty (each max must exceed its min): {text!r}")
     return values
 
 
@@ -76,22 +78,19 @@ def units_comment(units: str) -> str:
 def check_box_in_scene(lo: np.ndarray, hi: np.ndarray) -> None:
     """ConfigError when the box (normalised) does not meet the region of interest [-1, 1]^3."""
     if np.any(hi <= -SCENE_LIMIT) or np.any(lo >= SCENE_LIMIT):
-        raise ConfigError("--box lies outside the scene: it does not meet the region of interest (the unit "
+        raise ConfigError("export.box lies outside the scene: it does not meet the region of interest (the unit "
                           "sphere of the normalised scene, i.e. the tower's surroundings); give it in the "
                           "dataset's original units (metres for the synthetic scenes)")
 
 
 def _render_cloud(params, cfg, ds, ids, progress: bool):
     """The views' lifted points and cameras for `export.fuse`."""
-    from jaxnerf_grid import config as config_lib, progress as progress_lib, views
-    from jaxnerf_grid.export import lift_view
-
     near, far = config_lib.near_far(cfg.model, ds)
     parts, cameras = [], []
     for i in progress_lib.bar(ids, desc="export: views", unit="view", enabled=progress):
-        view = views.render_view(params, cfg, ds, int(i))
-        parts.append(lift_view(views.camera_rays(ds, int(i), near, far), np.clip(view["rgb"], 0, 1), view["depth"],
-                               view["opacity"], radius=SCENE_LIMIT))
+        view = views_lib.render_view(params, cfg, ds, int(i))
+        parts.append(clouds.lift_view(views_lib.camera_rays(ds, int(i), near, far), np.clip(view["rgb"], 0, 1),
+                                      view["depth"], view["opacity"], radius=SCENE_LIMIT))
         cameras.append({"c2w": np.asarray(ds.c2w[i]), "intrinsics": np.asarray(ds.intrinsics[i]),
                         "depth": view["depth"], "opacity": view["opacity"]})
     return parts, cameras
@@ -101,8 +100,6 @@ def _ground(points: np.ndarray) -> dict | None:
     """The ground plane of the dense cloud (normalised): {"normal", "offset", "clearance",
     "inliers", "candidates"}, or None when it cannot be fitted. clearance = max(GROUND_CELL,
     3 x the robust spread (1.4826 MAD) of the inliers' heights)."""
-    from jaxnerf_grid.export import ground
-
     low = ground.lowest_points(points, GROUND_CELL)
     try:
         n, d, inliers = ground.fit_plane_ransac(low, GROUND_INLIER, iterations=1000)
@@ -131,17 +128,14 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     DataError / ConfigError for a run without a checkpoint, an empty box or one outside the
     scene, an occupied folder, or a box without a surface; nothing is written then.
     """
-    from jaxnerf_grid import evaluate, progress as progress_lib, runs, train
-    from jaxnerf_grid.export import field, fuse, ground, measure, write_point_cloud
-
     start = time.perf_counter()
     run_dir = Path(run_dir)
     cfg, data = runs.load_run(run_dir)  # the config first: a bad run folder fails before the dataset loads
     given = parse_box(box)
     if not int(resolution) >= 8:
-        raise ConfigError(f"--resolution must be >= 8, got {resolution}")
+        raise ConfigError(f"export.resolution must be >= 8, got {resolution}")
     if not 0 < float(opacity) < 1:
-        raise ConfigError(f"--threshold (the opacity of one voxel) must be in (0, 1), got {opacity}")
+        raise ConfigError(f"export.opacity (of one voxel) must be in (0, 1), got {opacity}")
     out = Path(out) if out is not None else run_dir / "export"
     io.ensure_writable(out, overwrite)
     ds = runs.dataset_of_run(run_dir, data, dataset, progress, allow_other_data)
@@ -155,7 +149,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
 
     # 1-2. the dense cloud and the ground
     timings = {"load": time.perf_counter() - start}
-    ids = evaluate.cloud_view_ids(ds, views)
+    ids = clouds.cloud_view_ids(ds, views)
     parts, cameras = _render_cloud(params, cfg, ds, ids, progress)
     timings["views"] = time.perf_counter() - start - sum(timings.values())
     points, colours, fuse_stats = fuse.fuse(parts, cameras, min_views=min_views)
@@ -166,13 +160,13 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         lo, hi, box_stats = lo_given, hi_given, {}
     else:
         if plane is None:
-            raise DataError(f"{run_dir}: --box auto found no ground in the rendered views ({len(points)} points "
-                            "inside the unit sphere); give --box")
+            raise DataError(f"{run_dir}: export.box auto found no ground in the rendered views ({len(points)} "
+                            "points inside the unit sphere); give export.box")
         try:
             lo, hi, box_stats = ground.tower_box(points, plane["normal"], plane["offset"], plane["clearance"],
                                                  GROUND_CELL)
         except ValueError as err:
-            raise DataError(f"{run_dir}: --box auto: {err}; give --box") from None
+            raise DataError(f"{run_dir}: export.box auto: {err}; give export.box") from None
 
     # 4. the mesh
     origin, h, shape = mesh_lib.grid_spec(lo, hi, int(resolution))
@@ -184,7 +178,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     del density
     if len(faces) == 0:
         raise DataError(f"{run_dir}: no surface in the box: the density never reaches {level:.4g} (one voxel "
-                        f"{opacity:g} opaque); lower --threshold or check --box")
+                        f"{opacity:g} opaque); lower export.opacity or check export.box")
     verts, faces, (normals,), comp = mesh_lib.remove_small_components(verts, faces, min_component_fraction, (normals,))
     train_ids = np.asarray(ds.split["train"]) if len(ds.split["train"]) else np.arange(ds.num_frames)
     centres = np.asarray(ds.c2w)[train_ids, :3, 3]
@@ -228,7 +222,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     io.write_ply(out / "tower_mesh.ply", verts_m, vcolours, faces,
                  comments=comments + (f"marching cubes at density {level:.6g} per normalised unit "
                                       f"(one voxel {opacity:g} opaque), voxel {h / scale:.4g}",))
-    write_point_cloud(out / "tower_points.ply", [(tower_pts, tower_cols)],
+    clouds.write_point_cloud(out / "tower_points.ply", [(tower_pts, tower_cols)],
                       comments=comments + (f"depth of {len(ids)} views fused, each point confirmed by >= "
                                            f"{min_views} other views",))
     io.write_json(out / "box.json", {**meas["box"], "units": units, "normalised": {
@@ -246,8 +240,6 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
 def _update_report(run_dir: Path, out: Path, meas: dict) -> None:
     """Writes the "Tower model" section into RUN/report.md when the export is RUN/export (the
     default), else into OUT/report.md."""
-    from jaxnerf_grid import report
-
     if out.resolve() == (run_dir / "export").resolve():
         path, image = run_dir / "report.md", "export/export_views.png"
     else:

@@ -44,8 +44,8 @@ def init(key, cfg: FieldConfig) -> dict:
     """Random parameters of a grid field."""
     k_trunk, k_view, k_rgb, k_tr = jax.random.split(key, 4)
     params = init_trunk(k_trunk, cfg, 1 + cfg.geo_features)
-    params.update(layers.init_colour_branch(k_view, k_rgb, cfg.geo_features + layers.dir_input_size(cfg) + cfg.appearance_dim,
-                                            cfg.view_depth, cfg.view_width))
+    colour_inputs = cfg.geo_features + layers.dir_input_size(cfg) + cfg.appearance_dim
+    params.update(layers.init_colour_branch(k_view, k_rgb, colour_inputs, cfg.view_depth, cfg.view_width))
     if cfg.transient_dim > 0:
         params.update(layers.transient_init(k_tr, cfg.geo_features, cfg.transient_dim, cfg.transient_depth,
                                             cfg.transient_width))

@@ -10,7 +10,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid import io, progress as progress_lib
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.data.normalize import normalization_record
 from jaxnerf_grid.io import DataError
@@ -280,8 +280,6 @@ def resize_frame(frame: dict, size: tuple[int, int]) -> dict:
 
 def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress: bool = True) -> dict:
     """Reads every frame, checks they share one size, downscales. Returns stacked arrays."""
-    from jaxnerf_grid import progress as progress_lib
-
     frames = scene.frames
     read = []
     ref = None  # (W, H, path) of the first frame

@@ -12,6 +12,11 @@ from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.data.normalize import normalization_record
 from jaxnerf_grid.data.formats.frames import EXTRAS
 
+# The folders `jaxnerf-grid mask` writes into a dataset (`masking.write_masks`): part of the
+# dataset's layout, named here so that the data layer (data/poses.py clears them when it
+# replaces the photos) does not import `masking`.
+MASK_OUTPUT_DIRS = ("masks", "weights", "dpt_depth", "overlays")
+
 
 def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: str | None = None,
                 extras: dict | None = None) -> dict:

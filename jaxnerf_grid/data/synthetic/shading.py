@@ -190,7 +190,8 @@ def lambert(albedo: np.ndarray, normal: np.ndarray, sun: np.ndarray, visible: np
     """
     ndl = np.clip(normal @ sun, 0.0, 1.0)
     sky_amb = ZENITH * 0.9 + HORIZON * 0.5
-    ambient = sky_amb[None] * (0.55 + 0.45 * normal[:, 2:3]) + np.array([0.06, 0.07, 0.04]) * (0.5 - 0.5 * normal[:, 2:3])
+    ambient = (sky_amb[None] * (0.55 + 0.45 * normal[:, 2:3])
+               + np.array([0.06, 0.07, 0.04]) * (0.5 - 0.5 * normal[:, 2:3]))
     return albedo * (SUN_COLOR[None] * (ndl * visible)[:, None] + ambient)
 
 

@@ -1,0 +1,45 @@
+"""Library keys -> command-line flags in the one-line errors of `jaxnerf-grid`.
+
+The library names what it refuses by key, as a Python caller spells it: a config key
+(`train.batch_rays`, the user's own words for `--set` and `--config`), a setting of one command
+as `<command>.<argument>` (`export.box`, `mask.threshold`) and a switch as `<argument>=True`
+(`overwrite=True`). The dispatcher (`cli/__init__.py`) rewrites the keys of the subcommand that
+ran into its flags with `to_flags`; a key another command owns stays a key (e.g. `mask.max_side`
+inside `demo`, which has no such flag). `tests/test_layers.py` checks that every flag here is
+one its subcommand's parser accepts.
+"""
+
+from __future__ import annotations
+
+import re
+
+_SWITCHES = {"overwrite=True": "--overwrite"}
+_OTHER_DATA = {"allow_other_data=True": "--allow-other-data"}
+_DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.process_id": "--process-id"}
+
+FLAGS = {  # subcommand -> {key: flag}
+    "synth": {**_SWITCHES},
+    "poses": {"poses.matcher": "--matcher", "poses.vocab_tree": "--vocab-tree", "poses.max_side": "--max-side",
+              "poses.out": "--out", **_SWITCHES},
+    "mask": {"mask.data": "--data", "mask.source": "--source", "mask.weights": "--weights",
+             "mask.classes": "--classes", "mask.threshold": "--threshold",
+             "mask.floor": "--floor", "mask.dilate": "--dilate", "mask.max_side": "--max-side",
+             "mask.tiles": "--tiles", "mask.tile_overlap": "--tile-overlap", "mask.batch_size": "--batch-size",
+             **_SWITCHES},
+    "train": {"run.out": "--out", "run.steps": "--steps", "run.method": "--method", **_SWITCHES, **_OTHER_DATA,
+              **_DISTRIBUTED},
+    "render": {**_OTHER_DATA},
+    "eval": {"eval.lpips_weights": "--lpips-weights", "eval.reference_ply": "--reference-ply", **_OTHER_DATA},
+    "export": {"export.box": "--box", "export.resolution": "--resolution", "export.opacity": "--threshold",
+               **_SWITCHES, **_OTHER_DATA},
+    "demo": {"demo.data": "--data", "demo.out": "--out", "demo.steps": "--steps", **_SWITCHES, **_DISTRIBUTED},
+}
+
+
+def to_flags(subcommand: str, message: str) -> str:
+    """`message` with each key of `subcommand`'s table (a whole word: not part of a longer
+    dotted name) replaced by its flag. Returns the message unchanged for other keys."""
+    table = FLAGS.get(subcommand, {})
+    for key in sorted(table, key=len, reverse=True):
+        message = re.sub(rf"(?<![\w.]){re.escape(key)}(?![\w])", table[key], message)
+    return message

@@ -1,0 +1,106 @@
+"""The run config: `RunConfig` (the dataset folder, `models.ModelConfig`, `TrainConfig`), made by
+`make_config` (a method's defaults with overrides merged on top, checked by `config.validate` and
+`models.validate`) and settled on a dataset by `config.resolve` inside `train.train`.
+
+Its own module so that what reads a config (`views`, `runs`, `report`, `evaluate`) does not import
+the training step for a type; `train` names these too (`train.RunConfig`, `train.make_config`).
+`resolve_devices` is what `train.num_devices` means on this machine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+
+import jax
+
+from jaxnerf_grid import config as config_lib, models
+from jaxnerf_grid.config import ConfigError
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and I/O settings.
+
+    batch_rays: global rays per step (split over devices; must divide by the device count).
+    lr_init, lr_final, warmup: learning-rate schedule; max_grad_norm: clipping (0 = off);
+    adam_b1, adam_b2, adam_eps: Adam's moments and epsilon (Instant-NGP: 0.9, 0.99, 1e-15).
+    use_masks: weight the loss by the dataset's `1 - M_w` (False: every pixel weight 1).
+    mask_weight_floor: with masks, a masked pixel's weight is at most 1 - floor (docs/CONVENTIONS.md:
+      Eq. 7 gives a bird against the sky a weight near 1; floor 1 excludes every masked pixel).
+    checkpoint_every, keep_checkpoints, log_every: steps; chunk: rays per rendering chunk.
+    num_devices: devices to use (0 = all local devices).
+    appearance_steps, appearance_lr, appearance_rays: NeRF-W test-time embedding fit.
+    coarse_loss_weight: weight of the coarse pass's MSE (hierarchical sampler);
+    interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (proposal sampler);
+    distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
+    """
+
+    batch_rays: int = 1024
+    max_steps: int = 2000
+    lr_init: float = 5e-4
+    lr_final: float = 5e-5
+    warmup: int = 100
+    max_grad_norm: float = 1.0
+    adam_eps: float = 1e-6
+    adam_b1: float = 0.9
+    adam_b2: float = 0.999
+    use_masks: bool = True
+    mask_weight_floor: float = 0.0
+    coarse_loss_weight: float = 1.0
+    interlevel_loss_weight: float = 1.0
+    distortion_loss_weight: float = 0.0
+    seed: int = 0
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+    log_every: int = 25
+    chunk: int = 4096
+    num_devices: int = 0
+    appearance_steps: int = 30
+    appearance_lr: float = 0.05
+    appearance_rays: int = 1024
+
+    # allowed values, checked by config.validate (docs/RELIABILITY.md)
+    RANGES: typing.ClassVar[dict] = {
+        "batch_rays": config_lib.AT_LEAST_ONE, "max_steps": config_lib.AT_LEAST_ONE,
+        "lr_init": config_lib.POSITIVE, "lr_final": config_lib.POSITIVE, "warmup": config_lib.NONNEGATIVE,
+        "max_grad_norm": config_lib.NONNEGATIVE, "adam_eps": config_lib.POSITIVE,
+        "adam_b1": config_lib.FRACTION, "adam_b2": config_lib.FRACTION, "mask_weight_floor": config_lib.UNIT,
+        "coarse_loss_weight": config_lib.NONNEGATIVE, "interlevel_loss_weight": config_lib.NONNEGATIVE,
+        "distortion_loss_weight": config_lib.NONNEGATIVE, "seed": config_lib.Range(0, 2**32 - 1),
+        "checkpoint_every": config_lib.AT_LEAST_ONE, "keep_checkpoints": config_lib.AT_LEAST_ONE,
+        "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
+        "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
+        "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE}
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything that decides a run: the dataset folder (set by `runs.train_run`; None in a
+    recipe or a bare config), the model and the training. config.json is its `to_dict`."""
+
+    data: str | None = None
+    model: models.ModelConfig = models.ModelConfig()
+    train: TrainConfig = TrainConfig()
+
+
+def make_config(method: str, overrides: dict | None = None) -> RunConfig:
+    """The defaults of `method` with `overrides` (a nested dict, e.g. from --config) on top."""
+    base = {"model": models.method_defaults(method), "train": {"use_masks": method == "ours"}}
+    merged = config_lib.merge(config_lib.to_dict(RunConfig()), base)
+    merged = config_lib.merge(merged, overrides or {})
+    if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:
+        raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts run.method {method!r}")
+    cfg = config_lib.from_dict(RunConfig, merged)
+    config_lib.validate(cfg)
+    models.validate(dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, 1)))
+    return cfg
+
+
+def resolve_devices(cfg: TrainConfig) -> int:
+    """Local devices used: cfg.num_devices (0 = all)."""
+    available = jax.local_device_count()
+    n = cfg.num_devices or available
+    if n > available:
+        raise ConfigError(f"train.num_devices = {n} but only {available} local devices exist")
+    return n
