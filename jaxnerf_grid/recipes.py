@@ -20,6 +20,7 @@ from __future__ import annotations
 import dataclasses
 import json
 
+from jaxnerf_grid import run_config
 from jaxnerf_grid.config import ConfigError, merge
 
 # Without contraction a grid field must cover every sample point: NeRF and NeRF-W sample
@@ -155,10 +156,8 @@ def resolve(recipe: str | None, method: str | None) -> tuple[str, str]:
 
 def make_config(name: str, extra: dict | None = None, method: str | None = None):
     """The checked RunConfig of recipe `name` (its method, or `method`) with `extra` on top."""
-    from jaxnerf_grid import train
-
     name, method = resolve(name, method)
-    return train.make_config(method, merge(overrides(name), extra or {}))
+    return run_config.make_config(method, merge(overrides(name), extra or {}))
 
 
 def listing() -> list[str]:
