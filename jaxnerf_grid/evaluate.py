@@ -173,8 +173,11 @@ def _protocol(ds, cfg) -> str:
 
 def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = True, dataset=None,
                  distractor_views: int = 4, extra_notes: list[str] = (), reference_ply=None,
-                 cloud_views: int = 0, allow_other_data: bool = False) -> dict:
+                 cloud_views: int = 0, allow_other_data: bool = False, full_size: bool = False) -> dict:
     """Renders the test views, computes metrics.json and writes report.md. Returns the metrics.
+
+    The views are rendered and scored at the run's working resolution (`train.max_side`,
+    data/working.py), or at the photos' full size with `full_size`; metrics["resolution"] says which.
 
     reference_ply: a reference tower cloud (normalised scene units) for metrics["geometry"];
     default: the dataset's `tower_ply` when it has one.
@@ -187,7 +190,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     """
     start = time.perf_counter()
     run_dir = Path(run_dir)
-    cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
+    cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data, full_size)
     reference_cloud(ds, reference_ply)  # a missing --reference-ply fails before rendering
     if lpips_weights and not Path(lpips_weights).is_file():
         raise DataError(f"{lpips_weights}: LPIPS weights file not found (eval.lpips_weights)")
@@ -228,10 +231,12 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
               "export": export_section(ds, run_dir, reference_ply),
               "cloud_views": {"test": [int(r["index"]) for r in per_view], "train": cloud_ids},
               "per_view": per_view, "lpips": "computed" if lpips_params is not None else "unavailable",
+              "resolution": resolution_record(ds, cfg, full_size),
               "eval_seconds": time.perf_counter() - start}
     io.write_json(run_dir / "metrics.json", result)
     clouds.write_point_cloud(run_dir / "tower_points.ply", cloud)
     notes = list(extra_notes)
+    notes.append(resolution_note(result["resolution"]))
     notes.append(f"Point cloud of the unit sphere (the tower region) lifted from the depth maps of the "
                  f"{len(per_view)} test views" + (f" and {len(cloud_ids)} training views" if cloud_ids else "")
                  + f" (opacity >= 0.5): `tower_points.ply`, {sum(len(p) for p, _ in cloud)} points, "
@@ -242,6 +247,26 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     notes.append(f"Evaluation took {result['eval_seconds']:.0f} s.")
     report.write_report(run_dir, result, cfg, data, figures, notes)
     return result
+
+
+def resolution_record(ds, cfg, full_size: bool) -> dict:
+    """What size the views were scored at: {"width", "height" (rendered), "native_width",
+    "native_height" (the photos), "max_side" (the run's train.max_side), "full_size"}."""
+    native = ds.meta.get("native_size") or [ds.width, ds.height]
+    return {"width": ds.width, "height": ds.height, "native_width": int(native[0]),
+            "native_height": int(native[1]), "max_side": int(cfg.train.max_side), "full_size": bool(full_size)}
+
+
+def resolution_note(res: dict) -> str:
+    """The report's line on the resolution of the scored views."""
+    size = f"{res['width']}x{res['height']}"
+    if res["full_size"]:
+        return f"Resolution: test views rendered at the photos' full size, {size} (`--full-size`)."
+    if (res["width"], res["height"]) == (res["native_width"], res["native_height"]):
+        return f"Resolution: trained and rendered at the photos' size, {size}."
+    return (f"Resolution: trained and rendered at {size}, the working resolution of the "
+            f"{res['native_width']}x{res['native_height']} photos (`train.max_side` {res['max_side']}; "
+            "`eval --full-size` for full size).")
 
 
 def distractor_psnr(params, cfg, ds, max_views: int, progress: bool = False) -> float | None:

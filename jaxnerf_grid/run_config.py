@@ -31,6 +31,9 @@ class TrainConfig:
     checkpoint_every, keep_checkpoints, log_every: steps; chunk: rays per rendering chunk.
     num_devices: devices to use (0 = all local devices).
     appearance_steps, appearance_lr, appearance_rays: NeRF-W test-time embedding fit.
+    max_side: the working resolution (data/working.py): the run trains, and eval / render render,
+      at the photos' size divided by the smallest integer factor that brings the long side to at
+      most max_side px, intrinsics scaled (0 = full size; `--max-side`, docs/DATASET.md).
     coarse_loss_weight: weight of the coarse pass's MSE (hierarchical sampler);
     interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (proposal sampler);
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
@@ -59,6 +62,7 @@ class TrainConfig:
     appearance_steps: int = 30
     appearance_lr: float = 0.05
     appearance_rays: int = 1024
+    max_side: int = 640
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -71,7 +75,8 @@ class TrainConfig:
         "checkpoint_every": config_lib.AT_LEAST_ONE, "keep_checkpoints": config_lib.AT_LEAST_ONE,
         "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
         "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
-        "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE}
+        "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE,
+        "max_side": config_lib.NONNEGATIVE}
 
 
 @dataclasses.dataclass(frozen=True)

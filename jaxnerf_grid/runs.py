@@ -7,7 +7,9 @@ tower_points.ply.
 
 config.json stores the config as made by `run_config.make_config` with `model.num_images` set from
 the dataset; `model.near` / `model.far` stay as configured (None = the dataset's), see
-`config.resolve`.
+`config.resolve`. A run trains at the working resolution of `train.max_side` (data/working.py)
+and its views are rendered at that size unless `full_size`; a config.json without
+`train.max_side` (a run made before it existed) was trained at full size and reads as 0.
 
 What keeps a run and its dataset safe (docs/RELIABILITY.md):
   * `.jaxnerf-grid-run` (RUN_MARKER) is the first file a run writes; `--overwrite` clears only a
@@ -31,6 +33,7 @@ import numpy as np
 from jaxnerf_grid import config as config_lib, distributed, io, masking, progress as progress_lib, train, views
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data import formats
+from jaxnerf_grid.data.formats import working_dataset
 from jaxnerf_grid.data.dataset import check_camera_centres
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.run_config import RunConfig, make_config
@@ -39,7 +42,7 @@ RUN_MARKER = ".jaxnerf-grid-run"
 FINGERPRINT_FILE = "dataset.json"
 RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity")
 RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report_views.png", "report_crops.png",
-                    "tower_points.ply", "config.json", FINGERPRINT_FILE)
+                    "tower_points.ply", "config.json", FINGERPRINT_FILE, "timings.json")
 
 
 def read_overrides(path: str | None) -> dict:
@@ -79,6 +82,8 @@ def load_run(run_dir) -> tuple:
     raw = io.read_json(path)
     if not isinstance(raw, dict):
         raise DataError(f"{path}: a run's config.json must hold a JSON object")
+    if isinstance(raw.get("train"), dict) and "max_side" not in raw["train"]:
+        raw = {**raw, "train": {**raw["train"], "max_side": 0}}  # made before max_side: trained at full size
     cfg = config_lib.from_dict(RunConfig, raw, where=str(path))
     try:
         config_lib.validate(cfg)
@@ -130,20 +135,35 @@ def check_fingerprint(run_dir, ds, allow_other_data: bool = False) -> None:
                     "pass allow_other_data=True to use it anyway")
 
 
-def load_run_and_dataset(run_dir, dataset=None, progress: bool = True, allow_other_data: bool = False) -> tuple:
+def load_run_and_dataset(run_dir, dataset=None, progress: bool = True, allow_other_data: bool = False,
+                         full_size: bool = False) -> tuple:
     """(cfg, data path, dataset) of a trained run: its config (load_run), its dataset (`dataset`
-    when given, else loaded from the run's data path), refused when the dataset is not the one
+    when given, else loaded from the run's data path) at the run's working resolution
+    (`train.max_side`), or at full size with `full_size`; refused when the dataset is not the one
     the run was trained on (check_fingerprint), unless `allow_other_data`."""
     cfg, data = load_run(run_dir)
-    return cfg, data, dataset_of_run(run_dir, data, dataset, progress, allow_other_data)
+    return cfg, data, dataset_of_run(run_dir, data, dataset, progress, allow_other_data,
+                                     max_side=cfg.train.max_side, full_size=full_size)
 
 
-def dataset_of_run(run_dir, data, dataset=None, progress: bool = True, allow_other_data: bool = False):
+def dataset_of_run(run_dir, data, dataset=None, progress: bool = True, allow_other_data: bool = False,
+                   max_side: int = 0, full_size: bool = False):
     """The dataset of a run whose config is already loaded (`data`: its `cfg.data`): `dataset` when
-    given, else loaded from `data`; refused when it is not the one the run was trained on
-    (check_fingerprint), unless `allow_other_data`."""
-    ds = dataset if dataset is not None else load_dataset(data, progress=progress)
-    check_fingerprint(run_dir, ds, allow_other_data)
+    given, else loaded from `data`, at the working resolution of `max_side` (the run's
+    `train.max_side`; data/working.py) or at full size with `full_size`; refused when it is not
+    the one the run was trained on (check_fingerprint on the working resolution), unless
+    `allow_other_data`."""
+    from jaxnerf_grid.data.formats import working_dataset
+
+    side = 0 if full_size else max_side
+    ds = dataset if dataset is not None else load_dataset(data, progress=progress, max_side=side)
+    ds = working_dataset(ds, side) if side else ds
+    if side == max_side or allow_other_data or not (Path(run_dir) / FINGERPRINT_FILE).is_file():
+        check_fingerprint(run_dir, ds, allow_other_data)
+    else:  # full size: the run's fingerprint is of its working resolution (from the cache: cheap)
+        trained = working_dataset(dataset, max_side) if dataset is not None else \
+            load_dataset(data, progress=progress, max_side=max_side)
+        check_fingerprint(run_dir, trained, allow_other_data)
     return ds
 
 
@@ -162,13 +182,14 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
     train.check_batch(settled, n)
 
 
-def load_dataset(path, downscale: float = 1, progress: bool = True):
-    """The dataset of a folder (formats.load_dataset), after finishing any `mask` run that was
-    killed while swapping its new masks in (masking.recover), so the masks are one set."""
+def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0):
+    """The dataset of a folder (formats.load_dataset; `max_side`: its working resolution,
+    data/working.py, 0 = full size), after finishing any `mask` run that was killed while
+    swapping its new masks in (masking.recover), so the masks are one set."""
     if Path(path).is_dir():
         masking.recover(path)
 
-    return formats.load_dataset(path, downscale=downscale, progress=progress)
+    return formats.load_dataset(path, downscale=downscale, progress=progress, max_side=max_side)
 
 
 def _with_steps(overrides: dict | None, steps: int | None) -> dict:
@@ -253,7 +274,9 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
     run_dir = Path(out)
     check_out(run_dir, data)
     cfg = make_config(method, _with_steps(overrides, steps))
-    ds = dataset if dataset is not None else load_dataset(data, progress=progress)
+    side = cfg.train.max_side  # the working resolution (data/working.py)
+    ds = working_dataset(dataset, side) if dataset is not None else load_dataset(data, progress=progress,
+                                                                                 max_side=side)
     cfg = dataclasses.replace(config_lib.resolve(cfg, ds, bounds=False), data=str(Path(data).resolve()))
     check_run(cfg, ds)
     wanted = run_config_dict(cfg)
@@ -293,12 +316,13 @@ def write_view(run_dir: Path, name: str, view: dict) -> None:
 
 
 def render_split(run_dir, split: str = "test", progress: bool = True, dataset=None, params=None,
-                 allow_other_data: bool = False) -> list[dict]:
-    """Renders the frames of a split (test | train | all) into renders/, depth/, opacity/.
+                 allow_other_data: bool = False, full_size: bool = False) -> list[dict]:
+    """Renders the frames of a split (test | train | all) into renders/, depth/, opacity/, at the
+    run's working resolution (`train.max_side`), or at the photos' full size with `full_size`.
     Returns per-view dicts {"index", "rgb", "depth", "expected_depth", "opacity"}.
     A dataset other than the run's (its fingerprint) is refused unless `allow_other_data`."""
     run_dir = Path(run_dir)
-    cfg, _, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
+    cfg, _, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data, full_size)
     if params is None:
         params, _ = train.load_params(run_dir, cfg, ds)
     ids = np.arange(ds.num_frames) if split == "all" else np.asarray(ds.split[split])

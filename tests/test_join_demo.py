@@ -48,6 +48,14 @@ def test_tiny_demo_end_to_end_and_its_report(tmp_path, monkeypatch, capsys):
     for name, value in m["regions_mean"].items():
         assert rows[f"PSNR, {name.replace('_', ' ')}"] == (f"{value:.2f}" if value is not None else "unavailable")
     assert demo._mask_note(result["mask_source"]) in report
+    # the time of each stage: timings.json and the report's table, in the order of the stages
+    recorded = io.read_json(run / "timings.json")
+    assert recorded == {k: round(v, 2) for k, v in result["timings"].items()}
+    table = report[report.index("## Time per stage"):]
+    rows = [line.split("|")[1].strip() for line in table.splitlines()
+            if line.startswith("| ") and "seconds" not in line]
+    assert rows == [demo.STAGES[k] for k in ("synth", "mask", "train", "eval")] + ["total of the demo (poses excluded)"]
+    assert f"| {demo.STAGES['train']} | {result['timings']['train']:.1f} |" in table
     # the one-line summary quotes the same numbers
     line = demo.demo_summary(result)
     assert f"test PSNR {m['mean']['psnr']:.2f} dB" in line
@@ -55,3 +63,14 @@ def test_tiny_demo_end_to_end_and_its_report(tmp_path, monkeypatch, capsys):
         assert f"tower {m['regions_mean']['tower']:.2f} dB" in line
     # the synthetic scene has a reference tower cloud, so the line quotes its F-score at 0.02
     assert f"tower F-score@0.02 {m['geometry']['thresholds']['0.02']['fscore']:.3f}" in line
+
+
+def test_the_poses_time_comes_from_the_dataset_record_and_leads_the_table(tmp_path):
+    io.write_json(tmp_path / "transforms.json", {"poses": {"seconds": 167.5}, "frames": []})
+    assert demo.poses_seconds(tmp_path) == 167.5
+    io.write_json(tmp_path / "transforms.json", {"frames": []})
+    assert demo.poses_seconds(tmp_path) is None
+    lines = demo.timings_lines({"train": 10.0, "mask": 2.0, "poses": 167.5, "eval": 3.0})
+    assert lines[4:9] == [f"| {demo.STAGES['poses']} | 167.5 |", f"| {demo.STAGES['mask']} | 2.0 |",
+                          f"| {demo.STAGES['train']} | 10.0 |", f"| {demo.STAGES['eval']} | 3.0 |",
+                          "| total of the demo (poses excluded) | 15.0 |"]

@@ -1,6 +1,6 @@
 """`jaxnerf-grid demo`: tower-small (or --data DIR) -> masks -> train ours -> render -> report (`demo.run_demo`).
 
-    jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N] [--set KEY=VALUE ...] [--overwrite]
+    jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N] [--max-side N] [--set KEY=VALUE ...] [--overwrite]
                       [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
 """
 
@@ -19,6 +19,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", default="runs/demo")
     p.add_argument("--steps", type=int, default=None,
                    help="training steps (default: the recipe's, demo.DEMO_CONFIG)")
+    p.add_argument("--max-side", type=int, default=None, metavar="N",
+                   help="train and evaluate with the photos' long side at most N px (an integer downscale "
+                        "factor, intrinsics scaled; 0 = full size; default 640; train.max_side)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change one value of the demo's recipe, dotted key, JSON value (e.g. train.batch_rays=512); "
                         "repeatable")
@@ -38,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     from jaxnerf_grid import demo, distributed
 
     try:
-        result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=args.set)
+        result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=args.set,
+                               max_side=args.max_side)
     except distributed.DistributedError as err:
         exit_on_distributed_error("demo", err)
     if not distributed.is_main():

@@ -1,6 +1,6 @@
 """`jaxnerf-grid eval`: evaluate a trained run on its test views (`evaluate.evaluate_run`).
 
-    jaxnerf-grid eval --run RUN [--lpips-weights FILE] [--reference-ply FILE] [--distractor-views N]
+    jaxnerf-grid eval --run RUN [--lpips-weights FILE] [--reference-ply FILE] [--distractor-views N] [--full-size]
 
 Writes metrics.json, report.md and tower_points.ply into the run; the evaluation protocol is
 in evaluate.py's docstring.
@@ -22,6 +22,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "tower_points.ply against (default: the dataset's tower_ply, if any)")
     p.add_argument("--allow-other-data", action="store_true",
                    help="score the run on a dataset other than the one it was trained on (its fingerprint differs)")
+    p.add_argument("--full-size", action="store_true",
+                   help="render and score the test views at the photos' full size (default: the run's "
+                        "working resolution, train.max_side)")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -38,7 +41,8 @@ def main(argv: list[str] | None = None) -> int:
     from jaxnerf_grid import evaluate
 
     m = evaluate.evaluate_run(args.run, args.lpips_weights, not args.quiet, distractor_views=args.distractor_views,
-                              reference_ply=args.reference_ply, allow_other_data=args.allow_other_data)
+                              reference_ply=args.reference_ply, allow_other_data=args.allow_other_data,
+                              full_size=args.full_size)
     ssim = m["mean"]["ssim"]  # None when every view is smaller than the SSIM window
     print(f"test PSNR {m['mean']['psnr']:.2f} dB, SSIM {'n/a' if ssim is None else f'{ssim:.4f}'}; "
           f"report: {Path(args.run) / 'report.md'}")

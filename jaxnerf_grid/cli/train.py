@@ -2,7 +2,7 @@
 
     jaxnerf-grid train --data DIR [--recipe NAME] [--method ours|nerf|nerfw] [--config FILE] [--set KEY=VALUE ...]
                        [--out RUN]
-                       [--steps N] [--overwrite] [--allow-other-data] [--eval]
+                       [--steps N] [--max-side N] [--overwrite] [--allow-other-data] [--eval]
                        [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
 
 The settings start from a recipe (`recipes`, docs/RECIPES.md; `jaxnerf-grid recipes` lists them):
@@ -67,6 +67,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "model.proposal_samples=[64,32]); repeatable; applied after --config")
     p.add_argument("--out", default=None, help="run directory (default runs/<recipe>)")
     p.add_argument("--steps", type=int, default=None, help="override train.max_steps")
+    p.add_argument("--max-side", type=int, default=None, metavar="N",
+                   help="train with the photos' long side at most N px (an integer downscale factor, "
+                        "intrinsics scaled; 0 = full size; default 640); sets train.max_side")
     p.add_argument("--overwrite", action="store_true",
                    help="start the run again if it exists (clears only the run's own outputs)")
     p.add_argument("--allow-other-data", action="store_true",
@@ -96,6 +99,8 @@ def main(argv: list[str] | None = None) -> int:
     out = args.out or f"runs/{recipe}"
     overrides = config_lib.merge(recipes.overrides(recipe), runs.read_overrides(args.config))
     overrides = runs.overrides_with_sets(overrides, args.set)
+    if args.max_side is not None:
+        overrides = runs.overrides_with_sets(overrides, [f"train.max_side={args.max_side}"])
     try:
         run_dir, cfg, result = runs.train_run(args.data, method, out, overrides, args.steps, args.overwrite,
                                               not args.quiet, allow_other_data=args.allow_other_data)

@@ -138,7 +138,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         raise ConfigError(f"export.opacity (of one voxel) must be in (0, 1), got {opacity}")
     out = Path(out) if out is not None else run_dir / "export"
     io.ensure_writable(out, overwrite)
-    ds = runs.dataset_of_run(run_dir, data, dataset, progress, allow_other_data)
+    ds = runs.dataset_of_run(run_dir, data, dataset, progress, allow_other_data, max_side=cfg.train.max_side)
     norm = ds.normalization
     if given is not None:
         lo_given, hi_given = to_scene(given[:3], norm), to_scene(given[3:], norm)

@@ -51,7 +51,7 @@ from jaxnerf_grid.data.formats.frames import (BLENDER_FAR, BLENDER_NEAR, CV_TO_G
                                               IMAGE_EXTENSIONS, SEMANTIC_UNKNOWN, default_split,
                                               downscaled_size, min_ray_cosine, read_frame, read_rgb,
                                               resize_frame, scale_intrinsics, Scene, scene_to_dataset,
-                                              undistort_maps, validate_c2w)
+                                              undistort_maps, validate_c2w, working_dataset)
 from jaxnerf_grid.data.formats.llff import collect_llff, llff_to_c2w_gl, load_llff
 from jaxnerf_grid.data.formats.transforms_json import collect_transforms_json, load_transforms_json
 from jaxnerf_grid.data.formats.writing import save_transforms_json, split_names, transforms_top, write_frame
@@ -63,7 +63,7 @@ __all__ = ["BLENDER_FAR", "BLENDER_NEAR", "collect_blender", "collect_colmap", "
            "IMAGE_EXTENSIONS", "llff_to_c2w_gl", "load_blender", "load_colmap", "load_dataset", "load_llff",
            "load_transforms_json", "min_ray_cosine", "read_frame", "read_rgb", "resize_frame",
            "save_transforms_json", "scale_intrinsics", "Scene", "scene_to_dataset", "SEMANTIC_UNKNOWN",
-           "split_names", "transforms_top", "undistort_maps", "validate_c2w", "write_frame"]
+           "split_names", "transforms_top", "undistort_maps", "validate_c2w", "working_dataset", "write_frame"]
 
 
 def detect_format(path) -> str:
@@ -102,14 +102,18 @@ def collect_scene(path, *, load_extras: bool = True, **kwargs) -> Scene:
 
 
 def load_dataset(path, split: str | None = None, *, downscale: float = 1, load_extras: bool = True,
-                 progress: bool = True, **kwargs) -> Dataset:
+                 progress: bool = True, max_side: int = 0, cache: bool = True, **kwargs) -> Dataset:
     """Loads any supported dataset (autodetected, see `detect_format`).
 
+    max_side: the working resolution's budget (data/working.py: the long side at most max_side
+    px, an integer downscale factor; 0 = full size), or `downscale` to divide the size; cache:
+    keep the resized frames in the dataset's cache (working.py).
     split: None (all frames, `Dataset.split` says which are which) or a split name, which
     returns only those frames (`Dataset.subset`). Other keyword arguments go to the loader.
     """
     scene = collect_scene(path, load_extras=load_extras, **kwargs)
-    ds = scene_to_dataset(scene, downscale=downscale, load_extras=load_extras, progress=progress)
+    ds = scene_to_dataset(scene, downscale=downscale, load_extras=load_extras, progress=progress,
+                          max_side=max_side, cache=cache)
     if split is None:
         return ds
     if split not in ds.split or len(ds.split[split]) == 0:

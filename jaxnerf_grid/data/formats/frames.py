@@ -11,6 +11,7 @@ from typing import NamedTuple
 import numpy as np
 
 from jaxnerf_grid import io, progress as progress_lib
+from jaxnerf_grid.data import working
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.data.normalize import normalization_record
 from jaxnerf_grid.io import DataError
@@ -278,26 +279,104 @@ def resize_frame(frame: dict, size: tuple[int, int]) -> dict:
             "valid": valid, "extras": extras}
 
 
-def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress: bool = True) -> dict:
-    """Reads every frame, checks they share one size, downscales. Returns stacked arrays."""
+def working_dataset(ds: Dataset, max_side: int) -> Dataset:
+    """An in-memory dataset at the working resolution of `max_side` (working.working_size; the
+    dataset itself when it is already that size): images, clean images, masks and weights by
+    area averaging (masks then re-binarised at 0.5, as on load), depth, semantics and
+    distractor masks by nearest neighbour (EXTRAS), intrinsics scaled (scale_intrinsics)."""
+    w, h = ds.width, ds.height
+    size = working.working_size(w, h, int(max_side))
+    if size == (w, h):
+        return ds
+
+    def each(arr, interp):
+        if arr is None:
+            return None
+        dtype = arr.dtype
+        src = arr.astype(np.uint8) if dtype.kind == "b" else arr
+        out = np.stack([io.resize(np.asarray(a), size, interp) for a in src])
+        return out.astype(dtype)
+
+    masks = each(ds.masks, EXTRAS["masks"].interp)
+    meta = dict(ds.meta, native_size=list(ds.meta.get("native_size", (w, h))))
+    return dataclasses.replace(
+        ds, images=each(ds.images, "area"), clean_images=each(ds.clean_images, EXTRAS["clean_images"].interp),
+        weights=each(ds.weights, EXTRAS["weights"].interp),
+        masks=None if masks is None else (masks > 0.5).astype(np.float32),
+        depth=each(ds.depth, EXTRAS["depth"].interp), semantics=each(ds.semantics, EXTRAS["semantics"].interp),
+        distractor_masks=each(ds.distractor_masks, EXTRAS["distractor_masks"].interp),
+        intrinsics=scale_intrinsics(ds.intrinsics, size[0] / w, size[1] / h).astype(np.float32), meta=meta)
+
+
+def _cache_options(scene: Scene, frame: Frame, load_extras: bool) -> dict:
+    """The reading options a cached frame depends on besides its files (working.frame_key)."""
+    return {"dist": None if frame.dist is None else frame.dist.tolist(), "undistort": scene.undistort,
+            "background": None if scene.background is None else np.asarray(scene.background).tolist(),
+            "honour_exif": scene.honour_exif, "load_extras": load_extras,
+            "mask_convention": scene.meta.get("mask_convention")}
+
+
+def _native_intrinsics(frame: Frame, size) -> np.ndarray:
+    return np.asarray(frame.intrinsics(*size) if callable(frame.intrinsics) else frame.intrinsics, np.float64)
+
+
+def read_resized_frame(scene: Scene, index: int, load_extras: bool, *, downscale: float = 1,
+                       max_side: int = 0, cache: bool = True) -> tuple[dict, tuple[int, int]]:
+    """Frame `index` at its working size: divided by `downscale`, or to the long side `max_side`
+    (working.working_size; 0 = full size). Returns (a `resize_frame` dict, the native (W, H)).
+
+    With `cache`, a frame that is resized is read from / written to the dataset's cache of
+    working frames (working.py) instead of being decoded again."""
+    frame = scene.frames[index]
+    rule = f"max_side={int(max_side)}" if max_side else f"downscale={float(downscale):g}"
+    extras = {k: p for k, p in frame.extras.items()} if load_extras else {}
+    path = None
+    if cache and (max_side or downscale != 1):
+        try:
+            key = working.frame_key(frame.image_path, extras, rule, _cache_options(scene, frame, load_extras))
+            path = working.entry_path(scene.root, frame.image_path, rule, key)
+        except OSError:  # a file vanished: read_frame says which
+            path = None
+        hit = working.load_entry(path) if path is not None else None
+        if hit is not None and (frame.size is None or tuple(frame.size) == hit["native_size"]) \
+                and np.array_equal(_native_intrinsics(frame, hit["native_size"]), hit["native_intrinsics"]):
+            w, h = hit["native_size"]
+            size = hit["image"].shape[1], hit["image"].shape[0]
+            return {"image": hit["image"], "valid": hit["valid"], "extras": hit["extras"],
+                    "intrinsics": scale_intrinsics(hit["native_intrinsics"], size[0] / w, size[1] / h)}, (w, h)
+    fr = read_frame(scene, index, load_extras)
+    h, w = fr["image"].shape[:2]
+    size = working.working_size(w, h, int(max_side)) if max_side else downscaled_size(w, h, downscale)
+    resized = resize_frame(fr, size)
+    if path is not None and size != (w, h):
+        working.store_entry(path, (w, h), fr["intrinsics"], resized)
+    return resized, (w, h)
+
+
+def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress: bool = True,
+                 max_side: int = 0, cache: bool = True) -> dict:
+    """Reads every frame, checks they share one size, downscales (by `downscale`, or to the
+    working resolution of `max_side`, read_resized_frame). Returns stacked arrays."""
+    if max_side and downscale != 1:
+        raise ValueError(f"give downscale ({downscale}) or max_side ({max_side}), not both")
     frames = scene.frames
     read = []
     ref = None  # (W, H, path) of the first frame
     for i in progress_lib.bar(range(len(frames)), desc=f"loading {scene.meta.get('format', 'images')}",
                               unit="frame", enabled=progress and len(frames) >= 32, leave=False):
-        fr = read_frame(scene, i, load_extras)
-        h, w = fr["image"].shape[:2]
+        fr, (w, h) = read_resized_frame(scene, i, load_extras, downscale=downscale, max_side=max_side,
+                                        cache=cache)
         if ref is None:
             ref = (w, h, frames[i].image_path)
         elif (w, h) != ref[:2]:
             raise DataError(f"{frames[i].image_path}: image is {w}x{h} but {ref[2].name} is "
                             f"{ref[0]}x{ref[1]}; every image of a dataset must have one size "
                             f"(resize them with jaxnerf_grid.data.preprocess first)")
-        read.append(resize_frame(fr, downscaled_size(w, h, downscale)))
+        read.append(fr)
     scene.meta.pop("_undistort_maps", None)
     out = {"images": np.stack([f["image"] for f in read]).astype(np.float32),
            "intrinsics": np.stack([f["intrinsics"] for f in read]).astype(np.float32),
-           "undistorted": any(f["valid"] is not None for f in read)}
+           "undistorted": any(f["valid"] is not None for f in read), "native_size": ref[:2]}
     n, hh, ww = out["images"].shape[:3]
     for name in EXTRAS:
         values = [f["extras"].get(name) for f in read]
@@ -327,9 +406,13 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress:
 
 
 def scene_to_dataset(scene: Scene, *, downscale: float = 1, load_extras: bool = True,
-                     progress: bool = True) -> Dataset:
-    """Reads the pixels of a collected scene into a `Dataset` (`progress`: a bar for 32+ frames)."""
-    arrays = _load_frames(scene, downscale=downscale, load_extras=load_extras, progress=progress)
+                     progress: bool = True, max_side: int = 0, cache: bool = True) -> Dataset:
+    """Reads the pixels of a collected scene into a `Dataset` (`progress`: a bar for 32+ frames),
+    at the working resolution of `max_side` (0: full size; working.py) or divided by `downscale`;
+    `cache`: keep the resized frames in the dataset's cache (working.py). meta["native_size"] is
+    the photos' (W, H)."""
+    arrays = _load_frames(scene, downscale=downscale, load_extras=load_extras, progress=progress,
+                          max_side=max_side, cache=cache)
     paths = []
     for frame in scene.frames:
         try:
@@ -338,6 +421,7 @@ def scene_to_dataset(scene: Scene, *, downscale: float = 1, load_extras: bool = 
             paths.append(str(frame.image_path))
     meta = dict(scene.meta)
     meta["undistorted"] = arrays["undistorted"]
+    meta["native_size"] = [int(v) for v in arrays["native_size"]]
     return Dataset(
         root=scene.root, images=arrays["images"], c2w=np.asarray(scene.c2w, np.float32),
         intrinsics=arrays["intrinsics"], split=scene.split, near=float(scene.near), far=float(scene.far),

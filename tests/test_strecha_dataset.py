@@ -1,0 +1,62 @@
+"""benchmarks/strecha_dataset.py: a Strecha .camera file (K, distortion, R camera-to-world in
+OpenCV axes, centre C, size) to a transforms.json frame, checked by projecting a world point by
+hand with Strecha's own model x ~ K R^T (X - C) and casting the loaded camera's ray through it."""
+
+import numpy as np
+import pytest
+
+from benchmarks import strecha_dataset
+from jaxnerf_grid import rays as rays_lib
+from jaxnerf_grid.data.formats import load_dataset
+from jaxnerf_grid.data.normalize import apply_normalization_to_points
+from jaxnerf_grid.io import DataError, write_png
+
+
+def _rotation(axis, angle):
+    axis = np.asarray(axis, np.float64) / np.linalg.norm(axis)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    return np.eye(3) + np.sin(angle) * k + (1 - np.cos(angle)) * k @ k
+
+
+def _write_scene(root, cams):
+    (root / "images").mkdir(parents=True)
+    (root / "gt_dense_cameras").mkdir()
+    for i, (k, r, c) in enumerate(cams):
+        write_png(root / "images" / f"{i:04d}.png", np.full((24, 32, 3), 0.5, np.float32))
+        rows = [k[0], k[1], k[2], [0, 0, 0], r[0], r[1], r[2], c, [32, 24]]
+        (root / "gt_dense_cameras" / f"{i:04d}.png.camera").write_text(
+            "\n".join(" ".join(f"{v:.12g}" for v in row) for row in rows) + "\n")
+
+
+def test_a_surveyed_camera_sees_the_point_it_projects(tmp_path):
+    k = np.array([[30.0, 0, 15.5], [0, 31.0, 11.0], [0, 0, 1]])
+    target = np.array([0.5, 1.0, 0.2])
+    cams = []
+    for i in range(6):  # cameras on a ring, each looking roughly at the target (OpenCV axes)
+        c = target + 8 * np.array([np.cos(i), np.sin(i), 0.3])
+        z = (target - c) / np.linalg.norm(target - c)
+        x = np.cross(z, [0, 0, -1.0])
+        x /= np.linalg.norm(x)
+        r = np.stack([x, np.cross(z, x), z], axis=1) @ _rotation([1, 2, 3], 0.05)  # columns: camera axes in world
+        cams.append((k, r, c))
+    _write_scene(tmp_path / "scene", cams)
+    strecha_dataset.strecha_dataset(tmp_path / "scene", tmp_path / "out")
+    ds = load_dataset(tmp_path / "out", progress=False)
+    assert (ds.width, ds.height) == (32, 24) and ds.num_frames == 6
+    point = target + np.array([0.3, -0.2, 0.1])
+    for i, (kk, r, c) in enumerate(cams):
+        x = kk @ r.T @ (point - c)
+        u, v = x[0] / x[2], x[1] / x[2]
+        ray = rays_lib.rays_for_pixels(ds.c2w[i], *ds.intrinsics[i], np.float32(u), np.float32(v))
+        p = apply_normalization_to_points(point, ds.normalization)
+        o, d = np.asarray(ray.origins, np.float64), np.asarray(ray.directions, np.float64)
+        off = (p - o) - np.dot(p - o, d) * d
+        assert np.linalg.norm(off) < 1e-4 and np.dot(p - o, d) > 0
+
+
+def test_a_camera_file_of_the_wrong_length_is_one_line_naming_it(tmp_path):
+    _write_scene(tmp_path / "scene", [(np.eye(3), np.eye(3), np.zeros(3))])
+    bad = tmp_path / "scene" / "gt_dense_cameras" / "0000.png.camera"
+    bad.write_text("1 2 3\n")
+    with pytest.raises(DataError, match="0000.png.camera.*26 numbers"):
+        strecha_dataset.strecha_dataset(tmp_path / "scene", tmp_path / "out")
