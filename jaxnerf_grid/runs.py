@@ -153,8 +153,6 @@ def dataset_of_run(run_dir, data, dataset=None, progress: bool = True, allow_oth
     `train.max_side`; data/working.py) or at full size with `full_size`; refused when it is not
     the one the run was trained on (check_fingerprint on the working resolution), unless
     `allow_other_data`."""
-    from jaxnerf_grid.data.formats import working_dataset
-
     side = 0 if full_size else max_side
     ds = dataset if dataset is not None else load_dataset(data, progress=progress, max_side=side)
     ds = working_dataset(ds, side) if side else ds

@@ -32,6 +32,7 @@ FLAG_TEXT_ALLOWED = {
     ("data/poses.py", "--overwrite"): "the poses marker file's text, for a person who finds the folder",
     ("demo.py", "--source"): "a report note quoting the command line that made the masks",
     ("masking.py", "--depth-weights"): "a note `mask` prints while it runs (not an error)",
+    ("evaluate.py", "--full-size"): "the report's resolution line tells a reader how to score at full size",
     ("data/poses.py", "--keep-all"): "the poses report and summary tell a person how to keep the photos "
                                      "the vetting left out",
 }
