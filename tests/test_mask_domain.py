@@ -98,7 +98,7 @@ def test_rule_fires_on_photos_unlike_the_builtin_models_training_data(tmp_path, 
     meta = io.read_json(data / "transforms.json")
     shares = [f["masked_share"] for f in meta["frames"]]
     for f in meta["frames"]:  # the recorded share is the written mask's
-        m = io.read_image(data / f["mask_path"])
+        m = io.read_mask(data / f["mask_path"])
         assert f["masked_share"] == pytest.approx(float(np.mean(m > 0.5)), abs=1e-4)
         assert 1 / 9 <= f["dpt_confidence"] <= 1.0
     assert _rule_by_hand(shares)[1] is True
