@@ -16,6 +16,8 @@ import json
 import time
 from pathlib import Path
 
+import numpy as np
+
 from jaxnerf_grid import evaluate, io, runs
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.io import DataError
@@ -111,6 +113,21 @@ def _share_text() -> str:
     return f"{masking.OOD_FRAME_SHARE:.0%}"
 
 
+def dataset_domain(data: Path) -> dict | None:
+    """The out-of-domain verdict of a dataset's DPT masks: transforms.json's `mask_domain`; for
+    DPT masks written before `mask` recorded it, `masking.domain_verdict` of the masks' shares,
+    read from masks/; None for other masks (ground truth, the user's own) or none."""
+    from jaxnerf_grid import masking
+
+    meta = _read_meta(data)
+    if meta.get("mask_domain") is not None:
+        return meta["mask_domain"]
+    frames = [f for f in meta.get("frames", []) if isinstance(f, dict)]
+    if meta.get("mask_source") != "dpt" or not frames or not all(f.get("mask_path") for f in frames):
+        return None
+    return masking.domain_verdict([float(np.mean(io.read_mask(data / f["mask_path"]) > 0.5)) for f in frames])
+
+
 def _with_plan(recipe: dict, plan: dict) -> dict:
     """recipe with the plan's train.* overrides laid on top (the recipe is not changed)."""
     return {**recipe, "train": {**recipe.get("train", {}), **plan["overrides"]["train"]}}
@@ -189,7 +206,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         data = Path(data) if data is not None else out / "data"
         mask_source = None
     # every process reads the same verdict from the dataset, so all train the same config
-    plan = mask_plan(masks, _read_meta(Path(data)).get("mask_domain"))
+    plan = mask_plan(masks, dataset_domain(Path(data)))
     t = time.perf_counter()
     run_dir, _, _ = runs.train_run(str(data), "ours", out / "run", _with_plan(recipe, plan), steps, overwrite, progress)
     timings["train"] = time.perf_counter() - t

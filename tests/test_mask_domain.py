@@ -166,3 +166,19 @@ def test_mask_plan(choice, domain, mode, train):
 def test_mask_plan_refuses_an_unknown_choice():
     with pytest.raises(ConfigError, match="--masks"):
         demo.mask_plan("sometimes", None)
+
+
+def test_dataset_domain_judges_dpt_masks_made_before_the_rule(tmp_path):
+    """A dataset masked by DPT before `mask` recorded mask_domain: the verdict comes from its
+    masks/ (2 of 3 frames over 40 % here); ground-truth masks are not judged."""
+    frames = []
+    for i, share in enumerate([0.5, 0.75, 0.25]):
+        m = np.zeros((4, 8), np.float32)
+        m.reshape(-1)[: int(share * 32)] = 1.0
+        io.write_png(tmp_path / "masks" / f"f{i}.png", m)
+        frames.append({"file_path": f"images/f{i}.png", "mask_path": f"masks/f{i}.png"})
+    (tmp_path / "transforms.json").write_text(json.dumps({"mask_source": "dpt", "frames": frames}))
+    v = demo.dataset_domain(tmp_path)
+    assert v["out_of_domain"] is True and v["frames_mostly_masked"] == 2 and v["median_share"] == 0.5
+    (tmp_path / "transforms.json").write_text(json.dumps({"mask_source": "ground-truth", "frames": frames}))
+    assert demo.dataset_domain(tmp_path) is None
