@@ -53,8 +53,8 @@ OVERLAY_MAX_SIDE = 1600
 
 # The out-of-domain rule (docs/MASKS.md): a frame is "mostly masked" when more than
 # OOD_FRAME_SHARE of its pixels are in M; the model is out of its domain on a dataset when more
-# than OOD_FRAMES of the frames are mostly masked (equivalently: the median frame's share is above
-# OOD_FRAME_SHARE). Measured with the built-in DPT (benchmarks/dpt_domain.py): the synthetic
+# than OOD_FRAMES of the frames are mostly masked (with an odd number of frames: when the median
+# frame's share is above OOD_FRAME_SHARE). Measured with the built-in DPT (benchmarks/dpt_domain.py): the synthetic
 # presets, high clutter included, mask at most a third of the frames that much; real photos
 # (the Strecha scenes, scikit-image's sample photos) nearly all of them.
 OOD_FRAME_SHARE = 0.4
