@@ -155,8 +155,9 @@ def paste_sprites(image: np.ndarray, bank: list[tuple], rng: np.random.Generator
     return out, mask
 
 
-def synthetic_sprites(work: Path, seed: int = 0) -> list[tuple]:
-    """The sprite bank of a synthetic high-clutter tower scene (rendered once under `work`)."""
+def synthetic_sprites(work: Path, seed: int = 0, min_pixels: int = 60) -> list[tuple]:
+    """The sprite bank of a synthetic high-clutter tower scene (rendered once under `work`);
+    components under `min_pixels` (at 320 x 240: specks, birds' wing tips) are left out."""
     from jaxnerf_grid.data.synthetic.generate import generate_scene
 
     scene = work / "sprites"
@@ -166,7 +167,7 @@ def synthetic_sprites(work: Path, seed: int = 0) -> list[tuple]:
     meta = io.read_json(scene / "transforms.json")
     frames = [f for f in meta["frames"] if f.get("split") == "train" and "distractor_mask_path" in f]
     return sprite_bank([io.read_image(scene / f["file_path"]) for f in frames],
-                       [io.read_distractor_mask(scene / f["distractor_mask_path"]) for f in frames])
+                       [io.read_distractor_mask(scene / f["distractor_mask_path"]) for f in frames], min_pixels)
 
 
 # ------------------------------------------------------------------------------- datasets
