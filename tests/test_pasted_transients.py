@@ -120,7 +120,7 @@ def test_pasted_share_used_is_the_weighted_count(tmp_path):
     m = np.zeros((4, 5), bool)
     m[1:3, 1:4] = True  # 6 pixels
     io.write_png(tmp_path / "d0.png", m.astype(np.float32))
-    io.write_png(tmp_path / "d1.png", np.zeros((4, 5), np.float32))
+    io.write_png(tmp_path / "d1.png", np.ones((4, 5), np.float32))  # a test frame: never counted
     (tmp_path / "transforms.json").write_text(json.dumps({"frames": [
         {"file_path": "images/a.png", "distractor_mask_path": "d0.png", "split": "train"},
         {"file_path": "images/b.png", "distractor_mask_path": "d1.png", "split": "test"}]}))
