@@ -86,8 +86,8 @@ def markdown(rows: list[dict], argv: list[str]) -> str:
     lines = ["# The built-in DPT in and out of its domain", "",
              "`python -m benchmarks.dpt_domain " + " ".join(argv) + "`", "",
              f"Rule: {rows[0]['verdict']['rule'] if rows else ''} (`masking.domain_verdict`).", "",
-             "| photos | kind | frames | masked share: mean (min-max) | frames > "
-             f"{masking.OOD_FRAME_SHARE:.0%} | confidence: mean (min-max) | out of domain |",
+             ("| photos | kind | frames | masked share: mean (min-max) | frames > "
+              f"{masking.OOD_FRAME_SHARE:.0%} | confidence: mean (min-max) | out of domain |"),
              "| --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         v = r["verdict"]

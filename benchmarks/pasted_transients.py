@@ -356,17 +356,21 @@ def summarise(results: list[dict]) -> list[dict]:
     return out
 
 
+def _cell(entry: dict, key: str, fmt: str) -> str:
+    """A table cell: the mean (± the standard deviation over seeds), "n/a" when unmeasured."""
+    if entry[key] is None:
+        return "n/a"
+    std = entry[key + "_std"]
+    return fmt.format(entry[key]) + (f" ± {fmt.format(std)}" if std is not None else "")
+
+
 def markdown(summary: list[dict], settings: dict) -> str:
     lines = ["# Pasted transients on real photos (Strecha)", "",
              "`python -m benchmarks.pasted_transients " + " ".join(settings["argv"]) + "`", "",
              "| scene | row | seeds | PSNR (dB) | SSIM | pasted pixels used |", "| --- | --- | --- | --- | --- | --- |"]
     for e in summary:
-        def f(k, fmt):
-            if e[k] is None:
-                return "n/a"
-            return fmt.format(e[k]) + (f" ± {fmt.format(e[k + '_std'])}" if e[k + "_std"] is not None else "")
-        lines.append(f"| {e['scene']} | {e['row']} | {e['seeds']} | {f('psnr', '{:.2f}')} | {f('ssim', '{:.4f}')} "
-                     f"| {f('pasted_used', '{:.1%}')} |")
+        lines.append(f"| {e['scene']} | {e['row']} | {e['seeds']} | {_cell(e, 'psnr', '{:.2f}')} "
+                     f"| {_cell(e, 'ssim', '{:.4f}')} | {_cell(e, 'pasted_used', '{:.1%}')} |")
     lines += ["", f"Settings: {json.dumps({k: v for k, v in settings.items() if k != 'argv'})}", ""]
     return "\n".join(lines)
 

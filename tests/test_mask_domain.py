@@ -56,9 +56,9 @@ def test_predict_maps_confidence_is_the_mean_max_probability_dpt_saw(tiles):
     (the working-size photo; every window when tiled), the maps unchanged."""
     model = dpt.init(0, dpt.DPTConfig(**TINY_DPT))
     photo = np.random.default_rng(1).uniform(size=(70, 100, 3)).astype(np.float32)
-    (c, inv, conf), = fg.predict_maps(model, model, [photo], classes=[1], max_side=64, batch_size=1, tiles=tiles,
+    (c, _, conf), = fg.predict_maps(model, model, [photo], classes=[1], max_side=64, batch_size=1, tiles=tiles,
                                       with_confidence=True)
-    (c0, inv0), = fg.predict_maps(model, model, [photo], classes=[1], max_side=64, batch_size=1, tiles=tiles)
+    (c0, _), = fg.predict_maps(model, model, [photo], classes=[1], max_side=64, batch_size=1, tiles=tiles)
     np.testing.assert_array_equal(c, c0)
     if tiles == 1:
         x = fg.to_working_size(photo, 64, 32)[None]
