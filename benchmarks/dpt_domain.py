@@ -119,11 +119,9 @@ def main(argv=None) -> int:
               f"({r['min_share']:.1%}-{r['max_share']:.1%}), {v['frames_mostly_masked']} mostly masked, "
               f"confidence {v['mean_confidence']:.3f}, out of domain: {v['out_of_domain']}", flush=True)
     # no folder of this machine in the results
-    shown = ["STRECHA_DIR" if a == args.strecha else a.replace(str(ROOT) + os.sep, "") for a in argv]
-    for a in ("--work", "--out"):
-        if a in shown:
-            i = shown.index(a)
-            shown[i + 1] = Path(shown[i + 1]).name if os.path.isabs(shown[i + 1]) else shown[i + 1]
+    from benchmarks.pasted_transients import shown_argv
+
+    shown = shown_argv(argv, args.strecha)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
     io.write_json(out.with_suffix(".json"), {"argv": shown, "rows": rows})

@@ -375,6 +375,22 @@ def markdown(summary: list[dict], settings: dict) -> str:
     return "\n".join(lines)
 
 
+def shown_argv(argv: list[str], strecha: str) -> list[str]:
+    """The command line as the results show it, naming no folder of this machine: the Strecha
+    folder as STRECHA_DIR, paths inside the repository relative to it, other absolute paths
+    (--work, --out elsewhere) by their last component."""
+    out = []
+    for a in argv:
+        if a == strecha:
+            a = "STRECHA_DIR"
+        elif a.startswith(str(ROOT) + os.sep):
+            a = a[len(str(ROOT)) + 1:]
+        elif os.path.isabs(a):
+            a = Path(a).name
+        out.append(a)
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.pasted_transients", description=__doc__.split("\n\n")[0])
     p.add_argument("strecha", help="the folder Benchmarking_Camera_Calibration_2008 (openMVG/SfM_quality_evaluation)")
@@ -428,8 +444,7 @@ def main(argv=None) -> int:
     summary = summarise(results)
     out = Path(args.out)
     out.parent.mkdir(parents=True, exist_ok=True)
-    # no folder of this machine in the results: the Strecha folder is named by its role
-    settings["argv"] = ["STRECHA_DIR" if a == args.strecha else a.replace(str(ROOT) + os.sep, "") for a in argv]
+    settings["argv"] = shown_argv(argv, args.strecha)
     io.write_json(out.with_suffix(".json"), {"settings": settings, "summary": summary, "runs": results})
     out.with_suffix(".md").write_text(markdown(summary, settings))
     print(markdown(summary, settings))

@@ -129,3 +129,10 @@ def test_pasted_share_used_is_the_weighted_count(tmp_path):
     w[2, 1] = 0.5
     assert pt.pasted_share_used(tmp_path, {"a": w, "b": np.zeros((4, 5))}) == pytest.approx((0 + 0 + 0 + 0.5 + 1 + 1) / 6)
     assert pt.pasted_share_used(tmp_path, None) == 1.0
+
+
+def test_results_name_no_folder_of_this_machine():
+    argv = ["/data/x/Benchmarking_Camera_Calibration_2008", "--work", "/scratch/w", "--out",
+            str(pt.ROOT / "benchmarks/results/p"), "--steps", "10"]
+    assert pt.shown_argv(argv, argv[0]) == ["STRECHA_DIR", "--work", "w", "--out", "benchmarks/results/p",
+                                            "--steps", "10"]
