@@ -17,7 +17,6 @@ views, seed 1, cached under --work) at each preset's clutter and at tower-small'
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
