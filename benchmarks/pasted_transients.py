@@ -194,7 +194,8 @@ def build_scene(scene_dir, out, bank: list[tuple], long_side: int = 480, test_ev
         intr.append((k, w, h))
         names.append(cam.name[: -len(".camera")])
     c2w_norm, norm = normalize_orbit(np.stack(c2w))
-    shutil.rmtree(out, ignore_errors=True)
+    for old in (out, *(out.parent / f"{out.name}-{kind}" for kind in ("dpt", "gt"))):
+        shutil.rmtree(old, ignore_errors=True)  # the masked copies (`variant`) of an older build too
     frames = []
     for i, (name, (k, w, h)) in enumerate(zip(names, intr)):
         photo_path = scene_dir / "images" / name
@@ -246,7 +247,8 @@ def write_gt_masks(data: Path) -> None:
 
 def variant(base: Path, kind: str) -> Path:
     """The dataset a row trains on: "plain" (base), "dpt" (a copy masked by the built-in DPT)
-    or "gt" (a copy with the pasted masks)."""
+    or "gt" (a copy with the pasted masks); made once per `build_scene`, then reused by the
+    other rows and seeds."""
     if kind == "plain":
         return base
     out = base.parent / f"{base.name}-{kind}"
