@@ -7,6 +7,11 @@ dataset's `scene_bounds` when it records them, `data.bounds`) -> evaluate (`eval
 `demo_summary(result)` is its one-line summary. The seconds of each stage (STAGES: poses when the
 dataset was made by `jaxnerf-grid poses`, from its record; synth, mask, train, eval) go into
 RUN/timings.json and a "Time per stage" table at the end of RUN/report.md (`timings_lines`).
+
+Which masks train (`masks`, `demo --masks`; docs/MASKS.md): "auto" trusts the DPT's masks only
+where the DPT is in its domain (`masking.domain_verdict`, recorded in transforms.json as
+`mask_domain`), else trains with `train.robust = "robust"` (photometric evidence, no masks);
+"dpt", "robust", "dpt+robust" and "none" force a mode. `mask_plan` makes the choice.
 """
 
 from __future__ import annotations
@@ -14,6 +19,8 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
+
+import numpy as np
 
 from jaxnerf_grid import config as config_lib, distributed, evaluate, io, masking, recipes, runs
 from jaxnerf_grid.config import ConfigError
@@ -86,6 +93,68 @@ def _read_meta(data: Path) -> dict:
     return io.read_json(data / "transforms.json") if (data / "transforms.json").is_file() else {}
 
 
+MASK_CHOICES = ("auto", "dpt", "robust", "dpt+robust", "none")
+
+
+def mask_plan(choice: str, domain: dict | None) -> dict:
+    """What trains, for `demo --masks choice` on a dataset whose masks got the verdict `domain`
+    (transforms.json's `mask_domain`: `masking.domain_verdict`; None when not judged, e.g.
+    ground-truth masks or masks made before the rule existed).
+
+    Returns {"mode": "dpt" | "robust" | "dpt+robust" | "none", "overrides": the train.* config
+    changes ({"train": {"use_masks": bool[, "robust": mode]}}; `robust` only when not "off", its
+    default), "why": a sentence for the report}.
+    """
+    if choice not in MASK_CHOICES:
+        raise ConfigError(f"--masks = {choice!r}: must be one of {', '.join(MASK_CHOICES)}")
+    if choice == "auto":
+        if domain is not None and domain.get("out_of_domain"):
+            mode = "robust"
+            why = (f"chosen automatically: the DPT is out of its domain on these photos "
+                   f"({domain['frames_mostly_masked']} of {domain['frames']} frames have more than "
+                   f"{_share_text()} of their pixels masked, median {domain['median_share']:.0%}), so its "
+                   "masks are not used")
+        else:
+            mode = "dpt"
+            why = ("chosen automatically: the DPT is in its domain on these photos "
+                   f"({domain['frames_mostly_masked']} of {domain['frames']} frames mostly masked, median "
+                   f"{domain['median_share']:.0%})" if domain is not None else
+                   "chosen automatically: the dataset's masks (not judged by the out-of-domain rule)")
+    else:
+        mode, why = choice, f"forced with `--masks {choice}`"
+    train_over = {"use_masks": mode in ("dpt", "dpt+robust")}
+    robust = {"dpt": "off", "none": "off"}.get(mode, mode)
+    if robust != "off":
+        train_over["robust"] = robust
+    return {"mode": mode, "overrides": {"train": train_over}, "why": why}
+
+
+def _share_text() -> str:
+    from jaxnerf_grid import masking
+
+    return f"{masking.OOD_FRAME_SHARE:.0%}"
+
+
+def dataset_domain(data: Path) -> dict | None:
+    """The out-of-domain verdict of a dataset's DPT masks: transforms.json's `mask_domain`; for
+    DPT masks written before `mask` recorded it, `masking.domain_verdict` of the masks' shares,
+    read from masks/; None for other masks (ground truth, the user's own) or none."""
+    from jaxnerf_grid import masking
+
+    meta = _read_meta(data)
+    if meta.get("mask_domain") is not None:
+        return meta["mask_domain"]
+    frames = [f for f in meta.get("frames", []) if isinstance(f, dict)]
+    if meta.get("mask_source") != "dpt" or not frames or not all(f.get("mask_path") for f in frames):
+        return None
+    return masking.domain_verdict([float(np.mean(io.read_mask(data / f["mask_path"]) > 0.5)) for f in frames])
+
+
+def _with_plan(recipe: dict, plan: dict) -> dict:
+    """recipe with the plan's train.* overrides laid on top (the recipe is not changed)."""
+    return {**recipe, "train": {**recipe.get("train", {}), **plan["overrides"]["train"]}}
+
+
 def _ensure_masks(data: Path, progress: bool, timings: dict) -> str:
     """Masks the dataset unless it has masks or weights (the built-in DPT; ground-truth stand-ins
     when no built-in model is shipped and the data are synthetic; seconds into timings["mask"]).
@@ -102,30 +171,47 @@ def _ensure_masks(data: Path, progress: bool, timings: dict) -> str:
     return meta.get("mask_source", "unknown")
 
 
-def _mask_note(mask_source: str) -> str:
-    """The report's line on where the masks came from."""
+def _mask_note(mask_source: str | None, plan: dict | None = None) -> str:
+    """The report's line on which masks trained and why (plan: `mask_plan`'s; None = the DPT's
+    masks, as before the rule)."""
+    mode = plan["mode"] if plan else "dpt"
+    why = f" Why: {plan['why']}." if plan else ""
+    if mode == "robust":
+        return ("Masks: **none used**; training down-weights pixels by photometric evidence "
+                f"(`train.robust = robust`, docs/MASKS.md).{why}")
+    if mode == "none":
+        return f"Masks: **none used** (every pixel weight 1).{why}"
     if mask_source == "dpt":
-        return "Masks: built-in DPT (`jaxnerf-grid mask`), weights 1 - M_w."
-    if mask_source in ("gt", "ground-truth"):
-        return ("Masks: **ground-truth stand-ins** (mask source `ground-truth`): `jaxnerf-grid mask "
+        note = "Masks: built-in DPT (`jaxnerf-grid mask`), weights 1 - M_w."
+    elif mask_source in ("gt", "ground-truth"):
+        note = ("Masks: **ground-truth stand-ins** (mask source `ground-truth`): `jaxnerf-grid mask "
                 "--source gt` built M from the synthetic distractor masks and D from the true depth.")
-    return f"Masks: from the dataset (mask source `{mask_source}`)."
+    else:
+        note = f"Masks: from the dataset (mask source `{mask_source}`)."
+    if mode == "dpt+robust":
+        note += " They are the prior of `train.robust = dpt+robust` (docs/MASKS.md)."
+    return note + why
 
 
 def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None, overwrite: bool = False,
-             progress: bool = True, sets: list[str] | None = None, max_side: int | None = None) -> dict:
+             progress: bool = True, sets: list[str] | None = None, max_side: int | None = None,
+             masks: str = "auto") -> dict:
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
-    has no masks) -> train the `ours` recipe (DEMO_RECIPE) -> evaluate. Returns {"run_dir", "metrics",
-    "timings" (s per stage, STAGES), "total_seconds", "mask_source"}. sets: --set KEY=VALUE
-    changes to DEMO_CONFIG; max_side: train.max_side (the working resolution; None: the
-    default, 640 px). The config is checked (run_config.make_config) before anything is written."""
+    has no masks and they are needed) -> train the `ours` recipe (DEMO_RECIPE) -> evaluate. Returns
+    {"run_dir", "metrics", "timings" (s per stage, STAGES), "total_seconds", "mask_source",
+    "mask_plan"}. sets: --set KEY=VALUE changes to DEMO_CONFIG; max_side: train.max_side (the
+    working resolution; None: the default, 640 px); masks: one of MASK_CHOICES (`mask_plan`). The
+    config is checked (run_config.make_config) before anything is written."""
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
         raise ConfigError(f"demo.steps = {steps}: must be an integer >= 1")
     method = recipes.get(DEMO_RECIPE).method
-    recipe = runs.overrides_with_sets(recipes.overrides(DEMO_RECIPE), sets)
+    base = recipes.overrides(DEMO_RECIPE)
     if max_side is not None:
-        recipe = config_lib.merge(recipe, {"train": {"max_side": max_side}})
-    make_config(method, runs._with_steps(recipe, steps))  # a bad --set fails before synth / mask
+        base = config_lib.merge(base, {"train": {"max_side": max_side}})
+    recipe = runs.overrides_with_sets(base, sets)
+    forced = mask_plan(masks, None)  # a bad --masks fails here; auto is settled after masking
+    # a bad --set fails before synth / mask
+    make_config(method, runs._with_steps(_with_plan(recipe, forced) if masks != "auto" else recipe, steps))
     start = time.perf_counter()
     out = Path(out)
     if out.exists() and not out.is_dir():
@@ -138,27 +224,30 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         data = _dataset_folder(data, out, progress, timings)
         if poses_seconds(data) is not None:
             timings["poses"] = poses_seconds(data)
-        mask_source = _ensure_masks(data, progress, timings)
+        mask_source = _ensure_masks(data, progress, timings) if masks not in ("robust", "none") else None
     distributed.barrier("jaxnerf_grid.demo.data")
     if not distributed.is_main():
         data = Path(data) if data is not None else out / "data"
         mask_source = None
     bounds = read_bounds(_read_meta(data), data / "transforms.json")
-    recipe = runs.overrides_with_sets(recipe_with_bounds(DEMO_CONFIG, bounds), sets)
+    recipe = runs.overrides_with_sets(recipe_with_bounds(base, bounds), sets)  # --set wins over the bounds
+    # every process reads the same verdict from the dataset, so all train the same config
+    plan = mask_plan(masks, dataset_domain(Path(data)))
     t = time.perf_counter()
-    run_dir, _, _ = runs.train_run(str(data), method, out / "run", recipe, steps, overwrite, progress)
+    run_dir, _, _ = runs.train_run(str(data), method, out / "run", _with_plan(recipe, plan), steps, overwrite,
+                                   progress)
     timings["train"] = time.perf_counter() - t
     if not distributed.is_main():
         return {"run_dir": run_dir, "metrics": None, "timings": timings,
-                "total_seconds": time.perf_counter() - start, "mask_source": mask_source}
+                "total_seconds": time.perf_counter() - start, "mask_source": mask_source, "mask_plan": plan}
     t = time.perf_counter()
-    notes = [_mask_note(mask_source), bounds_line(bounds)]
+    notes = [_mask_note(mask_source, plan), bounds_line(bounds)]
     metrics_out = evaluate.evaluate_run(run_dir, progress=progress, extra_notes=notes, distractor_views=2,
                                         cloud_views=DEMO_CLOUD_VIEWS)
     timings["eval"] = time.perf_counter() - t
     record_timings(Path(run_dir), timings)
     return {"run_dir": run_dir, "metrics": metrics_out, "timings": timings,
-            "total_seconds": time.perf_counter() - start, "mask_source": mask_source}
+            "total_seconds": time.perf_counter() - start, "mask_source": mask_source, "mask_plan": plan}
 
 
 def demo_summary(result: dict) -> str:

@@ -42,6 +42,13 @@ def foreground_probability(logits, classes) -> jnp.ndarray:
     return jnp.clip(jnp.sum(jnp.take(prob, idx, axis=-1), axis=-1), 0.0, 1.0)
 
 
+def max_class_probability(logits) -> jnp.ndarray:
+    """The segmentation's confidence per pixel: the largest softmax probability over all labels.
+    logits: [..., L] -> [...] in [1/L, 1]. Its mean over a frame is `mask`'s `dpt_confidence`
+    (a model sure of every pixel scores near 1; one guessing among L labels near 1/L)."""
+    return jnp.max(jax.nn.softmax(jnp.asarray(logits, jnp.float32), axis=-1), axis=-1)
+
+
 def binary_mask(prob, threshold: float) -> jnp.ndarray:
     """M = [C > T] as float32 {0, 1}. prob: [...] -> [...]."""
     return (jnp.asarray(prob) > threshold).astype(jnp.float32)
@@ -201,9 +208,11 @@ def blend_tiles(values: np.ndarray, layout: TileLayout) -> np.ndarray:
     return (num / den).astype(np.float32)
 
 
-def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size, tiles, overlap, multiple):
+def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size, tiles, overlap, multiple,
+                   with_confidence=False):
     """predict_maps with tiles > 1: C from overlapping windows of a finer copy of each photo,
-    depth (relative, so not comparable between windows) from the whole photo at working size."""
+    depth (relative, so not comparable between windows) from the whole photo at working size;
+    the confidence is the mean over every window's pixels."""
     for image in images:
         image = np.asarray(image, np.float32)
         h, w = image.shape[:2]
@@ -211,19 +220,20 @@ def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size
         fine = resize_map(image, *lay.fine)
         (th, tw) = lay.tile
         crops = np.stack([fine[y:y + th, x:x + tw] for y in lay.starts_y for x in lay.starts_x])
-        probs = []
+        probs, conf = [], []
         size = min(batch_size, len(crops))  # same window count for every photo of a size: one compile
         for i in range(0, len(crops), size):
             chunk = crops[i:i + size]
             out = dpt.apply(seg_model, dpt.normalize(parallel.pad_to_multiple(chunk, size)[0]))
             probs.append(np.asarray(foreground_probability(out["logits"], classes))[:len(chunk)])
+            conf.append(np.asarray(max_class_probability(out["logits"]))[:len(chunk)])
         prob = resize_map(blend_tiles(np.concatenate(probs), lay), h, w)
         inv = None
         if depth_model is not None:
             whole = resize_map(image, *working_size(h, w, max_side, multiple))
             inv = np.maximum(resize_map(np.asarray(dpt.apply(depth_model, dpt.normalize(whole[None]))["depth"][0]),
                                         h, w), 0.0)
-        yield prob, inv
+        yield (prob, inv, float(np.mean(np.concatenate(conf)))) if with_confidence else (prob, inv)
 
 
 MAX_TILE_OVERLAP = 0.75
@@ -271,7 +281,7 @@ def class_probabilities(seg_model, image, max_side: int = 384) -> np.ndarray:
 
 
 def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, batch_size: int | None = None,
-                 tiles: int = 1, tile_overlap: float = 0.25):
+                 tiles: int = 1, tile_overlap: float = 0.25, with_confidence: bool = False):
     """Runs DPT on photos of any size in bounded memory.
 
     Each image is resized to a working size (aspect kept, multiple of 2 x patch, longest side
@@ -288,7 +298,9 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
     seg_model: a dpt.Model with a segmentation head; depth_model: a dpt.Model with a depth head,
     the same model, or None. images: iterable of [H, W, 3] float in [0, 1]. batch_size: images
     (or windows) per DPT call, None for `default_batch_size()`.
-    Yields (C [H, W], inv_depth [H, W] or None) per image, in order.
+    Yields (C [H, W], inv_depth [H, W] or None) per image, in order; with_confidence: (C,
+    inv_depth, confidence), the confidence a float, the mean of `max_class_probability` over
+    the pixels DPT saw (working size; all windows when tiled).
     """
     problem = settings_problem(batch_size, tiles, tile_overlap)
     if problem:
@@ -298,7 +310,7 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
     multiple = 2 * max(m.config.patch_size for m in models)
     if tiles > 1:
         yield from _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size, tiles,
-                                  tile_overlap, multiple)
+                                  tile_overlap, multiple, with_confidence)
         return
     both = depth_model is seg_model
 
@@ -306,6 +318,7 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
         x = parallel.pad_to_multiple(np.stack([b[1] for b in batch]), batch_size)[0]  # one compiled shape
         out = dpt.apply(seg_model, dpt.normalize(x))
         prob = np.asarray(foreground_probability(out["logits"], classes))
+        conf = np.asarray(jnp.mean(max_class_probability(out["logits"]), axis=(1, 2)))
         if both:
             inv = np.asarray(out["depth"])
         elif depth_model is not None:
@@ -313,8 +326,8 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
         else:
             inv = None
         for i, (shape, _) in enumerate(batch):
-            yield (resize_map(prob[i], *shape),
-                   None if inv is None else np.maximum(resize_map(inv[i], *shape), 0.0))
+            maps = (resize_map(prob[i], *shape), None if inv is None else np.maximum(resize_map(inv[i], *shape), 0.0))
+            yield maps + (float(conf[i]),) if with_confidence else maps
 
     batch, key = [], None
     for image in images:

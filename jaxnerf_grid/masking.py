@@ -9,8 +9,11 @@ Per frame (stem = the image's file name without extension) it writes, inside the
   overlays/<stem>.png   the photo with M_w tinted red and M outlined | Eq. 8's filtered image
                         (longest side at most 1600 px per panel)
 and rewrites transforms.json atomically, every other key preserved: each frame gains
-`mask_path`, `weight_path`, `dpt_depth_path`, `overlay_path`; the top level gains
-`mask_source` ("dpt" or "ground-truth") and `mask_params`.
+`mask_path`, `weight_path`, `dpt_depth_path`, `overlay_path`, `masked_share` (the share of its
+pixels in M) and, with DPT, `dpt_confidence` (the mean over the frame of the segmentation's
+largest class probability, `foreground.max_class_probability`); the top level gains
+`mask_source` ("dpt" or "ground-truth"), `mask_params` and, with DPT, `mask_domain`: the verdict
+of the out-of-domain rule (`domain_verdict`, docs/MASKS.md), also printed in one line.
 
 Crash safety (docs/RELIABILITY.md): every setting is checked (`check_settings`, the class ids
 against the model) before anything is written. The new set is written into a staging folder
@@ -47,6 +50,46 @@ RETIRED = ".jaxnerf-grid-mask-old"
 COMPLETE = "COMPLETE"
 BUILTIN = Path(__file__).parent / "assets" / "dpt_builtin"
 OVERLAY_MAX_SIDE = 1600
+
+
+# The out-of-domain rule (docs/MASKS.md): a frame is "mostly masked" when more than
+# OOD_FRAME_SHARE of its pixels are in M; the model is out of its domain on a dataset when more
+# than OOD_FRAMES of the frames are mostly masked (with an odd number of frames: when the median
+# frame's share is above OOD_FRAME_SHARE). Measured with the built-in DPT (benchmarks/dpt_domain.py): the synthetic
+# presets, high clutter included, mask at most a third of the frames that much; real photos
+# (the Strecha scenes, scikit-image's sample photos) nearly all of them.
+OOD_FRAME_SHARE = 0.4
+OOD_FRAMES = 0.5
+
+
+def domain_verdict(shares, confidences=None) -> dict:
+    """The out-of-domain rule on a dataset's per-frame masked shares (list of floats in [0, 1]).
+
+    Returns {"out_of_domain": bool, "frames": n, "frames_mostly_masked": k (share >
+    OOD_FRAME_SHARE), "median_share", "mean_share", "mean_confidence" (None without
+    confidences), "rule": the rule in words}. Out of domain when k > OOD_FRAMES * n.
+    """
+    shares = np.asarray(list(shares), np.float64)
+    if shares.size == 0:
+        raise ValueError("domain_verdict: no frames")
+    k = int(np.sum(shares > OOD_FRAME_SHARE))
+    conf = None if confidences is None or len(confidences) == 0 else round(float(np.mean(confidences)), 4)
+    return {"out_of_domain": bool(k > OOD_FRAMES * shares.size), "frames": int(shares.size),
+            "frames_mostly_masked": k, "median_share": round(float(np.median(shares)), 4),
+            "mean_share": round(float(np.mean(shares)), 4), "mean_confidence": conf,
+            "rule": f"out of domain when more than {OOD_FRAMES:.0%} of the frames have more than "
+                    f"{OOD_FRAME_SHARE:.0%} of their pixels masked"}
+
+
+def domain_line(verdict: dict) -> str:
+    """`mask`'s one line on the verdict of `domain_verdict`."""
+    k, n = verdict["frames_mostly_masked"], verdict["frames"]
+    figures = (f"{k} of {n} frames have more than {OOD_FRAME_SHARE:.0%} of their pixels masked "
+               f"(median {verdict['median_share']:.0%})")
+    if verdict["out_of_domain"]:
+        return (f"jaxnerf-grid mask: the DPT looks OUT OF ITS DOMAIN on these photos: {figures}; do not trust "
+                "these masks (`demo` trains with train.robust = robust instead; docs/MASKS.md)")
+    return f"jaxnerf-grid mask: the DPT looks in its domain: {figures}"
 
 
 def _frame_stem(frame: dict, index: int) -> str:
@@ -208,7 +251,7 @@ def model_max_side(wdir) -> int:
 
 def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, batch_size, tiles,
               tile_overlap, params: dict):
-    """Per image (C [H, W], depth [H, W] or None, C) from DPT; fills `params` (mask_params)."""
+    """Per image (C [H, W], depth [H, W] or None, C, confidence) from DPT; fills `params` (mask_params)."""
     seg, depth_model, wdir = load_models(weights, depth_weights)
     classes = list(classes) if classes is not None else default_classes(seg, wdir)
     check_classes(classes, seg.config.num_labels, str(wdir))
@@ -220,17 +263,17 @@ def _dpt_maps(images: list[Path], weights, depth_weights, classes, max_side, bat
         params.update(tiles=tiles, tile_overlap=tile_overlap)
     if depth_model is None:
         print("jaxnerf-grid mask: no depth head available; using M_w = M (pass --depth-weights for Eq. 7)")
-    preds = fg.predict_maps(seg, depth_model, (io.read_image(p) for p in images), classes,
-                            max_side=max_side, batch_size=batch_size, tiles=tiles, tile_overlap=tile_overlap)
-    return ((prob, None if inv is None else np.asarray(fg.inverse_depth_to_depth(inv)), prob)
-            for prob, inv in preds)
+    preds = fg.predict_maps(seg, depth_model, (io.read_image(p) for p in images), classes, max_side=max_side,
+                            batch_size=batch_size, tiles=tiles, tile_overlap=tile_overlap, with_confidence=True)
+    return ((prob, None if inv is None else np.asarray(fg.inverse_depth_to_depth(inv)), prob, conf)
+            for prob, inv, conf in preds)
 
 
 def _write_frame(root: Path, frame: dict, index: int, ipath: Path, a, depth, prob, threshold: float,
                  floor: float, dilate: int) -> dict:
     """Writes one frame's mask, weights, depth and overlay under `root` (the staging folder). a:
     C [H, W] (prob given) or the binary mask itself; depth: [H, W] or None. Returns the frame's
-    new relative paths."""
+    new relative paths and its `masked_share` (the mean of M, after dilation)."""
     image = io.read_image(ipath)
     h, w = image.shape[:2]
     mask = np.asarray(fg.binary_mask(a, threshold)) if prob is not None else a
@@ -240,7 +283,8 @@ def _write_frame(root: Path, frame: dict, index: int, ipath: Path, a, depth, pro
     mask, mw = fg.dilate(mask, dilate), fg.dilate(mw, dilate)
     stem = _frame_stem(frame, index)
     rel = {"mask_path": f"masks/{stem}.png", "weight_path": f"weights/{stem}.exr",
-           "dpt_depth_path": f"dpt_depth/{stem}.exr", "overlay_path": f"overlays/{stem}.png"}
+           "dpt_depth_path": f"dpt_depth/{stem}.exr", "overlay_path": f"overlays/{stem}.png",
+           "masked_share": round(float(np.mean(mask > 0.5)), 4)}
     io.write_png(root / rel["mask_path"], mask)
     io.write_exr(root / rel["weight_path"], np.asarray(fg.training_weights(mw)))
     if depth is not None:
@@ -259,7 +303,8 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
                 max_side: int | None = None, tiles: int = 1, tile_overlap: float = 0.25,
                 batch_size: int | None = None, overwrite: bool = False, progress: bool = True) -> dict:
     """Masks every frame of the dataset folder `data` (see the module docstring) and rewrites its
-    transforms.json. Returns {"root", "source" ("dpt" | "ground-truth"), "frames", "params"}.
+    transforms.json. Returns {"root", "source" ("dpt" | "ground-truth"), "frames", "params",
+    "domain" (`domain_verdict` with DPT, None with the ground truth)}.
 
     source: "dpt" (weights / depth_weights: DPT folders, default the built-in model; classes:
     dynamic class ids, default the model's) or "gt" (synthetic ground truth). threshold: T in
@@ -289,28 +334,40 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     params = {"threshold": threshold, "floor": floor, "dilate": dilate}
     if source == "gt":
         label = "ground-truth"
-        maps = ((m, d, None) for m, d in _gt_frames(root, frames))
+        maps = ((m, d, None, None) for m, d in _gt_frames(root, frames))
     else:
         label = "dpt"
         maps = _dpt_maps(images, weights, depth_weights, classes, max_side, batch_size, tiles, tile_overlap, params)
     stage = root / STAGING
     for name in OUTPUT_DIRS:
         (stage / name).mkdir(parents=True, exist_ok=True)
-    for i, (frame, ipath, (a, depth, prob)) in enumerate(
+    shares, confidences = [], []
+    for i, (frame, ipath, (a, depth, prob, conf)) in enumerate(
             progress_lib.bar(zip(frames, images, maps), total=len(frames), desc="mask", unit="frame",
                              enabled=progress)):
         frame.update(_write_frame(stage, frame, i, ipath, a, depth, prob, threshold, floor, dilate))
+        frame.pop("dpt_confidence", None)
+        if conf is not None:
+            frame["dpt_confidence"] = round(conf, 4)
+            confidences.append(conf)
+        shares.append(frame["masked_share"])
     if not any((stage / "dpt_depth").iterdir()):
         (stage / "dpt_depth").rmdir()
         for frame in frames:
             frame.pop("dpt_depth_path", None)
     meta["mask_source"] = label
     meta["mask_params"] = params
+    domain = domain_verdict(shares, confidences) if label == "dpt" else None
+    meta.pop("mask_domain", None)
+    if domain is not None:
+        meta["mask_domain"] = domain
     io.write_json(stage / "transforms.json", meta)
     staged = [name for name in OUTPUT_DIRS if (stage / name).is_dir()]
     # the commit point: from here on a kill is rolled forward by `recover`
     io.atomic_write_bytes(stage / COMPLETE, ("\n".join(staged) + "\n").encode("utf-8"))
     _swap_in(root)
+    if domain is not None:  # printed even when quiet: it decides whether the masks can be used
+        print(domain_line(domain))
     if progress:
         print(f"wrote masks for {len(frames)} frames ({label}) into {root}")
-    return {"root": root, "source": label, "frames": len(frames), "params": params}
+    return {"root": root, "source": label, "frames": len(frames), "params": params, "domain": domain}

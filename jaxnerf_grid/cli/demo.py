@@ -1,6 +1,7 @@
 """`jaxnerf-grid demo`: tower-small (or --data DIR) -> masks -> train ours -> render -> report (`demo.run_demo`).
 
     jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N] [--max-side N] [--set KEY=VALUE ...] [--overwrite]
+                      [--masks auto|dpt|robust|dpt+robust|none]   (docs/MASKS.md)
                       [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
 """
 
@@ -25,6 +26,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change one value of the demo's recipe, dotted key, JSON value (e.g. train.batch_rays=512); "
                         "repeatable")
+    p.add_argument("--masks", choices=["auto", "dpt", "robust", "dpt+robust", "none"], default="auto",
+                   help="which masks train: auto (default) uses the DPT's masks only where the DPT is in its "
+                        "domain on these photos, else train.robust = robust; the others force a mode "
+                        "(docs/MASKS.md)")
     p.add_argument("--overwrite", action="store_true", help="retrain the run (the data are kept)")
     p.add_argument("--quiet", action="store_true")
     from jaxnerf_grid.cli.train import add_distributed_flags
@@ -42,7 +47,7 @@ def main(argv: list[str] | None = None) -> int:
 
     try:
         result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=args.set,
-                               max_side=args.max_side)
+                               max_side=args.max_side, masks=args.masks)
     except distributed.DistributedError as err:
         exit_on_distributed_error("demo", err)
     if not distributed.is_main():

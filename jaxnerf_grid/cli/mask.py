@@ -12,8 +12,12 @@ Per frame (stem = the image's file name without extension) it writes, inside the
   overlays/<stem>.png   the photo with M_w tinted red and M outlined | Eq. 8's filtered image
                         (longest side at most 1600 px per panel)
 and rewrites transforms.json atomically, every other key preserved: each frame gains
-`mask_path`, `weight_path`, `dpt_depth_path`, `overlay_path`; the top level gains
-`mask_source` ("dpt" or "ground-truth") and `mask_params`.
+`mask_path`, `weight_path`, `dpt_depth_path`, `overlay_path`, `masked_share` and (DPT)
+`dpt_confidence`; the top level gains `mask_source` ("dpt" or "ground-truth"), `mask_params`
+and (DPT) `mask_domain`, the out-of-domain rule's verdict, also printed in one line: when more
+than half of the frames have more than 40 % of their pixels masked, the model is out of its
+domain and its masks should not be trusted (`demo --masks auto` then trains without them;
+docs/MASKS.md).
 
 --source dpt (default) runs DPT: `--weights` is a folder in the HF layout (e.g. a copy of
 Intel/dpt-large-ade) or the native format; default: the built-in model shipped in
