@@ -106,7 +106,7 @@ def mask_plan(choice: str, domain: dict | None) -> dict:
     default), "why": a sentence for the report}.
     """
     if choice not in MASK_CHOICES:
-        raise ConfigError(f"--masks = {choice!r}: must be one of {', '.join(MASK_CHOICES)}")
+        raise ConfigError(f"demo.masks = {choice!r}: must be one of {', '.join(MASK_CHOICES)}")
     if choice == "auto":
         if domain is not None and domain.get("out_of_domain"):
             mode = "robust"
@@ -121,7 +121,7 @@ def mask_plan(choice: str, domain: dict | None) -> dict:
                    f"{domain['median_share']:.0%})" if domain is not None else
                    "chosen automatically: the dataset's masks (not judged by the out-of-domain rule)")
     else:
-        mode, why = choice, f"forced with `--masks {choice}`"
+        mode, why = choice, f"forced by the user (demo.masks = {choice})"
     train_over = {"use_masks": mode in ("dpt", "dpt+robust")}
     robust = {"dpt": "off", "none": "off"}.get(mode, mode)
     if robust != "off":
@@ -130,8 +130,6 @@ def mask_plan(choice: str, domain: dict | None) -> dict:
 
 
 def _share_text() -> str:
-    from jaxnerf_grid import masking
-
     return f"{masking.OOD_FRAME_SHARE:.0%}"
 
 
@@ -139,8 +137,6 @@ def dataset_domain(data: Path) -> dict | None:
     """The out-of-domain verdict of a dataset's DPT masks: transforms.json's `mask_domain`; for
     DPT masks written before `mask` recorded it, `masking.domain_verdict` of the masks' shares,
     read from masks/; None for other masks (ground truth, the user's own) or none."""
-    from jaxnerf_grid import masking
-
     meta = _read_meta(data)
     if meta.get("mask_domain") is not None:
         return meta["mask_domain"]

@@ -165,7 +165,7 @@ def test_mask_plan(choice, domain, mode, train):
 
 
 def test_mask_plan_refuses_an_unknown_choice():
-    with pytest.raises(ConfigError, match="--masks"):
+    with pytest.raises(ConfigError, match="demo.masks"):
         demo.mask_plan("sometimes", None)
 
 

@@ -32,7 +32,8 @@ FLAGS = {  # subcommand -> {key: flag}
     "eval": {"eval.lpips_weights": "--lpips-weights", "eval.reference_ply": "--reference-ply", **_OTHER_DATA},
     "export": {"export.box": "--box", "export.resolution": "--resolution", "export.opacity": "--threshold",
                **_SWITCHES, **_OTHER_DATA},
-    "demo": {"demo.data": "--data", "demo.out": "--out", "demo.steps": "--steps", **_SWITCHES, **_DISTRIBUTED},
+    "demo": {"demo.data": "--data", "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks",
+             **_SWITCHES, **_DISTRIBUTED},
 }
 
 
