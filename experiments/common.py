@@ -377,9 +377,12 @@ def mask_iou(variant_dir: Path, split: str = "train") -> dict:
 def run_key(data_dir: Path, method: str, overrides: dict, steps: int) -> str:
     """Hash of the dataset folder's name, the fully resolved RunConfig and the step count."""
     from jaxnerf_grid import config as config_lib, train
+    from jaxnerf_grid.samplers.legacy import flat_keys
 
     with_steps = config_lib.merge(overrides, {"train": {"max_steps": int(steps)}})
     cfg = config_lib.to_dict(train.make_config(method, with_steps))
+    cfg["model"] = {**{k: v for k, v in cfg["model"].items() if k != "sampler"},  # the flat sampler keys, as
+                    **flat_keys(with_steps.get("model", {}))}  # before model.sampler: runs keep their keys
     blob = json.dumps({"data": Path(data_dir).name, "config": cfg}, sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:10]
 
@@ -391,7 +394,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     Returns {"metrics": metrics.json, "run_dir", "train_seconds", "seconds_per_step", "cached"},
     or None when the time budget is spent before the run starts.
     """
-    from jaxnerf_grid import evaluate, runs
+    from jaxnerf_grid import evaluate, models, runs
 
     steps = int(steps or ctx.steps)
     ov = merge(merge(ctx.overrides, space_overrides(ctx.setting, method, overrides)), overrides or {})
@@ -432,7 +435,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     info = {"label": label, "seed": seed, "method": method, "steps": steps, "data": str(data_dir),
             "run_dir": str(run_dir), "overrides": ov, "train_wall_s": t_train, "eval_wall_s": t_eval,
             "seconds_per_step": seconds_per_step(run_dir, cfg.train.batch_rays),
-            "samples_per_ray": cfg.model.num_coarse + (cfg.model.num_fine if cfg.model.hierarchical else 0)}
+            "samples_per_ray": models.samples_per_ray(cfg.model)}
     io.write_json(info_path, info)
     ctx.run_seconds[str(run_dir)] = t_train + t_eval
     print(f"[done] {label} seed {seed}: test PSNR {metrics['mean']['psnr']:.2f} dB "
@@ -635,9 +638,12 @@ def field_summary(model: dict) -> str:
                 f"{g['min_resolution']}-{g['max_resolution']}) with a {field['depth']}x{field['width']} MLP")
     else:
         text = f"MLP {field['depth']}x{field['width']}"
-    if model.get("sampler") == "proposal":
-        return text + f", proposal sampling {'+'.join(map(str, model['proposal_samples']))} -> {model['num_fine']} samples"
-    return text + f", {model['num_coarse']}+{model['num_fine']} samples per ray"
+    from jaxnerf_grid.samplers.legacy import upgrade_flat_model
+
+    sampler = upgrade_flat_model(model)["sampler"]
+    if sampler["kind"] == "proposal":
+        return text + f", proposal sampling {'+'.join(map(str, sampler['samples']))} -> {sampler['main_samples']} samples"
+    return text + f", {'+'.join(map(str, sampler['samples']))} samples per ray"
 
 
 def settings_summary(ctx: Context) -> dict:

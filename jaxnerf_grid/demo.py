@@ -21,12 +21,12 @@ from jaxnerf_grid.io import DataError
 # opaque far bin at 1000 units so the sky sits at infinity, and Instant-NGP's Adam settings.
 # Each choice was measured at 1000 steps on tower-small (docs/GRID.md, "How the recipe was chosen").
 DEMO_CONFIG = {
-    "model": {"sampler": "proposal", "proposal_samples": [64], "num_fine": 32, "contract_radius": 2.0,
+    "model": {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 32, "field": {"density_bias": -4.0}},
+              "contract_radius": 2.0,
               "field": {"kind": "grid", "depth": 1, "width": 64, "view_depth": 2, "view_width": 64,
                         "dir_max_deg": 3, "density_activation": "exp", "density_bias": -4.0,
                         "grid": {"num_levels": 12, "features_per_level": 2, "log2_table_size": 17,
                                  "min_resolution": 16, "max_resolution": 1024}},
-              "proposal_field": {"density_bias": -4.0},
               # The drone orbits 45-70 m (2.2-3.5 units) from the tower; with the dataset's near of
               # 0.5 the disparity warp puts 3/4 of the samples in the empty first 2 units. Rays
               # start at 1 unit (20 m): birds nearer than that are distractors, masked anyway.

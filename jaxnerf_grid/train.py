@@ -58,8 +58,9 @@ class TrainConfig:
     checkpoint_every, keep_checkpoints, log_every: steps; chunk: rays per rendering chunk.
     num_devices: devices to use (0 = all local devices).
     appearance_steps, appearance_lr, appearance_rays: NeRF-W test-time embedding fit.
-    coarse_loss_weight: weight of the coarse pass's MSE (hierarchical sampler);
-    interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (proposal sampler);
+    coarse_loss_weight: weight of the MSE of each level before the final one that renders colour
+      (the hierarchical sampler's first pass; losses.per_ray_loss's level_weight);
+    interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (levels without colour);
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
     """
 
@@ -229,9 +230,8 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
             terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
                                         tcfg.coarse_loss_weight, tcfg.interlevel_loss_weight,
                                         tcfg.distortion_loss_weight)
-            mse = terms["mse_fine"] if "mse_fine" in terms else terms["mse_coarse"]
             loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
-            return loss, losses.weighted_mean(mse, batch["weight"], total)
+            return loss, losses.weighted_mean(terms["mse"], batch["weight"], total)
 
         (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
         loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
@@ -255,11 +255,7 @@ def field_floats(f: fields.FieldConfig) -> int:
 
 def ray_bytes(cfg: models.ModelConfig) -> int:
     """Rough bytes of one training ray's step (forward + backward) over every pass."""
-    if cfg.sampler == "proposal":
-        floats = sum(cfg.proposal_samples) * field_floats(cfg.proposal_field) + cfg.num_fine * field_floats(cfg.field)
-    else:
-        fine = (cfg.num_coarse + cfg.num_fine if cfg.fine_union else cfg.num_fine) if cfg.hierarchical else 0
-        floats = (cfg.num_coarse + fine) * field_floats(cfg.field)
+    floats = sum(n * field_floats(f) for n, f in models.field_evaluations(cfg))
     return 4 * ACTIVATION_COPIES * (floats + 64)
 
 

@@ -110,7 +110,8 @@ BAD_CONFIGS = [
     ("field_width_0", {"model": {"field": {"width": 0}}}, ["model.field.width", ">= 1"]),
     ("near_ge_far", {"model": {"near": 5.0, "far": 1.0}}, ["near", "far"]),
     ("near_negative", {"model": {"near": -1.0}}, ["model.near", "> 0"]),
-    ("samples_negative", {"model": {"num_fine": -8}}, ["model.num_fine"]),
+    ("samples_negative", {"model": {"sampler": {"samples": [8, -8]}}}, ["model.sampler.samples", ">= 1"]),
+    ("sampler_key_of_another_kind", {"model": {"sampler": {"main_samples": 8}}}, ["model.sampler", "main_samples"]),
     ("unknown_key", {"train": {"batch_size": 64}}, ["batch_size"]),
 ]
 
@@ -154,9 +155,9 @@ def test_set_changes_the_config(scene, capsys, tmp_path):
     """--set reaches the config (dotted keys, JSON values) and is applied after --config."""
     from jaxnerf_grid import config, train
 
-    sets = config.parse_sets(["model.warp=log", "train.lr_init=1e-3", "model.proposal_samples=[32,16]",
+    sets = config.parse_sets(["model.warp=log", "train.lr_init=1e-3", "model.sampler.samples=[32,16]",
                               "model.field.kind=\"grid\"", "model.near=null"], train.RunConfig)
-    assert sets == {"model": {"warp": "log", "proposal_samples": [32, 16], "field": {"kind": "grid"}, "near": None},
+    assert sets == {"model": {"warp": "log", "sampler": {"samples": [32, 16]}, "field": {"kind": "grid"}, "near": None},
                     "train": {"lr_init": 1e-3}}
     run = tmp_path / "run"
     # --config says 10 steps and log_every 5; --set wins for the keys it names
