@@ -65,8 +65,10 @@ SCENE_SIZES = {
 def _standard_overrides() -> dict:
     """The demo's recipe (grid field, proposal sampling in s, opaque far bin) without its step count."""
     from jaxnerf_grid.demo import DEMO_CONFIG
+    from jaxnerf_grid.samplers.legacy import flat_model
 
     recipe = json.loads(json.dumps(DEMO_CONFIG))
+    recipe["model"] = flat_model(recipe["model"])  # the settings' layers are flat (their run keys hash that)
     recipe["train"].pop("max_steps", None)
     return recipe
 

@@ -31,6 +31,7 @@ import numpy as np
 from jaxnerf_grid import config as config_lib, io
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.io import DataError
+from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 
 RUN_MARKER = ".jaxnerf-grid-run"
 FINGERPRINT_FILE = "dataset.json"
@@ -238,6 +239,8 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
         old = io.read_json(existing)
         if not isinstance(old, dict) or not isinstance(old.get("train"), dict):
             raise DataError(f"{existing}: not a run's config (expected an object with \"train\")")
+        if isinstance(old.get("model"), dict):  # a run from before model.sampler: its flat keys
+            old = dict(old, model=upgrade_flat_model(old["model"]))
         if _without(old, "train") != _without(wanted, "train") or \
                 _without(old["train"], "max_steps") != _without(wanted["train"], "max_steps"):
             raise ConfigError(f"{existing}: the run exists with a different config; pass --overwrite "

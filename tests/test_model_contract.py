@@ -79,14 +79,15 @@ def test_set_flags_switch_the_kind_and_reach_its_keys():
         type(proposal.PROPOSAL_FIELD), {**config.to_dict(proposal.PROPOSAL_FIELD), "width": 8}))
     with pytest.raises(ConfigError, match="unknown key 'num_fine'"):
         config.parse_sets(["model.num_fine=8"], train.RunConfig)
-    with pytest.raises(ConfigError, match=r"model\.sampler: unknown key\(s\) \['main_samples'\] for kind 'hierarchical'"):
+    with pytest.raises(ConfigError, match=r"model\.sampler: unknown key\(s\) \['main_samples'\] for kind 'hier"):
         train.make_config("ours", config.parse_sets(["model.sampler.main_samples=8"], train.RunConfig))
 
 
 # old flat model dicts and the tagged sampler they mean (written out by hand)
 FLAT_CASES = [
     ({}, None),  # nothing flat: unchanged
-    ({"num_coarse": 16, "num_fine": 8}, {"kind": "hierarchical", "samples": [16, 8], "union": True, "shared_field": False}),
+    ({"num_coarse": 16, "num_fine": 8},
+     {"kind": "hierarchical", "samples": [16, 8], "union": True, "shared_field": False}),
     ({"hierarchical": False, "num_coarse": 64, "num_fine": 0},
      {"kind": "hierarchical", "samples": [64], "union": True, "shared_field": False}),
     ({"num_coarse": 12, "num_fine": 8, "fine_union": False, "shared_field": True},
@@ -125,6 +126,12 @@ def test_an_older_run_config_json_loads_and_resolves_to_the_same_model(tmp_path)
     cfg, _ = runs.load_run(tmp_path)
     assert cfg == new
     assert train.make_config("ours", {"model": {"num_coarse": 16, "num_fine": 8, "fine_union": False}}) == new
+    # resuming it with the same config in the tagged form is the same run
+    (tmp_path / runs.RUN_MARKER).write_text("")
+    runs.check_existing(tmp_path, config.to_dict(new), overwrite=False)
+    with pytest.raises(ConfigError, match="different config"):
+        other = train.make_config("ours", {"model": {"sampler": {"samples": [16, 8]}}})
+        runs.check_existing(tmp_path, config.to_dict(other), overwrite=False)
 
 
 def test_flat_keys_give_the_old_layout_for_run_keys():
@@ -144,7 +151,8 @@ def test_samples_per_ray_describe_and_label():
     assert (models.samples_per_ray(prop), models.describe(prop), models.label(prop)) == \
         (96, "proposal 64 -> 32 main", "64p+32")
     two = models.ModelConfig(sampler=hierarchical.Config(samples=(48, 32), union=False))
-    assert (models.samples_per_ray(two), models.describe(two), models.label(two)) == (80, "hierarchical 48 + 32", "48+32")
+    assert (models.samples_per_ray(two), models.describe(two), models.label(two)) == \
+        (80, "hierarchical 48 + 32", "48+32")
     one = models.ModelConfig(sampler=hierarchical.Config(samples=(64,)))
     assert (models.samples_per_ray(one), models.describe(one), models.label(one)) == (64, "one pass of 64", "64")
     # field evaluations per ray: the union pass evaluates the first pass's samples again

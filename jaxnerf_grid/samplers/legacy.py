@@ -20,6 +20,12 @@ what it meant: the flat keys are laid over the sampler the dict already holds (a
 read back as flat keys, or a "sampler" string), the old defaults fill in what neither gives.
 A dict without flat keys (and with no "sampler" string) is returned unchanged.
 
+The two forms must not be mixed across override layers: after `config.merge` a flat "sampler"
+string replaces a tagged dict below it (losing, e.g., its proposal field), and flat keys are
+read as laid over a tagged dict even where that dict came from a later layer. Layers written in
+the flat form (the experiments' settings, whose run keys hash the flat layout) put a tagged
+recipe into that form first with `flat_model(model)`.
+
 `flat_keys(model_overrides)` goes the other way for what identifies a run: the flat keys (as an
 older full config.json held them) that a model override dict, in either form, stands for on
 top of the old defaults; the experiments' run keys hash them, so a run keeps its key and the
@@ -69,6 +75,13 @@ def _from_flat(flat: dict) -> dict:
         return {"kind": "hierarchical", "samples": samples, "union": flat["fine_union"],
                 "shared_field": flat["shared_field"]}
     return {"kind": flat["sampler"]}  # an unknown sampler: config.from_dict names it
+
+
+def flat_model(model: dict) -> dict:
+    """A model override dict with its tagged sampler (if any) as the flat keys it gives."""
+    if not isinstance(model.get("sampler"), dict):
+        return model
+    return {**{k: v for k, v in model.items() if k != "sampler"}, **_as_flat(model["sampler"])}
 
 
 def flat_keys(model_overrides: dict) -> dict:
