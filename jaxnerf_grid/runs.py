@@ -41,7 +41,9 @@ RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report_views.
 
 
 def read_overrides(path: str | None) -> dict:
-    """The override dict of a --config JSON file ({} without one); its "data" key is dropped."""
+    """The override dict of a --config JSON file ({} without one); its "data" key is dropped, and
+    older flat sampler keys are read into model.sampler (samplers.legacy), so --set flags on
+    model.sampler land on the file's sampler."""
     if not path:
         return {}
     data = io.read_json(path)
@@ -49,6 +51,8 @@ def read_overrides(path: str | None) -> dict:
         raise ConfigError(f"{path}: a config file must hold a JSON object")
     data = dict(data)
     data.pop("data", None)
+    if isinstance(data.get("model"), dict):
+        data["model"] = upgrade_flat_model(data["model"])
     return data
 
 

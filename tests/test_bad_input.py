@@ -27,7 +27,8 @@ from jaxnerf_grid import cli, io, masking, runs
 
 ROOT = Path(__file__).resolve().parents[1]
 # a 2x32 MLP, 8 + 8 samples, 64 rays, 10 steps: the whole run takes seconds
-TINY = {"model": {"field": {"depth": 2, "width": 32, "skip": 0, "view_width": 16}, "num_coarse": 8, "num_fine": 8},
+TINY = {"model": {"field": {"depth": 2, "width": 32, "skip": 0, "view_width": 16},
+                  "sampler": {"kind": "hierarchical", "samples": [8, 8]}},
         "train": {"batch_rays": 64, "max_steps": 10, "checkpoint_every": 5, "log_every": 5, "warmup": 2,
                   "chunk": 512}}
 SYNTH = ["--width", "32", "--height", "24", "--num-train", "6", "--num-test", "2", "--supersample", "1",

@@ -134,6 +134,18 @@ def test_an_older_run_config_json_loads_and_resolves_to_the_same_model(tmp_path)
         runs.check_existing(tmp_path, config.to_dict(other), overwrite=False)
 
 
+def test_set_flags_land_on_the_sampler_of_an_older_config_file(tmp_path):
+    """An older --config file (flat keys) with --set model.sampler.* on top: the flag wins."""
+    from jaxnerf_grid import runs
+
+    path = tmp_path / "old.json"
+    path.write_text(json.dumps({"model": {"sampler": "proposal", "proposal_samples": [32], "num_fine": 16}}))
+    ov = runs.overrides_with_sets(runs.read_overrides(str(path)), ["model.sampler.main_samples=24"])
+    assert ov == {"model": {"sampler": {"kind": "proposal", "samples": [32], "main_samples": 24, "field": {},
+                                        "padding": 0.01}}}
+    assert train.make_config("ours", ov).model.sampler == proposal.Config(samples=(32,), main_samples=24)
+
+
 def test_flat_keys_give_the_old_layout_for_run_keys():
     """What the experiments' run keys hash: the flat keys a tagged or flat override stands for."""
     field = config.to_dict(proposal.PROPOSAL_FIELD)

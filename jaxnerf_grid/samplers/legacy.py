@@ -20,11 +20,14 @@ what it meant: the flat keys are laid over the sampler the dict already holds (a
 read back as flat keys, or a "sampler" string), the old defaults fill in what neither gives.
 A dict without flat keys (and with no "sampler" string) is returned unchanged.
 
-The two forms must not be mixed across override layers: after `config.merge` a flat "sampler"
-string replaces a tagged dict below it (losing, e.g., its proposal field), and flat keys are
-read as laid over a tagged dict even where that dict came from a later layer. Layers written in
-the flat form (the experiments' settings, whose run keys hash the flat layout) put a tagged
-recipe into that form first with `flat_model(model)`.
+Within one dict the flat keys win over a tagged sampler. So the forms are best not mixed across
+override layers merged before they are read: after `config.merge` a flat "sampler" string
+replaces a tagged dict below it (losing, e.g., its proposal field), and flat keys override a
+tagged dict even where it came from a later layer. `train.make_config` reads its overrides and
+`runs.read_overrides` a --config file through `upgrade_flat_model` before laying anything over
+them (so `--set model.sampler...` lands on an older file's sampler); layers kept in the flat
+form (the experiments' settings, whose run keys hash the flat layout) put a tagged recipe into
+that form first with `flat_model(model)`.
 
 `flat_keys(model_overrides)` goes the other way for what identifies a run: the flat keys (as an
 older full config.json held them) that a model override dict, in either form, stands for on
