@@ -38,7 +38,8 @@ from jaxnerf_grid import recipes  # noqa: E402
 # to the `ours-paper-mlp` recipe (RunConfig's defaults for ours): a smaller MLP, 32 + 32 samples, fewer steps.
 MLP_CONFIG = {
     "model": {"field": {"depth": 4, "width": 64, "skip": 2, "pos_max_deg": 8, "dir_max_deg": 3, "view_width": 32},
-              "num_coarse": 32, "num_fine": 32, "fine_union": False, "contract_radius": 2.0, "near": 1.0},
+              "sampler": {"kind": "hierarchical", "samples": [32, 32], "union": False}, "contract_radius": 2.0,
+              "near": 1.0},
     "train": {"batch_rays": 512, "max_steps": 1000, "lr_init": 4e-3, "lr_final": 2e-4, "warmup": 30,
               "log_every": 20, "chunk": 4096},
 }
@@ -47,7 +48,7 @@ MLP_CONFIG = {
 def _grid_hierarchical() -> dict:
     """The `ours` recipe (the demo's) with NeRF's coarse + fine sampler (two grid fields, 32 + 32 samples)."""
     cfg = recipes.overrides("ours")
-    cfg["model"].update({"sampler": "hierarchical", "num_coarse": 32, "num_fine": 32, "fine_union": False})
+    cfg["model"]["sampler"] = {"kind": "hierarchical", "samples": [32, 32], "union": False}
     return cfg
 
 

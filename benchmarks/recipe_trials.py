@@ -21,7 +21,7 @@ from benchmarks.convergence import dataset_dir  # noqa: E402
 from jaxnerf_grid import evaluate, io, recipes, runs  # noqa: E402
 
 FIRST = {"model": {"opaque_far": False, "far": None, "field": {"density_bias": -1.0},
-                   "proposal_field": {"density_bias": -1.0}},
+                   "sampler": {"field": {"density_bias": -1.0}}},
          "train": {"adam_b2": 0.999, "lr_init": 1e-2, "lr_final": 1e-3}}
 TRIALS = {  # name: (what changed, settings that differ from the ours recipe)
     "A": ("first grid recipe: grid + proposal, sky at the dataset's far (40 units)", FIRST),

@@ -45,7 +45,7 @@ import jax
 import numpy as np
 
 from benchmarks.convergence import MLP_CONFIG, RUNS
-from jaxnerf_grid import config as config_lib, parallel, rays as rays_lib, recipes, train, views
+from jaxnerf_grid import config as config_lib, models, parallel, rays as rays_lib, recipes, train, views
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.fields import hashgrid
 
@@ -54,7 +54,7 @@ CONFIGS = {
     "grid-hierarchical": RUNS["grid-hierarchical"],
     "demo": recipes.overrides("ours"),
     "paper-small": {"model": {"field": {"depth": 8, "width": 256, "skip": 4, "view_width": 128},
-                              "num_coarse": 64, "num_fine": 128},
+                              "sampler": {"kind": "hierarchical", "samples": [64, 128]}},
                     "train": {"batch_rays": 1024}},
 }
 # The demo recipe and the MLP with each of the other ray warps (their own is disparity).
@@ -92,10 +92,8 @@ def scene(width=160, height=120, frames=8) -> Dataset:
 
 
 def samples_per_ray(mcfg) -> str:
-    """Field evaluations per ray, e.g. "64p+32" (proposal + main) or "32+32"."""
-    if mcfg.sampler == "proposal":
-        return "+".join(f"{n}p" for n in mcfg.proposal_samples) + f"+{mcfg.num_fine}"
-    return f"{mcfg.num_coarse}+{mcfg.num_fine}" if mcfg.hierarchical else str(mcfg.num_coarse)
+    """Samples per ray by pass, e.g. "64p+32" (proposal + main) or "32+32" (models.label)."""
+    return models.label(mcfg)
 
 
 class Case:
@@ -151,7 +149,7 @@ class Case:
         m = self.cfg.model
         return {"method": self.method, "config": self.name, "devices": self.n, "batch_rays": self.cfg.train.batch_rays,
                 "samples_per_ray": samples_per_ray(m), "field": f"{m.field.kind} {m.field.depth}x{m.field.width}",
-                "sampler": m.sampler, "compile_s": self.compile_s}
+                "sampler": m.sampler.kind, "compile_s": self.compile_s}
 
 
 def interleaved(cases: list[Case], steps: int, repeats: int) -> list[dict]:

@@ -25,7 +25,8 @@ from pathlib import Path
 import numpy as np
 
 from experiments import settings, tables
-from jaxnerf_grid import io
+from jaxnerf_grid import config as config_lib, io, models, run_config
+from jaxnerf_grid.samplers.legacy import flat_keys
 from jaxnerf_grid.config import merge
 
 
@@ -171,10 +172,10 @@ def make_context(args, script: str) -> Context:
 
 def run_key(data_dir: Path, method: str, overrides: dict, steps: int) -> str:
     """Hash of the dataset folder's name, the fully resolved RunConfig and the step count."""
-    from jaxnerf_grid import config as config_lib, train
-
-    with_steps = config_lib.merge(overrides, {"train": {"max_steps": int(steps)}})
-    cfg = config_lib.to_dict(train.make_config(method, with_steps))
+    with_steps = merge(overrides, {"train": {"max_steps": int(steps)}})
+    cfg = config_lib.to_dict(run_config.make_config(method, with_steps))
+    cfg["model"] = {**{k: v for k, v in cfg["model"].items() if k != "sampler"},  # the flat sampler keys, as
+                    **flat_keys(with_steps.get("model", {}))}  # before model.sampler: runs keep their keys
     blob = json.dumps({"data": Path(data_dir).name, "config": cfg}, sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:10]
 
@@ -227,7 +228,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     info = {"label": label, "seed": seed, "method": method, "steps": steps, "data": str(data_dir),
             "run_dir": str(run_dir), "overrides": ov, "train_wall_s": t_train, "eval_wall_s": t_eval,
             "seconds_per_step": seconds_per_step(run_dir, cfg.train.batch_rays),
-            "samples_per_ray": cfg.model.num_coarse + (cfg.model.num_fine if cfg.model.hierarchical else 0)}
+            "samples_per_ray": models.samples_per_ray(cfg.model)}
     io.write_json(info_path, info)
     ctx.run_seconds[str(run_dir)] = t_train + t_eval
     print(f"[done] {label} seed {seed}: test PSNR {metrics['mean']['psnr']:.2f} dB "

@@ -20,6 +20,7 @@ import os
 from pathlib import Path
 
 from jaxnerf_grid import recipes
+from jaxnerf_grid.samplers.legacy import flat_model
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = Path(__file__).resolve().parent
@@ -28,10 +29,22 @@ BENCH_RESULTS = ROOT / "benchmarks" / "results"
 CACHE = EXPERIMENTS / ".cache"
 
 
+# The experiments record their settings, and hash their run keys, with the sampler in the flat
+# keys it had before `model.sampler` became a tagged choice (samplers/legacy.py), in this order,
+# so the committed results files keep their runs.
+FLAT_KEY_ORDER = ("sampler", "proposal_samples", "num_coarse", "num_fine", "hierarchical", "fine_union",
+                  "shared_field", "contract_radius", "encoding_scale", "field", "proposal_field", "near", "far",
+                  "opaque_far")
+
+
 def _without_steps(recipe: str) -> dict:
-    """A recipe's overrides without its step count (each setting has its own)."""
+    """A recipe's overrides without its step count (each setting has its own), its sampler in
+    the flat keys (FLAT_KEY_ORDER)."""
     out = recipes.overrides(recipe)
     out["train"].pop("max_steps", None)
+    model = flat_model(out["model"])
+    rank = {k: i for i, k in enumerate(FLAT_KEY_ORDER)}
+    out["model"] = dict(sorted(model.items(), key=lambda kv: rank.get(kv[0], len(rank))))
     return out
 
 

@@ -16,6 +16,7 @@ import numpy as np
 
 from experiments import settings
 from jaxnerf_grid import io
+from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 
 
 METRIC_PATHS = {
@@ -134,10 +135,11 @@ def field_summary(model: dict) -> str:
                 f"{g['min_resolution']}-{g['max_resolution']}) with a {field['depth']}x{field['width']} MLP")
     else:
         text = f"MLP {field['depth']}x{field['width']}"
-    if model.get("sampler") == "proposal":
-        rounds = "+".join(map(str, model["proposal_samples"]))
-        return text + f", proposal sampling {rounds} -> {model['num_fine']} samples"
-    return text + f", {model['num_coarse']}+{model['num_fine']} samples per ray"
+    sampler = upgrade_flat_model(model)["sampler"]
+    if sampler["kind"] == "proposal":
+        rounds = "+".join(map(str, sampler["samples"]))
+        return text + f", proposal sampling {rounds} -> {sampler['main_samples']} samples"
+    return text + f", {'+'.join(map(str, sampler['samples']))} samples per ray"
 
 
 def settings_summary(ctx) -> dict:

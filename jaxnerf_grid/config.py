@@ -11,6 +11,14 @@ strings) and against the `Range` its class lists in a `RANGES` class variable, w
 `ConfigError` naming the key, the value and the allowed range (docs/RELIABILITY.md).
 `parse_sets(["model.warp=log", ...], cls)` turns `--set key=value` flags into an override dict.
 
+Tagged unions: a field whose type hint is a union of dataclasses that each have a `kind` field
+(e.g. `ModelConfig.sampler`) holds one of them, chosen by "kind" in its dict. `from_dict` lays
+the given keys over that kind's defaults (an unknown key for that kind is a ConfigError naming
+it); `merge` replaces, rather than merges into, a tagged dict of another kind, so
+`--set model.sampler.kind=proposal` switches to the proposal sampler with its defaults.
+A class may define `upgrade_dict(data) -> data` (a static method) to read an older layout of
+its dict; `from_dict` calls it first (ModelConfig: the flat sampler keys of older runs).
+
 This module imports nothing of the NeRF side (models, train): it sits below them, so they
 import it and it only reads the duck-typed fields of the configs it is given.
 """
@@ -107,8 +115,9 @@ def validate(cfg: Any, where: str = "") -> None:
         key = f"{where}.{f.name}" if where else f.name
         value = getattr(cfg, f.name)
         hint = hints[f.name]
-        if dataclasses.is_dataclass(hint):
-            if not dataclasses.is_dataclass(value):
+        variants = tagged_variants(hint)
+        if dataclasses.is_dataclass(hint) or variants:
+            if not dataclasses.is_dataclass(value) or (variants and type(value) not in variants.values()):
                 raise ConfigError(f"{key} = {value!r}: must be an object")
             validate(value, key)
             continue
@@ -127,6 +136,40 @@ def check_value(key: str, value: Any, hint: Any, rng: Range | None = None) -> No
             if not rng.contains(v):
                 kind = "an integer " if _type_problem(1.5, hint) else ""  # int keys say so
                 raise ConfigError(f"{key} = {_show(value)}: must be {kind}{rng}")
+
+
+def tagged_variants(hint: Any) -> dict | None:
+    """{kind: dataclass} when `hint` is a tagged union (a union of dataclasses that each have a
+    `kind` field with a default), else None."""
+    if typing.get_origin(hint) not in (typing.Union, types.UnionType):
+        return None
+    args = typing.get_args(hint)
+    if not all(dataclasses.is_dataclass(a) for a in args):
+        return None
+    out = {}
+    for cls in args:
+        kind = {f.name: f.default for f in dataclasses.fields(cls)}.get("kind", dataclasses.MISSING)
+        if not isinstance(kind, str):
+            return None
+        out[kind] = cls
+    return out
+
+
+def _fields_of(target: Any) -> tuple[set, dict]:
+    """(field names, type hints) of a dataclass, or of every variant of a tagged union (the
+    first variant holding a name gives its hint); empty for a plain value."""
+    classes = list((tagged_variants(target) or {}).values()) or ([target] if dataclasses.is_dataclass(target) else [])
+    names, hints = set(), {}
+    for cls in classes:
+        for name, hint in typing.get_type_hints(cls).items():
+            if name in {f.name for f in dataclasses.fields(cls)}:
+                names.add(name)
+                hints.setdefault(name, hint)
+    return names, hints
+
+
+def _is_section(hint: Any) -> bool:
+    return dataclasses.is_dataclass(hint) or tagged_variants(hint) is not None
 
 
 def _show(value: Any) -> str:
@@ -149,7 +192,8 @@ def _parse_value(text: str) -> Any:
 def parse_sets(items: list[str] | None, cls: type) -> dict:
     """--set flags ["model.field.width=64", "train.lr_init=1e-3", ...] as a nested override dict
     for the dataclass `cls` (later flags win). Each dotted key must name a field of `cls` (a
-    nested dataclass's fields below it); an unknown key is a ConfigError naming it."""
+    nested dataclass's fields below it; a tagged union's: the fields of any of its kinds, the
+    kind's own checked by `from_dict`); an unknown key is a ConfigError naming it."""
     out: dict = {}
     for item in items or []:
         key, sep, text = item.partition("=")
@@ -159,18 +203,17 @@ def parse_sets(items: list[str] | None, cls: type) -> dict:
         parts = key.split(".")
         target, node = cls, out
         for depth, part in enumerate(parts):
-            hints = typing.get_type_hints(target) if dataclasses.is_dataclass(target) else {}
-            names = {f.name for f in dataclasses.fields(target)} if dataclasses.is_dataclass(target) else set()
+            names, hints = _fields_of(target)
             if part not in names:
                 prefix = ".".join(parts[:depth]) or "the config"
                 raise ConfigError(f"{key}: unknown key {part!r} in {prefix}; known: {sorted(names)}")
             target = hints[part]
             if depth < len(parts) - 1:
-                if not dataclasses.is_dataclass(target):
+                if not _is_section(target):
                     raise ConfigError(f"{key}: {'.'.join(parts[:depth + 1])} is a value, not a section")
                 node = node.setdefault(part, {})
             else:
-                if dataclasses.is_dataclass(target):
+                if _is_section(target):
                     value = _parse_value(text)
                     if not isinstance(value, dict):
                         raise ConfigError(f"{key}: a section; give a JSON object or set its keys")
@@ -192,9 +235,13 @@ def to_dict(cfg: Any) -> dict:
 
 
 def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
-    """Builds dataclass `cls` from a dict; nested dataclasses recurse, tuples are restored."""
+    """Builds dataclass `cls` from a dict; nested dataclasses recurse, tuples are restored, a
+    tagged union's dict is laid over the defaults of its "kind"."""
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected an object, got {type(data).__name__}")
+    upgrade = getattr(cls, "upgrade_dict", None)
+    if upgrade is not None:
+        data = upgrade(data)
     hints = typing.get_type_hints(cls)
     names = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(data) - names)
@@ -203,7 +250,10 @@ def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
     kwargs = {}
     for name, value in data.items():
         hint = hints[name]
-        if dataclasses.is_dataclass(hint):
+        variants = tagged_variants(hint)
+        if variants:
+            value = _tagged_from_dict(variants, value, f"{where}.{name}")
+        elif dataclasses.is_dataclass(hint):
             value = from_dict(hint, value, f"{where}.{name}")
         elif typing.get_origin(hint) is tuple and isinstance(value, list):
             value = tuple(value)
@@ -211,11 +261,30 @@ def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
     return cls(**kwargs)
 
 
+def _tagged_from_dict(variants: dict, data: Any, where: str) -> Any:
+    """The variant named by data["kind"], its defaults overridden by `data`."""
+    if not isinstance(data, dict):
+        raise ConfigError(f"{where}: expected an object with a \"kind\" ({sorted(variants)}), got {_show(data)}")
+    kind = data.get("kind")
+    if kind not in variants:
+        raise ConfigError(f"{where}.kind = {_show(kind)}: choose from {sorted(variants)}")
+    cls = variants[kind]
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = sorted(set(data) - names)
+    if unknown:
+        raise ConfigError(f"{where}: unknown key(s) {unknown} for kind {kind!r}; known: {sorted(names)}")
+    return from_dict(cls, merge(to_dict(cls()), data), where)
+
+
 def merge(base: dict, extra: dict) -> dict:
-    """`extra` laid over `base`, recursing into dicts both hold; neither input is changed."""
+    """`extra` laid over `base`, recursing into dicts both hold; neither input is changed. A
+    dict with a "kind" (a tagged union) replaces a dict of another kind instead of merging."""
     out = dict(base)
     for k, v in extra.items():
-        out[k] = merge(out[k], v) if isinstance(v, dict) and isinstance(out.get(k), dict) else v
+        both = isinstance(v, dict) and isinstance(out.get(k), dict)
+        if both and "kind" in v and "kind" in out[k] and v["kind"] != out[k]["kind"]:
+            both = False
+        out[k] = merge(out[k], v) if both else v
     return out
 
 

@@ -153,10 +153,10 @@ def tile_starts(length: int, tile: int, overlap: int) -> list[int]:
 
 
 class TileLayout(NamedTuple):
-    """How a photo is covered by DPT tiles: the photo is resized to `fine` (h, w), cut into windows
+    """How a photo is covered by DPT tiles: the photo is resized to `resized` (h, w), cut into windows
     of `tile` (h, w) starting at every (y, x) in starts_y x starts_x (row-major), neighbours sharing
     at least `overlap` pixels, over which they are cross-faded."""
-    fine: tuple[int, int]
+    resized: tuple[int, int]
     tile: tuple[int, int]
     starts_y: list[int]
     starts_x: list[int]
@@ -170,15 +170,16 @@ def tile_layout(height: int, width: int, max_side: int, multiple: int, tiles: in
     as many windows as it needs, or one narrower window (a multiple too) when the side is shorter
     than a window. tiles = 1: one window, the plain working size of `working_size`."""
     if tiles == 1:
-        fine = working_size(height, width, max_side, multiple)
-        return TileLayout(fine, fine, [0], [0], 0)
+        resized = working_size(height, width, max_side, multiple)
+        return TileLayout(resized, resized, [0], [0], 0)
     side = working_size(max_side, max_side, max_side, multiple)[0]
     over = int(round(overlap * side))
     scale = (side + (tiles - 1) * (side - over)) / max(height, width)
-    fine = (max(multiple, round(height * scale)), max(multiple, round(width * scale)))
-    tile = tuple(min(side, f // multiple * multiple) for f in fine)
+    resized = (max(multiple, round(height * scale)), max(multiple, round(width * scale)))
+    tile = tuple(min(side, f // multiple * multiple) for f in resized)
     over = min(over, min(tile) - 1)
-    return TileLayout(fine, tile, tile_starts(fine[0], tile[0], over), tile_starts(fine[1], tile[1], over), over)
+    return TileLayout(resized, tile, tile_starts(resized[0], tile[0], over), tile_starts(resized[1], tile[1], over),
+                      over)
 
 
 def _ramp(size: int, overlap: int) -> np.ndarray:
@@ -189,16 +190,16 @@ def _ramp(size: int, overlap: int) -> np.ndarray:
 
 
 def blend_tiles(values: np.ndarray, layout: TileLayout) -> np.ndarray:
-    """Cross-fades per-window maps into one map at the fine size: each pixel is the average of the
+    """Cross-fades per-window maps into one map at the resized photo's size: each pixel is the average of the
     windows covering it, weighted by their ramps (a window's weight falls towards its edges, so
     no seam shows; a photo border, where no neighbour is, keeps whatever covers it).
 
     values: [n_tiles, th, tw] in layout order -> [fine_h, fine_w].
     """
-    (th, tw), fine = layout.tile, layout.fine
+    (th, tw), resized = layout.tile, layout.resized
     weight = _ramp(th, layout.overlap)[:, None] * _ramp(tw, layout.overlap)[None, :]
-    num = np.zeros(fine, np.float64)
-    den = np.zeros(fine, np.float64)
+    num = np.zeros(resized, np.float64)
+    den = np.zeros(resized, np.float64)
     k = 0
     for y in layout.starts_y:
         for x in layout.starts_x:
@@ -217,9 +218,9 @@ def _predict_tiled(seg_model, depth_model, images, classes, max_side, batch_size
         image = np.asarray(image, np.float32)
         h, w = image.shape[:2]
         lay = tile_layout(h, w, max_side, multiple, tiles, overlap)
-        fine = resize_map(image, *lay.fine)
+        resized = resize_map(image, *lay.resized)
         (th, tw) = lay.tile
-        crops = np.stack([fine[y:y + th, x:x + tw] for y in lay.starts_y for x in lay.starts_x])
+        crops = np.stack([resized[y:y + th, x:x + tw] for y in lay.starts_y for x in lay.starts_x])
         probs, conf = [], []
         size = min(batch_size, len(crops))  # same window count for every photo of a size: one compile
         for i in range(0, len(crops), size):

@@ -9,10 +9,11 @@ for the baselines. Passing W explicitly (the trainer psums it over devices) make
 batch split over devices exactly the sum of the per-device losses, so data-parallel gradients
 equal single-device ones.
 
-NeRF-W (Martin-Brualla et al. 2021, Eq. 13), per ray of the fine pass:
+NeRF-W (Martin-Brualla et al. 2021, Eq. 13), per ray of the final pass:
     |C - C_hat|^2 / (2 beta^2) + log(beta^2) / 2 + lambda_u * mean_k sigma_transient_k
 with beta = sum_k w_t,k beta_k + beta_min; here |.|^2 is the mean over the 3 channels (the
-same scale as the MSE used elsewhere). The coarse pass (a plain static field) uses the MSE.
+same scale as the MSE used elsewhere). Earlier levels that render colour (plain static fields)
+use the MSE.
 """
 
 from __future__ import annotations
@@ -46,35 +47,36 @@ def weighted_mean(per_ray: jnp.ndarray, weights: jnp.ndarray, total_weight=None)
 
 
 def per_ray_loss(outputs: dict, target: jnp.ndarray, use_transient: bool = False,
-                 lambda_u: float = 0.01, coarse_weight: float = 1.0, interlevel_weight: float = 1.0,
+                 lambda_u: float = 0.01, level_weight: float = 1.0, interlevel_weight: float = 1.0,
                  distortion_weight: float = 0.0) -> dict:
     """Per-ray loss of a models.render_rays output.
 
-    outputs: {"coarse": {...}} and/or {"fine": {...}}, optional "proposals": [{"s_edges",
-    "weights"}, ...] (proposal sampling); target: [B, 3].
-    Returns {"loss": [B] total, "mse_coarse", "mse_fine", "interlevel", "distortion": [B]
-    where they apply}: total = coarse_weight * mse_coarse + (fine term: NeRF-W loss when
-    use_transient, else the MSE) + interlevel_weight * sum over proposal rounds of
-    interlevel_ray_loss + distortion_weight * distortion_ray_loss of the final pass (in s).
+    outputs: {"levels": [{"s_edges", "weights"[, "rgb"]}, ...], "final": {...}} (the last level
+    is the final pass); target: [B, 3].
+    Returns {"loss": [B] total, "mse": [B] of the final pass, "mse_levels": [[B] per earlier
+    level with colour], "interlevel", "distortion": [B] where they apply}:
+    total = level_weight * sum of mse_levels + (final term: NeRF-W loss when use_transient,
+    else the MSE) + interlevel_weight * sum over the earlier levels without colour of
+    interlevel_ray_loss against the final pass + distortion_weight * distortion_ray_loss of the
+    final pass (in s).
     """
-    out = {"loss": jnp.zeros(target.shape[:-1], target.dtype)}
-    if "coarse" in outputs:
-        mse_coarse = squared_error(outputs["coarse"]["rgb"], target)
-        out["mse_coarse"] = mse_coarse
-        out["loss"] = out["loss"] + coarse_weight * mse_coarse
-    if "fine" in outputs:
-        fine = outputs["fine"]
-        mse_fine = squared_error(fine["rgb"], target)
-        out["mse_fine"] = mse_fine
-        if use_transient:
-            term = nerfw_ray_loss(fine["rgb"], target, fine["beta"], fine["transient_sigma_mean"], lambda_u)
-        else:
-            term = mse_fine
-        out["loss"] = out["loss"] + term
-    final = outputs.get("fine", outputs.get("coarse"))
-    if outputs.get("proposals"):
+    final, earlier = outputs["final"], outputs["levels"][:-1]
+    out = {"loss": jnp.zeros(target.shape[:-1], target.dtype), "mse_levels": []}
+    for lvl in earlier:
+        if "rgb" in lvl:
+            mse = squared_error(lvl["rgb"], target)
+            out["mse_levels"].append(mse)
+            out["loss"] = out["loss"] + level_weight * mse
+    out["mse"] = squared_error(final["rgb"], target)
+    if use_transient:
+        term = nerfw_ray_loss(final["rgb"], target, final["beta"], final["transient_sigma_mean"], lambda_u)
+    else:
+        term = out["mse"]
+    out["loss"] = out["loss"] + term
+    proposals = [lvl for lvl in earlier if "rgb" not in lvl]
+    if proposals:
         inter = sum(interlevel_ray_loss(final["s_edges"], final["weights"], p["s_edges"], p["weights"])
-                    for p in outputs["proposals"])
+                    for p in proposals)
         out["interlevel"] = inter
         out["loss"] = out["loss"] + interlevel_weight * inter
     if distortion_weight > 0:

@@ -1,28 +1,34 @@
 """The methods as compositions of the core pure functions: "ours", "nerf", "nerfw".
 
-One renderer, switched by independent flags of `ModelConfig` so every ablation flips one:
+One renderer, switched by independent flags of `ModelConfig` so every ablation flips one.
+The sampler (`cfg.sampler`, a tagged choice: one module of jaxnerf_grid/samplers/) decides
+where along each ray in s which field is evaluated; this module does the rest of a pass:
 
-  coarse pass   s_edges = sampling.stratified_s (uniform in s, jittered when training)
-                t_edges = s_to_t(s_edges) through the warp `warp` (Eq. 10-11)
-                points at the t-midpoints of the bins: x = o + t_mid * d
-                z = coords.contract(x, R) when `use_contraction`, fed to the MLP as z / scale
+  a pass        s_edges (the sampler's) -> t_edges = s_to_t(s_edges) through the warp `warp`
+                (Eq. 10-11); points at the t-midpoints of the bins: x = o + t_mid * d;
+                z = coords.contract(x, R) when `use_contraction`, fed to the field as z / scale
                 (scale = R by default, so the encoder sees |z / R| < 1; 1 without contraction)
                 weights = render.alpha_weights(sigma, t_edges); render.composite(...)
-  fine pass     (`hierarchical`) s samples = sampling.resample_pdf over the *s* edges with the
-                coarse weights (so the fine pass resamples in s-space and maps to t via the warp).
-                `fine_union=True` (NeRF's choice, the default): the fine pass composites over
-                the sorted union of the coarse bin midpoints and the new samples, with bin
-                edges at midpoints between them and 0 / 1 at the ends (Nc + Nf bins).
-                `fine_union=False`: Nf + 1 resampled values are the fine bin edges (mip-NeRF).
+  hierarchical  (samplers/hierarchical.py) NeRF's coarse pass stratified in s and a fine pass
+                resampled in s from the coarse weights (over the union of both, or alone)
+  proposal      (samplers/proposal.py) mip-NeRF 360's density-only proposal rounds in s, then
+                one pass of the main field
+
+The contract for everything outside models.py and the sampler modules (losses, views, evaluate,
+report, export, benchmarks): `render_rays` returns {"levels": [...], "final": {...}} (see
+`render_ray`), `main_field(params, cfg)` is the field that makes the picture, and
+`samples_per_ray(cfg)` / `describe(cfg)` / `label(cfg)` say how a ray is sampled. Nothing
+outside reads the parameters' keys or the pass names.
 
 Methods (see `method_config`):
   ours  = contraction (R = contract_radius) + disparity warp + mask-weighted loss (train.py)
   nerf  = no contraction, warp "linear" between the dataset's near and far, masks ignored
   nerfw = nerf + per-image appearance embedding (`use_appearance`, NeRF-A) and/or a transient
           head with per-image transient embeddings (`use_transient`, NeRF-U); both = NeRF-W.
-          As in NeRF-W, the coarse field is a plain static field; the fine field carries the
-          embeddings. The transient part is composited with the static one (shared
-          transmittance) and predicts beta_hat = sum_i w_t,i beta_i + beta_min.
+          As in NeRF-W, the coarse field is a plain static field; the main field (the fine
+          pass's, or the proposal sampler's main field) carries the embeddings. The transient
+          part is composited with the static one (shared transmittance) and predicts
+          beta_hat = sum_i w_t,i beta_i + beta_min.
 
 Background: the colour `background` (a constant grey level, default 0 = black) is added
 behind the last bin with weight 1 - opacity. For "ours" the last bin ends at the dataset's far
@@ -38,16 +44,13 @@ import typing
 import jax
 import jax.numpy as jnp
 
-from jaxnerf_grid import config, coords, fields, render, sampling
+from jaxnerf_grid import config, coords, fields, render, samplers, sampling
 from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.samplers.legacy import upgrade_flat_model
+from jaxnerf_grid.samplers.passes import Passes
 
 METHODS = ("ours", "nerf", "nerfw")
-SAMPLERS = ("hierarchical", "proposal")
-
-# The proposal field of proposal sampling: a small density-only hash grid (nerfacto's sizes).
-PROPOSAL_FIELD = fields.FieldConfig(kind="grid", depth=1, width=16, density_activation="exp",
-                                    grid=fields.HashConfig(num_levels=5, features_per_level=2, log2_table_size=17,
-                                                           min_resolution=16, max_resolution=256))
+SAMPLERS = tuple(samplers.MODULES)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -55,21 +58,16 @@ class ModelConfig:
     """Everything that decides what a ray renders to.
 
     method: "ours" | "nerf" | "nerfw" (a label; the flags below decide the behaviour).
-    field: the MLP (the fine field gets the embedding sizes added for NeRF-W).
+    field: the NeRF field (the main field gets the embedding sizes added for NeRF-W).
     use_contraction, contract_radius: dual-sphere contraction (Eq. 9) with far radius R.
     encoding_scale: points are encoded as z / encoding_scale; 0 = auto (R with contraction,
       1 without).
-    warp: s-space warp "linear" | "disparity" | "log" | "piecewise" for the coarse samples.
-    sampler: "hierarchical" (NeRF's coarse + fine passes, the flags below) or "proposal"
+    warp: s-space warp "linear" | "disparity" | "log" | "piecewise" (s -> t along a ray).
+    sampler: a tagged choice (jaxnerf_grid/samplers/): {"kind": "hierarchical", "samples":
+      [48, 48], "union": true, "shared_field": false} (NeRF's coarse + fine passes) or
+      {"kind": "proposal", "samples": [64], "main_samples": 32, "field": {...}, "padding": 0.01}
       (mip-NeRF 360: density-only proposal fields resample in s, the main field runs once).
-    num_coarse, num_fine: samples per ray; hierarchical: run the fine pass at all. With the
-      proposal sampler num_fine is the main field's sample count (num_coarse is unused).
-    proposal_samples: with the proposal sampler, samples of each proposal round (the first
-      round is stratified in s through the warp, each later one resampled from the previous
-      round's weights); proposal_field: their field (kind "grid"); proposal_padding: weight
-      floor (relative to the mean) when resampling from a proposal, so no bin is unreachable.
-    fine_union: fine pass over coarse + fine samples (True) or over the fine ones only.
-    shared_field: one MLP for both passes (mip-NeRF) instead of two (NeRF).
+      Older flat keys (num_coarse, num_fine, ...) are read by samplers.legacy.
     near, far: override the dataset's bounds (None: use the dataset's).
     background: grey level behind the last bin.
     opaque_far: make the last bin of every pass opaque (its density infinite), so a ray that
@@ -85,15 +83,7 @@ class ModelConfig:
     contract_radius: float = 2.0
     encoding_scale: float = 0.0
     warp: str = "disparity"
-    sampler: str = "hierarchical"
-    num_coarse: int = 48
-    num_fine: int = 48
-    hierarchical: bool = True
-    fine_union: bool = True
-    shared_field: bool = False
-    proposal_samples: tuple[int, ...] = (64,)
-    proposal_field: fields.FieldConfig = PROPOSAL_FIELD
-    proposal_padding: float = 0.01
+    sampler: samplers.SamplerConfig = samplers.hierarchical.Config()
     near: float | None = None
     far: float | None = None
     background: float = 0.0
@@ -111,10 +101,12 @@ class ModelConfig:
     # the rules between fields (near < far, the sampler's sample counts, ...)
     RANGES: typing.ClassVar[dict] = {
         "contract_radius": config.POSITIVE, "encoding_scale": config.NONNEGATIVE,
-        "num_coarse": config.NONNEGATIVE, "num_fine": config.NONNEGATIVE, "proposal_samples": config.AT_LEAST_ONE,
-        "proposal_padding": config.FRACTION, "near": config.POSITIVE, "far": config.POSITIVE,
+        "near": config.POSITIVE, "far": config.POSITIVE,
         "background": config.UNIT, "appearance_dim": config.AT_LEAST_ONE, "transient_dim": config.AT_LEAST_ONE,
         "beta_min": config.NONNEGATIVE, "lambda_u": config.NONNEGATIVE, "num_images": config.NONNEGATIVE}
+
+    # config.from_dict reads older model dicts (the flat sampler keys) through this
+    upgrade_dict = staticmethod(upgrade_flat_model)
 
 
 def method_defaults(method: str) -> dict:
@@ -134,71 +126,76 @@ def validate(cfg: ModelConfig) -> None:
         raise ConfigError(f"model.method: unknown method {cfg.method!r}; choose from {list(METHODS)}")
     if cfg.warp not in sampling.WARP_FUNCTIONS:
         raise ConfigError(f"model.warp: unknown warp {cfg.warp!r}; choose from {sorted(sampling.WARP_FUNCTIONS)}")
-    if cfg.sampler not in SAMPLERS:
-        raise ConfigError(f"model.sampler: unknown sampler {cfg.sampler!r}; choose from {list(SAMPLERS)}")
+    kind = getattr(cfg.sampler, "kind", None)
+    if kind not in samplers.MODULES or not isinstance(cfg.sampler, samplers.MODULES[kind].Config):
+        raise ConfigError(f"model.sampler.kind: unknown sampler {kind!r}; choose from {list(SAMPLERS)}")
     if cfg.use_contraction and not cfg.contract_radius > 1.0:
         raise ConfigError(f"model.contract_radius must be > 1, got {cfg.contract_radius}")
-    for name, field_cfg in (("model.field", cfg.field), ("model.proposal_field", cfg.proposal_field)):
-        try:
-            fields.check(field_cfg)
-        except ValueError as exc:
-            raise ConfigError(f"{name}: {exc}") from None
+    try:
+        fields.check(cfg.field)
+    except ValueError as exc:
+        raise ConfigError(f"model.field: {exc}") from None
     embeddings = cfg.use_appearance or cfg.use_transient
-    if cfg.sampler == "proposal":
-        if not cfg.proposal_samples or min(cfg.proposal_samples) < 1 or cfg.num_fine < 1:
-            raise ConfigError("model.proposal_samples (each) and num_fine must be >= 1 with the proposal sampler")
-        if cfg.proposal_field.kind != "grid":
-            raise ConfigError("model.proposal_field.kind must be 'grid'")
-        if not 0 <= cfg.proposal_padding < 1:
-            raise ConfigError(f"model.proposal_padding must be in [0, 1), got {cfg.proposal_padding}")
-    else:
-        if cfg.num_coarse < 1 or (cfg.hierarchical and cfg.num_fine < 1):
-            raise ConfigError("model.num_coarse (and num_fine when hierarchical) must be >= 1")
-        if cfg.shared_field and embeddings:
-            raise ConfigError("model.shared_field cannot be combined with NeRF-W embeddings")
-        if embeddings and not cfg.hierarchical:
-            raise ConfigError("model: NeRF-W embeddings live in the fine field; set hierarchical=true")
+    samplers.module(cfg.sampler).validate(cfg.sampler, embeddings)
     if embeddings and cfg.num_images < 1:
         raise ConfigError("model.num_images must be set (>= 1) for NeRF-W embeddings")
     if cfg.near is not None and cfg.far is not None and not 0 < cfg.near < cfg.far:
         raise ConfigError(f"model: need 0 < near < far, got near={cfg.near}, far={cfg.far}")
 
 
-def coarse_field_config(cfg: ModelConfig) -> fields.FieldConfig:
-    return dataclasses.replace(cfg.field, appearance_dim=0, transient_dim=0)
-
-
-def fine_field_config(cfg: ModelConfig) -> fields.FieldConfig:
+def field_config(cfg: ModelConfig, main: bool) -> fields.FieldConfig:
+    """The NeRF field's config: main=True the field that makes the picture (with NeRF-W's
+    embedding sizes), main=False a plain static field (the hierarchical sampler's coarse pass)."""
+    if not main:
+        return dataclasses.replace(cfg.field, appearance_dim=0, transient_dim=0)
     return dataclasses.replace(cfg.field,
                                appearance_dim=cfg.appearance_dim if cfg.use_appearance else 0,
                                transient_dim=cfg.transient_dim if cfg.use_transient else 0)
 
 
-def has_coarse_field(cfg: ModelConfig) -> bool:
-    return cfg.sampler == "hierarchical"
+def main_field(params: dict, cfg: ModelConfig) -> tuple[dict, fields.FieldConfig]:
+    """(parameters, config) of the field that makes the picture and holds the geometry (the
+    fine pass's field, or the coarse one when it runs alone or is shared; the proposal
+    sampler's main field; never a proposal field)."""
+    return samplers.module(cfg.sampler).main_params(params, cfg.sampler), field_config(cfg, True)
 
 
-def has_fine_field(cfg: ModelConfig) -> bool:
-    return cfg.sampler == "proposal" or (cfg.hierarchical and not cfg.shared_field)
+def samples_per_ray(cfg: ModelConfig) -> int:
+    """Samples drawn per ray over every pass (hierarchical: coarse + fine; proposal: every
+    round's + the main field's)."""
+    return samplers.module(cfg.sampler).samples_per_ray(cfg.sampler)
+
+
+def field_evaluations(cfg: ModelConfig) -> list[tuple[int, fields.FieldConfig]]:
+    """[(samples, field config)] of the field evaluations of one ray, pass by pass (the NeRF
+    field as `cfg.field`)."""
+    return samplers.module(cfg.sampler).field_evaluations(cfg.sampler, cfg.field)
+
+
+def describe(cfg: ModelConfig) -> str:
+    """How a ray is sampled, one line: e.g. "proposal 64 -> 32 main", "hierarchical 48 + 48 (union)"."""
+    return samplers.module(cfg.sampler).describe(cfg.sampler)
+
+
+def label(cfg: ModelConfig) -> str:
+    """A compact label of the samples per pass: e.g. "64p+32", "48+48"."""
+    return samplers.module(cfg.sampler).label(cfg.sampler)
 
 
 def init(key, cfg: ModelConfig) -> dict:
-    """Parameters: {["coarse": field], ["fine": field], ["proposal": [field per round]],
-    ["appearance": [N, A]], ["transient": [N, T]]}. The proposal sampler has no coarse field:
-    its main field is "fine".
+    """Parameters: the sampler's fields (samplers/: hierarchical {"coarse", ["fine"]},
+    proposal {"proposal": [field per round], "fine"}; read them through `main_field`),
+    ["appearance": [N, A]], ["transient": [N, T]].
 
     Embeddings start as N(0, 0.01^2) (small, so every image starts near the shared look).
     """
     validate(cfg)
-    k_coarse, k_fine, k_app, k_tr = jax.random.split(key, 4)
-    params = {}
-    if has_coarse_field(cfg):
-        params["coarse"] = fields.init(k_coarse, coarse_field_config(cfg))
-    else:
-        keys = jax.random.split(k_coarse, len(cfg.proposal_samples))
-        params["proposal"] = [fields.proposal.init(k, cfg.proposal_field) for k in keys]
-    if has_fine_field(cfg):
-        params["fine"] = fields.init(k_fine, fine_field_config(cfg))
+    k_first, k_main, k_app, k_tr = jax.random.split(key, 4)
+
+    def init_field(k, main):
+        return fields.init(k, field_config(cfg, main))
+
+    params = samplers.module(cfg.sampler).init(k_first, k_main, cfg.sampler, init_field)
     if cfg.use_appearance:
         params["appearance"] = 0.01 * jax.random.normal(k_app, (cfg.num_images, cfg.appearance_dim))
     if cfg.use_transient:
@@ -283,41 +280,28 @@ def render_ray(params: dict, cfg: ModelConfig, origin, direction, near, far, key
     stratified jitter and the PDF resampling (None: deterministic, bin centres);
     image_index: [...] int (embedding lookup, NeRF-W); appearance: [..., A] overrides the
     table lookup (used when fitting a test image's embedding).
-    Returns {"coarse": dict, "fine": dict (when hierarchical)} of render.composite outputs
-    (rgb [..., 3], opacity, depth, median_depth, weights, s_edges, t_edges); a transient fine
-    pass adds rgb_static, beta, transient_sigma_mean, transient_opacity. The proposal sampler
-    returns {"proposals": [{"s_edges", "weights"}, ...], "fine": dict} (no coarse pass).
+    Returns {"levels": [level, ...], "final": dict}:
+      levels: every pass in order, the last one the final pass; each has "s_edges" [..., n + 1]
+        and "weights" [..., n] in s; a level that renders colour is a whole pass (the dict of
+        `final` below, with "rgb" [..., 3]: the hierarchical sampler's coarse pass), one that
+        does not has only those two (a proposal round);
+      final: the pass that makes the picture, render.composite's outputs (rgb [..., 3],
+        opacity, depth, median_depth, weights, s_edges, t_edges); with NeRF-W's transient
+        part also rgb_static, beta, transient_sigma_mean, transient_opacity.
     """
     near = jnp.asarray(near, jnp.float32)
     far = jnp.asarray(far, jnp.float32)
     batch_shape = jnp.broadcast_shapes(near.shape, far.shape, origin.shape[:-1])
     _, s_to_t = sampling.ray_warp(cfg.warp, near[..., None], far[..., None])
-    if cfg.sampler == "proposal":
-        return _render_ray_proposal(params, cfg, origin, direction, s_to_t, batch_shape, key, image_index,
-                                    appearance)
-    if key is None:
-        k_coarse = k_fine = None
-    else:
-        k_coarse, k_fine = jax.random.split(key)
-    s_coarse = sampling.stratified_s(k_coarse, batch_shape, cfg.num_coarse, cfg.single_jitter)
-    result = {"coarse": _one_pass(params["coarse"], coarse_field_config(cfg), cfg, origin, direction,
-                                  s_coarse, s_to_t)}
-    if not cfg.hierarchical:
-        return result
-    weights = result["coarse"]["weights"]
-    if cfg.fine_union:
-        s_new = sampling.resample_pdf(k_fine, s_coarse, weights, cfg.num_fine, cfg.single_jitter)
-        s_mid = 0.5 * (s_coarse[..., 1:] + s_coarse[..., :-1])
-        s_points = sampling.merge_edges(s_mid, s_new)
-        s_fine = sampling.intervals_from_samples(s_points, 0.0, 1.0)
-    else:
-        s_fine = sampling.resample_pdf(k_fine, s_coarse, weights, cfg.num_fine + 1, cfg.single_jitter)
-    s_fine = jax.lax.stop_gradient(s_fine)
-    app, tr = _embeddings(params, cfg, image_index, appearance)
-    fine_params = params["coarse"] if cfg.shared_field else params["fine"]
-    result["fine"] = _one_pass(fine_params, fine_field_config(cfg), cfg, origin, direction, s_fine, s_to_t,
-                               app, tr)
-    return result
+
+    def shade(field_params, s_edges, main):
+        app, tr = _embeddings(params, cfg, image_index, appearance) if main else (None, None)
+        return _one_pass(field_params, field_config(cfg, main), cfg, origin, direction, s_edges, s_to_t, app, tr)
+
+    passes = Passes(batch_shape=batch_shape, single_jitter=cfg.single_jitter,
+                    far_bin=opaque_last_bin if cfg.opaque_far else (lambda sigma: sigma), s_to_t=s_to_t,
+                    points=lambda t_edges: field_inputs(cfg, origin, direction, t_edges), shade=shade)
+    return samplers.module(cfg.sampler).render(params, cfg.sampler, passes, key)
 
 
 def _embeddings(params: dict, cfg: ModelConfig, image_index, appearance) -> tuple:
@@ -331,43 +315,6 @@ def _embeddings(params: dict, cfg: ModelConfig, image_index, appearance) -> tupl
             raise ValueError("render_ray: a transient model needs image_index")
         tr = params["transient"][image_index][..., None, :]
     return app, tr
-
-
-def proposal_rounds(params: dict, cfg: ModelConfig, origin, direction, s_to_t, batch_shape, key) -> tuple:
-    """The proposal sampler's rounds in s (mip-NeRF 360, with the paper's warp first).
-
-    Round 0 is stratified in s (uniform in disparity for "ours"), each later round resamples
-    from the previous round's weights; after the last round num_fine + 1 edges are resampled
-    for the main field. origin, direction: [..., 3]; key: PRNG key or None (deterministic).
-    Returns (rounds: [{"s_edges": [..., n_k + 1], "weights": [..., n_k]}], s_main: [..., num_fine + 1]).
-    """
-    count = len(cfg.proposal_samples)
-    keys = [None] * (count + 1) if key is None else list(jax.random.split(key, count + 1))
-    rounds = []
-    s_edges = sampling.stratified_s(keys[0], batch_shape, cfg.proposal_samples[0], cfg.single_jitter)
-    for k in range(count):
-        if k > 0:
-            s_edges = sampling.resample_pdf(keys[k], s_edges, rounds[-1]["weights"], cfg.proposal_samples[k] + 1,
-                                            cfg.single_jitter, cfg.proposal_padding)
-        t_edges = s_to_t(s_edges)
-        sigma = fields.proposal.density(params["proposal"][k], cfg.proposal_field,
-                                        field_inputs(cfg, origin, direction, t_edges))
-        if cfg.opaque_far:
-            sigma = opaque_last_bin(sigma)
-        rounds.append({"s_edges": s_edges, "weights": render.alpha_weights(sigma, t_edges)})
-    s_main = sampling.resample_pdf(keys[-1], s_edges, rounds[-1]["weights"], cfg.num_fine + 1, cfg.single_jitter,
-                                   cfg.proposal_padding)
-    return rounds, jax.lax.stop_gradient(s_main)
-
-
-def _render_ray_proposal(params, cfg: ModelConfig, origin, direction, s_to_t, batch_shape, key, image_index,
-                         appearance) -> dict:
-    """{"proposals": proposal rounds, "fine": the main field's pass} (see render_ray)."""
-    k_prop = None if key is None else jax.random.fold_in(key, 1)
-    rounds, s_main = proposal_rounds(params, cfg, origin, direction, s_to_t, batch_shape, k_prop)
-    app, tr = _embeddings(params, cfg, image_index, appearance)
-    fine = _one_pass(params["fine"], fine_field_config(cfg), cfg, origin, direction, s_main, s_to_t, app, tr)
-    return {"proposals": rounds, "fine": fine}
 
 
 def render_rays(params: dict, cfg: ModelConfig, origins, directions, near, far, keys=None,
@@ -391,12 +338,7 @@ def render_rays(params: dict, cfg: ModelConfig, origins, directions, near, far, 
         origins, directions, near, far, keys, image_index, appearance)
 
 
-def final_pass(outputs: dict) -> dict:
-    """The pass whose outputs are the picture: fine when present, else coarse."""
-    return outputs["fine"] if "fine" in outputs else outputs["coarse"]
-
-
 def static_rgb(outputs: dict) -> jnp.ndarray:
     """The picture without the transient part (NeRF-W evaluation renders the static scene)."""
-    final = final_pass(outputs)
+    final = outputs["final"]
     return final.get("rgb_static", final["rgb"])

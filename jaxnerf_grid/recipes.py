@@ -31,16 +31,15 @@ from jaxnerf_grid.config import ConfigError, merge
 BOUNDED_SPACE = {"far": 40.0, "encoding_scale": 44.0}
 
 # ------------------------------------------------------------------ the sampler of each recipe
-# Every sampler key of every recipe (model.*, today's flat keys), and nothing else.
-_PROPOSAL_64_32 = {"sampler": "proposal", "proposal_samples": [64], "num_fine": 32,
-                   "proposal_field": {"density_bias": -4.0}}
+# Every recipe's `model.sampler` (a tagged choice: samplers/, docs/ARCHITECTURE.md "The model contract").
+_PROPOSAL_64_32 = {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 32,
+                               "field": {"density_bias": -4.0}}}
 SAMPLERS = {
     # one density-only proposal round of 64 samples stratified in s, then 32 samples of the main field
     "ours": _PROPOSAL_64_32,
-    # NeRF's coarse + fine passes, 48 + 48 samples, the fine pass over the union, two fields
-    # (the values of ModelConfig's defaults, written out)
-    "ours-paper-mlp": {"sampler": "hierarchical", "num_coarse": 48, "num_fine": 48, "hierarchical": True,
-                       "fine_union": True, "shared_field": False},
+    # NeRF's two passes, 48 + 48 samples, the second over the union, two fields
+    "ours-paper-mlp": {"sampler": {"kind": "hierarchical", "samples": [48, 48], "union": True,
+                                   "shared_field": False}},
     "nerf": _PROPOSAL_64_32,
     "nerfw": _PROPOSAL_64_32,
 }
@@ -101,7 +100,7 @@ class Recipe:
 RECIPES = {r.name: r for r in (
     Recipe("ours", "ours", "the tower recipe (the demo's): hash grid on contracted space, proposal sampling "
                            "64 -> 32 in disparity, opaque far bin at 1000 units, masked loss; 2400 steps x 1024 rays"),
-    Recipe("ours-paper-mlp", "ours", "the paper's MLP setting: MLP 4x128 on positional encoding, coarse + fine "
+    Recipe("ours-paper-mlp", "ours", "the paper's MLP setting: MLP 4x128 on positional encoding, two passes "
                                      "48 + 48 samples, contraction, disparity warp, masked loss; "
                                      "2000 steps x 1024 rays"),
     Recipe("nerf", "nerf", "NeRF as the tables compare it: ours' grid, sampler, steps and rays without "
@@ -112,9 +111,7 @@ RECIPES = {r.name: r for r in (
 
 # The model keys in this order when a recipe is written out (the sampler first, then the space,
 # the fields and the bounds); keys not named keep their order after these.
-KEY_ORDER = ("sampler", "proposal_samples", "num_coarse", "num_fine", "hierarchical", "fine_union",
-             "shared_field", "contract_radius", "encoding_scale", "field", "proposal_field", "near", "far",
-             "opaque_far")
+KEY_ORDER = ("sampler", "contract_radius", "encoding_scale", "field", "near", "far", "opaque_far")
 
 
 def names() -> list[str]:

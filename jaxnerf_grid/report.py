@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid import io, models
 
 
 def colourise_depth(depth: np.ndarray, lo: float | None = None, hi: float | None = None) -> np.ndarray:
@@ -66,12 +66,8 @@ def _fmt(v, digits=2) -> str:
 
 def _samples_line(model) -> str:
     """How a ray is sampled, from a run config's `model` (models.ModelConfig)."""
-    if model.sampler == "proposal":
-        rounds = " -> ".join(str(n) for n in model.proposal_samples)
-        return (f"proposal sampling in s: {rounds} proposal samples -> {model.num_fine} main samples"
-                f"{', opaque far bin' if model.opaque_far else ''}")
-    return (f"samples {model.num_coarse} coarse + {model.num_fine if model.hierarchical else 0} "
-            f"fine (hierarchical {model.hierarchical}, union {model.fine_union})")
+    return (f"sampling in s: {models.describe(model)}, {models.samples_per_ray(model)} samples per ray"
+            f"{', opaque far bin' if model.opaque_far else ''}")
 
 
 def _field_line(field) -> str:

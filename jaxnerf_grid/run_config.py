@@ -34,8 +34,9 @@ class TrainConfig:
     max_side: the working resolution (data/working.py): the run trains, and eval / render render,
       at the photos' size divided by the smallest integer factor that brings the long side to at
       most max_side px, intrinsics scaled (0 = full size; `--max-side`, docs/DATASET.md).
-    coarse_loss_weight: weight of the coarse pass's MSE (hierarchical sampler);
-    interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (proposal sampler);
+    coarse_loss_weight: weight of the MSE of each level before the final one that renders colour
+      (the hierarchical sampler's first pass; losses.per_ray_loss's level_weight);
+    interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (levels without colour);
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
     """
 
@@ -92,6 +93,8 @@ class RunConfig:
 def make_config(method: str, overrides: dict | None = None) -> RunConfig:
     """The defaults of `method` with `overrides` (a nested dict, e.g. from --config) on top."""
     base = {"model": models.method_defaults(method), "train": {"use_masks": method == "ours"}}
+    if isinstance((overrides or {}).get("model"), dict):  # older flat sampler keys, over the old defaults
+        overrides = dict(overrides, model=models.ModelConfig.upgrade_dict(overrides["model"]))
     merged = config_lib.merge(config_lib.to_dict(RunConfig()), base)
     merged = config_lib.merge(merged, overrides or {})
     if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:

@@ -37,6 +37,7 @@ from jaxnerf_grid.data.formats import working_dataset
 from jaxnerf_grid.data.dataset import check_camera_centres
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.run_config import RunConfig, make_config
+from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 
 RUN_MARKER = ".jaxnerf-grid-run"
 FINGERPRINT_FILE = "dataset.json"
@@ -46,7 +47,9 @@ RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report_views.
 
 
 def read_overrides(path: str | None) -> dict:
-    """The override dict of a --config JSON file ({} without one); its "data" key is dropped."""
+    """The override dict of a --config JSON file ({} without one); its "data" key is dropped, and
+    older flat sampler keys are read into model.sampler (samplers.legacy), so --set flags on
+    model.sampler land on the file's sampler."""
     if not path:
         return {}
     data = io.read_json(path)
@@ -54,6 +57,8 @@ def read_overrides(path: str | None) -> dict:
         raise ConfigError(f"{path}: a config file must hold a JSON object")
     data = dict(data)
     data.pop("data", None)
+    if isinstance(data.get("model"), dict):
+        data["model"] = upgrade_flat_model(data["model"])
     return data
 
 
@@ -250,6 +255,8 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
         old = io.read_json(existing)
         if not isinstance(old, dict) or not isinstance(old.get("train"), dict):
             raise DataError(f"{existing}: not a run's config (expected an object with \"train\")")
+        if isinstance(old.get("model"), dict):  # a run from before model.sampler: its flat keys
+            old = dict(old, model=upgrade_flat_model(old["model"]))
         if _without(old, "train") != _without(wanted, "train") or \
                 _without(old["train"], "max_steps") != _without(wanted["train"], "max_steps"):
             raise ConfigError(f"{existing}: the run exists with a different config; pass overwrite=True "

@@ -130,7 +130,7 @@ def intervals_from_samples(samples: jnp.ndarray, low, high) -> jnp.ndarray:
 
 
 def merge_edges(edges_a: jnp.ndarray, edges_b: jnp.ndarray) -> jnp.ndarray:
-    """Sorted union of two sets of edges on the same rays (NeRF's coarse + fine union).
+    """Sorted union of two sets of edges on the same rays (NeRF's two-pass union).
 
     edges_a: [..., A], edges_b: [..., B] -> [..., A + B].
     """

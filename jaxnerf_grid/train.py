@@ -152,9 +152,8 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
             terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
                                         tcfg.coarse_loss_weight, tcfg.interlevel_loss_weight,
                                         tcfg.distortion_loss_weight)
-            mse = terms["mse_fine"] if "mse_fine" in terms else terms["mse_coarse"]
             loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
-            return loss, losses.weighted_mean(mse, batch["weight"], total)
+            return loss, losses.weighted_mean(terms["mse"], batch["weight"], total)
 
         (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
         loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
@@ -178,11 +177,7 @@ def field_floats(f: fields.FieldConfig) -> int:
 
 def ray_bytes(cfg: models.ModelConfig) -> int:
     """Rough bytes of one training ray's step (forward + backward) over every pass."""
-    if cfg.sampler == "proposal":
-        floats = sum(cfg.proposal_samples) * field_floats(cfg.proposal_field) + cfg.num_fine * field_floats(cfg.field)
-    else:
-        fine = (cfg.num_coarse + cfg.num_fine if cfg.fine_union else cfg.num_fine) if cfg.hierarchical else 0
-        floats = (cfg.num_coarse + fine) * field_floats(cfg.field)
+    floats = sum(n * field_floats(f) for n, f in models.field_evaluations(cfg))
     return 4 * ACTIVATION_COPIES * (floats + 64)
 
 

@@ -26,7 +26,7 @@ def _render_chunk_fn(mcfg: models.ModelConfig, num_devices: int, with_appearance
         out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
                                  batch["far"], None, batch["image_index"],
                                  batch["appearance"] if with_appearance else None)
-        final = models.final_pass(out)
+        final = out["final"]
         return {"rgb": models.static_rgb(out), "depth": final["median_depth"] * batch["cos"],
                 "expected_depth": final["depth"] * batch["cos"], "opacity": final["opacity"]}
 

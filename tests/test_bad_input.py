@@ -29,7 +29,8 @@ ROOT = Path(__file__).resolve().parents[1]
 # a 2x32 MLP, 8 + 8 samples, 64 rays, 10 steps: the whole run takes seconds
 # the paper's MLP setting, which TINY shrinks (`train` alone trains the grid recipe `ours`)
 PAPER_MLP = ["--recipe", "ours-paper-mlp"]
-TINY = {"model": {"field": {"depth": 2, "width": 32, "skip": 0, "view_width": 16}, "num_coarse": 8, "num_fine": 8},
+TINY = {"model": {"field": {"depth": 2, "width": 32, "skip": 0, "view_width": 16},
+                  "sampler": {"kind": "hierarchical", "samples": [8, 8]}},
         "train": {"batch_rays": 64, "max_steps": 10, "checkpoint_every": 5, "log_every": 5, "warmup": 2,
                   "chunk": 512}}
 SYNTH = ["--width", "32", "--height", "24", "--num-train", "6", "--num-test", "2", "--supersample", "1",
@@ -113,7 +114,8 @@ BAD_CONFIGS = [
     ("field_width_0", {"model": {"field": {"width": 0}}}, ["model.field.width", ">= 1"]),
     ("near_ge_far", {"model": {"near": 5.0, "far": 1.0}}, ["near", "far"]),
     ("near_negative", {"model": {"near": -1.0}}, ["model.near", "> 0"]),
-    ("samples_negative", {"model": {"num_fine": -8}}, ["model.num_fine"]),
+    ("samples_negative", {"model": {"sampler": {"samples": [8, -8]}}}, ["model.sampler.samples", ">= 1"]),
+    ("sampler_key_of_another_kind", {"model": {"sampler": {"main_samples": 8}}}, ["model.sampler", "main_samples"]),
     ("unknown_key", {"train": {"batch_size": 64}}, ["batch_size"]),
 ]
 
@@ -158,9 +160,9 @@ def test_set_changes_the_config(scene, capsys, tmp_path):
     """--set reaches the config (dotted keys, JSON values) and is applied after --config."""
     from jaxnerf_grid import config, train
 
-    sets = config.parse_sets(["model.warp=log", "train.lr_init=1e-3", "model.proposal_samples=[32,16]",
+    sets = config.parse_sets(["model.warp=log", "train.lr_init=1e-3", "model.sampler.samples=[32,16]",
                               "model.field.kind=\"grid\"", "model.near=null"], train.RunConfig)
-    assert sets == {"model": {"warp": "log", "proposal_samples": [32, 16], "field": {"kind": "grid"}, "near": None},
+    assert sets == {"model": {"warp": "log", "sampler": {"samples": [32, 16]}, "field": {"kind": "grid"}, "near": None},
                     "train": {"lr_init": 1e-3}}
     run = tmp_path / "run"
     # --config says 10 steps and log_every 5; --set wins for the keys it names

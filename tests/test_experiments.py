@@ -176,8 +176,9 @@ def test_standard_setting_is_one_recipe_for_every_method():
     cfgs = {m: train.make_config(m, merge(ov, settings.space_overrides("standard", m)))
             for m in ("ours", "nerf", "nerfw")}
     for cfg in cfgs.values():
-        assert cfg.model.field.kind == "grid" and cfg.model.sampler == "proposal"
-        assert (cfg.model.num_fine, tuple(cfg.model.proposal_samples)) == (32, (64,))
+        assert cfg.model.field.kind == "grid" and cfg.model.sampler.kind == "proposal"
+        assert (cfg.model.sampler.main_samples, cfg.model.sampler.samples) == (32, (64,))
+        assert cfg.model.sampler.field.density_bias == -4.0  # the demo's proposal field, kept
         assert cfg.train.batch_rays == 1024
     assert cfgs["ours"].model.use_contraction and cfgs["ours"].model.warp == "disparity"
     assert cfgs["ours"].train.use_masks

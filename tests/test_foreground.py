@@ -135,13 +135,13 @@ def test_tile_starts_fewest_windows_that_cover_with_overlap():
 def test_tile_layout_one_tile_is_the_working_size():
     for h, w in [(2160, 3840), (3648, 5472), (120, 160)]:
         lay = fg.tile_layout(h, w, 384, 32, 1, 0.25)
-        assert lay.fine == fg.working_size(h, w, 384, 32) == lay.tile
+        assert lay.resized == fg.working_size(h, w, 384, 32) == lay.tile
         assert lay.starts_y == lay.starts_x == [0]
     lay = fg.tile_layout(3648, 5472, 384, 32, 3, 0.25)
-    assert lay.tile == (384, 384) and lay.fine == (640, 960) and lay.overlap == 96
+    assert lay.tile == (384, 384) and lay.resized == (640, 960) and lay.overlap == 96
     assert lay.starts_x == [0, 288, 576] and lay.starts_y == [0, 256]
     lay = fg.tile_layout(100, 1000, 64, 32, 4, 0.25)   # a strip: one window, narrower, on the short side
-    assert lay.fine == (32, 64 + 3 * 48)                # 21 rows would be too few for one window
+    assert lay.resized == (32, 64 + 3 * 48)                # 21 rows would be too few for one window
     assert lay.tile == (32, 64) and lay.starts_y == [0] and len(lay.starts_x) == 4
 
 
@@ -156,8 +156,8 @@ def test_blend_tiles_against_per_pixel_loop():
     def ramp(i, size):
         return min(1.0, min(i + 1, size - i) / (lay.overlap + 1))
 
-    for py in range(lay.fine[0]):
-        for px in range(lay.fine[1]):
+    for py in range(lay.resized[0]):
+        for px in range(lay.resized[1]):
             num = den = 0.0
             for k, (y, x) in enumerate(wins):
                 if y <= py < y + th and x <= px < x + tw:
@@ -183,7 +183,7 @@ def test_predict_maps_tiled_against_per_window_reference():
     (c1, inv1), = fg.predict_maps(model, model, [photo], classes=[1, 2], max_side=64, batch_size=3)
     lay = fg.tile_layout(150, 230, 64, 32, 2, 0.25)
     assert lay.tile == (64, 64) and lay.starts_x == [0, 48] and lay.starts_y == [0, 9]
-    fine = fg.resize_map(photo, *lay.fine)
+    fine = fg.resize_map(photo, *lay.resized)
     th, tw = lay.tile
     per_window = []
     for y in lay.starts_y:

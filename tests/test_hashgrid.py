@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import fields, models
+from jaxnerf_grid import fields, models, samplers
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.fields import hashgrid
 
@@ -172,22 +172,24 @@ def test_grid_field_matches_numpy_composition():
 @pytest.mark.parametrize("method", ["ours", "nerf", "nerfw"])
 @pytest.mark.parametrize("sampler", ["hierarchical", "proposal"])
 def test_every_method_runs_with_the_grid_field(method, sampler):
-    cfg = models.ModelConfig(**{**models.method_defaults(method), "field": _grid_cfg(), "sampler": sampler,
-                                "num_coarse": 8, "num_fine": 8, "proposal_samples": (12, 8), "num_images": 2,
-                                "proposal_field": _grid_cfg(width=8)})
+    chosen = (samplers.hierarchical.Config(samples=(8, 8)) if sampler == "hierarchical" else
+              samplers.proposal.Config(samples=(12, 8), main_samples=8, field=_grid_cfg(width=8)))
+    cfg = models.ModelConfig(**{**models.method_defaults(method), "field": _grid_cfg(), "sampler": chosen,
+                                "num_images": 2})
     params = models.init(jax.random.PRNGKey(0), cfg)
-    assert ("coarse" in params) == (sampler == "hierarchical")
-    assert ("proposal" in params) == (sampler == "proposal")
+    assert models.main_field(params, cfg)[1].kind == "grid"
     o = jnp.asarray([[0.0, -3.0, 0.5], [2.5, 0.0, 0.2]])
     d = -o / jnp.linalg.norm(o, axis=-1, keepdims=True)
     out = models.render_rays(params, cfg, o, d, jnp.full(2, 0.5), jnp.full(2, 8.0),
                              jax.random.split(jax.random.PRNGKey(1), 2), jnp.array([0, 1]))
-    final = models.final_pass(out)
+    final = out["final"]
     assert final["rgb"].shape == (2, 3)
     assert final["s_edges"].shape == (2, 17 if sampler == "hierarchical" else 9)  # union of 8 + 8, or 8
     assert np.all(np.isfinite(np.asarray(final["rgb"])))
     if sampler == "proposal":
-        assert [r["s_edges"].shape[-1] for r in out["proposals"]] == [13, 9]
+        assert [r["s_edges"].shape[-1] for r in out["levels"]] == [13, 9, 9]
+    else:
+        assert [r["s_edges"].shape[-1] for r in out["levels"]] == [9, 17]
 
 
 def test_grid_config_errors():

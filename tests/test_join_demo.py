@@ -33,7 +33,7 @@ def test_tiny_demo_end_to_end_and_its_report(tmp_path, monkeypatch, capsys):
     assert result["mask_source"] == meta["mask_source"] == ("dpt" if masking.BUILTIN.exists() else "ground-truth")
     assert all("weight_path" in f for f in meta["frames"])
     cfg = io.read_json(run / "config.json")
-    assert cfg["model"]["sampler"] == "proposal" and cfg["train"]["max_steps"] == 2
+    assert cfg["model"]["sampler"]["kind"] == "proposal" and cfg["train"]["max_steps"] == 2
     m = io.read_json(run / "metrics.json")
     assert m["step"] == 2 and m["num_views"] == 1
     assert m["target"] == "clean images" and abs(m["mean"]["psnr"] - result["metrics"]["mean"]["psnr"]) < 1e-12

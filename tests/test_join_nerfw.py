@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import fields, models
+from jaxnerf_grid import fields, models, samplers
 
 SMALL = fields.FieldConfig(depth=2, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8)
 BACKGROUND = 0.2
@@ -58,7 +58,8 @@ def _loop(sig, rgb, tsig, trgb, beta, t_edges, beta_min):
 
 
 def test_transient_compositing_against_a_per_sample_loop(monkeypatch):
-    cfg = models.ModelConfig(**{**models.method_defaults("nerfw"), "field": SMALL, "num_coarse": 12, "num_fine": 12,
+    cfg = models.ModelConfig(**{**models.method_defaults("nerfw"), "field": SMALL,
+                                "sampler": samplers.hierarchical.Config(samples=(12, 12)),
                                 "num_images": 3, "appearance_dim": 4, "transient_dim": 3,
                                 "background": BACKGROUND})
     params = models.init(jax.random.PRNGKey(0), cfg)
@@ -72,13 +73,13 @@ def test_transient_compositing_against_a_per_sample_loop(monkeypatch):
     index = np.array([0, 1, 2, 0, 1, 2], np.int32)
     out = jax.jit(lambda p: models.render_rays(p, cfg, jnp.asarray(o), jnp.asarray(d), jnp.full(6, 0.5),
                                                jnp.full(6, 6.0), image_index=jnp.asarray(index)))(params)
-    fine = out["fine"]
+    fine = out["final"]
     t_edges = np.asarray(fine["t_edges"], np.float64)
     t_mid = 0.5 * (t_edges[:, 1:] + t_edges[:, :-1])
     x = o[:, None].astype(np.float64) + t_mid[..., None] * d[:, None]      # nerf: no contraction, scale 1
     emb = np.asarray(params["transient"])[index][:, None, :]
     f = {k: np.asarray(v, np.float64) for k, v in
-         _analytic_field(None, models.fine_field_config(cfg), jnp.asarray(x), None, None,
+         _analytic_field(None, models.main_field(params, cfg)[1], jnp.asarray(x), None, None,
                          jnp.asarray(np.broadcast_to(emb, (*x.shape[:-1], 3)))).items()}
     got_t_opacity = np.asarray(fine["transient_opacity"])
     for r in range(6):

@@ -41,13 +41,20 @@ def test_nerfw_loss_closed_form():
 
 def test_per_ray_loss_combines_passes_and_psnr():
     target = jnp.zeros((2, 3))
-    out = {"coarse": {"rgb": jnp.full((2, 3), 0.1)}, "fine": {"rgb": jnp.full((2, 3), 0.2)}}
-    res = losses.per_ray_loss(out, target)
-    np.testing.assert_allclose(res["loss"], [0.01 + 0.04] * 2, rtol=1e-5)
+    first, last = {"rgb": jnp.full((2, 3), 0.1)}, {"rgb": jnp.full((2, 3), 0.2)}
+    out = {"levels": [first, last], "final": last}
+    res = losses.per_ray_loss(out, target, level_weight=0.5)
+    np.testing.assert_allclose(res["loss"], [0.5 * 0.01 + 0.04] * 2, rtol=1e-5)
+    np.testing.assert_allclose(res["mse"], [0.04] * 2, rtol=1e-5)
+    np.testing.assert_allclose(res["mse_levels"], [[0.01] * 2], rtol=1e-5)
     np.testing.assert_allclose(losses.mse_to_psnr(0.01), 20.0, rtol=1e-6)
-    out["fine"].update(beta=jnp.full((2,), 1.0), transient_sigma_mean=jnp.zeros(2))
+    last.update(beta=jnp.full((2,), 1.0), transient_sigma_mean=jnp.zeros(2))
     res = losses.per_ray_loss(out, target, use_transient=True)
     np.testing.assert_allclose(res["loss"], [0.01 + 0.04 / 2] * 2, rtol=1e-5)
+    # one pass: its own colour term only (no level before it)
+    res = losses.per_ray_loss({"levels": [first], "final": first}, target, level_weight=0.5)
+    np.testing.assert_allclose(res["loss"], [0.01] * 2, rtol=1e-5)
+    assert res["mse_levels"] == []
 
 
 # --------------------------------------------------------------------------- proposal / distortion
@@ -126,8 +133,8 @@ def test_per_ray_loss_adds_interlevel_and_distortion_terms():
     final = {"rgb": jnp.full((1, 3), 0.1), "s_edges": jnp.asarray(e_m[None], jnp.float32),
              "weights": jnp.asarray(w_m[None], jnp.float32)}
     prop = {"s_edges": jnp.asarray(e_p[None], jnp.float32), "weights": jnp.asarray(w_p[None], jnp.float32)}
-    out = {"fine": final, "proposals": [prop, prop]}
+    out = {"levels": [prop, prop, final], "final": final}
     res = losses.per_ray_loss(out, jnp.zeros((1, 3)), interlevel_weight=0.5, distortion_weight=0.25)
     expected = (0.01 + 0.5 * 2 * _interlevel_brute(e_m, w_m, e_p, w_p) + 0.25 * _distortion_brute(e_m, w_m))
     np.testing.assert_allclose(res["loss"], [expected], rtol=1e-4)
-    assert "mse_coarse" not in res
+    assert res["mse_levels"] == []  # proposal levels render no colour

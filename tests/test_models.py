@@ -10,6 +10,7 @@ import pytest
 
 from jaxnerf_grid import fields, models
 from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.samplers import hierarchical, proposal
 
 SMALL = fields.FieldConfig(depth=2, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8)
 
@@ -32,7 +33,7 @@ def _render(params, cfg, *args, **kw):
 
 def _cfg(method="ours", **kw):
     base = dict(models.method_defaults(method))
-    base.update(field=SMALL, num_coarse=16, num_fine=16)
+    base.update(field=SMALL, sampler=hierarchical.Config(samples=(16, 16)))
     base.update(kw)
     return models.ModelConfig(**base)
 
@@ -54,17 +55,17 @@ def _contract_np(x, r):
 
 def test_coarse_render_matches_bruteforce_loop():
     """Deterministic coarse pass vs a per-ray Python loop (disparity bins, contraction, Eq. 1)."""
-    cfg = _cfg("ours", hierarchical=False, background=0.25)
+    cfg = _cfg("ours", sampler=hierarchical.Config(samples=(16,)), background=0.25)
     params = models.init(jax.random.PRNGKey(0), cfg)
     o, d = _rays()
     near, far = 0.5, 40.0
     out = _render(params, cfg, jnp.asarray(o), jnp.asarray(d), jnp.full(6, near), jnp.full(6, far))
-    s = np.linspace(0, 1, cfg.num_coarse + 1)
+    s = np.linspace(0, 1, cfg.sampler.samples[0] + 1)
     t = 1.0 / (s / far + (1 - s) / near)          # uniform in disparity
     tm = 0.5 * (t[1:] + t[:-1])
     x = o[:, None] + tm[None, :, None] * d[:, None]
     z = _contract_np(x, 2.0) / 2.0
-    f = jax.jit(fields.apply, static_argnums=1)(params["coarse"], SMALL, jnp.asarray(z, jnp.float32),
+    f = jax.jit(fields.apply, static_argnums=1)(models.main_field(params, cfg)[0], SMALL, jnp.asarray(z, jnp.float32),
                                                 jnp.asarray(np.broadcast_to(d[:, None], x.shape)))
     for r in range(6):
         sigma, rgb = np.asarray(f["sigma"][r], np.float64), np.asarray(f["rgb"][r], np.float64)
@@ -75,9 +76,9 @@ def test_coarse_render_matches_bruteforce_loop():
             acc += trans * a
             trans *= 1 - a
         colour += (1 - acc) * 0.25
-        np.testing.assert_allclose(out["coarse"]["rgb"][r], colour, rtol=2e-4, atol=2e-5)
-        np.testing.assert_allclose(out["coarse"]["opacity"][r], acc, rtol=2e-4, atol=2e-5)
-    assert "fine" not in out
+        np.testing.assert_allclose(out["final"]["rgb"][r], colour, rtol=2e-4, atol=2e-5)
+        np.testing.assert_allclose(out["final"]["opacity"][r], acc, rtol=2e-4, atol=2e-5)
+    assert len(out["levels"]) == 1
 
 
 def test_field_inputs_contraction_closed_form():
@@ -113,7 +114,7 @@ def test_hierarchical_sampling_finds_sphere_surface(monkeypatch, method, union):
     monkeypatch.setattr(fields, "apply", _sphere_field)
     _jitted.cache_clear()
     radius = 1.0  # ours: |z / 2| < 0.5 is the unit ball (contraction is the identity there)
-    cfg = _cfg(method, num_coarse=32, num_fine=64, fine_union=union)
+    cfg = _cfg(method, sampler=hierarchical.Config(samples=(32, 64), union=union))
     if method == "nerf":  # nerf inputs are not divided by R: ball radius 0.5 in world units
         radius = 0.5
     params = models.init(jax.random.PRNGKey(0), cfg)
@@ -122,7 +123,8 @@ def test_hierarchical_sampling_finds_sphere_surface(monkeypatch, method, union):
     out = _render(params, cfg, jnp.asarray(o), jnp.asarray(d), jnp.full(8, 0.5),
                              jnp.full(8, 20.0), keys=jax.random.split(jax.random.PRNGKey(1), 8))
     truth = 3.0 - radius
-    fine, coarse = out["fine"], out["coarse"]
+    (coarse, fine), final = out["levels"], out["final"]
+    assert np.array_equal(fine["rgb"], final["rgb"]) and np.array_equal(fine["s_edges"], final["s_edges"])
     np.testing.assert_allclose(fine["opacity"], 1.0, atol=1e-3)
     np.testing.assert_allclose(fine["rgb"], np.tile([1.0, 0, 0], (8, 1)), atol=1e-3)
     fine_err = np.abs(np.asarray(fine["depth"]) - truth).max()
@@ -148,7 +150,7 @@ def test_per_ray_keys_make_batches_consistent():
     full = _render(params, cfg, jnp.asarray(o), jnp.asarray(d), *args, keys=keys)
     half = _render(params, cfg, jnp.asarray(o[3:]), jnp.asarray(d[3:]), args[0][3:], args[1][3:],
                               keys=keys[3:])
-    np.testing.assert_allclose(full["fine"]["rgb"][3:], half["fine"]["rgb"], rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(full["final"]["rgb"][3:], half["final"]["rgb"], rtol=1e-5, atol=1e-6)
 
 
 def test_nerfw_embeddings_and_static_part(monkeypatch):
@@ -160,15 +162,15 @@ def test_nerfw_embeddings_and_static_part(monkeypatch):
     run = lambda idx: _render(params, cfg, jnp.asarray(o), jnp.asarray(d), jnp.full(4, 0.5),  # noqa: E731
                                          jnp.full(4, 6.0), image_index=jnp.full(4, idx, jnp.int32))
     a, b = run(0), run(1)
-    assert np.abs(np.asarray(a["fine"]["rgb_static"]) - np.asarray(b["fine"]["rgb_static"])).max() > 1e-4
-    assert np.all(np.asarray(a["fine"]["beta"]) >= cfg.beta_min)
+    assert np.abs(np.asarray(a["final"]["rgb_static"]) - np.asarray(b["final"]["rgb_static"])).max() > 1e-4
+    assert np.all(np.asarray(a["final"]["beta"]) >= cfg.beta_min)
     # with no transient density the mixed picture is the static one and beta = beta_min
     monkeypatch.setattr(fields, "apply", _sphere_field)
     _jitted.cache_clear()
     out = _render(params, cfg, jnp.asarray(o), jnp.asarray(d), jnp.full(4, 0.5), jnp.full(4, 6.0),
                              image_index=jnp.zeros(4, jnp.int32))
-    np.testing.assert_allclose(out["fine"]["rgb"], out["fine"]["rgb_static"], atol=1e-6)
-    np.testing.assert_allclose(out["fine"]["beta"], cfg.beta_min, atol=1e-6)
+    np.testing.assert_allclose(out["final"]["rgb"], out["final"]["rgb_static"], atol=1e-6)
+    np.testing.assert_allclose(out["final"]["beta"], cfg.beta_min, atol=1e-6)
 
 
 def test_validation_errors():
@@ -200,7 +202,7 @@ def test_proposal_sampling_finds_sphere_surface_and_opaque_far_shows_the_far_col
     grid = fields.FieldConfig(kind="grid", depth=1, width=8, density_activation="exp",
                               grid=fields.HashConfig(num_levels=2, log2_table_size=8, min_resolution=4,
                                                      max_resolution=8))
-    cfg = _cfg("ours", sampler="proposal", proposal_samples=(64,), num_fine=16, field=grid, proposal_field=grid,
+    cfg = _cfg("ours", sampler=proposal.Config(samples=(64,), main_samples=16, field=grid), field=grid,
                opaque_far=opaque_far)
     params = models.init(jax.random.PRNGKey(0), cfg)
     o, _ = _rays(8, seed=2)
@@ -210,8 +212,9 @@ def test_proposal_sampling_finds_sphere_surface_and_opaque_far_shows_the_far_col
     o = np.concatenate([o, o])
     out = _render(params, cfg, jnp.asarray(o), jnp.asarray(d), jnp.full(16, 0.5), jnp.full(16, 20.0),
                   keys=jax.random.split(jax.random.PRNGKey(1), 16))
-    fine = out["fine"]
-    assert "coarse" not in out and len(out["proposals"]) == 1
+    fine = out["final"]
+    assert len(out["levels"]) == 2 and "rgb" not in out["levels"][0] \
+        and np.array_equal(out["levels"][1]["weights"], fine["weights"])
     np.testing.assert_allclose(fine["opacity"][:8], 1.0, atol=1e-3)
     np.testing.assert_allclose(fine["rgb"][:8], np.tile([1.0, 0, 0], (8, 1)), atol=1e-3)
     # 16 main samples resampled from the proposal: the surface bin is found to within a
@@ -224,7 +227,7 @@ def test_proposal_sampling_finds_sphere_surface_and_opaque_far_shows_the_far_col
     if opaque_far:
         np.testing.assert_allclose(fine["opacity"][8:], 1.0, atol=1e-6)
         np.testing.assert_allclose(fine["rgb"][8:], np.tile([0, 0, 1.0], (8, 1)), atol=1e-6)
-        np.testing.assert_allclose(np.asarray(out["proposals"][0]["weights"][8:]).sum(-1), 1.0, atol=1e-6)
+        np.testing.assert_allclose(np.asarray(out["levels"][0]["weights"][8:]).sum(-1), 1.0, atol=1e-6)
     else:
         np.testing.assert_allclose(fine["opacity"][8:], 0.0, atol=1e-6)
         np.testing.assert_allclose(fine["rgb"][8:], 0.0, atol=1e-6)

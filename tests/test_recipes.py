@@ -8,7 +8,9 @@ import json
 
 import pytest
 
+from experiments import settings
 from jaxnerf_grid import cli, config, demo, recipes, train
+from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 from jaxnerf_grid.config import ConfigError
 
 # demo.DEMO_CONFIG as committed before the registry (the recipe of docs/GRID.md's figures)
@@ -33,16 +35,24 @@ def as_dict(cfg) -> dict:
 
 
 def test_ours_is_the_demo_recipe_key_for_key():
-    # same content and the same key order (the order results files record it in)
-    assert json.dumps(recipes.overrides("ours")) == json.dumps(DEMO_BEFORE)
-    assert demo.DEMO_CONFIG == DEMO_BEFORE and recipes.get(demo.DEMO_RECIPE).method == "ours"
+    # the recipe holds the demo's settings with its sampler in the tagged form (samplers/legacy.py)
+    model, upgraded = recipes.overrides("ours")["model"], upgrade_flat_model(DEMO_BEFORE["model"])
+    assert {k: v for k, v in model.items() if k != "sampler"} == {k: v for k, v in upgraded.items() if k != "sampler"}
+    assert model["sampler"] == {k: v for k, v in upgraded["sampler"].items() if k in model["sampler"]}
+    assert {k: v for k, v in recipes.overrides("ours").items() if k != "model"} == \
+        {k: v for k, v in DEMO_BEFORE.items() if k != "model"}
+    assert demo.DEMO_CONFIG == recipes.overrides("ours") and recipes.get(demo.DEMO_RECIPE).method == "ours"
     assert as_dict(recipes.make_config("ours")) == as_dict(train.make_config("ours", DEMO_BEFORE))
+    # the experiments record it flat, with the same content and key order as the results files
+    before = json.loads(json.dumps(DEMO_BEFORE))
+    before["train"].pop("max_steps")
+    assert json.dumps(settings._without_steps("ours")) == json.dumps(before)
 
 
 def test_paper_mlp_is_runconfig_defaults_for_ours():
     cfg = recipes.make_config("ours-paper-mlp")
     assert as_dict(cfg) == as_dict(train.RunConfig())  # RunConfig() is ours' defaults already
-    assert cfg.model.field.kind == "mlp" and cfg.model.sampler == "hierarchical" and cfg.train.use_masks
+    assert cfg.model.field.kind == "mlp" and cfg.model.sampler.kind == "hierarchical" and cfg.train.use_masks
 
 
 @pytest.mark.parametrize("name", ["nerf", "nerfw"])
@@ -64,10 +74,10 @@ def test_every_sampler_key_sits_in_samplers():
 
 
 def test_overrides_are_fresh_copies():
-    a = recipes.overrides("ours")
+    a, b = recipes.overrides("ours"), recipes.overrides("ours")
     a["model"]["field"]["grid"]["num_levels"] = 1
-    a["model"]["proposal_samples"].append(8)
-    assert recipes.overrides("ours") == DEMO_BEFORE
+    a["model"]["sampler"]["samples"].append(8)
+    assert recipes.overrides("ours") == b != a
 
 
 def test_resolve_recipe_and_method():
@@ -130,9 +140,9 @@ def test_train_recipe_with_method_config_and_set(train_args, tmp_path):
     cfg_file = tmp_path / "cfg.json"
     cfg_file.write_text(json.dumps({"train": {"batch_rays": 256}}))
     method, overrides, out = train_args(["--recipe", "ours-paper-mlp", "--method", "nerf", "--config", str(cfg_file),
-                                         "--set", "model.num_fine=16"])
+                                         "--set", "model.sampler.samples=[16,16]"])
     cfg = train.make_config(method, overrides)
-    expected = train.make_config("nerf", {"model": {"num_fine": 16}, "train": {"batch_rays": 256}})
+    expected = train.make_config("nerf", {"model": {"sampler": {"samples": [16, 16]}}, "train": {"batch_rays": 256}})
     assert as_dict(cfg) == as_dict(expected) and out == "runs/ours-paper-mlp"
 
 

@@ -49,10 +49,10 @@ def tiny_dataset(width=16, height=12, frames=5, seed=0) -> Dataset:
 def tiny_config(method="ours", field="mlp", **train_kw):
     """field "mlp": the MLP with 8 + 8 hierarchical samples; "grid": a hash grid with one proposal
     round of 12 samples -> 8, and the distortion loss on."""
-    model = {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8}
+    model = {"field": TINY_FIELD, "sampler": {"kind": "hierarchical", "samples": [8, 8]}}
     if field == "grid":
-        model.update({"field": TINY_GRID, "sampler": "proposal", "proposal_samples": [12],
-                      "proposal_field": TINY_PROPOSAL})
+        model.update({"field": TINY_GRID, "sampler": {"kind": "proposal", "samples": [12], "main_samples": 8,
+                                                      "field": TINY_PROPOSAL}})
         train_kw.setdefault("distortion_loss_weight", 0.01)
     overrides = {"model": model,
                  "train": {"batch_rays": 64, "max_steps": 30, "checkpoint_every": 10, "log_every": 5,

@@ -64,7 +64,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="JSON file laid over the recipe ({'model': {...}, 'train': {...}})")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="one config value, dotted key, JSON value (e.g. model.warp=log, train.batch_rays=2048, "
-                        "model.proposal_samples=[64,32]); repeatable; applied after --config")
+                        "model.sampler.samples=[64,32]); repeatable; applied after --config")
     p.add_argument("--out", default=None, help="run directory (default runs/<recipe>)")
     p.add_argument("--steps", type=int, default=None, help="override train.max_steps")
     p.add_argument("--max-side", type=int, default=None, metavar="N",

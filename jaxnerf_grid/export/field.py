@@ -3,8 +3,8 @@
 Points go through the model's own input map, `models.field_inputs` (the contraction of Eq. 9
 when the model uses it, then the division by the encoding scale; docs/ARCHITECTURE.md, step 5),
 evaluated at t = 0 of a ray starting at the point, then through `fields.apply` of the main
-field: the one that renders the picture (`fine` when the model has it, else `coarse`; never a
-proposal field). The density is in the model's units: per unit length of the normalised scene.
+field: the one that renders the picture (`models.main_field`; never a proposal field). The
+density is in the model's units: per unit length of the normalised scene.
 
 Evaluation runs in chunks of one compiled shape (the last one padded), so memory is bounded by
 the chunk, not by the number of points. NeRF-W: the transient head is ignored (static scene);
@@ -24,16 +24,9 @@ from jaxnerf_grid import fields, models, parallel
 DEFAULT_CHUNK = 1 << 16
 
 
-def main_field(params: dict, mcfg: models.ModelConfig) -> tuple[dict, fields.FieldConfig]:
-    """(parameters, config) of the field that renders the picture: fine when present, else coarse."""
-    if "fine" in params:
-        return params["fine"], models.fine_field_config(mcfg)
-    return params["coarse"], models.coarse_field_config(mcfg)
-
-
 def _fn_for(params: dict, mcfg: models.ModelConfig, with_rgb: bool):
     """The jitted evaluation of the main field and its parameters and appearance input."""
-    field_params, field_cfg = main_field(params, mcfg)
+    field_params, field_cfg = models.main_field(params, mcfg)
     fn = _compiled(mcfg, field_cfg, with_rgb)
     appearance = None
     if field_cfg.appearance_dim:
