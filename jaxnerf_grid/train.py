@@ -14,6 +14,11 @@ Training step (one `jax.pmap` over the local devices, axis "batch"):
     loss), then `optim.guarded_apply` (jaxopt's OptaxSolver update with clipping inside Adam)
     skips a non-finite step; the host logs every skipped step;
   * the learning rate warms up linearly then decays log-linearly (optim.make_lr_schedule).
+  * with train.robust on (`_make_robust_step`, robust.py, docs/ROBUST.md) the batch is square
+    patches drawn over whole frames and each pixel's weight is the photometric evidence of the
+    residuals (their quantiles taken over the all-gathered global batch); the state then also
+    holds "robust_record", the per-pixel average of the weights used, written at the end as
+    RUN/weights/NAME.png.
 
 The state is {"params", "opt_state", "key"} plus the host step counter; checkpoints
 (checkpoint.save_checkpoint: atomic, last k kept) hold exactly that, so a resumed run replays
@@ -37,6 +42,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnerf_grid import checkpoint, config as config_lib, distributed, fields, io, losses, models, optim, parallel, rays as rays_lib
+from jaxnerf_grid import robust as robust_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
@@ -61,6 +67,15 @@ class TrainConfig:
     coarse_loss_weight: weight of the coarse pass's MSE (hierarchical sampler);
     interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (proposal sampler);
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
+    robust: photometric evidence (`robust.py`, docs/ROBUST.md): "off" (the weights above),
+      "robust" (no masks: the weight is the evidence of the residuals) or "dpt+robust" (the
+      dataset's 1 - M_w, whatever use_masks says, sets how strict the evidence is per pixel);
+      when on, training draws batch_rays / robust_patch^2 patches of robust_patch^2 rays;
+    robust_quantile, robust_flagged_quantile: the inlier quantile of the batch's residuals for
+      an unflagged pixel (prior 1) and a flagged one (prior 0; linear in between);
+    robust_patch: patch side in pixels; robust_patch_share: a patch with fewer pixels passing
+      the 3x3 vote is a transient patch; robust_floor: a residual (squared error) at most this
+      is always an inlier.
     """
 
     batch_rays: int = 1024
@@ -86,6 +101,12 @@ class TrainConfig:
     appearance_steps: int = 30
     appearance_lr: float = 0.05
     appearance_rays: int = 1024
+    robust: str = "off"
+    robust_quantile: float = 0.8
+    robust_flagged_quantile: float = 0.5
+    robust_patch: int = 8
+    robust_patch_share: float = 0.6
+    robust_floor: float = 1e-3
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -98,7 +119,10 @@ class TrainConfig:
         "checkpoint_every": config_lib.AT_LEAST_ONE, "keep_checkpoints": config_lib.AT_LEAST_ONE,
         "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
         "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
-        "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE}
+        "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE,
+        "robust_quantile": config_lib.UNIT, "robust_flagged_quantile": config_lib.UNIT,
+        "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_share": config_lib.UNIT,
+        "robust_floor": config_lib.NONNEGATIVE}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -120,8 +144,22 @@ def make_config(method: str, overrides: dict | None = None) -> RunConfig:
         raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts --method {method!r}")
     cfg = config_lib.from_dict(RunConfig, merged)
     config_lib.validate(cfg)
+    check_robust(cfg.train)
     models.validate(dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, 1)))
     return cfg
+
+
+def check_robust(cfg: TrainConfig, num_devices: int = 1) -> None:
+    """ConfigError unless train.robust is a known mode and, when on, the batch splits into whole
+    patches, and the patches over the devices."""
+    if cfg.robust not in robust_lib.MODES:
+        raise ConfigError(f"train.robust = {cfg.robust!r}: must be one of {', '.join(robust_lib.MODES)}")
+    if cfg.robust == "off":
+        return
+    area = cfg.robust_patch ** 2
+    if cfg.batch_rays % area or (cfg.batch_rays // area) % num_devices:
+        raise ConfigError(f"train.batch_rays = {cfg.batch_rays}: with train.robust on it must be a multiple of "
+                          f"train.robust_patch^2 ({area}) times the device count ({num_devices})")
 
 
 # --------------------------------------------------------------------------- ray pool
@@ -138,19 +176,37 @@ def loss_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
     return w.astype(np.float32)
 
 
+def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
+    """The per-pixel prior of the photometric evidence (train.robust on). [N, H, W] in [0, 1]:
+    ones for "robust"; for "dpt+robust" the dataset's 1 - M_w (with mask_weight_floor), which
+    must exist."""
+    if cfg.robust == "robust":
+        return np.ones(dataset.images.shape[:3], np.float32)
+    if dataset.weights is None:
+        raise DataError(f"{dataset.root}: train.robust = dpt+robust needs the dataset's masks "
+                        "(run jaxnerf-grid mask first, or use train.robust = robust)")
+    return loss_weights(dataset, dataclasses.replace(cfg, use_masks=True))
+
+
 def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     """Training data for on-device batch drawing (host NumPy arrays).
 
     Returns {"pixels": [P] int32 flat ids (frame-in-train * H*W + row * W + col) of every
     training pixel with weight > 0, "images": [T, H, W, 3], "weights": [T, H, W],
     "c2w": [T, 4, 4], "intrinsics": [T, 4], "frame": [T] int32 dataset frame ids,
-    "near", "far": floats}.
+    "near", "far": floats}. With train.robust on, "weights" is the evidence's prior
+    (`prior_weights`) and "pixels" every training pixel, the flagged ones included (patches
+    are drawn over whole frames).
     """
     train_ids = np.asarray(dataset.split["train"], np.int64)
     if train_ids.size == 0:
         raise DataError(f"{dataset.root}: the dataset has no training frames")
-    weights = loss_weights(dataset, cfg.train)[train_ids]
-    pixels = np.flatnonzero(weights.reshape(-1) > 0).astype(np.int32)
+    robust_on = cfg.train.robust != "off"
+    if robust_on and min(dataset.height, dataset.width) < cfg.train.robust_patch:
+        raise ConfigError(f"train.robust_patch = {cfg.train.robust_patch}: larger than the "
+                          f"{dataset.width}x{dataset.height} images")
+    weights = (prior_weights(dataset, cfg.train) if robust_on else loss_weights(dataset, cfg.train))[train_ids]
+    pixels = (np.arange(weights.size) if robust_on else np.flatnonzero(weights.reshape(-1) > 0)).astype(np.int32)
     if pixels.size == 0:
         raise DataError(f"{dataset.root}: every training pixel has loss weight 0 (check the masks)")
     near, far = config_lib.near_far(cfg.model, dataset)
@@ -186,12 +242,30 @@ def make_optimizer(cfg: TrainConfig) -> optim.GradientTransformation:
     return optim.adam(schedule, b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps, max_grad_norm=cfg.max_grad_norm)
 
 
-def init_state(cfg: RunConfig) -> dict:
-    """{"params", "opt_state", "key"} on the host (unreplicated)."""
+def init_state(cfg: RunConfig, frames_shape: tuple | None = None) -> dict:
+    """{"params", "opt_state", "key"} on the host (unreplicated); with train.robust on also
+    "robust_record": [T, H, W] the per-pixel moving average of the weights training used
+    (`robust.ema_update`), ones at first; frames_shape = (T, H, W) of the training frames
+    (`train_frames_shape`) is then needed."""
     key = jax.random.PRNGKey(cfg.train.seed)
     key, k_init = jax.random.split(key)
     params = models.init(k_init, cfg.model)
-    return {"params": params, "opt_state": make_optimizer(cfg.train).init(params), "key": key}
+    state = {"params": params, "opt_state": make_optimizer(cfg.train).init(params), "key": key}
+    if cfg.train.robust != "off":
+        if frames_shape is None:
+            raise ValueError("init_state: train.robust is on, give the training frames' shape")
+        state["robust_record"] = np.ones(tuple(frames_shape), np.float32)
+    return state
+
+
+def train_frames_shape(dataset: Dataset) -> tuple[int, int, int]:
+    """(T, H, W): training frames, height, width."""
+    return (len(dataset.split["train"]), dataset.height, dataset.width)
+
+
+def final_rgb(outputs: dict) -> jnp.ndarray:
+    """The picture's colour of a models.render_rays output, [B, 3] (the final pass)."""
+    return models.final_pass(outputs)["rgb"]
 
 
 def make_train_step(cfg: RunConfig, num_devices: int):
@@ -212,6 +286,8 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         raise ConfigError(f"train.batch_rays ({tcfg.batch_rays}) must divide by the device count ({num_devices})")
     per_device = tcfg.batch_rays // num_devices
     opt = make_optimizer(tcfg)
+    if tcfg.robust != "off":
+        return _make_robust_step(cfg, num_devices, opt)
 
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
@@ -239,6 +315,69 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         return {"params": params, "opt_state": opt_state, "key": key}, {"loss": loss, "mse": mse, "finite": finite}
 
     return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
+
+
+def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
+    """The pmapped step with photometric evidence (train.robust on; robust.py): the global batch
+    is batch_rays / p^2 patches of p x p pixels drawn from the state's key (the same for any
+    device count), each device renders its share of whole patches; the residuals (final pass,
+    stop-gradient) are all-gathered so every device takes the quantiles of the same global
+    batch; each pixel's loss weight is `robust.robust_weights` of its patch with the pool's
+    weight as the prior. The state's robust_record takes the batch's weights (all-gathered, the
+    same update on every device). Stats add "robust_weight": the mean weight of the batch."""
+    mcfg, tcfg = cfg.model, cfg.train
+    check_robust(tcfg, num_devices)
+    p = tcfg.robust_patch
+    num_patches = tcfg.batch_rays // (p * p)
+    per_device = tcfg.batch_rays // num_devices
+
+    def step(state, pool):
+        key, k_batch, k_rays = jax.random.split(state["key"], 3)
+        frames, height, width = pool["weights"].shape
+        ids = robust_lib.draw_patches(k_batch, num_patches, frames, height, width, p)
+        ray_keys = jax.random.split(k_rays, tcfg.batch_rays)
+        start = jax.lax.axis_index(AXIS) * per_device
+        local_ids = jax.lax.dynamic_slice_in_dim(ids, start, per_device)
+        ray_keys = jax.lax.dynamic_slice_in_dim(ray_keys, start, per_device)
+        batch = gather_batch(pool, local_ids)
+
+        def loss_fn(params):
+            out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
+                                     batch["far"], ray_keys, batch["image_index"])
+            terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
+                                        tcfg.coarse_loss_weight, tcfg.interlevel_loss_weight,
+                                        tcfg.distortion_loss_weight)
+            residual = jax.lax.stop_gradient(losses.squared_error(final_rgb(out), batch["rgb"]))
+            everyone = jax.lax.all_gather(residual, AXIS, tiled=True)
+            weight = robust_lib.robust_weights(
+                residual.reshape(-1, p, p), batch["weight"].reshape(-1, p, p), everyone, tcfg.robust_quantile,
+                tcfg.robust_flagged_quantile, tcfg.robust_patch_share, tcfg.robust_floor).reshape(-1)
+            total = jax.lax.psum(jnp.sum(weight), AXIS)
+            mse = terms["mse_fine"] if "mse_fine" in terms else terms["mse_coarse"]
+            loss = losses.weighted_mean(terms["loss"], weight, total)
+            return loss, (losses.weighted_mean(mse, weight, total), weight)
+
+        (loss, (mse, weight)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+        loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
+        params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
+        all_weights = jax.lax.all_gather(weight, AXIS, tiled=True)
+        record = robust_lib.ema_update(state["robust_record"], ids, all_weights)
+        new_state = {"params": params, "opt_state": opt_state, "key": key, "robust_record": record}
+        return new_state, {"loss": loss, "mse": mse, "finite": finite, "robust_weight": jnp.mean(all_weights)}
+
+    return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
+
+
+def write_robust_record(run_dir, dataset: Dataset, record: np.ndarray) -> Path:
+    """Writes the weights training used (the state's robust_record [T, H, W]) as 8-bit PNGs
+    run_dir/weights/NAME.png, one per training frame (NAME: the frame's file stem, frame_0007
+    without paths; white = used, black = ignored). Returns the folder."""
+    folder = Path(run_dir) / "weights"
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, frame in enumerate(np.asarray(dataset.split["train"], np.int64)):
+        name = Path(dataset.frame_paths[frame]).stem if dataset.frame_paths else f"frame_{int(frame):04d}"
+        io.write_png(folder / f"{name}.png", np.asarray(record[k], np.float32))
+    return folder
 
 
 ACTIVATION_COPIES = 4  # a sample's activations: forward values, pre-activations and both gradients
@@ -387,7 +526,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     mcfg, tcfg = cfg.model, cfg.train
     n = step_devices(tcfg)
     pool_host = build_pool(dataset, cfg)
-    state = init_state(cfg)
+    state = init_state(cfg, train_frames_shape(dataset))
     step = 0
     main = distributed.is_main()  # process 0 (always, in one process) writes logs and checkpoints
     restored = checkpoint.restore_latest(run_dir, state) if main else None
@@ -400,6 +539,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     log_path = run_dir / "metrics.jsonl"
     last_record = _trim_log(log_path, step) if main else None
     check_batch(cfg, n)
+    check_robust(tcfg, n)
     pool = parallel.replicate(pool_host, n)
     state_r = parallel.replicate(state, n)
     p_step = make_train_step(cfg, n)
@@ -433,6 +573,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                           "lr": float(schedule(step - 1)), "skipped_total": len(skipped),
                           "rays_per_s": window_steps * tcfg.batch_rays / max(elapsed, 1e-9),
                           "time": time.perf_counter() - start_time}
+                if "robust_weight" in stats:
+                    record["robust_weight"] = float(stats["robust_weight"][0])
                 if main:
                     with open(log_path, "a") as fh:
                         fh.write(json.dumps(record) + "\n")
@@ -449,6 +591,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
         if bar is not None:
             bar.close()
     final = parallel.unreplicate(state_r)
+    if "robust_record" in final and main:
+        write_robust_record(run_dir, dataset, final["robust_record"])
     return TrainResult(params=final["params"], step=step, seconds=time.perf_counter() - start_time,
                        skipped_steps=skipped, last_loss=last_loss, last_psnr=last_psnr,
                        steps_run=step - first_step)
@@ -456,7 +600,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
 
 def load_params(run_dir, cfg: RunConfig, dataset: Dataset) -> tuple[dict, int]:
     """Parameters of the newest checkpoint of a run of `cfg` on `dataset`. Returns (params, step)."""
-    template = init_state(config_lib.resolve(cfg, dataset, bounds=False))
+    template = init_state(config_lib.resolve(cfg, dataset, bounds=False), train_frames_shape(dataset))
     restored = checkpoint.restore_latest(run_dir, template)
     if restored is None:
         raise DataError(f"{Path(run_dir) / checkpoint.CHECKPOINT_DIR}: no checkpoint to load")
