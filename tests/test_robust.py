@@ -146,3 +146,32 @@ def test_modes_are_checked(mode):
     if mode != "off":
         with pytest.raises(ConfigError, match="train.batch_rays"):
             train.check_robust(cfg.train, 4)
+
+
+def test_the_switch_is_settable_with_set():
+    from jaxnerf_grid import config, train
+
+    overrides = config.parse_sets(["train.robust=dpt+robust", "train.robust_patch=16"], train.RunConfig)
+    cfg = train.make_config("nerf", overrides)
+    assert cfg.train.robust == "dpt+robust" and cfg.train.robust_patch == 16
+    assert train.make_config("nerf").train.robust == "off"
+
+
+def test_bad_settings_are_one_line_errors_naming_the_key_or_folder():
+    import sys
+    from pathlib import Path
+
+    from jaxnerf_grid import train
+    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.io import DataError
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_train import tiny_config, tiny_dataset
+
+    ds = tiny_dataset()                                    # 16 x 12 frames
+    with pytest.raises(ConfigError, match="train.robust_patch = 16"):
+        train.build_pool(ds, tiny_config(robust="robust", robust_patch=16, batch_rays=512))
+    ds.weights = None
+    with pytest.raises(DataError, match="tiny: train.robust = dpt\\+robust needs the dataset's masks"):
+        train.build_pool(ds, tiny_config(robust="dpt+robust", robust_patch=4))
+    assert train.build_pool(ds, tiny_config(robust="robust", robust_patch=4))["weights"].min() == 1
