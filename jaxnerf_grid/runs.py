@@ -155,7 +155,7 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
     """The checks of a run before anything is written or deleted: the config's types and ranges
     (config.validate), the ray bounds on this dataset (config.resolve), the camera centres
     (data.dataset.check_camera_centres), the device count and the batch's memory
-    (train.check_batch)."""
+    (train.check_batch), train.robust's patches and masks (train.check_robust)."""
     from jaxnerf_grid import train
     from jaxnerf_grid.data.dataset import check_camera_centres
 
@@ -164,6 +164,7 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
     check_camera_centres(ds)
     n = train.step_devices(cfg.train) if num_devices is None else num_devices
     train.check_batch(settled, n)
+    train.check_robust(settled.train, n, ds)
 
 
 def load_dataset(path, downscale: float = 1, progress: bool = True):

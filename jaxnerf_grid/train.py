@@ -149,9 +149,10 @@ def make_config(method: str, overrides: dict | None = None) -> RunConfig:
     return cfg
 
 
-def check_robust(cfg: TrainConfig, num_devices: int = 1) -> None:
+def check_robust(cfg: TrainConfig, num_devices: int = 1, dataset: Dataset | None = None) -> None:
     """ConfigError unless train.robust is a known mode and, when on, the batch splits into whole
-    patches, and the patches over the devices."""
+    patches, and the patches over the devices; with a dataset, also that a patch fits in its
+    frames (ConfigError) and that dpt+robust has masks (DataError)."""
     if cfg.robust not in robust_lib.MODES:
         raise ConfigError(f"train.robust = {cfg.robust!r}: must be one of {', '.join(robust_lib.MODES)}")
     if cfg.robust == "off":
@@ -160,6 +161,14 @@ def check_robust(cfg: TrainConfig, num_devices: int = 1) -> None:
     if cfg.batch_rays % area or (cfg.batch_rays // area) % num_devices:
         raise ConfigError(f"train.batch_rays = {cfg.batch_rays}: with train.robust on it must be a multiple of "
                           f"train.robust_patch^2 ({area}) times the device count ({num_devices})")
+    if dataset is None:
+        return
+    if min(dataset.height, dataset.width) < cfg.robust_patch:
+        raise ConfigError(f"train.robust_patch = {cfg.robust_patch}: larger than the "
+                          f"{dataset.width}x{dataset.height} images")
+    if cfg.robust == "dpt+robust" and dataset.weights is None:
+        raise DataError(f"{dataset.root}: train.robust = dpt+robust needs the dataset's masks "
+                        "(run jaxnerf-grid mask first, or use train.robust = robust)")
 
 
 # --------------------------------------------------------------------------- ray pool
@@ -180,11 +189,9 @@ def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
     """The per-pixel prior of the photometric evidence (train.robust on). [N, H, W] in [0, 1]:
     ones for "robust"; for "dpt+robust" the dataset's 1 - M_w (with mask_weight_floor), which
     must exist."""
+    check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust_patch ** 2), 1, dataset)
     if cfg.robust == "robust":
         return np.ones(dataset.images.shape[:3], np.float32)
-    if dataset.weights is None:
-        raise DataError(f"{dataset.root}: train.robust = dpt+robust needs the dataset's masks "
-                        "(run jaxnerf-grid mask first, or use train.robust = robust)")
     return loss_weights(dataset, dataclasses.replace(cfg, use_masks=True))
 
 
@@ -202,9 +209,6 @@ def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     if train_ids.size == 0:
         raise DataError(f"{dataset.root}: the dataset has no training frames")
     robust_on = cfg.train.robust != "off"
-    if robust_on and min(dataset.height, dataset.width) < cfg.train.robust_patch:
-        raise ConfigError(f"train.robust_patch = {cfg.train.robust_patch}: larger than the "
-                          f"{dataset.width}x{dataset.height} images")
     weights = (prior_weights(dataset, cfg.train) if robust_on else loss_weights(dataset, cfg.train))[train_ids]
     pixels = (np.arange(weights.size) if robust_on else np.flatnonzero(weights.reshape(-1) > 0)).astype(np.int32)
     if pixels.size == 0:

@@ -175,3 +175,6 @@ def test_bad_settings_are_one_line_errors_naming_the_key_or_folder():
     with pytest.raises(DataError, match="tiny: train.robust = dpt\\+robust needs the dataset's masks"):
         train.build_pool(ds, tiny_config(robust="dpt+robust", robust_patch=4))
     assert train.build_pool(ds, tiny_config(robust="robust", robust_patch=4))["weights"].min() == 1
+    from jaxnerf_grid import runs                            # refused before a run folder is written
+    with pytest.raises(DataError, match="needs the dataset's masks"):
+        runs.check_run(tiny_config(robust="dpt+robust", robust_patch=4), ds, num_devices=2)
