@@ -233,10 +233,18 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
               "per_view": per_view, "lpips": "computed" if lpips_params is not None else "unavailable",
               "resolution": resolution_record(ds, cfg, full_size),
               "eval_seconds": time.perf_counter() - start}
+    weights = training_weights(run_dir, ds)
+    if weights is not None:
+        result["training_weights"] = {"mode": cfg.train.robust, "ignored_share": weights["ignored_share"]}
     io.write_json(run_dir / "metrics.json", result)
     clouds.write_point_cloud(run_dir / "tower_points.ply", cloud)
     notes = list(extra_notes)
     notes.append(resolution_note(result["resolution"]))
+    if weights is not None:
+        notes.append(f"Photometric evidence (`train.robust = {cfg.train.robust}`): training ignored "
+                     f"{100 * weights['ignored_share']:.1f} % of the training pixels by the end "
+                     "(weights in `weights/`, docs/ROBUST.md).")
+        notes += report.weights_figure(run_dir, weights["rows"])
     notes.append(f"Point cloud of the unit sphere (the tower region) lifted from the depth maps of the "
                  f"{len(per_view)} test views" + (f" and {len(cloud_ids)} training views" if cloud_ids else "")
                  + f" (opacity >= 0.5): `tower_points.ply`, {sum(len(p) for p, _ in cloud)} points, "
@@ -267,6 +275,25 @@ def resolution_note(res: dict) -> str:
     return (f"Resolution: trained and rendered at {size}, the working resolution of the "
             f"{res['native_width']}x{res['native_height']} photos (`train.max_side` {res['max_side']}; "
             "`eval --full-size` for full size).")
+
+
+def training_weights(run_dir, ds, panels: int = 3) -> dict | None:
+    """The weights a train.robust run used (run_dir/weights/NAME.png, written by training),
+    or None without them: {"ignored_share": mean of 1 - weight over every training pixel,
+    "rows": [(photo, DPT weight 1 - M_w (ones without masks), weight used)] for `panels`
+    training frames evenly spaced}."""
+    folder = Path(run_dir) / "weights"
+    if not folder.is_dir():
+        return None
+    train_ids = [int(i) for i in ds.split["train"]]
+    used = {i: io.read_image(folder / f"{frame_name(ds, i)}.png")[..., 0] for i in train_ids
+            if (folder / f"{frame_name(ds, i)}.png").is_file()}
+    if not used:
+        return None
+    shown = [train_ids[k] for k in np.unique(np.linspace(0, len(train_ids) - 1, panels).round().astype(int))]
+    prior = lambda i: np.ones(ds.images.shape[1:3], np.float32) if ds.weights is None else ds.weights[i]  # noqa: E731
+    return {"ignored_share": float(np.mean([1.0 - w.mean() for w in used.values()])),
+            "rows": [(ds.images[i], prior(i), used[i]) for i in shown if i in used]}
 
 
 def distractor_psnr(params, cfg, ds, max_views: int, progress: bool = False) -> float | None:

@@ -166,6 +166,20 @@ def export_lines(info: dict | None) -> list[str]:
     return lines
 
 
+def weights_figure(run_dir, rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]]) -> list[str]:
+    """Writes run_dir/report_weights.png: per training frame, photo | the DPT's weight 1 - M_w |
+    the weight training used (train.robust's record; black = ignored). rows: (photo [H, W, 3],
+    prior [H, W], used [H, W]) in [0, 1]. Returns the report's Markdown lines (none without rows)."""
+    if not rows:
+        return []
+    grey = lambda a: np.repeat(np.asarray(a, np.float32)[..., None], 3, axis=-1)  # noqa: E731
+    io.write_png(Path(run_dir) / "report_weights.png",
+                 side_by_side([(np.asarray(photo, np.float32), grey(prior), grey(used))
+                               for photo, prior, used in rows]))
+    return ["Training weights (photo | DPT weight 1 - M_w | weight training used; black = ignored): "
+            "![training weights](report_weights.png)"]
+
+
 def set_section(path, heading: str, lines: list[str]) -> Path:
     """Replaces the section `heading` (a "## " line up to the next "## " line) of the Markdown
     file `path` by `lines`, or appends them; creates the file when it does not exist."""
@@ -240,6 +254,7 @@ def write_report(run_dir, metrics: dict, cfg, data, views: list[dict], extra_lin
               f"- field: {_field_line(model.field)}",
               f"- NeRF-W: appearance {model.use_appearance}, transient {model.use_transient}",
               f"- loss weights from masks: {train_cfg.use_masks} (floor {train_cfg.mask_weight_floor})",
+              f"- photometric evidence (train.robust): {getattr(train_cfg, 'robust', 'off')}",
               f"- batch {train_cfg.batch_rays} rays, {train_cfg.max_steps} steps, lr "
               f"{train_cfg.lr_init} -> {train_cfg.lr_final} (warm-up {train_cfg.warmup}), "
               f"clip {train_cfg.max_grad_norm}", ""]

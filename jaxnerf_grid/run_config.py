@@ -14,8 +14,10 @@ import typing
 
 import jax
 
-from jaxnerf_grid import config as config_lib, models
+from jaxnerf_grid import config as config_lib, models, robust as robust_lib
 from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.io import DataError
 
 
 @dataclasses.dataclass(frozen=True)
@@ -38,6 +40,15 @@ class TrainConfig:
       (the hierarchical sampler's first pass; losses.per_ray_loss's level_weight);
     interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (levels without colour);
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
+    robust: photometric evidence (`robust.py`, docs/ROBUST.md): "off" (the weights above),
+      "robust" (no masks: the weight is the evidence of the residuals) or "dpt+robust" (the
+      dataset's 1 - M_w, whatever use_masks says, sets how strict the evidence is per pixel);
+      when on, training draws batch_rays / robust_patch^2 patches of robust_patch^2 rays;
+    robust_quantile, robust_flagged_quantile: the inlier quantile of the batch's residuals for
+      an unflagged pixel (prior 1) and a flagged one (prior 0; linear in between);
+    robust_patch: patch side in pixels; robust_patch_share: a patch with fewer pixels passing
+      the 3x3 vote is a transient patch; robust_floor: a residual (squared error) at most this
+      is always an inlier.
     """
 
     batch_rays: int = 1024
@@ -64,6 +75,12 @@ class TrainConfig:
     appearance_lr: float = 0.05
     appearance_rays: int = 1024
     max_side: int = 640
+    robust: str = "off"
+    robust_quantile: float = 0.8
+    robust_flagged_quantile: float = 0.5
+    robust_patch: int = 8
+    robust_patch_share: float = 0.6
+    robust_floor: float = 1e-3
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -77,7 +94,10 @@ class TrainConfig:
         "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
         "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
         "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE,
-        "max_side": config_lib.NONNEGATIVE}
+        "max_side": config_lib.NONNEGATIVE,
+        "robust_quantile": config_lib.UNIT, "robust_flagged_quantile": config_lib.UNIT,
+        "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_share": config_lib.UNIT,
+        "robust_floor": config_lib.NONNEGATIVE}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -101,6 +121,7 @@ def make_config(method: str, overrides: dict | None = None) -> RunConfig:
         raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts run.method {method!r}")
     cfg = config_lib.from_dict(RunConfig, merged)
     config_lib.validate(cfg)
+    check_robust(cfg.train)
     models.validate(dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, 1)))
     return cfg
 
@@ -112,3 +133,25 @@ def resolve_devices(cfg: TrainConfig) -> int:
     if n > available:
         raise ConfigError(f"train.num_devices = {n} but only {available} local devices exist")
     return n
+
+
+def check_robust(cfg: TrainConfig, num_devices: int = 1, dataset: Dataset | None = None) -> None:
+    """ConfigError unless train.robust is a known mode and, when on, the batch splits into whole
+    patches, and the patches over the devices; with a dataset, also that a patch fits in its
+    frames (ConfigError) and that dpt+robust has masks (DataError)."""
+    if cfg.robust not in robust_lib.MODES:
+        raise ConfigError(f"train.robust = {cfg.robust!r}: must be one of {', '.join(robust_lib.MODES)}")
+    if cfg.robust == "off":
+        return
+    area = cfg.robust_patch ** 2
+    if cfg.batch_rays % area or (cfg.batch_rays // area) % num_devices:
+        raise ConfigError(f"train.batch_rays = {cfg.batch_rays}: with train.robust on it must be a multiple of "
+                          f"train.robust_patch^2 ({area}) times the device count ({num_devices})")
+    if dataset is None:
+        return
+    if min(dataset.height, dataset.width) < cfg.robust_patch:
+        raise ConfigError(f"train.robust_patch = {cfg.robust_patch}: larger than the "
+                          f"{dataset.width}x{dataset.height} images")
+    if cfg.robust == "dpt+robust" and dataset.weights is None:
+        raise DataError(f"{dataset.root}: train.robust = dpt+robust needs the dataset's masks "
+                        "(run jaxnerf-grid mask first, or use train.robust = robust)")

@@ -177,12 +177,13 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
     """The checks of a run before anything is written or deleted: the config's types and ranges
     (config.validate), the ray bounds on this dataset (config.resolve), the camera centres
     (data.dataset.check_camera_centres), the device count and the batch's memory
-    (train.check_batch)."""
+    (train.check_batch), train.robust's patches and masks (train.check_robust)."""
     config_lib.validate(cfg)
     settled = config_lib.resolve(cfg, ds)
     check_camera_centres(ds)
     n = train.step_devices(cfg.train) if num_devices is None else num_devices
     train.check_batch(settled, n)
+    train.check_robust(settled.train, n, ds)
 
 
 def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0):

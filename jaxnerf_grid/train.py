@@ -14,6 +14,11 @@ Training step (one `jax.pmap` over the local devices, axis "batch"):
     loss), then `optim.guarded_apply` (jaxopt's OptaxSolver update with clipping inside Adam)
     skips a non-finite step; the host logs every skipped step;
   * the learning rate warms up linearly then decays log-linearly (optim.make_lr_schedule).
+  * with train.robust on (`_make_robust_step`, robust.py, docs/ROBUST.md) the batch is square
+    patches drawn over whole frames and each pixel's weight is the photometric evidence of the
+    residuals (their quantiles taken over the all-gathered global batch); the state then also
+    holds "robust_record", the per-pixel average of the weights used, written at the end as
+    RUN/weights/NAME.png.
 
 The state is {"params", "opt_state", "key"} plus the host step counter; checkpoints
 (checkpoint.save_checkpoint: atomic, last k kept) hold exactly that, so a resumed run replays
@@ -37,11 +42,12 @@ import numpy as np
 
 from jaxnerf_grid import (checkpoint, config as config_lib, distributed, fields, io, losses, models, optim, parallel,
                           progress as progress_lib, rays as rays_lib)
+from jaxnerf_grid import robust as robust_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
 # the run config lives in run_config.py; train.RunConfig / train.make_config stay for their callers
-from jaxnerf_grid.run_config import RunConfig, TrainConfig, make_config, resolve_devices  # noqa: F401
+from jaxnerf_grid.run_config import RunConfig, TrainConfig, check_robust, make_config, resolve_devices  # noqa: F401
 
 logger = logging.getLogger(__name__)
 AXIS = parallel.AXIS
@@ -61,19 +67,32 @@ def loss_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
     return w.astype(np.float32)
 
 
+def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
+    """The per-pixel prior of the photometric evidence (train.robust on). [N, H, W] in [0, 1]:
+    ones for "robust"; for "dpt+robust" the dataset's 1 - M_w (with mask_weight_floor), which
+    must exist."""
+    check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust_patch ** 2), 1, dataset)
+    if cfg.robust == "robust":
+        return np.ones(dataset.images.shape[:3], np.float32)
+    return loss_weights(dataset, dataclasses.replace(cfg, use_masks=True))
+
+
 def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     """Training data for on-device batch drawing (host NumPy arrays).
 
     Returns {"pixels": [P] int32 flat ids (frame-in-train * H*W + row * W + col) of every
     training pixel with weight > 0, "images": [T, H, W, 3], "weights": [T, H, W],
     "c2w": [T, 4, 4], "intrinsics": [T, 4], "frame": [T] int32 dataset frame ids,
-    "near", "far": floats}.
+    "near", "far": floats}. With train.robust on, "weights" is the evidence's prior
+    (`prior_weights`) and "pixels" every training pixel, the flagged ones included (patches
+    are drawn over whole frames).
     """
     train_ids = np.asarray(dataset.split["train"], np.int64)
     if train_ids.size == 0:
         raise DataError(f"{dataset.root}: the dataset has no training frames")
-    weights = loss_weights(dataset, cfg.train)[train_ids]
-    pixels = np.flatnonzero(weights.reshape(-1) > 0).astype(np.int32)
+    robust_on = cfg.train.robust != "off"
+    weights = (prior_weights(dataset, cfg.train) if robust_on else loss_weights(dataset, cfg.train))[train_ids]
+    pixels = (np.arange(weights.size) if robust_on else np.flatnonzero(weights.reshape(-1) > 0)).astype(np.int32)
     if pixels.size == 0:
         raise DataError(f"{dataset.root}: every training pixel has loss weight 0 (check the masks)")
     near, far = config_lib.near_far(cfg.model, dataset)
@@ -109,12 +128,30 @@ def make_optimizer(cfg: TrainConfig) -> optim.GradientTransformation:
     return optim.adam(schedule, b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps, max_grad_norm=cfg.max_grad_norm)
 
 
-def init_state(cfg: RunConfig) -> dict:
-    """{"params", "opt_state", "key"} on the host (unreplicated)."""
+def init_state(cfg: RunConfig, frames_shape: tuple | None = None) -> dict:
+    """{"params", "opt_state", "key"} on the host (unreplicated); with train.robust on also
+    "robust_record": [T, H, W] the per-pixel moving average of the weights training used
+    (`robust.ema_update`), ones at first; frames_shape = (T, H, W) of the training frames
+    (`train_frames_shape`) is then needed."""
     key = jax.random.PRNGKey(cfg.train.seed)
     key, k_init = jax.random.split(key)
     params = models.init(k_init, cfg.model)
-    return {"params": params, "opt_state": make_optimizer(cfg.train).init(params), "key": key}
+    state = {"params": params, "opt_state": make_optimizer(cfg.train).init(params), "key": key}
+    if cfg.train.robust != "off":
+        if frames_shape is None:
+            raise ValueError("init_state: train.robust is on, give the training frames' shape")
+        state["robust_record"] = np.ones(tuple(frames_shape), np.float32)
+    return state
+
+
+def train_frames_shape(dataset: Dataset) -> tuple[int, int, int]:
+    """(T, H, W): training frames, height, width."""
+    return (len(dataset.split["train"]), dataset.height, dataset.width)
+
+
+def final_rgb(outputs: dict) -> jnp.ndarray:
+    """The picture's colour of a models.render_rays output, [B, 3] (the final pass)."""
+    return outputs["final"]["rgb"]
 
 
 def make_train_step(cfg: RunConfig, num_devices: int):
@@ -135,6 +172,8 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         raise ConfigError(f"train.batch_rays ({tcfg.batch_rays}) must divide by the device count ({num_devices})")
     per_device = tcfg.batch_rays // num_devices
     opt = make_optimizer(tcfg)
+    if tcfg.robust != "off":
+        return _make_robust_step(cfg, num_devices, opt)
 
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
@@ -161,6 +200,68 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         return {"params": params, "opt_state": opt_state, "key": key}, {"loss": loss, "mse": mse, "finite": finite}
 
     return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
+
+
+def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
+    """The pmapped step with photometric evidence (train.robust on; robust.py): the global batch
+    is batch_rays / p^2 patches of p x p pixels drawn from the state's key (the same for any
+    device count), each device renders its share of whole patches; the residuals (final pass,
+    stop-gradient) are all-gathered so every device takes the quantiles of the same global
+    batch; each pixel's loss weight is `robust.robust_weights` of its patch with the pool's
+    weight as the prior. The state's robust_record takes the batch's weights (all-gathered, the
+    same update on every device). Stats add "robust_weight": the mean weight of the batch."""
+    mcfg, tcfg = cfg.model, cfg.train
+    check_robust(tcfg, num_devices)
+    p = tcfg.robust_patch
+    num_patches = tcfg.batch_rays // (p * p)
+    per_device = tcfg.batch_rays // num_devices
+
+    def step(state, pool):
+        key, k_batch, k_rays = jax.random.split(state["key"], 3)
+        frames, height, width = pool["weights"].shape
+        ids = robust_lib.draw_patches(k_batch, num_patches, frames, height, width, p)
+        ray_keys = jax.random.split(k_rays, tcfg.batch_rays)
+        start = jax.lax.axis_index(AXIS) * per_device
+        local_ids = jax.lax.dynamic_slice_in_dim(ids, start, per_device)
+        ray_keys = jax.lax.dynamic_slice_in_dim(ray_keys, start, per_device)
+        batch = gather_batch(pool, local_ids)
+
+        def loss_fn(params):
+            out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
+                                     batch["far"], ray_keys, batch["image_index"])
+            terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
+                                        tcfg.coarse_loss_weight, tcfg.interlevel_loss_weight,
+                                        tcfg.distortion_loss_weight)
+            residual = jax.lax.stop_gradient(losses.squared_error(final_rgb(out), batch["rgb"]))
+            everyone = jax.lax.all_gather(residual, AXIS, tiled=True)
+            weight = robust_lib.robust_weights(
+                residual.reshape(-1, p, p), batch["weight"].reshape(-1, p, p), everyone, tcfg.robust_quantile,
+                tcfg.robust_flagged_quantile, tcfg.robust_patch_share, tcfg.robust_floor).reshape(-1)
+            total = jax.lax.psum(jnp.sum(weight), AXIS)
+            loss = losses.weighted_mean(terms["loss"], weight, total)
+            return loss, (losses.weighted_mean(terms["mse"], weight, total), weight)
+
+        (loss, (mse, weight)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+        loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
+        params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
+        all_weights = jax.lax.all_gather(weight, AXIS, tiled=True)
+        record = robust_lib.ema_update(state["robust_record"], ids, all_weights)
+        new_state = {"params": params, "opt_state": opt_state, "key": key, "robust_record": record}
+        return new_state, {"loss": loss, "mse": mse, "finite": finite, "robust_weight": jnp.mean(all_weights)}
+
+    return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
+
+
+def write_robust_record(run_dir, dataset: Dataset, record: np.ndarray) -> Path:
+    """Writes the weights training used (the state's robust_record [T, H, W]) as 8-bit PNGs
+    run_dir/weights/NAME.png, one per training frame (NAME: the frame's file stem, frame_0007
+    without paths; white = used, black = ignored). Returns the folder."""
+    folder = Path(run_dir) / "weights"
+    folder.mkdir(parents=True, exist_ok=True)
+    for k, frame in enumerate(np.asarray(dataset.split["train"], np.int64)):
+        name = Path(dataset.frame_paths[frame]).stem if dataset.frame_paths else f"frame_{int(frame):04d}"
+        io.write_png(folder / f"{name}.png", np.asarray(record[k], np.float32))
+    return folder
 
 
 ACTIVATION_COPIES = 4  # a sample's activations: forward values, pre-activations and both gradients
@@ -296,7 +397,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     mcfg, tcfg = cfg.model, cfg.train
     n = step_devices(tcfg)
     pool_host = build_pool(dataset, cfg)
-    state = init_state(cfg)
+    state = init_state(cfg, train_frames_shape(dataset))
     step = 0
     main = distributed.is_main()  # process 0 (always, in one process) writes logs and checkpoints
     restored = checkpoint.restore_latest(run_dir, state) if main else None
@@ -309,6 +410,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     log_path = run_dir / "metrics.jsonl"
     last_record = _trim_log(log_path, step) if main else None
     check_batch(cfg, n)
+    check_robust(tcfg, n)
     pool = parallel.replicate(pool_host, n)
     state_r = parallel.replicate(state, n)
     p_step = make_train_step(cfg, n)
@@ -340,6 +442,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                           "lr": float(schedule(step - 1)), "skipped_total": len(skipped),
                           "rays_per_s": window_steps * tcfg.batch_rays / max(elapsed, 1e-9),
                           "time": time.perf_counter() - start_time}
+                if "robust_weight" in stats:
+                    record["robust_weight"] = float(stats["robust_weight"][0])
                 if main:
                     with open(log_path, "a") as fh:
                         fh.write(json.dumps(record) + "\n")
@@ -356,6 +460,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
         if bar is not None:
             bar.close()
     final = parallel.unreplicate(state_r)
+    if "robust_record" in final and main:
+        write_robust_record(run_dir, dataset, final["robust_record"])
     return TrainResult(params=final["params"], step=step, seconds=time.perf_counter() - start_time,
                        skipped_steps=skipped, last_loss=last_loss, last_psnr=last_psnr,
                        steps_run=step - first_step)
@@ -363,7 +469,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
 
 def load_params(run_dir, cfg: RunConfig, dataset: Dataset) -> tuple[dict, int]:
     """Parameters of the newest checkpoint of a run of `cfg` on `dataset`. Returns (params, step)."""
-    template = init_state(config_lib.resolve(cfg, dataset, bounds=False))
+    template = init_state(config_lib.resolve(cfg, dataset, bounds=False), train_frames_shape(dataset))
     restored = checkpoint.restore_latest(run_dir, template)
     if restored is None:
         raise DataError(f"{Path(run_dir) / checkpoint.CHECKPOINT_DIR}: no checkpoint to load")

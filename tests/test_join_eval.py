@@ -315,3 +315,30 @@ def test_tower_box_of_one_pixel_and_of_none():
     assert report.tower_box(sem) is None
     sem[2, 20] = 1
     assert report.tower_box(sem, margin=4) == (slice(0, 7), slice(16, 24))
+
+
+def test_a_robust_run_reports_the_weights_training_used(tmp_path):
+    """train.robust writes weights/NAME.png per training frame; eval's report shows, for 3
+    training frames, photo | DPT weight 1 - M_w | the weight used, and metrics.json the share
+    of training pixels ignored (recomputed here from the PNGs)."""
+    ds = region_dataset()
+    save_transforms_json(ds, tmp_path / "data")
+    overrides = tiny_overrides("ours")
+    overrides["train"].update(robust="dpt+robust", robust_patch=4)
+    run, _, _ = runs.train_run(str(tmp_path / "data"), "ours", tmp_path / "run", overrides, progress=False)
+    metrics = evaluate.evaluate_run(run, progress=False)
+    loaded = runs.load_dataset(str(tmp_path / "data"), progress=False)
+    names = [Path(loaded.frame_paths[i]).stem for i in range(4)]   # the training frames' file stems
+    used = [cv2.imread(str(Path(run) / "weights" / f"{name}.png"), cv2.IMREAD_GRAYSCALE) / 255.0 for name in names]
+    assert all(u.shape == (H, W) for u in used)
+    assert metrics["training_weights"]["mode"] == "dpt+robust"
+    assert metrics["training_weights"]["ignored_share"] == pytest.approx(np.mean([1 - u.mean() for u in used]))
+    assert "report_weights.png" in (Path(run) / "report.md").read_text()
+    figure = io.read_image(Path(run) / "report_weights.png")
+    assert figure.shape == (3 * H + 2 * 2, 3 * W + 2 * 2, 3)
+    for row, frame in enumerate([0, 2, 3]):            # evenly spaced over the 4 training frames
+        top = row * (H + 2)
+        photo, prior, weight = (figure[top:top + H, k * (W + 2):k * (W + 2) + W] for k in range(3))
+        np.testing.assert_allclose(photo, loaded.images[frame], atol=1 / 255 + 1e-6)
+        np.testing.assert_allclose(prior[..., 0], loaded.weights[frame], atol=1 / 255 + 1e-6)
+        np.testing.assert_allclose(weight[..., 0], used[frame], atol=1e-6)

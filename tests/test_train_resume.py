@@ -1,6 +1,7 @@
 """Exact resume: a training process killed (SIGKILL) after a checkpoint, then resumed, ends
 with the same parameters as an uninterrupted run, even when metrics.jsonl ends in a torn line;
-a run resumed at its last step reports its last logged loss, not NaN."""
+a run resumed at its last step reports its last logged loss, not NaN. The same with the
+photometric evidence on (train.robust: its per-pixel record is part of the state)."""
 
 import os
 import signal
@@ -11,22 +12,28 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import pytest
 
 from jaxnerf_grid import checkpoint, train
 
 sys.path.insert(0, str(Path(__file__).parent))
-from test_train import tiny_config, tiny_dataset  # noqa: E402
+from test_train import last_state, tiny_config, tiny_dataset  # noqa: E402
 
 
-def _child(run_dir: str) -> None:
+def _config(robust: str):
+    return tiny_config(robust=robust, robust_patch=4) if robust != "off" else tiny_config()
+
+
+def _child(run_dir: str, robust: str) -> None:
     """Trains the tiny run slowly (a pause after each step) so the parent can kill it mid-run."""
-    train.train(tiny_dataset(), tiny_config(), run_dir, progress=False, on_step=lambda s: time.sleep(0.2))
+    train.train(tiny_dataset(), _config(robust), run_dir, progress=False, on_step=lambda s: time.sleep(0.2))
 
 
-def test_killed_run_resumes_exactly(tmp_path):
+@pytest.mark.parametrize("robust", ["off", "dpt+robust"])
+def test_killed_run_resumes_exactly(tmp_path, robust):
     killed = tmp_path / "killed"
     env = dict(os.environ, PYTHONPATH=str(Path(__file__).parents[1]) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, __file__, str(killed)], env=env,
+    proc = subprocess.Popen([sys.executable, __file__, str(killed), robust], env=env,
                             stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     try:
         deadline = time.time() + 300
@@ -44,19 +51,23 @@ def test_killed_run_resumes_exactly(tmp_path):
     # a full disk or a kill while appending leaves half a line: the resume must trim it (issue 14)
     with open(killed / "metrics.jsonl", "a") as fh:
         fh.write('{"step": 7, "loss": 0.0')
-    resumed = train.train(tiny_dataset(), tiny_config(), killed, progress=False)
-    straight = train.train(tiny_dataset(), tiny_config(), tmp_path / "straight", progress=False)
+    resumed = train.train(tiny_dataset(), _config(robust), killed, progress=False)
+    straight = train.train(tiny_dataset(), _config(robust), tmp_path / "straight", progress=False)
     assert resumed.step == straight.step == 30
     diffs = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(np.asarray(a) - np.asarray(b)))),
                                    resumed.params, straight.params)
     assert max(jax.tree_util.tree_leaves(diffs)) <= 1e-6, diffs
+    if robust != "off":  # the record of the weights used resumes too (it is in the checkpoint)
+        states = [last_state(run, _config(robust), tiny_dataset()) for run in (killed, tmp_path / "straight")]
+        np.testing.assert_array_equal(states[0]["robust_record"], states[1]["robust_record"])
+        assert states[0]["robust_record"].min() < 1
     # the metrics log has each logged step once, in order, despite the replay
     lines = (killed / "metrics.jsonl").read_text().splitlines()
     assert [int(x.split('"step": ')[1].split(",")[0]) for x in lines] == [5, 10, 15, 20, 25, 30]
-    again = train.train(tiny_dataset(), tiny_config(), killed, progress=False)  # already finished
+    again = train.train(tiny_dataset(), _config(robust), killed, progress=False)  # already finished
     assert again.step == 30 and again.steps_run == 0
     assert again.last_loss == resumed.last_loss and np.isfinite(again.last_psnr)
 
 
 if __name__ == "__main__":
-    _child(sys.argv[1])
+    _child(sys.argv[1], sys.argv[2])

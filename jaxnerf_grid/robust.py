@@ -1,0 +1,120 @@
+"""Photometric evidence: a robust per-pixel loss weight from the training residuals.
+
+In the spirit of RobustNeRF (Sabour et al. 2023): a pixel whose residual is large compared
+with the rest of the batch is probably a transient (a person, a bird) that the static model
+cannot and should not explain, so it is left out of the loss. Training draws square patches
+of rays (`draw_patches`) so that the evidence can be judged over neighbourhoods; every array
+below is laid out [P, p, p] (P patches of p x p pixels) unless said otherwise.
+
+The rule, per training step (`evidence`):
+
+1. threshold: the residual (squared error of the final pass, stop-gradient) at the quantile
+   q(prior) of the *global* batch's residuals, with q(prior) = q_flagged + (q - q_flagged) *
+   prior per pixel (`pixel_quantiles`); a pixel is an inlier when its residual is at most
+   max(threshold, floor) (the floor keeps pixels the model fits to within noise, which a
+   quantile alone would always cut by its share);
+2. 3x3 vote: the share of inliers among the pixel's 3x3 neighbours inside its patch (itself
+   included; `smooth_3x3`); the vote passes at a share of at least 1/2, which re-admits
+   isolated outliers in a static region (fine detail) and drops isolated inliers inside a
+   transient;
+3. patch rule: a patch where fewer than `patch_share` of the pixels pass the vote is judged a
+   transient patch; there a pixel counts only when it passes the vote *and* is itself an
+   inlier; elsewhere the vote decides.
+
+The weight is 1 for a pixel that counts, 0 otherwise.
+
+The prior (`dpt+robust`): the dataset's weight 1 - M_w (DPT masks with the depth weighting
+of Eq. 7) does not multiply the weight; it sets how strict the evidence is for each pixel.
+An unflagged pixel (prior 1) is an inlier up to the q quantile (0.8: the worst 20 % of the
+batch are outliers, so a transient the DPT missed is down-weighted); a fully flagged pixel
+(prior 0) only up to q_flagged (0.5: it must be fitted better than the batch median, so the
+static model must really explain it before it is re-admitted). Mode `robust` is the same
+rule with prior 1 everywhere. Training's per-pixel record of the weights it used is
+`ema_update` (docs/ROBUST.md).
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+
+MODES = ("off", "robust", "dpt+robust")
+VOTE = 0.5        # the 3x3 vote passes at this share of inliers
+EMA_RATE = 0.5    # a pixel's recorded weight moves this far towards each new weight it gets
+
+
+def pixel_quantiles(prior: jnp.ndarray, quantile: float, flagged_quantile: float) -> jnp.ndarray:
+    """Each pixel's inlier quantile: q_flagged + (q - q_flagged) * prior. prior: [...] in [0, 1]
+    -> [...]."""
+    return flagged_quantile + (quantile - flagged_quantile) * jnp.clip(prior, 0.0, 1.0)
+
+
+def quantile_of(values: jnp.ndarray, q: jnp.ndarray) -> jnp.ndarray:
+    """Linear-interpolation quantiles (NumPy's default method) of `values` [N] (any shape,
+    flattened) at q [...] in [0, 1] -> [...]. Sorts once, then interpolates per q."""
+    ranked = jnp.sort(values.reshape(-1))
+    pos = jnp.clip(q, 0.0, 1.0) * (ranked.shape[0] - 1)
+    return jnp.interp(pos, jnp.arange(ranked.shape[0], dtype=pos.dtype), ranked)
+
+
+def inliers(residuals: jnp.ndarray, thresholds: jnp.ndarray, floor: float) -> jnp.ndarray:
+    """residuals, thresholds: [...] -> [...] float 1.0 where residual <= max(threshold, floor)."""
+    return (residuals <= jnp.maximum(thresholds, floor)).astype(jnp.float32)
+
+
+def smooth_3x3(x: jnp.ndarray) -> jnp.ndarray:
+    """Mean of x over each pixel's 3x3 neighbourhood within its patch (neighbours outside the
+    patch are not counted: a corner averages 4 pixels, an edge 6). x: [P, p, p] -> [P, p, p]."""
+    pad = lambda a: jnp.pad(a, ((0, 0), (1, 1), (1, 1)))  # noqa: E731
+    p = x.shape[-1]
+
+    def box(a):
+        a = pad(a)
+        return sum(a[:, i:i + p, j:j + p] for i in range(3) for j in range(3))
+
+    return box(x) / box(jnp.ones_like(x))
+
+
+def evidence(inlier: jnp.ndarray, patch_share: float) -> jnp.ndarray:
+    """The 3x3 vote and the patch rule on an inlier indicator. inlier: [P, p, p] in {0, 1}
+    -> [P, p, p] weights in {0, 1}: vote AND (patch kept OR inlier), where vote = smooth_3x3
+    >= 1/2 and a patch is kept when at least `patch_share` of its pixels pass the vote."""
+    vote = (smooth_3x3(inlier) >= VOTE).astype(jnp.float32)
+    kept = (jnp.mean(vote, axis=(1, 2), keepdims=True) >= patch_share).astype(jnp.float32)
+    return vote * jnp.maximum(kept, inlier)
+
+
+def robust_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray,
+                   quantile: float, flagged_quantile: float, patch_share: float,
+                   floor: float) -> jnp.ndarray:
+    """The loss weight of each pixel of the patches (the module docstring's rule).
+
+    residuals, prior: [P, p, p] (this device's patches; prior 1 = unflagged, 0 = flagged);
+    batch_residuals: [N] the residuals of the whole global batch (all devices), which the
+    thresholds are quantiles of. Returns [P, p, p] in {0, 1}.
+    """
+    thresholds = quantile_of(batch_residuals, pixel_quantiles(prior, quantile, flagged_quantile))
+    return evidence(inliers(residuals, thresholds, floor), patch_share)
+
+
+def draw_patches(key, num_patches: int, num_frames: int, height: int, width: int, patch: int) -> jnp.ndarray:
+    """Flat pixel ids (frame * H * W + row * W + col) of `num_patches` random p x p patches lying
+    inside the frames, patch-major. Returns [num_patches * p * p] int32."""
+    k_frame, k_row, k_col = jax.random.split(key, 3)
+    frame = jax.random.randint(k_frame, (num_patches,), 0, num_frames)
+    row0 = jax.random.randint(k_row, (num_patches,), 0, height - patch + 1)
+    col0 = jax.random.randint(k_col, (num_patches,), 0, width - patch + 1)
+    offs = jnp.arange(patch)
+    rows = row0[:, None, None] + offs[None, :, None]
+    cols = col0[:, None, None] + offs[None, None, :]
+    ids = frame[:, None, None] * (height * width) + rows * width + cols
+    return ids.reshape(-1).astype(jnp.int32)
+
+
+def ema_update(record: jnp.ndarray, ids: jnp.ndarray, weights: jnp.ndarray) -> jnp.ndarray:
+    """Moves the recorded weight of the pixels `ids` EMA_RATE of the way to `weights`.
+    record: [T, H, W]; ids: [N] flat pixel ids; weights: [N]. Returns [T, H, W]. A pixel drawn
+    twice in one batch (overlapping patches) takes one of its two updates."""
+    flat = record.reshape(-1)
+    new = flat[ids] + EMA_RATE * (weights - flat[ids])
+    return flat.at[ids].set(new).reshape(record.shape)

@@ -1,0 +1,180 @@
+"""robust.py: the photometric evidence against a direct NumPy computation (loops over pixels),
+on hand-made residuals: random ones, a pasted square, a flat scene, a prior that is wrong."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxnerf_grid import robust
+
+DEFAULTS = {"quantile": 0.8, "flagged_quantile": 0.5, "patch_share": 0.6, "floor": 0.0}
+
+
+def reference_weights(res, prior, batch_res, quantile, flagged_quantile, patch_share, floor):
+    """The rule of robust.py's docstring, pixel by pixel with np.quantile. res, prior: [P, p, p]."""
+    res, prior = np.asarray(res, np.float64), np.asarray(prior, np.float64)
+    count, p, _ = res.shape
+    inlier = np.zeros(res.shape)
+    for k in range(count):
+        for i in range(p):
+            for j in range(p):
+                q = flagged_quantile + (quantile - flagged_quantile) * prior[k, i, j]
+                inlier[k, i, j] = res[k, i, j] <= max(np.quantile(np.asarray(batch_res, np.float64), q), floor)
+    vote = np.zeros(res.shape)
+    for k in range(count):
+        for i in range(p):
+            for j in range(p):
+                near = [inlier[k, a, b] for a in range(i - 1, i + 2) for b in range(j - 1, j + 2)
+                        if 0 <= a < p and 0 <= b < p]
+                vote[k, i, j] = np.mean(near) >= 0.5
+    out = np.zeros(res.shape)
+    for k in range(count):
+        kept = vote[k].mean() >= patch_share
+        for i in range(p):
+            for j in range(p):
+                out[k, i, j] = vote[k, i, j] if kept else vote[k, i, j] * inlier[k, i, j]
+    return out
+
+
+def ours(res, prior, batch_res=None, **kw):
+    args = {**DEFAULTS, **kw}
+    batch_res = res.reshape(-1) if batch_res is None else batch_res
+    return np.asarray(robust.robust_weights(jnp.asarray(res, jnp.float32), jnp.asarray(prior, jnp.float32),
+                                            jnp.asarray(batch_res, jnp.float32), **args))
+
+
+def test_random_residuals_and_priors_match_numpy():
+    rng = np.random.default_rng(0)
+    res = (rng.random((4, 8, 8)) ** 3).astype(np.float32)
+    res[1, 2:7, 1:6] += 1.0                                   # a blob of outliers
+    res[3] += 0.5                                             # a whole patch of outliers
+    prior = rng.choice([0.0, 0.3, 1.0], size=res.shape).astype(np.float32)
+    extra = (rng.random(64) ** 3).astype(np.float32)          # other devices' residuals
+    batch = np.concatenate([res.reshape(-1), extra])
+    for kw in ({}, {"floor": 0.05}, {"patch_share": 0.9, "quantile": 0.6}):
+        want = reference_weights(res, prior, batch, **{**DEFAULTS, **kw})
+        np.testing.assert_array_equal(ours(res, prior, batch, **kw), want)
+    assert 0 < ours(res, prior, batch).mean() < 1
+
+
+def test_a_pasted_square_is_found_and_the_background_kept():
+    rng = np.random.default_rng(1)
+    res = (1e-4 * rng.random((4, 16, 16))).astype(np.float32)   # a static scene fitted to noise
+    res[2, 5:11, 4:10] = 0.1 + 0.05 * rng.random((6, 6))         # a pasted 6 x 6 transient
+    prior = np.ones_like(res)
+    got = ours(res, prior)
+    np.testing.assert_array_equal(got, reference_weights(res, prior, res.reshape(-1), **DEFAULTS))
+    assert np.all(got[2, 6:10, 5:9] == 0)                       # the square's inside is ignored
+    background = np.ones(res.shape, bool)
+    background[2, 4:12, 3:11] = False
+    # the quantile makes 20 % of the noise outliers; the 3x3 vote re-admits nearly all of them
+    assert got[background].mean() > 0.95
+    # with the default floor (noise far below it) the background is kept whole
+    floored = ours(res, prior, floor=1e-3)
+    assert np.all(floored[background] == 1) and np.all(floored[2, 6:10, 5:9] == 0)
+
+
+def test_a_flat_scene_has_no_outliers():
+    res = np.full((3, 8, 8), 0.02, np.float32)                 # every residual the same
+    assert np.all(ours(res, np.ones_like(res)) == 1)
+    noisy = (np.random.default_rng(2).random((3, 8, 8)) * 5e-4).astype(np.float32)
+    assert np.all(ours(noisy, np.ones_like(noisy), floor=1e-3) == 1)
+
+
+def test_the_prior_sets_how_strict_the_evidence_is():
+    """A flagged pixel is re-admitted only below the flagged quantile (the batch median); an
+    unflagged one is kept up to the 0.8 quantile; a transient the prior missed is dropped."""
+    res = np.zeros((4, 4, 4), np.float32)
+    res[0] = 0.01                           # fitted well, flagged by a wrong prior
+    res[1] = 0.03                           # fitted so-so: between the median and the 0.8 quantile
+    res[2] = 0.03
+    res[3] = 0.5                            # a transient the prior missed
+    batch = np.concatenate([res.reshape(-1), np.full(32, 0.005, np.float32)])  # median 0.02, 0.8 quantile 0.03
+    prior = np.ones_like(res)
+    prior[0] = 0.0
+    prior[1] = 0.0
+    got = ours(res, prior, batch)
+    np.testing.assert_array_equal(got, reference_weights(res, prior, batch, **DEFAULTS))
+    assert np.all(got[0] == 1)              # re-admitted
+    assert np.all(got[1] == 0)              # flagged and not fitted well enough: stays out
+    assert np.all(got[2] == 1)              # the same residual, unflagged: kept
+    assert np.all(got[3] == 0)              # missed transient: down-weighted
+
+
+def test_smoothing_counts_only_neighbours_inside_the_patch():
+    x = np.random.default_rng(3).random((2, 5, 5)).astype(np.float32)
+    want = np.zeros_like(x)
+    for k in range(2):
+        for i in range(5):
+            for j in range(5):
+                want[k, i, j] = x[k, max(i - 1, 0):i + 2, max(j - 1, 0):j + 2].mean()
+    np.testing.assert_allclose(np.asarray(robust.smooth_3x3(jnp.asarray(x))), want, rtol=1e-6)
+
+
+def test_patches_are_squares_inside_the_frames():
+    ids = np.asarray(robust.draw_patches(jax.random.PRNGKey(0), 50, 3, 7, 9, 4)).reshape(50, 4, 4)
+    frame, pix = ids // 63, ids % 63
+    row, col = pix // 9, pix % 9
+    for k in range(50):
+        assert np.all(frame[k] == frame[k, 0, 0]) and 0 <= frame[k, 0, 0] < 3
+        np.testing.assert_array_equal(row[k], row[k, 0, 0] + np.arange(4)[:, None] + 0 * np.arange(4))
+        np.testing.assert_array_equal(col[k], col[k, 0, 0] + np.arange(4)[None, :] + 0 * np.arange(4)[:, None])
+        assert row[k].max() < 7 and col[k].max() < 9
+
+
+def test_the_record_moves_halfway_to_each_new_weight():
+    record = np.ones((2, 3, 4), np.float32)
+    ids = np.array([0, 5, 23])
+    got = np.asarray(robust.ema_update(jnp.asarray(record), jnp.asarray(ids), jnp.asarray([0.0, 1.0, 0.0])))
+    want = record.reshape(-1).copy()
+    want[[0, 23]] = 0.5
+    np.testing.assert_array_equal(got.reshape(-1), want)
+
+
+@pytest.mark.parametrize("mode", ["off", "robust", "dpt+robust", "bad"])
+def test_modes_are_checked(mode):
+    from jaxnerf_grid import train
+    from jaxnerf_grid.config import ConfigError
+
+    if mode == "bad":
+        with pytest.raises(ConfigError, match="train.robust"):
+            train.make_config("ours", {"train": {"robust": mode}})
+        return
+    cfg = train.make_config("ours", {"train": {"robust": mode, "batch_rays": 128, "robust_patch": 8}})
+    train.check_robust(cfg.train, 2)
+    if mode != "off":
+        with pytest.raises(ConfigError, match="train.batch_rays"):
+            train.check_robust(cfg.train, 4)
+
+
+def test_the_switch_is_settable_with_set():
+    from jaxnerf_grid import config, train
+
+    overrides = config.parse_sets(["train.robust=dpt+robust", "train.robust_patch=16"], train.RunConfig)
+    cfg = train.make_config("nerf", overrides)
+    assert cfg.train.robust == "dpt+robust" and cfg.train.robust_patch == 16
+    assert train.make_config("nerf").train.robust == "off"
+
+
+def test_bad_settings_are_one_line_errors_naming_the_key_or_folder():
+    import sys
+    from pathlib import Path
+
+    from jaxnerf_grid import train
+    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.io import DataError
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_train import tiny_config, tiny_dataset
+
+    ds = tiny_dataset()                                    # 16 x 12 frames
+    with pytest.raises(ConfigError, match="train.robust_patch = 16"):
+        train.build_pool(ds, tiny_config(robust="robust", robust_patch=16, batch_rays=512))
+    ds.weights = None
+    with pytest.raises(DataError, match="tiny: train.robust = dpt\\+robust needs the dataset's masks"):
+        train.build_pool(ds, tiny_config(robust="dpt+robust", robust_patch=4))
+    assert train.build_pool(ds, tiny_config(robust="robust", robust_patch=4))["weights"].min() == 1
+    from jaxnerf_grid import runs                            # refused before a run folder is written
+    with pytest.raises(DataError, match="needs the dataset's masks"):
+        runs.check_run(tiny_config(robust="dpt+robust", robust_patch=4), ds, num_devices=2)
