@@ -15,7 +15,7 @@ The rule, per training step (`evidence`):
    quantile alone would always cut by its share);
 2. 3x3 vote: the share of inliers among the pixel's 3x3 neighbours inside its patch (itself
    included; `smooth_3x3`); the vote passes at a share of at least 1/2, which re-admits
-   isolated outliers in a static region (fine detail) and drops isolated inliers inside a
+   isolated outliers in a static region (thin detail) and drops isolated inliers inside a
    transient;
 3. patch rule: a patch where fewer than `patch_share` of the pixels pass the vote is judged a
    transient patch; there a pixel counts only when it passes the vote *and* is itself an

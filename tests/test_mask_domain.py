@@ -64,8 +64,8 @@ def test_predict_maps_confidence_is_the_mean_max_probability_dpt_saw(tiles):
         x = fg.to_working_size(photo, 64, 32)[None]
     else:
         lay = fg.tile_layout(70, 100, 64, 32, tiles, 0.25)
-        fine = fg.resize_map(photo, *lay.fine)
-        x = np.stack([fine[y:y + lay.tile[0], s:s + lay.tile[1]] for y in lay.starts_y for s in lay.starts_x])
+        resized = fg.resize_map(photo, *lay.resized)
+        x = np.stack([resized[y:y + lay.tile[0], s:s + lay.tile[1]] for y in lay.starts_y for s in lay.starts_x])
     logits = np.asarray(dpt.apply(model, dpt.normalize(x))["logits"], np.float64)
     e = np.exp(logits - logits.max(-1, keepdims=True))
     assert conf == pytest.approx(float((e / e.sum(-1, keepdims=True)).max(-1).mean()), rel=1e-5)
