@@ -154,6 +154,17 @@ def final_rgb(outputs: dict) -> jnp.ndarray:
     return outputs["final"]["rgb"]
 
 
+def batch_terms(params: dict, cfg: RunConfig, batch: dict, ray_keys) -> tuple[dict, dict]:
+    """A batch's render (models.render_rays) and per-ray loss terms (losses.per_ray_loss).
+    batch: gather_batch's dict of [B, ...]; ray_keys: [B, 2]. Returns (outputs, terms)."""
+    mcfg, tcfg = cfg.model, cfg.train
+    out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"], batch["far"],
+                             ray_keys, batch["image_index"])
+    terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u, tcfg.coarse_loss_weight,
+                                tcfg.interlevel_loss_weight, tcfg.distortion_loss_weight)
+    return out, terms
+
+
 def make_train_step(cfg: RunConfig, num_devices: int):
     """The pmapped step of `cfg` on `num_devices` devices (see `_make_train_step`). The dataset
     path does not shape the step, so it is left out of the cache key: the same model on two
@@ -167,7 +178,7 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
 
     Cached per (config, device count), so runs with the same config share one compilation.
     """
-    mcfg, tcfg = cfg.model, cfg.train
+    tcfg = cfg.train
     if tcfg.batch_rays % num_devices:
         raise ConfigError(f"train.batch_rays ({tcfg.batch_rays}) must divide by the device count ({num_devices})")
     per_device = tcfg.batch_rays // num_devices
@@ -186,11 +197,7 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         total = jax.lax.psum(jnp.sum(batch["weight"]), AXIS)
 
         def loss_fn(params):
-            out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
-                                     batch["far"], ray_keys, batch["image_index"])
-            terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
-                                        tcfg.coarse_loss_weight, tcfg.interlevel_loss_weight,
-                                        tcfg.distortion_loss_weight)
+            _, terms = batch_terms(params, cfg, batch, ray_keys)
             loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
             return loss, losses.weighted_mean(terms["mse"], batch["weight"], total)
 
@@ -210,7 +217,7 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     batch; each pixel's loss weight is `robust.robust_weights` of its patch with the pool's
     weight as the prior. The state's robust_record takes the batch's weights (all-gathered, the
     same update on every device). Stats add "robust_weight": the mean weight of the batch."""
-    mcfg, tcfg = cfg.model, cfg.train
+    tcfg = cfg.train
     check_robust(tcfg, num_devices)
     p = tcfg.robust_patch
     num_patches = tcfg.batch_rays // (p * p)
@@ -227,11 +234,7 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
         batch = gather_batch(pool, local_ids)
 
         def loss_fn(params):
-            out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"],
-                                     batch["far"], ray_keys, batch["image_index"])
-            terms = losses.per_ray_loss(out, batch["rgb"], mcfg.use_transient, mcfg.lambda_u,
-                                        tcfg.coarse_loss_weight, tcfg.interlevel_loss_weight,
-                                        tcfg.distortion_loss_weight)
+            out, terms = batch_terms(params, cfg, batch, ray_keys)
             residual = jax.lax.stop_gradient(losses.squared_error(final_rgb(out), batch["rgb"]))
             everyone = jax.lax.all_gather(residual, AXIS, tiled=True)
             weight = robust_lib.robust_weights(
