@@ -276,13 +276,19 @@ def _tagged_from_dict(variants: dict, data: Any, where: str) -> Any:
     return from_dict(cls, merge(to_dict(cls()), data), where)
 
 
+# The keys whose value is a tagged union (a dataclass chosen by its "kind", each kind with only
+# its own fields): `model.sampler`. A field config's `kind` ("mlp" / "grid") is a plain field of
+# one dataclass, so a field dict of another kind still merges key by key.
+TAGGED_UNION_KEYS = ("sampler",)
+
+
 def merge(base: dict, extra: dict) -> dict:
-    """`extra` laid over `base`, recursing into dicts both hold; neither input is changed. A
-    dict with a "kind" (a tagged union) replaces a dict of another kind instead of merging."""
+    """`extra` laid over `base`, recursing into dicts both hold; neither input is changed. Under
+    a TAGGED_UNION_KEYS key, a dict of another "kind" replaces the old one instead of merging."""
     out = dict(base)
     for k, v in extra.items():
         both = isinstance(v, dict) and isinstance(out.get(k), dict)
-        if both and "kind" in v and "kind" in out[k] and v["kind"] != out[k]["kind"]:
+        if both and k in TAGGED_UNION_KEYS and v.get("kind", out[k].get("kind")) != out[k].get("kind"):
             both = False
         out[k] = merge(out[k], v) if both else v
     return out

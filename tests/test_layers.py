@@ -21,6 +21,9 @@ DATA_MAY_IMPORT = {"data", "io", "progress", "rays", "config"}
 # package imports inside functions, outside cli/ (which imports the library on use so that
 # `jaxnerf-grid X --help` and argument errors return before JAX loads): (file, module) -> why
 LAZY_IMPORTS = {
+    ("data/synthetic/generate.py", "jaxnerf_grid.progress"):
+        "the generator's source is hashed into the experiments' scene and run keys "
+        "(experiments.scenes.generator_digest); it stays as the committed results' runs had it",
     ("data/synthetic/__init__.py", "jaxnerf_grid.data.synthetic.generate"):
         "generate imports this package's tables (CLASSES, PRESETS), so a module-level import is a "
         "cycle; and it loads JAX (about 1 s), which the scene tables and synth's parser do not need",
@@ -28,7 +31,8 @@ LAZY_IMPORTS = {
 # strings in library modules (docstrings and argparse calls aside) that may name a flag: (file, flag) -> why
 FLAG_TEXT_ALLOWED = {
     ("runs.py", "--overwrite"): "the run marker file's text, for a person who finds the folder",
-    ("data/synthetic/generate.py", "--overwrite"): "the synth marker file's text, for a person who finds the folder",
+    ("data/synthetic/generate.py", "--overwrite"): "the synth marker file's text, and an error whose source is "
+                                                   "hashed into the experiments' keys (generator_digest)",
     ("data/poses.py", "--overwrite"): "the poses marker file's text, for a person who finds the folder",
     ("demo.py", "--source"): "a report note quoting the command line that made the masks",
     ("masking.py", "--depth-weights"): "a note `mask` prints while it runs (not an error)",

@@ -12,8 +12,7 @@ from jaxnerf_grid import rays as rays_lib
 def intrinsics(width: int, height: int, fov_deg: float) -> dict:
     """Pinhole intrinsics from a horizontal field of view: {fl_x, fl_y, cx, cy, w, h}."""
     f = rays_lib.focal_from_fov(math.radians(fov_deg), width)
-    return {"fl_x": float(f), "fl_y": float(f), "cx": width / 2.0, "cy": height / 2.0,
-            "w": int(width), "h": int(height)}
+    return {"fl_x": float(f), "fl_y": float(f), "cx": width / 2.0, "cy": height / 2.0, "w": int(width), "h": int(height)}
 
 
 LINE_GAP_DEG = 30.0   # orbits skip this half-width around the line direction (+-y): no cables at the lens
@@ -31,8 +30,8 @@ def camera_path(num_train: int, num_test: int, orbits, low_pass, rng: np.random.
     """Metric camera-to-world poses on orbits plus a low pass, with interleaved test views.
 
     orbits: ((radius, height, share), ...), skipping +-LINE_GAP_DEG around the line;
-    low_pass: (radius, height, share), an arc over 140 degrees. Views are ordered along the path; test
-    views are spread evenly among them (every k-th view), so they interpolate the training orbits.
+    low_pass: (radius, height, share), an arc over 140 degrees. Views are ordered along the path; test views are spread evenly among them
+    (every k-th view), so they interpolate the training orbits.
     Returns (c2w [N, 4, 4] metric, split: list of "train"/"test").
     """
     total = num_train + num_test

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io, progress as progress_lib
+from jaxnerf_grid import io
 from jaxnerf_grid.data.synthetic import CLASSES, DISTRACTOR_LEVELS, NORMALIZATION, PRESETS
 from jaxnerf_grid.data.synthetic import cameras, scene as sc, shading
 from jaxnerf_grid.data.synthetic.intersect import (INTERSECT, KIND_CODE, KINDS, binned_trace, box_corners,
@@ -591,12 +591,14 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
     processes (the output is identical for any worker count). Refuses a non-empty `out_dir`
     unless `overwrite` (then only this generator's own files and folders there are replaced).
     """
+    from jaxnerf_grid import progress as progress_lib
+
     cfg = make_config(preset, seed, distractors, **overrides)
     out = io.ensure_writable(out_dir, overwrite)
     if overwrite and out.is_dir() and any(out.iterdir()):
         if not is_synthetic_dataset(out):
             raise io.DataError(f"{out}: not a dataset written by synth (no {SYNTH_MARKER} marker); "
-                               "refusing to clear it, even with overwrite=True")
+                               "refusing to clear it, even with --overwrite")
         for sub in OUTPUT_DIRS:
             if (out / sub).is_dir():
                 shutil.rmtree(out / sub)
@@ -648,7 +650,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
         results = [done[t[0]] for t in tasks]
         world = _WORKER.get("world") or StaticWorld(cfg)
     frames, coverages = [], []
-    for (_, name, sp, c2w), (coverage, num_objects) in zip(tasks, results):
+    for (i, name, sp, c2w), (coverage, num_objects) in zip(tasks, results):
         rec = _frame_record(name, sp, cameras.normalise_pose(c2w, scale, translation))
         rec["distractor_coverage"] = round(coverage, 6)
         rec["num_distractors"] = num_objects
@@ -672,8 +674,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
             "distractors": cfg.distractors, "distractor_mode": cfg.mode, "shadows": cfg.shadows,
             "supersample": cfg.supersample, "fov_deg": cfg.fov_deg,
             "sun_direction": [round(float(x), 6) for x in world.sun],
-            "depth": "z-depth along camera -z, normalised units, +inf on sky; "
-                     "semantic and depth from the pixel-centre ray",
+            "depth": "z-depth along camera -z, normalised units, +inf on sky; semantic and depth from the pixel-centre ray",
             "distractor_coverage": {"mean": round(float(cov.mean()), 6), "min": round(float(cov.min()), 6),
                                     "max": round(float(cov.max()), 6)},
             "num_static_primitives": world.scene.count(),

@@ -118,7 +118,7 @@ def ground_scatter(p: np.ndarray, footprint: np.ndarray, seed: int, cell: float 
 
 
 def ground_albedo(p: np.ndarray, footprint: np.ndarray, seed: int) -> np.ndarray:
-    """Grass/dry patches, small detail, scattered shrubs and stones, a gravel pad under the tower
+    """Grass/dry patches, fine detail, scattered shrubs and stones, a gravel pad under the tower
     and a dirt track.
 
     p: [N, 3] points on z = 0; footprint: [N] metres per pixel. Returns [N, 3].
@@ -129,16 +129,16 @@ def ground_albedo(p: np.ndarray, footprint: np.ndarray, seed: int) -> np.ndarray
     large = fbm(p / 30.0, 4, seed + 1, footprint / 30.0)
     mix = np.clip((large - 0.42) * 3.0, 0.0, 1.0)[:, None]
     col = grass * (1 - mix) + dry * mix
-    detail = fbm(p / 0.9, 5, seed + 2, footprint / 0.9)
+    fine = fbm(p / 0.9, 5, seed + 2, footprint / 0.9)
     tufts = fbm(p / 5.0, 3, seed + 4, footprint / 5.0)
-    col = col * ((0.35 + 1.3 * detail) * (0.55 + 0.9 * tufts))[:, None]
+    col = col * ((0.35 + 1.3 * fine) * (0.55 + 0.9 * tufts))[:, None]
     cover, scatter = ground_scatter(p, footprint, seed)
     col = col * (1 - cover[:, None]) + scatter * cover[:, None]
     pad = np.nonzero(np.maximum(np.abs(p[:, 0]), np.abs(p[:, 1])) < 7.0)[0]
     col[pad] = soil * (0.75 + 0.5 * fbm(p[pad] / 0.25, 3, seed + 3, footprint[pad] / 0.25))[:, None]
     track_x = 22.0 + 6.0 * np.sin(p[:, 1] / 45.0)
     track = np.abs(p[:, 0] - track_x) < 1.8
-    col = np.where(track[:, None], soil * 1.25 * (0.8 + 0.4 * detail)[:, None], col)
+    col = np.where(track[:, None], soil * 1.25 * (0.8 + 0.4 * fine)[:, None], col)
     return col
 
 
@@ -190,8 +190,7 @@ def lambert(albedo: np.ndarray, normal: np.ndarray, sun: np.ndarray, visible: np
     """
     ndl = np.clip(normal @ sun, 0.0, 1.0)
     sky_amb = ZENITH * 0.9 + HORIZON * 0.5
-    ambient = (sky_amb[None] * (0.55 + 0.45 * normal[:, 2:3])
-               + np.array([0.06, 0.07, 0.04]) * (0.5 - 0.5 * normal[:, 2:3]))
+    ambient = sky_amb[None] * (0.55 + 0.45 * normal[:, 2:3]) + np.array([0.06, 0.07, 0.04]) * (0.5 - 0.5 * normal[:, 2:3])
     return albedo * (SUN_COLOR[None] * (ndl * visible)[:, None] + ambient)
 
 
