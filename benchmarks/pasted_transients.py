@@ -14,7 +14,7 @@ part of this repository, never commit it):
     python -m benchmarks.pasted_transients SfM_quality_evaluation/Benchmarking_Camera_Calibration_2008
 
 Per scene (`build_scene`): the photos are shrunk to `--long-side`, the surveyed cameras
-(gt_dense_cameras/*.camera, `read_strecha_camera`) become OpenGL camera-to-world poses
+(gt_dense_cameras/*.camera, `strecha_dataset.read_camera`) become OpenGL camera-to-world poses
 normalised like `jaxnerf-grid poses` does (`normalize.normalize_orbit`), every `--test-every`-th
 photo is a clean test view, and into every training photo the distractors of a synthetic tower
 scene (people, vehicles, birds cut out of its cluttered training views with their exact
@@ -51,6 +51,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import strecha_dataset as strecha
 from jaxnerf_grid import io
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.io import DataError
@@ -64,32 +65,6 @@ ROW_DATA = {"none": "plain", "robust": "plain", "dpt": "dpt", "dpt+robust": "dpt
 NEAR = 0.3  # normalised units; normalize_orbit puts the cameras about 3 units from the centre
 SPRITE_SCENE = dict(preset="tower-small", distractors="high", width=320, height=240, num_train=10, num_test=1,
                     supersample=2)
-
-
-# ------------------------------------------------------------------------------- cameras
-def read_strecha_camera(path) -> tuple[np.ndarray, np.ndarray, np.ndarray, tuple[int, int]]:
-    """A Strecha .camera file: K (3 rows), the distortion row (3 numbers), R (3 rows), the
-    camera centre C, the image size. R is camera-to-world (world-to-camera is R^T, as openMVG's
-    reader takes it), C in world units (metres). Returns (K [3, 3], R [3, 3], C [3], (w, h))."""
-    path = Path(path)
-    try:
-        vals = [float(v) for v in path.read_text().split()]
-    except ValueError:
-        raise DataError(f"{path}: not a Strecha camera file (non-numeric entry)") from None
-    if len(vals) != 26:
-        raise DataError(f"{path}: a Strecha camera file has 26 numbers (K, distortion, R, C, w h), found {len(vals)}")
-    k = np.asarray(vals[0:9]).reshape(3, 3)
-    r = np.asarray(vals[12:21]).reshape(3, 3)
-    return k, r, np.asarray(vals[21:24]), (int(vals[24]), int(vals[25]))
-
-
-def opengl_c2w(r: np.ndarray, centre: np.ndarray) -> np.ndarray:
-    """Camera-to-world [4, 4] in OpenGL axes (x right, y up, looking down -z) from an OpenCV
-    camera's camera-to-world rotation R (x right, y down, looking down +z) and centre."""
-    c2w = np.eye(4)
-    c2w[:3, :3] = np.asarray(r, np.float64) @ np.diag([1.0, -1.0, -1.0])
-    c2w[:3, 3] = centre
-    return c2w
 
 
 # ------------------------------------------------------------------------------- sprites
@@ -189,9 +164,9 @@ def build_scene(scene_dir, out, bank: list[tuple], long_side: int = 480, test_ev
     rng = np.random.default_rng(seed)
     c2w, intr, names = [], [], []
     for cam in cams:
-        k, r, centre, (w, h) = read_strecha_camera(cam)
-        c2w.append(opengl_c2w(r, centre))
-        intr.append((k, w, h))
+        camera = strecha.read_camera(cam)
+        c2w.append(strecha.camera_to_world_gl(camera))
+        intr.append((camera["K"], *camera["size"]))
         names.append(cam.name[: -len(".camera")])
     c2w_norm, norm = normalize_orbit(np.stack(c2w))
     for old in (out, *(out.parent / f"{out.name}-{kind}" for kind in ("dpt", "gt"))):

@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks import strecha_dataset as strecha
 from jaxnerf_grid.data.poses import similarity_fit  # Umeyama 1991
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -66,16 +67,9 @@ def compare(true: dict, found: dict) -> dict:
 
 def strecha_cameras(folder) -> dict:
     """{photo name: c2w [4, 4] OpenGL} from a Strecha scene's surveyed cameras (`gt_dense_cameras/
-    NAME.camera`: K [3x3], distortion [3], R [3x3] camera-to-world with OpenCV axes, centre [3],
-    size), in metres."""
-    out = {}
-    for path in sorted(Path(folder).glob("*.camera")):
-        v = np.array(path.read_text().split(), np.float64)
-        c2w = np.eye(4)
-        c2w[:3, :3] = v[12:21].reshape(3, 3) @ np.diag([1.0, -1.0, -1.0])
-        c2w[:3, 3] = v[21:24]
-        out[path.name[:-len(".camera")]] = c2w
-    return out
+    NAME.camera`, read by `strecha_dataset.read_camera`), in metres."""
+    return {path.name[:-len(".camera")]: strecha.camera_to_world_gl(strecha.read_camera(path))
+            for path in sorted(Path(folder).glob("*.camera"))}
 
 
 def run_strecha(scene: Path, work: Path, max_side: int) -> dict:

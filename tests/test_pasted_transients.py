@@ -113,7 +113,7 @@ def test_read_strecha_camera_refuses_a_short_file(tmp_path):
     bad = tmp_path / "x.camera"
     bad.write_text("1 2 3\n")
     with pytest.raises(DataError, match="x.camera"):
-        pt.read_strecha_camera(bad)
+        pt.strecha.read_camera(bad)
 
 
 def test_pasted_share_used_is_the_weighted_count(tmp_path):
