@@ -8,11 +8,21 @@ below is laid out [P, p, p] (P patches of p x p pixels) unless said otherwise.
 
 The rule, per training step (`evidence`):
 
-1. threshold: the residual (squared error of the final pass, stop-gradient) at the quantile
-   q(prior) of the *global* batch's residuals, with q(prior) = q_flagged + (q - q_flagged) *
-   prior per pixel (`pixel_quantiles`); a pixel is an inlier when its residual is at most
-   max(threshold, floor) (the floor keeps pixels the model fits to within noise, which a
-   quantile alone would always cut by its share);
+1. threshold: the larger of two figures of the *global* batch's residuals (squared error of
+   the final pass, stop-gradient):
+   - the residual at the quantile q(prior), with q(prior) = q_flagged + (q - q_flagged) *
+     prior per pixel (`pixel_quantiles`);
+   - the spread bound (m + k(prior) 1.4826 MAD)^2 (`spread_thresholds`; m and MAD the median
+     and the median absolute deviation of the root residuals, 1.4826 MAD the standard
+     deviation of a normal sample): a residual is only an outlier when its RMS error lies k
+     robust standard deviations above the batch's typical one. A quantile alone cuts its share of every batch, so early in training,
+     when every residual is large, it drops the high-contrast pixels that carry the geometry
+     and the model settles on a backdrop at the far bound (fountain-P11 in docs/ROBUST.md);
+     and on a static scene it drops 1 - q of the pixels for ever. The spread bound is wide
+     while the model is poor and tightens as it converges, so it starts as plain training and
+     becomes strict on its own;
+   a pixel is an inlier when its residual is at most max(threshold, floor) (the floor keeps
+   pixels the model fits to within noise);
 2. 3x3 vote: the share of inliers among the pixel's 3x3 neighbours inside its patch (itself
    included; `smooth_3x3`); the vote passes at a share of at least 1/2, which re-admits
    isolated outliers in a static region (thin detail) and drops isolated inliers inside a
@@ -23,12 +33,21 @@ The rule, per training step (`evidence`):
 
 The weight is 1 for a pixel that counts, 0 otherwise.
 
+Warm-up: for the first `warmup_steps` of a run (train.robust_warmup, a fraction of
+max_steps) the weight is the prior itself (1 everywhere in mode `robust`, 1 - M_w in
+`dpt+robust`). A model that has not formed the scene's geometry yet explains every pixel
+badly, and any rule that drops the worst-fitted pixels then drops the textured, high-contrast
+ones, exactly those that would force the geometry; the run settles on a backdrop at the far
+bound (measured on fountain-P11, docs/ROBUST.md).
+
 The prior (`dpt+robust`): the dataset's weight 1 - M_w (DPT masks with the depth weighting
 of Eq. 7) does not multiply the weight; it sets how strict the evidence is for each pixel.
 An unflagged pixel (prior 1) is an inlier up to the q quantile (0.8: the worst 20 % of the
 batch are outliers, so a transient the DPT missed is down-weighted); a fully flagged pixel
 (prior 0) only up to q_flagged (0.5: it must be fitted better than the batch median, so the
-static model must really explain it before it is re-admitted). Mode `robust` is the same
+static model must really explain it before it is re-admitted); the spread bound scales with
+the prior the same way (k for an unflagged pixel, k / 3 for a flagged one: within one robust
+standard deviation of the batch's typical error at the default k = 3). Mode `robust` is the same
 rule with prior 1 everywhere. Training's per-pixel record of the weights it used is
 `ema_update` (docs/ROBUST.md).
 """
@@ -43,6 +62,12 @@ VOTE = 0.5        # the 3x3 vote passes at this share of inliers
 EMA_RATE = 0.5    # a pixel's recorded weight moves this far towards each new weight it gets
 
 
+def warmup_steps(warmup: float, max_steps: int) -> int:
+    """The steps trained on the prior alone before the evidence applies: round(warmup x
+    max_steps) (train.robust_warmup, a fraction of the run)."""
+    return int(round(float(warmup) * int(max_steps)))
+
+
 def pixel_quantiles(prior: jnp.ndarray, quantile: float, flagged_quantile: float) -> jnp.ndarray:
     """Each pixel's inlier quantile: q_flagged + (q - q_flagged) * prior. prior: [...] in [0, 1]
     -> [...]."""
@@ -55,6 +80,28 @@ def quantile_of(values: jnp.ndarray, q: jnp.ndarray) -> jnp.ndarray:
     ranked = jnp.sort(values.reshape(-1))
     pos = jnp.clip(q, 0.0, 1.0) * (ranked.shape[0] - 1)
     return jnp.interp(pos, jnp.arange(ranked.shape[0], dtype=pos.dtype), ranked)
+
+
+MAD_TO_SIGMA = 1.4826  # the standard deviation of a normal sample is 1.4826 x its MAD
+FLAGGED_SPREAD = 1.0 / 3.0  # a fully flagged pixel's spread bound uses this share of k
+
+
+def pixel_spreads(prior: jnp.ndarray, spread: float) -> jnp.ndarray:
+    """Each pixel's k: spread * (FLAGGED_SPREAD + (1 - FLAGGED_SPREAD) * prior), so k for an
+    unflagged pixel and k / 3 for a flagged one. prior: [...] -> [...]."""
+    return spread * (FLAGGED_SPREAD + (1.0 - FLAGGED_SPREAD) * jnp.clip(prior, 0.0, 1.0))
+
+
+def spread_thresholds(batch_residuals: jnp.ndarray, prior: jnp.ndarray, spread: float) -> jnp.ndarray:
+    """The spread bound, in squared error: (m + k(prior) * MAD_TO_SIGMA * MAD)^2 (k(prior) =
+    `pixel_spreads`), with m
+    and MAD the median and the median absolute deviation of the root residuals (the RMS colour
+    error of each pixel, sqrt of `batch_residuals` [N], any shape, flattened; squared errors
+    are too skewed for a median-and-spread rule). prior: [...] in [0, 1] -> [...]."""
+    root = jnp.sqrt(jnp.maximum(batch_residuals, 0.0))
+    median = quantile_of(root, jnp.asarray(0.5))
+    mad = quantile_of(jnp.abs(root - median), jnp.asarray(0.5))
+    return (median + pixel_spreads(prior, spread) * MAD_TO_SIGMA * mad) ** 2
 
 
 def inliers(residuals: jnp.ndarray, thresholds: jnp.ndarray, floor: float) -> jnp.ndarray:
@@ -86,14 +133,16 @@ def evidence(inlier: jnp.ndarray, patch_share: float) -> jnp.ndarray:
 
 def robust_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray,
                    quantile: float, flagged_quantile: float, patch_share: float,
-                   floor: float) -> jnp.ndarray:
+                   floor: float, spread: float = 0.0) -> jnp.ndarray:
     """The loss weight of each pixel of the patches (the module docstring's rule).
 
     residuals, prior: [P, p, p] (this device's patches; prior 1 = unflagged, 0 = flagged);
     batch_residuals: [N] the residuals of the whole global batch (all devices), which the
-    thresholds are quantiles of. Returns [P, p, p] in {0, 1}.
+    thresholds are figures of; spread: k of the spread bound (0: the quantile alone).
+    Returns [P, p, p] in {0, 1}.
     """
-    thresholds = quantile_of(batch_residuals, pixel_quantiles(prior, quantile, flagged_quantile))
+    thresholds = jnp.maximum(quantile_of(batch_residuals, pixel_quantiles(prior, quantile, flagged_quantile)),
+                             spread_thresholds(batch_residuals, prior, spread))
     return evidence(inliers(residuals, thresholds, floor), patch_share)
 
 

@@ -48,7 +48,10 @@ class TrainConfig:
       an unflagged pixel (prior 1) and a flagged one (prior 0; linear in between);
     robust_patch: patch side in pixels; robust_patch_share: a patch with fewer pixels passing
       the 3x3 vote is a transient patch; robust_floor: a residual (squared error) at most this
-      is always an inlier.
+      is always an inlier; robust_spread: k of the spread bound (robust.spread_thresholds: a
+      residual within median + k MAD-sigmas of the batch is an inlier whatever the quantile
+      says; 0 = the quantile alone); robust_warmup: the fraction of max_steps trained on the
+      prior alone before the evidence applies (robust.warmup_steps).
     """
 
     batch_rays: int = 1024
@@ -78,9 +81,11 @@ class TrainConfig:
     robust: str = "off"
     robust_quantile: float = 0.8
     robust_flagged_quantile: float = 0.5
-    robust_patch: int = 8
+    robust_patch: int = 4
     robust_patch_share: float = 0.6
     robust_floor: float = 1e-3
+    robust_spread: float = 3.0
+    robust_warmup: float = 0.2
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -97,7 +102,8 @@ class TrainConfig:
         "max_side": config_lib.NONNEGATIVE,
         "robust_quantile": config_lib.UNIT, "robust_flagged_quantile": config_lib.UNIT,
         "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_share": config_lib.UNIT,
-        "robust_floor": config_lib.NONNEGATIVE}
+        "robust_floor": config_lib.NONNEGATIVE, "robust_spread": config_lib.NONNEGATIVE,
+        "robust_warmup": config_lib.UNIT}
 
 
 @dataclasses.dataclass(frozen=True)

@@ -215,13 +215,15 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     device count), each device renders its share of whole patches; the residuals (final pass,
     stop-gradient) are all-gathered so every device takes the quantiles of the same global
     batch; each pixel's loss weight is `robust.robust_weights` of its patch with the pool's
-    weight as the prior. The state's robust_record takes the batch's weights (all-gathered, the
+    weight as the prior, after the first `robust.warmup_steps` optimiser steps (Adam's count,
+    so resume is exact), and the prior itself before them. The state's robust_record takes the batch's weights (all-gathered, the
     same update on every device). Stats add "robust_weight": the mean weight of the batch."""
     tcfg = cfg.train
     check_robust(tcfg, num_devices)
     p = tcfg.robust_patch
     num_patches = tcfg.batch_rays // (p * p)
     per_device = tcfg.batch_rays // num_devices
+    warmup_steps = robust_lib.warmup_steps(tcfg.robust_warmup, tcfg.max_steps)
 
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
@@ -237,9 +239,11 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
             out, terms = batch_terms(params, cfg, batch, ray_keys)
             residual = jax.lax.stop_gradient(losses.squared_error(final_rgb(out), batch["rgb"]))
             everyone = jax.lax.all_gather(residual, AXIS, tiled=True)
-            weight = robust_lib.robust_weights(
+            evidence = robust_lib.robust_weights(
                 residual.reshape(-1, p, p), batch["weight"].reshape(-1, p, p), everyone, tcfg.robust_quantile,
-                tcfg.robust_flagged_quantile, tcfg.robust_patch_share, tcfg.robust_floor).reshape(-1)
+                tcfg.robust_flagged_quantile, tcfg.robust_patch_share, tcfg.robust_floor,
+                tcfg.robust_spread).reshape(-1)
+            weight = jnp.where(state["opt_state"].count < warmup_steps, batch["weight"], evidence)
             total = jax.lax.psum(jnp.sum(weight), AXIS)
             loss = losses.weighted_mean(terms["loss"], weight, total)
             return loss, (losses.weighted_mean(terms["mse"], weight, total), weight)

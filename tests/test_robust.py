@@ -8,19 +8,24 @@ import pytest
 
 from jaxnerf_grid import robust
 
-DEFAULTS = {"quantile": 0.8, "flagged_quantile": 0.5, "patch_share": 0.6, "floor": 0.0}
+DEFAULTS = {"quantile": 0.8, "flagged_quantile": 0.5, "patch_share": 0.6, "floor": 0.0, "spread": 0.0}
 
 
-def reference_weights(res, prior, batch_res, quantile, flagged_quantile, patch_share, floor):
-    """The rule of robust.py's docstring, pixel by pixel with np.quantile. res, prior: [P, p, p]."""
+def reference_weights(res, prior, batch_res, quantile, flagged_quantile, patch_share, floor, spread=0.0):
+    """The rule of robust.py's docstring, pixel by pixel with np.quantile and np.median (the
+    spread bound on the root residuals). res, prior: [P, p, p]."""
     res, prior = np.asarray(res, np.float64), np.asarray(prior, np.float64)
+    batch = np.asarray(batch_res, np.float64)
+    root = np.sqrt(batch)
+    mad_sigma = 1.4826 * np.median(np.abs(root - np.median(root)))
     count, p, _ = res.shape
     inlier = np.zeros(res.shape)
     for k in range(count):
         for i in range(p):
             for j in range(p):
                 q = flagged_quantile + (quantile - flagged_quantile) * prior[k, i, j]
-                inlier[k, i, j] = res[k, i, j] <= max(np.quantile(np.asarray(batch_res, np.float64), q), floor)
+                bound = (np.median(root) + spread * (1 / 3 + 2 / 3 * prior[k, i, j]) * mad_sigma) ** 2
+                inlier[k, i, j] = res[k, i, j] <= max(np.quantile(batch, q), bound, floor)
     vote = np.zeros(res.shape)
     for k in range(count):
         for i in range(p):
@@ -52,7 +57,8 @@ def test_random_residuals_and_priors_match_numpy():
     prior = rng.choice([0.0, 0.3, 1.0], size=res.shape).astype(np.float32)
     extra = (rng.random(64) ** 3).astype(np.float32)          # other devices' residuals
     batch = np.concatenate([res.reshape(-1), extra])
-    for kw in ({}, {"floor": 0.05}, {"patch_share": 0.9, "quantile": 0.6}):
+    for kw in ({}, {"floor": 0.05}, {"patch_share": 0.9, "quantile": 0.6}, {"spread": 3.0},
+               {"spread": 1.0, "quantile": 0.5}):
         want = reference_weights(res, prior, batch, **{**DEFAULTS, **kw})
         np.testing.assert_array_equal(ours(res, prior, batch, **kw), want)
     assert 0 < ours(res, prior, batch).mean() < 1
@@ -73,6 +79,41 @@ def test_a_pasted_square_is_found_and_the_background_kept():
     # with the default floor (noise far below it) the background is kept whole
     floored = ours(res, prior, floor=1e-3)
     assert np.all(floored[background] == 1) and np.all(floored[2, 6:10, 5:9] == 0)
+
+
+def test_the_spread_bound_keeps_a_static_scene_and_still_finds_a_transient():
+    """Residuals of a static scene fitted to noise (RMS errors |N(0, 0.02)|, a few 3-sigma
+    ones among them): the quantile alone drops a fifth of the pixels before the vote, the spread
+    bound (k = 3) almost none; a pasted square (RMS error 0.3) is dropped either way."""
+    rng = np.random.default_rng(4)
+    res = (np.abs(rng.normal(0.0, 0.02, (8, 8, 8))) ** 2).astype(np.float32)
+    res[5, 2:6, 2:6] = 0.09
+    prior = np.ones_like(res)
+    plain, spread = ours(res, prior), ours(res, prior, spread=3.0)
+    np.testing.assert_array_equal(spread, reference_weights(res, prior, res.reshape(-1), **{**DEFAULTS, "spread": 3.0}))
+    static = np.ones(res.shape, bool)
+    static[5, 1:7, 1:7] = False
+    inlier_plain = np.asarray(robust.inliers(jnp.asarray(res), robust.quantile_of(jnp.asarray(res), jnp.asarray(0.8)), 0))
+    assert inlier_plain[static].mean() < 0.85                  # the quantile cuts its share
+    assert spread[static].mean() > 0.99
+    assert np.all(spread[5, 3:5, 3:5] == 0) and np.all(plain[5, 3:5, 3:5] == 0)
+
+
+def test_spread_thresholds_against_numpy():
+    rng = np.random.default_rng(5)
+    batch = (rng.random(101) ** 4).astype(np.float32)
+    prior = np.array([0.0, 0.5, 1.0], np.float32)
+    root = np.sqrt(batch.astype(np.float64))
+    sigma = 1.4826 * np.median(np.abs(root - np.median(root)))
+    want = (np.median(root) + 2.5 * (1 / 3 + 2 / 3 * prior) * sigma) ** 2
+    got = np.asarray(robust.spread_thresholds(jnp.asarray(batch), jnp.asarray(prior), 2.5))
+    np.testing.assert_allclose(got, want, rtol=1e-5)
+
+
+def test_warmup_steps_are_a_fraction_of_the_run():
+    assert robust.warmup_steps(0.2, 2400) == 480
+    assert robust.warmup_steps(0.0, 2400) == 0
+    assert robust.warmup_steps(1.0, 7) == 7
 
 
 def test_a_flat_scene_has_no_outliers():

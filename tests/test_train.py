@@ -193,7 +193,7 @@ def test_robust_two_devices_match_one_device(tmp_path, method, mode):
     ds = tiny_dataset()
     states = []
     for n in (1, 2):
-        cfg = tiny_config(method, num_devices=n, robust=mode, robust_patch=4)
+        cfg = tiny_config(method, num_devices=n, robust=mode, robust_patch=4, robust_warmup=0.0)
         train.train(ds, cfg, tmp_path / f"dev{n}", progress=False, stop_at=4)
         states.append(last_state(tmp_path / f"dev{n}", cfg, ds))
     diffs = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(np.asarray(a, np.float64) - np.asarray(b)))),
@@ -205,6 +205,28 @@ def test_robust_two_devices_match_one_device(tmp_path, method, mode):
         f"frame_{k:04d}.png" for k in range(4)]
     if mode == "dpt+robust":  # the pool holds the pixels the prior flags (weight 0) too
         assert train.build_pool(ds, cfg)["pixels"].size == 4 * 12 * 16
+
+
+@pytest.mark.parametrize("mode", ["robust", "dpt+robust"])
+def test_robust_warmup_trains_on_the_prior_alone(tmp_path, mode):
+    """During the warm-up (the first robust_warmup x max_steps steps) the weights used are the
+    prior: all ones in mode robust, the dataset's 1 - M_w in dpt+robust (the record of each
+    drawn pixel moves to it); without warm-up the evidence drops some pixel within 4 steps."""
+    ds = tiny_dataset()
+    prior = train.prior_weights(ds, tiny_config(robust=mode, robust_patch=4).train)[ds.split["train"]]
+    records = {}
+    for warmup in (0.0, 0.5):
+        cfg = tiny_config(num_devices=1, robust=mode, robust_patch=4, robust_warmup=warmup, robust_spread=0.0)
+        train.train(ds, cfg, tmp_path / f"w{warmup}", progress=False, stop_at=4)
+        records[warmup] = last_state(tmp_path / f"w{warmup}", cfg, ds)["robust_record"]
+    drawn = records[0.5] != 1.0
+    if mode == "robust":
+        assert np.all(records[0.5] == 1.0)
+    else:  # every drawn pixel moved towards its prior, never towards anything else
+        assert drawn.any()
+        assert np.all(np.abs(records[0.5][drawn] - 1.0) <= np.abs(prior[drawn] - 1.0) + 1e-6)
+        assert np.all(prior[drawn] < 1)
+    assert np.any(records[0.0][prior == 1.0] < 1.0)  # the evidence at work: a pixel the prior keeps dropped
 
 
 def test_robust_readmits_a_wrong_prior_and_drops_a_missed_transient(tmp_path):
