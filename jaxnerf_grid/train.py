@@ -216,8 +216,9 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     stop-gradient) are all-gathered so every device takes the quantiles of the same global
     batch; each pixel's loss weight is `robust.robust_weights` of its patch with the pool's
     weight as the prior, after the first `robust.warmup_steps` optimiser steps (Adam's count,
-    so resume is exact), and the prior itself before them. The state's robust_record takes the batch's weights (all-gathered, the
-    same update on every device). Stats add "robust_weight": the mean weight of the batch."""
+    so resume is exact), and the prior itself before them. The state's robust_record takes the
+    batch's weights (all-gathered, the same update on every device). Stats add
+    "robust_weight": the mean weight of the batch."""
     tcfg = cfg.train
     check_robust(tcfg, num_devices)
     p = tcfg.robust_patch
