@@ -16,11 +16,9 @@ The rule, per training step (`evidence`):
      and the median absolute deviation of the root residuals, 1.4826 MAD the standard
      deviation of a normal sample): a residual is only an outlier when its RMS error lies k
      robust standard deviations above the batch's typical one. A quantile alone cuts its
-     share of every batch, so early in training, when every residual is large, it drops the
-     high-contrast pixels that carry the geometry and the model settles on a backdrop at the far bound (fountain-P11 in docs/ROBUST.md);
-     and on a static scene it drops 1 - q of the pixels for ever. The spread bound is wide
-     while the model is poor and tightens as it converges, so it starts as plain training and
-     becomes strict on its own;
+     share of every batch for ever, so on a static scene it ignores 1 - q of the pixels (the
+     textured, high-contrast ones); the spread bound keeps a residual distribution without
+     outliers whole and still cuts the far tail that transients make;
    a pixel is an inlier when its residual is at most max(threshold, floor) (the floor keeps
    pixels the model fits to within noise);
 2. 3x3 vote: the share of inliers among the pixel's 3x3 neighbours inside its patch (itself
