@@ -125,6 +125,17 @@ def test_similarity_closed_form_with_outliers():
     assert s3 == pytest.approx(s, rel=1e-9) and np.allclose(r3, rot, atol=1e-9)
 
 
+def test_similarity_never_mirrors():
+    """The mirror image (x -> -x) of points spread 2, 1, 0.5 m along x, y, z: the best proper
+    rotation (Umeyama's sign correction) turns by 180 degrees about y, giving up the smallest
+    spread: R = diag(-1, 1, -1), s = (8 + 2 - 0.5) / (8 + 2 + 0.5) (the axes' variances x 6)."""
+    src = np.concatenate([np.eye(3), -np.eye(3)]) * [2.0, 1.0, 0.5]
+    s, r, t = georef.umeyama(src, src * [-1.0, 1.0, 1.0])
+    np.testing.assert_allclose(r, np.diag([-1.0, 1.0, -1.0]), atol=1e-12)
+    assert s == pytest.approx(9.5 / 10.5, rel=1e-12)
+    np.testing.assert_allclose(t, 0.0, atol=1e-12)
+
+
 @pytest.mark.parametrize("lat, lon, epsg, zone", [(47.3769, 8.5417, 32632, 32), (-33.8688, 151.2093, 32756, 56)])
 def test_crs_round_trip_against_pyproj(lat, lon, epsg, zone):
     crs = georef.projected_crs(None, lat, lon)
@@ -325,3 +336,47 @@ def test_poses_refuses_bad_georeference_input_writing_nothing(tmp_path, capsys, 
     assert len(err.splitlines()) == 1
     assert re.search(expected, err), err
     assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["photos"] + (["gcp.csv"] if "gcp" in case else []))
+
+
+def test_synthetic_photos_carry_noisy_gps_of_the_true_centres(tmp_path):
+    """`data.gps_scene` on a small dataset in the synthetic layout: the JPEGs' EXIF, read back
+    with exifread (not the package's reader), lies 1-3 m horizontally and 2-5 m vertically
+    from origin + the metric camera centre (x_metric = x_norm / 0.05 - translation)."""
+    import cv2
+    import exifread
+
+    from jaxnerf_grid import io as io_lib
+    from jaxnerf_grid.data.gps_scene import write_gps_photos
+
+    (tmp_path / "images").mkdir()
+    centres_norm = np.array([[1.0, 0.0, 0.5], [0.0, 1.2, 0.6], [-0.9, 0.0, 0.4], [0.0, -1.1, 0.7]])
+    frames = []
+    for k, c in enumerate(centres_norm):
+        cv2.imwrite(str(tmp_path / "images" / f"train_{k:03d}.png"), np.full((12, 16, 3), 40 * k, np.uint8))
+        pose = np.eye(4)
+        pose[:3, 3] = c
+        frames.append({"file_path": f"images/train_{k:03d}.png", "transform_matrix": pose.tolist()})
+    io_lib.write_json(tmp_path / "transforms.json", {"scene_normalization": {"scale": 0.05,
+                                                                             "translation": [0.0, 0.0, -15.0]},
+                                                     "frames": frames})
+    truth = io_lib.read_json(write_gps_photos(tmp_path, (47.3769, 8.5417, 410.0), seed=3))
+    crs = georef.projected_crs(truth["crs"])
+    base = georef.geodetic_to_projected(crs, 47.3769, 8.5417, 410.0)[0]
+    assert truth["crs"] == "EPSG:32632" and np.allclose(truth["tower_base_crs"], base, atol=1e-3)
+
+    def degrees(tag, ref):
+        d, m, s = (float(v.num) / float(v.den) for v in tag.values)
+        return (d + m / 60 + s / 3600) * (-1 if str(ref) in "SW" else 1)
+
+    for k, c in enumerate(centres_norm):
+        true = base + c / 0.05 - [0.0, 0.0, -15.0]
+        with open(tmp_path / "photos_gps" / f"train_{k:03d}.jpg", "rb") as f:
+            tags = exifread.process_file(f, details=False)
+        lat = degrees(tags["GPS GPSLatitude"], tags["GPS GPSLatitudeRef"])
+        lon = degrees(tags["GPS GPSLongitude"], tags["GPS GPSLongitudeRef"])
+        alt = tags["GPS GPSAltitude"].values[0]
+        alt = float(alt.num) / float(alt.den) * (-1 if tags["GPS GPSAltitudeRef"].values[0] == 1 else 1)
+        seen = georef.geodetic_to_projected(crs, lat, lon, alt)[0]
+        np.testing.assert_allclose(truth["photos"][f"train_{k:03d}.jpg"]["true_crs"], true, atol=1e-3)
+        horizontal, vertical = np.hypot(*(seen - true)[:2]), abs(seen[2] - true[2])
+        assert 1.0 - 0.01 <= horizontal <= 3.0 + 0.01 and 2.0 - 0.01 <= vertical <= 5.0 + 0.01
