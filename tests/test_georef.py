@@ -125,6 +125,21 @@ def test_similarity_closed_form_with_outliers():
     assert s3 == pytest.approx(s, rel=1e-9) and np.allclose(r3, rot, atol=1e-9)
 
 
+def test_yaw_only_similarity_closed_form():
+    """Points turned 40 degrees about z, scaled by 3 and moved: the yaw-only fit finds them
+    exactly; on points also tilted it stays a turn about z."""
+    rng = np.random.default_rng(5)
+    src = rng.normal(size=(10, 3)) * [10.0, 10.0, 2.0]
+    rot = rotation([0.0, 0.0, 1.0], 40.0)
+    dst = 3.0 * src @ rot.T + [5.0, 6.0, 7.0]
+    (s, r, t), inliers = georef.ransac_similarity(src, dst, 0.5, yaw_only=True)
+    assert s == pytest.approx(3.0, rel=1e-12) and inliers.all()
+    np.testing.assert_allclose(r, rot, atol=1e-12)
+    np.testing.assert_allclose(t, [5.0, 6.0, 7.0], atol=1e-9)
+    _, r_tilted, _ = georef.umeyama(src, dst @ rotation([1.0, 0.0, 0.0], 2.0).T, yaw_only=True)
+    np.testing.assert_allclose(r_tilted[2], [0.0, 0.0, 1.0], atol=1e-12)
+
+
 def test_similarity_never_mirrors():
     """The mirror image (x -> -x) of points spread 2, 1, 0.5 m along x, y, z: the best proper
     rotation (Umeyama's sign correction) turns by 180 degrees about y, giving up the smallest
