@@ -4,14 +4,15 @@ from `poses` on them:
 
     jaxnerf-grid synth --out SYN --preset tower-small --width 320 --height 240 --num-train 30 --num-test 1 \\
         --distractors low --gps-origin 47.3769,8.5417,410
-    jaxnerf-grid poses --images SYN/photos_gps --out POSES --single-camera
+    jaxnerf-grid poses --images SYN/photos_gps --out POSES --single-camera [--gcp SYN/gcp.csv]
     python -m benchmarks.gps_alignment --synth SYN --poses POSES [--out FILE.json]
 
 The recovered cameras (POSES/transforms.json frames through `georeference.scene_to_crs`) are
 compared with the true ones (SYN/gps_truth.json `true_crs`): the similarity from the true to the
 recovered centres (Umeyama) gives the scale error (its scale - 1), the tilt (the angle of its
 z axis from the vertical) and where the tower's base (the synthetic world's origin,
-`tower_base_crs`) lands, in metres from the truth; the centres' errors are reported too.
+`tower_base_crs`) lands, in metres from the truth; the centres' errors, and with --gcp the
+control and check points' RMS errors, are reported too.
 """
 
 from __future__ import annotations
@@ -48,7 +49,9 @@ def score(synth_dir, poses_dir) -> dict:
             "base_error_m": round(float(np.linalg.norm(base_found - base)), 3),
             "base_error_horizontal_m": round(float(np.hypot(*(base_found - base)[:2])), 3),
             "centre_error_median_m": round(float(np.median(centre)), 3),
-            "centre_error_max_m": round(float(centre.max()), 3), "gps_rms_m": geo["gps"]["rms_m"]}
+            "centre_error_max_m": round(float(centre.max()), 3), "gps_rms_m": geo["gps"]["rms_m"],
+            **{f"{label}_points_rms_m": geo["gcp"][label]["rms_m"] for label in ("control", "check")
+               if label in geo.get("gcp", {})}}
 
 
 def main(argv=None) -> int:

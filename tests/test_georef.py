@@ -395,3 +395,36 @@ def test_synthetic_photos_carry_noisy_gps_of_the_true_centres(tmp_path):
         np.testing.assert_allclose(truth["photos"][f"train_{k:03d}.jpg"]["true_crs"], true, atol=1e-3)
         horizontal, vertical = np.hypot(*(seen - true)[:2]), abs(seen[2] - true[2])
         assert 1.0 - 0.01 <= horizontal <= 3.0 + 0.01 and 2.0 - 0.01 <= vertical <= 5.0 + 0.01
+
+
+def test_synthetic_gcp_projection_meets_the_renderers_ray():
+    """`gps_scene.project` against `rays.rays_for_pixels` (the rays the synthetic frames are
+    rendered with): the ray through the projected pixel passes through the point."""
+    from jaxnerf_grid import rays
+    from jaxnerf_grid.data.gps_scene import project
+
+    c2w = np.eye(4)
+    c2w[:3, :3] = rotation([1.0, 0.3, 0.0], 70.0)
+    c2w[:3, 3] = [0.5, -2.0, 1.0]
+    intr = {"fl_x": 250.0, "fl_y": 260.0, "cx": 160.0, "cy": 120.0}
+    point = c2w[:3, :3] @ np.array([0.4, -0.3, -3.0]) + c2w[:3, 3]
+    u, v, depth = project(c2w, intr, point)
+    assert depth == pytest.approx(3.0)
+    origin, direction = (np.asarray(a, np.float64).reshape(-1, 3)[0] for a in rays.rays_for_pixels(
+        c2w[:3, :4].astype(np.float32), 250.0, 260.0, 160.0, 120.0, np.float32(u), np.float32(v), 0.1, 10.0)[:2])
+    off = np.cross(point - origin, direction / np.linalg.norm(direction))
+    assert np.linalg.norm(off) < 1e-4
+
+
+def test_gcp_seen_in_unregistered_photos_is_placed_from_the_others(tmp_path):
+    model, path, sizes, ratios = gcp_scene(tmp_path)
+    text = path.read_text().splitlines()
+    row = text[1].split(",")
+    path.write_text("\n".join(text + [",".join(["p6.jpg", "10", "10"] + row[3:])]) + "\n")
+    sizes["p6.jpg"] = (640, 480)  # a photo that did not register: its observation is passed over
+    ratios["p6.jpg"] = (1.0, 1.0)
+    _, record = georef.align_model(model, {}, crs_name="EPSG:32632", gcp_path=path, sizes=sizes, ratios=ratios)
+    assert record["gcp"]["control"]["rms_m"] == pytest.approx(0.0, abs=1e-4)
+    del model.images[0]  # gcp1 now has one registered photo left
+    with pytest.raises(DataError, match=r"gcp1 is seen in 1 registered photo\(s\) of the 3 it names"):
+        georef.align_model(model, {}, crs_name="EPSG:32632", gcp_path=path, sizes=sizes, ratios=ratios)

@@ -351,12 +351,16 @@ def pixel_ray(model, name: str, x: float, y: float, ratio: tuple[float, float]):
 
 def place_points(model, points: list[dict], ratios: dict, source) -> np.ndarray:
     """Each point's model-frame position triangulated from its observations
-    ([(image, x, y)], at least two in registered photos). Returns [P, 3]."""
+    ([(image, x, y)]) in registered photos (the others are passed over; at least two needed).
+    Returns [P, 3]. DataError naming `source` and the point when fewer than two remain."""
+    registered = {model.images[i].name for i in model.reg_image_ids()}
     out = []
     for point in points:
-        rays = [pixel_ray(model, image, x, y, ratios[image]) for image, x, y in point["observations"]]
+        rays = [pixel_ray(model, image, x, y, ratios[image]) for image, x, y in point["observations"]
+                if image in registered]
         if len(rays) < 2:
-            raise DataError(f"{source}: {point['name']} is seen in {len(rays)} photo; a point needs two photos")
+            raise DataError(f"{source}: {point['name']} is seen in {len(rays)} registered photo(s) of the "
+                            f"{len(point['observations'])} it names; a point needs two")
         out.append(triangulate(np.stack([r[0] for r in rays]), np.stack([r[1] for r in rays])))
     return np.stack(out)
 

@@ -9,8 +9,11 @@ is named), so a camera at world point p is at CRS point origin_crs + p. Each pho
 is drawn per photo from a seeded generator: horizontal 1-3 m (uniform length, uniform
 direction), vertical 2-5 m (uniform length, random sign), as a consumer GNSS receiver gives.
 
-Writes DATA_DIR/photos_gps/<frame>.jpg (every frame of transforms.json, its PNG re-encoded)
-and DATA_DIR/gps_truth.json; the generator's own files are not touched.
+Writes DATA_DIR/photos_gps/<frame>.jpg (every frame of transforms.json, its PNG re-encoded),
+DATA_DIR/gps_truth.json and DATA_DIR/gcp.csv (`poses --gcp`): GCP_POINTS, marked ground points
+around the tower (the last one a check point), each at its exact CRS position and seen in up to
+GCP_PHOTOS photos where the depth map shows it unoccluded, its pixel the true projection plus a
+seeded 0.5 px (standard deviation) click error. The generator's own files are not touched.
 """
 
 from __future__ import annotations
@@ -31,6 +34,53 @@ HORIZONTAL_ERROR = (1.0, 3.0)  # metres
 VERTICAL_ERROR = (2.0, 5.0)    # metres
 JPEG_QUALITY = 95
 SECONDS_DENOMINATOR = 10000    # EXIF seconds as n / 10000 (1e-4 arc second: 3 mm)
+GCP_FILE = "gcp.csv"
+# world metres (ground z = 0): three control points and, last, a check point, 15 m from the tower
+GCP_POINTS = ((15.0, 0.0, 0.0), (-7.5, 13.0, 0.0), (-7.5, -13.0, 0.0), (0.0, -15.0, 0.0))
+GCP_PHOTOS = 6                 # photos per point (evenly spread over those that see it)
+CLICK_ERROR_PX = 0.5
+EDGE_PX = 3.0                  # a point closer than this to a photo's border is not clicked there
+VISIBLE_DEPTH = 0.02           # normalised units (0.4 m): the depth map's depth within this of the point's
+
+
+def project(c2w: np.ndarray, intrinsics: dict, point: np.ndarray) -> tuple[float, float, float]:
+    """A world point through a synthetic camera (OpenGL c2w [4, 4], pixel centres at +0.5):
+    (u, v, z-depth along -z)."""
+    cam = c2w[:3, :3].T @ (np.asarray(point, np.float64) - c2w[:3, 3])
+    depth = -cam[2]
+    return (intrinsics["fl_x"] * cam[0] / depth + intrinsics["cx"],
+            -intrinsics["fl_y"] * cam[1] / depth + intrinsics["cy"], depth)
+
+
+def gcp_rows(root: Path, meta: dict, base_crs: np.ndarray, seed: int) -> tuple[list[str], list[dict]]:
+    """gcp.csv's lines and the truth of each point (module docstring). Points are placed in the
+    normalised frame of transforms.json (its cameras), visibility read from each frame's depth map."""
+    norm = meta["scene_normalization"]
+    scale, shift = float(norm["scale"]), np.asarray(norm["translation"], np.float64)
+    rng = np.random.default_rng([seed, 4141])
+    points_norm = scale * (np.asarray(GCP_POINTS, np.float64) + shift)
+    seen = [[] for _ in GCP_POINTS]
+    for frame in meta["frames"]:
+        if "depth_file_path" not in frame:
+            continue
+        depth_map = io.read_exr(root / frame["depth_file_path"])
+        for k, point in enumerate(points_norm):
+            u, v, depth = project(np.asarray(frame["transform_matrix"], np.float64), meta, point)
+            if (depth > 0 and EDGE_PX <= u < meta["w"] - EDGE_PX and EDGE_PX <= v < meta["h"] - EDGE_PX
+                    and abs(float(depth_map[int(v), int(u)]) - depth) <= VISIBLE_DEPTH):
+                seen[k].append((Path(frame["file_path"]).stem + ".jpg", u, v))
+    lines, truth = ["image,x,y,X,Y,Z,check"], []
+    for k, world in enumerate(GCP_POINTS):
+        count = min(GCP_PHOTOS, len(seen[k]))
+        pick = [seen[k][i] for i in np.unique(np.linspace(0, len(seen[k]) - 1, count).round().astype(int))]
+        crs = base_crs + np.asarray(world)
+        check = k == len(GCP_POINTS) - 1
+        for name, u, v in pick:
+            du, dv = rng.normal(0.0, CLICK_ERROR_PX, 2)
+            lines.append(f"{name},{u + du:.2f},{v + dv:.2f},{crs[0]:.3f},{crs[1]:.3f},{crs[2]:.3f},"
+                         f"{'check' if check else ''}")
+        truth.append({"world": list(world), "crs": crs.round(4).tolist(), "check": check, "photos": len(pick)})
+    return lines, truth
 
 
 def parse_origin(text: str) -> tuple[float, float, float]:
@@ -115,5 +165,7 @@ def write_gps_photos(dataset_dir, origin: tuple[float, float, float], *, seed: i
              "scene_units_per_metre": float(norm["scale"]), "seed": seed,
              "gps_error": {"horizontal_m": list(HORIZONTAL_ERROR), "vertical_m": list(VERTICAL_ERROR)},
              "photos": photos}
+    lines, truth["gcp"] = gcp_rows(root, meta, origin_crs, seed)
+    io.atomic_write_bytes(root / GCP_FILE, ("\n".join(lines) + "\n").encode("utf-8"))
     io.write_json(root / TRUTH, truth)
     return root / TRUTH
