@@ -428,3 +428,50 @@ def test_gcp_seen_in_unregistered_photos_is_placed_from_the_others(tmp_path):
     del model.images[0]  # gcp1 now has one registered photo left
     with pytest.raises(DataError, match=r"gcp1 is seen in 1 registered photo\(s\) of the 3 it names"):
         georef.align_model(model, {}, crs_name="EPSG:32632", gcp_path=path, sizes=sizes, ratios=ratios)
+
+
+def test_poses_aligns_photos_with_gps_to_metres(tmp_path):
+    """The whole step on test_poses' textured orbit (16 JPEGs) with exact GPS: the orbit's units
+    are taken as 10 m, its origin at (466000, 5247000, 400) of EPSG:32632; the cameras of the
+    written dataset, through `georeference.scene_to_crs`, lie within 2 % of the orbit radius of
+    the truth, and sparse/0 / scene_normalization are in local metres."""
+    pytest.importorskip("pycolmap")
+    import cv2
+    from test_poses import RADIUS, _orbit, _render, _scene
+
+    from jaxnerf_grid import io as io_lib
+    from jaxnerf_grid.data.poses import poses_from_images
+
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    views, scene = _orbit(), _scene()
+    base = np.array([466000.0, 5247000.0, 400.0])
+    true = 10.0 * views[:, :3, 3] + base
+    records = gps_records(true)
+    for i, c2w in enumerate(views):
+        ok, buf = cv2.imencode(".jpg", np.round(_render(scene, c2w)[..., ::-1] * 255).astype(np.uint8),
+                               [cv2.IMWRITE_JPEG_QUALITY, 95])
+        rec = records[f"p{i}.jpg"]
+
+        def dms(v):
+            v = abs(v)
+            d, m = int(v), int((v - int(v)) * 60)
+            return (d, 1), (m, 1), (int(round((v - d - m / 60) * 3600 * 100000)), 100000)
+        gps_ifd = {1: "N", 2: dms(rec["latitude"]), 3: "E", 4: dms(rec["longitude"]), 5: 0,
+                   6: (int(round(rec["altitude"] * 1000)), 1000)}
+        out = io.BytesIO()
+        piexif.insert(piexif.dump({"GPS": gps_ifd}), buf.tobytes(), out)
+        (photos / f"view_{i:02d}.jpg").write_bytes(out.getvalue())
+    summary = poses_from_images(photos, tmp_path / "data", single_camera=True, progress=False)
+    geo = summary["georeference"]
+    assert geo["units"] == "metres" and geo["source"] == "gps" and geo["crs"] == "EPSG:32632"
+    top = io_lib.read_json(tmp_path / "data" / "transforms.json")
+    to_crs = np.asarray(top["georeference"]["scene_to_crs"])
+    found = {f["file_path"]: to_crs[:3, :3] @ np.asarray(f["transform_matrix"])[:3, 3] + to_crs[:3, 3]
+             for f in top["frames"]}
+    assert len(found) >= 12
+    errors = [np.linalg.norm(found[f"images/view_{i:02d}.jpg"] - true[i]) for i in range(16)
+              if f"images/view_{i:02d}.jpg" in found]
+    assert max(errors) < 0.02 * 10.0 * RADIUS, errors
+    assert top["georeference"]["metres_per_scene_unit"] == pytest.approx(1.0 / top["scene_normalization"]["scale"])
+    assert "## Scale and georeference" in (tmp_path / "data" / "poses_report.md").read_text()
