@@ -475,3 +475,11 @@ def test_poses_aligns_photos_with_gps_to_metres(tmp_path):
     assert max(errors) < 0.02 * 10.0 * RADIUS, errors
     assert top["georeference"]["metres_per_scene_unit"] == pytest.approx(1.0 / top["scene_normalization"]["scale"])
     assert "## Scale and georeference" in (tmp_path / "data" / "poses_report.md").read_text()
+
+
+@pytest.mark.parametrize("value", ["47.3,8.5", "north,8.5,400", "95,8.5,400"])
+def test_synth_refuses_a_bad_gps_origin_writing_nothing(tmp_path, capsys, value):
+    assert cli.main(["synth", "--out", str(tmp_path / "syn"), "--gps-origin", value, "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.count("--gps-origin") == 1, err
+    assert not (tmp_path / "syn").exists()
