@@ -11,7 +11,9 @@ The recovered cameras (POSES/transforms.json frames through `georeference.scene_
 compared with the true ones (SYN/gps_truth.json `true_crs`): the similarity from the true to the
 recovered centres (Umeyama) gives the scale error (its scale - 1), the tilt (the angle of its
 z axis from the vertical) and where the tower's base (the synthetic world's origin,
-`tower_base_crs`) lands, in metres from the truth; the centres' errors, and with --gcp the
+`tower_base_crs`) lands, in metres from the truth; the centres' errors, the RMS distance of the
+recovered centres from that similarity (the reconstruction's own departure from the true shape,
+`sfm_shape_rms_m`), and with --gcp the
 control and check points' RMS errors, are reported too.
 """
 
@@ -44,12 +46,14 @@ def score(synth_dir, poses_dir) -> dict:
     base_found = apply_similarity(sim, np.zeros(3)) + base
     tilt = float(np.degrees(np.arccos(np.clip(sim[1][2, 2], -1.0, 1.0))))
     centre = np.linalg.norm(found - true, axis=1)
+    shape = np.linalg.norm(apply_similarity(sim, true - base) - (found - base), axis=1)  # SfM's own error
     return {"photos": len(names), "source": geo["source"], "crs": geo["crs"], "rotation": geo.get("rotation"),
             "scale_error_percent": round(100.0 * (sim[0] - 1.0), 3), "tilt_deg": round(tilt, 3),
             "base_error_m": round(float(np.linalg.norm(base_found - base)), 3),
             "base_error_horizontal_m": round(float(np.hypot(*(base_found - base)[:2])), 3),
             "centre_error_median_m": round(float(np.median(centre)), 3),
             "centre_error_max_m": round(float(centre.max()), 3), "gps_rms_m": geo["gps"]["rms_m"],
+            "sfm_shape_rms_m": round(float(np.sqrt(np.mean(shape ** 2))), 3),
             **{f"{label}_points_rms_m": geo["gcp"][label]["rms_m"] for label in ("control", "check")
                if label in geo.get("gcp", {})}}
 
