@@ -29,7 +29,7 @@ RANSAC_ITERATIONS = 500
 INLIER_METRES = 3.0 * GPS_SIGMA  # a centre farther than this from its GPS position is an outlier
 # The GPS fit turns the model about z only: its z is the cameras' up (`poses.orient_z_up`), and
 # consumer GPS heights (2-5 m errors) tilt a full similarity by degrees (1.6 degrees on the synthetic
-# tower, 22 photos on a 40 m orbit, docs/GEOREFERENCE.md). 3 or more control points fit all of it.
+# tower, 22 photos on a 58 m orbit, docs/GEOREFERENCE.md). 3 or more control points fit all of it.
 YAW_ONLY_NOTE = "about z only (the cameras' up kept; fewer than 3 control points)"
 ORIGIN_ROUNDING = 1000.0     # metres: the local frame's origin is the cameras' mean rounded to this
 
