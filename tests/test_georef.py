@@ -483,3 +483,18 @@ def test_synth_refuses_a_bad_gps_origin_writing_nothing(tmp_path, capsys, value)
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and err.count("--gps-origin") == 1, err
     assert not (tmp_path / "syn").exists()
+
+
+def test_scale_bar_from_pixels_in_two_photos_each():
+    """Each end of the bar clicked in two photos (exact projections): the scale is the given
+    metres over the ends' distance in the model, 10 / |(3, 1, 0) - (-2, 4, 0.5)| here."""
+    model = FakeModel(ring())
+    cam = model.cameras[1]
+    ends = [np.array([3.0, 1.0, 0.0]), np.array([-2.0, 4.0, 0.5])]
+    clicks = [(f"p{i}.jpg", *model.images[i].project(end, cam)) for end, pair in zip(ends, [(0, 2), (1, 4)])
+              for i in pair]
+    spec = ";".join(f"{name}:{x:.9f},{y:.9f}" for name, x, y in clicks) + ";10"
+    ratios = {f"p{i}.jpg": (1.0, 1.0) for i in range(6)}
+    sim, record = georef.align_model(model, {}, scale_bar=spec, ratios=ratios)
+    assert record["source"] == "scale_bar" and record["crs"] is None
+    assert sim[0] == pytest.approx(10.0 / np.linalg.norm(ends[1] - ends[0]), rel=1e-6)
