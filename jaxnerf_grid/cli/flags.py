@@ -21,7 +21,7 @@ FLAGS = {  # subcommand -> {key: flag}
     "synth": {"synth.gps_origin": "--gps-origin", **_SWITCHES},
     "poses": {"poses.matcher": "--matcher", "poses.vocab_tree": "--vocab-tree", "poses.max_side": "--max-side",
               "poses.out": "--out", "poses.crs": "--crs", "poses.gcp": "--gcp", "poses.scale_bar": "--scale-bar",
-              **_SWITCHES},
+              "ignore_gps=True": "--ignore-gps", **_SWITCHES},
     "mask": {"mask.data": "--data", "mask.source": "--source", "mask.weights": "--weights",
              "mask.classes": "--classes", "mask.threshold": "--threshold",
              "mask.floor": "--floor", "mask.dilate": "--dilate", "mask.max_side": "--max-side",

@@ -5,7 +5,7 @@ The work is `data.poses.poses_from_images`; this module parses the arguments.
 
     jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher exhaustive|sequential|vocab]
                        [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--keep-all] [--overwrite]
-                       [--crs EPSG:XXXX] [--gcp FILE] [--scale-bar SPEC]
+                       [--crs EPSG:XXXX] [--gcp FILE] [--scale-bar SPEC] [--ignore-gps]
 
 DATA_DIR gets images/ (the undistorted photos, same names), transforms.json (docs/DATASET.md,
 OpenGL camera-to-world, normalised for an orbit: z up, the looked-at point in the unit
@@ -50,6 +50,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--scale-bar", default=None,
                    help="a known distance when the photos have no GPS: 'X1,Y1,Z1,X2,Y2,Z2,METRES' or "
                         "'IMG1:x,y;IMG2:x,y;IMG3:x,y;IMG4:x,y;METRES' (docs/GEOREFERENCE.md)")
+    p.add_argument("--ignore-gps", action="store_true",
+                   help="do not read the photos' GPS (e.g. when it is wrong); --scale-bar or --gcp still apply")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 
@@ -61,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = poses_from_images(args.images, args.out, matcher=args.matcher, camera_model=args.camera_model,
                                 single_camera=args.single_camera, max_side=args.max_side,
                                 vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet,
-                                keep_all=args.keep_all, crs=args.crs, gcp=args.gcp, scale_bar=args.scale_bar)
+                                keep_all=args.keep_all, crs=args.crs, gcp=args.gcp, scale_bar=args.scale_bar,
+                                ignore_gps=args.ignore_gps)
     print(format_summary(summary))
     print(f"wrote {summary['transforms']}")
     return 0

@@ -201,11 +201,12 @@ def check_gps(names: list[str], positions: np.ndarray, total: int, source, what:
     MIN_GPS_SPREAD m)."""
     if len(names) < MIN_GPS_PHOTOS:
         raise DataError(f"{source}: only {len(names)} of the {total} {what} photos have GPS; the "
-                        f"alignment needs at least {MIN_GPS_PHOTOS} (or none: then poses.scale_bar or units unknown)")
+                        f"alignment needs at least {MIN_GPS_PHOTOS}; ignore_gps=True leaves the GPS unread")
     spread = float(np.linalg.norm(positions - positions.mean(0), axis=1).max())
     if spread < MIN_GPS_SPREAD:
         raise DataError(f"{source}: the GPS positions of all {len(names)} photos lie within {spread:.2f} m of one "
-                        f"spot; the alignment needs photos taken from different places")
+                        f"spot; the alignment needs photos taken from different places (ignore_gps=True leaves "
+                        f"the GPS unread)")
 
 
 def residual_rows(names: list[str], predicted: np.ndarray, target: np.ndarray, inliers=None) -> list[dict]:

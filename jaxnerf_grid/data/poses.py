@@ -596,7 +596,7 @@ def format_summary(summary: dict) -> str:
 def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camera_model: str = "SIMPLE_RADIAL",
                       single_camera: bool = False, max_side: int | None = None, vocab_tree=None,
                       overwrite: bool = False, progress: bool = True, keep_all: bool = False, crs: str | None = None,
-                      gcp=None, scale_bar: str | None = None) -> dict:
+                      gcp=None, scale_bar: str | None = None, ignore_gps: bool = False) -> dict:
     """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
 
     Returns the summary: photos, registered, in_dataset (registered less those left out),
@@ -608,7 +608,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     COLMAP's frame), georeference (`georef.align_model`'s record: the photos' GPS, `gcp` (a
     ground control point file) and `crs` (EPSG:XXXX, else the GPS's UTM zone) align the model to
     metres in a projected CRS; without GPS, `scale_bar` scales it; else units stay unknown,
-    docs/GEOREFERENCE.md), transforms (path).
+    docs/GEOREFERENCE.md; `ignore_gps`: the photos' GPS is not read), transforms (path).
     DataError (one line, naming the path) for bad input; nothing is written then.
     """
     start = time.monotonic()
@@ -633,7 +633,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     try:
         photo_dir, names, skipped = prepare_photos(photos, stage_dir / "_work" / "photos", max_side, progress)
         readable = [images_dir / name for name in names]
-        positions = gps.read_all(readable)
+        positions = {} if ignore_gps else gps.read_all(readable)
         sizes = {path.name: gps.upright_size(path) for path in readable}
         ratios = {name: tuple(w1 / w0 for w1, w0 in zip(working_size(*size, max_side), size))
                   for name, size in sizes.items()}
