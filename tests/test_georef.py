@@ -501,3 +501,17 @@ def test_scale_bar_from_pixels_in_two_photos_each():
     sim, record = georef.align_model(model, {}, scale_bar=spec, ratios=ratios)
     assert record["source"] == "scale_bar" and record["crs"] is None
     assert sim[0] == pytest.approx(10.0 / np.linalg.norm(ends[1] - ends[0]), rel=1e-6)
+
+
+def test_report_flags_residuals_beyond_the_sources_accuracy():
+    from jaxnerf_grid.data.poses import georef_report_lines
+
+    base = {"units": "metres", "source": "gps", "crs": "EPSG:32632", "crs_name": "x", "origin": [0.0, 0.0, 0.0],
+            "metres_per_scene_unit": 20.0, "height_from": "EXIF GPSAltitude"}
+    gps_ok = {"photos": 9, "registered": 9, "inliers": 9, "rms_m": 5.9, "rms_horizontal_m": 2.0, "residuals": []}
+    assert not any("check the reconstruction" in line for line in georef_report_lines({**base, "gps": gps_ok}))
+    bent = {**base, "gps": {**gps_ok, "rms_m": 6.1}}
+    assert any("check the reconstruction" in line for line in georef_report_lines(bent))
+    control = {**base, "gps": gps_ok, "gcp": {"control": {"rms_m": 0.6, "residuals": []}}}
+    assert any("check the reconstruction" in line for line in georef_report_lines(control))
+    assert georef_report_lines({"units": "unknown"})[2].startswith("Units unknown")

@@ -31,6 +31,8 @@ INLIER_METRES = 3.0 * GPS_SIGMA  # a centre farther than this from its GPS posit
 # consumer GPS heights (2-5 m errors) tilt a full similarity by degrees (1.6 degrees on the synthetic
 # tower, 22 photos on a 58 m orbit, docs/GEOREFERENCE.md). 3 or more control points fit all of it.
 YAW_ONLY_NOTE = "about z only (the cameras' up kept; fewer than 3 control points)"
+SUSPECT_GPS_RMS = 2.0 * GPS_SIGMA  # metres: larger GPS residuals flag the reconstruction in the report
+SUSPECT_CONTROL_RMS = 0.5          # metres: ... and so do larger control point residuals
 ORIGIN_ROUNDING = 1000.0     # metres: the local frame's origin is the cameras' mean rounded to this
 
 
@@ -222,6 +224,16 @@ def rms(rows: list[dict], key: str = "error", inliers_only: bool = True) -> floa
     """Root mean square of `key` over the rows (the inliers only by default); None when empty."""
     values = [r[key] for r in rows if r["inlier"] or not inliers_only]
     return round(float(np.sqrt(np.mean(np.square(values)))), 4) if values else None
+
+
+def suspect(record: dict) -> bool:
+    """Whether an alignment's residuals exceed what its sources explain: GPS RMS above
+    SUSPECT_GPS_RMS or control points' RMS above SUSPECT_CONTROL_RMS (a model bent by a photo
+    registered in the wrong place; docs/GEOREFERENCE.md)."""
+    gps_rms = (record.get("gps") or {}).get("rms_m")
+    control_rms = ((record.get("gcp") or {}).get("control") or {}).get("rms_m")
+    return bool((gps_rms is not None and gps_rms > SUSPECT_GPS_RMS)
+                or (control_rms is not None and control_rms > SUSPECT_CONTROL_RMS))
 
 
 def local_origin(points: np.ndarray) -> np.ndarray:

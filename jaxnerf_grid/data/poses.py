@@ -517,6 +517,10 @@ def georef_report_lines(geo: dict) -> list[str]:
     if "scale_bar" in geo:
         lines.append(f"- scale bar: {geo['scale_bar']['metres']} m over {geo['scale_bar']['model_length']:.4g} "
                      "model units")
+    if georef.suspect(geo):
+        lines.append("- **check the reconstruction**: the residuals exceed what GPS (about 3 m) or ground control "
+                     "points (centimetres) explain; a photo registered in the wrong place bends the model "
+                     "(docs/GEOREFERENCE.md)")
     return lines + [""]
 
 
