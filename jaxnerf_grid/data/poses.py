@@ -584,7 +584,9 @@ def format_summary(summary: dict) -> str:
     if geo.get("units") == "metres":
         gps_line = f", GPS residual RMS {geo['gps']['rms_m']} m" if "gps" in geo else ""
         lines.append(f"scale and georeference from {geo['source']}: {geo.get('crs') or 'no CRS'}, "
-                     f"{geo['metres_per_model_unit']:.4g} m per model unit{gps_line}")
+                     f"{geo['metres_per_model_unit']:.4g} m per model unit{gps_line}"
+                     + ("; residuals too large: check the reconstruction (poses_report.md)" if georef.suspect(geo)
+                        else ""))
     elif "georeference" in summary:
         lines.append("units unknown (no GPS in the photos, no scale bar)")
     if summary.get("relaxed_mapping"):
