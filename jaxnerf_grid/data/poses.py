@@ -498,8 +498,8 @@ def georef_report_lines(geo: dict) -> list[str]:
     """poses_report.md's section on metric scale and georeference (docs/GEOREFERENCE.md)."""
     lines = ["## Scale and georeference (docs/GEOREFERENCE.md)", ""]
     if geo.get("units") != "metres":
-        return lines + ["Units unknown: no photo has GPS and no scale bar was given; the model is in "
-                        "arbitrary units.", ""]
+        return lines + ["Units unknown: no GPS read from the photos, no ground control points, no scale bar; "
+                        "the model is in arbitrary units.", ""]
     lines += [f"- source: {geo['source']}; units: metres; CRS: {geo.get('crs') or 'none (scale only)'}"
               + (f" ({geo['crs_name']})" if geo.get("crs_name") else ""),
               f"- metres per normalised scene unit: {geo['metres_per_scene_unit']:.4g}; "
@@ -588,7 +588,7 @@ def format_summary(summary: dict) -> str:
                      + ("; residuals too large: check the reconstruction (poses_report.md)" if georef.suspect(geo)
                         else ""))
     elif "georeference" in summary:
-        lines.append("units unknown (no GPS in the photos, no scale bar)")
+        lines.append("units unknown (no GPS read from the photos, no ground control points, no scale bar)")
     if summary.get("relaxed_mapping"):
         lines.append("registered with relaxed mapper thresholds: check the cameras in "
                      f"{TOPVIEW} (a ring around the tower) before training (docs/POSES.md)")
