@@ -515,3 +515,12 @@ def test_report_flags_residuals_beyond_the_sources_accuracy():
     control = {**base, "gps": gps_ok, "gcp": {"control": {"rms_m": 0.6, "residuals": []}}}
     assert any("check the reconstruction" in line for line in georef_report_lines(control))
     assert georef_report_lines({"units": "unknown"})[2].startswith("Units unknown")
+
+
+def test_upright_size_follows_exif_orientation(tmp_path):
+    """GCP pixels are in the upright photo: orientation 6 (turned 90 degrees) swaps the sides."""
+    for orientation, expected in ((1, (64, 48)), (6, (48, 64))):
+        out = io.BytesIO()
+        piexif.insert(piexif.dump({"0th": {piexif.ImageIFD.Orientation: orientation}}), jpeg_bytes(), out)
+        (tmp_path / f"o{orientation}.jpg").write_bytes(out.getvalue())
+        assert gps.upright_size(tmp_path / f"o{orientation}.jpg") == expected
