@@ -643,3 +643,11 @@ def test_strecha_cameras_reads_the_surveyed_format(tmp_path):
     np.testing.assert_allclose(c2w[:3, 3], centre)
     ahead = np.linalg.inv(c2w) @ np.append(centre + 5.0 * rot[:, 2], 1.0)
     np.testing.assert_allclose(ahead[:3], [0.0, 0.0, -5.0], atol=1e-9)
+
+
+def test_poses_without_gps_says_units_unknown(orbit_run):
+    """Photos without GPS and no scale bar: the dataset is written as before, its georeference
+    says units unknown, and so do the summary and the report (docs/GEOREFERENCE.md)."""
+    top = io.read_json(orbit_run["out"] / "transforms.json")
+    assert top["georeference"] == {"units": "unknown", "source": None}
+    assert "Units unknown" in (orbit_run["out"] / "poses_report.md").read_text()

@@ -18,9 +18,10 @@ _OTHER_DATA = {"allow_other_data=True": "--allow-other-data"}
 _DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.process_id": "--process-id"}
 
 FLAGS = {  # subcommand -> {key: flag}
-    "synth": {**_SWITCHES},
+    "synth": {"synth.gps_origin": "--gps-origin", **_SWITCHES},
     "poses": {"poses.matcher": "--matcher", "poses.vocab_tree": "--vocab-tree", "poses.max_side": "--max-side",
-              "poses.out": "--out", **_SWITCHES},
+              "poses.out": "--out", "poses.crs": "--crs", "poses.gcp": "--gcp", "poses.scale_bar": "--scale-bar",
+              "ignore_gps=True": "--ignore-gps", **_SWITCHES},
     "mask": {"mask.data": "--data", "mask.source": "--source", "mask.weights": "--weights",
              "mask.classes": "--classes", "mask.threshold": "--threshold",
              "mask.floor": "--floor", "mask.dilate": "--dilate", "mask.max_side": "--max-side",

@@ -5,12 +5,15 @@ The work is `data.poses.poses_from_images`; this module parses the arguments.
 
     jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher exhaustive|sequential|vocab]
                        [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--keep-all] [--overwrite]
+                       [--crs EPSG:XXXX] [--gcp FILE] [--scale-bar SPEC] [--ignore-gps]
 
 DATA_DIR gets images/ (the undistorted photos, same names), transforms.json (docs/DATASET.md,
 OpenGL camera-to-world, normalised for an orbit: z up, the looked-at point in the unit
 sphere, and the scene bounds), sparse/0 (the COLMAP model, z up), poses_topview.png and
 poses_report.md (the vetting table: registered photos that fail it are left out unless
---keep-all). Needs the `sfm` extra
+--keep-all). Photos with EXIF GPS put the model in metres in a projected CRS (the GPS's UTM
+zone or --crs), refined by ground control points (--gcp); without GPS, --scale-bar gives the
+scale; else units stay unknown (docs/GEOREFERENCE.md). Needs the `sfm` extra
 (pycolmap); docs/POSES.md has the stages, the limits and measured times.
 """
 
@@ -40,6 +43,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace a DATA_DIR written by poses (its outputs only; other folders are refused)")
     p.add_argument("--keep-all", action="store_true",
                    help="keep every registered photo, also those the vetting would leave out (docs/POSES.md)")
+    p.add_argument("--crs", default=None,
+                   help="projected CRS for the GPS alignment, e.g. EPSG:32633 (default: the GPS's UTM zone)")
+    p.add_argument("--gcp", default=None,
+                   help="ground control points: CSV rows image,x,y,X,Y,Z[,check] (docs/GEOREFERENCE.md)")
+    p.add_argument("--scale-bar", default=None,
+                   help="a known distance when the photos have no GPS: 'X1,Y1,Z1,X2,Y2,Z2,METRES' or "
+                        "'IMG1:x,y;IMG2:x,y;IMG3:x,y;IMG4:x,y;METRES' (docs/GEOREFERENCE.md)")
+    p.add_argument("--ignore-gps", action="store_true",
+                   help="do not read the photos' GPS (e.g. when it is wrong); --scale-bar or --gcp still apply")
     p.add_argument("--quiet", action="store_true", help="no progress output")
     return p
 
@@ -51,7 +63,8 @@ def main(argv: list[str] | None = None) -> int:
     summary = poses_from_images(args.images, args.out, matcher=args.matcher, camera_model=args.camera_model,
                                 single_camera=args.single_camera, max_side=args.max_side,
                                 vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet,
-                                keep_all=args.keep_all)
+                                keep_all=args.keep_all, crs=args.crs, gcp=args.gcp, scale_bar=args.scale_bar,
+                                ignore_gps=args.ignore_gps)
     print(format_summary(summary))
     print(f"wrote {summary['transforms']}")
     return 0

@@ -28,6 +28,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--supersample", type=int, default=None, help="N: NxN colour samples per pixel")
     p.add_argument("--workers", type=int, default=0, help="processes (0: min(2, CPU count))")
     p.add_argument("--preview", action="store_true", help="also write preview.png (a contact sheet)")
+    p.add_argument("--gps-origin", default=None, metavar="LAT,LON,ALT",
+                   help="also write photos_gps/ (JPEGs with EXIF GPS: true camera centres plus a consumer "
+                        "receiver's error, seeded) and gps_truth.json, the tower's base at LAT,LON,ALT "
+                        "(docs/GEOREFERENCE.md)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -51,6 +55,9 @@ def main(argv: list[str] | None = None) -> int:
     check_args(args)
     from jaxnerf_grid.data.synthetic.generate import contact_sheet, generate_scene
 
+    from jaxnerf_grid.data.gps_scene import parse_origin, write_gps_photos
+
+    origin = parse_origin(args.gps_origin) if args.gps_origin is not None else None
     workers = args.workers or min(2, os.cpu_count() or 1)
     path = generate_scene(
         args.preset, args.out, seed=args.seed, distractors=args.distractors, overwrite=args.overwrite,
@@ -60,6 +67,8 @@ def main(argv: list[str] | None = None) -> int:
     )
     if args.preview:
         contact_sheet(path.parent, path.parent / "preview.png")
+    if origin is not None:
+        print(f"wrote {write_gps_photos(path.parent, origin, seed=args.seed)}")
     print(f"wrote {path}")
     return 0
 

@@ -44,7 +44,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import io, progress
-from jaxnerf_grid.data import vetting
+from jaxnerf_grid.data import georef, gps, vetting
 from jaxnerf_grid.data.bounds import scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
@@ -469,12 +469,59 @@ def write_dataset(stage_dir: Path, summary: dict) -> dict:
     top = transforms_top(width, height, scene.near * scale, scene.far * scale, norm, {}, stage_dir, stage_dir)
     points_norm = apply_normalization_to_points(points, norm)
     top["scene_bounds"] = scene_bounds(c2w, points_norm if len(points) else None, scene.near * scale)
-    top["poses"] = summary
+    top["poses"] = {key: value for key, value in summary.items() if key != "georeference"}
+    top["georeference"] = scene_georeference(summary.get("georeference") or {"units": "unknown"}, norm)
     top["frames"] = frames
     io.write_json(stage_dir / "transforms.json", top)
     draw_topview(stage_dir / TOPVIEW, c2w, points_norm)
-    io.atomic_write_bytes(stage_dir / REPORT, "\n".join(report_lines(summary, top["scene_bounds"])).encode("utf-8"))
+    lines = report_lines(summary, top["scene_bounds"]) + georef_report_lines(top["georeference"])
+    io.atomic_write_bytes(stage_dir / REPORT, "\n".join(lines).encode("utf-8"))
     return top
+
+
+def scene_georeference(record: dict, norm: dict) -> dict:
+    """transforms.json's `georeference`: `georef.align_model`'s record plus, when in metres,
+    `metres_per_scene_unit` (1 / scene_normalization.scale: sparse/0 and the normalisation's
+    metric frame are the local frame, metres) and `scene_to_crs` [4, 4] (normalised scene ->
+    projected CRS: x_crs = x_norm / scale - translation + origin)."""
+    out = dict(record)
+    if record.get("units") == "metres":
+        scale, translation = float(norm["scale"]), np.asarray(norm["translation"], np.float64)
+        matrix = np.eye(4)
+        matrix[:3, :3] /= scale
+        matrix[:3, 3] = np.asarray(record["origin"], np.float64) - translation
+        out.update({"metres_per_scene_unit": 1.0 / scale, "scene_to_crs": matrix.tolist()})
+    return out
+
+
+def georef_report_lines(geo: dict) -> list[str]:
+    """poses_report.md's section on metric scale and georeference (docs/GEOREFERENCE.md)."""
+    lines = ["## Scale and georeference (docs/GEOREFERENCE.md)", ""]
+    if geo.get("units") != "metres":
+        return lines + ["Units unknown: no GPS read from the photos, no ground control points, no scale bar; "
+                        "the model is in arbitrary units.", ""]
+    lines += [f"- source: {geo['source']}; units: metres; CRS: {geo.get('crs') or 'none (scale only)'}"
+              + (f" ({geo['crs_name']})" if geo.get("crs_name") else ""),
+              f"- metres per normalised scene unit: {geo['metres_per_scene_unit']:.4g}; "
+              f"local origin in the CRS: {', '.join(f'{v:.1f}' for v in geo['origin'])}"]
+    if "gps" in geo:
+        g = geo["gps"]
+        lines.append(f"- GPS: {g['photos']} of {g['registered']} registered photos, {g['inliers']} inliers; "
+                     f"residual RMS {g['rms_m']} m (horizontal {g['rms_horizontal_m']} m); "
+                     f"heights from {geo.get('height_from')}")
+    for label in ("control", "check"):
+        group = (geo.get("gcp") or {}).get(label)
+        if group:
+            lines.append(f"- {label} points: RMS {group['rms_m']} m; "
+                         + ", ".join(f"{r['name']} {r['error']:.3f} m (dz {r['dz']:+.3f})" for r in group["residuals"]))
+    if "scale_bar" in geo:
+        lines.append(f"- scale bar: {geo['scale_bar']['metres']} m over {geo['scale_bar']['model_length']:.4g} "
+                     "model units")
+    if georef.suspect(geo):
+        lines.append("- **check the reconstruction**: the residuals exceed what GPS (about 3 m) or ground control "
+                     "points (centimetres) explain; a photo registered in the wrong place bends the model "
+                     "(docs/GEOREFERENCE.md)")
+    return lines + [""]
 
 
 def report_lines(summary: dict, bounds: dict) -> list[str]:
@@ -533,6 +580,15 @@ def format_summary(summary: dict) -> str:
                      + ", ".join(f"{name} ({why.get(name, '?')})" for name in vet["left_out"]))
     if summary["skipped"]:
         lines.append(f"unreadable, skipped ({len(summary['skipped'])}): {', '.join(summary['skipped'])}")
+    geo = summary.get("georeference") or {}
+    if geo.get("units") == "metres":
+        gps_line = f", GPS residual RMS {geo['gps']['rms_m']} m" if "gps" in geo else ""
+        lines.append(f"scale and georeference from {geo['source']}: {geo.get('crs') or 'no CRS'}, "
+                     f"{geo['metres_per_model_unit']:.4g} m per model unit{gps_line}"
+                     + ("; residuals too large: check the reconstruction (poses_report.md)" if georef.suspect(geo)
+                        else ""))
+    elif "georeference" in summary:
+        lines.append("units unknown (no GPS read from the photos, no ground control points, no scale bar)")
     if summary.get("relaxed_mapping"):
         lines.append("registered with relaxed mapper thresholds: check the cameras in "
                      f"{TOPVIEW} (a ring around the tower) before training (docs/POSES.md)")
@@ -545,7 +601,8 @@ def format_summary(summary: dict) -> str:
 
 def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camera_model: str = "SIMPLE_RADIAL",
                       single_camera: bool = False, max_side: int | None = None, vocab_tree=None,
-                      overwrite: bool = False, progress: bool = True, keep_all: bool = False) -> dict:
+                      overwrite: bool = False, progress: bool = True, keep_all: bool = False, crs: str | None = None,
+                      gcp=None, scale_bar: str | None = None, ignore_gps: bool = False) -> dict:
     """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
 
     Returns the summary: photos, registered, in_dataset (registered less those left out),
@@ -554,7 +611,10 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     photos that fail are left out of the dataset unless `keep_all`}), skipped (names of unreadable
     files), mean_reprojection_error (px), points3d, matcher, camera_model, relaxed_mapping
     (the model came from the relaxed second mapping), seconds, up_rotation ([3, 3] applied to
-    COLMAP's frame), transforms (path).
+    COLMAP's frame), georeference (`georef.align_model`'s record: the photos' GPS, `gcp` (a
+    ground control point file) and `crs` (EPSG:XXXX, else the GPS's UTM zone) align the model to
+    metres in a projected CRS; without GPS, `scale_bar` scales it; else units stay unknown,
+    docs/GEOREFERENCE.md; `ignore_gps`: the photos' GPS is not read), transforms (path).
     DataError (one line, naming the path) for bad input; nothing is written then.
     """
     start = time.monotonic()
@@ -563,6 +623,12 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
         raise DataError(f"poses.max_side must be at least 16 pixels, got {max_side}")
     images_dir, out = Path(images_dir), Path(out_dir)
     photos = list_photos(images_dir)
+    if scale_bar is not None:
+        georef.parse_scale_bar(scale_bar)
+    if crs is not None:
+        georef.projected_crs(crs)
+    if gcp is not None and not Path(gcp).is_file():
+        raise DataError(f"{gcp}: ground control point file not found")
     if _inside(images_dir, out):
         raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another poses.out")
     check_out(out, overwrite)
@@ -572,6 +638,15 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     stage_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.poses-", dir=out.parent))
     try:
         photo_dir, names, skipped = prepare_photos(photos, stage_dir / "_work" / "photos", max_side, progress)
+        readable = [images_dir / name for name in names]
+        positions = {} if ignore_gps else gps.read_all(readable)
+        sizes = {path.name: gps.upright_size(path) for path in readable}
+        ratios = {name: tuple(w1 / w0 for w1, w0 in zip(working_size(*size, max_side), size))
+                  for name, size in sizes.items()}
+        if gcp is not None:
+            georef.read_gcp_csv(gcp, sizes)
+        if positions:
+            georef.precheck_gps(positions, crs, len(names), images_dir)
         model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
                            camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
                            show=progress, source=images_dir, keep_all=keep_all)
@@ -589,6 +664,10 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
                             f"{shown}); more overlap and texture between photos help (docs/POSES.md)")
         with _stage("undistortion to PINHOLE, orientation, transforms.json", progress):
             rot = orient_z_up(pycolmap, model)
+            sim, georeference = georef.align_model(model, positions, crs_name=crs, gcp_path=gcp, scale_bar=scale_bar,
+                                                   sizes=sizes, ratios=ratios, source=images_dir)
+            if sim is not None:
+                model.transform(pycolmap.Sim3d(sim[0], pycolmap.Rotation3d(sim[1]), sim[2]))
             summary = {"photos": len(photos), "registered": len(registered), "in_dataset": kept,
                        "unregistered": unregistered,
                        "vetting": {"keep_all": bool(keep_all), "left_out": left_out, "photos": rows},
@@ -596,7 +675,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
                        "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
                        "matcher": matcher, "camera_model": camera_model, "single_camera": bool(single_camera),
                        "max_side": max_side, "relaxed_mapping": bool(relaxed), "up_rotation": rot.tolist(),
-                       "pycolmap": str(getattr(pycolmap, "__version__", "unknown"))}
+                       "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
+                       "georeference": georeference}
             undistort(pycolmap, model, photo_dir, stage_dir)
             shutil.rmtree(stage_dir / "_work")
             summary["seconds"] = round(time.monotonic() - start, 1)

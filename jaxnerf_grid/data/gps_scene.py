@@ -1,0 +1,171 @@
+"""A synthetic dataset's photos as a drone would write them: JPEGs with EXIF GPS from the true
+camera centres plus a consumer receiver's error, and the truth to score against
+(`jaxnerf-grid synth --gps-origin LAT,LON,ALT`, docs/GEOREFERENCE.md).
+
+The synthetic world is metric, z up, the main tower's base at its origin
+(`data.synthetic`); here that origin is placed at the WGS 84 point (LAT, LON, ALT) and the
+world's x / y axes are the projected CRS's easting / northing (the GPS's UTM zone unless a CRS
+is named), so a camera at world point p is at CRS point origin_crs + p. Each photo's GPS error
+is drawn per photo from a seeded generator: horizontal 1-3 m (uniform length, uniform
+direction), vertical 2-5 m (uniform length, random sign), as a consumer GNSS receiver gives.
+
+Writes DATA_DIR/photos_gps/<frame>.jpg (every frame of transforms.json, its PNG re-encoded),
+DATA_DIR/gps_truth.json and DATA_DIR/gcp.csv (`poses --gcp`): GCP_POINTS, marked ground points
+around the tower (the last one a check point), each at its exact CRS position and seen in up to
+GCP_PHOTOS photos where the depth map shows it unoccluded, its pixel the true projection plus a
+seeded 0.5 px (standard deviation) click error. The generator's own files are not touched.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid import io
+from jaxnerf_grid.data import georef
+from jaxnerf_grid.data.gps import GPS_IFD
+from jaxnerf_grid.data.normalize import apply_normalization_to_points, invert_normalization
+from jaxnerf_grid.io import DataError
+
+PHOTOS = "photos_gps"
+TRUTH = "gps_truth.json"
+HORIZONTAL_ERROR = (1.0, 3.0)  # metres
+VERTICAL_ERROR = (2.0, 5.0)    # metres
+JPEG_QUALITY = 95
+SECONDS_DENOMINATOR = 10000    # EXIF seconds as n / 10000 (1e-4 arc second: 3 mm)
+GCP_FILE = "gcp.csv"
+# world metres (ground z = 0): three control points and, last, a check point, 15 m from the tower
+GCP_POINTS = ((15.0, 0.0, 0.0), (-7.5, 13.0, 0.0), (-7.5, -13.0, 0.0), (0.0, -15.0, 0.0))
+GCP_PHOTOS = 6                 # photos per point (evenly spread over those that see it)
+CLICK_ERROR_PX = 0.5
+EDGE_PX = 3.0                  # a point closer than this to a photo's border is not clicked there
+VISIBLE_DEPTH = 0.02           # normalised units (0.4 m): the depth map's depth within this of the point's
+
+
+def project(c2w: np.ndarray, intrinsics: dict, point: np.ndarray) -> tuple[float, float, float]:
+    """A world point through a synthetic camera (OpenGL c2w [4, 4], pixel centres at +0.5):
+    (u, v, z-depth along -z)."""
+    cam = c2w[:3, :3].T @ (np.asarray(point, np.float64) - c2w[:3, 3])
+    depth = -cam[2]
+    return (intrinsics["fl_x"] * cam[0] / depth + intrinsics["cx"],
+            -intrinsics["fl_y"] * cam[1] / depth + intrinsics["cy"], depth)
+
+
+def gcp_rows(root: Path, meta: dict, base_crs: np.ndarray, seed: int) -> tuple[list[str], list[dict]]:
+    """gcp.csv's lines and the truth of each point (module docstring). Points are placed in the
+    normalised frame of transforms.json (its cameras), visibility read from each frame's depth map."""
+    norm = meta["scene_normalization"]
+    scale, shift = float(norm["scale"]), np.asarray(norm["translation"], np.float64)
+    rng = np.random.default_rng([seed, 4141])
+    points_norm = scale * (np.asarray(GCP_POINTS, np.float64) + shift)
+    seen = [[] for _ in GCP_POINTS]
+    for frame in meta["frames"]:
+        if "depth_file_path" not in frame:
+            continue
+        depth_map = io.read_exr(root / frame["depth_file_path"])
+        for k, point in enumerate(points_norm):
+            u, v, depth = project(np.asarray(frame["transform_matrix"], np.float64), meta, point)
+            if (depth > 0 and EDGE_PX <= u < meta["w"] - EDGE_PX and EDGE_PX <= v < meta["h"] - EDGE_PX
+                    and abs(float(depth_map[int(v), int(u)]) - depth) <= VISIBLE_DEPTH):
+                seen[k].append((Path(frame["file_path"]).stem + ".jpg", u, v))
+    lines, truth = ["image,x,y,X,Y,Z,check"], []
+    for k, world in enumerate(GCP_POINTS):
+        count = min(GCP_PHOTOS, len(seen[k]))
+        pick = [seen[k][i] for i in np.unique(np.linspace(0, len(seen[k]) - 1, count).round().astype(int))]
+        crs = base_crs + np.asarray(world)
+        check = k == len(GCP_POINTS) - 1
+        for name, u, v in pick:
+            du, dv = rng.normal(0.0, CLICK_ERROR_PX, 2)
+            lines.append(f"{name},{u + du:.2f},{v + dv:.2f},{crs[0]:.3f},{crs[1]:.3f},{crs[2]:.3f},"
+                         f"{'check' if check else ''}")
+        truth.append({"world": list(world), "crs": crs.round(4).tolist(), "check": check, "photos": len(pick)})
+    return lines, truth
+
+
+def parse_origin(text: str) -> tuple[float, float, float]:
+    """'LAT,LON,ALT' (degrees, degrees, metres) -> a tuple; DataError naming synth.gps_origin."""
+    try:
+        lat, lon, alt = (float(v) for v in str(text).split(","))
+    except ValueError:
+        raise DataError(f"synth.gps_origin: expected LAT,LON,ALT (degrees, degrees, metres), got {text!r}") from None
+    if not (-80.0 <= lat <= 84.0 and -180.0 <= lon <= 180.0 and np.isfinite(alt)):
+        raise DataError(f"synth.gps_origin: latitude must lie in [-80, 84] (UTM) and longitude in [-180, 180], "
+                        f"got {text!r}")
+    return lat, lon, alt
+
+
+def gps_errors(count: int, seed: int) -> np.ndarray:
+    """Per-photo GPS errors [count, 3] (east, north, up; metres): module docstring's model."""
+    rng = np.random.default_rng([seed, 41])
+    length = rng.uniform(*HORIZONTAL_ERROR, count)
+    angle = rng.uniform(0.0, 2.0 * np.pi, count)
+    vertical = rng.uniform(*VERTICAL_ERROR, count) * rng.choice([-1.0, 1.0], count)
+    return np.stack([length * np.cos(angle), length * np.sin(angle), vertical], -1)
+
+
+def degrees_to_dms(value: float) -> tuple[tuple[int, int], tuple[int, int], tuple[int, int]]:
+    """|value| degrees -> EXIF's three rationals ((d, 1), (m, 1), (s * 10000, 10000))."""
+    value = abs(float(value))
+    d = int(value)
+    m = int((value - d) * 60.0)
+    s = (value - d - m / 60.0) * 3600.0
+    return (d, 1), (m, 1), (int(round(s * SECONDS_DENOMINATOR)), SECONDS_DENOMINATOR)
+
+
+def gps_exif(latitude: float, longitude: float, altitude: float):
+    """A Pillow Exif holding the GPS IFD of one position (refs N/S, E/W; altitude ref 1 below 0)."""
+    from PIL import Image
+    from PIL.TiffImagePlugin import IFDRational
+
+    def rationals(value):
+        return tuple(IFDRational(n, d) for n, d in degrees_to_dms(value))
+
+    exif = Image.Exif()
+    exif[GPS_IFD] = {0: b"\x02\x03\x00\x00", 1: "N" if latitude >= 0 else "S", 2: rationals(latitude),
+                     3: "E" if longitude >= 0 else "W", 4: rationals(longitude),
+                     5: b"\x01" if altitude < 0 else b"\x00", 6: IFDRational(int(round(abs(altitude) * 1000)), 1000)}
+    return exif
+
+
+def write_gps_photos(dataset_dir, origin: tuple[float, float, float], *, seed: int = 0, crs: str | None = None) -> Path:
+    """The photos with GPS and the truth (module docstring) for a synthetic dataset.
+    origin: (latitude, longitude, altitude) of the world's origin (the tower's base).
+    Returns the path of gps_truth.json."""
+    from PIL import Image
+
+    root = Path(dataset_dir)
+    meta = io.read_json(root / "transforms.json")
+    if "scene_normalization" not in meta or "frames" not in meta:
+        raise DataError(f"{root / 'transforms.json'}: not a synthetic dataset (no scene_normalization or frames)")
+    norm = meta["scene_normalization"]
+    inverse = invert_normalization({"scale": float(norm["scale"]),
+                                    "translation": np.asarray(norm["translation"], np.float64)})
+    lat0, lon0, alt0 = origin
+    projected = georef.projected_crs(crs, lat0, lon0)
+    origin_crs = georef.geodetic_to_projected(projected, lat0, lon0, alt0)[0]
+    centres = np.stack([np.asarray(f["transform_matrix"], np.float64)[:3, 3] for f in meta["frames"]])
+    true_crs = origin_crs + apply_normalization_to_points(centres, inverse)
+    gps_crs = true_crs + gps_errors(len(centres), seed)
+    lat, lon = georef.projected_to_geodetic(projected, gps_crs[:, 0], gps_crs[:, 1])
+    out = root / PHOTOS
+    out.mkdir(exist_ok=True)
+    photos = {}
+    for k, frame in enumerate(meta["frames"]):
+        name = Path(frame["file_path"]).stem + ".jpg"
+        pixels = np.asarray(io.read_image(root / frame["file_path"]) * 255.0 + 0.5, np.uint8)
+        with io.atomic_path(out / name) as tmp:
+            Image.fromarray(pixels[..., :3]).save(tmp, "JPEG", quality=JPEG_QUALITY,
+                                                  exif=gps_exif(lat[k], lon[k], gps_crs[k, 2]).tobytes())
+        photos[name] = {"true_crs": true_crs[k].round(4).tolist(), "gps_crs": gps_crs[k].round(4).tolist(),
+                        "latitude": float(lat[k]), "longitude": float(lon[k]), "altitude": float(gps_crs[k, 2])}
+    truth = {"crs": georef.crs_label(projected), "origin_geodetic": [lat0, lon0, alt0],
+             "tower_base_crs": origin_crs.round(4).tolist(),
+             "world_to_crs": "x_crs = x_world + tower_base_crs (world x, y, z = easting, northing, up; metres)",
+             "scene_units_per_metre": float(norm["scale"]), "seed": seed,
+             "gps_error": {"horizontal_m": list(HORIZONTAL_ERROR), "vertical_m": list(VERTICAL_ERROR)},
+             "photos": photos}
+    lines, truth["gcp"] = gcp_rows(root, meta, origin_crs, seed)
+    io.atomic_write_bytes(root / GCP_FILE, ("\n".join(lines) + "\n").encode("utf-8"))
+    io.write_json(root / TRUTH, truth)
+    return root / TRUTH
