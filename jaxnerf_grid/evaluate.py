@@ -35,7 +35,7 @@ import jax
 import numpy as np
 
 from jaxnerf_grid import (clouds, config as config_lib, geometry, io, losses, lpips, metrics, rays as rays_lib, report,
-                          train, views)
+                          robust as robust_lib, train, views)
 from jaxnerf_grid.export import score
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.runs import bar, frame_name, load_run_and_dataset, write_view
@@ -235,15 +235,20 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
               "eval_seconds": time.perf_counter() - start}
     weights = training_weights(run_dir, ds)
     if weights is not None:
-        result["training_weights"] = {"mode": cfg.train.robust, "ignored_share": weights["ignored_share"]}
+        late = robust_lib.late_ignored_share(train.read_log(run_dir / "metrics.jsonl"), cfg.train.max_steps)
+        result["training_weights"] = {"mode": cfg.train.robust, "ignored_share": weights["ignored_share"],
+                                      "late_batch_ignored_share": late}
     io.write_json(run_dir / "metrics.json", result)
     clouds.write_point_cloud(run_dir / "tower_points.ply", cloud)
     notes = list(extra_notes)
     notes.append(resolution_note(result["resolution"]))
     if weights is not None:
+        late = result["training_weights"]["late_batch_ignored_share"]
+        late_text = "" if late is None else (f"{100 * late:.1f} % of the pixels of each batch in the last "
+                                             "quarter of training, and ")
         notes.append(f"Photometric evidence (`train.robust = {cfg.train.robust}`): training ignored "
-                     f"{100 * weights['ignored_share']:.1f} % of the training pixels by the end "
-                     "(weights in `weights/`, docs/ROBUST.md).")
+                     f"{late_text}{100 * weights['ignored_share']:.1f} % of the training pixels in its per-pixel "
+                     "record (pixels never drawn count as used; weights in `weights/`, docs/ROBUST.md).")
         notes += report.weights_figure(run_dir, weights["rows"])
     notes.append(f"Point cloud of the unit sphere (the tower region) lifted from the depth maps of the "
                  f"{len(per_view)} test views" + (f" and {len(cloud_ids)} training views" if cloud_ids else "")

@@ -66,6 +66,18 @@ def warmup_steps(warmup: float, max_steps: int) -> int:
     return int(round(float(warmup) * int(max_steps)))
 
 
+def late_ignored_share(log: list[dict], max_steps: int, tail: float = 0.25) -> float | None:
+    """The share of the drawn pixels training ignored late in a run: 1 - the mean
+    "robust_weight" (each logged batch's mean weight) of the log records in the last `tail` of
+    max_steps. Every batch is a fresh random draw, so this is unbiased for the pixels training
+    saw, unlike the per-pixel record, where pixels never drawn keep their 1. None when no
+    record there has the figure. log: metrics.jsonl records ({"step", "robust_weight", ...})."""
+    start = (1.0 - tail) * max_steps
+    late = [float(r["robust_weight"]) for r in log
+            if "robust_weight" in r and float(r.get("step", 0)) > start]
+    return 1.0 - sum(late) / len(late) if late else None
+
+
 def pixel_quantiles(prior: jnp.ndarray, quantile: float, flagged_quantile: float) -> jnp.ndarray:
     """Each pixel's inlier quantile: q_flagged + (q - q_flagged) * prior. prior: [...] in [0, 1]
     -> [...]."""

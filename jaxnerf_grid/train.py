@@ -345,6 +345,16 @@ def _log_record(line: str) -> dict | None:
     return record if isinstance(record, dict) and isinstance(record.get("step", 0), (int, float)) else None
 
 
+def read_log(path) -> list[dict]:
+    """The records of a run's metrics.jsonl that parse (torn or foreign lines skipped); [] when
+    the file is missing."""
+    path = Path(path)
+    if not path.is_file():
+        return []
+    lines = path.read_text(encoding="utf-8", errors="replace").splitlines()
+    return [r for r in map(_log_record, lines) if r is not None]
+
+
 def _trim_log(path: Path, step: int) -> dict | None:
     """Drops metrics.jsonl lines logged after `step` (they are replayed after a resume) and any
     line that does not parse (a torn last line from a kill or a full disk), rewriting the file

@@ -15,6 +15,7 @@ run whose dataset is built here, so every region and every target is known by co
   their panels and compared with the ground truth, the render PNG and the depth EXR.
 """
 
+import json
 import re
 import sys
 from pathlib import Path
@@ -333,6 +334,11 @@ def test_a_robust_run_reports_the_weights_training_used(tmp_path):
     assert all(u.shape == (H, W) for u in used)
     assert metrics["training_weights"]["mode"] == "dpt+robust"
     assert metrics["training_weights"]["ignored_share"] == pytest.approx(np.mean([1 - u.mean() for u in used]))
+    cfg_steps = overrides["train"]["max_steps"]
+    logged = [r["robust_weight"] for r in map(json.loads, (Path(run) / "metrics.jsonl").read_text().splitlines())
+              if "robust_weight" in r and r["step"] > 0.75 * cfg_steps]
+    assert logged
+    assert metrics["training_weights"]["late_batch_ignored_share"] == pytest.approx(1 - np.mean(logged))
     assert "report_weights.png" in (Path(run) / "report.md").read_text()
     figure = io.read_image(Path(run) / "report_weights.png")
     assert figure.shape == (3 * H + 2 * 2, 3 * W + 2 * 2, 3)

@@ -220,3 +220,12 @@ def test_bad_settings_are_one_line_errors_naming_the_key_or_folder():
     from jaxnerf_grid import runs                            # refused before a run folder is written
     with pytest.raises(DataError, match="needs the dataset's masks"):
         runs.check_run(tiny_config(robust="dpt+robust", robust_patch=4), ds, num_devices=2)
+
+
+def test_late_ignored_share_averages_the_batches_of_the_last_quarter():
+    log = [{"step": 10, "robust_weight": 0.2}, {"step": 80, "robust_weight": 0.9}, {"step": 90},
+           {"step": 100, "robust_weight": 0.7}, {"step": 60, "robust_weight": 0.0}]
+    assert robust.late_ignored_share(log, 100) == pytest.approx(1 - (0.9 + 0.7) / 2)
+    assert robust.late_ignored_share(log, 100, tail=0.5) == pytest.approx(1 - (0.0 + 0.9 + 0.7) / 3)
+    assert robust.late_ignored_share(log, 100, tail=0.95) == pytest.approx(1 - (0.2 + 0.9 + 0.7 + 0.0) / 4)
+    assert robust.late_ignored_share([{"step": 5, "loss": 1.0}], 100) is None
