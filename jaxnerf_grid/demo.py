@@ -24,7 +24,7 @@ import numpy as np
 
 from jaxnerf_grid import config as config_lib, distributed, evaluate, io, masking, recipes, runs
 from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.data.bounds import bounds_line, read_bounds, recipe_with_bounds
+from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
 from jaxnerf_grid.data.synthetic import generate as synth_generate
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.run_config import make_config
@@ -225,7 +225,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     if not distributed.is_main():
         data = Path(data) if data is not None else out / "data"
         mask_source = None
-    bounds = read_bounds(_read_meta(data), data / "transforms.json")
+    bounds = folder_bounds(data)
     recipe = runs.overrides_with_sets(recipe_with_bounds(base, bounds), sets)  # --set wins over the bounds
     # every process reads the same verdict from the dataset, so all train the same config
     plan = mask_plan(masks, dataset_domain(Path(data)))

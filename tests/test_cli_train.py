@@ -166,3 +166,30 @@ def test_demo_takes_the_bounds_a_dataset_records(data_dir, tmp_path, capsys):
     assert cli.main(["demo", "--data", str(data), "--out", str(tmp_path / "demo2"), "--steps", "1", "--quiet"]) == 1
     err = capsys.readouterr().err.strip()
     assert "\n" not in err and str(data / "transforms.json") in err and "scene_bounds.near" in err
+
+
+def test_train_takes_near_far_and_radius_from_the_datasets_scene_bounds(data_dir, tmp_path, capsys):
+    """A dataset recording scene_bounds (as `poses` writes them) sets model.near / far /
+    contract_radius of a contracted recipe; --set wins over them; the bounded `nerf` recipe,
+    whose far plane is its own, keeps its constants."""
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(data_dir, data)
+    meta = io.read_json(data / "transforms.json")
+    recorded = {"near": 0.7, "far": 333.0, "contract_radius": 2.5, "roi_centre": [0.0, 0.0, 0.0], "roi_radius": 1.0}
+    io.write_json(data / "transforms.json", {**meta, "scene_bounds": recorded})
+    cfg_file = tmp_path / "cfg.json"
+    cfg_file.write_text(json.dumps({"train": {**TINY["train"], "max_steps": 1, "checkpoint_every": 1}}))
+
+    def trained(name, *extra):
+        assert cli.main(["train", *PAPER_MLP, "--data", str(data), "--config", str(cfg_file), "--out",
+                         str(tmp_path / name), "--quiet", *extra]) == 0
+        return json.loads((tmp_path / name / "config.json").read_text())["model"]
+
+    model = trained("a")
+    assert (model["near"], model["far"], model["contract_radius"]) == (0.7, 333.0, 2.5)
+    assert "Scene bounds from the data" in capsys.readouterr().out
+    assert trained("b", "--set", "model.near=0.4")["near"] == 0.4
+    nerf = trained("c", "--recipe", "nerf")
+    assert (nerf["near"], nerf["far"]) != (0.7, 333.0) and nerf["use_contraction"] is False

@@ -93,11 +93,17 @@ def train_summary(cfg, result, run_dir) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     multi = start_distributed(args)
-    from jaxnerf_grid import config as config_lib, distributed, evaluate, recipes, runs
+    from jaxnerf_grid import config as config_lib, distributed, evaluate, recipes, run_config, runs
+    from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
 
     recipe, method = recipes.resolve(args.recipe, args.method)
     out = args.out or f"runs/{recipe}"
-    overrides = config_lib.merge(recipes.overrides(recipe), runs.read_overrides(args.config))
+    overrides = recipes.overrides(recipe)
+    bounds = folder_bounds(args.data) if Path(args.data).is_dir() else None
+    if bounds and run_config.make_config(method, overrides).model.use_contraction:
+        overrides = recipe_with_bounds(overrides, bounds)   # --config and --set still win
+        print(bounds_line(bounds))
+    overrides = config_lib.merge(overrides, runs.read_overrides(args.config))
     overrides = runs.overrides_with_sets(overrides, args.set)
     if args.max_side is not None:
         overrides = runs.overrides_with_sets(overrides, [f"train.max_side={args.max_side}"])

@@ -29,9 +29,12 @@ The rule:
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from jaxnerf_grid.data.normalize import orbit_roi
+from jaxnerf_grid import io
 from jaxnerf_grid.io import DataError
 
 ROI_PERCENTILE = 95.0
@@ -103,6 +106,16 @@ def read_bounds(meta: dict, source) -> dict | None:
     if not values["contract_radius"] > 1 or not values["roi_radius"] > 0:
         raise DataError(f"{source}: 'scene_bounds' needs contract_radius > 1 and roi_radius > 0")
     return {**bounds, **values, "roi_centre": [float(v) for v in centre]}
+
+
+def folder_bounds(data) -> dict | None:
+    """The checked `scene_bounds` of a dataset folder's transforms.json (`read_bounds`); None
+    when the folder has no transforms.json (COLMAP, LLFF) or it records none."""
+    path = Path(data) / "transforms.json"
+    if not path.is_file():
+        return None
+    meta = io.read_json(path)
+    return read_bounds(meta, path) if isinstance(meta, dict) else None
 
 
 def recipe_with_bounds(recipe: dict, bounds: dict | None) -> dict:
