@@ -3,7 +3,7 @@ synthetic generator's distractors pasted in (issue 36 item 4, docs/MASKS.md).
 
     python -m benchmarks.pasted_transients STRECHA_DIR [--scenes fountain-P11,Herz-Jesus-P25]
         [--rows none,dpt,robust,dpt+robust,gt] [--seeds 0,1,2] [--steps 2400] [--long-side 480]
-        [--photos 0] [--test-every 4] [--coverage 0.15] [--work benchmarks/.cache/pasted_transients]
+        [--photos 0] [--test-every 4] [--coverage 0.15] [--reuse] [--work benchmarks/.cache/pasted_transients]
         [--out benchmarks/results/pasted_transients]
 
 STRECHA_DIR is the folder Benchmarking_Camera_Calibration_2008 of the openMVG repository
@@ -272,13 +272,18 @@ def dataset_weights(data: Path, floor: float = 0.0) -> dict | None:
 
 
 def run_weights(run_dir: Path) -> dict | None:
-    """The final per-frame weights a robust run wrote ({stem: [H, W]}), when its trainer writes
-    them as EXR images in one of the folders below; else None."""
-    for name in ("final_weights", "robust_weights", "weights"):
-        folder = Path(run_dir) / name
-        if folder.is_dir():
-            return {p.stem: io.read_exr(p) for p in folder.glob("*.exr")}
-    return None
+    """The per-frame weights a robust run used ({stem: [H, W]} in [0, 1]): the 8-bit PNGs the
+    trainer writes to RUN/weights/ (`train.write_robust_record`; pixels training never drew
+    keep 1, so the share of pasted pixels used is an upper bound); None without them."""
+    folder = Path(run_dir) / "weights"
+    if not folder.is_dir():
+        return None
+    return {p.stem: _grey(io.read_image(p)) for p in folder.glob("*.png")} or None
+
+
+def _grey(image: np.ndarray) -> np.ndarray:
+    """[H, W] or [H, W, C] -> [H, W] (the first channel)."""
+    return image[..., 0] if image.ndim == 3 else image
 
 
 def row_overrides(row: str, seed: int, steps: int) -> dict:
@@ -291,7 +296,7 @@ def row_overrides(row: str, seed: int, steps: int) -> dict:
     return cfg
 
 
-def run_row(base: Path, row: str, seed: int, steps: int, work: Path) -> dict | None:
+def run_row(base: Path, row: str, seed: int, steps: int, work: Path, reuse: bool = False) -> dict | None:
     """Trains and scores one row and seed; None when this build's config lacks the row's keys."""
     from jaxnerf_grid import evaluate, runs, train
 
@@ -304,8 +309,11 @@ def run_row(base: Path, row: str, seed: int, steps: int, work: Path) -> dict | N
     data = variant(base, ROW_DATA[row])
     run_dir = work / "runs" / f"{base.name}-{row}-s{seed}"
     t = time.perf_counter()
-    runs.train_run(str(data), "ours", run_dir, overrides, steps, overwrite=True, progress=False)
-    m = evaluate.evaluate_run(run_dir, progress=False, distractor_views=0)
+    if reuse and _finished(run_dir, overrides):
+        m = io.read_json(run_dir / "metrics.json")
+    else:
+        runs.train_run(str(data), "ours", run_dir, overrides, steps, overwrite=True, progress=False)
+        m = evaluate.evaluate_run(run_dir, progress=False, distractor_views=0)
     if row in ("robust", "dpt+robust"):
         weights = run_weights(run_dir)
         used = pasted_share_used(data, weights) if weights is not None else None
@@ -315,6 +323,15 @@ def run_row(base: Path, row: str, seed: int, steps: int, work: Path) -> dict | N
         used = pasted_share_used(data, weights)
     return {"scene": base.name, "row": row, "seed": seed, "steps": steps, "psnr": m["mean"]["psnr"],
             "ssim": m["mean"]["ssim"], "pasted_used": used, "seconds": time.perf_counter() - t}
+
+
+def _finished(run_dir: Path, overrides: dict) -> bool:
+    """A run evaluated with these train settings (--reuse): its metrics.json exists and its
+    config.json's train section agrees with `overrides`' on every key they set."""
+    if not (run_dir / "metrics.json").is_file() or not (run_dir / "config.json").is_file():
+        return False
+    saved = io.read_json(run_dir / "config.json").get("train", {})
+    return all(saved.get(k) == v for k, v in overrides["train"].items())
 
 
 def summarise(results: list[dict]) -> list[dict]:
@@ -381,6 +398,8 @@ def main(argv=None) -> int:
     p.add_argument("--test-every", type=int, default=4, help="every N-th photo is a clean test view")
     p.add_argument("--coverage", type=float, default=0.15,
                    help="share of each training photo covered by pasted sprites")
+    p.add_argument("--reuse", action="store_true",
+                   help="score a row's run again without training when it finished with the same settings")
     p.add_argument("--work", default=str(ROOT / "benchmarks/.cache/pasted_transients"))
     p.add_argument("--out", default=str(ROOT / "benchmarks/results/pasted_transients"))
     args = p.parse_args(argv)
@@ -409,7 +428,7 @@ def main(argv=None) -> int:
                   f"{np.mean([f['pasted_share'] for f in meta['frames'] if f['split'] == 'train']):.1%}", flush=True)
             for row in rows:
                 for seed in seeds:
-                    r = run_row(base, row, seed, args.steps, work)
+                    r = run_row(base, row, seed, args.steps, work, args.reuse)
                     if r is not None:
                         results.append(r)
                         print(f"  {scene} {row} seed {seed}: PSNR {r['psnr']:.2f} SSIM {r['ssim']:.4f} pasted used "

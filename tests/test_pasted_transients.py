@@ -137,3 +137,20 @@ def test_results_name_no_folder_of_this_machine():
             str(pt.ROOT / "benchmarks/results/p"), "--steps", "10"]
     assert pt.shown_argv(argv, argv[0]) == ["STRECHA_DIR", "--work", "w", "--out", "benchmarks/results/p",
                                             "--steps", "10"]
+
+
+def test_the_weights_a_robust_run_wrote_are_read_back_by_frame_stem(tmp_path):
+    """run_weights reads what train.write_robust_record writes (8-bit PNGs named by the frame's
+    file stem), so pasted_share_used looks the training photos' stems up in it."""
+
+    from jaxnerf_grid import train
+    from jaxnerf_grid.data.dataset import Dataset
+
+    record = np.random.default_rng(0).random((2, 5, 7)).astype(np.float32)
+    ds = Dataset(root=tmp_path, images=np.zeros((3, 5, 7, 3), np.float32), c2w=np.tile(np.eye(4), (3, 1, 1)),
+                 intrinsics=np.ones((3, 4), np.float32), split={"train": np.array([0, 2]), "test": np.array([1])},
+                 near=0.1, far=10.0, frame_paths=["images/0000.jpg", "images/0001.jpg", "images/0002.jpg"])
+    train.write_robust_record(tmp_path / "run", ds, record)
+    got = pt.run_weights(tmp_path / "run")
+    assert sorted(got) == ["0000", "0002"]
+    np.testing.assert_allclose(got["0002"], record[1], atol=0.5 / 255 + 1e-6)
