@@ -25,21 +25,20 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import shutil
 from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, distributed, io, masking, progress as progress_lib, train, views
+from jaxnerf_grid import config as config_lib, distributed, folders, io, masking, progress as progress_lib, train, views
 from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.data import formats
+from jaxnerf_grid.data import formats, poses
 from jaxnerf_grid.data.formats import working_dataset
 from jaxnerf_grid.data.dataset import check_camera_centres
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.run_config import RunConfig, make_config
 from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 
-RUN_MARKER = ".jaxnerf-grid-run"
+RUN_MARKER = folders.marker("train")
 FINGERPRINT_FILE = "dataset.json"
 RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity")
 RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report_views.png", "report_crops.png",
@@ -189,8 +188,10 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
 def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0):
     """The dataset of a folder (formats.load_dataset; `max_side`: its working resolution,
     data/working.py, 0 = full size), after finishing any `mask` run that was killed while
-    swapping its new masks in (masking.recover), so the masks are one set."""
+    swapping its new masks in (masking.recover), so the masks are one set, and any `poses` run
+    killed while swapping a new dataset in (data.poses.recover)."""
     if Path(path).is_dir():
+        poses.recover(path)
         masking.recover(path)
 
     return formats.load_dataset(path, downscale=downscale, progress=progress, max_side=max_side)
@@ -225,11 +226,10 @@ def _is_legacy_run(run_dir: Path) -> bool:
 
 
 def check_out(run_dir: Path, data=None) -> None:
-    """Refuses a run folder (run.out) that is a file, or that is the dataset folder itself."""
-    if run_dir.exists() and not run_dir.is_dir():
-        raise DataError(f"{run_dir}: run.out exists and is not a folder")
-    if data is not None and run_dir.resolve() == Path(data).resolve():
-        raise DataError(f"{run_dir}: run.out is the dataset folder; choose another folder for the run")
+    """Refuses a run folder (run.out) that is a file, or that is the dataset folder or inside it
+    (links resolved; `folders.check_outside`)."""
+    folders.check_folder(run_dir, "run.out")
+    folders.check_outside(run_dir, data, "run.out")
 
 
 def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
@@ -245,11 +245,8 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
     if not marked and not (not overwrite and _is_legacy_run(run_dir)):
         raise DataError(f"{run_dir}: exists, is not empty and is not a jaxnerf-grid run (no {RUN_MARKER}); "
                         "nothing was changed: choose another run.out")
-    if overwrite:
-        for sub in RUN_OUTPUT_DIRS:
-            shutil.rmtree(run_dir / sub, ignore_errors=True)
-        for f in RUN_OUTPUT_FILES:
-            (run_dir / f).unlink(missing_ok=True)
+    if overwrite:  # a symlinked checkpoints/ is refused, never skipped (`folders.check_clearable`)
+        folders.clear_outputs(run_dir, "train", RUN_OUTPUT_DIRS + RUN_OUTPUT_FILES, "run.out")
     elif not existing.is_file():
         return  # a marked run that was stopped before its config.json was written: start it
     else:
@@ -290,8 +287,7 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
         if not overwrite and is_run_dir(run_dir):
             check_fingerprint(run_dir, ds, allow_other_data)
         check_existing(run_dir, wanted, overwrite)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / RUN_MARKER).write_text("a jaxnerf-grid run folder: `--overwrite` may clear the run's outputs here\n")
+        folders.write_marker(run_dir, "train")
         io.write_json(run_dir / FINGERPRINT_FILE, dataset_fingerprint(ds))
         io.write_json(run_dir / "config.json", wanted)
     distributed.barrier("jaxnerf_grid.runs.train_run")

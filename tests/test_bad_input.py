@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, io, masking, runs
+from jaxnerf_grid import cli, io, masking, runs, staging
 
 ROOT = Path(__file__).resolve().parents[1]
 # a 2x32 MLP, 8 + 8 samples, 64 rays, 10 steps: the whole run takes seconds
@@ -469,7 +469,7 @@ def _slow_mask_child(data: str, pause: str) -> None:
     """`mask --source gt --overwrite --dilate 2` with a pause after each frame written and after
     each folder renamed in the swap, so the parent can kill it at either stage."""
     pause_s = float(pause)
-    write, rename = masking._write_frame, masking._rename
+    write, rename = masking._write_frame, staging.move
 
     progress = Path(data + ".frames")  # frames written so far, outside the dataset
 
@@ -483,7 +483,7 @@ def _slow_mask_child(data: str, pause: str) -> None:
         rename(src, dst)
         time.sleep(pause_s)
 
-    masking._write_frame, masking._rename = slow_write, slow_rename
+    masking._write_frame, staging.move = slow_write, slow_rename
     sys.exit(cli.main(["mask", "--data", data, "--source", "gt", "--overwrite", "--dilate", "2", "--quiet"]))
 
 

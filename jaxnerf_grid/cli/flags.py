@@ -15,7 +15,8 @@ import re
 
 _SWITCHES = {"overwrite=True": "--overwrite"}
 _OTHER_DATA = {"allow_other_data=True": "--allow-other-data"}
-_DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.process_id": "--process-id"}
+_DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.process_id": "--process-id",
+                "distributed.coordinator": "--coordinator"}
 
 FLAGS = {  # subcommand -> {key: flag}
     "synth": {**_SWITCHES},
@@ -31,7 +32,7 @@ FLAGS = {  # subcommand -> {key: flag}
     "render": {**_OTHER_DATA},
     "eval": {"eval.lpips_weights": "--lpips-weights", "eval.reference_ply": "--reference-ply", **_OTHER_DATA},
     "export": {"export.box": "--box", "export.resolution": "--resolution", "export.opacity": "--threshold",
-               **_SWITCHES, **_OTHER_DATA},
+               "export.views": "--views", "export.out": "--out", **_SWITCHES, **_OTHER_DATA},
     "demo": {"demo.data": "--data", "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks",
              **_SWITCHES, **_DISTRIBUTED},
 }
