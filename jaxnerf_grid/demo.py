@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, distributed, evaluate, io, masking, recipes, runs
+from jaxnerf_grid import config as config_lib, distributed, evaluate, folders, io, masking, recipes, runs
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.bounds import bounds_line, read_bounds, recipe_with_bounds
 from jaxnerf_grid.data.synthetic import generate as synth_generate
@@ -210,8 +210,8 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     make_config(method, runs._with_steps(_with_plan(recipe, forced) if masks != "auto" else recipe, steps))
     start = time.perf_counter()
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise DataError(f"{out}: demo.out exists and is not a folder")
+    folders.check_folder(out, "demo.out")
+    folders.check_outside(out, data, "demo.out")  # the dataset is never written into (links resolved)
     if (out / "run").exists() and not (out / "run").is_dir():
         raise DataError(f"{out / 'run'}: exists and is not a folder")
     timings = {}

@@ -63,8 +63,12 @@ def read_overrides(path: str | None) -> dict:
 
 def overrides_with_sets(overrides: dict | None, sets: list[str] | None) -> dict:
     """--config's overrides with the --set KEY=VALUE flags laid on top (config.parse_sets against
-    RunConfig: an unknown key is a ConfigError naming it)."""
-    return config_lib.merge(overrides or {}, config_lib.parse_sets(sets, RunConfig))
+    RunConfig: an unknown key is a ConfigError naming it). `data` is refused: the run's dataset
+    is run.data, and train_run would silently replace a value set here."""
+    sets_ = config_lib.parse_sets(sets, RunConfig)
+    if "data" in sets_:
+        raise ConfigError("data: not a setting (the dataset is run.data, the --data of train and demo)")
+    return config_lib.merge(overrides or {}, sets_)
 
 
 def run_config_dict(cfg, data_path=None) -> dict:

@@ -531,5 +531,175 @@ def test_killed_mask_overwrite_leaves_old_or_new(scene, capsys, tmp_path, stage)
     assert outcomes == (["old", "old"] if stage == "writing" else ["new", "new"]), outcomes
 
 
+# --------------------------------------------------------------------------- issue 39: round two
+
+EXPORT_FAST = ["--resolution", "16", "--views", "2", "--box=-10,-10,0,10,10,20", "--threshold", "0.0001", "--quiet"]
+
+
+def test_export_never_writes_into_a_folder_it_did_not_make(scene, capsys, tmp_path):
+    """Issue 39: `export --overwrite --out DIR` replaced a user's box.json and appended to their
+    report.md. A folder without export's marker is refused, --overwrite or not."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "box.json").write_text('{"mine": true}')
+    (mine / "report.md").write_text("# my notes\n")
+    before = snapshot(mine, scene["run"])
+    for extra in ([], ["--overwrite"]):
+        rc, err = run_cli(["export", "--run", scene["run"], "--out", mine, *extra, *EXPORT_FAST], capsys)
+        assert_one_line_error(rc, err, str(mine))
+    assert ".jaxnerf-grid-export" in err and "--out" in err
+    # the run folder itself holds the run's marker, not export's
+    rc, err = run_cli(["export", "--run", scene["run"], "--out", scene["run"], "--overwrite", *EXPORT_FAST], capsys)
+    assert_one_line_error(rc, err, str(scene["run"]), ".jaxnerf-grid-export")
+    assert snapshot(mine, scene["run"]) == before
+
+
+def test_out_inside_the_dataset_is_refused_for_every_command(scene, capsys, tmp_path):
+    """Issue 39: export through a symlink into a dataset added files to it; train's --out inside
+    the dataset was taken. Links are resolved."""
+    alias = tmp_path / "alias"
+    alias.symlink_to(scene["data"], target_is_directory=True)
+    before = snapshot(scene["data"], scene["run"])
+    cases = [["export", "--run", scene["run"], "--out", alias / "export", *EXPORT_FAST],
+             ["export", "--run", scene["run"], "--out", scene["data"] / "export", *EXPORT_FAST],
+             ["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", alias / "run",
+              "--quiet"],
+             ["train", *PAPER_MLP, "--data", alias, "--config", scene["cfg"], "--out", scene["data"] / "runs" / "a",
+              "--quiet"],
+             ["demo", "--data", scene["data"], "--out", alias / "demo", "--steps", "2", "--quiet"]]
+    for argv in cases:
+        rc, err = run_cli(argv, capsys)
+        assert_one_line_error(rc, err, "--out", "inside")
+    assert snapshot(scene["data"], scene["run"]) == before
+
+
+def test_overwrite_refuses_a_symlinked_checkpoints_folder(scene, capsys, tmp_path):
+    """Issue 39: with checkpoints/ a link (weights on a bigger disk) `train --overwrite` skipped
+    it and reported "already trained": old weights under a new config.json."""
+    run, disk = tmp_path / "run", tmp_path / "big_disk"
+    shutil.copytree(scene["run"], run)
+    shutil.move(run / "checkpoints", disk)
+    (run / "checkpoints").symlink_to(disk, target_is_directory=True)
+    before = snapshot(run, disk)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", run,
+                       "--set", "train.lr_init=1e-3", "--overwrite", "--quiet"], capsys)
+    line = assert_one_line_error(rc, err, str(run / "checkpoints"), "symbolic link")
+    assert "yourself" in line
+    assert snapshot(run, disk) == before
+
+
+BAD_VALUES_39 = [  # (case id, argv after the run / data flags, words the one line must name)
+    ("export_views_negative", ["export", "--views", "-3"], ["--views", "-3"]),
+    ("export_resolution_huge", ["export", "--resolution", "100000"], ["--resolution", "GiB", "at most"]),
+    ("export_resolution_small", ["export", "--resolution", "4"], ["--resolution", "4"]),
+    ("eval_distractor_views_negative", ["eval", "--distractor-views", "-5"], ["--distractor-views", "-5"]),
+    ("train_set_data", ["train", "--set", "data=\"elsewhere\""], ["data", "--data"]),
+    ("coordinator_without_port", ["train", "--coordinator", "localhost", "--num-processes", "2",
+                                  "--process-id", "1"], ["--coordinator", "HOST:PORT"]),
+    ("coordinator_not_an_address", ["train", "--coordinator", "a b:c"], ["--coordinator", "HOST:PORT"]),
+    ("coordinator_port_range", ["train", "--coordinator", "localhost:70000"], ["--coordinator", "1..65535"]),
+    ("process_id_range", ["train", "--coordinator", "localhost:1234", "--num-processes", "2",
+                          "--process-id", "2"], ["--process-id", "[0, 2)"]),
+    ("process_id_negative", ["train", "--num-processes", "2", "--process-id", "-1"], ["--process-id", "-1"]),
+    ("num_processes_zero", ["train", "--num-processes", "0"], ["--num-processes", ">= 1"]),
+]
+
+
+@pytest.mark.parametrize("case, argv, names", BAD_VALUES_39, ids=[c[0] for c in BAD_VALUES_39])
+def test_bad_values_of_round_two(scene, capsys, tmp_path, case, argv, names):
+    command, rest = argv[0], argv[1:]
+    where = (["--run", scene["run"]] if command in ("export", "eval")
+             else [*PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", tmp_path / "run"])
+    before = snapshot(scene["data"], scene["run"])
+    rc, err = run_cli([command, *where, *rest, "--quiet"], capsys)
+    assert_one_line_error(rc, err, *names)
+    assert snapshot(scene["data"], scene["run"]) == before
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("name, value", [("JAX_NUM_PROCESSES", "abc"), ("JAX_PROCESS_ID", "one"),
+                                         ("JAX_COORDINATOR_ADDRESS", "nohost"),
+                                         ("JAXNERF_CONNECT_TIMEOUT", "soon"), ("JAXNERF_INIT_TIMEOUT", "0")])
+def test_bad_environment_values_are_named(scene, capsys, tmp_path, monkeypatch, name, value):
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "2")
+    monkeypatch.setenv(name, value)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"],
+                       "--out", tmp_path / "run", "--quiet"], capsys)
+    assert_one_line_error(rc, err, name, value)
+    assert not (tmp_path / "run").exists()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_coordinator_port_in_use_and_unreachable(scene, capsys, tmp_path, monkeypatch):
+    """Process 0 on a port another program listens on; process 1 with no coordinator there: one
+    line naming the address, within the documented connect timeout (here 2 s), no stack dump."""
+    import socket
+
+    base = ["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", tmp_path / "run",
+            "--quiet", "--num-processes", "2"]
+    with socket.socket() as busy:
+        busy.bind(("", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        rc, err = run_cli([*base, "--coordinator", f"127.0.0.1:{port}", "--process-id", "0"], capsys)
+        assert_one_line_error(rc, err, f"127.0.0.1:{port}", "already in use")
+    monkeypatch.setenv("JAXNERF_CONNECT_TIMEOUT", "2")
+    port = _free_port()
+    start = time.monotonic()
+    rc, err = run_cli([*base, "--coordinator", f"127.0.0.1:{port}", "--process-id", "1"], capsys)
+    assert_one_line_error(rc, err, f"127.0.0.1:{port}", "within 2 s", "refused")
+    assert time.monotonic() - start < 10
+    rc, err = run_cli([*base, "--coordinator", "no-such-host.invalid:1234", "--process-id", "1"], capsys)
+    assert_one_line_error(rc, err, "no-such-host.invalid:1234", "does not resolve")
+    assert not (tmp_path / "run").exists()
+
+
+def test_eval_reads_a_broken_reference_ply_before_rendering(scene, capsys, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    bad = tmp_path / "ref.ply"
+    bad.write_text("not a ply\n")
+    before = snapshot(run)
+    rc, err = run_cli(["eval", "--run", run, "--reference-ply", bad, "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(bad), "PLY")
+    assert snapshot(run) == before
+
+
+def test_export_with_non_ascii_and_space_paths_and_a_full_disk(scene, capsys, tmp_path, monkeypatch):
+    """Issue 39: the run path went into the PLY header (ASCII) and export died with a traceback.
+    Then a full disk while writing the mesh names the file (write() raises ENOSPC without one)."""
+    run, out = tmp_path / "Lauf ü" / "run 1", tmp_path / "Ausgabe é"
+    shutil.copytree(scene["run"], run)
+    rc, err = run_cli(["export", "--run", run, "--out", out, *EXPORT_FAST], capsys)
+    assert rc == 0, err
+    assert (out / ".jaxnerf-grid-export").is_file()
+    assert len(io.read_ply_points(out / "tower_mesh.ply")) > 0
+    header = (out / "tower_mesh.ply").read_bytes().split(b"end_header")[0].decode("ascii")
+    assert "Lauf \\xfc" in header
+    # an export folder export made is overwritten in place; a user's file in it stays
+    (out / "notes.txt").write_text("mine")
+    rc, err = run_cli(["export", "--run", run, "--out", out, "--overwrite", *EXPORT_FAST], capsys)
+    assert rc == 0, err
+    assert (out / "notes.txt").read_text() == "mine"
+    real = Path.write_bytes
+
+    def full_disk(self, data):
+        if self.name.startswith(".tower_mesh.ply."):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as write() raises it: no file name
+        return real(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    rc, err = run_cli(["export", "--run", run, "--out", tmp_path / "full", *EXPORT_FAST], capsys)
+    assert_one_line_error(rc, err, str(tmp_path / "full" / "tower_mesh.ply"), "No space left on device")
+    assert not [p for p in (tmp_path / "full").iterdir() if p.name.startswith(".tower_mesh")]
+
+
 if __name__ == "__main__":
     _slow_mask_child(sys.argv[1], sys.argv[2])

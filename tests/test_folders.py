@@ -155,7 +155,7 @@ def test_a_swap_stopped_after_any_rename_is_finished_by_recover(tmp_path, monkey
         out, stage = dataset_with_stage(case)
         done = 0
 
-        def dying(src, dst):
+        def dying(src, dst, k=k):
             nonlocal done
             if done == k:
                 raise Killed()

@@ -55,8 +55,7 @@ def check_resolution(resolution, available: int | None = None) -> None:
     """ConfigError naming export.resolution when it is not an integer >= 8 or when a cube grid of
     that resolution would not fit in the host's RAM (`available` bytes; default the RAM), with the
     largest resolution that fits."""
-    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)) or resolution < 8:
-        raise ConfigError(f"export.resolution must be an integer >= 8, got {resolution!r}")
+    config_lib.check_value("export.resolution", resolution, int, config_lib.Range(8))
     if available is None:
         available = int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
     need = (int(resolution) + 1) ** 3 * GRID_BYTES_PER_NODE
@@ -67,11 +66,9 @@ def check_resolution(resolution, available: int | None = None) -> None:
 
 
 def check_views(views, min_views) -> None:
-    """ConfigError unless export.views >= 1 and 1 <= min_views <= views - 1 is possible (min_views >= 1)."""
-    if isinstance(views, bool) or not isinstance(views, (int, np.integer)) or views < 1:
-        raise ConfigError(f"export.views must be an integer >= 1, got {views!r}")
-    if isinstance(min_views, bool) or not isinstance(min_views, (int, np.integer)) or min_views < 0:
-        raise ConfigError(f"export.min_views must be an integer >= 0, got {min_views!r}")
+    """ConfigError naming the key unless export.views >= 1 and export.min_views >= 0 (integers)."""
+    config_lib.check_value("export.views", views, int, config_lib.AT_LEAST_ONE)
+    config_lib.check_value("export.min_views", min_views, int, config_lib.NONNEGATIVE)
 
 
 def _is_legacy_export(out: Path) -> bool:
