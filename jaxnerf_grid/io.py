@@ -333,6 +333,16 @@ def naming_path(path: str | os.PathLike, doing: str = "cannot write"):
         raise DataError(f"{path}: {doing} ({reason})") from None
 
 
+def load_error_reason(err: BaseException) -> str:
+    """Why NumPy could not load a .npy / .npz, for a one-line error: NumPy's own message, except
+    that its advice to load with allow_pickle (which runs code stored in the file) is not passed
+    on: such a file holds Python objects, not plain arrays."""
+    text = str(err) or type(err).__name__
+    if "allow_pickle" in text or "pickle" in text.lower():
+        return "it holds Python objects, not plain arrays; not loaded, as unpickling can run code"
+    return text
+
+
 def atomic_write_bytes(path: str | os.PathLike, payload: bytes) -> None:
     """Writes bytes to `path` through a temporary file and a rename (never half-written)."""
     with atomic_path(path) as tmp:

@@ -131,7 +131,10 @@ def check_fingerprint(run_dir, ds, allow_other_data: bool = False) -> None:
         return
     old = io.read_json(path)
     new = dataset_fingerprint(ds)
-    if not isinstance(old, dict) or old.get("digest") == new["digest"]:
+    if not isinstance(old, dict) or not isinstance(old.get("digest"), str):
+        raise DataError(f"{path}: not a dataset fingerprint (a JSON object with \"digest\" expected), so the "
+                        "dataset cannot be checked; pass allow_other_data=True to go on without the check")
+    if old.get("digest") == new["digest"]:
         return
     if (old.get("frames"), old.get("height"), old.get("width")) != (new["frames"], new["height"], new["width"]):
         what = f"{_describe(old)}, this one has {_describe(new)}"
@@ -187,6 +190,18 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
     n = train.step_devices(cfg.train) if num_devices is None else num_devices
     train.check_batch(settled, n)
     train.check_robust(settled.train, n, ds)
+    check_weights(settled, ds)
+
+
+def check_weights(cfg, ds) -> None:
+    """DataError naming the dataset when it has no training frames or, with train.robust off,
+    every training pixel has loss weight 0 (all-zero weight maps): train would refuse it
+    only after the run folder was made."""
+    train_ids = np.asarray(ds.split["train"], np.int64)
+    if train_ids.size == 0:
+        raise DataError(f"{ds.root}: the dataset has no training frames")
+    if cfg.train.robust == "off" and not np.any(train.loss_weights(ds, cfg.train)[train_ids] > 0):
+        raise DataError(f"{ds.root}: every training pixel has loss weight 0 (check the masks / weights)")
 
 
 def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0):

@@ -701,5 +701,40 @@ def test_export_with_non_ascii_and_space_paths_and_a_full_disk(scene, capsys, tm
     assert not [p for p in (tmp_path / "full").iterdir() if p.name.startswith(".tower_mesh")]
 
 
+def test_a_fingerprint_that_is_not_an_object_is_named(scene, capsys, tmp_path):
+    """Issue 39: a dataset.json that was not an object turned the check off without a word."""
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    (run / runs.FINGERPRINT_FILE).write_text("[1, 2, 3]\n")
+    before = snapshot(run)
+    rc, err = run_cli(["eval", "--run", run, "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(run / runs.FINGERPRINT_FILE), "--allow-other-data")
+    assert snapshot(run) == before
+
+
+def test_numpys_advice_to_unpickle_is_not_passed_on(scene, capsys, tmp_path):
+    root = _llff(tmp_path, scene, lambda a: None)
+    np.save(root / "poses_bounds.npy", np.array([{"rows": 1}], dtype=object), allow_pickle=True)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", root, "--config", scene["cfg"], "--out", tmp_path / "run",
+                       "--quiet"], capsys)
+    line = assert_one_line_error(rc, err, "poses_bounds.npy", "Python objects")
+    assert "allow_pickle" not in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_all_zero_weights_are_refused_before_the_run_folder_is_made(scene, capsys, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(scene["data"], data)
+    assert cli.main(["mask", "--data", str(data), "--source", "gt", "--quiet"]) == 0
+    for exr in (data / "weights").glob("*.exr"):
+        io.write_exr(exr, np.zeros_like(io.read_exr(exr)))
+    before = snapshot(data)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", data, "--config", scene["cfg"], "--out", tmp_path / "run",
+                       "--set", "train.use_masks=true", "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(data), "loss weight 0")
+    assert not (tmp_path / "run").exists()
+    assert snapshot(data) == before
+
+
 if __name__ == "__main__":
     _slow_mask_child(sys.argv[1], sys.argv[2])
