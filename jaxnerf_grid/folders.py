@@ -17,7 +17,7 @@ from __future__ import annotations
 import shutil
 from pathlib import Path
 
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.io import DataError, naming_path
 
 MARKERS = {"train": ".jaxnerf-grid-run", "poses": ".jaxnerf-grid-poses", "export": ".jaxnerf-grid-export",
            "synth": ".jaxnerf-grid-synth"}
@@ -106,5 +106,6 @@ def write_marker(folder, command: str) -> Path:
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / MARKERS[command]
-    path.write_text(MARKER_TEXT.format(command=command))
+    with naming_path(path):  # a full disk names the marker, not only "No space left on device"
+        path.write_text(MARKER_TEXT.format(command=command))
     return path

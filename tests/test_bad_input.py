@@ -736,5 +736,94 @@ def test_all_zero_weights_are_refused_before_the_run_folder_is_made(scene, capsy
     assert snapshot(data) == before
 
 
+@pytest.mark.parametrize("command", ["synth", "mask"])
+def test_a_full_disk_names_the_file_in_synth_and_mask(scene, capsys, tmp_path, monkeypatch, command):
+    """write() raises ENOSPC without a file name; the one line names the file being written, and
+    `mask` leaves the dataset as it was."""
+    data = tmp_path / "data"
+    if command == "mask":
+        shutil.copytree(scene["data"], data)
+    before = snapshot(data) if data.exists() else {}
+    real = Path.write_bytes
+
+    def full_disk(self, payload):
+        if self.name.startswith(".") and ".png." in self.name:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(self, payload)
+
+    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    argv = (["synth", "--out", data, *SYNTH] if command == "synth"
+            else ["mask", "--data", data, "--source", "gt", "--quiet"])
+    rc, err = run_cli(argv, capsys)
+    line = assert_one_line_error(rc, err, str(data), ".png", "No space left on device")
+    assert line.split(": cannot write")[0].endswith(".png")
+    monkeypatch.undo()
+    if command == "mask":
+        runs.load_dataset(data, progress=False)  # what the next command does first
+        assert snapshot(data) == before
+
+
+def _slow_export_child(run: str, out: str, pause: str) -> None:
+    """`export` with a pause after each file it writes (io.atomic_write_bytes), so the parent can
+    kill it between two files."""
+    real = io.atomic_write_bytes
+
+    def slow(path, payload):
+        real(path, payload)
+        time.sleep(float(pause))
+
+    io.atomic_write_bytes = slow
+    sys.exit(cli.main(["export", "--run", run, "--out", out, *EXPORT_FAST]))
+
+
+@pytest.mark.parametrize("files_before_kill", [1, 3])
+def test_killed_export_leaves_whole_files_and_can_be_overwritten(scene, capsys, tmp_path, files_before_kill):
+    """kill -9 of export between two of its files: the run is untouched, each file in the
+    folder is whole (written through a temporary file and a rename), and `export --overwrite`
+    then replaces the folder (it holds export's marker, written before the first file)."""
+    run, out = tmp_path / "run", tmp_path / "exp"
+    shutil.copytree(scene["run"], run)
+    before = snapshot(run)
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, __file__, "export", str(run), str(out), "1.0"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.time() + 180
+        while not (out.is_dir() and sum(p.name in export_files() for p in out.iterdir()) >= files_before_kill):
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.time() < deadline
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    written = sorted(p.name for p in out.iterdir() if p.name in export_files())
+    assert 1 <= len(written) < len(export_files())  # it really stopped half-way
+    for name in written:
+        if name.endswith(".ply"):
+            io.read_ply(out / name)
+        elif name.endswith(".json"):
+            assert isinstance(io.read_json(out / name), dict)
+        else:
+            io.read_image(out / name)
+    assert snapshot(run) == before
+    rc, err = run_cli(["export", "--run", run, "--out", out, *EXPORT_FAST], capsys)
+    assert_one_line_error(rc, err, str(out), "--overwrite")
+    rc, err = run_cli(["export", "--run", run, "--out", out, "--overwrite", *EXPORT_FAST], capsys)
+    assert rc == 0, err
+    assert set(export_files()) <= {p.name for p in out.iterdir()}
+
+
+def export_files() -> tuple:
+    from jaxnerf_grid.export import run as export_run
+
+    return export_run.FILES
+
+
 if __name__ == "__main__":
-    _slow_mask_child(sys.argv[1], sys.argv[2])
+    if sys.argv[1] == "export":
+        _slow_export_child(*sys.argv[2:])
+    else:
+        _slow_mask_child(sys.argv[1], sys.argv[2])
