@@ -67,7 +67,7 @@ def overrides_with_sets(overrides: dict | None, sets: list[str] | None) -> dict:
     is run.data, and train_run would silently replace a value set here."""
     sets_ = config_lib.parse_sets(sets, RunConfig)
     if "data" in sets_:
-        raise ConfigError("data: not a setting (the dataset is run.data, the --data of train and demo)")
+        raise ConfigError("data: not a setting; the dataset is given as run.data")
     return config_lib.merge(overrides or {}, sets_)
 
 
