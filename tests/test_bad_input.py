@@ -822,6 +822,20 @@ def export_files() -> tuple:
     return export_run.FILES
 
 
+def test_poses_single_camera_on_two_photo_sizes_says_why(capsys, tmp_path):
+    """Issue 39: the photos of the other size stayed unregistered without a word."""
+    pytest.importorskip("pycolmap")
+    photos = tmp_path / "photos"
+    rng = np.random.default_rng(0)
+    for i, (w, h) in enumerate([(40, 30)] * 3 + [(32, 24)] * 2):
+        io.write_png(photos / f"p{i}.png", rng.random((h, w, 3)))
+    before = snapshot(photos)
+    rc, err = run_cli(["poses", "--images", photos, "--out", tmp_path / "d", "--single-camera", "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(photos), "--single-camera", "40x30: 3", "32x24: 2")
+    assert snapshot(photos) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no dataset, no staging copy left
+
+
 if __name__ == "__main__":
     if sys.argv[1] == "export":
         _slow_export_child(*sys.argv[2:])

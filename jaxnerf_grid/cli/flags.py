@@ -21,6 +21,7 @@ _DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.pro
 FLAGS = {  # subcommand -> {key: flag}
     "synth": {**_SWITCHES},
     "poses": {"poses.matcher": "--matcher", "poses.vocab_tree": "--vocab-tree", "poses.max_side": "--max-side",
+              "poses.single_camera": "--single-camera",
               "poses.out": "--out", **_SWITCHES},
     "mask": {"mask.data": "--data", "mask.source": "--source", "mask.weights": "--weights",
              "mask.classes": "--classes", "mask.threshold": "--threshold",

@@ -157,16 +157,17 @@ def prepare_photo(path: Path, work_dir: Path, max_side: int | None) -> tuple[Pat
 
 
 def prepare_photos(photos: list[Path], work_dir: Path, max_side: int | None, show: bool = True):
-    """Stage 1 over all photos. Returns (folder COLMAP reads, names read, {name: why skipped}).
+    """Stage 1 over all photos. Returns (folder COLMAP reads, names read, {name: why skipped},
+    {name: (width, height) of its working copy}).
 
     Photos needing no copy are hard-linked (or copied) into `work_dir` too, so COLMAP reads one
     folder. DataError when fewer than MIN_PHOTOS are readable.
     """
     work_dir.mkdir(parents=True, exist_ok=True)
-    names, skipped = [], {}
+    names, skipped, sizes = [], {}, {}
     for path in progress.bar(photos, desc="poses: photos", unit="photo", enabled=show):
         try:
-            used, _ = prepare_photo(path, work_dir, max_side)
+            used, sizes[path.name] = prepare_photo(path, work_dir, max_side)
         except DataError as err:
             skipped[path.name] = str(err)
             _say(f"poses: skipping {path}: not a readable image", show=True)
@@ -178,7 +179,24 @@ def prepare_photos(photos: list[Path], work_dir: Path, max_side: int | None, sho
         folder = photos[0].parent
         raise DataError(f"{folder}: only {len(names)} readable photo(s) of {len(photos)} "
                         f"(unreadable: {', '.join(skipped) or 'none'}); camera poses need at least {MIN_PHOTOS}")
-    return work_dir, names, skipped
+    return work_dir, names, skipped, sizes
+
+
+def check_one_size(sizes: dict, folder, single_camera: bool) -> None:
+    """DataError naming the folder and the sizes when `single_camera` is asked for photos of more
+    than one (working) size: COLMAP's one camera has one image size, so the photos of the other
+    sizes would silently stay unregistered. sizes: {name: (width, height)}."""
+    if not single_camera:
+        return
+    by_size: dict = {}
+    for name, size in sorted(sizes.items()):
+        by_size.setdefault(tuple(size), []).append(name)
+    if len(by_size) > 1:
+        shown = "; ".join(f"{w}x{h}: {len(names)} (e.g. {names[0]})" for (w, h), names in
+                          sorted(by_size.items(), key=lambda kv: -len(kv[1])))
+        raise DataError(f"{folder}: poses.single_camera needs photos of one size, these have {len(by_size)} "
+                        f"({shown}); leave poses.single_camera off (each photo gets its own camera) or split "
+                        "the folder")
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -573,7 +591,9 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     out.parent.mkdir(parents=True, exist_ok=True)
     stage_dir = make_stage(out)
     try:
-        photo_dir, names, skipped = prepare_photos(photos, stage_dir / "_work" / "photos", max_side, progress)
+        photo_dir, names, skipped, sizes = prepare_photos(photos, stage_dir / "_work" / "photos", max_side,
+                                                          progress)
+        check_one_size({n: sizes[n] for n in names}, images_dir, single_camera)
         model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
                            camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
                            show=progress, source=images_dir, keep_all=keep_all)
