@@ -836,6 +836,35 @@ def test_poses_single_camera_on_two_photo_sizes_says_why(capsys, tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no dataset, no staging copy left
 
 
+def test_demo_takes_a_dataset_layout_train_takes(scene, capsys, tmp_path, monkeypatch):
+    """Issue 39: `demo --data` refused a COLMAP folder `train` accepts (demo masked it first, and
+    `mask` writes only into the transforms.json layout). Checked here on an LLFF folder (the same
+    path: no transforms.json): auto trains robust, nothing is written into the dataset; a forced
+    --masks dpt is refused in one line. Training itself is stubbed (the recipe is the demo's)."""
+    from jaxnerf_grid import demo
+
+    root = _llff(tmp_path, scene, lambda a: None)
+    before = snapshot(root)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def stub_train_run(data, method, out, overrides, *args, **kwargs):
+        seen.update(data=data, overrides=overrides)
+        raise Stop()
+
+    monkeypatch.setattr(runs, "train_run", stub_train_run)
+    with pytest.raises(Stop):
+        demo.run_demo(root, tmp_path / "demo", steps=2, progress=False)
+    assert seen["data"] == str(root) and seen["overrides"]["train"]["robust"] == "robust"
+    assert seen["overrides"]["train"]["use_masks"] is False
+    assert snapshot(root) == before
+    rc, err = run_cli(["demo", "--data", root, "--out", tmp_path / "demo2", "--masks", "dpt", "--quiet"], capsys)
+    assert_one_line_error(rc, err, "--masks", "transforms.json layout")
+    assert snapshot(root) == before and not (tmp_path / "demo2").exists()
+
+
 if __name__ == "__main__":
     if sys.argv[1] == "export":
         _slow_export_child(*sys.argv[2:])
