@@ -702,9 +702,10 @@ def _owner_alive(stage: Path) -> bool:
 def _siblings(out: Path, tag: str) -> list[Path]:
     """The hidden folders `.NAME<tag>XXXX` beside `out`."""
     prefix = f".{out.name}{tag}"
-    if not out.parent.is_dir():
+    try:
+        return sorted(p for p in out.parent.iterdir() if p.name.startswith(prefix) and p.is_dir())
+    except OSError:  # no parent folder, or one this user may not list: nothing to recover there
         return []
-    return sorted(p for p in out.parent.iterdir() if p.name.startswith(prefix) and p.is_dir())
 
 
 def _staged_names(stage: Path) -> list[str] | None:
