@@ -38,7 +38,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .io import DataError, atomic_path
+from .io import DataError, atomic_path, load_error_reason
 
 FORMAT = "jaxnerf-grid-checkpoint"
 VERSION = 1
@@ -232,7 +232,8 @@ def _read(path: Path) -> tuple[dict, dict[str, np.ndarray]]:
     except Exception as err:  # noqa: BLE001 - any failure to parse the file means damage
         # (seen: BadZipFile incl. bad CRC, NotImplementedError for a flipped compression
         # field, ValueError / KeyError / EOFError / UnicodeDecodeError / JSONDecodeError)
-        raise CorruptCheckpointError(f"{path}: unreadable checkpoint ({type(err).__name__}: {err})") from None
+        raise CorruptCheckpointError(f"{path}: unreadable checkpoint ({type(err).__name__}: "
+                                     f"{load_error_reason(err)})") from None
     if not isinstance(manifest, dict) or manifest.get("format") != FORMAT:
         raise CorruptCheckpointError(f"{path}: not a {FORMAT} file (bad manifest)")
     if manifest.get("version") != VERSION:

@@ -22,7 +22,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, distributed, evaluate, io, masking, recipes, runs
+from jaxnerf_grid import config as config_lib, distributed, evaluate, folders, io, masking, recipes, runs
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
 from jaxnerf_grid.data.synthetic import generate as synth_generate
@@ -210,8 +210,14 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     make_config(method, runs._with_steps(_with_plan(recipe, forced) if masks != "auto" else recipe, steps))
     start = time.perf_counter()
     out = Path(out)
-    if out.exists() and not out.is_dir():
-        raise DataError(f"{out}: demo.out exists and is not a folder")
+    folders.check_folder(out, "demo.out")
+    folders.check_outside(out, data, "demo.out")  # the dataset is never written into (links resolved)
+    # a dataset in another layout train reads (COLMAP, LLFF, Blender): `mask` writes only into the
+    # transforms.json layout, so such a dataset trains without masks (auto: robust)
+    layout = data is None or (Path(data) / "transforms.json").is_file()
+    if not layout and masks in ("dpt", "dpt+robust"):
+        raise ConfigError(f"demo.masks = {masks}: {data} is not in the transforms.json layout (docs/DATASET.md), so "
+                          "no masks can be written into it; use demo.masks robust or none (or auto)")
     if (out / "run").exists() and not (out / "run").is_dir():
         raise DataError(f"{out / 'run'}: exists and is not a folder")
     timings = {}
@@ -220,7 +226,8 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         data = _dataset_folder(data, out, progress, timings)
         if poses_seconds(data) is not None:
             timings["poses"] = poses_seconds(data)
-        mask_source = _ensure_masks(data, progress, timings) if masks not in ("robust", "none") else None
+        mask_source = (_ensure_masks(data, progress, timings) if masks not in ("robust", "none") and layout
+                       else None)
     distributed.barrier("jaxnerf_grid.demo.data")
     if not distributed.is_main():
         data = Path(data) if data is not None else out / "data"
@@ -229,6 +236,9 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     recipe = runs.overrides_with_sets(recipe_with_bounds(base, bounds), sets)  # --set wins over the bounds
     # every process reads the same verdict from the dataset, so all train the same config
     plan = mask_plan(masks, dataset_domain(Path(data)))
+    if not layout and masks == "auto":
+        plan = dict(mask_plan("robust", None), why="chosen automatically: the dataset is not in the transforms.json "
+                    "layout, so it has no masks and `mask` cannot write any")
     t = time.perf_counter()
     run_dir, _, _ = runs.train_run(str(data), method, out / "run", _with_plan(recipe, plan), steps, overwrite,
                                    progress)

@@ -195,13 +195,14 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
     """Writes a binary little-endian PLY (atomic).
 
     points: [N, 3] float; colors: optional [N, 3] in [0, 1]; faces: optional [F, 3] int;
-    comments: header comment lines (one line each, e.g. the units).
+    comments: header comment lines (one line each, e.g. the units; a PLY header is ASCII, so
+    other characters, such as those of a path, are written as backslash escapes: `ascii_text`).
     """
     points = np.asarray(points, dtype=np.float32)
     if points.ndim != 2 or points.shape[1] != 3:
         raise DataError(f"{path}: points must be [N, 3], got {points.shape}")
     header = ["ply", "format binary_little_endian 1.0"]
-    header += [f"comment {' '.join(str(c).split())}" for c in comments]
+    header += [f"comment {ascii_text(' '.join(str(c).split()))}" for c in comments]
     header += [f"element vertex {len(points)}",
               "property float x", "property float y", "property float z"]
     fields = [("x", "<f4"), ("y", "<f4"), ("z", "<f4")]
@@ -224,6 +225,11 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, colors: np.ndarray | 
         face_rec["v"] = faces
         body += face_rec.tobytes()
     atomic_write_bytes(path, ("\n".join(header) + "\n").encode("ascii") + body)
+
+
+def ascii_text(text: str) -> str:
+    """`text` with every non-ASCII character as a backslash escape ("Tür" -> "T\\xfcr")."""
+    return text.encode("ascii", "backslashreplace").decode("ascii")
 
 
 _PLY_TYPES = {"char": "i1", "int8": "i1", "uchar": "u1", "uint8": "u1", "short": "i2", "int16": "i2",
@@ -314,6 +320,29 @@ def read_ply_points(path: str | os.PathLike) -> np.ndarray:
     return np.stack([vertex["x"], vertex["y"], vertex["z"]], axis=-1).astype(np.float32)
 
 
+@contextlib.contextmanager
+def naming_path(path: str | os.PathLike, doing: str = "cannot write"):
+    """Turns an OSError raised inside the block (a full disk, a read-only folder, a permission)
+    into a one-line DataError naming `path`: "PATH: cannot write (No space left on device)".
+    The OSError a write raises often names no file (ENOSPC from write()), and a temporary
+    file's name would not tell the user which output failed."""
+    try:
+        yield
+    except OSError as err:
+        reason = err.strerror or str(err) or type(err).__name__
+        raise DataError(f"{path}: {doing} ({reason})") from None
+
+
+def load_error_reason(err: BaseException) -> str:
+    """Why NumPy could not load a .npy / .npz, for a one-line error: NumPy's own message, except
+    that its advice to load with allow_pickle (which runs code stored in the file) is not passed
+    on: such a file holds Python objects, not plain arrays."""
+    text = str(err) or type(err).__name__
+    if "allow_pickle" in text or "pickle" in text.lower():
+        return "it holds Python objects, not plain arrays; not loaded, as unpickling can run code"
+    return text
+
+
 def atomic_write_bytes(path: str | os.PathLike, payload: bytes) -> None:
     """Writes bytes to `path` through a temporary file and a rename (never half-written)."""
     with atomic_path(path) as tmp:
@@ -330,24 +359,25 @@ def atomic_path(path: str | os.PathLike, suffix: str = ".tmp", durable: bool = F
     power cut as well as a killed process (checkpoints use it).
     """
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
-    os.close(fd)
-    try:
-        try:  # mkstemp makes it 0600; the file gets the mode open() would give
-            os.chmod(tmp, _mode_for(path))
-        except OSError:  # a filesystem without permissions (FAT, some network shares): keep going
-            pass
-        yield Path(tmp)
+    with naming_path(path):  # an OSError (full disk, read-only folder) names `path`, not the temporary file
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=suffix)
+        os.close(fd)
+        try:
+            try:  # mkstemp makes it 0600; the file gets the mode open() would give
+                os.chmod(tmp, _mode_for(path))
+            except OSError:  # a filesystem without permissions (FAT, some network shares): keep going
+                pass
+            yield Path(tmp)
+            if durable:
+                _fsync(tmp, os.O_RDONLY)
+            os.replace(tmp, path)
+        except BaseException:
+            if os.path.exists(tmp):
+                os.unlink(tmp)
+            raise
         if durable:
-            _fsync(tmp, os.O_RDONLY)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    if durable:
-        _fsync(path.parent, os.O_RDONLY)
+            _fsync(path.parent, os.O_RDONLY)
 
 
 def _read_umask() -> int:

@@ -33,7 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.io import DataError, load_error_reason
 
 FORMAT = "jaxnerf-grid-lpips-alex-v0.1"
 # name, out channels, in channels, kernel, stride, padding
@@ -103,7 +103,7 @@ def load_lpips(path: str | os.PathLike | None) -> dict | None:
         with np.load(p, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files}
     except Exception as e:  # not a zip / corrupt
-        raise DataError(f"{p}: cannot read LPIPS weights (.npz expected): {e}") from e
+        raise DataError(f"{p}: cannot read LPIPS weights (.npz expected): {load_error_reason(e)}") from None
     if "format" in arrays and str(arrays["format"]) != FORMAT:
         raise DataError(f"{p}: LPIPS weights format '{arrays['format']}', expected '{FORMAT}'")
     return params_from_arrays(arrays, str(p))

@@ -34,13 +34,13 @@ source "gt" builds M from the synthetic ground truth `distractor_mask_path` and 
 
 from __future__ import annotations
 
-import os
 from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config, dpt, foreground as fg, io, progress as progress_lib
+from jaxnerf_grid import config, dpt, foreground as fg, io, progress as progress_lib, staging
 from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.data import poses
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS
 from jaxnerf_grid.io import DataError
 
@@ -175,32 +175,14 @@ def check_classes(classes: list[int], num_labels: int, weights: str) -> None:
         raise ConfigError("mask.classes: no class id given")
 
 
-def _rename(src: Path, dst: Path) -> None:
-    dst.parent.mkdir(parents=True, exist_ok=True)
-    src.rename(dst)
-
-
 def _swap_in(root: Path) -> None:
     """Rolls a complete staging folder forward (idempotent, so it may be re-run after a kill):
     each old output folder moves to RETIRED and its staged one (COMPLETE lists them) into place,
-    then the staged transforms.json replaces the dataset's, then RETIRED and STAGING are removed."""
-    import shutil
-
-    stage, old = root / STAGING, root / RETIRED
+    then the staged transforms.json replaces the dataset's, then RETIRED and STAGING are removed
+    (`staging.swap_in`, shared with `poses`)."""
+    stage = root / STAGING
     staged = (stage / COMPLETE).read_text().split()  # the output folders of the new set
-    for name in OUTPUT_DIRS:
-        if name in staged and not (stage / name).exists():
-            continue  # moved in before a kill
-        if (root / name).exists():  # the old set's folder (or one the new set no longer has)
-            if (old / name).exists():
-                shutil.rmtree(old / name)
-            _rename(root / name, old / name)
-        if name in staged:
-            _rename(stage / name, root / name)
-    if (stage / "transforms.json").exists():
-        os.replace(stage / "transforms.json", root / "transforms.json")
-    shutil.rmtree(old, ignore_errors=True)
-    shutil.rmtree(stage, ignore_errors=True)
+    staging.swap_in(root, stage, root / RETIRED, OUTPUT_DIRS, staged, last="transforms.json")
 
 
 def recover(root) -> str | None:
@@ -320,6 +302,7 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     root = Path(data)
     if not root.is_dir():
         raise DataError(f"{root}: mask.data is not a folder")
+    poses.recover(root)  # a `poses` run killed while swapping this dataset in: finished first
     recover(root)
     tpath = root / "transforms.json"
     meta = io.read_json(tpath)

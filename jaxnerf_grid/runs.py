@@ -25,21 +25,20 @@ from __future__ import annotations
 
 import dataclasses
 import hashlib
-import shutil
 from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, distributed, io, masking, progress as progress_lib, train, views
+from jaxnerf_grid import config as config_lib, distributed, folders, io, masking, progress as progress_lib, train, views
 from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.data import formats
+from jaxnerf_grid.data import formats, poses
 from jaxnerf_grid.data.formats import working_dataset
 from jaxnerf_grid.data.dataset import check_camera_centres
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.run_config import RunConfig, make_config
 from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 
-RUN_MARKER = ".jaxnerf-grid-run"
+RUN_MARKER = folders.marker("train")
 FINGERPRINT_FILE = "dataset.json"
 RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity")
 RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report_views.png", "report_crops.png",
@@ -64,8 +63,12 @@ def read_overrides(path: str | None) -> dict:
 
 def overrides_with_sets(overrides: dict | None, sets: list[str] | None) -> dict:
     """--config's overrides with the --set KEY=VALUE flags laid on top (config.parse_sets against
-    RunConfig: an unknown key is a ConfigError naming it)."""
-    return config_lib.merge(overrides or {}, config_lib.parse_sets(sets, RunConfig))
+    RunConfig: an unknown key is a ConfigError naming it). `data` is refused: the run's dataset
+    is run.data, and train_run would silently replace a value set here."""
+    sets_ = config_lib.parse_sets(sets, RunConfig)
+    if "data" in sets_:
+        raise ConfigError("data: not a setting; the dataset is given as run.data")
+    return config_lib.merge(overrides or {}, sets_)
 
 
 def run_config_dict(cfg, data_path=None) -> dict:
@@ -128,7 +131,10 @@ def check_fingerprint(run_dir, ds, allow_other_data: bool = False) -> None:
         return
     old = io.read_json(path)
     new = dataset_fingerprint(ds)
-    if not isinstance(old, dict) or old.get("digest") == new["digest"]:
+    if not isinstance(old, dict) or not isinstance(old.get("digest"), str):
+        raise DataError(f"{path}: not a dataset fingerprint (a JSON object with \"digest\" expected), so the "
+                        "dataset cannot be checked; pass allow_other_data=True to go on without the check")
+    if old.get("digest") == new["digest"]:
         return
     if (old.get("frames"), old.get("height"), old.get("width")) != (new["frames"], new["height"], new["width"]):
         what = f"{_describe(old)}, this one has {_describe(new)}"
@@ -184,13 +190,27 @@ def check_run(cfg, ds, num_devices: int | None = None) -> None:
     n = train.step_devices(cfg.train) if num_devices is None else num_devices
     train.check_batch(settled, n)
     train.check_robust(settled.train, n, ds)
+    check_weights(settled, ds)
+
+
+def check_weights(cfg, ds) -> None:
+    """DataError naming the dataset when it has no training frames or, with train.robust off,
+    every training pixel has loss weight 0 (all-zero weight maps): train would refuse it
+    only after the run folder was made."""
+    train_ids = np.asarray(ds.split["train"], np.int64)
+    if train_ids.size == 0:
+        raise DataError(f"{ds.root}: the dataset has no training frames")
+    if cfg.train.robust == "off" and not np.any(train.loss_weights(ds, cfg.train)[train_ids] > 0):
+        raise DataError(f"{ds.root}: every training pixel has loss weight 0 (check the masks / weights)")
 
 
 def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0):
     """The dataset of a folder (formats.load_dataset; `max_side`: its working resolution,
     data/working.py, 0 = full size), after finishing any `mask` run that was killed while
-    swapping its new masks in (masking.recover), so the masks are one set."""
+    swapping its new masks in (masking.recover), so the masks are one set, and any `poses` run
+    killed while swapping a new dataset in (data.poses.recover)."""
     if Path(path).is_dir():
+        poses.recover(path)
         masking.recover(path)
 
     return formats.load_dataset(path, downscale=downscale, progress=progress, max_side=max_side)
@@ -225,11 +245,10 @@ def _is_legacy_run(run_dir: Path) -> bool:
 
 
 def check_out(run_dir: Path, data=None) -> None:
-    """Refuses a run folder (run.out) that is a file, or that is the dataset folder itself."""
-    if run_dir.exists() and not run_dir.is_dir():
-        raise DataError(f"{run_dir}: run.out exists and is not a folder")
-    if data is not None and run_dir.resolve() == Path(data).resolve():
-        raise DataError(f"{run_dir}: run.out is the dataset folder; choose another folder for the run")
+    """Refuses a run folder (run.out) that is a file, or that is the dataset folder or inside it
+    (links resolved; `folders.check_outside`)."""
+    folders.check_folder(run_dir, "run.out")
+    folders.check_outside(run_dir, data, "run.out")
 
 
 def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
@@ -245,11 +264,8 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
     if not marked and not (not overwrite and _is_legacy_run(run_dir)):
         raise DataError(f"{run_dir}: exists, is not empty and is not a jaxnerf-grid run (no {RUN_MARKER}); "
                         "nothing was changed: choose another run.out")
-    if overwrite:
-        for sub in RUN_OUTPUT_DIRS:
-            shutil.rmtree(run_dir / sub, ignore_errors=True)
-        for f in RUN_OUTPUT_FILES:
-            (run_dir / f).unlink(missing_ok=True)
+    if overwrite:  # a symlinked checkpoints/ is refused, never skipped (`folders.check_clearable`)
+        folders.clear_outputs(run_dir, "train", RUN_OUTPUT_DIRS + RUN_OUTPUT_FILES, "run.out")
     elif not existing.is_file():
         return  # a marked run that was stopped before its config.json was written: start it
     else:
@@ -290,8 +306,7 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
         if not overwrite and is_run_dir(run_dir):
             check_fingerprint(run_dir, ds, allow_other_data)
         check_existing(run_dir, wanted, overwrite)
-        run_dir.mkdir(parents=True, exist_ok=True)
-        (run_dir / RUN_MARKER).write_text("a jaxnerf-grid run folder: `--overwrite` may clear the run's outputs here\n")
+        folders.write_marker(run_dir, "train")
         io.write_json(run_dir / FINGERPRINT_FILE, dataset_fingerprint(ds))
         io.write_json(run_dir / "config.json", wanted)
     distributed.barrier("jaxnerf_grid.runs.train_run")

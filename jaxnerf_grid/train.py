@@ -463,7 +463,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                 if "robust_weight" in stats:
                     record["robust_weight"] = float(stats["robust_weight"][0])
                 if main:
-                    with open(log_path, "a") as fh:
+                    with io.naming_path(log_path), open(log_path, "a") as fh:  # a full disk names the file
                         fh.write(json.dumps(record) + "\n")
                 window_start, window_steps = time.perf_counter(), 0
                 if bar is not None:

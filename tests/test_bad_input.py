@@ -23,7 +23,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, io, masking, runs
+from jaxnerf_grid import cli, io, masking, runs, staging
 
 ROOT = Path(__file__).resolve().parents[1]
 # a 2x32 MLP, 8 + 8 samples, 64 rays, 10 steps: the whole run takes seconds
@@ -469,7 +469,7 @@ def _slow_mask_child(data: str, pause: str) -> None:
     """`mask --source gt --overwrite --dilate 2` with a pause after each frame written and after
     each folder renamed in the swap, so the parent can kill it at either stage."""
     pause_s = float(pause)
-    write, rename = masking._write_frame, masking._rename
+    write, rename = masking._write_frame, staging.move
 
     progress = Path(data + ".frames")  # frames written so far, outside the dataset
 
@@ -483,7 +483,7 @@ def _slow_mask_child(data: str, pause: str) -> None:
         rename(src, dst)
         time.sleep(pause_s)
 
-    masking._write_frame, masking._rename = slow_write, slow_rename
+    masking._write_frame, staging.move = slow_write, slow_rename
     sys.exit(cli.main(["mask", "--data", data, "--source", "gt", "--overwrite", "--dilate", "2", "--quiet"]))
 
 
@@ -531,5 +531,342 @@ def test_killed_mask_overwrite_leaves_old_or_new(scene, capsys, tmp_path, stage)
     assert outcomes == (["old", "old"] if stage == "writing" else ["new", "new"]), outcomes
 
 
+# --------------------------------------------------------------------------- issue 39: round two
+
+EXPORT_FAST = ["--resolution", "16", "--views", "2", "--box=-10,-10,0,10,10,20", "--threshold", "0.0001", "--quiet"]
+
+
+def test_export_never_writes_into_a_folder_it_did_not_make(scene, capsys, tmp_path):
+    """Issue 39: `export --overwrite --out DIR` replaced a user's box.json and appended to their
+    report.md. A folder without export's marker is refused, --overwrite or not."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "box.json").write_text('{"mine": true}')
+    (mine / "report.md").write_text("# my notes\n")
+    before = snapshot(mine, scene["run"])
+    for extra in ([], ["--overwrite"]):
+        rc, err = run_cli(["export", "--run", scene["run"], "--out", mine, *extra, *EXPORT_FAST], capsys)
+        assert_one_line_error(rc, err, str(mine))
+    assert ".jaxnerf-grid-export" in err and "--out" in err
+    # the run folder itself holds the run's marker, not export's
+    rc, err = run_cli(["export", "--run", scene["run"], "--out", scene["run"], "--overwrite", *EXPORT_FAST], capsys)
+    assert_one_line_error(rc, err, str(scene["run"]), ".jaxnerf-grid-export")
+    assert snapshot(mine, scene["run"]) == before
+
+
+def test_out_inside_the_dataset_is_refused_for_every_command(scene, capsys, tmp_path):
+    """Issue 39: export through a symlink into a dataset added files to it; train's --out inside
+    the dataset was taken. Links are resolved."""
+    alias = tmp_path / "alias"
+    alias.symlink_to(scene["data"], target_is_directory=True)
+    before = snapshot(scene["data"], scene["run"])
+    cases = [["export", "--run", scene["run"], "--out", alias / "export", *EXPORT_FAST],
+             ["export", "--run", scene["run"], "--out", scene["data"] / "export", *EXPORT_FAST],
+             ["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", alias / "run",
+              "--quiet"],
+             ["train", *PAPER_MLP, "--data", alias, "--config", scene["cfg"], "--out", scene["data"] / "runs" / "a",
+              "--quiet"],
+             ["demo", "--data", scene["data"], "--out", alias / "demo", "--steps", "2", "--quiet"]]
+    for argv in cases:
+        rc, err = run_cli(argv, capsys)
+        assert_one_line_error(rc, err, "--out", "inside")
+    assert snapshot(scene["data"], scene["run"]) == before
+
+
+def test_overwrite_refuses_a_symlinked_checkpoints_folder(scene, capsys, tmp_path):
+    """Issue 39: with checkpoints/ a link (weights on a bigger disk) `train --overwrite` skipped
+    it and reported "already trained": old weights under a new config.json."""
+    run, disk = tmp_path / "run", tmp_path / "big_disk"
+    shutil.copytree(scene["run"], run)
+    shutil.move(run / "checkpoints", disk)
+    (run / "checkpoints").symlink_to(disk, target_is_directory=True)
+    before = snapshot(run, disk)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", run,
+                       "--set", "train.lr_init=1e-3", "--overwrite", "--quiet"], capsys)
+    line = assert_one_line_error(rc, err, str(run / "checkpoints"), "symbolic link")
+    assert "yourself" in line
+    assert snapshot(run, disk) == before
+
+
+BAD_VALUES_39 = [  # (case id, argv after the run / data flags, words the one line must name)
+    ("export_views_negative", ["export", "--views", "-3"], ["--views", "-3"]),
+    ("export_resolution_huge", ["export", "--resolution", "100000"], ["--resolution", "GiB", "at most"]),
+    ("export_resolution_small", ["export", "--resolution", "4"], ["--resolution", "4"]),
+    ("eval_distractor_views_negative", ["eval", "--distractor-views", "-5"], ["--distractor-views", "-5"]),
+    ("train_set_data", ["train", "--set", "data=\"elsewhere\""], ["data", "--data"]),
+    ("coordinator_without_port", ["train", "--coordinator", "localhost", "--num-processes", "2",
+                                  "--process-id", "1"], ["--coordinator", "HOST:PORT"]),
+    ("coordinator_not_an_address", ["train", "--coordinator", "a b:c"], ["--coordinator", "HOST:PORT"]),
+    ("coordinator_port_range", ["train", "--coordinator", "localhost:70000"], ["--coordinator", "1..65535"]),
+    ("process_id_range", ["train", "--coordinator", "localhost:1234", "--num-processes", "2",
+                          "--process-id", "2"], ["--process-id", "[0, 2)"]),
+    ("process_id_negative", ["train", "--num-processes", "2", "--process-id", "-1"], ["--process-id", "-1"]),
+    ("num_processes_zero", ["train", "--num-processes", "0"], ["--num-processes", ">= 1"]),
+]
+
+
+@pytest.mark.parametrize("case, argv, names", BAD_VALUES_39, ids=[c[0] for c in BAD_VALUES_39])
+def test_bad_values_of_round_two(scene, capsys, tmp_path, case, argv, names):
+    command, rest = argv[0], argv[1:]
+    where = (["--run", scene["run"]] if command in ("export", "eval")
+             else [*PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", tmp_path / "run"])
+    before = snapshot(scene["data"], scene["run"])
+    rc, err = run_cli([command, *where, *rest, "--quiet"], capsys)
+    assert_one_line_error(rc, err, *names)
+    assert snapshot(scene["data"], scene["run"]) == before
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("name, value", [("JAX_NUM_PROCESSES", "abc"), ("JAX_PROCESS_ID", "one"),
+                                         ("JAX_COORDINATOR_ADDRESS", "nohost"),
+                                         ("JAXNERF_CONNECT_TIMEOUT", "soon"), ("JAXNERF_INIT_TIMEOUT", "0")])
+def test_bad_environment_values_are_named(scene, capsys, tmp_path, monkeypatch, name, value):
+    monkeypatch.setenv("JAX_NUM_PROCESSES", "2")
+    monkeypatch.setenv(name, value)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"],
+                       "--out", tmp_path / "run", "--quiet"], capsys)
+    assert_one_line_error(rc, err, name, value)
+    assert not (tmp_path / "run").exists()
+
+
+def _free_port() -> int:
+    import socket
+
+    with socket.socket() as s:
+        s.bind(("127.0.0.1", 0))
+        return s.getsockname()[1]
+
+
+def test_coordinator_port_in_use_and_unreachable(scene, capsys, tmp_path, monkeypatch):
+    """Process 0 on a port another program listens on; process 1 with no coordinator there: one
+    line naming the address, within the documented connect timeout (here 2 s), no stack dump."""
+    import socket
+
+    base = ["train", *PAPER_MLP, "--data", scene["data"], "--config", scene["cfg"], "--out", tmp_path / "run",
+            "--quiet", "--num-processes", "2"]
+    with socket.socket() as busy:
+        busy.bind(("", 0))
+        busy.listen()
+        port = busy.getsockname()[1]
+        rc, err = run_cli([*base, "--coordinator", f"127.0.0.1:{port}", "--process-id", "0"], capsys)
+        assert_one_line_error(rc, err, f"127.0.0.1:{port}", "already in use")
+    monkeypatch.setenv("JAXNERF_CONNECT_TIMEOUT", "2")
+    port = _free_port()
+    start = time.monotonic()
+    rc, err = run_cli([*base, "--coordinator", f"127.0.0.1:{port}", "--process-id", "1"], capsys)
+    assert_one_line_error(rc, err, f"127.0.0.1:{port}", "within 2 s", "refused")
+    assert time.monotonic() - start < 10
+    rc, err = run_cli([*base, "--coordinator", "no-such-host.invalid:1234", "--process-id", "1"], capsys)
+    assert_one_line_error(rc, err, "no-such-host.invalid:1234", "does not resolve")
+    assert not (tmp_path / "run").exists()
+
+
+def test_eval_reads_a_broken_reference_ply_before_rendering(scene, capsys, tmp_path):
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    bad = tmp_path / "ref.ply"
+    bad.write_text("not a ply\n")
+    before = snapshot(run)
+    rc, err = run_cli(["eval", "--run", run, "--reference-ply", bad, "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(bad), "PLY")
+    assert snapshot(run) == before
+
+
+def test_export_with_non_ascii_and_space_paths_and_a_full_disk(scene, capsys, tmp_path, monkeypatch):
+    """Issue 39: the run path went into the PLY header (ASCII) and export died with a traceback.
+    Then a full disk while writing the mesh names the file (write() raises ENOSPC without one)."""
+    run, out = tmp_path / "Lauf ü" / "run 1", tmp_path / "Ausgabe é"
+    shutil.copytree(scene["run"], run)
+    rc, err = run_cli(["export", "--run", run, "--out", out, *EXPORT_FAST], capsys)
+    assert rc == 0, err
+    assert (out / ".jaxnerf-grid-export").is_file()
+    assert len(io.read_ply_points(out / "tower_mesh.ply")) > 0
+    header = (out / "tower_mesh.ply").read_bytes().split(b"end_header")[0].decode("ascii")
+    assert "Lauf \\xfc" in header
+    # an export folder export made is overwritten in place; a user's file in it stays
+    (out / "notes.txt").write_text("mine")
+    rc, err = run_cli(["export", "--run", run, "--out", out, "--overwrite", *EXPORT_FAST], capsys)
+    assert rc == 0, err
+    assert (out / "notes.txt").read_text() == "mine"
+    real = Path.write_bytes
+
+    def full_disk(self, data):
+        if self.name.startswith(".tower_mesh.ply."):
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))  # as write() raises it: no file name
+        return real(self, data)
+
+    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    rc, err = run_cli(["export", "--run", run, "--out", tmp_path / "full", *EXPORT_FAST], capsys)
+    assert_one_line_error(rc, err, str(tmp_path / "full" / "tower_mesh.ply"), "No space left on device")
+    assert not [p for p in (tmp_path / "full").iterdir() if p.name.startswith(".tower_mesh")]
+
+
+def test_a_fingerprint_that_is_not_an_object_is_named(scene, capsys, tmp_path):
+    """Issue 39: a dataset.json that was not an object turned the check off without a word."""
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    (run / runs.FINGERPRINT_FILE).write_text("[1, 2, 3]\n")
+    before = snapshot(run)
+    rc, err = run_cli(["eval", "--run", run, "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(run / runs.FINGERPRINT_FILE), "--allow-other-data")
+    assert snapshot(run) == before
+
+
+def test_numpys_advice_to_unpickle_is_not_passed_on(scene, capsys, tmp_path):
+    root = _llff(tmp_path, scene, lambda a: None)
+    np.save(root / "poses_bounds.npy", np.array([{"rows": 1}], dtype=object), allow_pickle=True)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", root, "--config", scene["cfg"], "--out", tmp_path / "run",
+                       "--quiet"], capsys)
+    line = assert_one_line_error(rc, err, "poses_bounds.npy", "Python objects")
+    assert "allow_pickle" not in line
+    assert not (tmp_path / "run").exists()
+
+
+def test_all_zero_weights_are_refused_before_the_run_folder_is_made(scene, capsys, tmp_path):
+    data = tmp_path / "data"
+    shutil.copytree(scene["data"], data)
+    assert cli.main(["mask", "--data", str(data), "--source", "gt", "--quiet"]) == 0
+    for exr in (data / "weights").glob("*.exr"):
+        io.write_exr(exr, np.zeros_like(io.read_exr(exr)))
+    before = snapshot(data)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", data, "--config", scene["cfg"], "--out", tmp_path / "run",
+                       "--set", "train.use_masks=true", "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(data), "loss weight 0")
+    assert not (tmp_path / "run").exists()
+    assert snapshot(data) == before
+
+
+@pytest.mark.parametrize("command", ["synth", "mask"])
+def test_a_full_disk_names_the_file_in_synth_and_mask(scene, capsys, tmp_path, monkeypatch, command):
+    """write() raises ENOSPC without a file name; the one line names the file being written, and
+    `mask` leaves the dataset as it was."""
+    data = tmp_path / "data"
+    if command == "mask":
+        shutil.copytree(scene["data"], data)
+    before = snapshot(data) if data.exists() else {}
+    real = Path.write_bytes
+
+    def full_disk(self, payload):
+        if self.name.startswith(".") and ".png." in self.name:
+            raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC))
+        return real(self, payload)
+
+    monkeypatch.setattr(Path, "write_bytes", full_disk)
+    argv = (["synth", "--out", data, *SYNTH] if command == "synth"
+            else ["mask", "--data", data, "--source", "gt", "--quiet"])
+    rc, err = run_cli(argv, capsys)
+    line = assert_one_line_error(rc, err, str(data), ".png", "No space left on device")
+    assert line.split(": cannot write")[0].endswith(".png")
+    monkeypatch.undo()
+    if command == "mask":
+        runs.load_dataset(data, progress=False)  # what the next command does first
+        assert snapshot(data) == before
+
+
+def _slow_export_child(run: str, out: str, pause: str) -> None:
+    """`export` with a pause after each file it writes (io.atomic_write_bytes), so the parent can
+    kill it between two files."""
+    real = io.atomic_write_bytes
+
+    def slow(path, payload):
+        real(path, payload)
+        time.sleep(float(pause))
+
+    io.atomic_write_bytes = slow
+    sys.exit(cli.main(["export", "--run", run, "--out", out, *EXPORT_FAST]))
+
+
+@pytest.mark.parametrize("files_before_kill", [1, 3])
+def test_killed_export_leaves_whole_files_and_can_be_overwritten(scene, capsys, tmp_path, files_before_kill):
+    """kill -9 of export between two of its files: the run is untouched, each file in the
+    folder is whole (written through a temporary file and a rename), and `export --overwrite`
+    then replaces the folder (it holds export's marker, written before the first file)."""
+    run, out = tmp_path / "run", tmp_path / "exp"
+    shutil.copytree(scene["run"], run)
+    before = snapshot(run)
+    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
+    proc = subprocess.Popen([sys.executable, __file__, "export", str(run), str(out), "1.0"], env=env,
+                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
+    try:
+        deadline = time.time() + 180
+        while not (out.is_dir() and sum(p.name in export_files() for p in out.iterdir()) >= files_before_kill):
+            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
+            assert time.time() < deadline
+            time.sleep(0.02)
+        proc.send_signal(signal.SIGKILL)
+        proc.wait(timeout=30)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    assert proc.returncode == -signal.SIGKILL
+    written = sorted(p.name for p in out.iterdir() if p.name in export_files())
+    assert 1 <= len(written) < len(export_files())  # it really stopped half-way
+    for name in written:
+        if name.endswith(".ply"):
+            io.read_ply(out / name)
+        elif name.endswith(".json"):
+            assert isinstance(io.read_json(out / name), dict)
+        else:
+            io.read_image(out / name)
+    assert snapshot(run) == before
+    rc, err = run_cli(["export", "--run", run, "--out", out, *EXPORT_FAST], capsys)
+    assert_one_line_error(rc, err, str(out), "--overwrite")
+    rc, err = run_cli(["export", "--run", run, "--out", out, "--overwrite", *EXPORT_FAST], capsys)
+    assert rc == 0, err
+    assert set(export_files()) <= {p.name for p in out.iterdir()}
+
+
+def export_files() -> tuple:
+    from jaxnerf_grid.export import run as export_run
+
+    return export_run.FILES
+
+
+def test_poses_single_camera_on_two_photo_sizes_says_why(capsys, tmp_path):
+    """Issue 39: the photos of the other size stayed unregistered without a word."""
+    pytest.importorskip("pycolmap")
+    photos = tmp_path / "photos"
+    rng = np.random.default_rng(0)
+    for i, (w, h) in enumerate([(40, 30)] * 3 + [(32, 24)] * 2):
+        io.write_png(photos / f"p{i}.png", rng.random((h, w, 3)))
+    before = snapshot(photos)
+    rc, err = run_cli(["poses", "--images", photos, "--out", tmp_path / "d", "--single-camera", "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(photos), "--single-camera", "40x30: 3", "32x24: 2")
+    assert snapshot(photos) == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["photos"]  # no dataset, no staging copy left
+
+
+def test_demo_takes_a_dataset_layout_train_takes(scene, capsys, tmp_path, monkeypatch):
+    """Issue 39: `demo --data` refused a COLMAP folder `train` accepts (demo masked it first, and
+    `mask` writes only into the transforms.json layout). Checked here on an LLFF folder (the same
+    path: no transforms.json): auto trains robust, nothing is written into the dataset; a forced
+    --masks dpt is refused in one line. Training itself is stubbed (the recipe is the demo's)."""
+    from jaxnerf_grid import demo
+
+    root = _llff(tmp_path, scene, lambda a: None)
+    before = snapshot(root)
+    seen = {}
+
+    class Stop(Exception):
+        pass
+
+    def stub_train_run(data, method, out, overrides, *args, **kwargs):
+        seen.update(data=data, overrides=overrides)
+        raise Stop()
+
+    monkeypatch.setattr(runs, "train_run", stub_train_run)
+    with pytest.raises(Stop):
+        demo.run_demo(root, tmp_path / "demo", steps=2, progress=False)
+    assert seen["data"] == str(root) and seen["overrides"]["train"]["robust"] == "robust"
+    assert seen["overrides"]["train"]["use_masks"] is False
+    assert snapshot(root) == before
+    rc, err = run_cli(["demo", "--data", root, "--out", tmp_path / "demo2", "--masks", "dpt", "--quiet"], capsys)
+    assert_one_line_error(rc, err, "--masks", "transforms.json layout")
+    assert snapshot(root) == before and not (tmp_path / "demo2").exists()
+
+
 if __name__ == "__main__":
-    _slow_mask_child(sys.argv[1], sys.argv[2])
+    if sys.argv[1] == "export":
+        _slow_export_child(*sys.argv[2:])
+    else:
+        _slow_mask_child(sys.argv[1], sys.argv[2])

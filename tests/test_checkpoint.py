@@ -10,6 +10,7 @@ import pytest
 
 from jaxnerf_grid import checkpoint as ckpt
 from jaxnerf_grid import optim
+from jaxnerf_grid.io import DataError
 
 
 def make_state(seed=0):
@@ -89,8 +90,8 @@ def test_crash_during_write_leaves_no_checkpoint_file(tmp_path, monkeypatch):
 
     (tmp_path / "checkpoints" / ".ckpt_00000009.npz.abc.tmp").write_bytes(b"stale")  # a killed writer's
     monkeypatch.setattr(ckpt, "_write_npz", broken_writer)
-    with pytest.raises(OSError, match="simulated"):
-        ckpt.save_checkpoint(tmp_path, 2, {"w": jnp.ones(2)}, keep=1)
+    with pytest.raises(DataError, match=r"ckpt_00000002\.npz: cannot write \(disk full \(simulated\)\)"):
+        ckpt.save_checkpoint(tmp_path, 2, {"w": jnp.ones(2)}, keep=1)  # the OSError names the file (io.naming_path)
     assert sorted(os.listdir(tmp_path / "checkpoints")) == ["ckpt_00000001.npz"]  # no temp left
     restored, step = ckpt.restore_latest(tmp_path, {"w": jnp.zeros(2)})
     assert step == 1

@@ -16,8 +16,9 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxnerf_grid"
 NERF_SIDE = {"models", "fields", "sampling", "render", "coords", "losses", "optim", "checkpoint", "train",
              "views", "runs", "evaluate", "demo", "export", "report", "run_config", "recipes"}
-# what a data/ module may import: data/ itself and the shared leaves below everything
-DATA_MAY_IMPORT = {"data", "io", "progress", "rays", "config"}
+# what a data/ module may import: data/ itself and the shared leaves below everything (folders:
+# the marker rule of output folders; staging: the staged swap; both used by data/poses.py)
+DATA_MAY_IMPORT = {"data", "io", "progress", "rays", "config", "folders", "staging"}
 # package imports inside functions, outside cli/ (which imports the library on use so that
 # `jaxnerf-grid X --help` and argument errors return before JAX loads): (file, module) -> why
 LAZY_IMPORTS = {
@@ -30,7 +31,6 @@ LAZY_IMPORTS = {
 }
 # strings in library modules (docstrings and argparse calls aside) that may name a flag: (file, flag) -> why
 FLAG_TEXT_ALLOWED = {
-    ("runs.py", "--overwrite"): "the run marker file's text, for a person who finds the folder",
     ("data/synthetic/generate.py", "--overwrite"): "the synth marker file's text, and an error whose source is "
                                                    "hashed into the experiments' keys (generator_digest)",
     ("data/poses.py", "--overwrite"): "the poses marker file's text, for a person who finds the folder",

@@ -15,11 +15,13 @@ import re
 
 _SWITCHES = {"overwrite=True": "--overwrite"}
 _OTHER_DATA = {"allow_other_data=True": "--allow-other-data"}
-_DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.process_id": "--process-id"}
+_DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.process_id": "--process-id",
+                "distributed.coordinator": "--coordinator"}
 
 FLAGS = {  # subcommand -> {key: flag}
     "synth": {"synth.gps_origin": "--gps-origin", **_SWITCHES},
     "poses": {"poses.matcher": "--matcher", "poses.vocab_tree": "--vocab-tree", "poses.max_side": "--max-side",
+              "poses.single_camera": "--single-camera",
               "poses.out": "--out", "poses.crs": "--crs", "poses.gcp": "--gcp", "poses.scale_bar": "--scale-bar",
               "ignore_gps=True": "--ignore-gps", **_SWITCHES},
     "mask": {"mask.data": "--data", "mask.source": "--source", "mask.weights": "--weights",
@@ -27,12 +29,13 @@ FLAGS = {  # subcommand -> {key: flag}
              "mask.floor": "--floor", "mask.dilate": "--dilate", "mask.max_side": "--max-side",
              "mask.tiles": "--tiles", "mask.tile_overlap": "--tile-overlap", "mask.batch_size": "--batch-size",
              **_SWITCHES},
-    "train": {"run.out": "--out", "run.steps": "--steps", "run.method": "--method", **_SWITCHES, **_OTHER_DATA,
-              **_DISTRIBUTED},
+    "train": {"run.out": "--out", "run.data": "--data", "run.steps": "--steps", "run.method": "--method",
+              **_SWITCHES, **_OTHER_DATA, **_DISTRIBUTED},
     "render": {**_OTHER_DATA},
-    "eval": {"eval.lpips_weights": "--lpips-weights", "eval.reference_ply": "--reference-ply", **_OTHER_DATA},
+    "eval": {"eval.lpips_weights": "--lpips-weights", "eval.reference_ply": "--reference-ply",
+             "eval.distractor_views": "--distractor-views", **_OTHER_DATA},
     "export": {"export.box": "--box", "export.resolution": "--resolution", "export.opacity": "--threshold",
-               **_SWITCHES, **_OTHER_DATA},
+               "export.views": "--views", "export.out": "--out", **_SWITCHES, **_OTHER_DATA},
     "demo": {"demo.data": "--data", "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks",
              **_SWITCHES, **_DISTRIBUTED},
 }

@@ -36,6 +36,7 @@ from __future__ import annotations
 
 import os
 import shutil
+import socket
 import sys
 import tempfile
 import time
@@ -43,7 +44,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io, progress
+from jaxnerf_grid import folders, io, progress, staging
 from jaxnerf_grid.data import georef, gps, vetting
 from jaxnerf_grid.data.bounds import scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap
@@ -156,16 +157,17 @@ def prepare_photo(path: Path, work_dir: Path, max_side: int | None) -> tuple[Pat
 
 
 def prepare_photos(photos: list[Path], work_dir: Path, max_side: int | None, show: bool = True):
-    """Stage 1 over all photos. Returns (folder COLMAP reads, names read, {name: why skipped}).
+    """Stage 1 over all photos. Returns (folder COLMAP reads, names read, {name: why skipped},
+    {name: (width, height) of its working copy}).
 
     Photos needing no copy are hard-linked (or copied) into `work_dir` too, so COLMAP reads one
     folder. DataError when fewer than MIN_PHOTOS are readable.
     """
     work_dir.mkdir(parents=True, exist_ok=True)
-    names, skipped = [], {}
+    names, skipped, sizes = [], {}, {}
     for path in progress.bar(photos, desc="poses: photos", unit="photo", enabled=show):
         try:
-            used, _ = prepare_photo(path, work_dir, max_side)
+            used, sizes[path.name] = prepare_photo(path, work_dir, max_side)
         except DataError as err:
             skipped[path.name] = str(err)
             _say(f"poses: skipping {path}: not a readable image", show=True)
@@ -177,7 +179,24 @@ def prepare_photos(photos: list[Path], work_dir: Path, max_side: int | None, sho
         folder = photos[0].parent
         raise DataError(f"{folder}: only {len(names)} readable photo(s) of {len(photos)} "
                         f"(unreadable: {', '.join(skipped) or 'none'}); camera poses need at least {MIN_PHOTOS}")
-    return work_dir, names, skipped
+    return work_dir, names, skipped, sizes
+
+
+def check_one_size(sizes: dict, folder, single_camera: bool) -> None:
+    """DataError naming the folder and the sizes when `single_camera` is asked for photos of more
+    than one (working) size: COLMAP's one camera has one image size, so the photos of the other
+    sizes would silently stay unregistered. sizes: {name: (width, height)}."""
+    if not single_camera:
+        return
+    by_size: dict = {}
+    for name, size in sorted(sizes.items()):
+        by_size.setdefault(tuple(size), []).append(name)
+    if len(by_size) > 1:
+        shown = "; ".join(f"{w}x{h}: {len(names)} (e.g. {names[0]})" for (w, h), names in
+                          sorted(by_size.items(), key=lambda kv: -len(kv[1])))
+        raise DataError(f"{folder}: poses.single_camera needs photos of one size, these have {len(by_size)} "
+                        f"({shown}); leave poses.single_camera off (each photo gets its own camera) or split "
+                        "the folder")
 
 
 def _link_or_copy(src: Path, dst: Path) -> None:
@@ -631,13 +650,16 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
         raise DataError(f"{gcp}: ground control point file not found")
     if _inside(images_dir, out):
         raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another poses.out")
+    recover(out)  # a swap a kill interrupted is finished first; a killed run's staging copy removed
     check_out(out, overwrite)
     pycolmap = import_pycolmap()
     pycolmap.logging.minloglevel = 3  # COLMAP's own log: fatal only; progress and errors are ours
     out.parent.mkdir(parents=True, exist_ok=True)
-    stage_dir = Path(tempfile.mkdtemp(prefix=f".{out.name}.poses-", dir=out.parent))
+    stage_dir = make_stage(out)
     try:
-        photo_dir, names, skipped = prepare_photos(photos, stage_dir / "_work" / "photos", max_side, progress)
+        photo_dir, names, skipped, working_sizes = prepare_photos(photos, stage_dir / "_work" / "photos",
+                                                                  max_side, progress)
+        check_one_size({n: working_sizes[n] for n in names}, images_dir, single_camera)
         readable = [images_dir / name for name in names]
         positions = {} if ignore_gps else gps.read_all(readable)
         sizes = {path.name: gps.upright_size(path) for path in readable}
@@ -684,7 +706,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
             (stage_dir / MARKER).write_text("written by jaxnerf-grid poses; --overwrite replaces its outputs\n")
         move_into_place(stage_dir, out)
     except BaseException:
-        shutil.rmtree(stage_dir, ignore_errors=True)
+        if not (stage_dir / COMPLETE).is_file():  # committed: `recover` finishes the swap, never undoes it
+            shutil.rmtree(stage_dir, ignore_errors=True)
         raise
     summary["transforms"] = str(out / "transforms.json")
     return summary
@@ -707,37 +730,114 @@ def enough_registered(num_photos: int) -> int:
 
 def _inside(path: Path, folder: Path) -> bool:
     """Whether `path` is `folder` or lies inside it (after resolving links)."""
-    path, folder = path.resolve(), folder.resolve()
-    return path == folder or folder in path.parents
+    return folders.inside(path, folder)
 
 
 def check_out(out: Path, overwrite: bool) -> None:
     """DataError unless `out` may receive the dataset: absent, an empty folder, or with
-    `overwrite` a dataset this command wrote (it holds MARKER)."""
+    `overwrite` a dataset this command wrote (it holds MARKER; the marker rule of `folders`,
+    a symbolic link among its outputs refused)."""
     if out.is_file():
         raise DataError(f"{out}: is a file; poses.out must be a folder")
-    if not out.is_dir() or not any(out.iterdir()):
+    if folders.is_empty(out):
         return
     if not overwrite:
         raise DataError(f"{out}: already exists and is not empty; pass overwrite=True to replace it")
-    if not (out / MARKER).is_file():
-        raise DataError(f"{out}: not a dataset written by jaxnerf-grid poses (no {MARKER}); overwrite=True "
-                        f"replaces only those: choose another poses.out")
+    folders.check_clearable(out, "poses", OUTPUTS + STALE, "poses.out")
+
+
+# The swap of a finished dataset into an existing DATA_DIR (`move_into_place`) and its recovery
+# (`recover`): the staging folder `.NAME.poses-XXXX` beside DATA_DIR gets OWNER (the process
+# building it) when made and COMPLETE (the staged names, the commit point) when done; the old
+# outputs move to `.NAME.old-XXXX` (same XXXX) while the new ones move in (`staging.swap_in`).
+STAGE_TAG, RETIRED_TAG = ".poses-", ".old-"
+OWNER, COMPLETE = "OWNER", "COMPLETE"
+
+
+def make_stage(out: Path) -> Path:
+    """A new staging folder beside `out`, holding OWNER (this process's host and id)."""
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}{STAGE_TAG}", dir=out.parent))
+    (stage / OWNER).write_text(f"{socket.gethostname()} {os.getpid()}\n")
+    return stage
+
+
+def _owner_alive(stage: Path) -> bool:
+    """Whether the process that made `stage` (its OWNER) still runs on this host."""
+    try:
+        host, pid = (stage / OWNER).read_text().split()
+        pid = int(pid)
+    except (OSError, ValueError):
+        return False
+    if host != socket.gethostname():
+        return True  # another host's process: not ours to judge
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def _siblings(out: Path, tag: str) -> list[Path]:
+    """The hidden folders `.NAME<tag>XXXX` beside `out`."""
+    prefix = f".{out.name}{tag}"
+    try:
+        return sorted(p for p in out.parent.iterdir() if p.name.startswith(prefix) and p.is_dir())
+    except OSError:  # no parent folder, or one this user may not list: nothing to recover there
+        return []
+
+
+def _staged_names(stage: Path) -> list[str] | None:
+    """The names a staging folder holds for the swap: COMPLETE's list; for a staging folder of an
+    older version without COMPLETE, one holding MARKER (written last) counts as complete with
+    all of OUTPUTS; None for an incomplete one."""
+    names = staging.read_complete(stage, COMPLETE)
+    if names is None and not (stage / OWNER).exists() and (stage / MARKER).is_file():
+        names = list(OUTPUTS)
+    return names
+
+
+def recover(out) -> str | None:
+    """Finishes what a killed `poses` left beside the dataset folder `out`: a complete staging
+    folder is swapped in ("rolled forward"), an incomplete one whose process is gone (a kill
+    during COLMAP) and retired old outputs are removed ("cleaned"); None when there was nothing.
+    A staging folder of a process still running is left alone."""
+    out = Path(out)
+    result = None
+    for stage in _siblings(out, STAGE_TAG):
+        staged = _staged_names(stage)
+        if staged is None:
+            if _owner_alive(stage):
+                continue
+            shutil.rmtree(stage, ignore_errors=True)
+            result = result or "cleaned"
+            continue
+        retired = out.parent / (f".{out.name}{RETIRED_TAG}" + stage.name[len(f".{out.name}{STAGE_TAG}"):])
+        _finish_swap(stage, out, retired, staged)
+        result = "rolled forward"
+    for retired in _siblings(out, RETIRED_TAG):
+        shutil.rmtree(retired, ignore_errors=True)
+        result = result or "cleaned"
+    return result
+
+
+def _finish_swap(stage: Path, out: Path, retired: Path, staged: list[str]) -> None:
+    names = [n for n in OUTPUTS if n != "transforms.json"] + list(STALE)
+    out.mkdir(parents=True, exist_ok=True)
+    staging.swap_in(out, stage, retired, names, staged, last="transforms.json")
 
 
 def move_into_place(stage: Path, out: Path) -> None:
     """Moves the finished dataset from `stage` to `out`: the whole folder when `out` does not
-    exist, else entry by entry (OUTPUTS), the old entries of that name and the stale mask outputs
-    (STALE) removed and every other file of `out` kept."""
+    exist (one rename), else entry by entry (OUTPUTS; transforms.json last), the old entries of
+    that name and the stale mask outputs (STALE) retired and every other file of `out` kept.
+    COMPLETE is written first, so a kill during the swap is finished by `recover`."""
+    (stage / OWNER).unlink(missing_ok=True)
     if not out.exists():
         os.replace(stage, out)
         return
-    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.old-", dir=out.parent))
-    for name in OUTPUTS + STALE:
-        if (out / name).exists() or (out / name).is_symlink():
-            os.replace(out / name, trash / name)
-    for name in OUTPUTS:
-        if (stage / name).exists():
-            os.replace(stage / name, out / name)
-    shutil.rmtree(trash, ignore_errors=True)
-    shutil.rmtree(stage, ignore_errors=True)
+    staged = [name for name in OUTPUTS if (stage / name).exists()]
+    staging.write_complete(stage, COMPLETE, staged)
+    retired = out.parent / (f".{out.name}{RETIRED_TAG}" + stage.name[len(f".{out.name}{STAGE_TAG}"):])
+    _finish_swap(stage, out, retired, staged)

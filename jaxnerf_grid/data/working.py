@@ -114,6 +114,6 @@ def store_entry(path: Path, native_size, native_intrinsics, frame: dict) -> bool
         for old in path.parent.glob(prefix + "*.npz"):
             if old != path:
                 old.unlink(missing_ok=True)
-    except OSError:
+    except (OSError, io.DataError):  # a full disk or read-only cache (io.atomic_path names it): no cache
         return False
     return True

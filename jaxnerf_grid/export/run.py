@@ -23,13 +23,14 @@ Every check (the output folder, the checkpoint, the box) runs before anything is
 from __future__ import annotations
 
 import math
+import os
 import resource
 import time
 from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import clouds, config as config_lib, io, progress as progress_lib, report, runs, train
+from jaxnerf_grid import clouds, config as config_lib, folders, io, progress as progress_lib, report, runs, train
 from jaxnerf_grid import views as views_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.export import field, fuse, ground, measure, mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
@@ -42,6 +43,50 @@ GROUND_CELL = 0.02          # normalised units: columns of the ground fit, cells
 GROUND_INLIER = 0.025       # normalised units: RANSAC inlier distance
 SCENE_LIMIT = 1.0           # the region of interest: the unit sphere's cube [-1, 1]^3 (normalised)
 FILES = ("tower_mesh.ply", "tower_points.ply", "box.json", "measurements.json", "export_views.png")
+# what overwrite=True may clear in a folder holding export's marker (folders.MARKERS["export"])
+OUTPUTS = FILES + ("report.md",)
+# bytes per grid node while the mesh is made: the float32 density, marching cubes' working
+# copies and masks (a bound, not a measurement of the peak); the grid's node count is taken as
+# the cube resolution^3, the largest box of that resolution
+GRID_BYTES_PER_NODE = 32
+
+
+def check_resolution(resolution, available: int | None = None) -> None:
+    """ConfigError naming export.resolution when it is not an integer >= 8 or when a cube grid of
+    that resolution would not fit in the host's RAM (`available` bytes; default the RAM), with the
+    largest resolution that fits."""
+    config_lib.check_value("export.resolution", resolution, int, config_lib.Range(8))
+    if available is None:
+        available = int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    need = (int(resolution) + 1) ** 3 * GRID_BYTES_PER_NODE
+    if need > available:
+        fits = int((available / GRID_BYTES_PER_NODE) ** (1 / 3)) - 1
+        raise ConfigError(f"export.resolution = {resolution}: its grid needs about {need / 2**30:.1f} GiB, more than "
+                          f"the {available / 2**30:.1f} GiB of memory here; use at most {fits}")
+
+
+def check_views(views, min_views) -> None:
+    """ConfigError naming the key unless export.views >= 1 and export.min_views >= 0 (integers)."""
+    config_lib.check_value("export.views", views, int, config_lib.AT_LEAST_ONE)
+    config_lib.check_value("export.min_views", min_views, int, config_lib.NONNEGATIVE)
+
+
+def _is_legacy_export(out: Path) -> bool:
+    """An export folder from before the marker: measurements.json, and only export's files."""
+    return (out / "measurements.json").is_file() and all(p.name in OUTPUTS for p in out.iterdir())
+
+
+def check_out(out: Path, data, overwrite: bool) -> None:
+    """The output folder (export.out) may be written: not a file, not the dataset folder or
+    inside it; when it holds files, only with `overwrite` and only a folder export wrote (its
+    marker, or an older export's files alone), none of its outputs a link (`folders`)."""
+    folders.check_folder(out, "export.out")
+    folders.check_outside(out, data, "export.out")
+    if folders.is_empty(out):
+        return
+    if not overwrite:
+        raise DataError(f"{out}: already exists and is not empty; pass overwrite=True to replace the export there")
+    folders.check_clearable(out, "export", OUTPUTS, "export.out", legacy=_is_legacy_export(out))
 
 
 def parse_box(text) -> np.ndarray | None:
@@ -132,12 +177,12 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     run_dir = Path(run_dir)
     cfg, data = runs.load_run(run_dir)  # the config first: a bad run folder fails before the dataset loads
     given = parse_box(box)
-    if not int(resolution) >= 8:
-        raise ConfigError(f"export.resolution must be >= 8, got {resolution}")
+    check_resolution(resolution)
+    check_views(views, min_views)
     if not 0 < float(opacity) < 1:
         raise ConfigError(f"export.opacity (of one voxel) must be in (0, 1), got {opacity}")
     out = Path(out) if out is not None else run_dir / "export"
-    io.ensure_writable(out, overwrite)
+    check_out(out, data, overwrite)
     ds = runs.dataset_of_run(run_dir, data, dataset, progress, allow_other_data, max_side=cfg.train.max_side)
     norm = ds.normalization
     if given is not None:
@@ -218,7 +263,9 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                                                 max(0.01 * height, 2 * h / scale))
     meas["box"].update(box_stats)
     comments = (units_comment(units), f"jaxnerf-grid export of {run_dir} at step {step}")
-    out.mkdir(parents=True, exist_ok=True)
+    if not folders.is_empty(out):  # checked by check_out: empty, or export's own (overwrite=True)
+        folders.clear_outputs(out, "export", OUTPUTS, "export.out", legacy=_is_legacy_export(out))
+    folders.write_marker(out, "export")
     io.write_ply(out / "tower_mesh.ply", verts_m, vcolours, faces,
                  comments=comments + (f"marching cubes at density {level:.6g} per normalised unit "
                                       f"(one voxel {opacity:g} opaque), voxel {h / scale:.4g}",))

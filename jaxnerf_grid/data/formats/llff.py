@@ -12,7 +12,7 @@ from jaxnerf_grid.data.normalize import z_up_normalization
 from jaxnerf_grid.data.formats.frames import (IMAGE_EXTENSIONS, check_split, default_split, Frame,
                                               min_ray_cosine, scale_intrinsics, Scene, scene_to_dataset,
                                               validate_c2w)
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.io import DataError, load_error_reason
 
 
 def llff_to_c2w_gl(pose_3x5) -> tuple[np.ndarray, tuple[float, float, float]]:
@@ -56,9 +56,9 @@ def collect_llff(path, *, images_dir=None, normalize: str | bool = "cameras", ho
     if not npy.is_file():
         raise DataError(f"{npy}: file not found")
     try:
-        arr = np.load(npy)
+        arr = np.load(npy, allow_pickle=False)
     except Exception as err:  # numpy raises several types on corrupt files
-        raise DataError(f"{npy}: not a readable .npy file ({err})") from None
+        raise DataError(f"{npy}: not a readable .npy file ({load_error_reason(err)})") from None
     if arr.ndim != 2 or arr.shape[1] != 17 or len(arr) == 0:
         raise DataError(f"{npy}: expected an [N, 17] array, got {arr.shape}")
     image_root = Path(images_dir) if images_dir is not None else root / "images"

@@ -1,0 +1,71 @@
+"""Swapping a staged set of outputs into a folder so that a kill at any moment leaves the old
+set or the new one (docs/RELIABILITY.md); shared by `mask` (masking.py) and `poses`
+(data/poses.py).
+
+A command writes its new outputs into a staging folder, marks it complete (a file listing the
+staged names: the commit point), then calls `swap_in`: each old output moves to a retired
+folder, its staged one moves in, the `last` file (transforms.json) is replaced last, and the
+retired and staging folders are removed. `swap_in` is idempotent: run again after a kill it
+finishes the swap, so the command's `recover` rolls a complete staging folder forward and
+removes an incomplete one.
+
+A leaf: imports nothing of the package.
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+from pathlib import Path
+
+
+def remove(path: Path) -> None:
+    """Removes a file, a link or a folder tree; nothing when absent."""
+    if path.is_dir() and not path.is_symlink():
+        shutil.rmtree(path)
+    elif path.exists() or path.is_symlink():
+        path.unlink()
+
+
+def move(src: Path, dst: Path) -> None:
+    """One rename of the swap (os.replace: atomic within a filesystem); tests slow it down."""
+    os.replace(src, dst)
+
+
+def present(path: Path) -> bool:
+    """Whether `path` exists (a dangling symbolic link counts)."""
+    return path.exists() or path.is_symlink()
+
+
+def write_complete(stage: Path, complete: str, staged) -> None:
+    """The commit point: `stage/complete` lists the staged names, one a line (written atomically)."""
+    tmp = stage / f".{complete}.tmp"
+    tmp.write_text("".join(f"{name}\n" for name in staged))
+    os.replace(tmp, stage / complete)
+
+
+def read_complete(stage: Path, complete: str) -> list[str] | None:
+    """The staged names of a complete staging folder; None when it is not complete."""
+    path = stage / complete
+    return path.read_text().split("\n")[:-1] if path.is_file() else None
+
+
+def swap_in(root: Path, stage: Path, retired: Path, names, staged, last: str | None = None) -> None:
+    """Rolls a complete staging folder forward into `root` (idempotent, so it may run again
+    after a kill). names: every output name the swap replaces or removes (the old set's, and
+    outputs the new set no longer has); staged: those the new set holds (in `stage`); last:
+    a staged file replaced after all the others (os.replace, atomic), or None."""
+    root, stage, retired = Path(root), Path(stage), Path(retired)
+    for name in names:
+        if name in staged and not present(stage / name):
+            continue  # moved in before a kill
+        if present(root / name):  # the old set's (or one the new set no longer has)
+            retired.mkdir(parents=True, exist_ok=True)
+            remove(retired / name)
+            move(root / name, retired / name)
+        if name in staged:
+            move(stage / name, root / name)
+    if last is not None and present(stage / last):
+        move(stage / last, root / last)
+    shutil.rmtree(retired, ignore_errors=True)
+    shutil.rmtree(stage, ignore_errors=True)
