@@ -94,16 +94,18 @@ def copy_tree(dest: Path) -> None:
     subprocess.run(["tar", "-xf", "-"], cwd=dest, input=out, check=True)
 
 
-def run_tests(tree: Path, tests: list[str], timeout: float) -> str:
-    """'passed', 'failed' or 'timeout' of pytest on tests in tree (stopping at the first failure)."""
+def run_tests(tree: Path, tests: list[str], timeout: float) -> tuple[str, str]:
+    """('passed' | 'failed' | 'timeout', the first failing test's id or "") of pytest on tests in
+    tree (stopping at the first failure)."""
     env = dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"), PYTHONDONTWRITEBYTECODE="1")
     env.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
     try:
-        code = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider", *tests],
-                              cwd=tree, env=env, capture_output=True, timeout=timeout).returncode
+        done = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-rfE", "-p", "no:cacheprovider", *tests],
+                              cwd=tree, env=env, capture_output=True, text=True, timeout=timeout)
     except subprocess.TimeoutExpired:
-        return "timeout"
-    return "passed" if code == 0 else "failed"
+        return "timeout", ""
+    failed = [line.split()[1] for line in done.stdout.splitlines() if line.startswith(("FAILED ", "ERROR "))]
+    return ("passed" if done.returncode == 0 else "failed"), (failed[0] if failed else "")
 
 
 def main(argv=None) -> int:
@@ -138,20 +140,20 @@ def main(argv=None) -> int:
             start = time.monotonic()
             if tuple(tests) not in baselines:
                 baselines[tuple(tests)] = run_tests(tree, tests, args.timeout)
-            baseline = baselines[tuple(tests)]
+            baseline = baselines[tuple(tests)][0]
             if baseline != "passed":
                 print(f"{name}: the unmutated tree {baseline} {' '.join(tests)}: no verdict", flush=True)
                 survivors += 1
                 continue
             (tree / path).write_text(source.replace(old, new))
             try:
-                status = run_tests(tree, tests, args.timeout)
+                status, by = run_tests(tree, tests, args.timeout)
             finally:
                 (tree / path).write_text(source)
             verdict = {"failed": "killed", "passed": "SURVIVED", "timeout": "timeout"}[status]
             survivors += verdict != "killed"
             print(f"{name:5s} {verdict:8s} {time.monotonic() - start:6.1f} s  {path}: {what} "
-                  f"[{' '.join(tests)}]", flush=True)
+                  f"[{by or ' '.join(tests)}]", flush=True)
     return survivors
 
 

@@ -1,16 +1,19 @@
 """An analytic tower for tests (issue 43): a field whose density and colour are known in closed
 form, at a known metric scale, rotation and translation, usable wherever a trained field is.
 
-The scene, in metres (world z up):
+The scene, in metres, in the tower's own frame (z up; `to_metric_frame` / `to_tower_frame` turn
+it into the metric frame of the dataset, tilted by TILT, 20 degrees about x, as a COLMAP or
+survey frame may be):
 
 * the ground: the slab GROUND_Z - 2 <= z <= GROUND_Z;
 * the tower's body: a square pillar, |x - cx| <= BODY_HALF, |y - cy| <= BODY_HALF,
   GROUND_Z <= z <= GROUND_Z + HEIGHT;
 * one cross-arm: |x - cx| <= ARM_HALF_SPAN, |y - cy| <= ARM_HALF_WIDTH, ARM_LOW <= z <= ARM_HIGH.
 
-NORMALIZATION maps it to the normalised scene the model sees (x_norm = s R (x + t), R a turn
-of 30 degrees about z, s = 0.05, t = -(cx, cy, GROUND_Z + 10)): the tower stands in
-z_norm in [-0.5, 0.5] around the origin, inside the unit sphere.
+NORMALIZATION maps the metric frame to the normalised scene the model sees (x_norm =
+s R (x + t), R = TURN_Z TILT^T, TURN_Z a turn of 30 degrees about z, s = 0.05,
+t = -TILT (cx, cy, GROUND_Z + 10)): there the tower stands upright (z_norm in [-0.5, 0.5])
+around the origin, inside the unit sphere, and in metres its axis is TILT's z axis.
 
 `apply(params, cfg, x, ...)` has the signature and outputs of `fields.apply`: x is the field's
 input (the model's `field_inputs`: contracted, divided by the encoding scale). It undoes that
@@ -35,14 +38,27 @@ ARM_LOW, ARM_HIGH = GROUND_Z + 15.0, GROUND_Z + 16.0
 SIGMA = 400.0                           # per normalised unit: opaque within a fraction of a bin
 TOWER_RGB = (0.6, 0.5, 0.4)
 GROUND_RGB = (0.2, 0.7, 0.3)
-TURN = np.radians(30.0)
-ROTATION = np.array([[np.cos(TURN), -np.sin(TURN), 0.0], [np.sin(TURN), np.cos(TURN), 0.0], [0.0, 0.0, 1.0]])
+TURN, TILT_ANGLE = np.radians(30.0), np.radians(20.0)
+TURN_Z = np.array([[np.cos(TURN), -np.sin(TURN), 0.0], [np.sin(TURN), np.cos(TURN), 0.0], [0.0, 0.0, 1.0]])
+TILT = np.array([[1.0, 0.0, 0.0], [0.0, np.cos(TILT_ANGLE), -np.sin(TILT_ANGLE)],
+                 [0.0, np.sin(TILT_ANGLE), np.cos(TILT_ANGLE)]])
+ROTATION = TURN_Z @ TILT.T
 NORMALIZATION = {"scale": 0.05, "rotation": ROTATION.tolist(),
-                 "translation": [-CENTRE[0], -CENTRE[1], -(GROUND_Z + 10.0)]}
+                 "translation": (-TILT @ [CENTRE[0], CENTRE[1], GROUND_Z + 10.0]).tolist()}
+
+
+def to_metric_frame(p):
+    """Tower-frame points [..., 3] -> the dataset's metric frame: TILT p."""
+    return np.asarray(p, np.float64) @ TILT.T
+
+
+def to_tower_frame(p):
+    """Metric points [..., 3] -> the tower's frame: TILT^T p."""
+    return np.asarray(p, np.float64) @ TILT
 
 
 def boxes() -> list[tuple[np.ndarray, np.ndarray]]:
-    """The tower's solids as metric boxes [(lo [3], hi [3])]: the body, the cross-arm."""
+    """The tower's solids as boxes of its frame [(lo [3], hi [3])]: the body, the cross-arm."""
     cx, cy = CENTRE
     return [(np.array([cx - BODY_HALF, cy - BODY_HALF, GROUND_Z]), np.array([cx + BODY_HALF, cy + BODY_HALF,
                                                                                GROUND_Z + HEIGHT])),
@@ -53,12 +69,13 @@ def boxes() -> list[tuple[np.ndarray, np.ndarray]]:
 def params(mcfg) -> dict:
     """The parameters pytree of the analytic field for a model config (its input map's
     constants): {"contract_radius", "encoding_scale", "use_contraction", "scale", "rotation",
-    "translation"}; the same dict serves every pass."""
+    "translation", "tilt"}; the same dict serves every pass."""
     enc = mcfg.encoding_scale if mcfg.encoding_scale > 0 else (mcfg.contract_radius if mcfg.use_contraction else 1.0)
     field = {"contract_radius": jnp.float32(mcfg.contract_radius), "encoding_scale": jnp.float32(enc),
              "use_contraction": jnp.float32(1.0 if mcfg.use_contraction else 0.0),
              "scale": jnp.float32(NORMALIZATION["scale"]), "rotation": jnp.asarray(ROTATION, jnp.float32),
-             "translation": jnp.asarray(NORMALIZATION["translation"], jnp.float32)}
+             "translation": jnp.asarray(NORMALIZATION["translation"], jnp.float32),
+             "tilt": jnp.asarray(TILT, jnp.float32)}
     return {"coarse": field, "fine": field}
 
 
@@ -79,7 +96,7 @@ def to_metric(field_params, x):
 
 
 def inside_tower(p):
-    """Mask [...] of metric points p [..., 3] inside a solid of the tower (jnp or np)."""
+    """Mask [...] of points p [..., 3] of the tower's frame inside a solid of the tower (jnp or np)."""
     xp = jnp if isinstance(p, jnp.ndarray) else np
     hit = xp.zeros(p.shape[:-1], bool)
     for lo, hi in boxes():
@@ -90,7 +107,7 @@ def inside_tower(p):
 def apply(field_params, cfg, x, viewdirs=None, appearance=None, transient=None) -> dict:
     """`fields.apply` of the analytic scene (module docstring). x [..., 3] -> {"sigma" [...],
     "rgb" [..., 3]}."""
-    p = to_metric(field_params, x)
+    p = to_metric(field_params, x) @ field_params["tilt"]        # the tower's frame: TILT^T p_metric
     tower = inside_tower(p)
     ground = (p[..., 2] <= GROUND_Z) & (p[..., 2] >= GROUND_Z - 2.0)
     sigma = jnp.where(tower | ground, SIGMA, 0.0)
@@ -99,7 +116,7 @@ def apply(field_params, cfg, x, viewdirs=None, appearance=None, transient=None) 
 
 
 def distance_to_tower_surface(p: np.ndarray) -> np.ndarray:
-    """Distance of metric points p [N, 3] to the surface of the union of the tower's boxes
+    """Distance of points p [N, 3] of the tower's frame to the surface of the union of its boxes
     (brute force over the boxes: outside, the nearest box; inside, the nearest face out)."""
     p = np.asarray(p, np.float64)
     outside = np.full(len(p), np.inf)
@@ -114,8 +131,8 @@ def distance_to_tower_surface(p: np.ndarray) -> np.ndarray:
 
 
 def surface_samples(spacing: float = 0.25) -> np.ndarray:
-    """Points on the surface of the body's four sides and top (metres), `spacing` apart: a
-    reference tower cloud. Returns [M, 3]."""
+    """Points on the surface of the body's four sides and top (the tower's frame, metres),
+    `spacing` apart. Returns [M, 3]."""
     cx, cy = CENTRE
     a = np.arange(-BODY_HALF, BODY_HALF + 1e-9, spacing)
     z = np.arange(GROUND_Z, GROUND_Z + HEIGHT + 1e-9, spacing)

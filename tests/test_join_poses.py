@@ -15,7 +15,7 @@ import pytest
 
 from jaxnerf_grid import io
 from jaxnerf_grid.data.formats import load_dataset
-from jaxnerf_grid.data import poses
+from jaxnerf_grid.data import bounds as bounds_lib, poses
 
 WIDTH, HEIGHT, FOCAL = 64, 48, 60.0
 TARGET = np.array([5.0, -3.0, 10.0])
@@ -61,7 +61,7 @@ def stage(tmp_path_factory):
     model.mkdir(parents=True)
     (root / "images").mkdir()
     rng = np.random.default_rng(4)
-    points = TARGET + rng.uniform(-5, 5, (300, 3)) * [1, 1, 2]
+    points = TARGET + rng.uniform(-5, 5, (300, 3))
     centres, w2cs = _orbit()
     (model / "cameras.txt").write_text(f"1 PINHOLE {WIDTH} {HEIGHT} {FOCAL} {FOCAL} {WIDTH / 2} {HEIGHT / 2}\n")
     lines, tracks, depths, pixels = [], {i: [] for i in range(len(points))}, [], []
@@ -114,8 +114,9 @@ def test_poses_near_and_far_are_the_points_depths_in_normalised_units(stage):
     far = max(1.1 * np.percentile(z, 99.5) / min_cos * scale, 2 * near)
     assert top["near"] == pytest.approx(near, rel=1e-6)
     assert top["far"] == pytest.approx(far, rel=1e-6)
-    # in normalised units the orbit's cameras are about 3 radii out: near and far bracket it
-    assert top["near"] < 3.0 < top["far"]
+    # the depth of the target (the orbit's centre) in normalised units lies between them
+    target_depth = np.linalg.norm(stage["centres"][0] - TARGET) * scale
+    assert top["near"] < target_depth < top["far"]
 
 
 def test_the_written_dataset_puts_each_point_on_the_pixel_colmap_saw_it(stage):
@@ -130,3 +131,20 @@ def test_the_written_dataset_puts_each_point_on_the_pixel_colmap_saw_it(stage):
         fx, fy, cx, cy = (float(v) for v in ds.intrinsics[k])
         xy = np.column_stack([cx + fx * cam[:, 0] / -cam[:, 2], cy - fy * cam[:, 1] / -cam[:, 2]])
         np.testing.assert_allclose(xy, stage["pixels"][k], atol=1e-3)
+
+
+def test_poses_scene_bounds_are_the_known_orbit_in_normalised_units(stage):
+    """The region of interest (docs/BOUNDS.md): centred where the cameras look (TARGET), its
+    radius the ROI_PERCENTILE-th percentile of the points' distances to it (under the cap of
+    ROI_CAMERA_FRACTION camera distances), both in normalised units."""
+    top = stage["top"]
+    record, bounds = top["scene_normalization"], top["scene_bounds"]
+    scale, translation = record["scale"], np.asarray(record["translation"])
+    assert "rotation" not in record                       # the stage's model is z-up already
+    np.testing.assert_allclose(bounds["roi_centre"], scale * (TARGET + translation), atol=1e-6)
+    distances = np.linalg.norm(stage["points"] - TARGET, axis=1) * scale
+    camera_distance = np.linalg.norm(stage["centres"][0] - TARGET) * scale
+    radius = np.percentile(distances, bounds_lib.ROI_PERCENTILE)
+    assert radius < bounds_lib.ROI_CAMERA_FRACTION * camera_distance        # the cap does not decide
+    assert bounds["roi_radius"] == pytest.approx(radius, rel=1e-6)
+    assert bounds["nearest_camera_to_roi"] == pytest.approx(camera_distance - radius, rel=1e-6)

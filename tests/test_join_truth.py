@@ -61,7 +61,7 @@ def test_eval_geometry_score_is_precision_one_recall_half_on_a_planted_half_clou
     prediction, the dataset's tower.ply the reference, through both normalisation records."""
     metric_ref = _lattice([10, 20, 0], [17, 23, 9], 1.0) * [1, 1, 1.5] + [0, 0, 30]  # 8 x 4 x 10, z 30..43.5
     file_norm = {"scale": 0.1, "translation": [-10.0, -20.0, -30.0]}
-    scene_norm = {"scale": 0.05, "translation": [-13.0, -21.0, -35.0], "rotation": af.ROTATION.tolist()}
+    scene_norm = {"scale": 0.05, "translation": [-13.0, -21.0, -35.0], "rotation": af.TURN_Z.tolist()}
     io.write_ply(tmp_path / "tower.ply", apply_normalization_to_points(metric_ref, file_norm))
     ds = tiny_dataset()
     ds.root, ds.normalization = tmp_path, scene_norm
@@ -101,7 +101,7 @@ def test_export_score_in_metres_crops_a_one_metre_strip_and_keeps_precision_and_
     assert out["height"]["reference"] == 13.5 and out["height"]["error"] == 0.0
 
     # the same through eval: the dataset's record (scale 0.05) sets the strip
-    norm = {"scale": 0.05, "translation": [-3.5, -1.5, -6.75], "rotation": af.ROTATION.tolist()}
+    norm = {"scale": 0.05, "translation": [-3.5, -1.5, -6.75], "rotation": af.TURN_Z.tolist()}
     io.write_ply(tmp_path / "tower.ply", apply_normalization_to_points(ref, norm))
     ds = tiny_dataset()
     ds.root, ds.normalization = tmp_path, norm
@@ -145,10 +145,10 @@ def test_export_field_is_the_analytic_tower_at_its_metric_place(analytic):
     inside = rng.uniform(lo + 0.2, hi - 0.2, (200, 3))
     outside = np.column_stack([rng.uniform(lo[0] - 8, lo[0] - 2.5, 100), rng.uniform(lo[1], hi[1], 100),
                                rng.uniform(af.GROUND_Z + 1, af.GROUND_Z + 19, 100)])
-    metric = np.vstack([inside, outside])
-    scene = apply_normalization_to_points(metric, af.NORMALIZATION)
+    tower = np.vstack([inside, outside])                          # the tower's frame
+    scene = apply_normalization_to_points(af.to_metric_frame(tower), af.NORMALIZATION)
     sigma = field.evaluate(params, cfg.model, scene)["sigma"]
-    np.testing.assert_array_equal(sigma, np.where(af.inside_tower(metric), af.SIGMA, 0.0))
+    np.testing.assert_array_equal(sigma, np.where(af.inside_tower(tower), af.SIGMA, 0.0))
     assert np.sum(sigma > 0) == 200
 
 
