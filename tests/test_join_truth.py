@@ -203,3 +203,73 @@ def test_proposal_main_samples_share_one_jitter_per_ray_with_the_padding(monkeyp
     jitter = u * n - np.arange(n)                                    # [rays, n]: one value per ray
     np.testing.assert_allclose(jitter, np.broadcast_to(jitter[:, :1], jitter.shape), atol=2e-3)
     assert np.all((jitter >= -1e-3) & (jitter <= 1 + 1e-3)) and np.ptp(jitter[:, 0]) > 0.05
+
+
+# --------------------------------------------------------------------------- geometry's edges
+# (the survivors of mutmut on geometry.py that change a value or a message: docs/TESTING.md)
+
+
+def test_score_points_reports_its_crop_and_chamfer_by_hand():
+    ref = _lattice([0, 0, 0], [0.7, 0.3, 0.9], 0.1)
+    pred = _half_of(ref) + [0.0, 0.0, 0.03]                          # 0.03 above each twin
+    out = geometry.score_points(pred, ref, (0.03, 0.5), ground_strip=0.15)
+    lo, hi = ref.min(0), ref.max(0)
+    lo[2] += 0.15                                                   # layers z >= 0.2 are scored
+    assert out["box"] == {"min": pytest.approx(lo.tolist()), "max": pytest.approx(hi.tolist())}
+    assert out["ground_strip"] == 0.15 and out["up_axis"] == 2
+    r = ref[ref[:, 2] >= 0.2 - 1e-9]
+    p = pred[(pred[:, 2] >= 0.2 - 1e-9) & (pred[:, 2] <= 0.9 + 1e-9)]
+    assert (out["num_ref"], out["num_pred"]) == (len(r), len(p))
+    d_pred = np.linalg.norm(p[:, None] - r[None], axis=-1).min(1)  # brute force
+    d_ref = np.linalg.norm(r[:, None] - p[None], axis=-1).min(1)
+    assert out["chamfer"] == pytest.approx(0.5 * (d_pred.mean() + d_ref.mean()))
+    # a distance exactly at the threshold counts (<=): 0.5 is exact in binary
+    got = geometry.prf_from_distances(np.array([0.5, 0.75]), np.array([0.5]), (0.5,))[0.5]
+    assert (got["precision"], got["recall"]) == (0.5, 1.0)
+    got = geometry.prf_from_distances(np.array([0.25]), np.zeros(0), (0.5,))[0.5]
+    assert (got["precision"], got["recall"]) == (1.0, 0.0)          # a share of nothing is 0
+    # another up axis: the strip is cut along it
+    out = geometry.score_points(ref, ref, (0.01,), ground_strip=0.15, up_axis=0)
+    assert out["num_ref"] == np.sum(ref[:, 0] >= 0.15 - 1e-9) and out["up_axis"] == 0
+    # a strip as tall as the reference leaves its top layer
+    assert geometry.score_points(ref, ref, (0.01,), ground_strip=0.9)["num_ref"] == 32
+
+
+def test_nearest_distances_and_chamfer_with_one_point_and_none():
+    one = np.array([[1.0, 2.0, 2.0]])
+    cloud = np.array([[1.0, 2.0, 0.0], [4.0, 6.0, 2.0]])
+    np.testing.assert_allclose(geometry.nearest_distances(cloud, one), [2.0, 5.0])
+    np.testing.assert_allclose(geometry.nearest_distances(one, cloud), [2.0])
+    assert geometry.chamfer(cloud, one) == pytest.approx(0.5 * (3.5 + 2.0))
+    assert geometry.nearest_distances([], cloud).shape == (0,)
+    out = geometry.score_points([], cloud, (1.0,), ground_strip=0.0)
+    assert out["num_pred"] == 0 and out["chamfer"] is None
+    with pytest.raises(ValueError, match=r"points must be \[N, 3\], got \(2, 2\)"):
+        geometry.nearest_distances(np.zeros((2, 2)), cloud)
+    with pytest.raises(ValueError, match="tower_box: the reference cloud is empty"):
+        geometry.tower_box(np.zeros((0, 3)))
+    with pytest.raises(ValueError, match=r"tower_box: ground_strip 2.0 is taller than the reference \(1 units\)"):
+        geometry.tower_box(np.array([[0.0, 0.0, 5.0], [1.0, 1.0, 6.0]]), 2.0)
+
+
+def test_reference_to_scene_between_records_that_share_a_scale_or_a_translation():
+    p = np.array([[0.1, -0.2, 0.3], [0.5, 0.4, -0.1]])
+    for file_norm, scene_norm in (({"scale": 0.1, "translation": [1.0, 2.0, 3.0]},
+                                   {"scale": 0.1, "translation": [0.0, 2.0, 3.0]}),
+                                  ({"scale": 0.1, "translation": [1.0, 2.0, 3.0]},
+                                   {"scale": 0.05, "translation": [1.0, 2.0, 3.0]})):
+        metric = p / file_norm["scale"] - np.asarray(file_norm["translation"])       # by hand
+        want = scene_norm["scale"] * (metric + np.asarray(scene_norm["translation"]))
+        np.testing.assert_allclose(geometry.reference_to_scene(p, file_norm, scene_norm), want, atol=1e-12)
+
+
+def test_score_against_ply_takes_the_strip_and_refuses_an_empty_reference(tmp_path):
+    ref = _lattice([0, 0, 0], [0.7, 0.3, 0.9], 0.1)
+    io.write_ply(tmp_path / "tower.ply", ref)
+    out = geometry.score_against_ply([(ref, ref)], tmp_path / "tower.ply", thresholds=(0.01,), ground_strip=0.0)
+    assert out["num_ref"] == len(ref) and out["units"] == "normalised scene units"
+    io.write_ply(tmp_path / "one.ply", ref[:1])
+    assert geometry.score_against_ply([(ref, ref)], tmp_path / "one.ply", ground_strip=0.0)["num_ref"] == 1
+    io.write_ply(tmp_path / "empty.ply", np.zeros((0, 3)))
+    with pytest.raises(io.DataError, match="empty.ply: the reference point cloud is empty"):
+        geometry.score_against_ply([(ref, ref)], tmp_path / "empty.ply")
