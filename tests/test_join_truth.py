@@ -98,7 +98,13 @@ def test_export_score_in_metres_crops_a_one_metre_strip_and_keeps_precision_and_
     assert (tau["precision"], tau["recall"]) == (1.0, 0.5)
     tau = out["points"]["thresholds"]["0.2"]
     assert (tau["precision"], tau["recall"]) == (1.0, 1.0)
-    assert out["height"]["reference"] == 13.5 and out["height"]["error"] == 0.0
+    assert out["height"] == {"export": 13.5, "reference": 13.5, "error": 0.0, "error_percent": 0.0}
+    assert out["units"] == "metres" and out["reference_points"] == len(ref)
+    # the height error in percent of a short reference, and of a flat one (none)
+    flat = np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 2.0]])
+    assert score_lib.height_error(0.8, flat + [[0, 0, 0], [0, 0, 0.5]]) == {
+        "export": 0.8, "reference": 0.5, "error": pytest.approx(0.3), "error_percent": pytest.approx(60.0)}
+    assert score_lib.height_error(0.8, flat)["error_percent"] is None
 
     # the same through eval: the dataset's record (scale 0.05) sets the strip
     norm = {"scale": 0.05, "translation": [-3.5, -1.5, -6.75], "rotation": af.TURN_Z.tolist()}
