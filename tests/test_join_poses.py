@@ -149,3 +149,21 @@ def test_poses_scene_bounds_are_the_known_orbit_in_normalised_units(stage):
     assert radius < bounds_lib.ROI_CAMERA_FRACTION * camera_distance        # the cap does not decide
     assert bounds["roi_radius"] == pytest.approx(radius, rel=1e-6)
     assert bounds["nearest_camera_to_roi"] == pytest.approx(camera_distance - radius, rel=1e-6)
+
+
+def test_poses_scale_near_and_files_by_the_rules(stage):
+    """The orbit's scale (1 / the region's radius: the 95th percentile of the points' distances to
+    the target, under a third of the camera distance; docs/POSES.md), the bounds' near (the
+    larger of 0.9 x the gap from the cameras to the region and the points' near), the summary
+    kept, and the files as written."""
+    top, root = stage["top"], stage["root"]
+    distances = np.linalg.norm(stage["points"] - TARGET, axis=1)
+    camera_distance = np.linalg.norm(stage["centres"][0] - TARGET)
+    radius = min(np.percentile(distances, 95.0), camera_distance / 3.0)
+    assert top["scene_normalization"]["scale"] == pytest.approx(1.0 / radius, rel=1e-6)
+    gap = top["scene_bounds"]["nearest_camera_to_roi"]
+    assert top["scene_bounds"]["near"] == pytest.approx(max(bounds_lib.NEAR_FACTOR * gap, top["near"]), rel=1e-9)
+    assert top["poses"]["registered"] == 8 and top["poses"]["points3d"] == 300
+    assert io.read_json(root / "transforms.json") == top
+    report = (root / poses.REPORT).read_text().splitlines()
+    assert report[0] == "# Camera poses" and any(line.startswith("| near |") for line in report)
