@@ -31,8 +31,19 @@ declare -A GROUPS_=(
   [evaluate]="jaxnerf_grid/evaluate.py|tests/test_join_eval.py"
   [report]="jaxnerf_grid/report.py|tests/test_join_eval.py"
   [demo]="jaxnerf_grid/demo.py|tests/test_join_demo.py"
+  [geometry]="jaxnerf_grid/geometry.py|tests/test_geometry.py tests/test_join_truth.py"
+  [export_score]="jaxnerf_grid/export/score.py|tests/test_join_truth.py tests/test_join_export.py"
+  [export_init]="jaxnerf_grid/export/__init__.py|tests/test_join_export.py tests/test_export.py"
+  [export_ground]="jaxnerf_grid/export/ground.py|tests/test_join_export.py tests/test_export.py"
+  [export_measure]="jaxnerf_grid/export/measure.py|tests/test_join_export.py tests/test_export.py"
+  [export_field]="jaxnerf_grid/export/field.py|tests/test_join_truth.py tests/test_join_export.py"
+  [export_run]="jaxnerf_grid/export/run.py|tests/test_join_export.py"
+  [normalize]="jaxnerf_grid/data/normalize.py|tests/test_join_poses.py tests/test_poses.py tests/test_formats.py"
+  [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py"
+  [losses]="jaxnerf_grid/losses.py|tests/test_losses.py"
 )
-ORDER=(foreground masking models evaluate report demo)
+ORDER=(foreground masking models evaluate report demo geometry export_score export_init export_ground export_measure
+       export_field export_run normalize poses losses)
 
 groups=()
 globs=()

@@ -1,0 +1,161 @@
+"""Hand-made mutants at the joins of the tower model (issue 43; docs/TESTING.md): each is a
+one-line mistake of a kind a reviewer would try (units, axes, argument order, the sign of a
+normal, which pass's setting), applied to a copy of the working tree, one at a time, and run
+against the fast tests named for it with a per-mutant timeout. Not part of CI.
+
+    python scripts/mutants.py                  every mutant, each against its own tests
+    python scripts/mutants.py M3 M4            some of them
+    python scripts/mutants.py --list           the table
+    python scripts/mutants.py --tests tests/test_export.py M1a
+                                               other tests (e.g. to show the old suite missed it)
+
+A mutant is "killed" when the tests fail, "survived" when they pass, "timeout" past --timeout
+seconds. The unmutated copy runs first against each set of tests (it must pass). The copy lives in
+a temporary folder; the working tree is never changed. Exit status: the number of survivors.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import subprocess
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+J = "tests/test_join_truth.py"
+E = "tests/test_join_export.py"
+P = "tests/test_join_poses.py"
+
+# name: (file, the exact text, its mutation, tests that must kill it, what the mistake is)
+MUTANTS = {
+    "M1a": ("jaxnerf_grid/geometry.py", "result = score_points(pred, ref, thresholds, ground_strip)",
+            "result = score_points(ref, pred, thresholds, ground_strip)", [J],
+            "eval's geometry score with the predicted and reference clouds crossed"),
+    "M1b": ("jaxnerf_grid/export/score.py",
+            "geometry.score_points(io.read_ply_points(path), reference, thresholds, strip)",
+            "geometry.score_points(reference, io.read_ply_points(path), thresholds, strip)", [J],
+            "export's score with the mesh / points and the reference crossed"),
+    "M2": ("jaxnerf_grid/evaluate.py", 'score.score_export(folder, points, float(ds.normalization.get("scale", 1.0)))',
+           'score.score_export(folder, points, float(ds.normalization.get("metric_scale", 1.0)))', [J],
+           "export's ground strip in normalised units on metric clouds (the scale read from a missing key)"),
+    "M2b": ("jaxnerf_grid/export/score.py", "strip = geometry.DEFAULT_GROUND_STRIP / float(scale)",
+            "strip = geometry.DEFAULT_GROUND_STRIP * float(scale)", [J],
+            "export's ground strip multiplied by the scale instead of divided"),
+    "M3": ("jaxnerf_grid/export/field.py",
+           "x = models.field_inputs(mcfg, points, jnp.zeros_like(points), zeros)[..., 0, :]",
+           "x = points", [J, E], "export's field queried without models.field_inputs"),
+    "M4": ("jaxnerf_grid/export/run.py",
+           'n_m, d_m = plane_to_metric(plane["normal"], plane["offset"], norm)',
+           'n_m, d_m = plane_to_metric(-plane["normal"], -plane["offset"], norm)', [E],
+           "the ground plane handed on with its normal flipped (heights measured downward)"),
+    "M4b": ("jaxnerf_grid/export/__init__.py", "n = rotation.T @ n", "n = rotation @ n", [E],
+            "the ground normal turned by R instead of R^T into metres"),
+    "M4c": ("jaxnerf_grid/export/__init__.py", "return n, float(n @ translation + float(offset) / scale)",
+            "return n, float(n @ translation + float(offset) * scale)", [E],
+            "the ground offset multiplied by the scale instead of divided"),
+    "M5": ("jaxnerf_grid/train.py", "np.minimum(w, 1.0 - cfg.mask_weight_floor)",
+           "np.minimum(w, cfg.mask_weight_floor)", [J],
+           "the loss weights capping masked pixels at the floor instead of 1 - floor"),
+    "M6": ("jaxnerf_grid/data/poses.py", "scene.near * scale, scene.far * scale",
+           "scene.near / scale, scene.far / scale", [P], "poses writing near / far divided by the scale"),
+    "M6b": ("jaxnerf_grid/data/poses.py",
+            'top["scene_bounds"] = scene_bounds(c2w, points_norm if len(points) else None, scene.near * scale)',
+            'top["scene_bounds"] = scene_bounds(c2w, points if len(points) else None, scene.near * scale)', [P],
+            "poses' scene bounds from the points before the normalisation"),
+    "M7": ("jaxnerf_grid/samplers/proposal.py",
+           "cfg.main_samples + 1, passes.single_jitter,\n                                   cfg.padding)",
+           "cfg.main_samples + 1,\n                                   cfg.padding)", [J],
+           "proposal_rounds' main resampling without single_jitter (the padding in its slot)"),
+    "M7b": ("jaxnerf_grid/samplers/proposal.py",
+            "cfg.main_samples + 1, passes.single_jitter,\n                                   cfg.padding)",
+            "cfg.main_samples + 1, passes.single_jitter)", [J],
+            "proposal_rounds' main resampling without the padding"),
+    "M8": ("jaxnerf_grid/export/run.py", "heights = verts_m @ n_m + d_m", "heights = verts_m @ n_m - d_m", [E],
+           "the height measured with the plane's offset of the wrong sign"),
+    "M9": ("jaxnerf_grid/export/run.py", '"voxel_size": h / scale', '"voxel_size": h * scale', [E],
+           "the voxel size in normalised units times the scale"),
+    "M10": ("jaxnerf_grid/export/__init__.py",
+            "return apply_normalization_to_points(points, invert_normalization(_record_or_identity(normalization)))",
+            "return apply_normalization_to_points(points, _record_or_identity(normalization))", [E],
+            "to_metric64 applying the normalisation instead of undoing it"),
+}
+
+
+def copy_tree(dest: Path) -> None:
+    """The tracked and untracked (not ignored) files of the working tree -> dest."""
+    files = subprocess.run(["git", "ls-files", "-co", "--exclude-standard", "-z"], cwd=ROOT, check=True,
+                           capture_output=True).stdout
+    tar = subprocess.Popen(["tar", "--null", "-T", "-", "-cf", "-"], cwd=ROOT, stdin=subprocess.PIPE,
+                           stdout=subprocess.PIPE)
+    out, _ = tar.communicate(files)
+    subprocess.run(["tar", "-xf", "-"], cwd=dest, input=out, check=True)
+
+
+def run_tests(tree: Path, tests: list[str], timeout: float) -> tuple[str, str]:
+    """('passed' | 'failed' | 'timeout', the first failing test's id or "") of pytest on tests in
+    tree (stopping at the first failure)."""
+    env = dict(os.environ, JAX_PLATFORMS=os.environ.get("JAX_PLATFORMS", "cpu"), PYTHONDONTWRITEBYTECODE="1")
+    env.setdefault("XLA_FLAGS", "--xla_force_host_platform_device_count=2")
+    try:
+        done = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-rfE", "-p", "no:cacheprovider", *tests],
+                              cwd=tree, env=env, capture_output=True, text=True, timeout=timeout)
+    except subprocess.TimeoutExpired:
+        return "timeout", ""
+    failed = [line.split()[1] for line in done.stdout.splitlines() if line.startswith(("FAILED ", "ERROR "))]
+    return ("passed" if done.returncode == 0 else "failed"), (failed[0] if failed else "")
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
+                                     formatter_class=argparse.RawTextHelpFormatter)
+    parser.add_argument("names", nargs="*", help="mutants to run (default: all)")
+    parser.add_argument("--tests", nargs="+", help="run these tests instead of each mutant's own")
+    parser.add_argument("--timeout", type=float, default=300.0, help="seconds per mutant (default 300)")
+    parser.add_argument("--list", action="store_true", help="print the mutants and exit")
+    args = parser.parse_args(argv)
+    unknown = [n for n in args.names if n not in MUTANTS]
+    if unknown:
+        parser.error(f"unknown mutant(s) {', '.join(unknown)}; --list shows them")
+    names = args.names or list(MUTANTS)
+    if args.list:
+        for name in names:
+            path, _, _, tests, what = MUTANTS[name]
+            print(f"{name:5s} {path}: {what} [{', '.join(tests)}]")
+        return 0
+    survivors, baselines = 0, {}
+    with tempfile.TemporaryDirectory(prefix="jaxnerf-grid-mutants-") as tmp:
+        tree = Path(tmp)
+        copy_tree(tree)
+        for name in names:
+            path, old, new, tests, what = MUTANTS[name]
+            tests = args.tests or tests
+            source = (tree / path).read_text()
+            if source.count(old) != 1:
+                print(f"{name}: {path}: the text to mutate is not found exactly once (stale table)", flush=True)
+                survivors += 1
+                continue
+            start = time.monotonic()
+            if tuple(tests) not in baselines:
+                baselines[tuple(tests)] = run_tests(tree, tests, args.timeout)
+            baseline = baselines[tuple(tests)][0]
+            if baseline != "passed":
+                print(f"{name}: the unmutated tree {baseline} {' '.join(tests)}: no verdict", flush=True)
+                survivors += 1
+                continue
+            (tree / path).write_text(source.replace(old, new))
+            try:
+                status, by = run_tests(tree, tests, args.timeout)
+            finally:
+                (tree / path).write_text(source)
+            verdict = {"failed": "killed", "passed": "SURVIVED", "timeout": "timeout"}[status]
+            survivors += verdict != "killed"
+            print(f"{name:5s} {verdict:8s} {time.monotonic() - start:6.1f} s  {path}: {what} "
+                  f"[{by or ' '.join(tests)}]", flush=True)
+    return survivors
+
+
+if __name__ == "__main__":
+    sys.exit(main())
