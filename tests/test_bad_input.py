@@ -26,6 +26,8 @@ import pytest
 from jaxnerf_grid import cli, io, masking, runs, staging
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+from killing import kill_when  # noqa: E402
 # a 2x32 MLP, 8 + 8 samples, 64 rays, 10 steps: the whole run takes seconds
 # the paper's MLP setting, which TINY shrinks (`train` alone trains the grid recipe `ours`)
 PAPER_MLP = ["--recipe", "ours-paper-mlp"]
@@ -784,21 +786,8 @@ def test_killed_export_leaves_whole_files_and_can_be_overwritten(scene, capsys, 
     run, out = tmp_path / "run", tmp_path / "exp"
     shutil.copytree(scene["run"], run)
     before = snapshot(run)
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, __file__, "export", str(run), str(out), "1.0"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-    try:
-        deadline = time.time() + 180
-        while not (out.is_dir() and sum(p.name in export_files() for p in out.iterdir()) >= files_before_kill):
-            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
-            assert time.time() < deadline
-            time.sleep(0.02)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == -signal.SIGKILL
+    kill_when([__file__, "export", str(run), str(out), "1.0"], timeout=180, ready=lambda: out.is_dir() and sum(
+        p.name in export_files() for p in out.iterdir()) >= files_before_kill)
     written = sorted(p.name for p in out.iterdir() if p.name in export_files())
     assert 1 <= len(written) < len(export_files())  # it really stopped half-way
     for name in written:

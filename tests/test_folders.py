@@ -10,8 +10,6 @@ process; `recover` must then leave the new dataset and the user's files, nothing
 from __future__ import annotations
 
 import os
-import signal
-import subprocess
 import sys
 import time
 from pathlib import Path
@@ -23,6 +21,8 @@ from jaxnerf_grid.data import poses
 from jaxnerf_grid.io import DataError
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(Path(__file__).parent))
+from killing import kill_when  # noqa: E402
 
 
 def tree(root: Path) -> dict:
@@ -217,22 +217,9 @@ def test_poses_swap_killed_with_sigkill_is_finished_by_recover(tmp_path, after_m
     staging folder only: a kill there is the staging copy `recover` cleans, tested above)."""
     base = tmp_path / "base"
     base.mkdir()
-    env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""))
-    proc = subprocess.Popen([sys.executable, __file__, str(base), "0.3"], env=env,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
     marks = base / "moves"
-    try:
-        deadline = time.time() + 60
-        while not (marks.exists() and int(marks.read_text() or 0) >= after_moves):
-            assert proc.poll() is None, proc.stderr.read().decode()[-2000:]
-            assert time.time() < deadline
-            time.sleep(0.01)
-        proc.send_signal(signal.SIGKILL)
-        proc.wait(timeout=30)
-    finally:
-        if proc.poll() is None:
-            proc.kill()
-    assert proc.returncode == -signal.SIGKILL
+    kill_when([__file__, str(base), "0.3"], timeout=60, poll=0.01,
+              ready=lambda: marks.exists() and int(marks.read_text() or 0) >= after_moves)
     out = base / "Mast Nord ü"
     assert tree(out) != expected_new()  # it really stopped half-way
     assert poses.recover(out) == "rolled forward"
