@@ -2,6 +2,7 @@
 
     python -m benchmarks.poses_accuracy [--cases NAME,...] [--views 30] [--out benchmarks/results/poses_accuracy.json]
     python -m benchmarks.poses_accuracy --strecha STRECHA/fountain-P11 [--max-side 1024] --out FILE.json
+    python -m benchmarks.poses_accuracy --strecha STRECHA/fountain-P11 --dataset DATA --out FILE.json
 
 Each case renders a synthetic scene (`generate_scene`), copies its photos (train and test, in
 the order of the flight, true poses hidden) into a bare folder, runs
@@ -11,7 +12,8 @@ recovered cameras with the true ones after a similarity alignment of the centres
 error as a fraction of the orbit radius (the median distance of the true centres to the
 tower's axis) and the tilt of the recovered +z from the true up. Prints a table and writes JSON.
 With --strecha, one real scene of Strecha's benchmark (photos with surveyed cameras; the photos
-are not part of the repository) instead: rotation error per photo, the vetting and the bounds.
+are not part of the repository) instead: rotation error per photo, the vetting and the bounds;
+with --dataset, the cameras of a dataset `poses` already wrote for that scene (no new run).
 """
 
 from __future__ import annotations
@@ -83,21 +85,28 @@ def run_strecha(scene: Path, work: Path, max_side: int) -> dict:
     summary = poses_from_images(scene / "images", out, single_camera=True, max_side=max_side, overwrite=True,
                                 progress=False)
     wall = time.perf_counter() - t0
-    true, found = strecha_cameras(scene / "gt_dense_cameras"), frames_by_name(out / "transforms.json")
+    row = strecha_errors(scene, out)
+    return {"case": f"strecha:{scene.name}", "max_side": max_side, "photos": summary["photos"],
+            "registered": summary["registered"], "in_dataset": summary["in_dataset"],
+            "left_out": summary["vetting"]["left_out"], "vetting": summary["vetting"]["photos"], **row,
+            "wall_s": wall}
+
+
+def strecha_errors(scene: Path, dataset: Path) -> dict:
+    """The cameras of a `poses` dataset against a Strecha scene's surveyed ones, after a
+    similarity alignment of the centres: {"per_photo": {name: {rotation_deg, centre_m}},
+    "rotation_deg_median", "rotation_deg_max", "scene_bounds", "near_points"}."""
+    true, found = strecha_cameras(scene / "gt_dense_cameras"), frames_by_name(dataset / "transforms.json")
     names = sorted(set(true) & set(found))
     t, f = np.stack([true[n] for n in names]), np.stack([found[n] for n in names])
     scale, rot, shift = similarity_fit(f[:, :3, 3], t[:, :3, 3])
     per_photo = {n: {"rotation_deg": angle_deg(rot @ found[n][:3, :3], true[n][:3, :3]),
                      "centre_m": float(np.linalg.norm(scale * found[n][:3, 3] @ rot.T + shift - true[n][:3, 3]))}
                  for n in names}
-    meta = json.loads((out / "transforms.json").read_text())
+    meta = json.loads((dataset / "transforms.json").read_text())
     rot_err = [v["rotation_deg"] for v in per_photo.values()]
-    return {"case": f"strecha:{scene.name}", "max_side": max_side, "photos": summary["photos"],
-            "registered": summary["registered"], "in_dataset": summary["in_dataset"],
-            "left_out": summary["vetting"]["left_out"], "vetting": summary["vetting"]["photos"],
-            "rotation_deg_median": float(np.median(rot_err)), "rotation_deg_max": float(np.max(rot_err)),
-            "per_photo": per_photo, "scene_bounds": meta["scene_bounds"], "near_points": meta["near"],
-            "wall_s": wall}
+    return {"rotation_deg_median": float(np.median(rot_err)), "rotation_deg_max": float(np.max(rot_err)),
+            "per_photo": per_photo, "scene_bounds": meta.get("scene_bounds"), "near_points": meta.get("near")}
 
 
 def run_case(name: str, views: int, work: Path, seed: int) -> dict:
@@ -142,10 +151,23 @@ def main(argv=None) -> int:
     p.add_argument("--strecha", default=None,
                    help="a Strecha scene folder (images/, gt_dense_cameras/): run it instead of the synthetic cases")
     p.add_argument("--max-side", type=int, default=1024, help="working size of the Strecha photos")
+    p.add_argument("--dataset", default=None,
+                   help="with --strecha: score this existing `poses` dataset of the scene instead of running poses")
     args = p.parse_args(argv)
     names = [] if args.strecha else list(CASES) if args.cases == "all" else args.cases.split(",")
     rows = []
-    if args.strecha:
+    if args.strecha and args.dataset:
+        scene, dataset = Path(args.strecha), Path(args.dataset)
+        found = frames_by_name(dataset / "transforms.json")
+        photos = sorted(p.name for p in (scene / "images").iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+        row = {"case": f"strecha:{scene.name}", "dataset": str(dataset.name), "photos": len(photos),
+               "in_dataset": len(found), "left_out": [n for n in photos if n not in found],
+               **strecha_errors(scene, dataset)}
+        rows.append(row)
+        print(f"{row['case']}: {row['in_dataset']}/{row['photos']} in the dataset (left out: "
+              f"{', '.join(row['left_out']) or 'none'}), rotation {row['rotation_deg_median']:.2f} / "
+              f"{row['rotation_deg_max']:.2f} deg", flush=True)
+    elif args.strecha:
         row = run_strecha(Path(args.strecha), Path(args.work), args.max_side)
         rows.append(row)
         print(f"{row['case']}: {row['in_dataset']}/{row['photos']} in the dataset ({row['registered']} registered, "
