@@ -2,8 +2,9 @@
 a capture, from its sparse points and its camera layout (docs/BOUNDS.md).
 
 All distances are in the normalised scene, along unit rays. `scene_bounds` is the rule;
-`jaxnerf-grid poses` records its result in transforms.json (`scene_bounds`), and the demo's
-recipe takes near / far / contract_radius from there when a dataset records them
+`jaxnerf-grid poses` records its result in transforms.json (`scene_bounds`), and `demo --data`
+and `train --data` (contracted recipes) take near / far / contract_radius from there when a
+dataset records them
 (`recipe_with_bounds`; datasets without the key keep the recipe's constants, so the synthetic
 demo is unchanged).
 
