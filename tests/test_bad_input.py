@@ -221,8 +221,11 @@ def test_synth_overwrite_never_clears_a_folder_it_did_not_write(scene, capsys, t
     assert snapshot(theirs) == before
     again = tmp_path / "again"
     shutil.copytree(scene["data"], again)
+    (again / "masks").mkdir(exist_ok=True)
+    (again / "masks" / "stale.png").write_bytes(b"old mask of the old photos")
     rc, err = run_cli(["synth", "--out", again, *SYNTH, "--overwrite"], capsys)   # its own: replaced
     assert rc == 0, err
+    assert not (again / "masks").exists()   # mask outputs of the old photos go with them
 
 
 def test_overwrite_clears_only_the_runs_own_outputs(scene, capsys, tmp_path):

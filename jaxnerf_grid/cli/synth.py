@@ -50,6 +50,25 @@ def check_args(args) -> None:
             raise ConfigError(f"{flag} = {value}: must be >= {low}")
 
 
+def clear_derived_outputs(out) -> None:
+    """Before `synth --overwrite` replaces a dataset synth wrote (its marker present): removes
+    what later commands derived from the old photos there (mask's masks/, weights/, dpt_depth/,
+    overlays/), which the generator's own clearing does not know about. Anything else, and a
+    folder synth did not write, is left to the generator's rules."""
+    import shutil
+    from pathlib import Path
+
+    from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS
+    from jaxnerf_grid.data.synthetic.generate import is_synthetic_dataset
+
+    out = Path(out)
+    if not out.is_dir() or not is_synthetic_dataset(out):
+        return
+    for name in MASK_OUTPUT_DIRS:
+        if (out / name).is_dir() and not (out / name).is_symlink():
+            shutil.rmtree(out / name)
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     check_args(args)
@@ -59,6 +78,8 @@ def main(argv: list[str] | None = None) -> int:
 
     origin = parse_origin(args.gps_origin) if args.gps_origin is not None else None
     workers = args.workers or min(2, os.cpu_count() or 1)
+    if args.overwrite:
+        clear_derived_outputs(args.out)
     path = generate_scene(
         args.preset, args.out, seed=args.seed, distractors=args.distractors, overwrite=args.overwrite,
         progress=not args.quiet, workers=workers, width=args.width, height=args.height,
