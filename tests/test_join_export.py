@@ -195,12 +195,14 @@ def test_tilt_base_centre_cross_arm_and_uncertainties_of_the_analytic_tower(expo
     k = meas["cross_arms"]["levels"].index(arm)
     assert sv["cross_arm_heights"][k]["value"] == arm["height"]
     assert meas["conductors"]["reconstructed"] is False and "why" in meas["conductors"]
-    # the alignment's terms by hand: sigma = 3 / sqrt(3) per coordinate, s_rel = sigma / (D sqrt(25))
+    # the alignment's terms by hand (a full fit, 7 parameters): sigma = 3 sqrt(25 / 68) per
+    # coordinate, s_rel = sigma / (D sqrt(25)), position sigma sqrt(3 / 25)
     centres = to_metric64(np.asarray(af.dataset().c2w)[:, :3, 3], af.NORMALIZATION)
     spread = np.sqrt(np.mean(np.sum((centres - centres.mean(0)) ** 2, axis=1)))
-    rel = 3.0 / np.sqrt(3.0) / (spread * 5.0)
+    sigma = 3.0 * np.sqrt(25 / 68)
+    rel = sigma / (spread * 5.0)
     assert sv["alignment"]["relative_scale"] == pytest.approx(rel)
-    assert sv["alignment"]["position_m"] == pytest.approx(3.0 / 5.0)
+    assert sv["alignment"]["position_m"] == pytest.approx(sigma * np.sqrt(3 / 25))
     h = sv["height"]
     assert h["value"] == meas["height"]
     assert h["sigma"] == pytest.approx(np.hypot(h["value"] * rel, h["fit_sigma"]))

@@ -60,10 +60,11 @@ def alignment_uncertainty(geo: dict | None, units: str, centres_m: np.ndarray) -
     """The 1-sigma errors the alignment to metres adds to every figure (docs/EXPORT.md).
 
     centres_m [K, 3]: the cameras' centres in metres (what the GPS fit was made on).
-    With a similarity fitted to N positions whose 3-D residuals have RMS r, spread D (the RMS
-    distance of the centres from their mean): per coordinate sigma = r / sqrt(3); the scale's
+    With a similarity of p parameters (7; 5 when it turned about z only) fitted to N positions
+    whose 3-D residuals have RMS r, spread D (the RMS distance of the centres from their mean):
+    per coordinate sigma = r sqrt(N / (3N - p)) (the residuals' unbiased spread); the scale's
     relative error s_rel = sigma / (D sqrt(N)) (the fit of the scale is a least-squares fit of
-    the radial components, whose lever arm is D); the position (origin) error r / sqrt(N).
+    the radial components, whose lever arm is D); the position (origin) error sigma sqrt(3 / N).
     Positions: from the GPS inliers' residuals; with ground control points, the position error
     comes from the control points' residuals (their weight rules the fit), the scale error still
     from the GPS when present. No GPS (control points alone, a scale bar): s_rel None (not
@@ -83,14 +84,25 @@ def alignment_uncertainty(geo: dict | None, units: str, centres_m: np.ndarray) -
         out["centroid"] = [float(v) for v in c.mean(0)]
     if gps.get("rms_m") is not None and gps.get("inliers"):
         n, r = int(gps["inliers"]), float(gps["rms_m"])
-        if spread > 0:
-            out["relative_scale"] = r / math.sqrt(3.0) / (spread * math.sqrt(n))
-        out.update({"position_m": r / math.sqrt(n), "n": n, "rms_m": r, "spread_m": spread})
+        sigma = coordinate_sigma(r, n, 5 if "about z" in str(geo.get("rotation", "")) else 7)
+        if spread > 0 and sigma is not None:
+            out["relative_scale"] = sigma / (spread * math.sqrt(n))
+        out.update({"position_m": None if sigma is None else sigma * math.sqrt(3.0 / n), "n": n, "rms_m": r,
+                    "spread_m": spread, "sigma_per_coordinate_m": sigma})
     if control.get("rms_m") is not None and control.get("residuals"):
         n = len(control["residuals"])
-        out["position_m"] = float(control["rms_m"]) / math.sqrt(n)
+        sigma = coordinate_sigma(float(control["rms_m"]), n, 7 if n >= 3 else 5)
+        if sigma is not None:
+            out["position_m"] = sigma * math.sqrt(3.0 / n)
         out["control_points"] = n
     return out
+
+
+def coordinate_sigma(rms_3d: float, n: int, parameters: int) -> float | None:
+    """Per-coordinate 1-sigma error from the 3-D residual RMS of a fit of `parameters` to n
+    points: rms sqrt(n / (3n - p)); None when 3n <= p (no redundancy)."""
+    dof = 3 * int(n) - int(parameters)
+    return float(rms_3d) * math.sqrt(n / dof) if dof > 0 else None
 
 
 def with_sigma(value: float | None, fit_sigma: float, alignment: dict, lever: float | None = None,
