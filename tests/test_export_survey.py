@@ -93,11 +93,11 @@ def test_a_box_with_a_turn_of_more_than_90_degrees_is_not_inverted():
 # --------------------------------------------------------------------------- tilt, conductors
 
 
-def lattice_tower(tilt_deg: float, azimuth_deg: float, rng, ground_z: float = 3.0):
+def lattice_tower(tilt_deg: float, azimuth_deg: float, rng, ground_z: float = 3.0, arm_shift: float = 0.0):
     """Surface samples of a tapered square tower (base 8 m, top 2 m, 30 m high) with two
     cross-arms (16 m at 20 m, 12 m at 25 m), turned 20 degrees about its axis, tilted by
-    `tilt_deg` about the base centre (2, -1, ground_z) towards azimuth `azimuth_deg`, and a flat
-    ground around it. Returns (points [N, 3], top offset of the axis at the highest point's height)."""
+    `tilt_deg` about the base centre (2, -1, ground_z) towards azimuth `azimuth_deg`; arm_shift
+    moves the arms sideways (a one-sided arm: its middle is off the axis). Returns (points [N, 3], top offset of the axis at the highest point's height)."""
     z = rng.uniform(0, 30, 40000)
     half = 4.0 - 3.0 * z / 30.0
     side = rng.integers(0, 4, len(z))
@@ -107,7 +107,7 @@ def lattice_tower(tilt_deg: float, azimuth_deg: float, rng, ground_z: float = 3.
     body = np.column_stack([x, y, z])
     arms = []
     for height, span in ((20.0, 16.0), (25.0, 12.0)):
-        a = rng.uniform(-span / 2, span / 2, 3000)
+        a = rng.uniform(-span / 2, span / 2, 3000) + arm_shift
         arms.append(np.column_stack([a, rng.uniform(-0.4, 0.4, len(a)), height + rng.uniform(-0.5, 0.5, len(a))]))
     tower = np.vstack([body] + arms)
     turn = np.radians(20.0)
@@ -121,10 +121,11 @@ def lattice_tower(tilt_deg: float, azimuth_deg: float, rng, ground_z: float = 3.
     return tower, np.tan(t) * float(tower[:, 2].max() - ground_z)
 
 
-@pytest.mark.parametrize("tilt_deg, azimuth_deg", [(1.0, 35.0), (0.0, 0.0), (3.0, 200.0)])
-def test_tilt_of_a_generated_tower_within_0_3_degrees(tilt_deg, azimuth_deg):
+@pytest.mark.parametrize("tilt_deg, azimuth_deg, arm_shift", [(1.0, 35.0, 0.0), (0.0, 0.0, 0.0), (3.0, 200.0, 0.0),
+                                                              (1.0, 35.0, 3.0)])
+def test_tilt_of_a_generated_tower_within_0_3_degrees(tilt_deg, azimuth_deg, arm_shift):
     rng = np.random.default_rng(1)
-    points, offset = lattice_tower(tilt_deg, azimuth_deg, rng)
+    points, offset = lattice_tower(tilt_deg, azimuth_deg, rng, arm_shift=arm_shift)
     n, d = np.array([0.0, 0.0, 1.0]), -3.0
     fp = measure.footprint(points, n, d, 1.5)
     tilt = measure.axis_tilt(points, n, d, fp["axis_a"], fp["axis_b"], 0.3)
