@@ -97,7 +97,8 @@ def lattice_tower(tilt_deg: float, azimuth_deg: float, rng, ground_z: float = 3.
     """Surface samples of a tapered square tower (base 8 m, top 2 m, 30 m high) with two
     cross-arms (16 m at 20 m, 12 m at 25 m), turned 20 degrees about its axis, tilted by
     `tilt_deg` about the base centre (2, -1, ground_z) towards azimuth `azimuth_deg`; arm_shift
-    moves the arms sideways (a one-sided arm: its middle is off the axis). Returns (points [N, 3], top offset of the axis at the highest point's height)."""
+    moves the arms sideways (a one-sided arm: its middle is off the axis); no ground.
+    Returns (points [N, 3], the axis' top offset at the highest point's height)."""
     z = rng.uniform(0, 30, 40000)
     half = 4.0 - 3.0 * z / 30.0
     side = rng.integers(0, 4, len(z))

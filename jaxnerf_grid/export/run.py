@@ -194,8 +194,12 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     if given is not None:
         lo_given, hi_given = box_to_scene(given[:3], given[3:], norm)   # all 8 corners (a rotated record)
         check_box_in_scene(lo_given, hi_given)
-    params, step = train.load_params(run_dir, cfg, ds)
     units = units_of(ds)
+    geo = survey.georeference_of(ds)
+    crs_name, crs_origin = survey.crs_of(geo)
+    if crs_name is not None:
+        survey.pyproj_crs(crs_name)       # a CRS pyproj does not know fails before anything is written
+    params, step = train.load_params(run_dir, cfg, ds)
     scale = float(norm.get("scale", 1.0))
 
     # 1-2. the dense cloud and the ground
@@ -256,7 +260,6 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                        **fuse_stats},
             "ground": None, "height": None, "footprint": None, "cross_arms": None, "tilt": None,
             "conductors": None}
-    geo = survey.georeference_of(ds)
     alignment = survey.alignment_uncertainty(geo, units, to_metric64(centres, norm))
     if plane is not None:
         n_m, d_m = plane_to_metric(plane["normal"], plane["offset"], norm)
@@ -279,7 +282,6 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
             0.5 * min(level["height"] for level in levels) if levels else 0.5 * height, GROUND_CELL / scale)
     meas["box"].update(box_stats)
     meas["survey"] = _survey(meas, geo, alignment, h / scale)
-    crs_name, crs_origin = survey.crs_of(geo)
     comments = (units_comment(units), f"jaxnerf-grid export of {run_dir} at step {step}")
     if not folders.is_empty(out):  # checked by check_out: empty, or export's own (overwrite=True)
         folders.clear_outputs(out, "export", OUTPUTS, "export.out", legacy=_is_legacy_export(out))
