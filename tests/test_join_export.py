@@ -207,3 +207,55 @@ def test_tilt_base_centre_cross_arm_and_uncertainties_of_the_analytic_tower(expo
     assert h["value"] == meas["height"]
     assert h["sigma"] == pytest.approx(np.hypot(h["value"] * rel, h["fit_sigma"]))
     assert h["fit_sigma"] == pytest.approx(np.hypot(meas["ground"]["clearance"] / 3, voxel / np.sqrt(12)))
+
+
+def _tilted_export(root, tilt: np.ndarray, meta: dict, **kwargs) -> dict:
+    """export_run of the analytic tower with its metric frame turned by `tilt` [3, 3] instead of
+    af.TILT (the record and the field's constants rebuilt as analytic_field builds them)."""
+    import jax.numpy as jnp
+
+    record = {"scale": af.NORMALIZATION["scale"], "rotation": (af.TURN_Z @ tilt.T).tolist(),
+              "translation": (-tilt @ [af.CENTRE[0], af.CENTRE[1], af.GROUND_Z + 10.0]).tolist()}
+    ds = af.dataset()
+    ds.root = root
+    ds.normalization = record
+    ds.meta = {"scene_normalization": record, **meta}
+    cfg = analytic_config()
+    field = {**af.params(cfg.model)["fine"], "rotation": jnp.asarray(record["rotation"], jnp.float32),
+             "translation": jnp.asarray(record["translation"], jnp.float32), "tilt": jnp.asarray(tilt, jnp.float32)}
+    af.clear_compiled()
+    try:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(fields, "apply", af.apply)
+            mp.setattr(runs, "load_run", lambda run_dir: (cfg, None))
+            mp.setattr(runs, "dataset_of_run", lambda *args, **kw: ds)
+            mp.setattr(train, "load_params", lambda run_dir, cfg, ds: ({"coarse": field, "fine": field}, 0))
+            (root / "run").mkdir(exist_ok=True)
+            return export_run.export_run(root / "run", resolution=RESOLUTION, views=8, progress=False, **kwargs)
+    finally:
+        af.clear_compiled()
+
+
+def test_a_tower_tilted_1_degree_is_measured_within_0_3_degrees(tmp_path):
+    """Issue 41's target through the whole export: the frame turned 1 degree about the axis
+    (cos 30, sin 30, 0), so the tower's axis is 1 degree from the frame's z, leaning towards
+    (-sin 30, cos 30) x sin 1 at the top (a right-handed turn about that axis); top offset
+    HEIGHT tan 1 degree (the axis' offset at the highest point's height above the ground)."""
+    axis = np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0.0])
+    t = np.radians(1.0)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    tilt = np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
+    meas = _tilted_export(tmp_path, tilt, {})
+    got = meas["tilt"]
+    assert got["tilt_degrees"] == pytest.approx(1.0, abs=0.3)
+    np.testing.assert_allclose(got["direction"], tilt[:, 2], atol=0.3 * np.pi / 180)
+    assert got["top_offset"] == pytest.approx(meas["height"] * np.tan(t), abs=0.1)
+    assert meas["units"] == "metres" and meas["survey"]["alignment"]["relative_scale"] == 0.0   # synthetic: exact
+
+
+def test_an_unknown_crs_in_the_record_is_refused_before_anything_is_written(tmp_path):
+    from jaxnerf_grid.io import DataError
+
+    with pytest.raises(DataError, match="EPSG:999999"):
+        _tilted_export(tmp_path, af.TILT, {"georeference": {**GEOREFERENCE, "crs": "EPSG:999999"}})
+    assert not (tmp_path / "run" / "export").exists()
