@@ -209,9 +209,10 @@ def test_tilt_base_centre_cross_arm_and_uncertainties_of_the_analytic_tower(expo
     assert h["fit_sigma"] == pytest.approx(np.hypot(meas["ground"]["clearance"] / 3, voxel / np.sqrt(12)))
 
 
-def _tilted_export(root, tilt: np.ndarray, meta: dict, **kwargs) -> dict:
+def _tilted_export(root, tilt: np.ndarray, meta: dict, apply=af.apply, **kwargs) -> dict:
     """export_run of the analytic tower with its metric frame turned by `tilt` [3, 3] instead of
-    af.TILT (the record and the field's constants rebuilt as analytic_field builds them)."""
+    af.TILT (the record and the field's constants rebuilt as analytic_field builds them), the
+    field `apply` (default the analytic tower's)."""
     import jax.numpy as jnp
 
     record = {"scale": af.NORMALIZATION["scale"], "rotation": (af.TURN_Z @ tilt.T).tolist(),
@@ -226,7 +227,7 @@ def _tilted_export(root, tilt: np.ndarray, meta: dict, **kwargs) -> dict:
     af.clear_compiled()
     try:
         with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(fields, "apply", af.apply)
+            mp.setattr(fields, "apply", apply)
             mp.setattr(runs, "load_run", lambda run_dir: (cfg, None))
             mp.setattr(runs, "dataset_of_run", lambda *args, **kw: ds)
             mp.setattr(train, "load_params", lambda run_dir, cfg, ds: ({"coarse": field, "fine": field}, 0))
@@ -236,20 +237,43 @@ def _tilted_export(root, tilt: np.ndarray, meta: dict, **kwargs) -> dict:
         af.clear_compiled()
 
 
+def leaning_apply(lean: np.ndarray):
+    """`fields.apply` of the analytic scene with level ground (metric z = GROUND_Z) and the tower
+    alone turned by `lean` [3, 3] about its base centre (CENTRE, GROUND_Z): a metric point m is
+    in the tower when lean^T (m - base) + base is in af.boxes()."""
+    import jax.numpy as jnp
+
+    base = jnp.asarray([af.CENTRE[0], af.CENTRE[1], af.GROUND_Z], jnp.float32)
+    lean = jnp.asarray(lean, jnp.float32)
+
+    def apply(field_params, cfg, x, viewdirs=None, appearance=None, transient=None):
+        m = af.to_metric(field_params, x)
+        tower = af.inside_tower((m - base) @ lean + base)
+        ground = (m[..., 2] <= af.GROUND_Z) & (m[..., 2] >= af.GROUND_Z - 2.0)
+        sigma = jnp.where(tower | ground, af.SIGMA, 0.0)
+        rgb = jnp.where(tower[..., None], jnp.asarray(af.TOWER_RGB), jnp.asarray(af.GROUND_RGB))
+        return {"sigma": sigma, "rgb": jnp.broadcast_to(rgb, m.shape)}
+
+    return apply
+
+
 def test_a_tower_tilted_1_degree_is_measured_within_0_3_degrees(tmp_path):
-    """Issue 41's target through the whole export: the frame turned 1 degree about the axis
-    (cos 30, sin 30, 0), so the tower's axis is 1 degree from the frame's z, leaning towards
-    (-sin 30, cos 30) x sin 1 at the top (a right-handed turn about that axis); top offset
-    HEIGHT tan 1 degree (the axis' offset at the highest point's height above the ground)."""
+    """Issue 41's target through the whole export: on level ground (a metric frame that is the
+    tower's, no turn), the tower alone turned 1 degree about the axis (cos 30, sin 30, 0) through
+    its base centre: its axis is `lean` z, 1 degree from vertical and from the ground's normal;
+    top offset HEIGHT tan 1 degree (the axis' offset at the highest point's height)."""
     axis = np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0.0])
     t = np.radians(1.0)
     k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
-    tilt = np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
-    meas = _tilted_export(tmp_path, tilt, {})
+    lean = np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
+    meas = _tilted_export(tmp_path, np.eye(3), {}, apply=leaning_apply(lean))
     got = meas["tilt"]
+    assert meas["ground"]["tilt_degrees"] < 0.1
     assert got["tilt_degrees"] == pytest.approx(1.0, abs=0.3)
-    np.testing.assert_allclose(got["direction"], tilt[:, 2], atol=0.3 * np.pi / 180)
+    assert got["tilt_from_ground_normal_degrees"] == pytest.approx(1.0, abs=0.3)
+    np.testing.assert_allclose(got["direction"], lean[:, 2], atol=0.3 * np.pi / 180)
     assert got["top_offset"] == pytest.approx(meas["height"] * np.tan(t), abs=0.1)
+    np.testing.assert_allclose(got["base"][:2], af.CENTRE, atol=meas["voxel_size"])
     assert meas["units"] == "metres" and meas["survey"]["alignment"]["relative_scale"] == 0.0   # synthetic: exact
 
 
