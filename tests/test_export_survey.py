@@ -55,6 +55,12 @@ def test_the_loader_keeps_the_georeference_record(tmp_path):
     loaded = load_dataset(tmp_path / "d")
     assert loaded.meta["georeference"] == geo
     assert export_run.units_of(loaded) == "unknown"
+    # a dataset written again from it (preprocess, save_transforms_json) keeps the records: its
+    # scene_normalization alone would read as metres
+    save_transforms_json(loaded, tmp_path / "again")
+    again = load_dataset(tmp_path / "again")
+    assert again.meta["georeference"] == geo and again.meta["poses"] == {"registered": 5}
+    assert export_run.units_of(again) == "unknown"
 
 
 # --------------------------------------------------------------------------- boxes
