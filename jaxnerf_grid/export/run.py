@@ -317,7 +317,7 @@ BOX_FRAME = ("min / max: axis-aligned in the export's units (the dataset's frame
 
 def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict:
     """measurements.json's `survey`: each figure {"value", "sigma", "fit_sigma"} in metres
-    (docs/EXPORT.md "Uncertainty"), the tower's base centre (local and CRS), the alignment's
+    (docs/EXPORT.md "Survey outputs and uncertainty"), the tower's base centre (local and CRS), the alignment's
     terms. fit terms: ground = the ground inliers' robust spread (its clearance / 3), a vertex's
     height = voxel / sqrt(12), a cross-arm's = its slice height / sqrt(12)."""
     g = meas.get("ground") or {}
@@ -333,7 +333,7 @@ def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict
             level["height"], math.hypot(ground_sigma, arms["slice_height"] / math.sqrt(12.0)), alignment))
     tilt = meas.get("tilt")
     if tilt:
-        # the angle does not scale; the fit's error only (a GPS-only fit turns about z alone)
+        # the angle does not scale: the fit's error only (the frame's own vertical error is not in it)
         out["tilt_degrees"] = {"value": tilt["tilt_degrees"], "sigma": tilt["tilt_sigma_degrees"],
                                "fit_sigma": tilt["tilt_sigma_degrees"]}
         out["top_offset"] = survey.with_sigma(tilt["top_offset"], tilt["top_offset_sigma"], alignment)
