@@ -124,9 +124,13 @@ def _survey_lines(m: dict, unit: str) -> list[str]:
     if not sv:
         return []
     lines = [f"| height with its 1-sigma uncertainty | {_pm(sv.get('height'), unit)} |"]
-    if sv.get("cross_arm_heights"):
-        lines.append("| cross-arm heights above the ground | "
-                     + "; ".join(_pm(f, unit) for f in sv["cross_arm_heights"]) + " |")
+    if sv.get("footprint"):
+        lines.append("| base footprint widths | " + " x ".join(_pm(f, unit) for f in sv["footprint"]) + " |")
+    heights = sv.get("cross_arm_heights") or []
+    if heights:
+        spans = sv.get("cross_arm_spans") or [None] * len(heights)
+        lines.append("| cross-arm heights above the ground (spans) | " + "; ".join(
+            _pm(f, unit) + (f" ({_pm(s, unit)})" if s else "") for f, s in zip(heights, spans)) + " |")
     if sv.get("tilt_degrees"):
         lines.append(f"| tilt of the tower's axis from vertical | {_pm(sv['tilt_degrees'], 'deg')}; top offset "
                      f"{_pm(sv.get('top_offset'), unit)} |")

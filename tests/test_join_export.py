@@ -207,6 +207,10 @@ def test_tilt_base_centre_cross_arm_and_uncertainties_of_the_analytic_tower(expo
     assert h["value"] == meas["height"]
     assert h["sigma"] == pytest.approx(np.hypot(h["value"] * rel, h["fit_sigma"]))
     assert h["fit_sigma"] == pytest.approx(np.hypot(meas["ground"]["clearance"] / 3, voxel / np.sqrt(12)))
+    width = sv["footprint"][0]
+    assert width["value"] == meas["footprint"]["width_a"]
+    assert width["sigma"] == pytest.approx(np.hypot(width["value"] * rel, voxel * np.sqrt(2 / 12)))
+    assert sv["cross_arm_spans"][k]["value"] == arm["span"]
 
 
 def _tilted_export(root, tilt: np.ndarray, meta: dict, apply=af.apply, **kwargs) -> dict:

@@ -319,18 +319,26 @@ def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict
     """measurements.json's `survey`: each figure {"value", "sigma", "fit_sigma"} in metres
     (docs/EXPORT.md "Survey outputs and uncertainty"), the tower's base centre (local and CRS), the alignment's
     terms. fit terms: ground = the ground inliers' robust spread (its clearance / 3), a vertex's
-    height = voxel / sqrt(12), a cross-arm's = its slice height / sqrt(12)."""
+    height = voxel / sqrt(12), a cross-arm's = its slice height / sqrt(12); a width or span (two
+    ends) = voxel sqrt(2 / 12)."""
     g = meas.get("ground") or {}
     ground_sigma = float(g.get("clearance", 0.0)) / 3.0
     vertex = voxel / math.sqrt(12.0)
-    out = {"alignment": alignment, "height": None, "cross_arm_heights": [], "tilt_degrees": None,
-           "top_offset": None, "conductor_clearance": None, "base_centre": None}
+    out = {"alignment": alignment, "height": None, "cross_arm_heights": [], "cross_arm_spans": [],
+           "footprint": None, "tilt_degrees": None, "top_offset": None, "conductor_clearance": None,
+           "base_centre": None}
+    ends = voxel * math.sqrt(2.0 / 12.0)
+    fp = meas.get("footprint") or {}
+    if fp:
+        out["footprint"] = [survey.with_sigma(fp["width_a"], ends, alignment),
+                            survey.with_sigma(fp["width_b"], ends, alignment)]
     if meas.get("height") is not None:
         out["height"] = survey.with_sigma(meas["height"], math.hypot(ground_sigma, vertex), alignment)
     arms = meas.get("cross_arms") or {}
     for level in arms.get("levels") or []:
         out["cross_arm_heights"].append(survey.with_sigma(
             level["height"], math.hypot(ground_sigma, arms["slice_height"] / math.sqrt(12.0)), alignment))
+        out["cross_arm_spans"].append(survey.with_sigma(level["span"], ends, alignment))
     tilt = meas.get("tilt")
     if tilt:
         # the angle does not scale: the fit's error only (the frame's own vertical error is not in it)
