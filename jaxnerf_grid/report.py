@@ -108,6 +108,48 @@ def _xyz(v, digits=2) -> str:
     return "(" + ", ".join(_fmt(x, digits) for x in v) + ")" if v is not None else "n/a"
 
 
+def _pm(fig: dict | None, unit: str, digits: int = 2) -> str:
+    """'12.34 +- 0.05 m' of a `survey` figure {"value", "sigma"} (sigma None: 'not estimated')."""
+    if not fig:
+        return "unavailable"
+    sigma = fig.get("sigma")
+    return f"{_fmt(fig['value'], digits)} {unit} +- " + (f"{_fmt(sigma, digits)} {unit}" if sigma is not None
+                                                           else "(not estimated)")
+
+
+def _survey_lines(m: dict, unit: str) -> list[str]:
+    """The table rows of measurements.json's `survey` (issue 41: 1-sigma uncertainties, tilt,
+    base centre, conductors; docs/EXPORT.md)."""
+    sv = m.get("survey") or {}
+    if not sv:
+        return []
+    lines = [f"| height with its 1-sigma uncertainty | {_pm(sv.get('height'), unit)} |"]
+    if sv.get("footprint"):
+        lines.append("| base footprint widths | " + " x ".join(_pm(f, unit) for f in sv["footprint"]) + " |")
+    heights = sv.get("cross_arm_heights") or []
+    if heights:
+        spans = sv.get("cross_arm_spans") or [None] * len(heights)
+        lines.append("| cross-arm heights above the ground (spans) | " + "; ".join(
+            _pm(f, unit) + (f" ({_pm(s, unit)})" if s else "") for f, s in zip(heights, spans)) + " |")
+    if sv.get("tilt_degrees"):
+        lines.append(f"| tilt of the tower's axis from vertical | {_pm(sv['tilt_degrees'], 'deg')}; top offset "
+                     f"{_pm(sv.get('top_offset'), unit)} |")
+    base = sv.get("base_centre")
+    if base:
+        where = (f"{_xyz(base['crs'], 3)} in {base['crs_name']}" if base.get("crs") else
+                 f"{_xyz(base['local'], 3)} (the dataset's frame)")
+        sigma = base.get("sigma")
+        spread = f"{_fmt(sigma)} {unit}" if sigma is not None else "(not estimated)"
+        lines.append(f"| base centre | {where} +- {spread} |")
+    cond = m.get("conductors") or {}
+    if cond.get("reconstructed"):
+        lines.append(f"| conductors' lowest reconstructed point above the ground | "
+                     f"{_pm(sv.get('conductor_clearance'), unit)} |")
+    elif cond:
+        lines.append(f"| conductors | not reconstructed: {cond.get('why', '')} |")
+    return lines
+
+
 def export_lines(info: dict | None) -> list[str]:
     """Markdown lines of the "Tower model (export)" section (docs/EXPORT.md) from
     {"measurements": measurements.json, "image": the picture's path relative to the report,
@@ -130,6 +172,7 @@ def export_lines(info: dict | None) -> list[str]:
     if arms:
         lines.append("| cross-arm levels (height: span, heuristic) | " + "; ".join(
             f"{_fmt(a['height'], 1)}: {_fmt(a['span'], 1)}" for a in arms) + f" {unit} |")
+    lines += _survey_lines(m, unit)
     g = m.get("ground") or {}
     if g:
         lines.append(f"| ground plane n . x + d = 0 | n = {_xyz(g.get('normal'), 4)}, d = {_fmt(g.get('offset'), 3)} "

@@ -20,6 +20,11 @@ import analytic_field as af  # noqa: E402
 from test_join_truth import analytic_config  # noqa: E402
 
 RESOLUTION = 40
+# a georeferenced dataset as `poses` records it (docs/GEOREFERENCE.md): the metric frame is the
+# local frame, CRS = local + origin; 25 GPS inliers with 3 m RMS residuals
+GEOREFERENCE = {"units": "metres", "source": "gps", "crs": "EPSG:32632", "crs_name": "WGS 84 / UTM zone 32N",
+                "origin": [465000.0, 5247000.0, 0.0], "gps": {"photos": 25, "registered": 25, "inliers": 25,
+                                                               "rms_m": 3.0, "residuals": []}}
 
 
 def reference() -> np.ndarray:
@@ -39,7 +44,8 @@ def exported(tmp_path_factory):
     ds = af.dataset()
     ds.root = root
     io.write_ply(root / "tower.ply", reference())                       # in metres
-    ds.meta = {**ds.meta, "tower_ply": "tower.ply", "scene_normalization": {"scale": 1.0, "translation": [0, 0, 0]}}
+    ds.meta = {**ds.meta, "tower_ply": "tower.ply", "scene_normalization": {"scale": 1.0, "translation": [0, 0, 0]},
+               "georeference": GEOREFERENCE}
     cfg = analytic_config()
     af.clear_compiled()
     with pytest.MonkeyPatch.context() as mp:
@@ -90,7 +96,13 @@ def test_mesh_and_fused_points_lie_on_the_analytic_surface_in_metres(exported):
         scene_corners = apply_normalization_to_points(corners, af.NORMALIZATION)
         assert np.all(scene_corners >= lo - slack) and np.all(scene_corners <= hi + slack)
     assert hi[2] == pytest.approx(0.5 + 0.02, abs=0.02) and -0.5 < lo[2] < -0.5 + 0.075
-    np.testing.assert_allclose(box["min"], to_metric64(lo, af.NORMALIZATION), atol=1e-6)   # the record's inverse
+    # box.json's metric box: around the 8 corners of the normalised box, each mapped back by the
+    # record's closed form x = R^T x_norm / s - t (one corner at a time is wrong with a turn)
+    rot, s_, t_ = np.asarray(af.NORMALIZATION["rotation"]), af.NORMALIZATION["scale"], af.NORMALIZATION["translation"]
+    back = np.array([rot.T @ np.array([x, y, z]) / s_ - t_ for x in (lo[0], hi[0]) for y in (lo[1], hi[1])
+                     for z in (lo[2], hi[2])])
+    np.testing.assert_allclose(box["min"], back.min(0), atol=1e-6)
+    np.testing.assert_allclose(box["max"], back.max(0), atol=1e-6)
     verts = io.read_ply_points(out / "tower_mesh.ply").astype(np.float64)
     scene_verts = apply_normalization_to_points(verts, af.NORMALIZATION)     # metres -> the model's frame
     h = voxel * af.NORMALIZATION["scale"]
@@ -139,3 +151,139 @@ def test_eval_scores_the_analytic_export_against_its_surface(exported):
     # the body's surface samples are all within a metre of the mesh (1.5 voxels): only grown
     # corners can be missed, so recall at 1 m is at least (M - 8) / M
     assert sc["mesh"]["thresholds"]["1"]["recall"] >= (len(ref) - 8) / len(ref)
+
+
+def test_las_and_crs_mesh_are_the_ply_files_moved_to_the_crs(exported):
+    """tower_points.las reads back with laspy with the record's CRS (its WKT, pyproj) and the
+    PLY's points + origin (1 mm LAS steps); tower_mesh_crs.ply (doubles, read by plyfile) is
+    tower_mesh.ply + origin."""
+    import laspy
+    import plyfile
+    import pyproj
+
+    _, out, _ = exported
+    origin = np.asarray(GEOREFERENCE["origin"])
+    las = laspy.read(out / "tower_points.las")
+    assert str(las.header.version) == "1.4" and las.header.point_format.id == 7
+    assert las.header.parse_crs() == pyproj.CRS.from_epsg(32632)
+    ply = io.read_ply_points(out / "tower_points.ply").astype(np.float64)
+    assert len(las.points) == len(ply) > 100
+    np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), ply + origin, atol=6e-4)
+    mesh = plyfile.PlyData.read(str(out / "tower_mesh_crs.ply"))
+    v = mesh["vertex"]
+    assert v["x"].dtype == np.float64
+    local = io.read_ply_points(out / "tower_mesh.ply").astype(np.float64)
+    np.testing.assert_allclose(np.column_stack([v["x"], v["y"], v["z"]]), local + origin, atol=1e-4)
+
+
+def test_tilt_base_centre_cross_arm_and_uncertainties_of_the_analytic_tower(exported):
+    """The metric frame is tilted 20 degrees about x against the tower (af.TILT): the axis is
+    20 degrees from the frame's z and upright on the ground; the base centre is TILT (cx, cy,
+    GROUND_Z) (+ origin in the CRS); no conductors; sigmas from the GPS record's formula."""
+    meas, _, _ = exported
+    voxel = meas["voxel_size"]
+    tilt = meas["tilt"]
+    assert tilt["tilt_degrees"] == pytest.approx(np.degrees(af.TILT_ANGLE), abs=0.3)
+    assert tilt["tilt_from_ground_normal_degrees"] < 0.3
+    np.testing.assert_allclose(tilt["direction"], af.TILT[:, 2], atol=0.005)
+    base_true = af.to_metric_frame([af.CENTRE[0], af.CENTRE[1], af.GROUND_Z])
+    sv = meas["survey"]
+    np.testing.assert_allclose(sv["base_centre"]["local"], base_true, atol=voxel)
+    np.testing.assert_allclose(sv["base_centre"]["crs"], base_true + GEOREFERENCE["origin"], atol=voxel)
+    assert sv["base_centre"]["crs_name"] == "EPSG:32632"
+    arm = max(meas["cross_arms"]["levels"], key=lambda level: level["span"])
+    k = meas["cross_arms"]["levels"].index(arm)
+    assert sv["cross_arm_heights"][k]["value"] == arm["height"]
+    assert meas["conductors"]["reconstructed"] is False and "why" in meas["conductors"]
+    # the alignment's terms by hand (a full fit, 7 parameters): sigma = 3 sqrt(25 / 68) per
+    # coordinate, s_rel = sigma / (D sqrt(25)), position sigma sqrt(3 / 25)
+    centres = to_metric64(np.asarray(af.dataset().c2w)[:, :3, 3], af.NORMALIZATION)
+    spread = np.sqrt(np.mean(np.sum((centres - centres.mean(0)) ** 2, axis=1)))
+    sigma = 3.0 * np.sqrt(25 / 68)
+    rel = sigma / (spread * 5.0)
+    assert sv["alignment"]["relative_scale"] == pytest.approx(rel)
+    assert sv["alignment"]["position_m"] == pytest.approx(sigma * np.sqrt(3 / 25))
+    h = sv["height"]
+    assert h["value"] == meas["height"]
+    assert h["sigma"] == pytest.approx(np.hypot(h["value"] * rel, h["fit_sigma"]))
+    assert h["fit_sigma"] == pytest.approx(np.hypot(meas["ground"]["clearance"] / 3, voxel / np.sqrt(12)))
+    width = sv["footprint"][0]
+    assert width["value"] == meas["footprint"]["width_a"]
+    assert width["sigma"] == pytest.approx(np.hypot(width["value"] * rel, voxel * np.sqrt(2 / 12)))
+    assert sv["cross_arm_spans"][k]["value"] == arm["span"]
+
+
+def _tilted_export(root, tilt: np.ndarray, meta: dict, apply=af.apply, **kwargs) -> dict:
+    """export_run of the analytic tower with its metric frame turned by `tilt` [3, 3] instead of
+    af.TILT (the record and the field's constants rebuilt as analytic_field builds them), the
+    field `apply` (default the analytic tower's)."""
+    import jax.numpy as jnp
+
+    record = {"scale": af.NORMALIZATION["scale"], "rotation": (af.TURN_Z @ tilt.T).tolist(),
+              "translation": (-tilt @ [af.CENTRE[0], af.CENTRE[1], af.GROUND_Z + 10.0]).tolist()}
+    ds = af.dataset()
+    ds.root = root
+    ds.normalization = record
+    ds.meta = {"scene_normalization": record, **meta}
+    cfg = analytic_config()
+    field = {**af.params(cfg.model)["fine"], "rotation": jnp.asarray(record["rotation"], jnp.float32),
+             "translation": jnp.asarray(record["translation"], jnp.float32), "tilt": jnp.asarray(tilt, jnp.float32)}
+    af.clear_compiled()
+    try:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(fields, "apply", apply)
+            mp.setattr(runs, "load_run", lambda run_dir: (cfg, None))
+            mp.setattr(runs, "dataset_of_run", lambda *args, **kw: ds)
+            mp.setattr(train, "load_params", lambda run_dir, cfg, ds: ({"coarse": field, "fine": field}, 0))
+            (root / "run").mkdir(exist_ok=True)
+            return export_run.export_run(root / "run", resolution=RESOLUTION, views=8, progress=False, **kwargs)
+    finally:
+        af.clear_compiled()
+
+
+def leaning_apply(lean: np.ndarray):
+    """`fields.apply` of the analytic scene with level ground (metric z = GROUND_Z) and the tower
+    alone turned by `lean` [3, 3] about its base centre (CENTRE, GROUND_Z): a metric point m is
+    in the tower when lean^T (m - base) + base is in af.boxes()."""
+    import jax.numpy as jnp
+
+    base = jnp.asarray([af.CENTRE[0], af.CENTRE[1], af.GROUND_Z], jnp.float32)
+    lean = jnp.asarray(lean, jnp.float32)
+
+    def apply(field_params, cfg, x, viewdirs=None, appearance=None, transient=None):
+        m = af.to_metric(field_params, x)
+        tower = af.inside_tower((m - base) @ lean + base)
+        ground = (m[..., 2] <= af.GROUND_Z) & (m[..., 2] >= af.GROUND_Z - 2.0)
+        sigma = jnp.where(tower | ground, af.SIGMA, 0.0)
+        rgb = jnp.where(tower[..., None], jnp.asarray(af.TOWER_RGB), jnp.asarray(af.GROUND_RGB))
+        return {"sigma": sigma, "rgb": jnp.broadcast_to(rgb, m.shape)}
+
+    return apply
+
+
+def test_a_tower_tilted_1_degree_is_measured_within_0_3_degrees(tmp_path):
+    """Issue 41's target through the whole export: on level ground (a metric frame that is the
+    tower's, no turn), the tower alone turned 1 degree about the axis (cos 30, sin 30, 0) through
+    its base centre: its axis is `lean` z, 1 degree from vertical and from the ground's normal;
+    top offset HEIGHT tan 1 degree (the axis' offset at the highest point's height)."""
+    axis = np.array([np.cos(np.radians(30)), np.sin(np.radians(30)), 0.0])
+    t = np.radians(1.0)
+    k = np.array([[0, -axis[2], axis[1]], [axis[2], 0, -axis[0]], [-axis[1], axis[0], 0]])
+    lean = np.eye(3) + np.sin(t) * k + (1 - np.cos(t)) * k @ k
+    meas = _tilted_export(tmp_path, np.eye(3), {}, apply=leaning_apply(lean))
+    got = meas["tilt"]
+    assert meas["ground"]["tilt_degrees"] < 0.1
+    assert got["tilt_degrees"] == pytest.approx(1.0, abs=0.3)
+    assert got["tilt_from_ground_normal_degrees"] == pytest.approx(1.0, abs=0.3)
+    np.testing.assert_allclose(got["direction"], lean[:, 2], atol=0.3 * np.pi / 180)
+    assert got["top_offset"] == pytest.approx(meas["height"] * np.tan(t), abs=0.1)
+    np.testing.assert_allclose(got["base"][:2], af.CENTRE, atol=meas["voxel_size"])
+    assert meas["units"] == "metres" and meas["survey"]["alignment"]["relative_scale"] == 0.0   # synthetic: exact
+
+
+def test_an_unknown_crs_in_the_record_is_refused_before_anything_is_written(tmp_path):
+    from jaxnerf_grid.io import DataError
+
+    with pytest.raises(DataError, match="EPSG:999999"):
+        _tilted_export(tmp_path, af.TILT, {"georeference": {**GEOREFERENCE, "crs": "EPSG:999999"}})
+    assert not (tmp_path / "run" / "export").exists()

@@ -49,6 +49,11 @@ def main(argv: list[str] | None = None) -> int:
     out = Path(args.out) if args.out else Path(args.run) / "export"
     unit = "m" if m["units"] == "metres" else "units (unknown scale)"
     height = "n/a" if m["height"] is None else f"{m['height']:.2f} {unit}"
+    sigma = ((m.get("survey") or {}).get("height") or {}).get("sigma")
+    if sigma is not None:
+        height += f" +- {sigma:.2f} {unit}"
+    if m.get("tilt"):
+        height += f", axis tilted {m['tilt']['tilt_degrees']:.2f} deg from vertical"
     print(f"tower height {height}; mesh {m['mesh']['vertices']} vertices, {m['mesh']['faces']} faces; "
           f"{m['points']['count']} fused points; {m['seconds']:.0f} s; files in {out}")
     return 0

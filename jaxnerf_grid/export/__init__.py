@@ -4,7 +4,9 @@ This file holds the dataset's normalisation, used by the submodules and by `eval
 `export.score` (no JAX at import time); the depth clouds it shares with evaluation are `clouds.py`:
 
 * `to_metric` / `to_scene`: the dataset's normalisation x_norm = scale * R (x + translation)
-  (R: the optional rotation; docs/DATASET.md) undone / applied; `plane_to_metric` does it for a plane.
+  (R: the optional rotation; docs/DATASET.md) undone / applied; `plane_to_metric` does it for a plane;
+  `box_to_scene` / `box_to_metric` for an axis-aligned box: the box around all 8 mapped corners
+  (with a rotation, mapping the two opposite corners alone gives a wrong, even inverted, box).
 
 The export itself lives in submodules, each imported by its user:
 `export.field` (the trained density and colour, sampled in chunks; JAX), `export.mesh`
@@ -67,3 +69,24 @@ def plane_to_metric(normal, offset: float, normalization: dict | None) -> tuple[
     if rotation is not None:
         n = rotation.T @ n
     return n, float(n @ translation + float(offset) / scale)
+
+
+def box_corners(lo, hi) -> np.ndarray:
+    """The 8 corners [8, 3] of the axis-aligned box lo [3] - hi [3]."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    pick = np.array([[(k >> axis) & 1 for axis in range(3)] for k in range(8)], bool)
+    return np.where(pick, hi, lo)
+
+
+def box_to_scene(lo, hi, normalization: dict | None) -> tuple[np.ndarray, np.ndarray]:
+    """A metric axis-aligned box lo [3] - hi [3] -> the axis-aligned box of the normalised scene
+    holding it: the extent of its 8 corners mapped by `to_scene`. Returns (lo [3], hi [3])."""
+    corners = to_scene(box_corners(lo, hi), normalization)
+    return corners.min(axis=0), corners.max(axis=0)
+
+
+def box_to_metric(lo, hi, normalization: dict | None) -> tuple[np.ndarray, np.ndarray]:
+    """A box of the normalised scene lo [3] - hi [3] -> the metric axis-aligned box holding it:
+    the extent of its 8 corners mapped by `to_metric64`. Returns (lo [3], hi [3])."""
+    corners = to_metric64(box_corners(lo, hi), normalization)
+    return corners.min(axis=0), corners.max(axis=0)

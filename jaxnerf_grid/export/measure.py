@@ -23,6 +23,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxnerf_grid import io
+from jaxnerf_grid.export import ground
 
 
 def plane_basis(normal) -> tuple[np.ndarray, np.ndarray]:
@@ -183,3 +184,113 @@ def _label(canvas: np.ndarray, names: list[str], size: int, gap: int) -> np.ndar
         cv2.putText(img, name, (k * (size + gap) + 6, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (40, 40, 40), 1,
                     cv2.LINE_AA)
     return img.astype(np.float32) / 255.0
+
+
+def _line_fit(h: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
+    """Least-squares line v = a + b h over samples h, v [K >= 2]. Returns (a, b, standard error
+    of b: the residuals' spread sqrt(sum r^2 / (K - 2)) / sqrt(sum (h - mean h)^2); 0 for K = 2)."""
+    hc = h - h.mean()
+    sxx = float(hc @ hc)
+    b = float(hc @ (v - v.mean())) / sxx
+    a = float(v.mean() - b * h.mean())
+    r = v - (a + b * h)
+    dof = len(h) - 2
+    return a, b, (float(np.sqrt(r @ r / dof / sxx)) if dof > 0 else 0.0)
+
+
+def axis_tilt(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_height: float,
+              ratio: float = 1.5, min_points: int = 3) -> dict | None:
+    """The tower's axis and its tilt. points [N, 3] (mesh vertices), the ground plane n . x + d = 0,
+    the footprint's axes (unit, in the plane), slices `slice_height` thick in height above the plane.
+
+    Each slice with >= min_points points and no wide member (its widths along a and b within
+    `ratio` of each other: the cross-arms are left out) gives a centre: the middle of its extent
+    along a and along b (a lattice's faces are symmetric about the axis, so is that middle) at
+    its mean height h. Lines a(h), b(h) are fitted by least squares, once more without the slices
+    more than 3 x 1.4826 MAD off; the axis is u = normalise(n + b_a e_a + b_b e_b) (b_a, b_b the
+    slopes). Returns None with fewer than 3 slices, else
+    {"tilt_degrees": angle of u from the frame's +z, "tilt_from_ground_normal_degrees": from n,
+    "tilt_sigma_degrees": atan of the slopes' standard errors (RMS of the two),
+    "direction" [3] (u, u_z > 0), "base" [3] (the axis at the ground), "top" [3] (the axis at the
+    highest point's height), "top_offset" (|top - base| horizontally, in x, y), "top_offset_xy" [2],
+    "top_offset_sigma" (tilt_sigma in radians x the height), "slices": used, "slices_left_out"}."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    n = np.asarray(normal, np.float64)
+    e_a, e_b = np.asarray(axis_a, np.float64), np.asarray(axis_b, np.float64)
+    if len(p) < 3 * min_points:
+        return None
+    h, a, b = p @ n + d, p @ e_a, p @ e_b
+    edges = np.arange(h.min(), h.max() + slice_height, slice_height)
+    idx = np.clip(np.digitize(h, edges) - 1, 0, max(len(edges) - 2, 0))
+    rows = []
+    for s in np.unique(idx):
+        sel = idx == s
+        if sel.sum() < min_points:
+            continue
+        wa, wb = np.ptp(a[sel]), np.ptp(b[sel])
+        if max(wa, wb) > ratio * max(min(wa, wb), 1e-9):
+            continue
+        rows.append((h[sel].mean(), 0.5 * (a[sel].min() + a[sel].max()), 0.5 * (b[sel].min() + b[sel].max())))
+    if len(rows) < 3:
+        return None
+    c = np.asarray(rows)
+    keep = np.ones(len(c), bool)
+    for _ in range(2):
+        fa, fb = _line_fit(c[keep, 0], c[keep, 1]), _line_fit(c[keep, 0], c[keep, 2])
+        off = np.hypot(c[:, 1] - (fa[0] + fa[1] * c[:, 0]), c[:, 2] - (fb[0] + fb[1] * c[:, 0]))
+        mad = 1.4826 * float(np.median(np.abs(off[keep] - np.median(off[keep]))))
+        new = off <= max(3.0 * mad, 1e-9 + 0.5 * slice_height)
+        if new.sum() < 3 or np.array_equal(new, keep):
+            break
+        keep = new
+    fa, fb = _line_fit(c[keep, 0], c[keep, 1]), _line_fit(c[keep, 0], c[keep, 2])
+
+    def at(height):   # the axis at a height: x . e_a = a(h), x . e_b = b(h), x . n + d = h
+        return (fa[0] + fa[1] * height) * e_a + (fb[0] + fb[1] * height) * e_b + (height - d) * n
+
+    u = n + fa[1] * e_a + fb[1] * e_b
+    u /= np.linalg.norm(u)
+    if u[2] < 0:
+        u = -u
+    base, top = at(0.0), at(float(h.max()))
+    sigma = float(np.degrees(np.arctan(np.sqrt(0.5 * (fa[2] ** 2 + fb[2] ** 2)))))
+    offset = top[:2] - base[:2]
+    return {"tilt_degrees": float(np.degrees(np.arccos(np.clip(u[2], -1.0, 1.0)))),
+            "tilt_from_ground_normal_degrees": float(np.degrees(np.arctan(np.hypot(fa[1], fb[1])))),
+            "tilt_sigma_degrees": sigma, "direction": [float(v) for v in u], "base": [float(v) for v in base],
+            "top": [float(v) for v in top], "top_offset": float(np.hypot(*offset)),
+            "top_offset_xy": [float(v) for v in offset],
+            "top_offset_sigma": float(np.radians(sigma) * float(h.max())),
+            "slices": int(keep.sum()), "slices_left_out": int(len(c) - keep.sum())}
+
+
+def conductor_clearance(points: np.ndarray, normal, d: float, box_lo, box_hi, min_height: float,
+                        cell: float, min_points: int = 20) -> dict:
+    """The conductors' lowest reconstructed point above the ground (a heuristic). points [N, 3]
+    (the dense cloud, every point, not only the box's); the tower's box [3], [3]; min_height:
+    conductors hang from the cross-arms, so only points higher than this above the plane count
+    (the caller passes half the lowest cross-arm's height: people, cars and shrubs stay below).
+
+    Conductor points: those outside the tower's box in x or y, higher than min_height; their
+    largest group of touching `cell` cells (26-neighbours) must hold >= min_points points and
+    leave the box's side (start within 2 cells of it). Returns {"reconstructed": False, "why"}
+    or {"reconstructed": True, "lowest_height" (above the plane), "lowest_point" [3], "points",
+    "min_height", "extent": the group's largest horizontal distance from the box}."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    lo, hi = np.asarray(box_lo, np.float64), np.asarray(box_hi, np.float64)
+    h = p @ np.asarray(normal, np.float64) + d
+    outside = np.any((p[:, :2] < lo[:2]) | (p[:, :2] > hi[:2]), axis=1)
+    cand = p[outside & (h > min_height)]
+    out = {"reconstructed": False, "min_height": float(min_height)}
+    if len(cand) < min_points:
+        return {**out, "why": f"{len(cand)} points outside the tower's box higher than {min_height:.3g} above the "
+                              f"ground (at least {min_points} needed)"}
+    group = cand[ground.largest_cluster(cand, cell)]
+    gap = np.max(np.maximum(np.maximum(lo[:2] - group[:, :2], group[:, :2] - hi[:2]), 0.0), axis=1)
+    if len(group) < min_points or gap.min() > 2 * cell:
+        return {**out, "why": f"the largest group above {min_height:.3g} outside the box ({len(group)} points) "
+                              "does not leave the tower"}
+    gh = group @ np.asarray(normal, np.float64) + d
+    k = int(np.argmin(gh))
+    return {"reconstructed": True, "lowest_height": float(gh[k]), "lowest_point": [float(v) for v in group[k]],
+            "points": int(len(group)), "min_height": float(min_height), "extent": float(gap.max())}

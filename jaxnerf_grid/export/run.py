@@ -14,7 +14,10 @@ Steps, all in the normalised scene until the files are written:
    under `min_component_fraction` of the faces dropped, vertex colours from the field seen
    from the `colour_cameras` nearest training cameras;
 5. the files, in the dataset's original units (`export.to_metric`): tower_mesh.ply,
-   tower_points.ply (the dense cloud inside the box), box.json, measurements.json,
+   tower_points.ply (the dense cloud inside the box) and tower_points.las (the same points, in
+   the projected CRS with its WKT when the dataset is georeferenced), tower_mesh_crs.ply (the
+   mesh in the CRS, float64, when georeferenced), box.json, measurements.json (every figure
+   with its uncertainty, the axis' tilt, the base centre, the conductors' clearance: `survey`),
    export_views.png; and the "Tower model" section of the run's report.md.
 
 Every check (the output folder, the checkpoint, the box) runs before anything is written.
@@ -33,7 +36,8 @@ import numpy as np
 from jaxnerf_grid import clouds, config as config_lib, folders, io, progress as progress_lib, report, runs, train
 from jaxnerf_grid import views as views_lib
 from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.export import field, fuse, ground, measure, mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
+from jaxnerf_grid.export import box_to_metric, box_to_scene, field, fuse, ground, measure, mesh as mesh_lib
+from jaxnerf_grid.export import plane_to_metric, survey, to_metric64
 from jaxnerf_grid.io import DataError
 
 DEFAULT_RESOLUTION = mesh_lib.DEFAULT_RESOLUTION  # the defaults live where `jaxnerf-grid export --help` reads
@@ -42,9 +46,11 @@ DEFAULT_COLOUR_CAMERAS = 3
 GROUND_CELL = 0.02          # normalised units: columns of the ground fit, cells of the tower cluster
 GROUND_INLIER = 0.025       # normalised units: RANSAC inlier distance
 SCENE_LIMIT = 1.0           # the region of interest: the unit sphere's cube [-1, 1]^3 (normalised)
-FILES = ("tower_mesh.ply", "tower_points.ply", "box.json", "measurements.json", "export_views.png")
+FILES = ("tower_mesh.ply", "tower_points.ply", "tower_points.las", "box.json", "measurements.json",
+         "export_views.png")
+CRS_FILES = ("tower_mesh_crs.ply",)     # written only for a georeferenced dataset
 # what overwrite=True may clear in a folder holding export's marker (folders.MARKERS["export"])
-OUTPUTS = FILES + ("report.md",)
+OUTPUTS = FILES + CRS_FILES + ("report.md",)
 # bytes per grid node while the mesh is made: the float32 density, marching cubes' working
 # copies and masks (a bound, not a measurement of the peak); the grid's node count is taken as
 # the cube resolution^3, the largest box of that resolution
@@ -107,9 +113,9 @@ def parse_box(text) -> np.ndarray | None:
 
 
 def units_of(ds) -> str:
-    """'metres' when the dataset states its metric normalisation (transforms.json's
-    `scene_normalization`, docs/DATASET.md), else 'unknown'."""
-    return "metres" if (ds.meta or {}).get("scene_normalization") else "unknown"
+    """'metres' or 'unknown': transforms.json's `georeference.units` where the record exists,
+    else 'metres' for a stated metric normalisation (the synthetic scenes; `survey.units_of`)."""
+    return survey.units_of(ds)
 
 
 def units_comment(units: str) -> str:
@@ -186,10 +192,14 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     ds = runs.dataset_of_run(run_dir, data, dataset, progress, allow_other_data, max_side=cfg.train.max_side)
     norm = ds.normalization
     if given is not None:
-        lo_given, hi_given = to_scene(given[:3], norm), to_scene(given[3:], norm)
+        lo_given, hi_given = box_to_scene(given[:3], given[3:], norm)   # all 8 corners (a rotated record)
         check_box_in_scene(lo_given, hi_given)
-    params, step = train.load_params(run_dir, cfg, ds)
     units = units_of(ds)
+    geo = survey.georeference_of(ds)
+    crs_name, crs_origin = survey.crs_of(geo)
+    if crs_name is not None:
+        survey.pyproj_crs(crs_name)       # a CRS pyproj does not know fails before anything is written
+    params, step = train.load_params(run_dir, cfg, ds)
     scale = float(norm.get("scale", 1.0))
 
     # 1-2. the dense cloud and the ground
@@ -235,7 +245,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     verts_m = to_metric64(verts, norm)
     inside = _inside(points, lo, hi)
     tower_pts, tower_cols = to_metric64(points[inside], norm), colours[inside]
-    box_m = {"min": [float(v) for v in to_metric64(lo, norm)], "max": [float(v) for v in to_metric64(hi, norm)]}
+    lo_m, hi_m = box_to_metric(lo, hi, norm)
+    box_m = {"min": [float(v) for v in lo_m], "max": [float(v) for v in hi_m]}
     meas = {"units": units, "run": str(run_dir), "step": int(step),
             "box": {**box_m, "source": "given" if given is not None else "auto"},
             "resolution": int(resolution), "grid": list(shape), "voxel_size": h / scale,
@@ -247,7 +258,9 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                      **comp, "min_component_fraction": float(min_component_fraction)},
             "points": {"count": int(len(tower_pts)), "views": [int(i) for i in ids], "min_views": int(min_views),
                        **fuse_stats},
-            "ground": None, "height": None, "footprint": None, "cross_arms": None}
+            "ground": None, "height": None, "footprint": None, "cross_arms": None, "tilt": None,
+            "conductors": None}
+    alignment = survey.alignment_uncertainty(geo, units, to_metric64(centres, norm))
     if plane is not None:
         n_m, d_m = plane_to_metric(plane["normal"], plane["offset"], norm)
         meas["ground"] = {"normal": [float(v) for v in n_m], "offset": d_m, "equation": "normal . x + offset = 0",
@@ -261,7 +274,14 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         meas["footprint"] = fp
         meas["cross_arms"] = measure.cross_arms(verts_m, n_m, d_m, fp["axis_a"], fp["axis_b"],
                                                 max(0.01 * height, 2 * h / scale))
+        meas["tilt"] = measure.axis_tilt(verts_m, n_m, d_m, fp["axis_a"], fp["axis_b"],
+                                         max(0.01 * height, 2 * h / scale))
+        levels = meas["cross_arms"]["levels"]
+        meas["conductors"] = measure.conductor_clearance(
+            to_metric64(points, norm), n_m, d_m, lo_m, hi_m,
+            0.5 * min(level["height"] for level in levels) if levels else 0.5 * height, GROUND_CELL / scale)
     meas["box"].update(box_stats)
+    meas["survey"] = _survey(meas, geo, alignment, h / scale)
     comments = (units_comment(units), f"jaxnerf-grid export of {run_dir} at step {step}")
     if not folders.is_empty(out):  # checked by check_out: empty, or export's own (overwrite=True)
         folders.clear_outputs(out, "export", OUTPUTS, "export.out", legacy=_is_legacy_export(out))
@@ -272,7 +292,13 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     clouds.write_point_cloud(out / "tower_points.ply", [(tower_pts, tower_cols)],
                       comments=comments + (f"depth of {len(ids)} views fused, each point confirmed by >= "
                                            f"{min_views} other views",))
-    io.write_json(out / "box.json", {**meas["box"], "units": units, "normalised": {
+    survey.write_las(out / "tower_points.las", survey.to_crs(tower_pts, geo), tower_cols, crs_name)
+    if crs_name is not None:
+        survey.write_ply_double(out / "tower_mesh_crs.ply", survey.to_crs(verts_m, geo), vcolours, faces,
+                                comments=(f"crs: {crs_name} ({geo.get('crs_name')}); x = tower_mesh.ply's x + "
+                                          f"origin {[float(v) for v in crs_origin]}",
+                                          f"jaxnerf-grid export of {run_dir} at step {step}"))
+    io.write_json(out / "box.json", {**meas["box"], "units": units, "frame": BOX_FRAME, "normalised": {
         "min": [float(v) for v in lo], "max": [float(v) for v in hi]}})
     picture = measure.orthographic_views(verts_m, vcolours, normals, splat=1)
     io.write_png(out / "export_views.png", picture)
@@ -282,6 +308,57 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     io.write_json(out / "measurements.json", meas)
     _update_report(run_dir, out, meas)
     return meas
+
+
+BOX_FRAME = ("min / max: axis-aligned in the export's units (the dataset's frame); the mesh grid is "
+             "axis-aligned in the normalised scene: 'normalised', the box around the 8 corners of a given box, "
+             "and min / max the box around the 8 corners of 'normalised' mapped back")
+
+
+def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict:
+    """measurements.json's `survey`: each figure {"value", "sigma", "fit_sigma"} in metres
+    (docs/EXPORT.md "Survey outputs and uncertainty"), the tower's base centre (local and CRS), the alignment's
+    terms. fit terms: ground = the ground inliers' robust spread (its clearance / 3), a vertex's
+    height = voxel / sqrt(12), a cross-arm's = its slice height / sqrt(12); a width or span (two
+    ends) = voxel sqrt(2 / 12)."""
+    g = meas.get("ground") or {}
+    ground_sigma = float(g.get("clearance", 0.0)) / 3.0
+    vertex = voxel / math.sqrt(12.0)
+    out = {"alignment": alignment, "height": None, "cross_arm_heights": [], "cross_arm_spans": [],
+           "footprint": None, "tilt_degrees": None, "top_offset": None, "conductor_clearance": None,
+           "base_centre": None}
+    ends = voxel * math.sqrt(2.0 / 12.0)
+    fp = meas.get("footprint") or {}
+    if fp:
+        out["footprint"] = [survey.with_sigma(fp["width_a"], ends, alignment),
+                            survey.with_sigma(fp["width_b"], ends, alignment)]
+    if meas.get("height") is not None:
+        out["height"] = survey.with_sigma(meas["height"], math.hypot(ground_sigma, vertex), alignment)
+    arms = meas.get("cross_arms") or {}
+    for level in arms.get("levels") or []:
+        out["cross_arm_heights"].append(survey.with_sigma(
+            level["height"], math.hypot(ground_sigma, arms["slice_height"] / math.sqrt(12.0)), alignment))
+        out["cross_arm_spans"].append(survey.with_sigma(level["span"], ends, alignment))
+    tilt = meas.get("tilt")
+    if tilt:
+        # the angle does not scale: the fit's error only (the frame's own vertical error is not in it)
+        out["tilt_degrees"] = {"value": tilt["tilt_degrees"], "sigma": tilt["tilt_sigma_degrees"],
+                               "fit_sigma": tilt["tilt_sigma_degrees"]}
+        out["top_offset"] = survey.with_sigma(tilt["top_offset"], tilt["top_offset_sigma"], alignment)
+        base = np.asarray(tilt["base"], np.float64)
+        lever = float(np.linalg.norm(base - np.asarray(alignment.get("centroid", base), np.float64)))
+        crs_name, _ = survey.crs_of(geo)
+        out["base_centre"] = {"local": [float(v) for v in base],
+                              "crs": [float(v) for v in survey.to_crs(base, geo)] if crs_name else None,
+                              "crs_name": crs_name,
+                              **survey.with_sigma(0.0, math.hypot(vertex, ground_sigma), alignment, lever=lever,
+                                                    position=True)}
+        out["base_centre"].pop("value", None)
+    cond = meas.get("conductors") or {}
+    if cond.get("reconstructed"):
+        out["conductor_clearance"] = survey.with_sigma(cond["lowest_height"], math.hypot(ground_sigma, voxel),
+                                                       alignment)
+    return out
 
 
 def _update_report(run_dir: Path, out: Path, meas: dict) -> None:

@@ -52,12 +52,20 @@ def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: s
 
 def transforms_top(width: int, height: int, near: float, far: float, normalization: dict, meta: dict,
                    root, out_dir) -> dict:
-    """Top-level keys of a written transforms.json (copies `tower_ply` next to it)."""
+    """Top-level keys of a written transforms.json (copies `tower_ply` next to it). A `poses`
+    dataset's `poses` and `georeference` records pass through (the export reads its units,
+    CRS and residuals from them, docs/EXPORT.md), less the georeference's two keys derived from
+    the old normalisation (`scene_to_crs`, `metres_per_scene_unit`)."""
     top = {"w": int(width), "h": int(height), "camera_model": "PINHOLE",
            "near": float(near), "far": float(far),
            "scene_normalization": normalization_record(normalization)}
     if "generator" in meta:
         top["generator"] = meta["generator"]
+    if "poses" in meta:
+        top["poses"] = meta["poses"]
+    if isinstance(meta.get("georeference"), dict):
+        top["georeference"] = {key: value for key, value in meta["georeference"].items()
+                               if key not in ("scene_to_crs", "metres_per_scene_unit")}
     tower = meta.get("tower_ply")
     if tower and (Path(root) / tower).is_file():
         io.atomic_write_bytes(Path(out_dir) / tower, (Path(root) / tower).read_bytes())

@@ -1,0 +1,251 @@
+"""Issue 41 items 3-4 (docs/EXPORT.md "Survey outputs"): the export's units from the
+georeference record, boxes mapped by their 8 corners, LAS 1.4 with a CRS, the tilt of the
+tower's axis, the conductors' clearance and the alignment's uncertainty, each against an
+independent answer (hand-computed boxes, generated geometry with known tilt, a Monte Carlo of the
+similarity fit)."""
+
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid import io, report
+from jaxnerf_grid.data.georef import umeyama
+from jaxnerf_grid.export import box_to_metric, box_to_scene, measure, survey
+from jaxnerf_grid.export import run as export_run
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_train import tiny_dataset  # noqa: E402
+
+C30, S30 = np.sqrt(3.0) / 2.0, 0.5
+TURNED = {"scale": 0.5, "translation": [1.0, 2.0, 3.0],
+          "rotation": [[C30, -S30, 0.0], [S30, C30, 0.0], [0.0, 0.0, 1.0]]}   # 30 degrees about z
+
+
+# --------------------------------------------------------------------------- units
+
+
+def test_units_follow_the_georeference_record_else_the_synthetic_scale():
+    ds = tiny_dataset()
+    norm = {"scale": 0.05, "translation": [0.0, 0.0, 0.0]}
+    ds.meta = {"scene_normalization": norm}                                     # synthetic: metres
+    assert export_run.units_of(ds) == "metres"
+    ds.meta = {"scene_normalization": norm, "georeference": {"units": "unknown"}, "poses": {}}   # poses, no GPS
+    assert export_run.units_of(ds) == "unknown"
+    ds.meta = {"scene_normalization": norm, "georeference": {"units": "metres", "source": "gps"}, "poses": {}}
+    assert export_run.units_of(ds) == "metres"
+    ds.meta = {"scene_normalization": norm, "poses": {}}              # poses before the record: no scale known
+    assert export_run.units_of(ds) == "unknown"
+    ds.meta = {}
+    assert export_run.units_of(ds) == "unknown"
+
+
+def test_the_loader_keeps_the_georeference_record(tmp_path):
+    from jaxnerf_grid.data.formats import load_dataset, save_transforms_json
+
+    ds = tiny_dataset()
+    ds.frame_paths = [f"images/frame_{i:03d}.png" for i in range(ds.num_frames)]
+    save_transforms_json(ds, tmp_path / "d")
+    top = io.read_json(tmp_path / "d" / "transforms.json")
+    geo = {"units": "unknown", "source": None}
+    io.write_json(tmp_path / "d" / "transforms.json", {**top, "scene_normalization": {"scale": 0.1, "translation":
+                                                                                      [0, 0, 0]},
+                                                       "georeference": geo, "poses": {"registered": 5}})
+    loaded = load_dataset(tmp_path / "d")
+    assert loaded.meta["georeference"] == geo
+    assert export_run.units_of(loaded) == "unknown"
+    # a dataset written again from it (preprocess, save_transforms_json) keeps the records: its
+    # scene_normalization alone would read as metres
+    save_transforms_json(loaded, tmp_path / "again")
+    again = load_dataset(tmp_path / "again")
+    assert again.meta["georeference"] == geo and again.meta["poses"] == {"registered": 5}
+    assert export_run.units_of(again) == "unknown"
+
+
+# --------------------------------------------------------------------------- boxes
+
+
+def test_a_metric_box_maps_to_the_scene_box_around_its_8_corners_by_hand():
+    """x_norm = 0.5 R (x + t), R 30 degrees about z, box [0, 2] x [0, 1] x [0, 1]: x + t spans
+    [1, 3] x [2, 3] x [3, 4]; x' = c x - s y is least at (1, 3), greatest at (3, 2); y' = s x + c y
+    least at (1, 2), greatest at (3, 3)."""
+    lo, hi = box_to_scene([0, 0, 0], [2, 1, 1], TURNED)
+    np.testing.assert_allclose(lo, [0.5 * (C30 * 1 - S30 * 3), 0.5 * (S30 * 1 + C30 * 2), 1.5], atol=1e-12)
+    np.testing.assert_allclose(hi, [0.5 * (C30 * 3 - S30 * 2), 0.5 * (S30 * 3 + C30 * 3), 2.0], atol=1e-12)
+    assert np.all(hi > lo)
+
+
+def test_a_scene_box_maps_to_the_metric_box_around_its_8_corners_by_hand():
+    """x = R^T x_norm / 0.5 - t of the cube [-1, 1]^3: R^T turns its x and y extent into
+    +-(c + s), z stays +-1."""
+    lo, hi = box_to_metric([-1, -1, -1], [1, 1, 1], TURNED)
+    e = (C30 + S30) / 0.5
+    np.testing.assert_allclose(lo, [-e - 1, -e - 2, -2 - 3], atol=1e-12)
+    np.testing.assert_allclose(hi, [e - 1, e - 2, 2 - 3], atol=1e-12)
+
+
+def test_a_box_with_a_turn_of_more_than_90_degrees_is_not_inverted():
+    """A record turned 150 degrees: mapping the two corners alone gives min x > max x."""
+    c, s = np.cos(np.radians(150)), np.sin(np.radians(150))
+    record = {"scale": 1.0, "translation": [0, 0, 0], "rotation": [[c, -s, 0], [s, c, 0], [0, 0, 1]]}
+    lo, hi = box_to_scene([0, 0, 0], [4, 1, 1], record)
+    # x' = c x - s y (c < 0 < s): least at (4, 1), greatest at (0, 0); y' = s x + c y: least at
+    # (0, 1), greatest at (4, 0)
+    np.testing.assert_allclose(lo[:2], [4 * c - s, c], atol=1e-12)
+    np.testing.assert_allclose(hi[:2], [0.0, 4 * s], atol=1e-12)
+
+
+# --------------------------------------------------------------------------- tilt, conductors
+
+
+def lattice_tower(tilt_deg: float, azimuth_deg: float, rng, ground_z: float = 3.0, arm_shift: float = 0.0):
+    """Surface samples of a tapered square tower (base 8 m, top 2 m, 30 m high) with two
+    cross-arms (16 m at 20 m, 12 m at 25 m), turned 20 degrees about its axis, tilted by
+    `tilt_deg` about the base centre (2, -1, ground_z) towards azimuth `azimuth_deg`; arm_shift
+    moves the arms sideways (a one-sided arm: its middle is off the axis); no ground.
+    Returns (points [N, 3], the axis' top offset at the highest point's height)."""
+    z = rng.uniform(0, 30, 40000)
+    half = 4.0 - 3.0 * z / 30.0
+    side = rng.integers(0, 4, len(z))
+    u = rng.uniform(-1, 1, len(z)) * half
+    x = np.where(side == 0, half, np.where(side == 1, -half, u))
+    y = np.where(side == 2, half, np.where(side == 3, -half, u))
+    body = np.column_stack([x, y, z])
+    arms = []
+    for height, span in ((20.0, 16.0), (25.0, 12.0)):
+        a = rng.uniform(-span / 2, span / 2, 3000) + arm_shift
+        arms.append(np.column_stack([a, rng.uniform(-0.4, 0.4, len(a)), height + rng.uniform(-0.5, 0.5, len(a))]))
+    tower = np.vstack([body] + arms)
+    turn = np.radians(20.0)
+    tower = tower @ np.array([[np.cos(turn), -np.sin(turn), 0], [np.sin(turn), np.cos(turn), 0], [0, 0, 1]]).T
+    t, az = np.radians(tilt_deg), np.radians(azimuth_deg)
+    k = np.array([-np.sin(az), np.cos(az), 0.0])           # tilt about this horizontal axis: the top goes to az
+    kx = np.array([[0, -k[2], k[1]], [k[2], 0, -k[0]], [-k[1], k[0], 0]])
+    rot = np.eye(3) + np.sin(t) * kx + (1 - np.cos(t)) * kx @ kx
+    base = np.array([2.0, -1.0, ground_z])
+    tower = tower @ rot.T + base
+    return tower, np.tan(t) * float(tower[:, 2].max() - ground_z)
+
+
+@pytest.mark.parametrize("tilt_deg, azimuth_deg, arm_shift", [(1.0, 35.0, 0.0), (0.0, 0.0, 0.0), (3.0, 200.0, 0.0),
+                                                              (1.0, 35.0, 3.0)])
+def test_tilt_of_a_generated_tower_within_0_3_degrees(tilt_deg, azimuth_deg, arm_shift):
+    rng = np.random.default_rng(1)
+    points, offset = lattice_tower(tilt_deg, azimuth_deg, rng, arm_shift=arm_shift)
+    n, d = np.array([0.0, 0.0, 1.0]), -3.0
+    fp = measure.footprint(points, n, d, 1.5)
+    tilt = measure.axis_tilt(points, n, d, fp["axis_a"], fp["axis_b"], 0.3)
+    assert tilt["tilt_degrees"] == pytest.approx(tilt_deg, abs=0.3)
+    assert tilt["tilt_degrees"] == pytest.approx(tilt_deg, abs=0.05)           # what it does on this one
+    assert tilt["top_offset"] == pytest.approx(offset, abs=0.05)
+    if tilt_deg > 0:
+        direction = np.degrees(np.arctan2(tilt["top_offset_xy"][1], tilt["top_offset_xy"][0])) % 360
+        assert direction == pytest.approx(azimuth_deg, abs=3.0)
+    np.testing.assert_allclose(tilt["base"], [2.0, -1.0, 3.0], atol=0.05)
+    assert tilt["slices_left_out"] >= 0 and tilt["tilt_sigma_degrees"] < 0.1
+
+
+def test_tilt_from_the_ground_normal_on_sloping_ground():
+    """A vertical tower on ground sloping 5 degrees: 0 from vertical, 5 from the ground's normal."""
+    rng = np.random.default_rng(2)
+    points, _ = lattice_tower(0.0, 0.0, rng)
+    slope = np.radians(5.0)
+    n = np.array([-np.sin(slope), 0.0, np.cos(slope)])
+    d = -float(n @ [2.0, -1.0, 3.0])
+    fp = measure.footprint(points, n, d, 1.5)
+    tilt = measure.axis_tilt(points, n, d, fp["axis_a"], fp["axis_b"], 0.3)
+    assert tilt["tilt_degrees"] == pytest.approx(0.0, abs=0.1)
+    assert tilt["tilt_from_ground_normal_degrees"] == pytest.approx(5.0, abs=0.1)
+
+
+def test_conductor_clearance_is_the_lowest_point_of_the_wire_leaving_the_tower():
+    """A wire from 0.1 m beyond the tower's box (x0, z = 23) sagging as z = 23 - 0.05 (x - x0)^2
+    for 12 m (lowest: 23 - 0.05 * 144 = 15.8 m above the ground z = 0); a car-sized blob 1 m high
+    beside the tower does not count; with no wire, not reconstructed."""
+    rng = np.random.default_rng(3)
+    tower, _ = lattice_tower(0.0, 0.0, rng, ground_z=0.0)
+    lo, hi = tower.min(0) - 0.3, tower.max(0) + 0.3
+    x0 = hi[0] + 0.1
+    x = np.linspace(x0, x0 + 12.0, 400)
+    wire = np.column_stack([x, np.zeros_like(x) + 0.01, 23.0 - 0.05 * (x - x0) ** 2])
+    car = np.column_stack([rng.uniform(12, 16, 300), rng.uniform(5, 7, 300), rng.uniform(0, 1, 300)])
+    n, d = np.array([0.0, 0.0, 1.0]), 0.0
+    got = measure.conductor_clearance(np.vstack([tower, wire, car]), n, d, lo, hi, 10.0, 0.4)
+    assert got["reconstructed"] is True and got["points"] == 400
+    assert got["lowest_height"] == pytest.approx(23.0 - 0.05 * 144.0, abs=1e-9)
+    assert got["extent"] == pytest.approx(12.1, abs=1e-9)
+    none = measure.conductor_clearance(np.vstack([tower, car]), n, d, lo, hi, 10.0, 0.4)
+    assert none["reconstructed"] is False and "outside the tower's box" in none["why"]
+
+
+# --------------------------------------------------------------------------- uncertainty
+
+
+@pytest.mark.parametrize("yaw_only", [False, True])
+def test_scale_uncertainty_formula_against_a_monte_carlo_of_the_fit(yaw_only):
+    """25 cameras on an orbit (radius 50 m, heights 10-40 m) with isotropic errors of 3 m RMS
+    (3-D): the spread of umeyama's scale over 400 draws matches the formula fed with the fits'
+    own residual RMS (median over the draws) within 15 %."""
+    rng = np.random.default_rng(4)
+    a = np.linspace(0, 2 * np.pi, 25, endpoint=False)
+    centres = np.column_stack([50 * np.cos(a), 50 * np.sin(a), np.linspace(10, 40, 25)])
+    scales, residuals = [], []
+    for _ in range(400):
+        noisy = centres + rng.normal(0, np.sqrt(3.0), centres.shape)
+        s, rot, t = umeyama(centres, noisy, yaw_only=yaw_only)
+        scales.append(s)
+        residuals.append(np.sqrt(np.mean(np.sum((s * centres @ rot.T + t - noisy) ** 2, axis=1))))
+    r = float(np.median(residuals))
+    rotation = "about z only" if yaw_only else "full"
+    geo = {"units": "metres", "source": "gps", "rotation": rotation, "gps": {"inliers": 25, "rms_m": r}}
+    got = survey.alignment_uncertainty(geo, "metres", centres)
+    assert got["relative_scale"] == pytest.approx(np.std(scales), rel=0.15)
+    spread = np.sqrt(np.mean(np.sum((centres - centres.mean(0)) ** 2, axis=1)))
+    sigma = r * np.sqrt(25 / (75 - (5 if yaw_only else 7)))
+    assert got["relative_scale"] == pytest.approx(sigma / (spread * 5))
+    assert got["position_m"] == pytest.approx(sigma * np.sqrt(3 / 25))
+
+
+def test_uncertainty_without_gps_synthetic_and_unknown_units():
+    assert survey.alignment_uncertainty(None, "metres", np.zeros((3, 3)))["relative_scale"] == 0.0
+    assert survey.alignment_uncertainty({"units": "unknown"}, "unknown", np.zeros((3, 3)))["relative_scale"] is None
+    bar = survey.alignment_uncertainty({"units": "metres", "source": "scale_bar"}, "metres", np.ones((3, 3)))
+    assert bar["relative_scale"] is None
+    assert survey.with_sigma(30.0, 0.1, bar)["sigma"] is None
+    fig = survey.with_sigma(30.0, 0.4, {"relative_scale": 0.01, "position_m": 0.6}, position=True)
+    assert fig["sigma"] == pytest.approx(np.sqrt(0.3 ** 2 + 0.4 ** 2 + 0.6 ** 2))
+
+
+# --------------------------------------------------------------------------- LAS
+
+
+def test_las_without_crs_reads_back_with_laspy(tmp_path):
+    import laspy
+
+    rng = np.random.default_rng(5)
+    points = rng.uniform(-20, 40, (500, 3))
+    colours = rng.uniform(0, 1, (500, 3))
+    survey.write_las(tmp_path / "p.las", points, colours)
+    las = laspy.read(tmp_path / "p.las")
+    assert las.header.parse_crs() is None and str(las.header.version) == "1.4"
+    np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), points, atol=5e-4 + 1e-9)
+    np.testing.assert_allclose(np.column_stack([las.red, las.green, las.blue]) / 65535, colours, atol=1e-5)
+
+
+def test_las_with_an_unknown_crs_is_a_data_error_naming_it(tmp_path):
+    with pytest.raises(io.DataError, match="EPSG:999999"):
+        survey.write_las(tmp_path / "p.las", np.zeros((2, 3)), np.zeros((2, 3)), "EPSG:999999")
+    assert not any(tmp_path.iterdir())
+
+
+def test_report_gives_each_figure_with_its_uncertainty():
+    meas = {"units": "metres", "height": 30.0, "conductors": {"reconstructed": False, "why": "none found"},
+            "survey": {"height": {"value": 30.0, "sigma": 0.25}, "cross_arm_heights": [{"value": 17.0, "sigma": 0.2}],
+                       "tilt_degrees": {"value": 1.0, "sigma": 0.05}, "top_offset": {"value": 0.52, "sigma": 0.03},
+                       "base_centre": {"local": [0, 0, 0], "crs": [465000.0, 5247000.0, 410.0],
+                                       "crs_name": "EPSG:32632", "sigma": 0.6}}}
+    text = "\n".join(report.export_lines({"measurements": meas}))
+    assert "30.00 m +- 0.25 m" in text and "17.00 m +- 0.20 m" in text and "1.00 deg +- 0.05 deg" in text
+    assert "(465000.000, 5247000.000, 410.000) in EPSG:32632 +- 0.60 m" in text
+    assert "not reconstructed: none found" in text
