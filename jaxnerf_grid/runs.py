@@ -41,7 +41,7 @@ from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 RUN_MARKER = folders.marker("train")
 FINGERPRINT_FILE = "dataset.json"
 RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity")
-RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report_views.png", "report_crops.png",
+RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report.html", "report_views.png", "report_crops.png",
                     "tower_points.ply", "config.json", FINGERPRINT_FILE, "timings.json")
 
 

@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import clouds, config as config_lib, folders, io, progress as progress_lib, report, runs, train
-from jaxnerf_grid import views as views_lib
+from jaxnerf_grid import report_html, views as views_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.export import field, fuse, ground, measure, mesh as mesh_lib, plane_to_metric, to_metric64, to_scene
 from jaxnerf_grid.io import DataError
@@ -44,7 +44,7 @@ GROUND_INLIER = 0.025       # normalised units: RANSAC inlier distance
 SCENE_LIMIT = 1.0           # the region of interest: the unit sphere's cube [-1, 1]^3 (normalised)
 FILES = ("tower_mesh.ply", "tower_points.ply", "box.json", "measurements.json", "export_views.png")
 # what overwrite=True may clear in a folder holding export's marker (folders.MARKERS["export"])
-OUTPUTS = FILES + ("report.md",)
+OUTPUTS = FILES + ("report.md", "report.html")
 # bytes per grid node while the mesh is made: the float32 density, marching cubes' working
 # copies and masks (a bound, not a measurement of the peak); the grid's node count is taken as
 # the cube resolution^3, the largest box of that resolution
@@ -280,15 +280,17 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     meas["timings"] = {**timings, "write": meas["seconds"] - sum(timings.values())}
     meas["peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     io.write_json(out / "measurements.json", meas)
-    _update_report(run_dir, out, meas)
+    _update_report(run_dir, out, meas, ds)
     return meas
 
 
-def _update_report(run_dir: Path, out: Path, meas: dict) -> None:
-    """Writes the "Tower model" section into RUN/report.md when the export is RUN/export (the
-    default), else into OUT/report.md."""
+def _update_report(run_dir: Path, out: Path, meas: dict, ds) -> None:
+    """Writes the "Tower model" section into RUN/report.md and rewrites RUN/report.html
+    (`report_html`) when the export is RUN/export (the default), else OUT/report.md and
+    OUT/report.html."""
     if out.resolve() == (run_dir / "export").resolve():
         path, image = run_dir / "report.md", "export/export_views.png"
     else:
         path, image = out / "report.md", "export_views.png"
     report.set_section(path, report.EXPORT_HEADING, report.export_lines({"measurements": meas, "image": image}))
+    report_html.write_report_html(path.with_suffix(".html"), run_dir, ds, export_dir=out)
