@@ -40,7 +40,7 @@ from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 
 RUN_MARKER = folders.marker("train")
 FINGERPRINT_FILE = "dataset.json"
-RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity")
+RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity", "videos")
 RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report.html", "report_views.png", "report_crops.png",
                     "tower_points.ply", "config.json", FINGERPRINT_FILE, "timings.json")
 
