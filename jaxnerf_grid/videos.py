@@ -10,6 +10,7 @@ the colour and the depth (inverse depth through the TURBO map, one range for eve
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -161,24 +162,52 @@ def render_video(run_dir, path_file=None, frames: int = DEFAULT_FRAMES, fps: flo
         out.parent.mkdir(parents=True, exist_ok=True)
     params, _ = train.load_params(run_dir, cfg, ds)
     near, far = config_lib.near_far(cfg.model, ds)
-    writer = open_writer(video, fps, w, h)
-    depths = []
+    render = lambda pose, fov: _render_frame(params, cfg, pose, fov, w, h, near, far)  # noqa: E731
+    frames_done = write_videos(video, depth_video, zip(poses, fovs), render, fps, w, h,
+                               progress_lib.bar(total=len(poses), desc="render video", unit="frame",
+                                                enabled=progress))
+    return {"video": video, "depth_video": depth_video, "frames": frames_done, "width": w, "height": h, "fps": fps}
+
+
+def _render_frame(params, cfg, pose: np.ndarray, fov: float, w: int, h: int, near: float, far: float) -> dict:
+    """One frame of camera `pose` [4, 4] with vertical field of view `fov` (degrees), w x h pixels:
+    {"rgb" [h, w, 3], "depth" [h, w], ...} (`views.render_rays_chunked`)."""
+    focal = 0.5 * h / math.tan(math.radians(fov) / 2)
+    r = rays_lib.generate_rays(jnp.asarray(pose, jnp.float32), focal, focal, w / 2, h / 2, w, h, near, far)
+    return views.render_rays_chunked(params, cfg.model, r, 0, None, cfg.train.chunk, resolve_devices(cfg.train))
+
+
+def write_videos(video: Path, depth_video: Path, cameras, render, fps: float, w: int, h: int, pbar) -> int:
+    """Renders each camera of `cameras` with `render(*camera)` -> {"rgb", "depth"} and writes the
+    colour to `video`, the depth (inverse depth, TURBO, one range for all frames) to `depth_video`.
+    Both are written under temporary names and renamed when complete: a failure or a kill leaves
+    an earlier video of the same name as it was. Returns the number of frames."""
+    staged = {video: video.with_name(f".{video.stem}.partial.mp4"),
+              depth_video: depth_video.with_name(f".{depth_video.stem}.partial.mp4")}
     try:
-        for pose, fov in progress_lib.bar(list(zip(poses, fovs)), desc="render video", unit="frame",
-                                          enabled=progress):
-            focal = 0.5 * h / math.tan(math.radians(fov) / 2)
-            r = rays_lib.generate_rays(jnp.asarray(pose, jnp.float32), focal, focal, w / 2, h / 2, w, h, near, far)
-            view = views.render_rays_chunked(params, cfg.model, r, 0, None, cfg.train.chunk, resolve_devices(cfg.train))
-            writer.write(_frame_bytes(view["rgb"]))
-            depths.append(np.asarray(view["depth"], np.float32))
+        writer = open_writer(staged[video], fps, w, h)
+        depths = []
+        try:
+            with pbar:
+                for camera in cameras:
+                    view = render(*camera)
+                    writer.write(_frame_bytes(view["rgb"]))
+                    depths.append(np.asarray(view["depth"], np.float32))
+                    pbar.update(1)
+        finally:
+            writer.release()
+        inv = 1.0 / np.maximum(np.stack(depths), 1e-6)
+        lo, hi = np.percentile(inv[np.isfinite(inv)], [2, 98])
+        writer = open_writer(staged[depth_video], fps, w, h)
+        try:
+            for d in depths:
+                writer.write(_frame_bytes(report.colourise_depth(d, lo, hi)))
+        finally:
+            writer.release()
+        for final, partial in staged.items():
+            with io.naming_path(final):
+                os.replace(partial, final)
     finally:
-        writer.release()
-    inv = 1.0 / np.maximum(np.stack(depths), 1e-6)
-    lo, hi = np.percentile(inv[np.isfinite(inv)], [2, 98])
-    writer = open_writer(depth_video, fps, w, h)
-    try:
-        for d in depths:
-            writer.write(_frame_bytes(report.colourise_depth(d, lo, hi)))
-    finally:
-        writer.release()
-    return {"video": video, "depth_video": depth_video, "frames": len(depths), "width": w, "height": h, "fps": fps}
+        for partial in staged.values():
+            partial.unlink(missing_ok=True)
+    return len(depths)
