@@ -30,7 +30,7 @@ if [ "${1:-}" = "--test" ]; then
       echo "setup.sh: installed Debian's chromium for the report.html screenshot test"
     else
       echo "setup.sh: could not install Debian's chromium (apt-get install chromium, as root); the report.html" \
-           "screenshot test will be skipped (it fails instead where JAXNERF_GRID_REQUIRE_CHROMIUM=1, as in CI)" >&2
+           "screenshot test will be skipped (it fails instead where JAXNERF_GRID_REQUIRE_CHROMIUM=1)" >&2
     fi
   fi
 else

@@ -209,7 +209,7 @@ def test_the_page_shows_the_model_in_headless_chromium(tiny_run, tmp_path):
     if not CHROMIUM.exists():
         why = ("/usr/bin/chromium is missing: install Debian's `chromium` (bash scripts/setup.sh --test does) "
                "to screenshot report.html")
-        if os.environ.get("JAXNERF_GRID_REQUIRE_CHROMIUM") == "1":   # CI (.ci/run) must not skip it
+        if os.environ.get("JAXNERF_GRID_REQUIRE_CHROMIUM") == "1":   # where the browser must be (CI)
             pytest.fail(why)
         pytest.skip(why)
     if not (tiny_run / "export" / "measurements.json").is_file():
