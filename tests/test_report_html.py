@@ -217,9 +217,12 @@ def test_the_page_shows_the_model_in_headless_chromium(tiny_run, tmp_path):
                          "--threshold", "0.02", "--views", "4", "--quiet"]) == 0
     shot = _screenshot(tiny_run / "report.html", tmp_path / "shot.png")
     shutil.copy(tmp_path / "shot.png", tiny_run / "report_screenshot.png")
-    # the 3-D view: below the title, 640 px high; plotly's own colours there are greys, its pale
-    # blue background, white grid lines and the cameras' thin blue lines
+    # the 3-D view: below the title, 640 px high. plotly's own colours there are greys, the scene's
+    # pale blue background (#E5ECF6), white grid lines and the cameras' thin blue lines; the
+    # model's pixels are the saturated ones that are not the cameras' blue
     region = shot[120:700, 150:1050]
+    background = np.all(np.abs(region - np.array([0xE5, 0xEC, 0xF6]) / 255) < 0.02, axis=-1)
+    assert background.mean() > 0.2, "no 3-D scene in the screenshot"       # the plot is there, not other content
     saturation = region.max(-1) - region.min(-1)
     model = saturation > 0.2
     camera_blue = np.all(np.abs(region - np.array([0x1F, 0x4F, 0xBF]) / 255) < 0.12, axis=-1)

@@ -132,6 +132,22 @@ def test_render_path_follows_the_given_cameras(tiny_run, tmp_path):
     assert np.mean(np.abs(frames[1] - still)) < 0.03          # mp4v's loss only
 
 
+def test_a_frame_has_the_rays_of_its_camera(tiny_run, monkeypatch):
+    """`_render_frame` of a dataset camera's pose and vertical fov casts that camera's rays (the
+    renderer replaced by one that returns the ray directions)."""
+    from jaxnerf_grid import runs, views
+
+    cfg, data = runs.load_run(tiny_run)
+    ds = runs.load_dataset(data, progress=False)
+    i = int(ds.split["test"][0])
+    fov = math.degrees(2 * math.atan(0.5 * ds.height / float(ds.intrinsics[i][1])))
+    monkeypatch.setattr(videos.views, "render_rays_chunked",
+                        lambda params, mcfg, r, *a: {"rgb": np.asarray(r.directions), "depth": np.asarray(r.near)})
+    got = videos._render_frame(None, cfg, np.asarray(ds.c2w[i]), fov, ds.width, ds.height, 1.0, 8.0)
+    want = views.camera_rays(ds, i, 1.0, 8.0)
+    np.testing.assert_allclose(got["rgb"], np.asarray(want.directions), atol=1e-5)
+
+
 def test_render_video_refuses_bad_settings_in_one_line(tiny_run, tmp_path, capsys):
     before = sorted((tiny_run / "videos").iterdir()) if (tiny_run / "videos").is_dir() else []
     assert cli.main(["render", "--run", str(tiny_run), "--orbit", "--frames", "0", "--quiet"]) == 1
