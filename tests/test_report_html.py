@@ -228,3 +228,47 @@ def test_the_page_shows_the_model_in_headless_chromium(tiny_run, tmp_path):
     camera_blue = np.all(np.abs(region - np.array([0x1F, 0x4F, 0xBF]) / 255) < 0.12, axis=-1)
     count = int(np.sum(model & ~camera_blue))
     assert count > 0.03 * model.size, f"only {count} model pixels in the 3-D view"
+
+
+# --------------------------------------------------------------------------- progress.html
+
+
+def test_svg_curve_places_the_points_linearly():
+    from jaxnerf_grid.progress_page import svg_curve
+
+    svg = svg_curve([(0, 1.0), (10, 3.0), (20, 2.0), (30, float("nan"))], "loss", width=100, height=80)
+    pts = np.array([[float(v) for v in p.split(",")] for p in re.search(r'points="([^"]+)"', svg).group(1).split()])
+    # 30 px margins: steps 0..20 over x 30..70, the values 1..3 over y 50..30 (up); the NaN left out
+    np.testing.assert_allclose(pts, [[30, 50], [50, 30], [70, 40]], atol=0.05)
+
+
+def test_train_progress_page_is_rewritten_while_training(tmp_path):
+    from jaxnerf_grid import runs
+    from jaxnerf_grid.data.formats import save_transforms_json
+
+    ds = tiny_dataset()
+    save_transforms_json(ds, tmp_path / "data")
+    overrides = {"model": {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8},
+                 "train": {"batch_rays": 64, "max_steps": 20, "checkpoint_every": 10, "log_every": 5, "warmup": 5,
+                           "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256, "num_devices": 1}}
+    seen = []
+    from jaxnerf_grid import progress_page
+
+    original = progress_page.write_progress_page
+
+    def spy(run_dir, records, step, view, seconds):
+        seen.append((step, len(records), None if view is None else view["step"]))
+        return original(run_dir, records, step, view, seconds)
+
+    progress_page.write_progress_page = spy
+    try:
+        run, _, _ = runs.train_run(str(tmp_path / "data"), "ours", tmp_path / "run", overrides, progress=False,
+                                   progress_page=10)
+    finally:
+        progress_page.write_progress_page = original
+    assert seen == [(10, 2, 10), (20, 4, 20)]         # every 10 steps: the log so far, that step's checkpoint
+    text = (run / "progress.html").read_text()
+    assert "step 20" in text and 'http-equiv="refresh"' in text and text.count("<polyline") == 2
+    assert text.count('class="view"') == 3
+    with pytest.raises(Exception, match="run.progress_page"):
+        runs.train_run(str(tmp_path / "data"), "ours", tmp_path / "run2", overrides, progress=False, progress_page=-1)

@@ -30,6 +30,7 @@ FLAGS = {  # subcommand -> {key: flag}
              "mask.tiles": "--tiles", "mask.tile_overlap": "--tile-overlap", "mask.batch_size": "--batch-size",
              **_SWITCHES},
     "train": {"run.out": "--out", "run.data": "--data", "run.steps": "--steps", "run.method": "--method",
+              "run.progress_page": "--progress-page",
               **_SWITCHES, **_OTHER_DATA, **_DISTRIBUTED},
     "render": {"render.frames": "--frames", "render.fps": "--fps", "render.width": "--width", "render.path": "--path",
                **_OTHER_DATA},
