@@ -249,7 +249,7 @@ def test_train_progress_page_is_rewritten_while_training(tmp_path):
     ds = tiny_dataset()
     save_transforms_json(ds, tmp_path / "data")
     overrides = {"model": {"field": TINY_FIELD, "num_coarse": 8, "num_fine": 8},
-                 "train": {"batch_rays": 64, "max_steps": 20, "checkpoint_every": 10, "log_every": 5, "warmup": 5,
+                 "train": {"batch_rays": 64, "max_steps": 25, "checkpoint_every": 10, "log_every": 5, "warmup": 5,
                            "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256, "num_devices": 1}}
     seen = []
     from jaxnerf_grid import progress_page
@@ -266,9 +266,10 @@ def test_train_progress_page_is_rewritten_while_training(tmp_path):
                                    progress_page=10)
     finally:
         progress_page.write_progress_page = original
-    assert seen == [(10, 2, 10), (20, 4, 20)]         # every 10 steps: the log so far, that step's checkpoint
+    # every 10 steps and at the end: the log so far, that step's checkpoint
+    assert seen == [(10, 2, 10), (20, 4, 20), (25, 5, 25)]
     text = (run / "progress.html").read_text()
-    assert "step 20" in text and 'http-equiv="refresh"' in text and text.count("<polyline") == 2
+    assert "step 25" in text and 'http-equiv="refresh"' in text and text.count("<polyline") == 2
     assert text.count('class="view"') == 3
     with pytest.raises(Exception, match="run.progress_page"):
         runs.train_run(str(tmp_path / "data"), "ours", tmp_path / "run2", overrides, progress=False, progress_page=-1)
