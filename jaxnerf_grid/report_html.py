@@ -286,11 +286,37 @@ def figure(scene: dict):
                                        line={"color": "#e0a000" if line["name"] == "height" else "#d02090",
                                              "width": 6}, marker={"size": 3}))
     fig = go.Figure(traces)
-    fig.update_layout(scene={"aspectmode": "data", "xaxis_title": "x", "yaxis_title": "y", "zaxis_title": "z"},
+    ranges = tower_ranges(scene)
+    whole = {f"scene.{a}axis.autorange": True for a in "xyz"}
+    near = {f"scene.{a}axis.range": r for a, r in zip("xyz", ranges)} if ranges else whole
+    fig.update_layout(scene={"aspectmode": "cube" if ranges else "data", "xaxis_title": "x", "yaxis_title": "y",
+                             "zaxis_title": "z", **({f"{a}axis": {"range": r} for a, r in zip("xyz", ranges)}
+                                                    if ranges else {})},
                       margin={"l": 0, "r": 0, "t": 30, "b": 0}, height=640,
                       title=f"Tower model ({scene['units']}); drag to rotate, scroll to zoom, right-drag to pan",
-                      legend={"x": 0.01, "y": 0.98})
+                      legend={"x": 0.01, "y": 0.98},
+                      updatemenus=[{"type": "buttons", "direction": "left", "x": 0.99, "xanchor": "right", "y": 0.02,
+                                    "buttons": [{"label": "the tower", "method": "relayout",
+                                                 "args": [{**near, "scene.aspectmode": "cube" if ranges else "data"}]},
+                                                {"label": "the tower and the cameras", "method": "relayout",
+                                                 "args": [{**whole, "scene.aspectmode": "data"}]}]}])
     return fig
+
+
+def tower_ranges(scene: dict, margin: float = 0.15) -> list[list[float]] | None:
+    """The axis ranges [[lo, hi]] * 3 of the first view: a cube around the model (the mesh, else
+    the box, else the middle 98 % of the points) widened by `margin` of its side on each side;
+    None without a model."""
+    if scene["mesh"] is not None and len(scene["mesh"][0]):
+        lo, hi = scene["mesh"][0].min(0), scene["mesh"][0].max(0)
+    elif scene["measurements"]:
+        lo, hi = np.asarray(scene["measurements"]["box"]["min"]), np.asarray(scene["measurements"]["box"]["max"])
+    elif scene["points"] is not None and len(scene["points"][0]) >= 10:
+        lo, hi = np.percentile(scene["points"][0], 1, axis=0), np.percentile(scene["points"][0], 99, axis=0)
+    else:
+        return None
+    centre, half = 0.5 * (lo + hi), 0.5 * float(np.max(hi - lo)) * (1 + 2 * margin)
+    return [[float(c - half), float(c + half)] for c in centre]
 
 
 def _png_data(image: np.ndarray) -> str:
