@@ -1,7 +1,7 @@
 """Evaluating a trained run: test-view metrics, per-region PSNR, distractor PSNR, tower geometry.
 
-`evaluate_run(run_dir)` renders the test views, writes metrics.json, report.md and
-tower_points.ply into the run directory and returns the metrics.
+`evaluate_run(run_dir)` renders the test views, writes metrics.json, report.md, report.html
+(`report_html`) and tower_points.ply into the run directory and returns the metrics.
 
 Evaluation protocol (stored in metrics.json and the report):
   * targets are the clean images where the dataset has them (synthetic data), else the images;
@@ -35,7 +35,7 @@ import jax
 import numpy as np
 
 from jaxnerf_grid import (clouds, config as config_lib, geometry, io, losses, lpips, metrics, rays as rays_lib, report,
-                          robust as robust_lib, train, views)
+                          report_html, robust as robust_lib, train, views)
 from jaxnerf_grid.export import score
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.runs import bar, frame_name, load_run_and_dataset, write_view
@@ -263,6 +263,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     notes.append(f"LPIPS: {lpips_note}.")
     notes.append(f"Evaluation took {result['eval_seconds']:.0f} s.")
     report.write_report(run_dir, result, cfg, data, figures, notes)
+    report_html.write_report_html(run_dir / "report.html", run_dir, ds, result, figures, run_dir / "export")
     return result
 
 

@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import config as config_lib, distributed, folders, io, masking, progress as progress_lib, train, views
+from jaxnerf_grid import progress_page as progress_page_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data import formats, poses
 from jaxnerf_grid.data.formats import working_dataset
@@ -40,9 +41,9 @@ from jaxnerf_grid.samplers.legacy import upgrade_flat_model
 
 RUN_MARKER = folders.marker("train")
 FINGERPRINT_FILE = "dataset.json"
-RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity")
-RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report_views.png", "report_crops.png",
-                    "tower_points.ply", "config.json", FINGERPRINT_FILE, "timings.json")
+RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity", "videos")
+RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report.html", "progress.html", "report_views.png",
+                    "report_crops.png", "tower_points.ply", "config.json", FINGERPRINT_FILE, "timings.json")
 
 
 def read_overrides(path: str | None) -> dict:
@@ -284,17 +285,20 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
 
 
 def train_run(data: str, method: str, out, overrides: dict | None = None, steps: int | None = None,
-              overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False):
+              overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False,
+              progress_page: int = 0):
     """Creates (or resumes) a run and trains it. Returns (run_dir, RunConfig, TrainResult).
 
     data: the dataset folder (loaded unless `dataset` is given); method: ours | nerf | nerfw;
     overrides: nested dict over the method's defaults; steps: train.max_steps;
-    allow_other_data: resume a run on a dataset whose fingerprint differs.
+    allow_other_data: resume a run on a dataset whose fingerprint differs;
+    progress_page: rewrite RUN/progress.html every that many steps (`progress_page`; 0 = never).
     Everything is checked (`check_run`, `check_out`, the fingerprint) before the run folder is
     created, cleared or written.
     """
     run_dir = Path(out)
     check_out(run_dir, data)
+    config_lib.check_value("run.progress_page", progress_page, int, config_lib.NONNEGATIVE)
     cfg = make_config(method, _with_steps(overrides, steps))
     side = cfg.train.max_side  # the working resolution (data/working.py)
     ds = working_dataset(dataset, side) if dataset is not None else load_dataset(data, progress=progress,
@@ -310,7 +314,9 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
         io.write_json(run_dir / FINGERPRINT_FILE, dataset_fingerprint(ds))
         io.write_json(run_dir / "config.json", wanted)
     distributed.barrier("jaxnerf_grid.runs.train_run")
-    result = train.train(ds, cfg, run_dir, progress=progress)
+    on_step = (progress_page_lib.watcher(run_dir, ds, cfg, progress_page)
+               if progress_page and distributed.is_main() else None)
+    result = train.train(ds, cfg, run_dir, progress=progress, on_step=on_step)
     return run_dir, cfg, result
 
 

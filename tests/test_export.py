@@ -407,8 +407,9 @@ def test_export_writes_metric_files_inside_the_given_box(tiny_run, tmp_path, cap
     assert cli.main(["export", "--run", str(tiny_run), "--out", str(out), f"--box={box}", "--resolution", "24",
                      "--threshold", "0.02", "--views", "4", "--quiet"]) == 0
     assert sorted(p.name for p in out.iterdir()) == sorted(["box.json", "export_views.png", "measurements.json",
-                                                            "report.md", "tower_mesh.ply", "tower_points.ply",
-                                                            "tower_points.las", ".jaxnerf-grid-export"])  # marker
+                                                            "report.md", "report.html", "tower_mesh.ply",
+                                                            "tower_points.ply", "tower_points.las",
+                                                            ".jaxnerf-grid-export"])  # the marker (folders)
     saved = io.read_json(out / "box.json")
     np.testing.assert_allclose(saved["min"] + saved["max"], [float(v) for v in box.split(",")], atol=1e-4)
     np.testing.assert_allclose(saved["normalised"]["min"], [-0.9] * 3, atol=1e-6)   # the round trip

@@ -1,6 +1,9 @@
-"""`jaxnerf-grid render`: render views of a trained run into renders/, depth/, opacity/ (`runs.render_split`).
+"""`jaxnerf-grid render`: render views of a trained run into renders/, depth/, opacity/ (`runs.render_split`),
+or a fly-around video (`videos.render_video`, docs/VIDEOS.md).
 
     jaxnerf-grid render --run RUN [--split test|train|all] [--full-size]
+    jaxnerf-grid render --run RUN --orbit [--frames 120] [--fps 24] [--width 160] [--out RUN/videos/orbit]
+    jaxnerf-grid render --run RUN --path camera_path.json [--fps F] [--out ...]
 """
 
 from __future__ import annotations
@@ -17,12 +20,31 @@ def build_parser() -> argparse.ArgumentParser:
                    help="render even though the run's dataset has changed (its fingerprint differs)")
     p.add_argument("--full-size", action="store_true",
                    help="render at the photos' full size (default: the run's working resolution, train.max_side)")
+    video = p.add_mutually_exclusive_group()
+    video.add_argument("--orbit", action="store_true",
+                       help="a fly-around video: an orbit at the training cameras' mean height and radius "
+                            "(OUT.mp4 and OUT_depth.mp4)")
+    video.add_argument("--path", help="a video along a camera path (nerfstudio's camera-path JSON, docs/VIDEOS.md)")
+    p.add_argument("--frames", type=int, default=120, help="frames of the orbit (default 120)")
+    p.add_argument("--fps", type=float, default=None,
+                   help="frames per second of the video (default: the path's fps, else 24)")
+    p.add_argument("--width", type=int, default=160,
+                   help="width of the orbit's frames in pixels, the height from the photos' aspect (default 160)")
+    p.add_argument("--out", help="the videos' path without .mp4 (default RUN/videos/orbit or RUN/videos/<path stem>)")
     p.add_argument("--quiet", action="store_true")
     return p
 
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    if args.orbit or args.path:
+        from jaxnerf_grid import videos
+
+        done = videos.render_video(args.run, args.path, frames=args.frames, fps=args.fps, width=args.width,
+                                   out=args.out, progress=not args.quiet, allow_other_data=args.allow_other_data)
+        print(f"wrote {done['video']} and {done['depth_video']} ({done['frames']} frames, "
+              f"{done['width']}x{done['height']}, {done['fps']:g} fps)")
+        return 0
     from jaxnerf_grid import runs
 
     views = runs.render_split(args.run, args.split, not args.quiet, allow_other_data=args.allow_other_data,

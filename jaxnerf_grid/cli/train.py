@@ -75,6 +75,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--allow-other-data", action="store_true",
                    help="resume a run on a dataset other than the one it was trained on")
     p.add_argument("--eval", action="store_true", help="evaluate and write the report after training")
+    p.add_argument("--progress-page", type=int, default=0, metavar="N",
+                   help="rewrite RUN/progress.html (loss curves, a test view from the newest checkpoint) every N "
+                        "steps while training; open it from disk and reload (default 0: off)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
     add_distributed_flags(p)
     return p
@@ -109,7 +112,8 @@ def main(argv: list[str] | None = None) -> int:
         overrides = runs.overrides_with_sets(overrides, [f"train.max_side={args.max_side}"])
     try:
         run_dir, cfg, result = runs.train_run(args.data, method, out, overrides, args.steps, args.overwrite,
-                                              not args.quiet, allow_other_data=args.allow_other_data)
+                                              not args.quiet, allow_other_data=args.allow_other_data,
+                                              progress_page=args.progress_page)
     except distributed.DistributedError as err:
         exit_on_distributed_error("train", err)
     if multi and not distributed.is_main():

@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import clouds, config as config_lib, folders, io, progress as progress_lib, report, runs, train
-from jaxnerf_grid import views as views_lib
+from jaxnerf_grid import report_html, views as views_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.export import box_to_metric, box_to_scene, field, fuse, ground, measure, mesh as mesh_lib
 from jaxnerf_grid.export import plane_to_metric, survey, to_metric64
@@ -50,7 +50,7 @@ FILES = ("tower_mesh.ply", "tower_points.ply", "tower_points.las", "box.json", "
          "export_views.png")
 CRS_FILES = ("tower_mesh_crs.ply",)     # written only for a georeferenced dataset
 # what overwrite=True may clear in a folder holding export's marker (folders.MARKERS["export"])
-OUTPUTS = FILES + CRS_FILES + ("report.md",)
+OUTPUTS = FILES + CRS_FILES + ("report.md", "report.html")
 # bytes per grid node while the mesh is made: the float32 density, marching cubes' working
 # copies and masks (a bound, not a measurement of the peak); the grid's node count is taken as
 # the cube resolution^3, the largest box of that resolution
@@ -306,7 +306,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     meas["timings"] = {**timings, "write": meas["seconds"] - sum(timings.values())}
     meas["peak_memory_mib"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
     io.write_json(out / "measurements.json", meas)
-    _update_report(run_dir, out, meas)
+    _update_report(run_dir, out, meas, ds)
     return meas
 
 
@@ -361,11 +361,13 @@ def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict
     return out
 
 
-def _update_report(run_dir: Path, out: Path, meas: dict) -> None:
-    """Writes the "Tower model" section into RUN/report.md when the export is RUN/export (the
-    default), else into OUT/report.md."""
+def _update_report(run_dir: Path, out: Path, meas: dict, ds) -> None:
+    """Writes the "Tower model" section into RUN/report.md and rewrites RUN/report.html
+    (`report_html`) when the export is RUN/export (the default), else OUT/report.md and
+    OUT/report.html."""
     if out.resolve() == (run_dir / "export").resolve():
         path, image = run_dir / "report.md", "export/export_views.png"
     else:
         path, image = out / "report.md", "export_views.png"
     report.set_section(path, report.EXPORT_HEADING, report.export_lines({"measurements": meas, "image": image}))
+    report_html.write_report_html(path.with_suffix(".html"), run_dir, ds, export_dir=out)
