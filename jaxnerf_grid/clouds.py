@@ -21,6 +21,12 @@ import numpy as np
 from jaxnerf_grid import io
 
 
+def views_within(views: int, pixels: int, width: int, height: int, least: int = 2) -> int:
+    """How many of `views` training views of width x height fit a budget of `pixels` pixels,
+    never fewer than `least` (nor more than `views`)."""
+    return min(int(views), max(int(least), int(pixels) // max(1, int(width) * int(height))))
+
+
 def cloud_view_ids(ds, cloud_views: int) -> list[int]:
     """`cloud_views` training frame ids of the dataset `ds`, evenly spaced (all of them when
     there are fewer). Returns a list of ints (empty for cloud_views <= 0)."""

@@ -173,7 +173,8 @@ def _protocol(ds, cfg) -> str:
 
 def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = True, dataset=None,
                  distractor_views: int = 4, extra_notes: list[str] = (), reference_ply=None,
-                 cloud_views: int = 0, allow_other_data: bool = False, full_size: bool = False) -> dict:
+                 cloud_views: int = 0, allow_other_data: bool = False, full_size: bool = False,
+                 cloud_pixels: int = 0) -> dict:
     """Renders the test views, computes metrics.json and writes report.md. Returns the metrics.
 
     The views are rendered and scored at the run's working resolution (`train.max_side`,
@@ -183,7 +184,9 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     default: the dataset's `tower_ply` when it has one.
     cloud_views: the tower cloud (tower_points.ply, and the geometry score) is lifted from the
     test views' depth and also from this many training views, evenly spaced (more sides of
-    the tower); the images are not scored.
+    the tower); the images are not scored. cloud_pixels: when > 0, at most this many pixels of
+    training views in all (`clouds.views_within`: at least 2 views), so large photos cost
+    what small ones do.
     allow_other_data: score a dataset other than the run's (runs.check_fingerprint refuses it).
     Everything is checked (the dataset's fingerprint, --reference-ply, the LPIPS weights file)
     before anything is rendered or written.
@@ -220,6 +223,8 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
         figures.append({"name": name, "gt": target, "rgb": rgb, "depth": view["depth"],
                         "semantic": None if ds.semantics is None else np.asarray(ds.semantics[i])})
     mean, mean_right, regions_mean = _means(per_view)
+    if cloud_pixels > 0:
+        cloud_views = clouds.views_within(cloud_views, cloud_pixels, ds.width, ds.height)
     cloud_ids = clouds.cloud_view_ids(ds, cloud_views)
     for i in bar(cloud_ids, progress, "tower points"):
         view = views.render_view(params, cfg, ds, i)

@@ -193,3 +193,15 @@ def test_train_takes_near_far_and_radius_from_the_datasets_scene_bounds(data_dir
     assert trained("b", "--set", "model.near=0.4")["near"] == 0.4
     nerf = trained("c", "--recipe", "nerf")
     assert (nerf["near"], nerf["far"]) != (0.7, 333.0) and nerf["use_contraction"] is False
+
+
+def test_the_demo_cloud_keeps_its_16_views_on_tower_small_and_4_on_a_real_capture():
+    """clouds.views_within with the demo's budget: 16 views at 160x120 (the synthetic demo is
+    unchanged), 4 at 614x410 (fountain-P11's working size), never fewer than 2 nor more than asked."""
+    from jaxnerf_grid import clouds, demo
+
+    within = lambda w, h: clouds.views_within(demo.DEMO_CLOUD_VIEWS, demo.DEMO_CLOUD_PIXELS, w, h)  # noqa: E731
+    assert within(160, 120) == 16
+    assert within(614, 410) == 4                   # 2**20 // 251740
+    assert within(3072, 2048) == 2
+    assert clouds.views_within(3, 10 ** 9, 10, 10) == 3
