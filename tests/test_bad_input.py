@@ -798,6 +798,9 @@ def test_killed_export_leaves_whole_files_and_can_be_overwritten(scene, capsys, 
             io.read_ply(out / name)
         elif name.endswith(".json"):
             assert isinstance(io.read_json(out / name), dict)
+        elif name.endswith(".las"):
+            import laspy
+            laspy.read(out / name)      # a torn file fails to read (its header counts the points)
         else:
             io.read_image(out / name)
     assert snapshot(run) == before
