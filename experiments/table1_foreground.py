@@ -12,6 +12,11 @@ settings line says which), per scene set:
                            the same with `mask --dilate 2` (sets B and A-high, where the DPT's
                            masks miss a third of the distractor pixels and the tower target is missed)
   clean images             trained on the distractor-free renders (upper bound)
+  robust, no masks         no masks; the photos' own evidence down-weights outlier residuals
+                           (train.robust "robust", `jaxnerf_grid/robust.py`, docs/ROBUST.md)
+  built-in DPT masks + Eq. 7 + robust
+                           the DPT's weights as the prior, corrected both ways by the evidence
+                           (train.robust "dpt+robust"); sets A and B, not at --quick
 Scene sets: A = tower-small (medium distractors), B = plad-like (high distractors); seed k uses
 scene seed k and training seed k. Set A also at low and high clutter (the paper's gain should
 grow with clutter), with the three rows that test it: no masks, GT masks + Eq. 7, built-in DPT + Eq. 7.
@@ -35,9 +40,12 @@ CONDITIONS = ("no masks", "binary GT masks (no Eq. 7)", "GT masks + Eq. 7", "bui
 CLUTTER_CONDITIONS = ("no masks", "GT masks + Eq. 7", "built-in DPT masks + Eq. 7")
 DILATE_PX = 2
 DILATED = f"built-in DPT masks + Eq. 7, dilated {DILATE_PX} px"
+ROBUST = "robust, no masks"
+DPT_ROBUST = "built-in DPT masks + Eq. 7 + robust"
+ROBUST_CONDITIONS = (ROBUST, DPT_ROBUST)
 # (name, preset, distractor level or None for the preset's, conditions, the paper's gain in dB or None)
-SETS = (("A: tower-small, medium distractors", "tower-small", None, CONDITIONS, 2.22),
-        ("B: plad-like, high distractors", "plad-like", None, CONDITIONS + (DILATED,), 2.83),
+SETS = (("A: tower-small, medium distractors", "tower-small", None, CONDITIONS + ROBUST_CONDITIONS, 2.22),
+        ("B: plad-like, high distractors", "plad-like", None, CONDITIONS + (DILATED,) + ROBUST_CONDITIONS, 2.83),
         ("A-low: tower-small, low distractors", "tower-small", "low", CLUTTER_CONDITIONS, None),
         ("A-high: tower-small, high distractors", "tower-small", "high", CLUTTER_CONDITIONS + (DILATED,), None))
 # The paper's Table 1 reports the gain of its foreground removal (a DPT's masks + Eq. 7) on its
@@ -62,6 +70,8 @@ def condition_data(ctx, scene_dir: Path, condition: str, dpt_weights: str | None
     or None if unavailable. dpt_weights: a DPT folder the DPT rows use instead of the built-in."""
     if condition == "no masks":
         return scene_dir, {"train": {"use_masks": False}}, None
+    if condition == ROBUST:
+        return scene_dir, {"train": {"use_masks": False, "robust": "robust"}}, None
     if condition == "clean training images (upper bound)":
         return scenes.clean_variant(ctx, scene_dir), {"train": {"use_masks": False}}, None
     if condition == "binary GT masks (no Eq. 7)":
@@ -70,6 +80,9 @@ def condition_data(ctx, scene_dir: Path, condition: str, dpt_weights: str | None
         v = scenes.mask_variant(ctx, scene_dir, "gt_eq7", "gt", floor=0.0)
     elif dpt_weights is None and not builtin_available():
         return None
+    elif condition == DPT_ROBUST:
+        v = scenes.mask_variant(ctx, scene_dir, "dpt_builtin_eq7", "dpt", floor=0.0, weights=dpt_weights)
+        return v, {"train": {"use_masks": True, "robust": "dpt+robust"}}, scenes.mask_iou(v)
     elif condition == DILATED:
         v = scenes.mask_variant(ctx, scene_dir, f"dpt_builtin_eq7_dilate{DILATE_PX}", "dpt", floor=0.0,
                                 dilate=DILATE_PX, weights=dpt_weights)
@@ -79,10 +92,12 @@ def condition_data(ctx, scene_dir: Path, condition: str, dpt_weights: str | None
 
 
 def sets_for(setting: str) -> list[tuple]:
-    """SETS at `setting`: --quick (CI's smoke run) has neither the clutter levels nor the dilated masks."""
+    """SETS at `setting`: --quick (CI's smoke run) has neither the clutter levels, the dilated masks
+    nor the robust rows."""
     if setting != "quick":
         return list(SETS)
-    return [(name, preset, level, tuple(c for c in conditions if c != DILATED), paper)
+    return [(name, preset, level, tuple(c for c in conditions if c != DILATED and c not in ROBUST_CONDITIONS),
+             paper)
             for name, preset, level, conditions, paper in SETS if level is None]
 
 
