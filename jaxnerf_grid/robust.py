@@ -31,6 +31,12 @@ The rule, per training step (`evidence`):
 
 The weight is 1 for a pixel that counts, 0 otherwise.
 
+Multi-view confirmation (train.robust_confirm > 0, `photo_consistency.py`): before the vote,
+a pixel that a neighbouring photo confirms (its 3x3 neighbourhood seen again at its rendered
+3-D point, mean squared difference at most robust_confirm) is an inlier whatever its
+residual: static detail the model has not learnt yet is not a transient, and the spread bound
+can then be tighter (robust_spread) without ignoring it.
+
 Warm-up: for the first `warmup_steps` of a run (train.robust_warmup, a fraction of
 max_steps) the weight is the prior itself (1 everywhere in mode `robust`, 1 - M_w in
 `dpt+robust`). A model that has not formed the scene's geometry yet explains every pixel
@@ -143,17 +149,21 @@ def evidence(inlier: jnp.ndarray, patch_share: float) -> jnp.ndarray:
 
 def robust_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray,
                    quantile: float, flagged_quantile: float, patch_share: float,
-                   floor: float, spread: float = 0.0) -> jnp.ndarray:
+                   floor: float, spread: float = 0.0, confirmed: jnp.ndarray | None = None) -> jnp.ndarray:
     """The loss weight of each pixel of the patches (the module docstring's rule).
 
     residuals, prior: [P, p, p] (this device's patches; prior 1 = unflagged, 0 = flagged);
     batch_residuals: [N] the residuals of the whole global batch (all devices), which the
-    thresholds are figures of; spread: k of the spread bound (0: the quantile alone).
-    Returns [P, p, p] in {0, 1}.
+    thresholds are figures of; spread: k of the spread bound (0: the quantile alone);
+    confirmed: None or [P, p, p] in {0, 1}, pixels another photo confirms
+    (`photo_consistency`), inliers whatever their residual. Returns [P, p, p] in {0, 1}.
     """
     thresholds = jnp.maximum(quantile_of(batch_residuals, pixel_quantiles(prior, quantile, flagged_quantile)),
                              spread_thresholds(batch_residuals, prior, spread))
-    return evidence(inliers(residuals, thresholds, floor), patch_share)
+    inlier = inliers(residuals, thresholds, floor)
+    if confirmed is not None:
+        inlier = jnp.maximum(inlier, confirmed)
+    return evidence(inlier, patch_share)
 
 
 def draw_patches(key, num_patches: int, num_frames: int, height: int, width: int, patch: int) -> jnp.ndarray:

@@ -51,7 +51,11 @@ class TrainConfig:
       is always an inlier; robust_spread: k of the spread bound (robust.spread_thresholds: a
       residual within median + k MAD-sigmas of the batch is an inlier whatever the quantile
       says; 0 = the quantile alone); robust_warmup: the fraction of max_steps trained on the
-      prior alone before the evidence applies (robust.warmup_steps).
+      prior alone before the evidence applies (robust.warmup_steps);
+    robust_confirm: multi-view confirmation (`photo_consistency.py`): a pixel whose 3x3
+      neighbourhood a neighbouring training photo shows again at the pixel's rendered 3-D
+      point, with a mean squared difference at most this, is an inlier whatever its residual
+      (0 = off); robust_views: how many neighbouring photos (nearest camera centres) are looked at.
     """
 
     batch_rays: int = 1024
@@ -86,6 +90,8 @@ class TrainConfig:
     robust_floor: float = 1e-3
     robust_spread: float = 3.0
     robust_warmup: float = 0.2
+    robust_confirm: float = 0.0
+    robust_views: int = 8
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -103,7 +109,8 @@ class TrainConfig:
         "robust_quantile": config_lib.UNIT, "robust_flagged_quantile": config_lib.UNIT,
         "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_share": config_lib.UNIT,
         "robust_floor": config_lib.NONNEGATIVE, "robust_spread": config_lib.NONNEGATIVE,
-        "robust_warmup": config_lib.UNIT}
+        "robust_warmup": config_lib.UNIT, "robust_confirm": config_lib.NONNEGATIVE,
+        "robust_views": config_lib.AT_LEAST_ONE}
 
 
 @dataclasses.dataclass(frozen=True)

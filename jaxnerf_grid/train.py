@@ -42,6 +42,7 @@ import numpy as np
 
 from jaxnerf_grid import (checkpoint, config as config_lib, distributed, fields, io, losses, models, optim, parallel,
                           progress as progress_lib, rays as rays_lib)
+from jaxnerf_grid import photo_consistency
 from jaxnerf_grid import robust as robust_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
@@ -85,7 +86,8 @@ def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     "c2w": [T, 4, 4], "intrinsics": [T, 4], "frame": [T] int32 dataset frame ids,
     "near", "far": floats}. With train.robust on, "weights" is the evidence's prior
     (`prior_weights`) and "pixels" every training pixel, the flagged ones included (patches
-    are drawn over whole frames).
+    are drawn over whole frames); with train.robust_confirm > 0 also "neighbours": [T, K]
+    int32 (`photo_consistency.neighbour_frames`, indices into the pool's frames).
     """
     train_ids = np.asarray(dataset.split["train"], np.int64)
     if train_ids.size == 0:
@@ -98,10 +100,13 @@ def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     near, far = config_lib.near_far(cfg.model, dataset)
     if not 0 < near < far:
         raise ConfigError(f"near/far: need 0 < near < far, got {near}, {far}")
-    return {"pixels": pixels, "images": np.asarray(dataset.images[train_ids], np.float32),
-            "weights": weights, "c2w": np.asarray(dataset.c2w[train_ids], np.float32),
-            "intrinsics": np.asarray(dataset.intrinsics[train_ids], np.float32),
+    c2w = np.asarray(dataset.c2w[train_ids], np.float32)
+    pool = {"pixels": pixels, "images": np.asarray(dataset.images[train_ids], np.float32),
+            "weights": weights, "c2w": c2w, "intrinsics": np.asarray(dataset.intrinsics[train_ids], np.float32),
             "frame": train_ids.astype(np.int32), "near": near, "far": far}
+    if robust_on and cfg.train.robust_confirm > 0:
+        pool["neighbours"] = photo_consistency.neighbour_frames(c2w, cfg.train.robust_views)
+    return pool
 
 
 def gather_batch(pool: dict, ids: jnp.ndarray) -> dict:
@@ -216,7 +221,9 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     stop-gradient) are all-gathered so every device takes the quantiles of the same global
     batch; each pixel's loss weight is `robust.robust_weights` of its patch with the pool's
     weight as the prior, after the first `robust.warmup_steps` optimiser steps (Adam's count,
-    so resume is exact), and the prior itself before them. The state's robust_record takes the
+    so resume is exact), and the prior itself before them; with train.robust_confirm > 0 a pixel
+    that a neighbouring photo confirms at its rendered median depth is an inlier
+    (`photo_consistency.py`). The state's robust_record takes the
     batch's weights (all-gathered, the same update on every device). Stats add
     "robust_weight": the mean weight of the batch."""
     tcfg = cfg.train
@@ -225,6 +232,16 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     num_patches = tcfg.batch_rays // (p * p)
     per_device = tcfg.batch_rays // num_devices
     warmup_steps = robust_lib.warmup_steps(tcfg.robust_warmup, tcfg.max_steps)
+    confirm = tcfg.robust_confirm > 0
+
+    def confirmed_pixels(pool, ids, batch, depth):
+        """[B] 1.0 where a neighbouring photo confirms the pixel at its rendered depth."""
+        frames_, height, width = pool["weights"].shape
+        frame, pix = ids // (height * width), ids % (height * width)
+        points = batch["origins"] + batch["directions"] * depth[:, None]
+        error = photo_consistency.confirmation_errors(pool["images"], pool["c2w"], pool["intrinsics"],
+                                                      pool["neighbours"], frame, pix // width, pix % width, points)
+        return (error <= tcfg.robust_confirm).astype(jnp.float32)
 
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
@@ -240,10 +257,14 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
             out, terms = batch_terms(params, cfg, batch, ray_keys)
             residual = jax.lax.stop_gradient(losses.squared_error(final_rgb(out), batch["rgb"]))
             everyone = jax.lax.all_gather(residual, AXIS, tiled=True)
+            confirmed = None
+            if confirm:
+                depth = jax.lax.stop_gradient(out["final"]["median_depth"])
+                confirmed = confirmed_pixels(pool, local_ids, batch, depth).reshape(-1, p, p)
             evidence = robust_lib.robust_weights(
                 residual.reshape(-1, p, p), batch["weight"].reshape(-1, p, p), everyone, tcfg.robust_quantile,
                 tcfg.robust_flagged_quantile, tcfg.robust_patch_share, tcfg.robust_floor,
-                tcfg.robust_spread).reshape(-1)
+                tcfg.robust_spread, confirmed).reshape(-1)
             weight = jnp.where(state["opt_state"].count < warmup_steps, batch["weight"], evidence)
             total = jax.lax.psum(jnp.sum(weight), AXIS)
             loss = losses.weighted_mean(terms["loss"], weight, total)

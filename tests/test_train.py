@@ -185,15 +185,17 @@ def last_state(run_dir, cfg, ds) -> dict:
     return checkpoint.restore_latest(run_dir, train.init_state(full, train.train_frames_shape(ds)))[0]
 
 
-@pytest.mark.parametrize("method,mode", [("ours", "dpt+robust"), ("nerfw", "robust"), ("nerf", "robust")])
-def test_robust_two_devices_match_one_device(tmp_path, method, mode):
-    """Patches, the all-gathered quantiles and the per-pixel record do not depend on the device
-    count, for every method."""
+@pytest.mark.parametrize("method,mode,confirm", [("ours", "dpt+robust", 0.01), ("nerfw", "robust", 0.0),
+                                                 ("nerf", "robust", 0.0)])
+def test_robust_two_devices_match_one_device(tmp_path, method, mode, confirm):
+    """Patches, the all-gathered quantiles, the multi-view confirmation and the per-pixel record
+    do not depend on the device count, for every method."""
     assert jax.local_device_count() >= 2, "run with XLA_FLAGS=--xla_force_host_platform_device_count=2"
     ds = tiny_dataset()
     states = []
     for n in (1, 2):
-        cfg = tiny_config(method, num_devices=n, robust=mode, robust_patch=4, robust_warmup=0.0)
+        cfg = tiny_config(method, num_devices=n, robust=mode, robust_patch=4, robust_warmup=0.0,
+                          robust_confirm=confirm)
         train.train(ds, cfg, tmp_path / f"dev{n}", progress=False, stop_at=4)
         states.append(last_state(tmp_path / f"dev{n}", cfg, ds))
     diffs = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(np.asarray(a, np.float64) - np.asarray(b)))),
@@ -227,6 +229,23 @@ def test_robust_warmup_trains_on_the_prior_alone(tmp_path, mode):
         assert np.all(np.abs(records[0.5][drawn] - 1.0) <= np.abs(prior[drawn] - 1.0) + 1e-6)
         assert np.all(prior[drawn] < 1)
     assert np.any(records[0.0][prior == 1.0] < 1.0)  # the evidence at work: a pixel the prior keeps dropped
+
+
+def test_multiview_confirmation_keeps_pixels_the_other_photos_confirm(tmp_path):
+    """train.robust_confirm joined into the loss weights: with the quantile alone (no spread
+    bound, no warm-up) the evidence drops a fifth of each batch; with a confirmation threshold
+    no colour difference exceeds, every pixel some neighbour photo sees is kept, so far fewer
+    are dropped; with one that nothing passes, as many as without."""
+    ds = tiny_dataset(arc=0.1)
+    dropped = {}
+    for confirm in (0.0, 1e-12, 10.0):
+        cfg = tiny_config(num_devices=1, robust="robust", robust_patch=4, robust_warmup=0.0, robust_spread=0.0,
+                          robust_confirm=confirm)
+        train.train(ds, cfg, tmp_path / f"c{confirm}", progress=False, stop_at=4)
+        dropped[confirm] = int(np.sum(last_state(tmp_path / f"c{confirm}", cfg, ds)["robust_record"] < 1.0))
+    assert dropped[0.0] > 20, dropped
+    assert dropped[10.0] < 0.25 * dropped[0.0], dropped
+    assert dropped[1e-12] >= 0.75 * dropped[0.0], dropped
 
 
 def test_robust_readmits_a_wrong_prior_and_drops_a_missed_transient(tmp_path):

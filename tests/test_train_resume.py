@@ -21,7 +21,7 @@ from test_train import last_state, tiny_config, tiny_dataset  # noqa: E402
 
 
 def _config(robust: str):
-    return tiny_config(robust=robust, robust_patch=4) if robust != "off" else tiny_config()
+    return tiny_config(robust=robust, robust_patch=4, robust_confirm=0.01) if robust != "off" else tiny_config()
 
 
 def _child(run_dir: str, robust: str) -> None:
