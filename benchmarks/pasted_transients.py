@@ -286,28 +286,35 @@ def _grey(image: np.ndarray) -> np.ndarray:
     return image[..., 0] if image.ndim == 3 else image
 
 
-def row_overrides(row: str, seed: int, steps: int) -> dict:
+def row_overrides(row: str, seed: int, steps: int, sets: dict | None = None) -> dict:
+    """The demo's recipe for a row; `sets`: the --set overrides (nested), applied to the
+    robust rows only (the others do not read the evidence's settings)."""
+    from jaxnerf_grid import config as config_lib
     from jaxnerf_grid.demo import DEMO_CONFIG
 
     cfg = copy.deepcopy(DEMO_CONFIG)
     cfg["model"]["near"] = NEAR
     cfg["train"].update(ROW_TRAIN[row], seed=seed, max_steps=steps,
                         checkpoint_every=max(1, steps), log_every=max(1, min(50, steps)))
+    if sets and row in ("robust", "dpt+robust"):
+        cfg = config_lib.merge(cfg, sets)
     return cfg
 
 
-def run_row(base: Path, row: str, seed: int, steps: int, work: Path, reuse: bool = False) -> dict | None:
-    """Trains and scores one row and seed; None when this build's config lacks the row's keys."""
+def run_row(base: Path, row: str, seed: int, steps: int, work: Path, reuse: bool = False,
+            sets: dict | None = None, tag: str = "") -> dict | None:
+    """Trains and scores one row and seed; None when this build's config lacks the row's keys.
+    sets, tag: --set's overrides and --tag (the run folder's suffix)."""
     from jaxnerf_grid import evaluate, runs, train
 
-    overrides = row_overrides(row, seed, steps)
+    overrides = row_overrides(row, seed, steps, sets)
     try:
         train.make_config("ours", overrides)
     except ConfigError as err:
         print(f"  skip {row}: {err}", flush=True)
         return None
     data = variant(base, ROW_DATA[row])
-    run_dir = work / "runs" / f"{base.name}-{row}-s{seed}"
+    run_dir = work / "runs" / f"{base.name}-{row}-s{seed}{tag}"
     t = time.perf_counter()
     if reuse and _finished(run_dir, overrides):
         m = io.read_json(run_dir / "metrics.json")
@@ -400,6 +407,9 @@ def main(argv=None) -> int:
                    help="share of each training photo covered by pasted sprites")
     p.add_argument("--reuse", action="store_true",
                    help="score a row's run again without training when it finished with the same settings")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="change a training setting of the robust rows (e.g. train.robust_spread=2), repeatable")
+    p.add_argument("--tag", default="", help="suffix of the run folders (keeps runs with other --set apart)")
     p.add_argument("--work", default=str(ROOT / "benchmarks/.cache/pasted_transients"))
     p.add_argument("--out", default=str(ROOT / "benchmarks/results/pasted_transients"))
     args = p.parse_args(argv)
@@ -410,6 +420,12 @@ def main(argv=None) -> int:
         raise SystemExit(f"--rows: unknown {bad}; choose from {', '.join(ROWS)}")
     if args.test_every < 2 or args.long_side < 16 or not 0 <= args.coverage < 1:
         raise SystemExit("--test-every must be >= 2, --long-side >= 16, --coverage in [0, 1)")
+    try:
+        from jaxnerf_grid import config as config_lib, run_config
+
+        sets = config_lib.parse_sets(args.set, run_config.RunConfig) if args.set else None
+    except ConfigError as err:
+        raise SystemExit(f"--set: {err}") from None
     strecha = Path(args.strecha)
     if not strecha.is_dir():
         raise SystemExit(f"{strecha}: not a folder (see `python -m benchmarks.pasted_transients --help`)")
@@ -428,7 +444,7 @@ def main(argv=None) -> int:
                   f"{np.mean([f['pasted_share'] for f in meta['frames'] if f['split'] == 'train']):.1%}", flush=True)
             for row in rows:
                 for seed in seeds:
-                    r = run_row(base, row, seed, args.steps, work, args.reuse)
+                    r = run_row(base, row, seed, args.steps, work, args.reuse, sets, args.tag)
                     if r is not None:
                         results.append(r)
                         print(f"  {scene} {row} seed {seed}: PSNR {r['psnr']:.2f} SSIM {r['ssim']:.4f} pasted used "
@@ -437,6 +453,7 @@ def main(argv=None) -> int:
     except (DataError, ConfigError) as err:
         raise SystemExit(str(err)) from None
     settings = {"argv": argv, "scenes": args.scenes, "rows": rows, "seeds": seeds, "steps": args.steps,
+                "robust_sets": args.set,
                 "long_side": args.long_side, "photos": args.photos, "test_every": args.test_every,
                 "coverage": args.coverage, "machine": platform.machine(), "python": platform.python_version()}
     summary = summarise(results)

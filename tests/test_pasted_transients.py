@@ -154,3 +154,15 @@ def test_the_weights_a_robust_run_wrote_are_read_back_by_frame_stem(tmp_path):
     got = pt.run_weights(tmp_path / "run")
     assert sorted(got) == ["0000", "0002"]
     np.testing.assert_allclose(got["0002"], record[1], atol=0.5 / 255 + 1e-6)
+
+
+def test_set_changes_the_robust_rows_only():
+    from jaxnerf_grid import config, run_config, train
+
+    sets = config.parse_sets(["train.robust_confirm=0.01", "train.robust_spread=2"], run_config.RunConfig)
+    robust = train.make_config("ours", pt.row_overrides("robust", 0, 10, sets)).train
+    assert (robust.robust, robust.robust_confirm, robust.robust_spread) == ("robust", 0.01, 2.0)
+    gt = train.make_config("ours", pt.row_overrides("gt", 0, 10, sets)).train
+    assert gt.robust == "off" and gt.robust_confirm == 0.0 and gt.robust_spread == 3.0
+    with pytest.raises(SystemExit, match="--set"):
+        pt.main(["somewhere", "--set", "train.no_such_key=1"])
