@@ -51,7 +51,8 @@ batch are outliers, so a transient the DPT missed is down-weighted); a fully fla
 (prior 0) only up to q_flagged (0.5: it must be fitted better than the batch median, so the
 static model must really explain it before it is re-admitted); the spread bound scales with
 the prior the same way (k for an unflagged pixel, k / 3 for a flagged one: within one robust
-standard deviation of the batch's typical error at the default k = 3). Mode `robust` is the same
+standard deviation of the batch's typical error at k = 3; the default k is 1.5, with
+multi-view confirmation on). Mode `robust` is the same
 rule with prior 1 everywhere. Training's per-pixel record of the weights it used is
 `ema_update` (docs/ROBUST.md).
 """

@@ -88,9 +88,9 @@ class TrainConfig:
     robust_patch: int = 4
     robust_patch_share: float = 0.6
     robust_floor: float = 1e-3
-    robust_spread: float = 3.0
+    robust_spread: float = 1.5
     robust_warmup: float = 0.2
-    robust_confirm: float = 0.0
+    robust_confirm: float = 0.01
     robust_views: int = 8
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
