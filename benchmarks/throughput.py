@@ -9,6 +9,8 @@ Configs: "mlp" (the MLP field with 32 + 32 hierarchical samples, the demo before
 "grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the demo recipe: hash
 grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128);
 "demo-linear", "demo-log", "demo-piecewise", "mlp-linear", ... (that ray warp instead of disparity);
+"demo-sparse-adam" (the demo with train.sparse_adam), "ours-fast" (the candidate recipe: the demo
+with a smaller proposal field, docs/GRID.md);
 any of them + "-fused" (e.g. "demo-piecewise-fused"): traced without
 fields.hashgrid.computed_once, to measure what it saves.
 
@@ -46,6 +48,7 @@ import numpy as np
 
 from benchmarks.convergence import MLP_CONFIG, RUNS
 from jaxnerf_grid import config as config_lib, models, parallel, rays as rays_lib, recipes, train, views
+from jaxnerf_grid.config import merge
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.fields import hashgrid
 
@@ -61,6 +64,10 @@ CONFIGS = {
 for _warp in ("linear", "log", "piecewise"):
     for _name in ("demo", "mlp"):
         CONFIGS[f"{_name}-{_warp}"] = {**CONFIGS[_name], "model": {**CONFIGS[_name]["model"], "warp": _warp}}
+# Issue 40: the demo with lazy Adam on its hash tables, and the candidate recipe ours-fast (the
+# demo with a smaller proposal field, recipes.SAMPLERS; measured beside "demo", docs/GRID.md).
+CONFIGS["demo-sparse-adam"] = merge(CONFIGS["demo"], {"train": {"sparse_adam": True}})
+CONFIGS["ours-fast"] = recipes.overrides("ours-fast")
 # A config name ending in FUSED (e.g. "demo-piecewise-fused") is that config traced with
 # fields.hashgrid.computed_once as a no-op: the code before it, where XLA:CPU recomputed the
 # points' chain (warp, contraction) in every corner fusion of the hash grid.

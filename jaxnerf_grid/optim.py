@@ -3,7 +3,8 @@
 What is here:
   * `lr_schedule`: linear warm-up, then log-linear (exponential) decay (mip-NeRF style).
   * `clip_by_global_norm`, `global_norm`, `tree_all_finite`.
-  * `adam`: an Adam `GradientTransformation` written in this project: a NamedTuple with
+  * `adam`: an Adam `GradientTransformation` written in this project (dense, or lazy on the
+    rows of the leaves it is told: `lazy_keys`, `lazy_rows`): a NamedTuple with
     `init(params) -> state` and `update(grads, state, params=None) -> (updates, state)`.
     jaxopt's `OptaxSolver` (jaxopt/_src/optax_wrapper.py) only ever calls
     `opt.init(params)` in `init_state` and `opt.update(grad, opt_state, params)` in `update`,
@@ -52,10 +53,12 @@ __all__ = [
     "global_norm",
     "guarded_apply",
     "guarded_update",
+    "lazy_rows",
     "log_nonfinite",
     "lr_schedule",
     "make_lr_schedule",
     "make_solver",
+    "touched_rows",
     "tree_all_finite",
 ]
 
@@ -160,7 +163,7 @@ class AdamState(NamedTuple):
 
 
 def adam(learning_rate: float | Schedule, b1: float = 0.9, b2: float = 0.999, eps: float = 1e-8,
-         max_grad_norm: float = 0.0) -> GradientTransformation:
+         max_grad_norm: float = 0.0, lazy_keys: tuple[str, ...] = ()) -> GradientTransformation:
     """Adam (Kingma & Ba) with bias correction, optional global-norm clipping first.
 
     With t = count + 1 after the step and g the (clipped) gradient:
@@ -169,6 +172,15 @@ def adam(learning_rate: float | Schedule, b1: float = 0.9, b2: float = 0.999, ep
     which is exactly `torch.optim.Adam`'s rule. `learning_rate` is a float or a schedule
     `step -> lr` evaluated at the count *before* the step (0 on the first step). NeRF uses
     eps in 1e-8 .. 1e-6. Moments have each parameter's dtype; count is int32.
+
+    lazy_keys: dict keys (e.g. ("table",), the hash grids' tables) whose leaves get *lazy* Adam
+    (`lazy_rows`): a row (`leaf[i]`) whose gradient is zero in every entry keeps its mu, nu
+    and value; the other rows take the rule above. Bias correction uses the global count t,
+    not a count per row (as TensorFlow's LazyAdam), so the state is the same as dense Adam's
+    and a checkpoint of either loads in the other. How it differs from dense Adam: dense Adam
+    keeps moving an untouched row by its decaying momentum (mu / sqrt(nu) of earlier steps)
+    and decays its moments; lazy Adam freezes it until a batch touches it again, and a row
+    touched again after k idle steps resumes with moments decayed by one step instead of k + 1.
     """
     if not callable(learning_rate):
         lr_value = float(learning_rate)
@@ -199,9 +211,43 @@ def adam(learning_rate: float | Schedule, b1: float = 0.9, b2: float = 0.999, ep
             return (-lr * m_hat / (jnp.sqrt(v_hat) + eps)).astype(m.dtype)
 
         updates = jax.tree_util.tree_map(step, mu, nu)
+        if lazy_keys:
+            zeros = jax.tree_util.tree_map(jnp.zeros_like, updates)
+            updates, mu, nu = lazy_rows(grads, (updates, mu, nu), (zeros, state.mu, state.nu), lazy_keys)
         return updates, AdamState(count=count, mu=mu, nu=nu)
 
     return GradientTransformation(init=init, update=update)
+
+
+def touched_rows(grad: jnp.ndarray) -> jnp.ndarray:
+    """grad: [R, ...] -> bool [R, 1, ...] (broadcastable against grad): True where any entry of
+    the row is non-zero (a batch's gather reached it)."""
+    touched = jnp.any(grad.reshape(grad.shape[0], -1) != 0, axis=1)
+    return touched.reshape(grad.shape[:1] + (1,) * (grad.ndim - 1))
+
+
+def lazy_rows(grads, new: tuple, old: tuple, keys: tuple[str, ...]) -> tuple:
+    """Keeps, in the leaves under a dict key of `keys`, the old value of every row whose
+    gradient is all zero.
+
+    grads: the gradient pytree; new: a tuple of pytrees like grads (e.g. the step's updates,
+    mu, nu); old: one pytree like grads per entry of `new`, the values kept where a row is
+    untouched (zeros for the updates, the moments before the step). Leaves under other keys
+    (and 0-d leaves) take `new` unchanged. Returns a tuple like `new`.
+    """
+    def lazy(path) -> bool:
+        return any(isinstance(k, jax.tree_util.DictKey) and k.key in keys for k in path)
+
+    flat, treedef = jax.tree_util.tree_flatten_with_path(grads)
+    news = [treedef.flatten_up_to(tree) for tree in new]
+    olds = [treedef.flatten_up_to(tree) for tree in old]
+    out = [list(leaves) for leaves in news]
+    for i, (path, g) in enumerate(flat):
+        if lazy(path) and jnp.ndim(g) > 0:
+            rows = touched_rows(g)
+            for j in range(len(new)):
+                out[j][i] = jnp.where(rows, news[j][i], olds[j][i]).astype(jnp.result_type(news[j][i]))
+    return tuple(treedef.unflatten(leaves) for leaves in out)
 
 
 # --------------------------------------------------------------------------- jaxopt-driven steps

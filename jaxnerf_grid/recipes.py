@@ -10,6 +10,7 @@ from these; `jaxnerf-grid recipes` prints them one line each (docs/RECIPES.md).
   ours-paper-mlp  the paper's MLP setting: `RunConfig()`'s defaults for ours
   nerf, nerfw     the baselines as the tables compare them at `--standard`: ours' field,
                   sampler, steps and rays in NeRF's bounded space (BOUNDED_SPACE)
+  ours-fast       a candidate for speed (issue 40): ours with a smaller proposal field
 
 Every sampler key of every recipe sits in SAMPLERS (one entry per recipe), apart from the
 other settings (SETTINGS), so the sampler can change shape in one place.
@@ -37,6 +38,11 @@ _PROPOSAL_64_32 = {"sampler": {"kind": "proposal", "samples": [64], "main_sample
 SAMPLERS = {
     # one density-only proposal round of 64 samples stratified in s, then 32 samples of the main field
     "ours": _PROPOSAL_64_32,
+    # ours with a proposal field sized down (issue 40): 3 levels up to 64 cells, 2^15 rows per level,
+    # below nerfacto's smallest proposal network (5 levels to 128); a candidate, not yet the demo's
+    "ours-fast": {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 32,
+                              "field": {"density_bias": -4.0,
+                                        "grid": {"num_levels": 3, "max_resolution": 64, "log2_table_size": 15}}}},
     # NeRF's two passes, 48 + 48 samples, the second over the union, two fields
     "ours-paper-mlp": {"sampler": {"kind": "hierarchical", "samples": [48, 48], "union": True,
                                    "shared_field": False}},
@@ -81,6 +87,7 @@ _GRID = {
 # Every setting of each recipe but its sampler, over RunConfig()'s defaults.
 SETTINGS = {
     "ours": _GRID,
+    "ours-fast": _GRID,
     "ours-paper-mlp": {},
     "nerf": merge(_GRID, {"model": BOUNDED_SPACE}),
     "nerfw": merge(_GRID, {"model": BOUNDED_SPACE}),
@@ -107,6 +114,8 @@ RECIPES = {r.name: r for r in (
                            "contraction (linear t to a far plane at 40 units, grid over +-44), no masks"),
     Recipe("nerfw", "nerfw", "NeRF-W: the nerf recipe plus appearance and transient embeddings "
                              "(the appearance fitted on the left half of each test view)"),
+    Recipe("ours-fast", "ours", "a candidate (issue 40): ours with a smaller proposal field (3 levels up to "
+                                "64 cells, 2^15 rows), not yet tried on the demo's figures"),
 )}
 
 # The model keys in this order when a recipe is written out (the sampler first, then the space,

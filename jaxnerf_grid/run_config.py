@@ -27,6 +27,8 @@ class TrainConfig:
     batch_rays: global rays per step (split over devices; must divide by the device count).
     lr_init, lr_final, warmup: learning-rate schedule; max_grad_norm: clipping (0 = off);
     adam_b1, adam_b2, adam_eps: Adam's moments and epsilon (Instant-NGP: 0.9, 0.99, 1e-15).
+    sparse_adam: lazy Adam on the hash grids' tables (optim.adam's lazy_keys, docs/GRID.md): a table
+      row no ray of the batch reached keeps its moments and value (False: dense Adam).
     use_masks: weight the loss by the dataset's `1 - M_w` (False: every pixel weight 1).
     mask_weight_floor: with masks, a masked pixel's weight is at most 1 - floor (docs/CONVENTIONS.md:
       Eq. 7 gives a bird against the sky a weight near 1; floor 1 excludes every masked pixel).
@@ -67,6 +69,7 @@ class TrainConfig:
     adam_eps: float = 1e-6
     adam_b1: float = 0.9
     adam_b2: float = 0.999
+    sparse_adam: bool = False
     use_masks: bool = True
     mask_weight_floor: float = 0.0
     coarse_loss_weight: float = 1.0

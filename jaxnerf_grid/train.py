@@ -128,9 +128,16 @@ def gather_batch(pool: dict, ids: jnp.ndarray) -> dict:
 # --------------------------------------------------------------------------- the step
 
 
+# The parameters that train.sparse_adam updates lazily: every hash grid's table (fields/hashgrid.py).
+LAZY_ADAM_KEYS = ("table",)
+
+
 def make_optimizer(cfg: TrainConfig) -> optim.GradientTransformation:
+    """The run's Adam: the learning-rate schedule, Adam's settings, clipping; with
+    train.sparse_adam lazy on the hash tables (LAZY_ADAM_KEYS)."""
     schedule = optim.make_lr_schedule(cfg.lr_init, cfg.lr_final, cfg.warmup, cfg.max_steps)
-    return optim.adam(schedule, b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps, max_grad_norm=cfg.max_grad_norm)
+    return optim.adam(schedule, b1=cfg.adam_b1, b2=cfg.adam_b2, eps=cfg.adam_eps, max_grad_norm=cfg.max_grad_norm,
+                      lazy_keys=LAZY_ADAM_KEYS if cfg.sparse_adam else ())
 
 
 def init_state(cfg: RunConfig, frames_shape: tuple | None = None) -> dict:

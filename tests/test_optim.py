@@ -229,3 +229,68 @@ def test_pmap_step_matches_single_device_full_batch():
     for _ in range(5):
         p_r, s_r, finite = step2(p_r, s_r, a_s, b_s)
     np.testing.assert_allclose(np.asarray(p_r["w"]), np.stack([p_ref["w"]] * n), atol=1e-6)
+
+
+def lazy_adam_numpy(table, other, grads, lrs, b1, b2, eps):
+    """Reference lazy Adam, row by row in float64: a row of `table` whose gradient is all zero
+    keeps its moments and value; `other` (a dense leaf) takes plain Adam. Bias correction by the
+    global step count. grads: [(g_table, g_other)] per step; lrs: the rate of each step."""
+    table, other = table.astype(np.float64).copy(), other.astype(np.float64).copy()
+    m, v = np.zeros_like(table), np.zeros_like(table)
+    mo, vo = np.zeros_like(other), np.zeros_like(other)
+    for t, ((g, go), lr) in enumerate(zip(grads, lrs), start=1):
+        for r in range(table.shape[0]):
+            if not np.any(g[r] != 0):
+                continue
+            m[r] = b1 * m[r] + (1 - b1) * g[r]
+            v[r] = b2 * v[r] + (1 - b2) * g[r] ** 2
+            table[r] -= lr * (m[r] / (1 - b1 ** t)) / (np.sqrt(v[r] / (1 - b2 ** t)) + eps)
+        mo = b1 * mo + (1 - b1) * go
+        vo = b2 * vo + (1 - b2) * go ** 2
+        other -= lr * (mo / (1 - b1 ** t)) / (np.sqrt(vo / (1 - b2 ** t)) + eps)
+    return table, other, m, v
+
+
+def test_lazy_adam_matches_a_numpy_reference_on_touched_and_untouched_rows():
+    rng = np.random.default_rng(3)
+    table0 = rng.normal(size=(6, 2)).astype(np.float32)
+    other0 = rng.normal(size=(3,)).astype(np.float32)
+    # rows 0 and 5 never touched; row 2 only on step 1, then idle (dense Adam would keep moving it);
+    # row 3 touched on steps 1 and 4; row 1 has one zero entry on step 2 (the row is still touched)
+    touched = [[1, 2, 3, 4], [1, 4], [4], [1, 3, 4], [1, 4]]
+    grads = []
+    for rows in touched:
+        g = np.zeros((6, 2), np.float32)
+        g[rows] = rng.normal(size=(len(rows), 2))
+        grads.append((g, rng.normal(size=(3,)).astype(np.float32)))
+    grads[1][0][1, 0] = 0.0
+    schedule = optim.make_lr_schedule(0.05, 0.01, 2, 5)
+    opt = optim.adam(schedule, b1=0.9, b2=0.99, eps=1e-6, lazy_keys=("table",))
+    params = {"grid": {"table": jnp.asarray(table0)}, "other": jnp.asarray(other0)}
+    state = opt.init(params)
+    step = jax.jit(lambda p, s, g: optim.apply_gradients(opt, p, s, g))
+    for g, go in grads:
+        params, state = step(params, state, {"grid": {"table": jnp.asarray(g)}, "other": jnp.asarray(go)})
+    lrs = [float(schedule(k)) for k in range(len(grads))]
+    table, other, m, v = lazy_adam_numpy(table0, other0, grads, lrs, 0.9, 0.99, 1e-6)
+    np.testing.assert_allclose(np.asarray(params["grid"]["table"]), table, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(np.asarray(params["other"]), other, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(np.asarray(state.mu["grid"]["table"]), m, atol=1e-6, rtol=0)
+    np.testing.assert_allclose(np.asarray(state.nu["grid"]["table"]), v, atol=1e-7, rtol=0)
+    np.testing.assert_array_equal(np.asarray(params["grid"]["table"])[[0, 5]], table0[[0, 5]])
+    assert int(state.count) == len(grads)
+    # not vacuous: dense Adam moves row 2 after its only gradient, lazy Adam does not
+    dense = optim.adam(schedule, b1=0.9, b2=0.99, eps=1e-6)
+    p_dense, s_dense = {"grid": {"table": jnp.asarray(table0)}, "other": jnp.asarray(other0)}, None
+    s_dense = dense.init(p_dense)
+    for g, go in grads:
+        p_dense, s_dense = optim.apply_gradients(dense, p_dense, s_dense,
+                                                 {"grid": {"table": jnp.asarray(g)}, "other": jnp.asarray(go)})
+    assert abs(float(p_dense["grid"]["table"][2, 0]) - table[2, 0]) > 1e-3
+    np.testing.assert_allclose(np.asarray(p_dense["other"]), other, atol=1e-6, rtol=0)
+
+
+def test_touched_rows_marks_rows_with_any_nonzero_entry():
+    g = jnp.asarray([[0.0, 0.0], [0.0, -1e-30], [2.0, 0.0]])
+    np.testing.assert_array_equal(np.asarray(optim.touched_rows(g))[:, 0], [False, True, True])
+    assert optim.touched_rows(jnp.zeros((4, 2, 3))).shape == (4, 1, 1)

@@ -4,6 +4,7 @@ The references are written out here: the demo's recipe as it stood when its figu
 measured, RunConfig()'s defaults for the paper's setting, NeRF's bounded space by hand.
 """
 
+import dataclasses
 import json
 
 import pytest
@@ -73,6 +74,15 @@ def test_every_sampler_key_sits_in_samplers():
         assert set(recipes.SAMPLERS[name]) <= set(recipes.overrides(name)["model"]), name
 
 
+def test_ours_fast_is_ours_with_a_smaller_proposal_field():
+    fast, ours = recipes.make_config("ours-fast"), recipes.make_config("ours")
+    assert (fast.model.sampler.field.grid.num_levels, fast.model.sampler.field.grid.max_resolution,
+            fast.model.sampler.field.grid.log2_table_size) == (3, 64, 15)
+    assert dataclasses.replace(fast.model.sampler.field, grid=ours.model.sampler.field.grid) == ours.model.sampler.field
+    same_sampler = dataclasses.replace(fast.model.sampler, field=ours.model.sampler.field)
+    assert dataclasses.replace(fast, model=dataclasses.replace(fast.model, sampler=same_sampler)) == ours
+
+
 def test_overrides_are_fresh_copies():
     a, b = recipes.overrides("ours"), recipes.overrides("ours")
     a["model"]["field"]["grid"]["num_levels"] = 1
@@ -87,7 +97,7 @@ def test_resolve_recipe_and_method():
     assert recipes.resolve("ours-paper-mlp", "nerf") == ("ours-paper-mlp", "nerf")
     # --recipe ours-paper-mlp --method nerf is what `train --method nerf` trained before the registry
     assert as_dict(recipes.make_config("ours-paper-mlp", method="nerf")) == as_dict(train.make_config("nerf"))
-    with pytest.raises(ConfigError, match="'mine'.*ours, ours-paper-mlp, nerf, nerfw"):
+    with pytest.raises(ConfigError, match="'mine'.*ours, ours-paper-mlp, nerf, nerfw, ours-fast"):
         recipes.get("mine")
 
 
@@ -95,7 +105,7 @@ def test_recipes_command_prints_one_line_each(capsys):
     assert cli.main(["recipes"]) == 0
     lines = capsys.readouterr().out.splitlines()
     listed = [line.split()[0] for line in lines[:len(recipes.RECIPES)]]
-    assert listed == ["ours", "ours-paper-mlp", "nerf", "nerfw"]
+    assert listed == ["ours", "ours-paper-mlp", "nerf", "nerfw", "ours-fast"]
     assert all(recipes.RECIPES[n].description in line for n, line in zip(listed, lines))
     assert cli.main(["recipes", "--show", "nerf"]) == 0
     assert json.loads(capsys.readouterr().out) == recipes.overrides("nerf")

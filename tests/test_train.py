@@ -79,13 +79,13 @@ def test_pool_holds_exactly_the_weighted_pixels_and_rays_match():
     assert train.build_pool(ds, tiny_config("nerf"))["pixels"].size == 4 * 12 * 16
 
 
-@pytest.mark.parametrize("field", ["mlp", "grid"])
-def test_two_devices_match_one_device(tmp_path, field):
+@pytest.mark.parametrize("field,sparse_adam", [("mlp", False), ("grid", False), ("grid", True)])
+def test_two_devices_match_one_device(tmp_path, field, sparse_adam):
     assert jax.local_device_count() >= 2, "run with XLA_FLAGS=--xla_force_host_platform_device_count=2"
     ds = tiny_dataset()
     results = []
     for n in (1, 2):
-        cfg = tiny_config(field=field, num_devices=n)
+        cfg = tiny_config(field=field, num_devices=n, sparse_adam=sparse_adam)
         results.append(train.train(ds, cfg, tmp_path / f"dev{n}", progress=False, stop_at=4).params)
     diffs = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(a - b))), *results)
     cfg = tiny_config(field=field)
@@ -95,6 +95,21 @@ def test_two_devices_match_one_device(tmp_path, field):
     assert max(jax.tree_util.tree_leaves(moved)) > 1e-3  # the steps did change the parameters
     if field == "grid":  # the proposal field is trained too (by the interlevel loss)
         assert max(jax.tree_util.tree_leaves(moved["proposal"])) > 1e-3
+
+
+def test_sparse_adam_leaves_untouched_table_rows_where_dense_adam_moves_them(tmp_path):
+    # train.sparse_adam reaches the step: in step 4, lazy Adam keeps every table row that step's
+    # batch did not touch; dense Adam also moves the rows touched in steps 1-3 (their momentum)
+    ds = tiny_dataset()
+    kept = {}
+    for sparse in (False, True):
+        cfg = tiny_config(field="grid", num_devices=1, sparse_adam=sparse)
+        before = train.train(ds, cfg, tmp_path / f"sparse{sparse}", progress=False, stop_at=3).params
+        after = train.train(ds, cfg, tmp_path / f"sparse{sparse}", progress=False, stop_at=4).params
+        pairs = zip(jax.tree_util.tree_leaves_with_path(after), jax.tree_util.tree_leaves(before))
+        kept[sparse] = sum(int(np.sum(np.all(np.asarray(a) == np.asarray(b), axis=-1)))
+                           for (path, a), b in pairs if "table" in jax.tree_util.keystr(path))
+    assert kept[True] > kept[False] + 10, kept
 
 
 def test_grid_proposal_run_resumes_exactly(tmp_path):
