@@ -173,6 +173,28 @@ def test_loss_weights_cap_masked_pixels_at_one_minus_the_floor(floor):
         w = min(max(float(ds.weights[idx]), 0.0), 1.0)
         want[idx] = min(w, 1.0 - floor) if ds.masks[idx] > 0.5 else w
     np.testing.assert_allclose(got, want, atol=1e-7)
+    assert got.dtype == np.float32                                   # the docstring's dtype
+    off = train.loss_weights(ds, tiny_config(use_masks=False).train)
+    assert off.dtype == np.float32 and off.shape == ds.weights.shape and np.all(off == 1.0)
+
+
+@pytest.mark.parametrize("mode", ["robust", "dpt+robust"])
+def test_prior_weights_are_ones_or_the_capped_weights_whatever_use_masks_says(mode):
+    """train.robust's prior: ones in mode robust; in dpt+robust the dataset's weights clipped to
+    [0, 1] and capped at 1 - floor under the mask, even with train.use_masks off (round two)."""
+    ds = tiny_dataset()
+    rng = np.random.default_rng(6)
+    ds.weights = rng.uniform(-0.2, 1.2, ds.weights.shape).astype(np.float32)
+    ds.masks = (rng.uniform(size=ds.weights.shape) > 0.5).astype(np.float32)
+    got = train.prior_weights(ds, tiny_config(robust=mode, robust_patch=4, use_masks=False,
+                                              mask_weight_floor=0.3).train)
+    want = np.ones(ds.weights.shape, np.float32)
+    if mode == "dpt+robust":
+        for idx in np.ndindex(*ds.weights.shape):
+            w = min(max(float(ds.weights[idx]), 0.0), 1.0)
+            want[idx] = min(w, 0.7) if ds.masks[idx] > 0.5 else w
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-7)
 
 
 # --------------------------------------------------------------------------- proposal resampling

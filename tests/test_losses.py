@@ -21,6 +21,16 @@ def test_weighted_mean_normalised_by_weight_sum():
     assert float(losses.weighted_mean(jnp.ones(3), jnp.zeros(3))) == 0.0
 
 
+def test_weighted_mean_with_weights_summing_below_one():
+    """The total's guard (1e-12) only stops a division by zero: weights summing to 0.3, given or
+    summed, still divide by 0.3 (issue 43, round two: a guard of ~1 passed the tests above)."""
+    per_ray = np.array([2.0, 5.0, 1.0], np.float32)
+    w = np.array([0.1, 0.0, 0.2], np.float32)
+    want = (2.0 * 0.1 + 1.0 * 0.2) / 0.3
+    np.testing.assert_allclose(losses.weighted_mean(jnp.asarray(per_ray), jnp.asarray(w)), want, rtol=1e-6)
+    np.testing.assert_allclose(losses.weighted_mean(jnp.asarray(per_ray), jnp.asarray(w), 0.3), want, rtol=1e-6)
+
+
 def test_masked_pixel_has_no_gradient():
     target = jnp.array([[1.0, 0, 0], [0, 1.0, 0]])
     w = jnp.array([1.0, 0.0])
