@@ -148,3 +148,6 @@ def test_per_ray_loss_adds_interlevel_and_distortion_terms():
     expected = (0.01 + 0.5 * 2 * _interlevel_brute(e_m, w_m, e_p, w_p) + 0.25 * _distortion_brute(e_m, w_m))
     np.testing.assert_allclose(res["loss"], [expected], rtol=1e-4)
     assert res["mse_levels"] == []  # proposal levels render no colour
+    # the terms as logged, unweighted (two proposal levels: twice the loop's value)
+    np.testing.assert_allclose(res["interlevel"], [2 * _interlevel_brute(e_m, w_m, e_p, w_p)], rtol=1e-4)
+    np.testing.assert_allclose(res["distortion"], [_distortion_brute(e_m, w_m)], rtol=1e-4)
