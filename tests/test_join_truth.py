@@ -3,6 +3,7 @@ the proposal sampler held to answers computed independently (hand counts, per-pi
 closed forms, NumPy), each test written against a one-line mistake that the suite missed
 (docs/TESTING.md, "Issue 43")."""
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -13,8 +14,10 @@ import jax
 import jax.numpy as jnp
 
 from jaxnerf_grid import evaluate, fields, geometry, io, train
+from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
 from jaxnerf_grid.export import score as score_lib
+from jaxnerf_grid.io import DataError
 
 sys.path.insert(0, str(Path(__file__).parent))
 import analytic_field as af  # noqa: E402
@@ -195,6 +198,24 @@ def test_prior_weights_are_ones_or_the_capped_weights_whatever_use_masks_says(mo
             want[idx] = min(w, 0.7) if ds.masks[idx] > 0.5 else w
     assert got.dtype == np.float32
     np.testing.assert_allclose(got, want, atol=1e-7)
+
+
+def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch():
+    """Weights without masks (a dataset's own weights files) are only clipped, whatever the floor;
+    prior_weights refuses dpt+robust without weights (DataError) and a patch larger than the
+    frames (ConfigError), but not a batch that is no multiple of the patch (round two)."""
+    ds = tiny_dataset()
+    ds.weights = np.linspace(-0.5, 1.5, ds.weights.size, dtype=np.float32).reshape(ds.weights.shape)
+    ds.masks = None
+    got = train.loss_weights(ds, tiny_config(mask_weight_floor=0.4).train)
+    np.testing.assert_array_equal(got, np.clip(ds.weights, 0.0, 1.0))
+    robust = tiny_config(robust="robust", robust_patch=4).train
+    assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=50)) == 1.0)
+    with pytest.raises(ConfigError, match="robust_patch"):                 # 13 > the 16 x 12 frames
+        train.prior_weights(ds, dataclasses.replace(robust, robust_patch=13))
+    ds.weights = None
+    with pytest.raises(DataError, match="dpt\\+robust"):
+        train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4).train)
 
 
 # --------------------------------------------------------------------------- proposal resampling
