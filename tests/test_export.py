@@ -184,6 +184,59 @@ def test_ransac_ground_against_the_true_plane():
     np.testing.assert_allclose(ground.heights(ground_pts, n, d), 0, atol=0.03)
 
 
+def test_plane_through_and_refine_plane_against_a_known_tilted_plane():
+    """Three points 2 cm apart (a normalised scene's scale) and a cloud on the plane
+    n . x + d = 0, n = (sin 20, 0, cos 20), d = 0.3: the unit normal with n_z > 0 whatever the
+    points' order, d exactly; collinear points give None (issue 43, round two)."""
+    n_true = np.array([np.sin(np.radians(20)), 0.0, np.cos(np.radians(20))])
+    d_true = 0.3
+    u, v = np.array([np.cos(np.radians(20)), 0.0, -np.sin(np.radians(20))]), np.array([0.0, 1.0, 0.0])
+    a = -d_true * n_true
+    for b, c in ((a + 0.02 * u, a + 0.02 * v), (a + 0.02 * v, a + 0.02 * u)):   # both orientations
+        n, d = ground.plane_through(a, b, c)
+        np.testing.assert_allclose(n, n_true, atol=1e-9)
+        assert d == pytest.approx(d_true, abs=1e-9)
+    assert ground.plane_through(a, a + 0.02 * u, a + 0.04 * u) is None
+    rng = np.random.default_rng(9)
+    cloud = a + rng.uniform(-1, 1, (50, 1)) * u + rng.uniform(-1, 1, (50, 1)) * v
+    for points in (cloud, cloud[::-1] * [1, 1, 1]):
+        n, d = ground.refine_plane(points)
+        np.testing.assert_allclose(n, n_true, atol=1e-9)
+        assert d == pytest.approx(d_true, abs=1e-9)
+
+
+def test_ransac_needs_three_points_is_reproducible_and_returns_float64():
+    """Exactly three points are enough, two are refused by a message that says so; the same seed
+    gives the same plane on a slab where every sample gives another (three iterations); the
+    lowest points of float32 input are float64, as documented (issue 43, round two)."""
+    three = np.array([[0.0, 0.0, 0.1], [1.0, 0.0, 0.1], [0.0, 1.0, 0.1]])
+    n, d, inliers = ground.fit_plane_ransac(three, 0.01)
+    np.testing.assert_allclose(n, [0, 0, 1], atol=1e-12)
+    assert d == pytest.approx(-0.1) and inliers.all()
+    with pytest.raises(ValueError, match="at least 3 points, got 2"):
+        ground.fit_plane_ransac(three[:2], 0.01)
+    cloud = np.random.default_rng(10).uniform(-1, 1, (200, 3)) * [1, 1, 0.1]     # a thick slab
+    runs = [ground.fit_plane_ransac(cloud, 0.03, iterations=3, seed=4) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    np.testing.assert_array_equal(runs[0][2], runs[1][2])
+    assert ground.lowest_points(cloud.astype(np.float32), 0.25).dtype == np.float64
+
+
+def test_ransac_prefers_the_ground_to_a_larger_wall_and_refuses_a_wall_alone():
+    """300 points on a vertical wall x = 0.5 (z above -0.3) and a 15 x 15 lattice on the ground z = -0.5 (its
+    rows make some samples collinear): the plane within 45 degrees of horizontal is the ground,
+    not the wall with more points; the wall alone is refused, by name (round two)."""
+    rng = np.random.default_rng(11)
+    wall = np.column_stack([np.full(300, 0.5), rng.uniform(-1, 1, 300), rng.uniform(-0.3, 1, 300)])
+    xs, ys = np.meshgrid(np.linspace(-1, 0.3, 15), np.linspace(-1, 1, 15))
+    floor = np.column_stack([xs.ravel(), ys.ravel(), np.full(225, -0.5)])
+    n, d, inliers = ground.fit_plane_ransac(np.concatenate([wall, floor]), 0.01, iterations=200)
+    np.testing.assert_allclose(n, [0, 0, 1], atol=1e-9)
+    assert d == pytest.approx(0.5) and inliers.sum() == 225 and inliers[300:].all()
+    with pytest.raises(ValueError, match="no plane within the tilt limit"):
+        ground.fit_plane_ransac(wall, 0.01, iterations=50)
+
+
 def test_tower_box_finds_the_largest_cluster_above_the_ground():
     rng = np.random.default_rng(3)
     floor = np.column_stack([rng.uniform(-0.8, 0.8, (2000, 2)), np.full(2000, -0.7)])
