@@ -237,6 +237,19 @@ def test_ransac_prefers_the_ground_to_a_larger_wall_and_refuses_a_wall_alone():
         ground.fit_plane_ransac(wall, 0.01, iterations=50)
 
 
+def test_plane_z_and_largest_cluster_of_none_and_one_point():
+    """z of the plane 0.2 x - 0.3 y + z + 0.5 = 0 (normalised) at a few (x, y), by hand; the
+    largest cluster of no points is an empty bool mask, of one point that point (round two)."""
+    n = np.array([0.2, -0.3, 1.0]) / np.linalg.norm([0.2, -0.3, 1.0])
+    d = 0.5 / np.linalg.norm([0.2, -0.3, 1.0])
+    x, y = np.array([0.0, 1.0, 2.0, -1.5]), np.array([0.0, 2.0, -1.0, 0.5])
+    np.testing.assert_allclose(ground.plane_z(n, d, x, y), -(0.2 * x - 0.3 * y + 0.5), atol=1e-12)
+    none = ground.largest_cluster(np.zeros((0, 3)), 0.1)
+    assert none.shape == (0,) and none.dtype == bool
+    one = ground.largest_cluster(np.array([[0.3, 0.2, 0.1]]), 0.1)
+    assert one.dtype == bool and one.tolist() == [True]
+
+
 def test_tower_box_finds_the_largest_cluster_above_the_ground():
     rng = np.random.default_rng(3)
     floor = np.column_stack([rng.uniform(-0.8, 0.8, (2000, 2)), np.full(2000, -0.7)])
