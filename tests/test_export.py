@@ -250,6 +250,42 @@ def test_plane_z_and_largest_cluster_of_none_and_one_point():
     assert one.dtype == bool and one.tolist() == [True]
 
 
+def _clusters_by_hand(cells: list, counts: list) -> set:
+    """The largest group (by point count) of occupied cells [(i, j, k)], two cells joined when
+    their Chebyshev distance is at most 3 (one-cell dilations that touch, corners included):
+    union-find over every pair. Returns the set of its cells."""
+    parent = list(range(len(cells)))
+
+    def root(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for a in range(len(cells)):
+        for b in range(a):
+            if max(abs(x - y) for x, y in zip(cells[a], cells[b])) <= 3:
+                parent[root(a)] = root(b)
+    totals = {}
+    for i, c in enumerate(counts):
+        totals[root(i)] = totals.get(root(i), 0) + c
+    best = max(totals, key=totals.get)
+    return {cells[i] for i in range(len(cells)) if root(i) == best}
+
+
+def test_largest_cluster_joins_cells_three_apart_diagonally_and_not_four_apart():
+    """Cells of side 1: two 3-point cells (3, 3, 3) apart (one group of 6, joined only through
+    their corners) and three pairs of 5-point cells 4 apart along x, y and z (never joined):
+    the group of 6 is the largest, as the union-find over cells says (issue 43, round two: a
+    face-only dilation or labelling, or a 4-cell structure on any axis, passed the test above)."""
+    cells = [(0, 0, 0), (3, 3, 3), (20, 0, 0), (24, 0, 0), (0, 20, 0), (0, 24, 0), (0, 0, 20), (0, 0, 24)]
+    counts = [3, 3, 5, 5, 5, 5, 5, 5]
+    points = np.concatenate([np.asarray(c, float) + 0.5 + 0.1 * np.arange(k)[:, None] for c, k in zip(cells, counts)])
+    got = ground.largest_cluster(points, 1.0)
+    want = _clusters_by_hand(cells, counts)
+    assert want == {(0, 0, 0), (3, 3, 3)}
+    np.testing.assert_array_equal(got, [tuple(np.floor(q).astype(int)) in want for q in points])
+
+
 def test_tower_box_finds_the_largest_cluster_above_the_ground():
     rng = np.random.default_rng(3)
     floor = np.column_stack([rng.uniform(-0.8, 0.8, (2000, 2)), np.full(2000, -0.7)])
