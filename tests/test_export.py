@@ -301,6 +301,36 @@ def test_tower_box_finds_the_largest_cluster_above_the_ground():
         ground.tower_box(floor, n, d, 0.03, 0.02)
 
 
+def test_tower_box_on_sloping_ground_clears_its_highest_corner_and_refuses_by_name():
+    """Ground sloping in x and in y, each of the four ways (so each bottom corner of the box is
+    the highest once), a column of points standing on it: the box is the column's extent plus
+    one cell, its bottom `clearance` above the plane at its highest bottom corner (each corner's
+    z by hand); one point above the ground is a tower, none is refused with the documented
+    message (issue 43, round two)."""
+    rng = np.random.default_rng(12)
+    xy = rng.uniform([-0.1, 0.2], [0.1, 0.35], (3000, 2))
+    rise = rng.uniform(0.0, 0.8, 3000)
+    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        a, b = 0.1 * sx, 0.15 * sy
+        norm = np.linalg.norm([a, b, 1.0])
+        n, d = np.array([a, b, 1.0]) / norm, 0.4 / norm
+        z_of = lambda x, y: -(a * x + b * y + 0.4)  # noqa: E731,B023  the plane's z, by hand
+        column = np.column_stack([xy, z_of(xy[:, 0], xy[:, 1]) + rise])
+        lo, hi, stats = ground.tower_box(column, n, d, clearance=0.03, cell=0.02)
+        tower = column[rise * (1.0 / norm) > 0.03]                   # heights above the plane
+        np.testing.assert_allclose(lo[:2], tower[:, :2].min(0) - 0.02, atol=1e-12)
+        np.testing.assert_allclose(hi, tower.max(0) + 0.02, atol=1e-12)
+        corners = [z_of(x, y) for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]
+        assert lo[2] == pytest.approx(max(corners) + 0.03, abs=1e-12)
+        assert stats == {"above_ground": len(tower), "tower_points": len(tower)}
+    flat = np.array([0.0, 0.0, 1.0])
+    one = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0], [0.2, 0.1, 0.5]])
+    lo1, hi1, _ = ground.tower_box(one, flat, 0.0, clearance=0.03, cell=0.02)
+    np.testing.assert_allclose(hi1, [0.22, 0.12, 0.52], atol=1e-12)
+    with pytest.raises(ValueError, match="nothing stands above the ground plane"):
+        ground.tower_box(one[:2], flat, 0.0, clearance=0.03, cell=0.02)
+
+
 # --------------------------------------------------------------------------- fusion
 
 
