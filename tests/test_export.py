@@ -329,6 +329,11 @@ def test_tower_box_on_sloping_ground_clears_its_highest_corner_and_refuses_by_na
     np.testing.assert_allclose(hi1, [0.22, 0.12, 0.52], atol=1e-12)
     with pytest.raises(ValueError, match="nothing stands above the ground plane"):
         ground.tower_box(one[:2], flat, 0.0, clearance=0.03, cell=0.02)
+    # one point 0.031 above ground z = -(0.9 x + 0.9 y): the box's uphill corner, a cell away,
+    # is 0.18 higher, so clearance above it is above the box's top (0.031 / n_z + 0.1)
+    steep = np.array([0.9, 0.9, 1.0]) / np.linalg.norm([0.9, 0.9, 1.0])
+    with pytest.raises(ValueError, match="the tower's box is empty above the ground"):
+        ground.tower_box(np.array([[0.0, 0.0, 0.031 / steep[2]]]), steep, 0.0, clearance=0.03, cell=0.1)
 
 
 # --------------------------------------------------------------------------- fusion
