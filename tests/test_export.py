@@ -237,6 +237,19 @@ def test_ransac_prefers_the_ground_to_a_larger_wall_and_refuses_a_wall_alone():
         ground.fit_plane_ransac(wall, 0.01, iterations=50)
 
 
+def test_ransac_keeps_its_sample_plane_when_the_refit_tilts_past_the_limit():
+    """A noisy slab sloping 50 degrees and a threshold that takes all of it: only noisy samples
+    within 45 degrees are accepted, and the least-squares refit of their inliers (50 degrees)
+    would pass the limit, so the sample's plane is kept: within 45 degrees (round two)."""
+    rng = np.random.default_rng(13)
+    xy = rng.uniform(-0.5, 0.5, (300, 2))
+    slab = np.column_stack([xy, np.tan(np.radians(50)) * xy[:, 0] + rng.uniform(-0.15, 0.15, 300)])
+    assert np.degrees(np.arccos(ground.refine_plane(slab)[0][2])) > 47      # the refit alone
+    n, d, inliers = ground.fit_plane_ransac(slab, 0.5, iterations=300)
+    assert n[2] >= np.cos(np.radians(45)) and inliers.sum() > 250
+    np.testing.assert_array_equal(inliers, np.abs(slab @ n + d) <= 0.5)
+
+
 def test_plane_z_and_largest_cluster_of_none_and_one_point():
     """z of the plane 0.2 x - 0.3 y + z + 0.5 = 0 (normalised) at a few (x, y), by hand; the
     largest cluster of no points is an empty bool mask, of one point that point (round two)."""
