@@ -30,6 +30,7 @@ E = "tests/test_join_export.py"
 P = "tests/test_join_poses.py"
 L = "tests/test_losses.py"
 X = "tests/test_export.py"
+ES = "test_export_section_reads_the_files_record_the_users_reference_and_a_record_without_scale"
 TW = "test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch"
 
 # name: (file, the exact text, its mutation, tests that must kill it, what the mistake is)
@@ -123,6 +124,13 @@ MUTANTS = {
             "if False:   # the refinement may not tilt it past the limit",
             [f"{X}::test_ransac_keeps_its_sample_plane_when_the_refit_tilts_past_the_limit"],
             "RANSAC keeping a refit tilted past the limit (a slope taken for the ground)"),
+    "M21": ("jaxnerf_grid/evaluate.py", "ref = reference_cloud(ds, reference_ply)\n    if ref is not None:",
+            "ref = reference_cloud(ds, None)\n    if ref is not None:", [f"{J}::{ES}"],
+            "eval's export score ignoring the user's reference (eval.reference_ply)"),
+    "M22": ("jaxnerf_grid/evaluate.py",
+            "score.reference_in_export_units(io.read_ply_points(path), file_norm, ds.normalization)",
+            "score.reference_in_export_units(io.read_ply_points(path), None, ds.normalization)", [f"{J}::{ES}"],
+            "eval's export score reading the dataset's tower in the dataset's record, not the file's"),
 }
 
 

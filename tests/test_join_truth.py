@@ -122,6 +122,37 @@ def test_export_score_in_metres_crops_a_one_metre_strip_and_keeps_precision_and_
     assert (tau["precision"], tau["recall"]) == (1.0, 0.5)
 
 
+def test_export_section_reads_the_files_record_the_users_reference_and_a_record_without_scale(tmp_path):
+    """`evaluate.export_section` (metrics.json["export"]): the measurements and the picture handed
+    on as written; the dataset's tower stored in another record than the dataset's (scale 0.1,
+    its own translation) is mapped through that record; a user's reference in the dataset's
+    units replaces a missing tower; a dataset record without a scale scores in its own units
+    (strip = DEFAULT_GROUND_STRIP). Each time the counts by hand of the test above: 9 of 10
+    layers, P = 1, R = 0.5 (issue 43, round two)."""
+    ref = _lattice([0, 0, 0], [7, 3, 9], 1.0) * [1, 1, 1.5]
+    _export_folder(tmp_path / "run" / "export", _half_of(ref, 1e-3), ref, 13.5)
+    norm = {"scale": 0.05, "translation": [-3.5, -1.5, -6.75], "rotation": af.TURN_Z.tolist()}
+    file_norm = {"scale": 0.1, "translation": [1.0, 2.0, 3.0]}
+    io.write_ply(tmp_path / "tower.ply", apply_normalization_to_points(ref, file_norm))
+    io.write_ply(tmp_path / "user.ply", apply_normalization_to_points(ref, norm))
+    io.write_ply(tmp_path / "plain.ply", ref)
+    ds = tiny_dataset()
+    ds.root, ds.normalization = tmp_path, norm
+    ds.meta = {"tower_ply": "tower.ply", "scene_normalization": file_norm}
+    runs = [evaluate.export_section(ds, tmp_path / "run")]
+    assert runs[0]["measurements"] == {"units": "metres", "height": 13.5}
+    assert runs[0]["image"] == "export/export_views.png"
+    ds.meta = {}
+    runs.append(evaluate.export_section(ds, tmp_path / "run", reference_ply=tmp_path / "user.ply"))
+    ds.normalization = {}
+    runs.append(evaluate.export_section(ds, tmp_path / "run", reference_ply=tmp_path / "plain.ply"))
+    for info, strip in zip(runs, (1.0, 1.0, geometry.DEFAULT_GROUND_STRIP)):
+        assert info["score"]["ground_strip"] == pytest.approx(strip)
+        assert info["score"]["mesh"]["num_ref"] == 32 * 9
+        tau = info["score"]["mesh"]["thresholds"]["0.2"]
+        assert (tau["precision"], tau["recall"]) == (1.0, 0.5)
+
+
 # --------------------------------------------------------------------------- export's field
 
 
