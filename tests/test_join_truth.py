@@ -142,7 +142,8 @@ def test_export_section_reads_the_files_record_the_users_reference_and_a_record_
     runs = [evaluate.export_section(ds, tmp_path / "run")]
     assert runs[0]["measurements"] == {"units": "metres", "height": 13.5}
     assert runs[0]["image"] == "export/export_views.png"
-    ds.meta = {}
+    ds.meta = None                                   # a dataset without a meta record: no tower
+    assert evaluate.reference_cloud(ds) is None
     runs.append(evaluate.export_section(ds, tmp_path / "run", reference_ply=tmp_path / "user.ply"))
     ds.normalization = {}
     runs.append(evaluate.export_section(ds, tmp_path / "run", reference_ply=tmp_path / "plain.ply"))
