@@ -28,6 +28,10 @@ ROOT = Path(__file__).resolve().parents[1]
 J = "tests/test_join_truth.py"
 E = "tests/test_join_export.py"
 P = "tests/test_join_poses.py"
+L = "tests/test_losses.py"
+X = "tests/test_export.py"
+ES = "test_export_section_reads_the_files_record_the_users_reference_and_a_record_without_scale"
+TW = "test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch"
 
 # name: (file, the exact text, its mutation, tests that must kill it, what the mistake is)
 MUTANTS = {
@@ -81,6 +85,52 @@ MUTANTS = {
             "return apply_normalization_to_points(points, invert_normalization(_record_or_identity(normalization)))",
             "return apply_normalization_to_points(points, _record_or_identity(normalization))", [E],
             "to_metric64 applying the normalisation instead of undoing it"),
+    # round two (docs/TESTING.md, "Round two"): the survivors of mutmut's runs on losses, the loss
+    # weights, Eq. 7 and the ground, each against the test written for it
+    "M11": ("jaxnerf_grid/train.py", "if cfg.mask_weight_floor > 0 and dataset.masks is not None:",
+            "if cfg.mask_weight_floor > 0 or dataset.masks is not None:", [f"{J}::{TW}"],
+            "loss_weights capping under masks a dataset does not have (weights without masks, floor > 0)"),
+    "M12": ("jaxnerf_grid/train.py",
+            "check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust_patch ** 2), 1, dataset)",
+            "check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust_patch ** 2), 1, None)", [f"{J}::{TW}"],
+            "prior_weights checking the robust settings without the dataset (dpt+robust without weights let through)"),
+    "M13": ("jaxnerf_grid/losses.py", "jnp.maximum(total, 1e-12)", "jnp.maximum(total, 1.0)",
+            [f"{L}::test_weighted_mean_with_weights_summing_below_one"],
+            "weighted_mean's guard against a zero total as 1 (totals below 1 not divided by)"),
+    "M14": ("jaxnerf_grid/losses.py", "/ (w + eps), axis=-1)", "/ (w - eps), axis=-1)",
+            [f"{L}::test_interlevel_loss_of_a_main_weight_as_small_as_eps_is_finite"],
+            "the proposal loss dividing by w - eps (inf at w = eps)"),
+    "M15": ("jaxnerf_grid/losses.py", "w_before = jnp.cumsum(weights, axis=-1) - weights",
+            "w_before = jnp.cumsum(weights, axis=None) - weights",
+            [f"{L}::test_squared_error_and_distortion_per_ray_of_a_batch"],
+            "the distortion loss's running sum over the whole batch instead of each ray"),
+    "M16": ("jaxnerf_grid/foreground.py", "jnp.maximum(dmax, 1e-12)", "jnp.maximum(dmax, 1.0)",
+            ["tests/test_foreground.py::test_eq7_with_depths_below_one_and_a_dmax_per_image"],
+            "Eq. 7 dividing by at least 1 (DPT's depths, far below 1, give M_w near 0)"),
+    "M17": ("jaxnerf_grid/export/ground.py", "n = n / norm\n    if n[UP] < 0:", "n = n / norm\n    if n[UP] > 1:",
+            [f"{X}::test_plane_through_and_refine_plane_against_a_known_tilted_plane"],
+            "plane_through's normal not turned up (half of RANSAC's samples thrown away as too steep)"),
+    "M18": ("jaxnerf_grid/export/ground.py", "labels, _ = ndimage.label(grown, structure=np.ones((3, 3, 3), bool))",
+            "labels, _ = ndimage.label(grown)",
+            [f"{X}::test_largest_cluster_joins_cells_three_apart_diagonally_and_not_four_apart"],
+            "the tower's cells joined through faces only (a lattice's diagonal members split off)"),
+    "M19": ("jaxnerf_grid/export/ground.py",
+            "np.array([lo[0], lo[0], hi[0], hi[0]]), np.array([lo[1], hi[1], lo[1], hi[1]])",
+            "np.array([lo[1], hi[1], lo[1], hi[1]]), np.array([lo[0], lo[0], hi[0], hi[0]])",
+            [f"{X}::test_tower_box_on_sloping_ground_clears_its_highest_corner_and_refuses_by_name"],
+            "the box's bottom corners with x and y crossed (the ground's height at the wrong corners)"),
+    "M20": ("jaxnerf_grid/export/ground.py",
+            "if n[UP] < min_nz:   # the refinement may not tilt it past the limit",
+            "if False:   # the refinement may not tilt it past the limit",
+            [f"{X}::test_ransac_keeps_its_sample_plane_when_the_refit_tilts_past_the_limit"],
+            "RANSAC keeping a refit tilted past the limit (a slope taken for the ground)"),
+    "M21": ("jaxnerf_grid/evaluate.py", "ref = reference_cloud(ds, reference_ply)\n    if ref is not None:",
+            "ref = reference_cloud(ds, None)\n    if ref is not None:", [f"{J}::{ES}"],
+            "eval's export score ignoring the user's reference (eval.reference_ply)"),
+    "M22": ("jaxnerf_grid/evaluate.py",
+            "score.reference_in_export_units(io.read_ply_points(path), file_norm, ds.normalization)",
+            "score.reference_in_export_units(io.read_ply_points(path), None, ds.normalization)", [f"{J}::{ES}"],
+            "eval's export score reading the dataset's tower in the dataset's record, not the file's"),
 }
 
 

@@ -41,9 +41,10 @@ declare -A GROUPS_=(
   [normalize]="jaxnerf_grid/data/normalize.py|tests/test_join_poses.py tests/test_poses.py tests/test_formats.py"
   [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py"
   [losses]="jaxnerf_grid/losses.py|tests/test_losses.py"
+  [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch"
 )
 ORDER=(foreground masking models evaluate report demo geometry export_score export_init export_ground export_measure
-       export_field export_run normalize poses losses)
+       export_field export_run normalize poses losses train)
 
 groups=()
 globs=()

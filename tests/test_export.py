@@ -184,6 +184,121 @@ def test_ransac_ground_against_the_true_plane():
     np.testing.assert_allclose(ground.heights(ground_pts, n, d), 0, atol=0.03)
 
 
+def test_plane_through_and_refine_plane_against_a_known_tilted_plane():
+    """Three points 2 cm apart (a normalised scene's scale) and a cloud on the plane
+    n . x + d = 0, n = (sin 20, 0, cos 20), d = 0.3: the unit normal with n_z > 0 whatever the
+    points' order, d exactly; collinear points give None (issue 43, round two)."""
+    n_true = np.array([np.sin(np.radians(20)), 0.0, np.cos(np.radians(20))])
+    d_true = 0.3
+    u, v = np.array([np.cos(np.radians(20)), 0.0, -np.sin(np.radians(20))]), np.array([0.0, 1.0, 0.0])
+    a = -d_true * n_true
+    for b, c in ((a + 0.02 * u, a + 0.02 * v), (a + 0.02 * v, a + 0.02 * u)):   # both orientations
+        n, d = ground.plane_through(a, b, c)
+        np.testing.assert_allclose(n, n_true, atol=1e-9)
+        assert d == pytest.approx(d_true, abs=1e-9)
+    assert ground.plane_through(a, a + 0.02 * u, a + 0.04 * u) is None
+    rng = np.random.default_rng(9)
+    cloud = a + rng.uniform(-1, 1, (50, 1)) * u + rng.uniform(-1, 1, (50, 1)) * v
+    for points in (cloud, cloud[::-1] * [1, 1, 1]):
+        n, d = ground.refine_plane(points)
+        np.testing.assert_allclose(n, n_true, atol=1e-9)
+        assert d == pytest.approx(d_true, abs=1e-9)
+
+
+def test_ransac_needs_three_points_is_reproducible_and_returns_float64():
+    """Exactly three points are enough, two are refused by a message that says so; the same seed
+    gives the same plane on a slab where every sample gives another (three iterations); the
+    lowest points of float32 input are float64, as documented (issue 43, round two)."""
+    three = np.array([[0.0, 0.0, 0.1], [1.0, 0.0, 0.1], [0.0, 1.0, 0.1]])
+    n, d, inliers = ground.fit_plane_ransac(three, 0.01)
+    np.testing.assert_allclose(n, [0, 0, 1], atol=1e-12)
+    assert d == pytest.approx(-0.1) and inliers.all()
+    with pytest.raises(ValueError, match="at least 3 points, got 2"):
+        ground.fit_plane_ransac(three[:2], 0.01)
+    cloud = np.random.default_rng(10).uniform(-1, 1, (200, 3)) * [1, 1, 0.1]     # a thick slab
+    runs = [ground.fit_plane_ransac(cloud, 0.03, iterations=3, seed=4) for _ in range(2)]
+    np.testing.assert_array_equal(runs[0][0], runs[1][0])
+    np.testing.assert_array_equal(runs[0][2], runs[1][2])
+    assert ground.lowest_points(cloud.astype(np.float32), 0.25).dtype == np.float64
+
+
+def test_ransac_prefers_the_ground_to_a_larger_wall_and_refuses_a_wall_alone():
+    """300 points on a vertical wall x = 0.5 (z above -0.3) and a 15 x 15 lattice on the ground z = -0.5 (its
+    rows make some samples collinear): the plane within 45 degrees of horizontal is the ground,
+    not the wall with more points; the wall alone is refused, by name (round two)."""
+    rng = np.random.default_rng(11)
+    wall = np.column_stack([np.full(300, 0.5), rng.uniform(-1, 1, 300), rng.uniform(-0.3, 1, 300)])
+    xs, ys = np.meshgrid(np.linspace(-1, 0.3, 15), np.linspace(-1, 1, 15))
+    floor = np.column_stack([xs.ravel(), ys.ravel(), np.full(225, -0.5)])
+    n, d, inliers = ground.fit_plane_ransac(np.concatenate([wall, floor]), 0.01, iterations=200)
+    np.testing.assert_allclose(n, [0, 0, 1], atol=1e-9)
+    assert d == pytest.approx(0.5) and inliers.sum() == 225 and inliers[300:].all()
+    with pytest.raises(ValueError, match="no plane within the tilt limit"):
+        ground.fit_plane_ransac(wall, 0.01, iterations=50)
+
+
+def test_ransac_keeps_its_sample_plane_when_the_refit_tilts_past_the_limit():
+    """A noisy slab sloping 50 degrees and a threshold that takes all of it: only noisy samples
+    within 45 degrees are accepted, and the least-squares refit of their inliers (50 degrees)
+    would pass the limit, so the sample's plane is kept: within 45 degrees (round two)."""
+    rng = np.random.default_rng(13)
+    xy = rng.uniform(-0.5, 0.5, (300, 2))
+    slab = np.column_stack([xy, np.tan(np.radians(50)) * xy[:, 0] + rng.uniform(-0.15, 0.15, 300)])
+    assert np.degrees(np.arccos(ground.refine_plane(slab)[0][2])) > 47      # the refit alone
+    n, d, inliers = ground.fit_plane_ransac(slab, 0.5, iterations=300)
+    assert n[2] >= np.cos(np.radians(45)) and inliers.sum() > 250
+    np.testing.assert_array_equal(inliers, np.abs(slab @ n + d) <= 0.5)
+
+
+def test_plane_z_and_largest_cluster_of_none_and_one_point():
+    """z of the plane 0.2 x - 0.3 y + z + 0.5 = 0 (normalised) at a few (x, y), by hand; the
+    largest cluster of no points is an empty bool mask, of one point that point (round two)."""
+    n = np.array([0.2, -0.3, 1.0]) / np.linalg.norm([0.2, -0.3, 1.0])
+    d = 0.5 / np.linalg.norm([0.2, -0.3, 1.0])
+    x, y = np.array([0.0, 1.0, 2.0, -1.5]), np.array([0.0, 2.0, -1.0, 0.5])
+    np.testing.assert_allclose(ground.plane_z(n, d, x, y), -(0.2 * x - 0.3 * y + 0.5), atol=1e-12)
+    none = ground.largest_cluster(np.zeros((0, 3)), 0.1)
+    assert none.shape == (0,) and none.dtype == bool
+    one = ground.largest_cluster(np.array([[0.3, 0.2, 0.1]]), 0.1)
+    assert one.dtype == bool and one.tolist() == [True]
+
+
+def _clusters_by_hand(cells: list, counts: list) -> set:
+    """The largest group (by point count) of occupied cells [(i, j, k)], two cells joined when
+    their Chebyshev distance is at most 3 (one-cell dilations that touch, corners included):
+    union-find over every pair. Returns the set of its cells."""
+    parent = list(range(len(cells)))
+
+    def root(i):
+        while parent[i] != i:
+            i = parent[i]
+        return i
+
+    for a in range(len(cells)):
+        for b in range(a):
+            if max(abs(x - y) for x, y in zip(cells[a], cells[b])) <= 3:
+                parent[root(a)] = root(b)
+    totals = {}
+    for i, c in enumerate(counts):
+        totals[root(i)] = totals.get(root(i), 0) + c
+    best = max(totals, key=totals.get)
+    return {cells[i] for i in range(len(cells)) if root(i) == best}
+
+
+def test_largest_cluster_joins_cells_three_apart_diagonally_and_not_four_apart():
+    """Cells of side 1: two 3-point cells (3, 3, 3) apart (one group of 6, joined only through
+    their corners) and three pairs of 5-point cells 4 apart along x, y and z (never joined):
+    the group of 6 is the largest, as the union-find over cells says (issue 43, round two: a
+    face-only dilation or labelling, or a 4-cell structure on any axis, passed the test above)."""
+    cells = [(0, 0, 0), (3, 3, 3), (20, 0, 0), (24, 0, 0), (0, 20, 0), (0, 24, 0), (0, 0, 20), (0, 0, 24)]
+    counts = [3, 3, 5, 5, 5, 5, 5, 5]
+    points = np.concatenate([np.asarray(c, float) + 0.5 + 0.1 * np.arange(k)[:, None] for c, k in zip(cells, counts)])
+    got = ground.largest_cluster(points, 1.0)
+    want = _clusters_by_hand(cells, counts)
+    assert want == {(0, 0, 0), (3, 3, 3)}
+    np.testing.assert_array_equal(got, [tuple(np.floor(q).astype(int)) in want for q in points])
+
+
 def test_tower_box_finds_the_largest_cluster_above_the_ground():
     rng = np.random.default_rng(3)
     floor = np.column_stack([rng.uniform(-0.8, 0.8, (2000, 2)), np.full(2000, -0.7)])
@@ -197,6 +312,41 @@ def test_tower_box_finds_the_largest_cluster_above_the_ground():
     assert stats["tower_points"] < stats["above_ground"]          # the bush is not the tower
     with pytest.raises(ValueError):
         ground.tower_box(floor, n, d, 0.03, 0.02)
+
+
+def test_tower_box_on_sloping_ground_clears_its_highest_corner_and_refuses_by_name():
+    """Ground sloping in x and in y, each of the four ways (so each bottom corner of the box is
+    the highest once), a column of points standing on it: the box is the column's extent plus
+    one cell, its bottom `clearance` above the plane at its highest bottom corner (each corner's
+    z by hand); one point above the ground is a tower, none is refused with the documented
+    message (issue 43, round two)."""
+    rng = np.random.default_rng(12)
+    xy = rng.uniform([-0.1, 0.2], [0.1, 0.35], (3000, 2))
+    rise = rng.uniform(0.0, 0.8, 3000)
+    for sx, sy in ((1, 1), (1, -1), (-1, 1), (-1, -1)):
+        a, b = 0.1 * sx, 0.15 * sy
+        norm = np.linalg.norm([a, b, 1.0])
+        n, d = np.array([a, b, 1.0]) / norm, 0.4 / norm
+        z_of = lambda x, y: -(a * x + b * y + 0.4)  # noqa: E731,B023  the plane's z, by hand
+        column = np.column_stack([xy, z_of(xy[:, 0], xy[:, 1]) + rise])
+        lo, hi, stats = ground.tower_box(column, n, d, clearance=0.03, cell=0.02)
+        tower = column[rise * (1.0 / norm) > 0.03]                   # heights above the plane
+        np.testing.assert_allclose(lo[:2], tower[:, :2].min(0) - 0.02, atol=1e-12)
+        np.testing.assert_allclose(hi, tower.max(0) + 0.02, atol=1e-12)
+        corners = [z_of(x, y) for x in (lo[0], hi[0]) for y in (lo[1], hi[1])]
+        assert lo[2] == pytest.approx(max(corners) + 0.03, abs=1e-12)
+        assert stats == {"above_ground": len(tower), "tower_points": len(tower)}
+    flat = np.array([0.0, 0.0, 1.0])
+    one = np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0], [0.2, 0.1, 0.5]])
+    lo1, hi1, _ = ground.tower_box(one, flat, 0.0, clearance=0.03, cell=0.02)
+    np.testing.assert_allclose(hi1, [0.22, 0.12, 0.52], atol=1e-12)
+    with pytest.raises(ValueError, match="nothing stands above the ground plane"):
+        ground.tower_box(one[:2], flat, 0.0, clearance=0.03, cell=0.02)
+    # one point 0.031 above ground z = -(0.9 x + 0.9 y): the box's uphill corner, a cell away,
+    # is 0.18 higher, so clearance above it is above the box's top (0.031 / n_z + 0.1)
+    steep = np.array([0.9, 0.9, 1.0]) / np.linalg.norm([0.9, 0.9, 1.0])
+    with pytest.raises(ValueError, match="the tower's box is empty above the ground"):
+        ground.tower_box(np.array([[0.0, 0.0, 0.031 / steep[2]]]), steep, 0.0, clearance=0.03, cell=0.1)
 
 
 # --------------------------------------------------------------------------- fusion

@@ -48,6 +48,21 @@ def test_dmax_is_per_image_in_a_batch():
     np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth)), [[[0.5, 0.0]], [[0.9, 0.0]]])
 
 
+def test_eq7_with_depths_below_one_and_a_dmax_per_image():
+    """DPT's relative depths 1 / r are far below 1 (r in the hundreds): Eq. 7 is scale-free, so
+    the depths of the test above divided by 100 give the same M_w, an infinite depth included;
+    and a dmax given per image ([2] for a batch of 2) is each image's own (issue 43, round two)."""
+    mask = np.ones((1, 4))
+    depth = np.array([[0.01, 0.02, 0.04, np.inf]])        # Dmax = 0.04 (inf counts as it)
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth)), [[0.75, 0.5, 0.0, 0.0]],
+                               atol=1e-6)
+    np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth, dmax=0.08)),
+                               [[7 / 8, 6 / 8, 4 / 8, 0.0]], atol=1e-6)
+    batch = np.array([[[1.0, 2.0]], [[1.0, 2.0]]])
+    got = np.asarray(fg.depth_weighted_mask(np.ones((2, 1, 2)), batch, dmax=np.array([4.0, 8.0])))
+    np.testing.assert_allclose(got, [[[3 / 4, 2 / 4]], [[7 / 8, 6 / 8]]], atol=1e-6)
+
+
 def test_filter_image_and_training_weights():
     img = np.full((1, 2, 3), 0.8)
     mw = np.array([[0.25, 1.0]])

@@ -3,6 +3,7 @@ the proposal sampler held to answers computed independently (hand counts, per-pi
 closed forms, NumPy), each test written against a one-line mistake that the suite missed
 (docs/TESTING.md, "Issue 43")."""
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -13,8 +14,10 @@ import jax
 import jax.numpy as jnp
 
 from jaxnerf_grid import evaluate, fields, geometry, io, train
+from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
 from jaxnerf_grid.export import score as score_lib
+from jaxnerf_grid.io import DataError
 
 sys.path.insert(0, str(Path(__file__).parent))
 import analytic_field as af  # noqa: E402
@@ -119,6 +122,38 @@ def test_export_score_in_metres_crops_a_one_metre_strip_and_keeps_precision_and_
     assert (tau["precision"], tau["recall"]) == (1.0, 0.5)
 
 
+def test_export_section_reads_the_files_record_the_users_reference_and_a_record_without_scale(tmp_path):
+    """`evaluate.export_section` (metrics.json["export"]): the measurements and the picture handed
+    on as written; the dataset's tower stored in another record than the dataset's (scale 0.1,
+    its own translation) is mapped through that record; a user's reference in the dataset's
+    units replaces a missing tower; a dataset record without a scale scores in its own units
+    (strip = DEFAULT_GROUND_STRIP). Each time the counts by hand of the test above: 9 of 10
+    layers, P = 1, R = 0.5 (issue 43, round two)."""
+    ref = _lattice([0, 0, 0], [7, 3, 9], 1.0) * [1, 1, 1.5]
+    _export_folder(tmp_path / "run" / "export", _half_of(ref, 1e-3), ref, 13.5)
+    norm = {"scale": 0.05, "translation": [-3.5, -1.5, -6.75], "rotation": af.TURN_Z.tolist()}
+    file_norm = {"scale": 0.1, "translation": [1.0, 2.0, 3.0]}
+    io.write_ply(tmp_path / "tower.ply", apply_normalization_to_points(ref, file_norm))
+    io.write_ply(tmp_path / "user.ply", apply_normalization_to_points(ref, norm))
+    io.write_ply(tmp_path / "plain.ply", ref)
+    ds = tiny_dataset()
+    ds.root, ds.normalization = tmp_path, norm
+    ds.meta = {"tower_ply": "tower.ply", "scene_normalization": file_norm}
+    runs = [evaluate.export_section(ds, tmp_path / "run")]
+    assert runs[0]["measurements"] == {"units": "metres", "height": 13.5}
+    assert runs[0]["image"] == "export/export_views.png"
+    ds.meta = None                                   # a dataset without a meta record: no tower
+    assert evaluate.reference_cloud(ds) is None
+    runs.append(evaluate.export_section(ds, tmp_path / "run", reference_ply=tmp_path / "user.ply"))
+    ds.normalization = {}
+    runs.append(evaluate.export_section(ds, tmp_path / "run", reference_ply=tmp_path / "plain.ply"))
+    for info, strip in zip(runs, (1.0, 1.0, geometry.DEFAULT_GROUND_STRIP)):
+        assert info["score"]["ground_strip"] == pytest.approx(strip)
+        assert info["score"]["mesh"]["num_ref"] == 32 * 9
+        tau = info["score"]["mesh"]["thresholds"]["0.2"]
+        assert (tau["precision"], tau["recall"]) == (1.0, 0.5)
+
+
 # --------------------------------------------------------------------------- export's field
 
 
@@ -173,6 +208,46 @@ def test_loss_weights_cap_masked_pixels_at_one_minus_the_floor(floor):
         w = min(max(float(ds.weights[idx]), 0.0), 1.0)
         want[idx] = min(w, 1.0 - floor) if ds.masks[idx] > 0.5 else w
     np.testing.assert_allclose(got, want, atol=1e-7)
+    assert got.dtype == np.float32                                   # the docstring's dtype
+    off = train.loss_weights(ds, tiny_config(use_masks=False).train)
+    assert off.dtype == np.float32 and off.shape == ds.weights.shape and np.all(off == 1.0)
+
+
+@pytest.mark.parametrize("mode", ["robust", "dpt+robust"])
+def test_prior_weights_are_ones_or_the_capped_weights_whatever_use_masks_says(mode):
+    """train.robust's prior: ones in mode robust; in dpt+robust the dataset's weights clipped to
+    [0, 1] and capped at 1 - floor under the mask, even with train.use_masks off (round two)."""
+    ds = tiny_dataset()
+    rng = np.random.default_rng(6)
+    ds.weights = rng.uniform(-0.2, 1.2, ds.weights.shape).astype(np.float32)
+    ds.masks = (rng.uniform(size=ds.weights.shape) > 0.5).astype(np.float32)
+    got = train.prior_weights(ds, tiny_config(robust=mode, robust_patch=4, use_masks=False,
+                                              mask_weight_floor=0.3).train)
+    want = np.ones(ds.weights.shape, np.float32)
+    if mode == "dpt+robust":
+        for idx in np.ndindex(*ds.weights.shape):
+            w = min(max(float(ds.weights[idx]), 0.0), 1.0)
+            want[idx] = min(w, 0.7) if ds.masks[idx] > 0.5 else w
+    assert got.dtype == np.float32
+    np.testing.assert_allclose(got, want, atol=1e-7)
+
+
+def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch():
+    """Weights without masks (a dataset's own weights files) are only clipped, whatever the floor;
+    prior_weights refuses dpt+robust without weights (DataError) and a patch larger than the
+    frames (ConfigError), but not a batch that is no multiple of the patch (round two)."""
+    ds = tiny_dataset()
+    ds.weights = np.linspace(-0.5, 1.5, ds.weights.size, dtype=np.float32).reshape(ds.weights.shape)
+    ds.masks = None
+    got = train.loss_weights(ds, tiny_config(mask_weight_floor=0.4).train)
+    np.testing.assert_array_equal(got, np.clip(ds.weights, 0.0, 1.0))
+    robust = tiny_config(robust="robust", robust_patch=4).train
+    assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=50)) == 1.0)
+    with pytest.raises(ConfigError, match="robust_patch"):                 # 13 > the 16 x 12 frames
+        train.prior_weights(ds, dataclasses.replace(robust, robust_patch=13))
+    ds.weights = None
+    with pytest.raises(DataError, match="dpt\\+robust"):
+        train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4).train)
 
 
 # --------------------------------------------------------------------------- proposal resampling

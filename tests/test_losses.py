@@ -21,6 +21,16 @@ def test_weighted_mean_normalised_by_weight_sum():
     assert float(losses.weighted_mean(jnp.ones(3), jnp.zeros(3))) == 0.0
 
 
+def test_weighted_mean_with_weights_summing_below_one():
+    """The total's guard (1e-12) only stops a division by zero: weights summing to 0.3, given or
+    summed, still divide by 0.3 (issue 43, round two: a guard of ~1 passed the tests above)."""
+    per_ray = np.array([2.0, 5.0, 1.0], np.float32)
+    w = np.array([0.1, 0.0, 0.2], np.float32)
+    want = (2.0 * 0.1 + 1.0 * 0.2) / 0.3
+    np.testing.assert_allclose(losses.weighted_mean(jnp.asarray(per_ray), jnp.asarray(w)), want, rtol=1e-6)
+    np.testing.assert_allclose(losses.weighted_mean(jnp.asarray(per_ray), jnp.asarray(w), 0.3), want, rtol=1e-6)
+
+
 def test_masked_pixel_has_no_gradient():
     target = jnp.array([[1.0, 0, 0], [0, 1.0, 0]])
     w = jnp.array([1.0, 0.0])
@@ -110,6 +120,17 @@ def test_interlevel_loss_batched_zero_when_bounded_and_only_proposal_learns():
     assert np.all(np.asarray(g_prop) <= 0) and np.any(np.asarray(g_prop) < 0)
 
 
+def test_interlevel_loss_of_a_main_weight_as_small_as_eps_is_finite():
+    """A main interval of weight 1e-7 (eps) with no proposal mass over it: w^2 / (w + eps) =
+    5e-8, not a division by zero (issue 43, round two: w - eps passed the tests above)."""
+    edges = jnp.asarray([0.0, 0.5, 1.0], jnp.float32)
+    got = losses.interlevel_ray_loss(edges, jnp.asarray([1e-7, 0.5], jnp.float32), edges,
+                                     jnp.asarray([0.0, 0.5], jnp.float32))
+    np.testing.assert_allclose(got, _interlevel_brute(np.asarray(edges), [1e-7, 0.5], np.asarray(edges), [0.0, 0.5]),
+                               rtol=1e-3)
+    np.testing.assert_allclose(got, 5e-8, rtol=1e-3)
+
+
 def test_distortion_loss_matches_quadratic_sum_and_prefers_one_narrow_interval():
     rng = np.random.default_rng(5)
     for n in (1, 2, 9, 33):
@@ -126,6 +147,20 @@ def test_distortion_loss_matches_quadratic_sum_and_prefers_one_narrow_interval()
     np.testing.assert_allclose(values[0], (1.0 / 32) / 3.0, rtol=1e-5)
 
 
+def test_squared_error_and_distortion_per_ray_of_a_batch():
+    """[..., 3] colours and [..., n] weights of a batch of rays: one value per ray, each the
+    NumPy mean / the quadratic sum of its own row (issue 43, round two: the last axis, not axis
+    1 or all of them)."""
+    rng = np.random.default_rng(7)
+    rgb, target = rng.uniform(size=(2, 4, 3)), rng.uniform(size=(2, 4, 3))
+    np.testing.assert_allclose(losses.squared_error(jnp.asarray(rgb), jnp.asarray(target)),
+                               np.mean((rgb - target) ** 2, axis=-1), rtol=1e-5)
+    rows = [_random_step(rng, 6) for _ in range(3)]
+    edges, w = (np.stack([r[i] for r in rows]) for i in (0, 1))
+    got = losses.distortion_ray_loss(jnp.asarray(edges, jnp.float32), jnp.asarray(w, jnp.float32))
+    np.testing.assert_allclose(got, [_distortion_brute(e, x) for e, x in rows], rtol=1e-4, atol=1e-7)
+
+
 def test_per_ray_loss_adds_interlevel_and_distortion_terms():
     rng = np.random.default_rng(6)
     e_m, w_m = _random_step(rng, 6)
@@ -138,3 +173,6 @@ def test_per_ray_loss_adds_interlevel_and_distortion_terms():
     expected = (0.01 + 0.5 * 2 * _interlevel_brute(e_m, w_m, e_p, w_p) + 0.25 * _distortion_brute(e_m, w_m))
     np.testing.assert_allclose(res["loss"], [expected], rtol=1e-4)
     assert res["mse_levels"] == []  # proposal levels render no colour
+    # the terms as logged, unweighted (two proposal levels: twice the loop's value)
+    np.testing.assert_allclose(res["interlevel"], [2 * _interlevel_brute(e_m, w_m, e_p, w_p)], rtol=1e-4)
+    np.testing.assert_allclose(res["distortion"], [_distortion_brute(e_m, w_m)], rtol=1e-4)
