@@ -268,6 +268,16 @@ def test_choose_matcher_auto_rule():
         assert choose_matcher(matcher, ordered) == (matcher, "asked for")
 
 
+def test_pair_count_against_enumerated_pairs():
+    """benchmarks.poses_matchers.pair_count against the pairs listed one by one."""
+    from benchmarks.poses_matchers import pair_count
+
+    for n in (1, 2, 5, 11, 25):
+        assert pair_count(n, "exhaustive", None) == len([(i, j) for i in range(n) for j in range(n) if i < j])
+        for k in (1, 3, 10, 30):
+            assert pair_count(n, "sequential", k) == len([(i, j) for i in range(n) for j in range(n) if 0 < j - i <= k])
+
+
 def test_poses_summary_names_skipped_and_unregistered(orbit_run, capsys):
     top = io.read_json(orbit_run["out"] / "transforms.json")
     summary = top["poses"]
