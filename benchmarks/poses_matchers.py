@@ -41,7 +41,7 @@ def collect(runs: Path) -> list[dict]:
         acc = json.loads(accuracy.read_text())
         score = acc["rows"][0]
         rows.append({"scene": score["case"].split(":", 1)[-1], "tag": dataset.name, "matcher": record["matcher"],
-                     "overlap": record.get("overlap"),
+                     "overlap": record.get("overlap"), "max_side": record.get("max_side"),
                      "pairs": pair_count(record["photos"], record["matcher"], record.get("overlap")),
                      "photos": record["photos"], "registered": record["registered"],
                      "in_dataset": record["in_dataset"], "seconds": record["seconds"],
@@ -54,15 +54,17 @@ def collect(runs: Path) -> list[dict]:
 
 def markdown(rows: list[dict], note: str) -> str:
     lines = ["# `jaxnerf-grid poses` per matcher on Strecha scenes", "", note, "",
-             "| scene | matcher | pairs | registered / kept | photos s | features s | matching s | mapping s "
-             "| writing s | total s | rotation median / max (deg) |", "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| scene | long side | matcher | pairs | registered / kept | photos s | features s | matching s "
+             "| mapping s | writing s | total s | rotation median / max (deg) | load after |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
         t = r["timings_s"] or {}
         matcher = r["matcher"] + (f" (next {r['overlap']})" if r["overlap"] else "")
-        lines.append(f"| {r['scene']} | {matcher} | {r['pairs']} | {r['registered']}/{r['photos']} / "
+        size = f"{r['max_side']} px" if r["max_side"] else "full"
+        lines.append(f"| {r['scene']} | {size} | {matcher} | {r['pairs']} | {r['registered']}/{r['photos']} / "
                      f"{r['in_dataset']} | " + " | ".join(str(t.get(k, "-")) for k in
                                                       ("photos", "features", "matching", "mapping", "writing"))
-                     + f" | {r['seconds']} | {r['rotation_deg_median']:.3f} / {r['rotation_deg_max']:.3f} |")
+                     + f" | {r['seconds']} | {r['rotation_deg_median']:.3f} / {r['rotation_deg_max']:.3f} | {r['load_avg_1min_after']} |")
     return "\n".join(lines) + "\n"
 
 
