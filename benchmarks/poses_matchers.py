@@ -64,7 +64,8 @@ def markdown(rows: list[dict], note: str) -> str:
         lines.append(f"| {r['scene']} | {size} | {matcher} | {r['pairs']} | {r['registered']}/{r['photos']} / "
                      f"{r['in_dataset']} | " + " | ".join(str(t.get(k, "-")) for k in
                                                       ("photos", "features", "matching", "mapping", "writing"))
-                     + f" | {r['seconds']} | {r['rotation_deg_median']:.3f} / {r['rotation_deg_max']:.3f} | {r['load_avg_1min_after']} |")
+                     + f" | {r['seconds']} | {r['rotation_deg_median']:.3f} / {r['rotation_deg_max']:.3f} "
+                       f"| {r['load_avg_1min_after']} |")
     return "\n".join(lines) + "\n"
 
 
