@@ -67,8 +67,8 @@ MATCHERS = ("auto", "exhaustive", "sequential", "vocab")
 # (`names_look_ordered`), else every pair. Why 20 (docs/POSES.md, "Choosing the matcher"): up
 # to 20 photos sequential matching skips at most 45 of 190 pairs (under 20 s of matching at
 # 3072x2048 here) and loses the pairs that close an orbit; on Herz-Jesus-P25 (25 photos, in
-# name order) it matched 195 pairs instead of 300 and took 100 s less in matching and mapping
-# with the same accuracy (benchmarks/results/strecha_e2e/poses_matchers.md).
+# name order) it matched 195 pairs instead of 300, 18 to 56 s less matching, with the same
+# accuracy (benchmarks/results/strecha_e2e/poses_matchers.md).
 SEQUENTIAL_OVERLAP = 10
 AUTO_EXHAUSTIVE_MAX = 20
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
