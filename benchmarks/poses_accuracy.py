@@ -82,8 +82,8 @@ def run_strecha(scene: Path, work: Path, max_side: int) -> dict:
 
     out = work / f"{scene.name}-{max_side}-poses"
     t0 = time.perf_counter()
-    summary = poses_from_images(scene / "images", out, single_camera=True, max_side=max_side, overwrite=True,
-                                progress=False)
+    summary = poses_from_images(scene / "images", out, matcher="exhaustive", single_camera=True, max_side=max_side,
+                                overwrite=True, progress=False)
     wall = time.perf_counter() - t0
     row = strecha_errors(scene, out)
     return {"case": f"strecha:{scene.name}", "max_side": max_side, "photos": summary["photos"],
@@ -130,7 +130,8 @@ def run_case(name: str, views: int, work: Path, seed: int) -> dict:
     t0, c0 = time.perf_counter(), time.process_time()
     row = {"case": name, "preset": preset, "clutter": clutter, "size": [w, h], "views": views, "seed": seed}
     try:
-        summary = poses_from_images(photos, out, single_camera=True, overwrite=True, progress=False)
+        summary = poses_from_images(photos, out, matcher="exhaustive", single_camera=True, overwrite=True,
+                                    progress=False)
     except DataError as exc:
         row.update(registered=0, error=str(exc), wall_s=time.perf_counter() - t0)
         return row

@@ -23,8 +23,8 @@ from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.normalize import normalize_orbit, rotate_scene, rotation_between, up_from_cameras
 from jaxnerf_grid.data import vetting
-from jaxnerf_grid.data.poses import (MARKER, REPORT, choose_model, crop_offsets, enough_registered, poses_agree,
-                                    prepare_photo, similarity_fit, working_size)
+from jaxnerf_grid.data.poses import (MARKER, REPORT, choose_matcher, choose_model, crop_offsets, enough_registered,
+                                    names_look_ordered, poses_agree, prepare_photo, similarity_fit, working_size)
 
 W, H, FOCAL = 200, 150, 180.0
 RADIUS, HEIGHT, TARGET = 5.0, 2.5, np.array([0.0, 0.0, 0.8])
@@ -170,18 +170,26 @@ def per_photo_run(orbit_run):
     return dict(orbit_run, code=code, out=out)
 
 
+def _orbit_errors(run) -> tuple:
+    """(the run's cameras [N, 4, 4] in view order, the similarity (s, R, t) aligning them to the
+    true orbit, rotation errors in degrees [N], centre errors in orbit radii [N]); every view
+    must be in the dataset."""
+    top = io.read_json(run["out"] / "transforms.json")
+    by_name = {f["file_path"]: np.array(f["transform_matrix"]) for f in top["frames"]}
+    assert sorted(by_name) == sorted(f"images/{n}" for n in run["names"])
+    rec = np.stack([by_name[f"images/{n}"] for n in run["names"]])
+    true = run["views"]
+    s, rot, t = _umeyama(rec[:, :3, 3], true[:, :3, 3])
+    centre_err = np.linalg.norm(s * rec[:, :3, 3] @ rot.T + t - true[:, :3, 3], axis=1) / RADIUS
+    rot_err = np.array([_angle_deg(rot @ a[:3, :3], b[:3, :3]) for a, b in zip(rec, true)])
+    return rec, (s, rot, t), rot_err, centre_err
+
+
 def test_poses_recovers_the_orbit(orbit_run):
     """All 16 views register; after a similarity alignment the rotations are within 1 degree
     (median; 2 at most) and the centres within 1 % of the orbit radius (median; 3 % at most)."""
     assert orbit_run["code"] == 0
-    top = io.read_json(orbit_run["out"] / "transforms.json")
-    by_name = {f["file_path"]: np.array(f["transform_matrix"]) for f in top["frames"]}
-    assert sorted(by_name) == sorted(f"images/{n}" for n in orbit_run["names"])
-    rec = np.stack([by_name[f"images/{n}"] for n in orbit_run["names"]])
-    true = orbit_run["views"]
-    s, rot, t = _umeyama(rec[:, :3, 3], true[:, :3, 3])
-    centre_err = np.linalg.norm(s * rec[:, :3, 3] @ rot.T + t - true[:, :3, 3], axis=1) / RADIUS
-    rot_err = np.array([_angle_deg(rot @ a[:3, :3], b[:3, :3]) for a, b in zip(rec, true)])
+    rec, (s, rot, t), rot_err, centre_err = _orbit_errors(orbit_run)
     assert np.median(rot_err) < 1.0 and rot_err.max() < 2.0, rot_err
     assert np.median(centre_err) < 0.01 and centre_err.max() < 0.03, centre_err
     # z-up: the alignment is a rotation about z (the true world is z-up) ...
@@ -195,6 +203,81 @@ def test_poses_recovers_the_orbit(orbit_run):
     assert np.all((cam_dist > 2.0) & (cam_dist < 4.0))  # about 3 radii away, as the synthetic scenes
 
 
+@pytest.fixture(scope="module")
+def sequential_run(orbit_run):
+    """The same photos matched sequentially, each with its next 3 in name order (no pair closes
+    the orbit: view_15 is never matched with view_00)."""
+    out = orbit_run["out"].parent / "data_sequential"
+    code = cli.main(["poses", "--images", str(orbit_run["photos"]), "--out", str(out), "--single-camera",
+                     "--matcher", "sequential", "--overlap", "3", "--quiet"])
+    return dict(orbit_run, code=code, out=out)
+
+
+def test_poses_sequential_matcher_recovers_the_orbit_as_exhaustive(sequential_run):
+    """Sequential matching registers all 16 views within the exhaustive run's bounds (1 degree
+    median, 2 at most; 1 % / 3 % of the radius) and records what ran."""
+    assert sequential_run["code"] == 0
+    _, _, rot_err, centre_err = _orbit_errors(sequential_run)
+    assert np.median(rot_err) < 1.0 and rot_err.max() < 2.0, rot_err
+    assert np.median(centre_err) < 0.01 and centre_err.max() < 0.03, centre_err
+    summary = io.read_json(sequential_run["out"] / "transforms.json")["poses"]
+    assert (summary["matcher"], summary["matcher_asked"], summary["overlap"]) == ("sequential", "sequential", 3)
+    assert "matcher: sequential (asked for, each photo with its next 3)" in (sequential_run["out"] / REPORT).read_text()
+
+
+def test_poses_sequential_matches_only_the_next_photos(orbit_run, tmp_path, monkeypatch):
+    """The pairs COLMAP's sequential matcher is given: each photo with its next `overlap` in name
+    order and no others (no quadratic overlap, no loop detection): read back from its options."""
+    pycolmap = pytest.importorskip("pycolmap")
+    seen = {}
+    real = pycolmap.match_sequential
+
+    def spy(database, matching_options=None, pairing_options=None, **kw):
+        seen["options"] = pairing_options
+        return real(database, matching_options=matching_options, pairing_options=pairing_options, **kw)
+
+    monkeypatch.setattr(pycolmap, "match_sequential", spy)
+    photos = tmp_path / "p"
+    photos.mkdir()
+    for name in orbit_run["names"][:6]:
+        shutil.copyfile(orbit_run["photos"] / name, photos / name)
+    cli.main(["poses", "--images", str(photos), "--out", str(tmp_path / "d"), "--single-camera",
+              "--matcher", "sequential", "--overlap", "2", "--quiet"])
+    options = seen["options"]
+    assert (options.overlap, options.quadratic_overlap, options.loop_detection) == (2, False, False)
+
+
+def test_names_look_ordered():
+    assert names_look_ordered(["0000.jpg", "0001.jpg", "0002.jpg", "0010.jpg"])
+    assert names_look_ordered(["DJI_0007.JPG", "DJI_0008.JPG", "DJI_0012.JPG"])  # gaps: deleted photos
+    assert names_look_ordered(["IMG_1.jpg", "IMG_2.png", "IMG_3.jpg"])            # extensions do not count
+    assert not names_look_ordered(["p1.jpg", "p10.jpg", "p2.jpg"])    # name order 1, 10, 2: not capture order
+    assert not names_look_ordered(["a_01.jpg", "b_02.jpg", "a_03.jpg"])  # two prefixes
+    assert not names_look_ordered(["x01.jpg", "x1.png", "x02.jpg"])      # number 1 twice
+    assert not names_look_ordered(["front.jpg", "side1.jpg", "side2.jpg"])  # a name without a number
+
+
+def test_choose_matcher_auto_rule():
+    ordered = [f"DJI_{i:04d}.JPG" for i in range(1, 22)]      # 21 photos
+    shuffled = [f"p{i}.jpg" for i in range(1, 22)]             # p1, p10, p11, ... in name order
+    assert choose_matcher("auto", ordered[:20])[0] == "exhaustive"     # 20: at most AUTO_EXHAUSTIVE_MAX
+    assert choose_matcher("auto", ordered)[0] == "sequential"
+    assert choose_matcher("auto", shuffled)[0] == "exhaustive"
+    assert choose_matcher("auto", ordered[:5], exhaustive_max=4)[0] == "sequential"
+    for matcher in ("exhaustive", "sequential", "vocab"):        # an explicit choice is kept
+        assert choose_matcher(matcher, ordered) == (matcher, "asked for")
+
+
+def test_pair_count_against_enumerated_pairs():
+    """benchmarks.poses_matchers.pair_count against the pairs listed one by one."""
+    from benchmarks.poses_matchers import pair_count
+
+    for n in (1, 2, 5, 11, 25):
+        assert pair_count(n, "exhaustive", None) == len([(i, j) for i in range(n) for j in range(n) if i < j])
+        for k in (1, 3, 10, 30):
+            assert pair_count(n, "sequential", k) == len([(i, j) for i in range(n) for j in range(n) if 0 < j - i <= k])
+
+
 def test_poses_summary_names_skipped_and_unregistered(orbit_run, capsys):
     top = io.read_json(orbit_run["out"] / "transforms.json")
     summary = top["poses"]
@@ -204,6 +287,13 @@ def test_poses_summary_names_skipped_and_unregistered(orbit_run, capsys):
     assert summary["skipped"] == ["broken.jpg"]
     assert 0 < summary["mean_reprojection_error"] < 1.0 and summary["points3d"] > 100
     assert isinstance(summary["relaxed_mapping"], bool)
+    # auto, 17 readable photos: every pair; the seconds of each stage add up to the run's
+    assert (summary["matcher"], summary["matcher_asked"], summary["overlap"]) == ("exhaustive", "auto", None)
+    timings = summary["timings_s"]
+    assert list(timings) == ["photos", "features", "matching", "mapping", "writing"]
+    assert all(v >= 0 for v in timings.values()) and sum(timings.values()) <= summary["seconds"] + 0.5
+    report = (orbit_run["out"] / REPORT).read_text()
+    assert "matcher: exhaustive (auto: 17 photos, at most 20)" in report and "matching " in report
     assert (orbit_run["out"] / "poses_topview.png").is_file()
     # nothing of the input was touched
     assert {p.name: p.read_bytes() for p in orbit_run["photos"].iterdir()} == orbit_run["before"]
@@ -432,6 +522,15 @@ def test_poses_vocab_needs_a_tree_file(tmp_path, capsys):
     err = _one_line_error(capsys, ["--images", str(tmp_path / "p"), "--out", str(tmp_path / "d"),
                                    "--matcher", "vocab", "--vocab-tree", str(tmp_path / "tree.bin")])
     assert str(tmp_path / "tree.bin") in err and "not found" in err
+
+
+@pytest.mark.parametrize("argv, flag, text", [(["--matcher", "nearest"], "--matcher", "'nearest'"),
+                                               (["--overlap", "0"], "--overlap", "got 0")])
+def test_poses_bad_matcher_or_overlap_says_which_flag(tmp_path, capsys, argv, flag, text):
+    _few_photos(tmp_path / "p", 3)
+    err = _one_line_error(capsys, ["--images", str(tmp_path / "p"), "--out", str(tmp_path / "d")] + argv)
+    assert flag in err and text in err, err
+    assert not (tmp_path / "d").exists()
 
 
 def test_poses_overwrite_refuses_a_folder_it_did_not_write(tmp_path, capsys):

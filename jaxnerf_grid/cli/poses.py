@@ -3,7 +3,8 @@ Python bindings, pycolmap), written as a dataset that `mask`, `train` and `demo 
 
 The work is `data.poses.poses_from_images`; this module parses the arguments.
 
-    jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher exhaustive|sequential|vocab]
+    jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher auto|exhaustive|sequential|vocab]
+                       [--overlap K]
                        [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--keep-all] [--overwrite]
                        [--crs EPSG:XXXX] [--gcp FILE] [--scale-bar SPEC] [--ignore-gps]
 
@@ -21,7 +22,7 @@ from __future__ import annotations
 
 import argparse
 
-from jaxnerf_grid.data.poses import CAMERA_MODELS, MATCHERS
+from jaxnerf_grid.data.poses import AUTO_EXHAUSTIVE_MAX, CAMERA_MODELS, MATCHERS, SEQUENTIAL_OVERLAP
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,9 +30,13 @@ def build_parser() -> argparse.ArgumentParser:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--images", required=True, help="folder of photos (PNG / JPEG; subfolders are ignored)")
     p.add_argument("--out", required=True, help="dataset folder to write (DATA_DIR)")
-    p.add_argument("--matcher", choices=MATCHERS, default="exhaustive",
-                   help="exhaustive: every pair (up to a few hundred photos); sequential: neighbours in "
-                        "name order (a flight's sequence); vocab: a vocabulary tree (needs --vocab-tree)")
+    p.add_argument("--matcher", default="auto", metavar="{" + ",".join(MATCHERS) + "}",
+                   help=f"exhaustive: every pair (up to a few hundred photos); sequential: each photo with its "
+                        f"next --overlap in name order (a flight's sequence; no loop detection); vocab: a "
+                        f"vocabulary tree (needs --vocab-tree); auto (default): exhaustive up to "
+                        f"{AUTO_EXHAUSTIVE_MAX} photos, sequential above when the names are numbered in sequence")
+    p.add_argument("--overlap", type=int, default=SEQUENTIAL_OVERLAP,
+                   help="sequential matching: the next photos (in name order) each photo is matched with")
     p.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file for --matcher vocab")
     p.add_argument("--camera-model", choices=CAMERA_MODELS, default="SIMPLE_RADIAL",
                    help="COLMAP camera model fitted to the photos (undistorted to PINHOLE afterwards)")
@@ -60,7 +65,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from jaxnerf_grid.data.poses import format_summary, poses_from_images
 
-    summary = poses_from_images(args.images, args.out, matcher=args.matcher, camera_model=args.camera_model,
+    summary = poses_from_images(args.images, args.out, matcher=args.matcher, overlap=args.overlap,
+                                camera_model=args.camera_model,
                                 single_camera=args.single_camera, max_side=args.max_side,
                                 vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet,
                                 keep_all=args.keep_all, crs=args.crs, gcp=args.gcp, scale_bar=args.scale_bar,

@@ -8,8 +8,11 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      scaled to a working size (working copies are written only for the photos that need it);
   2. features: SIFT (`pycolmap.extract_features`), one camera for all photos with
      `single_camera`, else COLMAP's per-photo cameras;
-  3. matching: exhaustive, sequential (photos in name order, as a flight records them) or a
-     vocabulary tree (`vocab_tree`: a file; none is downloaded);
+  3. matching: exhaustive, sequential (each photo with its next `overlap` in name order, as a
+     flight records them; no loop detection, which needs a vocabulary tree), a vocabulary
+     tree (`vocab_tree`: a file; none is downloaded), or `auto` (`choose_matcher`: exhaustive
+     up to AUTO_EXHAUSTIVE_MAX photos, sequential above it when the names are numbered in
+     sequence);
   4. mapping: incremental mapping (`pycolmap.incremental_mapping`), once more with relaxed
      thresholds when under 90 % of the photos register (`choose_model` keeps the relaxed
      model only when it is consistent with the first); the largest model is kept, the photos
@@ -56,7 +59,18 @@ from jaxnerf_grid.io import DataError
 MIN_PHOTOS = 3        # fewer readable photos: refused before any work
 MIN_REGISTERED = 3    # fewer registered photos: no dataset is written ...
 MIN_REGISTERED_FRACTION = 0.25  # ... nor below a quarter of the readable photos (`enough_registered`)
-MATCHERS = ("exhaustive", "sequential", "vocab")
+MATCHERS = ("auto", "exhaustive", "sequential", "vocab")
+# `sequential` matches each photo with its next SEQUENTIAL_OVERLAP photos in name order (COLMAP's
+# sequential matcher, its quadratic overlap and loop detection off: loop detection needs a
+# vocabulary tree file, which is not shipped nor downloaded). `auto` matches every pair up to
+# AUTO_EXHAUSTIVE_MAX photos, sequentially above it when the names are numbered in sequence
+# (`names_look_ordered`), else every pair. Why 20 (docs/POSES.md, "Choosing the matcher"): up
+# to 20 photos sequential matching skips at most 45 of 190 pairs (under 20 s of matching at
+# 3072x2048 here) and loses the pairs that close an orbit; on Herz-Jesus-P25 (25 photos, in
+# name order) it matched 195 pairs instead of 300, 18 to 56 s less matching, with the same
+# accuracy (benchmarks/results/strecha_e2e/poses_matchers.md).
+SEQUENTIAL_OVERLAP = 10
+AUTO_EXHAUSTIVE_MAX = 20
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
@@ -216,10 +230,13 @@ def _say(message: str, show: bool) -> None:
 # Stages 2-5: COLMAP
 
 
-def check_options(matcher: str, camera_model: str, vocab_tree) -> None:
-    """DataError for an unknown matcher / camera model, or `vocab` without a readable tree file."""
+def check_options(matcher: str, camera_model: str, vocab_tree, overlap: int = SEQUENTIAL_OVERLAP) -> None:
+    """DataError for an unknown matcher / camera model, a sequential overlap that is not a
+    positive integer, or `vocab` without a readable tree file."""
     if matcher not in MATCHERS:
-        raise DataError(f"unknown matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
+        raise DataError(f"unknown poses.matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
+    if isinstance(overlap, bool) or not isinstance(overlap, int) or overlap < 1:
+        raise DataError(f"poses.overlap must be a whole number of photos, at least 1, got {overlap!r}")
     if camera_model not in CAMERA_MODELS:
         raise DataError(f"unknown camera model {camera_model!r}; choose one of {', '.join(CAMERA_MODELS)}")
     if matcher == "vocab":
@@ -230,18 +247,52 @@ def check_options(matcher: str, camera_model: str, vocab_tree) -> None:
             raise DataError(f"{vocab_tree}: vocabulary tree file not found")
 
 
+def names_look_ordered(names: list[str]) -> bool:
+    """Whether photo names are numbered in sequence, as a camera or a drone names a flight's
+    photos (DJI_0001.JPG, IMG_0002.jpg, 0003.png): every name (less its extension) is one
+    common prefix followed by a number, the numbers differ, and name order is number order
+    (so 'p1, p10, p2' is not: its name order is not the capture order)."""
+    parts = []
+    for name in names:
+        stem = Path(name).stem
+        digits = len(stem) - len(stem.rstrip("0123456789"))
+        if digits == 0:
+            return False
+        parts.append((stem[:-digits], int(stem[-digits:])))
+    numbers = [number for _, number in parts]
+    return (len({prefix for prefix, _ in parts}) == 1 and len(set(numbers)) == len(numbers)
+            and [number for _, number in sorted(zip(names, numbers))] == sorted(numbers))
+
+
+def choose_matcher(matcher: str, names: list[str], exhaustive_max: int = AUTO_EXHAUSTIVE_MAX) -> tuple[str, str]:
+    """The matcher to run for `matcher` (one of MATCHERS) on the readable photos `names`, and
+    why, in words. `auto`: exhaustive up to `exhaustive_max` photos, sequential above it when
+    the names look ordered (`names_look_ordered`), else exhaustive."""
+    if matcher != "auto":
+        return matcher, "asked for"
+    n = len(names)
+    if n <= exhaustive_max:
+        return "exhaustive", f"auto: {n} photos, at most {exhaustive_max}"
+    if names_look_ordered(names):
+        return "sequential", f"auto: {n} photos, more than {exhaustive_max}, named in sequence"
+    return "exhaustive", f"auto: {n} photos, more than {exhaustive_max}, but the names are not numbered in sequence"
+
+
 def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
                camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None,
-               keep_all: bool = False):
+               keep_all: bool = False, overlap: int = SEQUENTIAL_OVERLAP, timings: dict | None = None):
     """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
     whether it comes from the relaxed mapping). The relaxed model is judged by its photos that
-    pass the vetting (`vetted_count`; all its photos with `keep_all`).
+    pass the vetting (`vetted_count`; all its photos with `keep_all`). `matcher`: exhaustive,
+    sequential (each photo with its next `overlap`) or vocab. `timings` ({stage: seconds}, when
+    given) gets the seconds of features, matching and mapping.
 
     DataError (naming `source`, the input folder) when no model could be built.
     """
     database = work_dir / "database.db"
     pycolmap.set_random_seed(0)
-    with _stage(f"features (SIFT, {len(names)} photos)", show):
+    timings = {} if timings is None else timings
+    with _stage(f"features (SIFT, {len(names)} photos)", show, timings, "features"):
         reader = pycolmap.ImageReaderOptions()
         reader.camera_model = camera_model
         mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
@@ -250,7 +301,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
             setattr(extraction.sift, key, value)
         pycolmap.extract_features(database, photo_dir, image_names=names, camera_mode=mode, reader_options=reader,
                                   extraction_options=extraction)
-    with _stage(f"matching ({matcher})", show):
+    with _stage(f"matching ({matcher})", show, timings, "matching"):
         matching = pycolmap.FeatureMatchingOptions()
         for key, value in MATCHING.items():
             setattr(matching, key, value)
@@ -259,18 +310,22 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         if matcher == "exhaustive":
             pycolmap.match_exhaustive(database, matching_options=matching)
         elif matcher == "sequential":
-            pycolmap.match_sequential(database, matching_options=matching)
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap, pairing.quadratic_overlap, pairing.loop_detection = overlap, False, False
+            pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
         else:
             pairing = pycolmap.VocabTreePairingOptions()
             pairing.vocab_tree_path = str(vocab_tree)
             pycolmap.match_vocabtree(database, matching_options=matching, pairing_options=pairing)
     n = len(names)
+    start = time.monotonic()
     default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", n, False, "mapping", show)
     best = default
     if default is None or default.num_reg_images() < RELAX_BELOW * n:
         relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", n, True,
                        "mapping again (relaxed thresholds)", show)
         best = choose_model(default, relaxed, show, count=_registered_count if keep_all else vetted_count)
+    timings["mapping"] = round(time.monotonic() - start, 1)
     if best is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
@@ -379,10 +434,11 @@ def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show):
 
 
 class _stage:
-    """Prints `poses: NAME ...` and `poses: NAME done in 1.2 s` around a block."""
+    """Prints `poses: NAME ...` and `poses: NAME done in 1.2 s` around a block; with `timings`
+    (a dict), also stores the block's seconds under `key`."""
 
-    def __init__(self, name: str, show: bool):
-        self.name, self.show = name, show
+    def __init__(self, name: str, show: bool, timings: dict | None = None, key: str | None = None):
+        self.name, self.show, self.timings, self.key = name, show, timings, key
 
     def __enter__(self):
         self.start = time.monotonic()
@@ -390,7 +446,10 @@ class _stage:
 
     def __exit__(self, kind, value, tb):
         if kind is None:
-            _say(f"poses: {self.name} done in {progress.format_seconds(time.monotonic() - self.start)}", self.show)
+            seconds = time.monotonic() - self.start
+            if self.timings is not None:
+                self.timings[self.key] = round(seconds, 1)
+            _say(f"poses: {self.name} done in {progress.format_seconds(seconds)}", self.show)
         return False
 
 
@@ -590,6 +649,12 @@ def format_summary(summary: dict) -> str:
     """The end-of-run summary as a few lines of text."""
     lines = [f"registered {summary['registered']}/{summary['photos']} photos, "
              f"{summary['points3d']} 3-D points, mean reprojection error {summary['mean_reprojection_error']:.3f} px"]
+    if "matcher_reason" in summary:
+        overlap = f", each photo with its next {summary['overlap']}" if summary.get("overlap") else ""
+        lines.append(f"matcher: {summary['matcher']} ({summary['matcher_reason']}{overlap})")
+    if summary.get("timings_s"):
+        lines.append(f"time: {summary['seconds']:.0f} s in all; "
+                     + ", ".join(f"{key} {value:.0f} s" for key, value in summary["timings_s"].items()))
     if summary["unregistered"]:
         lines.append(f"not registered ({len(summary['unregistered'])}): {', '.join(summary['unregistered'])}")
     vet = summary.get("vetting") or {}
@@ -618,8 +683,9 @@ def format_summary(summary: dict) -> str:
 # The whole step
 
 
-def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camera_model: str = "SIMPLE_RADIAL",
+def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_model: str = "SIMPLE_RADIAL",
                       single_camera: bool = False, max_side: int | None = None, vocab_tree=None,
+                      overlap: int = SEQUENTIAL_OVERLAP,
                       overwrite: bool = False, progress: bool = True, keep_all: bool = False, crs: str | None = None,
                       gcp=None, scale_bar: str | None = None, ignore_gps: bool = False) -> dict:
     """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
@@ -628,8 +694,11 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     unregistered (names),
     vetting ({"keep_all", "left_out": names, "photos": a row per registered photo, `data.vetting.vet`;
     photos that fail are left out of the dataset unless `keep_all`}), skipped (names of unreadable
-    files), mean_reprojection_error (px), points3d, matcher, camera_model, relaxed_mapping
-    (the model came from the relaxed second mapping), seconds, up_rotation ([3, 3] applied to
+    files), mean_reprojection_error (px), points3d, matcher (the one that ran: `matcher`, or
+    `choose_matcher`'s pick for auto), matcher_asked, matcher_reason, overlap (sequential:
+    each photo matched with its next `overlap`; else None), camera_model, relaxed_mapping
+    (the model came from the relaxed second mapping), seconds, timings_s ({stage: seconds}:
+    photos, features, matching, mapping, writing), up_rotation ([3, 3] applied to
     COLMAP's frame), georeference (`georef.align_model`'s record: the photos' GPS, `gcp` (a
     ground control point file) and `crs` (EPSG:XXXX, else the GPS's UTM zone) align the model to
     metres in a projected CRS; without GPS, `scale_bar` scales it; else units stay unknown,
@@ -637,7 +706,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     DataError (one line, naming the path) for bad input; nothing is written then.
     """
     start = time.monotonic()
-    check_options(matcher, camera_model, vocab_tree)
+    check_options(matcher, camera_model, vocab_tree, overlap)
     if max_side is not None and max_side < 16:
         raise DataError(f"poses.max_side must be at least 16 pixels, got {max_side}")
     images_dir, out = Path(images_dir), Path(out_dir)
@@ -657,8 +726,11 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
     out.parent.mkdir(parents=True, exist_ok=True)
     stage_dir = make_stage(out)
     try:
-        photo_dir, names, skipped, working_sizes = prepare_photos(photos, stage_dir / "_work" / "photos",
-                                                                  max_side, progress)
+        timings = {}
+        with _stage("photos", False, timings, "photos"):
+            photo_dir, names, skipped, working_sizes = prepare_photos(photos, stage_dir / "_work" / "photos",
+                                                                      max_side, progress)
+        used, reason = choose_matcher(matcher, names)
         check_one_size({n: working_sizes[n] for n in names}, images_dir, single_camera)
         readable = [images_dir / name for name in names]
         positions = {} if ignore_gps else gps.read_all(readable)
@@ -669,9 +741,9 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
             georef.read_gcp_csv(gcp, sizes)
         if positions:
             georef.precheck_gps(positions, crs, len(names), images_dir)
-        model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=matcher,
+        model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=used,
                            camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
-                           show=progress, source=images_dir, keep_all=keep_all)
+                           show=progress, source=images_dir, keep_all=keep_all, overlap=overlap, timings=timings)
         registered = sorted(model.images[i].name for i in model.reg_image_ids())
         unregistered = sorted(set(names) - set(registered))
         rows = vetting.vet(vetting.records_from_pycolmap(model))
@@ -684,6 +756,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
             raise DataError(f"{images_dir}: only {kept} of {len(names)} photos registered and passed the vetting "
                             f"(a dataset needs {enough_registered(len(names))}; not registered or left out: "
                             f"{shown}); more overlap and texture between photos help (docs/POSES.md)")
+        writing = time.monotonic()
         with _stage("undistortion to PINHOLE, orientation, transforms.json", progress):
             rot = orient_z_up(pycolmap, model)
             sim, georeference = georef.align_model(model, positions, crs_name=crs, gcp_path=gcp, scale_bar=scale_bar,
@@ -695,13 +768,17 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "exhaustive", camer
                        "vetting": {"keep_all": bool(keep_all), "left_out": left_out, "photos": rows},
                        "skipped": sorted(skipped), "points3d": int(model.num_points3D()),
                        "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
-                       "matcher": matcher, "camera_model": camera_model, "single_camera": bool(single_camera),
+                       "matcher": used, "matcher_asked": matcher, "matcher_reason": reason,
+                       "overlap": overlap if used == "sequential" else None,
+                       "camera_model": camera_model, "single_camera": bool(single_camera),
                        "max_side": max_side, "relaxed_mapping": bool(relaxed), "up_rotation": rot.tolist(),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
                        "georeference": georeference}
             undistort(pycolmap, model, photo_dir, stage_dir)
             shutil.rmtree(stage_dir / "_work")
             summary["seconds"] = round(time.monotonic() - start, 1)
+            timings["writing"] = round(time.monotonic() - writing, 1)  # less the transforms.json write
+            summary["timings_s"] = timings
             write_dataset(stage_dir, summary)
             (stage_dir / MARKER).write_text("written by jaxnerf-grid poses; --overwrite replaces its outputs\n")
         move_into_place(stage_dir, out)
