@@ -68,6 +68,10 @@ for _warp in ("linear", "log", "piecewise"):
 # demo with a smaller proposal field, recipes.SAMPLERS; measured beside "demo", docs/GRID.md).
 CONFIGS["demo-sparse-adam"] = merge(CONFIGS["demo"], {"train": {"sparse_adam": True}})
 CONFIGS["ours-fast"] = recipes.overrides("ours-fast")
+# Issue 36: the demo trained with the photometric evidence (4x4 patches), without and with the
+# multi-view confirmation (photo_consistency.py), to price the confirmation (docs/ROBUST.md).
+CONFIGS["demo-robust"] = merge(CONFIGS["demo"], {"train": {"robust": "robust", "robust_confirm": 0.0}})
+CONFIGS["demo-robust-confirm"] = merge(CONFIGS["demo"], {"train": {"robust": "robust", "robust_confirm": 0.01}})
 # A config name ending in FUSED (e.g. "demo-piecewise-fused") is that config traced with
 # fields.hashgrid.computed_once as a no-op: the code before it, where XLA:CPU recomputed the
 # points' chain (warp, contraction) in every corner fusion of the hash grid.
@@ -116,7 +120,7 @@ class Case:
         self.method, self.name = method, name
         self.n = n = train.step_devices(cfg.train)  # every process's devices under jax.distributed
         self.pool = parallel.replicate(train.build_pool(ds, cfg), n)
-        self.state = parallel.replicate(train.init_state(cfg), n)
+        self.state = parallel.replicate(train.init_state(cfg, train.train_frames_shape(ds)), n)
         self.step = train.make_train_step(cfg, n)
         self.render_fn = None  # None: render through views' renderer, cached per config
         if self.fused:  # fresh (uncached) functions, traced below without computed_once
