@@ -22,6 +22,7 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from experiments import settings, tables
@@ -237,6 +238,9 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     metrics = evaluate.evaluate_run(run_dir, ctx.lpips_weights, progress=ctx.progress, dataset=ds,
                                     distractor_views=ctx.distractor_views, cloud_views=ctx.cloud_views)
     t_eval = time.perf_counter() - t1
+    # Each run compiles its own programs and jax's caches keep them all: a long table reached Linux's
+    # limit of memory mappings per process in the test suite (tests/conftest.py). Free them per run.
+    jax.clear_caches()
     info = {"label": label, "seed": seed, "method": method, "steps": steps, "data": str(data_dir),
             "run_dir": str(run_dir), "overrides": ov, "train_wall_s": t_train, "eval_wall_s": t_eval,
             "seconds_per_step": seconds_per_step(run_dir, cfg.train.batch_rays),

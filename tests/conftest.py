@@ -13,6 +13,7 @@ weights and refuses `pretrained=True`. Nothing here imports torch unless a fixtu
 from __future__ import annotations
 
 import importlib.util
+import os
 import subprocess
 import sys
 import types
@@ -124,3 +125,31 @@ def real_images():
 
     return {name: getattr(data, name)().astype(np.float32) / 255.0
             for name in ("astronaut", "chelsea")}
+
+
+def _mapping_count() -> int:
+    """The number of memory mappings of this process (Linux; 0 elsewhere)."""
+    try:
+        with open("/proc/self/maps", "rb") as maps:
+            return sum(1 for _ in maps)
+    except OSError:
+        return 0
+
+
+@pytest.fixture(autouse=True, scope="module")
+def _free_compiled_programs():
+    """Frees the XLA programs each test module compiled once the module ends.
+
+    XLA:CPU keeps several memory mappings per compiled program, and jax's caches keep every program
+    alive, so the whole suite in one process reached Linux's limit of 65530 mappings
+    (vm.max_map_count) after about 700 tests: the next compile failed, and the crash handler that
+    pycolmap installs then deadlocked while unwinding (the suite hung in futex waits; the process
+    held 65317 mappings). Clearing the caches between modules keeps the count near one module's."""
+    yield
+    if "jax" in sys.modules:
+        import gc
+
+        sys.modules["jax"].clear_caches()
+        gc.collect()
+    if os.environ.get("JAXNERF_GRID_REPORT_MAPPINGS"):
+        print(f" [mappings: {_mapping_count()}]", end="")
