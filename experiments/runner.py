@@ -177,7 +177,7 @@ def make_context(args, script: str) -> Context:
 # and the results files keep their runs; any other value is in the key.
 LATER_TRAIN_KEYS = ("max_side", "robust", "robust_quantile", "robust_flagged_quantile", "robust_patch",
                     "robust_patch_share", "robust_floor", "robust_spread",
-                    "robust_warmup", "robust_confirm", "robust_views", "sparse_adam")
+                    "robust_warmup", "robust_confirm", "robust_views", "sparse_adam", "robust_scattered")
 
 
 def run_key(data_dir: Path, method: str, overrides: dict, steps: int) -> str:

@@ -148,23 +148,72 @@ def evidence(inlier: jnp.ndarray, patch_share: float) -> jnp.ndarray:
     return vote * jnp.maximum(kept, inlier)
 
 
-def robust_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray,
-                   quantile: float, flagged_quantile: float, patch_share: float,
-                   floor: float, spread: float = 0.0, confirmed: jnp.ndarray | None = None) -> jnp.ndarray:
-    """The loss weight of each pixel of the patches (the module docstring's rule).
+def pixel_inliers(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray,
+                  quantile: float, flagged_quantile: float, floor: float, spread: float = 0.0,
+                  confirmed: jnp.ndarray | None = None) -> jnp.ndarray:
+    """Step 1 of the rule, pixel by pixel: 1.0 where a pixel is an inlier (its residual at most
+    its threshold or the floor, or confirmed by another photo), else 0.0.
 
-    residuals, prior: [P, p, p] (this device's patches; prior 1 = unflagged, 0 = flagged);
-    batch_residuals: [N] the residuals of the whole global batch (all devices), which the
-    thresholds are figures of; spread: k of the spread bound (0: the quantile alone);
-    confirmed: None or [P, p, p] in {0, 1}, pixels another photo confirms
-    (`photo_consistency`), inliers whatever their residual. Returns [P, p, p] in {0, 1}.
+    residuals, prior: [...] (prior 1 = unflagged, 0 = flagged); batch_residuals: [N] the
+    residuals of the whole global batch (all devices), which the thresholds are figures of;
+    spread: k of the spread bound (0: the quantile alone); confirmed: None or [...] in {0, 1},
+    pixels another photo confirms (`photo_consistency`). Returns [...] in {0, 1}. The weight of
+    a scattered ray (train.robust_scattered) is this alone: it has no neighbours to vote.
     """
     thresholds = jnp.maximum(quantile_of(batch_residuals, pixel_quantiles(prior, quantile, flagged_quantile)),
                              spread_thresholds(batch_residuals, prior, spread))
     inlier = inliers(residuals, thresholds, floor)
     if confirmed is not None:
         inlier = jnp.maximum(inlier, confirmed)
+    return inlier
+
+
+def robust_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray,
+                   quantile: float, flagged_quantile: float, patch_share: float,
+                   floor: float, spread: float = 0.0, confirmed: jnp.ndarray | None = None) -> jnp.ndarray:
+    """The loss weight of each pixel of the patches (the module docstring's rule): `evidence`
+    of `pixel_inliers`. residuals, prior, confirmed: [P, p, p] (this device's patches);
+    batch_residuals: [N]. Returns [P, p, p] in {0, 1}."""
+    inlier = pixel_inliers(residuals, prior, batch_residuals, quantile, flagged_quantile, floor, spread, confirmed)
     return evidence(inlier, patch_share)
+
+
+def batch_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray, patch_rays: int,
+                  patch: int, quantile: float, flagged_quantile: float, patch_share: float, floor: float,
+                  spread: float = 0.0, confirmed: jnp.ndarray | None = None) -> jnp.ndarray:
+    """The weights of one device's rays: its first `patch_rays` rays are whole p x p patches
+    (patch-major) weighted by `robust_weights`, the rest scattered pixels weighted by
+    `pixel_inliers` alone. residuals, prior, confirmed (or None): [B]; batch_residuals: [N].
+    Returns [B] in {0, 1}."""
+    def split(a):
+        return a[:patch_rays].reshape(-1, patch, patch), a[patch_rays:]
+
+    (res_p, res_s), (prior_p, prior_s) = split(residuals), split(prior)
+    conf_p, conf_s = split(confirmed) if confirmed is not None else (None, None)
+    on_patches = robust_weights(res_p, prior_p, batch_residuals, quantile, flagged_quantile, patch_share,
+                                floor, spread, conf_p).reshape(-1)
+    if residuals.shape[0] == patch_rays:
+        return on_patches
+    on_pixels = pixel_inliers(res_s, prior_s, batch_residuals, quantile, flagged_quantile, floor, spread, conf_s)
+    return jnp.concatenate([on_patches, on_pixels])
+
+
+def draw_pixels(key, count: int, num_frames: int, height: int, width: int) -> jnp.ndarray:
+    """Flat pixel ids (frame * H * W + row * W + col) of `count` pixels drawn uniformly over the
+    frames (train.robust_scattered's scattered rays). Returns [count] int32."""
+    return jax.random.randint(key, (count,), 0, num_frames * height * width).astype(jnp.int32)
+
+
+def device_layout(patch_rays: int, scattered: int, num_devices: int) -> jnp.ndarray:
+    """The order in which the devices take a batch of `patch_rays` patch rays (patch-major) then
+    `scattered` scattered rays: each device's share of whole patches, then its share of the
+    scattered rays. Returns [patch_rays + scattered] int32 indices into that batch (the identity
+    for one device or no scattered rays). Both counts must divide by num_devices."""
+    per_patch, per_scattered = patch_rays // num_devices, scattered // num_devices
+    order = [jnp.concatenate([jnp.arange(d * per_patch, (d + 1) * per_patch),
+                              patch_rays + jnp.arange(d * per_scattered, (d + 1) * per_scattered)])
+             for d in range(num_devices)]
+    return jnp.concatenate(order).astype(jnp.int32)
 
 
 def draw_patches(key, num_patches: int, num_frames: int, height: int, width: int, patch: int) -> jnp.ndarray:

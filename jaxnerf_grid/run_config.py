@@ -57,7 +57,11 @@ class TrainConfig:
     robust_confirm: multi-view confirmation (`photo_consistency.py`): a pixel whose 3x3
       neighbourhood a neighbouring training photo shows again at the pixel's rendered 3-D
       point, with a mean squared difference at most this, is an inlier whatever its residual
-      (0 = off); robust_views: how many neighbouring photos (nearest camera centres) are looked at.
+      (0 = off); robust_views: how many neighbouring photos (nearest camera centres) are looked at;
+    robust_scattered: the share of batch_rays drawn as single pixels scattered over the frames
+      instead of patches (`scattered_rays`); a scattered ray has no neighbours to vote, so its
+      weight is its own inlier test (`robust.pixel_inliers`), confirmation included (0 = patches
+      only).
     """
 
     batch_rays: int = 1024
@@ -95,6 +99,7 @@ class TrainConfig:
     robust_warmup: float = 0.2
     robust_confirm: float = 0.01
     robust_views: int = 8
+    robust_scattered: float = 0.0
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -113,7 +118,7 @@ class TrainConfig:
         "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_share": config_lib.UNIT,
         "robust_floor": config_lib.NONNEGATIVE, "robust_spread": config_lib.NONNEGATIVE,
         "robust_warmup": config_lib.UNIT, "robust_confirm": config_lib.NONNEGATIVE,
-        "robust_views": config_lib.AT_LEAST_ONE}
+        "robust_views": config_lib.AT_LEAST_ONE, "robust_scattered": config_lib.FRACTION}
 
 
 @dataclasses.dataclass(frozen=True)
@@ -151,6 +156,12 @@ def resolve_devices(cfg: TrainConfig) -> int:
     return n
 
 
+def scattered_rays(cfg: TrainConfig) -> int:
+    """How many of a robust batch's rays are scattered single pixels: batch_rays x
+    robust_scattered, rounded."""
+    return int(round(cfg.batch_rays * cfg.robust_scattered))
+
+
 def check_robust(cfg: TrainConfig, num_devices: int = 1, dataset: Dataset | None = None) -> None:
     """ConfigError unless train.robust is a known mode and, when on, the batch splits into whole
     patches, and the patches over the devices; with a dataset, also that a patch fits in its
@@ -160,9 +171,15 @@ def check_robust(cfg: TrainConfig, num_devices: int = 1, dataset: Dataset | None
     if cfg.robust == "off":
         return
     area = cfg.robust_patch ** 2
-    if cfg.batch_rays % area or (cfg.batch_rays // area) % num_devices:
-        raise ConfigError(f"train.batch_rays = {cfg.batch_rays}: with train.robust on it must be a multiple of "
-                          f"train.robust_patch^2 ({area}) times the device count ({num_devices})")
+    scattered = scattered_rays(cfg)
+    patch_rays = cfg.batch_rays - scattered
+    if patch_rays <= 0 or patch_rays % area or (patch_rays // area) % num_devices:
+        raise ConfigError(f"train.batch_rays = {cfg.batch_rays}: with train.robust on, its patch part "
+                          f"({patch_rays} rays after train.robust_scattered's {scattered}) must be a positive "
+                          f"multiple of train.robust_patch^2 ({area}) times the device count ({num_devices})")
+    if scattered % num_devices:
+        raise ConfigError(f"train.robust_scattered = {cfg.robust_scattered}: its {scattered} scattered rays "
+                          f"must divide over the {num_devices} devices")
     if dataset is None:
         return
     if min(dataset.height, dataset.width) < cfg.robust_patch:

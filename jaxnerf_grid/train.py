@@ -48,7 +48,8 @@ from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.io import DataError
 # the run config lives in run_config.py; train.RunConfig / train.make_config stay for their callers
-from jaxnerf_grid.run_config import RunConfig, TrainConfig, check_robust, make_config, resolve_devices  # noqa: F401
+from jaxnerf_grid.run_config import (RunConfig, TrainConfig, check_robust, make_config, resolve_devices,  # noqa: F401
+                                     scattered_rays)
 
 logger = logging.getLogger(__name__)
 AXIS = parallel.AXIS
@@ -72,7 +73,7 @@ def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
     """The per-pixel prior of the photometric evidence (train.robust on). [N, H, W] in [0, 1]:
     ones for "robust"; for "dpt+robust" the dataset's 1 - M_w (with mask_weight_floor), which
     must exist."""
-    check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust_patch ** 2), 1, dataset)
+    check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust_patch ** 2, robust_scattered=0.0), 1, dataset)
     if cfg.robust == "robust":
         return np.ones(dataset.images.shape[:3], np.float32)
     return loss_weights(dataset, dataclasses.replace(cfg, use_masks=True))
@@ -223,10 +224,13 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
 
 def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     """The pmapped step with photometric evidence (train.robust on; robust.py): the global batch
-    is batch_rays / p^2 patches of p x p pixels drawn from the state's key (the same for any
-    device count), each device renders its share of whole patches; the residuals (final pass,
+    is (batch_rays - S) / p^2 patches of p x p pixels and S scattered pixels (S =
+    `scattered_rays`, train.robust_scattered) drawn from the state's key (the same for any
+    device count), each device renders its share of whole patches then its share of the
+    scattered pixels (`robust.device_layout`); the residuals (final pass,
     stop-gradient) are all-gathered so every device takes the quantiles of the same global
-    batch; each pixel's loss weight is `robust.robust_weights` of its patch with the pool's
+    batch; each pixel's loss weight is `robust.batch_weights` (its patch's evidence, or a
+    scattered pixel's own inlier test) with the pool's
     weight as the prior, after the first `robust.warmup_steps` optimiser steps (Adam's count,
     so resume is exact), and the prior itself before them; with train.robust_confirm > 0 a pixel
     that a neighbouring photo confirms at its rendered median depth is an inlier
@@ -236,8 +240,11 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     tcfg = cfg.train
     check_robust(tcfg, num_devices)
     p = tcfg.robust_patch
-    num_patches = tcfg.batch_rays // (p * p)
+    scattered = scattered_rays(tcfg)
+    num_patches = (tcfg.batch_rays - scattered) // (p * p)
     per_device = tcfg.batch_rays // num_devices
+    local_patch_rays = num_patches * p * p // num_devices  # each device: its patches, then its scattered rays
+    layout = robust_lib.device_layout(num_patches * p * p, scattered, num_devices)
     warmup_steps = robust_lib.warmup_steps(tcfg.robust_warmup, tcfg.max_steps)
     confirm = tcfg.robust_confirm > 0
 
@@ -255,6 +262,10 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
         frames, height, width = pool["weights"].shape
         ids = robust_lib.draw_patches(k_batch, num_patches, frames, height, width, p)
         ray_keys = jax.random.split(k_rays, tcfg.batch_rays)
+        if scattered:  # the same global batch for any device count, laid out device by device
+            ids = jnp.concatenate([ids, robust_lib.draw_pixels(jax.random.fold_in(k_batch, 1), scattered,
+                                                               frames, height, width)])[layout]
+            ray_keys = ray_keys[layout]
         start = jax.lax.axis_index(AXIS) * per_device
         local_ids = jax.lax.dynamic_slice_in_dim(ids, start, per_device)
         ray_keys = jax.lax.dynamic_slice_in_dim(ray_keys, start, per_device)
@@ -267,11 +278,11 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
             confirmed = None
             if confirm:
                 depth = jax.lax.stop_gradient(out["final"]["median_depth"])
-                confirmed = confirmed_pixels(pool, local_ids, batch, depth).reshape(-1, p, p)
-            evidence = robust_lib.robust_weights(
-                residual.reshape(-1, p, p), batch["weight"].reshape(-1, p, p), everyone, tcfg.robust_quantile,
-                tcfg.robust_flagged_quantile, tcfg.robust_patch_share, tcfg.robust_floor,
-                tcfg.robust_spread, confirmed).reshape(-1)
+                confirmed = confirmed_pixels(pool, local_ids, batch, depth)
+            evidence = robust_lib.batch_weights(residual, batch["weight"], everyone, local_patch_rays, p,
+                                                tcfg.robust_quantile, tcfg.robust_flagged_quantile,
+                                                tcfg.robust_patch_share, tcfg.robust_floor, tcfg.robust_spread,
+                                                confirmed)
             weight = jnp.where(state["opt_state"].count < warmup_steps, batch["weight"], evidence)
             total = jax.lax.psum(jnp.sum(weight), AXIS)
             loss = losses.weighted_mean(terms["loss"], weight, total)

@@ -11,21 +11,27 @@ from jaxnerf_grid import robust
 DEFAULTS = {"quantile": 0.8, "flagged_quantile": 0.5, "patch_share": 0.6, "floor": 0.0, "spread": 0.0}
 
 
-def reference_weights(res, prior, batch_res, quantile, flagged_quantile, patch_share, floor, spread=0.0):
-    """The rule of robust.py's docstring, pixel by pixel with np.quantile and np.median (the
-    spread bound on the root residuals). res, prior: [P, p, p]."""
+def reference_inliers(res, prior, batch_res, quantile, flagged_quantile, floor, spread=0.0, confirmed=None):
+    """Step 1 of the rule, one pixel at a time with np.quantile and np.median (the spread bound
+    on the root residuals). res, prior, confirmed: any shape."""
     res, prior = np.asarray(res, np.float64), np.asarray(prior, np.float64)
     batch = np.asarray(batch_res, np.float64)
     root = np.sqrt(batch)
     mad_sigma = 1.4826 * np.median(np.abs(root - np.median(root)))
-    count, p, _ = res.shape
     inlier = np.zeros(res.shape)
-    for k in range(count):
-        for i in range(p):
-            for j in range(p):
-                q = flagged_quantile + (quantile - flagged_quantile) * prior[k, i, j]
-                bound = (np.median(root) + spread * (1 / 3 + 2 / 3 * prior[k, i, j]) * mad_sigma) ** 2
-                inlier[k, i, j] = res[k, i, j] <= max(np.quantile(batch, q), bound, floor)
+    for idx in np.ndindex(res.shape):
+        q = flagged_quantile + (quantile - flagged_quantile) * prior[idx]
+        bound = (np.median(root) + spread * (1 / 3 + 2 / 3 * prior[idx]) * mad_sigma) ** 2
+        inlier[idx] = res[idx] <= max(np.quantile(batch, q), bound, floor)
+        if confirmed is not None and confirmed[idx]:
+            inlier[idx] = 1.0
+    return inlier
+
+
+def reference_weights(res, prior, batch_res, quantile, flagged_quantile, patch_share, floor, spread=0.0):
+    """The rule of robust.py's docstring, pixel by pixel. res, prior: [P, p, p]."""
+    inlier = reference_inliers(res, prior, batch_res, quantile, flagged_quantile, floor, spread)
+    count, p, _ = inlier.shape
     vote = np.zeros(res.shape)
     for k in range(count):
         for i in range(p):
@@ -152,6 +158,64 @@ def test_smoothing_counts_only_neighbours_inside_the_patch():
             for j in range(5):
                 want[k, i, j] = x[k, max(i - 1, 0):i + 2, max(j - 1, 0):j + 2].mean()
     np.testing.assert_allclose(np.asarray(robust.smooth_3x3(jnp.asarray(x))), want, rtol=1e-6)
+
+
+def test_scattered_rays_are_judged_alone_against_numpy():
+    """robust.pixel_inliers (a scattered ray's weight, train.robust_scattered): the threshold,
+    floor and confirmation of each pixel with no vote, against the loop."""
+    rng = np.random.default_rng(1)
+    res = (rng.random(200) ** 3).astype(np.float32)
+    res[:20] += 1.0
+    prior = rng.choice([0.0, 0.5, 1.0], size=200).astype(np.float32)
+    confirmed = (rng.random(200) < 0.2).astype(np.float32)
+    batch = np.concatenate([res, (rng.random(100) ** 3).astype(np.float32)])
+    for kw in ({"floor": 0.0, "spread": 0.0}, {"floor": 0.05, "spread": 1.5}, {"floor": 0.0, "spread": 3.0}):
+        for conf in (None, confirmed):
+            got = robust.pixel_inliers(jnp.asarray(res), jnp.asarray(prior), jnp.asarray(batch), 0.8, 0.5,
+                                       confirmed=None if conf is None else jnp.asarray(conf), **kw)
+            want = reference_inliers(res, prior, batch, 0.8, 0.5, confirmed=conf, **kw)
+            np.testing.assert_array_equal(np.asarray(got), want)
+    assert 0 < want.mean() < 1 and want[confirmed > 0].min() == 1.0
+
+
+def test_a_mixed_batch_votes_in_its_patches_and_judges_its_scattered_rays_alone():
+    """robust.batch_weights (train's join): the first rays are patches (the whole rule), the
+    rest scattered pixels (the inlier test alone), against the loops."""
+    rng = np.random.default_rng(2)
+    res = (rng.random(3 * 16 + 40) ** 3).astype(np.float32)
+    res[5:9] += 1.0                                       # outliers inside a patch
+    res[60:64] += 1.0                                     # scattered outliers
+    res[70] = 1e-4                                        # a lone scattered inlier among outliers
+    res[71:74] += 1.0
+    prior = rng.choice([0.0, 1.0], size=res.shape).astype(np.float32)
+    conf = (rng.random(res.shape) < 0.1).astype(np.float32)
+    batch = np.concatenate([res, (rng.random(50) ** 3).astype(np.float32)])
+    args = (0.8, 0.5, 0.6, 0.0, 1.5)
+    for confirmed in (None, conf):
+        got = np.asarray(robust.batch_weights(jnp.asarray(res), jnp.asarray(prior), jnp.asarray(batch), 48, 4,
+                                              *args, None if confirmed is None else jnp.asarray(confirmed)))
+        want_p = reference_weights(res[:48].reshape(3, 4, 4), prior[:48].reshape(3, 4, 4), batch, 0.8, 0.5, 0.6,
+                                   0.0, 1.5) if confirmed is None else None
+        want_s = reference_inliers(res[48:], prior[48:], batch, 0.8, 0.5, 0.0, 1.5,
+                                   None if confirmed is None else confirmed[48:])
+        np.testing.assert_array_equal(got[48:], want_s)
+        if want_p is not None:
+            np.testing.assert_array_equal(got[:48], want_p.reshape(-1))
+    assert got[48:].min() == 0.0 and got[70] == 1.0  # scattered outliers dropped, a lone inlier kept
+    np.testing.assert_array_equal(
+        np.asarray(robust.batch_weights(jnp.asarray(res[:48]), jnp.asarray(prior[:48]), jnp.asarray(batch), 48, 4,
+                                        *args)), reference_weights(res[:48].reshape(3, 4, 4),
+                                                                   prior[:48].reshape(3, 4, 4), batch, 0.8, 0.5, 0.6,
+                                                                   0.0, 1.5).reshape(-1))
+
+
+def test_the_devices_take_their_patches_then_their_scattered_rays():
+    """robust.device_layout: 2 devices, 8 patch rays and 4 scattered ones."""
+    np.testing.assert_array_equal(np.asarray(robust.device_layout(8, 4, 2)), [0, 1, 2, 3, 8, 9, 4, 5, 6, 7, 10, 11])
+    np.testing.assert_array_equal(np.asarray(robust.device_layout(8, 4, 1)), np.arange(12))
+    np.testing.assert_array_equal(np.asarray(robust.device_layout(8, 0, 2)), np.arange(8))
+    ids = np.asarray(robust.draw_pixels(jax.random.PRNGKey(0), 5000, 3, 7, 9))
+    assert ids.min() >= 0 and ids.max() < 3 * 7 * 9 and len(np.unique(ids)) > 150  # spread over every frame
 
 
 def test_patches_are_squares_inside_the_frames():

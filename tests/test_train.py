@@ -200,17 +200,18 @@ def last_state(run_dir, cfg, ds) -> dict:
     return checkpoint.restore_latest(run_dir, train.init_state(full, train.train_frames_shape(ds)))[0]
 
 
-@pytest.mark.parametrize("method,mode,confirm", [("ours", "dpt+robust", 0.01), ("nerfw", "robust", 0.0),
-                                                 ("nerf", "robust", 0.0)])
-def test_robust_two_devices_match_one_device(tmp_path, method, mode, confirm):
-    """Patches, the all-gathered quantiles, the multi-view confirmation and the per-pixel record
-    do not depend on the device count, for every method."""
+@pytest.mark.parametrize("method,mode,confirm,scattered", [
+    ("ours", "dpt+robust", 0.01, 0.0), ("ours", "dpt+robust", 0.01, 0.5), ("nerfw", "robust", 0.0, 0.0),
+    ("nerf", "robust", 0.0, 0.0)])
+def test_robust_two_devices_match_one_device(tmp_path, method, mode, confirm, scattered):
+    """Patches, scattered rays, the all-gathered quantiles, the multi-view confirmation and the
+    per-pixel record do not depend on the device count, for every method."""
     assert jax.local_device_count() >= 2, "run with XLA_FLAGS=--xla_force_host_platform_device_count=2"
     ds = tiny_dataset()
     states = []
     for n in (1, 2):
         cfg = tiny_config(method, num_devices=n, robust=mode, robust_patch=4, robust_warmup=0.0,
-                          robust_confirm=confirm)
+                          robust_confirm=confirm, robust_scattered=scattered)
         train.train(ds, cfg, tmp_path / f"dev{n}", progress=False, stop_at=4)
         states.append(last_state(tmp_path / f"dev{n}", cfg, ds))
     diffs = jax.tree_util.tree_map(lambda a, b: float(np.max(np.abs(np.asarray(a, np.float64) - np.asarray(b)))),
