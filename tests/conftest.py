@@ -136,6 +136,17 @@ def _mapping_count() -> int:
         return 0
 
 
+MAPPINGS_BEFORE_CLEARING = 16000  # a quarter of Linux's default vm.max_map_count (65530)
+
+
+def _clear_compiled_programs() -> None:
+    if "jax" in sys.modules:
+        import gc
+
+        sys.modules["jax"].clear_caches()
+        gc.collect()
+
+
 @pytest.fixture(autouse=True, scope="module")
 def _free_compiled_programs():
     """Frees the XLA programs each test module compiled once the module ends.
@@ -146,10 +157,15 @@ def _free_compiled_programs():
     pycolmap installs then deadlocked while unwinding (the suite hung in futex waits; the process
     held 65317 mappings). Clearing the caches between modules keeps the count near one module's."""
     yield
-    if "jax" in sys.modules:
-        import gc
-
-        sys.modules["jax"].clear_caches()
-        gc.collect()
+    _clear_compiled_programs()
     if os.environ.get("JAXNERF_GRID_REPORT_MAPPINGS"):
         print(f" [mappings: {_mapping_count()}]", end="")
+
+
+@pytest.fixture(autouse=True)
+def _free_compiled_programs_in_a_long_module():
+    """Within one module (tests/test_train.py trains dozens of models), clears the caches after
+    a test once the process holds more than MAPPINGS_BEFORE_CLEARING mappings."""
+    yield
+    if _mapping_count() > MAPPINGS_BEFORE_CLEARING:
+        _clear_compiled_programs()
