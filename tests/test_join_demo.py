@@ -12,6 +12,7 @@ import cv2
 import pytest
 
 from jaxnerf_grid import cli, demo, io, masking, runs
+from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.synthetic import generate as synth_generate
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -93,20 +94,11 @@ def mp4_frames(path: Path) -> tuple[int, int, int, float]:
     return len(shapes), shapes[0][0], shapes[0][1], fps
 
 
-@pytest.mark.parametrize("flag", ["--video-frames=-1", "--video-frames=two"])
-def test_a_bad_video_frame_count_is_a_one_line_error_before_anything_is_written(tmp_path, capsys, flag):
-    assert cli.main(["demo", "--out", str(tmp_path / "demo"), flag, "--quiet"]) != 0
+def test_a_bad_video_frame_count_is_a_one_line_error_before_anything_is_written(tmp_path, capsys):
+    assert cli.main(["demo", "--out", str(tmp_path / "demo"), "--video-frames=-1", "--quiet"]) == 1
     err = capsys.readouterr().err.strip()
-    assert "--video-frames" in err and len(err.splitlines()) <= 2 and "Traceback" not in err
+    assert "--video-frames = -1" in err and len(err.splitlines()) == 1 and "Traceback" not in err
+    for bad in (2.5, True, "3"):
+        with pytest.raises(ConfigError, match="demo.video_frames"):
+            demo.run_demo(None, tmp_path / "demo", video_frames=bad)
     assert not (tmp_path / "demo").exists()
-
-
-def test_the_poses_time_comes_from_the_dataset_record_and_leads_the_table(tmp_path):
-    io.write_json(tmp_path / "transforms.json", {"poses": {"seconds": 167.5}, "frames": []})
-    assert demo.poses_seconds(tmp_path) == 167.5
-    io.write_json(tmp_path / "transforms.json", {"frames": []})
-    assert demo.poses_seconds(tmp_path) is None
-    lines = demo.timings_lines({"train": 10.0, "mask": 2.0, "poses": 167.5, "eval": 3.0})
-    assert lines[4:9] == [f"| {demo.STAGES['poses']} | 167.5 |", f"| {demo.STAGES['mask']} | 2.0 |",
-                          f"| {demo.STAGES['train']} | 10.0 |", f"| {demo.STAGES['eval']} | 3.0 |",
-                          "| total of the demo (poses excluded) | 15.0 |"]
