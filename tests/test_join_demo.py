@@ -102,3 +102,11 @@ def test_a_bad_video_frame_count_is_a_one_line_error_before_anything_is_written(
         with pytest.raises(ConfigError, match="demo.video_frames"):
             demo.run_demo(None, tmp_path / "demo", video_frames=bad)
     assert not (tmp_path / "demo").exists()
+
+
+def test_the_video_flags_help_quotes_the_demos_constants():
+    from jaxnerf_grid.cli import demo as demo_cli
+
+    text = " ".join(demo_cli.build_parser().format_help().split())
+    assert (f"{demo.DEMO_VIDEO_WIDTH} px wide, {demo.DEMO_VIDEO_FPS:g} fps; default {demo.DEMO_VIDEO_FRAMES}"
+            in text)
