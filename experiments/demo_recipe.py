@@ -57,7 +57,7 @@ def main() -> int:
         t = time.perf_counter()
         data = build(cache, name)
         synth_s = time.perf_counter() - t
-        res = demo.run_demo(data, cache / "runs" / name, args.steps, overwrite=True, progress=False)
+        res = demo.run_demo(data, cache / "runs" / name, args.steps, overwrite=True, progress=False, video_frames=0)
         m = res["metrics"]
         geometry = m.get("geometry") or {}
         rows.append({"case": name, "preset": CASES[name][0], "seed": CASES[name][1],

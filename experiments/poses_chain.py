@@ -92,7 +92,8 @@ def main(argv=None) -> int:
     rows = {}
     for name in ("A", "B"):
         shutil.rmtree(cache / f"run_{name}", ignore_errors=True)
-        res = demo.run_demo(cache / name, cache / f"run_{name}", args.steps, overwrite=True, progress=False)
+        res = demo.run_demo(cache / name, cache / f"run_{name}", args.steps, overwrite=True, progress=False,
+                            video_frames=0)
         rows[name] = {"psnr": res["metrics"]["mean"]["psnr"], "ssim": res["metrics"]["mean"]["ssim"],
                       "test_views": [v["name"] for v in res["metrics"]["per_view"]], "timings": res["timings"]}
         print(f"chain {name}: {demo.demo_summary(res)}", flush=True)

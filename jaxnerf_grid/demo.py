@@ -3,10 +3,13 @@
 `run_demo(data, out)`: synthetic tower-small (when no data is given) -> masks (when the dataset
 has none; `masking.write_masks`) -> train the `ours` recipe (DEMO_CONFIG; `runs.train_run`, at the
 working resolution of `train.max_side`, data/working.py; near, far and contract_radius from the
-dataset's `scene_bounds` when it records them, `data.bounds`) -> evaluate (`evaluate.evaluate_run`).
-`demo_summary(result)` is its one-line summary. The seconds of each stage (STAGES: poses when the
-dataset was made by `jaxnerf-grid poses`, from its record; synth, mask, train, eval) go into
-RUN/timings.json and a "Time per stage" table at the end of RUN/report.md (`timings_lines`).
+dataset's `scene_bounds` when it records them, `data.bounds`) -> evaluate (`evaluate.evaluate_run`)
+-> a short low-resolution fly-around video (`write_demo_video`: `videos.render_video`'s orbit,
+DEMO_VIDEO_FRAMES frames DEMO_VIDEO_WIDTH px wide, into RUN/videos/; docs/VIDEOS.md), linked from
+report.md and report.html. `demo_summary(result)` is its one-line summary. The seconds of each
+stage (STAGES: poses when the dataset was made by `jaxnerf-grid poses`, from its record; synth,
+mask, train, eval, video) go into RUN/timings.json and a "Time per stage" table at the end of
+RUN/report.md (`timings_lines`).
 
 Which masks train (`masks`, `demo --masks`; docs/MASKS.md): "auto" trusts the DPT's masks only
 where the DPT is in its domain (`masking.domain_verdict`, recorded in transforms.json as
@@ -22,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, distributed, evaluate, folders, io, masking, recipes, runs
+from jaxnerf_grid import (config as config_lib, distributed, evaluate, folders, io, masking, recipes, report_html,
+                          runs, videos)
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
 from jaxnerf_grid.data.synthetic import generate as synth_generate
@@ -42,9 +46,17 @@ DEMO_CLOUD_VIEWS = 16
 # capture's 614x410 working size, where each view costs 10-15 s to render on two cores.
 DEMO_CLOUD_PIXELS = 2 ** 20
 
+# The demo's fly-around video (`write_demo_video`, docs/VIDEOS.md): an orbit of this many frames,
+# this many pixels wide (the photos' aspect), played at DEMO_VIDEO_FPS. Chosen to cost well under a
+# tenth of the demo's time on the 2-core CPU machine (the measurements in docs/VIDEOS.md).
+DEMO_VIDEO_FRAMES = 32
+DEMO_VIDEO_WIDTH = 80
+DEMO_VIDEO_FPS = 8.0
+
 # The stages of a demo, in order, as timings.json and the report name them.
 STAGES = {"poses": "poses (`jaxnerf-grid poses`, before the demo; from the dataset's record)",
-          "synth": "synthetic scene", "mask": "masks", "train": "training", "eval": "evaluation"}
+          "synth": "synthetic scene", "mask": "masks", "train": "training", "eval": "evaluation",
+          "video": "fly-around video"}
 
 
 def poses_seconds(data: Path) -> float | None:
@@ -66,14 +78,43 @@ def timings_lines(timings: dict) -> list[str]:
     return lines
 
 
-def record_timings(run_dir: Path, timings: dict) -> None:
-    """Writes RUN/timings.json ({stage: seconds}) and appends the "Time per stage" table to
-    RUN/report.md (written just before by evaluate_run)."""
+def record_timings(run_dir: Path, timings: dict, lines: list[str] = ()) -> None:
+    """Writes RUN/timings.json ({stage: seconds}) and appends `lines` (Markdown) and the "Time per
+    stage" table to RUN/report.md (written just before by evaluate_run)."""
     io.write_json(run_dir / "timings.json", {k: round(float(v), 2) for k, v in timings.items()})
     report = run_dir / "report.md"
     if report.is_file():
-        text = report.read_text(encoding="utf-8").rstrip("\n") + "\n\n" + "\n".join(timings_lines(timings))
+        text = (report.read_text(encoding="utf-8").rstrip("\n") + "\n\n"
+                + "\n".join([*lines, *timings_lines(timings)]))
         io.atomic_write_bytes(report, text.encode("utf-8"))
+
+
+def check_video_frames(frames) -> None:
+    """ConfigError naming demo.video_frames unless it is an integer >= 0 (0: no video)."""
+    config_lib.check_value("demo.video_frames", frames, int, config_lib.NONNEGATIVE)
+
+
+def write_demo_video(run_dir: Path, frames: int = DEMO_VIDEO_FRAMES, progress: bool = True) -> dict:
+    """The demo's fly-around: `videos.render_video`'s orbit of `frames` frames, DEMO_VIDEO_WIDTH
+    px wide, at DEMO_VIDEO_FPS, into RUN/videos/orbit.mp4 and orbit_depth.mp4; then report.html is
+    written again so that it links them (`report_html.write_report_html` lists RUN/videos/).
+    Returns render_video's {"video", "depth_video", "frames", "width", "height", "fps"}."""
+    run_dir = Path(run_dir)
+    _, _, ds = runs.load_run_and_dataset(run_dir, progress=False)
+    done = videos.render_video(run_dir, frames=frames, fps=DEMO_VIDEO_FPS, width=DEMO_VIDEO_WIDTH,
+                               progress=progress, dataset=ds)
+    report_html.write_report_html(run_dir / "report.html", run_dir, ds, export_dir=run_dir / "export")
+    return done
+
+
+def video_lines(done: dict, run_dir: Path, seconds: float) -> list[str]:
+    """The report.md section on the demo's video (`write_demo_video`'s `done`), links relative to
+    RUN."""
+    colour, depth = (Path(done[k]).relative_to(run_dir).as_posix() for k in ("video", "depth_video"))
+    return ["## Fly-around video", "",
+            f"[{colour}]({colour}) (colour) and [{depth}]({depth}) (depth): an orbit of {done['frames']} frames "
+            f"at {done['width']}x{done['height']} px, {done['fps']:g} frames per second, rendered in {seconds:.1f} s "
+            "(`jaxnerf-grid render` renders longer and larger ones, docs/VIDEOS.md).", ""]
 
 
 def _dataset_folder(data, out: Path, progress: bool, timings: dict) -> Path:
@@ -194,15 +235,18 @@ def _mask_note(mask_source: str | None, plan: dict | None = None) -> str:
 
 def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None, overwrite: bool = False,
              progress: bool = True, sets: list[str] | None = None, max_side: int | None = None,
-             masks: str = "auto") -> dict:
+             masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES) -> dict:
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
-    has no masks and they are needed) -> train the `ours` recipe (DEMO_RECIPE) -> evaluate. Returns
-    {"run_dir", "metrics", "timings" (s per stage, STAGES), "total_seconds", "mask_source",
-    "mask_plan"}. sets: --set KEY=VALUE changes to DEMO_CONFIG; max_side: train.max_side (the
-    working resolution; None: the default, 640 px); masks: one of MASK_CHOICES (`mask_plan`). The
-    config is checked (run_config.make_config) before anything is written."""
+    has no masks and they are needed) -> train the `ours` recipe (DEMO_RECIPE) -> evaluate -> the
+    fly-around video (`write_demo_video`, unless video_frames is 0). Returns {"run_dir", "metrics",
+    "timings" (s per stage, STAGES), "total_seconds", "mask_source", "mask_plan", "video"
+    (render_video's dict, None without a video)}. sets: --set KEY=VALUE changes to DEMO_CONFIG;
+    max_side: train.max_side (the working resolution; None: the default, 640 px); masks: one of
+    MASK_CHOICES (`mask_plan`). The config is checked (run_config.make_config) before anything is
+    written."""
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
         raise ConfigError(f"demo.steps = {steps}: must be an integer >= 1")
+    check_video_frames(video_frames)
     method = recipes.get(DEMO_RECIPE).method
     base = recipes.overrides(DEMO_RECIPE)
     if max_side is not None:
@@ -247,16 +291,23 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
                                    progress)
     timings["train"] = time.perf_counter() - t
     if not distributed.is_main():
-        return {"run_dir": run_dir, "metrics": None, "timings": timings,
-                "total_seconds": time.perf_counter() - start, "mask_source": mask_source, "mask_plan": plan}
+        return {"run_dir": run_dir, "metrics": None, "timings": timings, "total_seconds": time.perf_counter() - start,
+                "mask_source": mask_source, "mask_plan": plan, "video": None}
     t = time.perf_counter()
     notes = [_mask_note(mask_source, plan), bounds_line(bounds)]
     metrics_out = evaluate.evaluate_run(run_dir, progress=progress, extra_notes=notes, distractor_views=2,
                                         cloud_views=DEMO_CLOUD_VIEWS, cloud_pixels=DEMO_CLOUD_PIXELS)
     timings["eval"] = time.perf_counter() - t
-    record_timings(Path(run_dir), timings)
+    video, lines = None, []
+    if video_frames:
+        t = time.perf_counter()
+        video = write_demo_video(Path(run_dir), video_frames, progress)
+        timings["video"] = time.perf_counter() - t
+        lines = video_lines(video, Path(run_dir), timings["video"])
+    record_timings(Path(run_dir), timings, lines)
     return {"run_dir": run_dir, "metrics": metrics_out, "timings": timings,
-            "total_seconds": time.perf_counter() - start, "mask_source": mask_source, "mask_plan": plan}
+            "total_seconds": time.perf_counter() - start, "mask_source": mask_source, "mask_plan": plan,
+            "video": video}
 
 
 def demo_summary(result: dict) -> str:

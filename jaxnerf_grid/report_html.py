@@ -18,6 +18,7 @@ from __future__ import annotations
 import base64
 import html
 import json
+import os
 from pathlib import Path
 
 import numpy as np
@@ -397,6 +398,20 @@ def views_html(views: list[dict]) -> str:
     return "\n".join(out)
 
 
+def videos_html(page_dir, run_dir) -> str:
+    """The run's fly-around videos (RUN/videos/*.mp4, docs/VIDEOS.md) as links relative to the
+    page's folder `page_dir`; "" when there are none. Links, not players: the videos are mp4v,
+    which browsers generally do not play, and they stay beside the page rather than inside it."""
+    folder = Path(run_dir) / "videos"
+    found = sorted(p for p in folder.glob("*.mp4") if not p.name.startswith(".")) if folder.is_dir() else []
+    if not found:
+        return ""
+    items = "".join(f'<li><a href="{html.escape(Path(os.path.relpath(p, page_dir)).as_posix())}">'
+                    f"{html.escape(p.name)}</a></li>" for p in found)
+    return ("<h2>Fly-around videos</h2><p>Beside this page, in the run's videos/ folder (MP4, codec mp4v: open "
+            f"them with a video player):</p><ul>{items}</ul>")
+
+
 STYLE = """body{font-family:sans-serif;margin:1em;color:#222}table{border-collapse:collapse;margin:.5em 0}
 td,th{border:1px solid #bbb;padding:2px 8px;text-align:left}figure{display:inline-block;margin:4px}
 img.view{width:220px;image-rendering:pixelated;cursor:zoom-in;border:1px solid #ccc}
@@ -423,7 +438,8 @@ def write_report_html(path, run_dir, ds, metrics: dict | None = None, views: lis
     """Writes `path` (report.html, atomic): the run's metrics (`metrics`, else RUN/metrics.json when
     it exists), the test views (`views` as in `views_html`, else read back from RUN/renders/ and
     depth/ beside the dataset's targets for metrics["per_view"]) and the 3-D view of
-    `scene_of_run(run_dir, ds, export_dir)`. Returns the path."""
+    `scene_of_run(run_dir, ds, export_dir)`, then links to the run's videos (`videos_html`). Returns
+    the path."""
     run_dir, path = Path(run_dir), Path(path)
     if metrics is None and (run_dir / "metrics.json").is_file():
         metrics = io.read_json(run_dir / "metrics.json")
@@ -442,7 +458,7 @@ def write_report_html(path, run_dir, ds, metrics: dict | None = None, views: lis
         notes.append(f"mesh faces drawn: {counts['faces'][1]} of {counts['faces'][0]}")
     notes.append(f"{len(scene['cameras'])} training cameras")
     sections = [f"<p>{html.escape('; '.join(notes))}.</p>", measurements_html(scene["measurements"]),
-                metrics_html(metrics), views_html(views)]
+                metrics_html(metrics), views_html(views), videos_html(path.parent, run_dir)]
     title = f"Run report: {run_dir.name}"
     text = page(title, plot, sections, {"measurements": embedded_measurements(scene["measurements"]),
                                         "units": scene["units"], "counts": counts})

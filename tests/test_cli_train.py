@@ -124,10 +124,12 @@ def test_demo_runs_the_recipe_on_a_given_dataset(data_dir, tmp_path, capsys):
     shutil.copytree(data_dir, data)
     meta = io.read_json(data / "transforms.json")
     assert any("weight_path" in f for f in meta["frames"])  # so the demo must skip `mask`
-    rc = cli.main(["demo", "--data", str(data), "--out", str(tmp_path / "demo"), "--steps", "2", "--quiet"])
+    rc = cli.main(["demo", "--data", str(data), "--out", str(tmp_path / "demo"), "--steps", "2", "--quiet",
+                   "--no-video"])
     assert rc == 0
     out = capsys.readouterr().out
     assert "demo done" in out and "synth" not in out and "mask " not in out
+    assert not (tmp_path / "demo" / "run" / "videos").exists() and "video" not in out   # --no-video
     cfg = io.read_json(tmp_path / "demo" / "run" / "config.json")
     assert cfg["model"]["field"]["kind"] == "grid" and cfg["model"]["sampler"]["kind"] == "proposal"
     assert cfg["train"]["max_steps"] == 2
@@ -156,7 +158,7 @@ def test_demo_takes_the_bounds_a_dataset_records(data_dir, tmp_path, capsys):
                             "roi_centre": [0.0, 0.0, 0.0], "nearest_camera_to_roi": 0.7}
     io.write_json(data / "transforms.json", meta)
     rc = cli.main(["demo", "--data", str(data), "--out", str(tmp_path / "demo"), "--steps", "1", "--quiet",
-                   "--set", "model.far=400"])
+                   "--set", "model.far=400", "--no-video"])
     assert rc == 0, capsys.readouterr().err
     cfg = io.read_json(tmp_path / "demo" / "run" / "config.json")
     assert (cfg["model"]["near"], cfg["model"]["far"], cfg["model"]["contract_radius"]) == (0.6, 400.0, 1.5)

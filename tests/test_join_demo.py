@@ -1,14 +1,18 @@
 """The demo (the README's first command) end to end as `demo.run_demo(None, out)`: synth (a
 small tower scene instead of tower-small's 48 views at 160x120) -> mask (the built-in DPT, or
 ground-truth stand-ins when no model is shipped) -> train "ours" with the demo recipe for a
-few steps -> evaluate; then its report's figures and tables are read back and checked against
-the renders, depth maps and metrics.json it wrote (docs: `demo.py`, `report.py`)."""
+few steps -> evaluate -> a fly-around video of a few frames; then its report's figures and tables
+are read back and checked against the renders, depth maps and metrics.json it wrote, and the
+videos with OpenCV (docs: `demo.py`, `report.py`, docs/VIDEOS.md)."""
 
 import sys
 from pathlib import Path
 
+import cv2
+import pytest
 
-from jaxnerf_grid import demo, io, masking, runs
+from jaxnerf_grid import cli, demo, io, masking, runs
+from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.synthetic import generate as synth_generate
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -26,8 +30,8 @@ def test_tiny_demo_end_to_end_and_its_report(tmp_path, monkeypatch, capsys):
         return real(preset, out_dir, **{**kw, **SMALL_SCENE})
 
     monkeypatch.setattr(synth_generate, "generate_scene", small_scene)
-    result = demo.run_demo(None, tmp_path / "demo", steps=2, progress=False)
-    assert asked == ["tower-small"] and set(result["timings"]) == {"synth", "mask", "train", "eval"}
+    result = demo.run_demo(None, tmp_path / "demo", steps=2, progress=False, video_frames=3)
+    assert asked == ["tower-small"] and set(result["timings"]) == {"synth", "mask", "train", "eval", "video"}
     run = Path(result["run_dir"])
     meta = io.read_json(tmp_path / "demo/data/transforms.json")
     assert result["mask_source"] == meta["mask_source"] == ("dpt" if masking.BUILTIN.exists() else "ground-truth")
@@ -54,7 +58,8 @@ def test_tiny_demo_end_to_end_and_its_report(tmp_path, monkeypatch, capsys):
     table = report[report.index("## Time per stage"):]
     rows = [line.split("|")[1].strip() for line in table.splitlines()
             if line.startswith("| ") and "seconds" not in line]
-    assert rows == [demo.STAGES[k] for k in ("synth", "mask", "train", "eval")] + ["total of the demo (poses excluded)"]
+    assert rows == ([demo.STAGES[k] for k in ("synth", "mask", "train", "eval", "video")]
+                    + ["total of the demo (poses excluded)"])
     assert f"| {demo.STAGES['train']} | {result['timings']['train']:.1f} |" in table
     # the one-line summary quotes the same numbers
     line = demo.demo_summary(result)
@@ -63,14 +68,45 @@ def test_tiny_demo_end_to_end_and_its_report(tmp_path, monkeypatch, capsys):
         assert f"tower {m['regions_mean']['tower']:.2f} dB" in line
     # the synthetic scene has a reference tower cloud, so the line quotes its F-score at 0.02
     assert f"tower F-score@0.02 {m['geometry']['thresholds']['0.02']['fscore']:.3f}" in line
+    # the fly-around: 3 frames, DEMO_VIDEO_WIDTH wide with the photos' aspect, colour and depth,
+    # linked from report.md and report.html
+    height = round(demo.DEMO_VIDEO_WIDTH * SMALL_SCENE["height"] / SMALL_SCENE["width"])
+    for name in ("orbit.mp4", "orbit_depth.mp4"):
+        assert mp4_frames(run / "videos" / name) == (3, height, demo.DEMO_VIDEO_WIDTH, demo.DEMO_VIDEO_FPS)
+        assert f"[videos/{name}](videos/{name})" in report
+        assert f'<a href="videos/{name}">' in (run / "report.html").read_text()
+    assert result["video"]["video"] == run / "videos" / "orbit.mp4"
 
 
-def test_the_poses_time_comes_from_the_dataset_record_and_leads_the_table(tmp_path):
-    io.write_json(tmp_path / "transforms.json", {"poses": {"seconds": 167.5}, "frames": []})
-    assert demo.poses_seconds(tmp_path) == 167.5
-    io.write_json(tmp_path / "transforms.json", {"frames": []})
-    assert demo.poses_seconds(tmp_path) is None
-    lines = demo.timings_lines({"train": 10.0, "mask": 2.0, "poses": 167.5, "eval": 3.0})
-    assert lines[4:9] == [f"| {demo.STAGES['poses']} | 167.5 |", f"| {demo.STAGES['mask']} | 2.0 |",
-                          f"| {demo.STAGES['train']} | 10.0 |", f"| {demo.STAGES['eval']} | 3.0 |",
-                          "| total of the demo (poses excluded) | 15.0 |"]
+def mp4_frames(path: Path) -> tuple[int, int, int, float]:
+    """(frames decoded, height, width, fps) of a video read back with OpenCV frame by frame; every
+    frame the same size, three channels."""
+    cap = cv2.VideoCapture(str(path))
+    assert cap.isOpened(), f"{path}: OpenCV cannot open it"
+    fps, shapes = cap.get(cv2.CAP_PROP_FPS), []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        shapes.append(frame.shape)
+    cap.release()
+    assert len(set(shapes)) == 1 and shapes[0][2] == 3
+    return len(shapes), shapes[0][0], shapes[0][1], fps
+
+
+def test_a_bad_video_frame_count_is_a_one_line_error_before_anything_is_written(tmp_path, capsys):
+    assert cli.main(["demo", "--out", str(tmp_path / "demo"), "--video-frames=-1", "--quiet"]) == 1
+    err = capsys.readouterr().err.strip()
+    assert "--video-frames = -1" in err and len(err.splitlines()) == 1 and "Traceback" not in err
+    for bad in (2.5, True, "3"):
+        with pytest.raises(ConfigError, match="demo.video_frames"):
+            demo.run_demo(None, tmp_path / "demo", video_frames=bad)
+    assert not (tmp_path / "demo").exists()
+
+
+def test_the_video_flags_help_quotes_the_demos_constants():
+    from jaxnerf_grid.cli import demo as demo_cli
+
+    text = " ".join(demo_cli.build_parser().format_help().split())
+    assert (f"{demo.DEMO_VIDEO_WIDTH} px wide, {demo.DEMO_VIDEO_FPS:g} fps; default {demo.DEMO_VIDEO_FRAMES}"
+            in text)

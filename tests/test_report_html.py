@@ -1,12 +1,12 @@
 """report.html (issue 42, docs/REPORT_HTML.md): the helpers against brute force and closed forms,
 the page of a tiny run (self-contained, the views, the measurements as measurements.json has
-them) and its screenshot in headless Chromium (the 3-D view holds the model's pixels)."""
+them) and its screenshot in headless Chromium (the 3-D view holds the model's pixels: those that
+change when the model's traces are hidden, whatever the model's colours)."""
 
 import base64
 import json
 import os
 import re
-import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -214,29 +214,75 @@ def _screenshot(page: Path, out: Path, size=(1200, 900)) -> np.ndarray:
     return io.read_image(out)
 
 
-def test_the_page_shows_the_model_in_headless_chromium(tiny_run, tmp_path):
+def _require_chromium():
     if not CHROMIUM.exists():
         why = ("/usr/bin/chromium is missing: install Debian's `chromium` (bash scripts/setup.sh --test does) "
                "to screenshot report.html")
         if os.environ.get("JAXNERF_GRID_REQUIRE_CHROMIUM") == "1":   # where the browser must be (CI)
             pytest.fail(why)
         pytest.skip(why)
+
+
+MODEL_TRACES = ("mesh", "tower points")   # the names report_html.figure gives the model's traces
+
+# Appended to a copy of the page: once plotly has drawn, hide the legend (its entries grey out when
+# a trace is hidden) and the traces named in HIDE.
+HIDING_SCRIPT = """<script>window.addEventListener("load", function () { setTimeout(function () {
+  var gd = document.getElementById("%s"), hide = %s, idx = [];
+  gd.data.forEach(function (t, i) { if (hide.indexOf(t.name) >= 0) { idx.push(i); } });
+  Plotly.relayout(gd, {showlegend: false});
+  if (idx.length) { Plotly.restyle(gd, {visible: false}, idx); }
+}, 200); });</script>"""
+
+
+def model_pixels(page: Path, folder: Path, hide=MODEL_TRACES) -> tuple[np.ndarray, np.ndarray]:
+    """The pixels the model adds to the page's screenshot: two copies of `page`, both with the
+    legend hidden, the second with the traces named `hide` hidden too, screenshotted in headless
+    Chromium; a pixel is the model's where the two differ (by more than 0.1 in a channel), so the
+    criterion holds for a model of any colour. Returns (mask [H, W], the first screenshot)."""
+    text = page.read_text()
+    shots = []
+    for name, names in (("shown", []), ("hidden", list(hide))):
+        copy = folder / f"{page.stem}_{name}.html"
+        script = HIDING_SCRIPT % (report_html.PLOT_DIV, json.dumps(names))
+        copy.write_text(text.replace("</body>", script + "</body>"))
+        shots.append(_screenshot(copy, folder / f"{page.stem}_{name}.png"))
+    return np.max(np.abs(shots[0] - shots[1]), axis=-1) > 0.1, shots[0]
+
+
+def test_the_page_shows_the_model_in_headless_chromium(tiny_run, tmp_path):
+    _require_chromium()
     if not (tiny_run / "export" / "measurements.json").is_file():
         assert cli.main(["export", "--run", str(tiny_run), "--box=-21,-18,-3,15,22,33", "--resolution", "24",
                          "--threshold", "0.02", "--views", "4", "--quiet"]) == 0
-    shot = _screenshot(tiny_run / "report.html", tmp_path / "shot.png")
-    shutil.copy(tmp_path / "shot.png", tiny_run / "report_screenshot.png")
-    # the 3-D view: below the title, 640 px high. plotly's own colours there are greys, the scene's
-    # pale blue background (#E5ECF6), white grid lines and the cameras' thin blue lines; the
-    # model's pixels are the saturated ones that are not the cameras' blue
-    region = shot[120:700, 150:1050]
-    background = np.all(np.abs(region - np.array([0xE5, 0xEC, 0xF6]) / 255) < 0.02, axis=-1)
-    assert background.mean() > 0.05, "no 3-D scene in the screenshot"       # the plot is there, not other content
-    saturation = region.max(-1) - region.min(-1)
-    model = saturation > 0.2
-    camera_blue = np.all(np.abs(region - np.array([0x1F, 0x4F, 0xBF]) / 255) < 0.12, axis=-1)
-    count = int(np.sum(model & ~camera_blue))
-    assert count > 0.03 * model.size, f"only {count} model pixels in the 3-D view"
+    model, shot = model_pixels(tiny_run / "report.html", tmp_path)
+    io.write_png(tiny_run / "report_screenshot.png", shot)
+    # the 3-D view: below the title, 640 px high; the model's pixels are inside it
+    rows, cols = np.nonzero(model)
+    assert model.mean() > 0.01, f"only {int(model.sum())} pixels of the screenshot are the model's"
+    assert rows.min() > 60 and rows.max() < 760, "the model's pixels are not in the 3-D view"
+
+
+def test_a_grey_model_is_found_in_the_screenshot(tmp_path):
+    """A grey mesh and grey points (a real tower's colours, close to plotly's greys): their pixels
+    are found all the same; hiding nothing finds none (the screenshots are repeatable)."""
+    _require_chromium()
+    ds = tiny_dataset()
+    ds.normalization = NORM
+    export = tmp_path / "run" / "export"
+    _export_folder(export)
+    verts, faces = report_html.read_mesh(export / "tower_mesh.ply")[:2]
+    grey = np.full((len(verts), 3), 0.55)
+    io.write_ply(export / "tower_mesh.ply", verts, grey, faces)
+    io.write_ply(export / "tower_points.ply", verts, grey)
+    page = report_html.write_report_html(tmp_path / "report.html", tmp_path / "run", ds, export_dir=export)
+    model, shot = model_pixels(page, tmp_path)
+    assert model.mean() > 0.01, f"only {int(model.sum())} pixels of the screenshot are the grey model's"
+    saturation = shot.max(-1) - shot.min(-1)
+    assert np.mean(saturation[model] > 0.2) < 0.05            # grey: the saturation rule found none of them
+    (tmp_path / "nothing").mkdir()
+    nothing, _ = model_pixels(page, tmp_path / "nothing", hide=())
+    assert not nothing.any()
 
 
 # --------------------------------------------------------------------------- progress.html

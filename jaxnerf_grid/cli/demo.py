@@ -1,7 +1,9 @@
-"""`jaxnerf-grid demo`: tower-small (or --data DIR) -> masks -> train ours -> render -> report (`demo.run_demo`).
+"""`jaxnerf-grid demo`: tower-small (or --data DIR) -> masks -> train ours -> render -> report -> a short
+fly-around video (`demo.run_demo`).
 
     jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N] [--max-side N] [--set KEY=VALUE ...] [--overwrite]
                       [--masks auto|dpt|robust|dpt+robust|none]   (docs/MASKS.md)
+                      [--video-frames N | --no-video]   (docs/VIDEOS.md)
                       [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
 """
 
@@ -30,6 +32,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="which masks train: auto (default) uses the DPT's masks only where the DPT is in its "
                         "domain on these photos, else train.robust = robust; the others force a mode "
                         "(docs/MASKS.md)")
+    video = p.add_mutually_exclusive_group()
+    video.add_argument("--video-frames", type=int, default=None, metavar="N",
+                       help="frames of the fly-around video written after the report (RUN/videos/orbit.mp4 and "
+                            "orbit_depth.mp4, 80 px wide, 8 fps; default 32; docs/VIDEOS.md)")
+    video.add_argument("--no-video", action="store_true", help="write no fly-around video")
     p.add_argument("--overwrite", action="store_true", help="retrain the run (the data are kept)")
     p.add_argument("--quiet", action="store_true")
     from jaxnerf_grid.cli.train import add_distributed_flags
@@ -45,9 +52,10 @@ def main(argv: list[str] | None = None) -> int:
     start_distributed(args)
     from jaxnerf_grid import demo, distributed
 
+    frames = 0 if args.no_video else demo.DEMO_VIDEO_FRAMES if args.video_frames is None else args.video_frames
     try:
         result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=args.set,
-                               max_side=args.max_side, masks=args.masks)
+                               max_side=args.max_side, masks=args.masks, video_frames=frames)
     except distributed.DistributedError as err:
         exit_on_distributed_error("demo", err)
     if not distributed.is_main():
@@ -55,4 +63,6 @@ def main(argv: list[str] | None = None) -> int:
         return 0
     print(demo.demo_summary(result))
     print(f"report: {result['run_dir'] / 'report.md'}")
+    if result["video"]:
+        print(f"video: {result['video']['video']}")
     return 0

@@ -40,6 +40,7 @@ FLAGS = {  # subcommand -> {key: flag}
     "export": {"export.box": "--box", "export.resolution": "--resolution", "export.opacity": "--threshold",
                "export.views": "--views", "export.out": "--out", **_SWITCHES, **_OTHER_DATA},
     "demo": {"demo.data": "--data", "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks",
+             "demo.video_frames": "--video-frames",
              **_SWITCHES, **_DISTRIBUTED},
 }
 
