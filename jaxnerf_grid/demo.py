@@ -117,6 +117,25 @@ def video_lines(done: dict, run_dir: Path, seconds: float) -> list[str]:
             "(`jaxnerf-grid render` renders longer and larger ones, docs/VIDEOS.md).", ""]
 
 
+def demo_video_step(run_dir: Path, frames: int, progress: bool, timings: dict) -> tuple[dict | None, list[str]]:
+    """The demo's last stage: `write_demo_video` (its seconds into timings["video"]) and its
+    report lines. The video is an extra: when it cannot be written (a codec, a full disk) the
+    demo still ends with its report, and a one-line warning says why. Returns (render_video's
+    dict or None, report.md lines)."""
+    if not frames:
+        return None, []
+    t = time.perf_counter()
+    try:
+        video = write_demo_video(run_dir, frames, progress)
+    except (DataError, OSError) as err:
+        reason = str(err).splitlines()[0] if str(err) else type(err).__name__
+        print(f"warning: the fly-around video was not written: {reason}", flush=True)
+        timings["video"] = time.perf_counter() - t
+        return None, ["## Fly-around video", "", f"Not written: {reason}", ""]
+    timings["video"] = time.perf_counter() - t
+    return video, video_lines(video, run_dir, timings["video"])
+
+
 def _dataset_folder(data, out: Path, progress: bool, timings: dict) -> Path:
     """The demo's dataset: `data` (must be a folder), else tower-small synthesised into
     out/data once (its seconds into timings["synth"])."""
@@ -298,12 +317,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     metrics_out = evaluate.evaluate_run(run_dir, progress=progress, extra_notes=notes, distractor_views=2,
                                         cloud_views=DEMO_CLOUD_VIEWS, cloud_pixels=DEMO_CLOUD_PIXELS)
     timings["eval"] = time.perf_counter() - t
-    video, lines = None, []
-    if video_frames:
-        t = time.perf_counter()
-        video = write_demo_video(Path(run_dir), video_frames, progress)
-        timings["video"] = time.perf_counter() - t
-        lines = video_lines(video, Path(run_dir), timings["video"])
+    video, lines = demo_video_step(Path(run_dir), video_frames, progress, timings)
     record_timings(Path(run_dir), timings, lines)
     return {"run_dir": run_dir, "metrics": metrics_out, "timings": timings,
             "total_seconds": time.perf_counter() - start, "mask_source": mask_source, "mask_plan": plan,

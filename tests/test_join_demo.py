@@ -110,3 +110,23 @@ def test_the_video_flags_help_quotes_the_demos_constants():
     text = " ".join(demo_cli.build_parser().format_help().split())
     assert (f"{demo.DEMO_VIDEO_WIDTH} px wide, {demo.DEMO_VIDEO_FPS:g} fps; default {demo.DEMO_VIDEO_FRAMES}"
             in text)
+
+
+def test_a_video_that_cannot_be_written_leaves_the_demo_its_report(tmp_path, capsys):
+    """demo_video_step on a run folder the video cannot be made from (no trained run: a real
+    DataError from loading it): a one-line warning, a report.md note, and the time table still
+    written by record_timings."""
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    (run_dir / "report.md").write_text("# Report\n", encoding="utf-8")
+    timings = {"train": 1.0, "eval": 2.0}
+    video, lines = demo.demo_video_step(run_dir, 3, False, timings)
+    assert video is None and "video" in timings
+    warning = [line for line in capsys.readouterr().out.splitlines() if "video" in line]
+    assert len(warning) == 1 and warning[0].startswith("warning: the fly-around video was not written: ")
+    assert "Traceback" not in warning[0]
+    demo.record_timings(run_dir, timings, lines)
+    report = (run_dir / "report.md").read_text(encoding="utf-8")
+    assert report.startswith("# Report\n") and "Not written: " in report and "Time per stage" in report
+    assert not (run_dir / "videos").exists()
+    assert demo.demo_video_step(run_dir, 0, False, {}) == (None, [])
