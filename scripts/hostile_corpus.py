@@ -385,8 +385,8 @@ def case_list():
         lambda f, d: {"argv": ["synth", "--out", d / "Mast Nr ß 3", *SYNTH], "protect": []}, expect="ok")
 
     # demo
-    D = lambda *a: lambda f, d: {"argv": ["demo", "--data", f["data"], "--out", d / "demo", "--quiet", *a],  # noqa
-                                 "protect": [], "absent": [d / "demo"]}
+    D = lambda *a, **kw: lambda f, d: {"argv": ["demo", "--data", f["data"], "--out", d / "demo", "--quiet",  # noqa
+                                                 *a], "protect": [], "absent": [d / "demo"], **kw}
     add("demo_steps_0", "bad flag", D("--steps", "0"), names=["--steps"])
     add("demo_max_side_negative", "bad flag", D("--max-side", "-2"), names=["--max-side"])
     add("demo_set_unknown_key", "bad flag", D("--set", "model.colour=red"), names=["model.colour"])
@@ -407,7 +407,9 @@ def case_list():
     add("train_set_samples_three", "bad flag", T("--set", "model.sampler.samples=[8,8,8]"),
         names=["model.sampler.samples"])
     add("train_connect_timeout_text", "bad environment", T(env={"JAXNERF_CONNECT_TIMEOUT": "soon"}),
-        names=["JAXNERF_CONNECT_TIMEOUT"], expect="any")
+        names=["JAXNERF_CONNECT_TIMEOUT"])
+    add("demo_heartbeat_timeout_0", "bad environment", D(env={"JAXNERF_HEARTBEAT_TIMEOUT": "0"}),
+        names=["JAXNERF_HEARTBEAT_TIMEOUT"])
 
     def train_config(body):
         def prep(f, d):

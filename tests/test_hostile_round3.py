@@ -255,3 +255,15 @@ def test_broken_transforms_json_is_named(scene, capsys, tmp_path, edit):
                        "--out", tmp_path / "r", "--quiet"], capsys)
     assert_one_line_error(rc, err, "transforms.json")
     assert snapshot(data) == before and not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("command", ["train", "demo"])
+def test_bad_timeout_variables_are_named_in_a_single_process_run(scene, capsys, tmp_path, monkeypatch, command):
+    """Failed: JAXNERF_*_TIMEOUT values were checked only in a multi-process run; a single
+    process trained with `JAXNERF_CONNECT_TIMEOUT=soon` in its environment without a word."""
+    monkeypatch.setenv("JAXNERF_CONNECT_TIMEOUT", "soon")
+    argv = ([command, "--data", scene["data"], "--out", tmp_path / "r", "--quiet"]
+            + (["--config", scene["cfg"]] if command == "train" else []))
+    rc, err = run_cli(argv, capsys)
+    assert_one_line_error(rc, err, "JAXNERF_CONNECT_TIMEOUT", "soon")
+    assert not (tmp_path / "r").exists()
