@@ -83,16 +83,29 @@ def error_lines(stderr: str) -> list[str]:
 
 
 def build_fixtures(work: Path) -> dict:
-    """The shared dataset (with photos_gps/) and finished run, built once per WORK_DIR."""
-    data, run, cfg = work / "data", work / "run", work / "tiny.json"
-    if not (data / "transforms.json").exists():
+    """The shared dataset (with photos_gps/) and finished run, built once per WORK_DIR and kept
+    pristine in WORK/pristine/ (`fresh_fixtures` copies them back before each case)."""
+    data, run, cfg, pristine = work / "data", work / "run", work / "tiny.json", work / "pristine"
+    cfg.write_text(json.dumps(TINY))
+    if not (pristine / "run" / "config.json").exists():
+        shutil.rmtree(data, ignore_errors=True)
+        shutil.rmtree(run, ignore_errors=True)
         done = cli(["synth", "--out", data, *SYNTH, "--gps-origin", "47.0,8.0,500"], work)
         assert done.returncode == 0, done.stderr
-    cfg.write_text(json.dumps(TINY))
-    if not (run / "config.json").exists():
         done = cli([*TRAIN, "--data", data, "--config", cfg, "--out", run], work)
         assert done.returncode == 0, done.stderr
+        shutil.rmtree(pristine, ignore_errors=True)
+        pristine.mkdir()
+        shutil.copytree(data, pristine / "data", symlinks=True)
+        shutil.copytree(run, pristine / "run", symlinks=True)
     return {"data": data, "run": run, "cfg": cfg, "work": work}
+
+
+def fresh_fixtures(f: dict) -> None:
+    """The dataset and the run as built (one case's fault never leaks into the next)."""
+    for name in ("data", "run"):
+        shutil.rmtree(f[name], ignore_errors=True)
+        shutil.copytree(f["work"] / "pristine" / name, f[name], symlinks=True)
 
 
 # --- helpers that prepare a case's inputs in its folder `d` (fixtures in `f`) ---
@@ -541,6 +554,7 @@ def main(argv=None) -> int:
     for case in case_list():
         if only and case["id"] not in only:
             continue
+        fresh_fixtures(f)
         d = work / "cases" / case["id"]
         shutil.rmtree(d, ignore_errors=True)
         d.mkdir(parents=True)
