@@ -168,9 +168,9 @@ def initialize(coordinator: str | None = None, num_processes: int | None = None,
 
     if _dist.global_state.client is not None:
         return jax.process_count() > 1
+    limits = timeouts()  # every value checked before anything starts, also in a single-process run
     if not wanted(coordinator, num_processes, process_id):
         return False
-    limits = timeouts()  # every value checked before anything starts
     if num_processes is None:
         num_processes = _env_int("JAX_NUM_PROCESSES")
     if process_id is None:

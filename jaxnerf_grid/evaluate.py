@@ -198,7 +198,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data, full_size)
     ref = reference_cloud(ds, reference_ply)  # a missing or broken --reference-ply fails before rendering
     if reference_ply:
-        io.read_ply_points(ref[0])
+        geometry.read_reference_points(ref[0])
     if lpips_weights and not Path(lpips_weights).is_file():
         raise DataError(f"{lpips_weights}: LPIPS weights file not found (eval.lpips_weights)")
     params, step = train.load_params(run_dir, cfg, ds)

@@ -161,6 +161,18 @@ def reference_to_scene(points, file_normalization: dict | None, scene_normalizat
     return s2 * (p / s1 - t1 + t2)
 
 
+def read_reference_points(ply_path) -> np.ndarray:
+    """The vertices [N, 3] of a reference cloud (`io.read_ply_points`); DataError naming the
+    file when it holds no point or a coordinate that is not finite. `evaluate_run` calls it
+    before rendering, so a bad reference costs nothing."""
+    points = io.read_ply_points(ply_path)
+    if len(points) == 0:
+        raise io.DataError(f"{ply_path}: the reference point cloud is empty")
+    if not np.all(np.isfinite(points)):
+        raise io.DataError(f"{ply_path}: the reference point cloud has coordinates that are not finite numbers")
+    return points
+
+
 def score_against_ply(cloud_parts, ply_path, *, file_normalization: dict | None = None,
                       scene_normalization: dict | None = None, thresholds=DEFAULT_THRESHOLDS,
                       ground_strip: float = DEFAULT_GROUND_STRIP) -> dict:
@@ -174,8 +186,6 @@ def score_against_ply(cloud_parts, ply_path, *, file_normalization: dict | None 
     """
     parts = [np.asarray(p, np.float64).reshape(-1, 3) for p, _ in cloud_parts]
     pred = np.concatenate(parts) if parts else np.zeros((0, 3))
-    ref = reference_to_scene(io.read_ply_points(ply_path), file_normalization, scene_normalization)
-    if len(ref) == 0:
-        raise io.DataError(f"{ply_path}: the reference point cloud is empty")
+    ref = reference_to_scene(read_reference_points(ply_path), file_normalization, scene_normalization)
     result = score_points(pred, ref, thresholds, ground_strip)
     return {**result, "reference": str(Path(ply_path)), "units": "normalised scene units"}

@@ -23,9 +23,12 @@ class DataError(ValueError):
 
 
 def opencv():
-    """The cv2 module, imported on first use (OpenCV is slow to import)."""
+    """The cv2 module, imported on first use (OpenCV is slow to import), with its own log quiet
+    below errors: a corrupt image is reported once, as a DataError naming the file, not also
+    as OpenCV's "[ WARN:0@0.013] global grfmt_png.cpp ..." line on stderr."""
     import cv2
 
+    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
     return cv2
 
 
@@ -417,13 +420,30 @@ def write_json(path: str | os.PathLike, obj: Any) -> None:
     atomic_write_bytes(path, (json.dumps(obj, indent=2, sort_keys=False) + "\n").encode("utf-8"))
 
 
+def read_text(path: str | os.PathLike, what: str = "file", encoding: str = "utf-8") -> str:
+    """The text of a UTF-8 file the user gave. DataError naming the file (and `what` it is)
+    when it is missing, not a file, unreadable (OSError) or not UTF-8 text."""
+    path = Path(path)
+    if not path.is_file():
+        raise DataError(f"{path}: {what} not found" + (" (it is a folder)" if path.is_dir() else ""))
+    try:
+        return path.read_text(encoding=encoding)
+    except UnicodeDecodeError as err:
+        raise DataError(f"{path}: {what} is not UTF-8 text (byte {err.object[err.start]:#x} at offset "
+                        f"{err.start}); save it as UTF-8") from None
+    except OSError as err:
+        raise DataError(f"{path}: cannot read the {what}: {err.strerror or err}") from None
+
+
 def read_json(path: str | os.PathLike) -> Any:
-    """Reads JSON, raising DataError naming the file on a missing file or a syntax error."""
+    """Reads JSON, raising DataError naming the file on a missing file, a syntax error or
+    text that is not UTF-8 (`read_text`)."""
     path = Path(path)
     if not path.is_file():
         raise DataError(f"{path}: file not found")
+    text = read_text(path)
     try:
-        return json.loads(path.read_text(encoding="utf-8"))
+        return json.loads(text)
     except json.JSONDecodeError as err:
         raise DataError(f"{path}: invalid JSON at line {err.lineno}, column {err.colno}: {err.msg}") from None
 

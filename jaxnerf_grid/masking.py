@@ -322,32 +322,36 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
         label = "dpt"
         maps = _dpt_maps(images, weights, depth_weights, classes, max_side, batch_size, tiles, tile_overlap, params)
     stage = root / STAGING
-    for name in OUTPUT_DIRS:
-        (stage / name).mkdir(parents=True, exist_ok=True)
-    shares, confidences = [], []
-    for i, (frame, ipath, (a, depth, prob, conf)) in enumerate(
-            progress_lib.bar(zip(frames, images, maps), total=len(frames), desc="mask", unit="frame",
-                             enabled=progress)):
-        frame.update(_write_frame(stage, frame, i, ipath, a, depth, prob, threshold, floor, dilate))
-        frame.pop("dpt_confidence", None)
-        if conf is not None:
-            frame["dpt_confidence"] = round(conf, 4)
-            confidences.append(conf)
-        shares.append(frame["masked_share"])
-    if not any((stage / "dpt_depth").iterdir()):
-        (stage / "dpt_depth").rmdir()
-        for frame in frames:
-            frame.pop("dpt_depth_path", None)
-    meta["mask_source"] = label
-    meta["mask_params"] = params
-    domain = domain_verdict(shares, confidences) if label == "dpt" else None
-    meta.pop("mask_domain", None)
-    if domain is not None:
-        meta["mask_domain"] = domain
-    io.write_json(stage / "transforms.json", meta)
-    staged = [name for name in OUTPUT_DIRS if (stage / name).is_dir()]
-    # the commit point: from here on a kill is rolled forward by `recover`
-    io.atomic_write_bytes(stage / COMPLETE, ("\n".join(staged) + "\n").encode("utf-8"))
+    try:  # an error before the commit point (a corrupt photo, a full disk) leaves no staging folder
+        for name in OUTPUT_DIRS:
+            (stage / name).mkdir(parents=True, exist_ok=True)
+        shares, confidences = [], []
+        for i, (frame, ipath, (a, depth, prob, conf)) in enumerate(
+                progress_lib.bar(zip(frames, images, maps), total=len(frames), desc="mask", unit="frame",
+                                 enabled=progress)):
+            frame.update(_write_frame(stage, frame, i, ipath, a, depth, prob, threshold, floor, dilate))
+            frame.pop("dpt_confidence", None)
+            if conf is not None:
+                frame["dpt_confidence"] = round(conf, 4)
+                confidences.append(conf)
+            shares.append(frame["masked_share"])
+        if not any((stage / "dpt_depth").iterdir()):
+            (stage / "dpt_depth").rmdir()
+            for frame in frames:
+                frame.pop("dpt_depth_path", None)
+        meta["mask_source"] = label
+        meta["mask_params"] = params
+        domain = domain_verdict(shares, confidences) if label == "dpt" else None
+        meta.pop("mask_domain", None)
+        if domain is not None:
+            meta["mask_domain"] = domain
+        io.write_json(stage / "transforms.json", meta)
+        staged = [name for name in OUTPUT_DIRS if (stage / name).is_dir()]
+        # the commit point: from here on a kill is rolled forward by `recover`
+        io.atomic_write_bytes(stage / COMPLETE, ("\n".join(staged) + "\n").encode("utf-8"))
+    except BaseException:
+        recover(root)  # discards the incomplete staging folder; the dataset is as it was
+        raise
     _swap_in(root)
     if domain is not None:  # printed even when quiet: it decides whether the masks can be used
         print(domain_line(domain))

@@ -225,16 +225,17 @@ def weights_figure(run_dir, rows: list[tuple[np.ndarray, np.ndarray, np.ndarray]
 
 def set_section(path, heading: str, lines: list[str]) -> Path:
     """Replaces the section `heading` (a "## " line up to the next "## " line) of the Markdown
-    file `path` by `lines`, or appends them; creates the file when it does not exist."""
+    file `path` by `lines`, or appends them; creates the file when it does not exist. Bytes of
+    the file that are not UTF-8 (a report edited in Latin-1) are kept as they were."""
     path = Path(path)
-    old = path.read_text(encoding="utf-8").split("\n") if path.is_file() else []
+    old = path.read_bytes().decode("utf-8", "surrogateescape").split("\n") if path.is_file() else []
     if heading in old:
         start = old.index(heading)
         end = next((k for k in range(start + 1, len(old)) if old[k].startswith("## ")), len(old))
         new = old[:start] + list(lines) + old[end:]
     else:
         new = old + ([""] if old and old[-1] != "" else []) + list(lines)
-    io.atomic_write_bytes(path, "\n".join(new).encode("utf-8"))
+    io.atomic_write_bytes(path, "\n".join(new).encode("utf-8", "surrogateescape"))
     return path
 
 

@@ -16,7 +16,8 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, io, progress as progress_lib, rays as rays_lib, report, train, views
+from jaxnerf_grid import (config as config_lib, folders, io, progress as progress_lib, rays as rays_lib, report, train,
+                          views)
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.normalize import optical_axis_focus
 from jaxnerf_grid.io import DataError
@@ -26,6 +27,7 @@ from jaxnerf_grid.runs import load_run_and_dataset
 DEFAULT_FRAMES = 120
 DEFAULT_FPS = 24.0
 DEFAULT_WIDTH = 160
+MAX_SIDE = 8192  # MPEG-4 part 2 (mp4v): OpenCV refuses a wider or taller frame ("dimensions too large")
 
 
 def orbit_poses(c2w: np.ndarray, frames: int) -> np.ndarray:
@@ -99,7 +101,7 @@ def read_camera_path(path) -> dict:
             raise DataError(f"{path}: '{key}' must be a positive integer, got {value!r}")
         size[key] = value
     fps = spec.get("fps")
-    if fps is not None and not (isinstance(fps, (int, float)) and fps > 0):
+    if fps is not None and not (isinstance(fps, (int, float)) and not isinstance(fps, bool) and 0 < fps < math.inf):
         raise DataError(f"{path}: 'fps' must be a positive number, got {fps!r}")
     return {"c2w": np.stack(poses), "fov": np.asarray(fovs), "width": size["render_width"],
             "height": size["render_height"], "fps": None if fps is None else float(fps)}
@@ -136,6 +138,20 @@ def check_settings(frames, fps, width) -> None:
         raise ConfigError(f"render.fps must be a positive number, got {fps!r}")
 
 
+def check_frames(width: int, height: int, frames: int, source: str) -> None:
+    """Refuses (ConfigError naming `source`: render.width or the camera path file) frames wider
+    or taller than MAX_SIDE, which mp4v cannot hold, or a video whose depth frames (kept for one
+    colour range, 4 bytes a pixel) would not fit in half the host's memory."""
+    if max(width, height) > MAX_SIDE:
+        raise ConfigError(f"{source}: frames of {width} x {height} pixels; an mp4v video holds at most "
+                          f"{MAX_SIDE} pixels a side")
+    need = 4 * width * height * frames
+    host = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
+    if need > host // 2:
+        raise ConfigError(f"{source}: {frames} frames of {width} x {height} pixels need {need / 2**30:.1f} GiB of "
+                          f"depth maps, more than half of this host's {host / 2**30:.1f} GiB; fewer or smaller frames")
+
+
 def render_video(run_dir, path_file=None, frames: int = DEFAULT_FRAMES, fps: float | None = None,
                  width: int = DEFAULT_WIDTH, out=None, progress: bool = True, dataset=None,
                  allow_other_data: bool = False) -> dict:
@@ -147,20 +163,23 @@ def render_video(run_dir, path_file=None, frames: int = DEFAULT_FRAMES, fps: flo
     run_dir = Path(run_dir)
     check_settings(frames, DEFAULT_FPS if fps is None else fps, width)
     spec = read_camera_path(path_file) if path_file is not None else None
-    cfg, _, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
+    cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data)
     if spec is None:
         w, h, fov = orbit_size(ds, width)
+        check_frames(w, h, frames, "render.width")
         train_ids = np.asarray(ds.split["train"]) if len(ds.split["train"]) else np.arange(ds.num_frames)
         poses, fovs = orbit_poses(np.asarray(ds.c2w)[train_ids], frames), np.full(frames, fov)
         name = "orbit"
     else:
         w, h, poses, fovs, name = spec["width"], spec["height"], spec["c2w"], spec["fov"], Path(path_file).stem
+        check_frames(w, h, len(poses), str(path_file))
     fps = float(fps if fps is not None else (spec or {}).get("fps") or DEFAULT_FPS)
     out = Path(out) if out is not None else run_dir / "videos" / name
     video, depth_video = out.parent / f"{out.name}.mp4", out.parent / f"{out.name}_depth.mp4"
+    folders.check_outside(out.parent, data, "render.out")
+    params, _ = train.load_params(run_dir, cfg, ds)  # before the first write: a run without weights adds nothing
     with io.naming_path(out.parent, "cannot create the folder"):
         out.parent.mkdir(parents=True, exist_ok=True)
-    params, _ = train.load_params(run_dir, cfg, ds)
     near, far = config_lib.near_far(cfg.model, ds)
     render = lambda pose, fov: _render_frame(params, cfg, pose, fov, w, h, near, far)  # noqa: E731
     frames_done = write_videos(video, depth_video, zip(poses, fovs), render, fps, w, h,

@@ -8,6 +8,9 @@ Nothing else in the package imports a cli module.
 Errors of type `DataError` / `ConfigError` are printed as one line, never as a traceback, with
 the library's keys turned into the subcommand's flags (`cli/flags.py`: `export.box` -> `--box`); so
 are OS errors (a read-only folder, a full disk, a path that is a file): `error: PATH: reason`.
+A warning is one line too (`jaxnerf-grid NAME: warning: ...`, no source line). A flag's value that
+begins with a minus sign (`--box -30,-30,0,30,30,40`) is taken as that value, not as a flag
+(`flags.join_negative_values`).
 """
 
 from __future__ import annotations
@@ -15,7 +18,9 @@ from __future__ import annotations
 import importlib
 import sys
 
-from jaxnerf_grid.cli.flags import to_flags
+import warnings
+
+from jaxnerf_grid.cli.flags import join_negative_values, to_flags
 
 SUBCOMMANDS = {
     "synth": ("jaxnerf_grid.cli.synth", "render the procedural tower benchmark scene"),
@@ -52,6 +57,9 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     module = importlib.import_module(SUBCOMMANDS[name][0])
     entry = module.main
+    if hasattr(module, "build_parser"):
+        rest = join_negative_values(module.build_parser(), rest)
+    warnings.formatwarning = lambda message, *_: f"jaxnerf-grid {name}: warning: {message}\n"
     from jaxnerf_grid.io import DataError  # after the subcommand: `jaxnerf-grid --help` loads no NumPy
     from jaxnerf_grid.config import ConfigError
 

@@ -11,6 +11,7 @@ one its subcommand's parser accepts.
 
 from __future__ import annotations
 
+import argparse
 import re
 
 _SWITCHES = {"overwrite=True": "--overwrite"}
@@ -31,15 +32,17 @@ FLAGS = {  # subcommand -> {key: flag}
              "mask.tiles": "--tiles", "mask.tile_overlap": "--tile-overlap", "mask.batch_size": "--batch-size",
              **_SWITCHES},
     "train": {"run.out": "--out", "run.data": "--data", "run.steps": "--steps", "run.method": "--method",
-              "run.progress_page": "--progress-page",
+              "run.progress_page": "--progress-page", "train.max_side": "--max-side",
               **_SWITCHES, **_OTHER_DATA, **_DISTRIBUTED},
-    "render": {"render.frames": "--frames", "render.fps": "--fps", "render.width": "--width", "render.path": "--path",
+    "render": {"render.frames": "--frames", "render.out": "--out",
+               "render.fps": "--fps", "render.width": "--width", "render.path": "--path",
                **_OTHER_DATA},
     "eval": {"eval.lpips_weights": "--lpips-weights", "eval.reference_ply": "--reference-ply",
              "eval.distractor_views": "--distractor-views", **_OTHER_DATA},
     "export": {"export.box": "--box", "export.resolution": "--resolution", "export.opacity": "--threshold",
                "export.views": "--views", "export.out": "--out", **_SWITCHES, **_OTHER_DATA},
-    "demo": {"demo.data": "--data", "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks",
+    "demo": {"demo.data": "--data", "train.max_side": "--max-side",
+             "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks",
              "demo.video_frames": "--video-frames",
              **_SWITCHES, **_DISTRIBUTED},
 }
@@ -52,3 +55,25 @@ def to_flags(subcommand: str, message: str) -> str:
     for key in sorted(table, key=len, reverse=True):
         message = re.sub(rf"(?<![\w.]){re.escape(key)}(?![\w])", table[key], message)
     return message
+
+
+_NEGATIVE_VALUE = re.compile(r"^-\.?\d")
+
+
+def join_negative_values(parser: argparse.ArgumentParser, argv: list[str]) -> list[str]:
+    """argv with each `--flag VALUE` whose VALUE begins with a minus sign and a digit
+    (`--box -30,-30,0,30,30,40`, `--gps-origin -33.9,18.4,10`) joined into `--flag=VALUE`, for
+    the flags of `parser` that take one value: argparse reads such a value as an unknown flag
+    unless it is a plain negative number. Other arguments are left as they are."""
+    takes_value = {s for a in parser._actions if a.option_strings and a.nargs is None
+                   and not isinstance(a, (argparse._StoreConstAction, argparse._HelpAction)) for s in a.option_strings}
+    out, k = [], 0
+    while k < len(argv):
+        arg = argv[k]
+        if arg in takes_value and k + 1 < len(argv) and _NEGATIVE_VALUE.match(argv[k + 1]):
+            out.append(f"{arg}={argv[k + 1]}")
+            k += 2
+            continue
+        out.append(arg)
+        k += 1
+    return out

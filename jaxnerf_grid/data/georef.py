@@ -19,7 +19,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.io import DataError, read_text
 
 MIN_GPS_PHOTOS = 3           # fewer registered photos with GPS: no alignment (an error)
 MIN_GPS_SPREAD = 1.0         # metres: GPS positions closer than this to their mean are "one spot"
@@ -257,10 +257,7 @@ def read_gcp_csv(path, image_sizes: dict) -> list[dict]:
     DataError (one line, naming the file and row) for a malformed row, an unknown image or a
     pixel outside its photo."""
     path = Path(path)
-    try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as err:
-        raise DataError(f"{path}: cannot read the ground control point file: {err.strerror or err}") from None
+    text = read_text(path, "ground control point file", encoding="utf-8-sig")
     points: dict = {}
     for row_number, row in enumerate(csv.reader(text.splitlines()), start=1):
         row = [field.strip() for field in row]
@@ -331,8 +328,15 @@ def parse_scale_bar(text: str) -> dict:
     except ValueError:
         raise DataError(f"poses.scale_bar: expected 'X1,Y1,Z1,X2,Y2,Z2,METRES' or "
                         f"'IMG1:x,y;IMG2:x,y;IMG3:x,y;IMG4:x,y;METRES', got {text!r}") from None
-    if not out["metres"] > 0:
+    if not (out["metres"] > 0 and np.isfinite(out["metres"])):
         raise DataError(f"poses.scale_bar: the distance must be a positive number of metres, got {out['metres']}")
+    numbers = [v for p in out.get("points", []) for v in p] + [v for p in out.get("pixels", []) for v in p[1:]]
+    if not np.all(np.isfinite(numbers)):
+        raise DataError(f"poses.scale_bar: every coordinate must be a finite number, got {text!r}")
+    if "points" in out and out["points"][0] == out["points"][1]:
+        raise DataError(f"poses.scale_bar: the bar's two ends are the same point, got {text!r}")
+    if "pixels" in out and out["pixels"][:2] == out["pixels"][2:]:
+        raise DataError(f"poses.scale_bar: the bar's two ends are seen at the same pixels, got {text!r}")
     return out
 
 

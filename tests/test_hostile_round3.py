@@ -1,0 +1,269 @@
+"""Issue 39, round three: the fresh hostile-user corpus (scripts/hostile_corpus.py,
+docs/RELIABILITY.md "Fresh corpus, round three"). Each case that failed there, and a sample of
+those that held, through the real CLI entry point (`jaxnerf_grid.cli.main`): the exit code, one
+line of error naming the file or key, no traceback, and the trees hash-identical before and after.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid import cli, io, masking
+from jaxnerf_grid.cli import flags as cli_flags
+from jaxnerf_grid.cli import train as cli_train
+
+sys.path.insert(0, str(Path(__file__).parent))
+from test_bad_input import PAPER_MLP, SYNTH, TINY, assert_one_line_error, run_cli, snapshot  # noqa: E402
+
+ROOT = Path(__file__).resolve().parents[1]
+GOOD_POSE = [1, 0, 0, 0, 0, 1, 0, 0, 0, 0, 1, 3, 0, 0, 0, 1]
+
+
+@pytest.fixture(scope="module")
+def scene(tmp_path_factory):
+    """{"data": a tiny synth scene, "run": a finished 10-step run on it, "cfg": TINY's file}."""
+    tmp = tmp_path_factory.mktemp("hostile3")
+    data, run, cfg = tmp / "data", tmp / "run", tmp / "tiny.json"
+    assert cli.main(["synth", "--out", str(data), *SYNTH]) == 0
+    cfg.write_text(json.dumps(TINY))
+    assert cli.main(["train", *PAPER_MLP, "--data", str(data), "--method", "nerf", "--config", str(cfg),
+                     "--out", str(run), "--quiet"]) == 0
+    return {"data": data, "run": run, "cfg": cfg}
+
+
+def first_image(data: Path) -> Path:
+    return data / json.loads((data / "transforms.json").read_text())["frames"][0]["file_path"]
+
+
+def test_video_out_inside_the_dataset_is_refused(scene, capsys, tmp_path):
+    """Failed: `render --orbit --out DATA/orbit` wrote two videos into the dataset."""
+    before = snapshot(scene["data"], scene["run"])
+    for out in (scene["data"] / "orbit", scene["data"] / "images" / "orbit"):
+        rc, err = run_cli(["render", "--run", scene["run"], "--orbit", "--frames", "2", "--width", "16",
+                           "--out", out, "--quiet"], capsys)
+        assert_one_line_error(rc, err, "--out", str(scene["data"]))
+    (tmp_path / "link").symlink_to(scene["data"])
+    rc, err = run_cli(["render", "--run", scene["run"], "--orbit", "--frames", "2", "--width", "16",
+                       "--out", tmp_path / "link" / "orbit", "--quiet"], capsys)
+    assert_one_line_error(rc, err, "--out")
+    assert snapshot(scene["data"], scene["run"]) == before
+
+
+def test_video_frames_too_large_are_refused_before_anything_is_written(scene, capsys, tmp_path):
+    """Failed: `--width 10000000` said "OpenCV cannot write an mp4v video here" and left RUN/videos/."""
+    from jaxnerf_grid import videos
+
+    before = snapshot(scene["data"], scene["run"])
+    rc, err = run_cli(["render", "--run", scene["run"], "--orbit", "--width", "10000000", "--quiet"], capsys)
+    assert_one_line_error(rc, err, "--width", "10000000", str(videos.MAX_SIDE))
+    path = tmp_path / "wide.json"
+    path.write_text(json.dumps({"camera_path": [{"camera_to_world": GOOD_POSE, "fov": 50}],
+                                "render_width": videos.MAX_SIDE + 1, "render_height": 8}))
+    rc, err = run_cli(["render", "--run", scene["run"], "--path", path, "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(path), str(videos.MAX_SIDE + 1))
+    path.write_text(json.dumps({"camera_path": [{"camera_to_world": GOOD_POSE, "fov": 50}], "fps": 1e400,
+                                "render_width": 8, "render_height": 8}))
+    rc, err = run_cli(["render", "--run", scene["run"], "--path", path, "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(path), "'fps'")
+    assert snapshot(scene["data"], scene["run"]) == before
+    assert not (scene["run"] / "videos").exists()
+
+
+def test_video_of_a_run_without_weights_adds_nothing(scene, capsys, tmp_path):
+    """Failed: the videos/ folder was made before the weights were read."""
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    shutil.rmtree(run / "checkpoints")
+    before = snapshot(run)
+    rc, err = run_cli(["render", "--run", run, "--orbit", "--frames", "2", "--width", "16", "--quiet"], capsys)
+    assert_one_line_error(rc, err, "checkpoints")
+    assert snapshot(run) == before
+
+
+def _photos(folder: Path, count: int = 4) -> Path:
+    rng = np.random.default_rng(0)
+    for i in range(count):
+        io.write_png(folder / f"p{i}.png", rng.random((24, 32, 3)))
+    return folder
+
+
+@pytest.mark.parametrize("spec, names", [
+    ("1,1,1,1,1,1,5", ["--scale-bar", "same point"]),
+    ("0,0,0,1,nan,1,5", ["--scale-bar", "finite"]),
+    ("0,0,0,1,1,1,inf", ["--scale-bar", "positive"]),
+    ("p0.png:3,4;p1.png:5,6;p0.png:3,4;p1.png:5,6;2", ["--scale-bar", "same pixels"]),
+], ids=["same_points", "nan_coordinate", "infinite_metres", "same_pixels"])
+def test_degenerate_scale_bar_is_refused_before_colmap(capsys, tmp_path, spec, names):
+    """Failed: a bar whose two ends are one point was accepted; COLMAP then ran to a useless end."""
+    pytest.importorskip("pycolmap")
+    photos = _photos(tmp_path / "photos")
+    before = snapshot(photos)
+    rc, err = run_cli(["poses", "--images", photos, "--out", tmp_path / "d", "--scale-bar", spec, "--quiet"], capsys)
+    assert_one_line_error(rc, err, *names)
+    assert snapshot(photos) == before and sorted(p.name for p in tmp_path.iterdir()) == ["photos"]
+
+
+def test_text_inputs_that_are_not_utf8_are_named(scene, capsys, tmp_path):
+    """Failed: a --gcp file in another encoding ended in a UnicodeDecodeError traceback. Every
+    text the user gives goes through `io.read_text` (JSON, CSV)."""
+    pytest.importorskip("pycolmap")
+    photos = _photos(tmp_path / "photos")
+    gcp = tmp_path / "gcp.csv"
+    gcp.write_bytes("image,x,y,X,Y,Z\np0.png,1,2,3,4,5 # M\u00fcller\n".encode("utf-16"))
+    before = snapshot(photos, gcp)
+    rc, err = run_cli(["poses", "--images", photos, "--out", tmp_path / "d", "--gcp", gcp, "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(gcp), "UTF-8")
+    assert snapshot(photos, gcp) == before and not (tmp_path / "d").exists()
+    transforms = tmp_path / "t.json"
+    transforms.write_bytes(b'{"frames": [], "note": "Gepr\xfcft"}')
+    with pytest.raises(io.DataError, match="t.json.*UTF-8"):
+        io.read_json(transforms)
+
+
+def test_mask_error_leaves_no_staging_folder_and_one_line(scene, capfd, tmp_path):
+    """Failed: a truncated photo left `.jaxnerf-grid-mask-new/` in the dataset, and OpenCV's own
+    "[ WARN:0@...] global grfmt_png.cpp" line came before the error."""
+    data = tmp_path / "data"
+    shutil.copytree(scene["data"], data)
+    raw = first_image(data).read_bytes()
+    first_image(data).write_bytes(raw[: len(raw) * 2 // 5])
+    before = snapshot(data)
+    capfd.readouterr()
+    rc = cli.main(["mask", "--data", str(data), "--max-side", "32", "--quiet"])
+    err = capfd.readouterr().err
+    assert_one_line_error(rc, err, str(first_image(data)), "not a readable image")
+    assert snapshot(data) == before
+    assert not (data / masking.STAGING).exists()
+
+
+def test_eval_refuses_an_empty_reference_before_rendering(scene, capsys, tmp_path):
+    """Failed: an empty or non-finite --reference-ply was found only after the test views were
+    rendered into the run (depth/, renders/ written, then the error)."""
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    header = ("ply\nformat ascii 1.0\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n"
+              "end_header\n")
+    for name, body in (("empty.ply", header.format(0)), ("nan.ply", header.format(1) + "nan 0 0\n")):
+        ref = tmp_path / name
+        ref.write_text(body)
+        before = snapshot(run)
+        rc, err = run_cli(["eval", "--run", run, "--reference-ply", ref, "--quiet"], capsys)
+        assert_one_line_error(rc, err, str(ref))
+        assert snapshot(run) == before
+
+
+def test_export_keeps_a_report_that_is_not_utf8_and_takes_a_negative_box(scene, capsys, tmp_path):
+    """Failed twice: `--box -30,...` was read as an unknown flag ("expected one argument"), and a
+    run report.md saved in Latin-1 ended export in a UnicodeDecodeError traceback after its files
+    were written. Now the box is taken and the report keeps its bytes, the Tower model added."""
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    notes = "# Mast 7\n\nGepr\u00fcft von J. M\u00fcller\n".encode("latin-1")
+    (run / "report.md").write_bytes(notes)
+    rc, err = run_cli(["export", "--run", run, "--box", "-30,-30,-1,30,30,40", "--resolution", "8", "--views", "1",
+                       "--quiet"], capsys)
+    assert rc == 0 and "Traceback" not in err, err
+    report = (run / "report.md").read_bytes()
+    assert report.startswith(notes) and b"Tower model" in report[len(notes):]
+    assert json.loads((run / "export" / "box.json").read_text())["min"][0] == pytest.approx(-30)
+
+
+def test_negative_values_join_their_flag_as_argparse_reads_them():
+    """`join_negative_values` against argparse's own `--flag=value` spelling."""
+    parser = cli_train.build_parser()
+    argv = ["--data", "d", "--set", "-1", "--max-side", "-3", "--steps", "-5", "--overwrite", "--out", "-x"]
+    joined = cli_flags.join_negative_values(parser, argv)
+    assert joined == ["--data", "d", "--set=-1", "--max-side=-3", "--steps=-5", "--overwrite", "--out", "-x"]
+    spelled = parser.parse_args(["--data", "d", "--set=-1", "--max-side=-3", "--steps=-5", "--overwrite"])
+    assert vars(parser.parse_args(joined[:-2])) == vars(spelled)
+
+
+def test_warnings_are_one_line_each(scene, tmp_path):
+    """Failed: a checkpoint that could not be read printed Python's warning with its source line
+    (three lines before the error). A child process: pytest records warnings itself."""
+    run = tmp_path / "run"
+    shutil.copytree(scene["run"], run)
+    for p in (run / "checkpoints").rglob("*"):
+        if p.is_file():
+            p.write_bytes(b"")
+    done = subprocess.run([sys.executable, "-m", "jaxnerf_grid", "render", "--run", str(run), "--quiet"],
+                          capture_output=True, text=True, timeout=120, cwd=ROOT,
+                          env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
+    lines = done.stderr.strip().splitlines()
+    assert done.returncode == 1 and "Traceback" not in done.stderr and len(lines) >= 2, done.stderr
+    assert all(line.startswith("jaxnerf-grid render: warning: ") for line in lines[:-1]), done.stderr
+    assert lines[-1].startswith("jaxnerf-grid render: error: ") and "checkpoints" in lines[-1]
+
+
+@pytest.mark.parametrize("command", ["train", "demo"])
+def test_max_side_names_the_flag(scene, capsys, tmp_path, command):
+    """Failed: `--max-side -3` was refused naming the key train.max_side, not the flag."""
+    argv = ([command, "--data", scene["data"], "--out", tmp_path / "r", "--max-side", "-3", "--quiet"]
+            + (["--config", scene["cfg"]] if command == "train" else []))
+    rc, err = run_cli(argv, capsys)
+    assert_one_line_error(rc, err, "--max-side", "-3")
+    assert not (tmp_path / "r").exists()
+
+
+# --- a sample of the cases that held ---
+
+@pytest.mark.parametrize("body, names", [
+    (None, ["nope.json", "not found"]),
+    ("[1, 2]", ["camera_path"]),
+    ('{"camera_path": [{"camera_to_world": [NaN,0,0,0,0,1,0,0,0,0,1,3,0,0,0,1], "fov": 50}]}', ["camera_path[0]"]),
+    (json.dumps({"camera_path": [{"camera_to_world": GOOD_POSE, "fov": 180}]}), ["fov"]),
+    (json.dumps({"camera_path": [{"camera_to_world": GOOD_POSE, "fov": 50}], "render_width": 0}), ["render_width"]),
+], ids=["missing", "a_list", "nan_matrix", "fov_180", "width_0"])
+def test_bad_camera_path_is_one_line(scene, capsys, tmp_path, body, names):
+    path = tmp_path / "nope.json"
+    if body is not None:
+        path.write_text(body)
+    before = snapshot(scene["data"], scene["run"])
+    rc, err = run_cli(["render", "--run", scene["run"], "--path", path, "--quiet"], capsys)
+    assert_one_line_error(rc, err, str(path), *names)
+    assert snapshot(scene["data"], scene["run"]) == before
+
+
+@pytest.mark.parametrize("origin", ["91,0,0", "47,8", "47,8,inf", "Z\u00fcrich", "-91,8,400"])
+def test_bad_gps_origin_is_refused_before_writing(capsys, tmp_path, origin):
+    rc, err = run_cli(["synth", "--out", tmp_path / "s", *SYNTH, "--gps-origin", origin], capsys)
+    assert_one_line_error(rc, err, "--gps-origin")
+    assert not (tmp_path / "s").exists()
+
+
+@pytest.mark.parametrize("edit", ["no_frames", "nan_pose", "truncated"])
+def test_broken_transforms_json_is_named(scene, capsys, tmp_path, edit):
+    data = tmp_path / "data"
+    shutil.copytree(scene["data"], data)
+    meta = json.loads((data / "transforms.json").read_text())
+    if edit == "no_frames":
+        meta["frames"] = []
+    elif edit == "nan_pose":
+        meta["frames"][0]["transform_matrix"] = [[float("nan")] * 4] * 4
+    text = json.dumps(meta)
+    (data / "transforms.json").write_text(text[: len(text) // 2] if edit == "truncated" else text)
+    before = snapshot(data)
+    rc, err = run_cli(["train", *PAPER_MLP, "--data", data, "--method", "nerf", "--config", scene["cfg"],
+                       "--out", tmp_path / "r", "--quiet"], capsys)
+    assert_one_line_error(rc, err, "transforms.json")
+    assert snapshot(data) == before and not (tmp_path / "r").exists()
+
+
+@pytest.mark.parametrize("command", ["train", "demo"])
+def test_bad_timeout_variables_are_named_in_a_single_process_run(scene, capsys, tmp_path, monkeypatch, command):
+    """Failed: JAXNERF_*_TIMEOUT values were checked only in a multi-process run; a single
+    process trained with `JAXNERF_CONNECT_TIMEOUT=soon` in its environment without a word."""
+    monkeypatch.setenv("JAXNERF_CONNECT_TIMEOUT", "soon")
+    argv = ([command, "--data", scene["data"], "--out", tmp_path / "r", "--quiet"]
+            + (["--config", scene["cfg"]] if command == "train" else []))
+    rc, err = run_cli(argv, capsys)
+    assert_one_line_error(rc, err, "JAXNERF_CONNECT_TIMEOUT", "soon")
+    assert not (tmp_path / "r").exists()
