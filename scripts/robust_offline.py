@@ -2,7 +2,7 @@
 multi-view confirmation, for a few spread bounds: a quick look before a long training run.
 
     python scripts/robust_offline.py RUN FRAMES [--spreads 3,2,1.5] [--confirms 0,0.01,0.02] [--views 8]
-        [--quantile Q]
+        [--quantile Q] [--disconfirms 0.08,0.04,0.02]
 
 FRAMES: comma-separated dataset indices of training frames. For each frame the run renders
 it (rgb and median depth), takes the residuals of the whole frame as the batch, applies the
@@ -62,6 +62,9 @@ def main(argv: list[str]) -> int:
     p.add_argument("--confirms", default="0,0.01,0.02")
     p.add_argument("--views", type=int, default=8)
     p.add_argument("--quantile", type=float, default=None)
+    p.add_argument("--disconfirms", default="",
+                   help="also try these: a pixel whose confirmation error exceeds D (every neighbour that sees "
+                        "its point disagrees) is an outlier whatever its residual, before the vote")
     args = p.parse_args(argv)
     cfg, _, ds = load_run_and_dataset(args.run, None, False, False, False)
     params, _ = train.load_params(args.run, cfg, ds)
@@ -80,16 +83,22 @@ def main(argv: list[str]) -> int:
             quantile = tcfg.robust_quantile if args.quantile is None else args.quantile
             for confirm in (float(a) for a in args.confirms.split(",")):
                 confirmed = jnp.asarray(err_t <= confirm, jnp.float32) if confirm > 0 else None
-                w = robust.robust_weights(jnp.asarray(res_t), jnp.ones_like(jnp.asarray(res_t)),
-                                          jnp.asarray(residual.ravel()), quantile, tcfg.robust_flagged_quantile,
-                                          tcfg.robust_patch_share, tcfg.robust_floor, k, confirmed)
-                ignored = untile(np.asarray(w), height, width, patch) < 0.5
-                line = (f"frame {index} quantile {quantile:g} spread {k:g} confirm {confirm:g}: "
-                        f"ignored {ignored.mean():.1%}")
-                if truth is not None:
-                    t = truth[:ignored.shape[0], :ignored.shape[1]]
-                    line += f" | distractor pixels ignored {ignored[t].mean():.1%}, static {ignored[~t].mean():.1%}"
-                print(line, flush=True)
+                inlier = robust.pixel_inliers(jnp.asarray(res_t), jnp.ones_like(jnp.asarray(res_t)),
+                                              jnp.asarray(residual.ravel()), quantile, tcfg.robust_flagged_quantile,
+                                              tcfg.robust_floor, k, confirmed)
+                for disconfirm in [None, *(float(a) for a in args.disconfirms.split(",") if a)]:
+                    kept = inlier if disconfirm is None else jnp.where(
+                        jnp.asarray(np.isfinite(err_t) & (err_t > disconfirm)), 0.0, inlier)
+                    w = robust.evidence(kept, tcfg.robust_patch_share)
+                    ignored = untile(np.asarray(w), height, width, patch) < 0.5
+                    line = (f"frame {index} quantile {quantile:g} spread {k:g} confirm {confirm:g}"
+                            + ("" if disconfirm is None else f" disconfirm {disconfirm:g}")
+                            + f": ignored {ignored.mean():.1%}")
+                    if truth is not None:
+                        t = truth[:ignored.shape[0], :ignored.shape[1]]
+                        line += (f" | distractor pixels ignored {ignored[t].mean():.1%}, "
+                                 f"static {ignored[~t].mean():.1%}")
+                    print(line, flush=True)
     return 0
 
 
