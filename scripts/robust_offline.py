@@ -2,7 +2,7 @@
 multi-view confirmation, for a few spread bounds: a quick look before a long training run.
 
     python scripts/robust_offline.py RUN FRAMES [--spreads 3,2,1.5] [--confirms 0,0.01,0.02] [--views 8]
-        [--quantile Q] [--disconfirms 0.08,0.04,0.02]
+        [--quantile Q] [--disconfirms 0.08,0.04,0.02] [--breakdown]
 
 FRAMES: comma-separated dataset indices of training frames. For each frame the run renders
 it (rgb and median depth), takes the residuals of the whole frame as the batch, applies the
@@ -54,6 +54,28 @@ def frame_confirmation(ds, params_view: dict, index: int, train_ids: np.ndarray,
     return np.asarray(err).reshape(height, width)
 
 
+def print_breakdown(index: int, res_t, err_t, residual, truth, tcfg, patch: int) -> None:
+    """--breakdown (run's spread and confirmation): the share of distractor / static pixels that
+    the residual test alone marks as outliers, that the confirmation confirms, and the share of
+    the distractors' insides (eroded by 3x3) the whole rule ignores."""
+    import cv2
+
+    ones = jnp.ones_like(jnp.asarray(res_t))
+    args = (jnp.asarray(res_t), ones, jnp.asarray(residual.ravel()), tcfg.robust_quantile,
+            tcfg.robust_flagged_quantile, tcfg.robust_floor, tcfg.robust_spread)
+    confirmed = jnp.asarray(err_t <= tcfg.robust_confirm, jnp.float32)
+    h, w = residual.shape
+    t = truth[:h // patch * patch, :w // patch * patch]
+    alone = untile(np.asarray(robust.pixel_inliers(*args)), h, w, patch) < 0.5
+    conf = untile(np.asarray(confirmed), h, w, patch) > 0.5
+    final = untile(np.asarray(robust.evidence(robust.pixel_inliers(*args, confirmed), tcfg.robust_patch_share)),
+                   h, w, patch) < 0.5
+    inside = cv2.erode(t.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    print(f"frame {index} breakdown: residual test alone marks distractor {alone[t].mean():.1%} / static "
+          f"{alone[~t].mean():.1%}; confirmed distractor {conf[t].mean():.1%} / static {conf[~t].mean():.1%}; "
+          f"distractor insides ignored {final[inside].mean():.1%}", flush=True)
+
+
 def main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run")
@@ -62,6 +84,8 @@ def main(argv: list[str]) -> int:
     p.add_argument("--confirms", default="0,0.01,0.02")
     p.add_argument("--views", type=int, default=8)
     p.add_argument("--quantile", type=float, default=None)
+    p.add_argument("--breakdown", action="store_true",
+                   help="with distractor masks: what the residual test and the confirmation do to each kind of pixel")
     p.add_argument("--disconfirms", default="",
                    help="also try these: a pixel whose confirmation error exceeds D (every neighbour that sees "
                         "its point disagrees) is an outlier whatever its residual, before the vote")
@@ -79,6 +103,8 @@ def main(argv: list[str]) -> int:
         error = frame_confirmation(ds, view, index, train_ids, args.views)
         truth = None if ds.distractor_masks is None else np.asarray(ds.distractor_masks[index], bool)
         res_t, err_t = tiles(residual, patch), tiles(error, patch)
+        if truth is not None and args.breakdown:
+            print_breakdown(index, res_t, err_t, residual, truth, tcfg, patch)
         for k in (float(a) for a in args.spreads.split(",")):
             quantile = tcfg.robust_quantile if args.quantile is None else args.quantile
             for confirm in (float(a) for a in args.confirms.split(",")):
