@@ -439,8 +439,6 @@ def read_json(path: str | os.PathLike) -> Any:
     """Reads JSON, raising DataError naming the file on a missing file, a syntax error or
     text that is not UTF-8 (`read_text`)."""
     path = Path(path)
-    if not path.is_file():
-        raise DataError(f"{path}: file not found")
     text = read_text(path)
     try:
         return json.loads(text)
