@@ -33,6 +33,7 @@ INLIER_METRES = 3.0 * GPS_SIGMA  # a centre farther than this from its GPS posit
 YAW_ONLY_NOTE = "about z only (the cameras' up kept; fewer than 3 control points)"
 SUSPECT_GPS_RMS = 2.0 * GPS_SIGMA  # metres: larger GPS residuals flag the reconstruction in the report
 SUSPECT_CONTROL_RMS = 0.5          # metres: ... and so do larger control point residuals
+CLICK_SIGMA_PX = 1.0         # pixels: the assumed 1-sigma error of a clicked scale-bar end, per axis
 ORIGIN_ROUNDING = 1000.0     # metres: the local frame's origin is the cameras' mean rounded to this
 
 
@@ -454,6 +455,8 @@ def align_model(model, gps: dict, *, crs_name=None, gcp_path=None, scale_bar=Non
                 rows = residual_rows([p["name"] for p in group], placed,
                                      np.asarray([p["world"] for p in group]) - origin)
                 record["gcp"][label] = {"rms_m": rms(rows), "residuals": rows}
+        if control:  # where they are (local metres): the lever arms of the scale's uncertainty
+            record["gcp"]["control"]["points_m"] = (np.asarray([p["world"] for p in control]) - origin).tolist()
     return sim, record
 
 
@@ -471,4 +474,37 @@ def _scale_bar_alignment(model, bar: dict, ratios: dict, record: dict):
     record.update({"units": "metres", "source": "scale_bar", "crs": None, "origin": [0.0, 0.0, 0.0],
                    "model_to_local": similarity_matrix(sim).tolist(), "metres_per_model_unit": sim[0],
                    "scale_bar": {"metres": bar["metres"], "model_length": length}})
+    if "pixels" in bar:
+        record["scale_bar"].update({"click_sigma_px": CLICK_SIGMA_PX,
+                                    "relative_sigma": scale_bar_relative_sigma(model, bar["pixels"], ratios)})
     return sim, record
+
+
+def scale_bar_length(model, pixels: list, ratios: dict) -> float:
+    """The model-frame distance between the bar's two ends, each triangulated from its two
+    clicks (pixels: [(image, x, y)] * 4, the first two one end)."""
+    ends = []
+    for k in range(2):
+        rays = [pixel_ray(model, image, x, y, ratios[image]) for image, x, y in pixels[2 * k:2 * k + 2]]
+        ends.append(triangulate(np.stack([r[0] for r in rays]), np.stack([r[1] for r in rays])))
+    return float(np.linalg.norm(ends[1] - ends[0]))
+
+
+def scale_bar_relative_sigma(model, pixels: list, ratios: dict, click_sigma_px: float = None) -> float:
+    """The 1-sigma relative error of a scale bar's length (so of the scale it gives) when each of
+    its 4 clicks is off by `click_sigma_px` (default CLICK_SIGMA_PX) in x and in y, independently:
+    sigma_L / L = click_sigma sqrt(sum_j (dL / dp_j)^2) / L over the 8 pixel coordinates p_j
+    (the length linearised by central differences of 0.01 px; the pixel step is in input-photo
+    pixels, as the clicks are). The bar's own tolerance in metres is not included."""
+    click = CLICK_SIGMA_PX if click_sigma_px is None else float(click_sigma_px)
+    length = scale_bar_length(model, pixels, ratios)
+    step, grad = 0.01, []
+    for j in range(4):
+        for axis in (1, 2):
+            moved = []
+            for sign in (1.0, -1.0):
+                changed = [list(p) for p in pixels]
+                changed[j][axis] += sign * step
+                moved.append(scale_bar_length(model, [tuple(p) for p in changed], ratios))
+            grad.append((moved[0] - moved[1]) / (2 * step))
+    return click * float(np.sqrt(np.sum(np.square(grad)))) / length

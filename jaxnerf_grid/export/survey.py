@@ -21,6 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import io
+from jaxnerf_grid.data import georef
 from jaxnerf_grid.io import DataError
 
 
@@ -60,15 +61,20 @@ def alignment_uncertainty(geo: dict | None, units: str, centres_m: np.ndarray) -
     """The 1-sigma errors the alignment to metres adds to every figure (docs/EXPORT.md).
 
     centres_m [K, 3]: the cameras' centres in metres (what the GPS fit was made on).
-    With a similarity of p parameters (7; 5 when it turned about z only) fitted to N positions
-    whose 3-D residuals have RMS r, spread D (the RMS distance of the centres from their mean):
-    per coordinate sigma = r sqrt(N / (3N - p)) (the residuals' unbiased spread); the scale's
-    relative error s_rel = sigma / (D sqrt(N)) (the fit of the scale is a least-squares fit of
-    the radial components, whose lever arm is D); the position (origin) error sigma sqrt(3 / N).
-    Positions: from the GPS inliers' residuals; with ground control points, the position error
-    comes from the control points' residuals (their weight rules the fit), the scale error still
-    from the GPS when present. No GPS (control points alone, a scale bar): s_rel None (not
-    estimated: a scale bar has no redundancy). The synthetic scenes' recorded scale: 0 (exact).
+    Each source k of the fit (the GPS inliers; the control points, `points_m` in the record)
+    has n_k positions, a fit weight w_k (1 / georef.GPS_SIGMA^2, 1 / georef.GCP_SIGMA^2) and a
+    per-coordinate error sigma_k estimated from its own residuals' 3-D RMS r_k:
+    sigma_k = r_k sqrt(n_k / (3 n_k - p_k)) (p_k: the similarity's 7 parameters, 5 when it
+    turned about z only, charged to the source that rules the fit, 0 to the other). The
+    weighted least-squares scale is the weighted sum of the residuals' radial components over
+    sum_k w_k S_k, with S_k = sum of |x - c|^2 over the source's positions (c: the weighted
+    centroid of all of them), so its relative error is
+        s_rel = sqrt(sum_k w_k^2 sigma_k^2 S_k) / sum_k w_k S_k,
+    which for one source is sigma / (D sqrt(n)) (D: the RMS distance of its positions from
+    their mean). The position (origin) error: sigma sqrt(3 / n) of the control points when
+    there are any (their weight rules the fit), else of the GPS. A scale bar: the relative
+    error its clicks give (`georef.scale_bar_relative_sigma`; None for a bar given as two 3-D
+    points: no error estimate). The synthetic scenes' recorded scale: 0 (exact).
     Returns {"relative_scale", "position_m", "from", "n", "rms_m", "spread_m", "centroid" [3]
     (the centres' mean: the lever arm of a point's scale and turn errors runs from there)}."""
     if units != "metres":
@@ -76,26 +82,58 @@ def alignment_uncertainty(geo: dict | None, units: str, centres_m: np.ndarray) -
     if geo is None:
         return {"relative_scale": 0.0, "position_m": 0.0, "from": "the dataset's recorded metric scale (exact)"}
     out = {"relative_scale": None, "position_m": None, "from": geo.get("source")}
+    if geo.get("source") == "scale_bar":
+        out["relative_scale"] = (geo.get("scale_bar") or {}).get("relative_sigma")
+        return out
     gps = geo.get("gps") or {}
     control = (geo.get("gcp") or {}).get("control") or {}
+    parameters = 5 if "about z" in str(geo.get("rotation", "")) else 7
     c = np.asarray(centres_m, np.float64).reshape(-1, 3)
     spread = float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1)))) if len(c) else 0.0
     if len(c):
         out["centroid"] = [float(v) for v in c.mean(0)]
-    if gps.get("rms_m") is not None and gps.get("inliers"):
-        n, r = int(gps["inliers"]), float(gps["rms_m"])
-        sigma = coordinate_sigma(r, n, 5 if "about z" in str(geo.get("rotation", "")) else 7)
-        if spread > 0 and sigma is not None:
-            out["relative_scale"] = sigma / (spread * math.sqrt(n))
-        out.update({"position_m": None if sigma is None else sigma * math.sqrt(3.0 / n), "n": n, "rms_m": r,
-                    "spread_m": spread, "sigma_per_coordinate_m": sigma})
-    if control.get("rms_m") is not None and control.get("residuals"):
-        n = len(control["residuals"])
-        sigma = coordinate_sigma(float(control["rms_m"]), n, 7 if n >= 3 else 5)
-        if sigma is not None:
-            out["position_m"] = sigma * math.sqrt(3.0 / n)
-        out["control_points"] = n
+    sources = []  # (positions [n, 3] metres, n, residual RMS, fit weight)
+    if gps.get("rms_m") is not None and gps.get("inliers") and len(c):
+        sources.append((c, int(gps["inliers"]), float(gps["rms_m"]), 1.0 / georef.GPS_SIGMA ** 2))
+        out.update({"n": int(gps["inliers"]), "rms_m": float(gps["rms_m"]), "spread_m": spread})
+    if control.get("rms_m") is not None and control.get("residuals") and control.get("points_m"):
+        points = np.asarray(control["points_m"], np.float64).reshape(-1, 3)
+        sources.append((points, len(points), float(control["rms_m"]), 1.0 / georef.GCP_SIGMA ** 2))
+        out["control_points"] = len(points)
+    if sources:
+        sigmas = source_sigmas(sources, parameters)
+        if gps.get("rms_m") is not None and gps.get("inliers") and len(c):
+            out["sigma_per_coordinate_m"] = sigmas[0]
+            if sigmas[0] is not None:
+                out["position_m"] = sigmas[0] * math.sqrt(3.0 / int(gps["inliers"]))
+        if len(sources) > 1 or not (gps.get("rms_m") is not None and gps.get("inliers")):
+            if sigmas[-1] is not None:  # the control points rule the position
+                out["position_m"] = sigmas[-1] * math.sqrt(3.0 / sources[-1][1])
+        out["relative_scale"] = weighted_scale_sigma(sources, sigmas)
     return out
+
+
+def source_sigmas(sources: list[tuple], parameters: int) -> list[float | None]:
+    """Per source (positions [n, 3], n, rms, weight) its per-coordinate sigma (`coordinate_sigma`),
+    the fit's parameters charged to the source with the largest weight x n."""
+    ruling = int(np.argmax([w * n for _, n, _, w in sources]))
+    return [coordinate_sigma(r, n, parameters if k == ruling else 0) for k, (_, n, r, _) in enumerate(sources)]
+
+
+def weighted_scale_sigma(sources: list[tuple], sigmas: list[float | None]) -> float | None:
+    """s_rel = sqrt(sum_k w_k^2 sigma_k^2 S_k) / sum_k w_k S_k (`alignment_uncertainty`), S_k =
+    n_k x the mean squared distance of source k's positions from the weighted centroid of all
+    sources. None when a sigma is unknown or the positions have no spread."""
+    if any(s is None for s in sigmas):
+        return None
+    total = sum(w * n for _, n, _, w in sources)
+    centroid = sum(w * n * pos.mean(0) for pos, n, _, w in sources) / total
+    spread_sums = [n * float(np.mean(np.sum((pos - centroid) ** 2, axis=1))) for pos, n, _, _ in sources]
+    denominator = sum(w * sk for (_, _, _, w), sk in zip(sources, spread_sums))
+    if not denominator > 0:
+        return None
+    numerator = sum(w ** 2 * sg ** 2 * sk for (_, _, _, w), sg, sk in zip(sources, sigmas, spread_sums))
+    return math.sqrt(numerator) / denominator
 
 
 def coordinate_sigma(rms_3d: float, n: int, parameters: int) -> float | None:
