@@ -5,7 +5,7 @@ from `poses` on them:
     jaxnerf-grid synth --out SYN --preset tower-small --width 320 --height 240 --num-train 30 --num-test 1 \\
         --distractors low --gps-origin 47.3769,8.5417,410
     jaxnerf-grid poses --images SYN/photos_gps --out POSES --single-camera [--gcp SYN/gcp.csv]
-    python -m benchmarks.gps_alignment --synth SYN --poses POSES [--out FILE.json]
+    python -m benchmarks.gps_alignment --synth SYN --poses POSES [--export RUN/export] [--out FILE.json]
 
 The recovered cameras (POSES/transforms.json frames through `georeference.scene_to_crs`) are
 compared with the true ones (SYN/gps_truth.json `true_crs`): the similarity from the true to the
@@ -15,6 +15,13 @@ z axis from the vertical) and where the tower's base (the synthetic world's orig
 recovered centres from that similarity (the reconstruction's own departure from the true shape,
 `sfm_shape_rms_m`), and with --gcp the
 control and check points' RMS errors, are reported too.
+
+With --export (the export folder of a run trained on POSES: `jaxnerf-grid demo --data POSES`,
+then `jaxnerf-grid export --run RUN`), the whole chain is scored on the trained model
+(`score_export`): the measured tower height (measurements.json `survey.height`, metres, with its
+1-sigma) against the true one (the extent along z of SYN/tower.ply, over the synthetic scene's
+`scene_units_per_metre`), and the measured base centre in the CRS (`survey.base_centre.crs`)
+against `tower_base_crs`, horizontally and in 3-D.
 """
 
 from __future__ import annotations
@@ -58,13 +65,43 @@ def score(synth_dir, poses_dir) -> dict:
                if label in geo.get("gcp", {})}}
 
 
+def score_export(synth_dir, export_dir) -> dict:
+    """The trained model's tower against the truth (module docstring, --export). Returns a dict
+    (metres); the base centre's entries are None when the export measured no axis."""
+    truth = io.read_json(Path(synth_dir) / "gps_truth.json")
+    tower = io.read_ply_points(Path(synth_dir) / "tower.ply")
+    true_height = float(np.ptp(tower[:, 2])) / float(truth["scene_units_per_metre"])
+    meas = io.read_json(Path(export_dir) / "measurements.json")
+    if meas.get("units") != "metres":
+        raise io.DataError(f"{export_dir}: the export is not in metres (units {meas.get('units')})")
+    survey = meas.get("survey") or {}
+    height = survey.get("height") or {}
+    if height.get("value") is None:
+        raise io.DataError(f"{export_dir}/measurements.json: no height (no ground was found)")
+    out = {"true_height_m": round(true_height, 3), "height_m": round(float(height["value"]), 3),
+           "height_sigma_m": None if height.get("sigma") is None else round(float(height["sigma"]), 3),
+           "height_error_m": round(float(height["value"]) - true_height, 3),
+           "height_error_percent": round(100.0 * (float(height["value"]) / true_height - 1.0), 3),
+           "base_error_m": None, "base_error_horizontal_m": None, "base_sigma_m": None}
+    base = survey.get("base_centre") or {}
+    if base.get("crs") is not None:
+        d = np.asarray(base["crs"], np.float64) - np.asarray(truth["tower_base_crs"], np.float64)
+        out.update({"base_error_m": round(float(np.linalg.norm(d)), 3),
+                    "base_error_horizontal_m": round(float(np.hypot(d[0], d[1])), 3),
+                    "base_sigma_m": None if base.get("sigma") is None else round(float(base["sigma"]), 3)})
+    return out
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--synth", required=True, help="the synth dataset (with gps_truth.json)")
     p.add_argument("--poses", required=True, help="the dataset poses wrote from SYN/photos_gps")
+    p.add_argument("--export", default=None, help="a run's export folder (trained on POSES) to score too")
     p.add_argument("--out", default=None, help="also write the scores as JSON")
     args = p.parse_args(argv)
     result = score(args.synth, args.poses)
+    if args.export:
+        result["export"] = score_export(args.synth, args.export)
     print(json.dumps(result, indent=1))
     if args.out:
         io.write_json(args.out, result)
