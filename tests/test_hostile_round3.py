@@ -180,10 +180,34 @@ def test_negative_values_join_their_flag_as_argparse_reads_them():
     """`join_negative_values` against argparse's own `--flag=value` spelling."""
     parser = cli_train.build_parser()
     argv = ["--data", "d", "--set", "-1", "--max-side", "-3", "--steps", "-5", "--overwrite", "--out", "-x"]
-    joined = cli_flags.join_negative_values(parser, argv)
+    joined = cli_flags.join_negative_values(argv)
     assert joined == ["--data", "d", "--set=-1", "--max-side=-3", "--steps=-5", "--overwrite", "--out", "-x"]
     spelled = parser.parse_args(["--data", "d", "--set=-1", "--max-side=-3", "--steps=-5", "--overwrite"])
     assert vars(parser.parse_args(joined[:-2])) == vars(spelled)
+    assert cli_flags.join_negative_values(["--box=-1,2", "--", "--box", "-3,4"]) == ["--box=-1,2", "--", "--box",
+                                                                                      "-3,4"]
+
+
+def _one_value_or_none(action) -> bool:
+    """True for an option that takes exactly one value (store, append) or none (a switch, help)."""
+    return action.nargs is None or action.nargs == 0
+
+
+def test_every_option_takes_one_value_or_none():
+    """What `join_negative_values` relies on, reading argv only: no subcommand has an option of
+    several values (`nargs`) or a positional argument, so `--flag -3,4` always means
+    `--flag=-3,4`, and a switch given such a value stays an error."""
+    import importlib
+
+    for name, (module, _) in cli.SUBCOMMANDS.items():
+        parser = importlib.import_module(module).build_parser()
+        actions = parser._actions  # the test may read argparse's internals; the library does not
+        assert all(a.option_strings for a in actions), (name, "a positional argument")
+        assert all(_one_value_or_none(a) for a in actions), (name, [a.option_strings for a in actions
+                                                                    if not _one_value_or_none(a)])
+    parser = importlib.import_module("jaxnerf_grid.cli.render").build_parser()
+    with pytest.raises(SystemExit):  # a switch given a value: argparse's error, as before the join
+        parser.parse_args(cli_flags.join_negative_values(["--run", "r", "--quiet", "-3,4"]))
 
 
 def test_warnings_are_one_line_each(scene, tmp_path):
@@ -267,3 +291,77 @@ def test_bad_timeout_variables_are_named_in_a_single_process_run(scene, capsys, 
     rc, err = run_cli(argv, capsys)
     assert_one_line_error(rc, err, "JAXNERF_CONNECT_TIMEOUT", "soon")
     assert not (tmp_path / "r").exists()
+
+
+# --- process-wide side effects, scoped to the command line (issue 39) ---
+
+def _opencv_level() -> int:
+    import cv2
+
+    return cv2.utils.logging.getLogLevel()
+
+
+def test_the_command_line_restores_the_warning_format_and_opencv_log(scene, capfd, tmp_path):
+    """`cli.main` prints one-line warnings and quiets OpenCV's log only while it runs: after it
+    returns (an error, a success, argparse's SystemExit) both are what they were before."""
+    import warnings
+
+    import cv2
+
+    data = tmp_path / "data"
+    shutil.copytree(scene["data"], data)
+    raw = first_image(data).read_bytes()
+    first_image(data).write_bytes(raw[: len(raw) * 2 // 5])
+    mine = lambda message, *_: f"mine: {message}\n"  # noqa: E731
+    before_level, before_format = _opencv_level(), warnings.formatwarning
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_INFO)  # not OpenCV's default: seen restored
+        warnings.formatwarning = mine
+        capfd.readouterr()
+        rc = cli.main(["train", *PAPER_MLP, "--data", str(data), "--method", "nerf", "--config", str(scene["cfg"]),
+                       "--out", str(tmp_path / "r"), "--quiet"])
+        err = capfd.readouterr().err
+        assert_one_line_error(rc, err, str(first_image(data)))  # quiet inside: no "[ WARN" line from OpenCV
+        assert warnings.formatwarning is mine and _opencv_level() == cv2.utils.logging.LOG_LEVEL_INFO
+        assert cli.main(["recipes"]) == 0
+        assert warnings.formatwarning is mine and _opencv_level() == cv2.utils.logging.LOG_LEVEL_INFO
+        with pytest.raises(SystemExit):
+            cli.main(["render", "--frames"])
+        assert warnings.formatwarning is mine and _opencv_level() == cv2.utils.logging.LOG_LEVEL_INFO
+    finally:
+        warnings.formatwarning = before_format
+        cv2.utils.logging.setLogLevel(before_level)
+
+
+IMPORT_EVERYTHING = """
+import importlib, pkgutil, sys, warnings
+import cv2
+import numpy as np
+level, fmt = cv2.utils.logging.getLogLevel(), warnings.formatwarning
+import jaxnerf_grid
+for m in pkgutil.walk_packages(jaxnerf_grid.__path__, "jaxnerf_grid."):
+    if not m.name.endswith("__main__"):
+        importlib.import_module(m.name)
+from jaxnerf_grid import io
+try:
+    io.read_image(sys.argv[1])
+except io.DataError:
+    pass
+io.resize(np.zeros((4, 4), np.float32), (2, 2))
+assert cv2.utils.logging.getLogLevel() == level, (level, cv2.utils.logging.getLogLevel())
+assert warnings.formatwarning is fmt
+print("unchanged", level)
+"""
+
+
+def test_the_library_leaves_the_warning_format_and_opencv_log_alone(scene, tmp_path):
+    """Importing every module of the package, and reading a corrupt image through `io`, changes
+    neither `warnings.formatwarning` nor OpenCV's log level (a program using the library keeps
+    its own); OpenCV's warning about the corrupt image then reaches stderr, as OpenCV prints it."""
+    bad = tmp_path / "bad.png"
+    raw = first_image(scene["data"]).read_bytes()
+    bad.write_bytes(raw[: len(raw) * 2 // 5])
+    done = subprocess.run([sys.executable, "-c", IMPORT_EVERYTHING, str(bad)], capture_output=True, text=True,
+                          timeout=300, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
+    assert done.returncode == 0 and "unchanged" in done.stdout, done.stderr[-2000:]
+    assert "WARN" in done.stderr and "grfmt_png" in done.stderr, done.stderr[-2000:]
