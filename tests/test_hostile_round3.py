@@ -9,8 +9,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +23,7 @@ from jaxnerf_grid.cli import flags as cli_flags
 from jaxnerf_grid.cli import train as cli_train
 
 sys.path.insert(0, str(Path(__file__).parent))
+from killing import kill_when  # noqa: E402
 from test_bad_input import PAPER_MLP, SYNTH, TINY, assert_one_line_error, run_cli, snapshot  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -365,3 +368,104 @@ def test_the_library_leaves_the_warning_format_and_opencv_log_alone(scene, tmp_p
                           timeout=300, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
     assert done.returncode == 0 and "unchanged" in done.stdout, done.stderr[-2000:]
     assert "WARN" in done.stderr and "grfmt_png" in done.stderr, done.stderr[-2000:]
+
+
+# --- render --orbit killed mid-video (issue 39) ---
+
+VIDEO = ["--orbit", "--frames", "4", "--width", "16", "--quiet"]
+
+
+def _slow_video_child(run: str, out: str, pause: str) -> None:
+    """`render --orbit` with a pause after each frame written, so the parent can kill it while
+    its staging files exist."""
+    from jaxnerf_grid import videos
+
+    real = videos.open_writer
+
+    class Slow:
+        def __init__(self, writer):
+            self.writer = writer
+
+        def write(self, frame):
+            self.writer.write(frame)
+            time.sleep(float(pause))
+
+        def release(self):
+            self.writer.release()
+
+    videos.open_writer = lambda *args, **kwargs: Slow(real(*args, **kwargs))
+    sys.exit(cli.main(["render", "--run", run, "--out", out, *VIDEO]))
+
+
+def _frames(path: Path) -> np.ndarray:
+    import cv2
+
+    cap, frames = cv2.VideoCapture(str(path)), []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame)
+    cap.release()
+    return np.asarray(frames)
+
+
+def test_killed_video_leaves_a_partial_the_next_render_removes(scene, tmp_path):
+    """kill -9 of `render --orbit` while it writes left `.orbit.partial.mp4` that nothing removed.
+    The next render to the same --out removes its own leftovers (a dead process's staging files)
+    and nothing else: the user's files, a file of a similar name, a live render's staging file
+    and another host's stay byte for byte; the videos are those of an uninterrupted render."""
+    from jaxnerf_grid import videos
+
+    ref = tmp_path / "ref"
+    assert cli.main(["render", "--run", str(scene["run"]), "--out", str(ref / "orbit"), *VIDEO]) == 0
+    folder = tmp_path / "videos"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("the client's notes")
+    (folder / ".orbit.partial.keep.txt").write_text("not a video")
+    (folder / "orbit.mp4.bak").write_bytes(b"an older video the user kept")
+    (folder / f".orbit.partial.elsewhere.{os.getpid()}.mp4").write_bytes(b"another host's render")
+    live = folder / f".orbit_depth.partial.{socket.gethostname()}.{os.getppid()}.mp4"
+    live.write_bytes(b"a render still running here")
+    users = snapshot(folder)
+    run_before = snapshot(scene["run"])
+    partials = lambda: [p for p in folder.iterdir() if p.name.startswith(".orbit.partial.") and  # noqa: E731
+                        p.name.endswith(".mp4") and p.stat().st_size > 0 and "elsewhere" not in p.name]
+    kill_when([__file__, "video", str(scene["run"]), str(folder / "orbit"), "0.5"], timeout=180,
+              ready=lambda: bool(partials()))
+    assert partials() and not (folder / "orbit.mp4").exists()  # it really died mid-video
+    assert cli.main(["render", "--run", str(scene["run"]), "--out", str(folder / "orbit"), *VIDEO]) == 0
+    assert snapshot(folder / "notes.txt", folder / ".orbit.partial.keep.txt", folder / "orbit.mp4.bak",
+                    folder / f".orbit.partial.elsewhere.{os.getpid()}.mp4", live) == users
+    assert sorted(p.name for p in folder.iterdir()) == sorted([*(Path(k).name for k in users), "orbit.mp4",
+                                                               "orbit_depth.mp4"])
+    for name in ("orbit.mp4", "orbit_depth.mp4"):
+        np.testing.assert_array_equal(_frames(folder / name), _frames(ref / name))
+        assert len(_frames(folder / name)) == 4
+    assert snapshot(scene["run"]) == run_before
+    assert videos.stale_partials(folder / "orbit.mp4") == []
+
+
+def test_stale_partials_are_only_a_dead_renders_own(tmp_path):
+    """`videos.stale_partials` against the processes it names: a finished child's id is stale, the
+    test's parent (running) and another host's are not, nor any other name."""
+    from jaxnerf_grid import videos
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = socket.gethostname()
+    names = {f".orbit.partial.{host}.{dead.pid}.mp4": True, ".orbit.partial.mp4": True,
+             f".orbit.partial.{host}.{os.getppid()}.mp4": False, f".orbit.partial.other-host.{dead.pid}.mp4": False,
+             f".orbit_depth.partial.{host}.{dead.pid}.mp4": False, f"orbit.partial.{host}.{dead.pid}.mp4": False,
+             f".orbit.partial.{host}.{dead.pid}.mp4.txt": False, "orbit.mp4": False}
+    for name in names:
+        (tmp_path / name).write_bytes(b"x")
+    (tmp_path / f".orbit.partial.{host}.{dead.pid + 1000000}").mkdir()
+    stale = {p.name for p in videos.stale_partials(tmp_path / "orbit.mp4")}
+    assert stale == {name for name, is_stale in names.items() if is_stale}
+    assert videos.stale_partials(tmp_path / "missing" / "orbit.mp4") == []
+
+
+if __name__ == "__main__":
+    if sys.argv[1] == "video":
+        _slow_video_child(*sys.argv[2:])
