@@ -15,6 +15,7 @@ A leaf: imports only `io`, so `data/` (poses) may use it.
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
@@ -51,10 +52,17 @@ def inside(path, folder) -> bool:
 
 
 def check_folder(out, key: str) -> None:
-    """DataError when `out` exists and is not a folder (a file, or a link to one)."""
+    """DataError when `out` exists and is not a folder (a file, or a link to one), or when this
+    user may not write it: `out` itself, or the nearest folder above it that exists (where it
+    would be made), is read-only to this user or on a read-only file system. Checked before
+    any work, so a command does not render or train for minutes to find it cannot save."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise DataError(f"{out}: {key} exists and is not a folder")
+    here = next((p for p in (out, *out.absolute().parents) if p.exists()), None)
+    if here is not None and not os.access(here, os.W_OK | os.X_OK):
+        raise DataError(f"{out}: {key} is not writable by this user ({here}: permission denied, or a read-only "
+                        f"file system); nothing was changed: choose another {key}")
 
 
 def check_outside(out, dataset, key: str) -> None:
