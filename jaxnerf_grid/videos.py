@@ -12,6 +12,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import shutil
 import socket
 from pathlib import Path
 
@@ -117,13 +118,41 @@ def orbit_size(ds, width: int) -> tuple[int, int, float]:
     return width, height, math.degrees(2 * math.atan(0.5 * ds.height / fy))
 
 
-def open_writer(path: Path, fps: float, width: int, height: int):
-    """An OpenCV VideoWriter (mp4v) for `path`; DataError naming the file when OpenCV cannot open it."""
+def open_writer(path: Path, fps: float, width: int, height: int, name: Path | None = None):
+    """An OpenCV VideoWriter (mp4v) for `path`; DataError naming `name` (the video the user asked
+    for, default `path`) when OpenCV cannot open it (`write_failure`)."""
     cv2 = io.opencv()
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (int(width), int(height)))
     if not writer.isOpened():
-        raise DataError(f"{path}: OpenCV cannot write an mp4v video here")
+        raise write_failure(name or path, path, "OpenCV cannot open an mp4v video there")
     return writer
+
+
+FULL_DISK_BYTES = 1 << 20  # less free space than this where a video failed: reported as a full disk
+
+
+def write_failure(final: Path, partial: Path, what: str) -> DataError:
+    """The one-line error of a video OpenCV could not write, naming `final` (not its hidden staging
+    file `partial`): OpenCV reports no OS error, so the disk's free space says whether it is full."""
+    try:
+        free = shutil.disk_usage(partial.parent).free
+    except OSError:
+        free = None
+    reason = ("No space left on device" if free is not None and free < FULL_DISK_BYTES else "a write error")
+    room = "" if free is None else f", {free // 1024} KiB free there"
+    return DataError(f"{final}: cannot write ({what}: {reason}{room})")
+
+
+def check_written(final: Path, partial: Path, frames: int) -> None:
+    """DataError (`write_failure`) unless the video written to `partial` reads back with
+    `frames` frames: OpenCV's VideoWriter drops what it cannot write (a full disk) without a
+    word, and a video whose end is missing has no index to read."""
+    cv2 = io.opencv()
+    cap = cv2.VideoCapture(str(partial))
+    count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+    cap.release()
+    if count != frames:
+        raise write_failure(final, partial, f"{max(count, 0)} of {frames} frames could be read back")
 
 
 def _frame_bytes(rgb: np.ndarray) -> np.ndarray:
@@ -257,7 +286,7 @@ def write_videos(video: Path, depth_video: Path, cameras, render, fps: float, w:
         for leftover in stale_partials(final):
             leftover.unlink(missing_ok=True)
     try:
-        writer = open_writer(staged[video], fps, w, h)
+        writer = open_writer(staged[video], fps, w, h, video)
         depths = []
         try:
             with pbar:
@@ -270,12 +299,14 @@ def write_videos(video: Path, depth_video: Path, cameras, render, fps: float, w:
             writer.release()
         inv = 1.0 / np.maximum(np.stack(depths), 1e-6)
         lo, hi = np.percentile(inv[np.isfinite(inv)], [2, 98])
-        writer = open_writer(staged[depth_video], fps, w, h)
+        writer = open_writer(staged[depth_video], fps, w, h, depth_video)
         try:
             for d in depths:
                 writer.write(_frame_bytes(report.colourise_depth(d, lo, hi)))
         finally:
             writer.release()
+        for final, partial in staged.items():
+            check_written(final, partial, len(depths))
         for final, partial in staged.items():
             with io.naming_path(final):
                 os.replace(partial, final)

@@ -469,3 +469,37 @@ def test_stale_partials_are_only_a_dead_renders_own(tmp_path):
 if __name__ == "__main__":
     if sys.argv[1] == "video":
         _slow_video_child(*sys.argv[2:])
+
+
+def test_a_video_opencv_could_not_finish_is_refused_not_renamed(tmp_path, monkeypatch):
+    """OpenCV's VideoWriter drops frames it cannot write (a full disk) without a word: the video
+    is read back before it is renamed (`videos.check_written`); the error names the video, an
+    earlier one stays, no staging file is left. The writer here stops writing after 2 frames."""
+    from jaxnerf_grid import progress, videos
+
+    video, depth = tmp_path / "orbit.mp4", tmp_path / "orbit_depth.mp4"
+    video.write_bytes(b"the earlier video")
+    real = videos.open_writer
+
+    class Dropping:
+        def __init__(self, writer):
+            self.writer, self.count = writer, 0
+
+        def write(self, frame):
+            self.count += 1
+            if self.count <= 2:
+                self.writer.write(frame)
+
+        def release(self):
+            self.writer.release()
+
+    monkeypatch.setattr(videos, "open_writer", lambda *a, **kw: Dropping(real(*a, **kw)))
+    render = lambda k: {"rgb": np.full((6, 8, 3), 0.1 * k), "depth": np.full((6, 8), 2.0 + k)}  # noqa: E731
+    with pytest.raises(io.DataError, match=r"orbit.mp4: cannot write \(2 of 4 frames could be read back"):
+        videos.write_videos(video, depth, [(k,) for k in range(4)], render, 5.0, 8, 6, progress.bar(enabled=False))
+    assert video.read_bytes() == b"the earlier video"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["orbit.mp4"]
+    monkeypatch.setattr(videos, "open_writer", real)
+    assert videos.write_videos(video, depth, [(k,) for k in range(4)], render, 5.0, 8, 6,
+                               progress.bar(enabled=False)) == 4
+    assert len(_frames(video)) == 4 and len(_frames(depth)) == 4

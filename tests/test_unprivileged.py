@@ -63,17 +63,21 @@ def train_argv(shared, out, data=None) -> list:
             "--out", out, "--quiet"]
 
 
-@pytest.mark.parametrize("command", ["train", "export", "render_orbit", "synth"])
+@pytest.mark.parametrize("command", ["train", "export", "render_orbit", "synth", "poses"])
 def test_an_output_folder_the_user_cannot_write(shared, command):
     """Each command's output in a folder of root's: one line naming the folder, nothing made;
-    `train` and `export` say so before they train or render (`folders.check_folder`: export
-    without --box would otherwise render its views first and fail on the box)."""
+    `train`, `export` and `poses` say so before they train, render or run COLMAP
+    (`folders.check_folder`: export without --box would otherwise render its views first and fail
+    on the box; poses named its hidden staging folder beside the output)."""
     out = shared["base"] / "ro" / "out"
     argv = {"train": train_argv(shared, out),
             "export": ["export", "--run", shared["run"], "--out", out, "--resolution", "8", "--views", "1", "--quiet"],
             "render_orbit": ["render", "--run", shared["run"], "--orbit", "--frames", "2", "--width", "16",
                              "--out", out / "orbit", "--quiet"],
-            "synth": ["synth", "--out", out, *SYNTH]}[command]
+            "synth": ["synth", "--out", out, *SYNTH],
+            "poses": ["poses", "--images", shared["data"] / "images", "--out", out, "--quiet"]}[command]
+    if command == "poses":
+        pytest.importorskip("pycolmap")
     before = snapshot(shared["data"], shared["run"], shared["base"] / "ro")
     rc, err = run_as_nobody(argv, shared)
     assert rc == 1
@@ -122,7 +126,7 @@ def test_a_read_only_dataset_trains_without_its_cache(shared):
     assert (out / "config.json").is_file()
 
 
-@pytest.mark.parametrize("command, kib", [("train", 24), ("synth", 16)])
+@pytest.mark.parametrize("command, kib", [("train", 24), ("synth", 16), ("render_orbit", 8)])
 def test_a_full_disk(shared, command, kib):
     """A real ENOSPC (a tmpfs of a few KiB): one line naming the file being written; the
     dataset and the run unchanged."""
@@ -130,10 +134,13 @@ def test_a_full_disk(shared, command, kib):
     disk = shared["base"] / "home" / f"disk_{command}"
     disk.mkdir()
     out = disk / "out"
-    argv = train_argv(shared, out) if command == "train" else ["synth", "--out", out, *SYNTH]
+    argv = {"train": train_argv(shared, out), "synth": ["synth", "--out", out, *SYNTH],
+            "render_orbit": ["render", "--run", shared["run"], "--orbit", "--frames", "40", "--width", "64",
+                             "--out", out / "orbit", "--quiet"]}[command]
     before = snapshot(shared["data"], shared["run"])
     rc, err = run_as_nobody(argv, shared, disk=disk, disk_kib=kib)
     assert rc == 1
     line = assert_one_line_error(rc, err, str(out), "No space left on device")
-    assert line.split(": cannot write")[0].startswith(f"jaxnerf-grid {command}: error: {out}/"), line
+    assert line.split(": cannot write")[0].startswith(f"jaxnerf-grid {command.split('_')[0]}: error: {out}/"), line
+    assert "/." not in line.split(": cannot write")[0], line  # the file the user asked for, not a hidden staging file
     assert snapshot(shared["data"], shared["run"]) == before

@@ -63,6 +63,12 @@ def disk_unavailable() -> str | None:
     return None if why is None else f"cannot mount a tmpfs in a private mount namespace: {why}"
 
 
+def cannot_read(folder: Path) -> str | None:
+    """Why the unprivileged user cannot list `folder` (a folder above it private to root), or None."""
+    why = _probe(as_nobody(["-c", f"import os; os.listdir({str(folder)!r})"]))
+    return None if why is None else f"user {NOBODY} cannot read {folder}: {why}"
+
+
 def as_nobody(argv: list[str], disk: Path | None = None, disk_kib: int = 0) -> list[str]:
     """The command line running `python argv...` as user 65534 (module docstring); with `disk`,
     on a tmpfs of `disk_kib` KiB mounted there for that command only."""
