@@ -429,8 +429,19 @@ def test_killed_video_leaves_a_partial_the_next_render_removes(scene, tmp_path):
     live.write_bytes(b"a render still running here")
     users = snapshot(folder)
     run_before = snapshot(scene["run"])
-    partials = lambda: [p for p in folder.iterdir() if p.name.startswith(".orbit.partial.") and  # noqa: E731
-                        p.name.endswith(".mp4") and p.stat().st_size > 0 and "elsewhere" not in p.name]
+
+    def partials() -> list:
+        """The child's colour staging files that hold frames (none while it starts up)."""
+        found = []
+        for p in folder.iterdir():
+            try:
+                if (p.name.startswith(".orbit.partial.") and p.name.endswith(".mp4") and "elsewhere" not in p.name
+                        and p.stat().st_size > 0):
+                    found.append(p)
+            except FileNotFoundError:  # renamed between the listing and the stat
+                pass
+        return found
+
     kill_when([__file__, "video", str(scene["run"]), str(folder / "orbit"), "0.5"], timeout=180,
               ready=lambda: bool(partials()))
     assert partials() and not (folder / "orbit.mp4").exists()  # it really died mid-video
