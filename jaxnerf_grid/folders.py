@@ -60,6 +60,8 @@ def check_folder(out, key: str) -> None:
     if out.exists() and not out.is_dir():
         raise DataError(f"{out}: {key} exists and is not a folder")
     here = next((p for p in (out, *out.absolute().parents) if p.exists()), None)
+    if here is not None and not here.is_dir():
+        raise DataError(f"{out}: {key} cannot be made there: {here} is a file, not a folder")
     if here is not None and not os.access(here, os.W_OK | os.X_OK):
         raise DataError(f"{out}: {key} is not writable by this user ({here}: permission denied, or a read-only "
                         f"file system); nothing was changed: choose another {key}")

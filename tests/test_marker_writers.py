@@ -121,3 +121,16 @@ def test_preprocess_refuses_a_source_inside_its_output(tmp_path):
     with pytest.raises(DataError, match=r"preprocess.out is the dataset folder .*src or inside it"):
         preprocess.preprocess_images(tmp_path / "src", tmp_path / "src" / "pre")
     assert hashes(tmp_path) == before
+
+
+def test_an_output_under_a_file_is_named_as_such(tmp_path):
+    """`folders.check_folder` on a folder to be made below a file: the file is named, not a
+    permission (a file is not "writable" as a folder is, even to root)."""
+    from jaxnerf_grid import folders
+
+    (tmp_path / "afile").write_text("x")
+    with pytest.raises(DataError, match=r"afile/run: run.out cannot be made there: .*afile is a file"):
+        folders.check_folder(tmp_path / "afile" / "run", "run.out")
+    with pytest.raises(DataError, match=r"afile: run.out exists and is not a folder"):
+        folders.check_folder(tmp_path / "afile", "run.out")
+    folders.check_folder(tmp_path / "new" / "run", "run.out")  # to be made below a folder: fine
