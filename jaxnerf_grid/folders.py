@@ -64,7 +64,7 @@ def check_folder(out, key: str) -> None:
         raise DataError(f"{out}: {key} cannot be made there: {here} is a file, not a folder")
     if here is not None and not os.access(here, os.W_OK | os.X_OK):
         raise DataError(f"{out}: {key} is not writable by this user ({here}: permission denied, or a read-only "
-                        f"file system); nothing was changed: choose another {key}")
+                        f"file system); nothing was changed: make it writable or choose another {key}")
 
 
 def check_outside(out, dataset, key: str) -> None:

@@ -557,7 +557,7 @@ def permission_cases(add) -> None:
                                                         "--quiet"], absent=lambda f, d: [d / "ro" / "ds"]),
         names=["ro/ds", "permission denied"])  # before COLMAP; not the staging folder beside it
     add("perm_mask_dataset_read_only", P, N(lambda f, d: ["mask", "--data", f["data"], "--source", "gt",
-                                                           "--quiet"]), names=["data", "Permission denied"])
+                                                           "--quiet"]), names=["data: --data is not writable"])
     add("perm_eval_run_read_only", P, N(lambda f, d: ["eval", "--run", f["run"], "--quiet"]),
         names=["run", "Permission denied"])
     add("perm_render_run_read_only", P, N(lambda f, d: ["render", "--run", f["run"], "--quiet"]),
