@@ -564,8 +564,15 @@ def permission_cases(add) -> None:
         names=["run", "Permission denied"])
     add("perm_export_into_read_only_run", P, N(lambda f, d: ["export", "--run", f["run"], "--quiet"]),
         names=["run/export", "permission denied"])
-    add("perm_train_resume_read_only_run", P, N(lambda f, d: train(f, d, f["run"]) + ["--steps", "15"]),
-        names=["run", "permission denied"])
+
+    def interrupted_run(f, d):
+        run = copy_run(f, d)
+        newest = sorted((run / "checkpoints").iterdir())[-1]
+        shutil.rmtree(newest) if newest.is_dir() else newest.unlink()  # as a kill after step 5 left it
+        return train(f, d, run)
+
+    add("perm_train_resume_read_only_run", P, N(interrupted_run, protect=lambda f, d: [d / "run"]),
+        names=["run: --out is not writable"])
 
     def unreadable_photo(f, d):
         data = copy_data(f, d)
