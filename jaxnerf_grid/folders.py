@@ -1,26 +1,29 @@
 """May a command write into, or clear, this output folder? The marker rule (docs/RELIABILITY.md).
 
 Every command that makes a folder writes a marker file naming itself into it first (MARKERS:
-`.jaxnerf-grid-run`, `-poses`, `-export`, `-synth`). `overwrite` clears only a folder that holds
-the command's own marker, and in it only the command's own outputs (names it passes); a user's
-other files stay, a folder without the marker is never cleared, and an output that is a
-symbolic link is refused rather than skipped (clearing through a link would delete files
-elsewhere; skipping it would keep old outputs silently). An output folder equal to or inside a
-dataset folder is refused for every command (links resolved). Every check here runs before
-anything is written or removed.
+`.jaxnerf-grid-run`, `-poses`, `-export`, `-synth`, `-preprocess`, `-dataset`). `overwrite`
+clears only a folder that holds the command's own marker, and in it only the command's own
+outputs (names it passes); a user's other files stay, a folder without the marker is never
+cleared, and an output that is a symbolic link is refused rather than skipped (clearing
+through a link would delete files elsewhere; skipping it would keep old outputs silently). An
+output folder equal to or inside a dataset folder is refused for every command (links
+resolved). Every check here runs before anything is written or removed; `prepare_output` is
+the whole rule in one call (check, clear, marker) for a writer of a whole folder.
 
 A leaf: imports only `io`, so `data/` (poses) may use it.
 """
 
 from __future__ import annotations
 
+import os
 import shutil
 from pathlib import Path
 
 from jaxnerf_grid.io import DataError, naming_path
 
 MARKERS = {"train": ".jaxnerf-grid-run", "poses": ".jaxnerf-grid-poses", "export": ".jaxnerf-grid-export",
-           "synth": ".jaxnerf-grid-synth"}
+           "synth": ".jaxnerf-grid-synth", "preprocess": ".jaxnerf-grid-preprocess",
+           "dataset": ".jaxnerf-grid-dataset"}  # dataset: `data.formats.save_transforms_json`
 MARKER_TEXT = "written by jaxnerf-grid {command}; its overwrite=True may clear this command's outputs here\n"
 
 
@@ -49,10 +52,19 @@ def inside(path, folder) -> bool:
 
 
 def check_folder(out, key: str) -> None:
-    """DataError when `out` exists and is not a folder (a file, or a link to one)."""
+    """DataError when `out` exists and is not a folder (a file, or a link to one), or when this
+    user may not write it: `out` itself, or the nearest folder above it that exists (where it
+    would be made), is read-only to this user or on a read-only file system. Checked before
+    any work, so a command does not render or train for minutes to find it cannot save."""
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise DataError(f"{out}: {key} exists and is not a folder")
+    here = next((p for p in (out, *out.absolute().parents) if p.exists()), None)
+    if here is not None and not here.is_dir():
+        raise DataError(f"{out}: {key} cannot be made there: {here} is a file, not a folder")
+    if here is not None and not os.access(here, os.W_OK | os.X_OK):
+        raise DataError(f"{out}: {key} is not writable by this user ({here}: permission denied, or a read-only "
+                        f"file system); nothing was changed: make it writable or choose another {key}")
 
 
 def check_outside(out, dataset, key: str) -> None:
@@ -109,3 +121,23 @@ def write_marker(folder, command: str) -> Path:
     with naming_path(path):  # a full disk names the marker, not only "No space left on device"
         path.write_text(MARKER_TEXT.format(command=command))
     return path
+
+
+def check_output(folder, command: str, outputs, key: str, overwrite: bool, legacy: bool = False) -> None:
+    """DataError unless `command` may write its outputs into `folder`: the folder is absent or
+    empty, or `overwrite` and `check_clearable` allows it. Writes nothing."""
+    folder = Path(folder)
+    check_folder(folder, key)
+    if not overwrite and not is_empty(folder):
+        raise DataError(f"{folder}: {key} exists and is not empty; nothing was changed: pass overwrite=True to "
+                        f"replace what jaxnerf-grid {command} wrote there, or choose another {key}")
+    check_clearable(folder, command, outputs, key, legacy)
+
+
+def prepare_output(folder, command: str, outputs, key: str, overwrite: bool, legacy: bool = False) -> Path:
+    """The marker rule in one call, for a command that writes a whole folder: `check_output`,
+    then its old `outputs` removed (`clear_outputs`; a user's other files stay) and its marker
+    written before any output. Returns the folder as a Path."""
+    check_output(folder, command, outputs, key, overwrite, legacy)
+    clear_outputs(folder, command, outputs, key, legacy)
+    return write_marker(folder, command).parent

@@ -11,6 +11,7 @@ import contextlib
 import json
 import os
 import stat
+import sys
 import tempfile
 from pathlib import Path
 from typing import Any
@@ -22,14 +23,41 @@ class DataError(ValueError):
     """Bad input data: the message names the file and what is wrong."""
 
 
+_OPENCV_QUIET = {"active": False, "level": None}  # `quiet_opencv`'s state: on, and the level it replaced
+
+
 def opencv():
-    """The cv2 module, imported on first use (OpenCV is slow to import), with its own log quiet
-    below errors: a corrupt image is reported once, as a DataError naming the file, not also
-    as OpenCV's "[ WARN:0@0.013] global grfmt_png.cpp ..." line on stderr."""
+    """The cv2 module, imported on first use (OpenCV is slow to import). Inside `quiet_opencv`
+    (the command line) its own log is lowered to errors only; outside, it is left as it is."""
     import cv2
 
-    cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
+    if _OPENCV_QUIET["active"] and _OPENCV_QUIET["level"] is None:
+        _OPENCV_QUIET["level"] = cv2.utils.logging.getLogLevel()
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_ERROR)
     return cv2
+
+
+@contextlib.contextmanager
+def quiet_opencv():
+    """Inside the block, OpenCV's own log shows errors only, so a corrupt image is reported
+    once, as a DataError naming the file, not also as OpenCV's "[ WARN:0@0.013] global
+    grfmt_png.cpp ..." line; after it (also on an error) the level is what it was. Does not
+    import cv2 itself (`opencv` lowers the level on first use inside the block), so a command
+    that never reads an image pays nothing. Used by the dispatcher (`cli.main`) only: a
+    program that uses the library keeps OpenCV's log as it set it."""
+    if _OPENCV_QUIET["active"]:  # nested: the outer block restores
+        yield
+        return
+    _OPENCV_QUIET.update(active=True, level=None)
+    try:
+        if "cv2" in sys.modules:
+            opencv()
+        yield
+    finally:
+        level = _OPENCV_QUIET["level"]
+        _OPENCV_QUIET.update(active=False, level=None)
+        if level is not None:
+            sys.modules["cv2"].utils.logging.setLogLevel(level)
 
 
 def resize(array: np.ndarray, size: tuple[int, int], interpolation: str = "area") -> np.ndarray:

@@ -38,7 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config, dpt, foreground as fg, io, progress as progress_lib, staging
+from jaxnerf_grid import config, dpt, folders, foreground as fg, io, progress as progress_lib, staging
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data import poses
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS
@@ -310,6 +310,7 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     if not frames:
         raise DataError(f"{tpath}: no frames")
     _check_outputs(root, meta, overwrite)
+    folders.check_folder(root, "mask.data")  # this user may write the masks into it, before any is made
     images = [_image_path(root, f) for f in frames]
     for p in images:
         if not p.is_file():

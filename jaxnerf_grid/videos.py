@@ -11,6 +11,9 @@ from __future__ import annotations
 
 import math
 import os
+import re
+import shutil
+import socket
 from pathlib import Path
 
 import jax.numpy as jnp
@@ -115,13 +118,41 @@ def orbit_size(ds, width: int) -> tuple[int, int, float]:
     return width, height, math.degrees(2 * math.atan(0.5 * ds.height / fy))
 
 
-def open_writer(path: Path, fps: float, width: int, height: int):
-    """An OpenCV VideoWriter (mp4v) for `path`; DataError naming the file when OpenCV cannot open it."""
+def open_writer(path: Path, fps: float, width: int, height: int, name: Path | None = None):
+    """An OpenCV VideoWriter (mp4v) for `path`; DataError naming `name` (the video the user asked
+    for, default `path`) when OpenCV cannot open it (`write_failure`)."""
     cv2 = io.opencv()
     writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"mp4v"), float(fps), (int(width), int(height)))
     if not writer.isOpened():
-        raise DataError(f"{path}: OpenCV cannot write an mp4v video here")
+        raise write_failure(name or path, path, "OpenCV cannot open an mp4v video there")
     return writer
+
+
+FULL_DISK_BYTES = 1 << 20  # less free space than this where a video failed: reported as a full disk
+
+
+def write_failure(final: Path, partial: Path, what: str) -> DataError:
+    """The one-line error of a video OpenCV could not write, naming `final` (not its hidden staging
+    file `partial`): OpenCV reports no OS error, so the disk's free space says whether it is full."""
+    try:
+        free = shutil.disk_usage(partial.parent).free
+    except OSError:
+        free = None
+    reason = ("No space left on device" if free is not None and free < FULL_DISK_BYTES else "a write error")
+    room = "" if free is None else f", {free // 1024} KiB free there"
+    return DataError(f"{final}: cannot write ({what}: {reason}{room})")
+
+
+def check_written(final: Path, partial: Path, frames: int) -> None:
+    """DataError (`write_failure`) unless the video written to `partial` reads back with
+    `frames` frames: OpenCV's VideoWriter drops what it cannot write (a full disk) without a
+    word, and a video whose end is missing has no index to read."""
+    cv2 = io.opencv()
+    cap = cv2.VideoCapture(str(partial))
+    count = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
+    cap.release()
+    if count != frames:
+        raise write_failure(final, partial, f"{max(count, 0)} of {frames} frames could be read back")
 
 
 def _frame_bytes(rgb: np.ndarray) -> np.ndarray:
@@ -196,15 +227,66 @@ def _render_frame(params, cfg, pose: np.ndarray, fov: float, w: int, h: int, nea
     return views.render_rays_chunked(params, cfg.model, r, 0, None, cfg.train.chunk, resolve_devices(cfg.train))
 
 
+def partial_path(final: Path) -> Path:
+    """Where the video `final` (DIR/STEM.mp4) is written until it is complete:
+    DIR/.STEM.partial.HOST.PID.mp4, naming this process, so that a kill's leftover can be told
+    from the file of a render still running (`stale_partials`)."""
+    return final.with_name(f".{final.stem}.partial.{socket.gethostname()}.{os.getpid()}.mp4")
+
+
+def _partial_owner(name: str, stem: str) -> tuple[str, int] | None:
+    """(host, pid) of a file name of `partial_path`'s form for STEM.mp4; ("", 0) for the
+    `.STEM.partial.mp4` of versions before the owner was named; None for any other name."""
+    match = re.fullmatch(rf"\.{re.escape(stem)}\.partial(?:\.(?P<host>.+)\.(?P<pid>\d+))?\.mp4", name)
+    if match is None:
+        return None
+    return (match["host"], int(match["pid"])) if match["pid"] else ("", 0)
+
+
+def _runs(pid: int) -> bool:
+    """Whether process `pid` of this host runs (this process's own id counts as not: its
+    staging file is made after the stale ones are removed)."""
+    if pid == os.getpid():
+        return False
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:  # another user's process
+        return True
+    return True
+
+
+def stale_partials(final: Path) -> list[Path]:
+    """The staging files of the video `final` that no running render owns: those of
+    `partial_path`'s form whose process, on this host, no longer runs (a kill -9), and the
+    `.STEM.partial.mp4` of older versions. Never another name (a user's file), a link, or the
+    file of a render running here or on another host."""
+    if not final.parent.is_dir():
+        return []
+    out = []
+    for path in sorted(final.parent.iterdir()):
+        owner = _partial_owner(path.name, final.stem)
+        if owner is None or path.is_symlink() or not path.is_file():
+            continue
+        host, pid = owner
+        if pid == 0 or (host == socket.gethostname() and not _runs(pid)):
+            out.append(path)
+    return out
+
+
 def write_videos(video: Path, depth_video: Path, cameras, render, fps: float, w: int, h: int, pbar) -> int:
     """Renders each camera of `cameras` with `render(*camera)` -> {"rgb", "depth"} and writes the
     colour to `video`, the depth (inverse depth, TURBO, one range for all frames) to `depth_video`.
-    Both are written under temporary names and renamed when complete: a failure or a kill leaves
-    an earlier video of the same name as it was. Returns the number of frames."""
-    staged = {video: video.with_name(f".{video.stem}.partial.mp4"),
-              depth_video: depth_video.with_name(f".{depth_video.stem}.partial.mp4")}
+    Both are written under temporary names (`partial_path`) and renamed when complete: a failure
+    or a kill leaves an earlier video of the same name as it was, and the next call for the same
+    videos removes what a killed one left (`stale_partials`). Returns the number of frames."""
+    staged = {video: partial_path(video), depth_video: partial_path(depth_video)}
+    for final in staged:
+        for leftover in stale_partials(final):
+            leftover.unlink(missing_ok=True)
     try:
-        writer = open_writer(staged[video], fps, w, h)
+        writer = open_writer(staged[video], fps, w, h, video)
         depths = []
         try:
             with pbar:
@@ -217,12 +299,14 @@ def write_videos(video: Path, depth_video: Path, cameras, render, fps: float, w:
             writer.release()
         inv = 1.0 / np.maximum(np.stack(depths), 1e-6)
         lo, hi = np.percentile(inv[np.isfinite(inv)], [2, 98])
-        writer = open_writer(staged[depth_video], fps, w, h)
+        writer = open_writer(staged[depth_video], fps, w, h, depth_video)
         try:
             for d in depths:
                 writer.write(_frame_bytes(report.colourise_depth(d, lo, hi)))
         finally:
             writer.release()
+        for final, partial in staged.items():
+            check_written(final, partial, len(depths))
         for final, partial in staged.items():
             with io.naming_path(final):
                 os.replace(partial, final)

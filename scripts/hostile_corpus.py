@@ -30,6 +30,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT / "tests"))
+import unprivileged  # noqa: E402  (tests/unprivileged.py: setpriv, the tmpfs of a full disk)
+
 TINY = {"model": {"field": {"depth": 2, "width": 32, "skip": 0, "view_width": 16},
                   "sampler": {"kind": "hierarchical", "samples": [8, 8]}},
         "train": {"batch_rays": 64, "max_steps": 10, "checkpoint_every": 5, "log_every": 5, "warmup": 2,
@@ -58,12 +61,19 @@ def snapshot(*roots: Path) -> dict:
     return out
 
 
-def cli(argv, cwd: Path, env: dict | None = None, timeout: float = 300) -> subprocess.CompletedProcess:
-    """`python -m jaxnerf_grid argv` in cwd (this checkout's package first on the path)."""
+def cli(argv, cwd: Path, env: dict | None = None, timeout: float = 300, nobody: dict | None = None
+        ) -> subprocess.CompletedProcess:
+    """`python -m jaxnerf_grid argv` in cwd (this checkout's package first on the path). With
+    `nobody` ({"home": a folder it may write, "disk": a folder, "disk_kib": KiB}, the last two
+    optional), as the unprivileged user 65534, on a tmpfs of disk_kib at disk when given
+    (tests/unprivileged.py)."""
     full_env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "cpu"),
                 **(env or {})}
-    return subprocess.run([sys.executable, "-m", "jaxnerf_grid", *[str(a) for a in argv]], cwd=cwd,
-                          env=full_env, capture_output=True, text=True, timeout=timeout)
+    command = [sys.executable, "-m", "jaxnerf_grid", *[str(a) for a in argv]]
+    if nobody is not None:
+        full_env = {**unprivileged.environment(nobody["home"]), **(env or {})}
+        command = unprivileged.as_nobody(command[1:], nobody.get("disk"), nobody.get("disk_kib", 0))
+    return subprocess.run(command, cwd=cwd, env=full_env, capture_output=True, text=True, timeout=timeout)
 
 
 def error_lines(stderr: str) -> list[str]:
@@ -510,7 +520,97 @@ def case_list():
         return {"argv": [*TRAIN, "--data", f["data"], "--config", f["cfg"], "--out", run], "protect": []}
 
     add("train_resume_metrics_binary_tail", "interrupted run", metrics_jsonl_binary, expect="ok")
+    permission_cases(add)
     return C
+
+
+def permission_cases(add) -> None:
+    """Read-only folders, unreadable files and a full disk, run as the unprivileged user 65534
+    (skipped with the reason where that cannot run: tests/unprivileged.py). The fixtures and the
+    case's folder belong to root: the user may read them, not change them; it may write only
+    the case's home/ (and a full disk's tmpfs)."""
+    def N(argv, protect=(), absent=(), disk_kib=0, **kw):
+        def prep(f, d):
+            home = unprivileged.give_to_nobody(d / "home")
+            nobody = {"home": home}
+            if disk_kib:
+                nobody.update(disk=unprivileged.give_to_nobody(d / "disk"), disk_kib=disk_kib)
+            (d / "ro").mkdir()
+            return {"argv": argv(f, d), "protect": [*protect(f, d)] if callable(protect) else list(protect),
+                    "absent": [*absent(f, d)] if callable(absent) else list(absent), "nobody": nobody, **kw}
+        return prep
+
+    P = "permission (unprivileged)"
+    train = lambda f, d, out, data=None: [*TRAIN, "--data", data or f["data"], "--config", f["cfg"],  # noqa: E731
+                                          "--out", out]
+    add("perm_train_out_read_only", P, N(lambda f, d: train(f, d, d / "ro" / "run"), absent=lambda f, d: [
+        d / "ro" / "run"]), names=["ro/run", "permission denied"])
+    add("perm_export_out_read_only", P, N(lambda f, d: ["export", "--run", f["run"], "--out", d / "ro" / "exp",
+                                                         "--quiet"], absent=lambda f, d: [d / "ro" / "exp"]),
+        names=["ro/exp", "permission denied"])
+    add("perm_render_orbit_out_read_only", P, N(lambda f, d: ["render", "--run", f["run"], "--orbit", "--frames", "2",
+                                                               "--width", "16", "--out", d / "ro" / "v" / "orbit",
+                                                               "--quiet"]), names=["ro/v", "Permission denied"])
+    add("perm_synth_out_read_only", P, N(lambda f, d: ["synth", "--out", d / "ro" / "s", *SYNTH]),
+        names=["ro/s", "Permission denied"])
+    add("perm_poses_out_read_only", P, N(lambda f, d: ["poses", "--images", photos(f, d), "--out", d / "ro" / "ds",
+                                                        "--quiet"], absent=lambda f, d: [d / "ro" / "ds"]),
+        names=["ro/ds", "permission denied"])  # before COLMAP; not the staging folder beside it
+    add("perm_mask_dataset_read_only", P, N(lambda f, d: ["mask", "--data", f["data"], "--source", "gt",
+                                                           "--quiet"]), names=["data: --data is not writable"])
+    add("perm_eval_run_read_only", P, N(lambda f, d: ["eval", "--run", f["run"], "--quiet"]),
+        names=["run", "Permission denied"])
+    add("perm_render_run_read_only", P, N(lambda f, d: ["render", "--run", f["run"], "--quiet"]),
+        names=["run", "Permission denied"])
+    add("perm_export_into_read_only_run", P, N(lambda f, d: ["export", "--run", f["run"], "--quiet"]),
+        names=["run/export", "permission denied"])
+
+    def interrupted_run(f, d):
+        run = copy_run(f, d)
+        newest = sorted((run / "checkpoints").iterdir())[-1]
+        shutil.rmtree(newest) if newest.is_dir() else newest.unlink()  # as a kill after step 5 left it
+        return train(f, d, run)
+
+    add("perm_train_resume_read_only_run", P, N(interrupted_run, protect=lambda f, d: [d / "run"]),
+        names=["run: --out is not writable"])
+
+    def unreadable_photo(f, d):
+        data = copy_data(f, d)
+        first_image(data).chmod(0)
+        return train(f, d, d / "home" / "run", data)
+
+    add("perm_photo_unreadable", P, N(unreadable_photo, protect=lambda f, d: [d / "data"],
+                                      absent=lambda f, d: [d / "home" / "run"]), names=["train_000.png"])
+
+    def unreadable(name, body, argv):
+        def make(f, d):
+            (d / name).write_text(body)
+            (d / name).chmod(0o600)
+            return argv(f, d)
+        return make
+
+    add("perm_config_unreadable", P, N(unreadable("c.json", json.dumps(TINY), lambda f, d: [
+        *TRAIN, "--data", f["data"], "--config", d / "c.json", "--out", d / "home" / "run"]),
+        absent=lambda f, d: [d / "home" / "run"]), names=["c.json", "Permission denied"])
+    add("perm_camera_path_unreadable", P, N(unreadable("path.json", json.dumps(
+        {"camera_path": [{"camera_to_world": GOOD_POSE, "fov": 50}], "render_width": 8, "render_height": 8}),
+        lambda f, d: ["render", "--run", f["run"], "--path", d / "path.json", "--out", d / "home" / "v", "--quiet"])),
+        names=["path.json", "Permission denied"])
+    add("perm_read_only_dataset_trains", P, N(lambda f, d: train(f, d, d / "home" / "run") + ["--max-side", "16"],
+                                              protect=lambda f, d: [f["data"]]), expect="ok")
+
+    D = "full disk (unprivileged)"
+    add("disk_train_full", D, N(lambda f, d: train(f, d, d / "disk" / "run"), disk_kib=24),
+        names=["disk/run/", "No space left on device"])
+    add("disk_synth_full", D, N(lambda f, d: ["synth", "--out", d / "disk" / "s", *SYNTH], disk_kib=16),
+        names=["disk/s/", "No space left on device"])
+    add("disk_export_full", D, N(lambda f, d: ["export", "--run", f["run"], "--out", d / "disk" / "exp", "--quiet",
+                                               "--resolution", "16", "--views", "2", "--box=-10,-10,0,10,10,20",
+                                               "--threshold", "0.0001"], disk_kib=8),
+        names=["disk/exp/", "No space left on device"])
+    add("disk_render_orbit_full", D, N(lambda f, d: ["render", "--run", f["run"], "--orbit", "--frames", "40",
+                                                     "--width", "64", "--out", d / "disk" / "orbit", "--quiet"],
+                                       disk_kib=8), names=["disk/orbit", "No space left on device"])
 
 
 def judge(case, proc, before, after, absent) -> dict:
@@ -522,7 +622,7 @@ def judge(case, proc, before, after, absent) -> dict:
     added = sorted(k for k in after if k not in before)
     leftovers = [str(p) for p in absent if os.path.lexists(p)]
     errors = [line for line in lines if ": warning: " not in line]  # a warning is one line of its own
-    names_ok = all(n in (errors[-1] if errors else "") for n in case["names"])
+    names_ok = all(n.lower() in (errors[-1] if errors else "").lower() for n in case["names"])
     one_line = len(errors) == 1 and errors[0].startswith("jaxnerf-grid")
     if case["expect"] == "ok":
         held = proc.returncode == 0 and not traceback and not lost and not (changed and not case.get("may_change"))
@@ -550,7 +650,7 @@ def main(argv=None) -> int:
     work.mkdir(parents=True, exist_ok=True)
     f = build_fixtures(work)
     only = set(args.only.split(",")) if args.only else None
-    results = []
+    results, skipped = [], []
     for case in case_list():
         if only and case["id"] not in only:
             continue
@@ -558,13 +658,20 @@ def main(argv=None) -> int:
         d = work / "cases" / case["id"]
         shutil.rmtree(d, ignore_errors=True)
         d.mkdir(parents=True)
+        if case["kind"].endswith("(unprivileged)"):
+            why = unprivileged.disk_unavailable() if case["id"].startswith("disk_") else unprivileged.unavailable()
+            why = why or unprivileged.cannot_read(work)
+            if why is not None:
+                skipped.append({"id": case["id"], "reason": why})
+                print(f"skip {case['id']:40s} {why}", flush=True)
+                continue
         spec = case["prepare"](f, d)
         case = {**case, **{k: v for k, v in spec.items() if k in ("may_add", "may_change")}}
         roots = [f["data"], f["run"], *[Path(x) for x in spec["protect"]]]
         before = snapshot(*roots)
         t0 = time.time()
         try:
-            proc = cli(spec["argv"], d, spec.get("env"), args.timeout)
+            proc = cli(spec["argv"], d, spec.get("env"), args.timeout, spec.get("nobody"))
         except subprocess.TimeoutExpired as err:
             proc = subprocess.CompletedProcess(err.cmd, 124, "", f"timeout after {args.timeout} s")
         after = snapshot(*roots)
@@ -577,10 +684,10 @@ def main(argv=None) -> int:
               f"{'' if rec['held'] else rec['stderr_tail'].splitlines()[-1] if rec['stderr_tail'] else ''}",
               flush=True)
     held = sum(r["held"] for r in results)
-    summary = {"held": held, "total": len(results), "cases": results}
+    summary = {"held": held, "total": len(results), "cases": results, "skipped": skipped}
     out = Path(args.summary) if args.summary else work / "summary.json"
     out.write_text(json.dumps(summary, indent=1))
-    print(f"{held} of {len(results)} held; {out}")
+    print(f"{held} of {len(results)} held" + (f", {len(skipped)} skipped" if skipped else "") + f"; {out}")
     return 0
 
 

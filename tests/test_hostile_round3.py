@@ -9,8 +9,10 @@ from __future__ import annotations
 import json
 import os
 import shutil
+import socket
 import subprocess
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -21,6 +23,7 @@ from jaxnerf_grid.cli import flags as cli_flags
 from jaxnerf_grid.cli import train as cli_train
 
 sys.path.insert(0, str(Path(__file__).parent))
+from killing import kill_when  # noqa: E402
 from test_bad_input import PAPER_MLP, SYNTH, TINY, assert_one_line_error, run_cli, snapshot  # noqa: E402
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -180,10 +183,34 @@ def test_negative_values_join_their_flag_as_argparse_reads_them():
     """`join_negative_values` against argparse's own `--flag=value` spelling."""
     parser = cli_train.build_parser()
     argv = ["--data", "d", "--set", "-1", "--max-side", "-3", "--steps", "-5", "--overwrite", "--out", "-x"]
-    joined = cli_flags.join_negative_values(parser, argv)
+    joined = cli_flags.join_negative_values(argv)
     assert joined == ["--data", "d", "--set=-1", "--max-side=-3", "--steps=-5", "--overwrite", "--out", "-x"]
     spelled = parser.parse_args(["--data", "d", "--set=-1", "--max-side=-3", "--steps=-5", "--overwrite"])
     assert vars(parser.parse_args(joined[:-2])) == vars(spelled)
+    assert cli_flags.join_negative_values(["--box=-1,2", "--", "--box", "-3,4"]) == ["--box=-1,2", "--", "--box",
+                                                                                      "-3,4"]
+
+
+def _one_value_or_none(action) -> bool:
+    """True for an option that takes exactly one value (store, append) or none (a switch, help)."""
+    return action.nargs is None or action.nargs == 0
+
+
+def test_every_option_takes_one_value_or_none():
+    """What `join_negative_values` relies on, reading argv only: no subcommand has an option of
+    several values (`nargs`) or a positional argument, so `--flag -3,4` always means
+    `--flag=-3,4`, and a switch given such a value stays an error."""
+    import importlib
+
+    for name, (module, _) in cli.SUBCOMMANDS.items():
+        parser = importlib.import_module(module).build_parser()
+        actions = parser._actions  # the test may read argparse's internals; the library does not
+        assert all(a.option_strings for a in actions), (name, "a positional argument")
+        assert all(_one_value_or_none(a) for a in actions), (name, [a.option_strings for a in actions
+                                                                    if not _one_value_or_none(a)])
+    parser = importlib.import_module("jaxnerf_grid.cli.render").build_parser()
+    with pytest.raises(SystemExit):  # a switch given a value: argparse's error, as before the join
+        parser.parse_args(cli_flags.join_negative_values(["--run", "r", "--quiet", "-3,4"]))
 
 
 def test_warnings_are_one_line_each(scene, tmp_path):
@@ -267,3 +294,223 @@ def test_bad_timeout_variables_are_named_in_a_single_process_run(scene, capsys, 
     rc, err = run_cli(argv, capsys)
     assert_one_line_error(rc, err, "JAXNERF_CONNECT_TIMEOUT", "soon")
     assert not (tmp_path / "r").exists()
+
+
+# --- process-wide side effects, scoped to the command line (issue 39) ---
+
+def _opencv_level() -> int:
+    import cv2
+
+    return cv2.utils.logging.getLogLevel()
+
+
+def test_the_command_line_restores_the_warning_format_and_opencv_log(scene, capfd, tmp_path):
+    """`cli.main` prints one-line warnings and quiets OpenCV's log only while it runs: after it
+    returns (an error, a success, argparse's SystemExit) both are what they were before."""
+    import warnings
+
+    import cv2
+
+    data = tmp_path / "data"
+    shutil.copytree(scene["data"], data)
+    raw = first_image(data).read_bytes()
+    first_image(data).write_bytes(raw[: len(raw) * 2 // 5])
+    mine = lambda message, *_: f"mine: {message}\n"  # noqa: E731
+    before_level, before_format = _opencv_level(), warnings.formatwarning
+    try:
+        cv2.utils.logging.setLogLevel(cv2.utils.logging.LOG_LEVEL_INFO)  # not OpenCV's default: seen restored
+        warnings.formatwarning = mine
+        capfd.readouterr()
+        rc = cli.main(["train", *PAPER_MLP, "--data", str(data), "--method", "nerf", "--config", str(scene["cfg"]),
+                       "--out", str(tmp_path / "r"), "--quiet"])
+        err = capfd.readouterr().err
+        assert_one_line_error(rc, err, str(first_image(data)))  # quiet inside: no "[ WARN" line from OpenCV
+        assert warnings.formatwarning is mine and _opencv_level() == cv2.utils.logging.LOG_LEVEL_INFO
+        assert cli.main(["recipes"]) == 0
+        assert warnings.formatwarning is mine and _opencv_level() == cv2.utils.logging.LOG_LEVEL_INFO
+        with pytest.raises(SystemExit):
+            cli.main(["render", "--frames"])
+        assert warnings.formatwarning is mine and _opencv_level() == cv2.utils.logging.LOG_LEVEL_INFO
+    finally:
+        warnings.formatwarning = before_format
+        cv2.utils.logging.setLogLevel(before_level)
+
+
+IMPORT_EVERYTHING = """
+import importlib, pkgutil, sys, warnings
+import cv2
+import numpy as np
+level, fmt = cv2.utils.logging.getLogLevel(), warnings.formatwarning
+import jaxnerf_grid
+for m in pkgutil.walk_packages(jaxnerf_grid.__path__, "jaxnerf_grid."):
+    if not m.name.endswith("__main__"):
+        importlib.import_module(m.name)
+from jaxnerf_grid import io
+try:
+    io.read_image(sys.argv[1])
+except io.DataError:
+    pass
+io.resize(np.zeros((4, 4), np.float32), (2, 2))
+assert cv2.utils.logging.getLogLevel() == level, (level, cv2.utils.logging.getLogLevel())
+assert warnings.formatwarning is fmt
+print("unchanged", level)
+"""
+
+
+def test_the_library_leaves_the_warning_format_and_opencv_log_alone(scene, tmp_path):
+    """Importing every module of the package, and reading a corrupt image through `io`, changes
+    neither `warnings.formatwarning` nor OpenCV's log level (a program using the library keeps
+    its own); OpenCV's warning about the corrupt image then reaches stderr, as OpenCV prints it."""
+    bad = tmp_path / "bad.png"
+    raw = first_image(scene["data"]).read_bytes()
+    bad.write_bytes(raw[: len(raw) * 2 // 5])
+    done = subprocess.run([sys.executable, "-c", IMPORT_EVERYTHING, str(bad)], capture_output=True, text=True,
+                          timeout=300, cwd=ROOT, env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
+    assert done.returncode == 0 and "unchanged" in done.stdout, done.stderr[-2000:]
+    assert "WARN" in done.stderr and "grfmt_png" in done.stderr, done.stderr[-2000:]
+
+
+# --- render --orbit killed mid-video (issue 39) ---
+
+VIDEO = ["--orbit", "--frames", "4", "--width", "16", "--quiet"]
+
+
+def _slow_video_child(run: str, out: str, pause: str) -> None:
+    """`render --orbit` with a pause after each frame written, so the parent can kill it while
+    its staging files exist."""
+    from jaxnerf_grid import videos
+
+    real = videos.open_writer
+
+    class Slow:
+        def __init__(self, writer):
+            self.writer = writer
+
+        def write(self, frame):
+            self.writer.write(frame)
+            time.sleep(float(pause))
+
+        def release(self):
+            self.writer.release()
+
+    videos.open_writer = lambda *args, **kwargs: Slow(real(*args, **kwargs))
+    sys.exit(cli.main(["render", "--run", run, "--out", out, *VIDEO]))
+
+
+def _frames(path: Path) -> np.ndarray:
+    import cv2
+
+    cap, frames = cv2.VideoCapture(str(path)), []
+    while True:
+        ok, frame = cap.read()
+        if not ok:
+            break
+        frames.append(frame)
+    cap.release()
+    return np.asarray(frames)
+
+
+def test_killed_video_leaves_a_partial_the_next_render_removes(scene, tmp_path):
+    """kill -9 of `render --orbit` while it writes left `.orbit.partial.mp4` that nothing removed.
+    The next render to the same --out removes its own leftovers (a dead process's staging files)
+    and nothing else: the user's files, a file of a similar name, a live render's staging file
+    and another host's stay byte for byte; the videos are those of an uninterrupted render."""
+    from jaxnerf_grid import videos
+
+    ref = tmp_path / "ref"
+    assert cli.main(["render", "--run", str(scene["run"]), "--out", str(ref / "orbit"), *VIDEO]) == 0
+    folder = tmp_path / "videos"
+    folder.mkdir()
+    (folder / "notes.txt").write_text("the client's notes")
+    (folder / ".orbit.partial.keep.txt").write_text("not a video")
+    (folder / "orbit.mp4.bak").write_bytes(b"an older video the user kept")
+    (folder / f".orbit.partial.elsewhere.{os.getpid()}.mp4").write_bytes(b"another host's render")
+    live = folder / f".orbit_depth.partial.{socket.gethostname()}.{os.getppid()}.mp4"
+    live.write_bytes(b"a render still running here")
+    users = snapshot(folder)
+    run_before = snapshot(scene["run"])
+
+    def partials() -> list:
+        """The child's colour staging files that hold frames (none while it starts up)."""
+        found = []
+        for p in folder.iterdir():
+            try:
+                if (p.name.startswith(".orbit.partial.") and p.name.endswith(".mp4") and "elsewhere" not in p.name
+                        and p.stat().st_size > 0):
+                    found.append(p)
+            except FileNotFoundError:  # renamed between the listing and the stat
+                pass
+        return found
+
+    kill_when([__file__, "video", str(scene["run"]), str(folder / "orbit"), "0.5"], timeout=180,
+              ready=lambda: bool(partials()))
+    assert partials() and not (folder / "orbit.mp4").exists()  # it really died mid-video
+    assert cli.main(["render", "--run", str(scene["run"]), "--out", str(folder / "orbit"), *VIDEO]) == 0
+    assert snapshot(folder / "notes.txt", folder / ".orbit.partial.keep.txt", folder / "orbit.mp4.bak",
+                    folder / f".orbit.partial.elsewhere.{os.getpid()}.mp4", live) == users
+    assert sorted(p.name for p in folder.iterdir()) == sorted([*(Path(k).name for k in users), "orbit.mp4",
+                                                               "orbit_depth.mp4"])
+    for name in ("orbit.mp4", "orbit_depth.mp4"):
+        np.testing.assert_array_equal(_frames(folder / name), _frames(ref / name))
+        assert len(_frames(folder / name)) == 4
+    assert snapshot(scene["run"]) == run_before
+    assert videos.stale_partials(folder / "orbit.mp4") == []
+
+
+def test_stale_partials_are_only_a_dead_renders_own(tmp_path):
+    """`videos.stale_partials` against the processes it names: a finished child's id is stale, the
+    test's parent (running) and another host's are not, nor any other name."""
+    from jaxnerf_grid import videos
+
+    dead = subprocess.Popen([sys.executable, "-c", "pass"])
+    dead.wait()
+    host = socket.gethostname()
+    names = {f".orbit.partial.{host}.{dead.pid}.mp4": True, ".orbit.partial.mp4": True,
+             f".orbit.partial.{host}.{os.getppid()}.mp4": False, f".orbit.partial.other-host.{dead.pid}.mp4": False,
+             f".orbit_depth.partial.{host}.{dead.pid}.mp4": False, f"orbit.partial.{host}.{dead.pid}.mp4": False,
+             f".orbit.partial.{host}.{dead.pid}.mp4.txt": False, "orbit.mp4": False}
+    for name in names:
+        (tmp_path / name).write_bytes(b"x")
+    (tmp_path / f".orbit.partial.{host}.{dead.pid + 1000000}").mkdir()
+    stale = {p.name for p in videos.stale_partials(tmp_path / "orbit.mp4")}
+    assert stale == {name for name, is_stale in names.items() if is_stale}
+    assert videos.stale_partials(tmp_path / "missing" / "orbit.mp4") == []
+
+
+if __name__ == "__main__":
+    if sys.argv[1] == "video":
+        _slow_video_child(*sys.argv[2:])
+
+
+def test_a_video_opencv_could_not_finish_is_refused_not_renamed(tmp_path, monkeypatch):
+    """OpenCV's VideoWriter drops frames it cannot write (a full disk) without a word: the video
+    is read back before it is renamed (`videos.check_written`); the error names the video, an
+    earlier one stays, no staging file is left. The writer here stops writing after 2 frames."""
+    from jaxnerf_grid import progress, videos
+
+    video, depth = tmp_path / "orbit.mp4", tmp_path / "orbit_depth.mp4"
+    video.write_bytes(b"the earlier video")
+    real = videos.open_writer
+
+    class Dropping:
+        def __init__(self, writer):
+            self.writer, self.count = writer, 0
+
+        def write(self, frame):
+            self.count += 1
+            if self.count <= 2:
+                self.writer.write(frame)
+
+        def release(self):
+            self.writer.release()
+
+    monkeypatch.setattr(videos, "open_writer", lambda *a, **kw: Dropping(real(*a, **kw)))
+    render = lambda k: {"rgb": np.full((6, 8, 3), 0.1 * k), "depth": np.full((6, 8), 2.0 + k)}  # noqa: E731
+    with pytest.raises(io.DataError, match=r"orbit.mp4: cannot write \(2 of 4 frames could be read back"):
+        videos.write_videos(video, depth, [(k,) for k in range(4)], render, 5.0, 8, 6, progress.bar(enabled=False))
+    assert video.read_bytes() == b"the earlier video"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["orbit.mp4"]
+    monkeypatch.setattr(videos, "open_writer", real)
+    assert videos.write_videos(video, depth, [(k,) for k in range(4)], render, 5.0, 8, 6,
+                               progress.bar(enabled=False)) == 4
+    assert len(_frames(video)) == 4 and len(_frames(depth)) == 4

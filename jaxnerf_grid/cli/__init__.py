@@ -8,16 +8,18 @@ Nothing else in the package imports a cli module.
 Errors of type `DataError` / `ConfigError` are printed as one line, never as a traceback, with
 the library's keys turned into the subcommand's flags (`cli/flags.py`: `export.box` -> `--box`); so
 are OS errors (a read-only folder, a full disk, a path that is a file): `error: PATH: reason`.
-A warning is one line too (`jaxnerf-grid NAME: warning: ...`, no source line). A flag's value that
+A warning is one line too (`jaxnerf-grid NAME: warning: ...`, no source line) and OpenCV's own log
+shows errors only, both only while `main` runs (`one_line_warnings`, `io.quiet_opencv`: restored
+after, also on an error). A flag's value that
 begins with a minus sign (`--box -30,-30,0,30,30,40`) is taken as that value, not as a flag
 (`flags.join_negative_values`).
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import sys
-
 import warnings
 
 from jaxnerf_grid.cli.flags import join_negative_values, to_flags
@@ -57,20 +59,32 @@ def main(argv: list[str] | None = None) -> int:
         return 2
     module = importlib.import_module(SUBCOMMANDS[name][0])
     entry = module.main
-    if hasattr(module, "build_parser"):
-        rest = join_negative_values(module.build_parser(), rest)
-    warnings.formatwarning = lambda message, *_: f"jaxnerf-grid {name}: warning: {message}\n"
-    from jaxnerf_grid.io import DataError  # after the subcommand: `jaxnerf-grid --help` loads no NumPy
+    rest = join_negative_values(rest)
+    from jaxnerf_grid.io import DataError, quiet_opencv  # after the subcommand: `--help` loads no NumPy
     from jaxnerf_grid.config import ConfigError
 
+    with one_line_warnings(name), quiet_opencv():
+        try:
+            return int(entry(rest) or 0)
+        except (DataError, ConfigError) as err:
+            print(f"jaxnerf-grid {name}: error: {to_flags(name, str(err))}", file=sys.stderr)
+            return 1
+        except OSError as err:  # read-only folder, full disk (ENOSPC), a file where a folder should be
+            print(f"jaxnerf-grid {name}: error: {os_error_line(err)}", file=sys.stderr)
+            return 1
+        except KeyboardInterrupt:
+            print(f"jaxnerf-grid {name}: interrupted", file=sys.stderr)
+            return 130
+
+
+@contextlib.contextmanager
+def one_line_warnings(name: str):
+    """Inside the block, a Python warning prints as one line, `jaxnerf-grid NAME: warning: ...`,
+    without its source line; after it (also on an error or SystemExit) `warnings.formatwarning`
+    is what it was, so a program that calls `main` keeps its own format."""
+    previous = warnings.formatwarning
+    warnings.formatwarning = lambda message, *_: f"jaxnerf-grid {name}: warning: {message}\n"
     try:
-        return int(entry(rest) or 0)
-    except (DataError, ConfigError) as err:
-        print(f"jaxnerf-grid {name}: error: {to_flags(name, str(err))}", file=sys.stderr)
-        return 1
-    except OSError as err:  # read-only folder, full disk (ENOSPC), a file where a folder should be
-        print(f"jaxnerf-grid {name}: error: {os_error_line(err)}", file=sys.stderr)
-        return 1
-    except KeyboardInterrupt:
-        print(f"jaxnerf-grid {name}: interrupted", file=sys.stderr)
-        return 130
+        yield
+    finally:
+        warnings.formatwarning = previous

@@ -816,6 +816,8 @@ def check_out(out: Path, overwrite: bool) -> None:
     a symbolic link among its outputs refused)."""
     if out.is_file():
         raise DataError(f"{out}: is a file; poses.out must be a folder")
+    folders.check_folder(out, "poses.out")  # this user may write it (or make it), before COLMAP runs
+    folders.check_folder(out.parent, "poses.out")  # and the staging folder beside it
     if folders.is_empty(out):
         return
     if not overwrite:

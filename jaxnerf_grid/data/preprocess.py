@@ -15,7 +15,8 @@ EXIF orientation of JPEGs is honoured (the written PNGs carry the rotated pixels
 Input: a plain folder of images (written to `out/images/`, with `out/preprocess.json`), any
 dataset `formats.load_dataset` understands (written as a transforms.json dataset with
 per-frame intrinsics, extras resized alongside), or an in-memory `Dataset`. Nothing is
-overwritten without `overwrite=True` (`--overwrite`).
+overwritten without `overwrite=True` (`--overwrite`), and that clears only a folder preprocess
+wrote (the marker rule, docs/RELIABILITY.md).
 
 CLI: `python -m jaxnerf_grid.data.preprocess SRC OUT [--size W H | --long-side N] [--clahe]
 [--normalize] [--overwrite]`.
@@ -29,9 +30,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io, progress
+from jaxnerf_grid import folders, io, progress
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.data.formats.writing import DATASET_OUTPUTS
 from jaxnerf_grid.io import DataError
 
 
@@ -98,33 +100,68 @@ def _list_images(folder: Path) -> list[Path]:
     return files
 
 
+# What preprocessing writes into its folder, so what its overwrite=True clears in a folder holding its
+# marker (folders.MARKERS["preprocess"]): preprocess.json and images/ (a folder of images), or a
+# transforms.json dataset's outputs (formats.writing.DATASET_OUTPUTS).
+OUTPUTS = ("preprocess.json", *DATASET_OUTPUTS)
+
+
+def _is_older_preprocess(out: Path) -> bool:
+    """Whether `out` holds the output of a preprocess run from before the marker: a
+    preprocess.json, or a transforms.json whose top level has a "preprocess" record."""
+    if (out / "preprocess.json").is_file():
+        return True
+    try:
+        meta = io.read_json(out / "transforms.json")
+    except DataError:
+        return False
+    return isinstance(meta, dict) and isinstance(meta.get("preprocess"), dict)
+
+
+def _read_source(src, out: Path, load_extras: bool, loader_kwargs: dict) -> tuple[str, object]:
+    """("dataset", the Dataset), ("scene", a dataset's `formats.Scene`) or ("images", the image
+    files) of `src`, read and checked before anything is written. DataError when `src` is none
+    of them, or when it and `out` lie one inside the other (overwrite=True would clear the
+    source, or the outputs would be added to it)."""
+    if isinstance(src, Dataset):
+        return "dataset", src
+    src = Path(src)
+    folders.check_outside(out, src, "preprocess.out")
+    if folders.inside(src, out):
+        raise DataError(f"{src}: the source lies inside preprocess.out {out}; choose an output folder outside it")
+    try:
+        formats.detect_format(src)
+    except DataError:
+        if not src.is_dir():
+            raise DataError(f"{src}: not a folder of images nor a dataset") from None
+        return "images", _list_images(src)
+    return "scene", formats.collect_scene(src, load_extras=load_extras, **loader_kwargs)
+
+
 def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize: bool = False,
                       clahe_clip: float = 2.0, clahe_grid: int = 8, overwrite: bool = False,
                       load_extras: bool = True, **loader_kwargs) -> Path:
     """Uniform preprocessing of a folder of images or of a dataset (see module docstring).
 
-    src: a folder of images, a dataset path, or a `Dataset`; out_dir: the output folder
-    (refused when it exists and is not empty, unless `overwrite`); size: (W, H), an int long
-    side, or None (keep each dataset's first image size). Returns `out_dir` as a Path.
+    src: a folder of images, a dataset path, or a `Dataset`; out_dir: the output folder, under
+    the marker rule (`folders.prepare_output`, docs/RELIABILITY.md): refused when it exists and
+    is not empty, unless `overwrite`, which clears only a folder preprocess wrote (its marker, or
+    an older run's preprocess record) and in it only OUTPUTS, after the source is read and
+    checked; size: (W, H), an int long side, or None (keep each dataset's first image size).
+    Returns `out_dir` as a Path.
     """
-    out = io.ensure_writable(out_dir, overwrite)
+    out = Path(out_dir)
+    legacy = _is_older_preprocess(out)
+    folders.check_output(out, "preprocess", OUTPUTS, "preprocess.out", overwrite, legacy)  # before reading
     opts = dict(clahe=clahe, normalize=normalize, clahe_clip=clahe_clip, clahe_grid=clahe_grid)
     record = {"size": list(size) if isinstance(size, (tuple, list)) else size, **opts}
-    if isinstance(src, Dataset):
-        return _preprocess_dataset(src, out, size, opts)
-    src = Path(src)
-    try:
-        formats.detect_format(src)
-        is_dataset = True
-    except DataError:
-        is_dataset = False
-    if is_dataset:
-        scene = formats.collect_scene(src, load_extras=load_extras, **loader_kwargs)
-        return _preprocess_scene(scene, out, size, opts, load_extras)
-    if not src.is_dir():
-        raise DataError(f"{src}: not a folder of images nor a dataset")
-    files = _list_images(src)
-    out.mkdir(parents=True, exist_ok=True)
+    kind, source = _read_source(src, out, load_extras, loader_kwargs)
+    folders.prepare_output(out, "preprocess", OUTPUTS, "preprocess.out", overwrite, legacy)
+    if kind == "dataset":
+        return _preprocess_dataset(source, out, size, opts)
+    if kind == "scene":
+        return _preprocess_scene(source, out, size, opts, load_extras)
+    files = source
     common, entries = None, []
     for path in progress.bar(files, desc="preprocessing", unit="image", enabled=len(files) >= 16, leave=False):
         img = io.read_image(path)  # EXIF orientation honoured
@@ -186,7 +223,7 @@ def _preprocess_dataset(ds: Dataset, out: Path, size, opts: dict) -> Path:
     new = dataclasses.replace(
         ds, images=np.stack([enhance(io.resize(a, common, "area"), **opts) for a in ds.images]),
         intrinsics=formats.scale_intrinsics(ds.intrinsics, sx, sy).astype(np.float32), **resized)
-    formats.save_transforms_json(new, out, overwrite=True)
+    formats.write_transforms_json(new, out)  # into the folder preprocess_images prepared
     return out
 
 

@@ -54,7 +54,8 @@ from jaxnerf_grid.data.formats.frames import (BLENDER_FAR, BLENDER_NEAR, CV_TO_G
                                               undistort_maps, validate_c2w, working_dataset)
 from jaxnerf_grid.data.formats.llff import collect_llff, llff_to_c2w_gl, load_llff
 from jaxnerf_grid.data.formats.transforms_json import collect_transforms_json, load_transforms_json
-from jaxnerf_grid.data.formats.writing import save_transforms_json, split_names, transforms_top, write_frame
+from jaxnerf_grid.data.formats.writing import (save_transforms_json, split_names, transforms_top, write_frame,
+                                               write_transforms_json)
 from jaxnerf_grid.io import DataError
 
 __all__ = ["BLENDER_FAR", "BLENDER_NEAR", "collect_blender", "collect_colmap", "collect_llff",
@@ -63,7 +64,8 @@ __all__ = ["BLENDER_FAR", "BLENDER_NEAR", "collect_blender", "collect_colmap", "
            "IMAGE_EXTENSIONS", "llff_to_c2w_gl", "load_blender", "load_colmap", "load_dataset", "load_llff",
            "load_transforms_json", "min_ray_cosine", "read_frame", "read_rgb", "resize_frame",
            "save_transforms_json", "scale_intrinsics", "Scene", "scene_to_dataset", "SEMANTIC_UNKNOWN",
-           "split_names", "transforms_top", "undistort_maps", "validate_c2w", "working_dataset", "write_frame"]
+           "split_names", "transforms_top", "undistort_maps", "validate_c2w", "working_dataset", "write_frame",
+           "write_transforms_json"]
 
 
 def detect_format(path) -> str:

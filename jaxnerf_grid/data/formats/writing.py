@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid import folders, io
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.data.normalize import normalization_record
 from jaxnerf_grid.data.formats.frames import EXTRAS
@@ -16,6 +16,13 @@ from jaxnerf_grid.data.formats.frames import EXTRAS
 # dataset's layout, named here so that the data layer (data/poses.py clears them when it
 # replaces the photos) does not import `masking`.
 MASK_OUTPUT_DIRS = ("masks", "weights", "dpt_depth", "overlays")
+
+# What `save_transforms_json` writes into its folder, so what its overwrite=True clears in a folder
+# holding its marker (folders.MARKERS["dataset"]): transforms.json, images/, the extras' folders
+# and the mask outputs made from the photos it replaces. A tower PLY (`transforms_top`) is
+# replaced by name.
+DATASET_OUTPUTS = ("transforms.json", "images", *dict.fromkeys(extra.folder for extra in EXTRAS.values()),
+                   *MASK_OUTPUT_DIRS)
 
 
 def write_frame(out_dir, stem: str, image: np.ndarray, intrinsics, c2w, split: str | None = None,
@@ -86,10 +93,20 @@ def split_names(split: dict, num_frames: int) -> list:
 def save_transforms_json(ds: Dataset, out_dir, *, overwrite: bool = False) -> Path:
     """Writes `ds` as a transforms.json dataset (docs/DATASET.md) under `out_dir`.
 
-    Images and masks as 8-bit PNG, weights / depth as EXR, per-frame intrinsics. Refuses a
-    non-empty `out_dir` unless `overwrite`. Returns the path of transforms.json.
+    Images and masks as 8-bit PNG, weights / depth as EXR, per-frame intrinsics. The marker rule
+    (`folders.prepare_output`, docs/RELIABILITY.md): a non-empty `out_dir` is refused unless
+    `overwrite`, which clears only a folder holding this writer's marker, and in it only
+    DATASET_OUTPUTS (a user's other files stay). Returns the path of transforms.json.
     """
-    out = io.ensure_writable(out_dir, overwrite)
+    out = folders.prepare_output(out_dir, "dataset", DATASET_OUTPUTS, "dataset.out_dir", overwrite)
+    return write_transforms_json(ds, out)
+
+
+def write_transforms_json(ds: Dataset, out_dir) -> Path:
+    """Writes `ds`'s files and transforms.json into `out_dir` (made if missing), with no check:
+    the caller owns the folder (`save_transforms_json`, `data.preprocess`). Returns the path of
+    transforms.json."""
+    out = Path(out_dir)
     out.mkdir(parents=True, exist_ok=True)
     names = split_names(ds.split, ds.num_frames)
     frames = []
