@@ -211,3 +211,28 @@ def test_the_frame_renderer_renders_what_eval_renders_with_one_compile(tiny_run,
         np.testing.assert_allclose(got["rgb"], want["rgb"], atol=1e-4)
         np.testing.assert_allclose(got["depth"], want["depth"], rtol=1e-3, atol=1e-4)
     assert len(traces) == 1                                   # one trace (one compile) for the three frames
+
+
+def test_load_params_reads_the_checkpoint_without_drawing_parameters(tiny_run, monkeypatch):
+    """`train.load_params` returns the newest checkpoint's parameters, bit for bit as restored
+    into a concretely drawn `init_state` (the reference), with an abstract template: `models.init`
+    only traced (its leaves tracers: nothing drawn, nothing compiled for it)."""
+    import jax
+
+    from jaxnerf_grid import checkpoint, config as config_lib, models, runs, train
+
+    cfg, data = runs.load_run(tiny_run)
+    ds = runs.load_dataset(data, progress=False)
+    concrete = train.init_state(config_lib.resolve(cfg, ds, bounds=False), train.train_frames_shape(ds))
+    want, want_step = checkpoint.restore_latest(tiny_run, concrete)
+    drawn = []
+    real = models.init
+    monkeypatch.setattr(models, "init", lambda *a: drawn.append(real(*a)) or drawn[-1])
+    params, step = train.load_params(tiny_run, cfg, ds)
+    assert step == want_step and drawn
+    assert all(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(drawn))
+    got, ref = jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(want["params"])
+    assert jax.tree_util.tree_structure(params) == jax.tree_util.tree_structure(want["params"])
+    for a, b in zip(got, ref):
+        assert type(a) is type(b) and a.dtype == b.dtype
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
