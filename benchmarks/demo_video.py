@@ -18,7 +18,8 @@ frame so that both see the same load: seconds (wall and this process's CPU), the
 PSNR of the new frame against the old (colour; depth as the largest relative difference). Last,
 `jaxnerf-grid render --run RUN --orbit --frames F --width W` in a fresh process (import, dataset,
 checkpoint, compile, frames, both videos), timed from outside, with the load average before and
-after.
+after. First of all, `time_checkpoint_load`: reading the parameters with an abstract template
+(`train.load_params`) against one drawn by `train.init_state`.
 """
 
 from __future__ import annotations
@@ -27,6 +28,7 @@ import argparse
 import math
 import os
 import platform
+import resource
 import subprocess
 import sys
 import time
@@ -34,7 +36,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import config as config_lib, demo, io, metrics, rays as rays_lib, runs, train, views, videos
+from jaxnerf_grid import (checkpoint, config as config_lib, demo, io, metrics, rays as rays_lib, runs, train, views,
+                          videos)
 from jaxnerf_grid.run_config import resolve_devices
 
 
@@ -113,16 +116,37 @@ def compare_renderers(run: Path, frames: int, width: int, every: int) -> dict:
     return out
 
 
+def time_checkpoint_load(run: Path) -> dict:
+    """Seconds to read the run's parameters: `train.load_params` (an abstract template) and the
+    same restore into a template drawn by `train.init_state` (what load_params did before: its
+    random draws compile first): {"abstract_s", "drawn_s"}."""
+    cfg, _, ds = runs.load_run_and_dataset(run, progress=False)
+    t = time.perf_counter()
+    train.load_params(run, cfg, ds)
+    out = {"abstract_s": round(time.perf_counter() - t, 2)}
+    t = time.perf_counter()
+    checkpoint.restore_latest(run, train.init_state(config_lib.resolve(cfg, ds, bounds=False),
+                                                    train.train_frames_shape(ds)))
+    out["drawn_s"] = round(time.perf_counter() - t, 2)
+    return out
+
+
 def time_fresh_orbit(run: Path, frames: int, width: int) -> dict:
     """`jaxnerf-grid render --run RUN --orbit --frames F --width W --quiet` in a fresh process:
-    {"frames", "width", "seconds" (wall, everything included), "load_before", "load_after"}."""
+    {"frames", "width", "seconds" (wall, everything included), "cpu_seconds" (the process's user +
+    system time: on an idle machine of c cores the wall time is at least cpu_seconds / c),
+    "load_before", "load_after"}."""
     before = load()
     t = time.perf_counter()
+    used = resource.getrusage(resource.RUSAGE_CHILDREN)
     subprocess.run([sys.executable, "-m", "jaxnerf_grid", "render", "--run", str(run), "--orbit", "--frames",
                     str(frames), "--width", str(width), "--out", str(run / "videos" / f"bench_orbit_{frames}_{width}"),
                     "--quiet"], check=True)
-    return {"frames": frames, "width": width, "seconds": round(time.perf_counter() - t, 1), "load_before": before,
-            "load_after": load()}
+    seconds = time.perf_counter() - t
+    after = resource.getrusage(resource.RUSAGE_CHILDREN)
+    cpu = after.ru_utime + after.ru_stime - used.ru_utime - used.ru_stime
+    return {"frames": frames, "width": width, "seconds": round(seconds, 1), "cpu_seconds": round(cpu, 1),
+            "load_before": before, "load_after": load()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -134,8 +158,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--out", default="benchmarks/results/demo_video.json")
     args = p.parse_args(argv)
     load_start = load()
+    checkpoint_s = time_checkpoint_load(Path(args.run))        # first: before anything compiles init's draws
     result = time_videos(Path(args.run), [parse_size(s) for s in args.sizes])
     result["load_before"] = load_start
+    result["checkpoint_load"] = checkpoint_s
     frames, width = parse_size(args.orbit)
     result["renderers"] = compare_renderers(Path(args.run), frames, width, args.compare_every)
     result["fresh_orbit"] = time_fresh_orbit(Path(args.run), frames, width)
@@ -150,9 +176,11 @@ def main(argv: list[str] | None = None) -> int:
           f"(CPU {c['cpu_ratio']}x); first frames {c['old_first_s']} / {c['new_first_s']} s; PSNR new vs old min "
           f"{c['psnr_min']} dB, depth rel. diff <= {c['depth_max_rel_diff']}; load {c['load_before']} -> "
           f"{c['load_after']}")
+    print(f"reading the parameters: {checkpoint_s['abstract_s']} s (abstract template), {checkpoint_s['drawn_s']} s "
+          "(drawn template, its compiles included)")
     f = result["fresh_orbit"]
     print(f"render --orbit --frames {f['frames']} --width {f['width']} in a fresh process: {f['seconds']} s "
-          f"(load {f['load_before']} -> {f['load_after']})")
+          f"({f['cpu_seconds']} s CPU; load {f['load_before']} -> {f['load_after']})")
     print(f"load average before: {result['load_before']}, after: {result['load_average']}")
     io.write_json(Path(args.out), result)
     return 0
