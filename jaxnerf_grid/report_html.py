@@ -4,9 +4,9 @@ What it holds: the metrics tables (metrics.json), the test views beside the grou
 depth (PNG, base64; each a thumbnail that opens full size on a click), and an interactive 3-D view
 (plotly, its JavaScript embedded from the Python package, `include_plotlyjs=True`): the tower
 cloud, the export's mesh where there is one, the training cameras as small frusta, the fitted
-ground plane and the measurements (height, cross-arm spans, the box). The measurements also sit
-in the page as JSON (`<script type="application/json" id="measurements">`) so that a reader (or a
-test) finds exactly the numbers the view draws.
+ground plane and the measurements (height, cross-arm spans where export measured them, the box).
+The measurements also sit in the page as JSON (`<script type="application/json"
+id="measurements">`) so that a reader (or a test) finds exactly the numbers the view draws.
 
 The 3-D view is in the export's units when the run has an export (its PLY files, the cameras
 moved by the dataset's normalisation undone), else in the normalised scene (the run's
@@ -123,8 +123,9 @@ def ground_patch(normal, offset: float, centre, half: float) -> np.ndarray:
 def measurement_lines(meas: dict) -> list[dict]:
     """What the 3-D view draws of measurements.json: [{"name", "value", "points" [2, 3]}] with
     "height" (from the box centre's foot on the ground along the normal) and one "cross-arm N"
-    per level (its span along the footprint's axis, centred on that vertical line at the level's
-    height). Empty without a ground plane."""
+    per level: between its recorded end points ("ends", `export.measure.cross_arms`); a file
+    written before export recorded them: its span along the footprint's axis, centred on that
+    vertical line at the level's height. Empty without a ground plane."""
     g = meas.get("ground")
     if not g or meas.get("height") is None:
         return []
@@ -136,19 +137,21 @@ def measurement_lines(meas: dict) -> list[dict]:
     for k, level in enumerate((meas.get("cross_arms") or {}).get("levels") or []):
         axis = np.asarray(fp.get("axis_a" if level["axis"] == "a" else "axis_b", [1.0, 0, 0]), np.float64)
         mid = foot + level["height"] * n
+        ends = level.get("ends") or [mid - 0.5 * level["span"] * axis, mid + 0.5 * level["span"] * axis]
         out.append({"name": f"cross-arm {k + 1}", "value": float(level["span"]), "height": float(level["height"]),
-                    "points": np.stack([mid - 0.5 * level["span"] * axis, mid + 0.5 * level["span"] * axis])})
+                    "points": np.asarray(ends, np.float64)})
     return out
 
 
 def embedded_measurements(meas: dict | None) -> dict:
     """The JSON the page carries (id "measurements"): {"units", "height", "cross_arms" [{"height",
-    "span"}], "box" {"min", "max"}, "footprint" {"width_a", "width_b"}}; {} without an export."""
+    "span", "ends" (the end points [2, 3] drawn, when measurements.json has them)}], "box" {"min",
+    "max"}, "footprint" {"width_a", "width_b"}}; {} without an export."""
     if not meas:
         return {}
     fp = meas.get("footprint") or {}
     return {"units": meas.get("units"), "height": meas.get("height"),
-            "cross_arms": [{"height": a["height"], "span": a["span"]}
+            "cross_arms": [{"height": a["height"], "span": a["span"], **({"ends": a["ends"]} if "ends" in a else {})}
                            for a in (meas.get("cross_arms") or {}).get("levels") or []],
             "box": {"min": meas["box"]["min"], "max": meas["box"]["max"]},
             "footprint": {"width_a": fp.get("width_a"), "width_b": fp.get("width_b")} if fp else None}

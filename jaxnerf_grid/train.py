@@ -525,8 +525,12 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
 
 
 def load_params(run_dir, cfg: RunConfig, dataset: Dataset) -> tuple[dict, int]:
-    """Parameters of the newest checkpoint of a run of `cfg` on `dataset`. Returns (params, step)."""
-    template = init_state(config_lib.resolve(cfg, dataset, bounds=False), train_frames_shape(dataset))
+    """Parameters of the newest checkpoint of a run of `cfg` on `dataset`. Returns (params, step).
+    The checkpoint's template is abstract (`jax.eval_shape` of `init_state`): no parameters are
+    drawn and nothing is compiled for it (drawing them compiled about 50 small functions, seconds
+    before every render, eval and export)."""
+    template = jax.eval_shape(lambda: init_state(config_lib.resolve(cfg, dataset, bounds=False),
+                                                 train_frames_shape(dataset)))
     restored = checkpoint.restore_latest(run_dir, template)
     if restored is None:
         raise DataError(f"{Path(run_dir) / checkpoint.CHECKPOINT_DIR}: no checkpoint to load")

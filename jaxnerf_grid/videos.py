@@ -3,7 +3,7 @@
 A smooth orbit around the point the training cameras look at (`orbit_poses`: its height and
 radius the training cameras' mean, about their mean up axis) or a camera path in nerfstudio's
 camera-path JSON (`read_camera_path`, the subset documented in docs/VIDEOS.md), rendered frame by
-frame (`views.render_rays_chunked`) into two MP4 files written with OpenCV's VideoWriter (mp4v):
+frame (`views.frame_renderer`: one compiled call a frame) into two MP4 files written with OpenCV's VideoWriter (mp4v):
 the colour and the depth (inverse depth through the TURBO map, one range for every frame).
 """
 
@@ -212,19 +212,20 @@ def render_video(run_dir, path_file=None, frames: int = DEFAULT_FRAMES, fps: flo
     with io.naming_path(out.parent, "cannot create the folder"):
         out.parent.mkdir(parents=True, exist_ok=True)
     near, far = config_lib.near_far(cfg.model, ds)
-    render = lambda pose, fov: _render_frame(params, cfg, pose, fov, w, h, near, far)  # noqa: E731
+    renderer = views.frame_renderer(params, cfg.model, resolve_devices(cfg.train))
+    render = lambda pose, fov: _render_frame(renderer, pose, fov, w, h, near, far)  # noqa: E731
     frames_done = write_videos(video, depth_video, zip(poses, fovs), render, fps, w, h,
                                progress_lib.bar(total=len(poses), desc="render video", unit="frame",
                                                 enabled=progress))
     return {"video": video, "depth_video": depth_video, "frames": frames_done, "width": w, "height": h, "fps": fps}
 
 
-def _render_frame(params, cfg, pose: np.ndarray, fov: float, w: int, h: int, near: float, far: float) -> dict:
+def _render_frame(renderer, pose: np.ndarray, fov: float, w: int, h: int, near: float, far: float) -> dict:
     """One frame of camera `pose` [4, 4] with vertical field of view `fov` (degrees), w x h pixels:
-    {"rgb" [h, w, 3], "depth" [h, w], ...} (`views.render_rays_chunked`)."""
+    {"rgb" [h, w, 3], "depth" [h, w]} (`renderer`: a `views.frame_renderer`)."""
     focal = 0.5 * h / math.tan(math.radians(fov) / 2)
     r = rays_lib.generate_rays(jnp.asarray(pose, jnp.float32), focal, focal, w / 2, h / 2, w, h, near, far)
-    return views.render_rays_chunked(params, cfg.model, r, 0, None, cfg.train.chunk, resolve_devices(cfg.train))
+    return renderer(r)
 
 
 def partial_path(final: Path) -> Path:

@@ -68,6 +68,54 @@ def render_rays_chunked(params, mcfg: models.ModelConfig, r: rays_lib.Rays, imag
     return {k: np.concatenate([p[k] for p in pieces]).reshape(*shape, *pieces[0][k].shape[1:]) for k in pieces[0]}
 
 
+# Rays per step of `frame_renderer`'s loop: the intermediates of 128 rays (L x 8 corner rows and
+# weights of every sample) stay in the CPU's caches; measured in docs/VIDEOS.md ("Cost").
+FRAME_BLOCK = 128
+
+
+@functools.lru_cache(maxsize=8)
+def _render_frame_fn(mcfg: models.ModelConfig, num_devices: int, block: int):
+    """pmapped (params [n, ...], batch {origins, directions [n, R, 3], near, far, cos [n, R]}) ->
+    {"rgb" [n, R, 3], "depth" [n, R]}, R a multiple of `block`, rendered `block` rays at a time
+    (lax.map) inside one compiled call."""
+    def blocks(params, batch):
+        out = models.render_rays(params, mcfg, batch["origins"], batch["directions"], batch["near"], batch["far"],
+                                 None, jnp.zeros(batch["near"].shape, jnp.int32))
+        return {"rgb": models.static_rgb(out), "depth": out["final"]["median_depth"] * batch["cos"]}
+
+    def fn(params, batch):
+        split = jax.tree_util.tree_map(lambda x: x.reshape(-1, block, *x.shape[1:]), batch)
+        out = jax.lax.map(functools.partial(blocks, params), split)
+        return jax.tree_util.tree_map(lambda x: x.reshape(-1, *x.shape[2:]), out)
+
+    return jax.pmap(fn, devices=parallel.devices(num_devices))
+
+
+def frame_renderer(params, mcfg: models.ModelConfig, num_devices: int | None = None, block: int = FRAME_BLOCK):
+    """A renderer for many frames of one size (the videos): the parameters are copied onto the
+    devices once, and each call renders all of a frame's rays in one compiled call (one compile
+    for every frame of a shape), `block` rays at a time. Returns render(r: Rays [...]) ->
+    {"rgb" [..., 3], "depth" [...]} (NumPy, as `render_rays_chunked`'s, image 0's embedding,
+    equal to it up to float rounding: the order of XLA's arithmetic differs with the shapes)."""
+    n = num_devices or jax.local_device_count()
+    fn = _render_frame_fn(mcfg, n, block)
+    on_devices = parallel.replicate(params, n)
+
+    def render(r: rays_lib.Rays) -> dict:
+        shape = r.origins.shape[:-1]
+        count = int(np.prod(shape))
+        flat = {"origins": np.asarray(r.origins, np.float32).reshape(count, 3),
+                "directions": np.asarray(r.directions, np.float32).reshape(count, 3),
+                "near": np.asarray(r.near, np.float32).reshape(count),
+                "far": np.asarray(r.far, np.float32).reshape(count),
+                "cos": np.asarray(r.cos_to_axis, np.float32).reshape(count)}
+        padded = {k: parallel.pad_to_multiple(v, n * block)[0] for k, v in flat.items()}
+        out = parallel.unshard(jax.device_get(fn(on_devices, parallel.shard(padded, n))))
+        return {k: v[:count].reshape(*shape, *v.shape[1:]) for k, v in out.items()}
+
+    return render
+
+
 def camera_rays(dataset: Dataset, index: int, near: float, far: float) -> rays_lib.Rays:
     """Rays [H, W] of frame `index` of a dataset."""
     fx, fy, cx, cy = (float(v) for v in dataset.intrinsics[index])

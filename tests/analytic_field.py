@@ -167,9 +167,10 @@ def dataset(frames: int = 8, width: int = 40, height: int = 30):
 
 def clear_compiled() -> None:
     """Clears the compiled functions that may hold a field's apply (export's density, the views'
-    renderer): call before putting `apply` in place and after taking it away."""
+    renderers): call before putting `apply` in place and after taking it away."""
     from jaxnerf_grid import views
     from jaxnerf_grid.export import field as export_field
 
     export_field._compiled.cache_clear()
     views._render_chunk_fn.cache_clear()
+    views._render_frame_fn.cache_clear()

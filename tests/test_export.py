@@ -441,6 +441,25 @@ def test_footprint_and_cross_arms_of_a_synthetic_tower():
     assert arms["region"][0] == pytest.approx(16.7, abs=0.4)
 
 
+def test_cross_arm_ends_of_a_one_sided_arm_on_a_tilted_ground():
+    """An arm from y = -3 to y = 9 (off the body's axis x = y = 0, along the second axis) at
+    height 21 of a tower turned by R (the ground's normal R z): its recorded ends are R (0, -3, 21)
+    and R (0, 9, 21), not a span centred on the axis."""
+    rng = np.random.default_rng(8)
+    body = _synthetic_tower(rng)[:20000]
+    arm = np.column_stack([rng.uniform(-0.3, 0.3, 1500), rng.uniform(-3, 9, 1500), rng.uniform(20.7, 21.3, 1500)])
+    c, s = np.cos(0.3), np.sin(0.3)
+    rot = np.array([[1, 0, 0], [0, c, -s], [0, s, c]]) @ np.array([[c, -s, 0], [s, c, 0], [0, 0, 1]])
+    pts = np.concatenate([body, arm]) @ rot.T
+    arms = measure.cross_arms(pts, rot[:, 2], 0.0, rot[:, 0], rot[:, 1], slice_height=0.3)
+    (level,) = arms["levels"]
+    assert level["axis"] == "b" and level["span"] == pytest.approx(12.0, abs=0.1)
+    ends = np.asarray(level["ends"]) @ rot                          # back in the tower's frame
+    np.testing.assert_allclose(ends[:, :2], [[0, -3], [0, 9]], atol=0.1)
+    np.testing.assert_allclose(ends[:, 2], 21.0, atol=0.5)
+    assert np.linalg.norm(ends[1] - ends[0]) == pytest.approx(level["span"])
+
+
 def test_orthographic_views_draw_the_nearest_point():
     pts = np.array([[0.0, 0.0, 0.0], [0.0, -1.0, 0.0], [1.0, 1.0, 1.0], [-1.0, -1.0, -1.0], [0, 0, 0.5]])
     cols = np.array([[1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0], [0, 0, 1.0], [1.0, 1.0, 0]])

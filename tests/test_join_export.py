@@ -81,6 +81,33 @@ def test_ground_height_footprint_and_cross_arm_are_the_towers_in_metres(exported
     assert af.ARM_LOW - af.GROUND_Z - 2 * voxel <= arm["height"] <= af.ARM_HIGH - af.GROUND_Z + 2 * voxel
 
 
+def test_the_cross_arms_end_points_are_where_the_arm_is_and_the_page_carries_them(exported):
+    """measurements.json records the arm's two ends (metric frame): in the tower's frame within a
+    voxel of (cx -+ ARM_HALF_SPAN, cy) at the arm's height; report.html's data carry the same ends
+    and the 3-D view draws the arm between them (issue 42)."""
+    import json
+    import re
+
+    from jaxnerf_grid import report_html
+
+    meas, out, _ = exported
+    voxel = meas["voxel_size"]
+    levels = meas["cross_arms"]["levels"]
+    k = max(range(len(levels)), key=lambda i: levels[i]["span"])
+    ends = af.to_tower_frame(np.asarray(levels[k]["ends"]))
+    ends = ends[np.argsort(ends[:, 0])]
+    cx, cy = af.CENTRE
+    np.testing.assert_allclose(ends[:, 0], [cx - af.ARM_HALF_SPAN, cx + af.ARM_HALF_SPAN], atol=voxel)
+    np.testing.assert_allclose(ends[:, 1], cy, atol=voxel)
+    assert np.all((ends[:, 2] >= af.ARM_LOW - voxel) & (ends[:, 2] <= af.ARM_HIGH + voxel))
+    assert np.linalg.norm(ends[1] - ends[0]) == pytest.approx(levels[k]["span"])
+    text = (out.parent / "report.html").read_text()
+    shown = json.loads(re.search(r'id="measurements">(.*?)</script>', text, re.S).group(1))["measurements"]
+    assert [a["ends"] for a in shown["cross_arms"]] == [level["ends"] for level in levels]
+    drawn = {x["name"]: x["points"] for x in report_html.measurement_lines(meas)}
+    np.testing.assert_allclose(drawn[f"cross-arm {k + 1}"], levels[k]["ends"])
+
+
 def test_mesh_and_fused_points_lie_on_the_analytic_surface_in_metres(exported):
     meas, out, _ = exported
     voxel = meas["voxel_size"]

@@ -117,14 +117,19 @@ def test_the_first_view_is_a_cube_around_the_model():
 # --------------------------------------------------------------------------- the measurements drawn
 
 
+# cross-arm 1 from x = -2 to 10 m (off the box's vertical axis, x = 0) at 20 m above the plane
+# 0.6 y + 0.8 z + 1.5 = 0: y = 0, z = 23.125
+ARM_ENDS = [[-2.0, 0.0, 23.125], [10.0, 0.0, 23.125]]
+
+
 def _export_folder(folder: Path) -> dict:
     """An export folder with a known measurements.json, a small mesh and a cloud (metres)."""
     n = np.array([0.0, 0.6, 0.8])
     meas = {"units": "metres", "height": 30.0, "box": {"min": [-5.0, -5.0, -2.0], "max": [5.0, 5.0, 30.0]},
             "ground": {"normal": n.tolist(), "offset": 1.5},
             "footprint": {"width_a": 6.0, "width_b": 4.0, "axis_a": [1.0, 0.0, 0.0], "axis_b": [0.0, 0.8, -0.6]},
-            "cross_arms": {"levels": [{"height": 20.0, "span": 12.0, "axis": "a"},
-                                      {"height": 26.0, "span": 8.0, "axis": "b"}]}}
+            "cross_arms": {"levels": [{"height": 20.0, "span": 12.0, "axis": "a", "ends": ARM_ENDS},
+                                      {"height": 26.0, "span": 8.0, "axis": "b"}]}}   # written before "ends"
     folder.mkdir(parents=True)
     io.write_json(folder / "measurements.json", meas)
     verts = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [0, 0, 1]], np.float32) * 10
@@ -147,6 +152,7 @@ def test_the_page_carries_and_draws_the_measurements_of_measurements_json(tmp_pa
     assert shown["height"] == saved["height"] == 30.0 and shown["units"] == "metres"
     assert shown["box"] == {"min": saved["box"]["min"], "max": saved["box"]["max"]}
     assert [(a["height"], a["span"]) for a in shown["cross_arms"]] == [(20.0, 12.0), (26.0, 8.0)]
+    assert shown["cross_arms"][0]["ends"] == ARM_ENDS and "ends" not in shown["cross_arms"][1]
     assert "height: 30.00 m" in text and "cross-arm 1: 12.00 m" in text
     # the lines drawn: the height from the ground along the normal, the spans at their heights
     n, d = np.array(meas["ground"]["normal"]), meas["ground"]["offset"]
@@ -158,6 +164,9 @@ def test_the_page_carries_and_draws_the_measurements_of_measurements_json(tmp_pa
         assert np.linalg.norm(b - a) == pytest.approx(span)
         np.testing.assert_allclose([a @ n + d, b @ n + d], [h, h], atol=1e-9)
         np.testing.assert_allclose(np.cross(b - a, axis), 0, atol=1e-9)
+    # cross-arm 1 between its recorded ends; cross-arm 2 (no ends) centred on the box's vertical line
+    np.testing.assert_allclose(lines["cross-arm 1"]["points"], ARM_ENDS)
+    np.testing.assert_allclose(np.mean(lines["cross-arm 2"]["points"], axis=0), foot + 26.0 * n, atol=1e-9)
 
 
 # --------------------------------------------------------------------------- a tiny run's page

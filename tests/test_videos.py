@@ -132,18 +132,17 @@ def test_render_path_follows_the_given_cameras(tiny_run, tmp_path):
     assert np.mean(np.abs(frames[1] - still)) < 0.03          # mp4v's loss only
 
 
-def test_a_frame_has_the_rays_of_its_camera(tiny_run, monkeypatch):
+def test_a_frame_has_the_rays_of_its_camera(tiny_run):
     """`_render_frame` of a dataset camera's pose and vertical fov casts that camera's rays (the
-    renderer replaced by one that returns the ray directions)."""
+    renderer one that returns the ray directions)."""
     from jaxnerf_grid import runs, views
 
     cfg, data = runs.load_run(tiny_run)
     ds = runs.load_dataset(data, progress=False)
     i = int(ds.split["test"][0])
     fov = math.degrees(2 * math.atan(0.5 * ds.height / float(ds.intrinsics[i][1])))
-    monkeypatch.setattr(videos.views, "render_rays_chunked",
-                        lambda params, mcfg, r, *a: {"rgb": np.asarray(r.directions), "depth": np.asarray(r.near)})
-    got = videos._render_frame(None, cfg, np.asarray(ds.c2w[i]), fov, ds.width, ds.height, 1.0, 8.0)
+    echo = lambda r: {"rgb": np.asarray(r.directions), "depth": np.asarray(r.near)}  # noqa: E731
+    got = videos._render_frame(echo, np.asarray(ds.c2w[i]), fov, ds.width, ds.height, 1.0, 8.0)
     want = views.camera_rays(ds, i, 1.0, 8.0)
     np.testing.assert_allclose(got["rgb"], np.asarray(want.directions), atol=1e-5)
 
@@ -178,3 +177,62 @@ def test_a_failed_render_keeps_the_earlier_video_and_leaves_no_partial_file(tmp_
     assert videos.write_videos(video, depth, [(k,) for k in range(2)], render, 5.0, 8, 6,
                                progress.bar(enabled=False)) == 2
     assert _read_video(video)[0].shape == (2, 6, 8, 3)
+
+
+@pytest.mark.parametrize("devices", [1, 2])
+def test_the_frame_renderer_renders_what_eval_renders_with_one_compile(tiny_run, devices, monkeypatch):
+    """`views.frame_renderer` (the videos' renderer: blocks of rays in one call a frame) against
+    the evaluation's `render_rays_chunked` on three orbit frames: the same pixels up to float
+    rounding, one compiled function for all three (padding: 24 x 18 rays are not a multiple of
+    the block)."""
+    import jax
+
+    from jaxnerf_grid import config as config_lib, runs, train, views
+
+    if jax.local_device_count() < devices:
+        pytest.skip(f"needs {devices} local devices")
+    cfg, data = runs.load_run(tiny_run)
+    ds = runs.load_dataset(data, progress=False)
+    params, _ = train.load_params(tiny_run, cfg, ds)
+    near, far = config_lib.near_far(cfg.model, ds)
+    w, h, fov = videos.orbit_size(ds, 24)
+    focal = 0.5 * h / math.tan(math.radians(fov) / 2)
+    frames = [rays.generate_rays(pose.astype(np.float32), focal, focal, w / 2, h / 2, w, h, near, far)
+              for pose in videos.orbit_poses(np.asarray(ds.c2w), 3)]
+    wanted = [views.render_rays_chunked(params, cfg.model, r, 0, None, 4096, 1) for r in frames]
+    traces = []
+    real = views.models.render_rays
+    monkeypatch.setattr(views.models, "render_rays", lambda *a, **k: traces.append(1) or real(*a, **k))
+    views._render_frame_fn.cache_clear()
+    render = views.frame_renderer(params, cfg.model, devices, block=40)
+    for r, want in zip(frames, wanted):
+        got = render(r)
+        assert got["rgb"].shape == (h, w, 3) and got["depth"].shape == (h, w)
+        np.testing.assert_allclose(got["rgb"], want["rgb"], atol=1e-4)
+        np.testing.assert_allclose(got["depth"], want["depth"], rtol=1e-3, atol=1e-4)
+    assert len(traces) == 1                                   # one trace (one compile) for the three frames
+
+
+def test_load_params_reads_the_checkpoint_without_drawing_parameters(tiny_run, monkeypatch):
+    """`train.load_params` returns the newest checkpoint's parameters, bit for bit as restored
+    into a concretely drawn `init_state` (the reference), with an abstract template: `models.init`
+    only traced (its leaves tracers: nothing drawn, nothing compiled for it)."""
+    import jax
+
+    from jaxnerf_grid import checkpoint, config as config_lib, models, runs, train
+
+    cfg, data = runs.load_run(tiny_run)
+    ds = runs.load_dataset(data, progress=False)
+    concrete = train.init_state(config_lib.resolve(cfg, ds, bounds=False), train.train_frames_shape(ds))
+    want, want_step = checkpoint.restore_latest(tiny_run, concrete)
+    drawn = []
+    real = models.init
+    monkeypatch.setattr(models, "init", lambda *a: drawn.append(real(*a)) or drawn[-1])
+    params, step = train.load_params(tiny_run, cfg, ds)
+    assert step == want_step and drawn
+    assert all(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(drawn))
+    got, ref = jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(want["params"])
+    assert jax.tree_util.tree_structure(params) == jax.tree_util.tree_structure(want["params"])
+    for a, b in zip(got, ref):
+        assert type(a) is type(b) and a.dtype == b.dtype
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

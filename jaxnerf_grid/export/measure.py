@@ -13,7 +13,9 @@ with the ground plane n . x + d = 0 (|n| = 1, n_z > 0; `export.ground`).
   axis exceeds `ratio` times the body width (the other axis's width in that slice). Within that
   region, a cross-arm level is a slice holding a local maximum of vertices (arms are horizontal
   members, dense in height) with at least 1.5 times the median count of all slices; its span is the
-  extent of the vertices within one slice of it along the wide axis.
+  extent of the vertices within one slice of it along the wide axis, and its end points are that
+  extent's two ends at the level's height, placed across the wide axis at the middle of those
+  vertices' extent (the arm's centre line).
 * `orthographic_views`: front (x-z), side (y-z) and top (x-y) views of coloured points, drawn
   with a z-buffer (nearest point wins), shaded by the normal when given.
 """
@@ -83,8 +85,9 @@ def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_heigh
     """The cross-arm region and levels of a tower (module docstring). points [N, 3]; axis_a,
     axis_b: the footprint's axes [3]; separation: levels closer than this keep only the one
     with more vertices (default 6 % of the points' height range).
-    Returns {"region": [low, high] | None, "levels": [{"height", "span", "axis"}],
-    "slice_height", "ratio"} (heights above the plane)."""
+    Returns {"region": [low, high] | None, "levels": [{"height", "span", "axis", "ends"}],
+    "slice_height", "ratio"} (heights above the plane; "ends": the span's two end points [2, 3] in
+    the points' frame, |ends[1] - ends[0]| = span)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     out = {"region": None, "levels": [], "slice_height": float(slice_height), "ratio": float(ratio)}
     if len(p) < 10:
@@ -121,11 +124,16 @@ def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_heigh
     for s in sorted(peaks, key=lambda s: -counts[s]):        # the strongest first
         if all(abs(edges[s] - edges[k]) >= separation for k in kept):
             kept.append(s)
+    n = np.asarray(normal, np.float64)
+    pairs = [(a, np.asarray(axis_a, np.float64)), (b, np.asarray(axis_b, np.float64))]
     for s in sorted(kept):
         sel = (idx >= s - 1) & (idx <= s + 1)
-        values = a[sel] if wide_axis[s] == 0 else b[sel]
-        out["levels"].append({"height": float(0.5 * (edges[s] + edges[s + 1])), "span": float(np.ptp(values)),
-                              "axis": "a" if wide_axis[s] == 0 else "b"})
+        (along, e_along), (across, e_across) = pairs if wide_axis[s] == 0 else pairs[::-1]
+        height = float(0.5 * (edges[s] + edges[s + 1]))
+        values, middle = along[sel], 0.5 * (across[sel].min() + across[sel].max())
+        ends = [v * e_along + middle * e_across + (height - d) * n for v in (values.min(), values.max())]
+        out["levels"].append({"height": height, "span": float(np.ptp(values)),
+                              "axis": "a" if wide_axis[s] == 0 else "b", "ends": [[float(v) for v in e] for e in ends]})
     return out
 
 
