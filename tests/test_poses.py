@@ -12,6 +12,7 @@ installs it).
 from __future__ import annotations
 
 import shutil
+from pathlib import Path
 import struct
 import sys
 
@@ -750,3 +751,50 @@ def test_poses_without_gps_says_units_unknown(orbit_run):
     top = io.read_json(orbit_run["out"] / "transforms.json")
     assert top["georeference"] == {"units": "unknown", "source": None}
     assert "Units unknown" in (orbit_run["out"] / "poses_report.md").read_text()
+
+
+def _stage_reached(parent: Path, name: str, stage: str) -> bool:
+    """Whether a `poses` run writing `parent/name` has reached `stage` in its staging folder:
+    "photos" (a working copy of a photo), "features" (keypoints in COLMAP's database),
+    "matching" (matches in it), "mapping" (the first model's folder)."""
+    import sqlite3
+
+    for work in parent.glob(f".{name}.poses-*/_work"):
+        if stage == "photos" and any((work / "photos").glob("*")):
+            return True
+        if stage == "mapping" and (work / "sparse0").exists():
+            return True
+        if stage in ("features", "matching") and (work / "database.db").is_file():
+            table = "keypoints" if stage == "features" else "matches"
+            try:
+                with sqlite3.connect(f"file:{work / 'database.db'}?mode=ro", uri=True, timeout=0.1) as db:
+                    if db.execute(f"SELECT count(*) FROM {table}").fetchone()[0] > 0:
+                        return True
+            except sqlite3.Error:  # not made yet, or locked by the writer: look again
+                pass
+    return False
+
+
+@pytest.mark.parametrize("stage", ["photos", "features", "matching", "mapping"])
+def test_poses_killed_in_a_colmap_stage_leaves_the_dataset_and_is_cleaned(orbit_run, tmp_path, stage):
+    """kill -9 of `poses --overwrite` while COLMAP works (its working copy of the photos, SIFT
+    features, matching, mapping): the dataset it was replacing is byte-identical, the killed
+    run's staging folder is the only thing beside it, and `recover` (run first by the next
+    `poses` or load) removes it, leaving the dataset as it was."""
+    from killing import kill_when
+
+    from jaxnerf_grid.data.poses import recover
+
+    parent = tmp_path / "site"
+    parent.mkdir()
+    out = parent / "data"
+    shutil.copytree(orbit_run["out"], out)
+    before = {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    kill_when(["-m", "jaxnerf_grid", "poses", "--images", str(orbit_run["photos"]), "--out", str(out),
+               "--overwrite", "--quiet"], ready=lambda: _stage_reached(parent, "data", stage), timeout=300, poll=0.05)
+    after = {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()}
+    assert after == before
+    assert [p.name for p in parent.iterdir() if p.name.startswith(".")] != []  # it died mid-run
+    assert recover(out) == "cleaned"
+    assert sorted(p.name for p in parent.iterdir()) == ["data"]
+    assert {p.relative_to(out).as_posix(): p.read_bytes() for p in sorted(out.rglob("*")) if p.is_file()} == before
