@@ -1,6 +1,7 @@
 """Fly-around videos (issue 42, docs/VIDEOS.md): the orbit against its closed form, the camera-path
 reader and its refusals, and `render --orbit / --path` on a tiny run read back with OpenCV."""
 
+import os
 import json
 import math
 import sys
@@ -236,3 +237,22 @@ def test_load_params_reads_the_checkpoint_without_drawing_parameters(tiny_run, m
     for a, b in zip(got, ref):
         assert type(a) is type(b) and a.dtype == b.dtype
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+
+
+def test_render_uses_every_cpu_core_unless_the_user_chose_a_device_count():
+    """`render --orbit` asks XLA for one CPU device per core (the frame renderer splits a frame
+    over them); a device count the user set in XLA_FLAGS is kept, other flags too."""
+    from jaxnerf_grid.cli.render import DEVICE_COUNT_FLAG, use_every_cpu_core
+
+    env = {}
+    use_every_cpu_core(env, cores=2)
+    assert env["XLA_FLAGS"] == f"{DEVICE_COUNT_FLAG}=2"
+    env = {"XLA_FLAGS": "--xla_cpu_enable_fast_math=false"}
+    use_every_cpu_core(env, cores=4)
+    assert env["XLA_FLAGS"] == f"--xla_cpu_enable_fast_math=false {DEVICE_COUNT_FLAG}=4"
+    env = {"XLA_FLAGS": f"{DEVICE_COUNT_FLAG}=1"}
+    use_every_cpu_core(env, cores=8)
+    assert env["XLA_FLAGS"] == f"{DEVICE_COUNT_FLAG}=1"
+    env = {}
+    use_every_cpu_core(env)
+    assert env["XLA_FLAGS"] == f"{DEVICE_COUNT_FLAG}={len(os.sched_getaffinity(0))}"
