@@ -153,3 +153,82 @@ def test_check_rotation_tolerance_message_and_dtype():
             normalize.check_rotation(bad, "a.json")
     with pytest.raises(DataError, match="a.json: scene_normalization 'rotation' must be a 3x3 list of numbers"):
         normalize.check_rotation([["a", "b", "c"]] * 3, "a.json")
+
+
+def test_normalize_poses_radius_capped_by_the_cameras_below_one_unit_and_uncapped_for_points():
+    """A ring 0.6 units around a centre far from the origin (camera distance sqrt(0.6^2 + 0.3^2)
+    < 1): points beyond the cameras are capped at that distance (method "cameras"), not with
+    method "points" (centre: the points' median); points inside: their 95th percentile (the
+    default); one point: its distance; all at the centre: radius 1."""
+    c2w = _orbit(0.6)
+    cam = np.hypot(0.6, 0.3)
+    far = _shell(np.linspace(0.7, 0.9, 21))
+    _, record = normalize.normalize_poses(c2w, far)
+    np.testing.assert_allclose(record["translation"], -CENTRE, atol=1e-9)
+    assert record["scale"] == pytest.approx(1.0 / cam, rel=1e-9)
+    _, record = normalize.normalize_poses(c2w, far, "points")
+    median = np.median(far, axis=0)
+    assert record["scale"] == pytest.approx(1.0 / np.percentile(np.linalg.norm(far - median, axis=1), 95.0), rel=1e-9)
+    distances = np.linspace(0.1, 0.5, 41)
+    _, record = normalize.normalize_poses(c2w, _shell(distances))
+    assert record["scale"] == pytest.approx(1.0 / np.percentile(distances, 95.0), rel=1e-9)
+    assert normalize.normalize_poses(c2w, _shell([0.2]))[1]["scale"] == pytest.approx(5.0, rel=1e-9)
+    assert normalize.normalize_poses(c2w, np.tile(CENTRE, (4, 1)))[1]["scale"] == 1.0
+
+
+@pytest.mark.parametrize("a", [[0.0, 1.0, 0.0], [0.5, 0.5, np.sqrt(0.5)], [1.0, 0.0, 0.0], [0.0, 0.0, 3.0]])
+def test_rotation_between_opposite_and_unnormalised_directions(a):
+    """A half turn for opposite directions (a proper rotation: R R^T = I, det 1, R a = -a) and the
+    smallest turn onto a direction given at any length."""
+    a = np.asarray(a)
+    unit = a / np.linalg.norm(a)
+    for r in (normalize.rotation_between(a, -2.5 * a), normalize.rotation_between(a, -unit)):
+        np.testing.assert_allclose(r @ r.T, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0)
+        np.testing.assert_allclose(r @ unit, -unit, atol=1e-12)
+    b = np.array([0.3, -0.4, 1.2])
+    np.testing.assert_allclose(normalize.rotation_between(a, 4.0 * b) @ unit, b / np.linalg.norm(b), atol=1e-12)
+
+
+def _heading_y(eye, pitch_deg):
+    """OpenGL c2w at eye, heading +y, pitched down by pitch_deg, level (no roll)."""
+    p = np.radians(pitch_deg)
+    return _look_at(np.asarray(eye, float), np.asarray(eye, float) + [0.0, np.cos(p), -np.sin(p)])
+
+
+def test_up_from_cameras_one_heading_small_plane_blob_and_wall():
+    """One heading (+y), pitched 30 degrees down, so the cameras' mean up is 30 degrees off +z:
+    three centres on a horizontal plane 0.6 units across give +z (the plane's normal); centres
+    filling a small box (no plane) give the mean up; centres on a vertical wall (its normal 90
+    degrees off) give the mean up too."""
+    mean_up = np.array([0.0, np.sin(np.radians(30)), np.cos(np.radians(30))])
+    plane = [[0.0, 0.0, 1.0], [0.6, 0.1, 1.0], [0.2, 0.5, 1.0]]
+    np.testing.assert_allclose(normalize.up_from_cameras(np.stack([_heading_y(e, 30) for e in plane])),
+                               [0.0, 0.0, 1.0], atol=1e-9)
+    box = np.array([[x, y, z] for x in (0.0, 0.5) for y in (0.0, 0.4) for z in (0.0, 0.3)]) + [0.01, 0.0, 0.0] * \
+        np.arange(8)[:, None]
+    np.testing.assert_allclose(normalize.up_from_cameras(np.stack([_heading_y(e, 30) for e in box])), mean_up,
+                               atol=1e-9)
+    wall = [[x, 0.0, z] for x in (0.0, 5.0, 10.0) for z in (0.0, 3.0)]
+    np.testing.assert_allclose(normalize.up_from_cameras(np.stack([_heading_y(e, 30) for e in wall])), mean_up,
+                               atol=1e-9)
+
+
+def test_up_from_cameras_whose_up_vectors_cancel_is_plus_z():
+    """Two cameras, one upside down (rolled half a turn): their up vectors sum to zero, the right
+    vectors are one line and there are too few centres for a plane: +z."""
+    upright = _heading_y([0.0, 0.0, 0.0], 0)
+    rolled = upright.copy()
+    rolled[:3, 0], rolled[:3, 1] = -upright[:3, 0], -upright[:3, 1]
+    rolled[:3, 3] = [1.0, 0.0, 0.0]
+    np.testing.assert_array_equal(normalize.up_from_cameras(np.stack([upright, rolled])), [0.0, 0.0, 1.0])
+
+
+@pytest.mark.parametrize("turn", [0.0, 90.0, 180.0, 270.0])
+def test_up_from_cameras_of_pitched_orbits_is_plus_z_whatever_the_eigenvectors_sign(turn):
+    """Level cameras pitched down on part of an orbit (mean up off +z by the pitch): +z exactly,
+    for several starting headings (the eigenvector's sign is the solver's choice)."""
+    angles = np.radians(turn + np.linspace(0, 120, 5))
+    eyes = np.column_stack([10 * np.cos(angles), 10 * np.sin(angles), np.full(5, 6.0)])
+    c2w = np.stack([_look_at(e, [0.0, 0.0, 0.0]) for e in eyes])
+    np.testing.assert_allclose(normalize.up_from_cameras(c2w), [0.0, 0.0, 1.0], atol=1e-9)
