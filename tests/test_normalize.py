@@ -232,3 +232,27 @@ def test_up_from_cameras_of_pitched_orbits_is_plus_z_whatever_the_eigenvectors_s
     eyes = np.column_stack([10 * np.cos(angles), 10 * np.sin(angles), np.full(5, 6.0)])
     c2w = np.stack([_look_at(e, [0.0, 0.0, 0.0]) for e in eyes])
     np.testing.assert_allclose(normalize.up_from_cameras(c2w), [0.0, 0.0, 1.0], atol=1e-9)
+
+
+def test_scene_center_of_two_cameras_nearly_parallel_axes_and_bad_requests():
+    """Two cameras whose axes cross at a point: that point. Five cameras on a line converging on
+    a point 10 units away (conditioning 0.005, under the 1e-2 limit: nearly parallel): the
+    fallback, the mean centre moved along the mean view by the points' median distance. The
+    points method without points, and an unknown method, are refused by name."""
+    target = np.array([3.0, 4.0, 1.0])
+    two = np.stack([_look_at(target + [5.0, 0.0, 0.5], target), _look_at(target + [0.0, -5.0, 0.5], target)])
+    np.testing.assert_allclose(normalize.scene_center(two), target, atol=1e-9)
+    eyes = np.column_stack([np.linspace(-1.0, 1.0, 5), np.zeros(5), np.full(5, 2.0)])
+    c2w = np.stack([_look_at(e, [0.0, 10.0, 2.0]) for e in eyes])
+    points = np.array([[0.0, 6.0, 2.0], [0.5, 6.0, 2.0], [-0.5, 6.0, 2.0]])
+    depth = np.median(np.linalg.norm(points - eyes.mean(0), axis=1))
+    forward = -c2w[:, :3, 2].mean(0)
+    np.testing.assert_allclose(normalize.scene_center(c2w, points),
+                               eyes.mean(0) + depth * forward / np.linalg.norm(forward), atol=1e-9)
+    np.testing.assert_allclose(normalize.scene_center(c2w, points, min_conditioning=1e-3), [0.0, 10.0, 2.0],
+                               atol=1e-9)
+    for none in (None, np.zeros((0, 3))):
+        with pytest.raises(DataError, match=r"normalize_poses\(method='points'\) needs 3-D points"):
+            normalize.normalize_poses(c2w, none, "points")
+    with pytest.raises(ValueError, match="method must be 'cameras' or 'points', got 'median'"):
+        normalize.scene_center(c2w, points, "median")
