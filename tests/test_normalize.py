@@ -80,8 +80,9 @@ def test_orbit_roi_of_points_at_the_centre_and_of_cameras_at_one_point():
 def test_forward_facing_cameras_centre_at_the_points_median_depth():
     """Cameras on a line, all looking along +y (parallel axes: no focus point). The centre is the
     mean camera centre moved along the view by the points' median distance from it (module
-    docstring), for orbit_roi and normalize_poses alike; without points, by the cameras' spread."""
-    eyes = np.column_stack([np.linspace(-1.0, 1.0, 5), np.zeros(5), np.full(5, 2.0)])
+    docstring), for orbit_roi and normalize_poses alike; without points, by the cameras' spread
+    (the largest distance from their mean, 1.5), or by 1 for a single camera."""
+    eyes = np.column_stack([np.linspace(-1.5, 1.5, 5), np.zeros(5), np.full(5, 2.0)])
     c2w = np.stack([_look_at(e, e + [0.0, 1.0, 0.0]) for e in eyes])
     points = np.array([[0.0, 5.0, 2.0], [1.0, 6.0, 2.0], [-2.0, 4.0, 3.0]])
     depth = np.median(np.linalg.norm(points - eyes.mean(0), axis=1))
@@ -90,7 +91,11 @@ def test_forward_facing_cameras_centre_at_the_points_median_depth():
     _, record = normalize.normalize_poses(c2w, points)
     np.testing.assert_allclose(record["translation"], -expected, atol=1e-9)
     _, record = normalize.normalize_poses(c2w, None)
-    np.testing.assert_allclose(record["translation"], -(eyes.mean(0) + [0.0, 1.0, 0.0]), atol=1e-9)
+    np.testing.assert_allclose(record["translation"], -(eyes.mean(0) + [0.0, 1.5, 0.0]), atol=1e-9)
+    _, record = normalize.normalize_poses(c2w[:1], None)
+    np.testing.assert_allclose(record["translation"], -(eyes[0] + [0.0, 1.0, 0.0]), atol=1e-9)
+    _, record = normalize.normalize_poses(c2w, points, focus_depth=3.0)
+    np.testing.assert_allclose(record["translation"], -(eyes.mean(0) + [0.0, 3.0, 0.0]), atol=1e-9)
 
 
 @pytest.mark.parametrize("name", ["normalize_orbit", "z_up_normalization", "normalize_poses"])
