@@ -75,6 +75,8 @@ def test_orbit_roi_of_points_at_the_centre_and_of_cameras_at_one_point():
     centre, radius = normalize.orbit_roi(panorama, _shell(distances))
     np.testing.assert_allclose(centre, CENTRE, atol=1e-9)
     assert radius == pytest.approx(np.percentile(distances, 95.0), rel=1e-9)
+    _, record = normalize.normalize_poses(panorama, _shell(distances))       # no camera distance to cap it
+    assert record["scale"] == pytest.approx(1.0 / np.percentile(distances, 95.0), rel=1e-9)
 
 
 def test_forward_facing_cameras_centre_at_the_points_median_depth():
@@ -96,6 +98,10 @@ def test_forward_facing_cameras_centre_at_the_points_median_depth():
     np.testing.assert_allclose(record["translation"], -(eyes[0] + [0.0, 1.0, 0.0]), atol=1e-9)
     _, record = normalize.normalize_poses(c2w, points, focus_depth=3.0)
     np.testing.assert_allclose(record["translation"], -(eyes.mean(0) + [0.0, 3.0, 0.0]), atol=1e-9)
+    _, record = normalize.normalize_poses(c2w[1:3], None)           # two cameras 0.75 apart: spread 0.375
+    np.testing.assert_allclose(record["translation"], -(eyes[1:3].mean(0) + [0.0, 0.375, 0.0]), atol=1e-9)
+    _, record = normalize.normalize_poses(c2w, points[:1], "points")  # one point is a median
+    np.testing.assert_allclose(record["translation"], -points[0], atol=1e-12)
 
 
 @pytest.mark.parametrize("name", ["normalize_orbit", "z_up_normalization", "normalize_poses"])
@@ -144,6 +150,11 @@ def test_z_up_normalization_of_a_tilted_scene_keeps_the_points_radius():
         np.testing.assert_allclose(np.asarray(record["rotation"]) @ turn, np.eye(3), atol=1e-9)
         assert record["scale"] == pytest.approx(1.0 / np.percentile(distances, percentile), rel=1e-9)
         np.testing.assert_allclose(c2w_norm[:, :3, 3], (c2w[:, :3, 3] - CENTRE) * record["scale"], atol=1e-8)
+    # method "points" reaches the turned scene: the centre is the points' median, turned back
+    _, record = normalize.z_up_normalization(tilted, points @ turn.T, "points")
+    median = np.median(points, axis=0)
+    assert record["scale"] == pytest.approx(1.0 / np.percentile(np.linalg.norm(points - median, axis=1), 95.0),
+                                            rel=1e-9)
 
 
 def test_check_rotation_tolerance_message_and_dtype():
@@ -210,12 +221,16 @@ def test_up_from_cameras_one_heading_small_plane_blob_and_wall():
     plane = [[0.0, 0.0, 1.0], [0.6, 0.1, 1.0], [0.2, 0.5, 1.0]]
     np.testing.assert_allclose(normalize.up_from_cameras(np.stack([_heading_y(e, 30) for e in plane])),
                                [0.0, 0.0, 1.0], atol=1e-9)
-    box = np.array([[x, y, z] for x in (0.0, 0.5) for y in (0.0, 0.4) for z in (0.0, 0.3)]) + [0.01, 0.0, 0.0] * \
-        np.arange(8)[:, None]
+    # the box's variances 0.09, 0.044, 0.018: not flat (0.018 > 0.25 x 0.044), though 0.018 < 0.25 x 0.09
+    box = np.array([[x, y, z] for x in (0.0, 0.6) for y in (0.0, 0.42) for z in (0.0, 0.27)])
     np.testing.assert_allclose(normalize.up_from_cameras(np.stack([_heading_y(e, 30) for e in box])), mean_up,
                                atol=1e-9)
-    wall = [[x, 0.0, z] for x in (0.0, 5.0, 10.0) for z in (0.0, 3.0)]
+    wall = [[x, 0.0, z] for x in (0.0, 5.0, 10.0) for z in (0.0, 4.0, 8.0)]
     np.testing.assert_allclose(normalize.up_from_cameras(np.stack([_heading_y(e, 30) for e in wall])), mean_up,
+                               atol=1e-9)
+    # centres nearly on a line (10 units along x, 0.3 across in y: not a plane), the mean up
+    line = [[x, 0.3 * (i % 2), 1.0] for i, x in enumerate(np.linspace(0.0, 10.0, 6))]
+    np.testing.assert_allclose(normalize.up_from_cameras(np.stack([_heading_y(e, 30) for e in line])), mean_up,
                                atol=1e-9)
 
 
