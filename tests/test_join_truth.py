@@ -255,7 +255,8 @@ def test_export_density_grid_nodes_are_origin_plus_h_times_ijk(analytic, chunk):
 def test_export_colours_are_the_mean_seen_from_the_k_nearest_cameras(analytic, monkeypatch):
     """colours_from_cameras with a field whose colour is 0.5 + 0.5 x the viewing direction: each
     point's colour is the mean over its k nearest camera centres of 0.5 + 0.5 (p - c) / |p - c|
-    (brute force); k larger than the cameras means all of them."""
+    (brute force); k larger than the cameras means all of them; k = 1 the nearest; one point is
+    coloured, none gives [0, 3] float32."""
     from jaxnerf_grid.export import field
 
     def seen_from(field_params, field_cfg, x, viewdirs=None, appearance=None, transient=None):
@@ -266,16 +267,17 @@ def test_export_colours_are_the_mean_seen_from_the_k_nearest_cameras(analytic, m
     cfg = analytic_config()
     rng = np.random.default_rng(5)
     points, centres = rng.uniform(-0.5, 0.5, (20, 3)), rng.uniform(-2.0, 2.0, (5, 3))
-    for k in (3, 9):
-        colours = field.colours_from_cameras(af.params(cfg.model), cfg.model, points, centres, k=k, chunk=8)
+    for k, pts in ((3, points), (9, points), (1, points), (3, points[:1])):
+        colours = field.colours_from_cameras(af.params(cfg.model), cfg.model, pts, centres, k=k, chunk=8)
         expected = []
-        for p in points:
+        for p in pts:
             nearest = centres[np.argsort(np.linalg.norm(centres - p, axis=1))[:min(k, 5)]]
             d = (p - nearest) / np.linalg.norm(p - nearest, axis=1, keepdims=True)
             expected.append(np.mean(0.5 + 0.5 * d, axis=0))
         np.testing.assert_allclose(colours, expected, atol=1e-6)
         assert colours.dtype == np.float32
-    assert field.colours_from_cameras(af.params(cfg.model), cfg.model, np.zeros((0, 3)), centres).shape == (0, 3)
+    none = field.colours_from_cameras(af.params(cfg.model), cfg.model, np.zeros((0, 3)), centres)
+    assert none.shape == (0, 3) and none.dtype == np.float32
 
 
 # --------------------------------------------------------------------------- the loss weights
