@@ -243,7 +243,9 @@ def test_export_density_grid_nodes_are_origin_plus_h_times_ijk(analytic, chunk):
 
     cfg = analytic_config()
     origin, h, shape = np.array([-0.3031, -0.2517, -0.6093]), 0.0977, (7, 6, 12)
-    grid = field.density_grid(af.params(cfg.model), cfg.model, origin, h, shape, chunk=chunk)
+    bar = _Counter()
+    grid = field.density_grid(af.params(cfg.model), cfg.model, origin, h, shape, chunk=chunk, progress=bar)
+    assert sum(bar.steps) == 7 * 6 * 12                         # the bar counts every node once
     i, j, k = np.meshgrid(*(np.arange(n) for n in shape), indexing="ij")
     nodes = origin + h * np.stack([i, j, k], axis=-1).reshape(-1, 3)
     assert grid.shape == shape and grid.dtype == np.float32
