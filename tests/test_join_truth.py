@@ -282,6 +282,29 @@ def test_export_colours_are_the_mean_seen_from_the_k_nearest_cameras(analytic, m
     assert none.shape == (0, 3) and none.dtype == np.float32
 
 
+def test_export_colours_of_an_appearance_model_use_the_mean_embedding(analytic, monkeypatch):
+    """A model with per-image appearance embeddings (NeRF-W's): the exported colour is the field's
+    at the mean of the embedding table over the images (a field whose colour is the embedding's
+    first three numbers, so the mean is read off); without a table, the zero embedding."""
+    from jaxnerf_grid.export import field
+
+    def tinted(field_params, field_cfg, x, viewdirs=None, appearance=None, transient=None):
+        return {"sigma": af.apply(field_params, field_cfg, x)["sigma"], "rgb": appearance[..., :3]}
+
+    af.clear_compiled()
+    monkeypatch.setattr(fields, "apply", tinted)
+    cfg = train.make_config("ours", {"model": {"field": TINY_FIELD, "contract_radius": 2.5, "use_appearance": True,
+                                               "appearance_dim": 4,
+                                               "sampler": {"kind": "hierarchical", "samples": [48, 48]}},
+                                     "train": {"num_devices": 1, "chunk": 2048}})
+    table = np.array([[0.1, 0.2, 0.3, 0.9], [0.5, 0.0, 0.7, 0.1], [0.3, 0.4, 0.2, 0.5]], np.float32)  # [images, 4]
+    points = np.random.default_rng(6).uniform(-0.3, 0.3, (10, 3))
+    dirs = np.tile([0.0, 0.0, 1.0], (10, 1))
+    out = field.evaluate({**af.params(cfg.model), "appearance": jnp.asarray(table)}, cfg.model, points, dirs)
+    np.testing.assert_allclose(out["rgb"], np.tile([0.3, 0.2, 0.4], (10, 1)), atol=1e-6)
+    np.testing.assert_array_equal(field.evaluate(af.params(cfg.model), cfg.model, points, dirs)["rgb"], 0.0)
+
+
 # --------------------------------------------------------------------------- the loss weights
 
 
