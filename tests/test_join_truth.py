@@ -231,7 +231,10 @@ def test_export_field_in_chunks_with_directions_is_the_analytic_tower_point_by_p
     assert sum(bar.steps) == 300 and max(bar.steps) == 7 and bar.steps[-1] == 300 % 7
     empty = field.evaluate(params, cfg.model, np.zeros((0, 3)), np.zeros((0, 3)), chunk=7)
     assert empty["sigma"].shape == (0,) and empty["rgb"].shape == (0, 3)
-    assert field.evaluate(params, cfg.model, np.zeros((0, 3)))["sigma"].shape == (0,)
+    assert empty["sigma"].dtype == np.float32 and empty["rgb"].dtype == np.float32
+    density_only = field.evaluate(params, cfg.model, np.zeros((0, 3)))
+    assert list(density_only) == ["sigma"] and density_only["sigma"].shape == (0,)
+    assert density_only["sigma"].dtype == np.float32
 
 
 @pytest.mark.parametrize("chunk", [13, 1 << 16])
