@@ -350,7 +350,8 @@ def test_prior_weights_are_ones_or_the_capped_weights_whatever_use_masks_says(mo
 def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch():
     """Weights without masks (a dataset's own weights files) are only clipped, whatever the floor;
     prior_weights refuses dpt+robust without weights (DataError) and a patch larger than the
-    frames (ConfigError), but not a batch that is no multiple of the patch (round two)."""
+    frames (ConfigError), but not a batch that is no multiple of the patch (round two), nor one
+    with scattered rays (round three)."""
     ds = tiny_dataset()
     ds.weights = np.linspace(-0.5, 1.5, ds.weights.size, dtype=np.float32).reshape(ds.weights.shape)
     ds.masks = None
@@ -358,6 +359,9 @@ def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the
     np.testing.assert_array_equal(got, np.clip(ds.weights, 0.0, 1.0))
     robust = tiny_config(robust="robust", robust_patch=4).train
     assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=50)) == 1.0)
+    # a quarter of the batch scattered (64 = 16 scattered + 3 patches of 16): the prior checks one
+    # patch without them (4 of its 16 rays scattered would leave 12, no whole patch)
+    assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=64, robust_scattered=0.25)) == 1.0)
     with pytest.raises(ConfigError, match="robust_patch"):                 # 13 > the 16 x 12 frames
         train.prior_weights(ds, dataclasses.replace(robust, robust_patch=13))
     ds.weights = None
