@@ -204,6 +204,36 @@ def test_poses_report_names_each_left_out_photo_with_its_reasons_in_the_summary_
     assert not any(line.startswith(("left out", "`--keep-all`", "| b.png")) for line in plain)
 
 
+def test_poses_summary_lines_of_the_matcher_timings_georeference_and_relaxed_mapping():
+    """The end-of-run summary (docs/POSES.md) from summaries written by hand: the matcher with its
+    reason and overlap, the seconds of each stage, the scale and georeference with its GPS
+    residual (flagged above georef.SUSPECT_GPS_RMS), units unknown, relaxed thresholds."""
+    base = {"registered": 8, "photos": 8, "points3d": 300, "mean_reprojection_error": 0.5, "unregistered": [],
+            "skipped": []}
+    full = {**base, "matcher": "sequential", "matcher_reason": "auto: 40 photos, numbered", "overlap": 10,
+            "seconds": 61.2, "timings_s": {"features": 20.4, "matching": 30.6},
+            "georeference": {"units": "metres", "source": "GPS", "crs": "EPSG:32632",
+                             "metres_per_model_unit": 3.14159, "gps": {"rms_m": 0.5}},
+            "relaxed_mapping": True}
+    assert poses.format_summary(full).splitlines()[1:] == [
+        "matcher: sequential (auto: 40 photos, numbered, each photo with its next 10)",
+        "time: 61 s in all; features 20 s, matching 31 s",
+        "scale and georeference from GPS: EPSG:32632, 3.142 m per model unit, GPS residual RMS 0.5 m",
+        f"registered with relaxed mapper thresholds: check the cameras in {poses.TOPVIEW} (a ring around the "
+        "tower) before training (docs/POSES.md)"]
+    far = {**full, "overlap": None, "timings_s": {}, "relaxed_mapping": False,
+           "georeference": {"units": "metres", "source": "GPS", "crs": None, "metres_per_model_unit": 2.0,
+                            "gps": {"rms_m": 1e6}}}
+    assert poses.format_summary(far).splitlines()[1:] == [
+        "matcher: sequential (auto: 40 photos, numbered)",
+        "scale and georeference from GPS: no CRS, 2 m per model unit, GPS residual RMS 1000000.0 m; residuals too "
+        "large: check the reconstruction (poses_report.md)"]
+    unknown = {**base, "georeference": {"units": "unknown"}}
+    assert poses.format_summary(unknown).splitlines()[1:] == [
+        "units unknown (no GPS read from the photos, no ground control points, no scale bar)"]
+    assert poses.format_summary(base).splitlines()[1:] == []
+
+
 def test_poses_topview_puts_each_camera_and_point_where_it_stands_seen_from_above(tmp_path):
     """poses_topview.png: +x to the right, +y up the picture, the half-width the larger of 1.2 and
     1.1 x the farthest camera coordinate; each camera a red dot, each point a grey 2 x 2 block,
