@@ -30,6 +30,7 @@ E = "tests/test_join_export.py"
 P = "tests/test_join_poses.py"
 L = "tests/test_losses.py"
 X = "tests/test_export.py"
+N = "tests/test_normalize.py"
 ES = "test_export_section_reads_the_files_record_the_users_reference_and_a_record_without_scale"
 TW = "test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch"
 
@@ -131,6 +132,34 @@ MUTANTS = {
             "score.reference_in_export_units(io.read_ply_points(path), file_norm, ds.normalization)",
             "score.reference_in_export_units(io.read_ply_points(path), None, ds.normalization)", [f"{J}::{ES}"],
             "eval's export score reading the dataset's tower in the dataset's record, not the file's"),
+    # round three (docs/TESTING.md, "Round three"): normalize, export's field, poses' report and top view
+    "M23": ("jaxnerf_grid/data/normalize.py",
+            "cap = camera_fraction * float(np.median(np.linalg.norm(c2w[:, :3, 3] - centre, axis=-1)))",
+            "cap = camera_fraction * float(np.median(np.linalg.norm(c2w[:, :3, 3] + centre, axis=-1)))",
+            [f"{N}::test_orbit_roi_far_from_the_origin_with_its_cap_deciding_below_one_unit"],
+            "the orbit's cap measured from the origin, not the centre (the radius where the cap decides)"),
+    "M24": ("jaxnerf_grid/data/normalize.py",
+            "if eig[2] > 1e-12 and eig[0] <= flatness * eig[1] and eig[1] >= flatness * eig[2]:",
+            "if eig[2] > 1e-12:", [f"{N}::test_up_from_cameras_one_heading_small_plane_blob_and_wall"],
+            "up_from_cameras taking any cloud of centres for a plane (the scene turned by a blob's short axis)"),
+    "M25": ("jaxnerf_grid/data/normalize.py", "turned, pts = rotate_scene(c2w, rot, points)",
+            "turned, pts = rotate_scene(c2w, rot, None)",
+            [f"{N}::test_z_up_normalization_of_a_tilted_scene_keeps_the_points_radius"],
+            "z_up_normalization dropping the points of a tilted scene (its scale from the cameras alone)"),
+    "M26": ("jaxnerf_grid/export/field.py", "yz = np.stack(np.meshgrid(ys, zs, indexing=\"ij\"), axis=-1)",
+            "yz = np.stack(np.meshgrid(ys, zs, indexing=\"xy\"), axis=-1)",
+            [f"{J}::test_export_density_grid_nodes_are_origin_plus_h_times_ijk"],
+            "density_grid's nodes with the y and z axes crossed"),
+    "M27": ("jaxnerf_grid/export/field.py", "d = points - centres[idx[:, j]]", "d = centres[idx[:, j]] - points",
+            [f"{J}::test_export_colours_are_the_mean_seen_from_the_k_nearest_cameras"],
+            "the exported colours seen along the reversed direction (from the point to the camera)"),
+    "M28": ("jaxnerf_grid/data/poses.py", "(1 - xy[:, 1] / extent) * size / 2", "(1 + xy[:, 1] / extent) * size / 2",
+            [f"{P}::test_poses_topview_puts_each_camera_and_point_where_it_stands_seen_from_above"],
+            "poses' top view mirrored (y down the picture)"),
+    "M29": ("jaxnerf_grid/data/poses.py", 'lines += vetting.format_table(vet.get("photos", []))',
+            "lines += vetting.format_table([])",
+            [f"{P}::test_poses_report_names_each_left_out_photo_with_its_reasons_in_the_summary_and_the_table"],
+            "poses_report.md's vetting table without its rows"),
 }
 
 

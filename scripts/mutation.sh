@@ -23,6 +23,15 @@ PYTHON=${PYTHON:-python}
 MUTATION_DIR=${MUTATION_DIR:-/tmp/jaxnerf-grid-mutation}
 MAX_CHILDREN=${MAX_CHILDREN:-2}
 
+# the block tests of data/normalize.py in test_poses.py and test_export.py (not their pycolmap or training runs)
+NORMALIZE_BLOCKS="tests/test_poses.py::test_up_from_cameras_level_cameras \
+tests/test_poses.py::test_up_from_cameras_rolled_cameras_within_a_degree \
+tests/test_poses.py::test_up_from_cameras_one_heading_uses_the_plane_of_centres \
+tests/test_poses.py::test_up_from_cameras_on_a_line_is_the_mean_up tests/test_poses.py::test_rotation_between \
+tests/test_poses.py::test_rotate_scene_keeps_projections tests/test_poses.py::test_normalize_orbit_closed_forms \
+tests/test_export.py::test_metric_round_trip tests/test_export.py::test_metric_round_trip_with_rotation \
+tests/test_export.py::test_metric_map_of_a_missing_or_partial_record_is_the_identity_in_what_is_missing"
+
 # group -> "module to mutate|fast tests that cover it"
 declare -A GROUPS_=(
   [foreground]="jaxnerf_grid/foreground.py|tests/test_foreground.py tests/test_join_foreground.py"
@@ -38,7 +47,7 @@ declare -A GROUPS_=(
   [export_measure]="jaxnerf_grid/export/measure.py|tests/test_join_export.py tests/test_export.py"
   [export_field]="jaxnerf_grid/export/field.py|tests/test_join_truth.py tests/test_join_export.py"
   [export_run]="jaxnerf_grid/export/run.py|tests/test_join_export.py"
-  [normalize]="jaxnerf_grid/data/normalize.py|tests/test_join_poses.py tests/test_poses.py tests/test_formats.py"
+  [normalize]="jaxnerf_grid/data/normalize.py|tests/test_normalize.py tests/test_join_poses.py tests/test_formats.py $NORMALIZE_BLOCKS"
   [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py"
   [losses]="jaxnerf_grid/losses.py|tests/test_losses.py"
   [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch"

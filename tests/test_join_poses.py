@@ -167,3 +167,106 @@ def test_poses_scale_near_and_files_by_the_rules(stage):
     assert io.read_json(root / "transforms.json") == top
     report = (root / poses.REPORT).read_text().splitlines()
     assert report[0] == "# Camera poses" and any(line.startswith("| near |") for line in report)
+
+
+def _vetting_row(name, kept, reasons):
+    return {"name": name, "observations": 12, "reprojection_px": 3.2, "track_length": 1.5, "neighbour_ratio": None,
+            "kept": kept, "reasons": reasons}
+
+
+def test_poses_report_names_each_left_out_photo_with_its_reasons_in_the_summary_and_the_table():
+    """poses_report.md from a summary written by hand (no COLMAP run): the left-out photo with its
+    reasons in the summary line and its table row, the --keep-all note, the unregistered and
+    unreadable photos, and the bounds table, each line as docs/POSES.md states it."""
+    summary = {"registered": 3, "photos": 5, "points3d": 40, "mean_reprojection_error": 0.25,
+               "unregistered": ["d.png"], "skipped": ["e.jpg"],
+               "vetting": {"keep_all": True, "left_out": ["b.png"],
+                           "photos": [_vetting_row("a.png", True, []),
+                                      _vetting_row("b.png", False, ["reprojection 3.2 px", "track 1.5"])]}}
+    bounds = {"near": 0.125, "far": 4.5, "contract_radius": 2.0, "roi_radius": 1.0, "nearest_camera_to_roi": 2.25,
+              "roi_centre": [0.5, -0.25, 0.0]}
+    lines = poses.report_lines(summary, bounds)
+    assert lines[:3] == ["# Camera poses", "", "registered 3/5 photos, 40 3-D points, mean reprojection error 0.250 px"]
+    assert "not registered (1): d.png" in lines and "unreadable, skipped (1): e.jpg" in lines
+    assert (f"left out by the vetting (1; table in {poses.REPORT}, --keep-all keeps them): "
+            "b.png (reprojection 3.2 px; track 1.5)") in lines
+    vet = lines.index("## Vetting (docs/POSES.md)")
+    assert lines[vet + 2] == "`--keep-all`: every registered photo kept, whatever its scores."
+    assert "| b.png | 12 | 3.20 | 1.50 | - | no | reprojection 3.2 px; track 1.5 |" in lines[vet:]
+    assert "| a.png | 12 | 3.20 | 1.50 | - | yes |  |" in lines[vet:]
+    table = lines.index("## Scene bounds (docs/BOUNDS.md)")
+    assert lines[table:] == ["## Scene bounds (docs/BOUNDS.md)", "", "| bound | value (normalised units) |",
+                             "|---|---|", "| near | 0.125 |", "| far | 4.5 |", "| contract_radius | 2 |",
+                             "| roi_radius | 1 |",
+                             "| nearest_camera_to_roi | 2.25 |", "| roi_centre | 0.5, -0.25, 0 |", ""]
+    # without the vetting record: no left-out line, no keep-all note, an empty table
+    plain = poses.report_lines({k: v for k, v in summary.items() if k != "vetting"}, bounds)
+    assert not any(line.startswith(("left out", "`--keep-all`", "| b.png")) for line in plain)
+
+
+def test_poses_summary_lines_of_the_matcher_timings_georeference_and_relaxed_mapping():
+    """The end-of-run summary (docs/POSES.md) from summaries written by hand: the matcher with its
+    reason and overlap, the seconds of each stage, the scale and georeference with its GPS
+    residual (flagged above georef.SUSPECT_GPS_RMS), units unknown, relaxed thresholds."""
+    base = {"registered": 8, "photos": 8, "points3d": 300, "mean_reprojection_error": 0.5, "unregistered": [],
+            "skipped": []}
+    full = {**base, "matcher": "sequential", "matcher_reason": "auto: 40 photos, numbered", "overlap": 10,
+            "seconds": 61.2, "timings_s": {"features": 20.4, "matching": 30.6},
+            "georeference": {"units": "metres", "source": "GPS", "crs": "EPSG:32632",
+                             "metres_per_model_unit": 3.14159, "gps": {"rms_m": 0.5}},
+            "relaxed_mapping": True}
+    assert poses.format_summary(full).splitlines()[1:] == [
+        "matcher: sequential (auto: 40 photos, numbered, each photo with its next 10)",
+        "time: 61 s in all; features 20 s, matching 31 s",
+        "scale and georeference from GPS: EPSG:32632, 3.142 m per model unit, GPS residual RMS 0.5 m",
+        f"registered with relaxed mapper thresholds: check the cameras in {poses.TOPVIEW} (a ring around the "
+        "tower) before training (docs/POSES.md)"]
+    far = {**full, "overlap": None, "timings_s": {}, "relaxed_mapping": False,
+           "georeference": {"units": "metres", "source": "GPS", "crs": None, "metres_per_model_unit": 2.0,
+                            "gps": {"rms_m": 1e6}}}
+    assert poses.format_summary(far).splitlines()[1:] == [
+        "matcher: sequential (auto: 40 photos, numbered)",
+        "scale and georeference from GPS: no CRS, 2 m per model unit, GPS residual RMS 1000000.0 m; residuals too "
+        "large: check the reconstruction (poses_report.md)"]
+    unknown = {**base, "georeference": {"units": "unknown"}}
+    assert poses.format_summary(unknown).splitlines()[1:] == [
+        "units unknown (no GPS read from the photos, no ground control points, no scale bar)"]
+    assert poses.format_summary(base).splitlines()[1:] == []
+
+
+def test_poses_topview_puts_each_camera_and_point_where_it_stands_seen_from_above(tmp_path):
+    """poses_topview.png: +x to the right, +y up the picture, the half-width the larger of 1.2 and
+    1.1 x the farthest camera coordinate; each camera a red dot, each point a grey 2 x 2 block,
+    the unit circle grey. The pixel of (x, y) by hand: ((x / e + 1) s / 2, (1 - y / e) s / 2)."""
+    size = 200
+    c2w = np.tile(np.eye(4), (2, 1, 1))
+    c2w[:, :3, 3] = [[2.0, 0.5, 0.3], [-0.5, -1.0, 0.2]]       # farthest coordinate 2: e = 2.2
+    c2w[:, :3, 2] = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]]         # looking along -x and -y
+    points = np.array([[0.3, 0.8, 0.1], [5.0, 0.0, 0.0]])      # the second outside the picture
+    path = tmp_path / poses.TOPVIEW
+    poses.draw_topview(path, c2w, points, size=size)
+    img = np.round(io.read_image(path) * 255).astype(int)
+    extent = 2.2
+
+    def pixel(x, y):
+        return (x / extent + 1) * size / 2, (1 - y / extent) * size / 2
+
+    dot = (img[..., 0] == 220) & (img[..., 1] == 0) & (img[..., 2] == 0)
+    rows, cols = np.nonzero(dot)
+    for x, y in c2w[:, :2, 3]:
+        u, v = pixel(x, y)
+        near = (np.abs(cols - u) <= 4) & (np.abs(rows - v) <= 4)
+        assert near.sum() >= 9, (x, y)                          # a filled dot of radius 3 there
+        assert abs(cols[near].mean() - u) <= 0.6 and abs(rows[near].mean() - v) <= 0.6
+    at_a_camera = [(np.abs(cols - pixel(x, y)[0]) <= 4) & (np.abs(rows - pixel(x, y)[1]) <= 4)
+                   for x, y in c2w[:, :2, 3]]
+    assert np.logical_or(*at_a_camera).all()                    # no red dot anywhere else
+    # each camera's viewing direction (-z of its c2w), 0.08 e long, drawn red from its dot
+    for (x, y), look in zip(c2w[:, :2, 3], -c2w[:, :2, 2]):
+        u, v = (int(round(c)) for c in pixel(*((x, y) + 0.06 * extent * look)))
+        assert img[v, u, 0] >= 180 and img[v, u, 1:].max() <= 80, (x, y)   # red (antialiased)
+    u, v = (int(round(c)) for c in pixel(0.3, 0.8))
+    assert (img[v:v + 2, u:u + 2] == 120).all()                 # the point inside, its 2 x 2 block
+    radius = size / 2 / extent                                  # the unit circle, grey where it crosses +x
+    assert (img[size // 2, int(round(size / 2 + radius))] < 255).all()
+    assert (img[size // 2, int(round(size / 2 + radius)) + 3] == 255).all()

@@ -193,6 +193,121 @@ def test_export_field_is_the_analytic_tower_at_its_metric_place(analytic):
     assert np.sum(sigma > 0) == 200
 
 
+class _Counter:
+    def __init__(self):
+        self.steps = []
+
+    def update(self, n):
+        self.steps.append(n)
+
+
+def _analytic_sigma(scene):
+    """The analytic scene's density at normalised points [N, 3], from the record in closed form."""
+    metric = af.to_tower_frame((scene @ np.asarray(af.ROTATION)) / af.NORMALIZATION["scale"]
+                               - np.asarray(af.NORMALIZATION["translation"]))
+    ground = (metric[:, 2] <= af.GROUND_Z) & (metric[:, 2] >= af.GROUND_Z - 2.0)
+    return np.where(af.inside_tower(metric) | ground, af.SIGMA, 0.0), af.inside_tower(metric)
+
+
+def test_export_field_in_chunks_with_directions_is_the_analytic_tower_point_by_point(analytic):
+    """300 points in chunks of 7 (the last padded): each point's density and colour are the
+    analytic tower's at that point, in order; the progress bar counts the points once; no point
+    gives empty arrays of the documented shapes."""
+    from jaxnerf_grid.export import field
+
+    cfg = analytic_config()
+    params = af.params(cfg.model)
+    rng = np.random.default_rng(4)
+    scene = rng.uniform([-0.2, -0.2, -0.65], [0.2, 0.2, 0.55], (300, 3))
+    sigma_ref, tower = _analytic_sigma(scene)
+    assert 30 < np.sum(sigma_ref > 0) < 270                     # both kinds of points, interleaved
+    dirs = rng.normal(size=(300, 3))
+    dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
+    bar = _Counter()
+    out = field.evaluate(params, cfg.model, scene, dirs, chunk=7, progress=bar)
+    np.testing.assert_array_equal(out["sigma"], sigma_ref)
+    np.testing.assert_allclose(out["rgb"], np.where(tower[:, None], af.TOWER_RGB, af.GROUND_RGB), atol=1e-6)
+    assert out["sigma"].dtype == np.float32 and out["rgb"].dtype == np.float32
+    assert sum(bar.steps) == 300 and max(bar.steps) == 7 and bar.steps[-1] == 300 % 7
+    empty = field.evaluate(params, cfg.model, np.zeros((0, 3)), np.zeros((0, 3)), chunk=7)
+    assert empty["sigma"].shape == (0,) and empty["rgb"].shape == (0, 3)
+    assert empty["sigma"].dtype == np.float32 and empty["rgb"].dtype == np.float32
+    density_only = field.evaluate(params, cfg.model, np.zeros((0, 3)))
+    assert list(density_only) == ["sigma"] and density_only["sigma"].shape == (0,)
+    assert density_only["sigma"].dtype == np.float32
+
+
+@pytest.mark.parametrize("chunk", [13, 1 << 16])
+def test_export_density_grid_nodes_are_origin_plus_h_times_ijk(analytic, chunk):
+    """density_grid's node (i, j, k) is origin + h (i, j, k): against the analytic density there,
+    on a grid of 7 x 6 x 12 nodes across the tower's edge and the ground (slabs of one x-plane
+    with chunk 13, the whole grid in one with the default)."""
+    from jaxnerf_grid.export import field
+
+    cfg = analytic_config()
+    origin, h, shape = np.array([-0.3031, -0.2517, -0.6093]), 0.0977, (7, 6, 12)
+    bar = _Counter()
+    grid = field.density_grid(af.params(cfg.model), cfg.model, origin, h, shape, chunk=chunk, progress=bar)
+    assert sum(bar.steps) == 7 * 6 * 12                         # the bar counts every node once
+    i, j, k = np.meshgrid(*(np.arange(n) for n in shape), indexing="ij")
+    nodes = origin + h * np.stack([i, j, k], axis=-1).reshape(-1, 3)
+    assert grid.shape == shape and grid.dtype == np.float32
+    reference = _analytic_sigma(nodes)[0].reshape(shape)
+    assert 0 < np.sum(reference > 0) < reference.size
+    np.testing.assert_array_equal(grid, reference)
+
+
+def test_export_colours_are_the_mean_seen_from_the_k_nearest_cameras(analytic, monkeypatch):
+    """colours_from_cameras with a field whose colour is 0.5 + 0.5 x the viewing direction: each
+    point's colour is the mean over its k nearest camera centres of 0.5 + 0.5 (p - c) / |p - c|
+    (brute force); k larger than the cameras means all of them; k = 1 the nearest; one point is
+    coloured, none gives [0, 3] float32."""
+    from jaxnerf_grid.export import field
+
+    def seen_from(field_params, field_cfg, x, viewdirs=None, appearance=None, transient=None):
+        return {"sigma": af.apply(field_params, field_cfg, x)["sigma"], "rgb": 0.5 + 0.5 * viewdirs}
+
+    af.clear_compiled()
+    monkeypatch.setattr(fields, "apply", seen_from)
+    cfg = analytic_config()
+    rng = np.random.default_rng(5)
+    points, centres = rng.uniform(-0.5, 0.5, (20, 3)), rng.uniform(-2.0, 2.0, (5, 3))
+    for k, pts in ((3, points), (9, points), (1, points), (3, points[:1])):
+        colours = field.colours_from_cameras(af.params(cfg.model), cfg.model, pts, centres, k=k, chunk=8)
+        expected = []
+        for p in pts:
+            nearest = centres[np.argsort(np.linalg.norm(centres - p, axis=1))[:min(k, 5)]]
+            d = (p - nearest) / np.linalg.norm(p - nearest, axis=1, keepdims=True)
+            expected.append(np.mean(0.5 + 0.5 * d, axis=0))
+        np.testing.assert_allclose(colours, expected, atol=1e-6)
+        assert colours.dtype == np.float32
+    none = field.colours_from_cameras(af.params(cfg.model), cfg.model, np.zeros((0, 3)), centres)
+    assert none.shape == (0, 3) and none.dtype == np.float32
+
+
+def test_export_colours_of_an_appearance_model_use_the_mean_embedding(analytic, monkeypatch):
+    """A model with per-image appearance embeddings (NeRF-W's): the exported colour is the field's
+    at the mean of the embedding table over the images (a field whose colour is the embedding's
+    first three numbers, so the mean is read off); without a table, the zero embedding."""
+    from jaxnerf_grid.export import field
+
+    def tinted(field_params, field_cfg, x, viewdirs=None, appearance=None, transient=None):
+        return {"sigma": af.apply(field_params, field_cfg, x)["sigma"], "rgb": appearance[..., :3]}
+
+    af.clear_compiled()
+    monkeypatch.setattr(fields, "apply", tinted)
+    cfg = train.make_config("ours", {"model": {"field": TINY_FIELD, "contract_radius": 2.5, "use_appearance": True,
+                                               "appearance_dim": 4,
+                                               "sampler": {"kind": "hierarchical", "samples": [48, 48]}},
+                                     "train": {"num_devices": 1, "chunk": 2048}})
+    table = np.array([[0.1, 0.2, 0.3, 0.9], [0.5, 0.0, 0.7, 0.1], [0.3, 0.4, 0.2, 0.5]], np.float32)  # [images, 4]
+    points = np.random.default_rng(6).uniform(-0.3, 0.3, (10, 3))
+    dirs = np.tile([0.0, 0.0, 1.0], (10, 1))
+    out = field.evaluate({**af.params(cfg.model), "appearance": jnp.asarray(table)}, cfg.model, points, dirs)
+    np.testing.assert_allclose(out["rgb"], np.tile([0.3, 0.2, 0.4], (10, 1)), atol=1e-6)
+    np.testing.assert_array_equal(field.evaluate(af.params(cfg.model), cfg.model, points, dirs)["rgb"], 0.0)
+
+
 # --------------------------------------------------------------------------- the loss weights
 
 
@@ -235,7 +350,8 @@ def test_prior_weights_are_ones_or_the_capped_weights_whatever_use_masks_says(mo
 def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch():
     """Weights without masks (a dataset's own weights files) are only clipped, whatever the floor;
     prior_weights refuses dpt+robust without weights (DataError) and a patch larger than the
-    frames (ConfigError), but not a batch that is no multiple of the patch (round two)."""
+    frames (ConfigError), but not a batch that is no multiple of the patch (round two), nor one
+    with scattered rays (round three)."""
     ds = tiny_dataset()
     ds.weights = np.linspace(-0.5, 1.5, ds.weights.size, dtype=np.float32).reshape(ds.weights.shape)
     ds.masks = None
@@ -243,6 +359,9 @@ def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the
     np.testing.assert_array_equal(got, np.clip(ds.weights, 0.0, 1.0))
     robust = tiny_config(robust="robust", robust_patch=4).train
     assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=50)) == 1.0)
+    # a quarter of the batch scattered (64 = 16 scattered + 3 patches of 16): the prior checks one
+    # patch without them (4 of its 16 rays scattered would leave 12, no whole patch)
+    assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=64, robust_scattered=0.25)) == 1.0)
     with pytest.raises(ConfigError, match="robust_patch"):                 # 13 > the 16 x 12 frames
         train.prior_weights(ds, dataclasses.replace(robust, robust_patch=13))
     ds.weights = None
