@@ -284,6 +284,13 @@ def _aggregates(obj):
             yield from _aggregates(v)
 
 
+def recorded_date(data) -> str:
+    """A results file's `machine.date_utc` ("" where the file has none: a file of another
+    benchmark may hold anything, e.g. `machine` as a sentence)."""
+    machine = data.get("machine") if isinstance(data, dict) else None
+    return str(machine.get("date_utc", "")) if isinstance(machine, dict) else ""
+
+
 def recorded_runs(folders) -> dict:
     """Finished runs as the committed results files record them: {(seed, run key): record}.
 
@@ -304,8 +311,7 @@ def recorded_runs(folders) -> dict:
             loaded.append((f, json.loads(f.read_text())))
         except (OSError, ValueError) as exc:
             print(f"(results file {f} not read as a record of runs: {exc})", file=sys.stderr)
-    loaded.sort(key=lambda fd: str((fd[1].get("machine") or {}).get("date_utc", "")) if isinstance(fd[1], dict) else "",
-                reverse=True)
+    loaded.sort(key=lambda fd: recorded_date(fd[1]), reverse=True)
     out: dict = {}
     for f, data in loaded:
         where = str(settings.portable(str(f.resolve())))

@@ -500,6 +500,9 @@ def test_recorded_runs_prefer_the_newest_file_and_read_nested_aggregates(tmp_pat
     (tmp_path / "old.json").write_text(json.dumps(results("2026-11-20T00:00:00Z", 21.0)))
     (tmp_path / "new.json").write_text(json.dumps(results("2026-11-22T00:00:00Z", 22.0, nested=True)))
     (tmp_path / "notes.json").write_text("not json")  # a stray file is skipped, not fatal
+    # another benchmark's file: `machine` a sentence, a list at the top (sorted as undated, not fatal)
+    (tmp_path / "other.json").write_text(json.dumps({"machine": "2-core CPU, shared", "rows": []}))
+    (tmp_path / "list.json").write_text(json.dumps([1, 2]))
     got = runner.recorded_runs([tmp_path])
     assert list(got) == [(3, "0123456789")]
     assert got[(3, "0123456789")]["metrics"]["mean"]["psnr"] == 22.0
