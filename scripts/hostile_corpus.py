@@ -33,12 +33,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 import unprivileged  # noqa: E402  (tests/unprivileged.py: setpriv, the tmpfs of a full disk)
 
-TINY = {"model": {"field": {"depth": 2, "width": 32, "skip": 0, "view_width": 16},
-                  "sampler": {"kind": "hierarchical", "samples": [8, 8]}},
-        "train": {"batch_rays": 64, "max_steps": 10, "checkpoint_every": 5, "log_every": 5, "warmup": 2,
-                  "chunk": 512}}
-SYNTH = ["--width", "32", "--height", "24", "--num-train", "6", "--num-test", "2", "--supersample", "1",
-         "--workers", "1", "--quiet"]
+from test_bad_input import SYNTH, TINY  # noqa: E402  (the suite's tiny run and scene, shared)
 TRAIN = ["train", "--recipe", "ours-paper-mlp", "--method", "nerf", "--quiet"]
 
 
