@@ -93,22 +93,23 @@ def alignment_uncertainty(geo: dict | None, units: str, centres_m: np.ndarray) -
     if len(c):
         out["centroid"] = [float(v) for v in c.mean(0)]
     sources = []  # (positions [n, 3] metres, n, residual RMS, fit weight)
-    if gps.get("rms_m") is not None and gps.get("inliers") and len(c):
+    has_gps = gps.get("rms_m") is not None and bool(gps.get("inliers")) and len(c) > 0
+    has_control = control.get("rms_m") is not None and bool(control.get("residuals")) and bool(control.get("points_m"))
+    if has_gps:
         sources.append((c, int(gps["inliers"]), float(gps["rms_m"]), 1.0 / georef.GPS_SIGMA ** 2))
         out.update({"n": int(gps["inliers"]), "rms_m": float(gps["rms_m"]), "spread_m": spread})
-    if control.get("rms_m") is not None and control.get("residuals") and control.get("points_m"):
+    if has_control:
         points = np.asarray(control["points_m"], np.float64).reshape(-1, 3)
         sources.append((points, len(points), float(control["rms_m"]), 1.0 / georef.GCP_SIGMA ** 2))
         out["control_points"] = len(points)
     if sources:
         sigmas = source_sigmas(sources, parameters)
-        if gps.get("rms_m") is not None and gps.get("inliers") and len(c):
+        if has_gps:
             out["sigma_per_coordinate_m"] = sigmas[0]
             if sigmas[0] is not None:
                 out["position_m"] = sigmas[0] * math.sqrt(3.0 / int(gps["inliers"]))
-        if len(sources) > 1 or not (gps.get("rms_m") is not None and gps.get("inliers")):
-            if sigmas[-1] is not None:  # the control points rule the position
-                out["position_m"] = sigmas[-1] * math.sqrt(3.0 / sources[-1][1])
+        if has_control and sigmas[-1] is not None:  # the control points rule the position
+            out["position_m"] = sigmas[-1] * math.sqrt(3.0 / sources[-1][1])
         out["relative_scale"] = weighted_scale_sigma(sources, sigmas)
     return out
 
