@@ -3,7 +3,7 @@ in one run with the cases interleaved.
 
     JAX_PLATFORMS=cpu XLA_FLAGS=--xla_force_host_platform_device_count=2 \
         python -m benchmarks.throughput [--steps 5] [--repeats 3] [--configs mlp,grid-hierarchical,demo]
-        [--methods ours]
+        [--methods ours] [--batch-rays N]
 
 Configs: "mlp" (the MLP field with 32 + 32 hierarchical samples, the demo before the grid),
 "grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the demo recipe: hash
@@ -110,10 +110,12 @@ def samples_per_ray(mcfg) -> str:
 class Case:
     """One (method, config): its compiled training step and renderer, state and rays, ready to time."""
 
-    def __init__(self, method: str, name: str, render_rays: int):
+    def __init__(self, method: str, name: str, render_rays: int, batch_rays: int = 0):
         self.fused = name.endswith(FUSED)
         overrides = json.loads(json.dumps(CONFIGS[name.removesuffix(FUSED)]))
         overrides.setdefault("train", {})["max_steps"] = 1000
+        if batch_rays:  # --batch-rays: every case at this batch (a GPU needs more than the recipe's)
+            overrides["train"]["batch_rays"] = batch_rays
         cfg = train.make_config(method, overrides)
         ds = scene()
         self.cfg = cfg = config_lib.resolve(cfg, ds)  # as train.train settles it
@@ -277,6 +279,8 @@ def main(argv=None) -> None:
     p.add_argument("--render-rays", type=int, default=8192)
     p.add_argument("--configs", default="mlp,grid-hierarchical,demo")
     p.add_argument("--methods", default="ours")
+    p.add_argument("--batch-rays", type=int, default=0,
+                   help="train every case at this many rays a step (default: each config's own)")
     p.add_argument("--out", default=str(Path(__file__).parent / "results" / "throughput.json"))
     args = p.parse_args(argv)
     if args.child:
@@ -288,7 +292,7 @@ def main(argv=None) -> None:
                           str(Path(args.out).with_name("throughput_processes.json")))
         return
     load_before = machine_load()
-    cases = [Case(method, name, args.render_rays) for name in args.configs.split(",")
+    cases = [Case(method, name, args.render_rays, args.batch_rays) for name in args.configs.split(",")
              for method in args.methods.split(",")]
     rows = interleaved(cases, args.steps, args.repeats)
     first = f"{rows[0]['method']}/{rows[0]['config']}"

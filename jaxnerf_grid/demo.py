@@ -1,7 +1,7 @@
 """The demo: the CPU recipe (`DEMO_CONFIG`) end to end, as library calls.
 
 `run_demo(data, out)`: synthetic tower-small (when no data is given) -> masks (when the dataset
-has none; `masking.write_masks`) -> train the `ours` recipe (DEMO_CONFIG; `runs.train_run`, at the
+has none; `masking.write_masks`) -> train the demo's recipe (DEMO_CONFIG; `runs.train_run`, at the
 working resolution of `train.max_side`, data/working.py; near, far and contract_radius from the
 dataset's `scene_bounds` when it records them, `data.bounds`) -> evaluate (`evaluate.evaluate_run`)
 -> a short low-resolution fly-around video (`write_demo_video`: `videos.render_video`'s orbit,
@@ -33,10 +33,12 @@ from jaxnerf_grid.data.synthetic import generate as synth_generate
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.run_config import make_config
 
-# The demo's recipe: `recipes.overrides("ours")`, the recipe that resolves the tower (docs/GRID.md,
-# docs/RECIPES.md): a hash grid on the contracted coordinates, one proposal round of 64 samples
-# stratified in s feeding 32 samples of the main field, an opaque far bin at 1000 units.
-DEMO_RECIPE = "ours"
+# The demo's recipe: `recipes.overrides("ours-fast")` (docs/GRID.md, docs/RECIPES.md): `ours`, the
+# recipe that resolves the tower (a hash grid on the contracted coordinates, one proposal round of
+# 64 samples stratified in s feeding 32 samples of the main field, an opaque far bin at 1000 units),
+# with a smaller proposal field and 1600 steps instead of 2400: the same figures on tower-small in
+# two thirds of the steps, each step 1.1x faster (issue 40, docs/GRID.md).
+DEMO_RECIPE = "ours-fast"
 DEMO_CONFIG = recipes.overrides(DEMO_RECIPE)
 
 
@@ -256,7 +258,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
              progress: bool = True, sets: list[str] | None = None, max_side: int | None = None,
              masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES) -> dict:
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
-    has no masks and they are needed) -> train the `ours` recipe (DEMO_RECIPE) -> evaluate -> the
+    has no masks and they are needed) -> train the demo's recipe (DEMO_RECIPE) -> evaluate -> the
     fly-around video (`write_demo_video`, unless video_frames is 0). Returns {"run_dir", "metrics",
     "timings" (s per stage, STAGES), "total_seconds", "mask_source", "mask_plan", "video"
     (render_video's dict, None without a video)}. sets: --set KEY=VALUE changes to DEMO_CONFIG;

@@ -4,6 +4,10 @@
 # in $OUT (or ./gpu_out when OUT is unset).
 #   bash scripts/gpu_checks.sh speed   # DPT speed vs torch on the GPU (base seg / depth, large seg)
 #   STEPS=1000 bash scripts/gpu_checks.sh demo   # the README's demo on the GPU, plus NeRF throughput
+#   bash scripts/gpu_checks.sh train   # issue 40: train rays/s (ours, ours-fast, lazy Adam; 1024 and
+#                                      # 8192 rays), the step's profile, the demo and ours-fast's demo
+#   STEPS_LIST="1000 1200 1600" bash scripts/gpu_checks.sh steps   # issue 40: ours-fast's demo at
+#        fewer steps (and ours at the first count), no video; then DPT-base segmentation's speed
 set -uo pipefail
 OUT=${OUT:-gpu_out}
 mkdir -p "$OUT"
@@ -22,5 +26,35 @@ case "${1:-speed}" in
     cp /tmp/demo/run/report.md /tmp/demo/run/report_views.png "$OUT/" 2>/dev/null
     python3 benchmarks/throughput.py --steps 20 --out "$OUT/throughput_gpu.json"
     ;;
-  *) echo "usage: $0 speed|demo"; exit 2 ;;
+  train)
+    # Each part under its own timeout, the most wanted first, so one that hangs costs only itself.
+    timeout 150 python3 -m benchmarks.throughput --configs demo,ours-fast,demo-sparse-adam --steps 20 \
+      --repeats 3 --out "$OUT/throughput_gpu.json"
+    ( time timeout 240 python3 -m jaxnerf_grid demo --out /tmp/demo --quiet ) 2>&1 | tee "$OUT/demo.log"
+    for f in report_views.png metrics.json; do cp "/tmp/demo/run/$f" "$OUT/demo_$f"; done  # 8 files come back
+    timeout 100 python3 -m benchmarks.throughput --configs demo,ours-fast,demo-sparse-adam --steps 20 \
+      --repeats 3 --batch-rays 8192 --out "$OUT/throughput_gpu_8192.json"
+    timeout 90 python3 -m benchmarks.step_profile --repeats 10 --out "$OUT/step_profile_gpu.json"
+    # ours-fast (recipes.SAMPLERS) on the demo's data: its proposal grid as a --set
+    ( time timeout 150 python3 -m jaxnerf_grid demo --data /tmp/demo/data --out /tmp/demofast --quiet \
+      --set 'model.sampler.field.grid={"num_levels":3,"max_resolution":64,"log2_table_size":15}' ) 2>&1 \
+      | tee "$OUT/demofast.log"
+    cp /tmp/demofast/run/report_views.png "$OUT/demofast_report_views.png"
+    ;;
+  steps)
+    FAST='model.sampler.field.grid={"num_levels":3,"max_resolution":64,"log2_table_size":15}'
+    timeout 120 python3 -m jaxnerf_grid demo --out /tmp/demo --steps 10 --no-video --quiet > /dev/null 2>&1
+    first=${STEPS_LIST%% *}
+    for n in ${STEPS_LIST:-1000 1200 1600}; do
+      echo "ours-fast $n steps:"; timeout 90 python3 -m jaxnerf_grid demo --data /tmp/demo/data --out "/tmp/fast$n" \
+        --steps "$n" --no-video --quiet --set "$FAST" 2>&1 | grep "demo done"
+      cp "/tmp/fast$n/run/report_views.png" "$OUT/fast${n}_report_views.png"
+    done 2>&1 | tee "$OUT/steps.log"
+    echo "ours $first steps:" | tee -a "$OUT/steps.log"
+    timeout 90 python3 -m jaxnerf_grid demo --data /tmp/demo/data --out /tmp/ours$first --steps "$first" --no-video \
+      --quiet 2>&1 | grep "demo done" | tee -a "$OUT/steps.log"
+    cp "/tmp/ours$first/run/report_views.png" "$OUT/ours${first}_report_views.png"
+    timeout 90 python3 benchmarks/dpt_speed.py --torch-device cuda --iters 20 --stages --out "$OUT/dpt_speed_gpu.json"
+    ;;
+  *) echo "usage: $0 speed|demo|train|steps"; exit 2 ;;
 esac

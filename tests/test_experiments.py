@@ -520,10 +520,11 @@ def test_throughput_times_a_case_with_and_without_computed_once(tmp_path):
     original = hashgrid.computed_once
     out = tmp_path / "t.json"
     throughput.main(["--configs", "demo-piecewise,demo-piecewise-fused", "--steps", "1", "--repeats", "1",
-                     "--render-rays", "64", "--out", str(out)])
+                     "--render-rays", "64", "--batch-rays", "256", "--out", str(out)])
     assert hashgrid.computed_once is original
     rows = json.loads(out.read_text())["results"]
     assert [r["config"] for r in rows] == ["demo-piecewise", "demo-piecewise-fused"]
+    assert [r["batch_rays"] for r in rows] == [256, 256]  # --batch-rays over the recipe's 1024
     assert all(r["train_rays_per_s"] > 0 and r["render_rays_per_s"] > 0 for r in rows)
     x = jax.numpy.zeros((4, 3))
     cfg = hashgrid.HashConfig(num_levels=2, log2_table_size=6, min_resolution=2, max_resolution=4)

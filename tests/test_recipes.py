@@ -42,7 +42,8 @@ def test_ours_is_the_demo_recipe_key_for_key():
     assert model["sampler"] == {k: v for k, v in upgraded["sampler"].items() if k in model["sampler"]}
     assert {k: v for k, v in recipes.overrides("ours").items() if k != "model"} == \
         {k: v for k, v in DEMO_BEFORE.items() if k != "model"}
-    assert demo.DEMO_CONFIG == recipes.overrides("ours") and recipes.get(demo.DEMO_RECIPE).method == "ours"
+    assert demo.DEMO_RECIPE == "ours-fast" and demo.DEMO_CONFIG == recipes.overrides("ours-fast")
+    assert recipes.get(demo.DEMO_RECIPE).method == "ours"
     assert as_dict(recipes.make_config("ours")) == as_dict(train.make_config("ours", DEMO_BEFORE))
     # the experiments record it flat, with the same content and key order as the results files
     before = json.loads(json.dumps(DEMO_BEFORE))
@@ -74,8 +75,10 @@ def test_every_sampler_key_sits_in_samplers():
         assert set(recipes.SAMPLERS[name]) <= set(recipes.overrides(name)["model"]), name
 
 
-def test_ours_fast_is_ours_with_a_smaller_proposal_field():
+def test_ours_fast_is_ours_with_a_smaller_proposal_field_and_1600_steps():
     fast, ours = recipes.make_config("ours-fast"), recipes.make_config("ours")
+    assert (fast.train.max_steps, ours.train.max_steps) == (1600, 2400)
+    fast = dataclasses.replace(fast, train=ours.train)
     assert (fast.model.sampler.field.grid.num_levels, fast.model.sampler.field.grid.max_resolution,
             fast.model.sampler.field.grid.log2_table_size) == (3, 64, 15)
     assert dataclasses.replace(fast.model.sampler.field, grid=ours.model.sampler.field.grid) == ours.model.sampler.field
