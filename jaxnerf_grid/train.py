@@ -440,16 +440,6 @@ class TrainResult:
     steps_run: int = 0
 
 
-def _note_skipped(step: int, stats: dict, skipped: list[int]) -> None:
-    """Reads a finished step's `finite` flag; a skipped (non-finite) step is logged and appended
-    to `skipped`. train() reads step k's flag only after queueing step k + 1: reading it at once
-    made the host wait for every step before queueing the next (11.7 against 1.0 ms a step on an
-    H200, 191 against 158 ms on two CPU cores: benchmarks/step_profile.py, docs/GRID.md)."""
-    if not bool(stats["finite"][0]):
-        skipped.append(step)
-        optim.log_nonfinite(step, stats["loss"][0])
-
-
 def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
           stop_at: int | None = None, on_step=None) -> TrainResult:
     """Trains (or resumes) a run in `run_dir` up to cfg.train.max_steps (or `stop_at`).
@@ -493,18 +483,15 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
         bar = progress_lib.bar(total=end, initial=step, desc=f"train {mcfg.method}", unit="step")
     start_time = time.perf_counter()
     window_start, window_steps = time.perf_counter(), 0
-    unread = None  # (step, stats) of the step before: its `finite` flag is read after the next is queued
     try:
         while step < end:
             state_r, stats = _run_step(p_step, state_r, pool, step)
             step += 1
             window_steps += 1
-            if unread is not None:
-                _note_skipped(*unread, skipped)
-            unread = (step, stats)
+            if not bool(stats["finite"][0]):
+                skipped.append(step)
+                optim.log_nonfinite(step, stats["loss"][0])
             if step % tcfg.log_every == 0 or step == end:
-                _note_skipped(*unread, skipped)  # the record counts this step too
-                unread = None
                 last_loss = float(stats["loss"][0])
                 last_psnr = float(losses.mse_to_psnr(stats["mse"][0]))
                 elapsed = time.perf_counter() - window_start
@@ -526,8 +513,6 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                 checkpoint.save_checkpoint(run_dir, step, parallel.unreplicate(state_r), keep=tcfg.keep_checkpoints)
             if on_step is not None:
                 on_step(step)
-        if unread is not None:
-            _note_skipped(*unread, skipped)
     finally:
         if bar is not None:
             bar.close()
