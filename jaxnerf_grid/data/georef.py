@@ -462,11 +462,7 @@ def align_model(model, gps: dict, *, crs_name=None, gcp_path=None, scale_bar=Non
 
 def _scale_bar_alignment(model, bar: dict, ratios: dict, record: dict):
     """A scale alone: s = metres / the bar's length in the model (no rotation, no CRS)."""
-    if "points" in bar:
-        ends = np.asarray(bar["points"], np.float64)
-    else:
-        pts = [{"name": f"scale bar end {k + 1}", "observations": bar["pixels"][2 * k:2 * k + 2]} for k in range(2)]
-        ends = place_points(model, pts, ratios, "poses.scale_bar")
+    ends = np.asarray(bar["points"], np.float64) if "points" in bar else bar_ends(model, bar["pixels"], ratios)
     length = float(np.linalg.norm(ends[1] - ends[0]))
     if not length > 0:
         raise DataError("poses.scale_bar: the two ends are the same point in the model")
@@ -480,13 +476,16 @@ def _scale_bar_alignment(model, bar: dict, ratios: dict, record: dict):
     return sim, record
 
 
+def bar_ends(model, pixels: list, ratios: dict) -> np.ndarray:
+    """[2, 3] the scale bar's two ends in the model frame, each triangulated (`place_points`)
+    from its two clicks (pixels: [(image, x, y)] * 4, the first two one end)."""
+    ends = [{"name": f"scale bar end {k + 1}", "observations": pixels[2 * k:2 * k + 2]} for k in range(2)]
+    return place_points(model, ends, ratios, "poses.scale_bar")
+
+
 def scale_bar_length(model, pixels: list, ratios: dict) -> float:
-    """The model-frame distance between the bar's two ends, each triangulated from its two
-    clicks (pixels: [(image, x, y)] * 4, the first two one end)."""
-    ends = []
-    for k in range(2):
-        rays = [pixel_ray(model, image, x, y, ratios[image]) for image, x, y in pixels[2 * k:2 * k + 2]]
-        ends.append(triangulate(np.stack([r[0] for r in rays]), np.stack([r[1] for r in rays])))
+    """The model-frame distance between the bar's two ends (`bar_ends`)."""
+    ends = bar_ends(model, pixels, ratios)
     return float(np.linalg.norm(ends[1] - ends[0]))
 
 
