@@ -8,7 +8,10 @@ mask-weighted loss), one process, the same machine:
 
   mlp-hierarchical   the MLP field with 32 coarse + 32 fine samples (the demo before the grid)
   grid-hierarchical  the demo's hash grid with the same coarse + fine sampler
-  grid-proposal      the demo recipe: hash grid + one proposal round (64 -> 32 samples)
+  grid-proposal      the `ours` recipe (the demo's until issue 40): hash grid + one proposal
+                     round (64 -> 32 samples), 2400 steps
+  grid-proposal-fast the demo's recipe now, `ours-fast`: a smaller proposal field, 1600 steps
+                     (`--runs grid-proposal,grid-proposal-fast` puts the two side by side)
 
 Each run keeps a checkpoint every `--every` steps (under benchmarks/.cache), stamped with the training wall-clock time
 when it was written (the trainer's own time, compile included; evaluation is not counted).
@@ -53,7 +56,7 @@ def _grid_hierarchical() -> dict:
 
 
 RUNS = {"mlp-hierarchical": MLP_CONFIG, "grid-hierarchical": _grid_hierarchical(),
-        "grid-proposal": recipes.overrides("ours")}
+        "grid-proposal": recipes.overrides("ours"), "grid-proposal-fast": recipes.overrides("ours-fast")}
 
 
 def dataset_dir(cache: Path) -> Path:
