@@ -207,3 +207,38 @@ def test_the_demo_cloud_keeps_its_16_views_on_tower_small_and_4_on_a_real_captur
     assert within(614, 410) == 4                   # 2**20 // 251740
     assert within(3072, 2048) == 2
     assert clouds.views_within(3, 10 ** 9, 10, 10) == 3
+
+
+def test_demo_trains_on_one_device_when_it_spreads_rendering_over_the_cores():
+    """cli.demo adds train.num_devices=1 only where it forced one CPU device per core itself, on
+    the CPU, and the user named no train.num_devices."""
+    from jaxnerf_grid.cli.demo import sets_training_on_one_device as one
+
+    assert one(None, True, "cpu") == ["train.num_devices=1"]
+    assert one(["train.batch_rays=512"], True, "cpu") == ["train.batch_rays=512", "train.num_devices=1"]
+    assert one(["train.num_devices=2"], True, "cpu") == ["train.num_devices=2"]  # the user's choice
+    assert one([" train.num_devices =0"], True, "cpu") == [" train.num_devices =0"]
+    assert one(None, False, "cpu") == []            # XLA_FLAGS named a device count: as before
+    assert one(None, True, "gpu") == []             # the CPU flag does not touch GPUs: all of them train
+
+
+def test_demo_without_a_device_count_renders_on_every_core_and_trains_on_one(data_dir, tmp_path):
+    """`jaxnerf-grid demo` in a fresh process with no device count in XLA_FLAGS (as README
+    command 1 runs): training on one device (config.json), the run still completes."""
+    import os
+    import shutil
+    import subprocess
+
+    data = tmp_path / "data"
+    shutil.copytree(data_dir, data)
+    env = {k: v for k, v in os.environ.items() if k != "XLA_FLAGS"}
+    env.update(JAX_PLATFORMS="cpu", PYTHONPATH=str(Path(__file__).resolve().parents[1]))
+    probe = subprocess.run([sys.executable, "-c", "import os; from jaxnerf_grid.cli.render import use_every_cpu_core; "
+                            "use_every_cpu_core(cores=2); import jax; print(jax.local_device_count())"],
+                           env=env, capture_output=True, text=True, timeout=120)
+    assert probe.stdout.strip() == "2", probe.stderr  # the flag reaches a fresh process's CPU backend
+    done = subprocess.run([sys.executable, "-m", "jaxnerf_grid", "demo", "--data", str(data), "--out",
+                           str(tmp_path / "demo"), "--steps", "2", "--quiet", "--no-video"],
+                          env=env, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-2000:]
+    assert io.read_json(tmp_path / "demo" / "run" / "config.json")["train"]["num_devices"] == 1

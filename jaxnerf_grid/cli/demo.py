@@ -10,6 +10,7 @@ fly-around video (`demo.run_demo`).
 from __future__ import annotations
 
 import argparse
+import os
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -45,16 +46,32 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def sets_training_on_one_device(sets: list[str] | None, devices_forced: bool, backend: str) -> list[str]:
+    """The demo's --set list, plus `train.num_devices=1` when the demo itself gave XLA one CPU
+    device per core (devices_forced) on the CPU backend and the user named no
+    train.num_devices: the evaluation and the video render on every core, training stays on one
+    device as before (two devices train no faster on two cores, and the count changes a run's
+    summation order, docs/DISTRIBUTED.md)."""
+    sets = list(sets or [])
+    named = any(item.split("=", 1)[0].strip() == "train.num_devices" for item in sets)
+    return sets + ["train.num_devices=1"] if devices_forced and backend == "cpu" and not named else sets
+
+
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
+    from jaxnerf_grid.cli.render import DEVICE_COUNT_FLAG, use_every_cpu_core
     from jaxnerf_grid.cli.train import exit_on_distributed_error, start_distributed
 
-    start_distributed(args)
+    multi = start_distributed(args)
+    forced = not multi and DEVICE_COUNT_FLAG not in os.environ.get("XLA_FLAGS", "")
+    if forced:  # before JAX starts its CPU backend (render --orbit does the same)
+        use_every_cpu_core()
     from jaxnerf_grid import demo, distributed
 
+    sets = sets_training_on_one_device(args.set, forced, distributed.jax.default_backend())
     frames = 0 if args.no_video else demo.DEMO_VIDEO_FRAMES if args.video_frames is None else args.video_frames
     try:
-        result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=args.set,
+        result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=sets,
                                max_side=args.max_side, masks=args.masks, video_frames=frames)
     except distributed.DistributedError as err:
         exit_on_distributed_error("demo", err)
