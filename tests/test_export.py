@@ -753,21 +753,24 @@ def test_footprint_band_includes_its_upper_edge():
 def _counted_tower() -> np.ndarray:
     """Tower-frame points, slices 1 high: a body of 4 points (a, b = +-1) in each of 20 slices
     (height 0 in slice 0, k + 0.5 in slice k), and
-    slice 5: 4 more at a = +-2 (8 points, widths 4 x 2: ratio 2, wide along a; a level, span 4);
-    slice 12: 5 more along b in [-2.5, 2.5] (9, wide along b; a level, span 5);
-    slice 14: the main arm, 40 more along b in [-3, 9] at a = 2, 3 (44; a level, span 12, its
-    centre line at a = 1, the middle of -1 .. 3);
-    slice 15: 4 more at b = -3, 9, a = 2.5 (8, wide along b; not a level: 44 below);
-    slice 18: 6 more along a in [-5, 5] (10, wide along a; not a level: 24 above);
-    slice 19, the top: 20 more along a in [-5, 5] (24; a level, span 10).
-    The median count is 4: levels need at least 6."""
+    slice 4: the body twice (8 points, not wide);
+    slice 5: 4 more at a = +-2 (8, widths 4 x 2: ratio 2, wide along a; a level, as many as
+    the slice below; span 4);
+    slice 12: 2 more at b = +-2.5 (6: exactly 1.5 x the median count 4; a level, span 6.5
+    with slice 13's point);
+    slice 13: 1 more at b = -4 (5, wide along b; not a level: under 6);
+    slice 14: the main arm, 40 more along b in [-3, 9] at a = 2, 3 (44; a level, span 14 with
+    its neighbours' b = -4 and 10, its centre line at a = 1, the middle of -1 .. 3);
+    slice 15: 4 more at b = -3, 10, a = 2.5 (8, wide along b; not a level: 44 below);
+    slices 18 and 19, the top: 20 more each along a in [-5, 5] (24 each, wide along a; 19 is a
+    level, 18 is not: a level has more points than the slice above)."""
     body = [[a, b, 0.0 if k == 0 else k + 0.5] for k in range(20) for a in (-1.0, 1.0) for b in (-1.0, 1.0)]
-    extra = [[a, b, 5.5] for a in (-2.0, 2.0) for b in (-1.0, 1.0)]
-    extra += [[0.0, b, 12.5] for b in np.linspace(-2.5, 2.5, 5)]
+    extra = [[a, b, 4.5] for a in (-1.0, 1.0) for b in (-1.0, 1.0)]
+    extra += [[a, b, 5.5] for a in (-2.0, 2.0) for b in (-1.0, 1.0)]
+    extra += [[0.0, -2.5, 12.5], [0.0, 2.5, 12.5], [0.0, -4.0, 13.5]]
     extra += [[2.0 + (i % 2), b, 14.5] for i, b in enumerate(np.linspace(-3.0, 9.0, 40))]
-    extra += [[2.5, b, 15.5] for b in (-3.0, 9.0, -3.0, 9.0)]
-    extra += [[a, 0.0, 18.5] for a in np.linspace(-5.0, 5.0, 6)]
-    extra += [[a, 0.0, 19.5] for a in np.linspace(-5.0, 5.0, 20)]
+    extra += [[2.5, b, 15.5] for b in (-3.0, 10.0, -3.0, 10.0)]
+    extra += [[a, 0.0, h] for h in (18.5, 19.5) for a in np.linspace(-5.0, 5.0, 20)]
     return np.array(body + extra)
 
 
@@ -779,18 +782,35 @@ def test_cross_arms_of_a_counted_tower_on_tilted_offset_ground():
     np.testing.assert_allclose(arms["region"], [5.0, 20.0], atol=1e-9)
     levels = arms["levels"]
     np.testing.assert_allclose([lv["height"] for lv in levels], [5.5, 12.5, 14.5, 19.5], atol=1e-9)
-    np.testing.assert_allclose([lv["span"] for lv in levels], [4.0, 5.0, 12.0, 10.0], atol=1e-9)
+    np.testing.assert_allclose([lv["span"] for lv in levels], [4.0, 6.5, 14.0, 10.0], atol=1e-9)
     assert [lv["axis"] for lv in levels] == ["a", "b", "b", "a"]
     ends = [_tower_frame(lv["ends"]) for lv in levels]
     np.testing.assert_allclose(ends[0], [[-2, 0, 5.5], [2, 0, 5.5]], atol=1e-9)
-    np.testing.assert_allclose(ends[1], [[0, -2.5, 12.5], [0, 2.5, 12.5]], atol=1e-9)
-    np.testing.assert_allclose(ends[2], [[1, -3, 14.5], [1, 9, 14.5]], atol=1e-9)
+    np.testing.assert_allclose(ends[1], [[0, -4, 12.5], [0, 2.5, 12.5]], atol=1e-9)
+    np.testing.assert_allclose(ends[2], [[1, -4, 14.5], [1, 10, 14.5]], atol=1e-9)
     np.testing.assert_allclose(ends[3], [[-5, 0, 19.5], [5, 0, 19.5]], atol=1e-9)
     # the default separation (6 % of 19.5 = 1.17) keeps the four; 2.5 keeps the stronger of 12.5 / 14.5
     default = measure.cross_arms(pts, n, GROUND_D, e_a, e_b, slice_height=1.0)
     assert [lv["height"] for lv in default["levels"]] == [lv["height"] for lv in levels]
     wider = measure.cross_arms(pts, n, GROUND_D, e_a, e_b, slice_height=1.0, separation=2.5)
     np.testing.assert_allclose([lv["height"] for lv in wider["levels"]], [5.5, 14.5, 19.5], atol=1e-9)
+    # on level ground (exact heights) levels exactly `separation` apart are both kept
+    level = measure.cross_arms(_counted_tower(), [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], 1.0, separation=2.0)
+    assert [lv["height"] for lv in level["levels"]] == [5.5, 12.5, 14.5, 19.5]
+
+
+def test_cross_arms_counts_the_highest_point_in_the_top_slice_and_looks_past_a_sparse_slice():
+    """Slices 1 high from 0: slice 0 of 6 points 0.5 x 0.5 wide, slice 1 of one point, slice 2 of
+    4 points 0.5 x 0.5 and the highest point, exactly on the top edge (height 3), 0.7 out along
+    one axis: with it, slice 2 is 0.95 x 0.5 (wide: 0.95 > 1.5 x 0.5); without it, not."""
+    square = [(a, b) for a in (-0.25, 0.25) for b in (-0.25, 0.25)]
+    q = ([(a, b, 0.0) for a, b in square] + [(0.0, 0.0, 0.5), (0.1, 0.1, 0.5), (0.0, 0.0, 1.5)]
+         + [(a, b, 2.5) for a, b in square] + [(0.7, 0.0, 3.0)])
+    q = np.asarray(q)
+    for axes, name in (([[1.0, 0, 0], [0, 1.0, 0]], "a"), ([[0, 1.0, 0], [1.0, 0, 0]], "b")):
+        got = measure.cross_arms(q, [0, 0, 1.0], 0.0, *axes, slice_height=1.0)
+        assert got["region"] == [2.0, 3.0], name
+        assert measure.cross_arms(q[:-1], [0, 0, 1.0], 0.0, *axes, slice_height=1.0)["region"] is None
 
 
 def test_cross_arms_needs_ten_points():

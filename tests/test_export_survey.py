@@ -186,30 +186,32 @@ SHIFT = np.array([5.0, -7.0, 40.0])      # the tower frame (a, b, height) -> the
 
 
 def test_axis_tilt_of_slices_on_a_known_line_against_linregress():
-    """Slices 1 m thick of a tower on tilted ground (normal TURN z, offset -n . SHIFT), each a
-    2 x 2 square of 4 points centred on the line a = 0.4 + 0.05 h, b = -0.3 - 0.02 h (+ 2 cm of
-    noise) at mean height k + 0.5; slice 6 moved 1.5 m off the line (left out by the MAD rule),
-    slice 9 an arm (4 x 2: ratio 2, not a centre), slice 10 of 3 points (mean height 10 + 13/30).
-    The axis, base, top, tilts and sigmas from scipy's linregress over the 10 kept centres."""
+    """Slices 0.5 m thick of a tower on tilted ground (normal TURN z, offset -n . SHIFT), each a
+    2 x 2 square of 4 points centred on the line a = 0.4 + 0.2 h, b = -0.3 - 0.1 h (+ 2 cm of
+    noise) at mean height (k + 0.5) / 2; slice 6 moved 0.6 m off the line (past the floor of the
+    MAD rule, half a slice: left out), slice 9 an arm (4 x 2: ratio 2, not a centre), slice 10
+    of 3 points. The axis, base, top, tilts and sigmas from scipy's linregress over the 10 kept
+    centres."""
     from scipy.stats import linregress
 
     rng = np.random.default_rng(4)
     q, centres = [[0.0, 0.0, 0.0]], []                       # a lone point at height 0 starts the slices
     for k in range(1, 13):
-        h = k + 0.5
-        a, b = 0.4 + 0.05 * h + rng.normal(0, 0.02), -0.3 - 0.02 * h + rng.normal(0, 0.02)
+        h = 0.5 * (k + 0.5)
+        a, b = 0.4 + 0.2 * h + rng.normal(0, 0.02), -0.3 - 0.1 * h + rng.normal(0, 0.02)
         if k == 6:
-            a += 1.5
-        square = [(a - 1, b - 1, k + 0.3), (a + 1, b + 1, k + 0.3), (a - 1, b + 1, k + 0.7), (a + 1, b - 1, k + 0.7)]
+            a += 0.6
+        lo, hi = 0.5 * (k + 0.3), 0.5 * (k + 0.7)
+        square = [(a - 1, b - 1, lo), (a + 1, b + 1, lo), (a - 1, b + 1, hi), (a + 1, b - 1, hi)]
         if k == 9:
-            square += [(a + 3, b, k + 0.5)]
+            square += [(a + 3, b, h)]
         if k == 10:
             square = square[:2] + square[3:]
         q += square
         if k not in (6, 9):
             centres.append((np.mean([s[2] for s in square]), a, b))
     n = TURN[:, 2]
-    tilt = measure.axis_tilt(np.asarray(q) @ TURN.T + SHIFT, n, -float(n @ SHIFT), TURN[:, 0], TURN[:, 1], 1.0)
+    tilt = measure.axis_tilt(np.asarray(q) @ TURN.T + SHIFT, n, -float(n @ SHIFT), TURN[:, 0], TURN[:, 1], 0.5)
     c = np.asarray(centres)
     fa, fb = linregress(c[:, 0], c[:, 1]), linregress(c[:, 0], c[:, 2])
     assert (tilt["slices"], tilt["slices_left_out"]) == (10, 1)
@@ -218,7 +220,7 @@ def test_axis_tilt_of_slices_on_a_known_line_against_linregress():
     np.testing.assert_allclose(tilt["direction"], direction, atol=1e-9)
     assert tilt["tilt_degrees"] == pytest.approx(np.degrees(np.arccos(direction[2])))
     assert tilt["tilt_from_ground_normal_degrees"] == pytest.approx(np.degrees(np.arctan(np.hypot(fa.slope, fb.slope))))
-    top_h = 12.7
+    top_h = 0.5 * 12.7
     base = TURN @ [fa.intercept, fb.intercept, 0.0] + SHIFT
     top = TURN @ [fa.intercept + fa.slope * top_h, fb.intercept + fb.slope * top_h, top_h] + SHIFT
     np.testing.assert_allclose(tilt["base"], base, atol=1e-9)
@@ -232,14 +234,19 @@ def test_axis_tilt_of_slices_on_a_known_line_against_linregress():
 
 def test_axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two():
     """Nine points, three slices of three (the fewest it takes): centres a = 0.5 k at mean
-    heights k + 1/12, on level ground: slope 0.5, no residual; eight points: None."""
+    heights k + 1/12, on level ground: slope 0.5, no residual; eight points: None. A highest
+    point exactly on
+    the top slice's upper edge, 3 m out, belongs to that slice (which is then an arm: None)."""
     q = [(0.5 * k + da, db, k + dh) for k in range(3) for da, db, dh in ((-1, -1, 0.0), (1, 1, 0.0), (1, -1, 0.25))]
-    tilt = measure.axis_tilt(np.asarray(q, np.float64), [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], 1.0)
+    axes = ([1.0, 0, 0], [0, 1.0, 0])
+    tilt = measure.axis_tilt(np.asarray(q, np.float64), [0, 0, 1.0], 0.0, *axes, 1.0)
     assert tilt is not None and tilt["slices"] == 3
     assert tilt["tilt_degrees"] == pytest.approx(np.degrees(np.arctan(0.5)))
     np.testing.assert_allclose(tilt["base"], [-1.0 / 24, 0.0, 0.0], atol=1e-12)     # a(0) = 0.5 (0 - 1/12)
     assert tilt["tilt_sigma_degrees"] == pytest.approx(0.0, abs=1e-6)
-    assert measure.axis_tilt(np.asarray(q[:8], np.float64), [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], 1.0) is None
+    assert measure.axis_tilt(np.asarray(q[:8], np.float64), [0, 0, 1.0], 0.0, *axes, 1.0) is None
+    top = q + [(1.0 + 3.0, 0.0, 3.0)]
+    assert measure.axis_tilt(np.asarray(top, np.float64), [0, 0, 1.0], 0.0, *axes, 1.0) is None
     assert measure._line_fit(np.array([0.0, 1.0]), np.array([1.0, 3.0])) == (1.0, 2.0, 0.0)   # K = 2: no spread
 
 
