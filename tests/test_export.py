@@ -797,6 +797,10 @@ def test_cross_arms_of_a_counted_tower_on_tilted_offset_ground():
     # on level ground (exact heights) levels exactly `separation` apart are both kept
     level = measure.cross_arms(_counted_tower(), [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], 1.0, separation=2.0)
     assert [lv["height"] for lv in level["levels"]] == [5.5, 12.5, 14.5, 19.5]
+    # one point 60 above the ground: the default separation is 6 % of 60 = 3.6, and 12.5 goes
+    tall = np.vstack([_counted_tower(), [[0.0, 0.0, 60.0]]])
+    tall_arms = measure.cross_arms(tall, [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], 1.0)
+    assert [lv["height"] for lv in tall_arms["levels"]] == [5.5, 14.5, 19.5]
 
 
 def test_cross_arms_counts_the_highest_point_in_the_top_slice_and_looks_past_a_sparse_slice():
