@@ -248,6 +248,11 @@ def test_axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two():
     top = q + [(1.0 + 3.0, 0.0, 3.0)]
     assert measure.axis_tilt(np.asarray(top, np.float64), [0, 0, 1.0], 0.0, *axes, 1.0) is None
     assert measure._line_fit(np.array([0.0, 1.0]), np.array([1.0, 3.0])) == (1.0, 2.0, 0.0)   # K = 2: no spread
+    from scipy.stats import linregress
+
+    three = linregress([0.0, 1.0, 2.0], [0.0, 1.0, 3.0])                            # K = 3: one degree of freedom
+    np.testing.assert_allclose(measure._line_fit(np.array([0.0, 1.0, 2.0]), np.array([0.0, 1.0, 3.0])),
+                               [three.intercept, three.slope, three.stderr], atol=1e-12)
 
 
 def _wire(x0: float, ks) -> np.ndarray:
