@@ -32,6 +32,19 @@ tests/test_poses.py::test_rotate_scene_keeps_projections tests/test_poses.py::te
 tests/test_export.py::test_metric_round_trip tests/test_export.py::test_metric_round_trip_with_rotation \
 tests/test_export.py::test_metric_map_of_a_missing_or_partial_record_is_the_identity_in_what_is_missing"
 
+# the block tests of export/measure.py in test_export.py and test_export_survey.py (not test_export's
+# training fixture; test_join_export.py's module-scoped export is credited by mutmut to its first test only)
+MEASURE_BLOCKS="$(for t in min_area_rectangle_against_brute_force footprint_and_cross_arms_of_a_synthetic_tower \
+cross_arm_ends_of_a_one_sided_arm_on_a_tilted_ground orthographic_views_draw_the_nearest_point \
+plane_basis_is_the_x_axis_projected_on_the_plane_and_orthonormal min_area_rectangle_of_one_two_three_and_collinear_points \
+footprint_of_a_turned_rectangle_on_tilted_offset_ground footprint_band_includes_its_upper_edge \
+cross_arms_of_a_counted_tower_on_tilted_offset_ground cross_arms_needs_ten_points \
+cross_arms_counts_the_highest_point_in_the_top_slice_and_looks_past_a_sparse_slice; do printf 'tests/test_export.py::test_%s ' $t; done) \
+$(for t in tilt_of_a_generated_tower_within_0_3_degrees tilt_from_the_ground_normal_on_sloping_ground \
+conductor_clearance_is_the_lowest_point_of_the_wire_leaving_the_tower axis_tilt_of_slices_on_a_known_line_against_linregress \
+axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two \
+conductor_clearance_counts_the_box_edge_the_height_limit_and_the_gap_by_hand; do printf 'tests/test_export_survey.py::test_%s ' $t; done)"
+
 # group -> "module to mutate|fast tests that cover it"
 declare -A GROUPS_=(
   [foreground]="jaxnerf_grid/foreground.py|tests/test_foreground.py tests/test_join_foreground.py"
@@ -44,7 +57,7 @@ declare -A GROUPS_=(
   [export_score]="jaxnerf_grid/export/score.py|tests/test_join_truth.py tests/test_join_export.py"
   [export_init]="jaxnerf_grid/export/__init__.py|tests/test_join_export.py tests/test_export.py"
   [export_ground]="jaxnerf_grid/export/ground.py|tests/test_join_export.py tests/test_export.py"
-  [export_measure]="jaxnerf_grid/export/measure.py|tests/test_join_export.py tests/test_export.py"
+  [export_measure]="jaxnerf_grid/export/measure.py|$MEASURE_BLOCKS tests/test_join_export.py"
   [export_field]="jaxnerf_grid/export/field.py|tests/test_join_truth.py tests/test_join_export.py"
   [export_run]="jaxnerf_grid/export/run.py|tests/test_join_export.py"
   [normalize]="jaxnerf_grid/data/normalize.py|tests/test_normalize.py tests/test_join_poses.py tests/test_formats.py $NORMALIZE_BLOCKS"

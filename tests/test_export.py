@@ -672,3 +672,156 @@ def test_parse_box():
     for bad in ("1,2,3,4,5", "a,b,c,d,e,f", "0,0,0,1,1,nan", "0,0,1,1,1,1"):
         with pytest.raises(ConfigError):
             parse_box(bad)
+
+
+# --------------------------------------------------------------------------- measurements by hand (issue 43)
+# Each figure of export/measure.py on a cloud built so that its answer is known exactly: a
+# tower frame q = (a, b, height) turned by TURN and moved by SHIFT into the world, so that the
+# ground's normal is not z and its offset d = -n . SHIFT is not 0.
+
+TURN = (np.array([[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
+        @ np.array([[np.cos(0.5), -np.sin(0.5), 0], [np.sin(0.5), np.cos(0.5), 0], [0, 0, 1]]))
+SHIFT = np.array([5.0, -7.0, 40.0])
+GROUND_D = -float(TURN[:, 2] @ SHIFT)
+
+
+def _world(q) -> np.ndarray:
+    """Tower-frame points [N, 3] (a, b, height above the ground) -> the world."""
+    return np.asarray(q, np.float64) @ TURN.T + SHIFT
+
+
+def _tower_frame(x) -> np.ndarray:
+    """World points [N, 3] -> the tower frame (the inverse of _world)."""
+    return (np.asarray(x, np.float64) - SHIFT) @ TURN
+
+
+def test_plane_basis_is_the_x_axis_projected_on_the_plane_and_orthonormal():
+    for normal, ref in (([0.2, -0.3, 2.0], [1.0, 0, 0]), ([3.0, 0.0, 0.1], [0, 1.0, 0])):   # not unit length
+        n = np.asarray(normal) / np.linalg.norm(normal)
+        e1_true = np.asarray(ref) - (np.asarray(ref) @ n) * n
+        e1_true /= np.linalg.norm(e1_true)
+        e1, e2 = measure.plane_basis(normal)
+        np.testing.assert_allclose(e1, e1_true, atol=1e-12)
+        np.testing.assert_allclose(e2, np.cross(n, e1_true), atol=1e-12)
+        np.testing.assert_allclose(np.linalg.norm([e1, e2], axis=1), 1.0, atol=1e-12)
+
+
+def test_min_area_rectangle_of_one_two_three_and_collinear_points():
+    assert measure.min_area_rectangle(np.array([[2.0, 3.0]]))[:2] == (0.0, 0.0)
+    np.testing.assert_array_equal(measure.min_area_rectangle(np.array([[2.0, 3.0]]))[2], [1.0, 0.0])
+    line = np.array([0.6, 0.8])
+    for pts in (np.array([[1.0, 1.0], [4.0, 5.0]]),                                  # two points 5 apart
+                np.array([10.0, -4.0]) + np.linspace(-2.0, 3.0, 6)[:, None] * line):  # six on a line, off the origin
+        wa, wb, direction = measure.min_area_rectangle(pts)
+        assert (wa, wb) == (pytest.approx(5.0), 0.0)
+        assert abs(direction @ line) == pytest.approx(1.0)
+    triangle = np.array([[0.0, 0.0], [4.0, 0.0], [1.0, 3.0]])                        # area 6: the rectangle is 12
+    wa, wb, _ = measure.min_area_rectangle(triangle)
+    assert wb > 0 and wa >= wb and wa * wb == pytest.approx(12.0)
+
+
+def test_footprint_of_a_turned_rectangle_on_tilted_offset_ground():
+    """A base 6 x 2 turned 25 degrees in the tower frame, a narrower body above: the widths, the
+    axes (along the base's long side, in the world), the band above the ground, the base's count."""
+    rng = np.random.default_rng(11)
+    turn = np.radians(25.0)
+    long_side = np.array([np.cos(turn), np.sin(turn)])
+    across = np.array([-np.sin(turn), np.cos(turn)])
+    u, v = rng.uniform(-3, 3, 400), rng.uniform(-1, 1, 400)
+    base = np.column_stack([np.outer(u, long_side) + np.outer(v, across), rng.uniform(0, 0.4, 400)])
+    corners = np.array([[s * 3, t * 1] for s in (-1, 1) for t in (-1, 1)], np.float64)
+    base = np.vstack([base, np.column_stack([corners @ np.vstack([long_side, across]), np.zeros(4)])])
+    body = np.column_stack([rng.uniform(-0.5, 0.5, (300, 2)), rng.uniform(1.0, 10.0, 300)])
+    fp = measure.footprint(_world(np.vstack([base, body])), TURN[:, 2], GROUND_D, band=0.5)
+    assert fp["width_a"] == pytest.approx(6.0) and fp["width_b"] == pytest.approx(2.0)
+    axis_a = TURN @ [long_side[0], long_side[1], 0.0]
+    assert abs(np.asarray(fp["axis_a"]) @ axis_a) == pytest.approx(1.0)
+    np.testing.assert_allclose(fp["axis_b"], np.cross(TURN[:, 2], fp["axis_a"]), atol=1e-12)
+    np.testing.assert_allclose(fp["band"], [0.0, 0.5], atol=1e-9)
+    assert fp["points"] == len(base)
+
+
+def test_footprint_band_includes_its_upper_edge():
+    """Level ground z = 3 (n = z, d = -3), exact heights: a point exactly `band` above the lowest
+    is in the base; one above it is not."""
+    pts = np.array([[0, 0, 3.0], [4, 0, 3.0], [4, 2, 3.0], [0, 2, 3.5], [8, 0, 3.75], [0, 9, 5.0]])
+    fp = measure.footprint(pts, [0, 0, 1.0], -3.0, band=0.5)
+    assert fp["points"] == 4 and fp["band"] == [0.0, 0.5]
+    assert (fp["width_a"], fp["width_b"]) == (pytest.approx(4.0), pytest.approx(2.0))
+
+
+def _counted_tower() -> np.ndarray:
+    """Tower-frame points, slices 1 high: a body of 4 points (a, b = +-1) in each of 20 slices
+    (height 0 in slice 0, k + 0.5 in slice k), and
+    slice 4: the body twice (8 points, not wide);
+    slice 5: 4 more at a = +-2 (8, widths 4 x 2: ratio 2, wide along a; a level, as many as
+    the slice below; span 4);
+    slice 12: 2 more at b = +-2.5 (6: exactly 1.5 x the median count 4; a level, span 6.5
+    with slice 13's point);
+    slice 13: 1 more at b = -4 (5, wide along b; not a level: under 6);
+    slice 14: the main arm, 40 more along b in [-3, 9] at a = 2, 3 (44; a level, span 14 with
+    its neighbours' b = -4 and 10, its centre line at a = 1, the middle of -1 .. 3);
+    slice 15: 4 more at b = -3, 10, a = 2.5 (8, wide along b; not a level: 44 below);
+    slices 18 and 19, the top: 20 more each along a in [-5, 5] (24 each, wide along a; 19 is a
+    level, 18 is not: a level has more points than the slice above)."""
+    body = [[a, b, 0.0 if k == 0 else k + 0.5] for k in range(20) for a in (-1.0, 1.0) for b in (-1.0, 1.0)]
+    extra = [[a, b, 4.5] for a in (-1.0, 1.0) for b in (-1.0, 1.0)]
+    extra += [[a, b, 5.5] for a in (-2.0, 2.0) for b in (-1.0, 1.0)]
+    extra += [[0.0, -2.5, 12.5], [0.0, 2.5, 12.5], [0.0, -4.0, 13.5]]
+    extra += [[2.0 + (i % 2), b, 14.5] for i, b in enumerate(np.linspace(-3.0, 9.0, 40))]
+    extra += [[2.5, b, 15.5] for b in (-3.0, 10.0, -3.0, 10.0)]
+    extra += [[a, 0.0, h] for h in (18.5, 19.5) for a in np.linspace(-5.0, 5.0, 20)]
+    return np.array(body + extra)
+
+
+def test_cross_arms_of_a_counted_tower_on_tilted_offset_ground():
+    pts = _world(_counted_tower())
+    n, e_a, e_b = TURN[:, 2], TURN[:, 0], TURN[:, 1]
+    arms = measure.cross_arms(pts, n, GROUND_D, e_a, e_b, slice_height=1.0, separation=0.5)
+    assert arms["slice_height"] == 1.0 and arms["ratio"] == 1.5
+    np.testing.assert_allclose(arms["region"], [5.0, 20.0], atol=1e-9)
+    levels = arms["levels"]
+    np.testing.assert_allclose([lv["height"] for lv in levels], [5.5, 12.5, 14.5, 19.5], atol=1e-9)
+    np.testing.assert_allclose([lv["span"] for lv in levels], [4.0, 6.5, 14.0, 10.0], atol=1e-9)
+    assert [lv["axis"] for lv in levels] == ["a", "b", "b", "a"]
+    ends = [_tower_frame(lv["ends"]) for lv in levels]
+    np.testing.assert_allclose(ends[0], [[-2, 0, 5.5], [2, 0, 5.5]], atol=1e-9)
+    np.testing.assert_allclose(ends[1], [[0, -4, 12.5], [0, 2.5, 12.5]], atol=1e-9)
+    np.testing.assert_allclose(ends[2], [[1, -4, 14.5], [1, 10, 14.5]], atol=1e-9)
+    np.testing.assert_allclose(ends[3], [[-5, 0, 19.5], [5, 0, 19.5]], atol=1e-9)
+    # the default separation (6 % of 19.5 = 1.17) keeps the four; 2.5 keeps the stronger of 12.5 / 14.5
+    default = measure.cross_arms(pts, n, GROUND_D, e_a, e_b, slice_height=1.0)
+    assert [lv["height"] for lv in default["levels"]] == [lv["height"] for lv in levels]
+    wider = measure.cross_arms(pts, n, GROUND_D, e_a, e_b, slice_height=1.0, separation=2.5)
+    np.testing.assert_allclose([lv["height"] for lv in wider["levels"]], [5.5, 14.5, 19.5], atol=1e-9)
+    # on level ground (exact heights) levels exactly `separation` apart are both kept
+    level = measure.cross_arms(_counted_tower(), [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], 1.0, separation=2.0)
+    assert [lv["height"] for lv in level["levels"]] == [5.5, 12.5, 14.5, 19.5]
+    # one point 60 above the ground: the default separation is 6 % of 60 = 3.6, and 12.5 goes
+    tall = np.vstack([_counted_tower(), [[0.0, 0.0, 60.0]]])
+    tall_arms = measure.cross_arms(tall, [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], 1.0)
+    assert [lv["height"] for lv in tall_arms["levels"]] == [5.5, 14.5, 19.5]
+
+
+def test_cross_arms_counts_the_highest_point_in_the_top_slice_and_looks_past_a_sparse_slice():
+    """Slices 1 high from 0: slice 0 of 6 points 0.5 x 0.5 wide, slice 1 of one point, slice 2 of
+    4 points 0.5 x 0.5 and the highest point, exactly on the top edge (height 3), 0.7 out along
+    one axis: with it, slice 2 is 0.95 x 0.5 (wide: 0.95 > 1.5 x 0.5); without it, not."""
+    square = [(a, b) for a in (-0.25, 0.25) for b in (-0.25, 0.25)]
+    q = ([(a, b, 0.0) for a, b in square] + [(0.0, 0.0, 0.5), (0.1, 0.1, 0.5), (0.0, 0.0, 1.5)]
+         + [(a, b, 2.5) for a, b in square] + [(0.7, 0.0, 3.0)])
+    q = np.asarray(q)
+    for axes, name in (([[1.0, 0, 0], [0, 1.0, 0]], "a"), ([[0, 1.0, 0], [1.0, 0, 0]], "b")):
+        got = measure.cross_arms(q, [0, 0, 1.0], 0.0, *axes, slice_height=1.0)
+        assert got["region"] == [2.0, 3.0], name
+        assert measure.cross_arms(q[:-1], [0, 0, 1.0], 0.0, *axes, slice_height=1.0)["region"] is None
+
+
+def test_cross_arms_needs_ten_points():
+    """Ten points in one slice, 4 wide along a and 1 along b: a region (no level: the slice is
+    the median); nine: nothing."""
+    ten = np.array([[a, b, h] for a in (-2.0, -1.0, 0.0, 1.0, 2.0) for b, h in ((0.0, 0.0), (1.0, 0.5))])
+    got = measure.cross_arms(ten, [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], slice_height=1.0)
+    assert got["region"] == [0.0, 1.0] and got["levels"] == []
+    got = measure.cross_arms(ten[:9], [0, 0, 1.0], 0.0, [1.0, 0, 0], [0, 1.0, 0], slice_height=1.0)
+    assert got["region"] is None and got["levels"] == []

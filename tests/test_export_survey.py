@@ -180,6 +180,109 @@ def test_conductor_clearance_is_the_lowest_point_of_the_wire_leaving_the_tower()
     assert none["reconstructed"] is False and "outside the tower's box" in none["why"]
 
 
+TURN = (np.array([[1, 0, 0], [0, np.cos(0.3), -np.sin(0.3)], [0, np.sin(0.3), np.cos(0.3)]])
+        @ np.array([[np.cos(0.5), -np.sin(0.5), 0], [np.sin(0.5), np.cos(0.5), 0], [0, 0, 1]]))
+SHIFT = np.array([5.0, -7.0, 40.0])      # the tower frame (a, b, height) -> the world: x = TURN q + SHIFT
+
+
+def test_axis_tilt_of_slices_on_a_known_line_against_linregress():
+    """Slices 0.5 m thick of a tower on tilted ground (normal TURN z, offset -n . SHIFT), each a
+    2 x 2 square of 4 points centred on the line a = 0.4 + 0.2 h, b = -0.3 - 0.1 h (+ 2 cm of
+    noise) at mean height (k + 0.5) / 2; slice 6 moved 0.6 m off the line (past the floor of the
+    MAD rule, half a slice: left out), slice 9 an arm (4 x 2: ratio 2, not a centre), slice 10
+    of 3 points. The axis, base, top, tilts and sigmas from scipy's linregress over the 10 kept
+    centres."""
+    from scipy.stats import linregress
+
+    rng = np.random.default_rng(4)
+    q, centres = [[0.0, 0.0, 0.0]], []                       # a lone point at height 0 starts the slices
+    for k in range(1, 13):
+        h = 0.5 * (k + 0.5)
+        a, b = 0.4 + 0.2 * h + rng.normal(0, 0.02), -0.3 - 0.1 * h + rng.normal(0, 0.02)
+        if k == 6:
+            a += 0.6
+        lo, hi = 0.5 * (k + 0.3), 0.5 * (k + 0.7)
+        square = [(a - 1, b - 1, lo), (a + 1, b + 1, lo), (a - 1, b + 1, hi), (a + 1, b - 1, hi)]
+        if k == 9:
+            square += [(a + 3, b, h)]
+        if k == 10:
+            square = square[:2] + square[3:]
+        q += square
+        if k not in (6, 9):
+            centres.append((np.mean([s[2] for s in square]), a, b))
+    n = TURN[:, 2]
+    tilt = measure.axis_tilt(np.asarray(q) @ TURN.T + SHIFT, n, -float(n @ SHIFT), TURN[:, 0], TURN[:, 1], 0.5)
+    c = np.asarray(centres)
+    fa, fb = linregress(c[:, 0], c[:, 1]), linregress(c[:, 0], c[:, 2])
+    assert (tilt["slices"], tilt["slices_left_out"]) == (10, 1)
+    direction = TURN @ [fa.slope, fb.slope, 1.0]
+    direction /= np.linalg.norm(direction)
+    np.testing.assert_allclose(tilt["direction"], direction, atol=1e-9)
+    assert tilt["tilt_degrees"] == pytest.approx(np.degrees(np.arccos(direction[2])))
+    assert tilt["tilt_from_ground_normal_degrees"] == pytest.approx(np.degrees(np.arctan(np.hypot(fa.slope, fb.slope))))
+    top_h = 0.5 * 12.7
+    base = TURN @ [fa.intercept, fb.intercept, 0.0] + SHIFT
+    top = TURN @ [fa.intercept + fa.slope * top_h, fb.intercept + fb.slope * top_h, top_h] + SHIFT
+    np.testing.assert_allclose(tilt["base"], base, atol=1e-9)
+    np.testing.assert_allclose(tilt["top"], top, atol=1e-9)
+    np.testing.assert_allclose(tilt["top_offset_xy"], (top - base)[:2], atol=1e-9)
+    assert tilt["top_offset"] == pytest.approx(np.hypot(*(top - base)[:2]))
+    sigma = np.degrees(np.arctan(np.sqrt(0.5 * (fa.stderr ** 2 + fb.stderr ** 2))))
+    assert tilt["tilt_sigma_degrees"] == pytest.approx(sigma)
+    assert tilt["top_offset_sigma"] == pytest.approx(np.radians(sigma) * top_h)
+
+
+def test_axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two():
+    """Nine points, three slices of three (the fewest it takes): centres a = 0.5 k at mean
+    heights k + 1/12, on level ground: slope 0.5, no residual; eight points: None. A highest
+    point exactly on
+    the top slice's upper edge, 3 m out, belongs to that slice (which is then an arm: None)."""
+    q = [(0.5 * k + da, db, k + dh) for k in range(3) for da, db, dh in ((-1, -1, 0.0), (1, 1, 0.0), (1, -1, 0.25))]
+    axes = ([1.0, 0, 0], [0, 1.0, 0])
+    tilt = measure.axis_tilt(np.asarray(q, np.float64), [0, 0, 1.0], 0.0, *axes, 1.0)
+    assert tilt is not None and tilt["slices"] == 3
+    assert tilt["tilt_degrees"] == pytest.approx(np.degrees(np.arctan(0.5)))
+    np.testing.assert_allclose(tilt["base"], [-1.0 / 24, 0.0, 0.0], atol=1e-12)     # a(0) = 0.5 (0 - 1/12)
+    assert tilt["tilt_sigma_degrees"] == pytest.approx(0.0, abs=1e-6)
+    assert measure.axis_tilt(np.asarray(q[:8], np.float64), [0, 0, 1.0], 0.0, *axes, 1.0) is None
+    top = q + [(1.0 + 3.0, 0.0, 3.0)]
+    assert measure.axis_tilt(np.asarray(top, np.float64), [0, 0, 1.0], 0.0, *axes, 1.0) is None
+    assert measure._line_fit(np.array([0.0, 1.0]), np.array([1.0, 3.0])) == (1.0, 2.0, 0.0)   # K = 2: no spread
+    from scipy.stats import linregress
+
+    three = linregress([0.0, 1.0, 2.0], [0.0, 1.0, 3.0])                            # K = 3: one degree of freedom
+    np.testing.assert_allclose(measure._line_fit(np.array([0.0, 1.0, 2.0]), np.array([0.0, 1.0, 3.0])),
+                               [three.intercept, three.slope, three.stderr], atol=1e-12)
+
+
+def _wire(x0: float, ks) -> np.ndarray:
+    """Wire points x = x0 + 0.25 k (k in ks), y = 0, z = 12 - 0.25 k."""
+    k = np.asarray(list(ks), np.float64)
+    return np.column_stack([x0 + 0.25 * k, np.zeros_like(k), 12.0 - 0.25 * k])
+
+
+def test_conductor_clearance_counts_the_box_edge_the_height_limit_and_the_gap_by_hand():
+    """Level ground z = 2 (n = z, d = -2), the tower's box x, y in [-1, 1], cells 0.5, points
+    higher than 4.5 above the ground: a wire from the box's edge (x = 1, on the box: not outside)
+    falling 0.25 m per 0.25 m out to k = 20 (exactly the 20 points needed; lowest 5.0 above the
+    ground at (6, 0, 7)), then one point beside it exactly 4.5 above (not higher: left out)."""
+    n, d, lo, hi = [0, 0, 1.0], -2.0, [-1.0, -1.0, 2.0], [1.0, 1.0, 12.0]
+    wire = np.vstack([_wire(1.0, range(21)), [[6.25, 0.0, 6.5]]])
+    got = measure.conductor_clearance(wire, n, d, lo, hi, 4.5, 0.5)
+    assert got["reconstructed"] is True and got["points"] == 20 and got["min_height"] == 4.5
+    assert got["lowest_height"] == 5.0 and got["lowest_point"] == [6.0, 0.0, 7.0] and got["extent"] == 5.0
+    mirrored = measure.conductor_clearance(wire * [-1, 1, 1], n, d, lo, hi, 4.5, 0.5)      # the box's lower edge
+    assert mirrored["points"] == 20 and mirrored["lowest_point"] == [-6.0, 0.0, 7.0]
+    # starting 2 cells from the box still leaves it; 2.5 cells does not
+    assert measure.conductor_clearance(_wire(1.75, range(1, 21)), n, d, lo, hi, 4.5, 0.5)["reconstructed"] is True
+    far = measure.conductor_clearance(_wire(2.0, range(1, 21)), n, d, lo, hi, 4.5, 0.5)
+    assert far["reconstructed"] is False and "does not leave the tower" in far["why"] and far["min_height"] == 4.5
+    # 24 points in two groups of 12 on either side: enough points, no group large enough
+    two = np.vstack([_wire(1.0, range(1, 13)), _wire(1.0, range(1, 13)) * [-1, 1, 1]])
+    assert measure.conductor_clearance(two, n, d, lo, hi, 4.5, 0.5)["reconstructed"] is False
+    assert measure.conductor_clearance(wire[:20], n, d, lo, hi, 4.5, 0.5)["reconstructed"] is False   # 19 outside
+
+
 # --------------------------------------------------------------------------- uncertainty
 
 
