@@ -218,6 +218,7 @@ def test_demo_trains_on_one_device_when_it_spreads_rendering_over_the_cores():
     assert one(["train.batch_rays=512"], True, "cpu") == ["train.batch_rays=512", "train.num_devices=1"]
     assert one(["train.num_devices=2"], True, "cpu") == ["train.num_devices=2"]  # the user's choice
     assert one([" train.num_devices =0"], True, "cpu") == [" train.num_devices =0"]
+    assert one(['train={"num_devices": 2}'], True, "cpu") == ['train={"num_devices": 2}']  # the section set
     assert one(None, False, "cpu") == []            # XLA_FLAGS named a device count: as before
     assert one(None, True, "gpu") == []             # the CPU flag does not touch GPUs: all of them train
 

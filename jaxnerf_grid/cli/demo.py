@@ -52,8 +52,10 @@ def sets_training_on_one_device(sets: list[str] | None, devices_forced: bool, ba
     train.num_devices: the evaluation and the video render on every core, training stays on one
     device as before (two devices train no faster on two cores, and the count changes a run's
     summation order, docs/DISTRIBUTED.md)."""
+    from jaxnerf_grid import config as config_lib, run_config
+
     sets = list(sets or [])
-    named = any(item.split("=", 1)[0].strip() == "train.num_devices" for item in sets)
+    named = "num_devices" in config_lib.parse_sets(sets, run_config.RunConfig).get("train", {})
     return sets + ["train.num_devices=1"] if devices_forced and backend == "cpu" and not named else sets
 
 
