@@ -10,6 +10,8 @@
 #        fewer steps (and ours at the first count), no video; then DPT-base segmentation's speed
 set -uo pipefail
 OUT=${OUT:-gpu_out}
+# ours-fast's proposal grid (recipes.SAMPLERS) as a --set, for a demo run against ours
+FAST='model.sampler.field.grid={"num_levels":3,"max_resolution":64,"log2_table_size":15}'
 mkdir -p "$OUT"
 python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
@@ -35,14 +37,11 @@ case "${1:-speed}" in
     timeout 100 python3 -m benchmarks.throughput --configs demo,ours-fast,demo-sparse-adam --steps 20 \
       --repeats 3 --batch-rays 8192 --out "$OUT/throughput_gpu_8192.json"
     timeout 90 python3 -m benchmarks.step_profile --repeats 10 --out "$OUT/step_profile_gpu.json"
-    # ours-fast (recipes.SAMPLERS) on the demo's data: its proposal grid as a --set
     ( time timeout 150 python3 -m jaxnerf_grid demo --data /tmp/demo/data --out /tmp/demofast --quiet \
-      --set 'model.sampler.field.grid={"num_levels":3,"max_resolution":64,"log2_table_size":15}' ) 2>&1 \
-      | tee "$OUT/demofast.log"
+      --set "$FAST" ) 2>&1 | tee "$OUT/demofast.log"
     cp /tmp/demofast/run/report_views.png "$OUT/demofast_report_views.png"
     ;;
   steps)
-    FAST='model.sampler.field.grid={"num_levels":3,"max_resolution":64,"log2_table_size":15}'
     timeout 120 python3 -m jaxnerf_grid demo --out /tmp/demo --steps 10 --no-video --quiet > /dev/null 2>&1
     first=${STEPS_LIST%% *}
     for n in ${STEPS_LIST:-1000 1200 1600}; do
