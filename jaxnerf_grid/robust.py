@@ -49,7 +49,8 @@ of Eq. 7) does not multiply the weight; it sets how strict the evidence is for e
 An unflagged pixel (prior 1) is an inlier up to the q quantile (0.8: the worst 20 % of the
 batch are outliers, so a transient the DPT missed is down-weighted); a fully flagged pixel
 (prior 0) only up to q_flagged (0.5: it must be fitted better than the batch median, so the
-static model must really explain it before it is re-admitted); the spread bound scales with
+static model must really explain it before it is re-admitted; with a spread k > 0 the flagged
+bound below is never under the median, so it, not q_flagged, decides); the spread bound scales with
 the prior the same way (k for an unflagged pixel, k / 3 for a flagged one: within one robust
 standard deviation of the batch's typical error at k = 3; the default k is 1.5, with
 multi-view confirmation on). Mode `robust` is the same

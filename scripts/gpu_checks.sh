@@ -8,6 +8,8 @@
 #                                      # 8192 rays), the step's profile, the demo and ours-fast's demo
 #   STEPS_LIST="1000 1200 1600" bash scripts/gpu_checks.sh steps   # issue 40: ours-fast's demo at
 #        fewer steps (and ours at the first count), no video; then DPT-base segmentation's speed
+#   bash scripts/gpu_checks.sh table1   # issue 36 item 5: Table 1's robust rows (robust, dpt+robust) at
+#        --standard, 3 seeds, sets A and B; the other rows are read back from the committed results
 set -uo pipefail
 OUT=${OUT:-gpu_out}
 # ours-fast's proposal grid (recipes.SAMPLERS) as a --set, for a demo run against ours
@@ -55,5 +57,13 @@ case "${1:-speed}" in
     cp "/tmp/ours$first/run/report_views.png" "$OUT/ours${first}_report_views.png"
     timeout 90 python3 benchmarks/dpt_speed.py --torch-device cuda --iters 20 --stages --out "$OUT/dpt_speed_gpu.json"
     ;;
-  *) echo "usage: $0 speed|demo|train|steps"; exit 2 ;;
+  table1)
+    # Scenes and the DPT's masks are made here (too large to carry); --budget-min stops launching
+    # runs in time for the tables to be written.
+    python3 -m experiments.table1_foreground --standard --seeds 3 --cache /tmp/t1cache --results "$OUT/t1" \
+      --budget-min "${BUDGET_MIN:-7}" --quiet \
+      --train-only '^t1-(tower-small|plad-like)-(robust_no_masks|built-in_DPT_masks__Eq_7__robust) seed' \
+      2>&1 | tee "$OUT/table1.log"
+    ;;
+  *) echo "usage: $0 speed|demo|train|steps|table1"; exit 2 ;;
 esac

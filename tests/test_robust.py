@@ -117,6 +117,27 @@ def test_spread_thresholds_against_numpy():
     np.testing.assert_allclose(got, want, rtol=1e-5)
 
 
+@pytest.mark.parametrize("spread", [0.3, 1.5, 3.0])
+def test_flagged_quantile_never_binds_with_a_spread(spread):
+    """For a fully flagged pixel the quantile is the batch median of the squared residuals, m^2,
+    and the spread bound (m + k/3 1.4826 MAD)^2 is never below it (docs/ROBUST.md): any flagged
+    quantile up to 0.5 gives the same inliers as the spread bound alone (checked against the
+    NumPy reference, which computes both figures)."""
+    rng = np.random.default_rng(11)
+    batch = (rng.random(257) ** 3).astype(np.float32)
+    res = batch[:64].reshape(4, 4, 4)
+    prior = np.zeros_like(res)
+    args = dict(quantile=0.8, floor=0.0, spread=spread)
+    alone = reference_inliers(res, prior, batch, flagged_quantile=0.0, **args)
+    for q in (0.0, 0.25, 0.5):
+        got = np.asarray(robust.pixel_inliers(jnp.asarray(res), jnp.asarray(prior), jnp.asarray(batch),
+                                              flagged_quantile=q, **args))
+        np.testing.assert_array_equal(got, alone)
+    # without a spread the quantile is the only bar, and it does bind
+    no_spread = reference_inliers(res, prior, batch, flagged_quantile=0.5, quantile=0.8, floor=0.0, spread=0.0)
+    assert 0 < no_spread.mean() < 1
+
+
 def test_warmup_steps_are_a_fraction_of_the_run():
     assert robust.warmup_steps(0.2, 2400) == 480
     assert robust.warmup_steps(0.0, 2400) == 0
