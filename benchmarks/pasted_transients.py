@@ -302,10 +302,27 @@ def row_overrides(row: str, seed: int, steps: int, sets: dict | None = None) -> 
     return cfg
 
 
+def prior_data(base: Path, row: str, prior: str = "dpt") -> Path:
+    """The dataset a row trains on (`variant`); for the dpt+robust row `prior` (--prior) picks
+    the masks that are its prior: "dpt" (the built-in DPT's), "gt" (the pasted masks: with
+    train.robust_warmup=1 the evidence never applies, so the row is the ground-truth masks
+    trained on patches) or a masked copy of the scene's dataset, a folder whose path may hold
+    {scene} (e.g. one written by scripts/sweep_masks_offline.py)."""
+    if row != "dpt+robust" or prior == "dpt":
+        return variant(base, ROW_DATA[row])
+    if prior == "gt":
+        return variant(base, "gt")
+    folder = Path(prior.format(scene=base.name))
+    if not (folder / "transforms.json").is_file() or "mask_source" not in io.read_json(folder / "transforms.json"):
+        raise DataError(f"{folder}: --prior names no masked dataset (a transforms.json with mask_source)")
+    return folder
+
+
 def run_row(base: Path, row: str, seed: int, steps: int, work: Path, reuse: bool = False,
-            sets: dict | None = None, tag: str = "") -> dict | None:
+            sets: dict | None = None, tag: str = "", prior: str = "dpt") -> dict | None:
     """Trains and scores one row and seed; None when this build's config lacks the row's keys.
-    sets, tag: --set's overrides and --tag (the run folder's suffix)."""
+    sets, tag, prior: --set's overrides, --tag (the run folder's suffix) and --prior
+    (`prior_data`)."""
     from jaxnerf_grid import evaluate, runs, train
 
     overrides = row_overrides(row, seed, steps, sets)
@@ -314,7 +331,7 @@ def run_row(base: Path, row: str, seed: int, steps: int, work: Path, reuse: bool
     except ConfigError as err:
         print(f"  skip {row}: {err}", flush=True)
         return None
-    data = variant(base, ROW_DATA[row])
+    data = prior_data(base, row, prior)
     run_dir = work / "runs" / f"{base.name}-{row}-s{seed}{tag}"
     t = time.perf_counter()
     if reuse and _finished(run_dir, overrides):
@@ -411,6 +428,9 @@ def main(argv=None) -> int:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="change a training setting of the robust rows (e.g. train.robust_spread=2), repeatable")
     p.add_argument("--tag", default="", help="suffix of the run folders (keeps runs with other --set apart)")
+    p.add_argument("--prior", default="dpt",
+                   help="the dpt+robust row's prior masks: dpt, gt, or a masked copy of the scene's dataset "
+                        "(a folder; {scene} in it is the scene's name)")
     p.add_argument("--work", default=str(ROOT / "benchmarks/.cache/pasted_transients"))
     p.add_argument("--out", default=str(ROOT / "benchmarks/results/pasted_transients"))
     args = p.parse_args(argv)
@@ -445,7 +465,7 @@ def main(argv=None) -> int:
                   f"{np.mean([f['pasted_share'] for f in meta['frames'] if f['split'] == 'train']):.1%}", flush=True)
             for row in rows:
                 for seed in seeds:
-                    r = run_row(base, row, seed, args.steps, work, args.reuse, sets, args.tag)
+                    r = run_row(base, row, seed, args.steps, work, args.reuse, sets, args.tag, args.prior)
                     if r is not None:
                         results.append(r)
                         print(f"  {scene} {row} seed {seed}: PSNR {r['psnr']:.2f} SSIM {r['ssim']:.4f} pasted used "
@@ -454,7 +474,7 @@ def main(argv=None) -> int:
     except (DataError, ConfigError) as err:
         raise SystemExit(str(err)) from None
     settings = {"argv": argv, "scenes": args.scenes, "rows": rows, "seeds": seeds, "steps": args.steps,
-                "robust_sets": args.set,
+                "robust_sets": args.set, "prior": args.prior,
                 "long_side": args.long_side, "photos": args.photos, "test_every": args.test_every,
                 "coverage": args.coverage, "machine": platform.machine(), "python": platform.python_version()}
     summary = summarise(results)

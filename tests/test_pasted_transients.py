@@ -168,3 +168,24 @@ def test_set_changes_the_robust_rows_only():
                                                                            default.robust_spread)
     with pytest.raises(SystemExit, match="--set"):
         pt.main(["somewhere", "--set", "train.no_such_key=1"])
+
+
+def test_prior_picks_the_dpt_robust_rows_masks_only(tmp_path):
+    """--prior: the dpt+robust row trains on the pasted masks ("gt") or on a named masked copy
+    ({scene} filled in); every other row keeps its own data; a folder without masks is a
+    one-line DataError naming it."""
+    from jaxnerf_grid.io import DataError
+
+    _strecha_scene(tmp_path / "scene")
+    base = pt.build_scene(tmp_path / "scene", tmp_path / "data" / "fount", _sprites(), long_side=45, test_every=2,
+                          coverage=0.1, sprite_scale=1.0)
+    assert pt.prior_data(base, "dpt+robust", "gt") == tmp_path / "data" / "fount-gt"
+    assert io.read_json(tmp_path / "data" / "fount-gt" / "transforms.json")["mask_source"] == "ground-truth"
+    assert pt.prior_data(base, "robust", "gt") == base           # not the prior's row: its own data
+    assert pt.prior_data(base, "gt", "elsewhere") == tmp_path / "data" / "fount-gt"
+    other = tmp_path / "sweep" / "fount-masked"
+    other.mkdir(parents=True)
+    io.write_json(other / "transforms.json", {"mask_source": "sweep (offline)", "frames": []})
+    assert pt.prior_data(base, "dpt+robust", str(tmp_path / "sweep" / "{scene}-masked")) == other
+    with pytest.raises(DataError, match="no masked dataset"):
+        pt.prior_data(base, "dpt+robust", str(tmp_path / "nowhere"))
