@@ -171,7 +171,7 @@ def test_poses_scale_near_and_files_by_the_rules(stage):
 
 def _vetting_row(name, kept, reasons):
     return {"name": name, "observations": 12, "reprojection_px": 3.2, "track_length": 1.5, "neighbour_ratio": None,
-            "kept": kept, "reasons": reasons}
+            "covisible": 2, "kept": kept, "reasons": reasons}
 
 
 def test_poses_report_names_each_left_out_photo_with_its_reasons_in_the_summary_and_the_table():
@@ -192,8 +192,8 @@ def test_poses_report_names_each_left_out_photo_with_its_reasons_in_the_summary_
             "b.png (reprojection 3.2 px; track 1.5)") in lines
     vet = lines.index("## Vetting (docs/POSES.md)")
     assert lines[vet + 2] == "`--keep-all`: every registered photo kept, whatever its scores."
-    assert "| b.png | 12 | 3.20 | 1.50 | - | no | reprojection 3.2 px; track 1.5 |" in lines[vet:]
-    assert "| a.png | 12 | 3.20 | 1.50 | - | yes |  |" in lines[vet:]
+    assert "| b.png | 12 | 3.20 | 1.50 | - | 2 | no | reprojection 3.2 px; track 1.5 |" in lines[vet:]
+    assert "| a.png | 12 | 3.20 | 1.50 | - | 2 | yes |  |" in lines[vet:]
     table = lines.index("## Scene bounds (docs/BOUNDS.md)")
     assert lines[table:] == ["## Scene bounds (docs/BOUNDS.md)", "", "| bound | value (normalised units) |",
                              "|---|---|", "| near | 0.125 |", "| far | 4.5 |", "| contract_radius | 2 |",

@@ -13,14 +13,23 @@ pycolmap.Reconstruction. Per photo:
 - neighbour_ratio: the median distance from its centre to the NEIGHBOURS photos it shares the
   most 3-D points with, over the same distance's median across all photos. A photo registered
   in the wrong place (look-alike faces of a lattice tower) still shares points with the photos
-  near its true place, which are then far from where it was put.
+  near its true place, which are then far from where it was put;
+- covisible: the number of other photos it shares at least one 3-D point with. A photo tied
+  to the model only through a small corner of it (few photos, few points) can sit in a local
+  model that is itself wrong; on synthetic tower orbits the photos registered beside a gap of
+  unregistered ones were kept 4-7 degrees off, sharing points with 8-9 photos where every good
+  photo shared them with 17 or more (docs/POSES.md).
 
 Rules (`vet`), each with its reason in the table:
 - fewer observations than max(MIN_OBSERVATIONS, MIN_OBSERVATIONS_FRACTION x the median photo's);
 - reprojection_px above MAX_REPROJECTION_PX (the mapper already drops every observation more
   than 2 px off, data.poses.MAPPER, so a mean above that means the pose does not fit);
 - track_length below MIN_TRACK_FRACTION x the median photo's (points few others see: weakly tied);
-- neighbour_ratio above MAX_NEIGHBOUR_RATIO (only with at least MIN_PHOTOS_FOR_LAYOUT photos).
+- neighbour_ratio above MAX_NEIGHBOUR_RATIO (only with at least MIN_PHOTOS_FOR_LAYOUT photos);
+- weakly tied: covisible below MIN_COVISIBLE_FRACTION x the median photo's *and* observations
+  below WEAK_OBSERVATIONS_FRACTION x the median photo's (only with at least
+  MIN_PHOTOS_FOR_LAYOUT photos). Both, so that the end photos of a straight flight line (half
+  the neighbours of a middle photo, with the usual number of points) are kept.
 """
 
 from __future__ import annotations
@@ -36,6 +45,8 @@ MIN_TRACK_FRACTION = 0.5
 NEIGHBOURS = 3
 MAX_NEIGHBOUR_RATIO = 3.0
 MIN_PHOTOS_FOR_LAYOUT = 5
+MIN_COVISIBLE_FRACTION = 0.5     # weakly tied: fewer covisible photos than half the median photo's ...
+WEAK_OBSERVATIONS_FRACTION = 0.25  # ... and fewer observations than a quarter of the median photo's
 BEHIND_PX = 1e4  # the error given to a point behind the camera (it cannot be where the photo saw it)
 
 
@@ -98,7 +109,8 @@ def neighbour_distances(centres: np.ndarray, shared: np.ndarray, k: int = NEIGHB
 
 def photo_scores(rec: Records) -> dict:
     """The scores of every photo: {"observations" [N] int, "reprojection_px" [N],
-    "track_length" [N], "neighbour_ratio" [N] (NaN when it cannot be computed)}."""
+    "track_length" [N], "neighbour_ratio" [N] (NaN when it cannot be computed), "covisible" [N]
+    int}."""
     n = len(rec.names)
     obs = np.array([len(idx) for idx in rec.point_index], np.int64)
     reproj = np.full(n, np.nan)
@@ -109,10 +121,12 @@ def photo_scores(rec: Records) -> dict:
             reproj[i] = float(reprojection_errors(rec.cam_from_world[i], float(rec.focal[i]), rec.xyz[idx],
                                                   np.asarray(uv, np.float64)).mean())
             track[i] = float(np.asarray(rec.track_length, np.float64)[idx].mean())
-    dist = neighbour_distances(camera_centres(rec.cam_from_world), shared_points(rec.point_index, len(rec.xyz)))
+    shared = shared_points(rec.point_index, len(rec.xyz))
+    dist = neighbour_distances(camera_centres(rec.cam_from_world), shared)
     typical = np.nanmedian(dist) if np.any(np.isfinite(dist)) else np.nan
     ratio = dist / typical if np.isfinite(typical) and typical > 0 else np.full(n, np.nan)
-    return {"observations": obs, "reprojection_px": reproj, "track_length": track, "neighbour_ratio": ratio}
+    return {"observations": obs, "reprojection_px": reproj, "track_length": track, "neighbour_ratio": ratio,
+            "covisible": (shared > 0).sum(axis=1).astype(np.int64)}
 
 
 def failures(scores: dict) -> list[list[str]]:
@@ -122,6 +136,11 @@ def failures(scores: dict) -> list[list[str]]:
     n = len(obs)
     min_obs = max(MIN_OBSERVATIONS, MIN_OBSERVATIONS_FRACTION * float(np.median(obs))) if n else MIN_OBSERVATIONS
     typical_track = np.nanmedian(track) if np.any(np.isfinite(track)) else np.nan
+    covisible = scores.get("covisible", np.full(n, np.iinfo(np.int64).max))
+    typical_covisible = float(np.median(covisible)) if n else 0.0
+    typical_obs = float(np.median(obs)) if n else 0.0
+    weak = ((covisible < MIN_COVISIBLE_FRACTION * typical_covisible)
+            & (obs < WEAK_OBSERVATIONS_FRACTION * typical_obs)) if n >= MIN_PHOTOS_FOR_LAYOUT else np.zeros(n, bool)
     out = []
     for i in range(n):
         why = []
@@ -133,20 +152,23 @@ def failures(scores: dict) -> list[list[str]]:
             why.append(f"track length {track[i]:.2f} < {MIN_TRACK_FRACTION:g} x median {typical_track:.2f}")
         if n >= MIN_PHOTOS_FOR_LAYOUT and np.isfinite(ratio[i]) and ratio[i] > MAX_NEIGHBOUR_RATIO:
             why.append(f"{ratio[i]:.1f}x the usual distance to the photos it shares points with")
+        if weak[i]:
+            why.append(f"weakly tied: shares points with {covisible[i]} photos (median {typical_covisible:g}) "
+                       f"through {obs[i]} observations (median {typical_obs:g})")
         out.append(why)
     return out
 
 
 def vet(rec: Records) -> list[dict]:
     """One row per photo, in rec.names order: {"name", "observations", "reprojection_px",
-    "track_length", "neighbour_ratio" (None when not computed), "kept", "reasons"}."""
+    "track_length", "neighbour_ratio" (None when not computed), "covisible", "kept", "reasons"}."""
     scores = photo_scores(rec)
     rows = []
     for i, why in enumerate(failures(scores)):
         rows.append({"name": rec.names[i], "observations": int(scores["observations"][i]),
                      **{key: (float(scores[key][i]) if np.isfinite(scores[key][i]) else None)
                         for key in ("reprojection_px", "track_length", "neighbour_ratio")},
-                     "kept": not why, "reasons": why})
+                     "covisible": int(scores["covisible"][i]), "kept": not why, "reasons": why})
     return rows
 
 
@@ -177,10 +199,10 @@ def format_table(rows: list[dict]) -> list[str]:
     def num(v, digits):
         return "-" if v is None else f"{v:.{digits}f}"
 
-    lines = ["| photo | observations | reprojection (px) | track length | neighbour ratio | kept | reason |",
-             "|---|---|---|---|---|---|---|"]
+    lines = ["| photo | observations | reprojection (px) | track length | neighbour ratio | covisible photos "
+             "| kept | reason |", "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         lines.append(f"| {r['name']} | {r['observations']} | {num(r['reprojection_px'], 2)} | "
-                     f"{num(r['track_length'], 2)} | {num(r['neighbour_ratio'], 2)} | "
+                     f"{num(r['track_length'], 2)} | {num(r['neighbour_ratio'], 2)} | {r.get('covisible', '-')} | "
                      f"{'yes' if r['kept'] else 'no'} | {'; '.join(r['reasons'])} |")
     return lines
