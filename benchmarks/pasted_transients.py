@@ -303,12 +303,12 @@ def row_overrides(row: str, seed: int, steps: int, sets: dict | None = None) -> 
 
 
 def prior_data(base: Path, row: str, prior: str = "dpt") -> Path:
-    """The dataset a row trains on (`variant`); for the dpt+robust row `prior` (--prior) picks
-    the masks that are its prior: "dpt" (the built-in DPT's), "gt" (the pasted masks: with
-    train.robust_warmup=1 the evidence never applies, so the row is the ground-truth masks
+    """The dataset a row trains on (`variant`); for the dpt and dpt+robust rows `prior` (--prior)
+    picks their masks: "dpt" (the built-in DPT's), "gt" (the pasted masks: in the dpt+robust row
+    with train.robust_warmup=1 the evidence never applies, so the row is the ground-truth masks
     trained on patches) or a masked copy of the scene's dataset, a folder whose path may hold
     {scene} (e.g. one written by scripts/sweep_masks_offline.py)."""
-    if row != "dpt+robust" or prior == "dpt":
+    if row not in ("dpt", "dpt+robust") or prior == "dpt":
         return variant(base, ROW_DATA[row])
     if prior == "gt":
         return variant(base, "gt")
@@ -429,7 +429,7 @@ def main(argv=None) -> int:
                    help="change a training setting of the robust rows (e.g. train.robust_spread=2), repeatable")
     p.add_argument("--tag", default="", help="suffix of the run folders (keeps runs with other --set apart)")
     p.add_argument("--prior", default="dpt",
-                   help="the dpt+robust row's prior masks: dpt, gt, or a masked copy of the scene's dataset "
+                   help="the masks of the dpt and dpt+robust rows: dpt, gt, or a masked copy of the scene's dataset "
                         "(a folder; {scene} in it is the scene's name)")
     p.add_argument("--work", default=str(ROOT / "benchmarks/.cache/pasted_transients"))
     p.add_argument("--out", default=str(ROOT / "benchmarks/results/pasted_transients"))

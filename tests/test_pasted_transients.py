@@ -170,8 +170,8 @@ def test_set_changes_the_robust_rows_only():
         pt.main(["somewhere", "--set", "train.no_such_key=1"])
 
 
-def test_prior_picks_the_dpt_robust_rows_masks_only(tmp_path):
-    """--prior: the dpt+robust row trains on the pasted masks ("gt") or on a named masked copy
+def test_prior_picks_the_masked_rows_masks_only(tmp_path):
+    """--prior: the dpt and dpt+robust rows train on the pasted masks ("gt") or on a named masked copy
     ({scene} filled in); every other row keeps its own data; a folder without masks is a
     one-line DataError naming it."""
     from jaxnerf_grid.io import DataError
@@ -181,7 +181,8 @@ def test_prior_picks_the_dpt_robust_rows_masks_only(tmp_path):
                           coverage=0.1, sprite_scale=1.0)
     assert pt.prior_data(base, "dpt+robust", "gt") == tmp_path / "data" / "fount-gt"
     assert io.read_json(tmp_path / "data" / "fount-gt" / "transforms.json")["mask_source"] == "ground-truth"
-    assert pt.prior_data(base, "robust", "gt") == base           # not the prior's row: its own data
+    assert pt.prior_data(base, "robust", "gt") == base           # not a masked row: its own data
+    assert pt.prior_data(base, "dpt", "gt") == tmp_path / "data" / "fount-gt"
     assert pt.prior_data(base, "gt", "elsewhere") == tmp_path / "data" / "fount-gt"
     other = tmp_path / "sweep" / "fount-masked"
     other.mkdir(parents=True)
