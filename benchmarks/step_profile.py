@@ -22,7 +22,9 @@ compile, then `--repeats` times (block_until_ready); the median is reported, in 
   optimizer         `optim.guarded_apply` with the recipe's Adam on the whole parameter tree
   optimizer_sparse  the same with `train.sparse_adam` flipped (dense <-> lazy on hash tables)
   step              the pmapped training step of `train.make_train_step`, the steps chained
-                    (dispatch overlaps the previous step)
+                    (dispatch overlaps the previous step); with `--set train.robust=robust` the
+                    robust step (patches, evidence, confirmation, the per-pixel record), the
+                    stages above staying the plain step's
   step_synced       the same with the host reading the step's `finite` flag after every
                     step, as `train.train`'s loop does
 
@@ -103,7 +105,7 @@ def profile(recipe: str = "ours", rays: int = 1024, repeats: int = 10, extra: di
     pool_host = train.build_pool(ds, cfg)
     pool = jax.device_put({k: v for k, v in pool_host.items() if k not in ("near", "far")})
     pool_near_far = {"near": pool_host["near"], "far": pool_host["far"]}
-    state = train.init_state(cfg)
+    state = train.init_state(cfg, train.train_frames_shape(ds) if tcfg.robust != "off" else None)
     params = state["params"]
     key = jax.random.PRNGKey(0)
     ms = {}
@@ -170,6 +172,7 @@ def profile(recipe: str = "ours", rays: int = 1024, repeats: int = 10, extra: di
             "config": {"recipe": recipe, "rays": rays, "samples": list(sampler.samples),
                        "main_samples": sampler.main_samples, "main_levels": main_cfg.grid.num_levels,
                        "proposal_levels": prop_cfg.grid.num_levels, "sparse_adam": tcfg.sparse_adam,
+                       "robust": tcfg.robust,
                        "params": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
                        "scene": {"width": size[0], "height": size[1], "frames": size[2]},
                        "repeats": repeats, "device": str(jax.local_devices()[0])}}

@@ -10,6 +10,8 @@
 #        fewer steps (and ours at the first count), no video; then DPT-base segmentation's speed
 #   bash scripts/gpu_checks.sh table1   # issue 36 item 5: Table 1's robust rows (robust, dpt+robust) at
 #        --standard, 3 seeds, sets A and B; the other rows are read back from the committed results
+#   bash scripts/gpu_checks.sh robustprof   # why a robust run trains 5x longer than a plain one on the
+#        GPU (docs/GPU.md): the step profile of ours-fast plain and with train.robust=robust
 set -uo pipefail
 OUT=${OUT:-gpu_out}
 # ours-fast's proposal grid (recipes.SAMPLERS) as a --set, for a demo run against ours
@@ -65,5 +67,10 @@ case "${1:-speed}" in
       --train-only '^t1-(tower-small|plad-like)-(robust_no_masks|built-in_DPT_masks__Eq_7__robust) seed' \
       2>&1 | tee "$OUT/table1.log"
     ;;
-  *) echo "usage: $0 speed|demo|train|steps|table1"; exit 2 ;;
+  robustprof)
+    timeout 150 python3 -m benchmarks.step_profile --recipe ours-fast --repeats 20 --out "$OUT/step_profile_plain.json"
+    timeout 150 python3 -m benchmarks.step_profile --recipe ours-fast --repeats 20 --set train.robust=robust \
+      --out "$OUT/step_profile_robust.json"
+    ;;
+  *) echo "usage: $0 speed|demo|train|steps|table1|robustprof"; exit 2 ;;
 esac
