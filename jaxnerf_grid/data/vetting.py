@@ -17,7 +17,7 @@ pycolmap.Reconstruction. Per photo:
 - covisible: the number of other photos it shares at least one 3-D point with. A photo tied
   to the model only through a small corner of it (few photos, few points) can sit in a local
   model that is itself wrong; on synthetic tower orbits the photos registered beside a gap of
-  unregistered ones were kept 4-7 degrees off, sharing points with 8-9 photos where every good
+  unregistered ones were kept 4-7 degrees off, sharing points with 8-11 photos where every good
   photo shared them with 17 or more (docs/POSES.md).
 
 Rules (`vet`), each with its reason in the table:
@@ -45,7 +45,7 @@ MIN_TRACK_FRACTION = 0.5
 NEIGHBOURS = 3
 MAX_NEIGHBOUR_RATIO = 3.0
 MIN_PHOTOS_FOR_LAYOUT = 5
-MIN_COVISIBLE_FRACTION = 0.5     # weakly tied: fewer covisible photos than half the median photo's ...
+MIN_COVISIBLE_FRACTION = 2 / 3   # weakly tied: fewer covisible photos than 2/3 of the median photo's ...
 WEAK_OBSERVATIONS_FRACTION = 0.25  # ... and fewer observations than a quarter of the median photo's
 BEHIND_PX = 1e4  # the error given to a point behind the camera (it cannot be where the photo saw it)
 
