@@ -176,6 +176,7 @@ def make_context(args, script: str) -> Context:
 # full size; train.robust "off" is the training they had), so the run key leaves them out there
 # and the results files keep their runs; any other value is in the key.
 LATER_TRAIN_KEYS = ("max_side", "robust", "robust_quantile", "robust_flagged_quantile", "robust_patch",
+                    "robust_patch_stride",
                     "robust_patch_share", "robust_floor", "robust_spread",
                     "robust_warmup", "robust_confirm", "robust_views", "sparse_adam", "robust_scattered")
 

@@ -217,14 +217,22 @@ def device_layout(patch_rays: int, scattered: int, num_devices: int) -> jnp.ndar
     return jnp.concatenate(order).astype(jnp.int32)
 
 
-def draw_patches(key, num_patches: int, num_frames: int, height: int, width: int, patch: int) -> jnp.ndarray:
+def patch_span(patch: int, stride: int = 1) -> int:
+    """The side in pixels that a p x p patch of pixels `stride` apart covers: (p - 1) stride + 1."""
+    return (int(patch) - 1) * int(stride) + 1
+
+
+def draw_patches(key, num_patches: int, num_frames: int, height: int, width: int, patch: int,
+                 stride: int = 1) -> jnp.ndarray:
     """Flat pixel ids (frame * H * W + row * W + col) of `num_patches` random p x p patches lying
-    inside the frames, patch-major. Returns [num_patches * p * p] int32."""
+    inside the frames, patch-major; a patch's pixels are `stride` apart along rows and columns
+    (train.robust_patch_stride; 1 = adjacent). Returns [num_patches * p * p] int32."""
     k_frame, k_row, k_col = jax.random.split(key, 3)
+    span = patch_span(patch, stride)
     frame = jax.random.randint(k_frame, (num_patches,), 0, num_frames)
-    row0 = jax.random.randint(k_row, (num_patches,), 0, height - patch + 1)
-    col0 = jax.random.randint(k_col, (num_patches,), 0, width - patch + 1)
-    offs = jnp.arange(patch)
+    row0 = jax.random.randint(k_row, (num_patches,), 0, height - span + 1)
+    col0 = jax.random.randint(k_col, (num_patches,), 0, width - span + 1)
+    offs = jnp.arange(patch) * stride
     rows = row0[:, None, None] + offs[None, :, None]
     cols = col0[:, None, None] + offs[None, None, :]
     ids = frame[:, None, None] * (height * width) + rows * width + cols

@@ -48,7 +48,8 @@ class TrainConfig:
       when on, training draws batch_rays / robust_patch^2 patches of robust_patch^2 rays;
     robust_quantile, robust_flagged_quantile: the inlier quantile of the batch's residuals for
       an unflagged pixel (prior 1) and a flagged one (prior 0; linear in between);
-    robust_patch: patch side in pixels; robust_patch_share: a patch with fewer pixels passing
+    robust_patch: patch side in pixels; robust_patch_stride: the distance in pixels between a
+      patch's neighbouring pixels (1: adjacent); robust_patch_share: a patch with fewer pixels passing
       the 3x3 vote is a transient patch; robust_floor: a residual (squared error) at most this
       is always an inlier; robust_spread: k of the spread bound (robust.spread_thresholds: a
       residual within median + k MAD-sigmas of the batch is an inlier whatever the quantile
@@ -93,6 +94,7 @@ class TrainConfig:
     robust_quantile: float = 0.8
     robust_flagged_quantile: float = 0.5
     robust_patch: int = 4
+    robust_patch_stride: int = 1
     robust_patch_share: float = 0.6
     robust_floor: float = 1e-3
     robust_spread: float = 1.5
@@ -115,7 +117,8 @@ class TrainConfig:
         "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE,
         "max_side": config_lib.NONNEGATIVE,
         "robust_quantile": config_lib.UNIT, "robust_flagged_quantile": config_lib.UNIT,
-        "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_share": config_lib.UNIT,
+        "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_stride": config_lib.AT_LEAST_ONE,
+        "robust_patch_share": config_lib.UNIT,
         "robust_floor": config_lib.NONNEGATIVE, "robust_spread": config_lib.NONNEGATIVE,
         "robust_warmup": config_lib.UNIT, "robust_confirm": config_lib.NONNEGATIVE,
         "robust_views": config_lib.AT_LEAST_ONE, "robust_scattered": config_lib.FRACTION}
@@ -182,8 +185,10 @@ def check_robust(cfg: TrainConfig, num_devices: int = 1, dataset: Dataset | None
                           f"must divide over the {num_devices} devices")
     if dataset is None:
         return
-    if min(dataset.height, dataset.width) < cfg.robust_patch:
-        raise ConfigError(f"train.robust_patch = {cfg.robust_patch}: larger than the "
+    span = robust_lib.patch_span(cfg.robust_patch, cfg.robust_patch_stride)
+    if min(dataset.height, dataset.width) < span:
+        raise ConfigError(f"train.robust_patch = {cfg.robust_patch} at train.robust_patch_stride = "
+                          f"{cfg.robust_patch_stride}: spans {span} px, more than the "
                           f"{dataset.width}x{dataset.height} images")
     if cfg.robust == "dpt+robust" and dataset.weights is None:
         raise DataError(f"{dataset.root}: train.robust = dpt+robust needs the dataset's masks "

@@ -260,7 +260,7 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
         frames, height, width = pool["weights"].shape
-        ids = robust_lib.draw_patches(k_batch, num_patches, frames, height, width, p)
+        ids = robust_lib.draw_patches(k_batch, num_patches, frames, height, width, p, tcfg.robust_patch_stride)
         ray_keys = jax.random.split(k_rays, tcfg.batch_rays)
         if scattered:  # the same global batch for any device count, laid out device by device
             ids = jnp.concatenate([ids, robust_lib.draw_pixels(jax.random.fold_in(k_batch, 1), scattered,

@@ -364,6 +364,9 @@ def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the
     assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=64, robust_scattered=0.25)) == 1.0)
     with pytest.raises(ConfigError, match="robust_patch"):                 # 13 > the 16 x 12 frames
         train.prior_weights(ds, dataclasses.replace(robust, robust_patch=13))
+    with pytest.raises(ConfigError, match="robust_patch_stride = 4: spans 13 px"):  # (4 - 1) 4 + 1 > 12
+        train.prior_weights(ds, dataclasses.replace(robust, robust_patch_stride=4))
+    assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=16, robust_patch_stride=3)) == 1.0)
     ds.weights = None
     with pytest.raises(DataError, match="dpt\\+robust"):
         train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4).train)

@@ -250,6 +250,21 @@ def test_patches_are_squares_inside_the_frames():
         assert row[k].max() < 7 and col[k].max() < 9
 
 
+def test_strided_patches_are_grids_inside_the_frames():
+    """train.robust_patch_stride: a patch's pixels `stride` apart along rows and columns, the
+    whole grid, (p - 1) stride + 1 pixels across, inside the frame (every start reachable)."""
+    assert robust.patch_span(4, 1) == 4 and robust.patch_span(4, 3) == 10 and robust.patch_span(1, 5) == 1
+    ids = np.asarray(robust.draw_patches(jax.random.PRNGKey(1), 400, 2, 12, 11, 4, 3)).reshape(400, 4, 4)
+    frame, pix = ids // 132, ids % 132
+    row, col = pix // 11, pix % 11
+    for k in range(400):
+        assert np.all(frame[k] == frame[k, 0, 0])
+        np.testing.assert_array_equal(row[k], row[k, 0, 0] + 3 * np.arange(4)[:, None] + 0 * np.arange(4))
+        np.testing.assert_array_equal(col[k], col[k, 0, 0] + 3 * np.arange(4)[None, :] + 0 * np.arange(4)[:, None])
+    assert row.max() == 11 and col.max() == 10                     # the last rows and columns are reached
+    assert set(row[:, 0, 0].tolist()) == {0, 1, 2} and set(col[:, 0, 0].tolist()) == {0, 1}
+
+
 def test_the_record_moves_halfway_to_each_new_weight():
     record = np.ones((2, 3, 4), np.float32)
     ids = np.array([0, 5, 23])
