@@ -1,0 +1,146 @@
+"""The blocks of masking.py that decide what `mask` writes and says, against answers worked out
+by hand: the out-of-domain rule at its exact boundaries (`domain_verdict`, `domain_line`), the
+settings' ranges (`check_settings`, `check_classes`), `parse_classes`, and the `masked_share`
+written per frame (the share of M after dilation, rounded to 4 places)."""
+
+import re
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid import io, masking
+from jaxnerf_grid.config import ConfigError
+
+RULE = "out of domain when more than 50% of the frames have more than 40% of their pixels masked"
+
+
+# --------------------------------------------------------------------------- domain_verdict
+
+
+@pytest.mark.parametrize("shares, confidences, expect", [
+    # 0.4 exactly is not "more than 40 %"; 2 of 4 frames is not "more than half"
+    ([0.4, 0.41, 0.9, 0.0], [0.9, 0.8, 0.7, 0.61237],
+     dict(out_of_domain=False, frames=4, frames_mostly_masked=2, median_share=0.405, mean_share=0.4275,
+          mean_confidence=0.7531)),
+    # 3 of 5 is
+    ([0.4, 0.41, 0.9, 0.0, 0.5], None,
+     dict(out_of_domain=True, frames=5, frames_mostly_masked=3, median_share=0.41, mean_share=0.442,
+          mean_confidence=None)),
+    # 2 of 3 is (more than 1.5); the median and mean rounded to 4 places
+    ([0.123456, 0.654321, 0.9], [], dict(out_of_domain=True, frames=3, frames_mostly_masked=2, median_share=0.6543,
+                                         mean_share=0.5593, mean_confidence=None)),
+    # 1 of 3 is not; one frame: out exactly when it is mostly masked
+    ([0.41, 0.0, 0.0], [1.0, 1.0, 1.0], dict(out_of_domain=False, frames=3, frames_mostly_masked=1, median_share=0.0,
+                                             mean_share=0.1367, mean_confidence=1.0)),
+    ([0.41], None, dict(out_of_domain=True, frames=1, frames_mostly_masked=1, median_share=0.41, mean_share=0.41,
+                        mean_confidence=None)),
+    ([0.4], None, dict(out_of_domain=False, frames=1, frames_mostly_masked=0, median_share=0.4, mean_share=0.4,
+                       mean_confidence=None)),
+])
+def test_domain_verdict_at_its_boundaries_by_hand(shares, confidences, expect):
+    assert masking.domain_verdict(shares, confidences) == {**expect, "rule": RULE}
+
+
+def test_domain_verdict_of_no_frames_is_refused():
+    with pytest.raises(ValueError, match="no frames"):
+        masking.domain_verdict([])
+
+
+def test_domain_line_in_words():
+    inside = {"out_of_domain": False, "frames": 4, "frames_mostly_masked": 1, "median_share": 0.25}
+    assert masking.domain_line(inside) == ("jaxnerf-grid mask: the DPT looks in its domain: 1 of 4 frames have more "
+                                           "than 40% of their pixels masked (median 25%)")
+    out = {"out_of_domain": True, "frames": 5, "frames_mostly_masked": 3, "median_share": 0.5}
+    assert masking.domain_line(out) == (
+        "jaxnerf-grid mask: the DPT looks OUT OF ITS DOMAIN on these photos: 3 of 5 frames have more than 40% of "
+        "their pixels masked (median 50%); do not trust these masks (`demo` trains with train.robust = robust "
+        "instead; docs/MASKS.md)")
+
+
+# --------------------------------------------------------------------------- settings
+
+
+@pytest.mark.parametrize("settings", [
+    (0.0, 0.0, 0, None, None), (1.0, 1.0, 0, 1, [0]), (0.5, 0.2, 3, 384, []), (0.5, 0.2, 3, 384, [0, 149]),
+])
+def test_check_settings_accepts_the_ends_of_each_range(settings):
+    masking.check_settings(*settings)
+
+
+@pytest.mark.parametrize("settings, key", [
+    ((-0.01, 0.0, 0, None, None), "mask.threshold"), ((1.01, 0.0, 0, None, None), "mask.threshold"),
+    (("0.5", 0.0, 0, None, None), "mask.threshold"),
+    ((0.5, -0.01, 0, None, None), "mask.floor"), ((0.5, 1.01, 0, None, None), "mask.floor"),
+    ((0.5, 0.0, -1, None, None), "mask.dilate"), ((0.5, 0.0, 1.5, None, None), "mask.dilate"),
+    ((0.5, 0.0, 0, 0, None), "mask.max_side"), ((0.5, 0.0, 0, 2.5, None), "mask.max_side"),
+    ((0.5, 0.0, 0, None, [0, -1]), "mask.classes"), ((0.5, 0.0, 0, None, [1.5]), "mask.classes"),
+])
+def test_check_settings_names_the_key_out_of_range(settings, key):
+    with pytest.raises(ConfigError, match="^" + re.escape(key + " = ")):
+        masking.check_settings(*settings)
+
+
+@pytest.mark.parametrize("text, expect", [
+    (None, None), ("", None), ("12,20,127", [12, 20, 127]), (" 12 , ,20 ", [12, 20]), ("7", [7]), (",", []),
+    ("0", [0]),
+])
+def test_parse_classes(text, expect):
+    assert masking.parse_classes(text) == expect
+
+
+@pytest.mark.parametrize("text, bad", [("12,x", "'x'"), ("1.5", "'1.5'"), (" 3, -", "'-'")])
+def test_parse_classes_names_the_bad_entry(text, bad):
+    with pytest.raises(ConfigError, match=re.escape(f"mask.classes: {bad} is not a class id (comma-separated "
+                                                    "integers, e.g. 12,20)")):
+        masking.parse_classes(text)
+
+
+def test_check_classes_against_the_models_labels():
+    masking.check_classes([0, 2], 3, "w")
+    with pytest.raises(ConfigError, match=re.escape("mask.classes [3]: outside the 3 labels of w (0..2)")):
+        masking.check_classes([3], 3, "w")
+    with pytest.raises(ConfigError, match=re.escape("mask.classes [-1, 5]: outside the 3 labels of w (0..2)")):
+        masking.check_classes([-1, 1, 5], 3, "w")
+    with pytest.raises(ConfigError, match="mask.classes: no class id given"):
+        masking.check_classes([], 3, "w")
+
+
+# --------------------------------------------------------------------------- masked_share
+
+
+def _gt_dataset(root, h: int, w: int, rects) -> None:
+    """Frame i: a random photo h x w, its distractor mask the rectangle rects[i] (rows, cols; None
+    for none) with bit 0 set, a depth map of ones."""
+    import cv2
+
+    rng = np.random.default_rng(0)
+    (root / "distractor").mkdir(parents=True)
+    frames = []
+    for i, rect in enumerate(rects):
+        io.write_png(root / f"images/f{i}.png", rng.uniform(size=(h, w, 3)))
+        m = np.zeros((h, w), np.uint8)
+        if rect is not None:
+            m[rect] = 1
+        cv2.imwrite(str(root / f"distractor/f{i}.png"), m)
+        io.write_exr(root / f"depth/f{i}.exr", np.ones((h, w), np.float32))
+        frames.append({"file_path": f"images/f{i}.png", "distractor_mask_path": f"distractor/f{i}.png",
+                       "depth_file_path": f"depth/f{i}.exr"})
+    io.write_json(root / "transforms.json", {"frames": frames})
+
+
+@pytest.mark.parametrize("dilate", [0, 1])
+def test_masked_share_is_the_written_masks_share_after_dilation_to_4_places(tmp_path, dilate):
+    """17 x 21 = 357 pixels; frame 0 a 2 x 3 rectangle (6 pixels: 6 / 357 = 0.0168), dilated by
+    one pixel with OpenCV's 3 x 3 ellipse (a cross) a 4 x 5 rectangle without its 4 corners (16:
+    16 / 357 = 0.0448); frame 1 no distractor (0.0)."""
+    rect = (slice(4, 6), slice(5, 8))
+    _gt_dataset(tmp_path, 17, 21, [rect, None])
+    masking.write_masks(tmp_path, source="gt", dilate=dilate, progress=False)
+    meta = io.read_json(tmp_path / "transforms.json")
+    expect = np.zeros((17, 21), np.float32)
+    expect[rect] = 1
+    if dilate:
+        expect[3:7, 4:9] = 1
+        expect[[3, 3, 6, 6], [4, 8, 4, 8]] = 0
+    np.testing.assert_array_equal(io.read_mask(tmp_path / meta["frames"][0]["mask_path"]), expect)
+    assert [f["masked_share"] for f in meta["frames"]] == [0.0448 if dilate else 0.0168, 0.0]
