@@ -48,7 +48,7 @@ conductor_clearance_counts_the_box_edge_the_height_limit_and_the_gap_by_hand; do
 # group -> "module to mutate|fast tests that cover it"
 declare -A GROUPS_=(
   [foreground]="jaxnerf_grid/foreground.py|tests/test_foreground.py tests/test_join_foreground.py"
-  [masking]="jaxnerf_grid/masking.py|tests/test_join_foreground.py tests/test_mask_cli.py"
+  [masking]="jaxnerf_grid/masking.py|tests/test_masking_blocks.py tests/test_mask_domain.py::test_domain_verdict_counts_mostly_masked_frames tests/test_join_foreground.py tests/test_mask_cli.py"
   [models]="jaxnerf_grid/models.py|tests/test_join_nerfw.py tests/test_models.py"
   [evaluate]="jaxnerf_grid/evaluate.py|tests/test_join_eval.py"
   [report]="jaxnerf_grid/report.py|tests/test_join_eval.py"

@@ -144,3 +144,118 @@ def test_masked_share_is_the_written_masks_share_after_dilation_to_4_places(tmp_
         expect[[3, 3, 6, 6], [4, 8, 4, 8]] = 0
     np.testing.assert_array_equal(io.read_mask(tmp_path / meta["frames"][0]["mask_path"]), expect)
     assert [f["masked_share"] for f in meta["frames"]] == [0.0448 if dilate else 0.0168, 0.0]
+
+
+# --------------------------------------------------------------------------- files and folders
+
+
+def test_frame_stem_and_image_path(tmp_path):
+    assert masking._frame_stem({"file_path": "images/abc.def.png"}, 3) == "abc.def"
+    assert masking._frame_stem({}, 7) == "frame_0007"
+    assert masking._frame_stem({"file_path": ""}, 12) == "frame_0012"
+    (tmp_path / "images").mkdir()
+    (tmp_path / "images/b.JPG").write_bytes(b"")
+    (tmp_path / "images/c.png").write_bytes(b"")
+    (tmp_path / "images/c.jpg").write_bytes(b"")
+    assert masking._image_path(tmp_path, {"file_path": "images/b"}) == tmp_path / "images/b.JPG"
+    assert masking._image_path(tmp_path, {"file_path": "images/c"}) == tmp_path / "images/c.png"   # .png first
+    assert masking._image_path(tmp_path, {"file_path": "images/c.jpg"}) == tmp_path / "images/c.jpg"
+    assert masking._image_path(tmp_path, {"file_path": "images/none"}) == tmp_path / "images/none"
+
+
+def test_recover_rolls_a_complete_set_forward_and_discards_an_incomplete_one(tmp_path):
+    """Nothing: None. A staging folder without COMPLETE (and a retired folder): both removed,
+    "discarded", the old set untouched. A retired folder alone: removed, "discarded". A complete
+    staging folder: its masks/ and transforms.json replace the old, the old weights/ (not in the
+    new set) goes, "rolled forward"."""
+    root = tmp_path
+    (root / "masks").mkdir()
+    (root / "masks/old.png").write_text("old")
+    (root / "weights").mkdir()
+    (root / "transforms.json").write_text("old")
+    assert masking.recover(root) is None
+    stage, retired = root / masking.STAGING, root / masking.RETIRED
+    (stage / "masks").mkdir(parents=True)
+    retired.mkdir()
+    assert masking.recover(root) == "discarded"
+    assert not stage.exists() and not retired.exists() and (root / "masks/old.png").is_file()
+    retired.mkdir()
+    assert masking.recover(root) == "discarded" and not retired.exists()
+    (stage / "masks").mkdir(parents=True)
+    (stage / "masks/new.png").write_text("new")
+    (stage / "transforms.json").write_text("new")
+    (stage / masking.COMPLETE).write_text("masks\n")
+    assert masking.recover(root) == "rolled forward"
+    assert sorted(p.name for p in (root / "masks").iterdir()) == ["new.png"]
+    assert (root / "transforms.json").read_text() == "new" and not (root / "weights").exists()
+    assert not stage.exists() and not retired.exists()
+
+
+def test_check_outputs_refuses_existing_masks_unless_overwrite(tmp_path):
+    from jaxnerf_grid.io import DataError
+
+    (tmp_path / "masks").mkdir()
+    masking._check_outputs(tmp_path, {"frames": [{"file_path": "a.png"}]}, False)       # an empty folder
+    with pytest.raises(DataError, match="frames already have mask_path; pass overwrite=True"):
+        masking._check_outputs(tmp_path, {"frames": [{"file_path": "a.png"}, {"mask_path": "m.png"}]}, False)
+    (tmp_path / "weights").mkdir()
+    (tmp_path / "weights/a.exr").write_text("")
+    with pytest.raises(DataError, match=re.escape(f"{tmp_path / 'weights'}: mask outputs already exist; pass "
+                                                  "overwrite=True to replace them")):
+        masking._check_outputs(tmp_path, {"frames": []}, False)
+    masking._check_outputs(tmp_path, {"frames": [{"mask_path": "m.png"}]}, True)
+
+
+def test_default_classes_from_the_folder_or_the_ade20k_labels(tmp_path):
+    from types import SimpleNamespace
+
+    from jaxnerf_grid import foreground as fg
+    from jaxnerf_grid.io import DataError
+
+    def model(n):
+        return SimpleNamespace(config=SimpleNamespace(num_labels=n))
+
+    io.write_json(tmp_path / "a/config.json", {"extra": {"dynamic_classes": ["3", 5]}})
+    assert masking.default_classes(model(150), str(tmp_path / "a")) == [3, 5]
+    io.write_json(tmp_path / "b/config.json", {"extra": {}})
+    assert masking.default_classes(model(150), str(tmp_path / "b")) == sorted(fg.ADE20K_DYNAMIC)
+    io.write_json(tmp_path / "c/config.json", ["not", "a", "dict"])
+    assert masking.default_classes(model(150), str(tmp_path / "c")) == sorted(fg.ADE20K_DYNAMIC)
+    with pytest.raises(DataError, match=re.escape(f"{tmp_path / 'b'}: 151-label model with no known dynamic "
+                                                  "classes; give mask.classes ID,ID,...")):
+        masking.default_classes(model(151), str(tmp_path / "b"))
+
+
+def test_load_models_pairs_the_heads(tmp_path, monkeypatch):
+    """A model with both heads is its own depth model; a segmentation-only one has none unless
+    depth weights are given; a folder without the head asked of it is refused by name."""
+    from jaxnerf_grid import dpt
+    from jaxnerf_grid.io import DataError
+
+    def saved(name, heads):
+        cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                            image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                            neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3, heads=heads)
+        dpt.save(dpt.init(0, cfg), tmp_path / name)
+        return str(tmp_path / name)
+
+    both, seg = saved("both", ("segmentation", "depth")), saved("seg", ("segmentation",))
+    depth = saved("depth", ("depth",))
+    s, d, w = masking.load_models(both, None)
+    assert d is s and w == both and s.config.heads == ("segmentation", "depth")
+    s, d, w = masking.load_models(seg, None)
+    assert d is None and s.config.heads == ("segmentation",) and w == seg
+    s, d, w = masking.load_models(seg, depth)
+    assert d.config.heads == ("depth",) and s.config.heads == ("segmentation",)
+    with pytest.raises(DataError, match=re.escape(f"{depth}: this DPT has no segmentation head (heads: ('depth',)); "
+                                                  "mask.weights must be a segmentation model")):
+        masking.load_models(depth, None)
+    with pytest.raises(DataError, match=re.escape(f"{seg}: this DPT has no depth head")):
+        masking.load_models(both, seg)
+    monkeypatch.setattr(masking, "BUILTIN", tmp_path / "none")
+    with pytest.raises(DataError, match=re.escape(f"{tmp_path / 'none'}: no built-in DPT model is shipped in this "
+                                                  "build; give mask.weights")):
+        masking.load_models(None, None)
+    monkeypatch.setattr(masking, "BUILTIN", tmp_path / "seg")
+    s, d, w = masking.load_models(None, None)
+    assert w == seg and d is None
