@@ -42,7 +42,7 @@ def test_domain_verdict_at_its_boundaries_by_hand(shares, confidences, expect):
 
 
 def test_domain_verdict_of_no_frames_is_refused():
-    with pytest.raises(ValueError, match="no frames"):
+    with pytest.raises(ValueError, match="^domain_verdict: no frames$"):
         masking.domain_verdict([])
 
 
@@ -71,6 +71,7 @@ def test_check_settings_accepts_the_ends_of_each_range(settings):
     ((-0.01, 0.0, 0, None, None), "mask.threshold"), ((1.01, 0.0, 0, None, None), "mask.threshold"),
     (("0.5", 0.0, 0, None, None), "mask.threshold"),
     ((0.5, -0.01, 0, None, None), "mask.floor"), ((0.5, 1.01, 0, None, None), "mask.floor"),
+    ((0.5, "0.5", 0, None, None), "mask.floor"),
     ((0.5, 0.0, -1, None, None), "mask.dilate"), ((0.5, 0.0, 1.5, None, None), "mask.dilate"),
     ((0.5, 0.0, 0, 0, None), "mask.max_side"), ((0.5, 0.0, 0, 2.5, None), "mask.max_side"),
     ((0.5, 0.0, 0, None, [0, -1]), "mask.classes"), ((0.5, 0.0, 0, None, [1.5]), "mask.classes"),
@@ -101,7 +102,7 @@ def test_check_classes_against_the_models_labels():
         masking.check_classes([3], 3, "w")
     with pytest.raises(ConfigError, match=re.escape("mask.classes [-1, 5]: outside the 3 labels of w (0..2)")):
         masking.check_classes([-1, 1, 5], 3, "w")
-    with pytest.raises(ConfigError, match="mask.classes: no class id given"):
+    with pytest.raises(ConfigError, match="^mask.classes: no class id given$"):
         masking.check_classes([], 3, "w")
 
 
@@ -157,6 +158,9 @@ def test_frame_stem_and_image_path(tmp_path):
     (tmp_path / "images/b.JPG").write_bytes(b"")
     (tmp_path / "images/c.png").write_bytes(b"")
     (tmp_path / "images/c.jpg").write_bytes(b"")
+    for name in ("d.jpg", "e.jpeg", "f.PNG"):
+        (tmp_path / "images" / name).write_bytes(b"")
+        assert masking._image_path(tmp_path, {"file_path": f"images/{name[0]}"}) == tmp_path / "images" / name
     assert masking._image_path(tmp_path, {"file_path": "images/b"}) == tmp_path / "images/b.JPG"
     assert masking._image_path(tmp_path, {"file_path": "images/c"}) == tmp_path / "images/c.png"   # .png first
     assert masking._image_path(tmp_path, {"file_path": "images/c.jpg"}) == tmp_path / "images/c.jpg"
@@ -181,6 +185,8 @@ def test_recover_rolls_a_complete_set_forward_and_discards_an_incomplete_one(tmp
     assert not stage.exists() and not retired.exists() and (root / "masks/old.png").is_file()
     retired.mkdir()
     assert masking.recover(root) == "discarded" and not retired.exists()
+    (stage / "masks").mkdir(parents=True)                      # no retired folder this time
+    assert masking.recover(root) == "discarded" and not stage.exists()
     (stage / "masks").mkdir(parents=True)
     (stage / "masks/new.png").write_text("new")
     (stage / "transforms.json").write_text("new")
@@ -196,7 +202,9 @@ def test_check_outputs_refuses_existing_masks_unless_overwrite(tmp_path):
 
     (tmp_path / "masks").mkdir()
     masking._check_outputs(tmp_path, {"frames": [{"file_path": "a.png"}]}, False)       # an empty folder
-    with pytest.raises(DataError, match="frames already have mask_path; pass overwrite=True"):
+    masking._check_outputs(tmp_path, {}, False)                                          # no frames listed
+    with pytest.raises(DataError, match=re.escape(f"{tmp_path / 'transforms.json'}: frames already have mask_path; "
+                                                  "pass overwrite=True")):
         masking._check_outputs(tmp_path, {"frames": [{"file_path": "a.png"}, {"mask_path": "m.png"}]}, False)
     (tmp_path / "weights").mkdir()
     (tmp_path / "weights/a.exr").write_text("")
@@ -219,6 +227,8 @@ def test_default_classes_from_the_folder_or_the_ade20k_labels(tmp_path):
     assert masking.default_classes(model(150), str(tmp_path / "a")) == [3, 5]
     io.write_json(tmp_path / "b/config.json", {"extra": {}})
     assert masking.default_classes(model(150), str(tmp_path / "b")) == sorted(fg.ADE20K_DYNAMIC)
+    io.write_json(tmp_path / "d/config.json", {"format": "no extra"})
+    assert masking.default_classes(model(150), str(tmp_path / "d")) == sorted(fg.ADE20K_DYNAMIC)
     io.write_json(tmp_path / "c/config.json", ["not", "a", "dict"])
     assert masking.default_classes(model(150), str(tmp_path / "c")) == sorted(fg.ADE20K_DYNAMIC)
     with pytest.raises(DataError, match=re.escape(f"{tmp_path / 'b'}: 151-label model with no known dynamic "
@@ -248,14 +258,50 @@ def test_load_models_pairs_the_heads(tmp_path, monkeypatch):
     s, d, w = masking.load_models(seg, depth)
     assert d.config.heads == ("depth",) and s.config.heads == ("segmentation",)
     with pytest.raises(DataError, match=re.escape(f"{depth}: this DPT has no segmentation head (heads: ('depth',)); "
-                                                  "mask.weights must be a segmentation model")):
+                                                  "mask.weights must be a segmentation model (e.g. "
+                                                  "Intel/dpt-large-ade)")):
         masking.load_models(depth, None)
     with pytest.raises(DataError, match=re.escape(f"{seg}: this DPT has no depth head")):
         masking.load_models(both, seg)
     monkeypatch.setattr(masking, "BUILTIN", tmp_path / "none")
     with pytest.raises(DataError, match=re.escape(f"{tmp_path / 'none'}: no built-in DPT model is shipped in this "
-                                                  "build; give mask.weights")):
+                                                  "build; give mask.weights (a folder: a copy of "
+                                                  "Intel/dpt-large-ade) or use mask.source gt on synthetic data")):
         masking.load_models(None, None)
     monkeypatch.setattr(masking, "BUILTIN", tmp_path / "seg")
     s, d, w = masking.load_models(None, None)
     assert w == seg and d is None
+
+
+def test_model_max_side_reads_the_folders_extra_else_384(tmp_path):
+    io.write_json(tmp_path / "a/config.json", {"extra": {"max_side": "256"}})
+    assert masking.model_max_side(tmp_path / "a") == 256
+    io.write_json(tmp_path / "b/config.json", {"extra": {"steps": 3}})
+    assert masking.model_max_side(str(tmp_path / "b")) == 384
+    io.write_json(tmp_path / "c/config.json", {})
+    assert masking.model_max_side(tmp_path / "c") == 384
+
+
+def test_recover_never_raises_over_a_leftover_it_cannot_remove(tmp_path):
+    """A file where the staging or the retired folder would be (rmtree cannot remove it):
+    recover still answers "discarded" (it runs before every dataset is read), the file stays."""
+    (tmp_path / masking.STAGING).write_text("")
+    assert masking.recover(tmp_path) == "discarded"
+    (tmp_path / masking.STAGING).unlink()
+    (tmp_path / masking.RETIRED).write_text("")
+    assert masking.recover(tmp_path) == "discarded"
+    (tmp_path / masking.STAGING).mkdir()
+    assert masking.recover(tmp_path) == "discarded" and not (tmp_path / masking.STAGING).exists()
+
+
+def test_ground_truth_source_names_the_frame_and_the_missing_key(tmp_path):
+    from jaxnerf_grid.io import DataError
+
+    _gt_dataset(tmp_path, 4, 5, [None, None])
+    meta = io.read_json(tmp_path / "transforms.json")
+    del meta["frames"][1]["depth_file_path"]
+    io.write_json(tmp_path / "transforms.json", meta)
+    with pytest.raises(DataError, match=re.escape(f"{tmp_path / 'transforms.json'}: frame 'images/f1.png' has no "
+                                                  "'depth_file_path'; mask.source gt needs the synthetic ground "
+                                                  "truth")):
+        masking.write_masks(tmp_path, source="gt", progress=False)
