@@ -305,3 +305,64 @@ def test_ground_truth_source_names_the_frame_and_the_missing_key(tmp_path):
                                                   "'depth_file_path'; mask.source gt needs the synthetic ground "
                                                   "truth")):
         masking.write_masks(tmp_path, source="gt", progress=False)
+
+
+# --------------------------------------------------------------------------- write_masks
+
+
+def test_ground_truth_masks_with_the_defaults_and_a_threshold_for_dpt_only(tmp_path):
+    """Depth 1 everywhere: Eq. 7's (Dmax - D) / Dmax is 0, so with the default floor 0 M_w = 0 and
+    the weights are 1 everywhere; the threshold is DPT's (C > T), a ground-truth mask is taken
+    as it is even at T = 1; the params recorded; a second run without overwrite refused."""
+    from jaxnerf_grid.io import DataError
+
+    rect = (slice(4, 6), slice(5, 8))
+    _gt_dataset(tmp_path, 17, 21, [rect])
+    masking.write_masks(tmp_path, source="gt", threshold=1.0, progress=False)
+    meta = io.read_json(tmp_path / "transforms.json")
+    f = meta["frames"][0]
+    assert f["masked_share"] == 0.0168 and io.read_mask(tmp_path / f["mask_path"]).sum() == 6
+    np.testing.assert_array_equal(io.read_exr(tmp_path / f["weight_path"]), np.ones((17, 21), np.float32))
+    assert meta["mask_params"] == {"threshold": 1.0, "floor": 0.0, "dilate": 0}
+    with pytest.raises(DataError, match="pass overwrite=True"):
+        masking.write_masks(tmp_path, source="gt", progress=False)
+
+
+@pytest.mark.parametrize("kwargs, message", [
+    ({"batch_size": 0}, "mask.batch_size must be an integer >= 1, got 0"),
+    ({"max_side": 0}, "mask.max_side = 0: must be an integer >= 1"),
+    ({"classes": [-1]}, "mask.classes = -1: must be an integer >= 0"),
+    ({"source": "x"}, "mask.source = 'x': must be dpt or gt"),
+])
+def test_write_masks_refuses_a_bad_setting_before_reading_the_data(tmp_path, kwargs, message):
+    with pytest.raises(ConfigError, match="^" + re.escape(message) + "$"):
+        masking.write_masks(tmp_path / "no such folder", **{"source": "gt", **kwargs})
+
+
+def test_write_masks_names_what_is_wrong_with_the_data(tmp_path, monkeypatch):
+    from jaxnerf_grid.io import DataError
+
+    missing = tmp_path / "missing"
+    with pytest.raises(DataError, match="^" + re.escape(f"{missing}: mask.data is not a folder") + "$"):
+        masking.write_masks(missing, source="gt")
+    for meta in ([], {"frames": []}):
+        io.write_json(tmp_path / "transforms.json", meta)
+        with pytest.raises(DataError, match="^" + re.escape(f"{tmp_path / 'transforms.json'}: no frames") + "$"):
+            masking.write_masks(tmp_path, source="gt")
+    io.write_json(tmp_path / "transforms.json", {"frames": [{"file_path": "images/gone.png"}]})
+    with pytest.raises(DataError, match="^" + re.escape(f"{tmp_path / 'images/gone.png'}: image file not found "
+                                                        f"(listed in {tmp_path / 'transforms.json'})") + "$"):
+        masking.write_masks(tmp_path, source="gt")
+    monkeypatch.setattr(masking.folders.os, "access", lambda *a, **k: False)   # a read-only dataset folder
+    with pytest.raises(DataError, match=re.escape(f"{tmp_path}: mask.data is not writable by this user")):
+        masking.write_masks(tmp_path, source="gt")
+
+
+def test_a_ground_truth_mask_of_another_size_is_named(tmp_path):
+    from jaxnerf_grid.io import DataError
+
+    _gt_dataset(tmp_path, 4, 5, [None])
+    io.write_png(tmp_path / "images/f0.png", np.zeros((6, 5, 3), np.float32))
+    with pytest.raises(DataError, match="^" + re.escape(f"{tmp_path / 'images/f0.png'}: mask is (4, 5), image is "
+                                                        "(6, 5)") + "$"):
+        masking.write_masks(tmp_path, source="gt", progress=False)
