@@ -366,3 +366,37 @@ def test_a_ground_truth_mask_of_another_size_is_named(tmp_path):
     with pytest.raises(DataError, match="^" + re.escape(f"{tmp_path / 'images/f0.png'}: mask is (4, 5), image is "
                                                         "(6, 5)") + "$"):
         masking.write_masks(tmp_path, source="gt", progress=False)
+
+
+def test_dpt_masks_record_the_verdict_the_confidence_and_no_depth_without_a_depth_head(tmp_path):
+    """A tiny DPT whose classifier favours class 2 by 50 everywhere (C ~ 1 with classes [2]):
+    every pixel masked, so each frame's share is 1.0, both frames are mostly masked and the
+    verdict is out of domain; each frame's confidence (one frame's mean largest probability,
+    rounded to 4 places) is recorded and their mean is the verdict's. A segmentation-only model:
+    no depth written, no dpt_depth_path, the weights 1 - M (M_w = M) = 0."""
+    from jaxnerf_grid import dpt
+
+    _gt_dataset(tmp_path / "data", 32, 48, [None, None])
+    for heads in (("segmentation", "depth"), ("segmentation",)):
+        cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                            image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                            neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3, heads=heads)
+        model = dpt.init(0, cfg)
+        model.params["segmentation"]["cls"]["b"] = np.array([0.0, 0.0, 50.0], np.float32)
+        dpt.save(model, tmp_path / "w", extra={"dynamic_classes": [2]})
+        out = masking.write_masks(tmp_path / "data", weights=str(tmp_path / "w"), max_side=64, overwrite=True,
+                                  progress=False)
+        meta = io.read_json(tmp_path / "data/transforms.json")
+        frames = meta["frames"]
+        assert [f["masked_share"] for f in frames] == [1.0, 1.0]
+        conf = [f["dpt_confidence"] for f in frames]
+        assert all(0.99 <= c <= 1.0 for c in conf)
+        assert meta["mask_domain"] == out["domain"] == {
+            "out_of_domain": True, "frames": 2, "frames_mostly_masked": 2, "median_share": 1.0, "mean_share": 1.0,
+            "mean_confidence": round(float(np.mean(conf)), 4), "rule": RULE}
+        has_depth = "depth" in heads
+        assert (tmp_path / "data/dpt_depth").is_dir() == has_depth
+        assert all(("dpt_depth_path" in f) == has_depth for f in frames)
+        if not has_depth:
+            np.testing.assert_array_equal(io.read_exr(tmp_path / "data" / frames[0]["weight_path"]),
+                                          np.zeros((32, 48), np.float32))
