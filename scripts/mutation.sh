@@ -48,7 +48,7 @@ conductor_clearance_counts_the_box_edge_the_height_limit_and_the_gap_by_hand; do
 # group -> "module to mutate|fast tests that cover it"
 declare -A GROUPS_=(
   [foreground]="jaxnerf_grid/foreground.py|tests/test_foreground.py tests/test_join_foreground.py"
-  [masking]="jaxnerf_grid/masking.py|tests/test_join_foreground.py tests/test_mask_cli.py"
+  [masking]="jaxnerf_grid/masking.py|tests/test_masking_blocks.py tests/test_mask_domain.py::test_domain_verdict_counts_mostly_masked_frames tests/test_join_foreground.py tests/test_mask_cli.py"
   [models]="jaxnerf_grid/models.py|tests/test_join_nerfw.py tests/test_models.py"
   [evaluate]="jaxnerf_grid/evaluate.py|tests/test_join_eval.py"
   [report]="jaxnerf_grid/report.py|tests/test_join_eval.py"
@@ -57,7 +57,7 @@ declare -A GROUPS_=(
   [export_score]="jaxnerf_grid/export/score.py|tests/test_join_truth.py tests/test_join_export.py"
   [export_init]="jaxnerf_grid/export/__init__.py|tests/test_join_export.py tests/test_export.py"
   [export_ground]="jaxnerf_grid/export/ground.py|tests/test_join_export.py tests/test_export.py"
-  [export_measure]="jaxnerf_grid/export/measure.py|$MEASURE_BLOCKS tests/test_join_export.py"
+  [export_measure]="jaxnerf_grid/export/measure.py|$MEASURE_BLOCKS tests/test_measure_corners.py tests/test_join_export.py"
   [export_field]="jaxnerf_grid/export/field.py|tests/test_join_truth.py tests/test_join_export.py"
   [export_run]="jaxnerf_grid/export/run.py|tests/test_join_export.py"
   [normalize]="jaxnerf_grid/data/normalize.py|tests/test_normalize.py tests/test_join_poses.py tests/test_formats.py $NORMALIZE_BLOCKS"
