@@ -312,7 +312,10 @@ def prior_data(base: Path, row: str, prior: str = "dpt") -> Path:
         return variant(base, ROW_DATA[row])
     if prior == "gt":
         return variant(base, "gt")
-    folder = Path(prior.format(scene=base.name))
+    try:
+        folder = Path(prior.format(scene=base.name))
+    except (KeyError, IndexError, ValueError) as err:
+        raise DataError(f"--prior {prior!r}: {{scene}} is the only name it may hold ({err!r})") from None
     if not (folder / "transforms.json").is_file() or "mask_source" not in io.read_json(folder / "transforms.json"):
         raise DataError(f"{folder}: --prior names no masked dataset (a transforms.json with mask_source)")
     return folder

@@ -190,3 +190,5 @@ def test_prior_picks_the_masked_rows_masks_only(tmp_path):
     assert pt.prior_data(base, "dpt+robust", str(tmp_path / "sweep" / "{scene}-masked")) == other
     with pytest.raises(DataError, match="no masked dataset"):
         pt.prior_data(base, "dpt+robust", str(tmp_path / "nowhere"))
+    with pytest.raises(DataError, match="the only name"):
+        pt.prior_data(base, "dpt+robust", str(tmp_path / "{place}-masked"))
