@@ -128,7 +128,8 @@ def test_failures_thresholds_on_hand_made_scores():
     scores = {"observations": np.array([200, 200, 200, 200, 200, 200, 20, 14]),
               "reprojection_px": np.array([0.5, 1.99, 2.01, 0.5, 0.5, 0.5, 0.5, 0.5]),
               "track_length": np.array([4.0, 4.0, 4.0, 2.01, 1.99, 4.0, 4.0, 4.0]),
-              "neighbour_ratio": np.array([1.0, 1.0, 1.0, 1.0, 1.0, 3.1, 2.9, 1.0])}
+              "neighbour_ratio": np.array([1.0, 1.0, 1.0, 1.0, 1.0, 3.1, 2.9, 1.0]),
+              "covisible": np.full(8, 7)}                     # every photo equally tied: the weak rule is silent
     why = vetting.failures(scores)
     assert [bool(w) for w in why] == [False, False, True, False, True, True, False, True]
     assert len(why) == n

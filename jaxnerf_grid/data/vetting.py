@@ -132,13 +132,12 @@ def photo_scores(rec: Records) -> dict:
 def failures(scores: dict) -> list[list[str]]:
     """Per photo the rules it fails (module docstring), as short reasons; [] = kept."""
     obs, reproj = scores["observations"], scores["reprojection_px"]
-    track, ratio = scores["track_length"], scores["neighbour_ratio"]
+    track, ratio, covisible = scores["track_length"], scores["neighbour_ratio"], scores["covisible"]
     n = len(obs)
-    min_obs = max(MIN_OBSERVATIONS, MIN_OBSERVATIONS_FRACTION * float(np.median(obs))) if n else MIN_OBSERVATIONS
-    typical_track = np.nanmedian(track) if np.any(np.isfinite(track)) else np.nan
-    covisible = scores.get("covisible", np.full(n, np.iinfo(np.int64).max))
-    typical_covisible = float(np.median(covisible)) if n else 0.0
     typical_obs = float(np.median(obs)) if n else 0.0
+    min_obs = max(MIN_OBSERVATIONS, MIN_OBSERVATIONS_FRACTION * typical_obs)
+    typical_track = np.nanmedian(track) if np.any(np.isfinite(track)) else np.nan
+    typical_covisible = float(np.median(covisible)) if n else 0.0
     weak = ((covisible < MIN_COVISIBLE_FRACTION * typical_covisible)
             & (obs < WEAK_OBSERVATIONS_FRACTION * typical_obs)) if n >= MIN_PHOTOS_FOR_LAYOUT else np.zeros(n, bool)
     out = []
