@@ -370,18 +370,9 @@ def model_poses(model) -> dict:
 
 
 def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Least-squares similarity dst ~ s R src + t (Umeyama 1991). src, dst: [N, 3], N >= 3.
-    Returns (s, R [3, 3], t [3])."""
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    mean_s, mean_d = src.mean(0), dst.mean(0)
-    xs, xd = src - mean_s, dst - mean_d
-    u, sig, vt = np.linalg.svd(xd.T @ xs / len(src))
-    d = np.eye(3)
-    d[2, 2] = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0
-    rot = u @ d @ vt
-    var = float((xs ** 2).sum(1).mean())
-    scale = float((sig * np.diag(d)).sum() / var) if var > 0 else 1.0
-    return scale, rot, mean_d - scale * rot @ mean_s
+    """Least-squares similarity dst ~ s R src + t (Umeyama 1991): `georef.umeyama` with equal
+    weights. src, dst: [N, 3], N >= 3. Returns (s, R [3, 3], t [3])."""
+    return georef.umeyama(src, dst)
 
 
 def poses_agree(a: dict, b: dict, *, max_deg: float = AGREE_DEG, max_centre: float = AGREE_CENTRE) -> bool:
