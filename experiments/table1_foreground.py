@@ -91,6 +91,12 @@ def condition_data(ctx, scene_dir: Path, condition: str, dpt_weights: str | None
     return v, {"train": {"use_masks": True}}, scenes.mask_iou(v)
 
 
+def run_tag(preset: str, distractors: str | None, condition: str) -> str:
+    """The cache label of a condition's run on a scene set, e.g. "t1-plad-like-robust_no_masks"."""
+    return "t1-" + preset + ("-" + distractors if distractors else "") + "-" + \
+        condition.split(" (")[0].replace(" ", "_").replace("+", "").replace(".", "").replace(",", "")
+
+
 def sets_for(setting: str) -> list[tuple]:
     """SETS at `setting`: --quick (CI's smoke run) has neither the clutter levels, the dilated masks
     nor the robust rows."""
@@ -119,8 +125,7 @@ def main(argv=None) -> int:
                 if got is None:
                     continue
                 data, ov, mask_stats = got
-                tag = "t1-" + preset + ("-" + distractors if distractors else "") + "-" + \
-                    cond.split(" (")[0].replace(" ", "_").replace("+", "").replace(".", "").replace(",", "")
+                tag = run_tag(preset, distractors, cond)
                 rec = runner.run_condition(ctx, data, "ours", seed, tag, ov)
                 records[(set_name, cond)].append(rec)
                 mask_stats_of[(set_name, cond)].append(mask_stats or {})

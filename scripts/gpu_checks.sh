@@ -10,6 +10,9 @@
 #        fewer steps (and ours at the first count), no video; then DPT-base segmentation's speed
 #   bash scripts/gpu_checks.sh table1   # issue 36 item 5: Table 1's robust rows (robust, dpt+robust) at
 #        --standard, 3 seeds, sets A and B; the other rows are read back from the committed results
+#   WHL=.whl_t1 bash scripts/gpu_checks.sh table1r   # issue 36 item 5, seeds 1-2: the robust rows on
+#        scenes made here (`python scripts/gpu_table1_runs.py --cache .t1cache --prepare`) and carried
+#        (.t1cache/scenes, .t1cache/variants; .whl_t1 = the jaxopt and OpenEXR wheels), then robustprof
 #   bash scripts/gpu_checks.sh robustprof   # why a robust run trains 5x longer than a plain one on the
 #        GPU (docs/GPU.md): the step profile of ours-fast plain and with train.robust=robust
 set -uo pipefail
@@ -17,7 +20,7 @@ OUT=${OUT:-gpu_out}
 # ours-fast's proposal grid (recipes.SAMPLERS) as a --set, for a demo run against ours
 FAST='model.sampler.field.grid={"num_levels":3,"max_resolution":64,"log2_table_size":15}'
 mkdir -p "$OUT"
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site .whl/*.whl || exit 1
+python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "${WHL:-.whl}"/*.whl || exit 1
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 nvidia-smi -L
 python3 -c "import jax, torch; print('jax', jax.__version__, jax.devices(), 'torch', torch.__version__, torch.cuda.is_available())"
@@ -67,10 +70,17 @@ case "${1:-speed}" in
       --train-only '^t1-(tower-small|plad-like)-(robust_no_masks|built-in_DPT_masks__Eq_7__robust) seed' \
       2>&1 | tee "$OUT/table1.log"
     ;;
+  table1r)
+    timeout "${T1_TIMEOUT:-480}" python3 scripts/gpu_table1_runs.py --cache .t1cache --seeds "${SEEDS:-1,2}" \
+      --sets "${SETS:-B,A}" --out "$OUT" --budget-min "${BUDGET_MIN:-5.5}" 2>&1 | grep -v "^\[mask\]" | tee "$OUT/table1r.log"
+    tar czf "$OUT/runs.tgz" -C "$OUT" runs && rm -rf "$OUT/runs"  # the device returns only a few files
+    timeout "${PROF_TIMEOUT:-90}" python3 -m benchmarks.step_profile --recipe ours --repeats 10 --set train.robust=robust \
+      --out "$OUT/step_profile_robust.json" 2>&1 | tail -14
+    ;;
   robustprof)
     timeout 150 python3 -m benchmarks.step_profile --recipe ours-fast --repeats 20 --out "$OUT/step_profile_plain.json"
     timeout 150 python3 -m benchmarks.step_profile --recipe ours-fast --repeats 20 --set train.robust=robust \
       --out "$OUT/step_profile_robust.json"
     ;;
-  *) echo "usage: $0 speed|demo|train|steps|table1|robustprof"; exit 2 ;;
+  *) echo "usage: $0 speed|demo|train|steps|table1|table1r|robustprof"; exit 2 ;;
 esac

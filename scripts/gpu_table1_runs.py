@@ -1,0 +1,66 @@
+"""Table 1's robust rows on the GPU machine, on scenes made here and carried (docs/GPU.md).
+
+    python scripts/gpu_table1_runs.py --cache CACHE --seeds 1,2 --sets B,A --out OUT [--budget-min 8]
+
+CACHE holds `experiments/scenes.py`'s scenes and the built-in DPT's mask variants of the chosen
+seeds and sets (made on this machine with `--prepare`, which trains nothing). Trains, in order,
+set by set and seed by seed, the `robust` and `dpt+robust` rows of `experiments/table1_foreground.py`
+at --standard through the experiment's own `runner.run_condition` (the same run keys, so the
+results read back into the table: copy each OUT/runs/<run> folder into the local cache's runs/
+and run the experiment there), and copies each run's small files (metrics.json, experiment.json,
+metrics.jsonl, config.json, report_views.png) to OUT/runs/<run>/. No run starts after --budget-min minutes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import sys
+from pathlib import Path
+
+SET_LETTERS = {"A": 0, "B": 1}
+SMALL_FILES = ("metrics.json", "experiment.json", "metrics.jsonl", "config.json", "report_views.png")
+
+
+def main(argv=None) -> int:
+    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+    from experiments import runner, scenes, table1_foreground as t1
+
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--cache", required=True)
+    p.add_argument("--seeds", default="1,2")
+    p.add_argument("--sets", default="B,A", help="scene sets in the order they run (A, B)")
+    p.add_argument("--out", default="gpu_out")
+    p.add_argument("--budget-min", type=float, default=None)
+    p.add_argument("--prepare", action="store_true", help="make the scenes and DPT masks only")
+    p.add_argument("--steps", type=int, default=None, help="training steps (default: --standard's; a smoke test)")
+    args = p.parse_args(argv)
+    flags = ["--standard", "--cache", args.cache, "--results", str(Path(args.out) / "t1"), "--quiet",
+             "--ignore-recorded"] + (["--budget-min", str(args.budget_min)] if args.budget_min else []) + \
+        (["--steps", str(args.steps)] if args.steps else [])
+    ctx = runner.make_context(runner.base_parser("").parse_args(flags), "table1_foreground.py")
+    seeds = [int(s) for s in args.seeds.split(",")]
+    for letter in args.sets.split(","):
+        _, preset, distractors, _, _ = t1.SETS[SET_LETTERS[letter]]
+        for seed in seeds:
+            scene_dir = scenes.scene(ctx, preset, seed, distractors)
+            for condition in t1.ROBUST_CONDITIONS:
+                data, overrides, _ = t1.condition_data(ctx, scene_dir, condition)
+                if args.prepare:
+                    continue
+                rec = runner.run_condition(ctx, data, "ours", seed, t1.run_tag(preset, distractors, condition),
+                                           overrides)
+                if rec is None:
+                    continue
+                dest = Path(args.out) / "runs" / Path(rec["run_dir"]).name
+                dest.mkdir(parents=True, exist_ok=True)
+                for name in SMALL_FILES:
+                    if (Path(rec["run_dir"]) / name).is_file():
+                        shutil.copy(Path(rec["run_dir"]) / name, dest / name)
+                print(f"[gpu] {dest.name}: PSNR {rec['metrics']['mean']['psnr']:.2f}, "
+                      f"{rec.get('seconds_per_step')} s/step", flush=True)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
