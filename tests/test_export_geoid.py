@@ -73,6 +73,15 @@ def test_a_point_outside_the_grid_is_a_data_error_naming_the_grid(tmp_path):
         geoid.orthometric(np.stack([np.asarray(GEOREFERENCE["origin"], float), far]), CRS, geoid.open_grid(path), path)
 
 
+
+@pytest.mark.parametrize("source, reference", [("gps", "ellipsoidal (GPS heights as written)"),
+                                               ("gps+gcp", geoid.AS_CONTROL_POINTS), ("gcp", geoid.AS_CONTROL_POINTS)])
+def test_without_a_grid_the_heights_are_as_the_fit_took_them(source, reference):
+    """GPS alone: the GPS's heights; with control points (whose weight rules the fit): their Z."""
+    record = geoid.vertical_record(geo={**GEOREFERENCE, "source": source})
+    assert record == {"reference": reference, "geoid_grid": None, "n_at_base_m": None, "n_range_m": None}
+
+
 @pytest.fixture(scope="module")
 def exports(tmp_path_factory):
     """The analytic tower's export (GPS record, EPSG:32632) without a grid, with a flat grid
