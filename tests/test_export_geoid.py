@@ -35,6 +35,23 @@ def write_gtx(path: Path, south: float, west: float, step: float, rows: int, col
     return path
 
 
+def write_geotiff(path: Path, south: float, west: float, step: float, rows: int, cols: int, n_of) -> Path:
+    """The same grid as a GeoTIFF (tifffile, scikit-image's TIFF writer): float32 rows from north
+    to south, ModelPixelScale (step, step, 0), ModelTiepoint pixel (0, 0) -> (west, north), and the
+    GeoKeys: geographic model (1024 = 2), PixelIsPoint (1025 = 2), WGS 84 (2048 = 4326)."""
+    import tifffile
+
+    lat = south + step * np.arange(rows)
+    lon = west + step * np.arange(cols)
+    values = (n_of(lat[:, None], lon[None, :]) + np.zeros((rows, cols))).astype(np.float32)[::-1]
+    keys = [1, 1, 0, 3, 1024, 0, 1, 2, 1025, 0, 1, 2, 2048, 0, 1, 4326]
+    tifffile.imwrite(path, values, extratags=[
+        (33550, "d", 3, (step, step, 0.0), False),
+        (33922, "d", 6, (0.0, 0.0, 0.0, west, south + step * (rows - 1), 0.0), False),
+        (34735, "H", len(keys), keys, False)])
+    return path
+
+
 def linear_n(lat, lon):
     return A + B * lat + C * lon
 
@@ -53,10 +70,11 @@ def lat_lon(points_crs: np.ndarray):
     return np.asarray(lat), np.asarray(lon)
 
 
-def test_orthometric_heights_of_a_linear_geoid_are_the_closed_form(tmp_path):
-    """H = h - (A + B lat + C lon) at 200 points spread over 20 km of the site; eastings and
-    northings untouched."""
-    path = site_grid(tmp_path / "linear.gtx", linear_n)
+@pytest.mark.parametrize("writer, name", [(write_gtx, "linear.gtx"), (write_geotiff, "linear.tif")])
+def test_orthometric_heights_of_a_linear_geoid_are_the_closed_form(tmp_path, writer, name):
+    """H = h - (A + B lat + C lon) at 200 points spread over 20 km of the site, from a GTX grid
+    and from a GeoTIFF one; eastings and northings untouched."""
+    path = writer(tmp_path / name, 46.5, 7.5, 0.25, 9, 9, linear_n)
     rng = np.random.default_rng(0)
     points = np.asarray(GEOREFERENCE["origin"]) + rng.uniform([-1e4, -1e4, 300], [1e4, 1e4, 600], (200, 3))
     got, n = geoid.orthometric(points, CRS, geoid.open_grid(path), path)
@@ -174,32 +192,41 @@ def test_a_linear_geoid_gives_the_closed_form_at_every_las_point_and_the_base(ex
     np.testing.assert_allclose(_mesh_crs(linear_dir)[:, 2], mesh_plain[:, 2] - linear_n(lat, lon), atol=1e-5)
 
 
-def _refused(tmp_path, meta: dict, grid, match: str) -> None:
+def _refused(tmp_path, monkeypatch, meta: dict, grid, match: str) -> None:
+    """export_run with `grid` fails with one line matching `match` before any view is rendered;
+    nothing is written."""
+    from jaxnerf_grid.export import run as export_run
+
+    def not_before_the_checks(*args, **kwargs):
+        raise AssertionError("views rendered before the geoid's checks")
+
+    monkeypatch.setattr(export_run, "_render_cloud", not_before_the_checks)
     with pytest.raises(DataError, match=match) as err:
         _tilted_export(tmp_path, af.TILT, meta, geoid=grid)
     assert "\n" not in str(err.value)
     assert not (tmp_path / "run" / "export").exists()
 
 
-def test_a_missing_grid_file_is_refused_before_anything_is_written(tmp_path):
-    _refused(tmp_path, {"georeference": GEOREFERENCE}, tmp_path / "egm96.gtx", r"egm96\.gtx: export\.geoid does not "
-                                                                               r"exist")
+def test_a_missing_grid_file_is_refused_before_anything_is_written(tmp_path, monkeypatch):
+    _refused(tmp_path, monkeypatch, {"georeference": GEOREFERENCE}, tmp_path / "egm96.gtx",
+             r"egm96\.gtx: export\.geoid does not exist")
 
 
-def test_a_file_proj_cannot_read_as_a_grid_is_refused(tmp_path):
+def test_a_file_proj_cannot_read_as_a_grid_is_refused(tmp_path, monkeypatch):
     bad = tmp_path / "notes.gtx"
     bad.write_text("not a grid\n")
-    _refused(tmp_path, {"georeference": GEOREFERENCE}, bad, r"notes\.gtx: export\.geoid: PROJ cannot read")
+    _refused(tmp_path, monkeypatch, {"georeference": GEOREFERENCE}, bad, r"notes\.gtx: export\.geoid: PROJ cannot read")
 
 
-def test_a_dataset_without_a_crs_given_a_grid_is_refused(tmp_path):
+def test_a_dataset_without_a_crs_given_a_grid_is_refused(tmp_path, monkeypatch):
     grid = site_grid(tmp_path / "site.gtx", linear_n)
-    _refused(tmp_path, {}, grid, r"site\.gtx: export\.geoid needs a dataset georeferenced")
+    _refused(tmp_path, monkeypatch, {}, grid, r"site\.gtx: export\.geoid needs a dataset georeferenced")
 
 
-def test_a_grid_that_does_not_cover_the_site_is_refused(tmp_path):
+def test_a_grid_that_does_not_cover_the_site_is_refused(tmp_path, monkeypatch):
     grid = write_gtx(tmp_path / "elsewhere.gtx", 10.0, 20.0, 0.25, 5, 5, linear_n)
-    _refused(tmp_path, {"georeference": GEOREFERENCE}, grid, r"elsewhere\.gtx: export\.geoid does not cover")
+    _refused(tmp_path, monkeypatch, {"georeference": GEOREFERENCE}, grid,
+             r"elsewhere\.gtx: export\.geoid does not cover")
 
 
 def test_the_command_line_names_the_flag_and_the_file_in_one_line(tmp_path, monkeypatch, capsys):
