@@ -17,9 +17,10 @@ Steps, all in the normalised scene until the files are written:
    tower_points.ply (the dense cloud inside the box) and tower_points.las (the same points, in
    the projected CRS with its WKT when the dataset is georeferenced), tower_mesh_crs.ply (the
    mesh in the CRS, float64, when georeferenced; with `geoid`, the heights of these two and of
-   the base centre's CRS coordinates are above the geoid: `export.geoid`), box.json, measurements.json (every figure
-   with its uncertainty, the axis' tilt, the base centre, the conductors' clearance: `survey`),
-   export_views.png; and the "Tower model" section of the run's report.md.
+   the base centre's CRS coordinates are above the geoid: `export.geoid`), box.json,
+   measurements.json (every figure with its uncertainty, the axis' tilt, the base centre, the
+   conductors' clearance: `survey`), export_views.png; and the "Tower model" section of the
+   run's report.md.
 
 Every check (the output folder, the checkpoint, the box) runs before anything is written.
 """
@@ -331,8 +332,8 @@ BOX_FRAME = ("min / max: axis-aligned in the export's units (the dataset's frame
 
 
 def _check_geoid_site(path, grid, crs_name, geo, ds, norm, units) -> None:
-    """export.geoid needs a dataset in a CRS; the grid must cover the training cameras' positions
-    (the site; checked again on every written point). DataError naming the grid file otherwise."""
+    """export.geoid needs a dataset in a CRS; the grid must cover the cameras' positions (the
+    site; checked again on every written point). DataError naming the grid file otherwise."""
     if crs_name is None:
         why = "metres but no CRS" if units == "metres" else "no metric scale"
         raise DataError(f"{Path(path)}: export.geoid needs a dataset georeferenced in a projected CRS (poses with "
