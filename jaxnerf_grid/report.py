@@ -141,6 +141,10 @@ def _survey_lines(m: dict, unit: str) -> list[str]:
         sigma = base.get("sigma")
         spread = f"{_fmt(sigma)} {unit}" if sigma is not None else "(not estimated)"
         lines.append(f"| base centre | {where} +- {spread} |")
+    vertical = sv.get("vertical")
+    if vertical:
+        lines.append(f"| heights of the CRS coordinates (base centre, tower_points.las, tower_mesh_crs.ply) | "
+                     f"{vertical['reference']} |")
     cond = m.get("conductors") or {}
     if cond.get("reconstructed"):
         lines.append(f"| conductors' lowest reconstructed point above the ground | "

@@ -16,9 +16,11 @@ Steps, all in the normalised scene until the files are written:
 5. the files, in the dataset's original units (`export.to_metric`): tower_mesh.ply,
    tower_points.ply (the dense cloud inside the box) and tower_points.las (the same points, in
    the projected CRS with its WKT when the dataset is georeferenced), tower_mesh_crs.ply (the
-   mesh in the CRS, float64, when georeferenced), box.json, measurements.json (every figure
-   with its uncertainty, the axis' tilt, the base centre, the conductors' clearance: `survey`),
-   export_views.png; and the "Tower model" section of the run's report.md.
+   mesh in the CRS, float64, when georeferenced; with `geoid`, the heights of these two and of
+   the base centre's CRS coordinates are above the geoid: `export.geoid`), box.json,
+   measurements.json (every figure with its uncertainty, the axis' tilt, the base centre, the
+   conductors' clearance: `survey`), export_views.png; and the "Tower model" section of the
+   run's report.md.
 
 Every check (the output folder, the checkpoint, the box) runs before anything is written.
 """
@@ -36,7 +38,8 @@ import numpy as np
 from jaxnerf_grid import clouds, config as config_lib, folders, io, progress as progress_lib, report, runs, train
 from jaxnerf_grid import report_html, views as views_lib
 from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.export import box_to_metric, box_to_scene, field, fuse, ground, measure, mesh as mesh_lib
+from jaxnerf_grid.export import box_to_metric, box_to_scene, field, fuse, geoid as geoid_lib, ground, measure
+from jaxnerf_grid.export import mesh as mesh_lib
 from jaxnerf_grid.export import plane_to_metric, survey, to_metric64
 from jaxnerf_grid.io import DataError
 
@@ -170,14 +173,18 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                opacity: float = mesh_lib.DEFAULT_OPACITY, views: int = DEFAULT_VIEWS, min_views: int = 2,
                colour_cameras: int = DEFAULT_COLOUR_CAMERAS,
                min_component_fraction: float = mesh_lib.DEFAULT_MIN_COMPONENT_FRACTION,
-               overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False) -> dict:
+               overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False,
+               geoid=None) -> dict:
     """Exports the tower of a trained run (module docstring). Returns measurements.json's dict.
     A dataset other than the run's (its fingerprint) is refused unless `allow_other_data`.
 
     out: the folder (default RUN/export; refused when it holds files, unless `overwrite`);
     box: "auto" or "xmin,ymin,zmin,xmax,ymax,zmax" (or 6 numbers) in the export's units.
+    geoid: a local geoid grid file PROJ reads (GTX, GeoTIFF): the CRS outputs' heights become
+    H = h - N (`export.geoid`); the local-frame files and every relative measurement are unchanged.
     DataError / ConfigError for a run without a checkpoint, an empty box or one outside the
-    scene, an occupied folder, or a box without a surface; nothing is written then.
+    scene, an occupied folder, a box without a surface, a geoid grid that is missing, unreadable,
+    not covering the site or given for a dataset without a CRS; nothing is written then.
     """
     start = time.perf_counter()
     run_dir = Path(run_dir)
@@ -189,6 +196,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         raise ConfigError(f"export.opacity (of one voxel) must be in (0, 1), got {opacity}")
     out = Path(out) if out is not None else run_dir / "export"
     check_out(out, data, overwrite)
+    grid = geoid_lib.open_grid(geoid) if geoid is not None else None   # a missing file fails before the dataset loads
     ds = runs.dataset_of_run(run_dir, data, dataset, progress, allow_other_data, max_side=cfg.train.max_side)
     norm = ds.normalization
     if given is not None:
@@ -199,6 +207,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     crs_name, crs_origin = survey.crs_of(geo)
     if crs_name is not None:
         survey.pyproj_crs(crs_name)       # a CRS pyproj does not know fails before anything is written
+    if grid is not None:
+        _check_geoid_site(geoid, grid, crs_name, geo, ds, norm, units)
     params, step = train.load_params(run_dir, cfg, ds)
     scale = float(norm.get("scale", 1.0))
 
@@ -282,6 +292,11 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
             0.5 * min(level["height"] for level in levels) if levels else 0.5 * height, GROUND_CELL / scale)
     meas["box"].update(box_stats)
     meas["survey"] = _survey(meas, geo, alignment, h / scale)
+    # the CRS outputs (heights above the geoid with `geoid`), all converted before anything is written
+    points_crs = survey.to_crs(tower_pts, geo)
+    mesh_crs = survey.to_crs(verts_m, geo) if crs_name is not None else None
+    if crs_name is not None:
+        points_crs, mesh_crs = _vertical(meas["survey"], geo, crs_name, grid, geoid, points_crs, mesh_crs)
     comments = (units_comment(units), f"jaxnerf-grid export of {run_dir} at step {step}")
     if not folders.is_empty(out):  # checked by check_out: empty, or export's own (overwrite=True)
         folders.clear_outputs(out, "export", OUTPUTS, "export.out", legacy=_is_legacy_export(out))
@@ -292,11 +307,12 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     clouds.write_point_cloud(out / "tower_points.ply", [(tower_pts, tower_cols)],
                       comments=comments + (f"depth of {len(ids)} views fused, each point confirmed by >= "
                                            f"{min_views} other views",))
-    survey.write_las(out / "tower_points.las", survey.to_crs(tower_pts, geo), tower_cols, crs_name)
+    survey.write_las(out / "tower_points.las", points_crs, tower_cols, crs_name)
     if crs_name is not None:
-        survey.write_ply_double(out / "tower_mesh_crs.ply", survey.to_crs(verts_m, geo), vcolours, faces,
+        survey.write_ply_double(out / "tower_mesh_crs.ply", mesh_crs, vcolours, faces,
                                 comments=(f"crs: {crs_name} ({geo.get('crs_name')}); x = tower_mesh.ply's x + "
                                           f"origin {[float(v) for v in crs_origin]}",
+                                          f"heights: {meas['survey']['vertical']['reference']}",
                                           f"jaxnerf-grid export of {run_dir} at step {step}"))
     io.write_json(out / "box.json", {**meas["box"], "units": units, "frame": BOX_FRAME, "normalised": {
         "min": [float(v) for v in lo], "max": [float(v) for v in hi]}})
@@ -315,6 +331,36 @@ BOX_FRAME = ("min / max: axis-aligned in the export's units (the dataset's frame
              "and min / max the box around the 8 corners of 'normalised' mapped back")
 
 
+def _check_geoid_site(path, grid, crs_name, geo, ds, norm, units) -> None:
+    """export.geoid needs a dataset in a CRS; the grid must cover the cameras' positions (the
+    site; checked again on every written point). DataError naming the grid file otherwise."""
+    if crs_name is None:
+        why = "metres but no CRS" if units == "metres" else "no metric scale"
+        raise DataError(f"{Path(path)}: export.geoid needs a dataset georeferenced in a projected CRS (poses with "
+                        f"GPS or control points, docs/GEOREFERENCE.md); this one has {why}")
+    centres = to_metric64(np.asarray(ds.c2w)[:, :3, 3], norm)
+    geoid_lib.orthometric(survey.to_crs(centres, geo), crs_name, grid, Path(path))
+
+
+def _vertical(sv: dict, geo: dict, crs_name: str, grid, path, points_crs: np.ndarray, mesh_crs: np.ndarray):
+    """With a geoid grid: (the points' and the mesh's CRS coordinates with H = h - N), the base
+    centre's CRS coordinates likewise; `sv["vertical"]` records the reference (and N at the base)
+    either way. DataError naming the grid when it does not cover a point."""
+    if grid is None:
+        sv["vertical"] = geoid_lib.vertical_record(geo=geo)
+        return points_crs, mesh_crs
+    points_crs, n_points = geoid_lib.orthometric(points_crs, crs_name, grid, Path(path))
+    mesh_crs, n_mesh = geoid_lib.orthometric(mesh_crs, crs_name, grid, Path(path))
+    n_base = None
+    base = sv.get("base_centre")
+    if base and base.get("crs") is not None:
+        moved, n = geoid_lib.orthometric(base["crs"], crs_name, grid, Path(path))
+        base["crs"], n_base = [float(v) for v in moved[0]], float(n[0])
+    n_all = np.concatenate([n_points, n_mesh])
+    sv["vertical"] = geoid_lib.vertical_record(Path(path), n_base, (n_all.min(), n_all.max()) if len(n_all) else None)
+    return points_crs, mesh_crs
+
+
 def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict:
     """measurements.json's `survey`: each figure {"value", "sigma", "fit_sigma"} in metres
     (docs/EXPORT.md "Survey outputs and uncertainty"), the tower's base centre (local and CRS), the alignment's
@@ -326,7 +372,7 @@ def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict
     vertex = voxel / math.sqrt(12.0)
     out = {"alignment": alignment, "height": None, "cross_arm_heights": [], "cross_arm_spans": [],
            "footprint": None, "tilt_degrees": None, "top_offset": None, "conductor_clearance": None,
-           "base_centre": None}
+           "base_centre": None, "vertical": None}
     ends = voxel * math.sqrt(2.0 / 12.0)
     fp = meas.get("footprint") or {}
     if fp:
