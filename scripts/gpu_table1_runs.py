@@ -14,12 +14,27 @@ metrics.jsonl, config.json, report_views.png) to OUT/runs/<run>/. No run starts 
 from __future__ import annotations
 
 import argparse
+import json
 import shutil
 import sys
 from pathlib import Path
 
 SET_LETTERS = {"A": 0, "B": 1}
+ROWS = {"robust": "robust, no masks", "dpt+robust": "built-in DPT masks + Eq. 7 + robust"}
 SMALL_FILES = ("metrics.json", "experiment.json", "metrics.jsonl", "config.json", "report_views.png")
+
+
+def variants(specs: list[str]) -> list[tuple[str, dict]]:
+    """[(tag, {"train": overrides})]: the plain row ("", {}) unless variants are given, then each
+    "TAG:key=json,key=json" (keys of train.*), e.g. "sp3:robust_spread=3"."""
+    if not specs:
+        return [("", {})]
+    out = []
+    for spec in specs:
+        tag, _, pairs = spec.partition(":")
+        train = {k: json.loads(v) for k, v in (pair.split("=", 1) for pair in pairs.split(",") if pair)}
+        out.append((tag, {"train": train}))
+    return out
 
 
 def main(argv=None) -> int:
@@ -34,6 +49,9 @@ def main(argv=None) -> int:
     p.add_argument("--budget-min", type=float, default=None)
     p.add_argument("--prepare", action="store_true", help="make the scenes and DPT masks only")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: --standard's; a smoke test)")
+    p.add_argument("--rows", default="robust,dpt+robust", help="which robust rows: robust, dpt+robust")
+    p.add_argument("--variant", action="append", default=[], metavar="TAG:KEY=JSON[,KEY=JSON]",
+                   help="train each row with these train overrides instead, labelled -TAG (a sweep; not in the table)")
     args = p.parse_args(argv)
     flags = ["--standard", "--cache", args.cache, "--results", str(Path(args.out) / "t1"), "--quiet",
              "--ignore-recorded"] + (["--budget-min", str(args.budget_min)] if args.budget_min else []) + \
@@ -44,21 +62,22 @@ def main(argv=None) -> int:
         _, preset, distractors, _, _ = t1.SETS[SET_LETTERS[letter]]
         for seed in seeds:
             scene_dir = scenes.scene(ctx, preset, seed, distractors)
-            for condition in t1.ROBUST_CONDITIONS:
+            for condition in [ROWS[r] for r in args.rows.split(",")]:
                 data, overrides, _ = t1.condition_data(ctx, scene_dir, condition)
                 if args.prepare:
                     continue
-                rec = runner.run_condition(ctx, data, "ours", seed, t1.run_tag(preset, distractors, condition),
-                                           overrides)
-                if rec is None:
-                    continue
-                dest = Path(args.out) / "runs" / Path(rec["run_dir"]).name
-                dest.mkdir(parents=True, exist_ok=True)
-                for name in SMALL_FILES:
-                    if (Path(rec["run_dir"]) / name).is_file():
-                        shutil.copy(Path(rec["run_dir"]) / name, dest / name)
-                print(f"[gpu] {dest.name}: PSNR {rec['metrics']['mean']['psnr']:.2f}, "
-                      f"{rec.get('seconds_per_step')} s/step", flush=True)
+                for tag, extra in variants(args.variant):
+                    label = t1.run_tag(preset, distractors, condition) + (f"-{tag}" if tag else "")
+                    rec = runner.run_condition(ctx, data, "ours", seed, label, runner.merge(overrides, extra))
+                    if rec is None:
+                        continue
+                    dest = Path(args.out) / "runs" / Path(rec["run_dir"]).name
+                    dest.mkdir(parents=True, exist_ok=True)
+                    for name in SMALL_FILES:
+                        if (Path(rec["run_dir"]) / name).is_file():
+                            shutil.copy(Path(rec["run_dir"]) / name, dest / name)
+                    print(f"[gpu] {dest.name}: PSNR {rec['metrics']['mean']['psnr']:.2f}, "
+                          f"{rec.get('seconds_per_step')} s/step", flush=True)
     return 0
 
 
