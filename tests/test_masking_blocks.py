@@ -454,7 +454,8 @@ def test_masking_from_the_dpt_then_from_the_ground_truth_keeps_no_dpt_record(tmp
     assert [f["dpt_confidence"] for f in meta["frames"]] == [conf, conf]
     assert [f["masked_share"] for f in meta["frames"]] == [1.0, 1.0]
     assert not any("dpt_depth_path" in f for f in meta["frames"]) and not (data / "dpt_depth").exists()
-    assert capsys.readouterr().out.endswith(masking.domain_line(verdict) + "\n")
+    assert capsys.readouterr().out == ("jaxnerf-grid mask: no depth head available; using M_w = M (pass "
+                                       "--depth-weights for Eq. 7)\n" + masking.domain_line(verdict) + "\n")
 
     out = masking.write_masks(data, source="gt", overwrite=True, progress=False)
     meta = io.read_json(data / "transforms.json")
@@ -495,3 +496,38 @@ def test_separate_depth_weights_give_the_depth_of_the_depth_model(tmp_path):
     np.testing.assert_allclose(io.read_exr(data / "dpt_depth/f0.exr"), expect, rtol=1e-4)
     # every pixel masked (C = 0.5761 > 0.5), floor 0: the weights are 1 - (Dmax - D) / Dmax = D / Dmax
     np.testing.assert_allclose(io.read_exr(data / frame["weight_path"]), expect / expect.max(), atol=1e-5)
+
+
+def test_tiled_masks_record_the_tiling_and_use_its_overlap(tmp_path):
+    """tiles = 2 with tile_overlap = 0.5 (not the default 0.25) on a 32 x 96 photo at max_side 32:
+    the params record both; the mask is M = [C > T] for C of `foreground.predict_maps` with these
+    settings (predict_maps is held to a per-window reference of its own in test_foreground), T the
+    median of that C. The windows by hand: side 32, overlap 16 px, the photo resized to 32 x 48,
+    windows at x = 0 and 16; with 0.25: 32 x 56, windows at 0 and 24, so C differs."""
+    from jaxnerf_grid import dpt, foreground as fg
+
+    data = tmp_path / "data"
+    _gt_dataset(data, 32, 96, [None])
+    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3, heads=("segmentation",))
+    dpt.save(dpt.init(0, cfg), tmp_path / "w", dtype="float32", extra={"dynamic_classes": [1, 2]})
+    model = dpt.load_pretrained(str(tmp_path / "w"))
+    photo = io.read_image(data / "images/f0.png")
+    assert fg.tile_layout(32, 96, 32, 32, 2, 0.5) == ((32, 48), (32, 32), [0], [0, 16], 16)
+    assert fg.tile_layout(32, 96, 32, 32, 2, 0.25) == ((32, 56), (32, 32), [0], [0, 24], 8)
+    (c, _, conf), = fg.predict_maps(model, None, [photo], [1, 2], max_side=32, tiles=2, tile_overlap=0.5,
+                                    with_confidence=True)
+    (c_default, _), = fg.predict_maps(model, None, [photo], [1, 2], max_side=32, tiles=2)
+    threshold = float(np.median(c))
+    sure = np.abs(c - threshold) > 1e-4
+    assert sure.mean() > 0.9 and np.mean((c > threshold) != (c_default > threshold)) > 0.02
+    out = masking.write_masks(data, weights=str(tmp_path / "w"), threshold=threshold, max_side=32, tiles=2,
+                              tile_overlap=0.5, progress=False)
+    meta = io.read_json(data / "transforms.json")
+    assert out["params"] == meta["mask_params"] == {
+        "threshold": threshold, "floor": 0.0, "dilate": 0, "weights": str(tmp_path / "w"), "depth_weights": None,
+        "classes": [1, 2], "max_side": 32, "depth": None, "tiles": 2, "tile_overlap": 0.5}
+    got = io.read_mask(data / meta["frames"][0]["mask_path"])
+    np.testing.assert_array_equal(got[sure], (c > threshold)[sure])
+    assert meta["frames"][0]["dpt_confidence"] == round(conf, 4)
