@@ -498,11 +498,12 @@ def test_separate_depth_weights_give_the_depth_of_the_depth_model(tmp_path):
     np.testing.assert_allclose(io.read_exr(data / frame["weight_path"]), expect / expect.max(), atol=1e-5)
 
 
-def test_tiled_masks_record_the_tiling_and_use_its_overlap(tmp_path):
+def test_tiled_masks_record_the_tiling_and_use_its_overlap(tmp_path, monkeypatch):
     """tiles = 2 with tile_overlap = 0.5 (not the default 0.25) on a 32 x 96 photo at max_side 32:
     the params record both; the mask is M = [C > T] for C of `foreground.predict_maps` with these
     settings (predict_maps is held to a per-window reference of its own in test_foreground), T the
-    median of that C. The windows by hand: side 32, overlap 16 px, the photo resized to 32 x 48,
+    median of that C; `mask.batch_size` handed on (a user short of accelerator memory sets it).
+    The windows by hand: side 32, overlap 16 px, the photo resized to 32 x 48,
     windows at x = 0 and 16; with 0.25: 32 x 56, windows at 0 and 24, so C differs."""
     from jaxnerf_grid import dpt, foreground as fg
 
@@ -522,8 +523,17 @@ def test_tiled_masks_record_the_tiling_and_use_its_overlap(tmp_path):
     threshold = float(np.median(c))
     sure = np.abs(c - threshold) > 1e-4
     assert sure.mean() > 0.9 and np.mean((c > threshold) != (c_default > threshold)) > 0.02
+    passed = []
+    real = fg.predict_maps
+
+    def spy(*args, **kwargs):
+        passed.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(masking.fg, "predict_maps", spy)
     out = masking.write_masks(data, weights=str(tmp_path / "w"), threshold=threshold, max_side=32, tiles=2,
-                              tile_overlap=0.5, progress=False)
+                              tile_overlap=0.5, batch_size=2, progress=False)
+    assert passed == [{"max_side": 32, "batch_size": 2, "tiles": 2, "tile_overlap": 0.5, "with_confidence": True}]
     meta = io.read_json(data / "transforms.json")
     assert out["params"] == meta["mask_params"] == {
         "threshold": threshold, "floor": 0.0, "dilate": 0, "weights": str(tmp_path / "w"), "depth_weights": None,
@@ -531,3 +541,27 @@ def test_tiled_masks_record_the_tiling_and_use_its_overlap(tmp_path):
     got = io.read_mask(data / meta["frames"][0]["mask_path"])
     np.testing.assert_array_equal(got[sure], (c > threshold)[sure])
     assert meta["frames"][0]["dpt_confidence"] == round(conf, 4)
+
+
+def test_dpt_classes_refused_by_the_model_folder_and_by_its_labels(tmp_path):
+    """A 3-label DPT saved without `dynamic_classes` and no classes given: refused, naming the
+    folder (no known dynamic classes for 3 labels); a class id past its labels: refused, naming
+    the folder and its range. Nothing is written either way."""
+    from jaxnerf_grid import dpt
+    from jaxnerf_grid.io import DataError
+
+    data = tmp_path / "data"
+    _gt_dataset(data, 32, 32, [None])
+    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3, heads=("segmentation",))
+    weights = tmp_path / "w"
+    dpt.save(dpt.init(0, cfg), weights, dtype="float32")
+    with pytest.raises(DataError, match="^" + re.escape(f"{weights}: 3-label model with no known dynamic classes; "
+                                                        "give mask.classes ID,ID,...") + "$"):
+        masking.write_masks(data, weights=str(weights), progress=False)
+    with pytest.raises(ConfigError, match="^" + re.escape(f"mask.classes [3]: outside the 3 labels of {weights} "
+                                                          "(0..2)") + "$"):
+        masking.write_masks(data, weights=str(weights), classes=[1, 3], progress=False)
+    assert sorted(p.name for p in data.iterdir()) == ["depth", "distractor", "images", "transforms.json"]
+    assert "mask_path" not in io.read_json(data / "transforms.json")["frames"][0]
