@@ -48,6 +48,8 @@ def test_means_of_the_views_by_hand():
     assert mean == {"psnr": 25.0, "ssim": 0.5, "ms_ssim": 0.5, "lpips": None, "ms_ssim_scales": 3}
     assert right == {"psnr": 13.0, "ssim": 0.4, "ms_ssim": None, "lpips": 0.1}
     assert regions == {"tower": 15.0, "near_ground": None, "far_background": 30.0}
+    one = evaluate._means(views[:1])                                  # one view: its own numbers
+    assert one[0]["psnr"] == 20.0 and one[2] == {"tower": 12.0, "near_ground": None, "far_background": 30.0}
     no_regions = [dict(v, regions={}) for v in views]
     assert evaluate._means(no_regions)[2] == {}
     assert evaluate._means([]) == ({"psnr": None, "ssim": None, "ms_ssim": None, "lpips": None,
@@ -59,11 +61,12 @@ def test_means_of_the_views_by_hand():
 
 def test_right_half_metrics_score_the_right_half_only():
     """8 x 21: the right half is columns 10..20 (11 wide) but only 8 high, under the 11-pixel
-    SSIM window: PSNR alone, in NumPy. 12 x 23 (12 x 12 right half): all four metrics, those of
+    SSIM window: PSNR alone, in NumPy; 12 x 20 (a 10-wide half): PSNR alone. 12 x 23 (12 x 12
+    right half) and 11 x 22 (exactly the window): all four metrics, those of
     `metrics.evaluate_image` on the right halves. The left halves differ wildly (a mutant that
     scores them, or the whole image, is far off)."""
     rng = np.random.default_rng(0)
-    for h, w in ((8, 21), (12, 23)):
+    for h, w in ((8, 21), (12, 20), (12, 23), (11, 22)):
         target = rng.uniform(size=(h, w, 3)).astype(np.float32)
         rgb = np.clip(target + rng.normal(scale=0.05, size=target.shape), 0, 1).astype(np.float32)
         rgb[:, : w // 2] = 1.0 - target[:, : w // 2]
@@ -71,11 +74,22 @@ def test_right_half_metrics_score_the_right_half_only():
         assert list(got) == ["psnr", "ssim", "ms_ssim", "lpips"]
         assert got["psnr"] == pytest.approx(_np_psnr(rgb[:, w // 2:], target[:, w // 2:]), abs=1e-4)
         assert got["psnr"] > _np_psnr(rgb, target) + 5
-        if h == 8:
+        if min(h, w - w // 2) < 11:
             assert got["ssim"] is None and got["ms_ssim"] is None and got["lpips"] is None
         else:
             ref = metrics.evaluate_image(rgb[:, w // 2:], target[:, w // 2:])
             assert got == {k: ref[k] for k in evaluate.METRIC_KEYS} and 0 < got["ssim"] < 1
+
+
+def test_right_half_metrics_hand_the_lpips_weights_on(monkeypatch):
+    """The LPIPS parameters reach `metrics.evaluate_image` (else a run given --lpips-weights
+    reports no right-half LPIPS)."""
+    seen = []
+    monkeypatch.setattr(evaluate.metrics, "evaluate_image", lambda a, b, lp: seen.append((a.shape, lp)) or {
+        "psnr": 1.0, "ssim": 2.0, "ms_ssim": 3.0, "ms_ssim_scales": 1, "lpips": 4.0})
+    lp = {"lpips": "weights"}
+    got = evaluate._right_half_metrics(np.zeros((12, 24, 3)), np.zeros((12, 24, 3)), lp)
+    assert got == {"psnr": 1.0, "ssim": 2.0, "ms_ssim": 3.0, "lpips": 4.0} and seen == [((12, 12, 3), lp)]
 
 
 def test_region_psnr_inside_each_mask_and_none_for_an_empty_one():
@@ -94,38 +108,43 @@ def test_region_psnr_inside_each_mask_and_none_for_an_empty_one():
 
 
 def test_distractor_psnr_pools_the_masked_pixels_of_the_first_views(monkeypatch):
-    """Clean images 0; renders: view 1 at 0.1 (2 masked pixels: squared error 0.01 each), view 2
-    at 0.3 (1 pixel: 0.09), view 3 at 1.5 (clipped to 1: 1.0), view 0 has an empty mask and is
-    skipped. max_views 2: views 1 and 2 pooled, MSE (0.02 + 0.09) / 3 = 0.036667, PSNR 14.357 dB
-    (the mean of the two views' MSEs, 0.05, would be 13.010); max_views 1: view 1 alone, 20 dB;
-    max_views 3: (0.02 + 0.09 + 1.0) / 4, 5.567 dB."""
+    """Clean images 0.2 everywhere; renders 0.95 outside the masks (never counted) and inside:
+    view 1 0.3 (2 masked pixels: squared error 0.01 each), view 2 0.5 (1 pixel: 0.09), view 3
+    1.5 and -0.8 (clipped to 1 and 0: 0.64 and 0.04); view 0 has an empty mask and is skipped.
+    max_views 2: views 1 and 2 pooled, MSE (0.02 + 0.09) / 3 = 0.036667, PSNR 14.357 dB (the mean
+    of the two views' MSEs, 0.05, would be 13.010); max_views 1: view 1 alone, 20 dB; max_views
+    3: (0.02 + 0.09 + 0.64 + 0.04) / 5 = 0.158, 8.013 dB."""
     n, h, w = 4, 3, 4
     masks = np.zeros((n, h, w), np.float32)
     masks[1, 0, :2] = 1
     masks[2, 2, 3] = 1
-    masks[3, 1, 1] = 1
-    ds = SimpleNamespace(distractor_masks=masks, clean_images=np.zeros((n, h, w, 3), np.float32),
+    masks[3, 1, 1:3] = 1
+    inside = {1: [0.3, 0.3], 2: [0.5], 3: [1.5, -0.8]}
+    ds = SimpleNamespace(distractor_masks=masks, clean_images=np.full((n, h, w, 3), 0.2, np.float32),
                          split={"train": np.arange(n)})
-    level = {0: 0.7, 1: 0.1, 2: 0.3, 3: 1.5}
+    params, cfg = object(), object()
     rendered = []
 
-    def render_view(params, cfg, ds_, i):
+    def render_view(params_, cfg_, ds_, i):
+        assert params_ is params and cfg_ is cfg and ds_ is ds
         rendered.append(i)
-        return {"rgb": np.full((h, w, 3), level[i], np.float32)}
+        rgb = np.full((h, w, 3), 0.95, np.float32)
+        rgb[masks[i] > 0] = np.asarray(inside[i], np.float32)[:, None]
+        return {"rgb": rgb}
 
     monkeypatch.setattr(evaluate.views, "render_view", render_view)
-    assert evaluate.distractor_psnr(None, None, ds, 2) == pytest.approx(-10 * np.log10(0.11 / 3), abs=1e-4)
+    assert evaluate.distractor_psnr(params, cfg, ds, 2) == pytest.approx(-10 * np.log10(0.11 / 3), abs=1e-4)
     assert rendered == [1, 2]
-    assert evaluate.distractor_psnr(None, None, ds, 1) == pytest.approx(20.0, abs=1e-4)
-    assert evaluate.distractor_psnr(None, None, ds, 3) == pytest.approx(-10 * np.log10(1.11 / 4), abs=1e-4)
-    assert round(-10 * np.log10(0.11 / 3), 3) == 14.357 and round(-10 * np.log10(1.11 / 4), 3) == 5.567
+    assert evaluate.distractor_psnr(params, cfg, ds, 1) == pytest.approx(20.0, abs=1e-4)
+    assert evaluate.distractor_psnr(params, cfg, ds, 3) == pytest.approx(-10 * np.log10(0.79 / 5), abs=1e-4)
+    assert round(-10 * np.log10(0.11 / 3), 3) == 14.357 and round(-10 * np.log10(0.79 / 5), 3) == 8.013
     # nothing to score: no masks, no clean images, no views asked, or every mask empty
     rendered.clear()
-    assert evaluate.distractor_psnr(None, None, SimpleNamespace(**{**vars(ds), "distractor_masks": None}), 2) is None
-    assert evaluate.distractor_psnr(None, None, SimpleNamespace(**{**vars(ds), "clean_images": None}), 2) is None
-    assert evaluate.distractor_psnr(None, None, ds, 0) is None
+    assert evaluate.distractor_psnr(params, cfg, SimpleNamespace(**{**vars(ds), "distractor_masks": None}), 2) is None
+    assert evaluate.distractor_psnr(params, cfg, SimpleNamespace(**{**vars(ds), "clean_images": None}), 2) is None
+    assert evaluate.distractor_psnr(params, cfg, ds, 0) is None
     empty = SimpleNamespace(**{**vars(ds), "distractor_masks": np.zeros_like(masks)})
-    assert evaluate.distractor_psnr(None, None, empty, 2) is None and rendered == []
+    assert evaluate.distractor_psnr(params, cfg, empty, 2) is None and rendered == []
 
 
 # --------------------------------------------------------------------------- words
