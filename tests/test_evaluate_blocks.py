@@ -281,3 +281,17 @@ def test_score_geometry_and_the_export_section_hand_on_the_normalisations(tmp_pa
     calls.clear()
     evaluate.export_section(SimpleNamespace(**{**vars(bare), "meta": None}), run, str(ply))
     assert calls == [(3, None, {}), (Path(run) / "export", "P", 1.0)]
+
+
+def test_region_masks_at_exactly_100_metres():
+    """Far background is vegetation or building *beyond* 100 m: at scale 0.5 (exact in binary) a
+    normalised depth of 50.0 is exactly 100 m (not far), 50.01 is 100.02 m (far), 49.99 is
+    99.98 m (not); sky is far at any depth; tower = classes 1-2, near ground = class 3."""
+    sem = np.array([[4, 4, 4, 5, 5, 5, 0, 1, 2, 3]], np.uint8)
+    depth = np.array([[49.99, 50.0, 50.01, 49.99, 50.0, 50.01, 1.0, 60.0, 60.0, 60.0]], np.float32)
+    ds = SimpleNamespace(semantics=sem[None], depth=depth[None], normalization={"scale": 0.5})
+    got = evaluate.region_masks(ds, 0)
+    assert {k: v.astype(int).tolist() for k, v in got.items()} == {
+        "tower": [[0, 0, 0, 0, 0, 0, 0, 1, 1, 0]], "near_ground": [[0, 0, 0, 0, 0, 0, 0, 0, 0, 1]],
+        "far_background": [[0, 0, 1, 0, 0, 1, 1, 0, 0, 0]]}
+    assert evaluate.region_masks(SimpleNamespace(semantics=None), 0) == {}
