@@ -348,3 +348,38 @@ def test_a_robust_run_reports_the_weights_training_used(tmp_path):
         np.testing.assert_allclose(photo, loaded.images[frame], atol=1 / 255 + 1e-6)
         np.testing.assert_allclose(prior[..., 0], loaded.weights[frame], atol=1 / 255 + 1e-6)
         np.testing.assert_allclose(weight[..., 0], used[frame], atol=1e-6)
+
+
+def test_metrics_json_records_the_run_and_the_views_it_lifted(ours, tmp_path, monkeypatch):
+    """metrics.json as written: the method, the steps trained (tiny_overrides: 12), the one test
+    view scored, no training views lifted by default, no LPIPS, geometry or export, the region
+    definition, the resolution (the photos' own size). Then a copy of the run evaluated again
+    with cloud_views = 2 and no distractor views: the training views lifted are the first and the
+    last of the split (evenly spaced, by hand), and no distractor PSNR is computed. The tiny run
+    is too faint to lift any point (opacity < 0.5 everywhere), so the lifting is replaced by one
+    that keeps each view's camera centre: tower_points.ply must then hold the centres of the
+    test view and of those two, in that order (read from the dataset's poses)."""
+    import shutil
+
+    m, ds, cfg = io.read_json(ours["run"] / "metrics.json"), ours["ds"], ours["cfg"]
+    assert m["method"] == "ours" and m["step"] == 12 and m["num_views"] == 1
+    assert m["cloud_views"] == {"test": [TEST], "train": []}
+    assert m["lpips"] == "unavailable" and m["geometry"] is None and m["export"] is None
+    assert m["region_definition"] == evaluate.REGION_DEFINITION and "training_weights" not in m
+    assert m["resolution"] == {"width": W, "height": H, "native_width": W, "native_height": H,
+                               "max_side": cfg.train.max_side, "full_size": False}
+    assert m["target"] == "clean images" and m["protocol"] == "targets are the clean images"
+
+    def centre_only(rays, rgb, depth, opacity):
+        return np.asarray(rays.origins)[:1, 0].astype(np.float32), np.asarray(rgb)[:1, 0].astype(np.float32)
+
+    monkeypatch.setattr(evaluate.clouds, "lift_view", centre_only)
+    run = tmp_path / "run"
+    shutil.copytree(ours["run"], run)
+    m2 = evaluate.evaluate_run(run, progress=False, cloud_views=2, distractor_views=0)
+    train_ids = [int(i) for i in ds.split["train"]]
+    assert len(train_ids) > 2 and m2["cloud_views"] == {"test": [TEST], "train": [train_ids[0], train_ids[-1]]}
+    assert m2["distractor_psnr"] is None and io.read_json(run / "metrics.json")["cloud_views"] == m2["cloud_views"]
+    centres = np.asarray(ds.c2w)[[TEST, train_ids[0], train_ids[-1]], :3, 3]
+    assert np.linalg.norm(centres[1:] - centres[:-1], axis=-1).min() > 0.1
+    np.testing.assert_allclose(io.read_ply_points(run / "tower_points.ply"), centres, atol=1e-5)

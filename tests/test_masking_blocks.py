@@ -400,3 +400,168 @@ def test_dpt_masks_record_the_verdict_the_confidence_and_no_depth_without_a_dept
         if not has_depth:
             np.testing.assert_array_equal(io.read_exr(tmp_path / "data" / frames[0]["weight_path"]),
                                           np.zeros((32, 48), np.float32))
+
+
+# --------------------------------------------------------------------------- masking again
+
+E = float(np.e)
+
+
+def _flat_dpt(folder, heads, seed=0):
+    """A tiny DPT saved (float32) into `folder` whose classifier is its bias alone: weights 0, bias
+    [0, 0, 1], so every pixel's logits are [0, 0, 1] and its softmax [1, 1, e] / (e + 2): C of
+    class 2 is e / (e + 2) = 0.576117 everywhere (> 0.5: every pixel masked), and so is the largest
+    class probability, the frame's confidence. With a depth head, its last bias raised by 0.1 so
+    the relative inverse depth is positive and varies (tests/test_join_foreground.py's model)."""
+    from jaxnerf_grid import dpt
+
+    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3, heads=heads)
+    model = dpt.init(seed, cfg)
+    if "segmentation" in heads:
+        cls = model.params["segmentation"]["cls"]
+        cls["w"] = np.zeros_like(np.asarray(cls["w"]))
+        cls["b"] = np.array([0.0, 0.0, 1.0], np.float32)
+    if "depth" in heads:
+        model.params["depth"]["conv3"]["b"] = np.asarray(model.params["depth"]["conv3"]["b"]) + 0.1
+    dpt.save(model, folder, dtype="float32", extra={"dynamic_classes": [2]})
+    return str(folder)
+
+
+def test_masking_from_the_dpt_then_from_the_ground_truth_keeps_no_dpt_record(tmp_path, capsys):
+    """A fresh dataset masked by a segmentation-only DPT (no depth head: no dpt_depth_path to pop),
+    then again from the ground truth with overwrite: the second transforms.json must hold nothing
+    of the DPT run (a user reading `dpt_confidence` or `mask_domain` would judge ground-truth
+    masks by a model that no longer made them): no `dpt_confidence` per frame, no `mask_domain`,
+    the params of the ground truth alone, no verdict returned or printed; each frame's
+    `dpt_depth_path` is now the ground-truth depth. Confidences by hand: round(e / (e + 2), 4) =
+    0.5761 (5 places would be 0.57612)."""
+    data = tmp_path / "data"
+    rect = (slice(4, 6), slice(5, 8))
+    _gt_dataset(data, 32, 48, [rect, None])
+    weights = _flat_dpt(tmp_path / "seg", ("segmentation",))
+    conf = round(E / (E + 2), 4)
+    assert conf == 0.5761 and round(E / (E + 2), 5) == 0.57612
+    out = masking.write_masks(data, weights=weights, max_side=64, progress=False)
+    meta = io.read_json(data / "transforms.json")
+    verdict = {"out_of_domain": True, "frames": 2, "frames_mostly_masked": 2, "median_share": 1.0,
+               "mean_share": 1.0, "mean_confidence": conf, "rule": RULE}
+    params = {"threshold": 0.5, "floor": 0.0, "dilate": 0, "weights": weights, "depth_weights": None,
+              "classes": [2], "max_side": 64, "depth": None}
+    assert out == {"root": data, "source": "dpt", "frames": 2, "params": params, "domain": verdict}
+    assert meta["mask_source"] == "dpt" and meta["mask_params"] == params and meta["mask_domain"] == verdict
+    assert [f["dpt_confidence"] for f in meta["frames"]] == [conf, conf]
+    assert [f["masked_share"] for f in meta["frames"]] == [1.0, 1.0]
+    assert not any("dpt_depth_path" in f for f in meta["frames"]) and not (data / "dpt_depth").exists()
+    assert capsys.readouterr().out == ("jaxnerf-grid mask: no depth head available; using M_w = M (pass "
+                                       "--depth-weights for Eq. 7)\n" + masking.domain_line(verdict) + "\n")
+
+    out = masking.write_masks(data, source="gt", overwrite=True, progress=False)
+    meta = io.read_json(data / "transforms.json")
+    params = {"threshold": 0.5, "floor": 0.0, "dilate": 0}
+    assert out == {"root": data, "source": "ground-truth", "frames": 2, "params": params, "domain": None}
+    assert meta["mask_source"] == "ground-truth" and meta["mask_params"] == params
+    assert "mask_domain" not in meta
+    assert not any("dpt_confidence" in f for f in meta["frames"])
+    assert [f["masked_share"] for f in meta["frames"]] == [0.0039, 0.0]          # 6 / (32 * 48)
+    assert [f["dpt_depth_path"] for f in meta["frames"]] == ["dpt_depth/f0.exr", "dpt_depth/f1.exr"]
+    np.testing.assert_array_equal(io.read_exr(data / "dpt_depth/f0.exr"), np.ones((32, 48), np.float32))
+    assert capsys.readouterr().out == ""                                            # no verdict to print
+
+
+def test_separate_depth_weights_give_the_depth_of_the_depth_model(tmp_path):
+    """A segmentation-only DPT for the masks and a depth-only DPT passed as `depth_weights`: the
+    depth written is Eq. 7's D = 1 / max(r, 1e-3 max r) from the depth model's own inverse depth r
+    on the photo as written (32 x 64 = the working size at max_side 64: no resizing), computed
+    here in NumPy from `dpt.apply`; the params name both folders."""
+    from jaxnerf_grid import dpt
+
+    data = tmp_path / "data"
+    _gt_dataset(data, 32, 64, [None])
+    weights = _flat_dpt(tmp_path / "seg", ("segmentation",))
+    depth_weights = _flat_dpt(tmp_path / "depth", ("depth",), seed=1)
+    out = masking.write_masks(data, weights=weights, depth_weights=depth_weights, max_side=64, progress=False)
+    meta = io.read_json(data / "transforms.json")
+    assert out["params"] == meta["mask_params"] == {
+        "threshold": 0.5, "floor": 0.0, "dilate": 0, "weights": weights, "depth_weights": depth_weights,
+        "classes": [2], "max_side": 64, "depth": "relative (1 / DPT inverse depth)"}
+    photo = io.read_image(data / "images/f0.png")
+    r = np.maximum(np.asarray(dpt.apply(dpt.load_pretrained(depth_weights), dpt.normalize(photo[None]))["depth"][0],
+                              np.float64), 0.0)
+    assert r.shape == (32, 64) and np.std(r) > 1e-3
+    expect = 1.0 / np.maximum(r, 1e-3 * r.max())
+    frame = meta["frames"][0]
+    assert frame["dpt_depth_path"] == "dpt_depth/f0.exr" and frame["dpt_confidence"] == round(E / (E + 2), 4)
+    np.testing.assert_allclose(io.read_exr(data / "dpt_depth/f0.exr"), expect, rtol=1e-4)
+    # every pixel masked (C = 0.5761 > 0.5), floor 0: the weights are 1 - (Dmax - D) / Dmax = D / Dmax
+    np.testing.assert_allclose(io.read_exr(data / frame["weight_path"]), expect / expect.max(), atol=1e-5)
+
+
+def test_tiled_masks_record_the_tiling_and_use_its_overlap(tmp_path, monkeypatch):
+    """tiles = 2 with tile_overlap = 0.5 (not the default 0.25) on a 32 x 96 photo at max_side 32:
+    the params record both; the mask is M = [C > T] for C of `foreground.predict_maps` with these
+    settings (predict_maps is held to a per-window reference of its own in test_foreground), T the
+    median of that C; `mask.batch_size` handed on (a user short of accelerator memory sets it).
+    The windows by hand: side 32, overlap 16 px, the photo resized to 32 x 48,
+    windows at x = 0 and 16; with 0.25: 32 x 56, windows at 0 and 24, so C differs."""
+    from jaxnerf_grid import dpt, foreground as fg
+
+    data = tmp_path / "data"
+    _gt_dataset(data, 32, 96, [None])
+    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3, heads=("segmentation",))
+    dpt.save(dpt.init(0, cfg), tmp_path / "w", dtype="float32", extra={"dynamic_classes": [1, 2]})
+    model = dpt.load_pretrained(str(tmp_path / "w"))
+    photo = io.read_image(data / "images/f0.png")
+    assert fg.tile_layout(32, 96, 32, 32, 2, 0.5) == ((32, 48), (32, 32), [0], [0, 16], 16)
+    assert fg.tile_layout(32, 96, 32, 32, 2, 0.25) == ((32, 56), (32, 32), [0], [0, 24], 8)
+    (c, _, conf), = fg.predict_maps(model, None, [photo], [1, 2], max_side=32, tiles=2, tile_overlap=0.5,
+                                    with_confidence=True)
+    (c_default, _), = fg.predict_maps(model, None, [photo], [1, 2], max_side=32, tiles=2)
+    threshold = float(np.median(c))
+    sure = np.abs(c - threshold) > 1e-4
+    assert sure.mean() > 0.9 and np.mean((c > threshold) != (c_default > threshold)) > 0.02
+    passed = []
+    real = fg.predict_maps
+
+    def spy(*args, **kwargs):
+        passed.append(kwargs)
+        return real(*args, **kwargs)
+
+    monkeypatch.setattr(masking.fg, "predict_maps", spy)
+    out = masking.write_masks(data, weights=str(tmp_path / "w"), threshold=threshold, max_side=32, tiles=2,
+                              tile_overlap=0.5, batch_size=2, progress=False)
+    assert passed == [{"max_side": 32, "batch_size": 2, "tiles": 2, "tile_overlap": 0.5, "with_confidence": True}]
+    meta = io.read_json(data / "transforms.json")
+    assert out["params"] == meta["mask_params"] == {
+        "threshold": threshold, "floor": 0.0, "dilate": 0, "weights": str(tmp_path / "w"), "depth_weights": None,
+        "classes": [1, 2], "max_side": 32, "depth": None, "tiles": 2, "tile_overlap": 0.5}
+    got = io.read_mask(data / meta["frames"][0]["mask_path"])
+    np.testing.assert_array_equal(got[sure], (c > threshold)[sure])
+    assert meta["frames"][0]["dpt_confidence"] == round(conf, 4)
+
+
+def test_dpt_classes_refused_by_the_model_folder_and_by_its_labels(tmp_path):
+    """A 3-label DPT saved without `dynamic_classes` and no classes given: refused, naming the
+    folder (no known dynamic classes for 3 labels); a class id past its labels: refused, naming
+    the folder and its range. Nothing is written either way."""
+    from jaxnerf_grid import dpt
+    from jaxnerf_grid.io import DataError
+
+    data = tmp_path / "data"
+    _gt_dataset(data, 32, 32, [None])
+    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
+                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
+                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3, heads=("segmentation",))
+    weights = tmp_path / "w"
+    dpt.save(dpt.init(0, cfg), weights, dtype="float32")
+    with pytest.raises(DataError, match="^" + re.escape(f"{weights}: 3-label model with no known dynamic classes; "
+                                                        "give mask.classes ID,ID,...") + "$"):
+        masking.write_masks(data, weights=str(weights), progress=False)
+    with pytest.raises(ConfigError, match="^" + re.escape(f"mask.classes [3]: outside the 3 labels of {weights} "
+                                                          "(0..2)") + "$"):
+        masking.write_masks(data, weights=str(weights), classes=[1, 3], progress=False)
+    assert sorted(p.name for p in data.iterdir()) == ["depth", "distractor", "images", "transforms.json"]
+    assert "mask_path" not in io.read_json(data / "transforms.json")["frames"][0]
