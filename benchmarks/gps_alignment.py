@@ -7,6 +7,10 @@ from `poses` on them:
     jaxnerf-grid poses --images SYN/photos_gps --out POSES --single-camera [--gcp SYN/gcp.csv]
     python -m benchmarks.gps_alignment --synth SYN --poses POSES [--export RUN/export] [--out FILE.json]
 
+`--write-gcp LAYOUT` (with --synth only) writes a GCP layout's file into SYN without regenerating
+the scene (`gps_scene.write_gcp`: `spread` -> SYN/gcp_spread.csv, control points spread in
+height; `ground` -> SYN/gcp.csv as synth writes it), for `poses --gcp`.
+
 The recovered cameras (POSES/transforms.json frames through `georeference.scene_to_crs`) are
 compared with the true ones (SYN/gps_truth.json `true_crs`): the similarity from the true to the
 recovered centres (Umeyama) gives the scale error (its scale - 1), the tilt (the angle of its
@@ -28,12 +32,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
 
 from jaxnerf_grid import io
 from jaxnerf_grid.data.georef import apply_similarity, umeyama
+from jaxnerf_grid.data.gps_scene import write_gcp
 
 
 def score(synth_dir, poses_dir) -> dict:
@@ -95,10 +101,21 @@ def score_export(synth_dir, export_dir) -> dict:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--synth", required=True, help="the synth dataset (with gps_truth.json)")
-    p.add_argument("--poses", required=True, help="the dataset poses wrote from SYN/photos_gps")
+    p.add_argument("--poses", default=None, help="the dataset poses wrote from SYN/photos_gps")
+    p.add_argument("--write-gcp", default=None, metavar="LAYOUT",
+                   help="only write SYN's GCP file of LAYOUT (ground, spread) and stop")
     p.add_argument("--export", default=None, help="a run's export folder (trained on POSES) to score too")
     p.add_argument("--out", default=None, help="also write the scores as JSON")
     args = p.parse_args(argv)
+    if args.write_gcp is not None:
+        try:
+            print(f"wrote {write_gcp(args.synth, args.write_gcp)}")
+        except io.DataError as err:
+            print(f"gps_alignment: error: {err}", file=sys.stderr)
+            return 1
+        return 0
+    if args.poses is None:
+        p.error("--poses is required (unless --write-gcp)")
     result = score(args.synth, args.poses)
     if args.export:
         result["export"] = score_export(args.synth, args.export)
