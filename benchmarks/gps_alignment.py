@@ -9,7 +9,8 @@ from `poses` on them:
 
 `--write-gcp LAYOUT` (with --synth only) writes a GCP layout's file into SYN without regenerating
 the scene (`gps_scene.write_gcp`: `spread` -> SYN/gcp_spread.csv, control points spread in
-height; `ground` -> SYN/gcp.csv as synth writes it), for `poses --gcp`.
+height; `dense` -> SYN/gcp_dense.csv, a diagnostic; `ground` -> SYN/gcp.csv as synth writes
+it), for `poses --gcp`.
 
 The recovered cameras (POSES/transforms.json frames through `georeference.scene_to_crs`) are
 compared with the true ones (SYN/gps_truth.json `true_crs`): the similarity from the true to the
@@ -173,7 +174,7 @@ def main(argv=None) -> int:
     p.add_argument("--synth", required=True, help="the synth dataset (with gps_truth.json)")
     p.add_argument("--poses", default=None, help="the dataset poses wrote from SYN/photos_gps")
     p.add_argument("--write-gcp", default=None, metavar="LAYOUT",
-                   help="only write SYN's GCP file of LAYOUT (ground, spread) and stop")
+                   help="only write SYN's GCP file of LAYOUT (ground, spread, dense) and stop")
     p.add_argument("--export", default=None, help="a run's export folder (trained on POSES) to score too")
     p.add_argument("--realign", nargs="+", default=None, metavar="GCP",
                    help="also align POSES/sparse/0 anew with each GCP file and score it (layouts on one model)")

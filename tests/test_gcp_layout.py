@@ -69,6 +69,25 @@ def test_spread_points_are_the_towers_cross_arm_tip_and_peak_by_hand():
         assert min(near) <= 0.0
 
 
+def test_dense_points_by_hand_lie_on_the_tower():
+    """The diagnostic layout: 3 + 4 + 16 + 12 + 2 control points and the check point. By hand:
+    half_width(12) = 4 - 2.9 * 12 / 17.5 = 2.01143 m; the low arm's tip 1.1 + 6.5 = 7.6 m out;
+    every point off the ground within its member's radius of a member's axis, or on a footing
+    (centre (+-4, +-4, 0.225), half 0.7, 0.7, 0.225)."""
+    from jaxnerf_grid.data.synthetic.scene import tower_members
+
+    points = gps_scene.GCP_LAYOUTS["dense"]
+    assert len(points) == 38 and points[:3] == gps_scene.GCP_POINTS[:3] and points[-1] == (0.0, -15.0, 0.0)
+    assert (4.7, -4.7, 0.45) in points and (-7.6, 0.35, 17.5) in points and (8.6, -0.35, 21.5) in points
+    assert any(np.allclose(p, (-2.0114286, 2.0114286, 12.0)) for p in points)
+    caps, _, boxes, _ = tower_members(np.random.default_rng(0))
+    for p in map(np.asarray, points[3:-1]):
+        near = min(np.linalg.norm(p - (a + np.clip((p - a) @ (b - a) / ((b - a) @ (b - a)), 0, 1) * (b - a))) - r
+                   for a, b, r in caps)
+        on_box = any(np.all(np.abs(p - c) <= h + 1e-9) for c, h in boxes)
+        assert near <= 0.0 or on_box, p
+
+
 def test_spread_rows_match_hand_projections_and_honour_visibility(tmp_path):
     points = gps_scene.GCP_LAYOUTS["spread"]
     meta = tiny_scene(tmp_path, points)
@@ -141,7 +160,7 @@ def test_a_layout_written_into_an_existing_folder_is_what_synth_writes(tmp_path)
 def test_unknown_layout_is_refused_naming_the_key_writing_nothing(tmp_path, capsys):
     tiny_scene(tmp_path / "d", gps_scene.GCP_POINTS)
     before = sorted(p.name for p in (tmp_path / "d").iterdir())
-    with pytest.raises(DataError, match=r"^synth\.gcp_layout: unknown layout 'tall' \(known: ground, spread\)$"):
+    with pytest.raises(DataError, match=r"^synth\.gcp_layout: unknown layout 'tall' \(known: ground, spread, dense\)$"):
         gps_scene.write_gps_photos(tmp_path / "d", (47.0, 8.0, 400.0), gcp_layout="tall")
     with pytest.raises(DataError, match=r"^synth\.gcp_layout: unknown layout 'tall'"):
         gps_scene.write_gcp(tmp_path / "d", "tall")

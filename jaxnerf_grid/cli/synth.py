@@ -35,7 +35,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--gcp-layout", default="ground", metavar="NAME",
                    help="with --gps-origin, the ground control points written: ground (gcp.csv, points on the "
                         "ground around the tower; default) or spread (gcp_spread.csv, control points at "
-                        "different heights: the ground, a cross-arm tip, the earth-wire peak)")
+                        "different heights: the ground, a cross-arm tip, the earth-wire peak) or dense (gcp_dense.csv, "
+                        "37 control points over the tower: a diagnostic)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p

@@ -18,7 +18,9 @@ seeded 0.5 px (standard deviation) click error. The generator's own files are no
 GCP_LAYOUTS names the sets of control points (`synth --gcp-layout`, `write_gcp` for an existing
 folder): "ground" (GCP_POINTS, gcp.csv, the default) and "spread" (SPREAD_POINTS, gcp_spread.csv:
 one ground point, a cross-arm tip and an earth-wire peak of the tower, so the control points span
-its 30 m height; the check point is the ground layout's, docs/GEOREFERENCE.md).
+its 30 m height; the check point is the ground layout's, docs/GEOREFERENCE.md) and "dense"
+(`dense_points`, gcp_dense.csv: 37 control points over the ground and the whole tower, a
+diagnostic of what is left once the alignment is nearly exact).
 """
 
 from __future__ import annotations
@@ -31,6 +33,7 @@ from jaxnerf_grid import io
 from jaxnerf_grid.data import georef
 from jaxnerf_grid.data.gps import GPS_IFD
 from jaxnerf_grid.data.normalize import apply_normalization_to_points, invert_normalization
+from jaxnerf_grid.data.synthetic.scene import ARM_LENGTHS, ARM_LEVELS, half_width
 from jaxnerf_grid.io import DataError
 
 PHOTOS = "photos_gps"
@@ -48,7 +51,25 @@ GCP_POINTS = ((15.0, 0.0, 0.0), (-7.5, 13.0, 0.0), (-7.5, -13.0, 0.0), (0.0, -15
 # last, the ground layout's check point. Each is seen unoccluded in 18-20 of the 31 photos of the
 # seed-0 tower-small 320x240 scene (docs/GEOREFERENCE.md).
 SPREAD_POINTS = ((15.0, 0.0, 0.0), (-8.6, 0.35, 21.5), (2.6, 0.0, 30.4), (0.0, -15.0, 0.0))
-GCP_LAYOUTS = {"ground": GCP_POINTS, "spread": SPREAD_POINTS}
+
+
+def dense_points() -> tuple:
+    """A diagnostic layout, not a survey plan: the ground layout's 3 control points, the four
+    footings' top outer corners, the four leg axes at 12, 17.5, 21.5 and 25.5 m, the twelve
+    cross-arm tip corners and both earth-wire peaks (data/synthetic/scene.py's tower), then the
+    ground layout's check point: 38 points whose fit leaves little of the alignment's error, so
+    what a trained model's measurement still misses is the export's own. Returns [38] of (x, y, z)."""
+    corners = ((1.0, 1.0), (-1.0, 1.0), (-1.0, -1.0), (1.0, -1.0))
+    points = list(GCP_POINTS[:3]) + [(sx * 4.7, sy * 4.7, 0.45) for sx, sy in corners]
+    for z in (12.0, *ARM_LEVELS):
+        w = float(half_width(z))
+        points += [(sx * w, sy * w, z) for sx, sy in corners]
+    for z, length in zip(ARM_LEVELS, ARM_LENGTHS):
+        points += [(s * (float(half_width(z)) + length), y, z) for s in (-1.0, 1.0) for y in (-0.35, 0.35)]
+    return tuple(points + [(2.6, 0.0, 30.4), (-2.6, 0.0, 30.4), GCP_POINTS[-1]])
+
+
+GCP_LAYOUTS = {"ground": GCP_POINTS, "spread": SPREAD_POINTS, "dense": dense_points()}
 GCP_PHOTOS = 6                 # photos per point (evenly spread over those that see it)
 CLICK_ERROR_PX = 0.5
 EDGE_PX = 3.0                  # a point closer than this to a photo's border is not clicked there
