@@ -199,7 +199,7 @@ def write_gcp(dataset_dir, layout: str = "ground") -> Path:
     root = Path(dataset_dir)
     layout_points(layout)
     if not (root / TRUTH).is_file():
-        raise DataError(f"{root / TRUTH}: not found (write the photos first: synth --gps-origin)")
+        raise DataError(f"{root / TRUTH}: not found (write the photos first: synth.gps_origin)")
     truth = io.read_json(root / TRUTH)
     meta = io.read_json(root / "transforms.json")
     if "scene_normalization" not in meta or "frames" not in meta:
