@@ -48,3 +48,20 @@ def test_an_export_without_metres_is_refused(tmp_path):
     syn = _truth(tmp_path)
     with pytest.raises(DataError, match="not in metres"):
         gps_alignment.score_export(syn, _export(tmp_path, 30.0, None, units="unknown"))
+
+
+def test_export_moved_through_another_alignment_by_hand(tmp_path):
+    """`moved_export` (--realign with --export): the export made under one alignment (CRS = local
+    + O1) moved through sim = (1.01, a quarter turn about z, (1, 2, 3)) to CRS = local + O2. By
+    hand: height 30.0 m -> 30.3 m (+1 %); the base (465003, 5246996, 412) -> local (3, -4, 412)
+    -> turned (4, 3, 412) -> x 1.01 (4.04, 3.03, 416.12) -> + t (5.04, 5.03, 419.12) -> + O2
+    (465005.04, 5247005.03, 410.0): 5.04 m east and 5.03 m north of the true base."""
+    syn = _truth(tmp_path)
+    quarter = np.array([[0.0, -1.0, 0.0], [1.0, 0.0, 0.0], [0.0, 0.0, 1.0]])
+    got = gps_alignment.moved_export(syn, _export(tmp_path, 30.0, [465003.0, 5246996.0, 412.0]),
+                                     (1.01, quarter, np.array([1.0, 2.0, 3.0])),
+                                     np.array([465000.0, 5247000.0, 0.0]), np.array([465000.0, 5247000.0, -9.12]))
+    assert got["height_m"] == pytest.approx(30.3, abs=1e-3)
+    assert got["height_error_percent"] == pytest.approx(1.0, abs=1e-3)
+    assert got["base_error_horizontal_m"] == pytest.approx(np.hypot(5.04, 5.03), abs=1e-3)
+    assert got["base_error_m"] == pytest.approx(np.hypot(5.04, 5.03), abs=1e-3)

@@ -19,7 +19,7 @@ _DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.pro
                 "distributed.coordinator": "--coordinator"}
 
 FLAGS = {  # subcommand -> {key: flag}
-    "synth": {"synth.gps_origin": "--gps-origin", **_SWITCHES},
+    "synth": {"synth.gps_origin": "--gps-origin", "synth.gcp_layout": "--gcp-layout", **_SWITCHES},
     "poses": {"poses.matcher": "--matcher", "poses.overlap": "--overlap", "poses.vocab_tree": "--vocab-tree",
               "poses.max_side": "--max-side",
               "poses.single_camera": "--single-camera",

@@ -32,6 +32,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="also write photos_gps/ (JPEGs with EXIF GPS: true camera centres plus a consumer "
                         "receiver's error, seeded) and gps_truth.json, the tower's base at LAT,LON,ALT "
                         "(docs/GEOREFERENCE.md)")
+    p.add_argument("--gcp-layout", default="ground", metavar="NAME",
+                   help="with --gps-origin, the ground control points written: ground (gcp.csv, points on the "
+                        "ground around the tower; default) or spread (gcp_spread.csv, control points at "
+                        "different heights: the ground, a cross-arm tip, the earth-wire peak) or dense (gcp_dense.csv, "
+                        "37 control points over the tower: a diagnostic)")
     p.add_argument("--overwrite", action="store_true", help="replace an existing dataset in --out")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     return p
@@ -74,9 +79,10 @@ def main(argv: list[str] | None = None) -> int:
     check_args(args)
     from jaxnerf_grid.data.synthetic.generate import contact_sheet, generate_scene
 
-    from jaxnerf_grid.data.gps_scene import parse_origin, write_gps_photos
+    from jaxnerf_grid.data.gps_scene import layout_points, parse_origin, write_gps_photos
 
     origin = parse_origin(args.gps_origin) if args.gps_origin is not None else None
+    layout_points(args.gcp_layout)  # an unknown layout refused before anything is written
     workers = args.workers or min(2, os.cpu_count() or 1)
     if args.overwrite:
         clear_derived_outputs(args.out)
@@ -89,7 +95,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.preview:
         contact_sheet(path.parent, path.parent / "preview.png")
     if origin is not None:
-        print(f"wrote {write_gps_photos(path.parent, origin, seed=args.seed)}")
+        print(f"wrote {write_gps_photos(path.parent, origin, seed=args.seed, gcp_layout=args.gcp_layout)}")
     print(f"wrote {path}")
     return 0
 
