@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import strecha_dataset as strecha
+from jaxnerf_grid.data import georef
 from jaxnerf_grid.data.poses import similarity_fit  # Umeyama 1991
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -55,9 +56,7 @@ def orientation_alignment(found: np.ndarray, true: np.ndarray) -> np.ndarray:
     """The rotation A that best maps the found camera orientations onto the true ones, A found_i
     ~ true_i in the chordal (Frobenius) sense: the projection of sum_i true_i found_i^T onto
     SO(3). found, true: [N, 3, 3]. Returns [3, 3]."""
-    u, _, vt = np.linalg.svd(np.einsum("nij,nkj->ik", true, found))
-    d = np.diag([1.0, 1.0, 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0])
-    return u @ d @ vt
+    return georef.nearest_rotation(np.einsum("nij,nkj->ik", true, found))
 
 
 def compare(true: dict, found: dict) -> dict:

@@ -151,6 +151,24 @@ def test_similarity_never_mirrors():
     np.testing.assert_allclose(t, 0.0, atol=1e-12)
 
 
+def test_nearest_rotation_beats_every_sampled_rotation_and_never_mirrors():
+    """`nearest_rotation` against a brute search: for a matrix with a reflection in it and for
+    a noisy rotation, its trace(R^T m) is at least that of 20000 random proper rotations (uniform
+    quaternions), and it is a proper rotation (R^T R = I, det +1)."""
+    rng = np.random.default_rng(7)
+    q = rng.normal(size=(20000, 4))
+    q /= np.linalg.norm(q, axis=1, keepdims=True)
+    w, x, y, z = q.T
+    samples = np.stack([1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w),
+                        2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w),
+                        2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)], 1).reshape(-1, 3, 3)
+    for m in (np.diag([3.0, 2.0, -1.0]) @ samples[0], samples[1] * 2.0 + rng.normal(scale=0.3, size=(3, 3))):
+        r = georef.nearest_rotation(m)
+        np.testing.assert_allclose(r.T @ r, np.eye(3), atol=1e-12)
+        assert np.linalg.det(r) == pytest.approx(1.0, abs=1e-12)
+        assert np.trace(r.T @ m) >= np.einsum("nij,ij->n", samples, m).max() - 1e-12
+
+
 @pytest.mark.parametrize("lat, lon, epsg, zone", [(47.3769, 8.5417, 32632, 32), (-33.8688, 151.2093, 32756, 56)])
 def test_crs_round_trip_against_pyproj(lat, lon, epsg, zone):
     crs = georef.projected_crs(None, lat, lon)

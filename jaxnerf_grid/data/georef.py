@@ -60,13 +60,19 @@ def umeyama(src: np.ndarray, dst: np.ndarray, weights: np.ndarray | None = None,
         var = float(w @ (xs ** 2).sum(1))
         scale = float(w @ (xd * (xs @ rot.T)).sum(1) / var) if var > 0 else 1.0
         return scale, rot, mean_d - scale * rot @ mean_s
-    u, sig, vt = np.linalg.svd((xd * w[:, None]).T @ xs)
-    d = np.ones(3)
-    d[2] = 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0
-    rot = u @ np.diag(d) @ vt
+    cov = (xd * w[:, None]).T @ xs
+    rot = nearest_rotation(cov)
     var = float(w @ (xs ** 2).sum(1))
-    scale = float((sig * d).sum() / var) if var > 0 else 1.0
+    scale = float(np.trace(rot.T @ cov) / var) if var > 0 else 1.0  # trace(R^T C) = sum of C's signed singular values
     return scale, rot, mean_d - scale * rot @ mean_s
+
+
+def nearest_rotation(m: np.ndarray) -> np.ndarray:
+    """The proper rotation R maximising trace(R^T m) (the closest one to m in the Frobenius
+    sense): U diag(1, 1, det(U V^T)) V^T of m = U S V^T. m: [3, 3] -> [3, 3]."""
+    u, _, vt = np.linalg.svd(np.asarray(m, np.float64))
+    d = np.diag([1.0, 1.0, 1.0 if np.linalg.det(u @ vt) >= 0 else -1.0])
+    return u @ d @ vt
 
 
 def apply_similarity(sim, points: np.ndarray) -> np.ndarray:
