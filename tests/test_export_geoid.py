@@ -97,18 +97,21 @@ def test_a_point_outside_the_grid_is_a_data_error_naming_the_grid(tmp_path):
 def test_without_a_grid_the_heights_are_as_the_fit_took_them(source, reference):
     """GPS alone: the GPS's heights; with control points (whose weight rules the fit): their Z."""
     record = geoid.vertical_record(geo={**GEOREFERENCE, "source": source})
-    assert record == {"reference": reference, "geoid_grid": None, "n_at_base_m": None, "n_range_m": None}
+    assert record == {"reference": reference, "geoid_grid": None, "n_at_base_m": None, "n_range_m": None,
+                      "vertical_crs": None}
 
 
 @pytest.fixture(scope="module")
 def exports(tmp_path_factory):
     """The analytic tower's export (GPS record, EPSG:32632) without a grid, with a flat grid
-    (N = FLAT_N) and with the linear one: {name: (measurements, export folder, grid path)}."""
+    (N = FLAT_N, named as EGM96 height: export.vertical_crs EPSG:5773) and with the linear one
+    (no datum named): {name: (measurements, export folder, grid path)}."""
     out = {}
-    for name, n_of in (("plain", None), ("flat", lambda lat, lon: FLAT_N), ("linear", linear_n)):
+    for name, n_of, datum in (("plain", None, None), ("flat", lambda lat, lon: FLAT_N, "EPSG:5773"),
+                              ("linear", linear_n, None)):
         root = tmp_path_factory.mktemp(name)
         path = site_grid(root / f"{name}.gtx", n_of) if n_of else None
-        meas = _tilted_export(root, af.TILT, {"georeference": GEOREFERENCE}, geoid=path)
+        meas = _tilted_export(root, af.TILT, {"georeference": GEOREFERENCE}, geoid=path, vertical_crs=datum)
         out[name] = (meas, root / "run" / "export", path)
     return out
 
@@ -163,7 +166,10 @@ def test_the_records_and_the_report_name_the_vertical_reference(exports):
     flat, flat_dir, path = exports["flat"]
     assert plain["survey"]["vertical"]["reference"] == "ellipsoidal (GPS heights as written)"
     vertical = flat["survey"]["vertical"]
-    assert vertical["reference"] == f"above the geoid of flat.gtx, N = {FLAT_N:.3f} m at the base"
+    assert vertical["reference"] == (f"above the geoid of flat.gtx, N = {FLAT_N:.3f} m at the base "
+                                     f"(EPSG:5773 EGM96 height)")
+    assert vertical["vertical_crs"] == "EPSG:5773 EGM96 height"
+    assert plain["survey"]["vertical"]["vertical_crs"] is None
     assert vertical["n_at_base_m"] == pytest.approx(FLAT_N, abs=1e-9)
     assert vertical["n_range_m"] == pytest.approx([FLAT_N, FLAT_N], abs=1e-9)
     assert io.read_json(flat_dir / "measurements.json")["survey"]["vertical"] == vertical
@@ -172,7 +178,11 @@ def test_the_records_and_the_report_name_the_vertical_reference(exports):
     assert "| ellipsoidal (GPS heights as written) |" in (plain_dir.parent / "report.md").read_text()
     assert f"heights: {vertical['reference']}" in (flat_dir / "tower_mesh_crs.ply").read_bytes()[:2000].decode(
         "ascii", "replace")
-    assert laspy.read(flat_dir / "tower_points.las").header.parse_crs() == pyproj.CRS.from_epsg(32632)
+    las_crs = laspy.read(flat_dir / "tower_points.las").header.parse_crs()   # the compound of the two
+    assert las_crs.is_compound
+    assert [c.to_epsg() for c in las_crs.sub_crs_list] == [32632, 5773]
+    for name in ("plain", "linear"):                                        # no datum named: the horizontal alone
+        assert laspy.read(exports[name][1] / "tower_points.las").header.parse_crs() == pyproj.CRS.from_epsg(32632)
 
 
 def test_a_linear_geoid_gives_the_closed_form_at_every_las_point_and_the_base(exports):
@@ -241,4 +251,24 @@ def test_the_command_line_names_the_flag_and_the_file_in_one_line(tmp_path, monk
     err = capsys.readouterr().err
     assert rc == 1 and err.count("\n") == 1
     assert "egm96.gtx: --geoid does not exist" in err
+    assert not (tmp_path / "run" / "export").exists()
+
+
+@pytest.mark.parametrize("with_grid, datum, match", [
+    (False, "EPSG:5773", r"export\.vertical_crs = 'EPSG:5773' names the datum .* give export\.geoid"),
+    (True, "EPSG:32632", r"export\.vertical_crs = 'EPSG:32632' is not a vertical CRS"),
+    (True, "EPSG:999999", r"export\.vertical_crs = 'EPSG:999999': pyproj does not know it")])
+def test_a_vertical_crs_without_a_grid_unknown_or_not_vertical_is_refused(tmp_path, monkeypatch, with_grid, datum,
+                                                                           match):
+    """Each a one-line DataError naming the key, before the dataset is read; nothing written."""
+    from jaxnerf_grid.export import run as export_run
+
+    def not_before_the_checks(*args, **kwargs):
+        raise AssertionError("views rendered before the vertical CRS's check")
+
+    monkeypatch.setattr(export_run, "_render_cloud", not_before_the_checks)
+    grid = site_grid(tmp_path / "site.gtx", linear_n) if with_grid else None
+    with pytest.raises(DataError, match=match) as err:
+        _tilted_export(tmp_path, af.TILT, {"georeference": GEOREFERENCE}, geoid=grid, vertical_crs=datum)
+    assert "\n" not in str(err.value)
     assert not (tmp_path / "run" / "export").exists()

@@ -1,7 +1,7 @@
 """`jaxnerf-grid export`: the metric 3D model of a trained run's tower (`export.run.export_run`).
 
     jaxnerf-grid export --run RUN [--out DIR] [--resolution N] [--box auto|xmin,ymin,zmin,xmax,ymax,zmax]
-                        [--threshold OPACITY] [--views N] [--geoid GRID] [--overwrite]
+                        [--threshold OPACITY] [--views N] [--geoid GRID [--vertical-crs EPSG:CODE]] [--overwrite]
 
 Writes tower_mesh.ply, tower_points.ply, box.json, measurements.json and export_views.png into
 DIR (default RUN/export/), in the dataset's original units (metres for the synthetic scenes),
@@ -33,6 +33,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--geoid", default=None, metavar="GRID",
                    help="a local geoid grid file PROJ reads (GTX or GeoTIFF, e.g. us_nga_egm96_15.tif): the CRS "
                         "outputs' heights become heights above that geoid (docs/GEOREFERENCE.md)")
+    p.add_argument("--vertical-crs", default=None, metavar="EPSG:CODE",
+                   help="with --geoid, the vertical datum the grid realises (EPSG:5773 for EGM96, EPSG:3855 for "
+                        "EGM2008): tower_points.las's header carries the compound CRS")
     p.add_argument("--overwrite", action="store_true", help="write into an output folder that holds files")
     p.add_argument("--allow-other-data", action="store_true",
                    help="export from a dataset other than the one the run was trained on (its fingerprint differs)")
@@ -48,7 +51,8 @@ def main(argv: list[str] | None = None) -> int:
 
     m = run.export_run(args.run, args.out, resolution=args.resolution, box=args.box, opacity=args.threshold,
                        views=args.views, overwrite=args.overwrite, progress=not args.quiet,
-                       allow_other_data=args.allow_other_data, geoid=args.geoid)
+                       allow_other_data=args.allow_other_data, geoid=args.geoid,
+                       vertical_crs=args.vertical_crs)
     out = Path(args.out) if args.out else Path(args.run) / "export"
     unit = "m" if m["units"] == "metres" else "units (unknown scale)"
     height = "n/a" if m["height"] is None else f"{m['height']:.2f} {unit}"

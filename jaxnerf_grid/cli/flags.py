@@ -40,6 +40,7 @@ FLAGS = {  # subcommand -> {key: flag}
              "eval.distractor_views": "--distractor-views", **_OTHER_DATA},
     "export": {"export.box": "--box", "export.resolution": "--resolution", "export.opacity": "--threshold",
                "export.views": "--views", "export.out": "--out", "export.geoid": "--geoid",
+               "export.vertical_crs": "--vertical-crs",
                **_SWITCHES, **_OTHER_DATA},
     "demo": {"demo.data": "--data", "train.max_side": "--max-side",
              "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks",

@@ -10,6 +10,8 @@ longitude (`georef.projected_to_geodetic`) only to look N up: they are not chang
   PROJ cannot read it as a grid.
 * `orthometric`: points [N, 3] in a projected CRS, ellipsoidal heights -> (the same points with
   H, N [N]); DataError naming the grid when it does not cover a point.
+* `vertical_crs`: the named vertical datum (`export.vertical_crs`, e.g. EPSG:5773) the LAS header
+  carries with the horizontal CRS as a compound CRS; only with a grid.
 * `vertical_record` / `ELLIPSOIDAL`: what measurements.json's `survey.vertical` says.
 """
 
@@ -87,12 +89,44 @@ def orthometric(points_crs: np.ndarray, crs_name: str, grid, path) -> tuple[np.n
     return p, n
 
 
-def vertical_record(path=None, n_at_base: float | None = None, n_range=None, geo: dict | None = None) -> dict:
+def vertical_crs(name: str | None, grid_path) -> object | None:
+    """pyproj.CRS of `export.vertical_crs` (e.g. 'EPSG:5773', EGM96 height: the named datum the
+    geoid grid realises, written into the LAS header with the horizontal CRS), or None. DataError
+    naming the key when it is given without a grid, unknown to pyproj, or not a vertical CRS."""
+    if name is None:
+        return None
+    import pyproj
+
+    if grid_path is None:
+        raise DataError(f"export.vertical_crs = {name!r} names the datum of heights above a geoid: give "
+                        f"export.geoid (the grid) too")
+    try:
+        crs = pyproj.CRS.from_user_input(name)
+    except pyproj.exceptions.CRSError:
+        raise DataError(f"export.vertical_crs = {name!r}: pyproj does not know it "
+                        f"(e.g. EPSG:5773, EGM96 height)") from None
+    if not crs.is_vertical:
+        raise DataError(f"export.vertical_crs = {name!r} is not a vertical CRS ({crs.name}); "
+                        f"e.g. EPSG:5773, EGM96 height")
+    return crs
+
+
+def vertical_record(path=None, n_at_base: float | None = None, n_range=None, geo: dict | None = None,
+                    datum=None) -> dict:
     """measurements.json's `survey.vertical`: {"reference" (the sentence the report shows), "geoid_grid"
-    (the file, or None), "n_at_base_m", "n_range_m" ([min, max] over the CRS outputs' points)}."""
+    (the file, or None), "n_at_base_m", "n_range_m" ([min, max] over the CRS outputs' points),
+    "vertical_crs" (`datum`'s 'EPSG:code name', or None)}."""
     if path is None:
-        return {"reference": as_written(geo), "geoid_grid": None, "n_at_base_m": None, "n_range_m": None}
+        return {"reference": as_written(geo), "geoid_grid": None, "n_at_base_m": None, "n_range_m": None,
+                "vertical_crs": None}
     where = f", N = {n_at_base:.3f} m at the base" if n_at_base is not None else ""
-    return {"reference": f"above the geoid of {Path(path).name}{where}", "geoid_grid": str(path),
-            "n_at_base_m": None if n_at_base is None else float(n_at_base),
-            "n_range_m": None if n_range is None else [float(v) for v in n_range]}
+    named = None if datum is None else crs_label(datum)
+    return {"reference": f"above the geoid of {Path(path).name}{where}" + (f" ({named})" if named else ""),
+            "geoid_grid": str(path), "n_at_base_m": None if n_at_base is None else float(n_at_base),
+            "n_range_m": None if n_range is None else [float(v) for v in n_range], "vertical_crs": named}
+
+
+def crs_label(crs) -> str:
+    """'EPSG:5773 EGM96 height' of a pyproj CRS (its name alone when it has no EPSG code)."""
+    code = crs.to_epsg()
+    return f"EPSG:{code} {crs.name}" if code is not None else crs.name

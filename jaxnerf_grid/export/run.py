@@ -174,7 +174,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                colour_cameras: int = DEFAULT_COLOUR_CAMERAS,
                min_component_fraction: float = mesh_lib.DEFAULT_MIN_COMPONENT_FRACTION,
                overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False,
-               geoid=None) -> dict:
+               geoid=None, vertical_crs: str | None = None) -> dict:
     """Exports the tower of a trained run (module docstring). Returns measurements.json's dict.
     A dataset other than the run's (its fingerprint) is refused unless `allow_other_data`.
 
@@ -182,6 +182,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     box: "auto" or "xmin,ymin,zmin,xmax,ymax,zmax" (or 6 numbers) in the export's units.
     geoid: a local geoid grid file PROJ reads (GTX, GeoTIFF): the CRS outputs' heights become
     H = h - N (`export.geoid`); the local-frame files and every relative measurement are unchanged.
+    vertical_crs: with geoid, the vertical datum the grid realises ('EPSG:5773'): the LAS header's
+    CRS becomes the compound of the horizontal one and it (`export.vertical_crs`).
     DataError / ConfigError for a run without a checkpoint, an empty box or one outside the
     scene, an occupied folder, a box without a surface, a geoid grid that is missing, unreadable,
     not covering the site or given for a dataset without a CRS; nothing is written then.
@@ -197,6 +199,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     out = Path(out) if out is not None else run_dir / "export"
     check_out(out, data, overwrite)
     grid = geoid_lib.open_grid(geoid) if geoid is not None else None   # a missing file fails before the dataset loads
+    datum = geoid_lib.vertical_crs(vertical_crs, geoid)
     ds = runs.dataset_of_run(run_dir, data, dataset, progress, allow_other_data, max_side=cfg.train.max_side)
     norm = ds.normalization
     if given is not None:
@@ -296,7 +299,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     points_crs = survey.to_crs(tower_pts, geo)
     mesh_crs = survey.to_crs(verts_m, geo) if crs_name is not None else None
     if crs_name is not None:
-        points_crs, mesh_crs = _vertical(meas["survey"], geo, crs_name, grid, geoid, points_crs, mesh_crs)
+        points_crs, mesh_crs = _vertical(meas["survey"], geo, crs_name, grid, geoid, points_crs, mesh_crs, datum)
     comments = (units_comment(units), f"jaxnerf-grid export of {run_dir} at step {step}")
     if not folders.is_empty(out):  # checked by check_out: empty, or export's own (overwrite=True)
         folders.clear_outputs(out, "export", OUTPUTS, "export.out", legacy=_is_legacy_export(out))
@@ -307,7 +310,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     clouds.write_point_cloud(out / "tower_points.ply", [(tower_pts, tower_cols)],
                       comments=comments + (f"depth of {len(ids)} views fused, each point confirmed by >= "
                                            f"{min_views} other views",))
-    survey.write_las(out / "tower_points.las", points_crs, tower_cols, crs_name)
+    survey.write_las(out / "tower_points.las", points_crs, tower_cols, crs_name, datum)
     if crs_name is not None:
         survey.write_ply_double(out / "tower_mesh_crs.ply", mesh_crs, vcolours, faces,
                                 comments=(f"crs: {crs_name} ({geo.get('crs_name')}); x = tower_mesh.ply's x + "
@@ -342,7 +345,8 @@ def _check_geoid_site(path, grid, crs_name, geo, ds, norm, units) -> None:
     geoid_lib.orthometric(survey.to_crs(centres, geo), crs_name, grid, Path(path))
 
 
-def _vertical(sv: dict, geo: dict, crs_name: str, grid, path, points_crs: np.ndarray, mesh_crs: np.ndarray):
+def _vertical(sv: dict, geo: dict, crs_name: str, grid, path, points_crs: np.ndarray, mesh_crs: np.ndarray,
+              datum=None):
     """With a geoid grid: (the points' and the mesh's CRS coordinates with H = h - N), the base
     centre's CRS coordinates likewise; `sv["vertical"]` records the reference (and N at the base)
     either way. DataError naming the grid when it does not cover a point."""
@@ -357,7 +361,8 @@ def _vertical(sv: dict, geo: dict, crs_name: str, grid, path, points_crs: np.nda
         moved, n = geoid_lib.orthometric(base["crs"], crs_name, grid, Path(path))
         base["crs"], n_base = [float(v) for v in moved[0]], float(n[0])
     n_all = np.concatenate([n_points, n_mesh])
-    sv["vertical"] = geoid_lib.vertical_record(Path(path), n_base, (n_all.min(), n_all.max()) if len(n_all) else None)
+    sv["vertical"] = geoid_lib.vertical_record(Path(path), n_base, (n_all.min(), n_all.max()) if len(n_all) else None,
+                                               datum=datum)
     return points_crs, mesh_crs
 
 

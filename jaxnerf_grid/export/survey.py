@@ -171,19 +171,25 @@ def pyproj_crs(name: str):
         raise DataError(f"georeference.crs = {name!r}: pyproj does not know it ({err})") from None
 
 
-def write_las(path, points: np.ndarray, colours: np.ndarray, crs_name: str | None = None) -> Path:
+def write_las(path, points: np.ndarray, colours: np.ndarray, crs_name: str | None = None,
+              vertical=None) -> Path:
     """Points [N, 3] (float64, the CRS's coordinates when crs_name is given) and colours [N, 3]
     in [0, 1] -> LAS 1.4, point format 7 (16-bit RGB), scale 1 mm, offset the points' minimum
-    floored to the metre, the CRS's WKT in the header (`LasHeader.add_crs`) when named.
+    floored to the metre, the CRS's WKT in the header (`LasHeader.add_crs`) when named; with
+    `vertical` (a pyproj vertical CRS) the compound CRS of the two.
     Written to a temporary name, then renamed. Returns the path."""
     import laspy
+    import pyproj
 
     p = np.asarray(points, np.float64).reshape(-1, 3)
     header = laspy.LasHeader(point_format=7, version="1.4")
     header.scales = np.array([0.001, 0.001, 0.001])
     header.offsets = np.floor(p.min(axis=0)) if len(p) else np.zeros(3)
     if crs_name is not None:
-        header.add_crs(pyproj_crs(crs_name))
+        crs = pyproj_crs(crs_name)
+        if vertical is not None:
+            crs = pyproj.crs.CompoundCRS(name=f"{crs.name} + {vertical.name}", components=[crs, vertical])
+        header.add_crs(crs)
     las = laspy.LasData(header)
     las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
     rgb = np.round(np.clip(np.asarray(colours, np.float64).reshape(-1, 3), 0, 1) * 65535).astype(np.uint16)
