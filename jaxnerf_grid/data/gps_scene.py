@@ -190,6 +190,24 @@ def truth_key(layout: str) -> str:
     return "gcp" if layout == "ground" else f"gcp_{layout}"
 
 
+def synthetic_meta(root: Path) -> dict:
+    """transforms.json of a synthetic dataset folder; DataError naming it when it lacks
+    scene_normalization or frames."""
+    meta = io.read_json(root / "transforms.json")
+    if "scene_normalization" not in meta or "frames" not in meta:
+        raise DataError(f"{root / 'transforms.json'}: not a synthetic dataset (no scene_normalization or frames)")
+    return meta
+
+
+def write_layout(root: Path, meta: dict, truth: dict, origin_crs: np.ndarray, seed: int, layout: str) -> Path:
+    """A layout's GCP file (`gcp_file`, rows of `gcp_rows`) written into root, its points' truth
+    added to `truth` under `truth_key` and gps_truth.json written. Returns the GCP file's path."""
+    lines, truth[truth_key(layout)] = gcp_rows(root, meta, origin_crs, seed, layout)
+    io.atomic_write_bytes(root / gcp_file(layout), ("\n".join(lines) + "\n").encode("utf-8"))
+    io.write_json(root / TRUTH, truth)
+    return root / gcp_file(layout)
+
+
 def write_gcp(dataset_dir, layout: str = "ground") -> Path:
     """A layout's GCP file (`gcp_file`) written into a folder `synth --gps-origin` made, from its
     transforms.json, depth maps and gps_truth.json (the CRS, the tower's geodetic position, the seed), without
@@ -201,15 +219,10 @@ def write_gcp(dataset_dir, layout: str = "ground") -> Path:
     if not (root / TRUTH).is_file():
         raise DataError(f"{root / TRUTH}: not found (write the photos first: synth.gps_origin)")
     truth = io.read_json(root / TRUTH)
-    meta = io.read_json(root / "transforms.json")
-    if "scene_normalization" not in meta or "frames" not in meta:
-        raise DataError(f"{root / 'transforms.json'}: not a synthetic dataset (no scene_normalization or frames)")
+    meta = synthetic_meta(root)
     lat0, lon0, alt0 = truth["origin_geodetic"]  # the base's CRS position unrounded, as synth had it
     origin_crs = georef.geodetic_to_projected(georef.projected_crs(truth["crs"]), lat0, lon0, alt0)[0]
-    lines, truth[truth_key(layout)] = gcp_rows(root, meta, origin_crs, int(truth["seed"]), layout)
-    io.atomic_write_bytes(root / gcp_file(layout), ("\n".join(lines) + "\n").encode("utf-8"))
-    io.write_json(root / TRUTH, truth)
-    return root / gcp_file(layout)
+    return write_layout(root, meta, truth, origin_crs, int(truth["seed"]), layout)
 
 
 def write_gps_photos(dataset_dir, origin: tuple[float, float, float], *, seed: int = 0, crs: str | None = None,
@@ -222,9 +235,7 @@ def write_gps_photos(dataset_dir, origin: tuple[float, float, float], *, seed: i
 
     layout_points(gcp_layout)
     root = Path(dataset_dir)
-    meta = io.read_json(root / "transforms.json")
-    if "scene_normalization" not in meta or "frames" not in meta:
-        raise DataError(f"{root / 'transforms.json'}: not a synthetic dataset (no scene_normalization or frames)")
+    meta = synthetic_meta(root)
     norm = meta["scene_normalization"]
     inverse = invert_normalization({"scale": float(norm["scale"]),
                                     "translation": np.asarray(norm["translation"], np.float64)})
@@ -252,7 +263,5 @@ def write_gps_photos(dataset_dir, origin: tuple[float, float, float], *, seed: i
              "scene_units_per_metre": float(norm["scale"]), "seed": seed,
              "gps_error": {"horizontal_m": list(HORIZONTAL_ERROR), "vertical_m": list(VERTICAL_ERROR)},
              "photos": photos}
-    lines, truth[truth_key(gcp_layout)] = gcp_rows(root, meta, origin_crs, seed, gcp_layout)
-    io.atomic_write_bytes(root / gcp_file(gcp_layout), ("\n".join(lines) + "\n").encode("utf-8"))
-    io.write_json(root / TRUTH, truth)
+    write_layout(root, meta, truth, origin_crs, seed, gcp_layout)
     return root / TRUTH
