@@ -296,10 +296,10 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     meas["box"].update(box_stats)
     meas["survey"] = _survey(meas, geo, alignment, h / scale)
     # the CRS outputs (heights above the geoid with `geoid`), all converted before anything is written
-    points_crs = survey.to_crs(tower_pts, geo)
-    mesh_crs = survey.to_crs(verts_m, geo) if crs_name is not None else None
+    points_crs, mesh_crs = survey.to_crs(tower_pts, geo), None
     if crs_name is not None:
-        points_crs, mesh_crs = _vertical(meas["survey"], geo, crs_name, grid, geoid, points_crs, mesh_crs, datum)
+        points_crs, mesh_crs = _vertical(meas["survey"], geo, crs_name, grid, geoid, points_crs,
+                                         survey.to_crs(verts_m, geo), datum)
     comments = (units_comment(units), f"jaxnerf-grid export of {run_dir} at step {step}")
     if not folders.is_empty(out):  # checked by check_out: empty, or export's own (overwrite=True)
         folders.clear_outputs(out, "export", OUTPUTS, "export.out", legacy=_is_legacy_export(out))
