@@ -184,6 +184,48 @@ def test_ransac_ground_against_the_true_plane():
     np.testing.assert_allclose(ground.heights(ground_pts, n, d), 0, atol=0.03)
 
 
+def noisy_ground_cloud(sigma=0.01, seed=3):
+    """A 2 x 2 patch of the plane n . x + d = 0, n = (sin 4, 0, cos 4) degrees, d = 0.3, 40 000
+    points with Gaussian noise sigma along n (a fused cloud's ground), and a column of 2 000
+    points standing on it (a tower's leg). Returns (points [42000, 3], n, d)."""
+    rng = np.random.default_rng(seed)
+    n = np.array([np.sin(np.radians(4)), 0.0, np.cos(np.radians(4))])
+    d = 0.3
+    xy = rng.uniform(-1, 1, (40000, 2))
+    on = np.column_stack([xy, -(n[0] * xy[:, 0] + d) / n[2]])
+    noisy = on + rng.normal(0, sigma, (len(on), 1)) * n
+    leg_xy = rng.uniform(0.1, 0.2, (2000, 2))
+    leg = np.column_stack([leg_xy, -(n[0] * leg_xy[:, 0] + d) / n[2] + rng.uniform(0, 0.8, 2000)])
+    return np.concatenate([noisy, leg]), n, d
+
+
+def test_the_lowest_points_lie_below_a_noisy_ground_and_settling_finds_it():
+    """The plane through the columns' lowest points (cells of 0.02, about 4 points each) lies
+    well below the true plane (the minimum of 4 normal draws: about 1 sigma); settled on
+    the cloud it is within 0.05 sigma of the true offset, its band the points within 0.025 of
+    it, counted here; the normal is kept."""
+    sigma = 0.01
+    pts, n_true, d_true = noisy_ground_cloud(sigma)
+    n, d, _ = ground.fit_plane_ransac(ground.lowest_points(pts, 0.02), 0.025, iterations=300)
+    assert d - d_true > 0.8 * sigma                     # n . x + d = 0 with d too large: the plane is low
+    settled, near = ground.settle_on_cloud(pts, n, d, 0.025)
+    assert settled == pytest.approx(d_true, abs=0.05 * sigma)
+    np.testing.assert_array_equal(near, np.abs(pts @ n + settled) <= 0.025)
+    # the run's ground: the settled plane, and how far it moved (normalised units)
+    from jaxnerf_grid.export import run as export_run
+
+    plane = export_run._ground(pts)
+    assert plane["offset"] == pytest.approx(d_true, abs=0.05 * sigma)
+    assert plane["settled_shift"] == pytest.approx(plane["offset"] - d_true + (d - settled), abs=0.05 * sigma)
+    assert plane["settled_on"] == int(np.sum(np.abs(pts @ plane["normal"] + plane["offset"]) <= 0.025))
+
+
+def test_settling_leaves_a_plane_with_fewer_than_three_points_near_it():
+    pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 5.0]])
+    d, near = ground.settle_on_cloud(pts, np.array([0.0, 0.0, 1.0]), 0.0, 0.1)
+    assert d == 0.0 and near.sum() == 2
+
+
 def test_plane_through_and_refine_plane_against_a_known_tilted_plane():
     """Three points 2 cm apart (a normalised scene's scale) and a cloud on the plane
     n . x + d = 0, n = (sin 20, 0, cos 20), d = 0.3: the unit normal with n_z > 0 whatever the

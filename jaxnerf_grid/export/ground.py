@@ -8,6 +8,11 @@ Up is +z (`geometry.UP_AXIS`; the normalised scene keeps the world's axes, docs/
 * `fit_plane_ransac`: RANSAC (3-point planes, at most `max_tilt_deg` from horizontal, the one
   with the most points within `threshold`), refined by least squares (SVD) on its inliers.
   The plane is n . x + d = 0 with |n| = 1, n_z > 0, so n . x + d is the height above it.
+* `settle_on_cloud`: the plane moved along its normal to the median height of all the cloud's
+  points within a band around it. The lowest point of a column is the lowest of that column's
+  noisy ground points, so the plane through the lowest points lies below the surface by about
+  twice the depths' spread (0.5-0.8 m on a model posed by `poses`, docs/EXPORT.md); the median
+  of every point near the plane does not have that bias.
 * `tower_box`: the points higher than `clearance` above the plane, binned into cubic cells;
   cells joined when they touch (26-neighbours, after a one-cell dilation that bridges the
   gaps of a lattice); the largest group by point count is the tower. Its box is the group's
@@ -87,6 +92,27 @@ def fit_plane_ransac(points: np.ndarray, threshold: float, iterations: int = 500
         n, d = best
     inliers = np.abs(p @ n + d) <= threshold
     return n, d, inliers
+
+
+def settle_on_cloud(points: np.ndarray, normal, d: float, band: float,
+                    rounds: int = 20) -> tuple[float, np.ndarray]:
+    """The offset d of the plane n . x + d = 0 (normal kept) moved to the median height of the
+    points [N, 3] within `band` of it, again until it moves less than band / 100 or `rounds`
+    times (each round's band is centred on the plane of the round before). Returns (d, near [N]
+    bool: the points within `band` of the returned plane); the plane unchanged where fewer than 3
+    points lie in the band."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    d = float(d)
+    for _ in range(int(rounds)):
+        h = heights(p, normal, d)
+        near = np.abs(h) <= band
+        if near.sum() < 3:
+            break
+        shift = float(np.median(h[near]))
+        d -= shift
+        if abs(shift) < band / 100.0:
+            break
+    return d, np.abs(heights(p, normal, d)) <= band
 
 
 def heights(points: np.ndarray, normal, d: float) -> np.ndarray:

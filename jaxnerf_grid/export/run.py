@@ -152,8 +152,10 @@ def _render_cloud(params, cfg, ds, ids, progress: bool):
 
 def _ground(points: np.ndarray) -> dict | None:
     """The ground plane of the dense cloud (normalised): {"normal", "offset", "clearance",
-    "inliers", "candidates"}, or None when it cannot be fitted. clearance = max(GROUND_CELL,
-    3 x the robust spread (1.4826 MAD) of the inliers' heights)."""
+    "inliers", "candidates", "settled_on", "settled_shift"}, or None when it cannot be fitted.
+    The plane of the columns' lowest points (RANSAC), then moved up to the median of every point
+    within GROUND_INLIER of it (`ground.settle_on_cloud`: settled_on points, by settled_shift).
+    clearance = max(GROUND_CELL, 3 x the robust spread (1.4826 MAD) of the lowest points' heights)."""
     low = ground.lowest_points(points, GROUND_CELL)
     try:
         n, d, inliers = ground.fit_plane_ransac(low, GROUND_INLIER, iterations=1000)
@@ -161,8 +163,9 @@ def _ground(points: np.ndarray) -> dict | None:
         return None
     res = ground.heights(low[inliers], n, d)
     spread = 1.4826 * float(np.median(np.abs(res - np.median(res)))) if len(res) else 0.0
-    return {"normal": n, "offset": d, "clearance": max(GROUND_CELL, 3.0 * spread), "inliers": int(inliers.sum()),
-            "candidates": int(len(low))}
+    settled, near = ground.settle_on_cloud(points, n, d, GROUND_INLIER)
+    return {"normal": n, "offset": settled, "clearance": max(GROUND_CELL, 3.0 * spread), "inliers": int(inliers.sum()),
+            "candidates": int(len(low)), "settled_on": int(near.sum()), "settled_shift": float(d - settled)}
 
 
 def _inside(points: np.ndarray, lo, hi) -> np.ndarray:
@@ -279,7 +282,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         meas["ground"] = {"normal": [float(v) for v in n_m], "offset": d_m, "equation": "normal . x + offset = 0",
                           "tilt_degrees": math.degrees(math.acos(min(1.0, abs(float(n_m[2]))))),
                           "clearance": plane["clearance"] / scale, "inliers": plane["inliers"],
-                          "candidates": plane["candidates"]}
+                          "candidates": plane["candidates"], "settled_on": plane["settled_on"],
+                          "settled_shift": plane["settled_shift"] / scale}
         heights = verts_m @ n_m + d_m
         height = float(heights.max())
         meas["height"] = height
