@@ -333,3 +333,298 @@ def test_update_report_writes_beside_the_run_or_the_export(tmp_path, monkeypatch
     image = "export/export_views.png" if default else "export_views.png"
     assert calls["section"] == (md, report.EXPORT_HEADING, ("lines", {"measurements": meas, "image": image}))
     assert calls["html"] == (md.with_suffix(".html"), run_dir, ds, out)
+
+
+# --------------------------------------------------------------------------- export/survey.py
+
+
+class _Meta:
+    def __init__(self, meta):
+        self.meta = meta
+
+
+def test_georeference_crs_and_to_crs_of_records_by_hand():
+    from jaxnerf_grid.export import survey
+
+    assert survey.georeference_of(object()) is None and survey.georeference_of(_Meta(None)) is None
+    assert survey.georeference_of(_Meta({"georeference": "EPSG:32632"})) is None
+    assert survey.georeference_of(_Meta({"georeference": GEO})) is GEO
+    name, origin = survey.crs_of(GEO)
+    assert name == "EPSG:32632" and origin.dtype == np.float64
+    np.testing.assert_array_equal(origin, [465000.0, 5247000.0, 100.0])
+    name, origin = survey.crs_of({"units": "metres", "crs": "EPSG:2056"})          # no origin: 0
+    assert name == "EPSG:2056"
+    np.testing.assert_array_equal(origin, [0.0, 0.0, 0.0])
+    for geo in (None, {}, {**GEO, "units": "unknown"}, {**GEO, "crs": ""}, {**GEO, "crs": None}):
+        name, origin = survey.crs_of(geo)
+        assert name is None
+        np.testing.assert_array_equal(origin, [0.0, 0.0, 0.0])
+    local = np.array([[1.5, -2.0, 3.25]], np.float32)
+    got = survey.to_crs(local, GEO)
+    assert got.dtype == np.float64
+    np.testing.assert_array_equal(got, [[465001.5, 5246998.0, 103.25]])
+    np.testing.assert_array_equal(survey.to_crs(local, {**GEO, "units": "unknown"}), local)
+
+
+def test_coordinate_and_weighted_scale_sigma_by_hand():
+    from jaxnerf_grid.export import survey
+
+    assert survey.coordinate_sigma(3.0, 1, 3) is None                   # 3n - p = 0
+    assert survey.coordinate_sigma(3.0, 1, 2) == pytest.approx(3.0)     # sqrt(1 / 1)
+    assert survey.coordinate_sigma(2.0, 4, 7) == pytest.approx(2.0 * math.sqrt(4 / 5))
+    pos = np.array([[0.0, 0.0, 0.0], [2.0, 0.0, 0.0]])
+    sources = [(pos, 2, 1.0, 1.0)]
+    assert survey.weighted_scale_sigma(sources, [None]) is None
+    assert survey.weighted_scale_sigma([(np.ones((3, 3)), 3, 1.0, 1.0)], [0.5]) is None      # no spread
+    # one source: S = n x mean |x - c|^2 = 2 x 1 = 2; s_rel = sqrt(w^2 s^2 S) / (w S) = s / sqrt(2)
+    assert survey.weighted_scale_sigma(sources, [0.3]) == pytest.approx(0.3 / math.sqrt(2))
+    # two sources, weights 1 and 4, n 2 and 1: centroid (1 x 2 x (1, 0, 0) + 4 x 1 x (4, 0, 0)) / 6 = (3, 0, 0);
+    # S_1 = 2 x mean(9, 1) = 10, S_2 = 1 x 1 = 1; s_rel = sqrt(1 x 0.3^2 x 10 + 16 x 0.1^2 x 1) / (10 + 4)
+    two = [(pos, 2, 1.0, 1.0), (np.array([[4.0, 0.0, 0.0]]), 1, 1.0, 4.0)]
+    assert survey.weighted_scale_sigma(two, [0.3, 0.1]) == pytest.approx(math.sqrt(0.9 + 0.16) / 14)
+    # the fit's parameters charged to the source of the larger w x n: (1 x 2) < (4 x 1)
+    assert survey.source_sigmas([(pos, 2, 1.0, 1.0), (pos, 3, 1.0, 4.0)], 7) == pytest.approx(
+        [1.0 * math.sqrt(2 / 6), 1.0 * math.sqrt(3 / 2)])
+    assert survey.source_sigmas([(pos, 3, 1.0, 4.0), (pos, 2, 1.0, 1.0)], 7) == pytest.approx(
+        [1.0 * math.sqrt(3 / 2), 1.0 * math.sqrt(2 / 6)])
+
+
+def _square(shift=(100.0, 200.0, 30.0)):
+    """4 centres (+-3, 0, 0), (0, +-4, 0) about `shift`: RMS distance from their mean sqrt(12.5)."""
+    return np.array([[3.0, 0, 0], [-3.0, 0, 0], [0, 4.0, 0], [0, -4.0, 0]]) + np.asarray(shift)
+
+
+@pytest.mark.parametrize("rotation, p", [("full", 7), ("about z only (one heading)", 5)])
+def test_alignment_uncertainty_of_gps_by_hand(rotation, p):
+    """10 GPS inliers, RMS 2 m: sigma = 2 sqrt(10 / (30 - p)); position sigma sqrt(3 / 10);
+    s_rel = sigma / sqrt(S), S = 10 x 12.5 (the 4 centres stand for the 10 positions)."""
+    from jaxnerf_grid.export import survey
+
+    geo = {"units": "metres", "source": "gps", "rotation": rotation, "gps": {"inliers": 10, "rms_m": 2.0}}
+    got = survey.alignment_uncertainty(geo, "metres", _square())
+    sigma = 2.0 * math.sqrt(10 / (30 - p))
+    _close(got, {"relative_scale": sigma / math.sqrt(125.0), "position_m": sigma * math.sqrt(0.3), "from": "gps",
+                 "n": 10, "rms_m": 2.0, "spread_m": math.sqrt(12.5), "centroid": [100.0, 200.0, 30.0],
+                 "sigma_per_coordinate_m": sigma})
+
+
+def test_alignment_uncertainty_of_gps_and_control_points_by_hand():
+    """GPS (10 inliers, RMS 2 m, weight 1/9) and 3 control points (RMS 0.04 m, weight 400):
+    the control points rule (400 x 3 > 10 / 9), so the 7 parameters are charged to them:
+    sigma_c = 0.04 sqrt(3 / 2), sigma_g = 2 sqrt(10 / 30); position from the control points,
+    sigma_c sqrt(3 / 3); s_rel by the weighted formula, worked out here."""
+    from jaxnerf_grid.export import survey
+
+    ctrl = np.array([[100.0, 200.0, 20.0], [106.0, 200.0, 20.0], [100.0, 208.0, 20.0]])
+    geo = {"units": "metres", "source": "gps+gcp", "rotation": "full", "gps": {"inliers": 10, "rms_m": 2.0},
+           "gcp": {"control": {"rms_m": 0.04, "residuals": [{}] * 3, "points_m": ctrl.tolist()}}}
+    got = survey.alignment_uncertainty(geo, "metres", _square())
+    sg, sc = 2.0 * math.sqrt(10 / 30), 0.04 * math.sqrt(3 / 2)
+    wg, wc = 1 / 9.0, 1 / 0.05**2
+    centroid = (wg * 10 * np.array([100.0, 200.0, 30.0]) + wc * 3 * ctrl.mean(0)) / (wg * 10 + wc * 3)
+    s_g = 10 * np.mean(np.sum((_square() - centroid) ** 2, axis=1))
+    s_c = 3 * np.mean(np.sum((ctrl - centroid) ** 2, axis=1))
+    rel = math.sqrt(wg**2 * sg**2 * s_g + wc**2 * sc**2 * s_c) / (wg * s_g + wc * s_c)
+    _close(got, {"relative_scale": rel, "position_m": sc, "from": "gps+gcp", "n": 10, "rms_m": 2.0,
+                 "spread_m": math.sqrt(12.5), "centroid": [100.0, 200.0, 30.0], "sigma_per_coordinate_m": sg,
+                 "control_points": 3})
+    # control points without residuals, points or an RMS are no source; GPS without inliers,
+    # an RMS or centres neither
+    for control in ({"rms_m": 0.04, "residuals": [], "points_m": ctrl.tolist()},
+                    {"rms_m": 0.04, "residuals": [{}] * 3, "points_m": []},
+                    {"rms_m": None, "residuals": [{}] * 3, "points_m": ctrl.tolist()}):
+        got = survey.alignment_uncertainty({**geo, "gcp": {"control": control}}, "metres", _square())
+        assert "control_points" not in got and got["position_m"] == pytest.approx(2.0 * math.sqrt(10 / 23) * math.sqrt(0.3))
+    for gps, centres in (({"inliers": 0, "rms_m": 2.0}, _square()), ({"inliers": 10, "rms_m": None}, _square()),
+                         ({"inliers": 10, "rms_m": 2.0}, np.zeros((0, 3)))):
+        got = survey.alignment_uncertainty({**geo, "gps": gps}, "metres", centres)
+        assert "n" not in got and "sigma_per_coordinate_m" not in got
+        sc7 = 0.04 * math.sqrt(3 / 2)
+        assert got["position_m"] == pytest.approx(sc7) and got["control_points"] == 3
+        # control points alone: s_rel = sigma / sqrt(S), S about their own mean
+        s_c = 3 * np.mean(np.sum((ctrl - ctrl.mean(0)) ** 2, axis=1))
+        assert got["relative_scale"] == pytest.approx(sc7 / math.sqrt(s_c))
+
+
+def test_alignment_uncertainty_of_the_other_records():
+    from jaxnerf_grid.export import survey
+
+    assert survey.alignment_uncertainty(GEO, "unknown", _square()) == {"relative_scale": None, "position_m": None,
+                                                                      "from": "units unknown"}
+    assert survey.alignment_uncertainty(None, "metres", _square()) == {
+        "relative_scale": 0.0, "position_m": 0.0, "from": "the dataset's recorded metric scale (exact)"}
+    bar = {"units": "metres", "source": "scale_bar", "scale_bar": {"relative_sigma": 0.002}}
+    assert survey.alignment_uncertainty(bar, "metres", _square()) == {"relative_scale": 0.002, "position_m": None,
+                                                                     "from": "scale_bar"}
+    assert survey.alignment_uncertainty({**bar, "scale_bar": None}, "metres", _square())["relative_scale"] is None
+    # a record with no usable source: nothing known, the centres' spread still recorded
+    got = survey.alignment_uncertainty({"units": "metres", "source": "gps", "gps": {}}, "metres", _square())
+    assert got == {"relative_scale": None, "position_m": None, "from": "gps", "centroid": [100.0, 200.0, 30.0]}
+    assert "centroid" not in survey.alignment_uncertainty({"units": "metres", "source": "gps"}, "metres",
+                                                          np.zeros((0, 3)))
+
+
+def test_with_sigma_by_hand():
+    from jaxnerf_grid.export import survey
+
+    al = {"relative_scale": 0.01, "position_m": 0.6}
+    assert survey.with_sigma(None, 0.1, al) is None
+    assert survey.with_sigma(-30.0, 0.4, al) == pytest.approx({"value": -30.0, "sigma": 0.5, "fit_sigma": 0.4})
+    assert survey.with_sigma(30.0, 0.4, al, lever=40.0) == pytest.approx(
+        {"value": 30.0, "sigma": math.sqrt(0.16 + 0.16), "fit_sigma": 0.4})
+    assert survey.with_sigma(30.0, 0.4, al, position=True)["sigma"] == pytest.approx(math.sqrt(0.09 + 0.16 + 0.36))
+    for missing in ({"relative_scale": 0.01}, {"relative_scale": 0.01, "position_m": None}):
+        assert survey.with_sigma(30.0, 0.4, missing, position=True)["sigma"] == pytest.approx(0.5)
+    got = survey.with_sigma(np.float32(2.5), np.float32(0.25), {"relative_scale": None})
+    assert got == {"value": 2.5, "sigma": None, "fit_sigma": 0.25} and type(got["value"]) is float
+    assert type(got["fit_sigma"]) is float
+
+
+def test_pyproj_crs_names_the_key_and_the_crs():
+    from jaxnerf_grid.export import survey
+
+    assert survey.pyproj_crs("EPSG:32632").to_epsg() == 32632
+    with pytest.raises(DataError, match=r"^georeference\.crs = 'EPSG:999999': pyproj does not know it \("):
+        survey.pyproj_crs("EPSG:999999")
+
+
+def test_las_header_offsets_scales_colours_and_compound_crs(tmp_path):
+    """Offsets = the points' minimum floored to the metre, scales 1 mm, colours x 65535 rounded
+    (clipped to [0, 1]), the compound CRS named 'horizontal + vertical'; no temporary file left."""
+    import laspy
+    import pyproj
+
+    from jaxnerf_grid.export import survey
+
+    pts = np.array([[465000.7, 5247000.2, -3.5], [465010.25, 5247003.0, 12.0]])
+    cols = np.array([[-0.5, 0.5, 1.5], [0.25, 1.0, 0.0]])
+    survey.write_las(tmp_path / "p.las", pts, cols, "EPSG:32632", pyproj.CRS.from_epsg(5773))
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["p.las"]
+    las = laspy.read(tmp_path / "p.las")
+    np.testing.assert_array_equal(las.header.offsets, [465000.0, 5247000.0, -4.0])
+    np.testing.assert_array_equal(las.header.scales, [0.001, 0.001, 0.001])
+    np.testing.assert_allclose(np.column_stack([las.x, las.y, las.z]), pts, atol=5e-4 + 1e-9)
+    np.testing.assert_array_equal(np.column_stack([las.red, las.green, las.blue]),
+                                  [[0, 32768, 65535], [16384, 65535, 0]])
+    crs = las.header.parse_crs()
+    assert crs.is_compound and crs.name == "WGS 84 / UTM zone 32N + EGM96 height"
+    assert [c.to_epsg() for c in crs.sub_crs_list] == [32632, 5773]
+    survey.write_las(tmp_path / "e.las", np.zeros((0, 3)), np.zeros((0, 3)))
+    empty = laspy.read(tmp_path / "e.las")
+    assert len(empty.points) == 0
+    np.testing.assert_array_equal(empty.header.offsets, [0.0, 0.0, 0.0])
+
+
+def test_ply_double_holds_the_doubles_colours_faces_and_comments(tmp_path):
+    import plyfile
+
+    from jaxnerf_grid.export import survey
+
+    pts = np.array([[465000.123456, 5247000.654321, 401.0009], [1.0, 2.0, 3.0], [4.0, 5.0, 6.0]])
+    cols = np.array([[-0.1, 0.5, 1.2], [0.2, 0.0, 1.0], [1.0, 1.0, 1.0]])
+    survey.write_ply_double(tmp_path / "m.ply", pts, cols, np.array([[0, 1, 2], [2, 1, 0]]),
+                            comments=("crs:  EPSG:32632\nline two", "T\u00fcr"))
+    ply = plyfile.PlyData.read(str(tmp_path / "m.ply"))
+    assert ply.comments == ["crs: EPSG:32632 line two", "T\\xfcr"]
+    assert ply.text is False and ply.byte_order == "<"
+    v = ply["vertex"]
+    assert [p.name for p in v.properties] == ["x", "y", "z", "red", "green", "blue"]
+    assert v["x"].dtype == np.float64
+    np.testing.assert_array_equal(np.column_stack([v["x"], v["y"], v["z"]]), pts)
+    np.testing.assert_array_equal(np.column_stack([v["red"], v["green"], v["blue"]]),
+                                  [[0, 128, 255], [51, 0, 255], [255, 255, 255]])
+    assert [list(f) for f in ply["face"]["vertex_indices"]] == [[0, 1, 2], [2, 1, 0]]
+
+
+# --------------------------------------------------------------------------- export/fuse.py
+
+
+def test_project_by_hand_for_an_upright_and_a_turned_camera():
+    """Camera at c = (1, 2, 3) looking down -z (c2w = [I | c], 3 x 4): the point c + (0.5, 0.25,
+    -2) is 2 ahead, u = cx + fx 0.25 = 10 + 8 x 0.25, v = cy - fy 0.125 = 6 - 12 x 0.125.
+    Turned 90 degrees about y (its -z axis along world -x): c + (-2, 0.5, 0.25) is 2 ahead at
+    camera (x, y) = (-0.25, 0.5) -> u = 10 - 8 x 0.125 = 9, v = 6 - 12 x 0.25 = 3; a point behind
+    gets z < 0."""
+    from jaxnerf_grid.export import fuse
+
+    intr = (8.0, 12.0, 10.0, 6.0)
+    c2w = np.hstack([np.eye(3), [[1.0], [2.0], [3.0]]])
+    u, v, z = fuse.project(np.array([[1.5, 2.25, 1.0], [1.0, 2.0, 5.0]]), c2w, intr)
+    np.testing.assert_allclose(u[:1], [12.0])
+    np.testing.assert_allclose(v[:1], [4.5])
+    np.testing.assert_allclose(z, [2.0, -2.0])
+    turn = np.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])   # columns: the camera's axes
+    c2w4 = np.eye(4)
+    c2w4[:3, :3], c2w4[:3, 3] = turn, [1.0, 2.0, 3.0]
+    u, v, z = fuse.project(np.array([[-1.0, 2.5, 3.25]]), c2w4, intr)
+    np.testing.assert_allclose([u[0], v[0], z[0]], [9.0, 3.0, 2.0])
+
+
+def _one_camera(depth, opacity, fx=4.0):
+    """A 3 x 4 (rows x columns) camera at the origin looking down -z, fx = `fx`, fy = 2 fx,
+    principal point (2, 1.5): the pixel (row r, column c) holds the points x = (c + 0.5 - 2) z / fx,
+    y = -(r + 0.5 - 1.5) z / (2 fx), at z-depth z."""
+    return {"c2w": np.eye(4), "intrinsics": (fx, 2 * fx, 2.0, 1.5), "depth": np.asarray(depth, np.float32),
+            "opacity": np.asarray(opacity, np.float32)}
+
+
+def _at(r, c, z, fx=4.0):
+    return [(c + 0.5 - 2.0) * z / fx, -(r + 0.5 - 1.5) * z / (2 * fx), -z]
+
+
+def test_confirmations_counted_by_hand_at_each_boundary():
+    """One confirming camera (index 1) of depth 2.5 everywhere; the tolerance is 1 pixel at the
+    point's depth z, z / fx (fx = 4, not fy = 8). Points (source 0): on the surface (1); at z = 2:
+    |d - z| = 0.5 = tol exactly (1; 0 with fy's 0.25); at z = 1.99: 0.51 > 0.4975 (0); in the last
+    column and row (1), a column or row past the image on either side (0), behind the camera (0),
+    on a pixel of opacity exactly 0.5 (1) and 0.49 (0), on a pixel of depth nan (0); from the
+    camera's own view (source 1) (0)."""
+    from jaxnerf_grid.export import fuse
+
+    depth = np.full((3, 4), 2.5)
+    opacity = np.ones((3, 4))
+    opacity[0, 0], opacity[0, 1] = 0.5, 0.49
+    depth[2, 0] = np.nan
+    cams = [_one_camera(np.zeros((3, 4)), np.zeros((3, 4))), _one_camera(depth, opacity)]
+    pts = [_at(1, 1, 2.5), _at(1, 1, 2.0), _at(1, 1, 1.99), _at(2, 3, 2.5), _at(1, 4, 2.5), _at(3, 1, 2.5),
+           _at(-1, 1, 2.5), _at(1, -1, 2.5), [0.0, 0.0, 2.5], _at(0, 0, 2.5), _at(0, 1, 2.5), _at(2, 0, 2.5),
+           _at(1, 2, 2.5)]
+    source = [0] * 12 + [1]
+    counts = fuse.confirmations(np.array(pts), np.array(source), cams)
+    np.testing.assert_array_equal(counts, [1, 1, 0, 1, 0, 0, 0, 0, 0, 1, 0, 0, 0])
+    # a wider tolerance (2 pixels: 0.995) takes the point at 1.99; a stricter opacity drops 0.5
+    counts = fuse.confirmations(np.array(pts), np.array(source), cams, min_opacity=0.6, tol_pixels=2.0)
+    np.testing.assert_array_equal(counts, [1, 1, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0])
+    assert counts.dtype.kind == "i"
+
+
+def test_fuse_keeps_points_confirmed_by_min_views_and_their_colours():
+    """Three cameras at the origin (the same view), depth 2: a point of view 0 on the surface is
+    confirmed by views 1 and 2 (2), one of view 1 off it by none; min_views 2 keeps the first
+    only, 3 none, 0 both; colours follow their points; float32 out."""
+    from jaxnerf_grid.export import fuse
+
+    cams = [_one_camera(np.full((3, 4), 2.0), np.ones((3, 4))) for _ in range(3)]
+    parts = [(np.array([_at(1, 1, 2.0)]), np.array([[0.1, 0.2, 0.3]])),
+             (np.array([_at(1, 2, 3.0)]), np.array([[0.4, 0.5, 0.6]])), (np.zeros((0, 3)), np.zeros((0, 3)))]
+    pts, cols, stats = fuse.fuse(parts, cams, min_views=2)
+    assert pts.dtype == np.float32 and cols.dtype == np.float32
+    np.testing.assert_allclose(pts, [_at(1, 1, 2.0)], rtol=1e-6)
+    np.testing.assert_allclose(cols, [[0.1, 0.2, 0.3]], rtol=1e-6)
+    assert stats == {"lifted": 2, "kept": 1}
+    assert fuse.fuse(parts, cams, min_views=3)[2] == {"lifted": 2, "kept": 0}
+    pts, cols, stats = fuse.fuse(parts, cams, min_views=0)
+    assert stats == {"lifted": 2, "kept": 2}
+    np.testing.assert_allclose(cols, [[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]], rtol=1e-6)
+    # options handed on: a 0.49-opaque surface confirms nothing at min_opacity 0.5, all at 0.4
+    dim = [_one_camera(np.full((3, 4), 2.0), np.full((3, 4), 0.49)) for _ in range(3)]
+    assert fuse.fuse(parts, dim, min_views=1)[2]["kept"] == 0
+    assert fuse.fuse(parts, dim, min_views=1, min_opacity=0.4)[2]["kept"] == 1
+    # the tolerance handed on: z = 2.7 is 0.7 from the surface, past 1 pixel (0.675), within 2 (1.35)
+    far = [(np.array([_at(1, 1, 2.7)]), np.zeros((1, 3)))] + parts[1:]
+    assert fuse.fuse(far, cams, min_views=1)[2]["kept"] == 0
+    # (and view 1's point at z = 3, 1 from the surface: within 2 pixels there, 1.5)
+    assert fuse.fuse(far, cams, min_views=1, tol_pixels=2.0)[2]["kept"] == 2
+    empty = fuse.fuse([], cams)
+    assert empty[0].shape == (0, 3) and empty[1].shape == (0, 3) and empty[2] == {"lifted": 0, "kept": 0}
+    assert empty[0].dtype == np.float32 and empty[1].dtype == np.float32
