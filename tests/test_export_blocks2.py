@@ -628,3 +628,139 @@ def test_fuse_keeps_points_confirmed_by_min_views_and_their_colours():
     empty = fuse.fuse([], cams)
     assert empty[0].shape == (0, 3) and empty[1].shape == (0, 3) and empty[2] == {"lifted": 0, "kept": 0}
     assert empty[0].dtype == np.float32 and empty[1].dtype == np.float32
+
+
+# --------------------------------------------------------------------------- export/mesh.py
+
+
+def test_grid_spec_by_hand():
+    """Box [0, 0, 0]-[1, 0.3, 0.25] at resolution 4: h = 0.25; voxels ceil(4, 1.2, 1) = (4, 2, 1)
+    (0.25 / 0.25 is exactly 1: no extra voxel), nodes (5, 3, 2); origin = centre - h voxels / 2 =
+    (0, 0.15 - 0.25, 0.125 - 0.125) = (0, -0.1, 0). A flat or inverted box, resolution 1: refused."""
+    from jaxnerf_grid.export import mesh
+
+    origin, h, shape = mesh.grid_spec([0.0, 0.0, 0.0], [1.0, 0.3, 0.25], 4)
+    assert h == 0.25 and shape == (5, 3, 2) and all(type(v) is int for v in shape)
+    np.testing.assert_allclose(origin, [0.0, -0.1, 0.0], atol=1e-15)
+    origin, h, shape = mesh.grid_spec([0.0, 0.0, 0.0], [2.0, 2.0, 2.0], 2)
+    assert h == 1.0 and shape == (3, 3, 3)
+    for lo, hi, res in (([0, 0, 0], [1, 1, 0], 4), ([0, 0, 0], [1, -1, 1], 4), ([0, 0, 0], [1, 1, 1], 1)):
+        with pytest.raises(ValueError, match="grid_spec: need resolution >= 2 and a box of positive size"):
+            mesh.grid_spec(lo, hi, res)
+
+
+def test_grid_points_are_ij_indexed_float32():
+    from jaxnerf_grid.export import mesh
+
+    p = mesh.grid_points([1.0, 2.0, 3.0], 0.5, (2, 3, 4))
+    assert p.shape == (2, 3, 4, 3) and p.dtype == np.float32
+    np.testing.assert_array_equal(p[1, 2, 3], [1.5, 3.0, 4.5])
+    np.testing.assert_array_equal(p[0, 1, 0], [1.0, 2.5, 3.0])
+
+
+def test_density_threshold_refuses_an_opacity_outside_0_1():
+    from jaxnerf_grid.export import mesh
+
+    for bad in (0.0, 1.0, -0.1, 1.5):
+        with pytest.raises(ValueError, match=r"^opacity must be in \(0, 1\), got "):
+            mesh.density_threshold(0.1, bad)
+    assert mesh.density_threshold(2.0, 0.75) == pytest.approx(math.log(4.0) / 2.0)
+
+
+def _cube_density():
+    """A 4 x 4 x 4 node grid, density 1 at the 2 x 2 x 2 inner nodes, 0 elsewhere."""
+    d = np.zeros((4, 4, 4), np.float32)
+    d[1:3, 1:3, 1:3] = 1.0
+    return d
+
+
+def test_extract_mesh_of_a_cube_by_hand():
+    """Level 0.5 on the inner 2 x 2 x 2 nodes of a grid at origin (10, 20, 30), h = 2: the surface
+    lies halfway between nodes 0 and 1 and between 2 and 3, at 10 + 2 x (0.5, 2.5) along x: every
+    vertex coordinate is in {11, 15} x {21, 25} x {31, 35} on at least one axis, all within
+    [11, 15] x [21, 25] x [31, 35]; the faces are wound counter-clockwise seen from outside (the
+    signed volume is positive) and the normals point out of the cube's centre (13, 23, 33)."""
+    from jaxnerf_grid.export import mesh
+
+    verts, faces, normals = mesh.extract_mesh(_cube_density(), 0.5, [10.0, 20.0, 30.0], 2.0)
+    assert faces.dtype == np.int64 and verts.dtype == np.float64 and normals.dtype == np.float64
+    np.testing.assert_allclose(verts.min(0), [11.0, 21.0, 31.0], atol=1e-9)
+    np.testing.assert_allclose(verts.max(0), [15.0, 25.0, 35.0], atol=1e-9)
+    tri = verts[faces] - [13.0, 23.0, 33.0]
+    volume = np.sum(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) / 6
+    assert volume > 0
+    assert np.all(np.sum(normals * (verts - [13.0, 23.0, 33.0]), axis=1) > 0)
+    assert mesh.is_closed(faces)
+
+
+def test_extract_mesh_at_the_grids_border_nan_inf_and_no_surface():
+    """Dense nodes on the grid's border are closed by the zero padding (the surface half a voxel
+    outside the first node: origin - h / 2); nan counts as empty, +inf as dense; a level at or
+    above the maximum or not finite gives empty arrays (at the maximum, skimage raised a
+    RuntimeError before: export_run's "no surface in the box" never came)."""
+    from jaxnerf_grid.export import mesh
+
+    d = np.ones((3, 3, 3), np.float32)
+    verts, faces, _ = mesh.extract_mesh(d, 0.5, [0.0, 0.0, 0.0], 1.0)
+    np.testing.assert_allclose(verts.min(0), [-0.5, -0.5, -0.5], atol=1e-9)
+    np.testing.assert_allclose(verts.max(0), [2.5, 2.5, 2.5], atol=1e-9)
+    assert mesh.is_closed(faces)
+    d = _cube_density()
+    d[1, 1, 1], d[2, 2, 2] = np.nan, np.inf
+    verts, faces, _ = mesh.extract_mesh(d, 0.5, [0.0, 0.0, 0.0], 1.0)
+    assert np.isfinite(verts).all() and len(faces) > 0
+    near_nan = np.linalg.norm(verts - [1.0, 1.0, 1.0], axis=1)
+    assert near_nan.min() == pytest.approx(0.5, abs=1e-6)       # the nan node is now outside the surface
+    for level in (1.5, 1.0, np.nan, np.inf):       # 1.0: exactly the maximum, no crossing
+        v, f, n = mesh.extract_mesh(_cube_density(), level, [0.0, 0.0, 0.0], 1.0)
+        assert v.shape == (0, 3) and f.shape == (0, 3) and n.shape == (0, 3) and f.dtype == np.int64
+    v, f, _ = mesh.extract_mesh(_cube_density(), 0.999, [0.0, 0.0, 0.0], 1.0)
+    assert len(f) > 0
+
+
+def _tetra(offset=0):
+    """A closed tetrahedron's faces (4), its vertices numbered from `offset`."""
+    return np.array([[0, 1, 2], [0, 3, 1], [1, 3, 2], [2, 3, 0]]) + offset
+
+
+def test_face_components_and_is_closed_by_hand():
+    from jaxnerf_grid.export import mesh
+
+    faces = np.vstack([_tetra(0), _tetra(4), [[8, 9, 10]]])
+    labels = mesh.face_components(faces, 11)
+    assert len(np.unique(labels)) == 3
+    assert len(set(labels[:4])) == 1 and len(set(labels[4:8])) == 1 and labels[0] != labels[4] != labels[8]
+    # a chain joined only through each face's last vertex: 0-1-2, 2-3-4 share vertex 2
+    assert len(set(mesh.face_components(np.array([[0, 1, 2], [2, 3, 4], [5, 6, 4]]), 7))) == 1
+    assert len(set(mesh.face_components(np.array([[0, 1, 2], [3, 4, 0]]), 5))) == 1
+    assert mesh.face_components(np.zeros((0, 3), np.int64), 0).shape == (0,)
+    assert mesh.is_closed(_tetra()) and mesh.is_closed(np.vstack([_tetra(0), _tetra(4)]))
+    assert not mesh.is_closed(_tetra()[:3]) and not mesh.is_closed(np.zeros((0, 3)))
+    assert not mesh.is_closed(np.vstack([_tetra(), _tetra()[:1]]))   # an edge shared by three faces
+
+
+def test_remove_small_components_by_hand():
+    """A tetrahedron (4 faces), a second one (4) and a lone triangle (1): F = 9. min_fraction
+    4 / 9 keeps both tetrahedra (4 >= 4), drops the triangle; 4.01 / 9 keeps nothing. The
+    kept vertices are renumbered in order; the per-vertex extras follow."""
+    from jaxnerf_grid.export import mesh
+
+    verts = np.arange(33, dtype=np.float64).reshape(11, 3)
+    faces = np.vstack([_tetra(0), [[8, 9, 10]], _tetra(4)])
+    extra = np.arange(11) * 10
+    v, f, (e,), stats = mesh.remove_small_components(verts, faces, 4 / 9, (extra,))
+    np.testing.assert_array_equal(v, verts[:8])
+    np.testing.assert_array_equal(f, np.vstack([_tetra(0), _tetra(4)]))
+    np.testing.assert_array_equal(e, extra[:8])
+    assert stats == {"components": 3, "kept_components": 2, "kept_face_fraction": pytest.approx(8 / 9),
+                     "kept_vertex_fraction": pytest.approx(8 / 11)}
+    # the first tetrahedron's vertices unused (a floater of its own): the kept ones renumbered from 0
+    v, f, _, stats = mesh.remove_small_components(verts, np.vstack([_tetra(4), _tetra(0)[:1]]), 0.5)
+    np.testing.assert_array_equal(f, _tetra(0))
+    np.testing.assert_array_equal(v, verts[4:8])
+    assert stats["kept_components"] == 1 and stats["kept_vertex_fraction"] == pytest.approx(4 / 11)
+    _, f, _, stats = mesh.remove_small_components(verts, faces, 4.01 / 9)
+    assert len(f) == 0 and stats["kept_components"] == 0 and stats["kept_face_fraction"] == 0.0
+    v, f, extra_out, stats = mesh.remove_small_components(verts, np.zeros((0, 3)), 0.5, (extra,))
+    assert v is verts and f.shape == (0, 3) and extra_out[0] is extra
+    assert stats == {"components": 0, "kept_components": 0, "kept_face_fraction": 1.0, "kept_vertex_fraction": 1.0}
