@@ -764,3 +764,107 @@ def test_remove_small_components_by_hand():
     v, f, extra_out, stats = mesh.remove_small_components(verts, np.zeros((0, 3)), 0.5, (extra,))
     assert v is verts and f.shape == (0, 3) and extra_out[0] is extra
     assert stats == {"components": 0, "kept_components": 0, "kept_face_fraction": 1.0, "kept_vertex_fraction": 1.0}
+
+
+# --------------------------------------------------------------------------- export/geoid.py
+
+
+def test_as_written_and_the_pipeline_text():
+    from jaxnerf_grid.export import geoid
+
+    assert geoid.as_written(None) == geoid.as_written({}) == geoid.as_written({"source": "gps"}) == \
+        "ellipsoidal (GPS heights as written)"
+    for source in ("gcp", "gps+gcp"):
+        assert geoid.as_written({"source": source}) == "as the control points' Z (the GCP file's heights as written)"
+    assert geoid.pipeline_text(Path("/g/egm.gtx")) == (
+        '+proj=pipeline +step +proj=unitconvert +xy_in=deg +xy_out=rad +step +proj=vgridshift '
+        '+grids="/g/egm.gtx" +multiplier=-1 +step +proj=unitconvert +xy_in=rad +xy_out=deg')
+
+
+def test_open_grid_refusals_name_the_file(tmp_path):
+    from jaxnerf_grid.export import geoid
+
+    with pytest.raises(DataError, match=r"missing\.gtx: export\.geoid does not exist \(a geoid grid PROJ reads"):
+        geoid.open_grid(tmp_path / "missing.gtx")
+    (tmp_path / "folder.gtx").mkdir()
+    with pytest.raises(DataError, match=r"folder\.gtx: export\.geoid is not a file \(a geoid grid"):
+        geoid.open_grid(tmp_path / "folder.gtx")
+    quoted = tmp_path / 'a"b.gtx'
+    quoted.write_bytes(b"x")
+    with pytest.raises(DataError, match=r'a"b\.gtx: export\.geoid: a path with a double quote cannot be passed'):
+        geoid.open_grid(quoted)
+    bad = tmp_path / "notes.gtx"
+    bad.write_text("not a grid\n")
+    with pytest.raises(DataError, match=r"notes\.gtx: export\.geoid: PROJ cannot read this file as a geoid grid "
+                                        r"\(GTX or GeoTIFF\)$"):
+        geoid.open_grid(bad)
+
+
+def test_open_grid_takes_a_relative_path_and_undulation_names_the_first_point_outside(tmp_path, monkeypatch):
+    """A path relative to the working folder is made absolute (PROJ would look it up in its
+    own search path); N of the linear grid at (47, 8): A + 47 B + 8 C = 51.5; two of three
+    points outside: the first outside named, to 6 places."""
+    from test_export_geoid import linear_n, site_grid
+
+    from jaxnerf_grid.export import geoid
+
+    site_grid(tmp_path / "site.gtx", linear_n)
+    monkeypatch.chdir(tmp_path)
+    grid = geoid.open_grid("site.gtx")
+    np.testing.assert_allclose(geoid.undulation(grid, "site.gtx", np.array([47.0, 48.0]), np.array([8.0, 9.0])),
+                               [30 + 0.5 * 47 - 0.25 * 8, 30 + 0.5 * 48 - 0.25 * 9], atol=1e-5)
+    assert geoid.undulation(grid, "site.gtx", 47.0, 8.0).shape == (1,)
+    with pytest.raises(DataError) as err:
+        geoid.undulation(grid, "site.gtx", np.array([47.0, 60.1234567, 61.0]), np.array([8.0, 8.5, 8.5]))
+    assert str(err.value) == ("site.gtx: export.geoid does not cover 2 of the 3 points (e.g. latitude 60.123457, "
+                              "longitude 8.500000); use a grid that covers the site")
+
+
+def test_orthometric_of_no_points_and_leaves_its_input(tmp_path):
+    from test_export_geoid import CRS, linear_n, site_grid
+
+    from jaxnerf_grid.export import geoid
+
+    path = site_grid(tmp_path / "site.gtx", linear_n)
+    grid = geoid.open_grid(path)
+    p, n = geoid.orthometric(np.zeros((0, 3)), CRS, grid, path)
+    assert p.shape == (0, 3) and n.shape == (0,)
+    points = np.array([[465000.0, 5247000.0, 400.0]])
+    got, n = geoid.orthometric(points, CRS, grid, path)
+    assert points[0, 2] == 400.0 and got[0, 2] == pytest.approx(400.0 - n[0])
+
+
+def test_vertical_record_and_crs_label_by_hand():
+    import pyproj
+
+    from jaxnerf_grid.export import geoid
+
+    datum = pyproj.CRS.from_epsg(5773)
+    assert geoid.crs_label(datum) == "EPSG:5773 EGM96 height"
+    local = pyproj.crs.VerticalCRS(name="Site height", datum="EGM96 geoid")       # no EPSG code
+    assert local.to_epsg() is None and geoid.crs_label(local) == "Site height"
+    assert geoid.vertical_record(Path("/g/egm.gtx"), 47.25, (47.0, 47.5), datum=datum) == {
+        "reference": "above the geoid of egm.gtx, N = 47.250 m at the base (EPSG:5773 EGM96 height)",
+        "geoid_grid": str(Path("/g/egm.gtx")), "n_at_base_m": 47.25, "n_range_m": [47.0, 47.5],
+        "vertical_crs": "EPSG:5773 EGM96 height"}
+    assert geoid.vertical_record("/g/egm.gtx") == {"reference": "above the geoid of egm.gtx",
+                                                  "geoid_grid": "/g/egm.gtx", "n_at_base_m": None,
+                                                  "n_range_m": None, "vertical_crs": None}
+    rec = geoid.vertical_record("/g/egm.gtx", np.float32(1.5), np.array([1.0, 2.0]))
+    assert type(rec["n_at_base_m"]) is float and all(type(v) is float for v in rec["n_range_m"])
+
+
+def test_vertical_crs_refusals_and_the_datum():
+    from jaxnerf_grid.export import geoid
+
+    assert geoid.vertical_crs(None, None) is None and geoid.vertical_crs(None, "g.gtx") is None
+    assert geoid.vertical_crs("EPSG:5773", "g.gtx").to_epsg() == 5773
+    with pytest.raises(DataError, match=r"^export\.vertical_crs = 'EPSG:5773' names the datum of heights above a "
+                                        r"geoid: give export\.geoid \(the grid\) too$"):
+        geoid.vertical_crs("EPSG:5773", None)
+    with pytest.raises(DataError, match=r"^export\.vertical_crs = 'EPSG:999999': pyproj does not know it "
+                                        r"\(e\.g\. EPSG:5773, EGM96 height\)$"):
+        geoid.vertical_crs("EPSG:999999", "g.gtx")
+    with pytest.raises(DataError, match=r"^export\.vertical_crs = 'EPSG:32632' is not a vertical CRS "
+                                        r"\(WGS 84 / UTM zone 32N\); e\.g\. EPSG:5773, EGM96 height$"):
+        geoid.vertical_crs("EPSG:32632", "g.gtx")
