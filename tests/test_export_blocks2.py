@@ -81,7 +81,11 @@ def test_check_box_in_scene_at_the_cubes_faces():
             l2, h2 = lo.copy(), hi.copy()
             l2[axis], h2[axis] = a, b
             if refused:
-                with pytest.raises(ConfigError, match="^export.box lies outside the scene"):
+                with pytest.raises(ConfigError, match=r"^export\.box lies outside the scene: it does not meet the "
+                                                      r"region of interest \(the unit sphere of the normalised "
+                                                      r"scene, i\.e\. the tower's surroundings\); give it in the "
+                                                      r"dataset's original units \(metres for the synthetic "
+                                                      r"scenes\)$"):
                     export_run.check_box_in_scene(l2, h2)
             else:
                 export_run.check_box_in_scene(l2, h2)
@@ -115,11 +119,26 @@ def test_check_out_empty_occupied_marked_legacy_and_foreign(tmp_path):
     for name, files in (("foreign", ["measurements.json", "notes.txt"]), ("no_record", ["tower_mesh.ply"])):
         folder = _marked(tmp_path / name, files)
         assert not export_run._is_legacy_export(folder)
-        with pytest.raises(DataError, match="was not written by jaxnerf-grid export"):
+        with pytest.raises(DataError, match=r"was not written by jaxnerf-grid export .* choose another export\.out$"):
             export_run.check_out(folder, data, overwrite=True)
     odd = _marked(tmp_path / "odd", ["tower_mesh.ply"])
     (odd / "measurements.json").mkdir()                                       # not a file
     assert not export_run._is_legacy_export(odd)
+
+
+def test_parse_box_takes_six_numbers_and_names_what_is_wrong():
+    """A box given as numbers (the Python API) and the three refusals' words."""
+    np.testing.assert_array_equal(export_run.parse_box([0, 1, 2, 3, 4, 5]), [0.0, 1.0, 2.0, 3.0, 4.0, 5.0])
+    np.testing.assert_array_equal(export_run.parse_box((0.5, 1, 2, 3, 4, 5)), [0.5, 1.0, 2.0, 3.0, 4.0, 5.0])
+    with pytest.raises(ConfigError, match=r"^export\.box: expected 'auto' or six numbers xmin,ymin,zmin,xmax,ymax,"
+                                          r"zmax, got 'a,b,c,d,e,f'$"):
+        export_run.parse_box("a,b,c,d,e,f")
+    with pytest.raises(ConfigError, match=r"^export\.box: expected six finite numbers xmin,ymin,zmin,xmax,ymax,zmax, "
+                                          r"got '1,2,3,4,5'$"):
+        export_run.parse_box("1,2,3,4,5")
+    with pytest.raises(ConfigError, match=r"^export\.box: the box is empty \(each max must exceed its min\): "
+                                          r"'0,0,1,1,1,1'$"):
+        export_run.parse_box("0,0,1,1,1,1")
 
 
 def test_inside_is_the_closed_box():
@@ -302,6 +321,58 @@ def test_vertical_with_a_linear_geoid_by_closed_form(tmp_path):
     export_run._vertical(sv, GEO, CRS, grid, path, pts, mesh)
     assert sv["vertical"]["n_at_base_m"] is None and sv["base_centre"]["crs"] is None
     assert sv["vertical"]["reference"] == "above the geoid of linear.gtx"
+
+
+def test_vertical_names_the_grid_when_it_misses_a_point_the_mesh_or_the_base_and_records_the_datum(tmp_path):
+    """A point 300 km north of the site (about 50 N) is outside the grid (46.5-48.5 N): the
+    DataError names the grid file whether the point is in the cloud, the mesh or the base
+    centre. With no point and no mesh vertex, no N range; a named datum is recorded."""
+    import pyproj
+    from test_export_geoid import CRS, linear_n, site_grid
+
+    from jaxnerf_grid.export import geoid
+
+    path = site_grid(tmp_path / "site.gtx", linear_n)
+    grid = geoid.open_grid(path)
+    inside, far = np.array([[465000.0, 5247000.0, 300.0]]), np.array([[465000.0, 5547000.0, 300.0]])
+    for pts, mesh, base in ((far, inside, inside[0]), (inside, far, inside[0]), (inside, inside, far[0])):
+        sv = {"base_centre": {"crs": list(base)}}
+        with pytest.raises(DataError, match=r"site\.gtx: export\.geoid does not cover 1 of the 1 points"):
+            export_run._vertical(sv, GEO, CRS, grid, path, pts, mesh)
+    sv = {"base_centre": None}
+    got = export_run._vertical(sv, GEO, CRS, grid, path, np.zeros((0, 3)), np.zeros((0, 3)),
+                               datum=pyproj.CRS.from_epsg(5773))
+    assert got[0].shape == (0, 3) and got[1].shape == (0, 3)
+    assert sv["vertical"]["n_range_m"] is None and sv["vertical"]["n_at_base_m"] is None
+    assert sv["vertical"]["vertical_crs"] == "EPSG:5773 EGM96 height"
+
+
+def test_check_geoid_site_needs_the_grid_to_cover_every_camera(tmp_path):
+    """The cameras' centres, mapped to metres (x = x_norm / s - t with s = 0.5, t = (-10, 0, 0):
+    x_norm (0, 0, 0) is 10 m east of the CRS origin) and to the CRS, must lie on the grid
+    (46.5-48.5 N; the origin is near 47.37 N): a camera at x_norm y = 150 km (300 km north in
+    metres, about 50 N) is refused naming the grid file; at 60 km (120 km, about 48.45 N) it
+    passes, and 120 km without the scale undone would be 240 km (outside): the scale is undone."""
+    from types import SimpleNamespace
+
+    from test_export_geoid import CRS, linear_n, site_grid
+
+    from jaxnerf_grid.export import geoid
+
+    path = site_grid(tmp_path / "site.gtx", linear_n)
+    grid = geoid.open_grid(path)
+    geo = {"units": "metres", "crs": CRS, "origin": [465000.0, 5247000.0, 300.0]}
+    norm = {"scale": 0.5, "translation": [-10.0, 0.0, 0.0]}
+    c2w = np.tile(np.eye(4), (2, 1, 1))
+    export_run._check_geoid_site(path, grid, CRS, geo, SimpleNamespace(c2w=c2w), norm, "metres")
+    c2w[1, 1, 3] = 0.5 * 3e5                               # 300 km north in metres: about 50 N
+    with pytest.raises(DataError, match=r"site\.gtx: export\.geoid does not cover 1 of the 2 points"):
+        export_run._check_geoid_site(path, grid, CRS, geo, SimpleNamespace(c2w=c2w), norm, "metres")
+    c2w[1, 1, 3] = 0.5 * 1.2e5                             # 120 km north in metres: about 48.45 N, inside
+    export_run._check_geoid_site(path, grid, CRS, geo, SimpleNamespace(c2w=c2w), norm, "metres")
+    c2w[1, 1, 3] = 1.2e5                                   # the same without the scale: 240 km, outside
+    with pytest.raises(DataError, match="does not cover 1 of the 2 points"):
+        export_run._check_geoid_site(path, grid, CRS, geo, SimpleNamespace(c2w=c2w), norm, "metres")
 
 
 def test_check_geoid_site_names_why_a_dataset_without_a_crs_is_refused(tmp_path):
