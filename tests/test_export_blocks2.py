@@ -418,6 +418,7 @@ def test_georeference_crs_and_to_crs_of_records_by_hand():
     from jaxnerf_grid.export import survey
 
     assert survey.georeference_of(object()) is None and survey.georeference_of(_Meta(None)) is None
+    assert survey.units_of(object()) == "unknown"                                  # no meta at all
     assert survey.georeference_of(_Meta({"georeference": "EPSG:32632"})) is None
     assert survey.georeference_of(_Meta({"georeference": GEO})) is GEO
     name, origin = survey.crs_of(GEO)
@@ -458,6 +459,12 @@ def test_coordinate_and_weighted_scale_sigma_by_hand():
         [1.0 * math.sqrt(2 / 6), 1.0 * math.sqrt(3 / 2)])
     assert survey.source_sigmas([(pos, 3, 1.0, 4.0), (pos, 2, 1.0, 1.0)], 7) == pytest.approx(
         [1.0 * math.sqrt(3 / 2), 1.0 * math.sqrt(2 / 6)])
+    # w x n 6 against 4 (not w / n: 1/6 against 1): the first source rules
+    assert survey.source_sigmas([(pos, 6, 1.0, 1.0), (pos, 2, 1.0, 2.0)], 7) == pytest.approx(
+        [1.0 * math.sqrt(6 / 11), 1.0 * math.sqrt(2 / 6)])
+    # a spread sum under 1 is still a spread: S = 2 x 0.01 = 0.02, s_rel = 0.3 / sqrt(0.02)
+    small = [(np.array([[0.0, 0.0, 0.0], [0.2, 0.0, 0.0]]), 2, 1.0, 1.0)]
+    assert survey.weighted_scale_sigma(small, [0.3]) == pytest.approx(0.3 / math.sqrt(0.02))
 
 
 def _square(shift=(100.0, 200.0, 30.0)):
@@ -480,40 +487,40 @@ def test_alignment_uncertainty_of_gps_by_hand(rotation, p):
 
 
 def test_alignment_uncertainty_of_gps_and_control_points_by_hand():
-    """GPS (10 inliers, RMS 2 m, weight 1/9) and 3 control points (RMS 0.04 m, weight 400):
-    the control points rule (400 x 3 > 10 / 9), so the 7 parameters are charged to them:
-    sigma_c = 0.04 sqrt(3 / 2), sigma_g = 2 sqrt(10 / 30); position from the control points,
-    sigma_c sqrt(3 / 3); s_rel by the weighted formula, worked out here."""
+    """GPS (10 inliers, RMS 2 m, weight 1/9) and 4 control points (RMS 0.04 m, weight 400):
+    the control points rule (400 x 4 > 10 / 9), so the 7 parameters are charged to them:
+    sigma_c = 0.04 sqrt(4 / 5), sigma_g = 2 sqrt(10 / 30); position from the control points,
+    sigma_c sqrt(3 / 4); s_rel by the weighted formula, worked out here."""
     from jaxnerf_grid.export import survey
 
-    ctrl = np.array([[100.0, 200.0, 20.0], [106.0, 200.0, 20.0], [100.0, 208.0, 20.0]])
+    ctrl = np.array([[100.0, 200.0, 20.0], [106.0, 200.0, 20.0], [100.0, 208.0, 20.0], [104.0, 204.0, 23.0]])
     geo = {"units": "metres", "source": "gps+gcp", "rotation": "full", "gps": {"inliers": 10, "rms_m": 2.0},
-           "gcp": {"control": {"rms_m": 0.04, "residuals": [{}] * 3, "points_m": ctrl.tolist()}}}
+           "gcp": {"control": {"rms_m": 0.04, "residuals": [{}] * 4, "points_m": ctrl.tolist()}}}
     got = survey.alignment_uncertainty(geo, "metres", _square())
-    sg, sc = 2.0 * math.sqrt(10 / 30), 0.04 * math.sqrt(3 / 2)
+    sg, sc = 2.0 * math.sqrt(10 / 30), 0.04 * math.sqrt(4 / 5)
     wg, wc = 1 / 9.0, 1 / 0.05**2
-    centroid = (wg * 10 * np.array([100.0, 200.0, 30.0]) + wc * 3 * ctrl.mean(0)) / (wg * 10 + wc * 3)
+    centroid = (wg * 10 * np.array([100.0, 200.0, 30.0]) + wc * 4 * ctrl.mean(0)) / (wg * 10 + wc * 4)
     s_g = 10 * np.mean(np.sum((_square() - centroid) ** 2, axis=1))
-    s_c = 3 * np.mean(np.sum((ctrl - centroid) ** 2, axis=1))
+    s_c = 4 * np.mean(np.sum((ctrl - centroid) ** 2, axis=1))
     rel = math.sqrt(wg**2 * sg**2 * s_g + wc**2 * sc**2 * s_c) / (wg * s_g + wc * s_c)
-    _close(got, {"relative_scale": rel, "position_m": sc, "from": "gps+gcp", "n": 10, "rms_m": 2.0,
-                 "spread_m": math.sqrt(12.5), "centroid": [100.0, 200.0, 30.0], "sigma_per_coordinate_m": sg,
-                 "control_points": 3})
+    _close(got, {"relative_scale": rel, "position_m": sc * math.sqrt(3 / 4), "from": "gps+gcp", "n": 10,
+                 "rms_m": 2.0, "spread_m": math.sqrt(12.5), "centroid": [100.0, 200.0, 30.0],
+                 "sigma_per_coordinate_m": sg, "control_points": 4})
     # control points without residuals, points or an RMS are no source; GPS without inliers,
     # an RMS or centres neither
     for control in ({"rms_m": 0.04, "residuals": [], "points_m": ctrl.tolist()},
-                    {"rms_m": 0.04, "residuals": [{}] * 3, "points_m": []},
-                    {"rms_m": None, "residuals": [{}] * 3, "points_m": ctrl.tolist()}):
+                    {"rms_m": 0.04, "residuals": [{}] * 4, "points_m": []},
+                    {"rms_m": None, "residuals": [{}] * 4, "points_m": ctrl.tolist()}):
         got = survey.alignment_uncertainty({**geo, "gcp": {"control": control}}, "metres", _square())
         assert "control_points" not in got and got["position_m"] == pytest.approx(2.0 * math.sqrt(10 / 23) * math.sqrt(0.3))
     for gps, centres in (({"inliers": 0, "rms_m": 2.0}, _square()), ({"inliers": 10, "rms_m": None}, _square()),
                          ({"inliers": 10, "rms_m": 2.0}, np.zeros((0, 3)))):
         got = survey.alignment_uncertainty({**geo, "gps": gps}, "metres", centres)
         assert "n" not in got and "sigma_per_coordinate_m" not in got
-        sc7 = 0.04 * math.sqrt(3 / 2)
-        assert got["position_m"] == pytest.approx(sc7) and got["control_points"] == 3
+        sc7 = 0.04 * math.sqrt(4 / 5)
+        assert got["position_m"] == pytest.approx(sc7 * math.sqrt(3 / 4)) and got["control_points"] == 4
         # control points alone: s_rel = sigma / sqrt(S), S about their own mean
-        s_c = 3 * np.mean(np.sum((ctrl - ctrl.mean(0)) ** 2, axis=1))
+        s_c = 4 * np.mean(np.sum((ctrl - ctrl.mean(0)) ** 2, axis=1))
         assert got["relative_scale"] == pytest.approx(sc7 / math.sqrt(s_c))
 
 
@@ -533,6 +540,11 @@ def test_alignment_uncertainty_of_the_other_records():
     assert got == {"relative_scale": None, "position_m": None, "from": "gps", "centroid": [100.0, 200.0, 30.0]}
     assert "centroid" not in survey.alignment_uncertainty({"units": "metres", "source": "gps"}, "metres",
                                                           np.zeros((0, 3)))
+    # one camera centre is a source too (no spread: no scale error known; the position is)
+    one = survey.alignment_uncertainty({"units": "metres", "source": "gps", "gps": {"inliers": 10, "rms_m": 2.0}},
+                                       "metres", np.array([[1.0, 2.0, 3.0]]))
+    assert one["n"] == 10 and one["spread_m"] == 0.0 and one["relative_scale"] is None
+    assert one["position_m"] == pytest.approx(2.0 * math.sqrt(10 / 23) * math.sqrt(0.3))
 
 
 def test_with_sigma_by_hand():
@@ -580,6 +592,14 @@ def test_las_header_offsets_scales_colours_and_compound_crs(tmp_path):
     crs = las.header.parse_crs()
     assert crs.is_compound and crs.name == "WGS 84 / UTM zone 32N + EGM96 height"
     assert [c.to_epsg() for c in crs.sub_crs_list] == [32632, 5773]
+    assert str(las.header.version) == "1.4" and las.header.point_format.id == 7
+    # float32 colours (what export hands on) rounded in doubles: 0.6700618 x 65535 = 43912.5... -> 43913
+    # (in float32 arithmetic 43912)
+    c32 = np.array([[0.6700618, 0.5923629, 0.54545665]], np.float32)
+    survey.write_las(tmp_path / "c.las", pts[:1], c32)
+    got = laspy.read(tmp_path / "c.las")
+    assert [int(got.red[0]), int(got.green[0]), int(got.blue[0])] == [round(float(v) * 65535) for v in c32[0]]
+    assert [round(float(v) * 65535) for v in c32[0]] == [43913, 38821, 35747]
     survey.write_las(tmp_path / "e.las", np.zeros((0, 3)), np.zeros((0, 3)))
     empty = laspy.read(tmp_path / "e.las")
     assert len(empty.points) == 0
@@ -605,6 +625,11 @@ def test_ply_double_holds_the_doubles_colours_faces_and_comments(tmp_path):
     np.testing.assert_array_equal(np.column_stack([v["red"], v["green"], v["blue"]]),
                                   [[0, 128, 255], [51, 0, 255], [255, 255, 255]])
     assert [list(f) for f in ply["face"]["vertex_indices"]] == [[0, 1, 2], [2, 1, 0]]
+    # float32 colours rounded in doubles: 0.6098039 x 255 = 155.499... -> 155 (156 in float32 arithmetic)
+    survey.write_ply_double(tmp_path / "c.ply", pts[:1], np.array([[0.6098039, 0.8686274, 0.76666665]], np.float32),
+                            np.zeros((0, 3)))
+    v = plyfile.PlyData.read(str(tmp_path / "c.ply"))["vertex"]
+    assert [int(v["red"][0]), int(v["green"][0]), int(v["blue"][0])] == [155, 221, 195]
 
 
 # --------------------------------------------------------------------------- export/fuse.py
