@@ -692,6 +692,10 @@ def test_confirmations_counted_by_hand_at_each_boundary():
     counts = fuse.confirmations(np.array(pts), np.array(source), cams, min_opacity=0.6, tol_pixels=2.0)
     np.testing.assert_array_equal(counts, [1, 1, 1, 1, 0, 0, 0, 0, 0, 0, 0, 0, 0])
     assert counts.dtype.kind == "i"
+    # a surface nearer than one unit (the normalised scene's cameras are 2-4 units away): counted
+    near = [_one_camera(np.zeros((3, 4)), np.zeros((3, 4))), _one_camera(np.full((3, 4), 0.5), np.ones((3, 4)))]
+    np.testing.assert_array_equal(fuse.confirmations(np.array([_at(1, 1, 0.5), _at(2, 2, 0.25)]), np.array([0, 0]),
+                                                     near), [1, 0])
 
 
 def test_fuse_keeps_points_confirmed_by_min_views_and_their_colours():
