@@ -949,6 +949,9 @@ def test_orthometric_of_no_points_and_leaves_its_input(tmp_path):
     points = np.array([[465000.0, 5247000.0, 400.0]])
     got, n = geoid.orthometric(points, CRS, grid, path)
     assert points[0, 2] == 400.0 and got[0, 2] == pytest.approx(400.0 - n[0])
+    # whole-metre coordinates given as integers: the heights still become H = h - N (floats)
+    got_int, n_int = geoid.orthometric(np.array([[465000, 5247000, 400]]), CRS, grid, path)
+    assert got_int.dtype == np.float64 and got_int[0, 2] == pytest.approx(400.0 - n[0]) and n_int[0] == n[0]
 
 
 def test_vertical_record_and_crs_label_by_hand():
