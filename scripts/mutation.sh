@@ -46,7 +46,10 @@ axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two \
 conductor_clearance_counts_the_box_edge_the_height_limit_and_the_gap_by_hand; do printf 'tests/test_export_survey.py::test_%s ' $t; done)"
 
 # the fast tests of export/run.py's blocks (not test_export's training fixture): the analytic
-# exports of test_join_export and test_export_geoid, and the box and units tests
+# exports of test_join_export and test_export_geoid, and the box and units tests. mutmut orders a
+# mutant's tests by their recorded time, which leaves out a module fixture's setup, so the
+# analytic export (5-9 s) tends to run first: for the small functions give TESTS= the block
+# tests alone (docs/TESTING.md, round seven)
 EXPORT_RUN_BLOCKS="tests/test_join_export.py tests/test_export_geoid.py tests/test_export_blocks2.py \
 tests/test_export.py::test_parse_box tests/test_export.py::test_units_are_metres_only_when_the_dataset_states_its_normalisation \
 tests/test_export_survey.py::test_units_follow_the_georeference_record_else_the_synthetic_scale"
