@@ -45,6 +45,22 @@ conductor_clearance_is_the_lowest_point_of_the_wire_leaving_the_tower axis_tilt_
 axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two \
 conductor_clearance_counts_the_box_edge_the_height_limit_and_the_gap_by_hand; do printf 'tests/test_export_survey.py::test_%s ' $t; done)"
 
+# the fast tests of export/run.py's blocks (not test_export's training fixture): the analytic
+# exports of test_join_export and test_export_geoid, and the box and units tests. mutmut orders a
+# mutant's tests by their recorded time, which leaves out a module fixture's setup, so the
+# analytic export (5-9 s) tends to run first: for the small functions give TESTS= the block
+# tests alone (docs/TESTING.md, round seven)
+EXPORT_RUN_BLOCKS="tests/test_join_export.py tests/test_export_geoid.py tests/test_export_blocks2.py \
+tests/test_export.py::test_parse_box tests/test_export.py::test_units_are_metres_only_when_the_dataset_states_its_normalisation \
+tests/test_export_survey.py::test_units_follow_the_georeference_record_else_the_synthetic_scale"
+
+# the block tests of export/fuse.py and export/mesh.py in test_export.py (not its training fixture)
+FUSE_BLOCKS="tests/test_export.py::test_project_inverts_lift_view tests/test_export.py::test_fusion_keeps_the_surface_and_drops_floaters"
+MESH_BLOCKS="$(for t in grid_spec_covers_the_box_with_resolution_voxels_on_the_longest_side \
+density_threshold_gives_the_opacity_of_one_voxel marching_cubes_on_a_sphere_lies_on_the_surface_and_is_closed \
+marching_cubes_on_a_box_closes_at_the_grid_border no_surface_gives_an_empty_mesh small_components_are_removed \
+mesh_ply_read_back_by_plyfile; do printf 'tests/test_export.py::test_%s ' $t; done)"
+
 # group -> "module to mutate|fast tests that cover it"
 declare -A GROUPS_=(
   [foreground]="jaxnerf_grid/foreground.py|tests/test_foreground.py tests/test_join_foreground.py"
@@ -59,14 +75,18 @@ declare -A GROUPS_=(
   [export_ground]="jaxnerf_grid/export/ground.py|tests/test_join_export.py tests/test_export.py"
   [export_measure]="jaxnerf_grid/export/measure.py|$MEASURE_BLOCKS tests/test_measure_corners.py tests/test_join_export.py"
   [export_field]="jaxnerf_grid/export/field.py|tests/test_join_truth.py tests/test_join_export.py"
-  [export_run]="jaxnerf_grid/export/run.py|tests/test_join_export.py"
+  [export_run]="jaxnerf_grid/export/run.py|$EXPORT_RUN_BLOCKS"
+  [export_survey]="jaxnerf_grid/export/survey.py|tests/test_export_survey.py tests/test_export_blocks2.py tests/test_join_export.py tests/test_export_geoid.py"
+  [export_fuse]="jaxnerf_grid/export/fuse.py|$FUSE_BLOCKS tests/test_export_blocks2.py tests/test_join_export.py"
+  [export_mesh]="jaxnerf_grid/export/mesh.py|$MESH_BLOCKS tests/test_export_blocks2.py tests/test_join_export.py"
+  [export_geoid]="jaxnerf_grid/export/geoid.py|tests/test_export_geoid.py tests/test_export_blocks2.py"
   [normalize]="jaxnerf_grid/data/normalize.py|tests/test_normalize.py tests/test_join_poses.py tests/test_formats.py $NORMALIZE_BLOCKS"
   [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py"
   [losses]="jaxnerf_grid/losses.py|tests/test_losses.py"
   [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch"
 )
 ORDER=(foreground masking models evaluate report demo geometry export_score export_init export_ground export_measure
-       export_field export_run normalize poses losses train)
+       export_field export_run export_survey export_fuse export_mesh export_geoid normalize poses losses train)
 
 groups=()
 globs=()

@@ -145,6 +145,12 @@ def test_mesh_and_fused_points_lie_on_the_analytic_surface_in_metres(exported):
     off_ground = points[points[:, 2] > af.GROUND_Z + 0.5]
     distance = af.distance_to_tower_surface(off_ground)
     assert np.median(distance) <= 0.25 and np.max(distance) <= 1.5
+    # their colours are the tower's (the analytic field's TOWER_RGB, as 8-bit PLY colours), not
+    # the ground's or white: the median of the points above the ground within 2 / 255
+    ply = io.read_ply(out / "tower_points.ply")
+    rgb = np.column_stack([ply["red"], ply["green"], ply["blue"]]).astype(np.float64) / 255.0
+    np.testing.assert_allclose(np.median(rgb[points[:, 2] > af.GROUND_Z + 0.5], axis=0), af.TOWER_RGB,
+                               atol=2 / 255)
 
 
 def test_eval_scores_the_analytic_export_against_its_surface(exported):

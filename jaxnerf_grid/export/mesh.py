@@ -71,12 +71,13 @@ def extract_mesh(density: np.ndarray, level: float, origin, h: float) -> tuple[n
 
     density: [nx, ny, nz] at the nodes origin + h * (i, j, k). Returns (vertices [V, 3] float64
     in the grid's coordinates, faces [F, 3] int64 counter-clockwise seen from outside, normals
-    [V, 3] pointing out of the dense side); empty arrays when the density never reaches `level`.
+    [V, 3] pointing out of the dense side); empty arrays when the density never exceeds `level`
+    (a maximum exactly at `level` crosses nothing: skimage would raise).
     """
     from skimage import measure
 
     density = np.asarray(density, np.float32)
-    if not np.isfinite(level) or not np.nanmax(density) >= level:
+    if not np.isfinite(level) or not np.nanmax(density) > level:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3))
     padded = np.pad(np.nan_to_num(density, nan=0.0, posinf=np.float32(3e38)), 1, constant_values=0.0)
     pad_level = min(float(level), float(np.finfo(np.float32).max))
