@@ -124,6 +124,7 @@ def test_fmt_by_hand():
     assert report._pm({"value": 12.345, "sigma": None}, "m", 3) == "12.345 m +- (not estimated)"
     assert report._pm({"value": 1.0}, "deg") == "1.00 deg +- (not estimated)"
     assert report._pm({"value": 1.0, "sigma": 0.0}, "m") == "1.00 m +- 0.00 m"
+    assert report._pm({"value": 1.0, "sigma": 0.0123}, "m", 3) == "1.000 m +- 0.012 m"   # sigma to the same digits
 
 
 def test_samples_and_field_lines_name_the_config():
@@ -253,6 +254,16 @@ def test_export_lines_without_metres_survey_or_score():
     i = got.index("| cloud | F@0.3 | Chamfer |")
     assert got[i - 2].startswith("Against the reference tower (? points; both cropped to its box less a unavailable m")
     assert got[i:] == ["| cloud | F@0.3 | Chamfer |", "|---|---|---|", "| fused points | 0.500 | 0.100 |", ""]
+    # a score of the mesh only: the F columns from the mesh
+    got = report.export_lines({"measurements": {"units": "metres", "height": 2.0},
+                               "score": {"mesh": {"thresholds": {"0.4": {"fscore": 0.25}}, "chamfer": 0.2}}})
+    i = got.index("| cloud | F@0.4 | Chamfer |")
+    assert got[i:] == ["| cloud | F@0.4 | Chamfer |", "|---|---|---|", "| mesh vertices | 0.250 | 0.200 |", ""]
+    # a score with neither cloud: a table of no rows, no F columns
+    got = report.export_lines({"measurements": {"units": "metres", "height": 2.0}, "score": {"reference_points": 5}})
+    i = len(got) - 1 - got[::-1].index("|---|---|")   # the score table's separator (the last)
+    assert got[i - 3].startswith("Against the reference tower (5 points;") and "F@" not in got[i - 1]
+    assert got[i - 1].startswith("| cloud |") and got[i + 1:] == [""]
 
 
 def test_survey_lines_local_base_and_conductors_not_reconstructed():
@@ -305,6 +316,9 @@ def test_set_section_replaces_appends_and_keeps_bytes(tmp_path):
     p.write_bytes(b"x\n")
     report.set_section(p, "## E", ["## E"])          # the file ends with a newline: one blank line, not two
     assert p.read_bytes() == b"x\n\n## E"
+    p.write_bytes(b"## A\n## B\nb\n")                # the next section right under the heading
+    report.set_section(p, "## A", ["## A", "a"])
+    assert p.read_bytes() == b"## A\na\n## B\nb\n"
     p.write_bytes(b"## A\n### sub\n## Ab\n")         # "### " is not a section end; "## Ab" is
     report.set_section(p, "## A", ["## A", "n"])
     assert p.read_bytes() == b"## A\nn\n## Ab\n"
@@ -314,7 +328,8 @@ def test_set_section_replaces_appends_and_keeps_bytes(tmp_path):
 
 
 METRICS = {"step": 321, "num_views": 3, "target": "clean_images",
-           "mean": {"psnr": 23.456789, "ssim": 0.812345, "ms_ssim": None, "lpips": float("nan"), "ms_ssim_scales": 4},
+           "mean": {"psnr": 23.456789, "ssim": 0.812345, "ms_ssim": 0.912345, "lpips": float("nan"),
+                    "ms_ssim_scales": 4},
            "mean_right_half": {"psnr": 21.0049, "ssim": 0.70005},
            "regions_mean": {"tower": 19.87654, "near_ground": 25.0, "far_background": None},
            "distractor_psnr": 14.255, "protocol": "left half fitted", "region_definition": "by depth",
@@ -345,7 +360,7 @@ def test_write_report_tables_and_sections_by_hand(tmp_path):
     i = lines.index("## Metrics (mean over test views)")
     assert lines[i:i + 17] == [
         "## Metrics (mean over test views)", "", "| metric | value |", "|---|---|",
-        "| PSNR | 23.46 |", "| SSIM | 0.8123 |", "| MS-SSIM | unavailable |", "| LPIPS | n/a |",
+        "| PSNR | 23.46 |", "| SSIM | 0.8123 |", "| MS-SSIM | 0.9123 |", "| LPIPS | n/a |",
         "| MS-SSIM scales | 4 |", "| PSNR, right half | 21.00 |", "| SSIM, right half | 0.7000 |",
         "| PSNR, tower | 19.88 |", "| PSNR, near ground | 25.00 |", "| PSNR, far background | unavailable |",
         "| PSNR inside distractors (train views vs clean) | 14.26 |", "", "Protocol: left half fitted"]
@@ -424,3 +439,20 @@ def test_write_report_names_the_robust_setting(tmp_path, robust):
     cfg = make_config("ours", {"train": {"robust": robust}})
     report.write_report(tmp_path, {}, cfg, "d", [])
     assert f"- photometric evidence (train.robust): {robust}" in (tmp_path / "report.md").read_text().split("\n")
+
+
+def test_write_report_of_a_config_from_before_robust_says_off(tmp_path):
+    """A config whose train section predates train.robust (no such attribute): "off"."""
+    import dataclasses
+    import types
+
+    cfg = make_config("ours")
+    old_train = types.SimpleNamespace(**{k: v for k, v in dataclasses.asdict(cfg.train).items() if k != "robust"})
+    report.write_report(tmp_path, {}, types.SimpleNamespace(model=cfg.model, train=old_train), "d", [])
+    assert "- photometric evidence (train.robust): off" in (tmp_path / "report.md").read_text().split("\n")
+
+
+def test_colourise_depth_of_a_half_float_depth():
+    """A float16 depth map (a half EXR) is coloured from its inverse in float64."""
+    d = (np.arange(1, 201, dtype=np.float64).reshape(10, 20) * 0.37).astype(np.float16)
+    np.testing.assert_array_equal(report.colourise_depth(d), _turbo(d.astype(np.float64)))
