@@ -181,12 +181,17 @@ def test_ground_spread_is_about_the_median_not_zero():
     """Rows 0, 1, 8, 9 of the columns at 0.1 + 0.012 and rows 2-7 at 0.1 - 0.008 (mean 0 and
     symmetric about the grid's centre: the least-squares plane is z = 0.1): the median residual
     is -0.008, every |res - median| is 0 (60) or 0.02 (40): MAD 0, clearance the cell 0.02
-    (about zero instead: MAD 0.008, clearance 3 x 1.4826 x 0.008 = 0.0356)."""
+    (about zero instead: MAD 0.008, clearance 3 x 1.4826 x 0.008 = 0.0356). Settled on the
+    cloud (`ground.settle_on_cloud`) the plane moves to the median of the points within 0.025 of
+    it: the 100 ground points (the 5 above and the roof lie 0.3 and 0.5 higher), median height
+    0.092, so the offset is -0.092 and it moved 0.008 (then every residual, +0.02 or 0, is in
+    the band and the median is 0: it stops)."""
     pts = _checkerboard(0.0)
     rows = np.repeat(np.arange(10), 10)                  # i of the 100 base points (5..104)
     pts[5:105, 2] = 0.1 + np.where(np.isin(rows, [0, 1, 8, 9]), 0.012, -0.008)
     g = export_run._ground(pts)
-    assert g["offset"] == pytest.approx(-0.1, abs=1e-9) and g["inliers"] == 100
+    assert g["offset"] == pytest.approx(-0.092, abs=1e-9) and g["inliers"] == 100
+    assert g["settled_on"] == 100 and g["settled_shift"] == pytest.approx(-0.008, abs=1e-9)
     assert g["clearance"] == pytest.approx(0.02, abs=1e-12)
 
 
