@@ -11,8 +11,8 @@ Up is +z (`geometry.UP_AXIS`; the normalised scene keeps the world's axes, docs/
 * `settle_on_cloud`: the plane moved along its normal to the median height of all the cloud's
   points within a band around it. The lowest point of a column is the lowest of that column's
   noisy ground points, so the plane through the lowest points lies below the surface by about
-  twice the depths' spread (0.5-0.8 m on a model posed by `poses`, docs/EXPORT.md); the median
-  of every point near the plane does not have that bias.
+  the depths' spread (0.30 m on the GPS chain's model posed by `poses`, 0.14 m on the demo's,
+  docs/EXPORT.md); the median of every point near the plane has no such bias.
 * `tower_box`: the points higher than `clearance` above the plane, binned into cubic cells;
   cells joined when they touch (26-neighbours, after a one-cell dilation that bridges the
   gaps of a lattice); the largest group by point count is the tower. Its box is the group's

@@ -153,8 +153,8 @@ def _render_cloud(params, cfg, ds, ids, progress: bool):
 def _ground(points: np.ndarray) -> dict | None:
     """The ground plane of the dense cloud (normalised): {"normal", "offset", "clearance",
     "inliers", "candidates", "settled_on", "settled_shift"}, or None when it cannot be fitted.
-    The plane of the columns' lowest points (RANSAC), then moved up to the median of every point
-    within GROUND_INLIER of it (`ground.settle_on_cloud`: settled_on points, by settled_shift).
+    The plane of the columns' lowest points (RANSAC), then moved to the median of every point
+    within GROUND_INLIER of it (`ground.settle_on_cloud`: settled_on points; settled_shift > 0 up).
     clearance = max(GROUND_CELL, 3 x the robust spread (1.4826 MAD) of the lowest points' heights)."""
     low = ground.lowest_points(points, GROUND_CELL)
     try:
