@@ -48,16 +48,60 @@ def exported(tmp_path_factory):
                "georeference": GEOREFERENCE}
     cfg = analytic_config()
     af.clear_compiled()
+    run_dir = root / "run"
+    run_dir.mkdir()
+
+    # the stand-ins check what export_run hands them: the run folder, the config's data and
+    # max_side, the call's own dataset / progress / allow_other_data (mutants 11, 51-62, 102)
+    def load_run(folder):
+        assert folder == run_dir
+        return cfg, root / "dataset"
+
+    def dataset_of_run(*args, **kwargs):
+        assert args == (run_dir, root / "dataset", ds, False, False)
+        assert kwargs == {"max_side": cfg.train.max_side}
+        return ds
+
+    def load_params(folder, cfg_, ds_):
+        assert folder == run_dir and cfg_ is cfg and ds_ is ds
+        return af.params(cfg.model), 0
+
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(fields, "apply", af.apply)
-        mp.setattr(runs, "load_run", lambda run_dir: (cfg, None))
-        mp.setattr(runs, "dataset_of_run", lambda *args, **kwargs: ds)
-        mp.setattr(train, "load_params", lambda run_dir, cfg, ds: (af.params(cfg.model), 0))
-        run_dir = root / "run"
-        run_dir.mkdir()
-        meas = export_run.export_run(run_dir, resolution=RESOLUTION, views=8, progress=False)
+        mp.setattr(runs, "load_run", load_run)
+        mp.setattr(runs, "dataset_of_run", dataset_of_run)
+        mp.setattr(train, "load_params", load_params)
+        meas = export_run.export_run(run_dir, resolution=RESOLUTION, views=8, progress=False, dataset=ds)
     af.clear_compiled()
     return meas, run_dir / "export", ds
+
+
+def test_opacity_0_or_1_and_an_occupied_folder_are_refused_before_the_dataset_loads(tmp_path):
+    """export.opacity must lie in (0, 1) open at both ends (0 and 1 refused; mutant 21 let 0
+    through), and a folder holding another program's file is refused without overwrite, its file
+    kept (mutant 4 made overwrite the default); both before the dataset loads (no export runs)."""
+    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.io import DataError
+
+    cfg = analytic_config()
+
+    def not_loaded(*args, **kwargs):
+        raise AssertionError("the dataset was loaded before the checks")
+
+    run_dir = tmp_path / "run"
+    run_dir.mkdir()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(runs, "load_run", lambda folder: (cfg, tmp_path / "dataset"))
+        mp.setattr(runs, "dataset_of_run", not_loaded)
+        for opacity in (0.0, 1.0, -0.5, 1.5):
+            with pytest.raises(ConfigError, match=r"export\.opacity \(of one voxel\) must be in \(0, 1\)"):
+                export_run.export_run(run_dir, opacity=opacity, progress=False)
+        out = run_dir / "export"
+        out.mkdir()
+        (out / "notes.txt").write_text("mine")
+        with pytest.raises(DataError, match="already exists and is not empty; pass overwrite=True"):
+            export_run.export_run(run_dir, progress=False)
+    assert (out / "notes.txt").read_text() == "mine" and sorted(out.iterdir()) == [out / "notes.txt"]
 
 
 def test_ground_height_footprint_and_cross_arm_are_the_towers_in_metres(exported):
