@@ -104,6 +104,29 @@ def test_opacity_0_or_1_and_an_occupied_folder_are_refused_before_the_dataset_lo
     assert (out / "notes.txt").read_text() == "mine" and sorted(out.iterdir()) == [out / "notes.txt"]
 
 
+def test_measurements_json_is_the_returned_record_and_its_timings_split_the_seconds(exported):
+    """measurements.json holds what export_run returned (JSON's floats and lists); its timings
+    are the six stages by name, each a duration (>= 0), that add up to "seconds" (the last,
+    "write", is the rest by construction). No speed is asserted (export_run mutants 118, 119,
+    138, 139: a stage renamed; 120, 141: "+ start" for "- start", a duration of about twice
+    the clock's epoch, and the next one as far below 0)."""
+    import json
+
+    meas, out, _ = exported
+    on_disk = io.read_json(out / "measurements.json")
+    assert on_disk == json.loads(json.dumps(meas))
+    t = meas["timings"]
+    assert list(t) == ["load", "views", "density", "mesh", "colours", "write"]
+    assert all(0.0 <= v <= meas["seconds"] for v in t.values()), t
+    assert sum(t.values()) == pytest.approx(meas["seconds"], rel=1e-9)
+    # the marching-cubes level: -ln(1 - opacity) / h per normalised unit, h = the voxel in metres
+    # x the record's scale (mutant 187: the threshold of a voxel of side `opacity`)
+    op = meas["threshold"]["opacity_per_voxel"]
+    h = meas["voxel_size"] * af.NORMALIZATION["scale"]
+    assert meas["threshold"]["density"] == pytest.approx(-np.log(1 - op) / h, rel=1e-9)
+    assert meas["threshold"]["density_per_unit"] == pytest.approx(-np.log(1 - op) / meas["voxel_size"], rel=1e-9)
+
+
 def test_ground_height_footprint_and_cross_arm_are_the_towers_in_metres(exported):
     meas, _, _ = exported
     voxel = meas["voxel_size"]
