@@ -102,6 +102,7 @@ def geometry_lines(geometry: dict | None) -> list[str]:
 
 
 EXPORT_HEADING = "## Tower model (export)"
+LEGS_MISSING = 0.05   # "lower part missing" when the mesh begins higher than this share of the height
 
 
 def _xyz(v, digits=2) -> str:
@@ -141,6 +142,11 @@ def _survey_lines(m: dict, unit: str) -> list[str]:
         sigma = base.get("sigma")
         spread = f"{_fmt(sigma)} {unit}" if sigma is not None else "(not estimated)"
         lines.append(f"| base centre | {where} +- {spread} |")
+        low = base.get("extrapolated") or 0.0
+        if low > LEGS_MISSING * float(m.get("height") or 0.0) > 0:
+            lines.append(f"| **lower part missing** | the model's tower begins {_fmt(low)} {unit} above the ground: "
+                         "its legs were not reconstructed there, so the base centre and the tilt come from the "
+                         "axis extended down that far (train longer, or add low oblique photos) |")
     vertical = sv.get("vertical")
     if vertical:
         lines.append(f"| heights of the CRS coordinates (base centre, tower_points.las, tower_mesh_crs.ply) | "

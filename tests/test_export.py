@@ -356,6 +356,20 @@ def test_tower_box_finds_the_largest_cluster_above_the_ground():
         ground.tower_box(floor, n, d, 0.03, 0.02)
 
 
+def test_tower_box_reaches_down_to_the_ground_where_the_cloud_missed_the_legs():
+    """A column whose cloud starts 0.3 above flat ground z = -0.2 (the fused views missed its
+    lower legs): the box's bottom is still the clearance above the ground, not the column's
+    lowest point less a cell; the rest is the column's extent plus a cell."""
+    rng = np.random.default_rng(5)
+    floor = np.column_stack([rng.uniform(-0.8, 0.8, (500, 2)), np.full(500, -0.2)])
+    column = np.column_stack([rng.uniform(-0.1, 0.1, (2000, 2)), rng.uniform(0.1, 0.9, 2000)])
+    lo, hi, _ = ground.tower_box(np.concatenate([floor, column]), np.array([0, 0, 1.0]), 0.2, clearance=0.03,
+                                 cell=0.02)
+    assert lo[2] == pytest.approx(-0.2 + 0.03, abs=1e-12)
+    np.testing.assert_allclose(lo[:2], column[:, :2].min(0) - 0.02, atol=1e-12)
+    np.testing.assert_allclose(hi, column.max(0) + 0.02, atol=1e-12)
+
+
 def test_tower_box_on_sloping_ground_clears_its_highest_corner_and_refuses_by_name():
     """Ground sloping in x and in y, each of the four ways (so each bottom corner of the box is
     the highest once), a column of points standing on it: the box is the column's extent plus

@@ -210,8 +210,8 @@ def _meas() -> dict:
     return {"ground": {"clearance": 0.3}, "footprint": {"width_a": 4.0, "width_b": 3.0}, "height": 20.0,
             "cross_arms": {"slice_height": 0.24, "levels": [{"height": 15.0, "span": 12.0},
                                                               {"height": 18.0, "span": 8.0}]},
-            "tilt": {"tilt_degrees": 1.2, "tilt_sigma_degrees": 0.1, "top_offset": 0.4, "top_offset_sigma": 0.05,
-                     "base": [10.0, 20.0, 50.0]},
+            "tilt": {"tilt_degrees": 1.2, "tilt_sigma_degrees": 0.1, "thickness_spread_degrees": 0.2,
+                     "top_offset": 0.4, "top_offset_sigma": 0.05, "base": [10.0, 20.0, 50.0], "lowest_height": 6.0},
             "conductors": {"reconstructed": True, "lowest_height": 12.0}}
 
 
@@ -239,11 +239,15 @@ def _close(got, want, where="") -> None:
 
 def test_survey_record_of_a_full_measurement_by_hand():
     """ground sigma = clearance / 3 = 0.1; a vertex's = voxel / sqrt(12); two ends' = voxel
-    sqrt(2 / 12); a cross-arm's height: hypot(0.1, slice / sqrt(12)); the base centre: lever
-    |base - centroid| = 5 (a 3-4-0 triangle), position 0.5 added; CRS = local + origin."""
+    sqrt(2 / 12); a cross-arm's height: hypot(0.1, slice / sqrt(12)); the tilt's: its fit 0.1 and
+    thickness spread 0.2 degrees in quadrature, the top offset's that spread over the height 20
+    added; the base centre: lever |base - centroid| = 5 (a 3-4-0 triangle), position 0.5 added,
+    and the tilt's error over the 6 m the axis is extended below the lowest point; CRS = local + origin."""
     alignment = {"relative_scale": REL, "position_m": POS, "centroid": [13.0, 24.0, 50.0]}
     sv = export_run._survey(_meas(), GEO, alignment, VOXEL)
     g, vertex, ends = 0.1, VOXEL / math.sqrt(12), VOXEL * math.sqrt(2 / 12)
+    angle = math.sqrt(0.1**2 + 0.2**2)
+    reach = 6.0 * math.tan(math.radians(angle))
     want = {
         "alignment": alignment,
         "height": _fig(20.0, math.hypot(g, vertex)),
@@ -251,12 +255,13 @@ def test_survey_record_of_a_full_measurement_by_hand():
         "cross_arm_heights": [_fig(15.0, math.hypot(g, 0.24 / math.sqrt(12))),
                               _fig(18.0, math.hypot(g, 0.24 / math.sqrt(12)))],
         "cross_arm_spans": [_fig(12.0, ends), _fig(8.0, ends)],
-        "tilt_degrees": {"value": 1.2, "sigma": 0.1, "fit_sigma": 0.1},
-        "top_offset": _fig(0.4, 0.05),
+        "tilt_degrees": {"value": 1.2, "sigma": angle, "fit_sigma": angle},
+        "top_offset": _fig(0.4, math.hypot(0.05, math.radians(0.2) * 20.0)),
         "conductor_clearance": _fig(12.0, math.hypot(g, VOXEL)),
         "base_centre": {"local": [10.0, 20.0, 50.0], "crs": [465010.0, 5247020.0, 150.0], "crs_name": "EPSG:32632",
-                        **{k: v for k, v in _fig(0.0, math.hypot(vertex, g), lever=5.0, position=POS).items()
-                           if k != "value"}},
+                        "extrapolated": 6.0,
+                        **{k: v for k, v in _fig(0.0, math.sqrt(vertex**2 + g**2 + reach**2), lever=5.0,
+                                                 position=POS).items() if k != "value"}},
         "vertical": None}
     assert sv.keys() == want.keys()
     for key, value in want.items():
@@ -272,11 +277,12 @@ def test_survey_record_without_a_ground_a_crs_or_a_centroid():
     assert sv == {"alignment": {"relative_scale": REL}, "height": None, "cross_arm_heights": [],
                   "cross_arm_spans": [], "footprint": None, "tilt_degrees": None, "top_offset": None,
                   "conductor_clearance": None, "base_centre": None, "vertical": None}
-    meas = {**_meas(), "ground": {}, "conductors": {"reconstructed": False}}
+    tilt = {**_meas()["tilt"], "lowest_height": -0.3}            # a mesh reaching below the plane
+    meas = {**_meas(), "ground": {}, "conductors": {"reconstructed": False}, "tilt": tilt}
     sv = export_run._survey(meas, None, {"relative_scale": REL}, VOXEL)
     vertex = VOXEL / math.sqrt(12)
-    _close(sv["base_centre"], {"local": [10.0, 20.0, 50.0], "crs": None, "crs_name": None, "sigma": vertex,
-                               "fit_sigma": vertex})
+    _close(sv["base_centre"], {"local": [10.0, 20.0, 50.0], "crs": None, "crs_name": None, "extrapolated": 0.0,
+                               "sigma": vertex, "fit_sigma": vertex})
     assert sv["conductor_clearance"] is None
     _close(sv["height"], _fig(20.0, vertex))
 

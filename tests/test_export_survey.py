@@ -411,3 +411,46 @@ def test_report_gives_each_figure_with_its_uncertainty():
     assert "30.00 m +- 0.25 m" in text and "17.00 m +- 0.20 m" in text and "1.00 deg +- 0.05 deg" in text
     assert "(465000.000, 5247000.000, 410.000) in EPSG:32632 +- 0.60 m" in text
     assert "not reconstructed: none found" in text
+
+
+def test_axis_tilt_thickness_spread_and_lowest_height_against_a_brute_force_refit():
+    """Sixteen 1 m slices on level ground z = -0.5 (heights z + 0.5), each a 2 x 2 square of 4
+    points around a = 0.1 k, b = -0.05 k at heights k + 0.2, k + 0.8 (slice 0's at 0.1 and 0.9:
+    the slices start at 0.1, clear of every point); each odd slice with a lump 0.002 k^2 beyond its
+    +a side, so the middles of thin and thick slices lie on different lines. The spread is the RMS
+    angle between the 1 m axis and the 2 m and 4 m ones, each refitted here by brute force (bins
+    by floor, middles of the extents, np.polyfit; every deviation is under half a slice, so no
+    slice is left out). Without the lumps every thickness finds the same axis."""
+    def tower(lumps):
+        q = []
+        for k in range(16):
+            a, b, lo = 0.1 * k, -0.05 * k, (0.1 if k == 0 else 0.2)
+            q += [(a - 1, b - 1, k + lo - 0.5), (a + 1, b + 1, k + lo - 0.5), (a - 1, b + 1, k + 1 - lo - 0.5),
+                  (a + 1, b - 1, k + 1 - lo - 0.5)]
+            if lumps and k % 2:
+                q.append((a + 1 + 0.002 * k * k, b, k + 0.5 - 0.5))
+        return np.asarray(q, np.float64)
+
+    def axis(p, t):
+        h = p[:, 2] + 0.5
+        bins = np.floor((h - h.min()) / t).astype(int)
+        rows = [(h[bins == s].mean(), 0.5 * (p[bins == s, 0].min() + p[bins == s, 0].max()),
+                 0.5 * (p[bins == s, 1].min() + p[bins == s, 1].max()))
+                for s in np.unique(bins) if (bins == s).sum() >= 3]
+        c = np.asarray(rows)
+        u = np.array([np.polyfit(c[:, 0], c[:, 1], 1)[0], np.polyfit(c[:, 0], c[:, 2], 1)[0], 1.0])
+        return u / np.linalg.norm(u)
+
+    axes = ([1.0, 0, 0], [0, 1.0, 0])
+    p = tower(lumps=True)
+    tilt = measure.axis_tilt(p, [0, 0, 1.0], 0.5, *axes, 1.0)
+    u1 = axis(p, 1.0)
+    angles = [np.degrees(np.arccos(min(1.0, float(u1 @ axis(p, t))))) for t in (2.0, 4.0)]
+    assert min(angles) > 0.1 and abs(angles[0] - angles[1]) > 0.05   # the thicknesses disagree, unequally
+    np.testing.assert_allclose(tilt["direction"], u1, atol=1e-12)
+    assert tilt["thickness_spread_degrees"] == pytest.approx(np.sqrt(np.mean(np.square(angles))), rel=1e-9)
+    assert tilt["lowest_height"] == pytest.approx(0.1)
+    assert tilt["slices_left_out"] == 0
+    straight = measure.axis_tilt(tower(lumps=False), [0, 0, 1.0], 0.5, *axes, 1.0)
+    assert straight["thickness_spread_degrees"] == pytest.approx(0.0, abs=1e-6)
+    assert straight["tilt_degrees"] == pytest.approx(np.degrees(np.arctan(np.hypot(0.1, 0.05))))

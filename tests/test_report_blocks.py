@@ -283,6 +283,20 @@ def test_survey_lines_local_base_and_conductors_not_reconstructed():
                                 "m")[1] == "| conductors | not reconstructed:  |"
 
 
+def test_survey_lines_say_when_the_lower_part_is_missing():
+    """The base extrapolated 11.08 m on a 30.49 m tower (more than 5 % of it): one row saying so;
+    1.0 m (3.3 %) or exactly 5 %: none; without a height: none."""
+    def lines(low, height):
+        base = {"crs": None, "local": [1.0, 2.0, 3.0], "sigma": 0.5, "extrapolated": low}
+        return report._survey_lines({"height": height, "survey": {"base_centre": base}}, "m")
+
+    got = lines(11.08, 30.49)
+    assert got[1] == "| base centre | (1.000, 2.000, 3.000) (the dataset's frame) +- 0.50 m |"
+    assert len(got) == 3 and got[2].startswith("| **lower part missing** | the model's tower begins 11.08 m above the "
+                                               "ground: its legs were not reconstructed there")
+    assert len(lines(1.0, 30.49)) == 2 and len(lines(0.05 * 40.0, 40.0)) == 2 and len(lines(11.08, None)) == 2
+
+
 def test_weights_figure_panels_by_hand(tmp_path):
     assert report.weights_figure(tmp_path, []) == [] and not (tmp_path / "report_weights.png").exists()
     photo = _image(7)

@@ -47,6 +47,7 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from pathlib import Path
 
+    from jaxnerf_grid import report
     from jaxnerf_grid.export import run
 
     m = run.export_run(args.run, args.out, resolution=args.resolution, box=args.box, opacity=args.threshold,
@@ -63,4 +64,8 @@ def main(argv: list[str] | None = None) -> int:
         height += f", axis tilted {m['tilt']['tilt_degrees']:.2f} deg from vertical"
     print(f"tower height {height}; mesh {m['mesh']['vertices']} vertices, {m['mesh']['faces']} faces; "
           f"{m['points']['count']} fused points; {m['seconds']:.0f} s; files in {out}")
+    low = (((m.get("survey") or {}).get("base_centre")) or {}).get("extrapolated") or 0.0
+    if m["height"] and low > report.LEGS_MISSING * m["height"]:
+        print(f"warning: the model's tower begins {low:.2f} {unit} above the ground (its legs were not "
+              "reconstructed there): the base centre and the tilt are extrapolated (docs/EXPORT.md)")
     return 0

@@ -16,8 +16,11 @@ Up is +z (`geometry.UP_AXIS`; the normalised scene keeps the world's axes, docs/
 * `tower_box`: the points higher than `clearance` above the plane, binned into cubic cells;
   cells joined when they touch (26-neighbours, after a one-cell dilation that bridges the
   gaps of a lattice); the largest group by point count is the tower. Its box is the group's
-  extent plus one cell on every side, its bottom raised to `clearance` above the plane at
-  the box's highest bottom corner (so the ground is not meshed).
+  extent plus one cell on every side in x, y and at the top; its bottom is `clearance` above
+  the plane at the box's highest bottom corner (so the ground is not meshed), also where the
+  group itself starts higher: a tower stands on the ground, and a cloud fused from a few
+  views can miss the lower legs that the field still holds (the GPS chain's model of
+  docs/EXPORT.md: the cloud's tower began 11 m above the ground).
 """
 
 from __future__ import annotations
@@ -157,7 +160,7 @@ def tower_box(points: np.ndarray, normal, d: float, clearance: float,
     tower = above[largest_cluster(above, cell)]
     lo, hi = tower.min(axis=0) - cell, tower.max(axis=0) + cell
     corners_z = plane_z(normal, d, np.array([lo[0], lo[0], hi[0], hi[0]]), np.array([lo[1], hi[1], lo[1], hi[1]]))
-    lo[UP] = max(float(corners_z.max()) + clearance, float(tower[:, UP].min()) - cell)
+    lo[UP] = float(corners_z.max()) + clearance   # a tower stands on the ground, seen or not
     if lo[UP] >= hi[UP]:
         raise ValueError("the tower's box is empty above the ground")
     return lo, hi, {"above_ground": int(len(above)), "tower_points": int(len(tower))}

@@ -206,28 +206,11 @@ def _line_fit(h: np.ndarray, v: np.ndarray) -> tuple[float, float, float]:
     return a, b, (float(np.sqrt(r @ r / dof / sxx)) if dof > 0 else 0.0)
 
 
-def axis_tilt(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_height: float,
-              ratio: float = 1.5, min_points: int = 3) -> dict | None:
-    """The tower's axis and its tilt. points [N, 3] (mesh vertices), the ground plane n . x + d = 0,
-    the footprint's axes (unit, in the plane), slices `slice_height` thick in height above the plane.
-
-    Each slice with >= min_points points and no wide member (its widths along a and b within
-    `ratio` of each other: the cross-arms are left out) gives a centre: the middle of its extent
-    along a and along b (a lattice's faces are symmetric about the axis, so is that middle) at
-    its mean height h. Lines a(h), b(h) are fitted by least squares, once more without the slices
-    more than 3 x 1.4826 MAD off; the axis is u = normalise(n + b_a e_a + b_b e_b) (b_a, b_b the
-    slopes). Returns None with fewer than 3 slices, else
-    {"tilt_degrees": angle of u from the frame's +z, "tilt_from_ground_normal_degrees": from n,
-    "tilt_sigma_degrees": atan of the slopes' standard errors (RMS of the two),
-    "direction" [3] (u, u_z > 0), "base" [3] (the axis at the ground), "top" [3] (the axis at the
-    highest point's height), "top_offset" (|top - base| horizontally, in x, y), "top_offset_xy" [2],
-    "top_offset_sigma" (tilt_sigma in radians x the height), "slices": used, "slices_left_out"}."""
-    p = np.asarray(points, np.float64).reshape(-1, 3)
-    n = np.asarray(normal, np.float64)
-    e_a, e_b = np.asarray(axis_a, np.float64), np.asarray(axis_b, np.float64)
-    if len(p) < 3 * min_points:
-        return None
-    h, a, b = p @ n + d, p @ e_a, p @ e_b
+def _slice_centres(h: np.ndarray, a: np.ndarray, b: np.ndarray, slice_height: float, ratio: float,
+                   min_points: int) -> np.ndarray:
+    """The centres of the slices without a wide member (axis_tilt's docstring): h, a, b [N] the
+    points' heights and coordinates along the footprint's axes. Returns [K, 3] (mean height,
+    middle along a, middle along b), K >= 0."""
     edges = np.arange(h.min(), h.max() + slice_height, slice_height)
     idx = np.clip(np.digitize(h, edges) - 1, 0, max(len(edges) - 2, 0))
     rows = []
@@ -239,9 +222,13 @@ def axis_tilt(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_height
         if max(wa, wb) > ratio * max(min(wa, wb), 1e-9):
             continue
         rows.append((h[sel].mean(), 0.5 * (a[sel].min() + a[sel].max()), 0.5 * (b[sel].min() + b[sel].max())))
-    if len(rows) < 3:
-        return None
-    c = np.asarray(rows)
+    return np.asarray(rows, np.float64).reshape(-1, 3)
+
+
+def _axis_lines(c: np.ndarray, slice_height: float) -> tuple[tuple, tuple, np.ndarray]:
+    """Lines a(h), b(h) through slice centres c [K >= 3, 3] (axis_tilt's docstring: least squares,
+    again without the centres more than 3 x 1.4826 MAD off). Returns (fit_a, fit_b, keep [K] bool),
+    each fit (intercept, slope, slope's standard error)."""
     keep = np.ones(len(c), bool)
     for _ in range(2):
         fa, fb = _line_fit(c[keep, 0], c[keep, 1]), _line_fit(c[keep, 0], c[keep, 2])
@@ -251,7 +238,55 @@ def axis_tilt(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_height
         if new.sum() < 3 or np.array_equal(new, keep):
             break
         keep = new
-    fa, fb = _line_fit(c[keep, 0], c[keep, 1]), _line_fit(c[keep, 0], c[keep, 2])
+    return _line_fit(c[keep, 0], c[keep, 1]), _line_fit(c[keep, 0], c[keep, 2]), keep
+
+
+def _slopes_angle(s1, s2) -> float:
+    """Angle in degrees between the axes n + s_a e_a + s_b e_b of two slope pairs (s_a, s_b)."""
+    u1, u2 = np.array([s1[0], s1[1], 1.0]), np.array([s2[0], s2[1], 1.0])
+    cos = float(u1 @ u2) / float(np.linalg.norm(u1) * np.linalg.norm(u2))
+    return float(np.degrees(np.arccos(min(1.0, cos))))
+
+
+def axis_tilt(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_height: float,
+              ratio: float = 1.5, min_points: int = 3, thicker: tuple = (2.0, 4.0)) -> dict | None:
+    """The tower's axis and its tilt. points [N, 3] (mesh vertices), the ground plane n . x + d = 0,
+    the footprint's axes (unit, in the plane), slices `slice_height` thick in height above the plane.
+
+    Each slice with >= min_points points and no wide member (its widths along a and b within
+    `ratio` of each other: the cross-arms are left out) gives a centre: the middle of its extent
+    along a and along b (a lattice's faces are symmetric about the axis, so is that middle) at
+    its mean height h. Lines a(h), b(h) are fitted by least squares, once more without the slices
+    more than 3 x 1.4826 MAD off; the axis is u = normalise(n + b_a e_a + b_b e_b) (b_a, b_b the
+    slopes). The same fit with slices `thicker` times as thick gives other axes: on a clean mesh
+    they agree, on a blobby one (a model's lumps bias the slices' middles, the more the thinner
+    the slices) they do not, and their spread is a systematic error the fit's own scatter misses.
+    Returns None with fewer than 3 slices, else
+    {"tilt_degrees": angle of u from the frame's +z, "tilt_from_ground_normal_degrees": from n,
+    "tilt_sigma_degrees": atan of the slopes' standard errors (RMS of the two),
+    "thickness_spread_degrees": the RMS angle between u and the thicker slices' axes (those with
+    3 or more slices; 0 when none has),
+    "direction" [3] (u, u_z > 0), "base" [3] (the axis at the ground), "top" [3] (the axis at the
+    highest point's height), "top_offset" (|top - base| horizontally, in x, y), "top_offset_xy" [2],
+    "top_offset_sigma" (tilt_sigma in radians x the height), "lowest_height" (the lowest point's
+    height above the plane: how far down the base is extrapolated), "slices": used,
+    "slices_left_out"}."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    n = np.asarray(normal, np.float64)
+    e_a, e_b = np.asarray(axis_a, np.float64), np.asarray(axis_b, np.float64)
+    if len(p) < 3 * min_points:
+        return None
+    h, a, b = p @ n + d, p @ e_a, p @ e_b
+    c = _slice_centres(h, a, b, slice_height, ratio, min_points)
+    if len(c) < 3:
+        return None
+    fa, fb, keep = _axis_lines(c, slice_height)
+    angles = []
+    for k in thicker:
+        ck = _slice_centres(h, a, b, slice_height * float(k), ratio, min_points)
+        if len(ck) >= 3:
+            ka, kb, _ = _axis_lines(ck, slice_height * float(k))
+            angles.append(_slopes_angle((fa[1], fb[1]), (ka[1], kb[1])))
 
     def at(height):   # the axis at a height: x . e_a = a(h), x . e_b = b(h), x . n + d = h
         return (fa[0] + fa[1] * height) * e_a + (fb[0] + fb[1] * height) * e_b + (height - d) * n
@@ -265,10 +300,13 @@ def axis_tilt(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_height
     offset = top[:2] - base[:2]
     return {"tilt_degrees": float(np.degrees(np.arccos(np.clip(u[2], -1.0, 1.0)))),
             "tilt_from_ground_normal_degrees": float(np.degrees(np.arctan(np.hypot(fa[1], fb[1])))),
-            "tilt_sigma_degrees": sigma, "direction": [float(v) for v in u], "base": [float(v) for v in base],
+            "tilt_sigma_degrees": sigma,
+            "thickness_spread_degrees": float(np.sqrt(np.mean(np.square(angles)))) if angles else 0.0,
+            "direction": [float(v) for v in u], "base": [float(v) for v in base],
             "top": [float(v) for v in top], "top_offset": float(np.hypot(*offset)),
             "top_offset_xy": [float(v) for v in offset],
             "top_offset_sigma": float(np.radians(sigma) * float(h.max())),
+            "lowest_height": float(h.min()),
             "slices": int(keep.sum()), "slices_left_out": int(len(c) - keep.sum())}
 
 

@@ -375,7 +375,10 @@ def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict
     (docs/EXPORT.md "Survey outputs and uncertainty"), the tower's base centre (local and CRS), the alignment's
     terms. fit terms: ground = the ground inliers' robust spread (its clearance / 3), a vertex's
     height = voxel / sqrt(12), a cross-arm's = its slice height / sqrt(12); a width or span (two
-    ends) = voxel sqrt(2 / 12)."""
+    ends) = voxel sqrt(2 / 12); the tilt's = its fit's scatter and its thickness spread in
+    quadrature (`measure.axis_tilt`), the top offset's the same angle at the height; the base
+    centre's adds the tilt's error over the height the axis is extended below the model's lowest
+    point (`extrapolated`, export units)."""
     g = meas.get("ground") or {}
     ground_sigma = float(g.get("clearance", 0.0)) / 3.0
     vertex = voxel / math.sqrt(12.0)
@@ -396,18 +399,24 @@ def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict
         out["cross_arm_spans"].append(survey.with_sigma(level["span"], ends, alignment))
     tilt = meas.get("tilt")
     if tilt:
-        # the angle does not scale: the fit's error only (the frame's own vertical error is not in it)
-        out["tilt_degrees"] = {"value": tilt["tilt_degrees"], "sigma": tilt["tilt_sigma_degrees"],
-                               "fit_sigma": tilt["tilt_sigma_degrees"]}
-        out["top_offset"] = survey.with_sigma(tilt["top_offset"], tilt["top_offset_sigma"], alignment)
+        # the angle does not scale: the fit's scatter and its spread over slice thicknesses (the
+        # frame's own vertical error is not in it)
+        spread = float(tilt.get("thickness_spread_degrees", 0.0))
+        angle = math.hypot(tilt["tilt_sigma_degrees"], spread)
+        out["tilt_degrees"] = {"value": tilt["tilt_degrees"], "sigma": angle, "fit_sigma": angle}
+        out["top_offset"] = survey.with_sigma(tilt["top_offset"], math.hypot(
+            tilt["top_offset_sigma"], math.radians(spread) * float(meas.get("height") or 0.0)), alignment)
         base = np.asarray(tilt["base"], np.float64)
         lever = float(np.linalg.norm(base - np.asarray(alignment.get("centroid", base), np.float64)))
+        # the base is the axis extended down from the model's lowest point: its angle's error there
+        extrapolated = max(float(tilt.get("lowest_height", 0.0)), 0.0)
+        reach = extrapolated * math.tan(math.radians(angle))
         crs_name, _ = survey.crs_of(geo)
         out["base_centre"] = {"local": [float(v) for v in base],
                               "crs": [float(v) for v in survey.to_crs(base, geo)] if crs_name else None,
-                              "crs_name": crs_name,
-                              **survey.with_sigma(0.0, math.hypot(vertex, ground_sigma), alignment, lever=lever,
-                                                    position=True)}
+                              "crs_name": crs_name, "extrapolated": extrapolated,
+                              **survey.with_sigma(0.0, math.sqrt(vertex ** 2 + ground_sigma ** 2 + reach ** 2),
+                                                    alignment, lever=lever, position=True)}
         out["base_centre"].pop("value", None)
     cond = meas.get("conductors") or {}
     if cond.get("reconstructed"):
