@@ -4,6 +4,7 @@ report's place), each against answers worked out by hand in the test, without an
 
 import math
 import sys
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -1000,3 +1001,28 @@ def test_vertical_crs_refusals_and_the_datum():
     with pytest.raises(DataError, match=r"^export\.vertical_crs = 'EPSG:32632' is not a vertical CRS "
                                         r"\(WGS 84 / UTM zone 32N\); e\.g\. EPSG:5773, EGM96 height$"):
         geoid.vertical_crs("EPSG:32632", "g.gtx")
+
+
+def test_export_cli_warns_in_one_line_when_the_model_lacks_the_lower_part(monkeypatch, tmp_path, capsys):
+    """`jaxnerf-grid export` on a run whose mesh begins 10.79 m above the ground of a 30.53 m
+    tower (more than 5 %): one warning naming the height (the CLI prints it as one line); at
+    1.0 m none. The
+    export itself is a stand-in returning measurements.json's keys the CLI reads."""
+    from jaxnerf_grid import cli
+    from jaxnerf_grid.export import run as run_lib
+
+    def fake(low):
+        return lambda *a, **k: {"units": "metres", "height": 30.53, "tilt": {"tilt_degrees": 0.77},
+                                "survey": {"height": {"sigma": 0.29}, "base_centre": {"extrapolated": low}},
+                                "mesh": {"vertices": 3, "faces": 1}, "points": {"count": 5}, "seconds": 1.0}
+
+    monkeypatch.setattr(run_lib, "export_run", fake(10.79))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
+    assert [str(w.message)[:52] for w in caught] == ["the model's tower begins 10.79 m above the ground (i"]
+    monkeypatch.setattr(run_lib, "export_run", fake(1.0))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
+    assert caught == [] and "tower height 30.53 m +- 0.29 m" in capsys.readouterr().out

@@ -11,6 +11,7 @@ and the "Tower model" section of the run's report.md; docs/EXPORT.md.
 from __future__ import annotations
 
 import argparse
+import warnings
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -66,6 +67,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{m['points']['count']} fused points; {m['seconds']:.0f} s; files in {out}")
     low = (((m.get("survey") or {}).get("base_centre")) or {}).get("extrapolated") or 0.0
     if m["height"] and low > report.LEGS_MISSING * m["height"]:
-        print(f"warning: the model's tower begins {low:.2f} {unit} above the ground (its legs were not "
-              "reconstructed there): the base centre and the tilt are extrapolated (docs/EXPORT.md)")
+        warnings.warn(f"the model's tower begins {low:.2f} {unit} above the ground (its legs were not "
+                      "reconstructed there): the base centre and the tilt are extrapolated (docs/EXPORT.md)",
+                      stacklevel=1)
     return 0
