@@ -91,3 +91,17 @@ def confirmation_errors(images: jnp.ndarray, c2w: jnp.ndarray, intrinsics: jnp.n
     theirs = neighbourhoods(images, others, pv, pu)                    # [N, K, 9, 3]
     error = jnp.mean((theirs - own[:, None]) ** 2, axis=(-2, -1))      # [N, K]
     return jnp.min(jnp.where(inside, error, jnp.inf), axis=-1, initial=jnp.inf)
+
+
+def confirmed_at_ids(images: jnp.ndarray, c2w: jnp.ndarray, intrinsics: jnp.ndarray, neighbours: jnp.ndarray,
+                     ids: jnp.ndarray, points: jnp.ndarray, threshold: float) -> jnp.ndarray:
+    """Which pixels a neighbouring photo confirms: the training step's join.
+
+    ids: [N] flat pixel indices into the training frames [T, H, W] (frame * H * W + row * W +
+    col, as `robust.draw_patches` and `train.gather_batch` number them); points: [N, 3] each
+    pixel's 3-D point (world); the rest as `confirmation_errors`. Returns [N] float32: 1.0 where
+    the smallest 3x3 difference is at most `threshold`, else 0.0."""
+    _, height, width, _ = images.shape
+    frame, pixel = ids // (height * width), ids % (height * width)
+    error = confirmation_errors(images, c2w, intrinsics, neighbours, frame, pixel // width, pixel % width, points)
+    return (error <= threshold).astype(jnp.float32)

@@ -250,12 +250,9 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
 
     def confirmed_pixels(pool, ids, batch, depth):
         """[B] 1.0 where a neighbouring photo confirms the pixel at its rendered depth."""
-        frames_, height, width = pool["weights"].shape
-        frame, pix = ids // (height * width), ids % (height * width)
         points = batch["origins"] + batch["directions"] * depth[:, None]
-        error = photo_consistency.confirmation_errors(pool["images"], pool["c2w"], pool["intrinsics"],
-                                                      pool["neighbours"], frame, pix // width, pix % width, points)
-        return (error <= tcfg.robust_confirm).astype(jnp.float32)
+        return photo_consistency.confirmed_at_ids(pool["images"], pool["c2w"], pool["intrinsics"],
+                                                  pool["neighbours"], ids, points, tcfg.robust_confirm)
 
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)

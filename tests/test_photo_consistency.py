@@ -131,3 +131,24 @@ def test_a_static_wall_is_confirmed_and_a_pasted_square_is_not():
                                               jnp.asarray(points * 0.5 + np.asarray(c2w[1, :3, 3]) * 0.5)))
     wrong = wrong.reshape(24, 32)[static]
     assert np.mean(wrong[np.isfinite(wrong)]) > 3 * np.mean(err[static]), (wrong.mean(), err[static].mean())
+
+
+def test_confirmed_at_ids_splits_flat_ids_as_numpy_unravels_them():
+    """The training step's join: flat pixel ids into [T, H, W] frames (H = 16 != W = 20, so rows
+    and columns cannot be crossed unseen) -> frame, row, col by np.unravel_index -> the NumPy
+    loop's errors -> 1 at most the threshold (the middle one of them: both answers occur, and one error
+    equals it), else 0."""
+    rng = np.random.default_rng(7)
+    c2w = cameras([-0.6, -0.2, 0.2, 0.6])
+    intr = np.tile(np.array([[30.0, 30.0, 10.0, 8.0]], np.float32), (4, 1))
+    images = rng.uniform(size=(4, 16, 20, 3)).astype(np.float32)
+    neighbours = pc.neighbour_frames(c2w, 2)
+    ids = rng.integers(0, 4 * 16 * 20, 80)
+    points = rng.uniform([-1.5, -1.2, -0.5], [1.5, 1.2, 0.5], (80, 3)).astype(np.float32)
+    frame, row, col = np.unravel_index(ids, (4, 16, 20))
+    want_err = reference_errors(images, c2w, intr, neighbours, frame, row, col, points)
+    threshold = float(np.sort(want_err[np.isfinite(want_err)])[np.isfinite(want_err).sum() // 2])  # one of them
+    got = np.asarray(pc.confirmed_at_ids(*map(jnp.asarray, (images, c2w, intr, neighbours, ids, points)), threshold))
+    want = (want_err <= threshold).astype(np.float32)
+    assert 10 < want.sum() < 70 and got.dtype == np.float32
+    np.testing.assert_array_equal(got, want)
