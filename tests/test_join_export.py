@@ -247,6 +247,7 @@ def test_the_files_headers_the_marker_and_the_cleared_folder(exported):
     pixels are drawn; splat 0 or 2 draws far fewer or more)."""
     import plyfile
 
+    from jaxnerf_grid import report
     from jaxnerf_grid.export import measure
 
     meas, out, _ = exported
@@ -266,7 +267,8 @@ def test_the_files_headers_the_marker_and_the_cleared_folder(exported):
     assert (out / ".jaxnerf-grid-export").read_text() == ("written by jaxnerf-grid export; its overwrite=True may "
                                                          "clear this command's outputs here\n")
     assert not (out / "report.md").exists() and (out / "notes.txt").read_text() == "mine"
-    assert (out.parent / "report.md").is_file()
+    md = (out.parent / "report.md").read_text()       # the run's report gets the export's section (mutant 780)
+    assert report.EXPORT_HEADING in md and "(export/export_views.png)" in md
     box = io.read_json(out / "box.json")
     assert set(box) == {"min", "max", "source", "above_ground", "tower_points", "units", "frame", "normalised"}
     assert set(box["normalised"]) == {"min", "max"} and box["units"] == "metres"
