@@ -4,7 +4,9 @@ fused, the ground fitted, the box found, the mesh extracted and measured, all ch
 against the tower's exact geometry (a normalisation with a turn, a scale and a translation, from
 a metric frame tilted by 20 degrees: the ground's normal in metres is not z)."""
 
+import resource
 import sys
+import time
 from pathlib import Path
 
 import numpy as np
@@ -25,6 +27,9 @@ RESOLUTION = 40
 GEOREFERENCE = {"units": "metres", "source": "gps", "crs": "EPSG:32632", "crs_name": "WGS 84 / UTM zone 32N",
                 "origin": [465000.0, 5247000.0, 0.0], "gps": {"photos": 25, "registered": 25, "inliers": 25,
                                                                "rms_m": 3.0, "residuals": []}}
+
+
+BRACKET = {}   # the fixture's own clock and peak memory around export_run (`exported`)
 
 
 def reference() -> np.ndarray:
@@ -66,14 +71,28 @@ def exported(tmp_path_factory):
         assert folder == run_dir and cfg_ is cfg and ds_ is ds
         return af.params(cfg.model), 0
 
+    # the folder of an earlier export (its marker), with a stale report of export's own and a
+    # user's note: overwrite=True clears the first and keeps the second
+    out = run_dir / "export"
+    out.mkdir()
+    (out / ".jaxnerf-grid-export").write_text("an earlier export\n")
+    (out / "report.md").write_text("stale")
+    (out / "notes.txt").write_text("mine")
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(fields, "apply", af.apply)
         mp.setattr(runs, "load_run", load_run)
         mp.setattr(runs, "dataset_of_run", dataset_of_run)
         mp.setattr(train, "load_params", load_params)
-        meas = export_run.export_run(run_dir, resolution=RESOLUTION, views=8, progress=False, dataset=ds)
+        # the clock and the process's peak memory on either side of the call (what the record's
+        # "seconds" and "peak_memory_mib" must lie between; no speed is asserted)
+        rss_before = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0
+        t0 = time.perf_counter()
+        meas = export_run.export_run(run_dir, resolution=RESOLUTION, views=8, progress=False, dataset=ds,
+                                     overwrite=True)
+        BRACKET.update(seconds=time.perf_counter() - t0, rss_before=rss_before,
+                       rss_after=resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024.0)
     af.clear_compiled()
-    return meas, run_dir / "export", ds
+    return meas, out, ds
 
 
 def test_opacity_0_or_1_and_an_occupied_folder_are_refused_before_the_dataset_loads(tmp_path):
@@ -125,6 +144,141 @@ def test_measurements_json_is_the_returned_record_and_its_timings_split_the_seco
     h = meas["voxel_size"] * af.NORMALIZATION["scale"]
     assert meas["threshold"]["density"] == pytest.approx(-np.log(1 - op) / h, rel=1e-9)
     assert meas["threshold"]["density_per_unit"] == pytest.approx(-np.log(1 - op) / meas["voxel_size"], rel=1e-9)
+
+
+RECORD_KEYS = {"units", "run", "step", "box", "resolution", "grid", "voxel_size", "threshold", "mesh", "points",
+               "ground", "height", "footprint", "cross_arms", "tilt", "conductors", "survey", "seconds", "timings",
+               "peak_memory_mib"}
+
+
+def test_the_record_names_its_figures_and_its_grid_mesh_and_points_are_the_files_by_hand(exported):
+    """measurements.json's names, written out here (a renamed key is a figure the report and the
+    page no longer find), and the figures that the files fix: the grid of the normalised box
+    (ceil(extent / h) voxels per axis, h = the longest side / resolution), the mesh's vertex and
+    face counts and closedness (every edge in two faces, counted here) from tower_mesh.ply, the
+    8 fused views, "seconds" within the fixture's own clock around the call and the peak memory
+    between the process's peak before and after it (export_run mutants 218-785)."""
+    import collections
+
+    import plyfile
+
+    meas, out, ds = exported
+    scale = af.NORMALIZATION["scale"]
+    assert set(meas) == RECORD_KEYS
+    assert set(meas["box"]) == {"min", "max", "source", "above_ground", "tower_points"}
+    assert set(meas["threshold"]) == {"opacity_per_voxel", "density", "density_per_unit", "definition"}
+    assert meas["threshold"]["definition"] == ("sigma = -ln(1 - opacity) / voxel_size (docs/EXPORT.md); 'density' "
+                                               "per normalised scene unit, 'density_per_unit' per export unit")
+    assert meas["threshold"]["opacity_per_voxel"] == 0.05                   # export's default
+    assert set(meas["mesh"]) == {"vertices", "faces", "closed", "components", "kept_components",
+                                 "kept_face_fraction", "kept_vertex_fraction", "min_component_fraction"}
+    assert set(meas["points"]) == {"count", "views", "min_views", "lifted", "kept"}
+    assert set(meas["ground"]) == {"normal", "offset", "equation", "tilt_degrees", "clearance", "inliers",
+                                   "candidates", "settled_on", "settled_shift"}
+    assert meas["run"] == str(out.parent) and meas["step"] == 0 and meas["resolution"] == RESOLUTION
+    # the grid by hand from box.json's normalised box
+    box = io.read_json(out / "box.json")
+    lo, hi = np.array(box["normalised"]["min"]), np.array(box["normalised"]["max"])
+    h = float(np.max(hi - lo)) / RESOLUTION
+    assert meas["grid"] == [int(np.ceil(e / h - 1e-9)) + 1 for e in hi - lo]
+    assert meas["voxel_size"] == pytest.approx(h / scale, rel=1e-12)
+    # the mesh as written
+    ply = plyfile.PlyData.read(str(out / "tower_mesh.ply"))
+    faces = np.vstack(ply["face"]["vertex_indices"])
+    assert meas["mesh"]["vertices"] == len(ply["vertex"]) > 100 and meas["mesh"]["faces"] == len(faces)
+    edges = collections.Counter(tuple(sorted(e)) for f in faces.tolist() for e in ((f[0], f[1]), (f[1], f[2]),
+                                                                                  (f[2], f[0])))
+    assert meas["mesh"]["closed"] is all(c == 2 for c in edges.values())
+    assert meas["mesh"]["min_component_fraction"] == 0.002
+    # the 8 views: distinct training frames, the first and the last among them; each point from 2 more
+    train_ids = [int(i) for i in ds.split["train"]]
+    views = meas["points"]["views"]
+    assert len(set(views)) == 8 and set(views) <= set(train_ids) and views == sorted(views)
+    assert views[0] == train_ids[0] and views[-1] == train_ids[-1] and meas["points"]["min_views"] == 2
+    assert meas["points"]["lifted"] >= meas["points"]["kept"] >= meas["points"]["count"]
+    # the ground's record: its equation in words, the clearance at least one ground cell (0.02
+    # normalised units: 0.4 m at scale 0.05), the settling within the inlier band (0.025: 0.5 m)
+    g = meas["ground"]
+    assert g["equation"] == "normal . x + offset = 0"
+    assert 0.02 / scale - 1e-9 <= g["clearance"] < 2.0
+    assert abs(g["settled_shift"]) <= 0.025 / scale
+    assert g["candidates"] >= g["inliers"] > 0 and g["settled_on"] > 0
+    # the clock and the memory the fixture read around the call
+    assert 0.0 < meas["seconds"] <= BRACKET["seconds"]
+    assert BRACKET["rss_before"] <= meas["peak_memory_mib"] <= BRACKET["rss_after"]
+
+
+def test_the_measures_get_their_bands_and_slices_by_hand(exported):
+    """The footprint's band, the cross-arms' and the tilt's slices and the conductors' lowest
+    height as export's rules set them, worked out here from tower_mesh.ply and the published
+    plane: heights = normal . x + offset; the band max(5 % of the height range, 2 voxels) from
+    the lowest vertex; slices max(1 % of the height, 2 voxels); conductors looked for above half
+    the lowest arm. The tilt is `measure.axis_tilt` (its own tests: tests/test_export_survey.py)
+    of the written mesh with that slice (export_run mutants 462, 477-487, 510-518, 538-546, 573-581)."""
+    from jaxnerf_grid.export import measure
+
+    meas, out, _ = exported
+    voxel = meas["voxel_size"]
+    verts = io.read_ply_points(out / "tower_mesh.ply").astype(np.float64)
+    n, d = np.asarray(meas["ground"]["normal"]), meas["ground"]["offset"]
+    heights = verts @ n + d
+    assert meas["height"] == pytest.approx(heights.max(), abs=1e-4)
+    band = max(0.05 * (heights.max() - heights.min()), 2 * voxel)
+    np.testing.assert_allclose(meas["footprint"]["band"], [heights.min(), heights.min() + band], atol=1e-4)
+    slice_height = max(0.01 * meas["height"], 2 * voxel)
+    assert meas["cross_arms"]["slice_height"] == pytest.approx(slice_height, rel=1e-12)
+    levels = meas["cross_arms"]["levels"]
+    assert levels and meas["conductors"]["min_height"] == pytest.approx(0.5 * min(lv["height"] for lv in levels),
+                                                                        rel=1e-12)
+    fp = meas["footprint"]
+    want = measure.axis_tilt(verts, n, d, fp["axis_a"], fp["axis_b"], slice_height)
+    got = meas["tilt"]
+    assert got["slices"] == want["slices"] and got["slices_left_out"] == want["slices_left_out"]
+    assert got["tilt_degrees"] == pytest.approx(want["tilt_degrees"], abs=1e-3)
+    np.testing.assert_allclose(got["direction"], want["direction"], atol=1e-4)
+
+
+def test_the_files_headers_the_marker_and_the_cleared_folder(exported):
+    """The PLY headers' comments word for word (the units, the run and step, the level and
+    voxel, the views and min_views, the CRS mesh's origin and heights); export's marker text;
+    overwrite=True cleared the earlier export's stale report.md and kept the user's note;
+    box.json's names; export_views.png drawn with 3 x 3 splats: its drawn pixels are those of
+    `measure.orthographic_views(..., splat=1)` of the written mesh (no shading changes which
+    pixels are drawn; splat 0 or 2 draws far fewer or more)."""
+    import plyfile
+
+    from jaxnerf_grid import report
+    from jaxnerf_grid.export import measure
+
+    meas, out, _ = exported
+    run = str(out.parent)
+    units = ("units: metres (the dataset's scene_normalization undone: x = R^T x_norm / scale - translation, "
+             "R the identity without a rotation)")
+    head = [units, f"jaxnerf-grid export of {run} at step 0"]
+    level = meas["threshold"]["density"]
+    mesh_ply = plyfile.PlyData.read(str(out / "tower_mesh.ply"))
+    assert mesh_ply.comments == head + [f"marching cubes at density {level:.6g} per normalised unit (one voxel 0.05 "
+                                        f"opaque), voxel {meas['voxel_size']:.4g}"]
+    assert plyfile.PlyData.read(str(out / "tower_points.ply")).comments == head + [
+        "depth of 8 views fused, each point confirmed by >= 2 other views"]
+    assert plyfile.PlyData.read(str(out / "tower_mesh_crs.ply")).comments == [
+        "crs: EPSG:32632 (WGS 84 / UTM zone 32N); x = tower_mesh.ply's x + origin [465000.0, 5247000.0, 0.0]",
+        f"heights: {meas['survey']['vertical']['reference']}", f"jaxnerf-grid export of {run} at step 0"]
+    assert (out / ".jaxnerf-grid-export").read_text() == ("written by jaxnerf-grid export; its overwrite=True may "
+                                                         "clear this command's outputs here\n")
+    assert not (out / "report.md").exists() and (out / "notes.txt").read_text() == "mine"
+    md = (out.parent / "report.md").read_text()       # the run's report gets the export's section (mutant 780)
+    assert report.EXPORT_HEADING in md and "(export/export_views.png)" in md
+    box = io.read_json(out / "box.json")
+    assert set(box) == {"min", "max", "source", "above_ground", "tower_points", "units", "frame", "normalised"}
+    assert set(box["normalised"]) == {"min", "max"} and box["units"] == "metres"
+    assert {k: box[k] for k in meas["box"]} == meas["box"]
+    ply = io.read_ply(out / "tower_mesh.ply")
+    verts = np.column_stack([ply["x"], ply["y"], ply["z"]]).astype(np.float64)
+    rgb = np.column_stack([ply["red"], ply["green"], ply["blue"]]) / 255.0
+    drawn = np.any(io.read_image(out / "export_views.png") < 1.0, axis=-1)
+    want = np.any(measure.orthographic_views(verts, rgb, None, splat=1) < 1.0 - 0.5 / 255, axis=-1)
+    assert drawn.shape == want.shape and np.mean(drawn != want) < 0.002 and drawn.sum() > 1000
 
 
 def test_ground_height_footprint_and_cross_arm_are_the_towers_in_metres(exported):
@@ -379,6 +533,58 @@ def test_a_tower_tilted_1_degree_is_measured_within_0_3_degrees(tmp_path):
     assert got["top_offset"] == pytest.approx(meas["height"] * np.tan(t), abs=0.1)
     np.testing.assert_allclose(got["base"][:2], af.CENTRE, atol=meas["voxel_size"])
     assert meas["units"] == "metres" and meas["survey"]["alignment"]["relative_scale"] == 0.0   # synthetic: exact
+
+
+def test_a_given_box_without_a_surface_is_refused_and_nothing_is_written(tmp_path):
+    """A box given in metres (the body's box grown 1 m, mapped to the metric frame, its 8 corners
+    taken to the normalised scene here by the record's closed form x_norm = s R (x + t)): the
+    density grid is asked for that box's grid (h = the longest side / resolution, ceil(extent / h)
+    voxels, centred); a density that never reaches the level -ln(1 - 0.05) / h (the grid's
+    stand-in returns zeros) is refused with the level and the opacity named, and nothing is
+    written (export_run mutants 65-77 and 153: the given box lost; 233, 234: no surface let
+    through, or the refusal without its words)."""
+    import itertools
+
+    from jaxnerf_grid.export import field as field_lib
+    from jaxnerf_grid.io import DataError
+
+    lo_t, hi_t = af.boxes()[0]
+    corners = af.to_metric_frame(np.array(list(itertools.product(*zip(lo_t - [1, 1, 0], hi_t + [1, 1, 1])))))
+    lo_m, hi_m = corners.min(0), corners.max(0)
+    rot, s_, t_ = np.asarray(af.NORMALIZATION["rotation"]), af.NORMALIZATION["scale"], af.NORMALIZATION["translation"]
+    scene = np.array([s_ * rot @ (np.array(c) + t_) for c in itertools.product(*zip(lo_m, hi_m))])
+    lo, hi = scene.min(0), scene.max(0)
+    h = float(np.max(hi - lo)) / RESOLUTION
+    voxels = np.ceil((hi - lo) / h - 1e-9).astype(int)
+    ds = af.dataset()
+    ds.root = tmp_path
+    cfg = analytic_config()
+    asked = []
+
+    def density_grid(params, mcfg, origin, h_, shape, progress=None):
+        asked.append((np.asarray(origin), h_, tuple(shape)))
+        return np.zeros(shape, np.float32)
+
+    af.clear_compiled()
+    try:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(fields, "apply", af.apply)
+            mp.setattr(field_lib, "density_grid", density_grid)
+            mp.setattr(runs, "load_run", lambda run_dir: (cfg, None))
+            mp.setattr(runs, "dataset_of_run", lambda *args, **kw: ds)
+            mp.setattr(train, "load_params", lambda run_dir, cfg_, ds_: (af.params(cfg.model), 0))
+            (tmp_path / "run").mkdir()
+            level = -np.log(1 - 0.05) / h
+            with pytest.raises(DataError, match=rf"run: no surface in the box: the density never reaches "
+                                                rf"{level:.4g} \(one voxel 0.05 opaque\); lower export.opacity"):
+                export_run.export_run(tmp_path / "run", resolution=RESOLUTION, views=3, progress=False,
+                                      box=",".join(str(float(v)) for v in [*lo_m, *hi_m]))
+    finally:
+        af.clear_compiled()
+    (origin, got_h, shape), = asked
+    assert got_h == pytest.approx(h, rel=1e-9) and shape == tuple(int(v) + 1 for v in voxels)
+    np.testing.assert_allclose(origin, 0.5 * (lo + hi) - 0.5 * h * voxels, atol=1e-9)
+    assert not (tmp_path / "run" / "export").exists()
 
 
 def test_an_unknown_crs_in_the_record_is_refused_before_anything_is_written(tmp_path):
