@@ -244,6 +244,7 @@ def test_axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two():
     assert tilt["tilt_degrees"] == pytest.approx(np.degrees(np.arctan(0.5)))
     np.testing.assert_allclose(tilt["base"], [-1.0 / 24, 0.0, 0.0], atol=1e-12)     # a(0) = 0.5 (0 - 1/12)
     assert tilt["tilt_sigma_degrees"] == pytest.approx(0.0, abs=1e-6)
+    assert tilt["thickness_spread_degrees"] == 0.0      # 2 m and 4 m slices: fewer than 3, no other axis
     assert measure.axis_tilt(np.asarray(q[:8], np.float64), [0, 0, 1.0], 0.0, *axes, 1.0) is None
     top = q + [(1.0 + 3.0, 0.0, 3.0)]
     assert measure.axis_tilt(np.asarray(top, np.float64), [0, 0, 1.0], 0.0, *axes, 1.0) is None
@@ -414,7 +415,7 @@ def test_report_gives_each_figure_with_its_uncertainty():
 
 
 def test_axis_tilt_thickness_spread_and_lowest_height_against_a_brute_force_refit():
-    """Sixteen 1 m slices on level ground z = -0.5 (heights z + 0.5), each a 2 x 2 square of 4
+    """Twelve 1 m slices on level ground z = -0.5 (heights z + 0.5), each a 2 x 2 square of 4
     points around a = 0.1 k, b = -0.05 k at heights k + 0.2, k + 0.8 (slice 0's at 0.1 and 0.9:
     the slices start at 0.1, clear of every point); each odd slice with a lump 0.002 k^2 beyond its
     +a side, so the middles of thin and thick slices lie on different lines. The spread is the RMS
@@ -423,7 +424,7 @@ def test_axis_tilt_thickness_spread_and_lowest_height_against_a_brute_force_refi
     slice is left out). Without the lumps every thickness finds the same axis."""
     def tower(lumps):
         q = []
-        for k in range(16):
+        for k in range(12):                  # 4 m slices: exactly 3, the fewest a fit takes
             a, b, lo = 0.1 * k, -0.05 * k, (0.1 if k == 0 else 0.2)
             q += [(a - 1, b - 1, k + lo - 0.5), (a + 1, b + 1, k + lo - 0.5), (a - 1, b + 1, k + 1 - lo - 0.5),
                   (a + 1, b - 1, k + 1 - lo - 0.5)]
