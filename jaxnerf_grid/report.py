@@ -105,6 +105,14 @@ EXPORT_HEADING = "## Tower model (export)"
 LEGS_MISSING = 0.05   # "lower part missing" when the mesh begins higher than this share of the height
 
 
+def lower_part_missing(m: dict) -> float | None:
+    """How far above the ground the model's tower begins, from measurements.json `m` (the base
+    centre's `extrapolated`), when that is more than LEGS_MISSING of a positive height; else None.
+    The report's "lower part missing" row and `jaxnerf-grid export`'s warning both ask this."""
+    low = (((m.get("survey") or {}).get("base_centre")) or {}).get("extrapolated") or 0.0
+    return float(low) if low > LEGS_MISSING * float(m.get("height") or 0.0) > 0 else None
+
+
 def _xyz(v, digits=2) -> str:
     return "(" + ", ".join(_fmt(x, digits) for x in v) + ")" if v is not None else "n/a"
 
@@ -142,8 +150,8 @@ def _survey_lines(m: dict, unit: str) -> list[str]:
         sigma = base.get("sigma")
         spread = f"{_fmt(sigma)} {unit}" if sigma is not None else "(not estimated)"
         lines.append(f"| base centre | {where} +- {spread} |")
-        low = base.get("extrapolated") or 0.0
-        if low > LEGS_MISSING * float(m.get("height") or 0.0) > 0:
+        low = lower_part_missing(m)
+        if low is not None:
             lines.append(f"| **lower part missing** | the model's tower begins {_fmt(low)} {unit} above the ground: "
                          "its legs were not reconstructed there, so the base centre and the tilt come from the "
                          "axis extended down that far (train longer, or add low oblique photos) |")

@@ -65,8 +65,8 @@ def main(argv: list[str] | None = None) -> int:
         height += f", axis tilted {m['tilt']['tilt_degrees']:.2f} deg from vertical"
     print(f"tower height {height}; mesh {m['mesh']['vertices']} vertices, {m['mesh']['faces']} faces; "
           f"{m['points']['count']} fused points; {m['seconds']:.0f} s; files in {out}")
-    low = (((m.get("survey") or {}).get("base_centre")) or {}).get("extrapolated") or 0.0
-    if m["height"] and low > report.LEGS_MISSING * m["height"]:
+    low = report.lower_part_missing(m)
+    if low is not None:
         warnings.warn(f"the model's tower begins {low:.2f} {unit} above the ground (its legs were not "
                       "reconstructed there): the base centre and the tilt are extrapolated (docs/EXPORT.md)",
                       stacklevel=1)
