@@ -74,6 +74,14 @@ def warmup_steps(warmup: float, max_steps: int) -> int:
     return int(round(float(warmup) * int(max_steps)))
 
 
+def refine_step(refine: float, max_steps: int) -> int | None:
+    """The optimiser step after which the evidence is frozen on whole frames (train.robust_refine,
+    `refine.py`): round(refine x max_steps), at least 1; None when refine is 0 (off)."""
+    if float(refine) <= 0:
+        return None
+    return max(1, int(round(float(refine) * int(max_steps))))
+
+
 def late_ignored_share(log: list[dict], max_steps: int, tail: float = 0.25) -> float | None:
     """The share of the drawn pixels training ignored late in a run: 1 - the mean
     "robust_weight" (each logged batch's mean weight) of the log records in the last `tail` of
@@ -129,13 +137,14 @@ def inliers(residuals: jnp.ndarray, thresholds: jnp.ndarray, floor: float) -> jn
 
 def smooth_3x3(x: jnp.ndarray) -> jnp.ndarray:
     """Mean of x over each pixel's 3x3 neighbourhood within its patch (neighbours outside the
-    patch are not counted: a corner averages 4 pixels, an edge 6). x: [P, p, p] -> [P, p, p]."""
+    patch are not counted: a corner averages 4 pixels, an edge 6). x: [P, h, w] (patches, or
+    whole frames) -> [P, h, w]."""
     pad = lambda a: jnp.pad(a, ((0, 0), (1, 1), (1, 1)))  # noqa: E731
-    p = x.shape[-1]
+    h, w = x.shape[-2:]
 
     def box(a):
         a = pad(a)
-        return sum(a[:, i:i + p, j:j + p] for i in range(3) for j in range(3))
+        return sum(a[:, i:i + h, j:j + w] for i in range(3) for j in range(3))
 
     return box(x) / box(jnp.ones_like(x))
 
@@ -146,6 +155,27 @@ def evidence(inlier: jnp.ndarray, patch_share: float) -> jnp.ndarray:
     >= 1/2 and a patch is kept when at least `patch_share` of its pixels pass the vote."""
     vote = (smooth_3x3(inlier) >= VOTE).astype(jnp.float32)
     kept = (jnp.mean(vote, axis=(1, 2), keepdims=True) >= patch_share).astype(jnp.float32)
+    return vote * jnp.maximum(kept, inlier)
+
+
+def frame_evidence(inlier: jnp.ndarray, patch: int, patch_share: float) -> jnp.ndarray:
+    """`evidence` on whole frames (train.robust_refine, `refine.py`): the 3x3 vote over each
+    pixel's neighbours in its frame (not only in its patch), and the patch rule over the frame
+    cut into patch x patch tiles from the top-left corner (the last row and column of tiles
+    cut short by the frame's edge, their share taken over the pixels they hold).
+    inlier: [T, H, W] in {0, 1} -> [T, H, W] weights in {0, 1}."""
+    inlier = jnp.asarray(inlier, jnp.float32)
+    frames, height, width = inlier.shape
+    vote = (smooth_3x3(inlier) >= VOTE).astype(jnp.float32)
+    rows, cols = -(-height // patch), -(-width // patch)
+    pad = ((0, 0), (0, rows * patch - height), (0, cols * patch - width))
+
+    def tile_sums(a):
+        return jnp.pad(a, pad).reshape(frames, rows, patch, cols, patch).sum(axis=(2, 4))
+
+    share = tile_sums(vote) / tile_sums(jnp.ones_like(vote))
+    kept = (share >= patch_share).astype(jnp.float32)
+    kept = jnp.repeat(jnp.repeat(kept, patch, axis=1), patch, axis=2)[:, :height, :width]
     return vote * jnp.maximum(kept, inlier)
 
 

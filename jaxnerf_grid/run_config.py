@@ -62,7 +62,11 @@ class TrainConfig:
     robust_scattered: the share of batch_rays drawn as single pixels scattered over the frames
       instead of patches (`scattered_rays`); a scattered ray has no neighbours to vote, so its
       weight is its own inlier test (`robust.pixel_inliers`), confirmation included (0 = patches
-      only).
+      only);
+    robust_refine: the fraction of max_steps after which the evidence is judged once on whole
+      training frames and frozen (`refine.py`): every training frame is rendered, the rule is
+      applied to it (`robust.frame_evidence`), and the rest of the run trains on scattered
+      rays with those weights, as a run with masks does (0 = patches to the end).
     """
 
     batch_rays: int = 1024
@@ -102,6 +106,7 @@ class TrainConfig:
     robust_confirm: float = 0.01
     robust_views: int = 8
     robust_scattered: float = 0.0
+    robust_refine: float = 0.0
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -121,7 +126,8 @@ class TrainConfig:
         "robust_patch_share": config_lib.UNIT,
         "robust_floor": config_lib.NONNEGATIVE, "robust_spread": config_lib.NONNEGATIVE,
         "robust_warmup": config_lib.UNIT, "robust_confirm": config_lib.NONNEGATIVE,
-        "robust_views": config_lib.AT_LEAST_ONE, "robust_scattered": config_lib.FRACTION}
+        "robust_views": config_lib.AT_LEAST_ONE, "robust_scattered": config_lib.FRACTION,
+        "robust_refine": config_lib.FRACTION}
 
 
 @dataclasses.dataclass(frozen=True)

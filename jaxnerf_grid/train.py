@@ -42,7 +42,7 @@ import numpy as np
 
 from jaxnerf_grid import (checkpoint, config as config_lib, distributed, fields, io, losses, models, optim, parallel,
                           progress as progress_lib, rays as rays_lib)
-from jaxnerf_grid import photo_consistency
+from jaxnerf_grid import photo_consistency, refine
 from jaxnerf_grid import robust as robust_lib
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.dataset import Dataset
@@ -217,7 +217,9 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
         loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
         params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
-        return {"params": params, "opt_state": opt_state, "key": key}, {"loss": loss, "mse": mse, "finite": finite}
+        # other state (a robust run's frozen record, train.robust_refine) passes through unchanged
+        new_state = dict(state, params=params, opt_state=opt_state, key=key)
+        return new_state, {"loss": loss, "mse": mse, "finite": finite}
 
     return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
 
@@ -422,6 +424,18 @@ def _run_step(p_step, state_r, pool, step: int):
             f"{str(err).splitlines()[0][:300]})") from err
 
 
+def _freeze_evidence(state_r, pool_host: dict, dataset: Dataset, frozen_cfg: RunConfig, n: int, progress: bool):
+    """train.robust_refine's switch (refine.py): judges the evidence on every training frame with
+    the current parameters, puts the weights in the state's robust_record, and returns (state
+    [n, ...], the frozen pool [n, ...], the plain step of `frozen_cfg`: robust off, the weights'
+    mean)."""
+    state = parallel.unreplicate(state_r)
+    weights = refine.judge_frames(state["params"], frozen_cfg, dataset, pool_host, progress)
+    state["robust_record"] = weights
+    pool = parallel.replicate(refine.frozen_pool(pool_host, weights), n)
+    return parallel.replicate(state, n), pool, make_train_step(frozen_cfg, n), float(np.mean(weights))
+
+
 @dataclasses.dataclass
 class TrainResult:
     """params; step: the step reached; seconds: this call's wall time; skipped_steps: non-finite
@@ -465,9 +479,15 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     last_record = _trim_log(log_path, step) if main else None
     check_batch(cfg, n)
     check_robust(tcfg, n)
+    refine_at = robust_lib.refine_step(tcfg.robust_refine, tcfg.max_steps) if tcfg.robust != "off" else None
+    frozen_cfg = dataclasses.replace(cfg, train=dataclasses.replace(tcfg, robust="off"))
+    frozen_mean = None  # the frozen weights' mean, once the evidence is frozen (train.robust_refine)
+    if refine_at is not None and step > refine_at:  # resumed after the evidence was frozen: its record holds it
+        pool_host = refine.frozen_pool(pool_host, state["robust_record"])
+        frozen_mean = float(np.mean(pool_host["weights"]))
     pool = parallel.replicate(pool_host, n)
     state_r = parallel.replicate(state, n)
-    p_step = make_train_step(cfg, n)
+    p_step = make_train_step(frozen_cfg if refine_at is not None and step > refine_at else cfg, n)
     end = min(tcfg.max_steps, stop_at if stop_at is not None else tcfg.max_steps)
     first_step = step
     schedule = optim.make_lr_schedule(tcfg.lr_init, tcfg.lr_final, tcfg.warmup, tcfg.max_steps)
@@ -482,6 +502,11 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     window_start, window_steps = time.perf_counter(), 0
     try:
         while step < end:
+            if step == refine_at:  # freeze the evidence on whole frames (refine.py), then scattered rays
+                state_r, pool, p_step, frozen_mean = _freeze_evidence(state_r, pool_host, dataset, frozen_cfg, n,
+                                                                      progress and main)
+                logger.info("step %d: the evidence, judged on whole frames, ignores %.1f %% of the training pixels",
+                            step, 100 * (1.0 - frozen_mean))
             state_r, stats = _run_step(p_step, state_r, pool, step)
             step += 1
             window_steps += 1
@@ -498,6 +523,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                           "time": time.perf_counter() - start_time}
                 if "robust_weight" in stats:
                     record["robust_weight"] = float(stats["robust_weight"][0])
+                elif frozen_mean is not None:  # the frozen weights' mean (train.robust_refine)
+                    record["robust_weight"] = frozen_mean
                 if main:
                     with io.naming_path(log_path), open(log_path, "a") as fh:  # a full disk names the file
                         fh.write(json.dumps(record) + "\n")

@@ -13,6 +13,8 @@
 #   WHL=.whl_t1 bash scripts/gpu_checks.sh table1r   # issue 36 item 5, seeds 1-2: the robust rows on
 #        scenes made here (`python scripts/gpu_table1_runs.py --cache .t1cache --prepare`) and carried
 #        (.t1cache/scenes, .t1cache/variants; .whl_t1 = the jaxopt and OpenEXR wheels), then robustprof
+#   WHL=.t1carry VARIANTS="base: rf5:robust_refine=0.5" bash scripts/gpu_checks.sh table1v   # a sweep of
+#        train.* variants of the robust rows (ROWS, SETS, SEEDS) on carried scenes (docs/GPU.md, fourth loan)
 #   bash scripts/gpu_checks.sh robustprof   # why a robust run trains 5x longer than a plain one on the
 #        GPU (docs/GPU.md): the step profile of ours-fast plain and with train.robust=robust
 set -uo pipefail
@@ -77,10 +79,22 @@ case "${1:-speed}" in
     timeout "${PROF_TIMEOUT:-90}" python3 -m benchmarks.step_profile --recipe ours --repeats 10 --set train.robust=robust \
       --out "$OUT/step_profile_robust.json" 2>&1 | tail -14
     ;;
+  table1v)
+    # a sweep of train.* variants of the robust rows, each seed's variants one after another (paired);
+    # .t1carry = the wheels plus t1.tgz (scenes and DPT variants made here by --prepare, without their
+    # overlays and DPT depth: tar czf .t1carry/t1.tgz --exclude='*/overlays' --exclude='*/dpt_depth'
+    # -C .t1cache scenes variants)
+    mkdir -p .t1cache && tar xzf "${WHL:-.whl}/t1.tgz" -C .t1cache
+    variants=(); for v in ${VARIANTS:-base:}; do variants+=(--variant "$v"); done
+    timeout "${T1_TIMEOUT:-540}" python3 scripts/gpu_table1_runs.py --cache .t1cache --seeds "${SEEDS:-0,1,2}" \
+      --sets "${SETS:-B,A}" --rows "${ROWS:-dpt+robust}" "${variants[@]}" --out "$OUT" \
+      --budget-min "${BUDGET_MIN:-7.5}" 2>&1 | grep -v "^\[mask\]" | tee "$OUT/table1v.log"
+    tar czf "$OUT/runs.tgz" -C "$OUT" runs && rm -rf "$OUT/runs"
+    ;;
   robustprof)
     timeout 150 python3 -m benchmarks.step_profile --recipe ours-fast --repeats 20 --out "$OUT/step_profile_plain.json"
     timeout 150 python3 -m benchmarks.step_profile --recipe ours-fast --repeats 20 --set train.robust=robust \
       --out "$OUT/step_profile_robust.json"
     ;;
-  *) echo "usage: $0 speed|demo|train|steps|table1|table1r|robustprof"; exit 2 ;;
+  *) echo "usage: $0 speed|demo|train|steps|table1|table1r|table1v|robustprof"; exit 2 ;;
 esac
