@@ -1,0 +1,75 @@
+"""What `train.robust_refine`'s whole-frame rule (jaxnerf_grid/refine.py) makes of a trained
+run's training frames, against the scene's distractor masks (the synthetic scenes'): the share
+of distractor and of static pixels it ignores, beside the DPT prior alone (and, for the rule,
+what it does with the distractor pixels the DPT missed and found), the rule without multi-view
+confirmation, the prior dilated by 1-3 px, and tighter spread bounds.
+
+    python scripts/refine_offline.py RUN STEP
+
+RUN: a robust run on a synthetic scene with masks (a Table 1 `dpt+robust` run); STEP: one of its
+checkpoints (the switch step of a robust_refine run reproduces its frozen weights). docs/ROBUST.md
+quotes it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import sys
+
+import cv2
+import numpy as np
+
+from jaxnerf_grid import checkpoint, config as config_lib, refine, train
+from jaxnerf_grid.runs import load_run_and_dataset
+
+
+def shares(weights: np.ndarray, distractor: np.ndarray) -> str:
+    """'distractor ignored X, static ignored Y' of [T, H, W] weights against [T, H, W] bool masks."""
+    ignored = weights < 0.5
+    return f"distractor ignored {ignored[distractor].mean():.3f}, static ignored {ignored[~distractor].mean():.3f}"
+
+
+def dilated_prior(prior: np.ndarray, masks: np.ndarray, px: int) -> np.ndarray:
+    """The prior with 0 wherever the binary masks [T, H, W], dilated by px (a square), reach."""
+    kernel = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    grown = np.stack([cv2.dilate(m.astype(np.uint8), kernel) for m in masks]) > 0
+    return np.where(grown, 0.0, prior).astype(np.float32)
+
+
+def main(argv: list[str]) -> int:
+    run, step = argv[0], int(argv[1])
+    cfg, _, ds = load_run_and_dataset(run, None, False, False, False)
+    cfg = config_lib.resolve(cfg, ds)
+    if ds.distractor_masks is None or ds.masks is None:
+        raise SystemExit(f"{run}: its dataset needs distractor masks and DPT masks")
+    state = checkpoint.load_checkpoint(checkpoint.checkpoint_path(run, step),
+                                       train.init_state(cfg, train.train_frames_shape(ds)))
+    pool = train.build_pool(ds, cfg)
+    ids = np.asarray(ds.split["train"])
+    residual, points = refine.render_training_frames(state["params"], cfg, ds, pool["frame"])
+    confirmed = refine.confirmed_frames(pool, points, cfg.train.robust_confirm)
+    truth = np.asarray(ds.distractor_masks[ids], bool)
+    masks = np.asarray(ds.masks[ids]) > 0.5
+    prior = pool["weights"]
+    rule = refine.refined_weights(residual, prior, cfg, confirmed)
+    print(f"distractor pixels: {truth.mean():.3f} of the training pixels")
+    print("DPT prior alone:", shares(prior, truth))
+    print("rule, DPT prior:", shares(rule, truth))
+    missed, found = truth & ~masks, truth & masks
+    areas = [a for m in missed for a in cv2.connectedComponentsWithStats(m.astype(np.uint8))[2][1:, 4]]
+    print(f"  of the distractor pixels the DPT missed, the rule ignores {(rule[missed] < 0.5).mean():.3f} "
+          f"(their connected pieces: median area {np.median(areas):.0f} px); of those it found, the rule "
+          f"re-admits {(rule[found] >= 0.5).mean():.3f}")
+    print("rule, DPT prior, no confirmation:", shares(refine.refined_weights(residual, prior, cfg), truth))
+    for px in (1, 2, 3):
+        grown = dilated_prior(prior, masks, px)
+        print(f"prior dilated {px} px alone:", shares(grown, truth))
+        print(f"rule, prior dilated {px} px:", shares(refine.refined_weights(residual, grown, cfg, confirmed), truth))
+    for k in (1.0, 0.75):
+        tight = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, robust_spread=k))
+        print(f"rule, DPT prior, spread {k}:", shares(refine.refined_weights(residual, prior, tight, confirmed), truth))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))
