@@ -66,7 +66,10 @@ class TrainConfig:
     robust_refine: the fraction of max_steps after which the evidence is judged once on whole
       training frames and frozen (`refine.py`): every training frame is rendered, the rule is
       applied to it (`robust.frame_evidence`), and the rest of the run trains on scattered
-      rays with those weights, as a run with masks does (0 = patches to the end).
+      rays with those weights, as a run with masks does (0 = patches to the end);
+    robust_prior_grow: dpt+robust only: pixels within this many px of a masked pixel are flagged
+      in the prior too (`train.grown_masks`), so the rims of the transients that the DPT's masks
+      fall short of are not trained on before the evidence decides (0 = the masks as they are).
     """
 
     batch_rays: int = 1024
@@ -107,6 +110,7 @@ class TrainConfig:
     robust_views: int = 8
     robust_scattered: float = 0.0
     robust_refine: float = 0.0
+    robust_prior_grow: int = 0
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -127,7 +131,7 @@ class TrainConfig:
         "robust_floor": config_lib.NONNEGATIVE, "robust_spread": config_lib.NONNEGATIVE,
         "robust_warmup": config_lib.UNIT, "robust_confirm": config_lib.NONNEGATIVE,
         "robust_views": config_lib.AT_LEAST_ONE, "robust_scattered": config_lib.FRACTION,
-        "robust_refine": config_lib.FRACTION}
+        "robust_refine": config_lib.FRACTION, "robust_prior_grow": config_lib.NONNEGATIVE}
 
 
 @dataclasses.dataclass(frozen=True)

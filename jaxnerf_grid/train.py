@@ -36,6 +36,7 @@ import logging
 import time
 from pathlib import Path
 
+import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -69,14 +70,31 @@ def loss_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
     return w.astype(np.float32)
 
 
+def grown_masks(masks: np.ndarray, pixels: int) -> np.ndarray:
+    """Binary masks grown by `pixels` (OpenCV dilation with an elliptical disc of that radius, as
+    `foreground.dilate`). masks: [N, H, W], masked where > 0.5 -> [N, H, W] bool."""
+    binary = np.asarray(masks) > 0.5
+    if pixels <= 0:
+        return binary
+    disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * pixels + 1, 2 * pixels + 1))
+    return np.stack([cv2.dilate(m.astype(np.uint8), disc) > 0 for m in binary])
+
+
 def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
     """The per-pixel prior of the photometric evidence (train.robust on). [N, H, W] in [0, 1]:
     ones for "robust"; for "dpt+robust" the dataset's 1 - M_w (with mask_weight_floor), which
-    must exist."""
+    must exist, and 0 within train.robust_prior_grow pixels of a masked pixel (`grown_masks`;
+    needs the binary masks)."""
     check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust_patch ** 2, robust_scattered=0.0), 1, dataset)
     if cfg.robust == "robust":
         return np.ones(dataset.images.shape[:3], np.float32)
-    return loss_weights(dataset, dataclasses.replace(cfg, use_masks=True))
+    prior = loss_weights(dataset, dataclasses.replace(cfg, use_masks=True))
+    if cfg.robust_prior_grow > 0:
+        if dataset.masks is None:
+            raise DataError(f"{dataset.root}: train.robust_prior_grow needs the dataset's binary masks "
+                            "(mask_path, written by jaxnerf-grid mask)")
+        prior = np.where(grown_masks(dataset.masks, cfg.robust_prior_grow), 0.0, prior).astype(np.float32)
+    return prior
 
 
 def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:

@@ -170,3 +170,31 @@ def test_refine_resumes_exactly_on_either_side_of_the_switch(tmp_path, stop):
                            resumed.params, straight.params)
     np.testing.assert_array_equal(last_state(tmp_path / "resumed", cfg, ds)["robust_record"],
                                   last_state(tmp_path / "straight", cfg, ds)["robust_record"])
+
+
+def test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel():
+    """train.robust_prior_grow: the prior is 0 wherever a masked pixel lies within the disc of
+    radius g (OpenCV's elliptical element: offsets (dr, dc) with (dr/g)^2 + (dc/g)^2 <= 1 up to its
+    rasterisation, checked here against cv2's own element written out as offsets), else the
+    ungrown prior; without binary masks it is refused."""
+    import cv2
+
+    ds = tiny_dataset()
+    masks = np.zeros(ds.images.shape[:3], np.float32)
+    masks[0, 5, 7] = masks[1, 0, 0] = masks[2, 9:11, 12:15] = 1.0
+    ds.masks = masks
+    base = train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4).train)
+    for grow in (1, 2):
+        got = train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4, robust_prior_grow=grow).train)
+        disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * grow + 1, 2 * grow + 1))
+        offsets = [(r - grow, c - grow) for r in range(2 * grow + 1) for c in range(2 * grow + 1) if disc[r, c]]
+        near = np.zeros(masks.shape, bool)
+        for f, r, c in zip(*np.nonzero(masks > 0.5)):
+            for dr, dc in offsets:
+                if 0 <= r + dr < masks.shape[1] and 0 <= c + dc < masks.shape[2]:
+                    near[f, r + dr, c + dc] = True
+        np.testing.assert_array_equal(got, np.where(near, 0.0, base))
+        assert near.sum() > (masks > 0.5).sum()
+    ds.masks = None
+    with pytest.raises(DataError, match="robust_prior_grow"):
+        train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4, robust_prior_grow=1).train)
