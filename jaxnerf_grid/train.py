@@ -36,7 +36,6 @@ import logging
 import time
 from pathlib import Path
 
-import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -76,6 +75,7 @@ def grown_masks(masks: np.ndarray, pixels: int) -> np.ndarray:
     binary = np.asarray(masks) > 0.5
     if pixels <= 0:
         return binary
+    cv2 = io.opencv()
     disc = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * pixels + 1, 2 * pixels + 1))
     return np.stack([cv2.dilate(m.astype(np.uint8), disc) > 0 for m in binary])
 
