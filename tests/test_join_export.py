@@ -535,6 +535,43 @@ def test_a_tower_tilted_1_degree_is_measured_within_0_3_degrees(tmp_path):
     assert meas["units"] == "metres" and meas["survey"]["alignment"]["relative_scale"] == 0.0   # synthetic: exact
 
 
+def body_apply(field_params, cfg, x, viewdirs=None, appearance=None, transient=None) -> dict:
+    """`fields.apply` of the analytic scene without the cross-arm: level ground (metric z =
+    GROUND_Z) and the body's box alone (af.boxes()[0], in the metric frame of `_tilted_export`
+    with no turn)."""
+    import jax.numpy as jnp
+
+    m = af.to_metric(field_params, x)
+    lo, hi = af.boxes()[0]
+    tower = jnp.all((m >= jnp.asarray(lo, jnp.float32)) & (m <= jnp.asarray(hi, jnp.float32)), axis=-1)
+    ground = (m[..., 2] <= af.GROUND_Z) & (m[..., 2] >= af.GROUND_Z - 2.0)
+    sigma = jnp.where(tower | ground, af.SIGMA, 0.0)
+    rgb = jnp.where(tower[..., None], jnp.asarray(af.TOWER_RGB), jnp.asarray(af.GROUND_RGB))
+    return {"sigma": sigma, "rgb": jnp.broadcast_to(rgb, m.shape)}
+
+
+def test_a_tower_without_cross_arms_looks_for_conductors_above_half_its_height(tmp_path):
+    """The body alone on level ground: no cross-arm level is found, so the conductors are looked
+    for above half the tower's height, worked out here from tower_mesh.ply and the published
+    plane (heights = normal . x + offset; their maximum); the height is the body's within 1.5
+    voxels (export_run mutants 574: min() of no levels raised, 580, 581: 0.5 / height, 1.5 x height).
+    Written with overwrite=True over an export from before the marker (measurements.json and
+    export's files alone): check_out lets it through, and the folder is cleared as such, not
+    refused after the work (mutants 635, 640: `legacy` None or left out of `clear_outputs`)."""
+    out = tmp_path / "run" / "export"
+    out.mkdir(parents=True)
+    (out / "measurements.json").write_text("{}")
+    (out / "tower_mesh.ply").write_text("stale")
+    meas = _tilted_export(tmp_path, np.eye(3), {}, apply=body_apply, overwrite=True)
+    assert (out / ".jaxnerf-grid-export").is_file() and io.read_json(out / "measurements.json") != {}
+    assert meas["cross_arms"]["levels"] == []
+    verts = io.read_ply_points(out / "tower_mesh.ply").astype(np.float64)
+    height = float(np.max(verts @ np.asarray(meas["ground"]["normal"]) + meas["ground"]["offset"]))
+    assert height == pytest.approx(af.HEIGHT, abs=1.5 * meas["voxel_size"])
+    assert meas["conductors"]["reconstructed"] is False
+    assert meas["conductors"]["min_height"] == pytest.approx(0.5 * height, abs=1e-4)
+
+
 def test_a_given_box_without_a_surface_is_refused_and_nothing_is_written(tmp_path):
     """A box given in metres (the body's box grown 1 m, mapped to the metric frame, its 8 corners
     taken to the normalised scene here by the record's closed form x_norm = s R (x + t)): the
