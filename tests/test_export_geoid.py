@@ -229,8 +229,12 @@ def test_a_file_proj_cannot_read_as_a_grid_is_refused(tmp_path, monkeypatch):
 
 
 def test_a_dataset_without_a_crs_given_a_grid_is_refused(tmp_path, monkeypatch):
+    """The analytic dataset states its normalisation (metres) but has no georeference: the
+    refusal says which (export_run mutant 93: `_check_geoid_site` handed no units said "no
+    metric scale")."""
     grid = site_grid(tmp_path / "site.gtx", linear_n)
-    _refused(tmp_path, monkeypatch, {}, grid, r"site\.gtx: export\.geoid needs a dataset georeferenced")
+    _refused(tmp_path, monkeypatch, {}, grid,
+             r"site\.gtx: export\.geoid needs a dataset georeferenced .*; this one has metres but no CRS$")
 
 
 def test_a_grid_that_does_not_cover_the_site_is_refused(tmp_path, monkeypatch):

@@ -98,7 +98,8 @@ def exported(tmp_path_factory):
 def test_opacity_0_or_1_and_an_occupied_folder_are_refused_before_the_dataset_loads(tmp_path):
     """export.opacity must lie in (0, 1) open at both ends (0 and 1 refused; mutant 21 let 0
     through), and a folder holding another program's file is refused without overwrite, its file
-    kept (mutant 4 made overwrite the default); both before the dataset loads (no export runs)."""
+    kept (mutant 4 made overwrite the default), and so is an `out` inside the dataset folder; all
+    before the dataset loads (no export runs)."""
     from jaxnerf_grid.config import ConfigError
     from jaxnerf_grid.io import DataError
 
@@ -120,6 +121,12 @@ def test_opacity_0_or_1_and_an_occupied_folder_are_refused_before_the_dataset_lo
         (out / "notes.txt").write_text("mine")
         with pytest.raises(DataError, match="already exists and is not empty; pass overwrite=True"):
             export_run.export_run(run_dir, progress=False)
+        # an `out` inside the run's dataset folder (the config's data), refused (mutant 35: check_out
+        # handed no dataset folder)
+        inside = tmp_path / "dataset" / "export"
+        with pytest.raises(DataError, match=r"export\.out is the dataset folder .*dataset or inside it"):
+            export_run.export_run(run_dir, out=inside, progress=False)
+        assert not inside.exists()
     assert (out / "notes.txt").read_text() == "mine" and sorted(out.iterdir()) == [out / "notes.txt"]
 
 
@@ -533,6 +540,51 @@ def test_a_tower_tilted_1_degree_is_measured_within_0_3_degrees(tmp_path):
     assert got["top_offset"] == pytest.approx(meas["height"] * np.tan(t), abs=0.1)
     np.testing.assert_allclose(got["base"][:2], af.CENTRE, atol=meas["voxel_size"])
     assert meas["units"] == "metres" and meas["survey"]["alignment"]["relative_scale"] == 0.0   # synthetic: exact
+
+
+def body_apply(field_params, cfg, x, viewdirs=None, appearance=None, transient=None) -> dict:
+    """`fields.apply` of the analytic scene without the cross-arm: level ground (metric z =
+    GROUND_Z) and the body's box alone (af.boxes()[0], in the metric frame of `_tilted_export`
+    with no turn)."""
+    import jax.numpy as jnp
+
+    m = af.to_metric(field_params, x)
+    lo, hi = af.boxes()[0]
+    tower = jnp.all((m >= jnp.asarray(lo, jnp.float32)) & (m <= jnp.asarray(hi, jnp.float32)), axis=-1)
+    ground = (m[..., 2] <= af.GROUND_Z) & (m[..., 2] >= af.GROUND_Z - 2.0)
+    sigma = jnp.where(tower | ground, af.SIGMA, 0.0)
+    rgb = jnp.where(tower[..., None], jnp.asarray(af.TOWER_RGB), jnp.asarray(af.GROUND_RGB))
+    return {"sigma": sigma, "rgb": jnp.broadcast_to(rgb, m.shape)}
+
+
+def test_a_tower_without_cross_arms_looks_for_conductors_above_half_its_height(tmp_path):
+    """The body alone on level ground: no cross-arm level is found, so the conductors are looked
+    for above half the tower's height, worked out here from tower_mesh.ply and the published
+    plane (heights = normal . x + offset; their maximum); the height is the body's within 1.5
+    voxels (export_run mutants 574: min() of no levels raised, 580, 581: 0.5 / height, 1.5 x height).
+    Written to a folder given as `out` (not RUN/export: mutants 27, 29 lost or broke it), with
+    overwrite=True, over an export from before the marker (measurements.json and export's files
+    alone): check_out lets it through, and the folder is cleared as such, not refused after the
+    work (mutants 635, 640: `legacy` None or left out of `clear_outputs`).
+    Its georeference was fitted to GPS and control points, no geoid grid: the CRS heights are
+    the control points' Z, as written (mutant 606: `_vertical` without the record called them
+    the GPS's)."""
+    out = tmp_path / "tower"
+    out.mkdir()
+    (out / "measurements.json").write_text("{}")
+    (out / "tower_mesh.ply").write_text("stale")
+    meas = _tilted_export(tmp_path, np.eye(3), {"georeference": {**GEOREFERENCE, "source": "gps+gcp"}},
+                          apply=body_apply, out=out, overwrite=True)
+    assert (out / ".jaxnerf-grid-export").is_file()
+    assert io.read_json(out / "measurements.json")["height"] == meas["height"]
+    assert not (tmp_path / "run" / "export").exists()
+    assert meas["survey"]["vertical"]["reference"] == "as the control points' Z (the GCP file's heights as written)"
+    assert meas["cross_arms"]["levels"] == []
+    verts = io.read_ply_points(out / "tower_mesh.ply").astype(np.float64)
+    height = float(np.max(verts @ np.asarray(meas["ground"]["normal"]) + meas["ground"]["offset"]))
+    assert height == pytest.approx(af.HEIGHT, abs=1.5 * meas["voxel_size"])
+    assert meas["conductors"]["reconstructed"] is False
+    assert meas["conductors"]["min_height"] == pytest.approx(0.5 * height, abs=1e-4)
 
 
 def test_a_given_box_without_a_surface_is_refused_and_nothing_is_written(tmp_path):
