@@ -30,10 +30,9 @@ def shares(weights: np.ndarray, distractor: np.ndarray) -> str:
 
 
 def dilated_prior(prior: np.ndarray, masks: np.ndarray, px: int) -> np.ndarray:
-    """The prior with 0 wherever the binary masks [T, H, W], dilated by px (a square), reach."""
-    kernel = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
-    grown = np.stack([cv2.dilate(m.astype(np.uint8), kernel) for m in masks]) > 0
-    return np.where(grown, 0.0, prior).astype(np.float32)
+    """The prior with 0 wherever the binary masks [T, H, W], grown by px, reach: what
+    train.robust_prior_grow = px gives (`train.grown_masks`)."""
+    return np.where(train.grown_masks(masks, px), 0.0, prior).astype(np.float32)
 
 
 def main(argv: list[str]) -> int:
