@@ -18,7 +18,9 @@ Training step (one `jax.pmap` over the local devices, axis "batch"):
     patches drawn over whole frames and each pixel's weight is the photometric evidence of the
     residuals (their quantiles taken over the all-gathered global batch); the state then also
     holds "robust_record", the per-pixel average of the weights used, written at the end as
-    RUN/weights/NAME.png.
+    RUN/weights/NAME.png; with train.robust_refine the evidence is judged once on whole frames
+    at that step (`refine.py`), the record becomes those 0 / 1 weights, and the run goes on with
+    the plain step on scattered rays among the pixels they keep.
 
 The state is {"params", "opt_state", "key"} plus the host step counter; checkpoints
 (checkpoint.save_checkpoint: atomic, last k kept) hold exactly that, so a resumed run replays
