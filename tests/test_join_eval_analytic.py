@@ -72,12 +72,54 @@ def evaluated(tmp_path_factory):
             assert Path(folder) == run_dir and cfg_ is cfg and ds_ is ds
             return params, 7
 
-        mp.setattr(runs, "load_run", lambda folder: (cfg, root / "dataset"))
-        mp.setattr(runs, "dataset_of_run", lambda *args, **kwargs: ds)
+        # the stand-ins check what evaluate_run hands them: the run folder, the config's data, the
+        # call's own dataset / progress / allow_other_data / full_size, the run's max_side
+        def load_run(folder):
+            assert Path(folder) == run_dir
+            return cfg, root / "dataset"
+
+        def dataset_of_run(*args, **kwargs):
+            assert args == (run_dir, root / "dataset", ds, False, False)
+            assert kwargs == {"max_side": cfg.train.max_side, "full_size": False}
+            return ds
+
+        mp.setattr(runs, "load_run", load_run)
+        mp.setattr(runs, "dataset_of_run", dataset_of_run)
         mp.setattr(train, "load_params", load_params)
         result = evaluate.evaluate_run(run_dir, progress=False, dataset=ds, cloud_views=1, distractor_views=1)
     af.clear_compiled()
     return result, run_dir, ds, renders
+
+
+def test_negative_or_fractional_view_counts_are_refused_before_the_run_loads(tmp_path, monkeypatch):
+    """eval.distractor_views and eval.cloud_views must be integers >= 0, refused by name (the
+    CLI shows the flag) before the run's config is read."""
+    from jaxnerf_grid.config import ConfigError
+
+    def not_loaded(folder):
+        raise AssertionError("the run was loaded before the checks")
+
+    monkeypatch.setattr(runs, "load_run", not_loaded)
+    for key, kwargs in (("eval.distractor_views", {"distractor_views": -1}), ("eval.cloud_views", {"cloud_views": -2})):
+        with pytest.raises(ConfigError, match=rf"^{key} = -\d: must be an integer >= 0$"):
+            evaluate.evaluate_run(tmp_path, progress=False, **kwargs)
+    for key, kwargs in (("eval.distractor_views", {"distractor_views": 1.5}),
+                        ("eval.cloud_views", {"cloud_views": 0.5})):
+        with pytest.raises(ConfigError, match=rf"^{key} = "):
+            evaluate.evaluate_run(tmp_path, progress=False, **kwargs)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_defaults_are_the_documented_ones():
+    """The defaults `jaxnerf-grid eval` relies on (jaxnerf_grid/cli/eval.py passes neither
+    cloud_views nor cloud_pixels: the cloud is the test views'), and the module docstring's
+    "up to 4" distractor views."""
+    import inspect
+
+    got = {k: v.default for k, v in inspect.signature(evaluate.evaluate_run).parameters.items()}
+    assert got == {"run_dir": inspect.Parameter.empty, "lpips_weights": None, "progress": True, "dataset": None,
+                   "distractor_views": 4, "extra_notes": (), "reference_ply": None, "cloud_views": 0,
+                   "allow_other_data": False, "full_size": False, "cloud_pixels": 0}
 
 
 def test_metrics_json_is_the_returned_record_with_one_row_per_test_view(evaluated):
