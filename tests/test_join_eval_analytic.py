@@ -1,0 +1,280 @@
+"""Issue 43: `evaluate.evaluate_run` (and its `_lift`, `_fit_left_half`) on the analytic tower
+(tests/analytic_field.py), no training: `train.load_params` returns the closed-form field's
+constants and `fields.apply` is the analytic field, as in test_join_export.py.
+
+The dataset (4 frames of 24 x 16 on a ring, 2 train, 2 test) is rendered from the same field;
+its clean images (the evaluation targets) are the float render plus a +-0.03 checkerboard (+0.03
+on the black sky), so
+each test view's PSNR is near 20 log10(1 / 0.03) = 30.5 dB and is recomputed here by hand from
+the written render PNG; its images are the clean images turned inside out (1 - clean), so
+scoring against the wrong target moves the PSNR by tens of dB. The semantics and depth are
+test_join_eval's hand-painted frame (`expected_regions`). The tower cloud is checked in metres:
+each point lies on the analytic tower or the ground's top, and the count is the opacity rule's,
+counted here from the float renders."""
+
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+import pytest
+
+from jaxnerf_grid import evaluate, fields, io, runs, train, views
+
+sys.path.insert(0, str(Path(__file__).parent))
+import analytic_field as af  # noqa: E402
+from test_join_eval import H, W, _semantics_and_depth, expected_regions, psnr  # noqa: E402
+from test_join_truth import analytic_config  # noqa: E402
+
+FRAMES, TEST_IDS, TRAIN_IDS = 4, (1, 3), (0, 2)
+CHECKER = 0.03
+
+
+def _checker():
+    yy, xx = np.mgrid[0:H, 0:W]
+    return np.where((yy + xx) % 2, CHECKER, -CHECKER)[..., None]
+
+
+def _dataset(root, cfg, params):
+    """The analytic dataset: clean images = the float render + the checkerboard."""
+    ds = af.dataset(frames=FRAMES, width=W, height=H)
+    ds.root = root
+    ds.split = {"train": np.array(TRAIN_IDS), "test": np.array(TEST_IDS)}
+    renders = {i: views.render_view(params, cfg, ds, i) for i in range(FRAMES)}
+    rgb = np.stack([np.clip(renders[i]["rgb"], 0, 1) for i in range(FRAMES)])
+    clean = rgb + np.where(rgb < CHECKER, CHECKER, _checker())       # the black sky: +0.03
+    assert clean.min() >= 0 and clean.max() <= 1            # no clipping: the checker is the error
+    ds.clean_images = clean.astype(np.float32)
+    ds.images = (1.0 - clean).astype(np.float32)
+    sem, depth = _semantics_and_depth()
+    ds.semantics = np.repeat(sem[None], FRAMES, 0)
+    ds.depth = np.repeat(depth[None], FRAMES, 0)
+    ds.distractor_masks = np.zeros((FRAMES, H, W), bool)
+    ds.distractor_masks[:, 2:6, 3:9] = True
+    return ds, renders
+
+
+@pytest.fixture(scope="module")
+def evaluated(tmp_path_factory):
+    """evaluate_run of the analytic run with one training view in the cloud: (metrics, run
+    folder, dataset, the float renders {frame: view} made here)."""
+    root = tmp_path_factory.mktemp("analytic_eval")
+    cfg = analytic_config()
+    params = af.params(cfg.model)
+    run_dir = root / "run"
+    run_dir.mkdir()
+    af.clear_compiled()
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fields, "apply", af.apply)
+        ds, renders = _dataset(root, cfg, params)
+
+        def load_params(folder, cfg_, ds_):
+            assert Path(folder) == run_dir and cfg_ is cfg and ds_ is ds
+            return params, 7
+
+        # the stand-ins check what evaluate_run hands them: the run folder, the config's data, the
+        # call's own dataset / progress / allow_other_data / full_size, the run's max_side
+        def load_run(folder):
+            assert Path(folder) == run_dir
+            return cfg, root / "dataset"
+
+        def dataset_of_run(*args, **kwargs):
+            assert args == (run_dir, root / "dataset", ds, False, False)
+            assert kwargs == {"max_side": cfg.train.max_side, "full_size": False}
+            return ds
+
+        mp.setattr(runs, "load_run", load_run)
+        mp.setattr(runs, "dataset_of_run", dataset_of_run)
+        mp.setattr(train, "load_params", load_params)
+        result = evaluate.evaluate_run(run_dir, progress=False, dataset=ds, cloud_views=1, distractor_views=1)
+    af.clear_compiled()
+    return result, run_dir, ds, renders
+
+
+def test_negative_or_fractional_view_counts_are_refused_before_the_run_loads(tmp_path, monkeypatch):
+    """eval.distractor_views and eval.cloud_views must be integers >= 0, refused by name (the
+    CLI shows the flag) before the run's config is read."""
+    from jaxnerf_grid.config import ConfigError
+
+    def not_loaded(folder):
+        raise AssertionError("the run was loaded before the checks")
+
+    monkeypatch.setattr(runs, "load_run", not_loaded)
+    for key, kwargs in (("eval.distractor_views", {"distractor_views": -1}), ("eval.cloud_views", {"cloud_views": -2})):
+        with pytest.raises(ConfigError, match=rf"^{key} = -\d: must be an integer >= 0$"):
+            evaluate.evaluate_run(tmp_path, progress=False, **kwargs)
+    for key, kwargs in (("eval.distractor_views", {"distractor_views": 1.5}),
+                        ("eval.cloud_views", {"cloud_views": 0.5})):
+        with pytest.raises(ConfigError, match=rf"^{key} = "):
+            evaluate.evaluate_run(tmp_path, progress=False, **kwargs)
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_defaults_are_the_documented_ones():
+    """The defaults `jaxnerf-grid eval` relies on (jaxnerf_grid/cli/eval.py passes neither
+    cloud_views nor cloud_pixels: the cloud is the test views'), and the module docstring's
+    "up to 4" distractor views."""
+    import inspect
+
+    got = {k: v.default for k, v in inspect.signature(evaluate.evaluate_run).parameters.items()}
+    assert got == {"run_dir": inspect.Parameter.empty, "lpips_weights": None, "progress": True, "dataset": None,
+                   "distractor_views": 4, "extra_notes": (), "reference_ply": None, "cloud_views": 0,
+                   "allow_other_data": False, "full_size": False, "cloud_pixels": 0}
+
+
+def test_metrics_json_is_the_returned_record_with_one_row_per_test_view(evaluated):
+    """metrics.json holds what evaluate_run returned; one per-view row per test frame in order,
+    named frame_NNNN, with its index; the step is load_params's, the target the clean images."""
+    result, run_dir, ds, _ = evaluated
+    written = io.read_json(run_dir / "metrics.json")
+    assert {"method", "step", "num_views", "target", "protocol", "mean", "mean_right_half", "regions_mean",
+            "region_definition", "distractor_psnr", "geometry", "export", "cloud_views", "per_view", "lpips",
+            "resolution", "eval_seconds"} == set(written)
+    assert written["step"] == result["step"] == 7
+    assert written["num_views"] == 2 and written["target"] == "clean images"
+    assert [r["index"] for r in written["per_view"]] == list(TEST_IDS)
+    assert [r["name"] for r in written["per_view"]] == [f"frame_{i:04d}" for i in TEST_IDS]
+    assert written["cloud_views"] == {"test": list(TEST_IDS), "train": [TRAIN_IDS[0]]}
+    assert written["lpips"] == "unavailable" and written["export"] is None and written["geometry"] is None
+    assert written["method"] == "ours" and written["region_definition"] == evaluate.REGION_DEFINITION
+    assert written["resolution"] == {"width": W, "height": H, "native_width": W, "native_height": H,
+                                     "max_side": int(analytic_config().train.max_side), "full_size": False}
+    for key in ("psnr", "ssim"):
+        assert written["mean"][key] == pytest.approx(result["mean"][key], rel=1e-12)
+        assert written["per_view"][1][key] == pytest.approx(result["per_view"][1][key], rel=1e-12)
+
+
+def test_written_renders_and_psnr_by_hand_against_the_clean_images(evaluated):
+    """renders/, depth/, opacity/ hold each test view (the render PNG is the float render, the
+    depth EXR its depth); each view's PSNR, right-half PSNR and region PSNRs are -10 log10 MSE
+    by hand against the clean image (the 0.03 checker: about 30.5 dB; against the images it
+    would be far lower); the means are the views' means."""
+    result, run_dir, ds, renders = evaluated
+    regions = expected_regions()
+    for row, i in zip(result["per_view"], TEST_IDS):
+        name = f"frame_{i:04d}"
+        png = io.read_image(run_dir / "renders" / f"{name}.png")[..., :3]
+        np.testing.assert_allclose(png, np.clip(renders[i]["rgb"], 0, 1), atol=0.5 / 255 + 1e-6)
+        np.testing.assert_allclose(io.read_exr(run_dir / "depth" / f"{name}.exr"), renders[i]["depth"], atol=1e-4)
+        opacity = io.read_image(run_dir / "opacity" / f"{name}.png")[..., 0]
+        np.testing.assert_allclose(opacity, np.clip(renders[i]["opacity"], 0, 1), atol=0.5 / 255 + 1e-6)
+        clean = ds.clean_images[i]
+        assert psnr(png, clean) == pytest.approx(20 * np.log10(1 / CHECKER), abs=0.05)
+        assert row["psnr"] == pytest.approx(psnr(png, clean), abs=0.05)
+        assert row["psnr"] == pytest.approx(psnr(np.clip(renders[i]["rgb"], 0, 1), clean), abs=1e-3)
+        right = np.zeros((H, W), bool)
+        right[:, W // 2:] = True
+        assert row["right_half"]["psnr"] == pytest.approx(psnr(np.clip(renders[i]["rgb"], 0, 1), clean, right),
+                                                          abs=1e-3)
+        for region, mask in regions.items():
+            assert row["regions"][region] == pytest.approx(psnr(np.clip(renders[i]["rgb"], 0, 1), clean, mask),
+                                                           abs=1e-3)
+    assert result["mean"]["psnr"] == pytest.approx(np.mean([r["psnr"] for r in result["per_view"]]), rel=1e-9)
+    for region in regions:
+        assert result["regions_mean"][region] == pytest.approx(
+            np.mean([r["regions"][region] for r in result["per_view"]]), rel=1e-9)
+
+
+def test_distractor_psnr_of_the_first_training_view_by_hand(evaluated):
+    """distractor_views=1: PSNR inside the first training view's distractor mask against its
+    clean image (the checker again: about 30.5 dB)."""
+    result, _, ds, renders = evaluated
+    i = TRAIN_IDS[0]
+    want = psnr(np.clip(renders[i]["rgb"], 0, 1), ds.clean_images[i], ds.distractor_masks[i])
+    assert result["distractor_psnr"] == pytest.approx(want, abs=1e-3)
+
+
+def _lift_by_hand(ds, i, view, near, far):
+    """Rays of frame i by hand (pinhole, OpenGL axes: x right, y up, -z forward, pixel centres),
+    lifted by the rule: t = z-depth / cos, opacity >= 0.5, |x| <= 1, t finite."""
+    fx, fy, cx, cy = (float(v) for v in ds.intrinsics[i])
+    c2w = np.asarray(ds.c2w[i], np.float64)
+    u, v = np.meshgrid(np.arange(W) + 0.5, np.arange(H) + 0.5)
+    cam = np.stack([(u - cx) / fx, -(v - cy) / fy, -np.ones_like(u)], -1)
+    d = cam @ c2w[:3, :3].T
+    cos = 1.0 / np.linalg.norm(cam, axis=-1)           # the unit direction's cosine to the axis
+    t = np.asarray(view["depth"], np.float64) / cos
+    x = c2w[:3, 3] + d / np.linalg.norm(d, axis=-1, keepdims=True) * t[..., None]
+    keep = (np.asarray(view["opacity"]) >= 0.5) & (np.linalg.norm(x, axis=-1) <= 1.0) & np.isfinite(t)
+    return x[keep], np.clip(view["rgb"], 0, 1)[keep]
+
+
+def test_tower_points_are_the_opacity_rule_of_the_test_and_cloud_views_on_the_analytic_surface(evaluated):
+    """tower_points.ply (`_lift` of the 2 test views, then of the 1 cloud training view): the
+    points and colours lifted by hand from the float renders, in that order, their count the
+    opacity rule's; in metres the points lie on the tower's surface or the ground's top (median
+    distance under 0.25 m, every one within 1.25 coarse sample bins: the 24 x 16 views' edge
+    pixels blend); tower points above the ground have the tower's colour."""
+    result, run_dir, ds, renders = evaluated
+    near, far = ds.near, ds.far
+    parts = [_lift_by_hand(ds, i, renders[i], near, far) for i in (*TEST_IDS, TRAIN_IDS[0])]
+    want_points = np.concatenate([p for p, _ in parts])
+    want_colours = np.concatenate([c for _, c in parts])
+    vertex = io.read_ply(run_dir / "tower_points.ply")
+    points = np.column_stack([vertex[k] for k in "xyz"])
+    colours = np.column_stack([vertex[k] for k in ("red", "green", "blue")]) / 255.0
+    assert len(points) == len(want_points) > 100
+    np.testing.assert_allclose(points, want_points, atol=2e-4)
+    np.testing.assert_allclose(colours, want_colours, atol=0.5 / 255 + 1e-6)
+    scale, rot = af.NORMALIZATION["scale"], np.asarray(af.NORMALIZATION["rotation"])
+    metric = np.asarray(points, np.float64) @ rot / scale - np.asarray(af.NORMALIZATION["translation"])
+    tower_frame = af.to_tower_frame(metric)
+    dist = np.minimum(af.distance_to_tower_surface(tower_frame), np.abs(tower_frame[:, 2] - af.GROUND_Z))
+    coarse_bin = (ds.far - ds.near) / 48 / scale                   # metres: 1.67 m
+    assert np.median(dist) < 0.25 and dist.max() < 1.25 * coarse_bin  # measured: 0.07 m, 1.70 m of 422
+    on_tower = af.distance_to_tower_surface(tower_frame) < 0.25
+    assert on_tower.sum() > 20
+    np.testing.assert_allclose(np.asarray(colours)[on_tower & (tower_frame[:, 2] > af.GROUND_Z + 0.5)],
+                               np.tile(af.TOWER_RGB, ((on_tower & (tower_frame[:, 2] > af.GROUND_Z + 0.5)).sum(), 1)),
+                               atol=0.02)
+    assert f"{len(points)} points" in (run_dir / "report.md").read_text()
+
+
+def test_lift_direct_call_is_lift_view_of_the_views_camera_rays():
+    """`_lift(ds, i, near, far, rgb, view)` keeps, of a hand-made view, the pixels the rule keeps,
+    at the depth along frame i's own rays (bounds near, far handed on)."""
+    ds = af.dataset(frames=3, width=W, height=H)
+    rng = np.random.default_rng(0)
+    i = 2
+    depth = rng.uniform(0.8, 3.0, (H, W)).astype(np.float32)
+    opacity = rng.uniform(0, 1, (H, W)).astype(np.float32)
+    opacity[0, 0], opacity[0, 1] = 0.5, np.nextafter(np.float32(0.5), np.float32(0))
+    depth[0, :2] = 2.2                       # on the unit sphere's side of the camera at 2.46 from the origin
+    rgb = rng.uniform(0, 1, (H, W, 3)).astype(np.float32)
+    view = {"depth": depth, "opacity": opacity}
+    points, colours = evaluate._lift(ds, i, 0.5, 4.5, rgb, view)
+    want_p, want_c = _lift_by_hand(ds, i, {"depth": depth, "opacity": opacity, "rgb": rgb}, 0.5, 4.5)
+    assert len(want_p) > 10
+    np.testing.assert_allclose(points, want_p, atol=1e-5)
+    np.testing.assert_allclose(colours, want_c, atol=1e-7)
+
+
+def test_fit_left_half_hands_fit_appearance_the_left_half_and_the_views_key(monkeypatch):
+    """`_fit_left_half` (NeRF-W only; the analytic run is "ours", so a direct call with
+    `views.fit_appearance` recorded): the rays and target pixels of columns < W // 2 in row-major
+    order, the model and train configs, PRNGKey(index); returns what the fit returned."""
+    ds = af.dataset(frames=3, width=W + 1, height=H)        # an odd width: half = W // 2 columns
+    cfg = analytic_config()
+    i = 1
+    rays = views.camera_rays(ds, i, 0.5, 4.5)
+    target = np.random.default_rng(1).uniform(0, 1, (H, W + 1, 3)).astype(np.float32)
+    calls = []
+
+    def fit(params, mcfg, tcfg, r, tgt, key):
+        calls.append((params, mcfg, tcfg, r, np.asarray(tgt), np.asarray(key)))
+        return np.arange(4.0)
+
+    monkeypatch.setattr(views, "fit_appearance", fit)
+    out = evaluate._fit_left_half("P", cfg, ds, i, target, rays)
+    np.testing.assert_array_equal(out, np.arange(4.0))
+    (params, mcfg, tcfg, r, tgt, key), = calls
+    assert params == "P" and mcfg is cfg.model and tcfg is cfg.train
+    half = (W + 1) // 2
+    assert half == W // 2
+    for got, full in zip(r, rays):
+        full = np.asarray(full)
+        want = full[:, :half].reshape(H * half, *full.shape[2:])
+        np.testing.assert_array_equal(np.asarray(got), want)
+    np.testing.assert_array_equal(tgt, target[:, :half].reshape(-1, 3))
+    np.testing.assert_array_equal(key, np.asarray(jax.random.PRNGKey(i)))
+
