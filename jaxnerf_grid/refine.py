@@ -55,12 +55,12 @@ def confirmed_frames(pool: dict, points: np.ndarray, threshold: float) -> np.nda
     """[T, H, W] 1.0 where a neighbouring training photo confirms the pixel at its point.
     pool: train.build_pool's dict (images, c2w, intrinsics, neighbours); points: [T, H, W, 3]."""
     frames, height, width = points.shape[:3]
+    photos = [jnp.asarray(pool[k]) for k in ("images", "c2w", "intrinsics", "neighbours")]  # uploaded once
     out = []
     for k in range(frames):
         ids = jnp.arange(height * width, dtype=jnp.int32) + k * height * width
         out.append(np.asarray(photo_consistency.confirmed_at_ids(
-            jnp.asarray(pool["images"]), jnp.asarray(pool["c2w"]), jnp.asarray(pool["intrinsics"]),
-            jnp.asarray(pool["neighbours"]), ids, jnp.asarray(points[k].reshape(-1, 3)), threshold)))
+            *photos, ids, jnp.asarray(points[k].reshape(-1, 3)), threshold)))
     return np.stack(out).reshape(frames, height, width)
 
 

@@ -152,10 +152,9 @@ def smooth_3x3(x: jnp.ndarray) -> jnp.ndarray:
 def evidence(inlier: jnp.ndarray, patch_share: float) -> jnp.ndarray:
     """The 3x3 vote and the patch rule on an inlier indicator. inlier: [P, p, p] in {0, 1}
     -> [P, p, p] weights in {0, 1}: vote AND (patch kept OR inlier), where vote = smooth_3x3
-    >= 1/2 and a patch is kept when at least `patch_share` of its pixels pass the vote."""
-    vote = (smooth_3x3(inlier) >= VOTE).astype(jnp.float32)
-    kept = (jnp.mean(vote, axis=(1, 2), keepdims=True) >= patch_share).astype(jnp.float32)
-    return vote * jnp.maximum(kept, inlier)
+    >= 1/2 and a patch is kept when at least `patch_share` of its pixels pass the vote: each
+    patch is a frame of one tile (`frame_evidence`)."""
+    return frame_evidence(inlier, inlier.shape[-1], patch_share)
 
 
 def frame_evidence(inlier: jnp.ndarray, patch: int, patch_share: float) -> jnp.ndarray:

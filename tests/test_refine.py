@@ -93,7 +93,8 @@ def test_rendered_points_lie_on_their_pixels_rays_at_the_rendered_z_depth():
     assert residual.shape == (2, 12, 16) and points.shape == (2, 12, 16, 3)
     from jaxnerf_grid import views
     for k, frame in enumerate(frames):
-        depth = views.render_view(params, cfg, ds, int(frame))["depth"]
+        view = views.render_view(params, cfg, ds, int(frame))
+        depth = view["depth"]
         c2w = np.asarray(ds.c2w[frame], np.float64)
         cam = (points[k].reshape(-1, 3) - c2w[:3, 3]) @ c2w[:3, :3]        # world -> camera (x right, y up, -z)
         z = -cam[:, 2]
@@ -105,8 +106,7 @@ def test_rendered_points_lie_on_their_pixels_rays_at_the_rendered_z_depth():
         np.testing.assert_allclose(col, cols.ravel() + 0.5, atol=1e-3)
         np.testing.assert_allclose(row, rows.ravel() + 0.5, atol=1e-3)
         photo = ds.images[frame]
-        np.testing.assert_allclose(residual[k], np.mean((np.clip(views.render_view(params, cfg, ds, int(frame))["rgb"],
-                                                                  0, 1) - photo) ** 2, -1), rtol=1e-5)
+        np.testing.assert_allclose(residual[k], np.mean((np.clip(view["rgb"], 0, 1) - photo) ** 2, -1), rtol=1e-5)
 
 
 def test_frozen_pool_draws_only_the_kept_pixels_and_refuses_an_empty_one():
