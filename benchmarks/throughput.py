@@ -12,7 +12,9 @@ grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 +
 "demo-sparse-adam" (the demo with train.sparse_adam), "ours-fast" (the candidate recipe: the demo
 with a smaller proposal field, docs/GRID.md);
 any of them + "-fused" (e.g. "demo-piecewise-fused"): traced without
-fields.hashgrid.computed_once, to measure what it saves.
+fields.hashgrid.computed_once, to measure what it saves; + "-concat" (e.g. "ours-fast-concat"):
+traced with the colour branch's input concatenated at every sample, to measure what
+fields.layers.first_colour_layer saves.
 
 Every (method, config) is set up and compiled first (compile time reported separately). Then
 `--repeats` rounds, each timing `--steps` training steps (block_until_ready) and the rendering
@@ -44,6 +46,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.convergence import MLP_CONFIG, RUNS
@@ -74,19 +77,44 @@ CONFIGS["demo-robust"] = merge(CONFIGS["demo"], {"train": {"robust": "robust", "
 CONFIGS["demo-robust-confirm"] = merge(CONFIGS["demo"], {"train": {"robust": "robust", "robust_confirm": 0.01}})
 # A config name ending in FUSED (e.g. "demo-piecewise-fused") is that config traced with
 # fields.hashgrid.computed_once as a no-op: the code before it, where XLA:CPU recomputed the
-# points' chain (warp, contraction) in every corner fusion of the hash grid.
+# points' chain (warp, contraction) in every corner fusion of the hash grid. A name ending in
+# CONCAT (e.g. "ours-fast-concat") is traced with the colour branch's input concatenated at every
+# sample, the view direction encoded per sample: the code before fields.layers.first_colour_layer
+# (issue 40, docs/GRID.md).
 FUSED = "-fused"
+CONCAT = "-concat"
+
+
+def _per_sample_first_colour_layer(layer, feature, viewdirs, appearance, cfg):
+    """fields.layers.first_colour_layer as it was before issue 40: [feature, encoded direction,
+    appearance] broadcast and concatenated at every sample, then one dense layer."""
+    from jaxnerf_grid import coords
+    from jaxnerf_grid.fields import layers
+
+    branch = [feature]
+    lead = feature.shape[:-1]
+    if cfg.use_viewdirs:
+        branch.append(coords.positional_encoding(jnp.broadcast_to(viewdirs, (*lead, 3)), 0, cfg.dir_max_deg))
+    if cfg.appearance_dim > 0:
+        app = appearance if appearance is not None else jnp.zeros((cfg.appearance_dim,), feature.dtype)
+        branch.append(jnp.broadcast_to(app, (*lead, cfg.appearance_dim)))
+    return layers.dense(layer, jnp.concatenate(branch, axis=-1))
 
 
 @contextlib.contextmanager
-def _tracing_without_computed_once(active: bool):
-    saved = hashgrid.computed_once
-    if active:
+def _tracing_as_before(suffix: str):
+    """Traces with the code before the change named by a config's suffix (FUSED, CONCAT, or "")."""
+    from jaxnerf_grid.fields import layers
+
+    saved = hashgrid.computed_once, layers.first_colour_layer
+    if suffix == FUSED:
         hashgrid.computed_once = lambda x: x
+    if suffix == CONCAT:
+        layers.first_colour_layer = _per_sample_first_colour_layer
     try:
         yield
     finally:
-        hashgrid.computed_once = saved
+        hashgrid.computed_once, layers.first_colour_layer = saved
 
 
 def scene(width=160, height=120, frames=8) -> Dataset:
@@ -111,8 +139,8 @@ class Case:
     """One (method, config): its compiled training step and renderer, state and rays, ready to time."""
 
     def __init__(self, method: str, name: str, render_rays: int, batch_rays: int = 0):
-        self.fused = name.endswith(FUSED)
-        overrides = json.loads(json.dumps(CONFIGS[name.removesuffix(FUSED)]))
+        self.suffix = next((x for x in (FUSED, CONCAT) if name.endswith(x)), "")
+        overrides = json.loads(json.dumps(CONFIGS[name.removesuffix(self.suffix) if self.suffix else name]))
         overrides.setdefault("train", {})["max_steps"] = 1000
         if batch_rays:  # --batch-rays: every case at this batch (a GPU needs more than the recipe's)
             overrides["train"]["batch_rays"] = batch_rays
@@ -125,13 +153,13 @@ class Case:
         self.state = parallel.replicate(train.init_state(cfg, train.train_frames_shape(ds)), n)
         self.step = train.make_train_step(cfg, n)
         self.render_fn = None  # None: render through views' renderer, cached per config
-        if self.fused:  # fresh (uncached) functions, traced below without computed_once
+        if self.suffix:  # fresh (uncached) functions, traced below with the code before
             self.step = train._make_train_step.__wrapped__(dataclasses.replace(cfg, data=None), n)
             self.render_fn = views._render_chunk_fn.__wrapped__(cfg.model, n, False)
         r = views.camera_rays(ds, 7, ds.near, ds.far)
         self.rays = rays_lib.Rays(*(np.asarray(x).reshape(-1, *np.asarray(x).shape[2:])[:render_rays] for x in r))
         t = time.perf_counter()
-        with _tracing_without_computed_once(self.fused):
+        with _tracing_as_before(self.suffix):
             self.train_steps(1)
             self.render()
         self.compile_s = time.perf_counter() - t

@@ -530,9 +530,44 @@ def test_throughput_times_a_case_with_and_without_computed_once(tmp_path):
     cfg = hashgrid.HashConfig(num_levels=2, log2_table_size=6, min_resolution=2, max_resolution=4)
     params = hashgrid.init(jax.random.PRNGKey(0), cfg)
     dots = [jax.jit(lambda p: hashgrid.encode(p, cfg, x)).lower(params).as_text().count("dot_general")]
-    with throughput._tracing_without_computed_once(True):
+    with throughput._tracing_as_before(throughput.FUSED):
         dots.append(jax.jit(lambda p: hashgrid.encode(p, cfg, x)).lower(params).as_text().count("dot_general"))
     assert dots[0] == dots[1] + 1
+
+
+def test_throughput_concat_case_traces_the_per_sample_colour_input_with_the_same_value():
+    """The "-concat" suffix traces the colour branch as before issue 40 (the direction encoded at
+    every sample): same rgb as fields.layers.first_colour_layer, one more sine per sample, and
+    the module restored afterwards."""
+    import jax
+
+    from benchmarks import throughput
+    from jaxnerf_grid import fields
+    from jaxnerf_grid.fields import layers
+
+    cfg = fields.FieldConfig(kind="grid", view_depth=2, view_width=8, dir_max_deg=2, appearance_dim=3, geo_features=4)
+    params = fields.init(jax.random.PRNGKey(0), cfg)
+    rng = np.random.default_rng(0)
+    feature = jax.numpy.asarray(rng.normal(size=(3, 5, 4)), jax.numpy.float32)
+    d = jax.numpy.asarray(rng.normal(size=(3, 1, 3)), jax.numpy.float32)
+    app = jax.numpy.asarray(rng.normal(size=(3,)), jax.numpy.float32)
+    original = layers.first_colour_layer
+
+    def rgb(p):
+        return layers.radiance_outputs(p, cfg, jax.numpy.zeros((3, 5)), feature, d, app, None)["rgb"]
+
+    def sine_shapes():
+        jaxpr = jax.make_jaxpr(lambda p: rgb(p))(params).jaxpr  # a fresh function: no cached trace
+        return [tuple(e.outvars[0].aval.shape) for e in jaxpr.eqns if e.primitive.name == "sin"]
+
+    new, new_sines = rgb(params), sine_shapes()
+    with throughput._tracing_as_before(throughput.CONCAT):
+        old, old_sines = rgb(params), sine_shapes()
+    assert layers.first_colour_layer is original
+    np.testing.assert_allclose(np.asarray(old), np.asarray(new), atol=2e-6)
+    assert old.shape == (3, 5, 3)
+    # 2 octaves x 3 axes x (sin, cos): the direction encoded once per ray now, at every sample before
+    assert new_sines == [(3, 1, 12)] and old_sines == [(3, 5, 12)]
 
 
 def test_mask_tower_overlap_counts_a_hand_made_view():

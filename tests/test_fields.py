@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from jaxnerf_grid import fields
+from jaxnerf_grid.fields import layers
 
 
 def _np_encode(x, lo, hi):
@@ -113,3 +114,34 @@ def test_gradients_finite_and_errors():
         fields.apply(params, cfg, x)
     with pytest.raises(ValueError, match="density_activation"):
         fields.init(jax.random.PRNGKey(0), dataclasses.replace(cfg, density_activation="exp"))
+
+
+@pytest.mark.parametrize("view_depth,use_viewdirs,app_shape", [(1, True, None), (2, True, (5,)),
+                                                                 (3, True, (4, 1, 5)), (2, False, (5,))])
+def test_colour_branch_with_one_direction_per_ray_matches_the_concatenated_input(view_depth, use_viewdirs, app_shape):
+    """A ray's direction [rays, 1, 3] against its samples' features [rays, samples, C], as
+    models.render_rays passes it (and an appearance code per ray or one for all): the colour
+    branch equals NumPy's MLP on the input concatenated at every sample."""
+    cfg = fields.FieldConfig(kind="grid", view_depth=view_depth, view_width=16, dir_max_deg=3,
+                             use_viewdirs=use_viewdirs, appearance_dim=5 if app_shape else 0, geo_features=6)
+    params = fields.init(jax.random.PRNGKey(2), cfg)
+    rng = np.random.default_rng(2)
+    feature = rng.normal(size=(4, 7, 6)).astype(np.float32)
+    d = rng.normal(size=(4, 1, 3)).astype(np.float32)
+    d /= np.linalg.norm(d, axis=-1, keepdims=True)
+    app = rng.normal(size=app_shape).astype(np.float32) if app_shape else None
+    out = layers.radiance_outputs(params, cfg, jnp.zeros((4, 7)), jnp.asarray(feature), jnp.asarray(d),
+                                  None if app is None else jnp.asarray(app), None)
+    p = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float64), params)
+    parts = [feature.astype(np.float64)]
+    if use_viewdirs:
+        parts.append(_np_encode(np.broadcast_to(d, (4, 7, 3)).astype(np.float64), 0, 3))
+    if app is not None:
+        parts.append(np.broadcast_to(app, (4, 7, 5)).astype(np.float64))
+    v = np.concatenate(parts, -1)
+    assert v.shape[-1] == p["view"][0]["w"].shape[0]
+    for layer in p["view"]:
+        v = np.maximum(v @ layer["w"] + layer["b"], 0)
+    rgb = 1 / (1 + np.exp(-(v @ p["rgb"]["w"] + p["rgb"]["b"])))
+    assert out["rgb"].shape == (4, 7, 3)
+    np.testing.assert_allclose(out["rgb"], rgb, atol=2e-6)

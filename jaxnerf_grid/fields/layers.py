@@ -87,24 +87,29 @@ def dir_input_size(cfg) -> int:
     return coords.encoded_size(3, 0, cfg.dir_max_deg) if cfg.use_viewdirs else 0
 
 
-def colour_inputs(feature: jnp.ndarray, viewdirs, appearance, use_viewdirs: bool, dir_max_deg: int,
-                  appearance_dim: int) -> jnp.ndarray:
-    """The colour branch's input: [feature, encoded direction, appearance embedding].
+def first_colour_layer(layer: dict, feature: jnp.ndarray, viewdirs, appearance, cfg) -> jnp.ndarray:
+    """The colour branch's first layer before its activation: `dense(layer, [feature, encoded
+    direction, appearance embedding (zeros without)])`, with the direction's and the
+    appearance's parts computed at their own shape and broadcast.
 
-    feature: [..., C]; viewdirs: [..., 3] (broadcast) or None; appearance: [..., A] or None
-    (zeros). Returns [..., C + D + A].
-    """
-    branch = [feature]
-    if use_viewdirs:
+    The layer's weight rows are [feature C | encoded direction D | appearance A], so
+    W [f, d, a] + b = W_f f + W_d d + W_a a + b. A ray's direction (viewdirs [rays, 1, 3]
+    against feature [rays, samples, C]) is encoded and multiplied once per ray instead of once
+    per sample (issue 40: the sines and cosines and D x width of the layer's multiply-adds per
+    sample). Same value up to float rounding. viewdirs and appearance broadcast against feature's
+    leading shape.
+    feature: [..., C] -> [..., width]."""
+    w = layer["w"]
+    c = feature.shape[-1]
+    d = dir_input_size(cfg)
+    out = feature @ w[:c] + layer["b"]
+    if cfg.use_viewdirs:
         if viewdirs is None:
             raise ValueError("fields.apply: this field uses view directions; pass viewdirs")
-        dirs = jnp.broadcast_to(viewdirs, (*feature.shape[:-1], 3))
-        branch.append(coords.positional_encoding(dirs, 0, dir_max_deg))
-    if appearance_dim > 0:
-        if appearance is None:
-            appearance = jnp.zeros((appearance_dim,), feature.dtype)
-        branch.append(jnp.broadcast_to(appearance, (*feature.shape[:-1], appearance_dim)))
-    return jnp.concatenate(branch, axis=-1)
+        out = out + coords.positional_encoding(viewdirs, 0, cfg.dir_max_deg) @ w[c:c + d]
+    if cfg.appearance_dim > 0 and appearance is not None:
+        out = out + appearance @ w[c + d:]
+    return jnp.broadcast_to(out, (*feature.shape[:-1], w.shape[-1]))
 
 
 def init_colour_branch(view_key, rgb_key, fan_in: int, depth: int, width: int) -> dict:
@@ -121,12 +126,13 @@ def init_colour_branch(view_key, rgb_key, fan_in: int, depth: int, width: int) -
 def radiance_outputs(params: dict, cfg, sigma: jnp.ndarray, feature: jnp.ndarray, viewdirs, appearance,
                      transient) -> dict:
     """What every field kind returns, from its density and feature: the colour branch
-    (`colour_inputs` -> "view" layers -> sigmoid "rgb") and, with cfg.transient_dim > 0,
+    (`first_colour_layer` -> "view" layers -> sigmoid "rgb") and, with cfg.transient_dim > 0,
     NeRF-W's transient head. sigma: [...]; feature: [..., C]. Returns fields.apply's dict."""
-    v = colour_inputs(feature, viewdirs, appearance, cfg.use_viewdirs, cfg.dir_max_deg, cfg.appearance_dim)
-    for layer in params["view"]:
-        v = jax.nn.relu(dense(layer, v))
-    out = {"rgb": jax.nn.sigmoid(dense(params["rgb"], v)), "sigma": sigma}
+    colour_layers = [*params["view"], params["rgb"]]
+    v = first_colour_layer(colour_layers[0], feature, viewdirs, appearance, cfg)
+    for layer in colour_layers[1:]:
+        v = dense(layer, jax.nn.relu(v))
+    out = {"rgb": jax.nn.sigmoid(v), "sigma": sigma}
     if cfg.transient_dim > 0:
         out.update(transient_apply(params, feature, transient))
     return out
