@@ -10,8 +10,9 @@ mask-weighted loss), one process, the same machine:
   grid-hierarchical  the demo's hash grid with the same coarse + fine sampler
   grid-proposal      the `ours` recipe (the demo's until issue 40): hash grid + one proposal
                      round (64 -> 32 samples), 2400 steps
-  grid-proposal-fast the demo's recipe now, `ours-fast`: a smaller proposal field, 1600 steps
-                     (`--runs grid-proposal,grid-proposal-fast` puts the two side by side)
+  grid-proposal-fast `ours-fast`: a smaller proposal field, 1600 steps (the demo's until ours-lean)
+  grid-proposal-lean the demo's recipe now, `ours-lean`: ours-fast with a leaner main field
+                     (`--runs grid-proposal,grid-proposal-fast,grid-proposal-lean` puts them side by side)
 
 Each run keeps a checkpoint every `--every` steps (under benchmarks/.cache), stamped with the training wall-clock time
 when it was written (the trainer's own time, compile included; evaluation is not counted).
@@ -56,7 +57,8 @@ def _grid_hierarchical() -> dict:
 
 
 RUNS = {"mlp-hierarchical": MLP_CONFIG, "grid-hierarchical": _grid_hierarchical(),
-        "grid-proposal": recipes.overrides("ours"), "grid-proposal-fast": recipes.overrides("ours-fast")}
+        "grid-proposal": recipes.overrides("ours"), "grid-proposal-fast": recipes.overrides("ours-fast"),
+        "grid-proposal-lean": recipes.overrides("ours-lean")}
 
 
 def dataset_dir(cache: Path) -> Path:

@@ -6,11 +6,11 @@ in one run with the cases interleaved.
         [--methods ours] [--batch-rays N]
 
 Configs: "mlp" (the MLP field with 32 + 32 hierarchical samples, the demo before the grid),
-"grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the demo recipe: hash
-grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128);
+"grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the `ours` recipe, the demo's
+until issue 40: hash grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128);
 "demo-linear", "demo-log", "demo-piecewise", "mlp-linear", ... (that ray warp instead of disparity);
-"demo-sparse-adam" (the demo with train.sparse_adam), "ours-fast" (the candidate recipe: the demo
-with a smaller proposal field, docs/GRID.md);
+"demo-sparse-adam" (the demo with train.sparse_adam), "ours-fast" (`ours` with a smaller proposal
+field, docs/GRID.md), "ours-lean" (ours-fast with a leaner main field: the demo's recipe now);
 any of them + "-fused" (e.g. "demo-piecewise-fused"): traced without
 fields.hashgrid.computed_once, to measure what it saves; + "-concat" (e.g. "ours-fast-concat"):
 traced with the colour branch's input concatenated at every sample, to measure what
@@ -71,6 +71,8 @@ for _warp in ("linear", "log", "piecewise"):
 # demo with a smaller proposal field, recipes.SAMPLERS; measured beside "demo", docs/GRID.md).
 CONFIGS["demo-sparse-adam"] = merge(CONFIGS["demo"], {"train": {"sparse_adam": True}})
 CONFIGS["ours-fast"] = recipes.overrides("ours-fast")
+# Issue 40's second round: the demo's recipe now, ours-fast with a leaner main field (docs/GRID.md)
+CONFIGS["ours-lean"] = recipes.overrides("ours-lean")
 # Issue 36: the demo trained with the photometric evidence (4x4 patches), without and with the
 # multi-view confirmation (photo_consistency.py), to price the confirmation (docs/ROBUST.md).
 CONFIGS["demo-robust"] = merge(CONFIGS["demo"], {"train": {"robust": "robust", "robust_confirm": 0.0}})

@@ -10,7 +10,8 @@ from these; `jaxnerf-grid recipes` prints them one line each (docs/RECIPES.md).
   ours-paper-mlp  the paper's MLP setting: `RunConfig()`'s defaults for ours
   nerf, nerfw     the baselines as the tables compare them at `--standard`: ours' field,
                   sampler, steps and rays in NeRF's bounded space (BOUNDED_SPACE)
-  ours-fast       the demo's (issue 40): ours with a smaller proposal field and 1600 steps
+  ours-fast       ours with a smaller proposal field and 1600 steps (the demo's until ours-lean)
+  ours-lean       the demo's (issue 40): ours-fast with a leaner main field
 
 Every sampler key of every recipe sits in SAMPLERS (one entry per recipe), apart from the
 other settings (SETTINGS), so the sampler can change shape in one place.
@@ -39,8 +40,12 @@ SAMPLERS = {
     # one density-only proposal round of 64 samples stratified in s, then 32 samples of the main field
     "ours": _PROPOSAL_64_32,
     # ours with a proposal field sized down (issue 40): 3 levels up to 64 cells, 2^15 rows per level,
-    # below nerfacto's smallest proposal network (5 levels to 128); the demo's (demo.DEMO_RECIPE)
+    # below nerfacto's smallest proposal network (5 levels to 128)
     "ours-fast": {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 32,
+                              "field": {"density_bias": -4.0,
+                                        "grid": {"num_levels": 3, "max_resolution": 64, "log2_table_size": 15}}}},
+    # ours-fast with 24 main samples instead of 32 (issue 40); the demo's (demo.DEMO_RECIPE)
+    "ours-lean": {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 24,
                               "field": {"density_bias": -4.0,
                                         "grid": {"num_levels": 3, "max_resolution": 64, "log2_table_size": 15}}}},
     # NeRF's two passes, 48 + 48 samples, the second over the union, two fields
@@ -89,6 +94,11 @@ SETTINGS = {
     "ours": _GRID,
     # the demo's recipe (issue 40): 1600 steps reach ours' figures at 2400 on tower-small (docs/GRID.md)
     "ours-fast": merge(_GRID, {"train": {"max_steps": 1600}}),
+    # the demo's recipe since issue 40's second round: ours-fast with a leaner main field, 8 hash
+    # levels (16 to 1024 cells, as ours' 12) of at most 2^16 rows and one colour layer: each step
+    # about 1.8x faster, the demo's figures within 0.2 dB (docs/GRID.md "Issue 40: a leaner main field")
+    "ours-lean": merge(_GRID, {"model": {"field": {"view_depth": 1, "grid": {"num_levels": 8, "log2_table_size": 16}}},
+                               "train": {"max_steps": 1600}}),
     "ours-paper-mlp": {},
     "nerf": merge(_GRID, {"model": BOUNDED_SPACE}),
     "nerfw": merge(_GRID, {"model": BOUNDED_SPACE}),
@@ -115,8 +125,10 @@ RECIPES = {r.name: r for r in (
                            "contraction (linear t to a far plane at 40 units, grid over +-44), no masks"),
     Recipe("nerfw", "nerfw", "NeRF-W: the nerf recipe plus appearance and transient embeddings "
                              "(the appearance fitted on the left half of each test view)"),
-    Recipe("ours-fast", "ours", "the demo's (issue 40): ours with a smaller proposal field (3 levels up to "
-                                "64 cells, 2^15 rows) and 1600 steps x 1024 rays"),
+    Recipe("ours-fast", "ours", "ours with a smaller proposal field (3 levels up to 64 cells, 2^15 rows) and "
+                                "1600 steps x 1024 rays (the demo's from issue 40 until ours-lean)"),
+    Recipe("ours-lean", "ours", "the demo's (issue 40): ours-fast with a leaner main field (24 samples a ray, "
+                                "8 hash levels of 2^16 rows, one colour layer); 1600 steps x 1024 rays"),
 )}
 
 # The model keys in this order when a recipe is written out (the sampler first, then the space,

@@ -42,7 +42,7 @@ def test_ours_is_the_demo_recipe_key_for_key():
     assert model["sampler"] == {k: v for k, v in upgraded["sampler"].items() if k in model["sampler"]}
     assert {k: v for k, v in recipes.overrides("ours").items() if k != "model"} == \
         {k: v for k, v in DEMO_BEFORE.items() if k != "model"}
-    assert demo.DEMO_RECIPE == "ours-fast" and demo.DEMO_CONFIG == recipes.overrides("ours-fast")
+    assert demo.DEMO_RECIPE == "ours-lean" and demo.DEMO_CONFIG == recipes.overrides("ours-lean")
     assert recipes.get(demo.DEMO_RECIPE).method == "ours"
     assert as_dict(recipes.make_config("ours")) == as_dict(train.make_config("ours", DEMO_BEFORE))
     # the experiments record it flat, with the same content and key order as the results files
@@ -86,6 +86,21 @@ def test_ours_fast_is_ours_with_a_smaller_proposal_field_and_1600_steps():
     assert dataclasses.replace(fast, model=dataclasses.replace(fast.model, sampler=same_sampler)) == ours
 
 
+def test_ours_lean_is_ours_fast_with_24_main_samples_8_levels_of_2_16_rows_and_one_colour_layer():
+    lean, fast = recipes.make_config("ours-lean"), recipes.make_config("ours-fast")
+    assert lean.train == fast.train and lean.train.max_steps == 1600
+    assert (lean.model.sampler.main_samples, fast.model.sampler.main_samples) == (24, 32)
+    assert lean.model.sampler.field == fast.model.sampler.field
+    grid, fast_grid = lean.model.field.grid, fast.model.field.grid
+    assert (grid.num_levels, grid.log2_table_size, fast_grid.num_levels, fast_grid.log2_table_size) == (8, 16, 12, 17)
+    # the same finest and coarsest cells as ours: only the steps between levels are larger
+    assert (grid.min_resolution, grid.max_resolution) == (fast_grid.min_resolution, fast_grid.max_resolution)
+    assert (lean.model.field.view_depth, fast.model.field.view_depth) == (1, 2)
+    field = dataclasses.replace(lean.model.field, view_depth=2, grid=fast_grid)
+    sampler = dataclasses.replace(lean.model.sampler, main_samples=32)
+    assert dataclasses.replace(lean, model=dataclasses.replace(lean.model, field=field, sampler=sampler)) == fast
+
+
 def test_overrides_are_fresh_copies():
     a, b = recipes.overrides("ours"), recipes.overrides("ours")
     a["model"]["field"]["grid"]["num_levels"] = 1
@@ -100,7 +115,7 @@ def test_resolve_recipe_and_method():
     assert recipes.resolve("ours-paper-mlp", "nerf") == ("ours-paper-mlp", "nerf")
     # --recipe ours-paper-mlp --method nerf is what `train --method nerf` trained before the registry
     assert as_dict(recipes.make_config("ours-paper-mlp", method="nerf")) == as_dict(train.make_config("nerf"))
-    with pytest.raises(ConfigError, match="'mine'.*ours, ours-paper-mlp, nerf, nerfw, ours-fast"):
+    with pytest.raises(ConfigError, match="'mine'.*ours, ours-paper-mlp, nerf, nerfw, ours-fast, ours-lean"):
         recipes.get("mine")
 
 
@@ -108,7 +123,7 @@ def test_recipes_command_prints_one_line_each(capsys):
     assert cli.main(["recipes"]) == 0
     lines = capsys.readouterr().out.splitlines()
     listed = [line.split()[0] for line in lines[:len(recipes.RECIPES)]]
-    assert listed == ["ours", "ours-paper-mlp", "nerf", "nerfw", "ours-fast"]
+    assert listed == ["ours", "ours-paper-mlp", "nerf", "nerfw", "ours-fast", "ours-lean"]
     assert all(recipes.RECIPES[n].description in line for n, line in zip(listed, lines))
     assert cli.main(["recipes", "--show", "nerf"]) == 0
     assert json.loads(capsys.readouterr().out) == recipes.overrides("nerf")
