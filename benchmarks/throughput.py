@@ -14,7 +14,9 @@ field, docs/GRID.md), "ours-lean" (ours-fast with a leaner main field: the demo'
 any of them + "-fused" (e.g. "demo-piecewise-fused"): traced without
 fields.hashgrid.computed_once, to measure what it saves; + "-concat" (e.g. "ours-fast-concat"):
 traced with the colour branch's input concatenated at every sample, to measure what
-fields.layers.first_colour_layer saves.
+fields.layers.first_colour_layer saves. `--variant NAME=BASE:KEY=VALUE;...` adds a config NAME, BASE
+with `--set` style changes (e.g. `--variant m24=ours-fast:model.sampler.main_samples=24 --configs
+ours-fast,m24`).
 
 Every (method, config) is set up and compiled first (compile time reported separately). Then
 `--repeats` rounds, each timing `--steps` training steps (block_until_ready) and the rendering
@@ -299,6 +301,17 @@ def compare_processes(config: str, steps: int, out_path: str) -> dict:
     return result
 
 
+def parse_variant(text: str) -> tuple[str, str, dict]:
+    """'NAME=BASE:KEY=VALUE;KEY=VALUE' -> (NAME, BASE, the nested changes), the keys checked as
+    `--set` checks them (config.parse_sets); a bad one is a ConfigError naming it."""
+    name, _, rest = text.partition("=")
+    base, _, changes = rest.partition(":")
+    if not name or not base or base not in CONFIGS:
+        raise config_lib.ConfigError(f"--variant {text!r}: expected NAME=BASE:KEY=VALUE[;KEY=VALUE], BASE one of "
+                                     f"{', '.join(CONFIGS)}")
+    return name, base, config_lib.parse_sets([c for c in changes.split(";") if c], train.RunConfig)
+
+
 def main(argv=None) -> None:
     p = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     p.add_argument("--processes", action="store_true",
@@ -311,8 +324,14 @@ def main(argv=None) -> None:
     p.add_argument("--methods", default="ours")
     p.add_argument("--batch-rays", type=int, default=0,
                    help="train every case at this many rays a step (default: each config's own)")
+    p.add_argument("--variant", action="append", default=[], metavar="NAME=BASE:KEY=VALUE[;KEY=VALUE]",
+                   help="add a config NAME: config BASE with --set style changes, e.g. "
+                        "'m24=ours-fast:model.sampler.main_samples=24'; list NAME in --configs (repeatable)")
     p.add_argument("--out", default=str(Path(__file__).parent / "results" / "throughput.json"))
     args = p.parse_args(argv)
+    for text in args.variant:
+        name, base, changes = parse_variant(text)
+        CONFIGS[name] = merge(CONFIGS[base], changes)
     if args.child:
         config, steps, port, pid, nproc = args.child.split(",")
         _process_child(config, int(steps), int(port), int(pid), int(nproc))

@@ -651,3 +651,21 @@ def test_paired_rows_within_one_file_by_label_replacement(capsys, tmp_path):
     assert pr.main([str(path), "--replace", "nothing", "else", "--metrics", "psnr"]) == 1
     with pytest.raises(SystemExit):
         pr.main([str(path)])                                  # one file needs --replace
+
+
+def test_throughput_variant_is_its_base_with_the_set_changes():
+    """--variant NAME=BASE:KEY=VALUE;KEY=VALUE: the base's settings with those keys changed, the
+    keys checked as --set checks them."""
+    from benchmarks import throughput
+    from jaxnerf_grid.config import ConfigError
+
+    name, base, changes = throughput.parse_variant(
+        "m24=ours-fast:model.sampler.main_samples=24;model.field.grid.num_levels=8")
+    assert (name, base) == ("m24", "ours-fast")
+    assert changes == {"model": {"sampler": {"main_samples": 24}, "field": {"grid": {"num_levels": 8}}}}
+    merged = throughput.merge(throughput.CONFIGS[base], changes)
+    assert merged["model"]["sampler"]["samples"] == throughput.CONFIGS["ours-fast"]["model"]["sampler"]["samples"]
+    assert merged["model"]["field"]["grid"]["log2_table_size"] == 17
+    for bad in ("m24=nope:model.sampler.main_samples=24", "m24=ours-fast:model.sampler.mian_samples=24", "m24"):
+        with pytest.raises(ConfigError):
+            throughput.parse_variant(bad)
