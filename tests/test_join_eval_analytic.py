@@ -391,7 +391,8 @@ def test_nerfw_protocol_fits_each_test_views_appearance_on_its_left_half(evaluat
     embedding): `views.fit_appearance` (recorded) is handed each test view's left-half rays and
     clean pixels, the run's params and configs, PRNGKey(index); the test view is rendered with
     the embedding it returned, the cloud and distractor views with none (the table); the
-    headline means are the right-half means and the protocol says so."""
+    headline means are the right-half means and the protocol says so. With a pixel budget
+    (`cloud_pixels`, one view's worth) the one cloud view asked for is still lifted."""
     import dataclasses
 
     from jaxnerf_grid import config as config_lib
@@ -415,7 +416,8 @@ def test_nerfw_protocol_fits_each_test_views_appearance_on_its_left_half(evaluat
 
     monkeypatch.setattr(views, "fit_appearance", fit)
     monkeypatch.setattr(views, "render_view", render)
-    result, _ = _evaluate(tmp_path, "run", cfg, ds, params, {}, progress=False, cloud_views=1, distractor_views=1)
+    result, _ = _evaluate(tmp_path, "run", cfg, ds, params, {}, progress=False, cloud_views=1, distractor_views=1,
+                          cloud_pixels=W * H)             # a budget of one view: still the 1 asked for
     near, far = config_lib.near_far(cfg.model, ds)
     half = W // 2
     assert len(fitted) == len(TEST_IDS)
@@ -427,6 +429,7 @@ def test_nerfw_protocol_fits_each_test_views_appearance_on_its_left_half(evaluat
         np.testing.assert_array_equal(tgt, ds.clean_images[i][:, :half].reshape(-1, 3))
         np.testing.assert_array_equal(key, np.asarray(jax.random.PRNGKey(i)))
     assert rendered == [(1, [0.25] * 3), (3, [0.5] * 3), (TRAIN_IDS[0], None), (TRAIN_IDS[0], None)]
+    assert result["cloud_views"]["train"] == [TRAIN_IDS[0]]
     right, full_ssim = result["mean_right_half"], np.mean([r["ssim"] for r in result["per_view"]])
     assert {k: result["mean"][k] for k in evaluate.METRIC_KEYS} == right
     assert result["mean"]["ms_ssim_scales"] == result["per_view"][0]["ms_ssim_scales"]
