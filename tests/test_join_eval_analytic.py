@@ -371,7 +371,8 @@ def test_a_call_with_the_defaults_on_a_robust_runs_folder(evaluated, tmp_path):
                                            if isinstance(value, float) else value), key
     weights = {"mode": cfg.train.robust, "ignored_share": pytest.approx(0.125, abs=1e-6),
                "late_batch_ignored_share": pytest.approx(0.3, abs=1e-9)}
-    assert result["training_weights"] == weights and io.read_json(run_dir / "metrics.json")["training_weights"] == weights
+    assert result["training_weights"] == weights
+    assert io.read_json(run_dir / "metrics.json")["training_weights"] == weights
     report = (run_dir / "report.md").read_text()
     for line in (f"Data: `{tmp_path / 'dataset'}`",
                  f"Resolution: test views rendered at the photos' full size, {W}x{H} (`--full-size`).",
@@ -454,7 +455,8 @@ def test_a_missing_or_empty_reference_or_missing_lpips_weights_is_refused_before
     for name, kwargs, message in (
             ("missing", {"reference_ply": missing}, f"{missing}: reference point cloud not found (eval.reference_ply)"),
             ("empty", {"reference_ply": empty}, f"{empty}: the reference point cloud is empty"),
-            ("lpips", {"lpips_weights": str(weights)}, f"{weights}: LPIPS weights file not found (eval.lpips_weights)")):
+            ("lpips", {"lpips_weights": str(weights)},
+             f"{weights}: LPIPS weights file not found (eval.lpips_weights)")):
         handed = {}
         with pytest.raises(DataError, match=f"^{re.escape(message)}$"):
             _evaluate(tmp_path, name, cfg, ds, af.params(cfg.model), handed, progress=False, **kwargs)
