@@ -19,6 +19,7 @@ import jax
 import numpy as np
 import pytest
 
+from jaxnerf_grid import clouds as clouds_lib
 from jaxnerf_grid import evaluate, fields, io, runs, train, views
 
 sys.path.insert(0, str(Path(__file__).parent))
@@ -227,7 +228,8 @@ def test_tower_points_are_the_opacity_rule_of_the_test_and_cloud_views_on_the_an
     np.testing.assert_allclose(np.asarray(colours)[on_tower & (tower_frame[:, 2] > af.GROUND_Z + 0.5)],
                                np.tile(af.TOWER_RGB, ((on_tower & (tower_frame[:, 2] > af.GROUND_Z + 0.5)).sum(), 1)),
                                atol=0.02)
-    assert f"{len(points)} points" in (run_dir / "report.md").read_text()
+    assert (f"2 test views and 1 training views (opacity >= 0.5): `tower_points.ply`, {len(points)} points"
+            in (run_dir / "report.md").read_text())
 
 
 def test_lift_direct_call_is_lift_view_of_the_views_camera_rays():
@@ -278,3 +280,184 @@ def test_fit_left_half_hands_fit_appearance_the_left_half_and_the_views_key(monk
     np.testing.assert_array_equal(tgt, target[:, :half].reshape(-1, 3))
     np.testing.assert_array_equal(key, np.asarray(jax.random.PRNGKey(i)))
 
+
+
+def _evaluate(root, name, cfg, ds, params, handed, **kwargs):
+    """evaluate_run of the analytic run in a new folder root/name with the analytic field in place;
+    the stand-ins record in `handed` what they are given ("dataset_of_run": (args, kwargs),
+    "load_params": (folder, cfg, ds)) instead of asserting it."""
+    run_dir = root / name
+    run_dir.mkdir(exist_ok=True)
+
+    def load_run(folder):
+        return cfg, root / "dataset"
+
+    def dataset_of_run(*args, **kw):
+        handed.setdefault("dataset_of_run", []).append((args, kw))
+        return ds
+
+    def load_params(folder, cfg_, ds_):
+        handed.setdefault("load_params", []).append((Path(folder), cfg_, ds_))
+        return params, 7
+
+    af.clear_compiled()
+    try:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(fields, "apply", af.apply)
+            mp.setattr(runs, "load_run", load_run)
+            mp.setattr(runs, "dataset_of_run", dataset_of_run)
+            mp.setattr(train, "load_params", load_params)
+            return evaluate.evaluate_run(run_dir, dataset=ds, **kwargs), run_dir
+    finally:
+        af.clear_compiled()
+
+
+def test_a_call_with_the_defaults_on_a_robust_runs_folder(evaluated, tmp_path):
+    """The defaults of the API (what `jaxnerf-grid eval` relies on: no cloud_views, no
+    cloud_pixels, progress shown), with allow_other_data, full_size and a reference cloud, on the
+    analytic dataset without clean images or semantics, in a run folder holding a robust run's
+    weights/ (two training views' weight PNGs) and metrics.jsonl: the cloud is the 2 test views'
+    alone; the loader is handed progress True and both flags; the targets are the images (1 -
+    clean: far from the 30.5 dB of the clean ones), no distractor PSNR (it needs clean images),
+    no regions; the geometry is the written cloud scored against the reference; the training
+    weights' shares and the report's lines are worked out by hand."""
+    import dataclasses
+    import json
+    import time
+
+    from jaxnerf_grid import geometry
+
+    _, _, ds, renders = evaluated
+    plain = dataclasses.replace(ds, clean_images=None, semantics=None)
+    cfg = analytic_config()
+    run_dir = tmp_path / "run"
+    used = {TRAIN_IDS[0]: np.ones((H, W), np.float32), TRAIN_IDS[1]: np.ones((H, W), np.float32)}
+    used[TRAIN_IDS[0]][2:6, 3:9] = 0.0                   # 24 of 384 pixels ignored: 0.0625
+    used[TRAIN_IDS[1]][:3] = 0.0                         # 72 of 384: 0.1875; mean 0.125
+    for i, w in used.items():
+        io.write_png(run_dir / "weights" / f"{evaluate.frame_name(ds, i)}.png", w)
+    steps = cfg.train.max_steps                          # the last quarter: 0.8 and 0.6, not the 0 at step 1
+    (run_dir / "metrics.jsonl").write_text("".join(json.dumps(r) + "\n" for r in (
+        {"step": 1, "robust_weight": 0.0}, {"step": int(0.9 * steps), "robust_weight": 0.6},
+        {"step": steps, "robust_weight": 0.8})))
+    scale, rot = af.NORMALIZATION["scale"], np.asarray(af.NORMALIZATION["rotation"])
+    surface = (af.to_metric_frame(af.surface_samples(0.5)) + np.asarray(af.NORMALIZATION["translation"])) * scale
+    reference = tmp_path / "reference.ply"
+    clouds_lib.write_point_cloud(reference, [(surface @ rot.T, np.zeros_like(surface))])
+    handed = {}
+    start = time.perf_counter()
+    result, _ = _evaluate(tmp_path, "run", cfg, plain, af.params(cfg.model), handed, allow_other_data=True,
+                          full_size=True, reference_ply=reference)
+    took = time.perf_counter() - start
+    assert handed["dataset_of_run"] == [((run_dir, tmp_path / "dataset", plain, True, True),
+                                         {"max_side": cfg.train.max_side, "full_size": True})]
+    assert result["cloud_views"] == {"test": list(TEST_IDS), "train": []}
+    want = [_lift_by_hand(ds, i, renders[i], ds.near, ds.far)[0] for i in TEST_IDS]
+    vertex = io.read_ply(run_dir / "tower_points.ply")
+    count = len(vertex["x"])
+    assert count == sum(len(p) for p in want) > 50
+    assert result["target"] == "images" and result["distractor_psnr"] is None
+    assert result["regions_mean"] == {} and result["region_definition"] is None
+    assert result["resolution"]["full_size"] is True and 0 < result["eval_seconds"] <= took
+    for row, i in zip(result["per_view"], TEST_IDS):
+        want_psnr = psnr(np.clip(renders[i]["rgb"], 0, 1), ds.images[i])
+        assert row["psnr"] == pytest.approx(want_psnr, abs=1e-3) and want_psnr < 20
+    points = np.column_stack([vertex[k] for k in "xyz"])
+    score = geometry.score_against_ply([(points, np.zeros_like(points))], reference)
+    assert score["num_pred"] >= 20 and score["thresholds"]["0.05"]["precision"] > 0.5   # measured: 40, 0.9
+    assert result["geometry"].keys() == score.keys()
+    for key, value in score.items():
+        assert result["geometry"][key] == (pytest.approx(value, rel=1e-4, abs=1e-6)
+                                           if isinstance(value, float) else value), key
+    weights = {"mode": cfg.train.robust, "ignored_share": pytest.approx(0.125, abs=1e-6),
+               "late_batch_ignored_share": pytest.approx(0.3, abs=1e-9)}
+    assert result["training_weights"] == weights
+    assert io.read_json(run_dir / "metrics.json")["training_weights"] == weights
+    report = (run_dir / "report.md").read_text()
+    for line in (f"Data: `{tmp_path / 'dataset'}`",
+                 f"Resolution: test views rendered at the photos' full size, {W}x{H} (`--full-size`).",
+                 f"Photometric evidence (`train.robust = {cfg.train.robust}`): training ignored 30.0 % of the "
+                 "pixels of each batch in the last quarter of training, and 12.5 % of the training pixels in its "
+                 "per-pixel record (pixels never drawn count as used; weights in `weights/`, docs/ROBUST.md).",
+                 "![training weights](report_weights.png)",
+                 "Point cloud of the unit sphere (the tower region) lifted from the depth maps of the 2 test views "
+                 f"(opacity >= 0.5): `tower_points.ply`, {count} points, normalised scene units.",
+                 "LPIPS: unavailable (no LPIPS weights given)."):
+        assert line in report, line
+    assert (run_dir / "report_weights.png").is_file() and (run_dir / "report.html").is_file()
+
+
+def test_nerfw_protocol_fits_each_test_views_appearance_on_its_left_half(evaluated, tmp_path, monkeypatch):
+    """The analytic run as a NeRF-W run (`use_appearance`; the analytic field ignores the
+    embedding): `views.fit_appearance` (recorded) is handed each test view's left-half rays and
+    clean pixels, the run's params and configs, PRNGKey(index); the test view is rendered with
+    the embedding it returned, the cloud and distractor views with none (the table); the
+    headline means are the right-half means and the protocol says so. With a pixel budget
+    (`cloud_pixels`, one view's worth) the one cloud view asked for is still lifted."""
+    import dataclasses
+
+    from jaxnerf_grid import config as config_lib
+
+    _, _, ds, _ = evaluated
+    base = analytic_config()
+    cfg = dataclasses.replace(base, model=dataclasses.replace(base.model, use_appearance=True, appearance_dim=3,
+                                                              num_images=FRAMES))
+    params = dict(af.params(cfg.model), appearance=np.zeros((FRAMES, 3), np.float32))
+    fitted, rendered = [], []
+
+    def fit(params_, mcfg, tcfg, r, tgt, key):
+        fitted.append((params_, mcfg, tcfg, r, np.asarray(tgt), np.asarray(key)))
+        return np.full(3, 0.25 * len(fitted), np.float32)
+
+    real_render = views.render_view
+
+    def render(params_, cfg_, ds_, index, appearance=None, progress=False):
+        rendered.append((int(index), None if appearance is None else np.asarray(appearance).tolist()))
+        return real_render(params_, cfg_, ds_, index, appearance=appearance, progress=progress)
+
+    monkeypatch.setattr(views, "fit_appearance", fit)
+    monkeypatch.setattr(views, "render_view", render)
+    result, _ = _evaluate(tmp_path, "run", cfg, ds, params, {}, progress=False, cloud_views=1, distractor_views=1,
+                          cloud_pixels=W * H)             # a budget of one view: still the 1 asked for
+    near, far = config_lib.near_far(cfg.model, ds)
+    half = W // 2
+    assert len(fitted) == len(TEST_IDS)
+    for (params_, mcfg, tcfg, r, tgt, key), i in zip(fitted, TEST_IDS):
+        assert params_ is params and mcfg is cfg.model and tcfg is cfg.train
+        for got, full in zip(r, views.camera_rays(ds, i, near, far)):
+            full = np.asarray(full)
+            np.testing.assert_array_equal(np.asarray(got), full[:, :half].reshape(H * half, *full.shape[2:]))
+        np.testing.assert_array_equal(tgt, ds.clean_images[i][:, :half].reshape(-1, 3))
+        np.testing.assert_array_equal(key, np.asarray(jax.random.PRNGKey(i)))
+    assert rendered == [(1, [0.25] * 3), (3, [0.5] * 3), (TRAIN_IDS[0], None), (TRAIN_IDS[0], None)]
+    assert result["cloud_views"]["train"] == [TRAIN_IDS[0]]
+    right, full_ssim = result["mean_right_half"], np.mean([r["ssim"] for r in result["per_view"]])
+    assert {k: result["mean"][k] for k in evaluate.METRIC_KEYS} == right
+    assert result["mean"]["ms_ssim_scales"] == result["per_view"][0]["ms_ssim_scales"]
+    assert abs(right["ssim"] - full_ssim) > 1e-3                  # the right half is not the whole view
+    assert "NeRF-W" in result["protocol"] and "right half" in result["protocol"]
+
+
+def test_a_missing_or_empty_reference_or_missing_lpips_weights_is_refused_before_the_params_load(evaluated,
+                                                                                                  tmp_path):
+    """--reference-ply missing or empty, --lpips-weights missing: DataError naming the file, before
+    the parameters are loaded or anything is written in the run folder."""
+    import re
+
+    from jaxnerf_grid.io import DataError
+
+    _, _, ds, _ = evaluated
+    cfg = analytic_config()
+    empty = tmp_path / "empty.ply"
+    empty.write_text("ply\nformat ascii 1.0\nelement vertex 0\nproperty float x\nproperty float y\n"
+                     "property float z\nend_header\n")
+    missing, weights = tmp_path / "missing.ply", tmp_path / "alex.npz"
+    for name, kwargs, message in (
+            ("missing", {"reference_ply": missing}, f"{missing}: reference point cloud not found (eval.reference_ply)"),
+            ("empty", {"reference_ply": empty}, f"{empty}: the reference point cloud is empty"),
+            ("lpips", {"lpips_weights": str(weights)},
+             f"{weights}: LPIPS weights file not found (eval.lpips_weights)")):
+        handed = {}
+        with pytest.raises(DataError, match=f"^{re.escape(message)}$"):
+            _evaluate(tmp_path, name, cfg, ds, af.params(cfg.model), handed, progress=False, **kwargs)
+        assert "load_params" not in handed and list((tmp_path / name).iterdir()) == []
