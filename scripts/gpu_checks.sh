@@ -4,7 +4,7 @@
 # in $OUT (or ./gpu_out when OUT is unset).
 #   bash scripts/gpu_checks.sh speed   # DPT speed vs torch on the GPU (base seg / depth, large seg)
 #   STEPS=1000 bash scripts/gpu_checks.sh demo   # the README's demo on the GPU, plus NeRF throughput
-#   bash scripts/gpu_checks.sh train   # issue 40: train rays/s (ours, ours-fast, lazy Adam; 1024 and
+#   bash scripts/gpu_checks.sh train   # issue 40: train rays/s (ours, ours-fast, ours-lean, lazy Adam; 1024 and
 #                                      # 8192 rays), the step's profile, the demo and ours-fast's demo
 #   STEPS_LIST="1000 1200 1600" bash scripts/gpu_checks.sh steps   # issue 40: ours-fast's demo at
 #        fewer steps (and ours at the first count), no video; then DPT-base segmentation's speed
@@ -39,11 +39,11 @@ case "${1:-speed}" in
     ;;
   train)
     # Each part under its own timeout, the most wanted first, so one that hangs costs only itself.
-    timeout 150 python3 -m benchmarks.throughput --configs demo,ours-fast,demo-sparse-adam --steps 20 \
+    timeout 150 python3 -m benchmarks.throughput --configs demo,ours-fast,ours-lean,demo-sparse-adam --steps 20 \
       --repeats 3 --out "$OUT/throughput_gpu.json"
     ( time timeout 240 python3 -m jaxnerf_grid demo --out /tmp/demo --quiet ) 2>&1 | tee "$OUT/demo.log"
     for f in report_views.png metrics.json; do cp "/tmp/demo/run/$f" "$OUT/demo_$f"; done  # 8 files come back
-    timeout 100 python3 -m benchmarks.throughput --configs demo,ours-fast,demo-sparse-adam --steps 20 \
+    timeout 100 python3 -m benchmarks.throughput --configs demo,ours-fast,ours-lean,demo-sparse-adam --steps 20 \
       --repeats 3 --batch-rays 8192 --out "$OUT/throughput_gpu_8192.json"
     timeout 90 python3 -m benchmarks.step_profile --repeats 10 --out "$OUT/step_profile_gpu.json"
     ( time timeout 150 python3 -m jaxnerf_grid demo --data /tmp/demo/data --out /tmp/demofast --quiet \
