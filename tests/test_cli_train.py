@@ -136,8 +136,8 @@ def test_demo_runs_the_recipe_on_a_given_dataset(data_dir, tmp_path, capsys):
     m = io.read_json(tmp_path / "demo" / "run" / "metrics.json")
     assert m["step"] == 2 and m["geometry"] is not None
     report = (tmp_path / "demo" / "run" / "report.md").read_text()
-    assert "sampling in s: proposal 64 -> 32 main, 96 samples per ray, opaque far bin" in report
-    assert "hash grid, 12 levels x 2 features" in report and "Tower geometry" in report
+    assert "sampling in s: proposal 64 -> 24 main, 88 samples per ray, opaque far bin" in report
+    assert "hash grid, 8 levels x 2 features" in report and "Tower geometry" in report
     assert m["cloud_views"]["test"] == [4] and m["cloud_views"]["train"] == [0, 1, 2, 3]  # 16 asked, 4 exist
     assert meta == io.read_json(data / "transforms.json")  # the dataset was not touched
     assert demo.DEMO_CONFIG["model"]["sampler"]["kind"] == "proposal"
