@@ -144,7 +144,7 @@ class Case:
 
     def __init__(self, method: str, name: str, render_rays: int, batch_rays: int = 0):
         self.suffix = next((x for x in (FUSED, CONCAT) if name.endswith(x)), "")
-        overrides = json.loads(json.dumps(CONFIGS[name.removesuffix(self.suffix) if self.suffix else name]))
+        overrides = json.loads(json.dumps(CONFIGS[name.removesuffix(self.suffix)]))
         overrides.setdefault("train", {})["max_steps"] = 1000
         if batch_rays:  # --batch-rays: every case at this batch (a GPU needs more than the recipe's)
             overrides["train"]["batch_rays"] = batch_rays

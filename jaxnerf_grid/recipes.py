@@ -36,18 +36,16 @@ BOUNDED_SPACE = {"far": 40.0, "encoding_scale": 44.0}
 # Every recipe's `model.sampler` (a tagged choice: samplers/, docs/ARCHITECTURE.md "The model contract").
 _PROPOSAL_64_32 = {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 32,
                                "field": {"density_bias": -4.0}}}
+# ours' sampler with a proposal field sized down (issue 40): 3 levels up to 64 cells, 2^15 rows per
+# level, below nerfacto's smallest proposal network (5 levels to 128)
+_SMALL_PROPOSAL = merge(_PROPOSAL_64_32, {"sampler": {"field": {
+    "grid": {"num_levels": 3, "max_resolution": 64, "log2_table_size": 15}}}})
 SAMPLERS = {
     # one density-only proposal round of 64 samples stratified in s, then 32 samples of the main field
     "ours": _PROPOSAL_64_32,
-    # ours with a proposal field sized down (issue 40): 3 levels up to 64 cells, 2^15 rows per level,
-    # below nerfacto's smallest proposal network (5 levels to 128)
-    "ours-fast": {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 32,
-                              "field": {"density_bias": -4.0,
-                                        "grid": {"num_levels": 3, "max_resolution": 64, "log2_table_size": 15}}}},
-    # ours-fast with 24 main samples instead of 32 (issue 40); the demo's (demo.DEMO_RECIPE)
-    "ours-lean": {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 24,
-                              "field": {"density_bias": -4.0,
-                                        "grid": {"num_levels": 3, "max_resolution": 64, "log2_table_size": 15}}}},
+    "ours-fast": _SMALL_PROPOSAL,
+    # ours-fast's with 24 main samples instead of 32 (issue 40); the demo's (demo.DEMO_RECIPE)
+    "ours-lean": merge(_SMALL_PROPOSAL, {"sampler": {"main_samples": 24}}),
     # NeRF's two passes, 48 + 48 samples, the second over the union, two fields
     "ours-paper-mlp": {"sampler": {"kind": "hierarchical", "samples": [48, 48], "union": True,
                                    "shared_field": False}},
@@ -89,16 +87,19 @@ _GRID = {
               "checkpoint_every": 300, "log_every": 50, "chunk": 4096},
 }
 
+_GRID_1600 = merge(_GRID, {"train": {"max_steps": 1600}})
+
 # Every setting of each recipe but its sampler, over RunConfig()'s defaults.
 SETTINGS = {
     "ours": _GRID,
-    # the demo's recipe (issue 40): 1600 steps reach ours' figures at 2400 on tower-small (docs/GRID.md)
-    "ours-fast": merge(_GRID, {"train": {"max_steps": 1600}}),
+    # the demo's recipe of issue 40's first round: 1600 steps reach ours' figures at 2400 on
+    # tower-small (docs/GRID.md)
+    "ours-fast": _GRID_1600,
     # the demo's recipe since issue 40's second round: ours-fast with a leaner main field, 8 hash
     # levels (16 to 1024 cells, as ours' 12) of at most 2^16 rows and one colour layer: each step
     # about 1.8x faster, the demo's figures within 0.2 dB (docs/GRID.md "Issue 40: a leaner main field")
-    "ours-lean": merge(_GRID, {"model": {"field": {"view_depth": 1, "grid": {"num_levels": 8, "log2_table_size": 16}}},
-                               "train": {"max_steps": 1600}}),
+    "ours-lean": merge(_GRID_1600, {"model": {"field": {"view_depth": 1,
+                                                        "grid": {"num_levels": 8, "log2_table_size": 16}}}}),
     "ours-paper-mlp": {},
     "nerf": merge(_GRID, {"model": BOUNDED_SPACE}),
     "nerfw": merge(_GRID, {"model": BOUNDED_SPACE}),
