@@ -151,6 +151,20 @@ def test_metric_map_of_a_missing_or_partial_record_is_the_identity_in_what_is_mi
     assert to_metric64(pts, NORM).dtype == np.float64
 
 
+def test_box_corners_are_the_eight_corners_each_once():
+    """The 8 corners of [0, 1] x [-2, 2] x [3, 5] (integers in, float64 out), each once, against
+    itertools.product of the bounds (issue 43: a ninth row, a repeat of lo, changed no box
+    extent)."""
+    import itertools
+
+    from jaxnerf_grid.export import box_corners
+
+    corners = box_corners([0, -2, 3], [1, 2, 5])
+    assert corners.shape == (8, 3) and corners.dtype == np.float64
+    want = sorted(itertools.product((0.0, 1.0), (-2.0, 2.0), (3.0, 5.0)))
+    assert sorted(map(tuple, corners.tolist())) == want
+
+
 # --------------------------------------------------------------------------- ground and box
 
 
