@@ -89,7 +89,7 @@ declare -A GROUPS_=(
   [normalize]="jaxnerf_grid/data/normalize.py|tests/test_normalize.py tests/test_join_poses.py tests/test_formats.py $NORMALIZE_BLOCKS"
   [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py"
   [losses]="jaxnerf_grid/losses.py|tests/test_losses.py"
-  [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch"
+  [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch tests/test_refine.py::test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel"
 )
 ORDER=(foreground masking models evaluate report demo geometry export_score export_init export_ground export_measure
        export_field export_run export_survey export_fuse export_mesh export_geoid normalize poses losses train)
