@@ -79,18 +79,22 @@ def weights_digest(folder: Path) -> str:
 
 
 def mask_variant(ctx, scene_dir: Path, name: str, source: str = "gt", floor: float = 0.0,
-                 weights: str | None = None, max_side: int = 160, dilate: int = 0) -> Path:
+                 weights: str | None = None, max_side: int = 160, dilate: int = 0,
+                 threshold: float = 0.5) -> Path:
     """A folder whose transforms.json points at scene_dir's images, with masks from `masking.write_masks`.
 
     source "gt": ground-truth distractor masks and depth (floor 0 = Eq. 7, floor 1 = binary
     masks, every masked pixel excluded); "dpt": a DPT (`weights` folder, default built-in).
     dilate: pixels of `mask --dilate` (M and M_w grown by a disc); 0 keeps the folder name of old.
+    threshold: T of M = [C > T] (DPT only); 0.5 keeps the folder name of old.
     """
     from jaxnerf_grid import masking
 
     if source == "dpt":  # any DPT can be retrained (the built-in; Table 4's crossover models): key the
         # cached masks, and so the run key of every run on them, on the weights' bytes
         name = f"{name}_{weights_digest(Path(weights) if weights else masking.BUILTIN)}"
+    if threshold != 0.5:
+        name = f"{name}_t{threshold:g}"
     out = ctx.cache / "variants" / f"{scene_dir.name}__{name}"
     meta_path = out / "transforms.json"
     if meta_path.is_file() and "mask_source" in io.read_json(meta_path):
@@ -99,6 +103,8 @@ def mask_variant(ctx, scene_dir: Path, name: str, source: str = "gt", floor: flo
     io.write_json(meta_path, _relink(scene_dir, out, io.read_json(scene_dir / "transforms.json")))
     settings = {"source": source, "floor": floor, "overwrite": True, "max_side": max_side,
                 "weights": str(weights) if weights else None, "dilate": dilate}
+    if threshold != 0.5:
+        settings["threshold"] = threshold
     print(f"[mask] {out.name}: masking.write_masks {settings}", flush=True)
     masking.write_masks(out, progress=ctx.progress, **settings)
     return out

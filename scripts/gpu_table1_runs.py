@@ -1,6 +1,7 @@
 """Table 1's robust rows on the GPU machine, on scenes made here and carried (docs/GPU.md).
 
     python scripts/gpu_table1_runs.py --cache CACHE --seeds 1,2 --sets B,A --out OUT [--budget-min 8]
+        [--rows dpt+robust] [--variant TAG:KEY=JSON] [--prior gt] [--dpt-threshold T]
 
 CACHE holds `experiments/scenes.py`'s scenes and the built-in DPT's mask variants of the chosen
 seeds and sets (made on this machine with `--prepare`, which trains nothing). Trains, in order,
@@ -50,6 +51,11 @@ def main(argv=None) -> int:
     p.add_argument("--prepare", action="store_true", help="make the scenes and DPT masks only")
     p.add_argument("--steps", type=int, default=None, help="training steps (default: --standard's; a smoke test)")
     p.add_argument("--rows", default="robust,dpt+robust", help="which robust rows: robust, dpt+robust")
+    p.add_argument("--prior", choices=("dpt", "gt"), default="dpt",
+                   help="dpt+robust's prior: the built-in DPT's masks (the table's row) or the ground-truth "
+                        "masks + Eq. 7 (an oracle, labelled -gtprior; not in the table)")
+    p.add_argument("--dpt-threshold", type=float, default=0.5,
+                   help="T of the DPT prior's M = [C > T] (not 0.5: labelled -tT; not in the table)")
     p.add_argument("--variant", action="append", default=[], metavar="TAG:KEY=JSON[,KEY=JSON]",
                    help="train each row with these train overrides instead, labelled -TAG (a sweep; not in the table)")
     args = p.parse_args(argv)
@@ -64,10 +70,17 @@ def main(argv=None) -> int:
             scene_dir = scenes.scene(ctx, preset, seed, distractors)
             for condition in [ROWS[r] for r in args.rows.split(",")]:
                 data, overrides, _ = t1.condition_data(ctx, scene_dir, condition)
+                prior_tag = ""
+                if condition == ROWS["dpt+robust"] and args.prior == "gt":
+                    data, prior_tag = scenes.mask_variant(ctx, scene_dir, "gt_eq7", "gt", floor=0.0), "-gtprior"
+                elif condition == ROWS["dpt+robust"] and args.dpt_threshold != 0.5:
+                    data = scenes.mask_variant(ctx, scene_dir, "dpt_builtin_eq7", "dpt", floor=0.0,
+                                               threshold=args.dpt_threshold)
+                    prior_tag = f"-t{args.dpt_threshold:g}"
                 if args.prepare:
                     continue
                 for tag, extra in variants(args.variant):
-                    label = t1.run_tag(preset, distractors, condition) + (f"-{tag}" if tag else "")
+                    label = t1.run_tag(preset, distractors, condition) + prior_tag + (f"-{tag}" if tag else "")
                     rec = runner.run_condition(ctx, data, "ours", seed, label, runner.merge(overrides, extra))
                     if rec is None:
                         continue

@@ -2,7 +2,9 @@
 run's training frames, against the scene's distractor masks (the synthetic scenes'): the share
 of distractor and of static pixels it ignores, beside the DPT prior alone (and, for the rule,
 what it does with the distractor pixels the DPT missed and found), the rule without multi-view
-confirmation, the prior dilated by 1-3 px, and tighter spread bounds.
+confirmation, the prior dilated by 1-3 px, tighter spread bounds, and strict re-admission
+(`train.robust_strict_readmit`); with the scene's semantics, also the share of the tower's and
+conductors' pixels (classes 1-2, distractors excluded) each ignores.
 
     python scripts/refine_offline.py RUN STEP
 
@@ -23,10 +25,15 @@ from jaxnerf_grid import checkpoint, config as config_lib, refine, train
 from jaxnerf_grid.runs import load_run_and_dataset
 
 
-def shares(weights: np.ndarray, distractor: np.ndarray) -> str:
-    """'distractor ignored X, static ignored Y' of [T, H, W] weights against [T, H, W] bool masks."""
+TOWER_CLASSES = (1, 2)  # the synthetic scenes' tower and conductor (semantic_classes)
+
+
+def shares(weights: np.ndarray, distractor: np.ndarray, tower: np.ndarray | None = None) -> str:
+    """'distractor ignored X, static ignored Y[, tower ignored Z]' of [T, H, W] weights against
+    [T, H, W] bool masks (tower: the static tower pixels, or None)."""
     ignored = weights < 0.5
-    return f"distractor ignored {ignored[distractor].mean():.3f}, static ignored {ignored[~distractor].mean():.3f}"
+    text = f"distractor ignored {ignored[distractor].mean():.3f}, static ignored {ignored[~distractor].mean():.3f}"
+    return text if tower is None else f"{text}, tower ignored {ignored[tower].mean():.3f}"
 
 
 def dilated_prior(prior: np.ndarray, masks: np.ndarray, px: int) -> np.ndarray:
@@ -51,9 +58,15 @@ def main(argv: list[str]) -> int:
     masks = np.asarray(ds.masks[ids]) > 0.5
     prior = pool["weights"]
     rule = refine.refined_weights(residual, prior, cfg, confirmed)
+    tower = None
+    if ds.semantics is not None:
+        tower = np.isin(np.asarray(ds.semantics[ids]), TOWER_CLASSES) & ~truth
     print(f"distractor pixels: {truth.mean():.3f} of the training pixels")
-    print("DPT prior alone:", shares(prior, truth))
-    print("rule, DPT prior:", shares(rule, truth))
+    print("DPT prior alone:", shares(prior, truth, tower))
+    print("rule, DPT prior:", shares(rule, truth, tower))
+    strict = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, robust_strict_readmit=True))
+    print("rule, DPT prior, strict re-admission:", shares(refine.refined_weights(residual, prior, strict, confirmed),
+                                                          truth, tower))
     missed, found = truth & ~masks, truth & masks
     areas = [a for m in missed for a in cv2.connectedComponentsWithStats(m.astype(np.uint8))[2][1:, 4]]
     print(f"  of the distractor pixels the DPT missed, the rule ignores {(rule[missed] < 0.5).mean():.3f} "

@@ -130,7 +130,10 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     ctx = runner.Context("quick", 1, 3, tmp_path / "cache", tmp_path / "results", None, None, False, "test")
     out = scenes.mask_variant(ctx, scene, "dpt_builtin_eq7", "dpt")
     assert out.name == f"scene__dpt_builtin_eq7_{scenes.weights_digest(weights)}" and len(calls) == 1
-    assert calls[0]["dilate"] == 0
+    assert calls[0]["dilate"] == 0 and "threshold" not in calls[0]
+    low = scenes.mask_variant(ctx, scene, "dpt_builtin_eq7", "dpt", threshold=0.2)  # another T: its own folder
+    assert low.name == f"{out.name}_t0.2" and calls[-1]["threshold"] == 0.2 and len(calls) == 2
+    calls.pop()
     gt = scenes.mask_variant(ctx, scene, "gt_eq7", "gt")  # other sources keep their plain names
     assert gt.name == "scene__gt_eq7"
     other = tmp_path / "crossover"  # a DPT given by folder (Table 4's) is keyed on its bytes too
