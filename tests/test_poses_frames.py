@@ -98,6 +98,21 @@ def test_c2w_gl_puts_each_camera_where_it_stands_and_projects_as_colmap():
             np.testing.assert_allclose(-c2w[:3, 2], ahead / np.linalg.norm(ahead), atol=1e-12)
 
 
+def test_c2w_gl_works_in_float64_whatever_it_is_given():
+    """A float32 world-to-camera far from the origin gives the camera worked out in float64
+    from the same float32 numbers (float32 arithmetic would be off by about 1e-4 here)."""
+    rot = _w2c_opencv(np.array([4000.0, -3000.0, 120.0]), np.array([4010.0, -2990.0, 100.0]))
+    given = np.column_stack([rot, -rot @ [4000.0, -3000.0, 120.0]]).astype(np.float32)
+    m = given.astype(np.float64)
+    centre = -m[:, :3].T @ m[:, 3]                               # by hand, in float64
+    c2w = poses.c2w_gl_from_cam_from_world(given)
+    assert c2w.dtype == np.float64
+    np.testing.assert_allclose(c2w[:3, 3], centre, rtol=0, atol=1e-9)
+    np.testing.assert_allclose(c2w[:3, :3], m[:, :3].T * [1, -1, -1], rtol=0, atol=1e-12)
+    in_float32 = -given[:, :3].T @ given[:, 3]
+    assert np.abs(in_float32 - centre).max() > 1e-6              # the case tells the two apart
+
+
 def test_model_poses_of_a_hand_written_model_are_its_cameras(tmp_path):
     pycolmap = _pycolmap()
     centres, w2cs = _rings()
@@ -215,6 +230,29 @@ def test_crop_to_common_size_cuts_each_photo_centred_and_moves_the_model_with_it
     for top, left, agree in ((2, 1, True), (2, 2, False), (2, 0, False), (3, 1, False), (1, 1, False)):
         off = np.abs(c.mean((0, 1)) - original_jpeg[top:top + 48, left:left + 64].mean((0, 1))).max()
         assert off < 0.5 if agree else off > 1.5, (top, left, off)
+
+
+def test_crop_to_common_size_writes_jpegs_at_its_quality(tmp_path, monkeypatch):
+    """A cut JPEG (.jpg or .JPEG) is the window of the decoded photo encoded by OpenCV at
+    JPEG_QUALITY, byte for byte (set to 60 here, away from OpenCV's default of 95)."""
+    monkeypatch.setattr(poses, "JPEG_QUALITY", 60)
+    cameras = {1: (66, 50, FOCAL, FOCAL, 33, 25), 2: (68, 52, FOCAL, FOCAL, 34, 26), 3: (64, 48, FOCAL, FOCAL, 32, 24)}
+    names = ["c.jpg", "d.JPEG", "e.png"]
+    pycolmap, model_dir, _ = _binary_model(tmp_path, cameras, names, np.array([[1.0, -2.0, 3.0]]))
+    (tmp_path / "images").mkdir()
+    cv2, expected = io.opencv(), {}
+    for k, (name, (w, h, *_)) in enumerate(zip(names, cameras.values())):
+        assert cv2.imwrite(str(tmp_path / "images" / name), _pattern(h, w, k))
+        decoded = cv2.imdecode(np.fromfile(str(tmp_path / "images" / name), np.uint8), cv2.IMREAD_UNCHANGED)
+        left, top = (w - 64) // 2, (h - 48) // 2              # (1, 1), (2, 2), (0, 0)
+        if name != "e.png":
+            expected[name] = cv2.imencode(".jpg", decoded[top:top + 48, left:left + 64],
+                                          [cv2.IMWRITE_JPEG_QUALITY, 60])[1].tobytes()
+            at_95 = cv2.imencode(".jpg", decoded[top:top + 48, left:left + 64])[1].tobytes()
+            assert at_95 != expected[name]
+    assert poses.crop_to_common_size(pycolmap, model_dir, tmp_path / "images") == (64, 48)
+    for name, payload in expected.items():
+        assert (tmp_path / "images" / name).read_bytes() == payload, name
 
 
 def test_crop_to_common_size_leaves_photos_of_one_size_alone(tmp_path):
