@@ -50,15 +50,17 @@ def _numbers(values) -> str:
     return " ".join(f"{float(v):.17g}" for v in values)
 
 
-def _write_model(folder, cameras, images, points):
+def _write_model(folder, cameras, images, points, written=None):
     """A COLMAP text model. cameras: {id: (w, h, fx, fy, cx, cy)} (PINHOLE); images: [(name,
-    camera id, w2c R, t)]; points [P, 3], each observed in every image at its projection."""
+    camera id, w2c R, t)]; points [P, 3], each observed in every image at its projection.
+    written: {image index: (R, t)} poses written in place of those the points were projected with."""
     folder.mkdir(parents=True, exist_ok=True)
     (folder / "cameras.txt").write_text("".join(f"{cid} PINHOLE {_numbers(c)}\n" for cid, c in cameras.items()))
     lines = []
     for k, (name, cid, rot, t) in enumerate(images):
-        q = Rotation.from_matrix(rot).as_quat()              # x, y, z, w
-        lines.append(f"{k + 1} {_numbers([q[3], *q[:3]])} {_numbers(t)} {cid} {name}")
+        pose_r, pose_t = (written or {}).get(k, (rot, t))
+        q = Rotation.from_matrix(pose_r).as_quat()           # x, y, z, w
+        lines.append(f"{k + 1} {_numbers([q[3], *q[:3]])} {_numbers(pose_t)} {cid} {name}")
         xy = _pixels(points, rot, t, *cameras[cid][2:])
         lines.append(" ".join(f"{_numbers(p)} {i + 1}" for i, p in enumerate(xy)))
     (folder / "images.txt").write_text("\n".join(lines) + "\n")
@@ -468,6 +470,22 @@ def test_choose_model_keeps_the_relaxed_model_only_when_it_has_more_photos_and_a
     assert poses.MIN_COMPARED == 8 and poses.choose_model(small, disagreeing) is small
     smaller = _Model({k: cams[k] for k in list(cams)[:poses.MIN_COMPARED - 1]})
     assert poses.choose_model(smaller, disagreeing) is disagreeing
+
+
+def test_vetted_count_counts_the_photos_that_pass_the_vetting(tmp_path):
+    """18 cameras that saw 40 points where they project: all 18 pass; the same model with one
+    camera's written pose turned by 20 degrees about its own y axis (its observations kept): 17."""
+    pycolmap = _pycolmap()
+    centres, w2cs = _rings()
+    points = np.array([1.0, -2.0, 3.0]) + np.random.default_rng(6).uniform(-2, 2, (40, 3))
+    images = [(f"v{k:02d}.png", 1, r, -r @ c) for k, (c, r) in enumerate(zip(centres, w2cs))]
+    cam = {1: (80, 60, FOCAL, FOCAL, 40, 30)}
+    _write_model(tmp_path / "good", cam, images, points)
+    assert poses.vetted_count(pycolmap.Reconstruction(tmp_path / "good")) == 18
+    turn = Rotation.from_rotvec([0.0, np.radians(20.0), 0.0]).as_matrix() @ w2cs[5]
+    _write_model(tmp_path / "turned", cam, images, points, written={5: (turn, -turn @ centres[5])})
+    model = pycolmap.Reconstruction(tmp_path / "turned")
+    assert model.num_reg_images() == 18 and poses.vetted_count(model) == 17
 
 
 # ----------------------------------------------------------------------------------------
