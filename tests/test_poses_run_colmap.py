@@ -49,6 +49,7 @@ class _StandIn:
     def _matching(self, kind, database_path, matching_options, pairing):
         matching = matching_options or pycolmap.FeatureMatchingOptions()
         self.calls.append((kind, database_path, matching.sift.max_ratio, pairing))
+        self.guided = matching.guided_matching
 
     def match_exhaustive(self, database_path, matching_options=None):
         self._matching("exhaustive", database_path, matching_options, None)
@@ -101,14 +102,18 @@ DEFAULT_MAPPER = (0, 2.0, 30, 100, 16.0)                   # seed, filter px, th
 RELAXED_MAPPER = (0, 2.0, 15, 50, 8.0)
 
 
-def test_run_colmap_exhaustive_single_camera_sets_its_options_and_keeps_the_largest_model(tmp_path, monkeypatch):
+def test_run_colmap_exhaustive_single_camera_sets_its_options_and_keeps_the_largest_model(
+        tmp_path, monkeypatch, capsys):
     """All 12 photos register in the first mapping: no second run; of its three models the one
     with the most photos, then the most points, is kept; the options handed to COLMAP are those
-    docs/POSES.md names; the seconds of features, matching and mapping come from the clock."""
+    docs/POSES.md names, and MATCHING's (empty in the package; one set here) reach the matching
+    options; the seconds of features, matching and mapping come from the clock; nothing is
+    said with show=False."""
     small, fewer_points, largest = (_model(tmp_path / n, c, p) for n, c, p in
                                     (("small", 5, 30), ("fewer", 12, 20), ("largest", 12, 30)))
     stand_in = _StandIn([{0: small, 1: largest, 2: fewer_points}])
-    monkeypatch.setattr(poses, "time", _Clock([100.0, 101.26, 101.3, 101.8, 102.0, 109.04]))
+    monkeypatch.setattr(poses, "time", _Clock([100.0, 101.26, 101.3, 101.8, 102.0, 109.34]))
+    monkeypatch.setattr(poses, "MATCHING", {"guided_matching": True})
     timings = {"photos": 0.4}
     model, relaxed = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                       matcher="exhaustive", camera_model="OPENCV", single_camera=True, show=False,
@@ -120,7 +125,9 @@ def test_run_colmap_exhaustive_single_camera_sets_its_options_and_keeps_the_larg
         ("features", db, tmp_path / "photos", NAMES[:12], pycolmap.CameraMode.SINGLE, "OPENCV", True),
         ("exhaustive", db, 0.9, None),
         ("mapping", db, tmp_path / "photos", tmp_path / "work" / "sparse0", *DEFAULT_MAPPER)]
-    assert timings == {"photos": 0.4, "features": 1.3, "matching": 0.5, "mapping": 7.0}
+    assert stand_in.guided is True
+    assert timings == {"photos": 0.4, "features": 1.3, "matching": 0.5, "mapping": 7.3}
+    assert capsys.readouterr().err == ""
 
 
 def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_agreeing_model(
@@ -128,7 +135,8 @@ def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_
     """9 of 12 photos register (under 0.9 x 12): a second, relaxed mapping into sparse1; its 12
     photos, agreeing with the first model's 9, are kept. Sequential matching: each photo with
     its next `overlap`, no quadratic overlap, no loop detection; AUTO camera mode without
-    --single-camera. Each stage is said on stderr by default."""
+    --single-camera. Each stage is said on stderr by default, and each mapping run's progress
+    line counts the photos COLMAP reported (2 here) of the 12."""
     first, second = _model(tmp_path / "first", 9), _model(tmp_path / "second", 12)
     stand_in = _StandIn([{0: first}, {0: second}])
     monkeypatch.setattr(poses, "time", _Clock([0.0, 1.0, 2.0, 3.0, 4.0, 5.0]))
@@ -149,7 +157,9 @@ def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_
         assert line in err.splitlines(), line
     for stage in ("features (SIFT, 12 photos)", "matching (sequential)"):
         assert any(line.startswith(f"poses: {stage} done in ") for line in err.splitlines()), stage
-    assert "poses: mapping" in err and "poses: mapping again (relaxed thresholds)" in err
+    for label in ("mapping", r"mapping again \(relaxed thresholds\)"):
+        assert len([line for line in err.splitlines()
+                    if re.fullmatch(rf"poses: {label}: 2/12 photos \(17%\), \d+\.\d s", line)]) == 1, label
 
 
 def test_run_colmap_counts_the_relaxed_model_by_the_vetting_unless_keep_all(tmp_path, monkeypatch):
@@ -166,6 +176,9 @@ def test_run_colmap_counts_the_relaxed_model_by_the_vetting_unless_keep_all(tmp_
                                           show=False, keep_all=keep_all)
         assert model is expected and relaxed is (expected is second), keep_all
         assert [c[3].name for c in stand_in.calls if c[0] == "mapping"] == ["sparse0", "sparse1"]
+    stand_in = _StandIn([{0: first}, {0: second}])                    # keep_all left out: the vetted count
+    assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
+                            camera_model="OPENCV", single_camera=True, show=False) == (first, False)
     stand_in = _StandIn([{0: first}])
     assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:10], tmp_path / "work", matcher="exhaustive",
                             camera_model="OPENCV", single_camera=True, show=False) == (first, False)
