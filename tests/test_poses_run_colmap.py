@@ -199,3 +199,18 @@ def test_run_colmap_vocab_hands_on_the_tree_and_names_the_folder_when_no_model_i
     with pytest.raises(DataError, match="^" + re.escape(f"{tmp_path / 'photos'}: no reconstruction: ")):
         poses.run_colmap(_StandIn([{}, {}]), tmp_path / "photos", NAMES[:6], tmp_path / "work",
                          matcher="exhaustive", camera_model="SIMPLE_RADIAL", single_camera=True, show=False)
+
+
+def test_run_colmap_lets_a_failing_stage_raise_and_does_not_say_it_is_done(tmp_path, capsys):
+    """COLMAP failing in feature extraction: its error comes out of run_colmap, nothing runs
+    after it, and no `done in` line is said for the stage."""
+    class _Failing(_StandIn):
+        def extract_features(self, *args, **kwargs):
+            raise RuntimeError("feature extraction failed")
+
+    stand_in = _Failing([{}, {}])
+    with pytest.raises(RuntimeError, match="feature extraction failed"):
+        poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:6], tmp_path / "work", matcher="exhaustive",
+                         camera_model="OPENCV", single_camera=True)
+    assert stand_in.calls == [("seed", 0)]
+    assert capsys.readouterr().err.splitlines() == ["poses: features (SIFT, 6 photos) ..."]
