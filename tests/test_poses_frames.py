@@ -315,6 +315,41 @@ def test_scene_georeference_outside_metres_is_the_record_alone(record):
     assert out == given and out is not record and record == given
 
 
+def test_georef_report_lines_of_a_full_record_and_of_none_written_out():
+    """poses_report.md's georeference section, line by line as written here, for a record with
+    GPS, control and check points and a scale bar (a bent model: the GPS RMS above 6 m), for one
+    without a CRS name, GPS or suspicion, and for unknown units."""
+    full = {"units": "metres", "source": "gcp+gps", "crs": "EPSG:32633", "crs_name": "WGS 84 / UTM zone 33N",
+            "origin": [500000.04, 4649776.96, 0.0], "metres_per_scene_unit": 23.456789, "height_from": "gcp",
+            "gps": {"photos": 14, "registered": 16, "inliers": 13, "rms_m": 6.5, "rms_horizontal_m": 2.25},
+            "gcp": {"control": {"rms_m": 0.012, "residuals": [{"name": "A", "error": 0.0104, "dz": -0.0021},
+                                                              {"name": "B", "error": 0.01349, "dz": 0.0069}]},
+                    "check": {"rms_m": 0.03, "residuals": [{"name": "C", "error": 0.03, "dz": 0.0}]}},
+            "scale_bar": {"metres": 10.0, "model_length": 0.123456}}
+    assert poses.georef_report_lines(full) == [
+        "## Scale and georeference (docs/GEOREFERENCE.md)", "",
+        "- source: gcp+gps; units: metres; CRS: EPSG:32633 (WGS 84 / UTM zone 33N)",
+        "- metres per normalised scene unit: 23.46; local origin in the CRS: 500000.0, 4649777.0, 0.0",
+        "- GPS: 14 of 16 registered photos, 13 inliers; residual RMS 6.5 m (horizontal 2.25 m); heights from gcp",
+        "- control points: RMS 0.012 m; A 0.010 m (dz -0.002), B 0.013 m (dz +0.007)",
+        "- check points: RMS 0.03 m; C 0.030 m (dz +0.000)",
+        "- scale bar: 10.0 m over 0.1235 model units",
+        "- **check the reconstruction**: the residuals exceed what GPS (about 3 m) or ground control points "
+        "(centimetres) explain; a photo registered in the wrong place bends the model (docs/GEOREFERENCE.md)",
+        ""]
+    plain = {"units": "metres", "source": "scale_bar", "crs": None, "origin": [0.0, 0.0, 0.0],
+             "metres_per_scene_unit": 0.5, "gcp": {"control": None}}
+    assert poses.georef_report_lines(plain) == [
+        "## Scale and georeference (docs/GEOREFERENCE.md)", "",
+        "- source: scale_bar; units: metres; CRS: none (scale only)",
+        "- metres per normalised scene unit: 0.5; local origin in the CRS: 0.0, 0.0, 0.0", ""]
+    unknown = ["## Scale and georeference (docs/GEOREFERENCE.md)", "",
+               "Units unknown: no GPS read from the photos, no ground control points, no scale bar; the model is "
+               "in arbitrary units.", ""]
+    assert poses.georef_report_lines({"units": "unknown"}) == unknown
+    assert poses.georef_report_lines({}) == unknown
+
+
 # ----------------------------------------------------------------------------------------
 # Model choice: choose_model, poses_agree
 
