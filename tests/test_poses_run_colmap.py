@@ -19,6 +19,7 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from jaxnerf_grid import io
 from jaxnerf_grid.data import poses
 from jaxnerf_grid.io import DataError
 from test_poses_frames import FOCAL, _rings, _write_model
@@ -33,7 +34,8 @@ class _StandIn:
     def __init__(self, maps):
         self.maps, self.calls = list(maps), []
         for name in ("ImageReaderOptions", "CameraMode", "FeatureExtractionOptions", "FeatureMatchingOptions",
-                     "SequentialPairingOptions", "VocabTreePairingOptions", "IncrementalPipelineOptions"):
+                     "SequentialPairingOptions", "VocabTreePairingOptions", "IncrementalPipelineOptions",
+                     "Reconstruction"):
             setattr(self, name, getattr(pycolmap, name))
 
     def set_random_seed(self, seed):
@@ -72,6 +74,24 @@ class _StandIn:
             if next_image_callback is not None:
                 next_image_callback()
         return self.maps.pop(0)
+
+
+class _Undistorting(_StandIn):
+    """With pycolmap's undistort_images replaced: reads the model it is handed and writes, as
+    COLMAP does, output/images (each photo at its camera's size, pixels saying which photo) and
+    output/sparse (the model, its cameras PINHOLE)."""
+
+    def undistort_images(self, output_path, input_path, image_path, image_names=(), output_type="COLMAP",
+                         jpeg_quality=-1):
+        model = pycolmap.Reconstruction(input_path)
+        self.calls.append(("undistort", output_path, input_path, image_path, output_type, jpeg_quality,
+                           sorted(im.name for im in model.images.values())))
+        (output_path / "images").mkdir(parents=True)
+        (output_path / "sparse").mkdir()
+        for k, im in enumerate(sorted(model.images.values(), key=lambda im: im.name)):
+            cam = model.cameras[im.camera_id]
+            io.write_png(output_path / "images" / im.name, np.full((cam.height, cam.width, 3), (k + 1) / 10.0))
+        model.write(output_path / "sparse")
 
 
 class _Clock:
@@ -214,3 +234,29 @@ def test_run_colmap_lets_a_failing_stage_raise_and_does_not_say_it_is_done(tmp_p
                          camera_model="OPENCV", single_camera=True)
     assert stand_in.calls == [("seed", 0)]
     assert capsys.readouterr().err.splitlines() == ["poses: features (SIFT, 6 photos) ..."]
+
+
+def test_undistort_hands_colmap_the_model_and_lays_out_images_and_sparse_cut_to_one_size(tmp_path):
+    """Stage 5: the model written to _work/model is what COLMAP's undistortion reads (with the
+    photo folder, COLMAP output, JPEG_QUALITY); its images/ and sparse/ become the stage's
+    images/ and sparse/0, cut to the smallest size (70 x 50 and 64 x 48 -> 64 x 48)."""
+    centres, w2cs = _rings()
+    images = [("a.png", 1, w2cs[0], -w2cs[0] @ centres[0]), ("b.png", 2, w2cs[1], -w2cs[1] @ centres[1])]
+    _write_model(tmp_path / "text", {1: (70, 50, FOCAL, FOCAL, 35, 25), 2: (64, 48, FOCAL, FOCAL, 32, 24)}, images,
+                 np.array([[1.0, -2.0, 3.0]]))
+    model = pycolmap.Reconstruction(tmp_path / "text")
+    stage = tmp_path / "stage"
+    stage.mkdir()
+    stand_in = _Undistorting([])
+    poses.undistort(stand_in, model, tmp_path / "photos", stage)
+    assert stand_in.calls == [("undistort", stage / "_work" / "undistorted", stage / "_work" / "model",
+                               tmp_path / "photos", "COLMAP", 95, ["a.png", "b.png"])]
+    assert sorted(p.name for p in (stage / "images").iterdir()) == ["a.png", "b.png"]
+    for k, name in enumerate(["a.png", "b.png"]):
+        pixels = io.opencv().imread(str(stage / "images" / name))
+        assert pixels.shape == (48, 64, 3) and np.all(np.abs(pixels.astype(int) - round(25.5 * (k + 1))) <= 1)
+    out = pycolmap.Reconstruction(stage / "sparse" / "0")
+    assert {(c.width, c.height) for c in out.cameras.values()} == {(64, 48)}
+    np.testing.assert_allclose(out.cameras[1].params, [FOCAL, FOCAL, 32, 24])
+    assert sorted(p.name for p in stage.iterdir()) == ["_work", "images", "sparse"]
+    assert sorted(p.name for p in (stage / "sparse").iterdir()) == ["0"]
