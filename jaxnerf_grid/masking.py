@@ -187,11 +187,15 @@ def _swap_in(root: Path) -> None:
 
 def recover(root) -> str | None:
     """Finishes what a killed `write_masks` left: a complete staging folder is swapped in
-    ("rolled forward"), an incomplete one removed ("discarded"); None when there was nothing."""
+    ("rolled forward"), an incomplete one removed ("discarded"); None when there was nothing, or
+    when the staging folder belongs to another process still running (`staging.held_elsewhere`:
+    a `mask` or `demo` writing this dataset's masks now), which is left alone."""
     import shutil
 
     root = Path(root)
     stage = root / STAGING
+    if stage.exists() and staging.held_elsewhere(stage):
+        return None  # another `mask` still writing this dataset: its work, not ours to finish
     if (stage / COMPLETE).is_file():
         _swap_in(root)
         return "rolled forward"
@@ -203,6 +207,16 @@ def recover(root) -> str | None:
         shutil.rmtree(root / RETIRED, ignore_errors=True)
         return "discarded"
     return None
+
+
+def _refuse_if_busy(root: Path) -> None:
+    """A one-line DataError when another process still running is writing masks into `root`
+    (its staging folder's OWNER), before anything of this call is read or written."""
+    stage = root / STAGING
+    if stage.exists() and staging.held_elsewhere(stage):
+        host, pid = staging.read_owner(stage)
+        raise DataError(f"{root}: another process (pid {pid} on {host}) is writing masks into this dataset "
+                        f"now ({STAGING}); wait for it to finish, or mask a copy of the dataset")
 
 
 def _check_outputs(root: Path, meta: dict, overwrite: bool) -> None:
@@ -303,6 +317,7 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
     if not root.is_dir():
         raise DataError(f"{root}: mask.data is not a folder")
     poses.recover(root)  # a `poses` run killed while swapping this dataset in: finished first
+    _refuse_if_busy(root)
     recover(root)
     tpath = root / "transforms.json"
     meta = io.read_json(tpath)
@@ -323,6 +338,12 @@ def write_masks(data, source: str = "dpt", weights: str | None = None, depth_wei
         label = "dpt"
         maps = _dpt_maps(images, weights, depth_weights, classes, max_side, batch_size, tiles, tile_overlap, params)
     stage = root / STAGING
+    try:
+        stage.mkdir()  # exclusive: two processes cannot both stage into one dataset
+    except FileExistsError:
+        _refuse_if_busy(root)
+        raise DataError(f"{stage}: a staging folder appeared while masking began; run again") from None
+    staging.write_owner(stage)
     try:  # an error before the commit point (a corrupt photo, a full disk) leaves no staging folder
         for name in OUTPUT_DIRS:
             (stage / name).mkdir(parents=True, exist_ok=True)

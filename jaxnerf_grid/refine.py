@@ -71,7 +71,7 @@ def refined_weights(residual: np.ndarray, prior: np.ndarray, cfg: RunConfig,
     t = cfg.train
     inlier = robust_lib.pixel_inliers(jnp.asarray(residual), jnp.asarray(prior), jnp.asarray(residual).reshape(-1),
                                       t.robust_quantile, t.robust_flagged_quantile, t.robust_floor, t.robust_spread,
-                                      None if confirmed is None else jnp.asarray(confirmed))
+                                      None if confirmed is None else jnp.asarray(confirmed), t.robust_strict_readmit)
     return np.asarray(robust_lib.frame_evidence(inlier, t.robust_patch, t.robust_patch_share), np.float32)
 
 

@@ -180,9 +180,12 @@ def frame_evidence(inlier: jnp.ndarray, patch: int, patch_share: float) -> jnp.n
 
 def pixel_inliers(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray,
                   quantile: float, flagged_quantile: float, floor: float, spread: float = 0.0,
-                  confirmed: jnp.ndarray | None = None) -> jnp.ndarray:
+                  confirmed: jnp.ndarray | None = None, strict_readmit: bool = False) -> jnp.ndarray:
     """Step 1 of the rule, pixel by pixel: 1.0 where a pixel is an inlier (its residual at most
-    its threshold or the floor, or confirmed by another photo), else 0.0.
+    its threshold or the floor, or confirmed by another photo), else 0.0. With strict_readmit
+    (train.robust_strict_readmit) a flagged pixel (prior < 1/2) needs both: its residual within
+    its threshold *and* another photo's confirmation (none without confirmation), so a transient
+    the model has begun to fit is not re-admitted on its residual alone.
 
     residuals, prior: [...] (prior 1 = unflagged, 0 = flagged); batch_residuals: [N] the
     residuals of the whole global batch (all devices), which the thresholds are figures of;
@@ -193,24 +196,29 @@ def pixel_inliers(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: j
     thresholds = jnp.maximum(quantile_of(batch_residuals, pixel_quantiles(prior, quantile, flagged_quantile)),
                              spread_thresholds(batch_residuals, prior, spread))
     inlier = inliers(residuals, thresholds, floor)
-    if confirmed is not None:
-        inlier = jnp.maximum(inlier, confirmed)
-    return inlier
+    either = inlier if confirmed is None else jnp.maximum(inlier, confirmed)
+    if not strict_readmit:
+        return either
+    both = inlier * confirmed if confirmed is not None else jnp.zeros_like(inlier)
+    return jnp.where(jnp.asarray(prior) < 0.5, both, either)
 
 
 def robust_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray,
                    quantile: float, flagged_quantile: float, patch_share: float,
-                   floor: float, spread: float = 0.0, confirmed: jnp.ndarray | None = None) -> jnp.ndarray:
+                   floor: float, spread: float = 0.0, confirmed: jnp.ndarray | None = None,
+                   strict_readmit: bool = False) -> jnp.ndarray:
     """The loss weight of each pixel of the patches (the module docstring's rule): `evidence`
     of `pixel_inliers`. residuals, prior, confirmed: [P, p, p] (this device's patches);
     batch_residuals: [N]. Returns [P, p, p] in {0, 1}."""
-    inlier = pixel_inliers(residuals, prior, batch_residuals, quantile, flagged_quantile, floor, spread, confirmed)
+    inlier = pixel_inliers(residuals, prior, batch_residuals, quantile, flagged_quantile, floor, spread, confirmed,
+                           strict_readmit)
     return evidence(inlier, patch_share)
 
 
 def batch_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: jnp.ndarray, patch_rays: int,
                   patch: int, quantile: float, flagged_quantile: float, patch_share: float, floor: float,
-                  spread: float = 0.0, confirmed: jnp.ndarray | None = None) -> jnp.ndarray:
+                  spread: float = 0.0, confirmed: jnp.ndarray | None = None,
+                  strict_readmit: bool = False) -> jnp.ndarray:
     """The weights of one device's rays: its first `patch_rays` rays are whole p x p patches
     (patch-major) weighted by `robust_weights`, the rest scattered pixels weighted by
     `pixel_inliers` alone. residuals, prior, confirmed (or None): [B]; batch_residuals: [N].
@@ -221,10 +229,11 @@ def batch_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: j
     (res_p, res_s), (prior_p, prior_s) = split(residuals), split(prior)
     conf_p, conf_s = split(confirmed) if confirmed is not None else (None, None)
     on_patches = robust_weights(res_p, prior_p, batch_residuals, quantile, flagged_quantile, patch_share,
-                                floor, spread, conf_p).reshape(-1)
+                                floor, spread, conf_p, strict_readmit).reshape(-1)
     if residuals.shape[0] == patch_rays:
         return on_patches
-    on_pixels = pixel_inliers(res_s, prior_s, batch_residuals, quantile, flagged_quantile, floor, spread, conf_s)
+    on_pixels = pixel_inliers(res_s, prior_s, batch_residuals, quantile, flagged_quantile, floor, spread, conf_s,
+                              strict_readmit)
     return jnp.concatenate([on_patches, on_pixels])
 
 

@@ -69,7 +69,11 @@ class TrainConfig:
       rays with those weights, as a run with masks does (0 = patches to the end);
     robust_prior_grow: dpt+robust only: pixels within this many px of a masked pixel are flagged
       in the prior too (`train.grown_masks`), so the rims of the transients that the DPT's masks
-      fall short of are not trained on before the evidence decides (0 = the masks as they are).
+      fall short of are not trained on before the evidence decides (0 = the masks as they are);
+    robust_strict_readmit: a flagged pixel (prior < 1/2) is re-admitted only when its residual is
+      an inlier *and* a neighbouring photo confirms it (`robust.pixel_inliers`); off, either
+      suffices. Once re-admitted a pixel is trained on and its residual falls, so a transient
+      re-admitted on its residual alone stays in (docs/ROBUST.md).
     """
 
     batch_rays: int = 1024
@@ -111,6 +115,7 @@ class TrainConfig:
     robust_scattered: float = 0.0
     robust_refine: float = 0.0
     robust_prior_grow: int = 0
+    robust_strict_readmit: bool = False
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {

@@ -9,6 +9,10 @@ retired and staging folders are removed. `swap_in` is idempotent: run again afte
 finishes the swap, so the command's `recover` rolls a complete staging folder forward and
 removes an incomplete one.
 
+A staging folder holds OWNER (the host and process id that made it: `write_owner`), so that
+another process's `recover` leaves the staging folder of a command still running alone
+(`held_elsewhere`) instead of discarding it under that command's feet.
+
 A leaf: imports nothing of the package.
 """
 
@@ -16,7 +20,50 @@ from __future__ import annotations
 
 import os
 import shutil
+import socket
 from pathlib import Path
+
+OWNER = "OWNER"
+
+
+def write_owner(stage: Path) -> None:
+    """Writes stage/OWNER: this process's host name and id ("HOST PID")."""
+    (Path(stage) / OWNER).write_text(f"{socket.gethostname()} {os.getpid()}\n")
+
+
+def read_owner(stage: Path) -> tuple[str, int] | None:
+    """(host, pid) of stage/OWNER; None when it is missing or unreadable."""
+    try:
+        host, pid = (Path(stage) / OWNER).read_text().split()
+        return host, int(pid)
+    except (OSError, ValueError):
+        return None
+
+
+def owner_alive(stage: Path) -> bool:
+    """Whether the process that made `stage` (its OWNER) still runs; a process of another host
+    counts as running (not ours to judge), a missing OWNER as gone."""
+    owner = read_owner(stage)
+    if owner is None:
+        return False
+    host, pid = owner
+    if host != socket.gethostname():
+        return True
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
+
+
+def held_elsewhere(stage: Path) -> bool:
+    """Whether `stage` belongs to another process that still runs (not this one)."""
+    owner = read_owner(stage)
+    if owner is not None and owner == (socket.gethostname(), os.getpid()):
+        return False
+    return owner_alive(stage)
 
 
 def remove(path: Path) -> None:

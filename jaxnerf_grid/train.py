@@ -301,7 +301,7 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
             evidence = robust_lib.batch_weights(residual, batch["weight"], everyone, local_patch_rays, p,
                                                 tcfg.robust_quantile, tcfg.robust_flagged_quantile,
                                                 tcfg.robust_patch_share, tcfg.robust_floor, tcfg.robust_spread,
-                                                confirmed)
+                                                confirmed, tcfg.robust_strict_readmit)
             weight = jnp.where(state["opt_state"].count < warmup_steps, batch["weight"], evidence)
             total = jax.lax.psum(jnp.sum(weight), AXIS)
             loss = losses.weighted_mean(terms["loss"], weight, total)

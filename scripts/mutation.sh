@@ -62,6 +62,11 @@ EXPORT_RUN_BLOCKS="tests/test_join_export.py tests/test_export_geoid.py tests/te
 tests/test_export.py::test_parse_box tests/test_export.py::test_units_are_metres_only_when_the_dataset_states_its_normalisation \
 tests/test_export_survey.py::test_units_follow_the_georeference_record_else_the_synthetic_scale"
 
+# the box tests of export/__init__.py in test_export_survey.py (box_to_scene, box_to_metric)
+BOX_BLOCKS="$(for t in a_metric_box_maps_to_the_scene_box_around_its_8_corners_by_hand \
+a_scene_box_maps_to_the_metric_box_around_its_8_corners_by_hand a_box_with_a_turn_of_more_than_90_degrees_is_not_inverted; \
+do printf 'tests/test_export_survey.py::test_%s ' $t; done)"
+
 # the block tests of export/fuse.py and export/mesh.py in test_export.py (not its training fixture)
 FUSE_BLOCKS="tests/test_export.py::test_project_inverts_lift_view tests/test_export.py::test_fusion_keeps_the_surface_and_drops_floaters"
 MESH_BLOCKS="$(for t in grid_spec_covers_the_box_with_resolution_voxels_on_the_longest_side \
@@ -79,7 +84,7 @@ declare -A GROUPS_=(
   [demo]="jaxnerf_grid/demo.py|tests/test_join_demo.py"
   [geometry]="jaxnerf_grid/geometry.py|tests/test_geometry.py tests/test_join_truth.py"
   [export_score]="jaxnerf_grid/export/score.py|tests/test_join_truth.py tests/test_join_export.py"
-  [export_init]="jaxnerf_grid/export/__init__.py|tests/test_join_export.py tests/test_export.py"
+  [export_init]="jaxnerf_grid/export/__init__.py|tests/test_join_export.py tests/test_export.py $BOX_BLOCKS"
   [export_ground]="jaxnerf_grid/export/ground.py|tests/test_join_export.py tests/test_export.py"
   [export_measure]="jaxnerf_grid/export/measure.py|$MEASURE_BLOCKS tests/test_measure_corners.py tests/test_join_export.py"
   [export_field]="jaxnerf_grid/export/field.py|tests/test_join_truth.py tests/test_join_export.py"
@@ -91,7 +96,7 @@ declare -A GROUPS_=(
   [normalize]="jaxnerf_grid/data/normalize.py|tests/test_normalize.py tests/test_join_poses.py tests/test_formats.py $NORMALIZE_BLOCKS"
   [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py $POSES_BLOCKS"
   [losses]="jaxnerf_grid/losses.py|tests/test_losses.py"
-  [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch"
+  [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch tests/test_refine.py::test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel"
 )
 ORDER=(foreground masking models evaluate report demo geometry export_score export_init export_ground export_measure
        export_field export_run export_survey export_fuse export_mesh export_geoid normalize poses losses train)

@@ -151,6 +151,20 @@ def test_metric_map_of_a_missing_or_partial_record_is_the_identity_in_what_is_mi
     assert to_metric64(pts, NORM).dtype == np.float64
 
 
+def test_box_corners_are_the_eight_corners_each_once():
+    """The 8 corners of [0, 1] x [-2, 2] x [3, 5] (integers in, float64 out), each once, against
+    itertools.product of the bounds (issue 43: a ninth row, a repeat of lo, changed no box
+    extent)."""
+    import itertools
+
+    from jaxnerf_grid.export import box_corners
+
+    corners = box_corners([0, -2, 3], [1, 2, 5])
+    assert corners.shape == (8, 3) and corners.dtype == np.float64
+    want = sorted(itertools.product((0.0, 1.0), (-2.0, 2.0), (3.0, 5.0)))
+    assert sorted(map(tuple, corners.tolist())) == want
+
+
 # --------------------------------------------------------------------------- ground and box
 
 
@@ -224,6 +238,51 @@ def test_settling_leaves_a_plane_with_fewer_than_three_points_near_it():
     pts = np.array([[0.0, 0.0, 0.0], [1.0, 0.0, 0.0], [0.0, 1.0, 5.0]])
     d, near = ground.settle_on_cloud(pts, np.array([0.0, 0.0, 1.0]), 0.0, 0.1)
     assert d == 0.0 and near.sum() == 2
+
+
+def _column(heights) -> np.ndarray:
+    """Points at the origin's (x, y) at the given heights above the ground z = 0."""
+    z = np.asarray(heights, np.float64)
+    return np.column_stack([np.zeros_like(z), np.zeros_like(z), z])
+
+
+def test_settling_band_edges_three_points_and_the_stopping_step_by_hand():
+    """Ground z = 0 (n = (0, 0, 1), d = 0), every height a binary fraction (exact). Band 0.5:
+    three points 0, 0.25, 0.5 are enough (the band includes its edge): the plane moves to their
+    median 0.25 (d = -0.25), then finds 0.25 within 0.5 again (-0.25, 0, 0.25: median 0) and
+    stops; points at -0.5, -0.1, 0, 0.1, 0.5 leave it (median 0) with all five near, the edges
+    included. Band 1, stop below band / 100 = 0.01: heights -0.5, 0.00995, 0.5 (1.005 outside
+    the band) move it by 0.00995 < 0.01 and it stops there (1.005 then 0.99505 from it: near);
+    with 0.01 (not less than 0.01) it goes on: 1.005 is then 0.995 from it, the median of the
+    four is 0.255, where the next median is 0."""
+    up = np.array([0.0, 0.0, 1.0])
+    d, near = ground.settle_on_cloud(_column([0.0, 0.25, 0.5]), up, 0.0, 0.5)
+    assert d == -0.25 and near.tolist() == [True, True, True]
+    d, near = ground.settle_on_cloud(_column([-0.5, -0.1, 0.0, 0.1, 0.5]), up, 0.0, 0.5)
+    assert d == 0.0 and near.tolist() == [True] * 5
+    d, near = ground.settle_on_cloud(_column([-0.5, 0.00995, 0.5, 1.005]), up, 0.0, 1.0)
+    assert d == pytest.approx(-0.00995, abs=1e-15) and near.tolist() == [True] * 4
+    d, near = ground.settle_on_cloud(_column([-0.5, 0.01, 0.5, 1.005]), up, 0.0, 1.0)
+    assert d == pytest.approx(-(0.01 + 0.5) / 2, abs=1e-12) and near.tolist() == [True] * 4
+
+
+def test_settling_stops_after_twenty_rounds_by_default():
+    """A staircase of layers 0.5 apart (layer k at height 0.5 k, k = 0..21) with m_0 = 1, m_1 =
+    3, m_k+1 = m_k-1 + m_k + 2 points, and band 0.5: a plane on layer k sees layers k - 1, k,
+    k + 1 (the edges included), more than half of them on k + 1 (both middle values), so every
+    round moves it up one layer, by 0.5 (never below band / 100). The documented default of 20
+    rounds leaves it on layer 20 (d = -10); `rounds=3` on layer 3; the points near are layers
+    19-21."""
+    counts = [1, 3]
+    while len(counts) < 22:
+        counts.append(counts[-1] + counts[-2] + 2)
+    layer = np.repeat(np.arange(22), counts)
+    pts = _column(0.5 * layer)
+    up = np.array([0.0, 0.0, 1.0])
+    d, near = ground.settle_on_cloud(pts, up, 0.0, 0.5)
+    assert d == -10.0
+    np.testing.assert_array_equal(near, layer >= 19)
+    assert ground.settle_on_cloud(pts, up, 0.0, 0.5, rounds=3)[0] == -1.5
 
 
 def test_plane_through_and_refine_plane_against_a_known_tilted_plane():
@@ -403,6 +462,34 @@ def test_tower_box_on_sloping_ground_clears_its_highest_corner_and_refuses_by_na
     steep = np.array([0.9, 0.9, 1.0]) / np.linalg.norm([0.9, 0.9, 1.0])
     with pytest.raises(ValueError, match="the tower's box is empty above the ground"):
         ground.tower_box(np.array([[0.0, 0.0, 0.031 / steep[2]]]), steep, 0.0, clearance=0.03, cell=0.1)
+
+
+def test_tower_box_edges_exact_messages_and_a_float32_cloud():
+    """Binary fractions, so every comparison is exact. Ground z = 0, clearance 0.25: a point at
+    height exactly 0.25 does not stand above the ground (strictly higher), so a cloud of it alone
+    is refused with the documented message, word for word; beside a point at 0.5, above_ground
+    is 1. Ground z = 2 x (n = (-2, 0, 1) / sqrt 5), cell 0.25, clearance 0.125, one point at
+    (0, 0, 0.375) (0.375 / sqrt 5 = 0.168 above the plane): the box's x runs -0.25..0.25, its
+    uphill corner's ground is 0.5, so its bottom 0.625 equals its top 0.375 + 0.25: an empty box,
+    refused word for word. A float32 cloud gives the float64 box of the same points: the
+    extent plus one cell, worked out in float64 here."""
+    flat = np.array([0.0, 0.0, 1.0])
+    with pytest.raises(ValueError) as err:
+        ground.tower_box(_column([0.25, 0.0]), flat, 0.0, clearance=0.25, cell=0.25)
+    assert str(err.value) == "nothing stands above the ground plane"
+    _, _, stats = ground.tower_box(_column([0.25, 0.5]), flat, 0.0, clearance=0.25, cell=0.25)
+    assert stats == {"above_ground": 1, "tower_points": 1}
+    slope = np.array([-2.0, 0.0, 1.0]) / np.sqrt(5.0)
+    with pytest.raises(ValueError) as err:
+        ground.tower_box(_column([0.375]), slope, 0.0, clearance=0.125, cell=0.25)
+    assert str(err.value) == "the tower's box is empty above the ground"
+    rng = np.random.default_rng(14)
+    cloud = np.column_stack([rng.uniform(-0.1, 0.1, (500, 2)), rng.uniform(0.1, 0.9, 500)]).astype(np.float32)
+    lo, hi, _ = ground.tower_box(cloud, flat, 0.0, clearance=0.03, cell=0.02)
+    exact = cloud.astype(np.float64)
+    assert lo.dtype == np.float64 and hi.dtype == np.float64
+    np.testing.assert_array_equal(hi, exact.max(0) + 0.02)
+    np.testing.assert_array_equal(lo, [exact[:, 0].min() - 0.02, exact[:, 1].min() - 0.02, 0.03])
 
 
 # --------------------------------------------------------------------------- fusion

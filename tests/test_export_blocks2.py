@@ -288,6 +288,29 @@ def test_survey_record_without_a_ground_a_crs_or_a_centroid():
     _close(sv["height"], _fig(20.0, vertex))
 
 
+def test_survey_record_of_a_tilt_without_its_spread_or_lowest_height_and_no_height():
+    """A tilt record without `thickness_spread_degrees` and `lowest_height` counts them as 0: the
+    tilt's sigma is its fit's 0.1 degrees alone, the top offset's its own 0.05, and the base
+    centre is not extrapolated (reach 0: sqrt(vertex^2 + 0.1^2), lever 5, position 0.5). With the
+    spread (0.2 degrees) but no height measured, the spread adds nothing to the top offset (0.2
+    degrees over a height of 0): its sigma is 0.05 again, the tilt's hypot(0.1, 0.2)."""
+    alignment = {"relative_scale": REL, "position_m": POS, "centroid": [13.0, 24.0, 50.0]}
+    tilt = {k: v for k, v in _meas()["tilt"].items() if k not in ("thickness_spread_degrees", "lowest_height")}
+    sv = export_run._survey({**_meas(), "tilt": tilt}, GEO, alignment, VOXEL)
+    g, vertex = 0.1, VOXEL / math.sqrt(12)
+    _close(sv["tilt_degrees"], {"value": 1.2, "sigma": 0.1, "fit_sigma": 0.1})
+    _close(sv["top_offset"], _fig(0.4, 0.05))
+    _close(sv["base_centre"], {"local": [10.0, 20.0, 50.0], "crs": [465010.0, 5247020.0, 150.0],
+                               "crs_name": "EPSG:32632", "extrapolated": 0.0,
+                               **{k: v for k, v in _fig(0.0, math.hypot(vertex, g), lever=5.0, position=POS).items()
+                                  if k != "value"}})
+    sv = export_run._survey({**_meas(), "height": None}, GEO, alignment, VOXEL)
+    assert sv["height"] is None
+    angle = math.hypot(0.1, 0.2)
+    _close(sv["tilt_degrees"], {"value": 1.2, "sigma": angle, "fit_sigma": angle})
+    _close(sv["top_offset"], _fig(0.4, 0.05))
+
+
 # --------------------------------------------------------------------------- the geoid step and the report's place
 
 

@@ -139,6 +139,29 @@ def test_score_against_ply(tmp_path):
     assert all(v["fscore"] == 0.0 for v in empty["thresholds"].values())
 
 
+def test_read_reference_points_returns_the_vertices_and_refuses_empty_or_non_finite_word_for_word(tmp_path):
+    """The vertices of a written cloud as written (float32: 0.5, -1.25, 3.0 are exact); one point
+    is enough; no point, or one coordinate nan, +inf or -inf among finite ones, is a DataError
+    whose whole message names the file and says which (issue 43, item 3)."""
+    pts = np.array([[0.5, -1.25, 3.0], [1.0, 2.0, -7.5]], np.float32)
+    io.write_ply(tmp_path / "two.ply", pts)
+    np.testing.assert_array_equal(geometry.read_reference_points(tmp_path / "two.ply"), pts)
+    io.write_ply(tmp_path / "one.ply", pts[:1])
+    np.testing.assert_array_equal(geometry.read_reference_points(tmp_path / "one.ply"), pts[:1])
+    io.write_ply(tmp_path / "empty.ply", np.zeros((0, 3), np.float32))
+    with pytest.raises(io.DataError) as err:
+        geometry.read_reference_points(tmp_path / "empty.ply")
+    assert str(err.value) == f"{tmp_path / 'empty.ply'}: the reference point cloud is empty"
+    for bad in (np.nan, np.inf, -np.inf):
+        broken = pts.copy()
+        broken[1, 2] = bad
+        io.write_ply(tmp_path / "bad.ply", broken)
+        with pytest.raises(io.DataError) as err:
+            geometry.read_reference_points(tmp_path / "bad.ply")
+        assert str(err.value) == (f"{tmp_path / 'bad.ply'}: the reference point cloud has coordinates that are "
+                                  "not finite numbers")
+
+
 def test_report_geometry_section():
     from jaxnerf_grid import report
 

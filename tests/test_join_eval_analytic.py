@@ -62,33 +62,19 @@ def evaluated(tmp_path_factory):
     root = tmp_path_factory.mktemp("analytic_eval")
     cfg = analytic_config()
     params = af.params(cfg.model)
-    run_dir = root / "run"
-    run_dir.mkdir()
     af.clear_compiled()
     with pytest.MonkeyPatch.context() as mp:
         mp.setattr(fields, "apply", af.apply)
         ds, renders = _dataset(root, cfg, params)
-
-        def load_params(folder, cfg_, ds_):
-            assert Path(folder) == run_dir and cfg_ is cfg and ds_ is ds
-            return params, 7
-
-        # the stand-ins check what evaluate_run hands them: the run folder, the config's data, the
-        # call's own dataset / progress / allow_other_data / full_size, the run's max_side
-        def load_run(folder):
-            assert Path(folder) == run_dir
-            return cfg, root / "dataset"
-
-        def dataset_of_run(*args, **kwargs):
-            assert args == (run_dir, root / "dataset", ds, False, False)
-            assert kwargs == {"max_side": cfg.train.max_side, "full_size": False}
-            return ds
-
-        mp.setattr(runs, "load_run", load_run)
-        mp.setattr(runs, "dataset_of_run", dataset_of_run)
-        mp.setattr(train, "load_params", load_params)
-        result = evaluate.evaluate_run(run_dir, progress=False, dataset=ds, cloud_views=1, distractor_views=1)
-    af.clear_compiled()
+    handed = {}
+    result, run_dir = _evaluate(root, "run", cfg, ds, params, handed, progress=False, cloud_views=1,
+                                distractor_views=1)
+    # what evaluate_run hands the stand-ins: the run folder, the config's data, the call's own
+    # dataset / progress / allow_other_data / full_size, the run's max_side
+    assert handed["load_run"] == [run_dir]
+    assert handed["dataset_of_run"] == [((run_dir, root / "dataset", ds, False, False),
+                                         {"max_side": cfg.train.max_side, "full_size": False})]
+    assert [(folder, c is cfg, d is ds) for folder, c, d in handed["load_params"]] == [(run_dir, True, True)]
     return result, run_dir, ds, renders
 
 
@@ -285,11 +271,12 @@ def test_fit_left_half_hands_fit_appearance_the_left_half_and_the_views_key(monk
 def _evaluate(root, name, cfg, ds, params, handed, **kwargs):
     """evaluate_run of the analytic run in a new folder root/name with the analytic field in place;
     the stand-ins record in `handed` what they are given ("dataset_of_run": (args, kwargs),
-    "load_params": (folder, cfg, ds)) instead of asserting it."""
+    "load_params": (folder, cfg, ds), "load_run": folder) instead of asserting it."""
     run_dir = root / name
     run_dir.mkdir(exist_ok=True)
 
     def load_run(folder):
+        handed.setdefault("load_run", []).append(Path(folder))
         return cfg, root / "dataset"
 
     def dataset_of_run(*args, **kw):
@@ -349,6 +336,7 @@ def test_a_call_with_the_defaults_on_a_robust_runs_folder(evaluated, tmp_path):
     result, _ = _evaluate(tmp_path, "run", cfg, plain, af.params(cfg.model), handed, allow_other_data=True,
                           full_size=True, reference_ply=reference)
     took = time.perf_counter() - start
+    assert handed["load_run"] == [run_dir]
     assert handed["dataset_of_run"] == [((run_dir, tmp_path / "dataset", plain, True, True),
                                          {"max_side": cfg.train.max_side, "full_size": True})]
     assert result["cloud_views"] == {"test": list(TEST_IDS), "train": []}

@@ -372,6 +372,37 @@ def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the
         train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4).train)
 
 
+def test_grown_masks_of_no_growth_skip_opencv_and_the_grown_prior_is_float32_or_refused_word_for_word(monkeypatch):
+    """grown_masks masks where > 0.5 (0.5 itself is not masked, 0.5 + 2^-20 is) and, with no
+    growth (0 or fewer pixels), returns that without loading OpenCV (`io.opencv` made to fail
+    here). prior_weights with train.robust_prior_grow: float32 like its other branches; without
+    binary masks a DataError whose whole message names the dataset and what writes the masks."""
+    masks = np.zeros((2, 3, 4), np.float32)
+    masks[0, 1, 2], masks[1, 0, 0], masks[1, 2, 3] = 0.5, 0.5 + 2.0 ** -20, 1.0
+    want = np.zeros((2, 3, 4), bool)
+    want[1, 0, 0] = want[1, 2, 3] = True
+
+    def no_opencv():
+        raise AssertionError("OpenCV loaded for no growth")
+
+    with monkeypatch.context() as m:
+        m.setattr(io, "opencv", no_opencv)
+        for pixels in (0, -1):
+            got = train.grown_masks(masks, pixels)
+            assert got.dtype == bool
+            np.testing.assert_array_equal(got, want)
+    ds = tiny_dataset()
+    ds.masks = np.zeros(ds.images.shape[:3], np.float32)
+    ds.masks[0, 5, 7] = 1.0
+    grown = train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4, robust_prior_grow=1).train)
+    assert grown.dtype == np.float32 and grown[0, 5, 7] == 0.0
+    ds.masks = None
+    with pytest.raises(DataError) as err:
+        train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4, robust_prior_grow=1).train)
+    assert str(err.value) == (f"{ds.root}: train.robust_prior_grow needs the dataset's binary masks "
+                              "(mask_path, written by jaxnerf-grid mask)")
+
+
 # --------------------------------------------------------------------------- proposal resampling
 
 

@@ -3,6 +3,7 @@ by hand: the out-of-domain rule at its exact boundaries (`domain_verdict`, `doma
 settings' ranges (`check_settings`, `check_classes`), `parse_classes`, and the `masked_share`
 written per frame (the share of M after dilation, rounded to 4 places)."""
 
+import os
 import re
 
 import numpy as np
@@ -195,6 +196,46 @@ def test_recover_rolls_a_complete_set_forward_and_discards_an_incomplete_one(tmp
     assert sorted(p.name for p in (root / "masks").iterdir()) == ["new.png"]
     assert (root / "transforms.json").read_text() == "new" and not (root / "weights").exists()
     assert not stage.exists() and not retired.exists()
+
+
+def test_a_staging_folder_of_another_live_process_is_left_alone_and_a_second_mask_refused(tmp_path):
+    """Two `mask` (or `demo`) runs on one dataset: the staging folder of a process still running
+    (its OWNER a live pid of this host, here a `sleep`) is neither discarded by `recover` (which
+    every dataset load calls) nor written into by a second `write_masks`, which is refused in
+    one line naming the dataset and the pid; the old set stays. Once that process is gone, the
+    same folder is discarded and masking runs. A staging folder owned by this very process (the
+    error path of its own `write_masks`) is discarded as before."""
+    import socket
+    import subprocess
+    import sys
+
+    from jaxnerf_grid.io import DataError
+
+    _gt_dataset(tmp_path, 9, 11, [(slice(2, 4), slice(3, 6))])
+    masking.write_masks(tmp_path, source="gt", progress=False)    # a set already there: the refusal
+    before = (tmp_path / "transforms.json").read_bytes()           # still names the other process
+    stage = tmp_path / masking.STAGING
+    (stage / "masks").mkdir(parents=True)
+    (stage / "masks/half_done.png").write_text("theirs")
+    other = subprocess.Popen([sys.executable, "-c", "import time; time.sleep(60)"])
+    try:
+        (stage / "OWNER").write_text(f"{socket.gethostname()} {other.pid}\n")
+        assert masking.recover(tmp_path) is None
+        with pytest.raises(DataError) as err:
+            masking.write_masks(tmp_path, source="gt", progress=False)
+        message = str(err.value)
+        assert "\n" not in message and str(tmp_path) in message and f"pid {other.pid}" in message
+        assert (stage / "masks/half_done.png").read_text() == "theirs"
+        assert (tmp_path / "transforms.json").read_bytes() == before
+        assert io.read_mask(tmp_path / "masks/f0.png").sum() == 6
+    finally:
+        other.kill()
+        other.wait()
+    masking.write_masks(tmp_path, source="gt", overwrite=True, progress=False)  # owner gone: discarded
+    assert not stage.exists() and io.read_mask(tmp_path / "masks/f0.png").sum() == 6
+    (stage / "masks").mkdir(parents=True)
+    (stage / "OWNER").write_text(f"{socket.gethostname()} {os.getpid()}\n")
+    assert masking.recover(tmp_path) == "discarded" and not stage.exists()
 
 
 def test_check_outputs_refuses_existing_masks_unless_overwrite(tmp_path):

@@ -297,6 +297,28 @@ def test_survey_lines_say_when_the_lower_part_is_missing():
     assert len(lines(1.0, 30.49)) == 2 and len(lines(0.05 * 40.0, 40.0)) == 2 and len(lines(11.08, None)) == 2
 
 
+def test_lower_part_missing_by_hand_and_its_row_word_for_word():
+    """lower_part_missing: the base's `extrapolated` when it is more than 5 % of a positive
+    height: 0.6 on a 10 m tower (5 % = 0.5) is, 0.5 and 0.4 are not; a base without
+    `extrapolated`, none, no survey or no height: None (nothing to say). The row in full, in the
+    export's units."""
+    def m(low, height=10.0):
+        base = {"crs": None, "local": [1.0, 2.0, 3.0], "sigma": 0.5}
+        if low is not None:
+            base["extrapolated"] = low
+        return {"height": height, "survey": {"base_centre": base}}
+
+    assert report.lower_part_missing(m(0.6)) == 0.6 and type(report.lower_part_missing(m(0.6))) is float
+    assert report.lower_part_missing(m(0.5)) is None and report.lower_part_missing(m(0.4)) is None
+    assert report.lower_part_missing(m(None)) is None and report.lower_part_missing(m(0.6, None)) is None
+    assert report.lower_part_missing({}) is None and report.lower_part_missing({"height": 10.0}) is None
+    assert report.lower_part_missing({"height": 10.0, "survey": {"base_centre": None}}) is None
+    assert report._survey_lines(m(0.6), "units")[-1] == (
+        "| **lower part missing** | the model's tower begins 0.60 units above the ground: its legs were not "
+        "reconstructed there, so the base centre and the tilt come from the axis extended down that far (train "
+        "longer, or add low oblique photos) |")
+
+
 def test_weights_figure_panels_by_hand(tmp_path):
     assert report.weights_figure(tmp_path, []) == [] and not (tmp_path / "report_weights.png").exists()
     photo = _image(7)

@@ -11,9 +11,11 @@ from jaxnerf_grid import robust
 DEFAULTS = {"quantile": 0.8, "flagged_quantile": 0.5, "patch_share": 0.6, "floor": 0.0, "spread": 0.0}
 
 
-def reference_inliers(res, prior, batch_res, quantile, flagged_quantile, floor, spread=0.0, confirmed=None):
+def reference_inliers(res, prior, batch_res, quantile, flagged_quantile, floor, spread=0.0, confirmed=None,
+                      strict=False):
     """Step 1 of the rule, one pixel at a time with np.quantile and np.median (the spread bound
-    on the root residuals). res, prior, confirmed: any shape."""
+    on the root residuals). res, prior, confirmed: any shape. strict: a flagged pixel (prior
+    below 1/2) needs its residual within the bound and the confirmation."""
     res, prior = np.asarray(res, np.float64), np.asarray(prior, np.float64)
     batch = np.asarray(batch_res, np.float64)
     root = np.sqrt(batch)
@@ -23,14 +25,18 @@ def reference_inliers(res, prior, batch_res, quantile, flagged_quantile, floor, 
         q = flagged_quantile + (quantile - flagged_quantile) * prior[idx]
         bound = (np.median(root) + spread * (1 / 3 + 2 / 3 * prior[idx]) * mad_sigma) ** 2
         inlier[idx] = res[idx] <= max(np.quantile(batch, q), bound, floor)
-        if confirmed is not None and confirmed[idx]:
+        seen = confirmed is not None and confirmed[idx] > 0
+        if strict and prior[idx] < 0.5:
+            inlier[idx] = inlier[idx] and seen
+        elif seen:
             inlier[idx] = 1.0
     return inlier
 
 
-def reference_weights(res, prior, batch_res, quantile, flagged_quantile, patch_share, floor, spread=0.0):
-    """The rule of robust.py's docstring, pixel by pixel. res, prior: [P, p, p]."""
-    inlier = reference_inliers(res, prior, batch_res, quantile, flagged_quantile, floor, spread)
+def reference_weights(res, prior, batch_res, quantile, flagged_quantile, patch_share, floor, spread=0.0,
+                      confirmed=None, strict=False):
+    """The rule of robust.py's docstring, pixel by pixel. res, prior, confirmed: [P, p, p]."""
+    inlier = reference_inliers(res, prior, batch_res, quantile, flagged_quantile, floor, spread, confirmed, strict)
     count, p, _ = inlier.shape
     vote = np.zeros(res.shape)
     for k in range(count):
@@ -197,6 +203,41 @@ def test_scattered_rays_are_judged_alone_against_numpy():
             want = reference_inliers(res, prior, batch, 0.8, 0.5, confirmed=conf, **kw)
             np.testing.assert_array_equal(np.asarray(got), want)
     assert 0 < want.mean() < 1 and want[confirmed > 0].min() == 1.0
+
+
+def test_strict_readmission_needs_the_residual_and_the_confirmation_of_a_flagged_pixel():
+    """train.robust_strict_readmit: a flagged pixel (prior < 1/2) is an inlier only when its
+    residual passes *and* another photo confirms it (never without confirmation); a pixel with
+    prior 1/2 or more keeps the usual either-or. robust.pixel_inliers and robust.batch_weights
+    (patches and scattered rays) against the loops, and the cases by hand."""
+    rng = np.random.default_rng(7)
+    res = (rng.random(3 * 16 + 40) ** 3).astype(np.float32)
+    res[::7] += 1.0
+    prior = rng.choice([0.0, 0.3, 0.5, 1.0], size=res.shape).astype(np.float32)
+    conf = (rng.random(res.shape) < 0.4).astype(np.float32)
+    batch = np.concatenate([res, (rng.random(50) ** 3).astype(np.float32)])
+    for confirmed in (conf, None):
+        got = robust.pixel_inliers(jnp.asarray(res), jnp.asarray(prior), jnp.asarray(batch), 0.8, 0.5, 0.0, 1.5,
+                                   None if confirmed is None else jnp.asarray(confirmed), strict_readmit=True)
+        want = reference_inliers(res, prior, batch, 0.8, 0.5, 0.0, 1.5, confirmed, strict=True)
+        np.testing.assert_array_equal(np.asarray(got), want)
+    loose = reference_inliers(res, prior, batch, 0.8, 0.5, 0.0, 1.5, conf)
+    strict = reference_inliers(res, prior, batch, 0.8, 0.5, 0.0, 1.5, conf, strict=True)
+    flagged = prior < 0.5
+    assert np.array_equal(strict[~flagged], loose[~flagged]) and (strict[flagged] < loose[flagged]).any()
+    assert want[flagged].max() == 0.0 and want[~flagged].max() == 1.0   # no confirmation: none re-admitted
+    got = np.asarray(robust.batch_weights(jnp.asarray(res), jnp.asarray(prior), jnp.asarray(batch), 48, 4,
+                                          0.8, 0.5, 0.6, 0.0, 1.5, jnp.asarray(conf), strict_readmit=True))
+    want_p = reference_weights(res[:48].reshape(3, 4, 4), prior[:48].reshape(3, 4, 4), batch, 0.8, 0.5, 0.6, 0.0,
+                               1.5, conf[:48].reshape(3, 4, 4), strict=True)
+    np.testing.assert_array_equal(got[:48], want_p.reshape(-1))
+    np.testing.assert_array_equal(got[48:], strict[48:])
+    # by hand: residual 0 (an inlier) flagged and unconfirmed -> out; confirmed -> in; unflagged -> in
+    one = lambda r, p, c: float(robust.pixel_inliers(jnp.asarray([r, 0.5, 0.5], jnp.float32),  # noqa: E731
+                                                     jnp.asarray([p, 1.0, 1.0], jnp.float32),
+                                                     jnp.asarray([r, 0.5, 0.5], jnp.float32), 0.8, 0.5, 0.0, 0.0,
+                                                     jnp.asarray([c, 0.0, 0.0], jnp.float32), True)[0])
+    assert (one(0.0, 0.0, 0.0), one(0.0, 0.0, 1.0), one(0.0, 1.0, 0.0), one(9.0, 0.0, 1.0)) == (0.0, 1.0, 1.0, 0.0)
 
 
 def test_a_mixed_batch_votes_in_its_patches_and_judges_its_scattered_rays_alone():

@@ -97,3 +97,23 @@ def test_robust_readmits_a_wrong_prior_and_drops_a_missed_transient(tmp_path):
     png = io.read_image(tmp_path / "weights" / "frame_0001.png")  # what a user looks at
     assert png.shape[:2] == (12, 16)
     np.testing.assert_allclose(png[..., 0] if png.ndim == 3 else png, record[1], atol=1 / 255 + 1e-6)
+
+
+def test_strict_readmission_reaches_the_trainers_weights(tmp_path):
+    """train.robust_strict_readmit joined into the loss weights: without confirmation a flagged
+    pixel can never be re-admitted under it, so every flagged pixel drawn has its record moved
+    down (at most 1/2 after its first draw) and none back up; without it the residual alone
+    re-admits some of the same pixels (the draws do not depend on the weights). The prior flags
+    the top half of every training frame, wrongly."""
+    ds = tiny_dataset()
+    ds.weights[ds.split["train"], 0:6] = 0.0
+    flagged = train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4).train)[ds.split["train"]] < 0.5
+    records = {}
+    for strict in (True, False):
+        cfg = tiny_config(num_devices=1, robust="dpt+robust", robust_patch=4, robust_warmup=0.0, robust_spread=0.0,
+                          robust_confirm=0.0, robust_strict_readmit=strict)
+        train.train(ds, cfg, tmp_path / f"s{strict}", progress=False, stop_at=4)
+        records[strict] = last_state(tmp_path / f"s{strict}", cfg, ds)["robust_record"]
+    drawn = flagged & (records[True] != 1.0)
+    assert drawn.sum() > 5 and np.all(records[True][drawn] <= 0.5)
+    assert np.any(records[False][drawn] > 0.5), records[False][drawn]

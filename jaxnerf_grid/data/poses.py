@@ -39,7 +39,6 @@ from __future__ import annotations
 
 import os
 import shutil
-import socket
 import sys
 import tempfile
 import time
@@ -821,32 +820,14 @@ def check_out(out: Path, overwrite: bool) -> None:
 # building it) when made and COMPLETE (the staged names, the commit point) when done; the old
 # outputs move to `.NAME.old-XXXX` (same XXXX) while the new ones move in (`staging.swap_in`).
 STAGE_TAG, RETIRED_TAG = ".poses-", ".old-"
-OWNER, COMPLETE = "OWNER", "COMPLETE"
+OWNER, COMPLETE = staging.OWNER, "COMPLETE"
 
 
 def make_stage(out: Path) -> Path:
     """A new staging folder beside `out`, holding OWNER (this process's host and id)."""
     stage = Path(tempfile.mkdtemp(prefix=f".{out.name}{STAGE_TAG}", dir=out.parent))
-    (stage / OWNER).write_text(f"{socket.gethostname()} {os.getpid()}\n")
+    staging.write_owner(stage)
     return stage
-
-
-def _owner_alive(stage: Path) -> bool:
-    """Whether the process that made `stage` (its OWNER) still runs on this host."""
-    try:
-        host, pid = (stage / OWNER).read_text().split()
-        pid = int(pid)
-    except (OSError, ValueError):
-        return False
-    if host != socket.gethostname():
-        return True  # another host's process: not ours to judge
-    try:
-        os.kill(pid, 0)
-    except ProcessLookupError:
-        return False
-    except PermissionError:
-        return True
-    return True
 
 
 def _siblings(out: Path, tag: str) -> list[Path]:
@@ -878,7 +859,7 @@ def recover(out) -> str | None:
     for stage in _siblings(out, STAGE_TAG):
         staged = _staged_names(stage)
         if staged is None:
-            if _owner_alive(stage):
+            if staging.owner_alive(stage):
                 continue
             shutil.rmtree(stage, ignore_errors=True)
             result = result or "cleaned"
