@@ -9,6 +9,8 @@ crop windows and pixel contents worked out by hand, an SVD similarity fit writte
 
 from __future__ import annotations
 
+import sys
+
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
@@ -567,3 +569,80 @@ def test_check_options_refuses_each_bad_option_and_names_the_choices(tmp_path):
     with pytest.raises(DataError) as err:
         poses.check_options("vocab", "OPENCV", tmp_path / "missing.bin")
     assert str(err.value) == f"{tmp_path / 'missing.bin'}: vocabulary tree file not found"
+
+
+# ----------------------------------------------------------------------------------------
+# Stage 1 and the helpers: list_photos, working_size, check_one_size, leave_out, _link_or_copy,
+# import_pycolmap
+
+
+def test_list_photos_takes_png_and_jpeg_files_by_name_and_refuses_too_few(tmp_path):
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("c.jpeg", "a.PNG", "b.jpg", "notes.txt", "d.tif"):
+        (folder / name).write_bytes(b"x")
+    (folder / "e.png").mkdir()                                        # a folder, not a photo
+    assert poses.list_photos(folder) == [folder / "a.PNG", folder / "b.jpg", folder / "c.jpeg"]
+    (folder / "c.jpeg").unlink()
+    with pytest.raises(DataError) as err:
+        poses.list_photos(folder)
+    assert str(err.value) == f"{folder}: 2 photo(s); camera poses need at least 3"
+    for name in ("a.PNG", "b.jpg"):
+        (folder / name).unlink()
+    with pytest.raises(DataError) as err:
+        poses.list_photos(str(folder))
+    assert str(err.value) == f"{folder}: no photos (PNG or JPEG) in this folder"
+    with pytest.raises(DataError) as err:
+        poses.list_photos(tmp_path / "missing")
+    assert str(err.value) == f"{tmp_path / 'missing'}: photo folder not found"
+
+
+def test_working_size_keeps_a_side_of_at_least_one_pixel():
+    assert poses.working_size(4000, 3, 100) == (100, 1) and poses.working_size(3, 4000, 100) == (1, 100)
+    assert poses.working_size(800, 600, 800) == (800, 600) and poses.working_size(801, 600, 800) == (800, 599)
+
+
+def test_check_one_size_names_the_sizes_most_common_first(tmp_path):
+    sizes = {"a.png": (32, 24), "b.png": [64, 48], "c.png": (64, 48)}
+    poses.check_one_size(sizes, tmp_path, single_camera=False)               # each photo its own camera
+    poses.check_one_size({"b.png": (64, 48), "c.png": [64, 48]}, tmp_path, single_camera=True)
+    with pytest.raises(DataError) as err:
+        poses.check_one_size(sizes, tmp_path, single_camera=True)
+    assert str(err.value) == (f"{tmp_path}: poses.single_camera needs photos of one size, these have 2 (64x48: 2 "
+                              "(e.g. b.png); 32x24: 1 (e.g. a.png)); leave poses.single_camera off (each photo gets "
+                              "its own camera) or split the folder")
+
+
+def test_leave_out_deregisters_the_named_photos_and_their_observations(tmp_path):
+    pycolmap = _pycolmap()
+    centres, w2cs = _rings()
+    images = [(f"v{k:02d}.png", 1, r, -r @ c) for k, (c, r) in enumerate(zip(centres[:4], w2cs[:4]))]
+    _write_model(tmp_path / "m", {1: (80, 60, FOCAL, FOCAL, 40, 30)}, images, np.array([[1.0, -2.0, 3.0]]))
+    model = pycolmap.Reconstruction(tmp_path / "m")
+    poses.leave_out(model, ["v01.png", "v03.png", "elsewhere.png"])
+    assert sorted(model.images[i].name for i in model.reg_image_ids()) == ["v00.png", "v02.png"]
+    assert model.points3D[1].track.length() == 2                          # seen by the 4, kept by 2
+
+
+def test_link_or_copy_links_and_copies_when_it_cannot(tmp_path, monkeypatch):
+    src = tmp_path / "src.jpg"
+    src.write_bytes(b"photo bytes")
+    poses._link_or_copy(src, tmp_path / "linked.jpg")
+    assert (tmp_path / "linked.jpg").read_bytes() == b"photo bytes"
+    assert (tmp_path / "linked.jpg").stat().st_ino == src.stat().st_ino
+
+    def refuse(*args):
+        raise OSError("cross-device link")
+
+    monkeypatch.setattr(poses.os, "link", refuse)
+    poses._link_or_copy(src, tmp_path / "copied.jpg")
+    assert (tmp_path / "copied.jpg").read_bytes() == b"photo bytes"
+    assert (tmp_path / "copied.jpg").stat().st_ino != src.stat().st_ino
+
+
+def test_import_pycolmap_without_it_says_how_to_install(monkeypatch):
+    monkeypatch.setitem(sys.modules, "pycolmap", None)                    # import pycolmap raises ImportError
+    with pytest.raises(DataError) as err:
+        poses.import_pycolmap()
+    assert str(err.value) == ("pycolmap is not installed (jaxnerf-grid poses needs it): pip install -e '.[sfm]' "
+                              "(or: bash scripts/setup.sh)")
