@@ -9,6 +9,7 @@ crop windows and pixel contents worked out by hand, an SVD similarity fit writte
 
 from __future__ import annotations
 
+import re
 import sys
 
 import numpy as np
@@ -646,3 +647,39 @@ def test_import_pycolmap_without_it_says_how_to_install(monkeypatch):
         poses.import_pycolmap()
     assert str(err.value) == ("pycolmap is not installed (jaxnerf-grid poses needs it): pip install -e '.[sfm]' "
                               "(or: bash scripts/setup.sh)")
+
+
+def test_prepare_photos_links_or_scales_each_readable_photo_and_names_the_unreadable(tmp_path, capsys):
+    """Photos used as they are are linked into the work folder (the same file), scaled ones are
+    written there at the working size; an unreadable one is skipped with its reason, and said
+    on stderr even when quiet; fewer than 3 readable photos are refused, naming the unreadable."""
+    cv2 = io.opencv()
+    folder = tmp_path / "in"
+    folder.mkdir()
+    for name in ("a.png", "b.jpg", "d.png"):
+        assert cv2.imwrite(str(folder / name), _pattern(50, 70, 1))
+    (folder / "c.png").write_bytes(b"not a photo")
+    photos = sorted(folder.iterdir())
+    work, names, skipped, sizes = poses.prepare_photos(photos, tmp_path / "work" / "photos", None, show=False)
+    assert work == tmp_path / "work" / "photos" and names == ["a.png", "b.jpg", "d.png"]
+    assert skipped == {"c.png": f"{folder / 'c.png'}: not a readable photo (corrupt or unsupported format)"}
+    assert sizes == {"a.png": (70, 50), "b.jpg": (70, 50), "d.png": (70, 50)}
+    for name in names:
+        assert (work / name).stat().st_ino == (folder / name).stat().st_ino                 # linked
+    assert capsys.readouterr().err == f"poses: skipping {folder / 'c.png'}: not a readable image\n"
+    work, names, skipped, sizes = poses.prepare_photos(photos, tmp_path / "small", 40, show=True)
+    assert names == ["a.png", "b.jpg", "d.png"] and set(sizes.values()) == {(40, 29)}
+    for name in names:
+        assert cv2.imread(str(work / name)).shape == (29, 40, 3)
+        assert (work / name).stat().st_ino != (folder / name).stat().st_ino
+    err = capsys.readouterr().err.splitlines()
+    assert err[0] == f"poses: skipping {folder / 'c.png'}: not a readable image"
+    assert re.fullmatch(r"poses: photos: 4/4 photos \(100%\), \d+\.\d s", err[1]) and len(err) == 2
+    (folder / "e.png").write_bytes(b"")
+    with pytest.raises(DataError) as err:
+        poses.prepare_photos([folder / "a.png", folder / "c.png", folder / "e.png"], tmp_path / "w3", None,
+                             show=False)
+    assert str(err.value) == (f"{folder}: only 1 readable photo(s) of 3 (unreadable: c.png, e.png); camera poses "
+                              "need at least 3")
+    with pytest.raises(DataError, match=r"only 2 readable photo\(s\) of 2 \(unreadable: none\); camera poses need"):
+        poses.prepare_photos([folder / "a.png", folder / "d.png"], tmp_path / "w4", None, show=False)
