@@ -683,3 +683,30 @@ def test_prepare_photos_links_or_scales_each_readable_photo_and_names_the_unread
                               "need at least 3")
     with pytest.raises(DataError, match=r"only 2 readable photo\(s\) of 2 \(unreadable: none\); camera poses need"):
         poses.prepare_photos([folder / "a.png", folder / "d.png"], tmp_path / "w4", None, show=False)
+
+
+def test_prepare_photo_writes_scaled_jpegs_at_its_quality_and_names_a_copy_it_cannot_write(tmp_path, monkeypatch,
+                                                                                           capsys):
+    """A scaled JPEG copy (.jpg or .JPEG) is OpenCV's encoding of the area-scaled photo at
+    JPEG_QUALITY, byte for byte (60 here, away from OpenCV's default of 95); an encoder failure
+    is a DataError naming the photo. And prepare_photos shows its progress by default."""
+    monkeypatch.setattr(poses, "JPEG_QUALITY", 60)
+    cv2 = io.opencv()
+    for name in ("a.jpg", "b.JPEG"):
+        src = tmp_path / name
+        assert cv2.imwrite(str(src), _pattern(50, 70, 2), [cv2.IMWRITE_JPEG_QUALITY, 95])
+        decoded = cv2.imdecode(np.fromfile(str(src), np.uint8), cv2.IMREAD_COLOR)
+        scaled = cv2.resize(decoded, (40, 29), interpolation=cv2.INTER_AREA)
+        expected = cv2.imencode(".jpg", scaled, [cv2.IMWRITE_JPEG_QUALITY, 60])[1].tobytes()
+        assert expected != cv2.imencode(".jpg", scaled)[1].tobytes()
+        used, size = poses.prepare_photo(src, tmp_path / "work", 40)
+        assert (used, size) == (tmp_path / "work" / name, (40, 29)) and used.read_bytes() == expected, name
+    (tmp_path / "work" / "b.JPEG").rename(tmp_path / "work" / "c.jpg")    # three names, as list_photos gives
+    photos = [tmp_path / "a.jpg", tmp_path / "b.JPEG", tmp_path / "work" / "c.jpg"]
+    capsys.readouterr()
+    poses.prepare_photos(photos, tmp_path / "again", None)
+    assert re.fullmatch(r"poses: photos: 3/3 photos \(100%\), \d+\.\d s\n", capsys.readouterr().err)
+    monkeypatch.setattr(cv2, "imencode", lambda *args: (False, None))
+    with pytest.raises(DataError) as err:
+        poses.prepare_photo(tmp_path / "a.jpg", tmp_path / "work", 40)
+    assert str(err.value) == f"{tmp_path / 'a.jpg'}: could not encode a working copy"
