@@ -32,6 +32,14 @@ tests/test_poses.py::test_rotate_scene_keeps_projections tests/test_poses.py::te
 tests/test_export.py::test_metric_round_trip tests/test_export.py::test_metric_round_trip_with_rotation \
 tests/test_export.py::test_metric_map_of_a_missing_or_partial_record_is_the_identity_in_what_is_missing"
 
+# the block tests of data/poses.py's cameras, metric frame, model choice and options in test_poses.py
+# (not its pycolmap runs), test_poses_frames.py, test_poses_run_colmap.py and test_georef.py's report test
+POSES_BLOCKS="$(for t in working_size_and_crop_offsets similarity_fit_and_poses_agree choose_model_counts_only_vetted_photos \
+choose_matcher_auto_rule names_look_ordered poses_vocab_needs_a_tree_file poses_bad_matcher_or_overlap_says_which_flag \
+prepare_photo_honours_exif_orientation; \
+do printf 'tests/test_poses.py::test_%s ' $t; done) tests/test_poses_frames.py tests/test_poses_run_colmap.py \
+tests/test_georef.py::test_report_flags_residuals_beyond_the_sources_accuracy"
+
 # the block tests of export/measure.py in test_export.py and test_export_survey.py (not test_export's
 # training fixture; test_join_export.py's module-scoped export is credited by mutmut to its first test only)
 MEASURE_BLOCKS="$(for t in min_area_rectangle_against_brute_force footprint_and_cross_arms_of_a_synthetic_tower \
@@ -87,7 +95,7 @@ declare -A GROUPS_=(
   [export_mesh]="jaxnerf_grid/export/mesh.py|$MESH_BLOCKS tests/test_export_blocks2.py tests/test_join_export.py"
   [export_geoid]="jaxnerf_grid/export/geoid.py|tests/test_export_geoid.py tests/test_export_blocks2.py"
   [normalize]="jaxnerf_grid/data/normalize.py|tests/test_normalize.py tests/test_join_poses.py tests/test_formats.py $NORMALIZE_BLOCKS"
-  [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py"
+  [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py $POSES_BLOCKS"
   [losses]="jaxnerf_grid/losses.py|tests/test_losses.py"
   [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch tests/test_refine.py::test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel"
 )
