@@ -188,13 +188,13 @@ def _swap_in(root: Path) -> None:
 def recover(root) -> str | None:
     """Finishes what a killed `write_masks` left: a complete staging folder is swapped in
     ("rolled forward"), an incomplete one removed ("discarded"); None when there was nothing, or
-    when the staging folder belongs to another process still running (`staging.held_elsewhere`:
+    when the staging folder belongs to another process still running (`staging.other_owner`:
     a `mask` or `demo` writing this dataset's masks now), which is left alone."""
     import shutil
 
     root = Path(root)
     stage = root / STAGING
-    if stage.exists() and staging.held_elsewhere(stage):
+    if staging.other_owner(stage) is not None:
         return None  # another `mask` still writing this dataset: its work, not ours to finish
     if (stage / COMPLETE).is_file():
         _swap_in(root)
@@ -212,9 +212,9 @@ def recover(root) -> str | None:
 def _refuse_if_busy(root: Path) -> None:
     """A one-line DataError when another process still running is writing masks into `root`
     (its staging folder's OWNER), before anything of this call is read or written."""
-    stage = root / STAGING
-    if stage.exists() and staging.held_elsewhere(stage):
-        host, pid = staging.read_owner(stage)
+    owner = staging.other_owner(root / STAGING)
+    if owner is not None:
+        host, pid = owner
         raise DataError(f"{root}: another process (pid {pid} on {host}) is writing masks into this dataset "
                         f"now ({STAGING}); wait for it to finish, or mask a copy of the dataset")
 

@@ -11,7 +11,7 @@ removes an incomplete one.
 
 A staging folder holds OWNER (the host and process id that made it: `write_owner`), so that
 another process's `recover` leaves the staging folder of a command still running alone
-(`held_elsewhere`) instead of discarding it under that command's feet.
+(`other_owner`) instead of discarding it under that command's feet.
 
 A leaf: imports nothing of the package.
 """
@@ -40,13 +40,9 @@ def read_owner(stage: Path) -> tuple[str, int] | None:
         return None
 
 
-def owner_alive(stage: Path) -> bool:
-    """Whether the process that made `stage` (its OWNER) still runs; a process of another host
-    counts as running (not ours to judge), a missing OWNER as gone."""
-    owner = read_owner(stage)
-    if owner is None:
-        return False
-    host, pid = owner
+def _running(host: str, pid: int) -> bool:
+    """Whether process `pid` of `host` still runs; another host's counts as running (not ours
+    to judge)."""
     if host != socket.gethostname():
         return True
     try:
@@ -58,12 +54,20 @@ def owner_alive(stage: Path) -> bool:
     return True
 
 
-def held_elsewhere(stage: Path) -> bool:
-    """Whether `stage` belongs to another process that still runs (not this one)."""
+def owner_alive(stage: Path) -> bool:
+    """Whether the process that made `stage` (its OWNER) still runs; a process of another host
+    counts as running (not ours to judge), a missing OWNER as gone."""
     owner = read_owner(stage)
-    if owner is not None and owner == (socket.gethostname(), os.getpid()):
-        return False
-    return owner_alive(stage)
+    return owner is not None and _running(*owner)
+
+
+def other_owner(stage: Path) -> tuple[str, int] | None:
+    """(host, pid) of `stage`'s OWNER when that is another process that still runs (not this
+    one), else None (no OWNER, or no staging folder, included). OWNER is read once."""
+    owner = read_owner(stage)
+    if owner is None or owner == (socket.gethostname(), os.getpid()) or not _running(*owner):
+        return None
+    return owner
 
 
 def remove(path: Path) -> None:
