@@ -59,6 +59,8 @@ def main(argv=None) -> int:
     p.add_argument("--variant", action="append", default=[], metavar="TAG:KEY=JSON[,KEY=JSON]",
                    help="train each row with these train overrides instead, labelled -TAG (a sweep; not in the table)")
     args = p.parse_args(argv)
+    if args.prior == "gt" and args.dpt_threshold != 0.5:
+        p.error("--dpt-threshold sets the DPT prior's masks; it has no meaning with --prior gt")
     flags = ["--standard", "--cache", args.cache, "--results", str(Path(args.out) / "t1"), "--quiet",
              "--ignore-recorded"] + (["--budget-min", str(args.budget_min)] if args.budget_min else []) + \
         (["--steps", str(args.steps)] if args.steps else [])
