@@ -178,20 +178,53 @@ def make_context(args, script: str) -> Context:
 LATER_TRAIN_KEYS = ("max_side", "robust", "robust_quantile", "robust_flagged_quantile", "robust_patch",
                     "robust_patch_stride",
                     "robust_patch_share", "robust_floor", "robust_spread",
-                    "robust_warmup", "robust_confirm", "robust_views", "sparse_adam", "robust_scattered")
+                    "robust_warmup", "robust_confirm", "robust_views", "sparse_adam", "robust_scattered",
+                    "robust_refine", "robust_prior_grow")
 
 
-def run_key(data_dir: Path, method: str, overrides: dict, steps: int) -> str:
-    """Hash of the dataset folder's name, the fully resolved RunConfig and the step count."""
+def strict_readmit_setting(train_cfg: dict, data_dir: Path) -> bool:
+    """train.robust_strict_readmit as a run on `data_dir` settles it: the setting, or for None
+    (automatic) `config.strict_readmit_auto` on the dataset's transforms.json."""
+    strict = train_cfg.get("robust_strict_readmit")
+    if strict is None:
+        meta_path = Path(data_dir) / "transforms.json"
+        strict = config_lib.strict_readmit_auto(io.read_json(meta_path) if meta_path.is_file() else {})
+    return bool(strict)
+
+
+def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: str = "current") -> str:
+    """Hash of the dataset folder's name, the fully resolved RunConfig and the step count.
+
+    scheme "current": LATER_TRAIN_KEYS at their defaults are left out, and so is
+    train.robust_strict_readmit wherever it does nothing (it acts only in `dpt+robust`, and off
+    it is what ran before it existed); settled on the dataset (`strict_readmit_setting`) and
+    on, it is in the key as true. scheme "session28": the key of runs made from the
+    twenty-fifth to the twenty-eighth session, when robust_refine, robust_prior_grow and
+    robust_strict_readmit (then false by default) were always in the key (`run_keys`); there
+    it is true only where it acts, as above, so a run of another mode is found at the default."""
     with_steps = merge(overrides, {"train": {"max_steps": int(steps)}})
     cfg = config_lib.to_dict(run_config.make_config(method, with_steps))
     cfg["model"] = {**{k: v for k, v in cfg["model"].items() if k != "sampler"},  # the flat sampler keys, as
                     **flat_keys(with_steps.get("model", {}))}  # before model.sampler: runs keep their keys
     defaults = config_lib.to_dict(run_config.TrainConfig())
+    strict = strict_readmit_setting(cfg["train"], data_dir)
+    later = LATER_TRAIN_KEYS if scheme == "current" else LATER_TRAIN_KEYS[:-2]
     cfg["train"] = {k: v for k, v in cfg["train"].items()  # settings added since, at their defaults
-                    if not (k in LATER_TRAIN_KEYS and v == defaults[k])}
+                    if not (k in later and v == defaults[k]) and k != "robust_strict_readmit"}
+    acts = strict and cfg["train"].get("robust", "off") == "dpt+robust"
+    if scheme != "current":
+        cfg["train"]["robust_strict_readmit"] = acts
+    elif acts:
+        cfg["train"]["robust_strict_readmit"] = True
     blob = json.dumps({"data": Path(data_dir).name, "config": cfg}, sort_keys=True, default=str)
     return hashlib.sha1(blob.encode()).hexdigest()[:10]
+
+
+def run_keys(data_dir: Path, method: str, overrides: dict, steps: int) -> list[str]:
+    """The keys an identical finished run may be found under: `run_key`'s current scheme first
+    (a new run is made under it), then the twenty-eighth session's."""
+    keys = [run_key(data_dir, method, overrides, steps, scheme) for scheme in ("current", "session28")]
+    return list(dict.fromkeys(keys))
 
 
 def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: str,
@@ -206,10 +239,12 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     steps = int(steps or ctx.steps)
     ov = merge(merge(ctx.overrides, settings.space_overrides(ctx.setting, method, overrides)), overrides or {})
     ov = merge(ov, {"train": {"seed": int(seed)}})
-    key = run_key(data_dir, method, ov, steps)
+    keys = run_keys(data_dir, method, ov, steps)
+    key = keys[0]
     run_dir = ctx.cache / "runs" / f"{label}-s{seed}-{key}"
-    same = sorted((ctx.cache / "runs").glob(f"*-s{seed}-{key}"))
-    if not run_dir.exists() and same:  # the identical run made by another table
+    same = [d for k in keys for d in sorted((ctx.cache / "runs").glob(f"*-s{seed}-{k}"))
+            if (d / "metrics.json").is_file()]
+    if not run_dir.exists() and same:  # the identical run made by another table, or under an older key
         run_dir = same[0]
     done = run_dir / "metrics.json"
     info_path = run_dir / "experiment.json"
@@ -217,7 +252,7 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
         info = io.read_json(info_path)
         ctx.run_seconds[str(run_dir)] = info["train_wall_s"] + info["eval_wall_s"]
         return {**info, "wall_s": ctx.run_seconds[str(run_dir)], "metrics": io.read_json(done), "cached": True}
-    restored = (ctx.recorded or {}).get((int(seed), key))
+    restored = next((r for r in ((ctx.recorded or {}).get((int(seed), k)) for k in keys) if r is not None), None)
     if restored is not None:
         ctx.restored.append(restored["run_dir"])
         if restored.get("wall_s") is not None:

@@ -302,16 +302,32 @@ def near_far(model_cfg: Any, dataset: Any) -> tuple[float, float]:
     return float(near), float(far)
 
 
+def strict_readmit_auto(meta: dict) -> bool:
+    """train.robust_strict_readmit's automatic value (None) on a dataset whose transforms.json
+    gave `meta`: on, unless `mask` judged the dataset's DPT masks out of their domain
+    (`mask_domain.out_of_domain`, masking.domain_verdict). In its domain the prior is trusted
+    more, and strict re-admission gains on every seed of Table 1's dpt+robust row; out of it a
+    flagged static pixel no neighbour confirms would stay out (docs/ROBUST.md)."""
+    domain = meta.get("mask_domain") if isinstance(meta, dict) else None
+    return not (isinstance(domain, dict) and bool(domain.get("out_of_domain")))
+
+
 def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
     """A run config (anything with a `.model` holding num_images / near / far) settled on a
     dataset: model.num_images at least the dataset's frame count (the embedding tables' size),
-    and, with `bounds`, model.near / model.far filled from the dataset where None.
+    and, with `bounds`, model.near / model.far filled from the dataset where None; a
+    `.train.robust_strict_readmit` of None (automatic) becomes `strict_readmit_auto`'s answer
+    on the dataset's meta, whatever `bounds` (what trained is what a run's config.json records).
 
     bounds=False keeps near / far as configured (None = the dataset's): what a run's
     config.json stores, so it stays valid for the dataset however it is normalised.
     """
     validate(cfg)
     changes = {"num_images": max(cfg.model.num_images, dataset.num_frames)}
+    train_cfg = getattr(cfg, "train", None)
+    if train_cfg is not None and getattr(train_cfg, "robust_strict_readmit", False) is None:
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(
+            train_cfg, robust_strict_readmit=strict_readmit_auto(getattr(dataset, "meta", {}))))
     if bounds:
         changes["near"], changes["far"] = near_far(cfg.model, dataset)
         if not 0 < changes["near"] < changes["far"]:

@@ -257,7 +257,8 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
                                              "quarter of training, and ")
         notes.append(f"Photometric evidence (`train.robust = {cfg.train.robust}`): training ignored "
                      f"{late_text}{100 * weights['ignored_share']:.1f} % of the training pixels in its per-pixel "
-                     "record (pixels never drawn count as used; weights in `weights/`, docs/ROBUST.md).")
+                     "record (pixels never drawn count as used; weights in `weights/`, docs/ROBUST.md)."
+                     + strict_note(cfg.train))
         notes += report.weights_figure(run_dir, weights["rows"])
     notes.append(f"Point cloud of the unit sphere (the tower region) lifted from the depth maps of the "
                  f"{len(per_view)} test views" + (f" and {len(cloud_ids)} training views" if cloud_ids else "")
@@ -290,6 +291,22 @@ def resolution_note(res: dict) -> str:
     return (f"Resolution: trained and rendered at {size}, the working resolution of the "
             f"{res['native_width']}x{res['native_height']} photos (`train.max_side` {res['max_side']}; "
             "`eval --full-size` for full size).")
+
+
+def strict_note(train_cfg) -> str:
+    """The report's sentence on how dpt+robust re-admitted the pixels its prior flagged
+    (train.robust_strict_readmit as the run settled it: config.strict_readmit_auto); "" for
+    other modes or a run recorded before the key existed."""
+    strict = getattr(train_cfg, "robust_strict_readmit", None)
+    if train_cfg.robust != "dpt+robust" or strict is None:
+        return ""
+    if strict:
+        return (" A pixel the DPT flagged was re-admitted only when its residual was an inlier and a "
+                "neighbouring photo confirmed it (`train.robust_strict_readmit` on; on by default unless `mask` "
+                "judged the masks out of their domain).")
+    return (" A pixel the DPT flagged was re-admitted when its residual was an inlier or a neighbouring "
+            "photo confirmed it (`train.robust_strict_readmit` off; off by default only where `mask` judged "
+            "the masks out of their domain).")
 
 
 def training_weights(run_dir, ds, panels: int = 3) -> dict | None:

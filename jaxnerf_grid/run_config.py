@@ -73,7 +73,8 @@ class TrainConfig:
     robust_strict_readmit: a flagged pixel (prior < 1/2) is re-admitted only when its residual is
       an inlier *and* a neighbouring photo confirms it (`robust.pixel_inliers`); off, either
       suffices. Once re-admitted a pixel is trained on and its residual falls, so a transient
-      re-admitted on its residual alone stays in (docs/ROBUST.md).
+      re-admitted on its residual alone stays in (docs/ROBUST.md). None (the default): on unless
+      `mask` judged the dataset's DPT masks out of their domain (`config.strict_readmit_auto`).
     """
 
     batch_rays: int = 1024
@@ -115,7 +116,7 @@ class TrainConfig:
     robust_scattered: float = 0.0
     robust_refine: float = 0.0
     robust_prior_grow: int = 0
-    robust_strict_readmit: bool = False
+    robust_strict_readmit: bool | None = None
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {

@@ -1,5 +1,6 @@
 """config.merge and config.resolve: the one dict merge and the one place a dataset settles a run config."""
 
+import dataclasses
 from types import SimpleNamespace
 
 from jaxnerf_grid import config as config_lib, train
@@ -24,7 +25,11 @@ def test_resolve_fills_num_images_and_bounds_from_the_dataset():
     given = train.make_config("ours", {"model": {"near": 1.0, "num_images": 9}})
     settled = config_lib.resolve(given, ds)
     assert settled.model.num_images == 9 and (settled.model.near, settled.model.far) == (1.0, 40.0)
-    assert config_lib.near_far(given.model, ds) == (1.0, 40.0) and stored.train == cfg.train
+    assert config_lib.near_far(given.model, ds) == (1.0, 40.0)
+    # the one train key settled on the dataset: strict re-admission, on where no `mask` verdict says
+    # the masks are out of their domain (this dataset has no meta at all)
+    assert cfg.train.robust_strict_readmit is None
+    assert stored.train == dataclasses.replace(cfg.train, robust_strict_readmit=True) == full.train
 
 
 def test_run_config_holds_the_data_path_and_the_compiled_step_ignores_it():

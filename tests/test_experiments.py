@@ -672,3 +672,37 @@ def test_throughput_variant_is_its_base_with_the_set_changes():
     for bad in ("m24=nope:model.sampler.main_samples=24", "m24=ours-fast:model.sampler.mian_samples=24", "m24"):
         with pytest.raises(ConfigError):
             throughput.parse_variant(bad)
+
+
+def _recorded_strict_run(seed_dir: str):
+    """A run of the twenty-eighth session as its experiment.json records it: (dataset folder
+    name, method, overrides, steps, the key in its folder's name)."""
+    root = Path(__file__).resolve().parents[1] / "benchmarks/results/table1_strict_readmit" / seed_dir
+    info = json.loads((root / "experiment.json").read_text())
+    return Path(info["data"]).name, info["method"], info["overrides"], info["steps"], seed_dir.rsplit("-", 1)[1]
+
+
+@pytest.mark.parametrize("seed_dir", ["t1-tower-small-built-in_DPT_masks__Eq_7__robust-strict-s0-a916966803",
+                                      "t1-plad-like-built-in_DPT_masks__Eq_7__robust-strict-s1-48dd7ed14d"])
+def test_run_keys_find_a_strict_run_under_its_older_key_and_the_default_now_means_it(tmp_path, seed_dir):
+    """The keys of the committed runs made with robust_strict_readmit=true are the keys the code
+    of that session gave (the folders' names); the default (None) on a dataset whose masks
+    `mask` judged in their domain finds them, and so does the explicit setting, while off, out of
+    the domain, or the automatic value on out-of-domain masks does not. In `robust` mode
+    (nothing flagged) the setting leaves the key alone."""
+    name, method, overrides, steps, recorded = _recorded_strict_run(seed_dir)
+    data = tmp_path / name
+    data.mkdir()
+
+    def keys(strict, out_of_domain, robust="dpt+robust"):
+        (data / "transforms.json").write_text(json.dumps({"mask_domain": {"out_of_domain": out_of_domain}}))
+        ov = merge(overrides, {"train": {"robust_strict_readmit": strict, "robust": robust}})
+        return runner.run_keys(data, method, ov, steps)
+
+    assert recorded in keys(True, False) and recorded in keys(None, False) and recorded in keys(True, True)
+    assert keys(None, False) == keys(True, False) == keys(True, True)
+    for strict, out in ((False, False), (None, True), (False, True)):
+        assert recorded not in keys(strict, out)
+        assert keys(strict, out) == keys(False, False)
+    assert keys(None, False, "robust") == keys(True, True, "robust") == keys(False, False, "robust")
+    assert keys(None, False)[0] != keys(False, False)[0]  # a new strict run is made under its own key

@@ -183,3 +183,50 @@ def test_dataset_domain_judges_dpt_masks_made_before_the_rule(tmp_path):
     assert v["out_of_domain"] is True and v["frames_mostly_masked"] == 2 and v["median_share"] == 0.5
     (tmp_path / "transforms.json").write_text(json.dumps({"mask_source": "ground-truth", "frames": frames}))
     assert demo.dataset_domain(tmp_path) is None
+
+
+@pytest.mark.parametrize("domain,asked,settled", [
+    ({"out_of_domain": True}, None, False),    # judged out of domain: either test re-admits
+    ({"out_of_domain": False}, None, True),    # in its domain: strict re-admission
+    (None, None, True),                        # not judged (ground-truth or the user's masks): strict
+    ({"out_of_domain": False}, False, False),  # what the user set is kept
+    ({"out_of_domain": True}, True, True),
+])
+def test_strict_readmission_follows_the_masks_domain_verdict(tmp_path, domain, asked, settled):
+    """train.robust_strict_readmit None is settled on the dataset's transforms.json: the
+    `mask_domain` that `mask` wrote reaches the loaded dataset and `config.resolve`, with and
+    without the ray bounds (what a run's config.json stores)."""
+    import sys
+    from pathlib import Path
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from test_formats import _write_transforms
+
+    from jaxnerf_grid import config
+    from jaxnerf_grid.data import formats
+    from jaxnerf_grid.run_config import make_config
+
+    _, top = _write_transforms(tmp_path)
+    if domain is not None:
+        top["mask_source"], top["mask_domain"] = "dpt", dict(domain, frames=3)
+        io.write_json(tmp_path / "transforms.json", top)
+    ds = formats.load_dataset(tmp_path)
+    cfg = make_config("ours", {"train": {"robust": "dpt+robust", "robust_strict_readmit": asked}})
+    assert cfg.train.robust_strict_readmit is asked
+    for bounds in (True, False):
+        assert config.resolve(cfg, ds, bounds=bounds).train.robust_strict_readmit is settled
+
+
+def test_the_report_says_how_flagged_pixels_were_readmitted():
+    """evaluate.strict_note: the report's sentence for dpt+robust with strict re-admission on /
+    off, nothing for other modes or a run whose config predates the key."""
+    from types import SimpleNamespace
+
+    from jaxnerf_grid import evaluate
+
+    def note(robust, strict):
+        return evaluate.strict_note(SimpleNamespace(robust=robust, robust_strict_readmit=strict))
+
+    assert "only when its residual was an inlier and a neighbouring photo confirmed it" in note("dpt+robust", True)
+    assert "when its residual was an inlier or a neighbouring photo confirmed it" in note("dpt+robust", False)
+    assert note("robust", True) == note("off", False) == note("dpt+robust", None) == ""

@@ -133,7 +133,8 @@ def collect_json_frames(entries, top: dict, json_path: Path, root: Path, *, load
     c2w = np.stack([f.c2w for f in frames])
     c2w, norm, near, far = _normalise_json(c2w, top, json_path, normalize, near_far_default)
     meta = {"format": fmt, "source": str(json_path)}
-    for key in ("generator", "tower_ply", "scene_normalization", "georeference", "poses"):
+    for key in ("generator", "tower_ply", "scene_normalization", "georeference", "poses", "mask_source",
+                "mask_domain"):
         if key in top:
             meta[key] = top[key]
     return Scene(root, frames, c2w, split, near, far, norm, meta, background, undistort, honour_exif)
