@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import re
 import socket
 import sys
 
@@ -67,6 +68,7 @@ class _Colmap:
         stage = work_dir.parent
         self.calls.append({"module": module, "photo_dir": photo_dir, "names": list(names), "work_dir": work_dir,
                            "photos": sorted(p.name for p in photo_dir.iterdir()),
+                           "sizes": {p.name: io.opencv().imread(str(p)).shape[1::-1] for p in photo_dir.iterdir()},
                            "owner": (stage / "OWNER").read_text(), "stage": stage, **kwargs})
         if self.fail is not None:
             raise self.fail
@@ -143,6 +145,7 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
                                  "keep_all", "overlap")} == {
         "matcher": "exhaustive", "camera_model": "SIMPLE_RADIAL", "single_camera": False, "vocab_tree": None,
         "show": False, "source": photos, "keep_all": False, "overlap": 10}
+    assert call["sizes"] == {n: (80, 60) for n in names}
     assert read == [[photos / n for n in names]]
     assert pycolmap.logging.minloglevel == 3
 
@@ -240,6 +243,7 @@ def test_poses_from_images_hands_on_its_options_and_the_georeference(tmp_path, m
                      ("align", 12, positions, {"crs_name": "EPSG:32632", "gcp_path": gcp, "scale_bar": bar,
                                                "sizes": sizes, "ratios": ratios, "source": photos})]
     call, = stand_in.calls
+    assert call["sizes"] == {n: (40, 30) for n in names}           # the working copies COLMAP reads
     assert {k: call[k] for k in ("matcher", "camera_model", "single_camera", "show", "keep_all", "overlap")} == {
         "matcher": "sequential", "camera_model": "PINHOLE", "single_camera": True, "show": False, "keep_all": True,
         "overlap": 4}
@@ -270,6 +274,25 @@ def test_keep_all_keeps_the_photo_the_vetting_would_leave_out(tmp_path, monkeypa
     assert [r["kept"] for r in summary["vetting"]["photos"]].count(False) == 1    # v05 fails, and stays
     top = io.read_json(tmp_path / "data" / "transforms.json")
     assert "images/v05.png" in [f["file_path"] for f in top["frames"]] and len(top["frames"]) == 12
+
+
+def test_poses_from_images_hands_on_the_vocabulary_tree(tmp_path, monkeypatch):
+    photos, model_dir, _ = _scene(tmp_path, turned=())
+    tree = tmp_path / "tree.bin"
+    tree.write_bytes(b"tree")
+    stand_in = _Colmap(model_dir)
+    monkeypatch.setattr(poses, "run_colmap", stand_in)
+    summary = poses.poses_from_images(photos, tmp_path / "data", progress=False, matcher="vocab", vocab_tree=tree)
+    assert (stand_in.calls[0]["matcher"], stand_in.calls[0]["vocab_tree"]) == ("vocab", tree)
+    assert (summary["matcher"], summary["matcher_asked"], summary["matcher_reason"], summary["overlap"]) == (
+        "vocab", "vocab", "asked for", None)
+
+
+def test_poses_from_images_says_unknown_for_a_pycolmap_without_a_version(tmp_path, monkeypatch):
+    photos, model_dir, _ = _scene(tmp_path, turned=())
+    monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
+    monkeypatch.delattr(pycolmap, "__version__")
+    assert poses.poses_from_images(photos, tmp_path / "data", progress=False)["pycolmap"] == "unknown"
 
 
 @pytest.mark.parametrize("ignore_gps", [True, False])
@@ -314,6 +337,7 @@ def test_poses_from_images_is_quiet_or_says_its_stages(tmp_path, monkeypatch, ca
     assert any(line.startswith("poses: undistortion to PINHOLE, orientation, transforms.json done in ")
                for line in err)
     assert not any(line.startswith("poses: photos") and "done in" in line for line in err)  # the photos stage is quiet
+    assert len([line for line in err if re.fullmatch(r"poses: photos: 14/14 photos \(100%\), \d+\.\d s", line)]) == 1
 
 
 # ----------------------------------------------------------------------------------------
@@ -384,6 +408,8 @@ def _old_dataset(out):
 @pytest.mark.parametrize("photos, registered, turned, message", [
     (13, 4, (1,), "only 3 of 13 photos registered and passed the vetting (a dataset needs 4; not registered or "
                   "left out: v04.png, v05.png, v06.png, v07.png, v08.png, ...)"),
+    (8, 3, (1,), "only 2 of 8 photos registered and passed the vetting (a dataset needs 3; not registered or left "
+                 "out: v03.png, v04.png, v05.png, v06.png, v07.png, ...)"),
     (7, 3, (1,), "only 2 of 7 photos registered and passed the vetting (a dataset needs 3; not registered or left "
                  "out: v03.png, v04.png, v05.png, v06.png, v01.png)")])
 def test_poses_from_images_refuses_too_few_registered_and_keeps_the_old_dataset(
@@ -429,6 +455,24 @@ def test_a_failure_before_the_swap_removes_the_stage_and_keeps_the_old_dataset(t
         poses.poses_from_images(folder, tmp_path / "data", progress=False, overwrite=True)
     assert {p.name: p.read_text() for p in (tmp_path / "data").iterdir()} == before
     assert sorted(p.name for p in tmp_path.iterdir()) == ["data", "model", "photos"]
+
+
+def test_a_failure_whose_stage_is_already_gone_raises_its_own_error(tmp_path, monkeypatch):
+    """The clean-up never hides the error: a staging folder already gone (removed under the
+    run) is passed over and the run's own one-line error comes out."""
+    folder, model_dir, _ = _scene(tmp_path)
+
+    class _Vanishing(_Colmap):
+        def __call__(self, module, photo_dir, names, work_dir, **kwargs):
+            import shutil
+
+            shutil.rmtree(work_dir.parent)
+            raise DataError("the stage went away")
+
+    monkeypatch.setattr(poses, "run_colmap", _Vanishing(model_dir))
+    with pytest.raises(DataError, match="^the stage went away$"):
+        poses.poses_from_images(folder, tmp_path / "data", progress=False)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["model", "photos"]
 
 
 def test_a_kill_during_the_swap_leaves_the_committed_stage_for_recover(tmp_path, monkeypatch):
@@ -612,11 +656,18 @@ def test_move_into_place_into_no_folder_is_one_rename(tmp_path, monkeypatch):
     out = tmp_path / "data"
     stage = poses.make_stage(out)
     _write(stage, NEW)
-    moved = []
+    moved, real = [], staging.move
     monkeypatch.setattr(staging, "move", lambda src, dst: moved.append(dst))
     poses.move_into_place(stage, out)
     assert moved == [] and not stage.exists()
+    monkeypatch.setattr(staging, "move", real)
     assert _tree(out) == {k: v for k, v in AFTER.items() if k != "notes.txt"}       # OWNER gone, no COMPLETE
+    # a staging folder without OWNER (made by hand) moves in as well, into no folder or a dataset
+    for target in (tmp_path / "data2", out):
+        stage = tmp_path / f".{target.name}.poses-hand"
+        _write(stage, {"transforms.json": "by hand"})
+        poses.move_into_place(stage, target)
+        assert (target / "transforms.json").read_text() == "by hand" and not stage.exists()
 
 
 def test_move_into_place_swaps_entry_by_entry_transforms_last(tmp_path, monkeypatch):
@@ -733,3 +784,27 @@ def test_recover_rolled_forward_wins_over_cleaned_in_either_order(tmp_path, dead
     staging.write_complete(tmp_path / complete, "COMPLETE", ["transforms.json"])
     assert poses.recover(out) == "rolled forward"
     assert _tree(out) == {"transforms.json": "new"} and _hidden(tmp_path) == []
+
+
+def test_two_recovers_at_once_pass_over_what_the_other_removed(tmp_path, monkeypatch):
+    """`train` and `poses` started together on one dataset both run `recover`: a dead run's
+    staging folder or a retired folder the other removed between the listing and the removal
+    is passed over, not an error."""
+    import shutil
+
+    out = tmp_path / "d"
+    _write(out, {"transforms.json": "old"})
+    _write(tmp_path / ".d.poses-dead", {"_work/a.png": "copy", "OWNER": f"{socket.gethostname()} 999999999\n"})
+    _write(tmp_path / ".d.old-gone", {"images/a.png": "old"})
+    real = poses._siblings
+
+    def listed_then_removed(folder, tag):
+        found = real(folder, tag)
+        for path in found:
+            shutil.rmtree(path)                                  # the other process, just after the listing
+        return found
+
+    monkeypatch.setattr(poses, "_siblings", listed_then_removed)
+    monkeypatch.setattr(staging, "owner_alive", lambda stage: False)
+    assert poses.recover(out) == "cleaned"
+    assert _hidden(tmp_path) == [] and _tree(out) == {"transforms.json": "old"}
