@@ -33,11 +33,11 @@ tests/test_export.py::test_metric_round_trip tests/test_export.py::test_metric_r
 tests/test_export.py::test_metric_map_of_a_missing_or_partial_record_is_the_identity_in_what_is_missing"
 
 # the block tests of data/poses.py's cameras, metric frame, model choice and options in test_poses.py
-# (not its pycolmap runs), test_poses_frames.py, test_poses_run_colmap.py and test_georef.py's report test
+# (not its pycolmap runs), test_poses_frames.py, test_poses_run_colmap.py, test_poses_flow.py and test_georef.py's report test
 POSES_BLOCKS="$(for t in working_size_and_crop_offsets similarity_fit_and_poses_agree choose_model_counts_only_vetted_photos \
 choose_matcher_auto_rule names_look_ordered poses_vocab_needs_a_tree_file poses_bad_matcher_or_overlap_says_which_flag \
 prepare_photo_honours_exif_orientation; \
-do printf 'tests/test_poses.py::test_%s ' $t; done) tests/test_poses_frames.py tests/test_poses_run_colmap.py \
+do printf 'tests/test_poses.py::test_%s ' $t; done) tests/test_poses_frames.py tests/test_poses_run_colmap.py tests/test_poses_flow.py \
 tests/test_georef.py::test_report_flags_residuals_beyond_the_sources_accuracy"
 
 # the block tests of export/measure.py in test_export.py and test_export_survey.py (not test_export's
