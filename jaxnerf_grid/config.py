@@ -317,7 +317,9 @@ def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
     dataset: model.num_images at least the dataset's frame count (the embedding tables' size),
     and, with `bounds`, model.near / model.far filled from the dataset where None; a
     `.train.robust_strict_readmit` of None (automatic) becomes `strict_readmit_auto`'s answer
-    on the dataset's meta, whatever `bounds` (what trained is what a run's config.json records).
+    on the dataset's meta with train.robust "dpt+robust", else false (it acts in no other mode,
+    and false is what runs recorded before it was automatic, so they resume), whatever `bounds`
+    (what trained is what a run's config.json records).
 
     bounds=False keeps near / far as configured (None = the dataset's): what a run's
     config.json stores, so it stays valid for the dataset however it is normalised.
@@ -326,8 +328,9 @@ def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
     changes = {"num_images": max(cfg.model.num_images, dataset.num_frames)}
     train_cfg = getattr(cfg, "train", None)
     if train_cfg is not None and getattr(train_cfg, "robust_strict_readmit", False) is None:
+        acts = getattr(train_cfg, "robust", "off") == "dpt+robust"  # the only mode with flagged pixels
         cfg = dataclasses.replace(cfg, train=dataclasses.replace(
-            train_cfg, robust_strict_readmit=strict_readmit_auto(getattr(dataset, "meta", {}))))
+            train_cfg, robust_strict_readmit=acts and strict_readmit_auto(getattr(dataset, "meta", {}))))
     if bounds:
         changes["near"], changes["far"] = near_far(cfg.model, dataset)
         if not 0 < changes["near"] < changes["far"]:

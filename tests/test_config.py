@@ -26,10 +26,15 @@ def test_resolve_fills_num_images_and_bounds_from_the_dataset():
     settled = config_lib.resolve(given, ds)
     assert settled.model.num_images == 9 and (settled.model.near, settled.model.far) == (1.0, 40.0)
     assert config_lib.near_far(given.model, ds) == (1.0, 40.0)
-    # the one train key settled on the dataset: strict re-admission, on where no `mask` verdict says
-    # the masks are out of their domain (this dataset has no meta at all)
+    # the one train key settled on the dataset: strict re-admission, false where it cannot act
+    # (train.robust off here); with dpt+robust on where no `mask` verdict says the masks are out of
+    # their domain (this dataset has no meta at all)
     assert cfg.train.robust_strict_readmit is None
-    assert stored.train == dataclasses.replace(cfg.train, robust_strict_readmit=True) == full.train
+    assert stored.train == dataclasses.replace(cfg.train, robust_strict_readmit=False) == full.train
+    mixed = train.make_config("ours", {"train": {"robust": "dpt+robust"}})
+    assert config_lib.resolve(mixed, ds).train.robust_strict_readmit is True
+    robust = train.make_config("ours", {"train": {"robust": "robust"}})
+    assert config_lib.resolve(robust, ds).train.robust_strict_readmit is False
 
 
 def test_run_config_holds_the_data_path_and_the_compiled_step_ignores_it():
