@@ -701,11 +701,9 @@ def test_move_into_place_swaps_entry_by_entry_transforms_last(tmp_path, monkeypa
     assert _hidden(tmp_path) == []
 
 
-def test_move_into_place_stopped_leaves_the_retired_folder_named_after_the_stage(tmp_path, monkeypatch):
-    out = tmp_path / "data"
-    _write(out, OLD)
-    stage = poses.make_stage(out)
-    _write(stage, {k: v for k, v in NEW.items() if k != "poses_topview.png"})
+def _kill_after_one_move(monkeypatch):
+    """staging.move does its first rename and then the process is 'killed' (Killed raised);
+    returns the real move, to put back."""
     real = staging.move
 
     def once(src, dst):
@@ -713,6 +711,15 @@ def test_move_into_place_stopped_leaves_the_retired_folder_named_after_the_stage
         raise Killed()
 
     monkeypatch.setattr(staging, "move", once)
+    return real
+
+
+def test_move_into_place_stopped_leaves_the_retired_folder_named_after_the_stage(tmp_path, monkeypatch):
+    out = tmp_path / "data"
+    _write(out, OLD)
+    stage = poses.make_stage(out)
+    _write(stage, {k: v for k, v in NEW.items() if k != "poses_topview.png"})
+    real = _kill_after_one_move(monkeypatch)
     with pytest.raises(Killed):
         poses.move_into_place(stage, out)
     suffix = stage.name[len(".data.poses-"):]
@@ -741,13 +748,7 @@ def test_recover_rolls_a_complete_stage_forward_even_without_the_folder(tmp_path
     stage = tmp_path / ".data2.poses-k3y"
     _write(stage, NEW)
     staging.write_complete(stage, "COMPLETE", ["images", "sparse", "transforms.json"])
-    real = staging.move
-
-    def once(src, dst):
-        real(src, dst)
-        raise Killed()
-
-    monkeypatch.setattr(staging, "move", once)
+    _kill_after_one_move(monkeypatch)
     with pytest.raises(Killed):
         poses.recover(tmp_path / "data2")
     assert _hidden(tmp_path) == [".data2.old-k3y", ".data2.poses-k3y"]
