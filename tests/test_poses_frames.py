@@ -118,6 +118,21 @@ def test_c2w_gl_works_in_float64_whatever_it_is_given():
     assert np.abs(in_float32 - centre).max() > 1e-6              # the case tells the two apart
 
 
+def test_c2w_gl_of_a_homogeneous_4x4_is_that_of_its_3x4():
+    """A world-to-camera given homogeneous, [4, 4] with the row (0, 0, 0, 1), is read by its top
+    three rows: the camera worked out by hand from R and t (centre -R^T t, axes R^T with y and z
+    turned to OpenGL's)."""
+    centres, w2cs = _rings()
+    for centre, rot in zip(centres[:4], w2cs[:4]):
+        t = -rot @ centre
+        given = np.vstack([np.column_stack([rot, t]), [0.0, 0.0, 0.0, 1.0]])
+        c2w = poses.c2w_gl_from_cam_from_world(given)
+        assert c2w.shape == (4, 4)
+        np.testing.assert_allclose(c2w[:3, 3], centre, atol=1e-9)
+        np.testing.assert_allclose(c2w[:3, :3], rot.T * [1, -1, -1], atol=1e-12)
+        np.testing.assert_array_equal(c2w[3], [0.0, 0.0, 0.0, 1.0])
+
+
 def test_model_poses_of_a_hand_written_model_are_its_cameras(tmp_path):
     pycolmap = _pycolmap()
     centres, w2cs = _rings()
@@ -235,6 +250,31 @@ def test_crop_to_common_size_cuts_each_photo_centred_and_moves_the_model_with_it
     for top, left, agree in ((2, 1, True), (2, 2, False), (2, 0, False), (3, 1, False), (1, 1, False)):
         off = np.abs(c.mean((0, 1)) - original_jpeg[top:top + 48, left:left + 64].mean((0, 1))).max()
         assert off < 0.5 if agree else off > 1.5, (top, left, off)
+
+
+def test_crop_to_common_size_moves_only_the_principal_point_of_a_camera_with_more_parameters(tmp_path):
+    """An OPENCV camera (fx, fy, cx, cy, k1, k2, p1, p2) beside a PINHOLE one: the crop moves its
+    principal point by the window's (left, top) = (3, 1), worked out by hand for 70 x 50 -> 64 x
+    48, and leaves the focal lengths and the four distortion parameters as they were."""
+    pycolmap = _pycolmap()
+    cameras = {1: (70, 50, FOCAL, FOCAL + 1, 35.5, 24.0), 2: (64, 48, FOCAL, FOCAL, 31.0, 23.5)}
+    centres, w2cs = _rings()
+    images = [(name, cid, w2cs[k], -w2cs[k] @ centres[k]) for k, (name, cid) in enumerate([("a.png", 1), ("b.png", 2)])]
+    _write_model(tmp_path / "text", cameras, images, np.array([[1.0, -2.0, 3.0]]))
+    distortion = [0.01, -0.002, 0.0003, -0.0004]
+    (tmp_path / "text" / "cameras.txt").write_text(
+        f"1 OPENCV {_numbers([70, 50, FOCAL, FOCAL + 1, 35.5, 24.0, *distortion])}\n"
+        f"2 PINHOLE {_numbers(cameras[2])}\n")
+    (tmp_path / "sparse").mkdir()
+    pycolmap.Reconstruction(tmp_path / "text").write(tmp_path / "sparse")
+    (tmp_path / "images").mkdir()
+    for name, (h, w) in (("a.png", (50, 70)), ("b.png", (48, 64))):
+        assert io.opencv().imwrite(str(tmp_path / "images" / name), _pattern(h, w, 1))
+    assert poses.crop_to_common_size(pycolmap, tmp_path / "sparse", tmp_path / "images") == (64, 48)
+    model = pycolmap.Reconstruction(tmp_path / "sparse")
+    assert model.cameras[1].model.name == "OPENCV" and (model.cameras[1].width, model.cameras[1].height) == (64, 48)
+    np.testing.assert_allclose(model.cameras[1].params, [FOCAL, FOCAL + 1, 32.5, 23.0, *distortion], atol=1e-12)
+    np.testing.assert_allclose(model.cameras[2].params, [FOCAL, FOCAL, 31.0, 23.5], atol=1e-12)
 
 
 def test_crop_to_common_size_writes_jpegs_at_its_quality(tmp_path, monkeypatch):
@@ -683,6 +723,27 @@ def test_prepare_photos_links_or_scales_each_readable_photo_and_names_the_unread
                               "need at least 3")
     with pytest.raises(DataError, match=r"only 2 readable photo\(s\) of 2 \(unreadable: none\); camera poses need"):
         poses.prepare_photos([folder / "a.png", folder / "d.png"], tmp_path / "w4", None, show=False)
+
+
+def test_prepare_photos_into_an_existing_work_folder_and_a_refusal_names_the_first_photos_folder(tmp_path):
+    """The work folder may exist already (empty): the photos are linked into it. Too few
+    readable photos from two folders are refused naming the first photo's folder."""
+    cv2 = io.opencv()
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir()
+    second.mkdir()
+    for name in ("a.png", "b.png", "c.png"):
+        assert cv2.imwrite(str(first / name), _pattern(50, 70, 1))
+    (tmp_path / "work").mkdir()
+    photos = sorted(first.iterdir())
+    work, names, skipped, sizes = poses.prepare_photos(photos, tmp_path / "work", None, show=False)
+    assert (work, names, skipped) == (tmp_path / "work", ["a.png", "b.png", "c.png"], {})
+    assert sorted(p.name for p in work.iterdir()) == names
+    (second / "d.png").write_bytes(b"not a photo")
+    with pytest.raises(DataError) as err:
+        poses.prepare_photos([first / "a.png", second / "d.png"], tmp_path / "w2", None, show=False)
+    assert str(err.value) == (f"{first}: only 1 readable photo(s) of 2 (unreadable: d.png); camera poses "
+                              "need at least 3")
 
 
 def test_prepare_photo_writes_scaled_jpegs_at_its_quality_and_names_a_copy_it_cannot_write(tmp_path, monkeypatch,
