@@ -196,6 +196,27 @@ def test_ground_spread_is_about_the_median_not_zero():
     assert g["clearance"] == pytest.approx(0.02, abs=1e-12)
 
 
+def test_ground_draws_the_1000_ransac_planes_docs_export_md_states(monkeypatch):
+    """docs/EXPORT.md: "RANSAC (1000 three-point planes within 45 degrees of horizontal, inliers
+    within 0.025 units)". On the checkerboard every count of draws finds the same plane, so the
+    count is read where it is handed over: RANSAC itself (the real one, wrapped) is asked for
+    1000 draws, an inlier distance of 0.025 and its 45-degree limit, and the plane is the one
+    worked out by hand above."""
+    from jaxnerf_grid.export import ground
+
+    asked = []
+    real = ground.fit_plane_ransac
+
+    def recording(points, threshold, iterations=500, seed=0, max_tilt_deg=45.0):
+        asked.append((threshold, iterations, seed, max_tilt_deg))
+        return real(points, threshold, iterations=iterations, seed=seed, max_tilt_deg=max_tilt_deg)
+
+    monkeypatch.setattr(ground, "fit_plane_ransac", recording)
+    g = export_run._ground(_checkerboard(0.006))
+    assert asked == [(0.025, 1000, 0, 45.0)]
+    assert g["inliers"] == 100 and g["offset"] == pytest.approx(-0.1, abs=1e-9)
+
+
 def test_ground_of_too_few_points_is_none():
     assert export_run._ground(np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0]])) is None
     assert export_run._ground(np.zeros((0, 3))) is None
