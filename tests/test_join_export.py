@@ -672,7 +672,10 @@ def _spied_export(root, record: dict, ds, apply=af.apply, spies=(), **kwargs) ->
             for module, name, wrap in spies:
                 mp.setattr(module, name, wrap(getattr(module, name)))
             (root / "run").mkdir(exist_ok=True)
-            return export_run.export_run(root / "run", resolution=RESOLUTION, views=8, progress=False, **kwargs)
+            call = {"resolution": RESOLUTION, "views": 8, "progress": False, **kwargs}
+            if call["progress"] == "default":                   # export_run's own default
+                del call["progress"]
+            return export_run.export_run(root / "run", **call)
     finally:
         af.clear_compiled()
 
@@ -705,7 +708,7 @@ def test_a_given_box_around_the_top_hands_each_step_its_setting_and_metres(tmp_p
     max(1 % of the height, 2 voxels) = 1 % here (about 0.2 m > 0.15 m), heights from
     tower_mesh.ply and the published plane; the conductors are looked for in the fused cloud in
     metres (x = R^T x_norm / s - t by hand) with cells of 0.02 / s = 0.4 m. (export_run mutants
-    149, 188, 245, 458, 485, 514, 542, 561, 569, 570, 582.)"""
+    149, 188, 245, 458, 485, 514, 542, 561, 569, 570, 582; the box's source: 322, 324, 325.)"""
     import itertools
 
     from jaxnerf_grid.export import field as field_lib
@@ -736,6 +739,7 @@ def test_a_given_box_around_the_top_hands_each_step_its_setting_and_metres(tmp_p
     meas = _spied_export(tmp_path, LEVEL_RECORD, ds, spies=spies, box=",".join(map(str, [*lo_m, *hi_m])),
                          min_views=3, opacity=0.3)
     assert meas["voxel_size"] == pytest.approx(voxel, rel=1e-9)
+    assert meas["box"]["source"] == "given"
     (fused,) = seen["fuse"]
     assert fused["min_views"] == 3
     (threshold,) = seen["threshold"]
@@ -812,3 +816,67 @@ def test_the_auto_box_of_an_empty_scene_and_of_ground_alone_is_refused_in_words(
             _spied_export(root, LEVEL_RECORD, ds, apply=apply)
         assert re.fullmatch(rf"{re.escape(str(root))}/{expected}", str(err.value)), str(err.value)
         assert not (root / "run" / "export").exists()
+
+
+def test_the_progress_lines_and_the_views_timing_of_an_export_by_default(tmp_path, capsys):
+    """By default export_run shows its progress (stderr is not a terminal here: one final line a
+    bar): "export: views: 8/8 views (100%), ..." and "export: density: N/N points (100%), ..."
+    with N the grid's points, the product of the record's grid shape; and the
+    "views" timing is the rendering's own: at least the time spent in `_render_cloud` and less
+    than it plus 0.1 s, though the load before it takes 0.3 s here (a sleep in the params'
+    stand-in). (export_run mutants 5, 131, 190-197, 200-203, 210, 216: the bars' flag, total,
+    label, unit or the density grid's bar not handed on; 140: the views' timing + the earlier sum.)"""
+    import time as time_lib
+
+    ds = af.dataset()
+    ds.normalization = LEVEL_RECORD
+    ds.meta = {"scene_normalization": LEVEL_RECORD}
+    spans = []
+
+    def slow(real):
+        def load_params(*args):
+            time_lib.sleep(0.3)
+            return real(*args)
+        return load_params
+
+    def timed(real):
+        def render(*args):
+            t0 = time_lib.perf_counter()
+            out = real(*args)
+            spans.append(time_lib.perf_counter() - t0)
+            return out
+        return render
+
+    capsys.readouterr()
+    meas = _spied_export(tmp_path, LEVEL_RECORD, ds, spies=[(train, "load_params", slow),
+                                                             (export_run, "_render_cloud", timed)],
+                         progress="default")
+    lines = capsys.readouterr().err.splitlines()
+    points = int(np.prod(meas["grid"]))
+    assert [line for line in lines if line.startswith("export: ")] == [
+        line for line in lines if re.fullmatch(r"export: views: 8/8 views \(100%\), \d+\.\d s", line)
+        or re.fullmatch(rf"export: density: {points}/{points} points \(100%\), \d+\.\d s", line)]
+    assert sum(line.startswith("export: views: ") for line in lines) == 1
+    assert sum(line.startswith("export: density: ") for line in lines) == 1
+    (span,) = spans
+    assert meas["timings"]["load"] >= 0.3
+    assert span <= meas["timings"]["views"] < span + 0.1
+
+
+def test_a_dataset_without_training_views_colours_a_given_box_from_every_camera(tmp_path):
+    """No training view: no view is fused (no point, no ground), and a given box is still meshed,
+    its colours from all the frames' cameras, the 8 centres of the ring (export_run mutant 250:
+    `np.arange(None)` there)."""
+    from jaxnerf_grid.export import field as field_lib
+
+    ds = af.dataset()
+    ds.normalization = LEVEL_RECORD
+    ds.meta = {"scene_normalization": LEVEL_RECORD}
+    ds.split = {"train": np.arange(0), "test": np.arange(8)}
+    seen = {}
+    meas = _spied_export(tmp_path, LEVEL_RECORD, ds, box="99,199,68,101,201,71",
+                         spies=[(field_lib, "colours_from_cameras",
+                                 _recording(seen, "colours", ["params", "mcfg", "points", "centres"]))])
+    assert meas["points"]["views"] == [] and meas["points"]["count"] == 0 and meas["ground"] is None
+    assert meas["mesh"]["faces"] > 0
+    np.testing.assert_allclose(seen["colours"][0]["centres"], np.asarray(ds.c2w)[:, :3, 3], atol=0)
