@@ -696,7 +696,7 @@ def _recording(seen: dict, key: str, names):
     return wrap
 
 
-def test_a_given_box_around_the_top_hands_each_step_its_setting_and_metres(tmp_path):
+def test_a_given_box_around_the_top_hands_each_step_its_setting_and_metres(tmp_path, capsys):
     """A box given in metres around the top 2 m of the body's middle (x 99-101, y 199-201, z
     68-71, the ground at z = 50), min_views 3, opacity 0.3, a dataset of 10 frames whose
     training split leaves out 4 and 9. Worked out here: the grid's voxel h = the normalised
@@ -738,6 +738,7 @@ def test_a_given_box_around_the_top_hands_each_step_its_setting_and_metres(tmp_p
               _recording(seen, "conductors", ["points", "normal", "d", "lo", "hi", "min_height", "cell"]))]
     meas = _spied_export(tmp_path, LEVEL_RECORD, ds, spies=spies, box=",".join(map(str, [*lo_m, *hi_m])),
                          min_views=3, opacity=0.3)
+    assert "export: " not in capsys.readouterr().err                      # progress=False: no bar
     assert meas["voxel_size"] == pytest.approx(voxel, rel=1e-9)
     assert meas["box"]["source"] == "given"
     (fused,) = seen["fuse"]
@@ -880,3 +881,43 @@ def test_a_dataset_without_training_views_colours_a_given_box_from_every_camera(
     assert meas["points"]["views"] == [] and meas["points"]["count"] == 0 and meas["ground"] is None
     assert meas["mesh"]["faces"] > 0
     np.testing.assert_allclose(seen["colours"][0]["centres"], np.asarray(ds.c2w)[:, :3, 3], atol=0)
+
+
+def test_the_geoid_grid_is_checked_at_the_cameras_crs_positions(tmp_path):
+    """With export.geoid the grid must cover the site before anything else is done: it is asked
+    about the cameras' positions in the CRS, each centre mapped by hand, x = R^T x_norm / s - t
+    + origin (the georeference record's origin), before the params load (export_run mutant 92:
+    the centres handed on in normalised units, near the CRS origin). The grid file and PROJ are
+    stand-ins here: `open_grid` hands back a token, `orthometric` records and refuses."""
+    from jaxnerf_grid.export import geoid as geoid_lib
+    from jaxnerf_grid.io import DataError
+
+    s, rot, t = LEVEL_RECORD["scale"], np.asarray(LEVEL_RECORD["rotation"]), np.asarray(LEVEL_RECORD["translation"])
+    ds = af.dataset()
+    ds.normalization = LEVEL_RECORD
+    ds.meta = {"scene_normalization": LEVEL_RECORD, "georeference": GEOREFERENCE}
+    asked = []
+
+    def orthometric(points_crs, crs_name, grid, path):
+        asked.append((np.asarray(points_crs, np.float64), crs_name, grid, path))
+        raise DataError(f"{path}: the stand-in grid covers nothing")
+
+    def no_params(*args):
+        raise AssertionError("the params loaded before the grid's check")
+
+    grid_file = tmp_path / "geoid.gtx"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(geoid_lib, "open_grid", lambda path: "grid")
+        mp.setattr(geoid_lib, "orthometric", orthometric)
+        mp.setattr(train, "load_params", no_params)
+        mp.setattr(runs, "load_run", lambda run_dir: (analytic_config(), None))
+        mp.setattr(runs, "dataset_of_run", lambda *args, **kw: ds)
+        (tmp_path / "run").mkdir()
+        with pytest.raises(DataError, match="the stand-in grid covers nothing"):
+            export_run.export_run(tmp_path / "run", resolution=RESOLUTION, views=8, progress=False, geoid=grid_file)
+    (points, crs_name, grid, path), = asked
+    centres = np.asarray(ds.c2w, np.float64)[:, :3, 3]
+    by_hand = centres @ rot / s - t + np.asarray(GEOREFERENCE["origin"])
+    np.testing.assert_allclose(points, by_hand, atol=1e-6)
+    assert (crs_name, grid, path) == ("EPSG:32632", "grid", grid_file)
+    assert not (tmp_path / "run" / "export").exists()
