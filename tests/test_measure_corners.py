@@ -192,3 +192,82 @@ def test_axis_tilt_goes_on_with_three_slices_and_stops_at_two():
     tilt = _tilt(_tower(_balanced(6, {2.0: (0, 1, 4, 5)}, {})))
     assert (tilt["slices"], tilt["slices_left_out"]) == (6, 0)
     assert tilt["tilt_degrees"] == pytest.approx(0.0, abs=1e-9)
+
+
+# --------------------------------------------------------------------------- branch h43n: the picture
+
+
+def _ortho_cloud():
+    """A (0, 0, 0), B (92, 40, 20), C (46, 20, 10) (the middle), D (46, 30, 10) (behind C seen
+    from -y), each its own colour: the largest extent is 92, so at size 100 one unit is one pixel
+    ((100 - 8) / 92) and the middle (46, 20, 10) lands on the panel's centre (50, 50)."""
+    pts = np.array([[0.0, 0.0, 0.0], [92.0, 40.0, 20.0], [46.0, 20.0, 10.0], [46.0, 30.0, 10.0]])
+    cols = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0], [0.5, 0.5, 0.0]])
+    return pts, cols
+
+
+# (row, column) of each point in each panel, worked out by hand: front (x-z seen from -y): column
+# 50 + (x - 46), row 50 - (z - 10); side (y-z seen from +x): column 50 + (y - 20), row as the
+# front's; top (x-y seen from +z): column as the front's, row 50 - (y - 20). D hides behind C in
+# the front panel (the viewer at -y sees the smaller y).
+ORTHO_PIXELS = [{(60, 4): 0, (40, 96): 1, (50, 50): 2},
+                {(60, 30): 0, (40, 70): 1, (50, 50): 2, (50, 60): 3},
+                {(70, 4): 0, (30, 96): 1, (50, 50): 2, (40, 50): 3}]
+
+
+def test_orthographic_views_draw_a_known_cloud_at_the_pixels_worked_out_by_hand():
+    """Each panel (100 x 100, 4 pixels apart: columns 0, 104, 208) holds exactly the points'
+    pixels worked out by hand (ORTHO_PIXELS), in their colours, the rest the background; with
+    normals all +z a point is shaded 0.35 + 0.65 |n . view|: 0.35 of its colour seen from the
+    front and the side, all of it from the top; a splat of 1 paints the 3 x 3 pixels around each;
+    a grey background; the empty cloud; the default size 400."""
+    pts, cols = _ortho_cloud()
+    img = measure.orthographic_views(pts, cols, size=100, labels=False)
+    assert img.shape == (100, 308, 3) and img.dtype == np.float32
+    shaded = measure.orthographic_views(pts, cols, np.tile([0.0, 0.0, 1.0], (4, 1)), size=100, labels=False)
+    splat = measure.orthographic_views(pts, cols, size=100, labels=False, splat=1, background=0.5)
+    for k, pixels in enumerate(ORTHO_PIXELS):
+        panel, x0 = img[:, 104 * k:104 * k + 100], 104 * k
+        drawn = {tuple(int(v) for v in rc) for rc in np.argwhere(np.any(panel != 1.0, axis=-1))}
+        assert drawn == set(pixels), k
+        for (row, col), i in pixels.items():
+            np.testing.assert_array_equal(panel[row, col], cols[i])
+            np.testing.assert_allclose(shaded[row, x0 + col], cols[i] * (1.0 if k == 2 else 0.35), atol=1e-6)
+            block = splat[row - 1:row + 2, x0 + col - 1:x0 + col + 2]
+            # the 3 x 3 block is the point's, unless a nearer point's block overlaps it
+            assert np.all(block == cols[i], axis=-1).sum() >= 6, (k, i)
+    assert np.all(img[:, 100:104] == 1.0) and np.all(img[:, 204:208] == 1.0)      # the gaps
+    assert np.all(splat[:, 100:104] == 0.5)
+    empty = measure.orthographic_views(np.zeros((0, 3)), np.zeros((0, 3)), size=20, labels=False, background=0.25)
+    assert empty.shape == (20, 68, 3) and np.all(empty == 0.25)
+    assert measure.orthographic_views(pts, cols, labels=False).shape == (400, 1208, 3)
+
+
+def test_orthographic_views_labels_each_panel_in_its_corner():
+    """labels=True: each panel's name, "front (x-z)", "side (y-z)", "top (x-y)", in OpenCV's
+    Hershey simplex at 0.45, dark grey (40, 40, 40), 1 px, anti-aliased, its baseline at (6, 16)
+    of the panel, on the 8-bit picture (the expected image drawn here with those literals); without
+    OpenCV the picture is returned unlabelled."""
+    from jaxnerf_grid import io
+
+    cv2 = io.opencv()
+    pts, cols = _ortho_cloud()
+    plain = measure.orthographic_views(pts, cols, size=100, labels=False)
+    labelled = measure.orthographic_views(pts, cols, size=100)
+    want = np.ascontiguousarray((plain * 255).astype(np.uint8))
+    for x0, name in ((6, "front (x-z)"), (110, "side (y-z)"), (214, "top (x-y)")):
+        cv2.putText(want, name, (x0, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (40, 40, 40), 1, cv2.LINE_AA)
+    assert labelled.dtype == np.float32
+    np.testing.assert_array_equal(np.round(labelled * 255).astype(np.uint8), want)
+    np.testing.assert_array_equal(labelled[60, 4], [1.0, 0.0, 0.0])            # A, below the labels
+    for x0 in (0, 104, 208):                                     # each panel's corner is written on
+        corner = want[4:20, x0 + 6:x0 + 60]
+        assert (corner < 128).any(axis=-1).sum() > 30
+    assert not np.array_equal(want[4:20, 6:60], want[4:20, 110:164])     # different names
+
+    def no_opencv():
+        raise ImportError("no cv2")
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(io, "opencv", no_opencv)
+        np.testing.assert_array_equal(measure.orthographic_views(pts, cols, size=100), plain)
