@@ -1070,3 +1070,21 @@ def test_export_cli_warns_in_one_line_when_the_model_lacks_the_lower_part(monkey
         warnings.simplefilter("always")
         assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
     assert caught == [] and "tower height 30.53 m +- 0.29 m" in capsys.readouterr().out
+
+
+def test_project_of_a_point_in_the_cameras_plane_warns_nothing():
+    """A camera at the origin looking down -z (c2w the identity), fx = fy = 10, centre (5, 4): a
+    point at z-depth 2 projects by hand to (5 + 10 x 1 / 2, 4 - 10 x (-1) / 2) = (10, 9); points
+    in the camera's plane (z-depth 0: x / 0 and 0 / 0) give inf and nan without a NumPy warning,
+    which a user would see printed once per export (fuse mutants 22-25: np.errstate's arguments)."""
+    import warnings
+
+    from jaxnerf_grid.export import fuse
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        u, v, z = fuse.project(np.array([[1.0, -1.0, -2.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]), np.eye(4),
+                               (10.0, 10.0, 5.0, 4.0))
+    np.testing.assert_array_equal(z, [2.0, 0.0, 0.0])
+    assert (u[0], v[0]) == (10.0, 9.0)
+    assert np.isinf(u[1]) and np.isnan(v[1]) and np.isnan(u[2]) and np.isnan(v[2])

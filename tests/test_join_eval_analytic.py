@@ -591,3 +591,28 @@ def test_an_exported_run_gets_its_export_section_and_report_html_shows_its_measu
     assert "<h2>Measurements (export)</h2>" in page
     assert "<tr><td>height above the fitted ground</td><td>19.87 m</td></tr>" in page
     assert "<tr><td>base footprint</td><td>4.01 x 3.99 m</td></tr>" in page
+
+
+def test_distractor_psnr_shows_its_progress_only_when_asked(evaluated, capsys):
+    """distractor_psnr is quiet by default and with progress False; with progress True it
+    prints one line (stderr is not a terminal here): "distractor regions: 1/1 view (100%), ..."
+    (evaluate.distractor_psnr mutants 1, 18, 19, 23, 24: the default, the bar's flag, its label)."""
+    import re
+
+    _, _, ds, _ = evaluated
+    cfg = analytic_config()
+    params = af.params(cfg.model)
+    af.clear_compiled()
+    try:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(fields, "apply", af.apply)
+            capsys.readouterr()
+            quiet = evaluate.distractor_psnr(params, cfg, ds, 1)
+            assert capsys.readouterr().err == ""
+            evaluate.distractor_psnr(params, cfg, ds, 1, False)
+            assert capsys.readouterr().err == ""
+            shown = evaluate.distractor_psnr(params, cfg, ds, 1, True)
+            assert re.fullmatch(r"distractor regions: 1/1 view \(100%\), \d+\.\d s\n", capsys.readouterr().err)
+    finally:
+        af.clear_compiled()
+    assert quiet == shown and quiet is not None
