@@ -616,3 +616,21 @@ def test_distractor_psnr_shows_its_progress_only_when_asked(evaluated, capsys):
     finally:
         af.clear_compiled()
     assert quiet == shown and quiet is not None
+
+
+def test_evaluate_run_shows_the_progress_of_each_loop_when_asked(evaluated, tmp_path, capsys):
+    """progress=True (stderr not a terminal: one final line a bar): the test views, the training
+    views of the cloud and the distractor views each end with their line, written out here:
+    "eval: 2/2 views (100%), ...", "tower points: 1/1 view (100%), ...", "distractor regions: 1/1
+    view (100%), ..." (evaluate_run mutants 67, 68, 75, 76, 220, 221, 225, 226, 264, 269: a bar's
+    flag or label, or distractor_psnr not handed the flag)."""
+    import re
+
+    _, _, ds, _ = evaluated
+    cfg = analytic_config()
+    capsys.readouterr()
+    _evaluate(tmp_path, "run", cfg, ds, af.params(cfg.model), {}, progress=True, cloud_views=1, distractor_views=1)
+    lines = capsys.readouterr().err.splitlines()
+    for pattern in (r"eval: 2/2 views \(100%\), \d+\.\d s", r"tower points: 1/1 view \(100%\), \d+\.\d s",
+                    r"distractor regions: 1/1 view \(100%\), \d+\.\d s"):
+        assert sum(bool(re.fullmatch(pattern, line)) for line in lines) == 1, (pattern, lines)
