@@ -921,3 +921,25 @@ def test_the_geoid_grid_is_checked_at_the_cameras_crs_positions(tmp_path):
     np.testing.assert_allclose(points, by_hand, atol=1e-6)
     assert (crs_name, grid, path) == ("EPSG:32632", "grid", grid_file)
     assert not (tmp_path / "run" / "export").exists()
+
+
+def test_export_views_png_is_shaded_by_the_meshs_normals(exported):
+    """export_views.png draws each vertex in its colour times 0.35 + 0.65 |n . view| (n its
+    normal): the analytic field's colours are TOWER_RGB inside the tower and GROUND_RGB outside
+    (where the iso-surface's vertices mostly fall), so every drawn pixel below the labels is one of
+    the two scaled by a factor in [0.35, 1] (within 8-bit rounding), and on the tilted tower
+    (20 degrees about x) most faces are seen obliquely: at least a third of the pixels are darker
+    than 0.9 of their colour (export_run mutants 738, 742: the normals None or left out, every
+    pixel its colour unscaled; 741: the normals drawn as the colours)."""
+    _, out, _ = exported
+    img = io.read_image(out / "export_views.png")[24:, :, :3].astype(np.float64)   # below the labels
+    drawn = img[np.any(img < 1.0 - 0.5 / 255, axis=-1)]
+    assert len(drawn) > 5000
+    factors = []
+    for colour in (np.asarray(af.GROUND_RGB), np.asarray(af.TOWER_RGB)):
+        f = np.clip(drawn @ colour / (colour @ colour), 0.35, 1.0)          # the best scale of each pixel
+        fits = np.all(np.abs(drawn - f[:, None] * colour) <= 2.5 / 255, axis=-1)
+        factors.append(np.where(fits, f, np.nan))
+    factor = np.fmin(*factors)
+    assert np.isnan(factor).mean() < 0.02                                   # each pixel a colour, scaled
+    assert np.nanmean(factor < 0.9) > 1 / 3
