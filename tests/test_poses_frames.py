@@ -786,7 +786,7 @@ def _topview_by_hand(c2w, points, size):
     the caption in black at (8, 18); every line anti-aliased. Returns RGB uint8."""
     cv2 = io.opencv()
     centres = np.asarray(c2w)[:, :3, 3]
-    e = max(1.2, 1.1 * float(np.abs(centres[:, :2]).max()))
+    e = max(1.2, 1.1 * float(np.abs(centres[:, :2]).max())) if len(centres) else 1.2
     img = np.full((size, size, 3), 255, np.uint8)
 
     def at(x, y):
@@ -828,13 +828,19 @@ def test_draw_topview_is_the_picture_described_pixel_for_pixel(tmp_path, case):
     c2w = np.stack([_looking_down(c, [0.0, 0.0, -0.5]) for c in centres])
     assert all(np.linalg.norm(m[:2, 2]) < 0.99 for m in c2w)
     e = 2.2 if case == "far" else 1.2
-    points = np.array([[0.3, 0.8, 0.1], [e, 0.0, 0.0], [5.0, 0.0, 0.0], [-e + 1e-3, e - 1e-3, 0.0], [-0.2, -0.6, 1.0]])
+    points = np.array([[0.3, 0.8, 0.1], [e, 0.0, 0.0], [5.0, 0.0, 0.0], [-e + 1e-3, e - 1e-3, 0.0], [-0.2, -0.6, 1.0],
+                       [-1.01 * e, 0.0, 0.0], [0.0, e, 0.0], [0.5, -0.3, 5.0]])
+    # (-1.01 e, 0): column -1, outside (a block there would show its second column); (0, e): on the
+    # top edge, outside (row 0 would show it); (0.5, -0.3, 5): its height does not matter
     path = tmp_path / "top.png"
     poses.draw_topview(path, c2w, points, size=200)
     got = np.round(io.read_image(path) * 255).astype(np.uint8)
     np.testing.assert_array_equal(got, _topview_by_hand(c2w, points, 200))
     poses.draw_topview(tmp_path / "default.png", c2w, points)
     assert io.read_image(tmp_path / "default.png").shape == (640, 640, 3)
+    poses.draw_topview(tmp_path / "none.png", np.zeros((0, 4, 4)), points, size=200)    # no camera: e = 1.2
+    got = np.round(io.read_image(tmp_path / "none.png") * 255).astype(np.uint8)
+    np.testing.assert_array_equal(got, _topview_by_hand(np.zeros((0, 4, 4)), points, 200))
 
 
 def test_summary_and_report_lines_word_for_word_with_several_names():
@@ -866,6 +872,9 @@ def test_summary_and_report_lines_word_for_word_with_several_names():
                      "## Scene bounds (docs/BOUNDS.md)", "", "| bound | value (normalised units) |", "|---|---|",
                      "| near | 0.125 |", "| far | 4.5 |", "| contract_radius | 2 |", "| roi_radius | 1 |",
                      "| nearest_camera_to_roi | 2.25 |", "| roi_centre | 0.5, -0.25, 0 |", ""]
+    no_rows = {**plain, "vetting": {"left_out": ["b.png"]}}                 # no table rows at all
+    assert poses.format_summary(no_rows).splitlines()[2] == (
+        f"left out by the vetting (1; table in {poses.REPORT}, --keep-all keeps them): b.png (?)")
     keep = poses.report_lines({**plain, "vetting": {"keep_all": True}}, bounds)
     assert keep[keep.index("## Vetting (docs/POSES.md)"):][:4] == [
         "## Vetting (docs/POSES.md)", "", "`--keep-all`: every registered photo kept, whatever its scores.", ""]
