@@ -52,7 +52,8 @@ $(for t in tilt_of_a_generated_tower_within_0_3_degrees tilt_from_the_ground_nor
 conductor_clearance_is_the_lowest_point_of_the_wire_leaving_the_tower axis_tilt_of_slices_on_a_known_line_against_linregress \
 axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two \
 conductor_clearance_counts_the_box_edge_the_height_limit_and_the_gap_by_hand \
-axis_tilt_thickness_spread_and_lowest_height_against_a_brute_force_refit; do printf 'tests/test_export_survey.py::test_%s ' $t; done)"
+axis_tilt_thickness_spread_and_lowest_height_against_a_brute_force_refit \
+axis_tilt_thicker_fit_keeps_a_centre_within_half_its_own_slice_height; do printf 'tests/test_export_survey.py::test_%s ' $t; done)"
 
 # the fast tests of export/run.py's blocks (not test_export's training fixture): the analytic
 # exports of test_join_export and test_export_geoid, and the box and units tests. mutmut orders a

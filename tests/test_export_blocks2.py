@@ -196,6 +196,27 @@ def test_ground_spread_is_about_the_median_not_zero():
     assert g["clearance"] == pytest.approx(0.02, abs=1e-12)
 
 
+def test_ground_draws_the_1000_ransac_planes_docs_export_md_states(monkeypatch):
+    """docs/EXPORT.md: "RANSAC (1000 three-point planes within 45 degrees of horizontal, inliers
+    within 0.025 units)". On the checkerboard every count of draws finds the same plane, so the
+    count is read where it is handed over: RANSAC itself (the real one, wrapped) is asked for
+    1000 draws, an inlier distance of 0.025 and its 45-degree limit, and the plane is the one
+    worked out by hand above."""
+    from jaxnerf_grid.export import ground
+
+    asked = []
+    real = ground.fit_plane_ransac
+
+    def recording(points, threshold, iterations=500, seed=0, max_tilt_deg=45.0):
+        asked.append((threshold, iterations, seed, max_tilt_deg))
+        return real(points, threshold, iterations=iterations, seed=seed, max_tilt_deg=max_tilt_deg)
+
+    monkeypatch.setattr(ground, "fit_plane_ransac", recording)
+    g = export_run._ground(_checkerboard(0.006))
+    assert asked == [(0.025, 1000, 0, 45.0)]
+    assert g["inliers"] == 100 and g["offset"] == pytest.approx(-0.1, abs=1e-9)
+
+
 def test_ground_of_too_few_points_is_none():
     assert export_run._ground(np.array([[0.0, 0.0, 0.0], [0.5, 0.5, 0.0]])) is None
     assert export_run._ground(np.zeros((0, 3))) is None
@@ -1049,3 +1070,21 @@ def test_export_cli_warns_in_one_line_when_the_model_lacks_the_lower_part(monkey
         warnings.simplefilter("always")
         assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
     assert caught == [] and "tower height 30.53 m +- 0.29 m" in capsys.readouterr().out
+
+
+def test_project_of_a_point_in_the_cameras_plane_warns_nothing():
+    """A camera at the origin looking down -z (c2w the identity), fx = fy = 10, centre (5, 4): a
+    point at z-depth 2 projects by hand to (5 + 10 x 1 / 2, 4 - 10 x (-1) / 2) = (10, 9); points
+    in the camera's plane (z-depth 0: x / 0 and 0 / 0) give inf and nan without a NumPy warning,
+    which a user would see printed once per export (fuse mutants 22-25: np.errstate's arguments)."""
+    import warnings
+
+    from jaxnerf_grid.export import fuse
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        u, v, z = fuse.project(np.array([[1.0, -1.0, -2.0], [1.0, 0.0, 0.0], [0.0, 0.0, 0.0]]), np.eye(4),
+                               (10.0, 10.0, 5.0, 4.0))
+    np.testing.assert_array_equal(z, [2.0, 0.0, 0.0])
+    assert (u[0], v[0]) == (10.0, 9.0)
+    assert np.isinf(u[1]) and np.isnan(v[1]) and np.isnan(u[2]) and np.isnan(v[2])

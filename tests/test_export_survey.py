@@ -256,6 +256,38 @@ def test_axis_tilt_of_three_slices_of_three_points_and_the_line_fit_of_two():
                                [three.intercept, three.slope, three.stderr], atol=1e-12)
 
 
+def test_axis_tilt_thicker_fit_keeps_a_centre_within_half_its_own_slice_height():
+    """The thicker fits reject their centres with their own floor, half the thicker slice's
+    height. A straight vertical body of 4-point levels at heights 0.5, 1.5, ..., 11.5, corners
+    (+-1, +-1), except level 8.5 (a from -1 to 1, b from -1.4 to 1.4: 2 x 2.8, within the ratio
+    1.5) and level 9.5 (a from -1 to 2.2, b from -1 to 1: 3.2 x 2, a wide member). 1 m slices:
+    9.5 is left out, every other centre is on a = b = 0, so the axis is the normal (tilt 0). 2 m
+    slices: centres at heights 1, 3, ..., 11, a = 0 but 0.6 at height 9 (levels 8.5 and 9.5
+    together: 3.2 x 2.8, within the ratio); least squares by hand: slope 1.8 / 70, residual of
+    that centre 0.6 - (0.1 - 6 s) - 9 s = 0.4229, 3 x 1.4826 MAD of the six = 0.330: it is kept
+    by the floor 0.5 x 2 m = 1.0 (it would be dropped by a floor below 0.42), so the thicker axis
+    leans by atan(1.8 / 70)."""
+    q = []
+    for k in range(12):
+        h = k + 0.5
+        if k == 8:
+            corners = [(-1.0, -1.4), (1.0, 1.4), (1.0, -1.4), (-1.0, 1.4)]
+        elif k == 9:
+            corners = [(-1.0, -1.0), (2.2, 1.0), (2.2, -1.0), (-1.0, 1.0)]
+        else:
+            corners = [(-1.0, -1.0), (1.0, 1.0), (1.0, -1.0), (-1.0, 1.0)]
+        q += [(a, b, h) for a, b in corners]
+    axes = ([1.0, 0, 0], [0, 1.0, 0])
+    tilt = measure.axis_tilt(np.asarray(q, np.float64), [0, 0, 1.0], 0.0, *axes, 1.0, thicker=(2.0,))
+    # 1 m slices from 0.5: the last edge is 11.5, so the top two levels share the last slice; 9.5 left out
+    assert tilt["slices"] == 10 and tilt["slices_left_out"] == 0
+    assert tilt["tilt_degrees"] == pytest.approx(0.0, abs=1e-9)
+    heights, centres = np.array([1.0, 3, 5, 7, 9, 11]), np.array([0.0, 0, 0, 0, 0.6, 0])
+    slope = np.polyfit(heights, centres, 1)[0]
+    assert slope == pytest.approx(1.8 / 70, rel=1e-12)
+    assert tilt["thickness_spread_degrees"] == pytest.approx(np.degrees(np.arctan(1.8 / 70)), rel=1e-9)
+
+
 def _wire(x0: float, ks) -> np.ndarray:
     """Wire points x = x0 + 0.25 k (k in ks), y = 0, z = 12 - 0.25 k."""
     k = np.asarray(list(ks), np.float64)

@@ -449,3 +449,188 @@ def test_a_missing_or_empty_reference_or_missing_lpips_weights_is_refused_before
         with pytest.raises(DataError, match=f"^{re.escape(message)}$"):
             _evaluate(tmp_path, name, cfg, ds, af.params(cfg.model), handed, progress=False, **kwargs)
         assert "load_params" not in handed and list((tmp_path / name).iterdir()) == []
+
+
+# --------------------------------------------------------------------------- branch h43n
+
+
+def test_lpips_from_a_weights_file_scores_each_view_and_its_right_half(evaluated, tmp_path, monkeypatch):
+    """With --lpips-weights (a file that exists; `lpips.load_lpips` and the network are stand-ins
+    here: the "distance" is the mean absolute difference, worked out by hand from the float
+    renders and the clean images): each test view's LPIPS and its right half's are that distance,
+    the record says "computed" and the report names the file (evaluate_run mutants 51, 52, 54:
+    the weights never loaded or loaded from None; 160, 163, 168: not handed to the metrics; 340,
+    342, 343: the record's word)."""
+    from jaxnerf_grid import lpips as lpips_lib
+
+    _, _, ds, renders = evaluated
+    cfg = analytic_config()
+    weights = tmp_path / "alex.npz"
+    weights.write_bytes(b"stand-in")
+    loaded = []
+
+    def load(path):
+        loaded.append(path)
+        return {"stand-in": np.ones(1)}
+
+    monkeypatch.setattr(lpips_lib, "load_lpips", load)
+    monkeypatch.setattr(lpips_lib, "lpips_jit", lambda params, pred, target: float(np.mean(np.abs(
+        np.asarray(pred, np.float64) - np.asarray(target, np.float64)))) + 1000.0 * float(params["stand-in"][0]))
+    result, run_dir = _evaluate(tmp_path, "run", cfg, ds, af.params(cfg.model), {}, progress=False,
+                                lpips_weights=str(weights))
+    assert loaded == [str(weights)]
+    assert result["lpips"] == "computed"
+    for row, i in zip(result["per_view"], TEST_IDS):
+        rgb, clean = np.clip(renders[i]["rgb"], 0, 1).astype(np.float64), ds.clean_images[i].astype(np.float64)
+        assert row["lpips"] == pytest.approx(1000.0 + np.mean(np.abs(rgb - clean)), abs=1e-5)
+        half = W // 2
+        assert row["right_half"]["lpips"] == pytest.approx(1000.0 + np.mean(np.abs(rgb[:, half:] - clean[:, half:])),
+                                                           abs=1e-5)
+    assert f"LPIPS: computed from {weights}." in (run_dir / "report.md").read_text()
+
+
+def test_cloud_views_by_a_pixel_budget_the_distractor_default_and_the_semantic_figures(evaluated, tmp_path,
+                                                                                          monkeypatch):
+    """All 4 frames as training views (the test views 1 and 3 among them): cloud_views 3 without a
+    budget lifts training views 0, 2, 3 (evenly spaced over 4: positions 0, 1.5, 3 rounded); with
+    a budget of 1 pixel, the floor of 2 views, 0 and 3. Without distractor_views, the distractor
+    PSNR is asked of at most 4 views (the signature's documented default, docs/USAGE.md's eval).
+    The report's figures carry each test view's semantics, the dataset's own (evaluate_run
+    mutants 2; 6, 203, 204: the budget 1 by default, applied at 0, not at 1; 195, 196, 198: the
+    figures' "semantic" renamed or None)."""
+    import dataclasses
+
+    from jaxnerf_grid import report
+
+    _, _, ds, _ = evaluated
+    four = dataclasses.replace(ds, split={"train": np.arange(FRAMES), "test": np.array(TEST_IDS)})
+    cfg = analytic_config()
+    asked, figures = [], []
+    real_distractor, real_report = evaluate.distractor_psnr, report.write_report
+
+    def distractor(params, cfg_, ds_, max_views, progress=False):
+        asked.append(max_views)
+        return real_distractor(params, cfg_, ds_, max_views, progress)
+
+    def write_report(run_dir, metrics, cfg_, data, views_, extra_lines=()):
+        figures.append(views_)
+        return real_report(run_dir, metrics, cfg_, data, views_, extra_lines)
+
+    monkeypatch.setattr(evaluate, "distractor_psnr", distractor)
+    monkeypatch.setattr(report, "write_report", write_report)
+    result, _ = _evaluate(tmp_path, "all", cfg, four, af.params(cfg.model), {}, progress=False, cloud_views=3)
+    assert result["cloud_views"] == {"test": list(TEST_IDS), "train": [0, 2, 3]}
+    assert asked == [4]
+    (shown,) = figures
+    assert [f["name"] for f in shown] == [evaluate.frame_name(ds, i) for i in TEST_IDS]
+    for fig, i in zip(shown, TEST_IDS):
+        np.testing.assert_array_equal(fig["semantic"], ds.semantics[i])
+    result, _ = _evaluate(tmp_path, "budget", cfg, four, af.params(cfg.model), {}, progress=False, cloud_views=3,
+                          cloud_pixels=1, distractor_views=1)
+    assert result["cloud_views"]["train"] == [0, 3]
+
+
+def test_a_robust_runs_report_without_a_late_share_says_the_record_alone(evaluated, tmp_path):
+    """A robust run whose metrics.jsonl has no `robust_weight` in its last quarter: the report's
+    sentence gives the per-pixel record's share alone, 12.5 % (24 and 72 of 384 pixels black
+    in the two weight PNGs, by hand), and metrics.json's late share is None (evaluate_run
+    mutants 411, 413: the late text for a missing share)."""
+    import json
+
+    _, _, ds, _ = evaluated
+    cfg = analytic_config()
+    run_dir = tmp_path / "run"
+    used = {TRAIN_IDS[0]: np.ones((H, W), np.float32), TRAIN_IDS[1]: np.ones((H, W), np.float32)}
+    used[TRAIN_IDS[0]][2:6, 3:9] = 0.0
+    used[TRAIN_IDS[1]][:3] = 0.0
+    for i, w in used.items():
+        io.write_png(run_dir / "weights" / f"{evaluate.frame_name(ds, i)}.png", w)
+    (run_dir / "metrics.jsonl").write_text(json.dumps({"step": cfg.train.max_steps, "loss": 0.1}) + "\n")
+    result, _ = _evaluate(tmp_path, "run", cfg, ds, af.params(cfg.model), {}, progress=False)
+    assert result["training_weights"]["late_batch_ignored_share"] is None
+    assert (f"Photometric evidence (`train.robust = {cfg.train.robust}`): training ignored 12.5 % of the training "
+            "pixels in its per-pixel record (pixels never drawn count as used; weights in `weights/`, "
+            "docs/ROBUST.md).") in (run_dir / "report.md").read_text()
+
+
+def test_an_exported_run_gets_its_export_section_and_report_html_shows_its_measurements(evaluated, tmp_path,
+                                                                                           monkeypatch):
+    """A run folder holding an export (export/measurements.json, written here) evaluated with a
+    reference cloud (normalised units): metrics.json's "export" is the measurements, the picture's
+    path and the export's score against the reference moved to the export's units by hand, x =
+    R^T x_norm / s - t (`score.score_export` is a stand-in recording what it is handed); report.html
+    shows the measurements table, its height and footprint rows written out (evaluate_run mutants
+    321, 323, 326: the export section without the dataset or the reference; 474, 480, 485, 486:
+    report.html not shown the export folder)."""
+    from jaxnerf_grid.export import score
+
+    _, _, ds, _ = evaluated
+    cfg = analytic_config()
+    run_dir = tmp_path / "run"
+    meas = {"units": "metres", "height": 19.87, "box": {"min": [98.0, 198.0, 50.0], "max": [102.0, 202.0, 70.0]},
+            "footprint": {"width_a": 4.01, "width_b": 3.99}, "cross_arms": {"levels": []}}
+    io.write_json(run_dir / "export" / "measurements.json", meas)
+    reference = tmp_path / "reference.ply"
+    ref_points = np.array([[0.1, -0.2, 0.05], [0.0, 0.3, -0.1], [-0.25, 0.1, 0.2]])
+    clouds_lib.write_point_cloud(reference, [(ref_points, np.zeros_like(ref_points))])
+    handed = []
+
+    def score_export(folder, points, scale):
+        handed.append((Path(folder), np.asarray(points, np.float64), scale))
+        return {"stand-in": True}
+
+    monkeypatch.setattr(score, "score_export", score_export)
+    result, _ = _evaluate(tmp_path, "run", cfg, ds, af.params(cfg.model), {}, progress=False, reference_ply=reference)
+    assert result["export"] == {"measurements": meas, "image": "export/export_views.png", "score": {"stand-in": True}}
+    (folder, points, scale), = handed
+    s, rot, t = af.NORMALIZATION["scale"], np.asarray(af.NORMALIZATION["rotation"]), np.asarray(
+        af.NORMALIZATION["translation"])
+    assert folder == run_dir / "export" and scale == s
+    np.testing.assert_allclose(points, ref_points @ rot / s - t, atol=1e-4)
+    page = (run_dir / "report.html").read_text()
+    assert "<h2>Measurements (export)</h2>" in page
+    assert "<tr><td>height above the fitted ground</td><td>19.87 m</td></tr>" in page
+    assert "<tr><td>base footprint</td><td>4.01 x 3.99 m</td></tr>" in page
+
+
+def test_distractor_psnr_shows_its_progress_only_when_asked(evaluated, capsys):
+    """distractor_psnr is quiet by default and with progress False; with progress True it
+    prints one line (stderr is not a terminal here): "distractor regions: 1/1 view (100%), ..."
+    (evaluate.distractor_psnr mutants 1, 18, 19, 23, 24: the default, the bar's flag, its label)."""
+    import re
+
+    _, _, ds, _ = evaluated
+    cfg = analytic_config()
+    params = af.params(cfg.model)
+    af.clear_compiled()
+    try:
+        with pytest.MonkeyPatch.context() as mp:
+            mp.setattr(fields, "apply", af.apply)
+            capsys.readouterr()
+            quiet = evaluate.distractor_psnr(params, cfg, ds, 1)
+            assert capsys.readouterr().err == ""
+            evaluate.distractor_psnr(params, cfg, ds, 1, False)
+            assert capsys.readouterr().err == ""
+            shown = evaluate.distractor_psnr(params, cfg, ds, 1, True)
+            assert re.fullmatch(r"distractor regions: 1/1 view \(100%\), \d+\.\d s\n", capsys.readouterr().err)
+    finally:
+        af.clear_compiled()
+    assert quiet == shown and quiet is not None
+
+
+def test_evaluate_run_shows_the_progress_of_each_loop_when_asked(evaluated, tmp_path, capsys):
+    """progress=True (stderr not a terminal: one final line a bar): the test views, the training
+    views of the cloud and the distractor views each end with their line, written out here:
+    "eval: 2/2 views (100%), ...", "tower points: 1/1 view (100%), ...", "distractor regions: 1/1
+    view (100%), ..." (evaluate_run mutants 67, 68, 75, 76, 220, 221, 225, 226, 264, 269: a bar's
+    flag or label, or distractor_psnr not handed the flag)."""
+    import re
+
+    _, _, ds, _ = evaluated
+    cfg = analytic_config()
+    capsys.readouterr()
+    _evaluate(tmp_path, "run", cfg, ds, af.params(cfg.model), {}, progress=True, cloud_views=1, distractor_views=1)
+    lines = capsys.readouterr().err.splitlines()
+    for pattern in (r"eval: 2/2 views \(100%\), \d+\.\d s", r"tower points: 1/1 view \(100%\), \d+\.\d s",
+                    r"distractor regions: 1/1 view \(100%\), \d+\.\d s"):
+        assert sum(bool(re.fullmatch(pattern, line)) for line in lines) == 1, (pattern, lines)

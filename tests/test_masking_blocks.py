@@ -606,3 +606,37 @@ def test_dpt_classes_refused_by_the_model_folder_and_by_its_labels(tmp_path):
         masking.write_masks(data, weights=str(weights), classes=[1, 3], progress=False)
     assert sorted(p.name for p in data.iterdir()) == ["depth", "distractor", "images", "transforms.json"]
     assert "mask_path" not in io.read_json(data / "transforms.json")["frames"][0]
+
+
+# --------------------------------------------------------------------------- branch h43n: what is shown
+
+
+def test_overlays_are_scaled_to_the_preview_size_and_the_progress_is_shown_by_default(tmp_path, monkeypatch,
+                                                                                        capsys):
+    """With OVERLAY_MAX_SIDE 8: a 24 x 16 photo's overlay panels are 8 x 5 (scale 8 / 24, 16 / 3 =
+    5.33 rounds to 5) and a 100 x 2 photo's 8 x 1 (0.16 rounds to 0: at least one pixel; a 2 x 100
+    photo's 1 x 8), all by hand; a 6 x 4 photo is not enlarged (the overlay is two panels side by side). By default
+    write_masks shows its progress, stderr's final line "mask: 4/4 frames (100%), ..." (not a
+    terminal here), and ends with its stdout line; quiet, it prints neither (masking.py's
+    display-only survivors: the overlay's size, the bar's arguments and `progress`' default)."""
+    import cv2
+
+    monkeypatch.setattr(masking, "OVERLAY_MAX_SIDE", 8)
+    _gt_dataset(tmp_path, 16, 24, [(slice(2, 4), slice(3, 6)), None, None, None])
+    meta = io.read_json(tmp_path / "transforms.json")
+    for i, (h, w) in ((1, (2, 100)), (2, (4, 6)), (3, (100, 2))):
+        io.write_png(tmp_path / f"images/f{i}.png", np.full((h, w, 3), 0.5))
+        io.write_exr(tmp_path / f"depth/f{i}.exr", np.ones((h, w), np.float32))
+        cv2.imwrite(str(tmp_path / f"distractor/f{i}.png"), np.zeros((h, w), np.uint8))
+    io.write_json(tmp_path / "transforms.json", meta)
+    capsys.readouterr()
+    masking.write_masks(tmp_path, source="gt")
+    out = capsys.readouterr()
+    assert re.fullmatch(r"mask: 4/4 frames \(100%\), \d+\.\d s\n", out.err)
+    assert out.out.splitlines()[-1] == f"wrote masks for 4 frames (ground-truth) into {tmp_path}"
+    frames = io.read_json(tmp_path / "transforms.json")["frames"]
+    sizes = [io.read_image(tmp_path / f["overlay_path"]).shape[:2] for f in frames]
+    assert sizes == [(5, 2 * 8), (1, 2 * 8), (4, 2 * 6), (8, 2 * 1)]    # two panels side by side
+    masking.write_masks(tmp_path, source="gt", overwrite=True, progress=False)
+    out = capsys.readouterr()
+    assert out.err == "" and "wrote masks" not in out.out

@@ -192,3 +192,113 @@ def test_axis_tilt_goes_on_with_three_slices_and_stops_at_two():
     tilt = _tilt(_tower(_balanced(6, {2.0: (0, 1, 4, 5)}, {})))
     assert (tilt["slices"], tilt["slices_left_out"]) == (6, 0)
     assert tilt["tilt_degrees"] == pytest.approx(0.0, abs=1e-9)
+
+
+# --------------------------------------------------------------------------- branch h43n: the picture
+
+SHIFT = np.array([10.0, -5.0, 3.0])
+
+
+def _ortho_cloud():
+    """A (0, 0, 0), B (92, 40, 20), C (46, 20, 10) (the middle), D (46, 30, 10) (behind C seen
+    from -y), E (60, 20, 10) (in front of C seen from +x), all moved by SHIFT (the picture is
+    centred on the cloud's middle: no pixel moves), each its own colour, B's outside [0, 1]
+    (drawn clipped: (1, 0, 0.5)). The largest extent is 92, so at size 100 one unit is one pixel
+    ((100 - 8) / 92) and the middle lands on the panel's centre (50, 50). Returns (points,
+    colours given, colours drawn)."""
+    pts = np.array([[0.0, 0.0, 0.0], [92.0, 40.0, 20.0], [46.0, 20.0, 10.0], [46.0, 30.0, 10.0],
+                    [60.0, 20.0, 10.0]]) + SHIFT
+    cols = np.array([[1.0, 0.0, 0.0], [1.5, -0.5, 0.5], [0.0, 0.0, 1.0], [0.5, 0.5, 0.0], [0.0, 0.5, 0.5]])
+    return pts, cols, np.clip(cols, 0, 1)
+
+
+# {(row, column): point} in each panel, worked out by hand: front (x-z seen from -y): column
+# 50 + (x - 46), row 50 - (z - 10); side (y-z seen from +x): column 50 + (y - 20), row as the
+# front's; top (x-y seen from +z): column as the front's, row 50 - (y - 20) (before SHIFT). D
+# hides behind C in the front panel (the viewer at -y sees the smaller y), C behind E in the side
+# panel (the viewer at +x sees the larger x).
+ORTHO_PIXELS = [{(60, 4): 0, (40, 96): 1, (50, 50): 2, (50, 64): 4},
+                {(60, 30): 0, (40, 70): 1, (50, 50): 4, (50, 60): 3},
+                {(70, 4): 0, (30, 96): 1, (50, 50): 2, (40, 50): 3, (50, 64): 4}]
+# the shade of a normal (0.48, 0.6, 0.64) seen from -y, +x, +z: 0.35 + 0.65 |n . view|
+ORTHO_SHADE = [0.35 + 0.65 * 0.6, 0.35 + 0.65 * 0.48, 0.35 + 0.65 * 0.64]
+
+
+def _drawn(panel, background):
+    return {tuple(int(v) for v in rc) for rc in np.argwhere(np.any(panel != background, axis=-1))}
+
+
+def test_orthographic_views_draw_a_known_cloud_at_the_pixels_worked_out_by_hand():
+    """Each panel (100 x 100, 4 pixels apart: columns 0, 104, 208) holds exactly the points'
+    pixels worked out by hand (ORTHO_PIXELS), in their colours clipped to [0, 1], the rest the
+    background; shaded by the normal (0.48, 0.6, 0.64) by ORTHO_SHADE; a splat of 1 paints
+    exactly the 3 x 3 pixels around each point; the same cloud 200 times smaller is drawn at
+    the same pixels (one scale: the largest extent fills 92 pixels); a grey background; the
+    empty cloud; the default size 400."""
+    pts, cols, drawn = _ortho_cloud()
+    img = measure.orthographic_views(pts, cols, size=100, labels=False)
+    assert img.shape == (100, 308, 3) and img.dtype == np.float32
+    normals = np.tile([0.48, 0.6, 0.64], (len(pts), 1))
+    shaded = measure.orthographic_views(pts, cols, normals, size=100, labels=False)
+    splat = measure.orthographic_views(pts, cols, size=100, labels=False, splat=1, background=0.5)
+    small = measure.orthographic_views(pts * 0.005, cols, size=100, labels=False)
+    np.testing.assert_array_equal(small, img)
+    for k, pixels in enumerate(ORTHO_PIXELS):
+        x0 = 104 * k
+        assert _drawn(img[:, x0:x0 + 100], 1.0) == set(pixels), k
+        for (row, col), i in pixels.items():
+            np.testing.assert_allclose(img[row, x0 + col], drawn[i], atol=1e-7)
+            np.testing.assert_allclose(shaded[row, x0 + col], drawn[i] * ORTHO_SHADE[k], atol=1e-6)
+            assert np.all(np.abs(splat[row - 1:row + 2, x0 + col - 1:x0 + col + 2] - drawn[i]) < 1e-7), (k, i)
+            assert np.all(np.abs(splat[:, x0:x0 + 100] - drawn[i]) < 1e-7, axis=-1).sum() == 9, (k, i)
+        assert len(_drawn(splat[:, x0:x0 + 100], 0.5)) == 9 * len(pixels)
+    assert np.all(img[:, 100:104] == 1.0) and np.all(img[:, 204:208] == 1.0)      # the gaps
+    assert np.all(splat[:, 100:104] == 0.5)
+    empty = measure.orthographic_views(np.zeros((0, 3)), np.zeros((0, 3)), size=20, labels=False, background=0.25)
+    assert empty.shape == (20, 68, 3) and np.all(empty == 0.25)
+    assert measure.orthographic_views(pts, cols, labels=False).shape == (400, 1208, 3)
+
+
+def test_orthographic_views_scale_on_an_odd_size_and_splats_cut_at_the_panel_edges():
+    """Size 101, (0, 0, 0) and (93, 0, 0): 93 pixels for 93 units, centre 50.5: columns 4 and
+    97, row 50 (50.5 rounds to even). Size 100, (0, 0, 0) and (92, 0, 92) with a splat of 4:
+    the front panel's 9 x 9 blocks about (row 96, column 4) and (row 4, column 96) are cut at the
+    panel's edges (rows 92-99 x columns 0-8 and rows 0-8 x columns 92-99), nothing wraps."""
+    img = measure.orthographic_views(np.array([[0.0, 0, 0], [93.0, 0, 0]]), np.array([[1.0, 0, 0], [0, 1.0, 0]]),
+                                     size=101, labels=False)
+    assert _drawn(img[:, :101], 1.0) == {(50, 4), (50, 97)}
+    np.testing.assert_array_equal(img[50, 97], [0.0, 1.0, 0.0])
+    img = measure.orthographic_views(np.array([[0.0, 0, 0], [92.0, 0, 92]]), np.array([[1.0, 0, 0], [0, 1.0, 0]]),
+                                     size=100, labels=False, splat=4)
+    want = {(r, c) for r in range(92, 100) for c in range(0, 9)} | {(r, c) for r in range(0, 9) for c in range(92, 100)}
+    assert _drawn(img[:, :100], 1.0) == want
+
+
+def test_orthographic_views_labels_each_panel_in_its_corner():
+    """labels=True: each panel's name, "front (x-z)", "side (y-z)", "top (x-y)", in OpenCV's
+    Hershey simplex at 0.45, dark grey (40, 40, 40), 1 px, anti-aliased, its baseline at (6, 16)
+    of the panel, on the 8-bit picture (the expected image drawn here with those literals); without
+    OpenCV the picture is returned unlabelled."""
+    from jaxnerf_grid import io
+
+    cv2 = io.opencv()
+    pts, cols, _ = _ortho_cloud()
+    plain = measure.orthographic_views(pts, cols, size=100, labels=False)
+    labelled = measure.orthographic_views(pts, cols, size=100)
+    want = np.ascontiguousarray((plain * 255).astype(np.uint8))
+    for x0, name in ((6, "front (x-z)"), (110, "side (y-z)"), (214, "top (x-y)")):
+        cv2.putText(want, name, (x0, 16), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (40, 40, 40), 1, cv2.LINE_AA)
+    assert labelled.dtype == np.float32
+    np.testing.assert_array_equal(np.round(labelled * 255).astype(np.uint8), want)
+    np.testing.assert_array_equal(labelled[60, 4], [1.0, 0.0, 0.0])            # A, below the labels
+    for x0 in (0, 104, 208):                                     # each panel's corner is written on
+        corner = want[4:20, x0 + 6:x0 + 60]
+        assert (corner < 128).any(axis=-1).sum() > 30
+    assert not np.array_equal(want[4:20, 6:60], want[4:20, 110:164])     # different names
+
+    def no_opencv():
+        raise ImportError("no cv2")
+
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(io, "opencv", no_opencv)
+        np.testing.assert_array_equal(measure.orthographic_views(pts, cols, size=100), plain)

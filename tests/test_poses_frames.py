@@ -118,6 +118,21 @@ def test_c2w_gl_works_in_float64_whatever_it_is_given():
     assert np.abs(in_float32 - centre).max() > 1e-6              # the case tells the two apart
 
 
+def test_c2w_gl_of_a_homogeneous_4x4_is_that_of_its_3x4():
+    """A world-to-camera given homogeneous, [4, 4] with the row (0, 0, 0, 1), is read by its top
+    three rows: the camera worked out by hand from R and t (centre -R^T t, axes R^T with y and z
+    turned to OpenGL's)."""
+    centres, w2cs = _rings()
+    for centre, rot in zip(centres[:4], w2cs[:4]):
+        t = -rot @ centre
+        given = np.vstack([np.column_stack([rot, t]), [0.0, 0.0, 0.0, 1.0]])
+        c2w = poses.c2w_gl_from_cam_from_world(given)
+        assert c2w.shape == (4, 4)
+        np.testing.assert_allclose(c2w[:3, 3], centre, atol=1e-9)
+        np.testing.assert_allclose(c2w[:3, :3], rot.T * [1, -1, -1], atol=1e-12)
+        np.testing.assert_array_equal(c2w[3], [0.0, 0.0, 0.0, 1.0])
+
+
 def test_model_poses_of_a_hand_written_model_are_its_cameras(tmp_path):
     pycolmap = _pycolmap()
     centres, w2cs = _rings()
@@ -235,6 +250,31 @@ def test_crop_to_common_size_cuts_each_photo_centred_and_moves_the_model_with_it
     for top, left, agree in ((2, 1, True), (2, 2, False), (2, 0, False), (3, 1, False), (1, 1, False)):
         off = np.abs(c.mean((0, 1)) - original_jpeg[top:top + 48, left:left + 64].mean((0, 1))).max()
         assert off < 0.5 if agree else off > 1.5, (top, left, off)
+
+
+def test_crop_to_common_size_moves_only_the_principal_point_of_a_camera_with_more_parameters(tmp_path):
+    """An OPENCV camera (fx, fy, cx, cy, k1, k2, p1, p2) beside a PINHOLE one: the crop moves its
+    principal point by the window's (left, top) = (3, 1), worked out by hand for 70 x 50 -> 64 x
+    48, and leaves the focal lengths and the four distortion parameters as they were."""
+    pycolmap = _pycolmap()
+    cameras = {1: (70, 50, FOCAL, FOCAL + 1, 35.5, 24.0), 2: (64, 48, FOCAL, FOCAL, 31.0, 23.5)}
+    centres, w2cs = _rings()
+    images = [(name, cid, w2cs[k], -w2cs[k] @ centres[k]) for k, (name, cid) in enumerate([("a.png", 1), ("b.png", 2)])]
+    _write_model(tmp_path / "text", cameras, images, np.array([[1.0, -2.0, 3.0]]))
+    distortion = [0.01, -0.002, 0.0003, -0.0004]
+    (tmp_path / "text" / "cameras.txt").write_text(
+        f"1 OPENCV {_numbers([70, 50, FOCAL, FOCAL + 1, 35.5, 24.0, *distortion])}\n"
+        f"2 PINHOLE {_numbers(cameras[2])}\n")
+    (tmp_path / "sparse").mkdir()
+    pycolmap.Reconstruction(tmp_path / "text").write(tmp_path / "sparse")
+    (tmp_path / "images").mkdir()
+    for name, (h, w) in (("a.png", (50, 70)), ("b.png", (48, 64))):
+        assert io.opencv().imwrite(str(tmp_path / "images" / name), _pattern(h, w, 1))
+    assert poses.crop_to_common_size(pycolmap, tmp_path / "sparse", tmp_path / "images") == (64, 48)
+    model = pycolmap.Reconstruction(tmp_path / "sparse")
+    assert model.cameras[1].model.name == "OPENCV" and (model.cameras[1].width, model.cameras[1].height) == (64, 48)
+    np.testing.assert_allclose(model.cameras[1].params, [FOCAL, FOCAL + 1, 32.5, 23.0, *distortion], atol=1e-12)
+    np.testing.assert_allclose(model.cameras[2].params, [FOCAL, FOCAL, 31.0, 23.5], atol=1e-12)
 
 
 def test_crop_to_common_size_writes_jpegs_at_its_quality(tmp_path, monkeypatch):
@@ -685,6 +725,27 @@ def test_prepare_photos_links_or_scales_each_readable_photo_and_names_the_unread
         poses.prepare_photos([folder / "a.png", folder / "d.png"], tmp_path / "w4", None, show=False)
 
 
+def test_prepare_photos_into_an_existing_work_folder_and_a_refusal_names_the_first_photos_folder(tmp_path):
+    """The work folder may exist already (empty): the photos are linked into it. Too few
+    readable photos from two folders are refused naming the first photo's folder."""
+    cv2 = io.opencv()
+    first, second = tmp_path / "first", tmp_path / "second"
+    first.mkdir()
+    second.mkdir()
+    for name in ("a.png", "b.png", "c.png"):
+        assert cv2.imwrite(str(first / name), _pattern(50, 70, 1))
+    (tmp_path / "work").mkdir()
+    photos = sorted(first.iterdir())
+    work, names, skipped, sizes = poses.prepare_photos(photos, tmp_path / "work", None, show=False)
+    assert (work, names, skipped) == (tmp_path / "work", ["a.png", "b.png", "c.png"], {})
+    assert sorted(p.name for p in work.iterdir()) == names
+    (second / "d.png").write_bytes(b"not a photo")
+    with pytest.raises(DataError) as err:
+        poses.prepare_photos([first / "a.png", second / "d.png"], tmp_path / "w2", None, show=False)
+    assert str(err.value) == (f"{first}: only 1 readable photo(s) of 2 (unreadable: d.png); camera poses "
+                              "need at least 3")
+
+
 def test_prepare_photo_writes_scaled_jpegs_at_its_quality_and_names_a_copy_it_cannot_write(tmp_path, monkeypatch,
                                                                                            capsys):
     """A scaled JPEG copy (.jpg or .JPEG) is OpenCV's encoding of the area-scaled photo at
@@ -710,3 +771,110 @@ def test_prepare_photo_writes_scaled_jpegs_at_its_quality_and_names_a_copy_it_ca
     with pytest.raises(DataError) as err:
         poses.prepare_photo(tmp_path / "a.jpg", tmp_path / "work", 40)
     assert str(err.value) == f"{tmp_path / 'a.jpg'}: could not encode a working copy"
+
+
+# ----------------------------------------------------------------------------------------
+# branch h43n: the top view and the summary, pixel for pixel and word for word
+
+
+def _topview_by_hand(c2w, points, size):
+    """The top view drawn here from its description (docs/POSES.md, draw_topview's docstring):
+    white, half-width e = max(1.2, 1.1 x the farthest camera x or y); (x, y) at ((x / e + 1) s / 2,
+    (1 - y / e) s / 2) rounded; the unit circle grey (200) 1 px; each point with |x|, |y| < e a
+    2 x 2 grey (120) block from its pixel; each camera a line (0, 0, 200 in BGR) from its centre
+    0.08 e along its horizontal viewing direction, then a filled dot of radius 3 (0, 0, 220);
+    the caption in black at (8, 18); every line anti-aliased. Returns RGB uint8."""
+    cv2 = io.opencv()
+    centres = np.asarray(c2w)[:, :3, 3]
+    e = max(1.2, 1.1 * float(np.abs(centres[:, :2]).max())) if len(centres) else 1.2
+    img = np.full((size, size, 3), 255, np.uint8)
+
+    def at(x, y):
+        return int(round((x / e + 1) * size / 2)), int(round((1 - y / e) * size / 2))
+
+    cv2.circle(img, at(0.0, 0.0), int(round(size / 2 / e)), (200, 200, 200), 1, cv2.LINE_AA)
+    for x, y, _ in points:
+        if abs(x) < e and abs(y) < e:
+            u, v = at(x, y)
+            img[max(v, 0):v + 2, max(u, 0):u + 2] = 120
+    for m in c2w:
+        look = -m[:2, 2] / np.linalg.norm(m[:2, 2])
+        tip = at(*(m[:2, 3] + 0.08 * e * look))
+        cv2.line(img, at(*m[:2, 3]), tip, (0, 0, 200), 1, cv2.LINE_AA)
+        cv2.circle(img, at(*m[:2, 3]), 3, (0, 0, 220), -1, cv2.LINE_AA)
+    cv2.putText(img, "top view (+z up): cameras red, points grey, unit circle", (8, 18), cv2.FONT_HERSHEY_SIMPLEX,
+                0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    return img[..., ::-1]
+
+
+def _looking_down(centre, target):
+    """c2w (OpenGL: looking along -z) at centre looking at target, z up."""
+    c2w = np.eye(4)
+    c2w[:3, :3] = _w2c_opencv(np.asarray(centre, np.float64), target).T * [1, -1, -1]
+    c2w[:3, 3] = centre
+    return c2w
+
+
+@pytest.mark.parametrize("case", ["far", "near"])
+def test_draw_topview_is_the_picture_described_pixel_for_pixel(tmp_path, case):
+    """Cameras looking down at the origin (their horizontal direction shorter than 1: drawn at
+    0.08 e all the same), one of them high above the others (its z ignored for the extent);
+    points inside, one exactly on the edge x = e (left out), one beyond, one at the picture's
+    left and top edges (its block cut there). "far": the farthest camera coordinate 2 sets e =
+    2.2; "near": cameras within 1, e = 1.2 (the floor). The written PNG equals the picture drawn
+    here (_topview_by_hand) exactly; the default size is 640."""
+    scale = 1.0 if case == "far" else 0.45
+    centres = np.array([[2.0, 0.5, 0.3], [-0.5, -1.0, 0.2], [0.3, 1.1, 4.0]]) * [scale, scale, 1.0]
+    c2w = np.stack([_looking_down(c, [0.0, 0.0, -0.5]) for c in centres])
+    assert all(np.linalg.norm(m[:2, 2]) < 0.99 for m in c2w)
+    e = 2.2 if case == "far" else 1.2
+    points = np.array([[0.3, 0.8, 0.1], [e, 0.0, 0.0], [5.0, 0.0, 0.0], [-e + 1e-3, e - 1e-3, 0.0], [-0.2, -0.6, 1.0],
+                       [-1.01 * e, 0.0, 0.0], [0.0, e, 0.0], [0.5, -0.3, 5.0]])
+    # (-1.01 e, 0): column -1, outside (a block there would show its second column); (0, e): on the
+    # top edge, outside (row 0 would show it); (0.5, -0.3, 5): its height does not matter
+    path = tmp_path / "top.png"
+    poses.draw_topview(path, c2w, points, size=200)
+    got = np.round(io.read_image(path) * 255).astype(np.uint8)
+    np.testing.assert_array_equal(got, _topview_by_hand(c2w, points, 200))
+    poses.draw_topview(tmp_path / "default.png", c2w, points)
+    assert io.read_image(tmp_path / "default.png").shape == (640, 640, 3)
+    poses.draw_topview(tmp_path / "none.png", np.zeros((0, 4, 4)), points, size=200)    # no camera: e = 1.2
+    got = np.round(io.read_image(tmp_path / "none.png") * 255).astype(np.uint8)
+    np.testing.assert_array_equal(got, _topview_by_hand(np.zeros((0, 4, 4)), points, 200))
+
+
+def test_summary_and_report_lines_word_for_word_with_several_names():
+    """format_summary and report_lines with two of each list (unregistered, unreadable, left out:
+    joined by ", "), a left-out photo without a table row ("?"), a GPS scale without a GPS
+    residual, and the report's blank lines, every line written out here."""
+    summary = {"registered": 4, "photos": 8, "points3d": 40, "mean_reprojection_error": 0.25,
+               "unregistered": ["d.png", "f.png"], "skipped": ["e.jpg", "g.jpg"],
+               "vetting": {"left_out": ["b.png", "c.png"],
+                           "photos": [{"name": "b.png", "reasons": ["reprojection 3.2 px", "track 1.5"]}]},
+               "georeference": {"units": "metres", "source": "control points", "crs": "EPSG:32632",
+                                "metres_per_model_unit": 2.5}}
+    assert poses.format_summary(summary).splitlines() == [
+        "registered 4/8 photos, 40 3-D points, mean reprojection error 0.250 px",
+        "not registered (2): d.png, f.png",
+        f"left out by the vetting (2; table in {poses.REPORT}, --keep-all keeps them): "
+        "b.png (reprojection 3.2 px; track 1.5), c.png (?)",
+        "unreadable, skipped (2): e.jpg, g.jpg",
+        "scale and georeference from control points: EPSG:32632, 2.5 m per model unit"]
+    bounds = {"near": 0.125, "far": 4.5, "contract_radius": 2.0, "roi_radius": 1.0, "nearest_camera_to_roi": 2.25,
+              "roi_centre": [0.5, -0.25, 0.0]}
+    plain = {k: v for k, v in summary.items() if k not in ("vetting", "georeference")}
+    lines = poses.report_lines(plain, bounds)
+    from jaxnerf_grid.data import vetting
+
+    assert lines == ["# Camera poses", "", "registered 4/8 photos, 40 3-D points, mean reprojection error 0.250 px",
+                     "not registered (2): d.png, f.png", "unreadable, skipped (2): e.jpg, g.jpg", "",
+                     "## Vetting (docs/POSES.md)", "", *vetting.format_table([]), "",
+                     "## Scene bounds (docs/BOUNDS.md)", "", "| bound | value (normalised units) |", "|---|---|",
+                     "| near | 0.125 |", "| far | 4.5 |", "| contract_radius | 2 |", "| roi_radius | 1 |",
+                     "| nearest_camera_to_roi | 2.25 |", "| roi_centre | 0.5, -0.25, 0 |", ""]
+    no_rows = {**plain, "vetting": {"left_out": ["b.png"]}}                 # no table rows at all
+    assert poses.format_summary(no_rows).splitlines()[2] == (
+        f"left out by the vetting (1; table in {poses.REPORT}, --keep-all keeps them): b.png (?)")
+    keep = poses.report_lines({**plain, "vetting": {"keep_all": True}}, bounds)
+    assert keep[keep.index("## Vetting (docs/POSES.md)"):][:4] == [
+        "## Vetting (docs/POSES.md)", "", "`--keep-all`: every registered photo kept, whatever its scores.", ""]

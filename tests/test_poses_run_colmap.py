@@ -260,3 +260,21 @@ def test_undistort_hands_colmap_the_model_and_lays_out_images_and_sparse_cut_to_
     np.testing.assert_allclose(out.cameras[1].params, [FOCAL, FOCAL, 32, 24])
     assert sorted(p.name for p in stage.iterdir()) == ["_work", "images", "sparse"]
     assert sorted(p.name for p in (stage / "sparse").iterdir()) == ["0"]
+
+
+def test_undistort_into_a_stage_already_holding_a_work_model_writes_over_it(tmp_path):
+    """A stage whose _work/model exists already (with a stale file): the model is written into it
+    and handed to COLMAP's undistortion, and the stage is laid out as from a fresh one."""
+    centres, w2cs = _rings()
+    images = [("a.png", 1, w2cs[0], -w2cs[0] @ centres[0]), ("b.png", 1, w2cs[1], -w2cs[1] @ centres[1])]
+    _write_model(tmp_path / "text", {1: (64, 48, FOCAL, FOCAL, 32, 24)}, images, np.array([[1.0, -2.0, 3.0]]))
+    model = pycolmap.Reconstruction(tmp_path / "text")
+    stage = tmp_path / "stage"
+    (stage / "_work" / "model").mkdir(parents=True)
+    (stage / "_work" / "model" / "stale.txt").write_text("from an earlier attempt")
+    stand_in = _Undistorting([])
+    poses.undistort(stand_in, model, tmp_path / "photos", stage)
+    assert stand_in.calls == [("undistort", stage / "_work" / "undistorted", stage / "_work" / "model",
+                               tmp_path / "photos", "COLMAP", 95, ["a.png", "b.png"])]
+    assert sorted(p.name for p in (stage / "images").iterdir()) == ["a.png", "b.png"]
+    assert {(c.width, c.height) for c in pycolmap.Reconstruction(stage / "sparse" / "0").cameras.values()} == {(64, 48)}
