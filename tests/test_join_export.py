@@ -824,8 +824,8 @@ def test_the_progress_lines_and_the_views_timing_of_an_export_by_default(tmp_pat
     bar): "export: views: 8/8 views (100%), ..." and "export: density: N/N points (100%), ..."
     with N the grid's points, the product of the record's grid shape; and the
     "views" timing is the rendering's own: at least the time spent in `_render_cloud` and less
-    than it plus 0.25 s, though the load before it takes 0.3 s here (a sleep in the params'
-    stand-in). (export_run mutants 5, 131, 190-197, 200-203, 210, 216: the bars' flag, total,
+    than it plus half the load before it, which takes 1 s here (a sleep in the params' stand-in;
+    the margin is wide so that a loaded machine does not fail it). (export_run mutants 5, 131, 190-197, 200-203, 210, 216: the bars' flag, total,
     label, unit or the density grid's bar not handed on; 140: the views' timing + the earlier sum.)"""
     import time as time_lib
 
@@ -836,7 +836,7 @@ def test_the_progress_lines_and_the_views_timing_of_an_export_by_default(tmp_pat
 
     def slow(real):
         def load_params(*args):
-            time_lib.sleep(0.3)
+            time_lib.sleep(1.0)
             return real(*args)
         return load_params
 
@@ -860,8 +860,8 @@ def test_the_progress_lines_and_the_views_timing_of_an_export_by_default(tmp_pat
     assert sum(line.startswith("export: views: ") for line in lines) == 1
     assert sum(line.startswith("export: density: ") for line in lines) == 1
     (span,) = spans
-    assert meas["timings"]["load"] >= 0.3
-    assert span <= meas["timings"]["views"] < span + 0.25
+    assert meas["timings"]["load"] >= 1.0
+    assert span <= meas["timings"]["views"] < span + 0.5
 
 
 def test_a_dataset_without_training_views_colours_a_given_box_from_every_camera(tmp_path):
