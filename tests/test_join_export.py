@@ -825,8 +825,9 @@ def test_the_progress_lines_and_the_views_timing_of_an_export_by_default(tmp_pat
     with N the grid's points, the product of the record's grid shape; and the
     "views" timing is the rendering's own: at least the time spent in `_render_cloud` and less
     than it plus half the load before it, which takes 1 s here (a sleep in the params' stand-in;
-    the margin is wide so that a loaded machine does not fail it). (export_run mutants 5, 131, 190-197, 200-203, 210, 216: the bars' flag, total,
-    label, unit or the density grid's bar not handed on; 140: the views' timing + the earlier sum.)"""
+    the margin is wide so that a loaded machine does not fail it). (export_run mutants 5, 131,
+    190-197, 200-203, 210, 216: the bars' flag, total, label, unit or the density grid's bar not
+    handed on; 140: the views' timing + the earlier sum.)"""
     import time as time_lib
 
     ds = af.dataset()
