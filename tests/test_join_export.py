@@ -490,17 +490,7 @@ def _tilted_export(root, tilt: np.ndarray, meta: dict, apply=af.apply, **kwargs)
     cfg = analytic_config()
     field = {**af.params(cfg.model)["fine"], "rotation": jnp.asarray(record["rotation"], jnp.float32),
              "translation": jnp.asarray(record["translation"], jnp.float32), "tilt": jnp.asarray(tilt, jnp.float32)}
-    af.clear_compiled()
-    try:
-        with pytest.MonkeyPatch.context() as mp:
-            mp.setattr(fields, "apply", apply)
-            mp.setattr(runs, "load_run", lambda run_dir: (cfg, None))
-            mp.setattr(runs, "dataset_of_run", lambda *args, **kw: ds)
-            mp.setattr(train, "load_params", lambda run_dir, cfg, ds: ({"coarse": field, "fine": field}, 0))
-            (root / "run").mkdir(exist_ok=True)
-            return export_run.export_run(root / "run", resolution=RESOLUTION, views=8, progress=False, **kwargs)
-    finally:
-        af.clear_compiled()
+    return _spied_export(root, record, ds, apply, field=field, cfg=cfg, **kwargs)
 
 
 def leaning_apply(lean: np.ndarray):
@@ -651,17 +641,19 @@ def test_an_unknown_crs_in_the_record_is_refused_before_anything_is_written(tmp_
 # --------------------------------------------------------------------------- branch h43n: what each step is handed
 
 
-def _spied_export(root, record: dict, ds, apply=af.apply, spies=(), **kwargs) -> dict:
-    """export_run of the analytic scene (level ground, the tower's frame as the metric frame: no
-    tilt) with the normalisation `record` and the dataset `ds`; `spies`: (module, name, wrapper
-    of the real function) put in place for the call."""
+def _spied_export(root, record: dict, ds, apply=af.apply, spies=(), field=None, cfg=None, **kwargs) -> dict:
+    """export_run of the analytic scene (by default level ground, the tower's frame as the metric
+    frame: no tilt; else the params `field` of config `cfg`) with the normalisation `record` and
+    the dataset `ds`; `spies`: (module, name, wrapper of the real function) put in place for the
+    call."""
     import jax.numpy as jnp
 
     ds.root = root
-    cfg = analytic_config()
-    field = {**af.params(cfg.model)["fine"], "rotation": jnp.asarray(af.TURN_Z, jnp.float32),
-             "translation": jnp.asarray([-af.CENTRE[0], -af.CENTRE[1], -af.GROUND_Z - 10.0], jnp.float32),
-             "tilt": jnp.eye(3, dtype=jnp.float32)}
+    cfg = analytic_config() if cfg is None else cfg
+    if field is None:
+        field = {**af.params(cfg.model)["fine"], "rotation": jnp.asarray(af.TURN_Z, jnp.float32),
+                 "translation": jnp.asarray([-af.CENTRE[0], -af.CENTRE[1], -af.GROUND_Z - 10.0], jnp.float32),
+                 "tilt": jnp.eye(3, dtype=jnp.float32)}
     af.clear_compiled()
     try:
         with pytest.MonkeyPatch.context() as mp:
