@@ -242,8 +242,9 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     keys = run_keys(data_dir, method, ov, steps)
     key = keys[0]
     run_dir = ctx.cache / "runs" / f"{label}-s{seed}-{key}"
-    same = [d for k in keys for d in sorted((ctx.cache / "runs").glob(f"*-s{seed}-{k}"))
-            if (d / "metrics.json").is_file()]
+    runs_dir = ctx.cache / "runs"
+    same = sorted(runs_dir.glob(f"*-s{seed}-{key}")) + [  # an older key's run only when finished
+        d for k in keys[1:] for d in sorted(runs_dir.glob(f"*-s{seed}-{k}")) if (d / "metrics.json").is_file()]
     if not run_dir.exists() and same:  # the identical run made by another table, or under an older key
         run_dir = same[0]
     done = run_dir / "metrics.json"
