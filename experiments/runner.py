@@ -182,36 +182,35 @@ LATER_TRAIN_KEYS = ("max_side", "robust", "robust_quantile", "robust_flagged_qua
                     "robust_refine", "robust_prior_grow")
 
 
-def strict_readmit_setting(train_cfg: dict, data_dir: Path) -> bool:
-    """train.robust_strict_readmit as a run on `data_dir` settles it: the setting, or for None
-    (automatic) `config.strict_readmit_auto` on the dataset's transforms.json."""
-    strict = train_cfg.get("robust_strict_readmit")
-    if strict is None:
-        meta_path = Path(data_dir) / "transforms.json"
-        strict = config_lib.strict_readmit_auto(io.read_json(meta_path) if meta_path.is_file() else {})
-    return bool(strict)
+def dataset_meta(data_dir: Path) -> dict:
+    """The dataset folder's transforms.json ({} without one): what `run_key` settles
+    train.robust_strict_readmit on."""
+    path = Path(data_dir) / "transforms.json"
+    return io.read_json(path) if path.is_file() else {}
 
 
-def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: str = "current") -> str:
+def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: str = "current",
+            meta: dict | None = None) -> str:
     """Hash of the dataset folder's name, the fully resolved RunConfig and the step count.
+    meta: the dataset's transforms.json (read here when None).
 
     scheme "current": LATER_TRAIN_KEYS at their defaults are left out, and so is
-    train.robust_strict_readmit wherever it does nothing (it acts only in `dpt+robust`, and off
-    it is what ran before it existed); settled on the dataset (`strict_readmit_setting`) and
-    on, it is in the key as true. scheme "session28": the key of runs made from the
-    twenty-fifth to the twenty-eighth session, when robust_refine, robust_prior_grow and
-    robust_strict_readmit (then false by default) were always in the key (`run_keys`); there
-    it is true only where it acts, as above, so a run of another mode is found at the default."""
+    train.robust_strict_readmit wherever it does nothing (`config.strict_readmit_acts` on the
+    dataset: off is what ran before it existed); where it acts it is in the key as true.
+    scheme "session28": the key of runs made from the twenty-fifth to the twenty-eighth
+    session, when robust_refine, robust_prior_grow and robust_strict_readmit (then false by
+    default) were always in the key (`run_keys`); there it is true only where it acts, as
+    above, so a run of another mode is found at the default."""
     with_steps = merge(overrides, {"train": {"max_steps": int(steps)}})
     cfg = config_lib.to_dict(run_config.make_config(method, with_steps))
     cfg["model"] = {**{k: v for k, v in cfg["model"].items() if k != "sampler"},  # the flat sampler keys, as
                     **flat_keys(with_steps.get("model", {}))}  # before model.sampler: runs keep their keys
     defaults = config_lib.to_dict(run_config.TrainConfig())
-    strict = strict_readmit_setting(cfg["train"], data_dir)
+    meta = dataset_meta(data_dir) if meta is None else meta
+    acts = config_lib.strict_readmit_acts(cfg["train"]["robust_strict_readmit"], cfg["train"]["robust"], meta)
     later = LATER_TRAIN_KEYS if scheme == "current" else LATER_TRAIN_KEYS[:-2]
     cfg["train"] = {k: v for k, v in cfg["train"].items()  # settings added since, at their defaults
                     if not (k in later and v == defaults[k]) and k != "robust_strict_readmit"}
-    acts = strict and cfg["train"].get("robust", "off") == "dpt+robust"
     if scheme != "current":
         cfg["train"]["robust_strict_readmit"] = acts
     elif acts:
@@ -223,7 +222,8 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
 def run_keys(data_dir: Path, method: str, overrides: dict, steps: int) -> list[str]:
     """The keys an identical finished run may be found under: `run_key`'s current scheme first
     (a new run is made under it), then the twenty-eighth session's."""
-    keys = [run_key(data_dir, method, overrides, steps, scheme) for scheme in ("current", "session28")]
+    meta = dataset_meta(data_dir)
+    keys = [run_key(data_dir, method, overrides, steps, scheme, meta) for scheme in ("current", "session28")]
     return list(dict.fromkeys(keys))
 
 

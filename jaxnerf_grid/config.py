@@ -312,13 +312,21 @@ def strict_readmit_auto(meta: dict) -> bool:
     return not (isinstance(domain, dict) and bool(domain.get("out_of_domain")))
 
 
+def strict_readmit_acts(setting: bool | None, robust: str, meta: dict) -> bool:
+    """Whether strict re-admission acts in a run with train.robust_strict_readmit `setting`
+    (None: `strict_readmit_auto` on the dataset's `meta`) and train.robust `robust`: only
+    "dpt+robust" has flagged pixels to re-admit."""
+    strict = strict_readmit_auto(meta) if setting is None else bool(setting)
+    return strict and robust == "dpt+robust"
+
+
 def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
     """A run config (anything with a `.model` holding num_images / near / far) settled on a
     dataset: model.num_images at least the dataset's frame count (the embedding tables' size),
     and, with `bounds`, model.near / model.far filled from the dataset where None; a
-    `.train.robust_strict_readmit` of None (automatic) becomes `strict_readmit_auto`'s answer
-    on the dataset's meta with train.robust "dpt+robust", else false (it acts in no other mode,
-    and false is what runs recorded before it was automatic, so they resume), whatever `bounds`
+    `.train.robust_strict_readmit` of None (automatic) becomes `strict_readmit_acts`: on the
+    dataset's meta with train.robust "dpt+robust", else false (it acts in no other mode, and
+    false is what runs recorded before it was automatic, so they resume), whatever `bounds`
     (what trained is what a run's config.json records).
 
     bounds=False keeps near / far as configured (None = the dataset's): what a run's
@@ -328,9 +336,8 @@ def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
     changes = {"num_images": max(cfg.model.num_images, dataset.num_frames)}
     train_cfg = getattr(cfg, "train", None)
     if train_cfg is not None and getattr(train_cfg, "robust_strict_readmit", False) is None:
-        acts = getattr(train_cfg, "robust", "off") == "dpt+robust"  # the only mode with flagged pixels
-        cfg = dataclasses.replace(cfg, train=dataclasses.replace(
-            train_cfg, robust_strict_readmit=acts and strict_readmit_auto(getattr(dataset, "meta", {}))))
+        acts = strict_readmit_acts(None, getattr(train_cfg, "robust", "off"), getattr(dataset, "meta", {}))
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(train_cfg, robust_strict_readmit=acts))
     if bounds:
         changes["near"], changes["far"] = near_far(cfg.model, dataset)
         if not 0 < changes["near"] < changes["far"]:
