@@ -32,8 +32,7 @@ import numpy as np
 from jaxnerf_grid import checkpoint, config as config_lib, foreground as fg, masking, refine, train
 from jaxnerf_grid.runs import load_run_and_dataset
 
-sys.path.insert(0, str(__import__("pathlib").Path(__file__).resolve().parent))
-from refine_offline import TOWER_CLASSES, shares  # noqa: E402
+from refine_offline import TOWER_CLASSES, shares  # scripts/ is sys.path[0] when run as a script
 
 
 def local_stats(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
