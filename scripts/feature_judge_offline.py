@@ -29,10 +29,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import checkpoint, config as config_lib, foreground as fg, masking, refine, train
-from jaxnerf_grid.runs import load_run_and_dataset
+from jaxnerf_grid import foreground as fg, masking, refine
 
-from refine_offline import TOWER_CLASSES, shares  # scripts/ is sys.path[0] when run as a script
+from refine_offline import TOWER_CLASSES, rendered_run, shares  # scripts/ is sys.path[0] when run as a script
 
 
 def local_stats(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -73,17 +72,7 @@ def fit_judge(features: np.ndarray, labels: np.ndarray, hidden: int = 32, steps:
 
 
 def main(argv: list[str]) -> int:
-    run, step = argv[0], int(argv[1])
-    cfg, _, ds = load_run_and_dataset(run, None, False, False, False)
-    cfg = config_lib.resolve(cfg, ds)
-    if ds.distractor_masks is None or ds.masks is None:
-        raise SystemExit(f"{run}: its dataset needs distractor masks and DPT masks")
-    state = checkpoint.load_checkpoint(checkpoint.checkpoint_path(run, step),
-                                       train.init_state(cfg, train.train_frames_shape(ds)))
-    pool = train.build_pool(ds, cfg)
-    ids = np.asarray(ds.split["train"])
-    residual, points = refine.render_training_frames(state["params"], cfg, ds, pool["frame"])
-    confirmed = refine.confirmed_frames(pool, points, cfg.train.robust_confirm)
+    cfg, ds, pool, ids, residual, confirmed = rendered_run(argv[0], int(argv[1]))
     rule = np.asarray(refine.refined_weights(residual, pool["weights"], cfg, confirmed))
     truth = np.asarray(ds.distractor_masks[ids], bool)
     tower = np.isin(np.asarray(ds.semantics[ids]), TOWER_CLASSES) & ~truth

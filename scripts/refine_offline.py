@@ -42,8 +42,10 @@ def dilated_prior(prior: np.ndarray, masks: np.ndarray, px: int) -> np.ndarray:
     return np.where(train.grown_masks(masks, px), 0.0, prior).astype(np.float32)
 
 
-def main(argv: list[str]) -> int:
-    run, step = argv[0], int(argv[1])
+def rendered_run(run: str, step: int):
+    """(cfg, dataset, pool, training frame ids, residual [T, H, W], confirmed [T, H, W]) of RUN's
+    training frames rendered at checkpoint STEP; SystemExit unless the dataset has distractor
+    masks and DPT masks."""
     cfg, _, ds = load_run_and_dataset(run, None, False, False, False)
     cfg = config_lib.resolve(cfg, ds)
     if ds.distractor_masks is None or ds.masks is None:
@@ -51,9 +53,13 @@ def main(argv: list[str]) -> int:
     state = checkpoint.load_checkpoint(checkpoint.checkpoint_path(run, step),
                                        train.init_state(cfg, train.train_frames_shape(ds)))
     pool = train.build_pool(ds, cfg)
-    ids = np.asarray(ds.split["train"])
     residual, points = refine.render_training_frames(state["params"], cfg, ds, pool["frame"])
     confirmed = refine.confirmed_frames(pool, points, cfg.train.robust_confirm)
+    return cfg, ds, pool, np.asarray(ds.split["train"]), residual, confirmed
+
+
+def main(argv: list[str]) -> int:
+    cfg, ds, pool, ids, residual, confirmed = rendered_run(argv[0], int(argv[1]))
     truth = np.asarray(ds.distractor_masks[ids], bool)
     masks = np.asarray(ds.masks[ids]) > 0.5
     prior = pool["weights"]
