@@ -27,6 +27,7 @@ import numpy as np
 
 from experiments import settings, tables
 from jaxnerf_grid import config as config_lib, io, models, run_config
+from jaxnerf_grid.data.formats.transforms_json import read_meta
 from jaxnerf_grid.samplers.legacy import flat_keys
 from jaxnerf_grid.config import merge
 
@@ -182,13 +183,6 @@ LATER_TRAIN_KEYS = ("max_side", "robust", "robust_quantile", "robust_flagged_qua
                     "robust_refine", "robust_prior_grow")
 
 
-def dataset_meta(data_dir: Path) -> dict:
-    """The dataset folder's transforms.json ({} without one): what `run_key` settles
-    train.robust_strict_readmit on."""
-    path = Path(data_dir) / "transforms.json"
-    return io.read_json(path) if path.is_file() else {}
-
-
 def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: str = "current",
             meta: dict | None = None) -> str:
     """Hash of the dataset folder's name, the fully resolved RunConfig and the step count.
@@ -206,7 +200,7 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
     cfg["model"] = {**{k: v for k, v in cfg["model"].items() if k != "sampler"},  # the flat sampler keys, as
                     **flat_keys(with_steps.get("model", {}))}  # before model.sampler: runs keep their keys
     defaults = config_lib.to_dict(run_config.TrainConfig())
-    meta = dataset_meta(data_dir) if meta is None else meta
+    meta = read_meta(data_dir) if meta is None else meta
     acts = config_lib.strict_readmit_acts(cfg["train"]["robust_strict_readmit"], cfg["train"]["robust"], meta)
     later = LATER_TRAIN_KEYS if scheme == "current" else LATER_TRAIN_KEYS[:-2]
     cfg["train"] = {k: v for k, v in cfg["train"].items()  # settings added since, at their defaults
@@ -222,7 +216,7 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
 def run_keys(data_dir: Path, method: str, overrides: dict, steps: int) -> list[str]:
     """The keys an identical finished run may be found under: `run_key`'s current scheme first
     (a new run is made under it), then the twenty-eighth session's."""
-    meta = dataset_meta(data_dir)
+    meta = read_meta(data_dir)
     keys = [run_key(data_dir, method, overrides, steps, scheme, meta) for scheme in ("current", "session28")]
     return list(dict.fromkeys(keys))
 

@@ -29,6 +29,7 @@ from jaxnerf_grid import (config as config_lib, distributed, evaluate, folders, 
                           runs, videos)
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
+from jaxnerf_grid.data.formats.transforms_json import read_meta
 from jaxnerf_grid.data.synthetic import generate as synth_generate
 from jaxnerf_grid.io import DataError
 from jaxnerf_grid.run_config import make_config
@@ -65,7 +66,7 @@ STAGES = {"poses": "poses (`jaxnerf-grid poses`, before the demo; from the datas
 def poses_seconds(data: Path) -> float | None:
     """The seconds `jaxnerf-grid poses` took to make the dataset (transforms.json's
     poses.seconds); None for a dataset it did not make."""
-    poses = _read_meta(data).get("poses")
+    poses = read_meta(data).get("poses")
     seconds = poses.get("seconds") if isinstance(poses, dict) else None
     return float(seconds) if isinstance(seconds, (int, float)) and not isinstance(seconds, bool) else None
 
@@ -155,10 +156,6 @@ def _dataset_folder(data, out: Path, progress: bool, timings: dict) -> Path:
     return data
 
 
-def _read_meta(data: Path) -> dict:
-    return io.read_json(data / "transforms.json") if (data / "transforms.json").is_file() else {}
-
-
 MASK_CHOICES = ("auto", "dpt", "robust", "dpt+robust", "none")
 
 
@@ -203,7 +200,7 @@ def dataset_domain(data: Path) -> dict | None:
     """The out-of-domain verdict of a dataset's DPT masks: transforms.json's `mask_domain`; for
     DPT masks written before `mask` recorded it, `masking.domain_verdict` of the masks' shares,
     read from masks/; None for other masks (ground truth, the user's own) or none."""
-    meta = _read_meta(data)
+    meta = read_meta(data)
     if meta.get("mask_domain") is not None:
         return meta["mask_domain"]
     frames = [f for f in meta.get("frames", []) if isinstance(f, dict)]
@@ -221,7 +218,7 @@ def _ensure_masks(data: Path, progress: bool, timings: dict) -> str:
     """Masks the dataset unless it has masks or weights (the built-in DPT; ground-truth stand-ins
     when no built-in model is shipped and the data are synthetic; seconds into timings["mask"]).
     Returns the dataset's mask source ("unknown" when it does not say)."""
-    meta = _read_meta(data)
+    meta = read_meta(data)
     has_masks = "mask_source" in meta or any(isinstance(f, dict) and (f.get("weight_path") or f.get("mask_path"))
                                              for f in meta.get("frames", []))
     if not has_masks:
@@ -229,7 +226,7 @@ def _ensure_masks(data: Path, progress: bool, timings: dict) -> str:
         gt = not masking.BUILTIN.exists() and "distractor_mask_path" in json.dumps(meta.get("frames", []))
         masking.write_masks(data, source="gt" if gt else "dpt", progress=progress)
         timings["mask"] = time.perf_counter() - t
-        meta = _read_meta(data)
+        meta = read_meta(data)
     return meta.get("mask_source", "unknown")
 
 

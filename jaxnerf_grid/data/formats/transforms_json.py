@@ -20,6 +20,13 @@ from jaxnerf_grid.io import DataError
 _KNOWN_JSON_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 
 
+def read_meta(folder: str | os.PathLike) -> dict:
+    """A dataset folder's transforms.json as it stands ({} when the folder has none): what `mask`
+    and `poses` recorded there (mask_domain, poses, ...), read without loading the dataset."""
+    path = Path(folder) / "transforms.json"
+    return io.read_json(path) if path.is_file() else {}
+
+
 def _resolve_image(base: Path, file_path: str, json_path: Path, index: int) -> Path:
     if not isinstance(file_path, str) or not file_path:
         raise DataError(f"{json_path}: frame {index} has no file_path")
