@@ -35,8 +35,13 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 
-from jaxnerf_grid import config as config_lib, evaluate, io, metrics, runs, train, views  # noqa: E402
-from jaxnerf_grid import recipes  # noqa: E402
+from jaxnerf_grid.config import recipes  # noqa: E402
+from jaxnerf_grid.config import schema as config_lib  # noqa: E402
+from jaxnerf_grid.eval import evaluate, metrics  # noqa: E402
+from jaxnerf_grid.render import views  # noqa: E402
+from jaxnerf_grid.train import loop as train  # noqa: E402
+from jaxnerf_grid.train import runs  # noqa: E402
+from jaxnerf_grid.util import io  # noqa: E402
 
 # The demo's recipe before the grid field (see git history of DEMO_CONFIG, in train_cli.py then): changes
 # to the `ours-paper-mlp` recipe (RunConfig's defaults for ours): a smaller MLP, 32 + 32 samples, fewer steps.
@@ -62,8 +67,8 @@ RUNS = {"mlp-hierarchical": MLP_CONFIG, "grid-hierarchical": _grid_hierarchical(
 
 
 def dataset_dir(cache: Path) -> Path:
-    from jaxnerf_grid import masking
     from jaxnerf_grid.data.synthetic.generate import generate_scene
+    from jaxnerf_grid.masks import write as masking
 
     data = cache / "tower-small"
     if not (data / "transforms.json").is_file():
@@ -101,7 +106,7 @@ def run_one(name: str, overrides: dict, data: Path, ds, out: Path, every: int, s
         old.unlink()
     result = train.train(ds, cfg, run_dir, progress=False,
                          on_step=lambda step: stamps.__setitem__(step, time.perf_counter() - start))
-    from jaxnerf_grid import checkpoint
+    from jaxnerf_grid.train import checkpoint
 
     points = []
     template = train.init_state(cfg)

@@ -36,9 +36,15 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import (checkpoint, config as config_lib, demo, io, metrics, rays as rays_lib, runs, train, views,
-                          videos)
-from jaxnerf_grid.run_config import resolve_devices
+from jaxnerf_grid import demo
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.config.run_config import resolve_devices
+from jaxnerf_grid.eval import metrics
+from jaxnerf_grid.nerf import rays as rays_lib
+from jaxnerf_grid.render import videos, views
+from jaxnerf_grid.train import checkpoint, runs
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.util import io
 
 
 def parse_size(text: str) -> tuple[int, int]:

@@ -31,7 +31,7 @@ SYNTHETIC = (("tower-small", "none", 160, 120), ("tower-small", "medium", 160, 1
 
 
 def _shrunk(image: np.ndarray, side: int = 640) -> np.ndarray:
-    from jaxnerf_grid.foreground import resize_map
+    from jaxnerf_grid.masks.foreground import resize_map
 
     h, w = image.shape[:2]
     s = side / max(h, w)
@@ -40,7 +40,8 @@ def _shrunk(image: np.ndarray, side: int = 640) -> np.ndarray:
 
 def measure(name: str, images, model) -> dict:
     """One photo set through the built-in DPT: per-frame shares and confidences, the verdict."""
-    from jaxnerf_grid import foreground as fg, masking
+    from jaxnerf_grid.masks import foreground as fg
+    from jaxnerf_grid.masks import write as masking
 
     seg, wdir = model
     out = list(fg.predict_maps(seg, None, images, masking.default_classes(seg, wdir),
@@ -54,7 +55,7 @@ def measure(name: str, images, model) -> dict:
 
 
 def photo_sets(args):
-    from jaxnerf_grid import io
+    from jaxnerf_grid.util import io
 
     if args.strecha:
         for scene in STRECHA_SCENES:
@@ -80,7 +81,7 @@ def photo_sets(args):
 
 
 def markdown(rows: list[dict], argv: list[str]) -> str:
-    from jaxnerf_grid import masking
+    from jaxnerf_grid.masks import write as masking
 
     lines = ["# The built-in DPT in and out of its domain", "",
              "`python -m benchmarks.dpt_domain " + " ".join(argv) + "`", "",
@@ -106,7 +107,8 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=str(ROOT / "benchmarks/results/dpt_domain"))
     args = p.parse_args(argv)
     argv = list(sys.argv[1:] if argv is None else argv)
-    from jaxnerf_grid import io, masking
+    from jaxnerf_grid.masks import write as masking
+    from jaxnerf_grid.util import io
 
     seg, _, wdir = masking.load_models(None, None)
     rows = []

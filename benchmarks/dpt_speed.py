@@ -51,7 +51,7 @@ def main(argv=None) -> int:
     import torch
     import transformers
 
-    from jaxnerf_grid import dpt
+    from jaxnerf_grid.masks import dpt
 
     torch.set_num_threads(os.cpu_count() or 1)
     kw = dict(num_labels=150)
@@ -144,7 +144,8 @@ def main(argv=None) -> int:
 def encoder_matmuls_only(params: dict, cfg, pixel_values) -> list:
     """Our ViT encoder with only its matmuls: the per-block linear layers and the two attention
     products, without softmax, GELU or LayerNorm (a timing lower bound; the numbers are meaningless)."""
-    from jaxnerf_grid.dpt import layers, vit
+    from jaxnerf_grid.masks.dpt import ops as layers
+    from jaxnerf_grid.masks.dpt import vit
 
     x = vit.embed(params, cfg, pixel_values)
     b, n, d = x.shape
@@ -170,7 +171,7 @@ def stage_times(ref, model, x, xt, task: str, iters: int, sync=lambda: None) -> 
     import jax
     import torch
 
-    from jaxnerf_grid.dpt import fusion, heads, reassemble, vit
+    from jaxnerf_grid.masks.dpt import fusion, heads, reassemble, vit
 
     cfg = model.config
     p = model.params

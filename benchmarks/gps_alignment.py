@@ -41,9 +41,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
-from jaxnerf_grid.data.georef import apply_similarity, umeyama
-from jaxnerf_grid.data.gps_scene import write_gcp
+from jaxnerf_grid.capture.georef import apply_similarity, umeyama
+from jaxnerf_grid.capture.gps_photos import write_gcp
+from jaxnerf_grid.util import io
 
 
 def score(synth_dir, poses_dir) -> dict:
@@ -92,7 +92,7 @@ def realign(synth_dir, poses_dir, gcp_path, export_dir=None) -> dict:
 
     import pycolmap
 
-    from jaxnerf_grid.data import georef, gps
+    from jaxnerf_grid.capture import georef, gps
 
     truth = io.read_json(Path(synth_dir) / "gps_truth.json")
     model = pycolmap.Reconstruction(str(Path(poses_dir) / "sparse" / "0"))

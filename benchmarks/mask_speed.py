@@ -50,8 +50,8 @@ def main(argv=None) -> int:
 
     import jax
 
-    from jaxnerf_grid import foreground as fg
-    from jaxnerf_grid.masking import default_classes, load_models
+    from jaxnerf_grid.masks import foreground as fg
+    from jaxnerf_grid.masks.write import default_classes, load_models
 
     load_before = machine_load()
     sizes = sorted(set(args.batch_sizes) | {1})    # batch 1 is the reference of the ratios

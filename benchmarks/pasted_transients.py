@@ -51,9 +51,9 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import strecha_dataset as strecha
-from jaxnerf_grid import io
-from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 ROOT = Path(__file__).resolve().parents[1]
 ROWS = ("none", "dpt", "robust", "dpt+robust", "gt")
@@ -155,7 +155,7 @@ def build_scene(scene_dir, out, bank: list[tuple], long_side: int = 480, test_ev
     shot), distractor/ (the pasted masks; all zero on test photos), transforms.json. photos: use
     the first this many (0 = all). Returns `out`."""
     from jaxnerf_grid.data.normalize import normalize_orbit
-    from jaxnerf_grid.foreground import resize_map
+    from jaxnerf_grid.masks.foreground import resize_map
 
     scene_dir, out = Path(scene_dir), Path(out)
     cams = sorted((scene_dir / "gt_dense_cameras").glob("*.camera"))
@@ -234,7 +234,7 @@ def variant(base: Path, kind: str) -> Path:
     shutil.rmtree(out, ignore_errors=True)
     shutil.copytree(base, out)
     if kind == "dpt":
-        from jaxnerf_grid import masking
+        from jaxnerf_grid.masks import write as masking
 
         masking.write_masks(out, source="dpt", progress=False)
     else:
@@ -291,7 +291,8 @@ def _grey(image: np.ndarray) -> np.ndarray:
 def row_overrides(row: str, seed: int, steps: int, sets: dict | None = None) -> dict:
     """The `ours` recipe (RECIPE) for a row; `sets`: the --set overrides (nested), applied to
     the robust rows only (the others do not read the evidence's settings)."""
-    from jaxnerf_grid import config as config_lib, recipes
+    from jaxnerf_grid.config import recipes
+    from jaxnerf_grid.config import schema as config_lib
 
     cfg = recipes.overrides(RECIPE)
     cfg["model"]["near"] = NEAR
@@ -326,7 +327,9 @@ def run_row(base: Path, row: str, seed: int, steps: int, work: Path, reuse: bool
     """Trains and scores one row and seed; None when this build's config lacks the row's keys.
     sets, tag, prior: --set's overrides, --tag (the run folder's suffix) and --prior
     (`prior_data`)."""
-    from jaxnerf_grid import evaluate, runs, train
+    from jaxnerf_grid.eval import evaluate
+    from jaxnerf_grid.train import loop as train
+    from jaxnerf_grid.train import runs
 
     overrides = row_overrides(row, seed, steps, sets)
     try:
@@ -445,7 +448,8 @@ def main(argv=None) -> int:
     if args.test_every < 2 or args.long_side < 16 or not 0 <= args.coverage < 1:
         raise SystemExit("--test-every must be >= 2, --long-side >= 16, --coverage in [0, 1)")
     try:
-        from jaxnerf_grid import config as config_lib, run_config
+        from jaxnerf_grid.config import run_config
+        from jaxnerf_grid.config import schema as config_lib
 
         sets = config_lib.parse_sets(args.set, run_config.RunConfig) if args.set else None
     except ConfigError as err:

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks import strecha_dataset as strecha
-from jaxnerf_grid.data import georef
-from jaxnerf_grid.data.poses import similarity_fit  # Umeyama 1991
+from jaxnerf_grid.capture import georef
+from jaxnerf_grid.capture.poses import similarity_fit  # Umeyama 1991
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -96,7 +96,7 @@ def run_strecha(scene: Path, work: Path, max_side: int) -> dict:
     """`poses` on a Strecha scene's photos (scene/images, scaled to `max_side`) against its
     surveyed cameras (scene/gt_dense_cameras): rotation errors per photo, the vetting table and
     the scene bounds. Centre errors are in metres."""
-    from jaxnerf_grid.data.poses import poses_from_images
+    from jaxnerf_grid.capture.poses import poses_from_images
 
     out = work / f"{scene.name}-{max_side}-poses"
     t0 = time.perf_counter()
@@ -128,9 +128,9 @@ def strecha_errors(scene: Path, dataset: Path) -> dict:
 
 
 def run_case(name: str, views: int, work: Path, seed: int) -> dict:
-    from jaxnerf_grid.data.poses import poses_from_images
+    from jaxnerf_grid.capture.poses import poses_from_images
     from jaxnerf_grid.data.synthetic.generate import generate_scene
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     preset, clutter, w, h = CASES[name]
     scene = work / f"{name}-s{seed}-{views}"

@@ -18,7 +18,10 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 
 from benchmarks.convergence import dataset_dir  # noqa: E402
-from jaxnerf_grid import evaluate, io, recipes, runs  # noqa: E402
+from jaxnerf_grid.config import recipes  # noqa: E402
+from jaxnerf_grid.eval import evaluate  # noqa: E402
+from jaxnerf_grid.train import runs  # noqa: E402
+from jaxnerf_grid.util import io  # noqa: E402
 
 FIRST = {"model": {"opaque_far": False, "far": None, "field": {"density_bias": -1.0},
                    "sampler": {"field": {"density_bias": -1.0}}},

@@ -1,6 +1,6 @@
 """Sampling-scheme benchmark: s-space warps x hierarchical resampling x samples per ray.
 
-Warps (jaxnerf_grid.sampling): linear (uniform t), disparity (uniform 1/t, ours), log, piecewise
+Warps (jaxnerf_grid.nerf.samplers.s_space): linear (uniform t), disparity (uniform 1/t, ours), log, piecewise
 (mip-NeRF 360's linear-then-disparity), each with and without hierarchical resampling, at 16,
 32, 64 and 128 samples per ray, trained for the same steps with the same
 batch, MLP and seed on the same scene (tower-small without distractors, so masks play no
@@ -218,7 +218,7 @@ def figure(table: dict, samples: tuple, setting: str, steps: int) -> np.ndarray:
 
 def replot(results: Path) -> Path:
     """Redraws results/sampling_schemes.png from results/sampling_schemes.json (no run)."""
-    from jaxnerf_grid import io
+    from jaxnerf_grid.util import io
 
     body = io.read_json(results / "sampling_schemes.json")
     table = {(r["scheme"], r["samples_per_ray"]): r["aggregate"] for r in body["rows"]}

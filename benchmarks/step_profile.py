@@ -47,8 +47,14 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.throughput import machine_load, scene
-from jaxnerf_grid import config as config_lib, losses, models, optim, parallel, recipes, runs, sampling, train
-from jaxnerf_grid.fields import hashgrid, layers, proposal
+from jaxnerf_grid.config import recipes
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.nerf import losses, models
+from jaxnerf_grid.nerf.fields import hashgrid, layers, proposal
+from jaxnerf_grid.nerf.samplers import s_space as sampling
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train import optim, runs
+from jaxnerf_grid.util import parallel
 
 STAGES = ("batching", "proposal_field", "main_encoding", "main_mlps", "loss_and_grad", "sampling_losses",
           "optimizer", "optimizer_sparse", "step", "step_synced")

@@ -29,10 +29,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
 from jaxnerf_grid.data.formats import CV_TO_GL, DEFAULT_FAR, DEFAULT_NEAR, transforms_top
 from jaxnerf_grid.data.normalize import z_up_normalization
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 
 def read_camera(path) -> dict:

@@ -32,8 +32,8 @@ from pathlib import Path
 import numpy as np
 
 from benchmarks.strecha_dataset import read_camera
-from jaxnerf_grid import io
-from jaxnerf_grid.data.georef import INLIER_METRES, apply_similarity, ransac_similarity, umeyama
+from jaxnerf_grid.capture.georef import INLIER_METRES, apply_similarity, ransac_similarity, umeyama
+from jaxnerf_grid.util import io
 
 Z_DOWN_TO_UP = np.diag([1.0, -1.0, -1.0])  # 180 degrees about x
 VERTICAL_FACTOR = 1.5

@@ -23,7 +23,6 @@ import time
 from pathlib import Path
 
 
-
 def _cpu_seconds() -> float:
     own = resource.getrusage(resource.RUSAGE_SELF)
     kids = resource.getrusage(resource.RUSAGE_CHILDREN)

@@ -52,10 +52,16 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks.convergence import MLP_CONFIG, RUNS
-from jaxnerf_grid import config as config_lib, models, parallel, rays as rays_lib, recipes, train, views
-from jaxnerf_grid.config import merge
+from jaxnerf_grid.config import recipes
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.config.schema import merge
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.fields import hashgrid
+from jaxnerf_grid.nerf import models
+from jaxnerf_grid.nerf import rays as rays_lib
+from jaxnerf_grid.nerf.fields import hashgrid
+from jaxnerf_grid.render import views
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.util import parallel
 
 CONFIGS = {
     "mlp": MLP_CONFIG,
@@ -92,8 +98,8 @@ CONCAT = "-concat"
 def _per_sample_first_colour_layer(layer, feature, viewdirs, appearance, cfg):
     """fields.layers.first_colour_layer as it was before issue 40: [feature, encoded direction,
     appearance] broadcast and concatenated at every sample, then one dense layer."""
-    from jaxnerf_grid import coords
-    from jaxnerf_grid.fields import layers
+    from jaxnerf_grid.nerf import coords
+    from jaxnerf_grid.nerf.fields import layers
 
     branch = [feature]
     lead = feature.shape[:-1]
@@ -108,7 +114,7 @@ def _per_sample_first_colour_layer(layer, feature, viewdirs, appearance, cfg):
 @contextlib.contextmanager
 def _tracing_as_before(suffix: str):
     """Traces with the code before the change named by a config's suffix (FUSED, CONCAT, or "")."""
-    from jaxnerf_grid.fields import layers
+    from jaxnerf_grid.nerf.fields import layers
 
     saved = hashgrid.computed_once, layers.first_colour_layer
     if suffix == FUSED:
@@ -231,7 +237,7 @@ def _process_child(config: str, steps: int, port: int, pid: int, nproc: int) -> 
     """One process of the --processes comparison: prints a JSON line {rays_per_s, psum_s}."""
     import sys
 
-    from jaxnerf_grid import distributed
+    from jaxnerf_grid.train import distributed
 
     if nproc > 1:
         distributed.initialize(f"127.0.0.1:{port}", nproc, pid)

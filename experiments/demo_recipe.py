@@ -15,7 +15,8 @@ import argparse
 import time
 from pathlib import Path
 
-from jaxnerf_grid import demo, io
+from jaxnerf_grid import demo
+from jaxnerf_grid.util import io
 
 ROOT = Path(__file__).resolve().parents[1]
 

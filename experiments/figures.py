@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid.util import io
 
 
 def label_image(img: np.ndarray, text: str, height: int = 14) -> np.ndarray:

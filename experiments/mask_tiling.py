@@ -26,8 +26,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 from experiments import runner, scenes  # noqa: E402
 from experiments.train_builtin_dpt import evaluate  # noqa: E402
-
-from jaxnerf_grid.masking import load_models  # noqa: E402
+from jaxnerf_grid.masks.write import load_models  # noqa: E402
 
 SEEDS = (7101, 7102)
 CONDITIONS = [(160, 1), (320, 1), (480, 1), (160, 2), (160, 3), (160, 4)]  # (max_side, tiles)

@@ -27,9 +27,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
 from jaxnerf_grid.data.synthetic import CLASSES
 from jaxnerf_grid.data.synthetic import DISTRACTOR_CLASSES as DISTRACTOR_NAMES
+from jaxnerf_grid.util import io
 
 TOWER_CLASSES = (1, 2)
 DISTRACTOR_CLASSES = tuple(CLASSES.index(name) for name in DISTRACTOR_NAMES)
@@ -91,8 +91,8 @@ def rule_masks(prob: np.ndarray, threshold: float = 0.5) -> dict:
 def tower_rule_shares(scene: Path) -> dict:
     """{rule: {tower_covered, recall}} over a synthetic scene's training views, built-in DPT at
     its own working size (as `mask` runs it)."""
-    from jaxnerf_grid import foreground as fg
-    from jaxnerf_grid import masking
+    from jaxnerf_grid.masks import foreground as fg
+    from jaxnerf_grid.masks import write as masking
 
     seg, _, wdir = masking.load_models(None, None)
     max_side = masking.model_max_side(wdir)

@@ -24,14 +24,13 @@ import shutil
 import time
 from pathlib import Path
 
-
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def true_pose_dataset(scene: Path, chain_a: Path, out: Path, size: tuple[int, int]) -> Path:
     """A dataset of scene's photos scaled to `size` with the true cameras, holding exactly the
     frames of chain_a's transforms.json, in its order."""
-    from jaxnerf_grid import io
+    from jaxnerf_grid.util import io
 
     w, h = size
     truth = io.read_json(scene / "transforms.json")
@@ -65,9 +64,10 @@ def main(argv=None) -> int:
     p.add_argument("--cache", default=str(ROOT / "experiments" / ".cache" / "poses_chain"))
     p.add_argument("--results", default=str(ROOT / "experiments" / "results"))
     args = p.parse_args(argv)
-    from jaxnerf_grid import demo, io
-    from jaxnerf_grid.data.poses import poses_from_images
+    from jaxnerf_grid import demo
+    from jaxnerf_grid.capture.poses import poses_from_images
     from jaxnerf_grid.data.synthetic.generate import generate_scene
+    from jaxnerf_grid.util import io
 
     w, h = (int(v) for v in args.size.lower().split("x"))
     cache = Path(args.cache)

@@ -26,10 +26,13 @@ import jax
 import numpy as np
 
 from experiments import settings, tables
-from jaxnerf_grid import config as config_lib, io, models, run_config
+from jaxnerf_grid.config import run_config
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.config.schema import merge
 from jaxnerf_grid.data.formats.transforms_json import read_meta
-from jaxnerf_grid.samplers.legacy import flat_keys
-from jaxnerf_grid.config import merge
+from jaxnerf_grid.nerf import models
+from jaxnerf_grid.nerf.samplers.legacy import flat_keys
+from jaxnerf_grid.util import io
 
 
 def cpu_defaults() -> None:
@@ -228,7 +231,8 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     Returns {"metrics": metrics.json, "run_dir", "train_seconds", "seconds_per_step", "cached"},
     or None when the time budget is spent before the run starts.
     """
-    from jaxnerf_grid import evaluate, runs
+    from jaxnerf_grid.eval import evaluate
+    from jaxnerf_grid.train import runs
 
     steps = int(steps or ctx.steps)
     ov = merge(merge(ctx.overrides, settings.space_overrides(ctx.setting, method, overrides)), overrides or {})

@@ -19,8 +19,8 @@ import json
 import os
 from pathlib import Path
 
-from jaxnerf_grid import recipes
-from jaxnerf_grid.samplers.legacy import flat_model
+from jaxnerf_grid.config import recipes
+from jaxnerf_grid.nerf.samplers.legacy import flat_model
 
 ROOT = Path(__file__).resolve().parents[1]
 EXPERIMENTS = Path(__file__).resolve().parent
@@ -95,7 +95,7 @@ def space_overrides(setting: str, method: str, overrides: dict | None = None) ->
     rows without it) keeps its field, sampler, samples, steps and rays, in NeRF's bounded space
     instead (`recipes.BOUNDED_SPACE`: far NERF_FAR, the grid over +-NERF_GRID_HALF_WIDTH), as
     the `nerf` and `nerfw` recipes do. `overrides`: the condition's own."""
-    from jaxnerf_grid import models
+    from jaxnerf_grid.nerf import models
 
     if setting != "standard":
         return {}

@@ -6,14 +6,14 @@ settings line says which), per scene set:
   no masks                 every pixel a training target (train.use_masks false)
   binary GT masks          `jaxnerf-grid mask --source gt --floor 1`: masked pixels excluded, no Eq. 7
   GT masks + Eq. 7         `jaxnerf-grid mask --source gt --floor 0`: M_w = M (Dmax - D) / Dmax
-  built-in DPT + Eq. 7     `jaxnerf-grid mask --source dpt` (jaxnerf_grid/assets/dpt_builtin; row
+  built-in DPT + Eq. 7     `jaxnerf-grid mask --source dpt` (jaxnerf_grid/masks/assets/dpt_builtin; row
                            "not run" when the build ships no built-in model)
   built-in DPT + Eq. 7, dilated 2 px
                            the same with `mask --dilate 2` (sets B and A-high, where the DPT's
                            masks miss a third of the distractor pixels and the tower target is missed)
   clean images             trained on the distractor-free renders (upper bound)
   robust, no masks         no masks; the photos' own evidence down-weights outlier residuals
-                           (train.robust "robust", `jaxnerf_grid/robust.py`, docs/ROBUST.md)
+                           (train.robust "robust", `jaxnerf_grid/masks/robust.py`, docs/ROBUST.md)
   built-in DPT masks + Eq. 7 + robust
                            the DPT's weights as the prior, corrected both ways by the evidence
                            (train.robust "dpt+robust"); sets A and B, not at --quick
@@ -60,7 +60,7 @@ COLUMNS = [("psnr", "PSNR", 2), ("psnr_tower", "PSNR tower", 2), ("psnr_near_gro
 
 
 def builtin_available() -> bool:
-    from jaxnerf_grid import masking
+    from jaxnerf_grid.masks import write as masking
 
     return (masking.BUILTIN / "config.json").is_file()
 
@@ -166,7 +166,7 @@ def main(argv=None) -> int:
     if args.dpt_weights:
         notes.append(f"The DPT rows use the DPT in `{args.dpt_weights}`, not the shipped built-in model.")
     elif not builtin_available():
-        notes.append("Built-in DPT row not run: jaxnerf_grid/assets/dpt_builtin is not in this build "
+        notes.append("Built-in DPT row not run: jaxnerf_grid/masks/assets/dpt_builtin is not in this build "
                      "(train it with experiments/train_builtin_dpt.py).")
     tables.write_results(ctx, "table1_foreground", "Table 1: dynamic-foreground removal", body, md, notes)
     return 0

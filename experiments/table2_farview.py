@@ -38,8 +38,8 @@ def far_background_share(ctx, seed: int) -> float:
     """Share of the test pixels (all test views of seed's scene) in the far-background region."""
     import numpy as np
 
-    from jaxnerf_grid import evaluate
     from jaxnerf_grid.data.formats import load_dataset
+    from jaxnerf_grid.eval import evaluate
 
     ds = load_dataset(scenes.scene(ctx, "tower-small", seed), progress=False)
     test = [int(i) for i in ds.split["test"]]

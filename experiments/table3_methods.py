@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from experiments import figures, runner, scenes, tables
-from jaxnerf_grid.config import merge
+from jaxnerf_grid.config.schema import merge
 
 METHODS = (("ours", "ours", {"train": {"use_masks": True}}), ("NeRF", "nerf", {}), ("NeRF-W", "nerfw", {}))
 # A check on the baseline at --standard: NeRF without the recipe's opaque far bin and distortion
@@ -38,8 +38,9 @@ COLUMNS = [("psnr", "PSNR", 2), ("psnr_right_half", "PSNR right half", 2), ("ssi
 
 def crops_figure(records: dict, data_dir: Path, scale: int = 3, max_views: int = 3) -> np.ndarray | None:
     """Rows = test views; columns = clean ground truth, then each method's render, cropped to the tower."""
-    from jaxnerf_grid import io, report
     from jaxnerf_grid.data.formats import load_dataset
+    from jaxnerf_grid.report import markdown as report
+    from jaxnerf_grid.util import io
 
     ds = load_dataset(data_dir)
     rows = []

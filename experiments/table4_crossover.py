@@ -24,7 +24,7 @@ import sys
 from pathlib import Path
 
 from experiments import runner, scenes, settings, tables
-from jaxnerf_grid import io  # noqa: E402
+from jaxnerf_grid.util import io  # noqa: E402
 
 DIRECTIONS = (("ttpla-like", "plad-like", 7201), ("plad-like", "ttpla-like", 7202))
 DPT_SETTINGS = {"quick": {"minutes": 3.0, "steps": 600, "views": 40},

@@ -15,9 +15,8 @@ from pathlib import Path
 import numpy as np
 
 from experiments import settings
-from jaxnerf_grid import io
-from jaxnerf_grid.samplers.legacy import upgrade_flat_model
-
+from jaxnerf_grid.nerf.samplers.legacy import upgrade_flat_model
+from jaxnerf_grid.util import io
 
 METRIC_PATHS = {
     "psnr": ("metrics", "mean", "psnr"),

@@ -3,7 +3,8 @@ and evaluate its distractor masks on held-out scenes.
 
 Usage:
   JAX_PLATFORMS=cpu python -m experiments.train_builtin_dpt --train DIR [DIR ...] --eval DIR [DIR ...]
-      [--minutes 45] [--steps 1600] [--patch-size 8] [--init DIR] [--lr 2e-3] [--out jaxnerf_grid/assets/dpt_builtin]
+      [--minutes 45] [--steps 1600] [--patch-size 8] [--init DIR] [--lr 2e-3]
+      [--out jaxnerf_grid/masks/assets/dpt_builtin]
       [--results experiments/results/builtin_dpt]
 
 Data: folders written by `jaxnerf-grid synth` (DATASET.md layout) with `semantic_file_path`
@@ -11,12 +12,12 @@ Data: folders written by `jaxnerf-grid synth` (DATASET.md layout) with `semantic
 every evaluation scene (this project reserves seeds >= 7000 for the built-in model: 7001-7099
 train, 7101+ held out). Every frame of a training scene is used (cluttered images).
 
-Model: the same DPT code as the HF import (jaxnerf_grid.dpt), a small config (patch 8, 4 ViT
+Model: the same DPT code as the HF import (jaxnerf_grid.masks.dpt), a small config (patch 8, 4 ViT
 layers of width 64, fusion width 16; patch 16 gave IoU 0.38 against patch 8's 0.52, see
 experiments/results/builtin_dpt.md), segmentation head over the 9 synthetic classes and a depth
 head regressing inverse depth (1 / z-depth in normalised units; sky -> 0). Input: images resized
 to 128 x 160 (the working size of the 160 x 120 benchmark images). Loss: class-weighted
-cross-entropy + 0.5 * L1 on inverse depth. Optimiser: Adam from jaxnerf_grid.optim driven by
+cross-entropy + 0.5 * L1 on inverse depth. Optimiser: Adam from jaxnerf_grid.train.optim driven by
 jaxopt's OptaxSolver, random horizontal flips. Stops at --steps or --minutes, whichever first.
 
 Evaluation (held-out scenes, full resolution, through the same path as `jaxnerf-grid mask`:
@@ -34,14 +35,16 @@ import sys
 import time
 from pathlib import Path
 
-
 import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 from experiments.mask_tower_overlap import visible_tower  # noqa: E402
-from jaxnerf_grid import dpt, foreground as fg, io, optim  # noqa: E402
-from jaxnerf_grid.foreground import SYNTHETIC_DYNAMIC  # noqa: E402
+from jaxnerf_grid.masks import dpt  # noqa: E402
+from jaxnerf_grid.masks import foreground as fg
+from jaxnerf_grid.masks.foreground import SYNTHETIC_DYNAMIC  # noqa: E402
+from jaxnerf_grid.train import optim
+from jaxnerf_grid.util import io
 
 H, W = 128, 160
 NUM_CLASSES = 9
@@ -168,7 +171,7 @@ def main(argv=None) -> int:
     p.add_argument("--train", nargs="+", help="training scenes (required unless --eval-weights)")
     p.add_argument("--eval", nargs="+", required=True)
     p.add_argument("--eval-weights", metavar="DIR",
-                   help="no training: evaluate the DPT in DIR (e.g. the shipped jaxnerf_grid/assets/dpt_builtin) "
+                   help="no training: evaluate the DPT in DIR (e.g. the shipped jaxnerf_grid/masks/assets/dpt_builtin) "
                         "on the --eval scenes and write --results")
     p.add_argument("--steps", type=int, default=1600, help="the learning-rate schedule spans these steps")
     p.add_argument("--minutes", type=float, default=45.0, help="stop early after this much training time")
@@ -180,7 +183,7 @@ def main(argv=None) -> int:
     p.add_argument("--init", metavar="DIR", default=None,
                    help="start from the DPT in DIR (e.g. the shipped model, to fine-tune it on more scenes) "
                         "instead of a random initialisation; its config wins over --patch-size")
-    p.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "jaxnerf_grid/assets/dpt_builtin"))
+    p.add_argument("--out", default=str(Path(__file__).resolve().parents[1] / "jaxnerf_grid/masks/assets/dpt_builtin"))
     p.add_argument("--results", default=str(Path(__file__).resolve().parent / "results/builtin_dpt"))
     args = p.parse_args(argv)
     eval_roots = [Path(r) for r in args.eval]

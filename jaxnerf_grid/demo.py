@@ -25,14 +25,20 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import (config as config_lib, distributed, evaluate, folders, io, masking, recipes, report_html,
-                          runs, videos)
-from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
+from jaxnerf_grid.capture.bounds import bounds_line, folder_bounds, recipe_with_bounds
+from jaxnerf_grid.config import recipes
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.config.run_config import make_config
+from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.data.formats.transforms_json import read_meta
 from jaxnerf_grid.data.synthetic import generate as synth_generate
-from jaxnerf_grid.io import DataError
-from jaxnerf_grid.run_config import make_config
+from jaxnerf_grid.eval import evaluate
+from jaxnerf_grid.masks import write as masking
+from jaxnerf_grid.render import videos
+from jaxnerf_grid.report import html as report_html
+from jaxnerf_grid.train import distributed, runs
+from jaxnerf_grid.util import folders, io
+from jaxnerf_grid.util.io import DataError
 
 # The demo's recipe: `recipes.overrides("ours-lean")` (docs/GRID.md, docs/RECIPES.md): `ours`, the
 # recipe that resolves the tower (a hash grid on the contracted coordinates, one proposal round of

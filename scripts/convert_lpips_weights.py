@@ -1,6 +1,6 @@
 #!/usr/bin/env python
 """Convert the `lpips` package's AlexNet LPIPS (v0.1) into the .npz that
-`jaxnerf_grid.lpips.load_lpips` reads.
+`jaxnerf_grid.eval.lpips.load_lpips` reads.
 
 Run it once, on a machine that has torch, torchvision and the `lpips` package, with torchvision's
 ImageNet AlexNet weights available (downloaded or already in the torch hub cache); the linear
@@ -10,7 +10,7 @@ layers come from the lpips wheel itself (lpips/weights/v0.1/alex.pth):
 
 then pass that file to the metrics (e.g. `load_lpips("lpips_alex_v0.1.npz")`). The script checks
 the conversion by comparing the torch and JAX distances on random image pairs.
-Key layout of the output: see the docstring of `jaxnerf_grid/lpips.py`.
+Key layout of the output: see the docstring of `jaxnerf_grid/eval/lpips.py`.
 """
 
 from __future__ import annotations
@@ -36,7 +36,7 @@ def arrays_from_torch_lpips(model) -> dict[str, np.ndarray]:
         raise ValueError(f"only the AlexNet LPIPS is supported, got net='{model.pnet_type}'")
     if getattr(model, "version", "0.1") != "0.1":
         raise ValueError(f"only LPIPS v0.1 is supported, got version {model.version}")
-    from jaxnerf_grid import lpips as jl
+    from jaxnerf_grid.eval import lpips as jl
 
     state = {k: v.detach().cpu().numpy().astype(np.float32) for k, v in model.state_dict().items()}
     out: dict[str, np.ndarray] = {}
@@ -60,7 +60,7 @@ def check_conversion(model, params, sizes=((64, 64), (96, 128)), seed: int = 0) 
     """Largest relative difference between torch and JAX distances on random pairs."""
     import torch
 
-    from jaxnerf_grid import lpips as jl
+    from jaxnerf_grid.eval import lpips as jl
 
     rng = np.random.default_rng(seed)
     worst = 0.0
@@ -83,7 +83,7 @@ def main(argv=None) -> int:
     if args.out.exists() and not args.overwrite:
         print(f"error: {args.out} exists (pass --overwrite)", file=sys.stderr)
         return 2
-    from jaxnerf_grid import lpips as jl
+    from jaxnerf_grid.eval import lpips as jl
 
     try:  # needs torch, a working torchvision with the ImageNet AlexNet weights, and lpips
         import lpips

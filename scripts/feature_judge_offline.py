@@ -28,10 +28,11 @@ import cv2
 import jax
 import jax.numpy as jnp
 import numpy as np
-
-from jaxnerf_grid import foreground as fg, masking, refine
-
 from refine_offline import TOWER_CLASSES, rendered_run, shares  # scripts/ is sys.path[0] when run as a script
+
+from jaxnerf_grid.masks import foreground as fg
+from jaxnerf_grid.masks import write as masking
+from jaxnerf_grid.train import refine
 
 
 def local_stats(image: np.ndarray) -> tuple[np.ndarray, np.ndarray]:

@@ -40,7 +40,8 @@ def variants(specs: list[str]) -> list[tuple[str, dict]]:
 
 def main(argv=None) -> int:
     sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
-    from experiments import runner, scenes, table1_foreground as t1
+    from experiments import runner, scenes
+    from experiments import table1_foreground as t1
 
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--cache", required=True)

@@ -32,8 +32,8 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "tests"))
 import unprivileged  # noqa: E402  (tests/unprivileged.py: setpriv, the tmpfs of a full disk)
-
 from test_bad_input import SYNTH, TINY  # noqa: E402  (the suite's tiny run and scene, shared)
+
 TRAIN = ["train", "--recipe", "ours-paper-mlp", "--method", "nerf", "--quiet"]
 
 

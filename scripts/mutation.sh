@@ -4,7 +4,7 @@
 #
 #   scripts/mutation.sh                         every group below, all of each module
 #   scripts/mutation.sh foreground models       some groups
-#   scripts/mutation.sh evaluate -- 'jaxnerf_grid.evaluate.x_region_masks*'
+#   scripts/mutation.sh evaluate -- 'jaxnerf_grid.eval.evaluate.x_region_masks*'
 #                                               one group, only the mutants of some functions
 #                                               (mutmut's names: module.x_function__mutmut_N)
 #
@@ -78,13 +78,13 @@ mesh_ply_read_back_by_plyfile; do printf 'tests/test_export.py::test_%s ' $t; do
 
 # group -> "module to mutate|fast tests that cover it"
 declare -A GROUPS_=(
-  [foreground]="jaxnerf_grid/foreground.py|tests/test_foreground.py tests/test_join_foreground.py"
-  [masking]="jaxnerf_grid/masking.py|tests/test_masking_blocks.py tests/test_mask_domain.py::test_domain_verdict_counts_mostly_masked_frames tests/test_join_foreground.py tests/test_mask_cli.py"
-  [models]="jaxnerf_grid/models.py|tests/test_join_nerfw.py tests/test_models.py"
-  [evaluate]="jaxnerf_grid/evaluate.py|tests/test_evaluate_blocks.py tests/test_join_eval.py"
-  [report]="jaxnerf_grid/report.py|tests/test_report_blocks.py tests/test_join_eval.py"
+  [foreground]="jaxnerf_grid/masks/foreground.py|tests/test_foreground.py tests/test_join_foreground.py"
+  [masking]="jaxnerf_grid/masks/write.py|tests/test_masking_blocks.py tests/test_mask_domain.py::test_domain_verdict_counts_mostly_masked_frames tests/test_join_foreground.py tests/test_mask_cli.py"
+  [models]="jaxnerf_grid/nerf/models.py|tests/test_join_nerfw.py tests/test_models.py"
+  [evaluate]="jaxnerf_grid/eval/evaluate.py|tests/test_evaluate_blocks.py tests/test_join_eval.py"
+  [report]="jaxnerf_grid/report/markdown.py|tests/test_report_blocks.py tests/test_join_eval.py"
   [demo]="jaxnerf_grid/demo.py|tests/test_join_demo.py"
-  [geometry]="jaxnerf_grid/geometry.py|tests/test_geometry.py tests/test_join_truth.py"
+  [geometry]="jaxnerf_grid/eval/geometry.py|tests/test_geometry.py tests/test_join_truth.py"
   [export_score]="jaxnerf_grid/export/score.py|tests/test_join_truth.py tests/test_join_export.py"
   [export_init]="jaxnerf_grid/export/__init__.py|tests/test_join_export.py tests/test_export.py $BOX_BLOCKS"
   [export_ground]="jaxnerf_grid/export/ground.py|tests/test_join_export.py tests/test_export.py"
@@ -96,9 +96,9 @@ declare -A GROUPS_=(
   [export_mesh]="jaxnerf_grid/export/mesh.py|$MESH_BLOCKS tests/test_export_blocks2.py tests/test_join_export.py"
   [export_geoid]="jaxnerf_grid/export/geoid.py|tests/test_export_geoid.py tests/test_export_blocks2.py"
   [normalize]="jaxnerf_grid/data/normalize.py|tests/test_normalize.py tests/test_join_poses.py tests/test_formats.py $NORMALIZE_BLOCKS"
-  [poses]="jaxnerf_grid/data/poses.py|tests/test_join_poses.py $POSES_BLOCKS"
-  [losses]="jaxnerf_grid/losses.py|tests/test_losses.py"
-  [train]="jaxnerf_grid/train.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch tests/test_refine.py::test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel"
+  [poses]="jaxnerf_grid/capture/poses.py|tests/test_join_poses.py $POSES_BLOCKS"
+  [losses]="jaxnerf_grid/nerf/losses.py|tests/test_losses.py"
+  [train]="jaxnerf_grid/train/loop.py|tests/test_join_truth.py tests/test_train.py::test_loss_weights_floor_and_switch tests/test_refine.py::test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel"
 )
 ORDER=(foreground masking models evaluate report demo geometry export_score export_init export_ground export_measure
        export_field export_run export_survey export_fuse export_mesh export_geoid normalize poses losses train)

@@ -1,4 +1,4 @@
-"""What `train.robust_refine`'s whole-frame rule (jaxnerf_grid/refine.py) makes of a trained
+"""What `train.robust_refine`'s whole-frame rule (jaxnerf_grid/train/refine.py) makes of a trained
 run's training frames, against the scene's distractor masks (the synthetic scenes'): the share
 of distractor and of static pixels it ignores, beside the DPT prior alone (and, for the rule,
 what it does with the distractor pixels the DPT missed and found), the rule without multi-view
@@ -21,9 +21,10 @@ import sys
 import cv2
 import numpy as np
 
-from jaxnerf_grid import checkpoint, config as config_lib, refine, train
-from jaxnerf_grid.runs import load_run_and_dataset
-
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.train import checkpoint, refine
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train.runs import load_run_and_dataset
 
 TOWER_CLASSES = (1, 2)  # the synthetic scenes' tower and conductor (semantic_classes)
 

@@ -6,9 +6,9 @@ multi-view confirmation, for a few spread bounds: a quick look before a long tra
 
 FRAMES: comma-separated dataset indices of training frames. For each frame the run renders
 it (rgb and median depth), takes the residuals of the whole frame as the batch, applies the
-rule of `jaxnerf_grid/robust.py` over the frame cut into train.robust_patch squares (the
+rule of `jaxnerf_grid/masks/robust.py` over the frame cut into train.robust_patch squares (the
 inlier quantile is the run's train.robust_quantile unless --quantile says another; 0 leaves
-the spread bound alone), with the confirmation of `jaxnerf_grid/photo_consistency.py` against the
+the spread bound alone), with the confirmation of `jaxnerf_grid/masks/photo_consistency.py` against the
 --views nearest training photos, and prints the share of the frame it would ignore; where
 the dataset has distractor masks (the pasted-transient benchmark's), the share of the
 distractor pixels and of the static pixels separately. docs/ROBUST.md quotes it.
@@ -22,8 +22,11 @@ import sys
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import photo_consistency, rays, robust, train, views
-from jaxnerf_grid.runs import load_run_and_dataset
+from jaxnerf_grid.masks import photo_consistency, robust
+from jaxnerf_grid.nerf import rays
+from jaxnerf_grid.render import views
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train.runs import load_run_and_dataset
 
 
 def tiles(x: np.ndarray, p: int) -> np.ndarray:

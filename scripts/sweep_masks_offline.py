@@ -32,8 +32,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import io, photo_consistency as pc, rays
 from jaxnerf_grid.data.formats import load_dataset
+from jaxnerf_grid.masks import photo_consistency as pc
+from jaxnerf_grid.nerf import rays
+from jaxnerf_grid.util import io
 
 
 def bilinear_neighbourhoods(images, frames, x, y):

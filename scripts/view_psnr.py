@@ -13,8 +13,10 @@ import sys
 
 import numpy as np
 
-from jaxnerf_grid import io, train, views
-from jaxnerf_grid.runs import load_run_and_dataset
+from jaxnerf_grid.render import views
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train.runs import load_run_and_dataset
+from jaxnerf_grid.util import io
 
 
 def main(argv: list[str]) -> int:

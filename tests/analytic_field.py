@@ -25,9 +25,8 @@ before and after.
 
 from __future__ import annotations
 
-import numpy as np
-
 import jax.numpy as jnp
+import numpy as np
 
 CENTRE = np.array([100.0, 200.0])      # the tower's axis, metres
 GROUND_Z = 50.0
@@ -151,8 +150,8 @@ def dataset(frames: int = 8, width: int = 40, height: int = 30):
     Images are blank: the field is analytic."""
     from pathlib import Path
 
-    from jaxnerf_grid import rays as rays_lib
     from jaxnerf_grid.data.dataset import Dataset
+    from jaxnerf_grid.nerf import rays as rays_lib
 
     fx = 0.5 * width / np.tan(np.radians(25))
     c2w = [np.asarray(rays_lib.look_at([2.2 * np.cos(a), 2.2 * np.sin(a), 1.1], [0, 0, -0.2]))
@@ -168,8 +167,8 @@ def dataset(frames: int = 8, width: int = 40, height: int = 30):
 def clear_compiled() -> None:
     """Clears the compiled functions that may hold a field's apply (export's density, the views'
     renderers): call before putting `apply` in place and after taking it away."""
-    from jaxnerf_grid import views
     from jaxnerf_grid.export import field as export_field
+    from jaxnerf_grid.render import views
 
     export_field._compiled.cache_clear()
     views._render_chunk_fn.cache_clear()

@@ -15,7 +15,8 @@ import jax
 import numpy as np
 import pytest
 
-from jaxnerf_grid import checkpoint, train
+from jaxnerf_grid.train import checkpoint
+from jaxnerf_grid.train import loop as train
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import last_state, tiny_config, tiny_dataset  # noqa: E402

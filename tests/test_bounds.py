@@ -6,9 +6,10 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jaxnerf_grid import coords, demo
-from jaxnerf_grid.data import bounds
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid import demo
+from jaxnerf_grid.capture import bounds
+from jaxnerf_grid.nerf import coords
+from jaxnerf_grid.util.io import DataError
 
 
 def _look_at_origin(eye) -> np.ndarray:
@@ -80,7 +81,7 @@ def test_the_demo_recipe_without_recorded_bounds_is_unchanged():
 
 
 def test_recorded_bounds_replace_the_recipe_and_sets_win():
-    from jaxnerf_grid import runs
+    from jaxnerf_grid.train import runs
 
     recorded = {"near": 0.7, "far": 1000.0, "contract_radius": 2.0, "roi_radius": 1.0, "roi_centre": [0, 0, 0]}
     got = bounds.read_bounds({"scene_bounds": recorded}, "t.json")

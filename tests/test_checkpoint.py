@@ -1,4 +1,4 @@
-"""Tests for jaxnerf_grid.checkpoint: bit-exact round trip, keep-k, atomicity, corrupt
+"""Tests for jaxnerf_grid.train.checkpoint: bit-exact round trip, keep-k, atomicity, corrupt
 fallback, clear mismatch errors, and an exact resume of an Adam run."""
 
 import os
@@ -8,9 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import checkpoint as ckpt
-from jaxnerf_grid import optim
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.train import checkpoint as ckpt
+from jaxnerf_grid.train import optim
+from jaxnerf_grid.util.io import DataError
 
 
 def make_state(seed=0):

@@ -7,8 +7,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, io
+from jaxnerf_grid import cli
 from jaxnerf_grid.data.formats import save_transforms_json
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import TINY_FIELD, tiny_dataset  # noqa: E402
@@ -62,9 +63,9 @@ def test_train_render_eval(data_dir, tmp_path, capsys):
     assert set(m["regions_mean"]) == {"tower", "near_ground", "far_background"}
     view = m["per_view"][0]
     # the stored PSNR is the PSNR of the written render against the target (8-bit rounding aside)
-    from jaxnerf_grid.io import read_image
+    from jaxnerf_grid.util.io import read_image
     pred = read_image(run / "renders" / f"{names[0]}.png")
-    from jaxnerf_grid.runs import load_dataset
+    from jaxnerf_grid.train.runs import load_dataset
     target = load_dataset(data_dir, progress=False).clean_images[4]   # the target as stored (8-bit)
     ref = -10 * np.log10(np.mean((pred - target) ** 2))
     # rounding the render to 8 bits adds about 1 / (12 * 255^2) to an MSE of ~0.02: ~0.002 dB
@@ -101,7 +102,9 @@ def test_lift_view_recovers_points_on_a_plane():
     """clouds.lift_view against a closed form: a camera at z = 0.8 looking down at the plane z = 0."""
     import jax.numpy as jnp
 
-    from jaxnerf_grid import clouds, export, rays as rays_lib
+    from jaxnerf_grid import export
+    from jaxnerf_grid.nerf import rays as rays_lib
+    from jaxnerf_grid.render import clouds
 
     c2w = rays_lib.look_at([0.0, 0.0, 0.8], [0.0, 0.0, 0.0], up=(0.0, 1.0, 0.0))
     r = rays_lib.generate_rays(jnp.asarray(c2w), 10.0, 10.0, 8.0, 6.0, 16, 12)
@@ -200,7 +203,8 @@ def test_train_takes_near_far_and_radius_from_the_datasets_scene_bounds(data_dir
 def test_the_demo_cloud_keeps_its_16_views_on_tower_small_and_4_on_a_real_capture():
     """clouds.views_within with the demo's budget: 16 views at 160x120 (the synthetic demo is
     unchanged), 4 at 614x410 (fountain-P11's working size), never fewer than 2 nor more than asked."""
-    from jaxnerf_grid import clouds, demo
+    from jaxnerf_grid import demo
+    from jaxnerf_grid.render import clouds
 
     within = lambda w, h: clouds.views_within(demo.DEMO_CLOUD_VIEWS, demo.DEMO_CLOUD_PIXELS, w, h)  # noqa: E731
     assert within(160, 120) == 16

@@ -3,7 +3,8 @@
 import dataclasses
 from types import SimpleNamespace
 
-from jaxnerf_grid import config as config_lib, train
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.train import loop as train
 
 
 def test_merge_recurses_and_leaves_its_inputs_alone():
@@ -42,7 +43,7 @@ def test_run_config_holds_the_data_path_and_the_compiled_step_ignores_it():
     two runs of one model on two dataset folders share one compiled step."""
     import dataclasses
 
-    from jaxnerf_grid import runs
+    from jaxnerf_grid.train import runs
 
     a = dataclasses.replace(train.RunConfig(), data="/surveys/a")
     b = dataclasses.replace(train.RunConfig(), data="/surveys/b")

@@ -5,7 +5,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import coords, sampling
+from jaxnerf_grid.nerf import coords
+from jaxnerf_grid.nerf.samplers import s_space as sampling
 
 
 def contract_reference(x, radius):

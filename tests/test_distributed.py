@@ -38,8 +38,10 @@ def _config(num_devices: int, **kw):
 
 
 def _child(mode: str, port: int, pid: int, run_dir: str) -> None:
-    from jaxnerf_grid import distributed, train
     from test_train import tiny_dataset
+
+    from jaxnerf_grid.train import distributed
+    from jaxnerf_grid.train import loop as train
 
     distributed.initialize(f"127.0.0.1:{port}", 2, pid, heartbeat_timeout_s=HEARTBEAT_S)
     assert jax.process_count() == 2 and jax.device_count() == 2
@@ -98,8 +100,9 @@ def _leaves(path: Path) -> list[np.ndarray]:
 
 
 def _reference(tmp_path: Path) -> list[np.ndarray]:
-    from jaxnerf_grid import train
     from test_train import tiny_dataset
+
+    from jaxnerf_grid.train import loop as train
 
     if jax.local_device_count() < 2:
         pytest.skip("needs 2 local devices (XLA_FLAGS=--xla_force_host_platform_device_count=2)")
@@ -118,7 +121,7 @@ def test_two_processes_match_one_process_with_two_devices_after_kill_and_resume(
     """Both processes SIGKILLed after a checkpoint mid-run, then restarted: the steps before the
     kill ran straight, those after it from process 0's checkpoint; process 1's run folder is a
     different, empty one (it resumes from process 0's broadcast) and stays without checkpoints."""
-    from jaxnerf_grid import checkpoint
+    from jaxnerf_grid.train import checkpoint
 
     want = _reference(tmp_path)
     dirs = [tmp_path / "k0", tmp_path / "k1"]
@@ -156,7 +159,7 @@ def test_a_dead_process_stops_the_survivor_with_an_error(tmp_path, cache):
 
 
 def test_without_flags_or_environment_nothing_starts(monkeypatch):
-    from jaxnerf_grid import distributed
+    from jaxnerf_grid.train import distributed
 
     for var in ("JAX_COORDINATOR_ADDRESS", "JAX_NUM_PROCESSES", "JAX_PROCESS_ID"):
         monkeypatch.delenv(var, raising=False)

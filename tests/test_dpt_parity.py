@@ -15,7 +15,7 @@ sys.modules.setdefault("torchvision", None)  # the installed torchvision is brok
 torch = pytest.importorskip("torch")
 transformers = pytest.importorskip("transformers")
 
-from jaxnerf_grid import dpt  # noqa: E402
+from jaxnerf_grid.masks import dpt  # noqa: E402
 
 TOL = 1e-4
 

@@ -7,11 +7,12 @@ import sys
 import numpy as np
 import pytest
 
-from jaxnerf_grid import dpt, safetensors_io
-from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.dpt import layers
-from jaxnerf_grid.dpt.weights import params_to_hf
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.masks import dpt
+from jaxnerf_grid.masks.dpt import ops as layers
+from jaxnerf_grid.masks.dpt.weights import params_to_hf
+from jaxnerf_grid.util import safetensors_io
+from jaxnerf_grid.util.io import DataError
 
 TINY = dict(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32, image_size=32,
             patch_size=16, backbone_out_indices=(0, 0, 1, 1), neck_hidden_sizes=(8, 8, 8, 8),

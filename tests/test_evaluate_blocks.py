@@ -11,8 +11,9 @@ from types import SimpleNamespace
 import numpy as np
 import pytest
 
-from jaxnerf_grid import evaluate, io, metrics
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.eval import evaluate, metrics
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 
 def _np_psnr(a, b, mask=None):

@@ -17,8 +17,9 @@ import numpy as np
 import pytest
 
 from experiments import figures, runner, scenes, settings, tables
-from jaxnerf_grid import config, recipes
-from jaxnerf_grid.config import merge
+from jaxnerf_grid.config import recipes
+from jaxnerf_grid.config import schema as config
+from jaxnerf_grid.config.schema import merge
 
 TINY = {"model": {"field": {"depth": 1, "width": 16, "skip": 0, "pos_max_deg": 2, "dir_max_deg": 1, "view_width": 8},
                   "num_coarse": 4, "num_fine": 4},
@@ -94,7 +95,7 @@ def test_sampling_figure_is_redrawn_from_its_results_file(tmp_path):
     """`benchmarks.sampling_schemes --replot`: the PNG from the JSON alone, one line per scheme
     that has cells (linear in C0, disparity in C1), nothing for a scheme without any."""
     from benchmarks import sampling_schemes as bench
-    from jaxnerf_grid import io
+    from jaxnerf_grid.util import io
 
     cell = lambda v: {"n": 1, "seeds": [0], "psnr": {"mean": v, "std": 0.1, "values": [v]}}  # noqa: E731
     rows = [{"scheme": "linear + proposal", "samples_per_ray": n, "aggregate": cell(20.0 + n / 16)} for n in (8, 16)]
@@ -120,7 +121,7 @@ def test_builtin_dpt_variants_follow_the_weights(tmp_path, monkeypatch):
     assert scenes.weights_digest(weights) != before
 
     calls = []
-    from jaxnerf_grid import masking
+    from jaxnerf_grid.masks import write as masking
 
     monkeypatch.setattr(masking, "BUILTIN", weights)
     monkeypatch.setattr(masking, "write_masks", lambda data, **kw: calls.append(kw) or {})
@@ -172,8 +173,8 @@ def test_standard_setting_is_one_recipe_for_every_method():
     methods differ only in contraction / warp / masks / embeddings, and a run without contraction
     gets a grid that covers every point it samples (the synthetic orbits' farthest camera plus
     the far plane, computed here from the generator's orbits)."""
-    from jaxnerf_grid import train
     from jaxnerf_grid.data import synthetic
+    from jaxnerf_grid.train import loop as train
 
     ov = settings.TRAIN_SETTINGS["standard"]["overrides"]
     cfgs = {m: train.make_config(m, merge(ov, settings.space_overrides("standard", m)))
@@ -300,7 +301,9 @@ def _fake_tables(monkeypatch, tmp_path, psnr_of):
 def test_tables_turn_known_runs_into_the_right_claims(tmp_path, monkeypatch):
     """Table 1 / 2 / 3 at --standard on fake runs with known PSNRs: the claim's effect is the paired
     difference of the right rows, and its verdict follows."""
-    from experiments import table1_foreground as t1, table2_farview as t2, table3_methods as t3
+    from experiments import table1_foreground as t1
+    from experiments import table2_farview as t2
+    from experiments import table3_methods as t3
 
     def psnr_of(label, method, overrides, seed):
         if label.startswith("t3-"):
@@ -359,7 +362,7 @@ def test_poses_chain_true_pose_dataset_matches_the_registered_frames(tmp_path):
     """Chain B holds exactly chain A's frames in A's order, with the generator's poses and its
     intrinsics scaled to A's image size, and the photos scaled to that size."""
     from experiments import poses_chain
-    from jaxnerf_grid import io
+    from jaxnerf_grid.util import io
 
     scene, chain_a = tmp_path / "scene", tmp_path / "A"
     (scene / "images").mkdir(parents=True)
@@ -388,7 +391,9 @@ def test_poses_chain_true_pose_dataset_matches_the_registered_frames(tmp_path):
 def test_train_only_trains_the_chosen_runs_and_reads_the_others_from_the_cache(tmp_path, monkeypatch):
     """--train-only REGEX: a run whose 'LABEL seed N' does not match is not trained (listed as not
     run), a matching one is, and a cached run is read back whether or not it matches."""
-    from jaxnerf_grid import evaluate, runs, train
+    from jaxnerf_grid.eval import evaluate
+    from jaxnerf_grid.train import loop as train
+    from jaxnerf_grid.train import runs
 
     trained = []
 
@@ -425,7 +430,9 @@ def test_recorded_runs_stand_in_for_a_lost_cache(tmp_path, monkeypatch):
     runs themselves did, and are not trained again; a run the file does not list is still
     missing, a metric whose values do not line up with the runs is not guessed, and
     --ignore-recorded trains instead."""
-    from jaxnerf_grid import evaluate, runs, train
+    from jaxnerf_grid.eval import evaluate
+    from jaxnerf_grid.train import loop as train
+    from jaxnerf_grid.train import runs
 
     trained = []
 
@@ -518,7 +525,7 @@ def test_throughput_times_a_case_with_and_without_computed_once(tmp_path):
     import jax
 
     from benchmarks import throughput
-    from jaxnerf_grid.fields import hashgrid
+    from jaxnerf_grid.nerf.fields import hashgrid
 
     original = hashgrid.computed_once
     out = tmp_path / "t.json"
@@ -545,8 +552,8 @@ def test_throughput_concat_case_traces_the_per_sample_colour_input_with_the_same
     import jax
 
     from benchmarks import throughput
-    from jaxnerf_grid import fields
-    from jaxnerf_grid.fields import layers
+    from jaxnerf_grid.nerf import fields
+    from jaxnerf_grid.nerf.fields import layers
 
     cfg = fields.FieldConfig(kind="grid", view_depth=2, view_width=8, dir_max_deg=2, appearance_dim=3, geo_features=4)
     params = fields.init(jax.random.PRNGKey(0), cfg)
@@ -660,7 +667,7 @@ def test_throughput_variant_is_its_base_with_the_set_changes():
     """--variant NAME=BASE:KEY=VALUE;KEY=VALUE: the base's settings with those keys changed, the
     keys checked as --set checks them."""
     from benchmarks import throughput
-    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.config.schema import ConfigError
 
     name, base, changes = throughput.parse_variant(
         "m24=ours-fast:model.sampler.main_samples=24;model.field.grid.num_levels=8")

@@ -8,11 +8,13 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, geometry, io
+from jaxnerf_grid import cli
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
-from jaxnerf_grid.clouds import lift_view
+from jaxnerf_grid.eval import export_score as score_lib
+from jaxnerf_grid.eval import geometry
 from jaxnerf_grid.export import fuse, ground, measure, mesh, plane_to_metric, to_metric, to_metric64, to_scene
-from jaxnerf_grid.export import score as score_lib
+from jaxnerf_grid.render.clouds import lift_view
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import TINY_FIELD, tiny_dataset  # noqa: E402
@@ -499,7 +501,7 @@ def _plane_views(count=4, width=24, height=18):
     """Cameras around the origin looking at the plane z = -0.5; exact z-depth maps of it."""
     import jax.numpy as jnp
 
-    from jaxnerf_grid import rays as rays_lib
+    from jaxnerf_grid.nerf import rays as rays_lib
 
     fx = 20.0
     cams, parts = [], []
@@ -681,8 +683,8 @@ def test_mesh_ply_read_back_by_plyfile(tmp_path):
 def tiny_run(tmp_path_factory):
     """A tiny trained run (a ball of radius 0.7, 2 x 32 MLP, 30 steps) on a dataset that states
     its metric normalisation and names a reference tower.ply."""
-    from jaxnerf_grid import runs
     from jaxnerf_grid.data.formats import save_transforms_json
+    from jaxnerf_grid.train import runs
 
     root = tmp_path_factory.mktemp("export")
     ds = tiny_dataset()
@@ -738,7 +740,8 @@ def test_export_writes_metric_files_inside_the_given_box(tiny_run, tmp_path, cap
 
 
 def test_eval_scores_the_export(tiny_run, capsys):
-    from jaxnerf_grid import evaluate, runs
+    from jaxnerf_grid.eval import evaluate
+    from jaxnerf_grid.train import runs
 
     assert cli.main(["export", "--run", str(tiny_run), f"--box={_metric_box([-0.9] * 3, [0.9] * 3)}", "--resolution",
                      "16", "--threshold", "0.02", "--views", "3", "--quiet"]) == 0
@@ -795,8 +798,8 @@ def test_export_auto_box_without_ground_is_a_one_line_error(tiny_run, tmp_path, 
 
 
 def test_units_are_metres_only_when_the_dataset_states_its_normalisation():
-    from jaxnerf_grid import report
     from jaxnerf_grid.export import run as export_run
+    from jaxnerf_grid.report import markdown as report
 
     ds = tiny_dataset()
     assert export_run.units_of(ds) == "unknown" and "unknown" in export_run.units_comment("unknown")
@@ -807,7 +810,7 @@ def test_units_are_metres_only_when_the_dataset_states_its_normalisation():
 
 
 def test_parse_box():
-    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.config.schema import ConfigError
     from jaxnerf_grid.export.run import parse_box
 
     assert parse_box("auto") is None and parse_box(" AUTO ") is None

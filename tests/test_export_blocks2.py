@@ -10,10 +10,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import folders
-from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.export import run as export_run
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import folders
+from jaxnerf_grid.util.io import DataError
 
 sys.path.insert(0, str(Path(__file__).parent))
 
@@ -345,7 +345,7 @@ def test_vertical_without_a_grid_records_the_heights_as_written():
 def test_vertical_with_a_linear_geoid_by_closed_form(tmp_path):
     """H = h - N, N = A + B lat + C lon (exact under bilinear interpolation) at each point, at
     the base centre (its N recorded), the range of N over the points and the mesh."""
-    from test_export_geoid import A, B, C, CRS, lat_lon, linear_n, site_grid
+    from test_export_geoid import CRS, A, B, C, lat_lon, linear_n, site_grid
 
     from jaxnerf_grid.export import geoid
 
@@ -444,7 +444,8 @@ def test_check_geoid_site_names_why_a_dataset_without_a_crs_is_refused(tmp_path)
 def test_update_report_writes_beside_the_run_or_the_export(tmp_path, monkeypatch, default):
     """RUN/export: RUN/report.md with the picture at export/export_views.png; elsewhere:
     OUT/report.md with export_views.png beside it; report.html next to the report.md."""
-    from jaxnerf_grid import report, report_html
+    from jaxnerf_grid.report import html as report_html
+    from jaxnerf_grid.report import markdown as report
 
     calls = {}
     monkeypatch.setattr(report, "set_section", lambda path, heading, lines: calls.update(

@@ -11,9 +11,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, io
+from jaxnerf_grid import cli
 from jaxnerf_grid.export import geoid
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 sys.path.insert(0, str(Path(__file__).parent))
 import analytic_field as af  # noqa: E402
@@ -245,9 +246,9 @@ def test_a_grid_that_does_not_cover_the_site_is_refused(tmp_path, monkeypatch):
 
 def test_the_command_line_names_the_flag_and_the_file_in_one_line(tmp_path, monkeypatch, capsys):
     """`jaxnerf-grid export --geoid MISSING`: exit 1, one line naming --geoid and the file."""
-    from jaxnerf_grid import runs
-
     from test_join_truth import analytic_config
+
+    from jaxnerf_grid.train import runs
 
     monkeypatch.setattr(runs, "load_run", lambda run_dir: (analytic_config(), None))
     (tmp_path / "run").mkdir()

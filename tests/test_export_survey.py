@@ -10,11 +10,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io, report
-from jaxnerf_grid.data import georef
-from jaxnerf_grid.data.georef import umeyama
+from jaxnerf_grid.capture import georef
+from jaxnerf_grid.capture.georef import umeyama
 from jaxnerf_grid.export import box_to_metric, box_to_scene, measure, survey
 from jaxnerf_grid.export import run as export_run
+from jaxnerf_grid.report import markdown as report
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import tiny_dataset  # noqa: E402

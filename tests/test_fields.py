@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import fields
-from jaxnerf_grid.fields import layers
+from jaxnerf_grid.nerf import fields
+from jaxnerf_grid.nerf.fields import layers
 
 
 def _np_encode(x, lo, hi):

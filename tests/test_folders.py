@@ -16,9 +16,9 @@ from pathlib import Path
 
 import pytest
 
-from jaxnerf_grid import folders, staging
-from jaxnerf_grid.data import poses
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.capture import poses
+from jaxnerf_grid.util import folders, staging
+from jaxnerf_grid.util.io import DataError
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(Path(__file__).parent))

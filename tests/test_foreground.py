@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxnerf_grid import foreground as fg
+from jaxnerf_grid.masks import foreground as fg
 
 
 def test_probability_sums_softmax_over_classes():
@@ -109,7 +109,8 @@ def test_predict_maps_on_large_photo_bounded_and_full_resolution():
     """A 3840x2160 photo through a tiny random DPT with both heads: outputs at full size, and one
     compiled working shape for two photos of the same size."""
     import jax
-    from jaxnerf_grid import dpt
+
+    from jaxnerf_grid.masks import dpt
     cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
                         image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
                         neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3,
@@ -187,7 +188,7 @@ def test_blend_tiles_against_per_pixel_loop():
 def test_predict_maps_tiled_against_per_window_reference():
     """tiles=2: C equals DPT run on each window alone (batch of one), blended, resized; depth equals
     the untiled whole-photo depth."""
-    from jaxnerf_grid import dpt
+    from jaxnerf_grid.masks import dpt
     cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
                         image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
                         neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3,
@@ -218,7 +219,7 @@ def test_class_probabilities_sum_to_predict_maps_c():
     """class_probabilities (every class, full resolution) summed over Eq. 6's classes is the C that
     predict_maps gives for the same photo: the two share the working size and the upsampling, so
     a study of other class rules (experiments/mask_tower_overlap.py) sees what `mask` sees."""
-    from jaxnerf_grid import dpt
+    from jaxnerf_grid.masks import dpt
     cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
                         image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
                         neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=3)

@@ -6,16 +6,22 @@ import json
 
 import numpy as np
 import pytest
+from blobs import blob, centroid
 from scipy.spatial.transform import Rotation
 
-from blobs import blob, centroid
-from jaxnerf_grid import io, rays
-from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data import normalize as formats_normalize
-from jaxnerf_grid.data.normalize import (apply_normalization_to_points, compose_normalization,
-                                         invert_normalization, normalize_poses, optical_axis_focus)
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.data.formats import colmap_model as colmap_io
+from jaxnerf_grid.data.normalize import (
+    apply_normalization_to_points,
+    compose_normalization,
+    invert_normalization,
+    normalize_poses,
+    optical_axis_focus,
+)
+from jaxnerf_grid.nerf import rays
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 TARGET = np.array([0.3, -0.2, 1.0])
 W, H = 40, 30

@@ -6,10 +6,10 @@ import struct
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io
-from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data import formats
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.data.formats import colmap_model as colmap_io
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 W, H = 16, 12
 EYE_POSE = [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]

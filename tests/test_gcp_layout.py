@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 from jaxnerf_grid import cli
-from jaxnerf_grid import io as io_lib
-from jaxnerf_grid.data import gps_scene
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.capture import gps_photos as gps_scene
+from jaxnerf_grid.util import io as io_lib
+from jaxnerf_grid.util.io import DataError
 
 SCALE, SHIFT = 0.05, np.array([0.0, 0.0, -15.0])  # the synthetic normalisation
 W, H, F, CX, CY = 64, 48, 100.0, 32.0, 24.0

@@ -3,7 +3,8 @@
 import numpy as np
 import pytest
 
-from jaxnerf_grid import geometry, io
+from jaxnerf_grid.eval import geometry
+from jaxnerf_grid.util import io
 
 
 def brute_nearest(a, b):
@@ -163,7 +164,7 @@ def test_read_reference_points_returns_the_vertices_and_refuses_empty_or_non_fin
 
 
 def test_report_geometry_section():
-    from jaxnerf_grid import report
+    from jaxnerf_grid.report import markdown as report
 
     res = geometry.score_points(np.eye(3), np.eye(3), ground_strip=0.0)
     text = "\n".join(report.geometry_lines({**res, "reference": "tower.ply"}))
@@ -208,8 +209,8 @@ def test_score_geometry_of_a_dataset(tmp_path):
     frame; --reference-ply instead; None without a reference."""
     from types import SimpleNamespace
 
-    from jaxnerf_grid import evaluate
     from jaxnerf_grid.data.normalize import apply_normalization_to_points, compose_normalization
+    from jaxnerf_grid.eval import evaluate
 
     metric = np.random.default_rng(8).uniform([-4, -4, 0], [4, 4, 30], size=(300, 3))
     file_norm = {"scale": 0.05, "translation": [0.0, 0.0, -15.0]}

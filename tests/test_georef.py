@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from jaxnerf_grid import cli
-from jaxnerf_grid.data import georef, gps
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.capture import georef, gps
+from jaxnerf_grid.util.io import DataError
 
 piexif = pytest.importorskip("piexif")
 pyproj = pytest.importorskip("pyproj")
@@ -381,8 +381,8 @@ def test_synthetic_photos_carry_noisy_gps_of_the_true_centres(tmp_path):
     import cv2
     import exifread
 
-    from jaxnerf_grid import io as io_lib
-    from jaxnerf_grid.data.gps_scene import write_gps_photos
+    from jaxnerf_grid.capture.gps_photos import write_gps_photos
+    from jaxnerf_grid.util import io as io_lib
 
     (tmp_path / "images").mkdir()
     centres_norm = np.array([[1.0, 0.0, 0.5], [0.0, 1.2, 0.6], [-0.9, 0.0, 0.4], [0.0, -1.1, 0.7]])
@@ -421,8 +421,8 @@ def test_synthetic_photos_carry_noisy_gps_of_the_true_centres(tmp_path):
 def test_synthetic_gcp_projection_meets_the_renderers_ray():
     """`gps_scene.project` against `rays.rays_for_pixels` (the rays the synthetic frames are
     rendered with): the ray through the projected pixel passes through the point."""
-    from jaxnerf_grid import rays
-    from jaxnerf_grid.data.gps_scene import project
+    from jaxnerf_grid.capture.gps_photos import project
+    from jaxnerf_grid.nerf import rays
 
     c2w = np.eye(4)
     c2w[:3, :3] = rotation([1.0, 0.3, 0.0], 70.0)
@@ -460,8 +460,8 @@ def test_poses_aligns_photos_with_gps_to_metres(tmp_path):
     import cv2
     from test_poses import RADIUS, _orbit, _render, _scene
 
-    from jaxnerf_grid import io as io_lib
-    from jaxnerf_grid.data.poses import poses_from_images
+    from jaxnerf_grid.capture.poses import poses_from_images
+    from jaxnerf_grid.util import io as io_lib
 
     photos = tmp_path / "photos"
     photos.mkdir()
@@ -547,7 +547,7 @@ def test_scale_bar_uncertainty_against_a_monte_carlo_of_the_clicks():
 
 
 def test_report_flags_residuals_beyond_the_sources_accuracy():
-    from jaxnerf_grid.data.poses import georef_report_lines
+    from jaxnerf_grid.capture.poses import georef_report_lines
 
     base = {"units": "metres", "source": "gps", "crs": "EPSG:32632", "crs_name": "x", "origin": [0.0, 0.0, 0.0],
             "metres_per_scene_unit": 20.0, "height_from": "EXIF GPSAltitude"}

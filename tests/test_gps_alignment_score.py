@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from benchmarks import gps_alignment
-from jaxnerf_grid import io
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 
 def _truth(tmp_path):

@@ -9,9 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import fields, models, samplers
-from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.fields import hashgrid
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.nerf import fields, models, samplers
+from jaxnerf_grid.nerf.fields import hashgrid
 
 PRIMES = (1, 2654435761, 805459861)
 

@@ -18,9 +18,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, io, masking
+from jaxnerf_grid import cli
 from jaxnerf_grid.cli import flags as cli_flags
 from jaxnerf_grid.cli import train as cli_train
+from jaxnerf_grid.masks import write as masking
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 from killing import kill_when  # noqa: E402
@@ -62,7 +64,7 @@ def test_video_out_inside_the_dataset_is_refused(scene, capsys, tmp_path):
 
 def test_video_frames_too_large_are_refused_before_anything_is_written(scene, capsys, tmp_path):
     """Failed: `--width 10000000` said "OpenCV cannot write an mp4v video here" and left RUN/videos/."""
-    from jaxnerf_grid import videos
+    from jaxnerf_grid.render import videos
 
     before = snapshot(scene["data"], scene["run"])
     rc, err = run_cli(["render", "--run", scene["run"], "--orbit", "--width", "10000000", "--quiet"], capsys)
@@ -345,7 +347,7 @@ import jaxnerf_grid
 for m in pkgutil.walk_packages(jaxnerf_grid.__path__, "jaxnerf_grid."):
     if not m.name.endswith("__main__"):
         importlib.import_module(m.name)
-from jaxnerf_grid import io
+from jaxnerf_grid.util import io
 try:
     io.read_image(sys.argv[1])
 except io.DataError:
@@ -378,7 +380,7 @@ VIDEO = ["--orbit", "--frames", "4", "--width", "16", "--quiet"]
 def _slow_video_child(run: str, out: str, pause: str) -> None:
     """`render --orbit` with a pause after each frame written, so the parent can kill it while
     its staging files exist."""
-    from jaxnerf_grid import videos
+    from jaxnerf_grid.render import videos
 
     real = videos.open_writer
 
@@ -415,7 +417,7 @@ def test_killed_video_leaves_a_partial_the_next_render_removes(scene, tmp_path):
     The next render to the same --out removes its own leftovers (a dead process's staging files)
     and nothing else: the user's files, a file of a similar name, a live render's staging file
     and another host's stay byte for byte; the videos are those of an uninterrupted render."""
-    from jaxnerf_grid import videos
+    from jaxnerf_grid.render import videos
 
     ref = tmp_path / "ref"
     assert cli.main(["render", "--run", str(scene["run"]), "--out", str(ref / "orbit"), *VIDEO]) == 0
@@ -460,7 +462,7 @@ def test_killed_video_leaves_a_partial_the_next_render_removes(scene, tmp_path):
 def test_stale_partials_are_only_a_dead_renders_own(tmp_path):
     """`videos.stale_partials` against the processes it names: a finished child's id is stale, the
     test's parent (running) and another host's are not, nor any other name."""
-    from jaxnerf_grid import videos
+    from jaxnerf_grid.render import videos
 
     dead = subprocess.Popen([sys.executable, "-c", "pass"])
     dead.wait()
@@ -486,7 +488,8 @@ def test_a_video_opencv_could_not_finish_is_refused_not_renamed(tmp_path, monkey
     """OpenCV's VideoWriter drops frames it cannot write (a full disk) without a word: the video
     is read back before it is renamed (`videos.check_written`); the error names the video, an
     earlier one stays, no staging file is left. The writer here stops writing after 2 frames."""
-    from jaxnerf_grid import progress, videos
+    from jaxnerf_grid.render import videos
+    from jaxnerf_grid.util import progress
 
     video, depth = tmp_path / "orbit.mp4", tmp_path / "orbit_depth.mp4"
     video.write_bytes(b"the earlier video")

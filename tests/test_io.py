@@ -3,7 +3,7 @@
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io
+from jaxnerf_grid.util import io
 
 
 def test_png_round_trip_rgb_order(tmp_path):

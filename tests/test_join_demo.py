@@ -11,9 +11,12 @@ from pathlib import Path
 import cv2
 import pytest
 
-from jaxnerf_grid import cli, demo, io, masking, runs
-from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid import cli, demo
+from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.data.synthetic import generate as synth_generate
+from jaxnerf_grid.masks import write as masking
+from jaxnerf_grid.train import runs
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_join_eval import _table, check_report_figures  # noqa: E402

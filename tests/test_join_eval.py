@@ -25,8 +25,12 @@ import numpy as np
 import pytest
 from skimage.metrics import structural_similarity
 
-from jaxnerf_grid import evaluate, io, runs, train, views
 from jaxnerf_grid.data.formats import save_transforms_json
+from jaxnerf_grid.eval import evaluate
+from jaxnerf_grid.render import views
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train import runs
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import TINY_FIELD, tiny_dataset  # noqa: E402
@@ -310,7 +314,7 @@ def test_report_figures_are_the_target_render_and_depth(ours):
 def test_tower_box_of_one_pixel_and_of_none():
     """The crop box: class-1 pixels' bounding box grown by the margin, clipped to the frame; None
     without tower pixels (found by mutation testing: one pixel gave no crop, none crashed)."""
-    from jaxnerf_grid import report
+    from jaxnerf_grid.report import markdown as report
 
     sem = np.zeros((H, W), np.uint8)
     assert report.tower_box(sem) is None

@@ -19,8 +19,13 @@ import jax
 import numpy as np
 import pytest
 
-from jaxnerf_grid import clouds as clouds_lib
-from jaxnerf_grid import evaluate, fields, io, runs, train, views
+from jaxnerf_grid.eval import evaluate
+from jaxnerf_grid.nerf import fields
+from jaxnerf_grid.render import clouds as clouds_lib
+from jaxnerf_grid.render import views
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train import runs
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 import analytic_field as af  # noqa: E402
@@ -81,7 +86,7 @@ def evaluated(tmp_path_factory):
 def test_negative_or_fractional_view_counts_are_refused_before_the_run_loads(tmp_path, monkeypatch):
     """eval.distractor_views and eval.cloud_views must be integers >= 0, refused by name (the
     CLI shows the flag) before the run's config is read."""
-    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.config.schema import ConfigError
 
     def not_loaded(folder):
         raise AssertionError("the run was loaded before the checks")
@@ -312,7 +317,7 @@ def test_a_call_with_the_defaults_on_a_robust_runs_folder(evaluated, tmp_path):
     import json
     import time
 
-    from jaxnerf_grid import geometry
+    from jaxnerf_grid.eval import geometry
 
     _, _, ds, renders = evaluated
     plain = dataclasses.replace(ds, clean_images=None, semantics=None)
@@ -384,7 +389,7 @@ def test_nerfw_protocol_fits_each_test_views_appearance_on_its_left_half(evaluat
     (`cloud_pixels`, one view's worth) the one cloud view asked for is still lifted."""
     import dataclasses
 
-    from jaxnerf_grid import config as config_lib
+    from jaxnerf_grid.config import schema as config_lib
 
     _, _, ds, _ = evaluated
     base = analytic_config()
@@ -432,7 +437,7 @@ def test_a_missing_or_empty_reference_or_missing_lpips_weights_is_refused_before
     the parameters are loaded or anything is written in the run folder."""
     import re
 
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     _, _, ds, _ = evaluated
     cfg = analytic_config()
@@ -461,7 +466,7 @@ def test_lpips_from_a_weights_file_scores_each_view_and_its_right_half(evaluated
     the record says "computed" and the report names the file (evaluate_run mutants 51, 52, 54:
     the weights never loaded or loaded from None; 160, 163, 168: not handed to the metrics; 340,
     342, 343: the record's word)."""
-    from jaxnerf_grid import lpips as lpips_lib
+    from jaxnerf_grid.eval import lpips as lpips_lib
 
     _, _, ds, renders = evaluated
     cfg = analytic_config()
@@ -500,7 +505,7 @@ def test_cloud_views_by_a_pixel_budget_the_distractor_default_and_the_semantic_f
     figures' "semantic" renamed or None)."""
     import dataclasses
 
-    from jaxnerf_grid import report
+    from jaxnerf_grid.report import markdown as report
 
     _, _, ds, _ = evaluated
     four = dataclasses.replace(ds, split={"train": np.arange(FRAMES), "test": np.array(TEST_IDS)})
@@ -562,7 +567,7 @@ def test_an_exported_run_gets_its_export_section_and_report_html_shows_its_measu
     shows the measurements table, its height and footprint rows written out (evaluate_run mutants
     321, 323, 326: the export section without the dataset or the reference; 474, 480, 485, 486:
     report.html not shown the export folder)."""
-    from jaxnerf_grid.export import score
+    from jaxnerf_grid.eval import export_score as score
 
     _, _, ds, _ = evaluated
     cfg = analytic_config()

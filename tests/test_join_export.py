@@ -13,10 +13,14 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import evaluate, fields, io, runs, train
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
-from jaxnerf_grid.export import to_metric64
+from jaxnerf_grid.eval import evaluate
 from jaxnerf_grid.export import run as export_run
+from jaxnerf_grid.export import to_metric64
+from jaxnerf_grid.nerf import fields
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train import runs
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 import analytic_field as af  # noqa: E402
@@ -101,8 +105,8 @@ def test_opacity_0_or_1_and_an_occupied_folder_are_refused_before_the_dataset_lo
     through), and a folder holding another program's file is refused without overwrite, its file
     kept (mutant 4 made overwrite the default), and so is an `out` inside the dataset folder; all
     before the dataset loads (no export runs)."""
-    from jaxnerf_grid.config import ConfigError
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.config.schema import ConfigError
+    from jaxnerf_grid.util.io import DataError
 
     cfg = analytic_config()
 
@@ -255,8 +259,8 @@ def test_the_files_headers_the_marker_and_the_cleared_folder(exported):
     pixels are drawn; splat 0 or 2 draws far fewer or more)."""
     import plyfile
 
-    from jaxnerf_grid import report
     from jaxnerf_grid.export import measure
+    from jaxnerf_grid.report import markdown as report
 
     meas, out, _ = exported
     run = str(out.parent)
@@ -317,7 +321,7 @@ def test_the_cross_arms_end_points_are_where_the_arm_is_and_the_page_carries_the
     import json
     import re
 
-    from jaxnerf_grid import report_html
+    from jaxnerf_grid.report import html as report_html
 
     meas, out, _ = exported
     voxel = meas["voxel_size"]
@@ -589,7 +593,7 @@ def test_a_given_box_without_a_surface_is_refused_and_nothing_is_written(tmp_pat
     import itertools
 
     from jaxnerf_grid.export import field as field_lib
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     lo_t, hi_t = af.boxes()[0]
     corners = af.to_metric_frame(np.array(list(itertools.product(*zip(lo_t - [1, 1, 0], hi_t + [1, 1, 1])))))
@@ -631,7 +635,7 @@ def test_a_given_box_without_a_surface_is_refused_and_nothing_is_written(tmp_pat
 
 
 def test_an_unknown_crs_in_the_record_is_refused_before_anything_is_written(tmp_path):
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     with pytest.raises(DataError, match="EPSG:999999"):
         _tilted_export(tmp_path, af.TILT, {"georeference": {**GEOREFERENCE, "crs": "EPSG:999999"}})
@@ -794,7 +798,7 @@ def test_the_auto_box_of_an_empty_scene_and_of_ground_alone_is_refused_in_words(
     """export.box auto on an empty scene: no point, no ground, refused naming the 0 points; on
     the ground alone: the tower's box finds nothing above it, refused with ground.tower_box's
     reason; nothing written either way (export_run mutants 155, 175: DataError(None))."""
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     for apply, root, expected in (
             (_sky, tmp_path / "sky", r"run: export\.box auto found no ground in the rendered views \(0 points "
@@ -883,7 +887,7 @@ def test_the_geoid_grid_is_checked_at_the_cameras_crs_positions(tmp_path):
     the centres handed on in normalised units, near the CRS origin). The grid file and PROJ are
     stand-ins here: `open_grid` hands back a token, `orthometric` records and refuses."""
     from jaxnerf_grid.export import geoid as geoid_lib
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     s, rot, t = LEVEL_RECORD["scale"], np.asarray(LEVEL_RECORD["rotation"]), np.asarray(LEVEL_RECORD["translation"])
     ds = af.dataset()

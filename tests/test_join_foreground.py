@@ -3,7 +3,7 @@
 outputs (`dpt.apply`) with OpenCV and NumPy, so a wiring bug (a map flipped or rotated, inverse
 depth fed to Eq. 7 as depth, the wrong image's map) shows as a value difference.
 
-The equations are those of docs (paper Eq. 6-8; `jaxnerf_grid/foreground.py`'s docstring):
+The equations are those of docs (paper Eq. 6-8; `jaxnerf_grid/masks/foreground.py`'s docstring):
   Eq. 6  C = sum_{k in classes} softmax(logits)_k,  M = [C > T]
   Eq. 7  M_w = M * max(floor, (Dmax - D) / Dmax), D = 1 / max(r, 1e-3 * max(r)) from DPT's
          relative inverse depth r, Dmax the per-image maximum
@@ -14,7 +14,8 @@ import cv2
 import numpy as np
 import pytest
 
-from jaxnerf_grid import dpt, io
+from jaxnerf_grid.masks import dpt
+from jaxnerf_grid.util import io
 
 TINY_DPT = dict(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32, image_size=32,
                 patch_size=16, backbone_out_indices=(0, 0, 1, 1), neck_hidden_sizes=(8, 8, 8, 8),
@@ -60,7 +61,7 @@ def _reference_maps(model, photo, classes, work_hw):
 def test_predict_maps_untiled_against_dpt_on_the_resized_photo():
     """Two different photos in one batch: each one's C and inverse depth equal DPT on that photo
     resized to the working size, resized back (a rotated, flipped or swapped map fails)."""
-    from jaxnerf_grid import foreground as fg
+    from jaxnerf_grid.masks import foreground as fg
 
     model = _model()
     photos = [_photo(150, 230, 1), _photo(150, 230, 2)]
@@ -114,7 +115,7 @@ def test_mask_command_dpt_source_against_eq6_to_8(tmp_path, floor):
     depth and weights on disk equal Eq. 6-8 computed by hand from the model's outputs on the
     photos as written (8-bit), with the threshold at the median of C so half the pixels are
     foreground and Eq. 7's depth term matters (inverse depth taken as depth fails)."""
-    from jaxnerf_grid import masking
+    from jaxnerf_grid.masks import write as masking
 
     model = _model()
     dpt.save(model, tmp_path / "w", dtype="float32", extra={"dynamic_classes": [1, 2]})
@@ -151,7 +152,7 @@ def test_mask_command_takes_the_working_size_from_the_model(tmp_path):
     """Without max_side, `write_masks` uses the model's own (config.json "extra": "max_side"),
     else 384; the maps are then DPT's at that working size (found by mutation testing: that
     branch was never taken)."""
-    from jaxnerf_grid import masking
+    from jaxnerf_grid.masks import write as masking
 
     model = _model()
     dpt.save(model, tmp_path / "w32", dtype="float32", extra={"dynamic_classes": [1, 2], "max_side": 32})

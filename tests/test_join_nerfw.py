@@ -1,7 +1,7 @@
 """NeRF-W's transient compositing, where the transient head joins the renderer, with non-zero
 transient density and colour, against a per-sample loop written here.
 
-NeRF-W (Martin-Brualla et al. 2021, Eq. 9-10; docs: `jaxnerf_grid/models.py`'s docstring): static
+NeRF-W (Martin-Brualla et al. 2021, Eq. 9-10; docs: `jaxnerf_grid/nerf/models.py`'s docstring): static
 and transient densities share the transmittance
     T_i = exp(-sum_{j<i} (sigma_j + sigma_t,j) delta_j),
 each adds its own colour with alpha 1 - exp(-sigma delta):
@@ -14,7 +14,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import fields, models, samplers
+from jaxnerf_grid.nerf import fields, models, samplers
 
 SMALL = fields.FieldConfig(depth=2, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8)
 BACKGROUND = 0.2

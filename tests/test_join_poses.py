@@ -13,9 +13,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io
+from jaxnerf_grid.capture import bounds as bounds_lib
+from jaxnerf_grid.capture import poses
 from jaxnerf_grid.data.formats import load_dataset
-from jaxnerf_grid.data import bounds as bounds_lib, poses
+from jaxnerf_grid.util import io
 
 WIDTH, HEIGHT, FOCAL = 64, 48, 60.0
 TARGET = np.array([5.0, -3.0, 10.0])

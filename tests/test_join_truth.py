@@ -7,22 +7,23 @@ import dataclasses
 import sys
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
-import jax
-import jax.numpy as jnp
-
-from jaxnerf_grid import evaluate, fields, geometry, io, train
-from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
-from jaxnerf_grid.export import score as score_lib
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.eval import evaluate, geometry
+from jaxnerf_grid.eval import export_score as score_lib
+from jaxnerf_grid.nerf import fields
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 sys.path.insert(0, str(Path(__file__).parent))
 import analytic_field as af  # noqa: E402
 from test_train import TINY_FIELD, tiny_config, tiny_dataset  # noqa: E402
-
 
 # --------------------------------------------------------------------------- planted clouds
 
@@ -410,7 +411,7 @@ def test_proposal_main_samples_share_one_jitter_per_ray_with_the_padding(monkeyp
     """With single_jitter, the main field's samples are the inverse CDF (the last round's weights
     plus `padding` times their mean) at u_j = (j + c) / n with one c per ray: recovered here
     with NumPy from the returned levels and edges. The proposal field is a closed-form bump."""
-    from jaxnerf_grid import samplers
+    from jaxnerf_grid.nerf import samplers
 
     cfg = samplers.proposal.Config(samples=(16,), main_samples=8, padding=0.2)
     monkeypatch.setattr(fields.proposal, "density",

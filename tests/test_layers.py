@@ -1,11 +1,11 @@
-"""The import layers of docs/ARCHITECTURE.md, checked on the source (no module is imported).
+"""The import layers of docs/ARCHITECTURE.md as folder rules, checked on the source (no module is imported).
 
-cli -> runs / evaluate / demo / masking / export / recipes -> train / views -> run_config -> models ->
-fields / sampling / render / coords -> jax; data/ imports only data/ and the shared leaves (io,
-progress, rays, config); dpt/ never imports the NeRF side; config.py imports nothing of it; no
-module but the dispatcher reaches a cli module, and experiments/ and benchmarks/ call the library.
-No import cycle, package imports at module level (LAZY_IMPORTS says which are not, and why), and
-library strings name keys (`export.box`), not flags (`--box`): cli/flags.py maps them.
+The package's folders are stages; each may import only the units below it in LAYERS (a unit is a
+top-level folder, or one of the modules RUN_LEVEL / LEAVES names). No import cycle, package
+imports at module level (LAZY_IMPORTS says which are not, and why), masks/dpt/ stands alone,
+capture/ and data/ never reach the NeRF side, no module but the dispatcher reaches a cli module,
+experiments/ and benchmarks/ call the library, and library strings name keys (`export.box`), not
+flags (`--box`): cli/flags.py maps them.
 """
 
 import ast
@@ -14,15 +14,23 @@ from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxnerf_grid"
-NERF_SIDE = {"models", "fields", "sampling", "render", "coords", "losses", "optim", "checkpoint", "train",
-             "views", "runs", "evaluate", "demo", "export", "report", "run_config", "recipes"}
-# what a data/ module may import: data/ itself and the shared leaves below everything (folders:
-# the marker rule of output folders; staging: the staged swap; both used by data/poses.py)
-DATA_MAY_IMPORT = {"data", "io", "progress", "rays", "config", "folders", "staging"}
+# low to high: a unit imports only units before it
+LAYERS = ["util", "schema", "nerf", "data", "capture", "masks", "config", "optim", "render", "train", "report",
+          "runs", "export", "eval", "demo", "cli", "__main__"]
+# modules that are their own unit, and why
+LEAVES = {
+    "jaxnerf_grid.config.schema": "schema",  # the frozen-dataclass machinery every stage's config uses
+    "jaxnerf_grid.train.optim": "optim",  # the optimiser: training, and NeRF-W's test-time appearance fit in render/
+}
+RUN_LEVEL = {  # modules that load or drive a whole run, above train/, render/ and report/
+    "jaxnerf_grid.train.runs": "runs", "jaxnerf_grid.render.videos": "runs",
+    "jaxnerf_grid.report.progress_page": "runs",
+}
+NERF_SIDE = {"nerf", "train", "optim", "render", "runs", "eval", "export", "report", "config", "demo"}
 # package imports inside functions, outside cli/ (which imports the library on use so that
 # `jaxnerf-grid X --help` and argument errors return before JAX loads): (file, module) -> why
 LAZY_IMPORTS = {
-    ("data/synthetic/generate.py", "jaxnerf_grid.progress"):
+    ("data/synthetic/generate.py", "jaxnerf_grid.util.progress"):
         "the generator's source is hashed into the experiments' scene and run keys "
         "(experiments.scenes.generator_digest); it stays as the committed results' runs had it",
     ("data/synthetic/__init__.py", "jaxnerf_grid.data.synthetic.generate"):
@@ -33,15 +41,14 @@ LAZY_IMPORTS = {
 FLAG_TEXT_ALLOWED = {
     ("data/synthetic/generate.py", "--overwrite"): "the synth marker file's text, and an error whose source is "
                                                    "hashed into the experiments' keys (generator_digest)",
-    ("data/poses.py", "--overwrite"): "the poses marker file's text, for a person who finds the folder",
+    ("capture/poses.py", "--overwrite"): "the poses marker file's text, for a person who finds the folder",
     ("demo.py", "--source"): "a report note quoting the command line that made the masks",
-    ("masking.py", "--depth-weights"): "a note `mask` prints while it runs (not an error)",
-    ("evaluate.py", "--full-size"): "the report's resolution line tells a reader how to score at full size",
-    ("data/poses.py", "--keep-all"): "the poses report and summary tell a person how to keep the photos "
-                                     "the vetting left out",
+    ("masks/write.py", "--depth-weights"): "a note `mask` prints while it runs (not an error)",
+    ("eval/evaluate.py", "--full-size"): "the report's resolution line tells a reader how to score at full size",
+    ("capture/poses.py", "--keep-all"): "the poses report and summary tell a person how to keep the photos "
+                                        "the vetting left out",
 }
 FLAG = re.compile(r"(?<![\w-])--[a-z][a-z0-9-]*")
-LIBRARY_TOP = {"runs", "evaluate", "demo", "masking", "export", "recipes"}
 
 
 def imports_of(path: Path) -> set[str]:
@@ -74,18 +81,41 @@ def test_no_library_module_imports_a_cli():
         assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 
-def test_data_and_dpt_never_import_the_nerf_side():
-    for sub in ("data", "dpt"):
+def test_capture_data_and_masks_never_import_the_nerf_side():
+    """The stages before training stand on their own (the synthetic cameras make rays with nerf/rays.py)."""
+    for sub in ("capture", "data", "masks"):
         for path in sorted((PACKAGE / sub).rglob("*.py")):
-            bad = {m for m in imports_of(path) if top(m) in NERF_SIDE}
+            bad = {m for m in modules_imported(path) if unit(m) in NERF_SIDE and m != "jaxnerf_grid.nerf.rays"
+                   and not (sub == "masks" and unit(m) == "config")}
             assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
 
 
-def test_config_and_the_model_layers_stay_below_the_library():
-    assert not {top(m) for m in imports_of(PACKAGE / "config.py")} & NERF_SIDE
-    for name in ("models", "train", "views", "run_config", "sampling", "render", "coords", "clouds"):
-        bad = {m for m in imports_of(PACKAGE / f"{name}.py") if top(m) in LIBRARY_TOP | {"cli"}}
-        assert not bad, f"{name}.py imports {bad}"
+def test_the_dpt_imports_only_itself_util_and_the_config_schema():
+    for path in sorted((PACKAGE / "masks" / "dpt").rglob("*.py")):
+        bad = {m for m in modules_imported(path)
+               if not m.startswith(("jaxnerf_grid.masks.dpt", "jaxnerf_grid.util", "jaxnerf_grid.config.schema"))}
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_util_imports_nothing_of_the_package():
+    for path in sorted((PACKAGE / "util").rglob("*.py")):
+        bad = {m for m in modules_imported(path) if not m.startswith("jaxnerf_grid.util")}
+        assert not bad, f"{path.relative_to(ROOT)} imports {bad}"
+
+
+def test_each_unit_imports_only_the_layers_below_it():
+    """LAYERS is the order of the stages: an import that points up the list is a layer broken."""
+    graph = unit_graph([import_graph(True), import_graph(False)])
+    rank = {name: i for i, name in enumerate(LAYERS)}
+    assert set(graph) - {""} <= set(rank), f"units missing from LAYERS: {sorted(set(graph) - set(rank) - {''})}"
+    upward = sorted(f"{a} -> {b}" for a, targets in graph.items() if a for b in targets if rank[b] >= rank[a])
+    assert not upward, f"imports up the layers: {upward}"
+
+
+def test_the_package_root_holds_the_entry_points_only():
+    """Stage folders, not loose modules: the root keeps the package's init, the dispatcher and the demo."""
+    loose = sorted(p.name for p in PACKAGE.glob("*.py"))
+    assert loose == ["__init__.py", "__main__.py", "demo.py"], loose
 
 
 def test_experiments_and_benchmarks_call_the_library_not_a_cli():
@@ -176,13 +206,25 @@ def find_cycle(graph: dict[str, set[str]]) -> list[str] | None:
     return None
 
 
+def modules_imported(path: Path) -> set[str]:
+    """The package modules a file imports, at any level (a package named only as the source of
+    `from package import module` is not counted)."""
+    tree = ast.parse(path.read_text())
+    return {m for level in (True, False) for node in import_nodes(tree, level)
+            for m in imported_modules(node, module_name(path), path.name == "__init__.py")}
+
+
+def unit(name: str) -> str:
+    """The layer unit of a module: its top-level folder, or its own name in LEAVES / RUN_LEVEL."""
+    return LEAVES.get(name) or RUN_LEVEL.get(name) or top(name)
+
+
 def unit_graph(graphs) -> dict[str, set[str]]:
-    """The graphs merged onto the package's top-level units (a module or subpackage directly
-    under jaxnerf_grid: export/ is one unit), without self-edges."""
+    """The graphs merged onto the layer units, without self-edges."""
     units = {}
     for graph in graphs:
         for a, targets in graph.items():
-            units.setdefault(top(a), set()).update(top(b) for b in targets if top(b) != top(a))
+            units.setdefault(unit(a), set()).update(unit(b) for b in targets if unit(b) != unit(a))
     return units
 
 
@@ -202,20 +244,6 @@ def test_no_import_cycle_among_the_package_units():
     import each other, even through others."""
     cycle = find_cycle(unit_graph([import_graph(True), import_graph(False)]))
     assert cycle is None, "import cycle between units: " + " -> ".join(cycle)
-
-
-def test_data_imports_only_data_and_the_shared_leaves():
-    for path in sorted((PACKAGE / "data").rglob("*.py")):
-        name = module_name(path)
-        bad = {m for level in (True, False) for node in import_nodes(ast.parse(path.read_text()), level)
-               for m in imported_modules(node, name, path.name == "__init__.py") if top(m) not in DATA_MAY_IMPORT}
-        assert not bad, f"{path.relative_to(ROOT)} imports {bad} (data/ may import {sorted(DATA_MAY_IMPORT)})"
-
-
-def test_views_and_run_config_do_not_import_the_training_step():
-    for name in ("views", "run_config"):
-        bad = {m for m in imports_of(PACKAGE / f"{name}.py") if top(m) in {"train", "runs", "evaluate", "export"}}
-        assert not bad, f"{name}.py imports {bad}"
 
 
 def test_package_imports_sit_at_module_level():

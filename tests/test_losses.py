@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import losses
+from jaxnerf_grid.nerf import losses
 
 
 def test_weighted_mean_normalised_by_weight_sum():

@@ -12,9 +12,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import lpips as jl
-from jaxnerf_grid import metrics
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.eval import lpips as jl
+from jaxnerf_grid.eval import metrics
+from jaxnerf_grid.util.io import DataError
 
 torch = pytest.importorskip("torch")
 

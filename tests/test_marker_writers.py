@@ -13,9 +13,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io
 from jaxnerf_grid.data import formats, preprocess
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import tiny_dataset  # noqa: E402
@@ -126,7 +126,7 @@ def test_preprocess_refuses_a_source_inside_its_output(tmp_path):
 def test_an_output_under_a_file_is_named_as_such(tmp_path):
     """`folders.check_folder` on a folder to be made below a file: the file is named, not a
     permission (a file is not "writable" as a folder is, even to root)."""
-    from jaxnerf_grid import folders
+    from jaxnerf_grid.util import folders
 
     (tmp_path / "afile").write_text("x")
     with pytest.raises(DataError, match=r"afile/run: run.out cannot be made there: .*afile is a file"):

@@ -5,9 +5,9 @@ DPT source with a native model, overwrite protection, transforms.json preservati
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io
-from jaxnerf_grid.io import DataError
 from jaxnerf_grid.cli.mask import main
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 
 def _dataset(root, h=32, w=48, n=2):
@@ -52,7 +52,7 @@ def test_gt_source_closed_form_and_overwrite(tmp_path):
 
 
 def test_dpt_source_with_native_weights(tmp_path):
-    from jaxnerf_grid import dpt
+    from jaxnerf_grid.masks import dpt
     _dataset(tmp_path / "data")
     cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
                         image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
@@ -82,7 +82,7 @@ def test_dpt_source_with_native_weights(tmp_path):
 
 
 def test_missing_builtin_or_bad_data_is_one_line_error(tmp_path):
-    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.config.schema import ConfigError
     with pytest.raises(DataError, match="transforms.json"):
         main(["--data", str(tmp_path), "--source", "gt"])
     for bad in (["--tiles", "0"], ["--tiles", "2", "--tile-overlap", "0.9"]):
@@ -92,7 +92,7 @@ def test_missing_builtin_or_bad_data_is_one_line_error(tmp_path):
 
 def test_builtin_model_is_shipped_and_default():
     """The built-in DPT (trained by experiments/train_builtin_dpt.py) loads as `mask`'s default."""
-    from jaxnerf_grid.masking import BUILTIN, default_classes, load_models
+    from jaxnerf_grid.masks.write import BUILTIN, default_classes, load_models
     if not (BUILTIN / "config.json").is_file():
         pytest.skip("no built-in model in this build")
     seg, depth, wdir = load_models(None, None)

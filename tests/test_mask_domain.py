@@ -14,8 +14,12 @@ import json
 import numpy as np
 import pytest
 
-from jaxnerf_grid import demo, dpt, foreground as fg, io, masking
-from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid import demo
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.masks import dpt
+from jaxnerf_grid.masks import foreground as fg
+from jaxnerf_grid.masks import write as masking
+from jaxnerf_grid.util import io
 
 
 def _rule_by_hand(shares):
@@ -202,9 +206,9 @@ def test_strict_readmission_follows_the_masks_domain_verdict(tmp_path, domain, a
     sys.path.insert(0, str(Path(__file__).parent))
     from test_formats import _write_transforms
 
-    from jaxnerf_grid import config
+    from jaxnerf_grid.config import schema as config
+    from jaxnerf_grid.config.run_config import make_config
     from jaxnerf_grid.data import formats
-    from jaxnerf_grid.run_config import make_config
 
     _, top = _write_transforms(tmp_path)
     if domain is not None:
@@ -222,7 +226,7 @@ def test_the_report_says_how_flagged_pixels_were_readmitted():
     off, nothing for other modes or a run whose config predates the key."""
     from types import SimpleNamespace
 
-    from jaxnerf_grid import evaluate
+    from jaxnerf_grid.eval import evaluate
 
     def note(robust, strict):
         return evaluate.strict_note(SimpleNamespace(robust=robust, robust_strict_readmit=strict))

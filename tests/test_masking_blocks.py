@@ -9,8 +9,9 @@ import re
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io, masking
-from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.masks import write as masking
+from jaxnerf_grid.util import io
 
 RULE = "out of domain when more than 50% of the frames have more than 40% of their pixels masked"
 
@@ -209,7 +210,7 @@ def test_a_staging_folder_of_another_live_process_is_left_alone_and_a_second_mas
     import subprocess
     import sys
 
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     _gt_dataset(tmp_path, 9, 11, [(slice(2, 4), slice(3, 6))])
     masking.write_masks(tmp_path, source="gt", progress=False)    # a set already there: the refusal
@@ -239,7 +240,7 @@ def test_a_staging_folder_of_another_live_process_is_left_alone_and_a_second_mas
 
 
 def test_check_outputs_refuses_existing_masks_unless_overwrite(tmp_path):
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     (tmp_path / "masks").mkdir()
     masking._check_outputs(tmp_path, {"frames": [{"file_path": "a.png"}]}, False)       # an empty folder
@@ -258,8 +259,8 @@ def test_check_outputs_refuses_existing_masks_unless_overwrite(tmp_path):
 def test_default_classes_from_the_folder_or_the_ade20k_labels(tmp_path):
     from types import SimpleNamespace
 
-    from jaxnerf_grid import foreground as fg
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.masks import foreground as fg
+    from jaxnerf_grid.util.io import DataError
 
     def model(n):
         return SimpleNamespace(config=SimpleNamespace(num_labels=n))
@@ -280,8 +281,8 @@ def test_default_classes_from_the_folder_or_the_ade20k_labels(tmp_path):
 def test_load_models_pairs_the_heads(tmp_path, monkeypatch):
     """A model with both heads is its own depth model; a segmentation-only one has none unless
     depth weights are given; a folder without the head asked of it is refused by name."""
-    from jaxnerf_grid import dpt
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.masks import dpt
+    from jaxnerf_grid.util.io import DataError
 
     def saved(name, heads):
         cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
@@ -336,7 +337,7 @@ def test_recover_never_raises_over_a_leftover_it_cannot_remove(tmp_path):
 
 
 def test_ground_truth_source_names_the_frame_and_the_missing_key(tmp_path):
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     _gt_dataset(tmp_path, 4, 5, [None, None])
     meta = io.read_json(tmp_path / "transforms.json")
@@ -355,7 +356,7 @@ def test_ground_truth_masks_with_the_defaults_and_a_threshold_for_dpt_only(tmp_p
     """Depth 1 everywhere: Eq. 7's (Dmax - D) / Dmax is 0, so with the default floor 0 M_w = 0 and
     the weights are 1 everywhere; the threshold is DPT's (C > T), a ground-truth mask is taken
     as it is even at T = 1; the params recorded; a second run without overwrite refused."""
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     rect = (slice(4, 6), slice(5, 8))
     _gt_dataset(tmp_path, 17, 21, [rect])
@@ -381,7 +382,7 @@ def test_write_masks_refuses_a_bad_setting_before_reading_the_data(tmp_path, kwa
 
 
 def test_write_masks_names_what_is_wrong_with_the_data(tmp_path, monkeypatch):
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     missing = tmp_path / "missing"
     with pytest.raises(DataError, match="^" + re.escape(f"{missing}: mask.data is not a folder") + "$"):
@@ -400,7 +401,7 @@ def test_write_masks_names_what_is_wrong_with_the_data(tmp_path, monkeypatch):
 
 
 def test_a_ground_truth_mask_of_another_size_is_named(tmp_path):
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     _gt_dataset(tmp_path, 4, 5, [None])
     io.write_png(tmp_path / "images/f0.png", np.zeros((6, 5, 3), np.float32))
@@ -415,7 +416,7 @@ def test_dpt_masks_record_the_verdict_the_confidence_and_no_depth_without_a_dept
     verdict is out of domain; each frame's confidence (one frame's mean largest probability,
     rounded to 4 places) is recorded and their mean is the verdict's. A segmentation-only model:
     no depth written, no dpt_depth_path, the weights 1 - M (M_w = M) = 0."""
-    from jaxnerf_grid import dpt
+    from jaxnerf_grid.masks import dpt
 
     _gt_dataset(tmp_path / "data", 32, 48, [None, None])
     for heads in (("segmentation", "depth"), ("segmentation",)):
@@ -454,7 +455,7 @@ def _flat_dpt(folder, heads, seed=0):
     class 2 is e / (e + 2) = 0.576117 everywhere (> 0.5: every pixel masked), and so is the largest
     class probability, the frame's confidence. With a depth head, its last bias raised by 0.1 so
     the relative inverse depth is positive and varies (tests/test_join_foreground.py's model)."""
-    from jaxnerf_grid import dpt
+    from jaxnerf_grid.masks import dpt
 
     cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
                         image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
@@ -516,7 +517,7 @@ def test_separate_depth_weights_give_the_depth_of_the_depth_model(tmp_path):
     depth written is Eq. 7's D = 1 / max(r, 1e-3 max r) from the depth model's own inverse depth r
     on the photo as written (32 x 64 = the working size at max_side 64: no resizing), computed
     here in NumPy from `dpt.apply`; the params name both folders."""
-    from jaxnerf_grid import dpt
+    from jaxnerf_grid.masks import dpt
 
     data = tmp_path / "data"
     _gt_dataset(data, 32, 64, [None])
@@ -546,7 +547,8 @@ def test_tiled_masks_record_the_tiling_and_use_its_overlap(tmp_path, monkeypatch
     median of that C; `mask.batch_size` handed on (a user short of accelerator memory sets it).
     The windows by hand: side 32, overlap 16 px, the photo resized to 32 x 48,
     windows at x = 0 and 16; with 0.25: 32 x 56, windows at 0 and 24, so C differs."""
-    from jaxnerf_grid import dpt, foreground as fg
+    from jaxnerf_grid.masks import dpt
+    from jaxnerf_grid.masks import foreground as fg
 
     data = tmp_path / "data"
     _gt_dataset(data, 32, 96, [None])
@@ -588,8 +590,8 @@ def test_dpt_classes_refused_by_the_model_folder_and_by_its_labels(tmp_path):
     """A 3-label DPT saved without `dynamic_classes` and no classes given: refused, naming the
     folder (no known dynamic classes for 3 labels); a class id past its labels: refused, naming
     the folder and its range. Nothing is written either way."""
-    from jaxnerf_grid import dpt
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.masks import dpt
+    from jaxnerf_grid.util.io import DataError
 
     data = tmp_path / "data"
     _gt_dataset(data, 32, 32, [None])

@@ -279,7 +279,7 @@ def test_orthographic_views_labels_each_panel_in_its_corner():
     Hershey simplex at 0.45, dark grey (40, 40, 40), 1 px, anti-aliased, its baseline at (6, 16)
     of the panel, on the 8-bit picture (the expected image drawn here with those literals); without
     OpenCV the picture is returned unlabelled."""
-    from jaxnerf_grid import io
+    from jaxnerf_grid.util import io
 
     cv2 = io.opencv()
     pts, cols, _ = _ortho_cloud()

@@ -6,7 +6,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxnerf_grid import metrics
+from jaxnerf_grid.eval import metrics
 
 torch = pytest.importorskip("torch")
 pm = pytest.importorskip("pytorch_msssim")

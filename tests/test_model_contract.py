@@ -10,9 +10,11 @@ from pathlib import Path
 
 import pytest
 
-from jaxnerf_grid import config, models, train
-from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.samplers import hierarchical, legacy, proposal
+from jaxnerf_grid.config import schema as config
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.nerf import models
+from jaxnerf_grid.nerf.samplers import hierarchical, legacy, proposal
+from jaxnerf_grid.train import loop as train
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxnerf_grid"
@@ -119,7 +121,7 @@ def test_an_older_run_config_json_loads_and_resolves_to_the_same_model(tmp_path)
     """A config.json as written before model.sampler (the flat keys, every default written out)
     loads through runs.load_run into the tagged sampler; old flat overrides give the same
     RunConfig as the tagged ones."""
-    from jaxnerf_grid import runs
+    from jaxnerf_grid.train import runs
 
     new = train.make_config("ours", {"model": {"sampler": {"kind": "hierarchical", "samples": [16, 8],
                                                            "union": False}}})
@@ -142,7 +144,7 @@ def test_an_older_run_config_json_loads_and_resolves_to_the_same_model(tmp_path)
 
 def test_set_flags_land_on_the_sampler_of_an_older_config_file(tmp_path):
     """An older --config file (flat keys) with --set model.sampler.* on top: the flag wins."""
-    from jaxnerf_grid import runs
+    from jaxnerf_grid.train import runs
 
     path = tmp_path / "old.json"
     path.write_text(json.dumps({"model": {"sampler": "proposal", "proposal_samples": [32], "num_fine": 16}}))

@@ -8,14 +8,14 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import fields, models
-from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.samplers import hierarchical, proposal
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.nerf import fields, models
+from jaxnerf_grid.nerf.samplers import hierarchical, proposal
 
 SMALL = fields.FieldConfig(depth=2, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _jitted(cfg):
     return jax.jit(lambda p, a, k: models.render_rays(p, cfg, *a, **k))
 

@@ -11,7 +11,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from jaxnerf_grid.data import normalize
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util.io import DataError
 
 CENTRE = np.array([100.0, -50.0, 20.0])
 

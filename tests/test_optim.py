@@ -1,4 +1,4 @@
-"""Tests for jaxnerf_grid.optim against independent references (torch.optim.Adam, numpy,
+"""Tests for jaxnerf_grid.train.optim against independent references (torch.optim.Adam, numpy,
 closed forms, numpy.linalg.lstsq)."""
 
 import math
@@ -9,7 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import optim
+from jaxnerf_grid.train import optim
 
 
 def rosenbrock_jax(params):

@@ -5,7 +5,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import coords, parallel, render, sampling
+from jaxnerf_grid.nerf import coords
+from jaxnerf_grid.nerf import volume as render
+from jaxnerf_grid.nerf.samplers import s_space as sampling
+from jaxnerf_grid.util import parallel
 
 
 def toy_render(rays_o, rays_d, key_data):

@@ -10,8 +10,8 @@ import numpy as np
 import pytest
 
 from benchmarks import pasted_transients as pt
-from jaxnerf_grid import io
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 RED = np.array([1.0, 0.0, 0.0], np.float32)
 
@@ -143,8 +143,8 @@ def test_the_weights_a_robust_run_wrote_are_read_back_by_frame_stem(tmp_path):
     """run_weights reads what train.write_robust_record writes (8-bit PNGs named by the frame's
     file stem), so pasted_share_used looks the training photos' stems up in it."""
 
-    from jaxnerf_grid import train
     from jaxnerf_grid.data.dataset import Dataset
+    from jaxnerf_grid.train import loop as train
 
     record = np.random.default_rng(0).random((2, 5, 7)).astype(np.float32)
     ds = Dataset(root=tmp_path, images=np.zeros((3, 5, 7, 3), np.float32), c2w=np.tile(np.eye(4), (3, 1, 1)),
@@ -157,7 +157,9 @@ def test_the_weights_a_robust_run_wrote_are_read_back_by_frame_stem(tmp_path):
 
 
 def test_set_changes_the_robust_rows_only():
-    from jaxnerf_grid import config, run_config, train
+    from jaxnerf_grid.config import run_config
+    from jaxnerf_grid.config import schema as config
+    from jaxnerf_grid.train import loop as train
 
     sets = config.parse_sets(["train.robust_confirm=0.02", "train.robust_spread=2"], run_config.RunConfig)
     robust = train.make_config("ours", pt.row_overrides("robust", 0, 10, sets)).train
@@ -174,7 +176,7 @@ def test_prior_picks_the_masked_rows_masks_only(tmp_path):
     """--prior: the dpt and dpt+robust rows train on the pasted masks ("gt") or on a named masked copy
     ({scene} filled in); every other row keeps its own data; a folder without masks is a
     one-line DataError naming it."""
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.util.io import DataError
 
     _strecha_scene(tmp_path / "scene")
     base = pt.build_scene(tmp_path / "scene", tmp_path / "data" / "fount", _sprites(), long_side=45, test_every=2,

@@ -5,8 +5,8 @@ seen by three cameras: static texture is confirmed, a square pasted in one photo
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import photo_consistency as pc
-from jaxnerf_grid import rays
+from jaxnerf_grid.masks import photo_consistency as pc
+from jaxnerf_grid.nerf import rays
 
 
 def cameras(xs, height=3.0):

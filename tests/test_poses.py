@@ -12,20 +12,32 @@ installs it).
 from __future__ import annotations
 
 import shutil
-from pathlib import Path
 import struct
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, io
-from jaxnerf_grid.data import colmap as colmap_io
+from jaxnerf_grid import cli
+from jaxnerf_grid.capture import vetting
+from jaxnerf_grid.capture.poses import (
+    MARKER,
+    REPORT,
+    choose_matcher,
+    choose_model,
+    crop_offsets,
+    enough_registered,
+    names_look_ordered,
+    poses_agree,
+    prepare_photo,
+    similarity_fit,
+    working_size,
+)
 from jaxnerf_grid.data import formats
+from jaxnerf_grid.data.formats import colmap_model as colmap_io
 from jaxnerf_grid.data.normalize import normalize_orbit, rotate_scene, rotation_between, up_from_cameras
-from jaxnerf_grid.data import vetting
-from jaxnerf_grid.data.poses import (MARKER, REPORT, choose_matcher, choose_model, crop_offsets, enough_registered,
-                                    names_look_ordered, poses_agree, prepare_photo, similarity_fit, working_size)
+from jaxnerf_grid.util import io
 
 W, H, FOCAL = 200, 150, 180.0
 RADIUS, HEIGHT, TARGET = 5.0, 2.5, np.array([0.0, 0.0, 0.8])
@@ -567,7 +579,7 @@ def test_package_and_cli_import_without_pycolmap():
     """Nothing imports pycolmap at module level (it is an optional extra)."""
     import subprocess
 
-    code = ("import sys; sys.modules['pycolmap'] = None; import jaxnerf_grid.data.poses, jaxnerf_grid.cli.poses, "
+    code = ("import sys; sys.modules['pycolmap'] = None; import jaxnerf_grid.capture.poses, jaxnerf_grid.cli.poses, "
             "jaxnerf_grid.data.formats; from jaxnerf_grid.cli.poses import build_parser; build_parser()")
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)
 
@@ -816,7 +828,7 @@ def test_poses_killed_in_a_colmap_stage_leaves_the_dataset_and_is_cleaned(orbit_
     `poses` or load) removes it, leaving the dataset as it was."""
     from killing import kill_when
 
-    from jaxnerf_grid.data.poses import recover
+    from jaxnerf_grid.capture.poses import recover
 
     parent = tmp_path / "site"
     parent.mkdir()

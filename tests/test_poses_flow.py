@@ -26,11 +26,11 @@ import sys
 import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
-
-from jaxnerf_grid import io, staging
-from jaxnerf_grid.data import georef, gps, poses
-from jaxnerf_grid.io import DataError
 from test_poses_frames import FOCAL, _rings, _write_model
+
+from jaxnerf_grid.capture import georef, gps, poses
+from jaxnerf_grid.util import io, staging
+from jaxnerf_grid.util.io import DataError
 
 pycolmap = pytest.importorskip("pycolmap")
 

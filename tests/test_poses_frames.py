@@ -16,9 +16,9 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
-from jaxnerf_grid import io
-from jaxnerf_grid.data import poses
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.capture import poses
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 FOCAL = 60.0
 
@@ -864,7 +864,7 @@ def test_summary_and_report_lines_word_for_word_with_several_names():
               "roi_centre": [0.5, -0.25, 0.0]}
     plain = {k: v for k, v in summary.items() if k not in ("vetting", "georeference")}
     lines = poses.report_lines(plain, bounds)
-    from jaxnerf_grid.data import vetting
+    from jaxnerf_grid.capture import vetting
 
     assert lines == ["# Camera poses", "", "registered 4/8 photos, 40 3-D points, mean reprojection error 0.250 px",
                      "not registered (2): d.png, f.png", "unreadable, skipped (2): e.jpg, g.jpg", "",

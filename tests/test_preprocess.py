@@ -6,12 +6,12 @@ import struct
 import cv2
 import numpy as np
 import pytest
+from blobs import blob, centroid
 from skimage.color import rgb2lab
 
-from blobs import blob, centroid
-from jaxnerf_grid import io
 from jaxnerf_grid.data import formats, preprocess
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 
 def _jpeg_with_orientation(rgb, orientation):

@@ -2,7 +2,7 @@
 
 import io as pyio
 
-from jaxnerf_grid import progress
+from jaxnerf_grid.util import progress
 
 
 class FakeClock:

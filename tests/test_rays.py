@@ -3,7 +3,7 @@
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import rays
+from jaxnerf_grid.nerf import rays
 
 
 def project(point, c2w, fx, fy, cx, cy):

@@ -1,4 +1,4 @@
-"""The recipe registry (jaxnerf_grid/recipes.py), `jaxnerf-grid recipes` and `train --recipe / --method`.
+"""The recipe registry (jaxnerf_grid/config/recipes.py), `jaxnerf-grid recipes` and `train --recipe / --method`.
 
 The references are written out here: the demo's recipe as it stood when its figures were
 measured, RunConfig()'s defaults for the paper's setting, NeRF's bounded space by hand.
@@ -10,9 +10,12 @@ import json
 import pytest
 
 from experiments import settings
-from jaxnerf_grid import cli, config, demo, recipes, train
-from jaxnerf_grid.samplers.legacy import upgrade_flat_model
-from jaxnerf_grid.config import ConfigError
+from jaxnerf_grid import cli, demo
+from jaxnerf_grid.config import recipes
+from jaxnerf_grid.config import schema as config
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.nerf.samplers.legacy import upgrade_flat_model
+from jaxnerf_grid.train import loop as train
 
 # demo.DEMO_CONFIG as committed before the registry (the recipe of docs/GRID.md's figures)
 DEMO_BEFORE = {
@@ -139,7 +142,7 @@ class Called(Exception):
 @pytest.fixture
 def train_args(monkeypatch):
     """`train`'s call to runs.train_run, captured (nothing is trained): (method, overrides, out)."""
-    from jaxnerf_grid import runs
+    from jaxnerf_grid.train import runs
 
     def capture(data, method, out, overrides=None, steps=None, *args, **kwargs):
         raise Called(method, runs._with_steps(overrides, steps), out)

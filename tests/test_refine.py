@@ -1,4 +1,4 @@
-"""train.robust_refine (jaxnerf_grid/refine.py): the evidence judged once on whole frames, then
+"""train.robust_refine (jaxnerf_grid/train/refine.py): the evidence judged once on whole frames, then
 frozen. The frame rule against a brute-force loop, the rendered points against the cameras,
 the weights of hand-made residuals, and the trainer's switch: 1 vs 2 devices, exact resume on
 either side of it, the frozen weights in the record and in the log."""
@@ -11,8 +11,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import refine, robust, train
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.masks import robust
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train import refine
+from jaxnerf_grid.util.io import DataError
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import last_state, tiny_config, tiny_dataset  # noqa: E402
@@ -91,7 +93,7 @@ def test_rendered_points_lie_on_their_pixels_rays_at_the_rendered_z_depth():
     frames = np.asarray([0, 2])
     residual, points = refine.render_training_frames(params, cfg, ds, frames)
     assert residual.shape == (2, 12, 16) and points.shape == (2, 12, 16, 3)
-    from jaxnerf_grid import views
+    from jaxnerf_grid.render import views
     for k, frame in enumerate(frames):
         view = views.render_view(params, cfg, ds, int(frame))
         depth = view["depth"]
@@ -142,7 +144,7 @@ def test_refine_two_devices_match_one_and_the_record_holds_the_frozen_weights(tm
                                    states[0], states[1])
     assert max(jax.tree_util.tree_leaves(diffs)) < 1e-5, diffs
     cfg = refine_config(1)
-    from jaxnerf_grid import checkpoint
+    from jaxnerf_grid.train import checkpoint
     full = train.init_state(train.config_lib.resolve(cfg, ds), train.train_frames_shape(ds))
     at4 = checkpoint.load_checkpoint(checkpoint.checkpoint_path(tmp_path / "dev1", 4), full)
     pool = train.build_pool(ds, train.config_lib.resolve(cfg, ds))

@@ -4,7 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import render
+from jaxnerf_grid.nerf import volume as render
 
 
 def brute_force(density, t_edges, rgb, dir_norm=1.0):

@@ -9,8 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io, report
-from jaxnerf_grid.run_config import make_config
+from jaxnerf_grid.config.run_config import make_config
+from jaxnerf_grid.report import markdown as report
+from jaxnerf_grid.util import io
 
 H, W = 12, 16
 
@@ -130,7 +131,7 @@ def test_fmt_by_hand():
 def test_samples_and_field_lines_name_the_config():
     grid = make_config("ours", {"model": {"field": {"kind": "grid"}}}).model
     line = report._samples_line(grid)
-    from jaxnerf_grid import models
+    from jaxnerf_grid.nerf import models
 
     assert line == f"sampling in s: {models.describe(grid)}, {models.samples_per_ray(grid)} samples per ray" + (
         ", opaque far bin" if grid.opaque_far else "")

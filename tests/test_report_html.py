@@ -14,7 +14,9 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, io, report_html
+from jaxnerf_grid import cli
+from jaxnerf_grid.report import html as report_html
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import TINY_FIELD, tiny_dataset  # noqa: E402
@@ -70,7 +72,7 @@ def test_cluster_mesh_matches_a_brute_force_grid_merge():
 
 
 def test_frustum_corners_project_to_the_image_corners():
-    from jaxnerf_grid import rays
+    from jaxnerf_grid.nerf import rays
 
     c2w = np.asarray(rays.look_at([3.0, 1.0, 2.0], [0, 0, 0]), np.float64)
     fx, fy, cx, cy, w, h = 50.0, 55.0, 31.0, 22.0, 64, 48
@@ -175,8 +177,8 @@ def test_the_page_carries_and_draws_the_measurements_of_measurements_json(tmp_pa
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
     """A tiny run (a ball, 2 x 32 MLP, 40 steps) evaluated and exported with the CLI."""
-    from jaxnerf_grid import runs
     from jaxnerf_grid.data.formats import save_transforms_json
+    from jaxnerf_grid.train import runs
 
     root = tmp_path_factory.mktemp("report_html")
     ds = tiny_dataset(width=24, height=18, frames=7)
@@ -298,7 +300,7 @@ def test_a_grey_model_is_found_in_the_screenshot(tmp_path):
 
 
 def test_svg_curve_places_the_points_linearly():
-    from jaxnerf_grid.progress_page import svg_curve
+    from jaxnerf_grid.report.progress_page import svg_curve
 
     svg = svg_curve([(0, 1.0), (10, 3.0), (20, 2.0), (30, float("nan"))], "loss", width=100, height=80)
     pts = np.array([[float(v) for v in p.split(",")] for p in re.search(r'points="([^"]+)"', svg).group(1).split()])
@@ -307,8 +309,8 @@ def test_svg_curve_places_the_points_linearly():
 
 
 def test_train_progress_page_is_rewritten_while_training(tmp_path):
-    from jaxnerf_grid import runs
     from jaxnerf_grid.data.formats import save_transforms_json
+    from jaxnerf_grid.train import runs
 
     ds = tiny_dataset()
     save_transforms_json(ds, tmp_path / "data")
@@ -316,7 +318,7 @@ def test_train_progress_page_is_rewritten_while_training(tmp_path):
                  "train": {"batch_rays": 64, "max_steps": 25, "checkpoint_every": 10, "log_every": 5, "warmup": 5,
                            "lr_init": 5e-3, "lr_final": 1e-3, "chunk": 256, "num_devices": 1}}
     seen = []
-    from jaxnerf_grid import progress_page
+    from jaxnerf_grid.report import progress_page
 
     original = progress_page.write_progress_page
 

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import robust
+from jaxnerf_grid.masks import robust
 
 DEFAULTS = {"quantile": 0.8, "flagged_quantile": 0.5, "patch_share": 0.6, "floor": 0.0, "spread": 0.0}
 
@@ -317,8 +317,8 @@ def test_the_record_moves_halfway_to_each_new_weight():
 
 @pytest.mark.parametrize("mode", ["off", "robust", "dpt+robust", "bad"])
 def test_modes_are_checked(mode):
-    from jaxnerf_grid import train
-    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.config.schema import ConfigError
+    from jaxnerf_grid.train import loop as train
 
     if mode == "bad":
         with pytest.raises(ConfigError, match="train.robust"):
@@ -332,7 +332,8 @@ def test_modes_are_checked(mode):
 
 
 def test_the_switch_is_settable_with_set():
-    from jaxnerf_grid import config, train
+    from jaxnerf_grid.config import schema as config
+    from jaxnerf_grid.train import loop as train
 
     overrides = config.parse_sets(["train.robust=dpt+robust", "train.robust_patch=16"], train.RunConfig)
     cfg = train.make_config("nerf", overrides)
@@ -344,9 +345,9 @@ def test_bad_settings_are_one_line_errors_naming_the_key_or_folder():
     import sys
     from pathlib import Path
 
-    from jaxnerf_grid import train
-    from jaxnerf_grid.config import ConfigError
-    from jaxnerf_grid.io import DataError
+    from jaxnerf_grid.config.schema import ConfigError
+    from jaxnerf_grid.train import loop as train
+    from jaxnerf_grid.util.io import DataError
 
     sys.path.insert(0, str(Path(__file__).parent))
     from test_train import tiny_config, tiny_dataset
@@ -358,7 +359,7 @@ def test_bad_settings_are_one_line_errors_naming_the_key_or_folder():
     with pytest.raises(DataError, match="tiny: train.robust = dpt\\+robust needs the dataset's masks"):
         train.build_pool(ds, tiny_config(robust="dpt+robust", robust_patch=4))
     assert train.build_pool(ds, tiny_config(robust="robust", robust_patch=4))["weights"].min() == 1
-    from jaxnerf_grid import runs                            # refused before a run folder is written
+    from jaxnerf_grid.train import runs  # refused before a run folder is written
     with pytest.raises(DataError, match="needs the dataset's masks"):
         runs.check_run(tiny_config(robust="dpt+robust", robust_patch=4), ds, num_devices=2)
 

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from scipy import stats
 
-from jaxnerf_grid import sampling
+from jaxnerf_grid.nerf.samplers import s_space as sampling
 
 KINDS = ["linear", "disparity", "log", "piecewise"]
 

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from benchmarks import step_profile
-from jaxnerf_grid import fields, models, recipes
+from jaxnerf_grid.config import recipes
+from jaxnerf_grid.nerf import fields, models
 
 TINY = ["model.field.grid.num_levels=2", "model.field.grid.log2_table_size=8", "model.field.grid.max_resolution=32",
         "model.field.width=16", "model.field.view_width=16", "model.sampler.samples=[8]",

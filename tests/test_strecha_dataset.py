@@ -6,10 +6,10 @@ import numpy as np
 import pytest
 
 from benchmarks import strecha_dataset
-from jaxnerf_grid import rays as rays_lib
 from jaxnerf_grid.data.formats import load_dataset
 from jaxnerf_grid.data.normalize import apply_normalization_to_points
-from jaxnerf_grid.io import DataError, write_png
+from jaxnerf_grid.nerf import rays as rays_lib
+from jaxnerf_grid.util.io import DataError, write_png
 
 
 def _rotation(axis, angle):

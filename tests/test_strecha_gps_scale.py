@@ -4,7 +4,7 @@ benchmark's) and a dataset whose centres are a known similarity of them (z up, 1
 import numpy as np
 
 from benchmarks import strecha_gps_scale
-from jaxnerf_grid import io
+from jaxnerf_grid.util import io
 
 
 def write_scene(tmp_path, count=9):

@@ -159,9 +159,9 @@ def test_bvh_trace_matches_brute_force():
 def test_binned_trace_screen_and_sun_culling_match_brute_force():
     """The renderer's culling (screen tiles for camera rays, sun-plane cells for shadow rays)."""
     from jaxnerf_grid.data.synthetic import cameras
-    from jaxnerf_grid.data.synthetic.generate import SunGrid, TILE, scene_bounds, screen_rects
+    from jaxnerf_grid.data.synthetic.generate import TILE, SunGrid, scene_bounds, screen_rects
     from jaxnerf_grid.data.synthetic.scene import Scene
-    from jaxnerf_grid.rays import look_at
+    from jaxnerf_grid.nerf.rays import look_at
 
     rng = np.random.default_rng(6)
     tables = _random_tables(rng, 40)

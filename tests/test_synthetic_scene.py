@@ -6,9 +6,9 @@ import math
 import numpy as np
 import pytest
 
-from jaxnerf_grid import io
 from jaxnerf_grid.data.synthetic import CLASSES
 from jaxnerf_grid.data.synthetic.generate import generate_scene
+from jaxnerf_grid.util import io
 
 TINY = dict(width=40, height=30, num_train=3, num_test=1, supersample=1)
 

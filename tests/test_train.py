@@ -9,8 +9,10 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from jaxnerf_grid import rays as rays_lib, train, views
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.nerf import rays as rays_lib
+from jaxnerf_grid.render import views
+from jaxnerf_grid.train import loop as train
 
 TINY_FIELD = {"depth": 2, "width": 32, "skip": 1, "pos_max_deg": 4, "dir_max_deg": 2, "view_width": 16}
 TINY_GRID = {"kind": "grid", "depth": 1, "width": 16, "dir_max_deg": 2, "view_width": 16, "view_depth": 2,
@@ -194,7 +196,7 @@ def test_loss_weights_floor_and_switch():
 
 def last_state(run_dir, cfg, ds) -> dict:
     """The newest checkpoint's state of a run of the tiny scene (robust_record included)."""
-    from jaxnerf_grid import checkpoint
+    from jaxnerf_grid.train import checkpoint
 
     full = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=ds.num_frames))
     return checkpoint.restore_latest(run_dir, train.init_state(full, train.train_frames_shape(ds)))[0]

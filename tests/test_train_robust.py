@@ -9,7 +9,7 @@ import jax
 import numpy as np
 import pytest
 
-from jaxnerf_grid import train
+from jaxnerf_grid.train import loop as train
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import last_state, tiny_config, tiny_dataset  # noqa: E402
@@ -98,7 +98,7 @@ def test_robust_readmits_a_wrong_prior_and_drops_a_missed_transient(tmp_path, st
     assert readmitted.mean() > 0.8, record[0]
     assert record[1, 5:7, 7:9].mean() < 0.2, record[1]
     assert record[2:].mean() > 0.8  # frames with nothing wrong stay mostly used
-    from jaxnerf_grid import io
+    from jaxnerf_grid.util import io
     png = io.read_image(tmp_path / "weights" / "frame_0001.png")  # what a user looks at
     assert png.shape[:2] == (12, 16)
     np.testing.assert_allclose(png[..., 0] if png.ndim == 3 else png, record[1], atol=1 / 255 + 1e-6)

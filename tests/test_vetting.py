@@ -7,7 +7,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from jaxnerf_grid.data import vetting
+from jaxnerf_grid.capture import vetting
 
 RING, NUM_CAMS, FOCAL = 5.0, 12, 300.0
 

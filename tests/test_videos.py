@@ -1,9 +1,9 @@
 """Fly-around videos (issue 42, docs/VIDEOS.md): the orbit against its closed form, the camera-path
 reader and its refusals, and `render --orbit / --path` on a tiny run read back with OpenCV."""
 
-import os
 import json
 import math
+import os
 import sys
 from pathlib import Path
 
@@ -11,8 +11,11 @@ import cv2
 import numpy as np
 import pytest
 
-from jaxnerf_grid import cli, io, rays, videos
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid import cli
+from jaxnerf_grid.nerf import rays
+from jaxnerf_grid.render import videos
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import TINY_FIELD, tiny_dataset  # noqa: E402
@@ -77,8 +80,8 @@ def test_read_camera_path_refuses_bad_files_naming_the_file_and_key(tmp_path, ca
 
 @pytest.fixture(scope="module")
 def tiny_run(tmp_path_factory):
-    from jaxnerf_grid import runs
     from jaxnerf_grid.data.formats import save_transforms_json
+    from jaxnerf_grid.train import runs
 
     root = tmp_path_factory.mktemp("videos")
     ds = tiny_dataset(width=24, height=18, frames=6)
@@ -114,7 +117,7 @@ def test_render_orbit_writes_colour_and_depth_videos(tiny_run, capsys):
 
 def test_render_path_follows_the_given_cameras(tiny_run, tmp_path):
     """A path through the test camera renders what `render` renders for the test view."""
-    from jaxnerf_grid import runs
+    from jaxnerf_grid.train import runs
 
     cfg, data = runs.load_run(tiny_run)
     ds = runs.load_dataset(data, progress=False)
@@ -136,7 +139,8 @@ def test_render_path_follows_the_given_cameras(tiny_run, tmp_path):
 def test_a_frame_has_the_rays_of_its_camera(tiny_run):
     """`_render_frame` of a dataset camera's pose and vertical fov casts that camera's rays (the
     renderer one that returns the ray directions)."""
-    from jaxnerf_grid import runs, views
+    from jaxnerf_grid.render import views
+    from jaxnerf_grid.train import runs
 
     cfg, data = runs.load_run(tiny_run)
     ds = runs.load_dataset(data, progress=False)
@@ -161,7 +165,7 @@ def test_render_video_refuses_bad_settings_in_one_line(tiny_run, tmp_path, capsy
 
 
 def test_a_failed_render_keeps_the_earlier_video_and_leaves_no_partial_file(tmp_path):
-    from jaxnerf_grid import progress
+    from jaxnerf_grid.util import progress
 
     video, depth = tmp_path / "orbit.mp4", tmp_path / "orbit_depth.mp4"
     video.write_bytes(b"the earlier video")
@@ -188,7 +192,10 @@ def test_the_frame_renderer_renders_what_eval_renders_with_one_compile(tiny_run,
     the block)."""
     import jax
 
-    from jaxnerf_grid import config as config_lib, runs, train, views
+    from jaxnerf_grid.config import schema as config_lib
+    from jaxnerf_grid.render import views
+    from jaxnerf_grid.train import loop as train
+    from jaxnerf_grid.train import runs
 
     if jax.local_device_count() < devices:
         pytest.skip(f"needs {devices} local devices")
@@ -220,7 +227,10 @@ def test_load_params_reads_the_checkpoint_without_drawing_parameters(tiny_run, m
     only traced (its leaves tracers: nothing drawn, nothing compiled for it)."""
     import jax
 
-    from jaxnerf_grid import checkpoint, config as config_lib, models, runs, train
+    from jaxnerf_grid.config import schema as config_lib
+    from jaxnerf_grid.nerf import models
+    from jaxnerf_grid.train import checkpoint, runs
+    from jaxnerf_grid.train import loop as train
 
     cfg, data = runs.load_run(tiny_run)
     ds = runs.load_dataset(data, progress=False)

@@ -10,10 +10,15 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from jaxnerf_grid import evaluate, io, rays as rays_lib, runs
-from jaxnerf_grid.cli import eval as cli_eval, render as cli_render
+from jaxnerf_grid.cli import eval as cli_eval
+from jaxnerf_grid.cli import render as cli_render
 from jaxnerf_grid.data import working
-from jaxnerf_grid.data.formats import frames as frames_lib, load_dataset, save_transforms_json
+from jaxnerf_grid.data.formats import frames as frames_lib
+from jaxnerf_grid.data.formats import load_dataset, save_transforms_json
+from jaxnerf_grid.eval import evaluate
+from jaxnerf_grid.nerf import rays as rays_lib
+from jaxnerf_grid.train import runs
+from jaxnerf_grid.util import io
 
 sys.path.insert(0, str(Path(__file__).parent))
 from test_train import TINY_FIELD, tiny_dataset  # noqa: E402

@@ -35,7 +35,7 @@ def _probe(argv: list[str]) -> str | None:
                               env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
     except (OSError, subprocess.TimeoutExpired) as err:
         return str(err)
-    return None if done.returncode == 0 else (done.stderr.strip().splitlines() or ["exit %d" % done.returncode])[-1]
+    return None if done.returncode == 0 else (done.stderr.strip().splitlines() or [f"exit {done.returncode}"])[-1]
 
 
 @functools.cache

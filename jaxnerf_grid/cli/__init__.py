@@ -60,8 +60,8 @@ def main(argv: list[str] | None = None) -> int:
     module = importlib.import_module(SUBCOMMANDS[name][0])
     entry = module.main
     rest = join_negative_values(rest)
-    from jaxnerf_grid.io import DataError, quiet_opencv  # after the subcommand: `--help` loads no NumPy
-    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.config.schema import ConfigError
+    from jaxnerf_grid.util.io import DataError, quiet_opencv  # after the subcommand: `--help` loads no NumPy
 
     with one_line_warnings(name), quiet_opencv():
         try:

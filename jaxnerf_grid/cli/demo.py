@@ -52,7 +52,8 @@ def sets_training_on_one_device(sets: list[str] | None, devices_forced: bool, ba
     train.num_devices: the evaluation and the video render on every core, training stays on one
     device as before (two devices train no faster on two cores, and the count changes a run's
     summation order, docs/DISTRIBUTED.md)."""
-    from jaxnerf_grid import config as config_lib, run_config
+    from jaxnerf_grid.config import run_config
+    from jaxnerf_grid.config import schema as config_lib
 
     sets = list(sets or [])
     named = "num_devices" in config_lib.parse_sets(sets, run_config.RunConfig).get("train", {})
@@ -68,7 +69,8 @@ def main(argv: list[str] | None = None) -> int:
     forced = not multi and DEVICE_COUNT_FLAG not in os.environ.get("XLA_FLAGS", "")
     if forced:  # before JAX starts its CPU backend (render --orbit does the same)
         use_every_cpu_core()
-    from jaxnerf_grid import demo, distributed
+    from jaxnerf_grid import demo
+    from jaxnerf_grid.train import distributed
 
     sets = sets_training_on_one_device(args.set, forced, distributed.jax.default_backend())
     frames = 0 if args.no_video else demo.DEMO_VIDEO_FRAMES if args.video_frames is None else args.video_frames

@@ -38,7 +38,7 @@ def geometry_line(geo: dict) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from jaxnerf_grid import evaluate
+    from jaxnerf_grid.eval import evaluate
 
     m = evaluate.evaluate_run(args.run, args.lpips_weights, not args.quiet, distractor_views=args.distractor_views,
                               reference_ply=args.reference_ply, allow_other_data=args.allow_other_data,

@@ -48,8 +48,8 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     from pathlib import Path
 
-    from jaxnerf_grid import report
     from jaxnerf_grid.export import run
+    from jaxnerf_grid.report import markdown as report
 
     m = run.export_run(args.run, args.out, resolution=args.resolution, box=args.box, opacity=args.threshold,
                        views=args.views, overwrite=args.overwrite, progress=not args.quiet,

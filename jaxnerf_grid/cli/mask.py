@@ -21,7 +21,7 @@ docs/MASKS.md).
 
 --source dpt (default) runs DPT: `--weights` is a folder in the HF layout (e.g. a copy of
 Intel/dpt-large-ade) or the native format; default: the built-in model shipped in
-jaxnerf_grid/assets/dpt_builtin (if present). An HF segmentation checkpoint has no depth head:
+jaxnerf_grid/masks/assets/dpt_builtin (if present). An HF segmentation checkpoint has no depth head:
 pass `--depth-weights` (e.g. a copy of Intel/dpt-large) for Eq. 7, else M_w = M (floor 1).
 --source gt builds M from the synthetic ground truth `distractor_mask_path` and D from
 `depth_file_path` (so training can run without any DPT model).
@@ -65,7 +65,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from jaxnerf_grid import masking
+    from jaxnerf_grid.masks import write as masking
 
     classes = masking.parse_classes(args.classes)
     masking.write_masks(args.data, source=args.source, weights=args.weights, depth_weights=args.depth_weights,

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import argparse
 
-from jaxnerf_grid.data.poses import AUTO_EXHAUSTIVE_MAX, CAMERA_MODELS, MATCHERS, SEQUENTIAL_OVERLAP
+from jaxnerf_grid.capture.poses import AUTO_EXHAUSTIVE_MAX, CAMERA_MODELS, MATCHERS, SEQUENTIAL_OVERLAP
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -63,7 +63,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from jaxnerf_grid.data.poses import format_summary, poses_from_images
+    from jaxnerf_grid.capture.poses import format_summary, poses_from_images
 
     summary = poses_from_images(args.images, args.out, matcher=args.matcher, overlap=args.overlap,
                                 camera_model=args.camera_model,

@@ -20,7 +20,7 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from jaxnerf_grid import recipes
+    from jaxnerf_grid.config import recipes
 
     if args.show is not None:
         recipe = recipes.get(args.show)

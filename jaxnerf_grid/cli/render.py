@@ -57,14 +57,14 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     if args.orbit or args.path:
         use_every_cpu_core()
-        from jaxnerf_grid import videos
+        from jaxnerf_grid.render import videos
 
         done = videos.render_video(args.run, args.path, frames=args.frames, fps=args.fps, width=args.width,
                                    out=args.out, progress=not args.quiet, allow_other_data=args.allow_other_data)
         print(f"wrote {done['video']} and {done['depth_video']} ({done['frames']} frames, "
               f"{done['width']}x{done['height']}, {done['fps']:g} fps)")
         return 0
-    from jaxnerf_grid import runs
+    from jaxnerf_grid.train import runs
 
     views = runs.render_split(args.run, args.split, not args.quiet, allow_other_data=args.allow_other_data,
                               full_size=args.full_size)

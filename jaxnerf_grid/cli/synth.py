@@ -45,7 +45,7 @@ def build_parser() -> argparse.ArgumentParser:
 def check_args(args) -> None:
     """Refuses (ConfigError naming the flag) sizes and counts that would write a dataset
     `train` cannot use: width / height >= 8, num-train, num-test, supersample >= 1, workers >= 0."""
-    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.config.schema import ConfigError
 
     for flag, value, low in (("--width", args.width, 8), ("--height", args.height, 8),
                              ("--num-train", args.num_train, 1),
@@ -77,9 +77,8 @@ def clear_derived_outputs(out) -> None:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     check_args(args)
+    from jaxnerf_grid.capture.gps_photos import layout_points, parse_origin, write_gps_photos
     from jaxnerf_grid.data.synthetic.generate import contact_sheet, generate_scene
-
-    from jaxnerf_grid.data.gps_scene import layout_points, parse_origin, write_gps_photos
 
     origin = parse_origin(args.gps_origin) if args.gps_origin is not None else None
     layout_points(args.gcp_layout)  # an unknown layout refused before anything is written

@@ -34,8 +34,8 @@ def add_distributed_flags(p: argparse.ArgumentParser) -> None:
 def start_distributed(args) -> bool:
     """Starts jax.distributed when the flags or the environment ask for it (before any device
     is touched). Returns True in a multi-process run."""
-    from jaxnerf_grid import distributed
-    from jaxnerf_grid.config import ConfigError
+    from jaxnerf_grid.config.schema import ConfigError
+    from jaxnerf_grid.train import distributed
 
     try:
         return distributed.initialize(args.coordinator, args.num_processes, args.process_id)
@@ -96,8 +96,11 @@ def train_summary(cfg, result, run_dir) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     multi = start_distributed(args)
-    from jaxnerf_grid import config as config_lib, distributed, evaluate, recipes, run_config, runs
-    from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
+    from jaxnerf_grid.capture.bounds import bounds_line, folder_bounds, recipe_with_bounds
+    from jaxnerf_grid.config import recipes, run_config
+    from jaxnerf_grid.config import schema as config_lib
+    from jaxnerf_grid.eval import evaluate
+    from jaxnerf_grid.train import distributed, runs
 
     recipe, method = recipes.resolve(args.recipe, args.method)
     out = args.out or f"runs/{recipe}"

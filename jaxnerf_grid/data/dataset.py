@@ -7,7 +7,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util.io import DataError
 
 # A camera centre this many times farther from the median centre than the median camera is
 # an error (a pose translated 1e30 away, a unit mix-up); real orbits and strips stay within ~3x.
@@ -63,7 +63,7 @@ class Dataset:
     def num_frames(self) -> int:
         return int(self.images.shape[0])
 
-    def subset(self, indices) -> "Dataset":
+    def subset(self, indices) -> Dataset:
         """A new Dataset of the frames `indices` (split re-indexed to all of them as both)."""
         idx = np.asarray(indices, dtype=np.int64)
         pick = lambda a: None if a is None else a[idx]  # noqa: E731

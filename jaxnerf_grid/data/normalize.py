@@ -23,7 +23,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util.io import DataError
 
 
 def optical_axis_focus(c2w: np.ndarray) -> tuple[np.ndarray, float]:

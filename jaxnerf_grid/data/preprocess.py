@@ -30,11 +30,11 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import folders, io, progress
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.data.formats.writing import DATASET_OUTPUTS
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import folders, io, progress
+from jaxnerf_grid.util.io import DataError
 
 
 def target_size(width: int, height: int, size) -> tuple[int, int]:

@@ -29,7 +29,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid.util import io
 
 DEFAULT_MAX_SIDE = 640   # px; a 2-core CPU trains and renders this in minutes
 CACHE_FOLDER = Path(".jaxnerf-grid-cache") / "working"

@@ -1,7 +1,7 @@
 """3D export of the tower: the metric model of `jaxnerf-grid export` (docs/EXPORT.md).
 
 This file holds the dataset's normalisation, used by the submodules and by `evaluate.py` through
-`export.score` (no JAX at import time); the depth clouds it shares with evaluation are `clouds.py`:
+`eval.export_score` (no JAX at import time); the depth clouds it shares with evaluation are `clouds.py`:
 
 * `to_metric` / `to_scene`: the dataset's normalisation x_norm = scale * R (x + translation)
   (R: the optional rotation; docs/DATASET.md) undone / applied; `plane_to_metric` does it for a plane;
@@ -12,7 +12,7 @@ The export itself lives in submodules, each imported by its user:
 `export.field` (the trained density and colour, sampled in chunks; JAX), `export.mesh`
 (marching cubes, thresholds, components), `export.ground` (RANSAC ground plane, the tower's box),
 `export.fuse` (multi-view consistent depth fusion), `export.measure` (height, footprint,
-cross-arms, the orthographic picture), `export.score` (the export against a reference tower) and
+cross-arms, the orthographic picture), `eval.export_score` (the export against a reference tower) and
 `export.run` (`export_run`, the `jaxnerf-grid export` pipeline).
 """
 

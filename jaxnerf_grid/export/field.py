@@ -19,7 +19,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxnerf_grid import fields, models, parallel
+from jaxnerf_grid.nerf import fields, models
+from jaxnerf_grid.util import parallel
 
 DEFAULT_CHUNK = 1 << 16
 

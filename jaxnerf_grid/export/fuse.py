@@ -12,7 +12,7 @@ point is kept when at least `min_views` other views confirm it. Floaters seen by
 depth errors at silhouettes do not survive; a surface seen by several views does. A point that
 view j cannot see (occluded, outside the picture) simply gets no vote from j.
 
-Cameras follow jaxnerf_grid/rays.py: c2w [4, 4] (OpenGL axes, looking down -z), pixel centres
+Cameras follow jaxnerf_grid/nerf/rays.py: c2w [4, 4] (OpenGL axes, looking down -z), pixel centres
 at (i + 0.5, j + 0.5), row 0 at the top.
 """
 

@@ -21,8 +21,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid.data import georef
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.capture import georef
+from jaxnerf_grid.util.io import DataError
 
 # the vertical reference of the CRS outputs without a geoid grid, by the record's `source`
 ELLIPSOIDAL = "ellipsoidal (GPS heights as written)"

@@ -24,8 +24,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from jaxnerf_grid import io
 from jaxnerf_grid.export import ground
+from jaxnerf_grid.util import io
 
 
 def plane_basis(normal) -> tuple[np.ndarray, np.ndarray]:

@@ -35,13 +35,30 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import clouds, config as config_lib, folders, io, progress as progress_lib, report, runs, train
-from jaxnerf_grid import report_html, views as views_lib
-from jaxnerf_grid.config import ConfigError
-from jaxnerf_grid.export import box_to_metric, box_to_scene, field, fuse, geoid as geoid_lib, ground, measure
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.export import (
+    box_to_metric,
+    box_to_scene,
+    field,
+    fuse,
+    ground,
+    measure,
+    plane_to_metric,
+    survey,
+    to_metric64,
+)
+from jaxnerf_grid.export import geoid as geoid_lib
 from jaxnerf_grid.export import mesh as mesh_lib
-from jaxnerf_grid.export import plane_to_metric, survey, to_metric64
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.render import clouds
+from jaxnerf_grid.render import views as views_lib
+from jaxnerf_grid.report import html as report_html
+from jaxnerf_grid.report import markdown as report
+from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train import runs
+from jaxnerf_grid.util import folders, io
+from jaxnerf_grid.util import progress as progress_lib
+from jaxnerf_grid.util.io import DataError
 
 DEFAULT_RESOLUTION = mesh_lib.DEFAULT_RESOLUTION  # the defaults live where `jaxnerf-grid export --help` reads
 DEFAULT_VIEWS = fuse.DEFAULT_VIEWS              # them without loading JAX (cli/export.py)

@@ -20,9 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
-from jaxnerf_grid.data import georef
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.capture import georef
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 
 def georeference_of(ds) -> dict | None:

@@ -43,20 +43,41 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.data.formats import colmap_model as colmap_io
 from jaxnerf_grid.data.formats.blender import collect_blender, load_blender
 from jaxnerf_grid.data.formats.colmap import collect_colmap, colmap_w2c_to_c2w_gl, load_colmap
-from jaxnerf_grid.data.formats.frames import (BLENDER_FAR, BLENDER_NEAR, CV_TO_GL, DEFAULT_FAR, DEFAULT_NEAR,
-                                              IMAGE_EXTENSIONS, SEMANTIC_UNKNOWN, default_split,
-                                              downscaled_size, min_ray_cosine, read_frame, read_rgb,
-                                              resize_frame, scale_intrinsics, Scene, scene_to_dataset,
-                                              undistort_maps, validate_c2w, working_dataset)
+from jaxnerf_grid.data.formats.frames import (
+    BLENDER_FAR,
+    BLENDER_NEAR,
+    CV_TO_GL,
+    DEFAULT_FAR,
+    DEFAULT_NEAR,
+    IMAGE_EXTENSIONS,
+    SEMANTIC_UNKNOWN,
+    Scene,
+    default_split,
+    downscaled_size,
+    min_ray_cosine,
+    read_frame,
+    read_rgb,
+    resize_frame,
+    scale_intrinsics,
+    scene_to_dataset,
+    undistort_maps,
+    validate_c2w,
+    working_dataset,
+)
 from jaxnerf_grid.data.formats.llff import collect_llff, llff_to_c2w_gl, load_llff
 from jaxnerf_grid.data.formats.transforms_json import collect_transforms_json, load_transforms_json
-from jaxnerf_grid.data.formats.writing import (save_transforms_json, split_names, transforms_top, write_frame,
-                                               write_transforms_json)
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.data.formats.writing import (
+    save_transforms_json,
+    split_names,
+    transforms_top,
+    write_frame,
+    write_transforms_json,
+)
+from jaxnerf_grid.util.io import DataError
 
 __all__ = ["BLENDER_FAR", "BLENDER_NEAR", "collect_blender", "collect_colmap", "collect_llff",
            "collect_scene", "collect_transforms_json", "colmap_w2c_to_c2w_gl", "CV_TO_GL", "DataError",

@@ -4,11 +4,11 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from jaxnerf_grid import io
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.data.formats.frames import BLENDER_FAR, BLENDER_NEAR, check_split, Scene, scene_to_dataset
+from jaxnerf_grid.data.formats.frames import BLENDER_FAR, BLENDER_NEAR, Scene, check_split, scene_to_dataset
 from jaxnerf_grid.data.formats.transforms_json import collect_json_frames
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 
 def load_blender(path, *, downscale: float = 1, load_extras: bool = True, **kwargs) -> Dataset:

@@ -7,12 +7,22 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid.data import colmap as colmap_io
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.data.formats import colmap_model as colmap_io
+from jaxnerf_grid.data.formats.frames import (
+    CV_TO_GL,
+    DEFAULT_FAR,
+    DEFAULT_NEAR,
+    Frame,
+    Scene,
+    check_split,
+    default_split,
+    min_ray_cosine,
+    scene_to_dataset,
+    validate_c2w,
+)
 from jaxnerf_grid.data.normalize import apply_normalization_to_points, z_up_normalization
-from jaxnerf_grid.data.formats.frames import (CV_TO_GL, DEFAULT_FAR, DEFAULT_NEAR, check_split, default_split,
-                                              Frame, min_ray_cosine, Scene, scene_to_dataset, validate_c2w)
-from jaxnerf_grid.io import DataError
+from jaxnerf_grid.util.io import DataError
 
 
 def colmap_w2c_to_c2w_gl(qvec, tvec) -> np.ndarray:

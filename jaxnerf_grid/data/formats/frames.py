@@ -10,12 +10,12 @@ from typing import NamedTuple
 
 import numpy as np
 
-from jaxnerf_grid import io, progress as progress_lib
 from jaxnerf_grid.data import working
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.data.normalize import normalization_record
-from jaxnerf_grid.io import DataError
-
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util import progress as progress_lib
+from jaxnerf_grid.util.io import DataError
 
 DEFAULT_NEAR = 0.05   # normalised units; cameras usually sit 1.5-3 units from the centre
 DEFAULT_FAR = 100.0   # generous: the contraction compresses everything past the unit sphere

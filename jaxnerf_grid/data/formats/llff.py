@@ -8,11 +8,19 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.data.formats.frames import (
+    IMAGE_EXTENSIONS,
+    Frame,
+    Scene,
+    check_split,
+    default_split,
+    min_ray_cosine,
+    scale_intrinsics,
+    scene_to_dataset,
+    validate_c2w,
+)
 from jaxnerf_grid.data.normalize import z_up_normalization
-from jaxnerf_grid.data.formats.frames import (IMAGE_EXTENSIONS, check_split, default_split, Frame,
-                                              min_ray_cosine, scale_intrinsics, Scene, scene_to_dataset,
-                                              validate_c2w)
-from jaxnerf_grid.io import DataError, load_error_reason
+from jaxnerf_grid.util.io import DataError, load_error_reason
 
 
 def llff_to_c2w_gl(pose_3x5) -> tuple[np.ndarray, tuple[float, float, float]]:

@@ -8,14 +8,22 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
 from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.data.formats.frames import (
+    DEFAULT_FAR,
+    DEFAULT_NEAR,
+    EXTRAS,
+    IMAGE_EXTENSIONS,
+    Frame,
+    Scene,
+    check_split,
+    default_split,
+    scene_to_dataset,
+    validate_c2w,
+)
 from jaxnerf_grid.data.normalize import check_rotation, compose_normalization, normalize_poses
-from jaxnerf_grid.data.formats.frames import (DEFAULT_FAR, DEFAULT_NEAR, EXTRAS, IMAGE_EXTENSIONS,
-                                              check_split, default_split, Frame, Scene, scene_to_dataset,
-                                              validate_c2w)
-from jaxnerf_grid.io import DataError
-
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
 
 _KNOWN_JSON_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 

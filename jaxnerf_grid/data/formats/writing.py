@@ -7,10 +7,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import folders, io
 from jaxnerf_grid.data.dataset import Dataset
-from jaxnerf_grid.data.normalize import normalization_record
 from jaxnerf_grid.data.formats.frames import EXTRAS
+from jaxnerf_grid.data.normalize import normalization_record
+from jaxnerf_grid.util import folders, io
 
 # The folders `jaxnerf-grid mask` writes into a dataset (`masking.write_masks`): part of the
 # dataset's layout, named here so that the data layer (data/poses.py clears them when it

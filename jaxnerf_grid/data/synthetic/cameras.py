@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from jaxnerf_grid import rays as rays_lib
+from jaxnerf_grid.nerf import rays as rays_lib
 
 
 def intrinsics(width: int, height: int, fov_deg: float) -> dict:

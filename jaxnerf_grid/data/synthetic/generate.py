@@ -18,12 +18,10 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import io
+from jaxnerf_grid.util import io
 from jaxnerf_grid.data.synthetic import CLASSES, DISTRACTOR_LEVELS, NORMALIZATION, PRESETS
 from jaxnerf_grid.data.synthetic import cameras, scene as sc, shading
-from jaxnerf_grid.data.synthetic.intersect import (INTERSECT, KIND_CODE, KINDS, binned_trace, box_corners,
-                                                   box_local, intersect_ground, normal_box, normal_capsule,
-                                                   normal_cylinder, normal_ellipsoid, prim_bounds)
+from jaxnerf_grid.data.synthetic.intersect import INTERSECT, KIND_CODE, KINDS, binned_trace, box_corners, box_local, intersect_ground, normal_box, normal_capsule, normal_cylinder, normal_ellipsoid, prim_bounds
 
 SKY_CODE, GROUND_CODE = -1, -2
 OUTPUT_DIRS = ("images", "clean", "depth", "clean_depth", "semantic", "distractor", "shadow")
@@ -591,7 +589,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
     processes (the output is identical for any worker count). Refuses a non-empty `out_dir`
     unless `overwrite` (then only this generator's own files and folders there are replaced).
     """
-    from jaxnerf_grid import progress as progress_lib
+    from jaxnerf_grid.util import progress as progress_lib
 
     cfg = make_config(preset, seed, distractors, **overrides)
     out = io.ensure_writable(out_dir, overwrite)

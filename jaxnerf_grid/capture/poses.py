@@ -1,0 +1,898 @@
+"""Camera poses from a folder of photos: structure from motion with COLMAP's own Python
+bindings (pycolmap, the optional extra `sfm`), written as a dataset in the transforms.json
+layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
+
+`poses_from_images(images_dir, out_dir)` runs the stages in order:
+  1. photos: the images of `images_dir` (not its subfolders), sorted by name; unreadable files
+     are named and skipped; EXIF orientation is applied and, with `max_side`, the photos are
+     scaled to a working size (working copies are written only for the photos that need it);
+  2. features: SIFT (`pycolmap.extract_features`), one camera for all photos with
+     `single_camera`, else COLMAP's per-photo cameras;
+  3. matching: exhaustive, sequential (each photo with its next `overlap` in name order, as a
+     flight records them; no loop detection, which needs a vocabulary tree), a vocabulary
+     tree (`vocab_tree`: a file; none is downloaded), or `auto` (`choose_matcher`: exhaustive
+     up to AUTO_EXHAUSTIVE_MAX photos, sequential above it when the names are numbered in
+     sequence);
+  4. mapping: incremental mapping (`pycolmap.incremental_mapping`), once more with relaxed
+     thresholds when under 90 % of the photos register (`choose_model` keeps the relaxed
+     model only when it is consistent with the first); the largest model is kept, the photos
+     outside it are named;
+  5. undistortion to PINHOLE (`pycolmap.undistort_images`): DATA_DIR/images/ holds the
+     undistorted photos under their input names, cropped to one size when each photo has its
+     own camera (`crop_to_common_size`);
+  6. orientation and normalisation: the model is rotated so the cameras' up axis is +z
+     (`normalize.up_from_cameras`) and written to DATA_DIR/sparse/0; transforms.json carries
+     OpenGL camera-to-world poses normalised for an orbit (`normalize.normalize_orbit`:
+     the point the cameras look at in the unit sphere), `scene_normalization` mapping the
+     sparse/0 frame to them, near / far from the points each photo sees (as the COLMAP
+     loader computes them), and a `poses` record (the summary below);
+  7. DATA_DIR/poses_topview.png: camera centres and sparse points seen from above.
+
+Everything is built in a hidden folder next to DATA_DIR and moved into place at the end, so
+a failed run leaves an existing DATA_DIR as it was, and the input photos are never written
+to. `overwrite` replaces only a dataset this command wrote (MARKER), and in it only its own
+outputs (OUTPUTS) and the outputs of `jaxnerf-grid mask` made from the photos it replaces
+(STALE); other files stay (docs/RELIABILITY.md).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxnerf_grid.capture import georef, gps, vetting
+from jaxnerf_grid.capture.bounds import scene_bounds
+from jaxnerf_grid.data.formats.colmap import collect_colmap
+from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
+from jaxnerf_grid.data.normalize import (
+    apply_normalization_to_points,
+    normalize_orbit,
+    rotation_between,
+    up_from_cameras,
+)
+from jaxnerf_grid.util import folders, io, progress, staging
+from jaxnerf_grid.util.io import DataError
+
+MIN_PHOTOS = 3        # fewer readable photos: refused before any work
+MIN_REGISTERED = 3    # fewer registered photos: no dataset is written ...
+MIN_REGISTERED_FRACTION = 0.25  # ... nor below a quarter of the readable photos (`enough_registered`)
+MATCHERS = ("auto", "exhaustive", "sequential", "vocab")
+# `sequential` matches each photo with its next SEQUENTIAL_OVERLAP photos in name order (COLMAP's
+# sequential matcher, its quadratic overlap and loop detection off: loop detection needs a
+# vocabulary tree file, which is not shipped nor downloaded). `auto` matches every pair up to
+# AUTO_EXHAUSTIVE_MAX photos, sequentially above it when the names are numbered in sequence
+# (`names_look_ordered`), else every pair. Why 20 (docs/POSES.md, "Choosing the matcher"): up
+# to 20 photos sequential matching skips at most 45 of 190 pairs (under 20 s of matching at
+# 3072x2048 here) and loses the pairs that close an orbit; on Herz-Jesus-P25 (25 photos, in
+# name order) it matched 195 pairs instead of 300, 18 to 56 s less matching, with the same
+# accuracy (benchmarks/results/strecha_e2e/poses_matchers.md).
+SEQUENTIAL_OVERLAP = 10
+AUTO_EXHAUSTIVE_MAX = 20
+CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
+PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
+INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
+TOPVIEW = "poses_topview.png"
+REPORT = "poses_report.md"
+# `--overwrite` replaces only a dataset this command wrote (it holds MARKER), and in it only
+# OUTPUTS; the user's other files stay (docs/RELIABILITY.md).
+MARKER = ".jaxnerf-grid-poses"
+OUTPUTS = ("images", "sparse", "transforms.json", TOPVIEW, REPORT, MARKER)
+# `jaxnerf-grid mask` outputs in an old DATA_DIR describe the photos being replaced: --overwrite
+# removes them with OUTPUTS (the new transforms.json names no masks), so `mask` runs again
+# without --overwrite.
+STALE = MASK_OUTPUT_DIRS
+JPEG_QUALITY = 95
+# Mapping runs again with RELAXED mapper thresholds when the first run registers fewer than
+# RELAX_BELOW of the photos (small working sizes give a few hundred features per photo, below
+# COLMAP's defaults of 30 inliers to register a photo); the run registering more is kept.
+RELAX_BELOW = 0.9
+RELAXED = {"abs_pose_min_num_inliers": 15, "init_min_num_inliers": 50, "init_min_tri_angle": 8.0}
+# ... and kept only when it agrees with the first run's model on the photos both register
+# (median rotation difference and centre distance, `poses_agree`), or when the first failed.
+AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
+# SIFT and matching options set on top of COLMAP's defaults. Affine-adapted features match
+# across the strong foreshortening of ground seen from an oblique drone camera: on tower-small
+# at 320x240 (30 photos, low clutter) they registered 19 photos against 16 without
+# (benchmarks/poses_accuracy.py; docs/POSES.md). Guided matching is left off: there it built
+# a model turned over by 54 degrees. MATCHING_SIFT loosens Lowe's ratio test from COLMAP's 0.8
+# to 0.9: there 23 of 30 registered, 0.1-0.2 degrees median error; 0.93 and 0.95 registered
+# more (25, 29) but the first model was turned by 22 degrees and the second had photos 5
+# degrees and a quarter of the orbit radius off (look-alike tower faces matched).
+SIFT = {"estimate_affine_shape": True}
+MATCHING = {}
+MATCHING_SIFT = {"max_ratio": 0.9}
+# MAPPER: observations reprojecting more than 2 px off (COLMAP: 4) are dropped; with the looser
+# ratio test the test scene's 95th-percentile reprojection error otherwise reached 1.3 px.
+MAPPER = {"filter_max_reproj_error": 2.0}
+MIN_COMPARED = 8  # a smaller first model is no judge: the relaxed one is kept
+
+
+def import_pycolmap():
+    """The pycolmap module, or a one-line DataError saying how to install it."""
+    try:
+        import pycolmap
+    except ImportError:
+        raise DataError(f"pycolmap is not installed (jaxnerf-grid poses needs it): {INSTALL_HINT}") from None
+    return pycolmap
+
+
+# ----------------------------------------------------------------------------------------
+# Stage 1: the photos
+
+
+def list_photos(images_dir) -> list[Path]:
+    """The photo files of a folder (PNG / JPEG, not recursive), sorted by name.
+
+    DataError naming the folder when it is missing or holds fewer than MIN_PHOTOS photos.
+    """
+    folder = Path(images_dir)
+    if not folder.is_dir():
+        raise DataError(f"{folder}: photo folder not found")
+    photos = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix.lower() in PHOTO_SUFFIXES)
+    if not photos:
+        raise DataError(f"{folder}: no photos (PNG or JPEG) in this folder")
+    if len(photos) < MIN_PHOTOS:
+        raise DataError(f"{folder}: {len(photos)} photo(s); camera poses need at least {MIN_PHOTOS}")
+    return photos
+
+
+def working_size(width: int, height: int, max_side: int | None) -> tuple[int, int]:
+    """(W', H'): the size scaled so the longer side is at most `max_side` (never enlarged)."""
+    if max_side is None or max(width, height) <= max_side:
+        return width, height
+    s = max_side / max(width, height)
+    return max(1, round(width * s)), max(1, round(height * s))
+
+
+def prepare_photo(path: Path, work_dir: Path, max_side: int | None) -> tuple[Path, tuple[int, int]]:
+    """The file COLMAP should read for one photo, and its size (W, H).
+
+    The photo itself when it is upright (its EXIF orientation changes nothing) and within
+    `max_side`; else an upright, scaled copy in `work_dir` under the same name. DataError
+    naming the file when it cannot be decoded.
+    """
+    cv2 = io.opencv()
+    upright, data = io.decode_raw(path, "photo", cv2.IMREAD_COLOR)
+    stored = cv2.imdecode(data, cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    height, width = upright.shape[:2]
+    size = working_size(width, height, max_side)
+    if size == (width, height) and stored is not None and np.array_equal(stored, upright):
+        return path, size
+    out = upright if size == (width, height) else io.resize(upright, size, "area")
+    params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if path.suffix.lower() in (".jpg", ".jpeg") else []
+    ok, buf = cv2.imencode(path.suffix.lower(), out, params)
+    if not ok:
+        raise DataError(f"{path}: could not encode a working copy")
+    io.atomic_write_bytes(work_dir / path.name, buf.tobytes())
+    return work_dir / path.name, size
+
+
+def prepare_photos(photos: list[Path], work_dir: Path, max_side: int | None, show: bool = True):
+    """Stage 1 over all photos. Returns (folder COLMAP reads, names read, {name: why skipped},
+    {name: (width, height) of its working copy}).
+
+    Photos needing no copy are hard-linked (or copied) into `work_dir` too, so COLMAP reads one
+    folder. DataError when fewer than MIN_PHOTOS are readable.
+    """
+    work_dir.mkdir(parents=True, exist_ok=True)
+    names, skipped, sizes = [], {}, {}
+    for path in progress.bar(photos, desc="poses: photos", unit="photo", enabled=show):
+        try:
+            used, sizes[path.name] = prepare_photo(path, work_dir, max_side)
+        except DataError as err:
+            skipped[path.name] = str(err)
+            _say(f"poses: skipping {path}: not a readable image", show=True)
+            continue
+        if used == path:
+            _link_or_copy(path, work_dir / path.name)
+        names.append(path.name)
+    if len(names) < MIN_PHOTOS:
+        folder = photos[0].parent
+        raise DataError(f"{folder}: only {len(names)} readable photo(s) of {len(photos)} "
+                        f"(unreadable: {', '.join(skipped) or 'none'}); camera poses need at least {MIN_PHOTOS}")
+    return work_dir, names, skipped, sizes
+
+
+def check_one_size(sizes: dict, folder, single_camera: bool) -> None:
+    """DataError naming the folder and the sizes when `single_camera` is asked for photos of more
+    than one (working) size: COLMAP's one camera has one image size, so the photos of the other
+    sizes would silently stay unregistered. sizes: {name: (width, height)}."""
+    if not single_camera:
+        return
+    by_size: dict = {}
+    for name, size in sorted(sizes.items()):
+        by_size.setdefault(tuple(size), []).append(name)
+    if len(by_size) > 1:
+        shown = "; ".join(f"{w}x{h}: {len(names)} (e.g. {names[0]})" for (w, h), names in
+                          sorted(by_size.items(), key=lambda kv: -len(kv[1])))
+        raise DataError(f"{folder}: poses.single_camera needs photos of one size, these have {len(by_size)} "
+                        f"({shown}); leave poses.single_camera off (each photo gets its own camera) or split "
+                        "the folder")
+
+
+def _link_or_copy(src: Path, dst: Path) -> None:
+    try:
+        os.link(src, dst)
+    except OSError:
+        shutil.copyfile(src, dst)
+
+
+def _say(message: str, show: bool) -> None:
+    """One progress or warning line on stderr (when `show`)."""
+    if show:
+        print(message, file=sys.stderr, flush=True)
+
+
+# ----------------------------------------------------------------------------------------
+# Stages 2-5: COLMAP
+
+
+def check_options(matcher: str, camera_model: str, vocab_tree, overlap: int = SEQUENTIAL_OVERLAP) -> None:
+    """DataError for an unknown matcher / camera model, a sequential overlap that is not a
+    positive integer, or `vocab` without a readable tree file."""
+    if matcher not in MATCHERS:
+        raise DataError(f"unknown poses.matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
+    if isinstance(overlap, bool) or not isinstance(overlap, int) or overlap < 1:
+        raise DataError(f"poses.overlap must be a whole number of photos, at least 1, got {overlap!r}")
+    if camera_model not in CAMERA_MODELS:
+        raise DataError(f"unknown camera model {camera_model!r}; choose one of {', '.join(CAMERA_MODELS)}")
+    if matcher == "vocab":
+        if vocab_tree is None:
+            raise DataError("poses.matcher vocab needs a vocabulary tree file (poses.vocab_tree, e.g. COLMAP's "
+                            "vocab_tree_flickr100K_words32K.bin); none is downloaded: use exhaustive or sequential")
+        if not Path(vocab_tree).is_file():
+            raise DataError(f"{vocab_tree}: vocabulary tree file not found")
+
+
+def names_look_ordered(names: list[str]) -> bool:
+    """Whether photo names are numbered in sequence, as a camera or a drone names a flight's
+    photos (DJI_0001.JPG, IMG_0002.jpg, 0003.png): every name (less its extension) is one
+    common prefix followed by a number, the numbers differ, and name order is number order
+    (so 'p1, p10, p2' is not: its name order is not the capture order)."""
+    parts = []
+    for name in names:
+        stem = Path(name).stem
+        digits = len(stem) - len(stem.rstrip("0123456789"))
+        if digits == 0:
+            return False
+        parts.append((stem[:-digits], int(stem[-digits:])))
+    numbers = [number for _, number in parts]
+    return (len({prefix for prefix, _ in parts}) == 1 and len(set(numbers)) == len(numbers)
+            and [number for _, number in sorted(zip(names, numbers))] == sorted(numbers))
+
+
+def choose_matcher(matcher: str, names: list[str], exhaustive_max: int = AUTO_EXHAUSTIVE_MAX) -> tuple[str, str]:
+    """The matcher to run for `matcher` (one of MATCHERS) on the readable photos `names`, and
+    why, in words. `auto`: exhaustive up to `exhaustive_max` photos, sequential above it when
+    the names look ordered (`names_look_ordered`), else exhaustive."""
+    if matcher != "auto":
+        return matcher, "asked for"
+    n = len(names)
+    if n <= exhaustive_max:
+        return "exhaustive", f"auto: {n} photos, at most {exhaustive_max}"
+    if names_look_ordered(names):
+        return "sequential", f"auto: {n} photos, more than {exhaustive_max}, named in sequence"
+    return "exhaustive", f"auto: {n} photos, more than {exhaustive_max}, but the names are not numbered in sequence"
+
+
+def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
+               camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None,
+               keep_all: bool = False, overlap: int = SEQUENTIAL_OVERLAP, timings: dict | None = None):
+    """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
+    whether it comes from the relaxed mapping). The relaxed model is judged by its photos that
+    pass the vetting (`vetted_count`; all its photos with `keep_all`). `matcher`: exhaustive,
+    sequential (each photo with its next `overlap`) or vocab. `timings` ({stage: seconds}, when
+    given) gets the seconds of features, matching and mapping.
+
+    DataError (naming `source`, the input folder) when no model could be built.
+    """
+    database = work_dir / "database.db"
+    pycolmap.set_random_seed(0)
+    timings = {} if timings is None else timings
+    with _stage(f"features (SIFT, {len(names)} photos)", show, timings, "features"):
+        reader = pycolmap.ImageReaderOptions()
+        reader.camera_model = camera_model
+        mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
+        extraction = pycolmap.FeatureExtractionOptions()  # SIFT on top of COLMAP's defaults
+        for key, value in SIFT.items():
+            setattr(extraction.sift, key, value)
+        pycolmap.extract_features(database, photo_dir, image_names=names, camera_mode=mode, reader_options=reader,
+                                  extraction_options=extraction)
+    with _stage(f"matching ({matcher})", show, timings, "matching"):
+        matching = pycolmap.FeatureMatchingOptions()
+        for key, value in MATCHING.items():
+            setattr(matching, key, value)
+        for key, value in MATCHING_SIFT.items():
+            setattr(matching.sift, key, value)
+        if matcher == "exhaustive":
+            pycolmap.match_exhaustive(database, matching_options=matching)
+        elif matcher == "sequential":
+            pairing = pycolmap.SequentialPairingOptions()
+            pairing.overlap, pairing.quadratic_overlap, pairing.loop_detection = overlap, False, False
+            pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
+        else:
+            pairing = pycolmap.VocabTreePairingOptions()
+            pairing.vocab_tree_path = str(vocab_tree)
+            pycolmap.match_vocabtree(database, matching_options=matching, pairing_options=pairing)
+    n = len(names)
+    start = time.monotonic()
+    default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", n, False, "mapping", show)
+    best = default
+    if default is None or default.num_reg_images() < RELAX_BELOW * n:
+        relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", n, True,
+                       "mapping again (relaxed thresholds)", show)
+        best = choose_model(default, relaxed, show, count=_registered_count if keep_all else vetted_count)
+    timings["mapping"] = round(time.monotonic() - start, 1)
+    if best is None:
+        raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
+                        f"more texture or more photos help; see docs/POSES.md)")
+    return best, best is not default
+
+
+def _registered_count(model) -> int:
+    return model.num_reg_images()
+
+
+def vetted_count(model) -> int:
+    """The number of a model's registered photos that pass the vetting (`data.vetting`)."""
+    return sum(row["kept"] for row in vetting.vet(vetting.records_from_pycolmap(model)))
+
+
+def choose_model(default, relaxed, show: bool = False, count=_registered_count):
+    """The default mapping's model or the relaxed one's (either may be None).
+
+    `count(model)`: the photos a model is worth (its registered photos, or those that pass the
+    vetting: relaxed thresholds may add photos only when they pass it).
+    The relaxed model is kept when it counts more photos and either the default model is
+    too small to judge it (fewer than MIN_COMPARED photos) or it agrees with the default model
+    on the photos both hold (`poses_agree`): relaxed thresholds can also register photos
+    wrongly, e.g. across the look-alike faces of a lattice tower.
+    """
+    if relaxed is None or (default is not None and count(relaxed) <= count(default)):
+        return default
+    if default is None or default.num_reg_images() < MIN_COMPARED:
+        return relaxed
+    if poses_agree(model_poses(default), model_poses(relaxed)):
+        _say(f"poses: kept the relaxed model ({relaxed.num_reg_images()} photos)", show)
+        return relaxed
+    _say(f"poses: the relaxed model ({relaxed.num_reg_images()} photos) disagrees with the default one; "
+         f"kept the default ({default.num_reg_images()} photos)", show)
+    return default
+
+
+def model_poses(model) -> dict:
+    """{photo name: camera-to-world [4, 4] OpenGL} of a pycolmap.Reconstruction's registered photos."""
+    return {model.images[i].name: c2w_gl_from_cam_from_world(model.images[i].cam_from_world().matrix())
+            for i in model.reg_image_ids()}
+
+
+def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
+    """Least-squares similarity dst ~ s R src + t (Umeyama 1991): `georef.umeyama` with equal
+    weights. src, dst: [N, 3], N >= 3. Returns (s, R [3, 3], t [3])."""
+    return georef.umeyama(src, dst)
+
+
+def poses_agree(a: dict, b: dict, *, max_deg: float = AGREE_DEG, max_centre: float = AGREE_CENTRE) -> bool:
+    """Whether two sets of poses ({name: c2w [4, 4]}) describe the same cameras up to a
+    similarity: on the names both hold (at least 3), after aligning b's centres to a's
+    (`similarity_fit`), the median rotation difference is at most `max_deg` and the median
+    centre distance at most `max_centre` times the spread of a's centres (their median
+    distance to their mean)."""
+    common = sorted(set(a) & set(b))
+    if len(common) < 3:
+        return False
+    pa, pb = np.stack([a[k] for k in common]), np.stack([b[k] for k in common])
+    scale, rot, t = similarity_fit(pb[:, :3, 3], pa[:, :3, 3])
+    spread = float(np.median(np.linalg.norm(pa[:, :3, 3] - pa[:, :3, 3].mean(0), axis=1)))
+    centre = np.linalg.norm(scale * pb[:, :3, 3] @ rot.T + t - pa[:, :3, 3], axis=1)
+    cos = (np.einsum("nij,nij->n", rot @ pb[:, :3, :3], pa[:, :3, :3]) - 1.0) / 2.0
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return bool(np.median(angle) <= max_deg and np.median(centre) <= max_centre * max(spread, 1e-12))
+
+
+def mapper_options(pycolmap, relaxed: bool):
+    """COLMAP's incremental mapper options: its defaults, or with `relaxed` the thresholds for
+    small or texture-poor photos (RELAXED: fewer inliers to start a model and to register a
+    photo, a smaller starting triangulation angle)."""
+    options = pycolmap.IncrementalPipelineOptions()
+    options.random_seed = 0
+    for key, value in MAPPER.items():
+        setattr(options.mapper, key, value)
+    if relaxed:
+        for key, value in RELAXED.items():
+            setattr(options.mapper, key, value)
+    return options
+
+
+def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show):
+    """One incremental mapping run. Returns its largest model or None."""
+    bar = progress.bar(total=total, desc=f"poses: {label}", unit="photo", enabled=show)
+
+    def next_image():
+        bar.update(1)
+
+    try:
+        models = pycolmap.incremental_mapping(database, photo_dir, out_dir, options=mapper_options(pycolmap, relaxed),
+                                              next_image_callback=next_image)
+    finally:
+        bar.close()
+    if not models:
+        return None
+    return max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+
+
+class _stage:
+    """Prints `poses: NAME ...` and `poses: NAME done in 1.2 s` around a block; with `timings`
+    (a dict), also stores the block's seconds under `key`."""
+
+    def __init__(self, name: str, show: bool, timings: dict | None = None, key: str | None = None):
+        self.name, self.show, self.timings, self.key = name, show, timings, key
+
+    def __enter__(self):
+        self.start = time.monotonic()
+        _say(f"poses: {self.name} ...", self.show)
+
+    def __exit__(self, kind, value, tb):
+        if kind is None:
+            seconds = time.monotonic() - self.start
+            if self.timings is not None:
+                self.timings[self.key] = round(seconds, 1)
+            _say(f"poses: {self.name} done in {progress.format_seconds(seconds)}", self.show)
+        return False
+
+
+def c2w_gl_from_cam_from_world(matrix) -> np.ndarray:
+    """COLMAP world-to-camera [3, 4] (OpenCV axes) -> camera-to-world [4, 4] (OpenGL axes)."""
+    m = np.asarray(matrix, np.float64)
+    c2w = np.eye(4)
+    c2w[:3, :3] = m[:3, :3].T
+    c2w[:3, 3] = -m[:3, :3].T @ m[:3, 3]
+    return c2w @ np.diag([1.0, -1.0, -1.0, 1.0])
+
+
+def orient_z_up(pycolmap, model) -> np.ndarray:
+    """Rotates a pycolmap.Reconstruction in place so its cameras' up axis is +z. Returns R [3, 3]."""
+    c2w = np.stack(list(model_poses(model).values()))
+    rot = rotation_between(up_from_cameras(c2w), [0.0, 0.0, 1.0])
+    model.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rot), np.zeros(3)))
+    return rot
+
+
+def undistort(pycolmap, model, photo_dir: Path, stage_dir: Path) -> None:
+    """Stage 5: undistorted photos in stage_dir/images, the PINHOLE model in stage_dir/sparse/0."""
+    raw = stage_dir / "_work" / "model"
+    raw.mkdir(parents=True, exist_ok=True)
+    model.write(raw)
+    out = stage_dir / "_work" / "undistorted"
+    pycolmap.undistort_images(out, raw, photo_dir, output_type="COLMAP", jpeg_quality=JPEG_QUALITY)
+    os.replace(out / "images", stage_dir / "images")
+    (stage_dir / "sparse").mkdir()
+    os.replace(out / "sparse", stage_dir / "sparse" / "0")
+    crop_to_common_size(pycolmap, stage_dir / "sparse" / "0", stage_dir / "images")
+
+
+def crop_offsets(sizes: dict) -> tuple[tuple[int, int], dict]:
+    """The common size of undistorted photos and each camera's crop.
+
+    sizes: {camera id: (W, H)}. Returns ((W0, H0) = the smallest width and height,
+    {camera id: (left, top)}: the columns and rows cut before the kept window, which is
+    centred: (W - W0) // 2, (H - H0) // 2).
+    """
+    w0, h0 = min(w for w, _ in sizes.values()), min(h for _, h in sizes.values())
+    return (w0, h0), {cid: ((w - w0) // 2, (h - h0) // 2) for cid, (w, h) in sizes.items()}
+
+
+def crop_to_common_size(pycolmap, model_dir: Path, images_dir: Path) -> tuple[int, int]:
+    """Crops undistorted photos to one size (a dataset has one image size, docs/DATASET.md).
+
+    With one camera per photo, COLMAP's undistortion gives each photo its own size; every photo
+    is cut to the smallest width and height, centred (`crop_offsets`), and the model follows:
+    the cameras' size and principal point, the observations' pixel positions. Returns (W, H).
+    """
+    model = pycolmap.Reconstruction(model_dir)
+    sizes = {cid: (int(cam.width), int(cam.height)) for cid, cam in model.cameras.items()}
+    (w0, h0), offsets = crop_offsets(sizes)
+    if all(size == (w0, h0) for size in sizes.values()):
+        return w0, h0
+    cv2 = io.opencv()
+    for cid, cam in model.cameras.items():
+        left, top = offsets[cid]
+        params = np.array(cam.params, np.float64)
+        params[2:4] -= (left, top)  # PINHOLE: fx, fy, cx, cy
+        cam.width, cam.height, cam.params = w0, h0, params
+    for im in model.images.values():
+        left, top = offsets[im.camera_id]
+        for point in im.points2D:
+            point.xy = point.xy - np.array([left, top], np.float64)
+        path = images_dir / im.name
+        pixels, _ = io.decode_raw(path, "undistorted photo", cv2.IMREAD_UNCHANGED)
+        params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if path.suffix.lower() in (".jpg", ".jpeg") else []
+        ok, buf = cv2.imencode(path.suffix.lower(), pixels[top:top + h0, left:left + w0], params)
+        if not ok:
+            raise DataError(f"{path}: could not encode the cropped photo")
+        io.atomic_write_bytes(path, buf.tobytes())
+    model.write(model_dir)
+    return w0, h0
+
+
+# ----------------------------------------------------------------------------------------
+# Stages 6-7: the dataset
+
+
+def write_dataset(stage_dir: Path, summary: dict) -> dict:
+    """transforms.json from stage_dir/sparse/0 + images/ (orbit normalisation). Returns its dict."""
+    scene = collect_colmap(stage_dir, normalize=False, test_every=8)
+    points = np.asarray(scene.meta["points3d"], np.float64)
+    c2w, norm = normalize_orbit(scene.c2w, points if len(points) else None)
+    scale = norm["scale"]
+    frames = []
+    for frame, pose in zip(scene.frames, c2w):
+        fx, fy, cx, cy = (float(v) for v in frame.intrinsics)
+        frames.append({"file_path": f"images/{frame.image_path.name}", "transform_matrix": pose.tolist(),
+                       "fl_x": fx, "fl_y": fy, "cx": cx, "cy": cy,
+                       "w": int(frame.size[0]), "h": int(frame.size[1])})
+    width, height = scene.frames[0].size
+    top = transforms_top(width, height, scene.near * scale, scene.far * scale, norm, {}, stage_dir, stage_dir)
+    points_norm = apply_normalization_to_points(points, norm)
+    top["scene_bounds"] = scene_bounds(c2w, points_norm if len(points) else None, scene.near * scale)
+    top["poses"] = {key: value for key, value in summary.items() if key != "georeference"}
+    top["georeference"] = scene_georeference(summary.get("georeference") or {"units": "unknown"}, norm)
+    top["frames"] = frames
+    io.write_json(stage_dir / "transforms.json", top)
+    draw_topview(stage_dir / TOPVIEW, c2w, points_norm)
+    lines = report_lines(summary, top["scene_bounds"]) + georef_report_lines(top["georeference"])
+    io.atomic_write_bytes(stage_dir / REPORT, "\n".join(lines).encode("utf-8"))
+    return top
+
+
+def scene_georeference(record: dict, norm: dict) -> dict:
+    """transforms.json's `georeference`: `georef.align_model`'s record plus, when in metres,
+    `metres_per_scene_unit` (1 / scene_normalization.scale: sparse/0 and the normalisation's
+    metric frame are the local frame, metres) and `scene_to_crs` [4, 4] (normalised scene ->
+    projected CRS: x_crs = x_norm / scale - translation + origin)."""
+    out = dict(record)
+    if record.get("units") == "metres":
+        scale, translation = float(norm["scale"]), np.asarray(norm["translation"], np.float64)
+        matrix = np.eye(4)
+        matrix[:3, :3] /= scale
+        matrix[:3, 3] = np.asarray(record["origin"], np.float64) - translation
+        out.update({"metres_per_scene_unit": 1.0 / scale, "scene_to_crs": matrix.tolist()})
+    return out
+
+
+def georef_report_lines(geo: dict) -> list[str]:
+    """poses_report.md's section on metric scale and georeference (docs/GEOREFERENCE.md)."""
+    lines = ["## Scale and georeference (docs/GEOREFERENCE.md)", ""]
+    if geo.get("units") != "metres":
+        return lines + ["Units unknown: no GPS read from the photos, no ground control points, no scale bar; "
+                        "the model is in arbitrary units.", ""]
+    lines += [f"- source: {geo['source']}; units: metres; CRS: {geo.get('crs') or 'none (scale only)'}"
+              + (f" ({geo['crs_name']})" if geo.get("crs_name") else ""),
+              f"- metres per normalised scene unit: {geo['metres_per_scene_unit']:.4g}; "
+              f"local origin in the CRS: {', '.join(f'{v:.1f}' for v in geo['origin'])}"]
+    if "gps" in geo:
+        g = geo["gps"]
+        lines.append(f"- GPS: {g['photos']} of {g['registered']} registered photos, {g['inliers']} inliers; "
+                     f"residual RMS {g['rms_m']} m (horizontal {g['rms_horizontal_m']} m); "
+                     f"heights from {geo.get('height_from')}")
+    for label in ("control", "check"):
+        group = (geo.get("gcp") or {}).get(label)
+        if group:
+            lines.append(f"- {label} points: RMS {group['rms_m']} m; "
+                         + ", ".join(f"{r['name']} {r['error']:.3f} m (dz {r['dz']:+.3f})" for r in group["residuals"]))
+    if "scale_bar" in geo:
+        lines.append(f"- scale bar: {geo['scale_bar']['metres']} m over {geo['scale_bar']['model_length']:.4g} "
+                     "model units")
+    if georef.suspect(geo):
+        lines.append("- **check the reconstruction**: the residuals exceed what GPS (about 3 m) or ground control "
+                     "points (centimetres) explain; a photo registered in the wrong place bends the model "
+                     "(docs/GEOREFERENCE.md)")
+    return lines + [""]
+
+
+def report_lines(summary: dict, bounds: dict) -> list[str]:
+    """DATA_DIR/poses_report.md: the summary, the vetting table (every registered photo, the
+    left-out ones with their reasons) and the scene bounds (docs/POSES.md, docs/BOUNDS.md)."""
+    vet = summary.get("vetting") or {}
+    lines = ["# Camera poses", "", *format_summary(summary).splitlines(), "",
+             "## Vetting (docs/POSES.md)", ""]
+    if vet.get("keep_all"):
+        lines += ["`--keep-all`: every registered photo kept, whatever its scores.", ""]
+    lines += vetting.format_table(vet.get("photos", [])) + ["", "## Scene bounds (docs/BOUNDS.md)", "",
+                                                             "| bound | value (normalised units) |", "|---|---|"]
+    for key in ("near", "far", "contract_radius", "roi_radius", "nearest_camera_to_roi"):
+        lines.append(f"| {key} | {bounds[key]:.4g} |")
+    lines.append(f"| roi_centre | {', '.join(f'{v:.3g}' for v in bounds['roi_centre'])} |")
+    return lines + [""]
+
+
+def draw_topview(path, c2w: np.ndarray, points: np.ndarray, size: int = 640) -> None:
+    """A PNG of the scene seen from +z: the unit circle, sparse points (grey), camera centres
+    (red) with their viewing directions. c2w: [N, 4, 4] normalised, z-up; points: [P, 3]."""
+    cv2 = io.opencv()
+    centres = c2w[:, :3, 3]
+    extent = max(1.2, 1.1 * float(np.abs(centres[:, :2]).max()) if len(centres) else 1.2)
+    img = np.full((size, size, 3), 255, np.uint8)
+
+    def pix(xy):
+        xy = np.asarray(xy, np.float64).reshape(-1, 2)
+        pixels = np.stack([(xy[:, 0] / extent + 1) * size / 2, (1 - xy[:, 1] / extent) * size / 2], -1)
+        return pixels.round().astype(int)
+
+    cv2.circle(img, tuple(pix([0.0, 0.0])[0]), int(round(size / 2 / extent)), (200, 200, 200), 1, cv2.LINE_AA)
+    inside = points[np.all(np.abs(points[:, :2]) < extent, axis=1)] if len(points) else points
+    for u, v in pix(inside[:, :2]) if len(inside) else []:
+        img[max(v, 0):v + 2, max(u, 0):u + 2] = (120, 120, 120)
+    for m, (u, v) in zip(c2w, pix(centres[:, :2])):
+        look = -m[:3, 2][:2]
+        tip = pix(m[:2, 3] + 0.08 * extent * look / max(np.linalg.norm(look), 1e-9))[0]
+        cv2.line(img, (int(u), int(v)), (int(tip[0]), int(tip[1])), (0, 0, 200), 1, cv2.LINE_AA)
+        cv2.circle(img, (int(u), int(v)), 3, (0, 0, 220), -1, cv2.LINE_AA)
+    cv2.putText(img, "top view (+z up): cameras red, points grey, unit circle", (8, 18),
+                cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    io.write_png(path, img[..., ::-1].astype(np.float32) / 255.0)
+
+
+def format_summary(summary: dict) -> str:
+    """The end-of-run summary as a few lines of text."""
+    lines = [f"registered {summary['registered']}/{summary['photos']} photos, "
+             f"{summary['points3d']} 3-D points, mean reprojection error {summary['mean_reprojection_error']:.3f} px"]
+    if "matcher_reason" in summary:
+        overlap = f", each photo with its next {summary['overlap']}" if summary.get("overlap") else ""
+        lines.append(f"matcher: {summary['matcher']} ({summary['matcher_reason']}{overlap})")
+    if summary.get("timings_s"):
+        lines.append(f"time: {summary['seconds']:.0f} s in all; "
+                     + ", ".join(f"{key} {value:.0f} s" for key, value in summary["timings_s"].items()))
+    if summary["unregistered"]:
+        lines.append(f"not registered ({len(summary['unregistered'])}): {', '.join(summary['unregistered'])}")
+    vet = summary.get("vetting") or {}
+    if vet.get("left_out"):
+        why = {row["name"]: "; ".join(row["reasons"]) for row in vet.get("photos", [])}
+        lines.append(f"left out by the vetting ({len(vet['left_out'])}; table in {REPORT}, --keep-all keeps them): "
+                     + ", ".join(f"{name} ({why.get(name, '?')})" for name in vet["left_out"]))
+    if summary["skipped"]:
+        lines.append(f"unreadable, skipped ({len(summary['skipped'])}): {', '.join(summary['skipped'])}")
+    geo = summary.get("georeference") or {}
+    if geo.get("units") == "metres":
+        gps_line = f", GPS residual RMS {geo['gps']['rms_m']} m" if "gps" in geo else ""
+        lines.append(f"scale and georeference from {geo['source']}: {geo.get('crs') or 'no CRS'}, "
+                     f"{geo['metres_per_model_unit']:.4g} m per model unit{gps_line}"
+                     + ("; residuals too large: check the reconstruction (poses_report.md)" if georef.suspect(geo)
+                        else ""))
+    elif "georeference" in summary:
+        lines.append("units unknown (no GPS read from the photos, no ground control points, no scale bar)")
+    if summary.get("relaxed_mapping"):
+        lines.append("registered with relaxed mapper thresholds: check the cameras in "
+                     f"{TOPVIEW} (a ring around the tower) before training (docs/POSES.md)")
+    return "\n".join(lines)
+
+
+# ----------------------------------------------------------------------------------------
+# The whole step
+
+
+def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_model: str = "SIMPLE_RADIAL",
+                      single_camera: bool = False, max_side: int | None = None, vocab_tree=None,
+                      overlap: int = SEQUENTIAL_OVERLAP,
+                      overwrite: bool = False, progress: bool = True, keep_all: bool = False, crs: str | None = None,
+                      gcp=None, scale_bar: str | None = None, ignore_gps: bool = False) -> dict:
+    """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
+
+    Returns the summary: photos, registered, in_dataset (registered less those left out),
+    unregistered (names),
+    vetting ({"keep_all", "left_out": names, "photos": a row per registered photo, `data.vetting.vet`;
+    photos that fail are left out of the dataset unless `keep_all`}), skipped (names of unreadable
+    files), mean_reprojection_error (px), points3d, matcher (the one that ran: `matcher`, or
+    `choose_matcher`'s pick for auto), matcher_asked, matcher_reason, overlap (sequential:
+    each photo matched with its next `overlap`; else None), camera_model, relaxed_mapping
+    (the model came from the relaxed second mapping), seconds, timings_s ({stage: seconds}:
+    photos, features, matching, mapping, writing), up_rotation ([3, 3] applied to
+    COLMAP's frame), georeference (`georef.align_model`'s record: the photos' GPS, `gcp` (a
+    ground control point file) and `crs` (EPSG:XXXX, else the GPS's UTM zone) align the model to
+    metres in a projected CRS; without GPS, `scale_bar` scales it; else units stay unknown,
+    docs/GEOREFERENCE.md; `ignore_gps`: the photos' GPS is not read), transforms (path).
+    DataError (one line, naming the path) for bad input; nothing is written then.
+    """
+    start = time.monotonic()
+    check_options(matcher, camera_model, vocab_tree, overlap)
+    if max_side is not None and max_side < 16:
+        raise DataError(f"poses.max_side must be at least 16 pixels, got {max_side}")
+    images_dir, out = Path(images_dir), Path(out_dir)
+    photos = list_photos(images_dir)
+    if scale_bar is not None:
+        georef.parse_scale_bar(scale_bar)
+    if crs is not None:
+        georef.projected_crs(crs)
+    if gcp is not None and not Path(gcp).is_file():
+        raise DataError(f"{gcp}: ground control point file not found")
+    if _inside(images_dir, out):
+        raise DataError(f"{out}: the output folder holds the input photos ({images_dir}); choose another poses.out")
+    recover(out)  # a swap a kill interrupted is finished first; a killed run's staging copy removed
+    check_out(out, overwrite)
+    pycolmap = import_pycolmap()
+    pycolmap.logging.minloglevel = 3  # COLMAP's own log: fatal only; progress and errors are ours
+    out.parent.mkdir(parents=True, exist_ok=True)
+    stage_dir = make_stage(out)
+    try:
+        timings = {}
+        with _stage("photos", False, timings, "photos"):
+            photo_dir, names, skipped, working_sizes = prepare_photos(photos, stage_dir / "_work" / "photos",
+                                                                      max_side, progress)
+        used, reason = choose_matcher(matcher, names)
+        check_one_size({n: working_sizes[n] for n in names}, images_dir, single_camera)
+        readable = [images_dir / name for name in names]
+        positions = {} if ignore_gps else gps.read_all(readable)
+        sizes = {path.name: gps.upright_size(path) for path in readable}
+        ratios = {name: tuple(w1 / w0 for w1, w0 in zip(working_size(*size, max_side), size))
+                  for name, size in sizes.items()}
+        if gcp is not None:
+            georef.read_gcp_csv(gcp, sizes)
+        if positions:
+            georef.precheck_gps(positions, crs, len(names), images_dir)
+        model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=used,
+                           camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
+                           show=progress, source=images_dir, keep_all=keep_all, overlap=overlap, timings=timings)
+        registered = sorted(model.images[i].name for i in model.reg_image_ids())
+        unregistered = sorted(set(names) - set(registered))
+        rows = vetting.vet(vetting.records_from_pycolmap(model))
+        left_out = [] if keep_all else [row["name"] for row in rows if not row["kept"]]
+        leave_out(model, left_out)
+        kept = len(registered) - len(left_out)
+        if kept < enough_registered(len(names)):
+            missing = unregistered + left_out
+            shown = ", ".join(missing[:5]) + (", ..." if len(missing) > 5 else "")
+            raise DataError(f"{images_dir}: only {kept} of {len(names)} photos registered and passed the vetting "
+                            f"(a dataset needs {enough_registered(len(names))}; not registered or left out: "
+                            f"{shown}); more overlap and texture between photos help (docs/POSES.md)")
+        writing = time.monotonic()
+        with _stage("undistortion to PINHOLE, orientation, transforms.json", progress):
+            rot = orient_z_up(pycolmap, model)
+            sim, georeference = georef.align_model(model, positions, crs_name=crs, gcp_path=gcp, scale_bar=scale_bar,
+                                                   sizes=sizes, ratios=ratios, source=images_dir)
+            if sim is not None:
+                model.transform(pycolmap.Sim3d(sim[0], pycolmap.Rotation3d(sim[1]), sim[2]))
+            summary = {"photos": len(photos), "registered": len(registered), "in_dataset": kept,
+                       "unregistered": unregistered,
+                       "vetting": {"keep_all": bool(keep_all), "left_out": left_out, "photos": rows},
+                       "skipped": sorted(skipped), "points3d": int(model.num_points3D()),
+                       "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
+                       "matcher": used, "matcher_asked": matcher, "matcher_reason": reason,
+                       "overlap": overlap if used == "sequential" else None,
+                       "camera_model": camera_model, "single_camera": bool(single_camera),
+                       "max_side": max_side, "relaxed_mapping": bool(relaxed), "up_rotation": rot.tolist(),
+                       "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
+                       "georeference": georeference}
+            undistort(pycolmap, model, photo_dir, stage_dir)
+            shutil.rmtree(stage_dir / "_work")
+            summary["seconds"] = round(time.monotonic() - start, 1)
+            timings["writing"] = round(time.monotonic() - writing, 1)  # less the transforms.json write
+            summary["timings_s"] = timings
+            write_dataset(stage_dir, summary)
+            (stage_dir / MARKER).write_text("written by jaxnerf-grid poses; --overwrite replaces its outputs\n")
+        move_into_place(stage_dir, out)
+    except BaseException:
+        if not (stage_dir / COMPLETE).is_file():  # committed: `recover` finishes the swap, never undoes it
+            shutil.rmtree(stage_dir, ignore_errors=True)
+        raise
+    summary["transforms"] = str(out / "transforms.json")
+    return summary
+
+
+def leave_out(model, names: list[str]) -> None:
+    """Deregisters the named photos from a pycolmap.Reconstruction (in place): they are then not
+    undistorted nor written, and their observations leave the 3-D points' tracks."""
+    for i in list(model.reg_image_ids()):
+        if model.images[i].name in names:
+            model.deregister_frame(model.images[i].frame_id)
+
+
+def enough_registered(num_photos: int) -> int:
+    """The fewest registered photos that make a dataset: MIN_REGISTERED, and a quarter of the
+    photos (MIN_REGISTERED_FRACTION): a small partial model is rarely useful and often wrong
+    (on the ttpla-like scene 5 of 30 registered, turned over, docs/POSES.md)."""
+    return max(MIN_REGISTERED, int(np.ceil(MIN_REGISTERED_FRACTION * num_photos)))
+
+
+def _inside(path: Path, folder: Path) -> bool:
+    """Whether `path` is `folder` or lies inside it (after resolving links)."""
+    return folders.inside(path, folder)
+
+
+def check_out(out: Path, overwrite: bool) -> None:
+    """DataError unless `out` may receive the dataset: absent, an empty folder, or with
+    `overwrite` a dataset this command wrote (it holds MARKER; the marker rule of `folders`,
+    a symbolic link among its outputs refused)."""
+    if out.is_file():
+        raise DataError(f"{out}: is a file; poses.out must be a folder")
+    folders.check_folder(out, "poses.out")  # this user may write it (or make it), before COLMAP runs
+    folders.check_folder(out.parent, "poses.out")  # and the staging folder beside it
+    if folders.is_empty(out):
+        return
+    if not overwrite:
+        raise DataError(f"{out}: already exists and is not empty; pass overwrite=True to replace it")
+    folders.check_clearable(out, "poses", OUTPUTS + STALE, "poses.out")
+
+
+# The swap of a finished dataset into an existing DATA_DIR (`move_into_place`) and its recovery
+# (`recover`): the staging folder `.NAME.poses-XXXX` beside DATA_DIR gets OWNER (the process
+# building it) when made and COMPLETE (the staged names, the commit point) when done; the old
+# outputs move to `.NAME.old-XXXX` (same XXXX) while the new ones move in (`staging.swap_in`).
+STAGE_TAG, RETIRED_TAG = ".poses-", ".old-"
+OWNER, COMPLETE = staging.OWNER, "COMPLETE"
+
+
+def make_stage(out: Path) -> Path:
+    """A new staging folder beside `out`, holding OWNER (this process's host and id)."""
+    stage = Path(tempfile.mkdtemp(prefix=f".{out.name}{STAGE_TAG}", dir=out.parent))
+    staging.write_owner(stage)
+    return stage
+
+
+def _siblings(out: Path, tag: str) -> list[Path]:
+    """The hidden folders `.NAME<tag>XXXX` beside `out`."""
+    prefix = f".{out.name}{tag}"
+    try:
+        return sorted(p for p in out.parent.iterdir() if p.name.startswith(prefix) and p.is_dir())
+    except OSError:  # no parent folder, or one this user may not list: nothing to recover there
+        return []
+
+
+def _staged_names(stage: Path) -> list[str] | None:
+    """The names a staging folder holds for the swap: COMPLETE's list; for a staging folder of an
+    older version without COMPLETE, one holding MARKER (written last) counts as complete with
+    all of OUTPUTS; None for an incomplete one."""
+    names = staging.read_complete(stage, COMPLETE)
+    if names is None and not (stage / OWNER).exists() and (stage / MARKER).is_file():
+        names = list(OUTPUTS)
+    return names
+
+
+def recover(out) -> str | None:
+    """Finishes what a killed `poses` left beside the dataset folder `out`: a complete staging
+    folder is swapped in ("rolled forward"), an incomplete one whose process is gone (a kill
+    during COLMAP) and retired old outputs are removed ("cleaned"); None when there was nothing.
+    A staging folder of a process still running is left alone."""
+    out = Path(out)
+    result = None
+    for stage in _siblings(out, STAGE_TAG):
+        staged = _staged_names(stage)
+        if staged is None:
+            if staging.owner_alive(stage):
+                continue
+            shutil.rmtree(stage, ignore_errors=True)
+            result = result or "cleaned"
+            continue
+        retired = out.parent / (f".{out.name}{RETIRED_TAG}" + stage.name[len(f".{out.name}{STAGE_TAG}"):])
+        _finish_swap(stage, out, retired, staged)
+        result = "rolled forward"
+    for retired in _siblings(out, RETIRED_TAG):
+        shutil.rmtree(retired, ignore_errors=True)
+        result = result or "cleaned"
+    return result
+
+
+def _finish_swap(stage: Path, out: Path, retired: Path, staged: list[str]) -> None:
+    names = [n for n in OUTPUTS if n != "transforms.json"] + list(STALE)
+    out.mkdir(parents=True, exist_ok=True)
+    staging.swap_in(out, stage, retired, names, staged, last="transforms.json")
+
+
+def move_into_place(stage: Path, out: Path) -> None:
+    """Moves the finished dataset from `stage` to `out`: the whole folder when `out` does not
+    exist (one rename), else entry by entry (OUTPUTS; transforms.json last), the old entries of
+    that name and the stale mask outputs (STALE) retired and every other file of `out` kept.
+    COMPLETE is written first, so a kill during the swap is finished by `recover`."""
+    (stage / OWNER).unlink(missing_ok=True)
+    if not out.exists():
+        os.replace(stage, out)
+        return
+    staged = [name for name in OUTPUTS if (stage / name).exists()]
+    staging.write_complete(stage, COMPLETE, staged)
+    retired = out.parent / (f".{out.name}{RETIRED_TAG}" + stage.name[len(f".{out.name}{STAGE_TAG}"):])
+    _finish_swap(stage, out, retired, staged)

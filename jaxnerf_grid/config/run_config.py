@@ -1,0 +1,213 @@
+"""The run config: `RunConfig` (the dataset folder, `models.ModelConfig`, `TrainConfig`), made by
+`make_config` (a method's defaults with overrides merged on top, checked by `config.validate` and
+`models.validate`) and settled on a dataset by `config.resolve` inside `train.train`.
+
+Its own module so that what reads a config (`views`, `runs`, `report`, `evaluate`) does not import
+the training step for a type; `train` names these too (`train.RunConfig`, `train.make_config`).
+`resolve_devices` is what `train.num_devices` means on this machine.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import typing
+
+import jax
+
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.data.dataset import Dataset
+from jaxnerf_grid.masks import robust as robust_lib
+from jaxnerf_grid.nerf import models
+from jaxnerf_grid.util.io import DataError
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation and I/O settings.
+
+    batch_rays: global rays per step (split over devices; must divide by the device count).
+    lr_init, lr_final, warmup: learning-rate schedule; max_grad_norm: clipping (0 = off);
+    adam_b1, adam_b2, adam_eps: Adam's moments and epsilon (Instant-NGP: 0.9, 0.99, 1e-15).
+    sparse_adam: lazy Adam on the hash grids' tables (optim.adam's lazy_keys, docs/GRID.md): a table
+      row no ray of the batch reached keeps its moments and value (False: dense Adam).
+    use_masks: weight the loss by the dataset's `1 - M_w` (False: every pixel weight 1).
+    mask_weight_floor: with masks, a masked pixel's weight is at most 1 - floor (docs/CONVENTIONS.md:
+      Eq. 7 gives a bird against the sky a weight near 1; floor 1 excludes every masked pixel).
+    checkpoint_every, keep_checkpoints, log_every: steps; chunk: rays per rendering chunk.
+    num_devices: devices to use (0 = all local devices).
+    appearance_steps, appearance_lr, appearance_rays: NeRF-W test-time embedding fit.
+    max_side: the working resolution (data/working.py): the run trains, and eval / render render,
+      at the photos' size divided by the smallest integer factor that brings the long side to at
+      most max_side px, intrinsics scaled (0 = full size; `--max-side`, docs/DATASET.md).
+    coarse_loss_weight: weight of the MSE of each level before the final one that renders colour
+      (the hierarchical sampler's first pass; losses.per_ray_loss's level_weight);
+    interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (levels without colour);
+    distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
+    robust: photometric evidence (`robust.py`, docs/ROBUST.md): "off" (the weights above),
+      "robust" (no masks: the weight is the evidence of the residuals) or "dpt+robust" (the
+      dataset's 1 - M_w, whatever use_masks says, sets how strict the evidence is per pixel);
+      when on, training draws batch_rays / robust_patch^2 patches of robust_patch^2 rays;
+    robust_quantile, robust_flagged_quantile: the inlier quantile of the batch's residuals for
+      an unflagged pixel (prior 1) and a flagged one (prior 0; linear in between);
+    robust_patch: patch side in pixels; robust_patch_stride: the distance in pixels between a
+      patch's neighbouring pixels (1: adjacent); robust_patch_share: a patch with fewer pixels passing
+      the 3x3 vote is a transient patch; robust_floor: a residual (squared error) at most this
+      is always an inlier; robust_spread: k of the spread bound (robust.spread_thresholds: a
+      residual within median + k MAD-sigmas of the batch is an inlier whatever the quantile
+      says; 0 = the quantile alone); robust_warmup: the fraction of max_steps trained on the
+      prior alone before the evidence applies (robust.warmup_steps);
+    robust_confirm: multi-view confirmation (`photo_consistency.py`): a pixel whose 3x3
+      neighbourhood a neighbouring training photo shows again at the pixel's rendered 3-D
+      point, with a mean squared difference at most this, is an inlier whatever its residual
+      (0 = off); robust_views: how many neighbouring photos (nearest camera centres) are looked at;
+    robust_scattered: the share of batch_rays drawn as single pixels scattered over the frames
+      instead of patches (`scattered_rays`); a scattered ray has no neighbours to vote, so its
+      weight is its own inlier test (`robust.pixel_inliers`), confirmation included (0 = patches
+      only);
+    robust_refine: the fraction of max_steps after which the evidence is judged once on whole
+      training frames and frozen (`refine.py`): every training frame is rendered, the rule is
+      applied to it (`robust.frame_evidence`), and the rest of the run trains on scattered
+      rays with those weights, as a run with masks does (0 = patches to the end);
+    robust_prior_grow: dpt+robust only: pixels within this many px of a masked pixel are flagged
+      in the prior too (`train.grown_masks`), so the rims of the transients that the DPT's masks
+      fall short of are not trained on before the evidence decides (0 = the masks as they are);
+    robust_strict_readmit: a flagged pixel (prior < 1/2) is re-admitted only when its residual is
+      an inlier *and* a neighbouring photo confirms it (`robust.pixel_inliers`); off, either
+      suffices. Once re-admitted a pixel is trained on and its residual falls, so a transient
+      re-admitted on its residual alone stays in (docs/ROBUST.md). None (the default): on unless
+      `mask` judged the dataset's DPT masks out of their domain (`config.strict_readmit_auto`).
+    """
+
+    batch_rays: int = 1024
+    max_steps: int = 2000
+    lr_init: float = 5e-4
+    lr_final: float = 5e-5
+    warmup: int = 100
+    max_grad_norm: float = 1.0
+    adam_eps: float = 1e-6
+    adam_b1: float = 0.9
+    adam_b2: float = 0.999
+    sparse_adam: bool = False
+    use_masks: bool = True
+    mask_weight_floor: float = 0.0
+    coarse_loss_weight: float = 1.0
+    interlevel_loss_weight: float = 1.0
+    distortion_loss_weight: float = 0.0
+    seed: int = 0
+    checkpoint_every: int = 500
+    keep_checkpoints: int = 3
+    log_every: int = 25
+    chunk: int = 4096
+    num_devices: int = 0
+    appearance_steps: int = 30
+    appearance_lr: float = 0.05
+    appearance_rays: int = 1024
+    max_side: int = 640
+    robust: str = "off"
+    robust_quantile: float = 0.8
+    robust_flagged_quantile: float = 0.5
+    robust_patch: int = 4
+    robust_patch_stride: int = 1
+    robust_patch_share: float = 0.6
+    robust_floor: float = 1e-3
+    robust_spread: float = 1.5
+    robust_warmup: float = 0.2
+    robust_confirm: float = 0.01
+    robust_views: int = 8
+    robust_scattered: float = 0.0
+    robust_refine: float = 0.0
+    robust_prior_grow: int = 0
+    robust_strict_readmit: bool | None = None
+
+    # allowed values, checked by config.validate (docs/RELIABILITY.md)
+    RANGES: typing.ClassVar[dict] = {
+        "batch_rays": config_lib.AT_LEAST_ONE, "max_steps": config_lib.AT_LEAST_ONE,
+        "lr_init": config_lib.POSITIVE, "lr_final": config_lib.POSITIVE, "warmup": config_lib.NONNEGATIVE,
+        "max_grad_norm": config_lib.NONNEGATIVE, "adam_eps": config_lib.POSITIVE,
+        "adam_b1": config_lib.FRACTION, "adam_b2": config_lib.FRACTION, "mask_weight_floor": config_lib.UNIT,
+        "coarse_loss_weight": config_lib.NONNEGATIVE, "interlevel_loss_weight": config_lib.NONNEGATIVE,
+        "distortion_loss_weight": config_lib.NONNEGATIVE, "seed": config_lib.Range(0, 2**32 - 1),
+        "checkpoint_every": config_lib.AT_LEAST_ONE, "keep_checkpoints": config_lib.AT_LEAST_ONE,
+        "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
+        "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
+        "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE,
+        "max_side": config_lib.NONNEGATIVE,
+        "robust_quantile": config_lib.UNIT, "robust_flagged_quantile": config_lib.UNIT,
+        "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_stride": config_lib.AT_LEAST_ONE,
+        "robust_patch_share": config_lib.UNIT,
+        "robust_floor": config_lib.NONNEGATIVE, "robust_spread": config_lib.NONNEGATIVE,
+        "robust_warmup": config_lib.UNIT, "robust_confirm": config_lib.NONNEGATIVE,
+        "robust_views": config_lib.AT_LEAST_ONE, "robust_scattered": config_lib.FRACTION,
+        "robust_refine": config_lib.FRACTION, "robust_prior_grow": config_lib.NONNEGATIVE}
+
+
+@dataclasses.dataclass(frozen=True)
+class RunConfig:
+    """Everything that decides a run: the dataset folder (set by `runs.train_run`; None in a
+    recipe or a bare config), the model and the training. config.json is its `to_dict`."""
+
+    data: str | None = None
+    model: models.ModelConfig = models.ModelConfig()
+    train: TrainConfig = TrainConfig()
+
+
+def make_config(method: str, overrides: dict | None = None) -> RunConfig:
+    """The defaults of `method` with `overrides` (a nested dict, e.g. from --config) on top."""
+    base = {"model": models.method_defaults(method), "train": {"use_masks": method == "ours"}}
+    if isinstance((overrides or {}).get("model"), dict):  # older flat sampler keys, over the old defaults
+        overrides = dict(overrides, model=models.ModelConfig.upgrade_dict(overrides["model"]))
+    merged = config_lib.merge(config_lib.to_dict(RunConfig()), base)
+    merged = config_lib.merge(merged, overrides or {})
+    if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:
+        raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts run.method {method!r}")
+    cfg = config_lib.from_dict(RunConfig, merged)
+    config_lib.validate(cfg)
+    check_robust(cfg.train)
+    models.validate(dataclasses.replace(cfg.model, num_images=max(cfg.model.num_images, 1)))
+    return cfg
+
+
+def resolve_devices(cfg: TrainConfig) -> int:
+    """Local devices used: cfg.num_devices (0 = all)."""
+    available = jax.local_device_count()
+    n = cfg.num_devices or available
+    if n > available:
+        raise ConfigError(f"train.num_devices = {n} but only {available} local devices exist")
+    return n
+
+
+def scattered_rays(cfg: TrainConfig) -> int:
+    """How many of a robust batch's rays are scattered single pixels: batch_rays x
+    robust_scattered, rounded."""
+    return int(round(cfg.batch_rays * cfg.robust_scattered))
+
+
+def check_robust(cfg: TrainConfig, num_devices: int = 1, dataset: Dataset | None = None) -> None:
+    """ConfigError unless train.robust is a known mode and, when on, the batch splits into whole
+    patches, and the patches over the devices; with a dataset, also that a patch fits in its
+    frames (ConfigError) and that dpt+robust has masks (DataError)."""
+    if cfg.robust not in robust_lib.MODES:
+        raise ConfigError(f"train.robust = {cfg.robust!r}: must be one of {', '.join(robust_lib.MODES)}")
+    if cfg.robust == "off":
+        return
+    area = cfg.robust_patch ** 2
+    scattered = scattered_rays(cfg)
+    patch_rays = cfg.batch_rays - scattered
+    if patch_rays <= 0 or patch_rays % area or (patch_rays // area) % num_devices:
+        raise ConfigError(f"train.batch_rays = {cfg.batch_rays}: with train.robust on, its patch part "
+                          f"({patch_rays} rays after train.robust_scattered's {scattered}) must be a positive "
+                          f"multiple of train.robust_patch^2 ({area}) times the device count ({num_devices})")
+    if scattered % num_devices:
+        raise ConfigError(f"train.robust_scattered = {cfg.robust_scattered}: its {scattered} scattered rays "
+                          f"must divide over the {num_devices} devices")
+    if dataset is None:
+        return
+    span = robust_lib.patch_span(cfg.robust_patch, cfg.robust_patch_stride)
+    if min(dataset.height, dataset.width) < span:
+        raise ConfigError(f"train.robust_patch = {cfg.robust_patch} at train.robust_patch_stride = "
+                          f"{cfg.robust_patch_stride}: spans {span} px, more than the "
+                          f"{dataset.width}x{dataset.height} images")
+    if cfg.robust == "dpt+robust" and dataset.weights is None:
+        raise DataError(f"{dataset.root}: train.robust = dpt+robust needs the dataset's masks "
+                        "(run jaxnerf-grid mask first, or use train.robust = robust)")

@@ -1,0 +1,1 @@
+"""The radiance field: methods, fields, samplers, volume rendering, rays, contraction, losses."""

@@ -1,0 +1,1 @@
+"""What a run shows a person: report.md, report.html, the live progress page."""

@@ -1,0 +1,1 @@
+"""Training: the loop and its pool of rays, optimiser, checkpoints, device and host parallelism, run folders."""
