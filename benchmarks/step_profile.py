@@ -47,13 +47,13 @@ import jax
 import jax.numpy as jnp
 
 from benchmarks.throughput import machine_load, scene
-from jaxnerf_grid.config import recipes
+from jaxnerf_grid.config import build, recipes
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.nerf import losses, models
 from jaxnerf_grid.nerf.fields import hashgrid, layers, proposal
 from jaxnerf_grid.nerf.samplers import s_space as sampling
 from jaxnerf_grid.train import loop as train
-from jaxnerf_grid.train import optim, runs
+from jaxnerf_grid.train import optim
 from jaxnerf_grid.util import parallel
 
 STAGES = ("batching", "proposal_field", "main_encoding", "main_mlps", "loss_and_grad", "sampling_losses",
@@ -206,7 +206,7 @@ def main(argv=None) -> None:
     args = p.parse_args(argv)
     load_before = machine_load()
     size = tuple(int(x) for x in args.size.split(","))
-    result = profile(args.recipe, args.rays, args.repeats, runs.overrides_with_sets({}, args.set), size)
+    result = profile(args.recipe, args.rays, args.repeats, build.with_sets({}, args.set), size)
     result["machine"] = {**machine_load(), "load_before": load_before}
     print(markdown(result))
     Path(args.out).parent.mkdir(parents=True, exist_ok=True)

@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid.capture.bounds import bounds_line, folder_bounds, recipe_with_bounds
-from jaxnerf_grid.config import recipes
+from jaxnerf_grid.capture.bounds import bounds_line
+from jaxnerf_grid.config import build, recipes
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.run_config import make_config
 from jaxnerf_grid.config.schema import ConfigError
@@ -272,14 +272,12 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
         raise ConfigError(f"demo.steps = {steps}: must be an integer >= 1")
     check_video_frames(video_frames)
+    request = build.Request(recipe=DEMO_RECIPE, sets=tuple(sets or ()), max_side=max_side, steps=steps)
+    recipe = build.build(request).overrides  # a bad --set fails before synth / mask
     method = recipes.get(DEMO_RECIPE).method
-    base = recipes.overrides(DEMO_RECIPE)
-    if max_side is not None:
-        base = config_lib.merge(base, {"train": {"max_side": max_side}})
-    recipe = runs.overrides_with_sets(base, sets)
     forced = mask_plan(masks, None)  # a bad --masks fails here; auto is settled after masking
     # a bad --set fails before synth / mask
-    make_config(method, runs._with_steps(_with_plan(recipe, forced) if masks != "auto" else recipe, steps))
+    make_config(method, _with_plan(recipe, forced) if masks != "auto" else recipe)
     start = time.perf_counter()
     out = Path(out)
     folders.check_folder(out, "demo.out")
@@ -304,15 +302,15 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     if not distributed.is_main():
         data = Path(data) if data is not None else out / "data"
         mask_source = None
-    bounds = folder_bounds(data)
-    recipe = runs.overrides_with_sets(recipe_with_bounds(base, bounds), sets)  # --set wins over the bounds
+    built = build.build(request, data=data)  # the dataset's bounds, then --set and --max-side on top
+    recipe, bounds = built.overrides, built.bounds
     # every process reads the same verdict from the dataset, so all train the same config
     plan = mask_plan(masks, dataset_domain(Path(data)))
     if not layout and masks == "auto":
         plan = dict(mask_plan("robust", None), why="chosen automatically: the dataset is not in the transforms.json "
                     "layout, so it has no masks and `mask` cannot write any")
     t = time.perf_counter()
-    run_dir, _, _ = runs.train_run(str(data), method, out / "run", _with_plan(recipe, plan), steps, overwrite,
+    run_dir, _, _ = runs.train_run(str(data), method, out / "run", _with_plan(recipe, plan), None, overwrite,
                                    progress)
     timings["train"] = time.perf_counter() - t
     if not distributed.is_main():

@@ -8,6 +8,7 @@ import pytest
 
 from jaxnerf_grid import demo
 from jaxnerf_grid.capture import bounds
+from jaxnerf_grid.config import build
 from jaxnerf_grid.nerf import coords
 from jaxnerf_grid.util.io import DataError
 
@@ -81,7 +82,6 @@ def test_the_demo_recipe_without_recorded_bounds_is_unchanged():
 
 
 def test_recorded_bounds_replace_the_recipe_and_sets_win():
-    from jaxnerf_grid.train import runs
 
     recorded = {"near": 0.7, "far": 1000.0, "contract_radius": 2.0, "roi_radius": 1.0, "roi_centre": [0, 0, 0]}
     got = bounds.read_bounds({"scene_bounds": recorded}, "t.json")
@@ -89,7 +89,7 @@ def test_recorded_bounds_replace_the_recipe_and_sets_win():
     assert recipe["model"]["near"] == 0.7 and recipe["model"]["far"] == 1000.0
     assert recipe["model"]["field"] == demo.DEMO_CONFIG["model"]["field"]
     assert demo.DEMO_CONFIG["model"]["near"] == 1.0  # not changed in place
-    with_set = runs.overrides_with_sets(recipe, ["model.near=1.5"])
+    with_set = build.with_sets(recipe, ["model.near=1.5"])
     assert with_set["model"]["near"] == 1.5 and with_set["model"]["far"] == 1000.0
     assert "near 0.7" in bounds.bounds_line(got) and "constants" in bounds.bounds_line(None)
 

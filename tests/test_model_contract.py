@@ -10,6 +10,7 @@ from pathlib import Path
 
 import pytest
 
+from jaxnerf_grid.config import build
 from jaxnerf_grid.config import schema as config
 from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.nerf import models
@@ -144,11 +145,10 @@ def test_an_older_run_config_json_loads_and_resolves_to_the_same_model(tmp_path)
 
 def test_set_flags_land_on_the_sampler_of_an_older_config_file(tmp_path):
     """An older --config file (flat keys) with --set model.sampler.* on top: the flag wins."""
-    from jaxnerf_grid.train import runs
 
     path = tmp_path / "old.json"
     path.write_text(json.dumps({"model": {"sampler": "proposal", "proposal_samples": [32], "num_fine": 16}}))
-    ov = runs.overrides_with_sets(runs.read_overrides(str(path)), ["model.sampler.main_samples=24"])
+    ov = build.with_sets(build.read_config_file(str(path)), ["model.sampler.main_samples=24"])
     assert ov == {"model": {"sampler": {"kind": "proposal", "samples": [32], "main_samples": 24, "field": {},
                                         "padding": 0.01}}}
     assert train.make_config("ours", ov).model.sampler == proposal.Config(samples=(32,), main_samples=24)

@@ -11,7 +11,7 @@ import pytest
 
 from experiments import settings
 from jaxnerf_grid import cli, demo
-from jaxnerf_grid.config import recipes
+from jaxnerf_grid.config import build, recipes
 from jaxnerf_grid.config import schema as config
 from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.nerf.samplers.legacy import upgrade_flat_model
@@ -145,7 +145,7 @@ def train_args(monkeypatch):
     from jaxnerf_grid.train import runs
 
     def capture(data, method, out, overrides=None, steps=None, *args, **kwargs):
-        raise Called(method, runs._with_steps(overrides, steps), out)
+        raise Called(method, build.with_steps(overrides, steps), out)
 
     monkeypatch.setattr(runs, "train_run", capture)
 

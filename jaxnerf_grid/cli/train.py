@@ -96,25 +96,18 @@ def train_summary(cfg, result, run_dir) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     multi = start_distributed(args)
-    from jaxnerf_grid.capture.bounds import bounds_line, folder_bounds, recipe_with_bounds
-    from jaxnerf_grid.config import recipes, run_config
-    from jaxnerf_grid.config import schema as config_lib
+    from jaxnerf_grid.capture.bounds import bounds_line
+    from jaxnerf_grid.config import build
     from jaxnerf_grid.eval import evaluate
     from jaxnerf_grid.train import distributed, runs
 
-    recipe, method = recipes.resolve(args.recipe, args.method)
-    out = args.out or f"runs/{recipe}"
-    overrides = recipes.overrides(recipe)
-    bounds = folder_bounds(args.data) if Path(args.data).is_dir() else None
-    if bounds and run_config.make_config(method, overrides).model.use_contraction:
-        overrides = recipe_with_bounds(overrides, bounds)   # --config and --set still win
-        print(bounds_line(bounds))
-    overrides = config_lib.merge(overrides, runs.read_overrides(args.config))
-    overrides = runs.overrides_with_sets(overrides, args.set)
-    if args.max_side is not None:
-        overrides = runs.overrides_with_sets(overrides, [f"train.max_side={args.max_side}"])
+    built = build.build(build.Request(args.recipe, args.method, args.config, tuple(args.set), args.max_side,
+                                      args.steps), data=args.data)
+    out = args.out or f"runs/{built.recipe}"
+    if built.bounds:
+        print(bounds_line(built.bounds))
     try:
-        run_dir, cfg, result = runs.train_run(args.data, method, out, overrides, args.steps, args.overwrite,
+        run_dir, cfg, result = runs.train_run(args.data, built.method, out, built.overrides, None, args.overwrite,
                                               not args.quiet, allow_other_data=args.allow_other_data,
                                               progress_page=args.progress_page)
     except distributed.DistributedError as err:

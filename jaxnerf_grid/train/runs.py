@@ -30,6 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid.capture import poses
+from jaxnerf_grid.config import build
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.run_config import RunConfig, make_config
 from jaxnerf_grid.config.schema import ConfigError
@@ -51,32 +52,6 @@ FINGERPRINT_FILE = "dataset.json"
 RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity", "videos")
 RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report.html", "progress.html", "report_views.png",
                     "report_crops.png", "tower_points.ply", "config.json", FINGERPRINT_FILE, "timings.json")
-
-
-def read_overrides(path: str | None) -> dict:
-    """The override dict of a --config JSON file ({} without one); its "data" key is dropped, and
-    older flat sampler keys are read into model.sampler (samplers.legacy), so --set flags on
-    model.sampler land on the file's sampler."""
-    if not path:
-        return {}
-    data = io.read_json(path)
-    if not isinstance(data, dict):
-        raise ConfigError(f"{path}: a config file must hold a JSON object")
-    data = dict(data)
-    data.pop("data", None)
-    if isinstance(data.get("model"), dict):
-        data["model"] = upgrade_flat_model(data["model"])
-    return data
-
-
-def overrides_with_sets(overrides: dict | None, sets: list[str] | None) -> dict:
-    """--config's overrides with the --set KEY=VALUE flags laid on top (config.parse_sets against
-    RunConfig: an unknown key is a ConfigError naming it). `data` is refused: the run's dataset
-    is run.data, and train_run would silently replace a value set here."""
-    sets_ = config_lib.parse_sets(sets, RunConfig)
-    if "data" in sets_:
-        raise ConfigError("data: not a setting; the dataset is given as run.data")
-    return config_lib.merge(overrides or {}, sets_)
 
 
 def run_config_dict(cfg, data_path=None) -> dict:
@@ -224,16 +199,6 @@ def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: in
     return formats.load_dataset(path, downscale=downscale, progress=progress, max_side=max_side)
 
 
-def _with_steps(overrides: dict | None, steps: int | None) -> dict:
-    """overrides with train.max_steps = steps (when given); the input is not changed."""
-    overrides = dict(overrides or {})
-    if steps is not None:
-        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
-            raise ConfigError(f"run.steps = {steps}: must be an integer >= 1")
-        overrides["train"] = {**overrides.get("train", {}), "max_steps": int(steps)}
-    return overrides
-
-
 def _without(d: dict, key: str) -> dict:
     return {k: v for k, v in d.items() if k != key}
 
@@ -306,7 +271,7 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
     run_dir = Path(out)
     check_out(run_dir, data)
     config_lib.check_value("run.progress_page", progress_page, int, config_lib.NONNEGATIVE)
-    cfg = make_config(method, _with_steps(overrides, steps))
+    cfg = make_config(method, build.with_steps(overrides, steps))
     side = cfg.train.max_side  # the working resolution (data/working.py)
     ds = working_dataset(dataset, side) if dataset is not None else load_dataset(data, progress=progress,
                                                                                  max_side=side)

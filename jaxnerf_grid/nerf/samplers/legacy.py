@@ -24,7 +24,7 @@ Within one dict the flat keys win over a tagged sampler. So the forms are best n
 override layers merged before they are read: after `config.merge` a flat "sampler" string
 replaces a tagged dict below it (losing, e.g., its proposal field), and flat keys override a
 tagged dict even where it came from a later layer. `train.make_config` reads its overrides and
-`runs.read_overrides` a --config file through `upgrade_flat_model` before laying anything over
+`config.build.read_config_file` a --config file through `upgrade_flat_model` before laying anything over
 them (so `--set model.sampler...` lands on an older file's sampler); layers kept in the flat
 form (the experiments' settings, whose run keys hash the flat layout) put a tagged recipe into
 that form first with `flat_model(model)`.

@@ -1,0 +1,114 @@
+"""The one config builder: every entry point (`train`, `demo`, the experiments and benchmarks)
+turns what a user asked for into a run's config here, in one order.
+
+    recipe (its method's defaults and its settings, config/recipes.py)
+      -> the dataset's bounds (model.near / far / contract_radius, capture/bounds.py; only for a
+         method that contracts space, and only when the dataset records them)
+      -> the caller's own layer (`extra`: e.g. the demo's mask plan)
+      -> a config file (`--config FILE`, a JSON object {"model": {...}, "train": {...}})
+      -> `--set KEY=VALUE` flags, in their order
+      -> the working resolution (`--max-side N`: train.max_side)
+      -> the step count (`--steps N`: train.max_steps)
+
+Each later layer wins over the ones before it. `build` returns the recipe's name, the method,
+the overrides dict (what `runs.train_run` lays over the method's defaults) and the bounds it
+used (None: the recipe's constants), after checking the whole config (`run_config.make_config`),
+so a bad key or value fails in one line before anything is written.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from pathlib import Path
+
+from jaxnerf_grid.capture.bounds import folder_bounds, recipe_with_bounds
+from jaxnerf_grid.config import recipes
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.config.run_config import RunConfig, make_config
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.nerf.samplers.legacy import upgrade_flat_model
+from jaxnerf_grid.util import io
+
+
+@dataclasses.dataclass(frozen=True)
+class Request:
+    """What a user asked for, from every source a run's config can come from (None / empty: not given)."""
+    recipe: str | None = None
+    method: str | None = None
+    config_file: str | None = None
+    sets: tuple[str, ...] = ()
+    max_side: int | None = None
+    steps: int | None = None
+
+
+@dataclasses.dataclass(frozen=True)
+class Built:
+    """The outcome of `build`: recipe name, method, the overrides over the method's defaults, and
+    the dataset bounds laid in (None when the recipe's constants stand)."""
+    recipe: str
+    method: str
+    overrides: dict
+    bounds: dict | None
+
+    def config(self) -> RunConfig:
+        """The checked RunConfig (before it is settled on a dataset)."""
+        return make_config(self.method, self.overrides)
+
+
+def read_config_file(path: str | Path | None) -> dict:
+    """A --config file's overrides ({} when no file is given): a JSON object; its `data` key is
+    dropped (the dataset is run.data) and a flat pre-sampler `model` section is upgraded."""
+    if not path:
+        return {}
+    data = io.read_json(path)
+    if not isinstance(data, dict):
+        raise ConfigError(f"{path}: a config file must hold a JSON object")
+    data = dict(data)
+    data.pop("data", None)
+    if isinstance(data.get("model"), dict):
+        data["model"] = upgrade_flat_model(data["model"])
+    return data
+
+
+def with_sets(overrides: dict | None, sets: list[str] | tuple[str, ...] | None) -> dict:
+    """overrides with the --set KEY=VALUE flags laid on top (config.parse_sets against RunConfig:
+    an unknown key is a ConfigError naming it). `data` is refused: the run's dataset is run.data,
+    and train_run would silently replace a value set here."""
+    sets_ = config_lib.parse_sets(list(sets or []), RunConfig)
+    if "data" in sets_:
+        raise ConfigError("data: not a setting; the dataset is given as run.data")
+    return config_lib.merge(overrides or {}, sets_)
+
+
+def with_steps(overrides: dict | None, steps: int | None) -> dict:
+    """overrides with train.max_steps = steps (when given); the input is not changed."""
+    overrides = dict(overrides or {})
+    if steps is not None:
+        if isinstance(steps, bool) or not isinstance(steps, int) or steps < 1:
+            raise ConfigError(f"run.steps = {steps}: must be an integer >= 1")
+        overrides["train"] = {**overrides.get("train", {}), "max_steps": int(steps)}
+    return overrides
+
+
+def with_max_side(overrides: dict, max_side: int | None) -> dict:
+    """overrides with train.max_side = max_side (when given), checked as a --set value would be."""
+    return overrides if max_side is None else with_sets(overrides, [f"train.max_side={max_side}"])
+
+
+def build(request: Request, data: str | Path | None = None, extra: dict | None = None) -> Built:
+    """The run config's overrides from a Request, in the module's order (recipe -> bounds of the
+    dataset folder `data` -> extra -> config file -> sets -> max_side -> steps), checked."""
+    recipe, method = recipes.resolve(request.recipe, request.method)
+    overrides = recipes.overrides(recipe)
+    bounds = folder_bounds(data) if data is not None and Path(data).is_dir() else None
+    if bounds and not make_config(method, overrides).model.use_contraction:
+        bounds = None  # a method in a bounded box keeps its own near / far
+    overrides = recipe_with_bounds(overrides, bounds)
+    overrides = config_lib.merge(overrides, extra or {})
+    overrides = config_lib.merge(overrides, read_config_file(request.config_file))
+    overrides = with_sets(overrides, request.sets)
+    overrides = with_max_side(overrides, request.max_side)
+    overrides = with_steps(overrides, request.steps)
+    built = Built(recipe, method, overrides, bounds)
+    built.config()  # every key and value checked before anything is written
+    return built

@@ -1,0 +1,107 @@
+"""The one config builder: recipe -> dataset bounds -> extra -> config file -> --set -> --max-side -> --steps,
+each later layer winning, checked before anything is written; what `train` and `demo` both call."""
+
+import json
+
+import pytest
+
+from jaxnerf_grid.config import build, recipes
+from jaxnerf_grid.config.schema import ConfigError
+
+BOUNDS = {"near": 0.25, "far": 9.5, "contract_radius": 3.0, "roi_radius": 0.8, "roi_centre": [0.0, 0.0, 0.1]}
+
+
+def dataset_folder(tmp_path, bounds=BOUNDS):
+    folder = tmp_path / "data"
+    folder.mkdir()
+    meta = {"frames": []}
+    if bounds is not None:
+        meta["scene_bounds"] = bounds
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return folder
+
+
+def test_without_any_request_it_is_the_recipe_alone():
+    built = build.build(build.Request(recipe="ours-lean"))
+    assert built.overrides == recipes.overrides("ours-lean")
+    assert built.recipe == "ours-lean" and built.method == recipes.get("ours-lean").method
+    assert built.bounds is None
+
+
+def test_each_layer_wins_over_the_ones_before_it(tmp_path):
+    data = dataset_folder(tmp_path)
+    config_file = tmp_path / "c.json"
+    # the file sets far (over the bounds) and near; --set then sets near again; --max-side and --steps last
+    config_file.write_text(json.dumps({"model": {"far": 7.0, "near": 0.3}, "train": {"max_side": 100}}))
+    request = build.Request(recipe="ours-lean", config_file=str(config_file), sets=("model.near=0.4",
+                            "train.max_side=200", "train.max_steps=5"), max_side=320, steps=7)
+    built = build.build(request, data=data, extra={"model": {"far": 8.0, "contract_radius": 2.5}})
+    model, train = built.overrides["model"], built.overrides["train"]
+    assert model["contract_radius"] == 2.5  # extra over the bounds' 3.0
+    assert model["far"] == 7.0  # the file over extra's 8.0 and the bounds' 9.5
+    assert model["near"] == 0.4  # --set over the file's 0.3 and the bounds' 0.25
+    assert train["max_side"] == 320  # --max-side over --set's 200 and the file's 100
+    assert train["max_steps"] == 7  # --steps over --set's 5
+    assert built.bounds["far"] == 9.5
+    cfg = built.config()
+    assert (cfg.model.near, cfg.model.far, cfg.train.max_side, cfg.train.max_steps) == (0.4, 7.0, 320, 7)
+
+
+def test_recorded_bounds_replace_the_recipes_constants(tmp_path):
+    built = build.build(build.Request(recipe="ours-lean"), data=dataset_folder(tmp_path))
+    assert {k: built.overrides["model"][k] for k in ("near", "far", "contract_radius")} == \
+        {"near": 0.25, "far": 9.5, "contract_radius": 3.0}
+
+
+def test_a_method_in_a_bounded_box_keeps_its_own_near_and_far(tmp_path):
+    built = build.build(build.Request(method="nerf"), data=dataset_folder(tmp_path))
+    assert built.bounds is None
+    assert built.overrides == recipes.overrides("nerf")
+
+
+def test_a_dataset_without_bounds_keeps_the_recipe(tmp_path):
+    built = build.build(build.Request(recipe="ours-lean"), data=dataset_folder(tmp_path, bounds=None))
+    assert built.bounds is None and built.overrides == recipes.overrides("ours-lean")
+
+
+@pytest.mark.parametrize("request_, key", [
+    (build.Request(sets=("model.nope=1",)), "model.nope"),
+    (build.Request(sets=("data=x",)), "data"),
+    (build.Request(steps=0), "run.steps"),
+    (build.Request(max_side=-3), "train.max_side"),
+    (build.Request(recipe="no-such-recipe"), "no-such-recipe"),
+])
+def test_a_bad_request_is_one_config_error_naming_the_key(request_, key):
+    with pytest.raises(ConfigError, match=key.replace(".", r"\.")):
+        build.build(request_)
+
+
+def test_a_config_file_that_is_not_an_object_is_refused(tmp_path):
+    path = tmp_path / "c.json"
+    path.write_text("[1, 2]")
+    with pytest.raises(ConfigError, match="c.json: a config file must hold a JSON object"):
+        build.build(build.Request(config_file=str(path)))
+
+
+def test_train_and_demo_build_their_configs_here(monkeypatch, tmp_path):
+    """Both entry points go through build.build (a spy sees each call and its request)."""
+    from jaxnerf_grid import demo
+    from jaxnerf_grid.cli import train as train_cli
+
+    seen = []
+
+    class Stop(Exception):
+        pass
+
+    def spy(request, data=None, extra=None):
+        seen.append((request, data))
+        raise Stop
+
+    monkeypatch.setattr(build, "build", spy)
+    with pytest.raises(Stop):
+        train_cli.main(["--data", str(tmp_path), "--recipe", "ours-lean", "--set", "train.batch_rays=64",
+                        "--max-side", "99", "--steps", "3"])
+    with pytest.raises(Stop):
+        demo.run_demo(None, tmp_path / "out", steps=4, sets=["train.batch_rays=32"], max_side=88)
+    assert seen[0] == (build.Request("ours-lean", None, None, ("train.batch_rays=64",), 99, 3), str(tmp_path))
+    assert seen[1][0] == build.Request(recipe=demo.DEMO_RECIPE, sets=("train.batch_rays=32",), max_side=88, steps=4)
