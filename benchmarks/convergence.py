@@ -8,7 +8,7 @@ mask-weighted loss), one process, the same machine:
 
   mlp-hierarchical   the MLP field with 32 coarse + 32 fine samples (the demo before the grid)
   grid-hierarchical  the demo's hash grid with the same coarse + fine sampler
-  grid-proposal      the `ours` recipe (the demo's until issue 40): hash grid + one proposal
+  grid-proposal      the `ours` recipe (the experiments'): hash grid + one proposal
                      round (64 -> 32 samples), 2400 steps
   grid-proposal-fast `ours-fast`: a smaller proposal field, 1600 steps (the demo's until ours-lean)
   grid-proposal-lean the demo's recipe now, `ours-lean`: ours-fast with a leaner main field

@@ -1,5 +1,5 @@
 """Foreground exclusion on real photos with known transients: the Strecha scenes with the
-synthetic generator's distractors pasted in (issue 36 item 4, docs/MASKS.md).
+synthetic generator's distractors pasted in (docs/MASKS.md).
 
     python -m benchmarks.pasted_transients STRECHA_DIR [--scenes fountain-P11,Herz-Jesus-P25]
         [--rows none,dpt,robust,dpt+robust,gt] [--seeds 0,1,2] [--steps 2400] [--long-side 480]
@@ -58,7 +58,7 @@ from jaxnerf_grid.util.io import DataError
 ROOT = Path(__file__).resolve().parents[1]
 ROWS = ("none", "dpt", "robust", "dpt+robust", "gt")
 # The recipe every row trains: `ours`, the demo's recipe when the recorded results were made (the
-# demo has since moved to ours-fast, issue 40); kept so that new seeds join the recorded ones.
+# demo has since moved to ours-lean); kept so that new seeds join the recorded ones.
 RECIPE = "ours"
 ROW_TRAIN = {"none": {"use_masks": False}, "dpt": {"use_masks": True},
              "robust": {"use_masks": False, "robust": "robust"},

@@ -1,4 +1,4 @@
-"""Time and accuracy of `jaxnerf-grid poses` per matcher on Strecha scenes (issue 38).
+"""Time and accuracy of `jaxnerf-grid poses` per matcher on Strecha scenes (docs/POSES.md).
 
 Collects datasets written by
 

@@ -6,8 +6,8 @@ in one run with the cases interleaved.
         [--methods ours] [--batch-rays N]
 
 Configs: "mlp" (the MLP field with 32 + 32 hierarchical samples, the demo before the grid),
-"grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the `ours` recipe, the demo's
-until issue 40: hash grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128);
+"grid-hierarchical" (the demo's hash grid with that sampler), "demo" (the `ours` recipe, the
+experiments': hash grid + proposal sampling, 64 -> 32 samples), "paper-small" (an 8 x 256 MLP, 64 + 128);
 "demo-linear", "demo-log", "demo-piecewise", "mlp-linear", ... (that ray warp instead of disparity);
 "demo-sparse-adam" (the demo with train.sparse_adam), "ours-fast" (`ours` with a smaller proposal
 field, docs/GRID.md), "ours-lean" (ours-fast with a leaner main field: the demo's recipe now);
@@ -28,7 +28,7 @@ compare, as absolute rays/s move with whatever else runs on a shared machine. Th
 160x120, 8-frame synthetic dataset of random pixels (throughput does not depend on the content).
 Prints a table and writes benchmarks/results/throughput.json.
 
-`--processes` (issue 18, docs/DISTRIBUTED.md) instead compares, on this machine, training with
+`--processes` (docs/DISTRIBUTED.md) instead compares, on this machine, training with
 1 process x 2 CPU devices against 2 processes x 1 device (jax.distributed, gloo), each in fresh
 subprocesses, for the first --configs entry: rays/s of each and their ratio, and the cost of the
 cross-process collective (the median time of a psum of a parameter-sized pytree, both ways).
@@ -75,13 +75,13 @@ CONFIGS = {
 for _warp in ("linear", "log", "piecewise"):
     for _name in ("demo", "mlp"):
         CONFIGS[f"{_name}-{_warp}"] = {**CONFIGS[_name], "model": {**CONFIGS[_name]["model"], "warp": _warp}}
-# Issue 40: the demo with lazy Adam on its hash tables, and the candidate recipe ours-fast (the
+# The demo with lazy Adam on its hash tables, and the recipe ours-fast (the
 # demo with a smaller proposal field, recipes.SAMPLERS; measured beside "demo", docs/GRID.md).
 CONFIGS["demo-sparse-adam"] = merge(CONFIGS["demo"], {"train": {"sparse_adam": True}})
 CONFIGS["ours-fast"] = recipes.overrides("ours-fast")
-# Issue 40's second round: the demo's recipe now, ours-fast with a leaner main field (docs/GRID.md)
+# The demo's recipe now, ours-fast with a leaner main field (docs/GRID.md)
 CONFIGS["ours-lean"] = recipes.overrides("ours-lean")
-# Issue 36: the demo trained with the photometric evidence (4x4 patches), without and with the
+# The demo trained with the photometric evidence (4x4 patches), without and with the
 # multi-view confirmation (photo_consistency.py), to price the confirmation (docs/ROBUST.md).
 CONFIGS["demo-robust"] = merge(CONFIGS["demo"], {"train": {"robust": "robust", "robust_confirm": 0.0}})
 CONFIGS["demo-robust-confirm"] = merge(CONFIGS["demo"], {"train": {"robust": "robust", "robust_confirm": 0.01}})
@@ -90,13 +90,13 @@ CONFIGS["demo-robust-confirm"] = merge(CONFIGS["demo"], {"train": {"robust": "ro
 # points' chain (warp, contraction) in every corner fusion of the hash grid. A name ending in
 # CONCAT (e.g. "ours-fast-concat") is traced with the colour branch's input concatenated at every
 # sample, the view direction encoded per sample: the code before fields.layers.first_colour_layer
-# (issue 40, docs/GRID.md).
+# (docs/GRID.md).
 FUSED = "-fused"
 CONCAT = "-concat"
 
 
 def _per_sample_first_colour_layer(layer, feature, viewdirs, appearance, cfg):
-    """fields.layers.first_colour_layer as it was before issue 40: [feature, encoded direction,
+    """fields.layers.first_colour_layer as it was before the per-ray direction: [feature, encoded direction,
     appearance] broadcast and concatenated at every sample, then one dense layer."""
     from jaxnerf_grid.nerf import coords
     from jaxnerf_grid.nerf.fields import layers

@@ -90,7 +90,7 @@ def base_parser(description: str) -> argparse.ArgumentParser:
                    help="the grid field and proposal sampling for every method, sized to resolve the tower on "
                         "the 2-core CPU (about 5 min per run)")
     g.add_argument("--full", dest="setting", action="store_const", const="full",
-                   help="the issue's setting: 3 seeds, larger scenes, more steps (GPU machine)")
+                   help="the full setting: 3 seeds, larger scenes, more steps (GPU machine)")
     p.set_defaults(setting="quick")
     p.add_argument("--seeds", type=int, default=None, help="number of seeds (default: 1 quick, 3 full)")
     p.add_argument("--steps", type=int, default=None, help="training steps per run (default: by setting)")
@@ -194,10 +194,9 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
     scheme "current": LATER_TRAIN_KEYS at their defaults are left out, and so is
     train.robust_strict_readmit wherever it does nothing (`config.strict_readmit_acts` on the
     dataset: off is what ran before it existed); where it acts it is in the key as true.
-    scheme "session28": the key of runs made from the twenty-fifth to the twenty-eighth
-    session, when robust_refine, robust_prior_grow and robust_strict_readmit (then false by
-    default) were always in the key (`run_keys`); there it is true only where it acts, as
-    above, so a run of another mode is found at the default."""
+    scheme "refine_keys_always": the key of runs made while robust_refine, robust_prior_grow
+    and robust_strict_readmit (then false by default) were always in the key (`run_keys`); there
+    it is true only where it acts, as above, so a run of another mode is found at the default."""
     with_steps = merge(overrides, {"train": {"max_steps": int(steps)}})
     cfg = config_lib.to_dict(run_config.make_config(method, with_steps))
     cfg["model"] = {**{k: v for k, v in cfg["model"].items() if k != "sampler"},  # the flat sampler keys, as
@@ -218,9 +217,9 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
 
 def run_keys(data_dir: Path, method: str, overrides: dict, steps: int) -> list[str]:
     """The keys an identical finished run may be found under: `run_key`'s current scheme first
-    (a new run is made under it), then the twenty-eighth session's."""
+    (a new run is made under it), then the "refine_keys_always" scheme's."""
     meta = read_meta(data_dir)
-    keys = [run_key(data_dir, method, overrides, steps, scheme, meta) for scheme in ("current", "session28")]
+    keys = [run_key(data_dir, method, overrides, steps, scheme, meta) for scheme in ("current", "refine_keys_always")]
     return list(dict.fromkeys(keys))
 
 

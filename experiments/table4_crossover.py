@@ -30,7 +30,7 @@ DIRECTIONS = (("ttpla-like", "plad-like", 7201), ("plad-like", "ttpla-like", 720
 DPT_SETTINGS = {"quick": {"minutes": 3.0, "steps": 600, "views": 40},
                 # step-bound: the schedule spans the steps, and the 60-min cap is a guard that 2 cores do not
                 # reach (about 11 min), so the DPT and every run on its masks are the same on any machine
-                # (until 2026-11-24: 1500 steps / 10 min, which stopped on the clock at about 760 steps)
+                # (a 1500-step / 10-min budget stopped on the clock at about 760 steps, which no other machine repeats)
                 "standard": {"minutes": 60.0, "steps": 800, "views": 40},
                 "full": {"minutes": 30.0, "steps": 3000, "views": 90}}
 # The paper's Table 4: trained on TTPLA, tested on STN PLAD 25.80 dB; trained on STN PLAD, tested

@@ -45,7 +45,7 @@ from jaxnerf_grid.util.io import DataError
 # 64 samples stratified in s feeding the main field, an opaque far bin at 1000 units), with a
 # smaller proposal field, a leaner main field (24 samples a ray, 8 hash levels, one colour layer)
 # and 1600 steps instead of 2400: the demo's figures on tower-small within 0.2 dB, each step about
-# 2x faster than ours' (issue 40, docs/GRID.md).
+# 2x faster than ours' (docs/GRID.md).
 DEMO_RECIPE = "ours-lean"
 DEMO_CONFIG = recipes.overrides(DEMO_RECIPE)
 

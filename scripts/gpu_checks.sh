@@ -4,17 +4,17 @@
 # in $OUT (or ./gpu_out when OUT is unset).
 #   bash scripts/gpu_checks.sh speed   # DPT speed vs torch on the GPU (base seg / depth, large seg)
 #   STEPS=1000 bash scripts/gpu_checks.sh demo   # the README's demo on the GPU, plus NeRF throughput
-#   bash scripts/gpu_checks.sh train   # issue 40: train rays/s (ours, ours-fast, ours-lean, lazy Adam; 1024 and
+#   bash scripts/gpu_checks.sh train   # train rays/s (ours, ours-fast, ours-lean, lazy Adam; 1024 and
 #                                      # 8192 rays), the step's profile, the demo and ours-fast's demo
-#   STEPS_LIST="1000 1200 1600" bash scripts/gpu_checks.sh steps   # issue 40: ours-fast's demo at
+#   STEPS_LIST="1000 1200 1600" bash scripts/gpu_checks.sh steps   # ours-fast's demo at
 #        fewer steps (and ours at the first count), no video; then DPT-base segmentation's speed
-#   bash scripts/gpu_checks.sh table1   # issue 36 item 5: Table 1's robust rows (robust, dpt+robust) at
+#   bash scripts/gpu_checks.sh table1   # Table 1's robust rows (robust, dpt+robust) at
 #        --standard, 3 seeds, sets A and B; the other rows are read back from the committed results
-#   WHL=.whl_t1 bash scripts/gpu_checks.sh table1r   # issue 36 item 5, seeds 1-2: the robust rows on
+#   WHL=.whl_t1 bash scripts/gpu_checks.sh table1r   # seeds 1-2: the robust rows on
 #        scenes made here (`python scripts/gpu_table1_runs.py --cache .t1cache --prepare`) and carried
 #        (.t1cache/scenes, .t1cache/variants; .whl_t1 = the jaxopt and OpenEXR wheels), then robustprof
 #   WHL=.t1carry VARIANTS="base: rf5:robust_refine=0.5" bash scripts/gpu_checks.sh table1v   # a sweep of
-#        train.* variants of the robust rows (ROWS, SETS, SEEDS) on carried scenes (docs/GPU.md, fourth loan)
+#        train.* variants of the robust rows (ROWS, SETS, SEEDS) on carried scenes (docs/GPU.md)
 #   bash scripts/gpu_checks.sh robustprof   # why a robust run trains 5x longer than a plain one on the
 #        GPU (docs/GPU.md): the step profile of ours-fast plain and with train.robust=robust
 set -uo pipefail

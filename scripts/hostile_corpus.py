@@ -1,4 +1,4 @@
-"""Issue 39, round three: a fresh hostile-user corpus run against the real command line.
+"""A hostile-user corpus run against the real command line.
 
     python scripts/hostile_corpus.py WORK_DIR [--only ID[,ID...]] [--summary FILE]
 

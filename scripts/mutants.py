@@ -1,7 +1,8 @@
-"""Hand-made mutants at the joins of the tower model (issue 43; docs/TESTING.md): each is a
-one-line mistake of a kind a reviewer would try (units, axes, argument order, the sign of a
-normal, which pass's setting), applied to a copy of the working tree, one at a time, and run
-against the fast tests named for it with a per-mutant timeout. Not part of CI.
+"""Hand-made mutants at the joins of the tower model (docs/TESTING.md; records in
+benchmarks/results/mutation/): each is a one-line mistake of a kind a reviewer would try
+(units, axes, argument order, the sign of a normal, which pass's setting), applied to a copy of
+the working tree, one at a time, and run against the fast tests named for it with a per-mutant
+timeout. Not part of CI.
 
     python scripts/mutants.py                  every mutant, each against its own tests
     python scripts/mutants.py M3 M4            some of them
@@ -87,8 +88,8 @@ MUTANTS = {
             "return apply_normalization_to_points(points, invert_normalization(_record_or_identity(normalization)))",
             "return apply_normalization_to_points(points, _record_or_identity(normalization))", [E],
             "to_metric64 applying the normalisation instead of undoing it"),
-    # round two (docs/TESTING.md, "Round two"): the survivors of mutmut's runs on losses, the loss
-    # weights, Eq. 7 and the ground, each against the test written for it
+    # the survivors of mutmut's runs on losses, the loss weights, Eq. 7 and the ground, each
+    # against the test written for it
     "M11": ("jaxnerf_grid/train/loop.py", "if cfg.mask_weight_floor > 0 and dataset.masks is not None:",
             "if cfg.mask_weight_floor > 0 or dataset.masks is not None:", [f"{J}::{TW}"],
             "loss_weights capping under masks a dataset does not have (weights without masks, floor > 0)"),
@@ -133,7 +134,7 @@ MUTANTS = {
             "score.reference_in_export_units(io.read_ply_points(path), file_norm, ds.normalization)",
             "score.reference_in_export_units(io.read_ply_points(path), None, ds.normalization)", [f"{J}::{ES}"],
             "eval's export score reading the dataset's tower in the dataset's record, not the file's"),
-    # round three (docs/TESTING.md, "Round three"): normalize, export's field, poses' report and top view
+    # normalize, export's field, poses' report and top view
     "M23": ("jaxnerf_grid/data/normalize.py",
             "cap = camera_fraction * float(np.median(np.linalg.norm(c2w[:, :3, 3] - centre, axis=-1)))",
             "cap = camera_fraction * float(np.median(np.linalg.norm(c2w[:, :3, 3] + centre, axis=-1)))",
@@ -161,8 +162,7 @@ MUTANTS = {
             "lines += vetting.format_table([])",
             [f"{P}::test_poses_report_names_each_left_out_photo_with_its_reasons_in_the_summary_and_the_table"],
             "poses_report.md's vetting table without its rows"),
-    # the twenty-fifth session (docs/TESTING.md, "Hand-made mutants, twenty-fifth session"): the
-    # robust weights' joins in the training step, the export's box floor and the axis' errors
+    # the robust weights' joins in the training step, the export's box floor and the axis' errors
     "M30": ("jaxnerf_grid/masks/photo_consistency.py",
             "neighbours, frame, pixel // width, pixel % width, points)",
             "neighbours, frame, pixel % width, pixel // width, points)",

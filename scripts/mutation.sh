@@ -59,7 +59,7 @@ axis_tilt_thicker_fit_keeps_a_centre_within_half_its_own_slice_height; do printf
 # exports of test_join_export and test_export_geoid, and the box and units tests. mutmut orders a
 # mutant's tests by their recorded time, which leaves out a module fixture's setup, so the
 # analytic export (5-9 s) tends to run first: for the small functions give TESTS= the block
-# tests alone (docs/TESTING.md, round seven)
+# tests alone (docs/TESTING.md)
 EXPORT_RUN_BLOCKS="tests/test_join_export.py tests/test_export_geoid.py tests/test_export_blocks2.py \
 tests/test_export.py::test_parse_box tests/test_export.py::test_units_are_metres_only_when_the_dataset_states_its_normalisation \
 tests/test_export_survey.py::test_units_follow_the_georeference_record_else_the_synthetic_scale"

@@ -1,5 +1,5 @@
 """Transient masks from the photos alone, by a multi-view plane sweep: an offline experiment
-for issue 36 (docs/ROBUST.md, "A model-free prior"), not a part of the package.
+for the photometric evidence (docs/ROBUST.md), not a part of the package.
 
     python scripts/sweep_masks_offline.py DATA OUT [--views 4] [--depths 64] [--near 0.5] [--far 20]
         [--threshold 0.005] [--median 5]

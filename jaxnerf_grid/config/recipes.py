@@ -11,7 +11,7 @@ from these; `jaxnerf-grid recipes` prints them one line each (docs/RECIPES.md).
   nerf, nerfw     the baselines as the tables compare them at `--standard`: ours' field,
                   sampler, steps and rays in NeRF's bounded space (BOUNDED_SPACE)
   ours-fast       ours with a smaller proposal field and 1600 steps (the demo's until ours-lean)
-  ours-lean       the demo's (issue 40): ours-fast with a leaner main field
+  ours-lean       the demo's: ours-fast with a leaner main field
 
 Every sampler key of every recipe sits in SAMPLERS (one entry per recipe), apart from the
 other settings (SETTINGS), so the sampler can change shape in one place.
@@ -36,7 +36,7 @@ BOUNDED_SPACE = {"far": 40.0, "encoding_scale": 44.0}
 # Every recipe's `model.sampler` (a tagged choice: samplers/, docs/ARCHITECTURE.md "The model contract").
 _PROPOSAL_64_32 = {"sampler": {"kind": "proposal", "samples": [64], "main_samples": 32,
                                "field": {"density_bias": -4.0}}}
-# ours' sampler with a proposal field sized down (issue 40): 3 levels up to 64 cells, 2^15 rows per
+# ours' sampler with a proposal field sized down: 3 levels up to 64 cells, 2^15 rows per
 # level, below nerfacto's smallest proposal network (5 levels to 128)
 _SMALL_PROPOSAL = merge(_PROPOSAL_64_32, {"sampler": {"field": {
     "grid": {"num_levels": 3, "max_resolution": 64, "log2_table_size": 15}}}})
@@ -44,7 +44,7 @@ SAMPLERS = {
     # one density-only proposal round of 64 samples stratified in s, then 32 samples of the main field
     "ours": _PROPOSAL_64_32,
     "ours-fast": _SMALL_PROPOSAL,
-    # ours-fast's with 24 main samples instead of 32 (issue 40); the demo's (demo.DEMO_RECIPE)
+    # ours-fast's with 24 main samples instead of 32; the demo's (demo.DEMO_RECIPE)
     "ours-lean": merge(_SMALL_PROPOSAL, {"sampler": {"main_samples": 24}}),
     # NeRF's two passes, 48 + 48 samples, the second over the union, two fields
     "ours-paper-mlp": {"sampler": {"kind": "hierarchical", "samples": [48, 48], "union": True,
@@ -92,12 +92,12 @@ _GRID_1600 = merge(_GRID, {"train": {"max_steps": 1600}})
 # Every setting of each recipe but its sampler, over RunConfig()'s defaults.
 SETTINGS = {
     "ours": _GRID,
-    # the demo's recipe of issue 40's first round: 1600 steps reach ours' figures at 2400 on
-    # tower-small (docs/GRID.md)
+    # ours with a smaller proposal field: 1600 steps reach ours' figures at 2400 on tower-small
+    # (docs/GRID.md)
     "ours-fast": _GRID_1600,
-    # the demo's recipe since issue 40's second round: ours-fast with a leaner main field, 8 hash
+    # the demo's recipe: ours-fast with a leaner main field, 8 hash
     # levels (16 to 1024 cells, as ours' 12) of at most 2^16 rows and one colour layer: each step
-    # about 1.8x faster, the demo's figures within 0.2 dB (docs/GRID.md "Issue 40: a leaner main field")
+    # about 1.8x faster, the demo's figures within 0.2 dB (docs/GRID.md "The demo's recipe")
     "ours-lean": merge(_GRID_1600, {"model": {"field": {"view_depth": 1,
                                                         "grid": {"num_levels": 8, "log2_table_size": 16}}}}),
     "ours-paper-mlp": {},
@@ -127,8 +127,8 @@ RECIPES = {r.name: r for r in (
     Recipe("nerfw", "nerfw", "NeRF-W: the nerf recipe plus appearance and transient embeddings "
                              "(the appearance fitted on the left half of each test view)"),
     Recipe("ours-fast", "ours", "ours with a smaller proposal field (3 levels up to 64 cells, 2^15 rows) and "
-                                "1600 steps x 1024 rays (the demo's from issue 40 until ours-lean)"),
-    Recipe("ours-lean", "ours", "the demo's (issue 40): ours-fast with a leaner main field (24 samples a ray, "
+                                "1600 steps x 1024 rays (the demo's before ours-lean)"),
+    Recipe("ours-lean", "ours", "the demo's: ours-fast with a leaner main field (24 samples a ray, "
                                 "8 hash levels of 2^16 rows, one colour layer); 1600 steps x 1024 rays"),
 )}
 

@@ -1,4 +1,4 @@
-"""The export's survey outputs (issue 41 items 3-4, docs/EXPORT.md "Survey outputs").
+"""The export's survey outputs (docs/EXPORT.md "Survey outputs and uncertainty").
 
 * `georeference_of` / `units_of`: what the dataset's transforms.json says of its units
   (`georeference`, written by `poses`, docs/GEOREFERENCE.md; or the synthetic scenes'

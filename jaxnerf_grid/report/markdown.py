@@ -128,7 +128,7 @@ def _pm(fig: dict | None, unit: str, digits: int = 2) -> str:
 
 
 def _survey_lines(m: dict, unit: str) -> list[str]:
-    """The table rows of measurements.json's `survey` (issue 41: 1-sigma uncertainties, tilt,
+    """The table rows of measurements.json's `survey` (1-sigma uncertainties, tilt,
     base centre, conductors; docs/EXPORT.md)."""
     sv = m.get("survey") or {}
     if not sv:

@@ -54,8 +54,8 @@ def write_progress_page(run_dir, records: list[dict], step: int, view: dict | No
     curves = [svg_curve([(r["step"], r.get("loss", np.nan)) for r in records], "loss"),
               svg_curve([(r["step"], r.get("psnr", np.nan)) for r in records], "training PSNR (dB)")]
     body = [f"<h1>Training {html.escape(Path(run_dir).name)}: step {step}</h1>",
-            f"<p>Written {time.strftime('%Y-%m-%d %H:%M:%S')} after {seconds:.0f} s of this session; the page "
-            f"reloads every {REFRESH_SECONDS} s.</p>", "".join(curves)]
+            f"<p>Written {time.strftime('%Y-%m-%d %H:%M:%S')} after {seconds:.0f} s of training in this "
+            f"process; the page reloads every {REFRESH_SECONDS} s.</p>", "".join(curves)]
     if view is not None:
         body.append(f"<p>{html.escape(view['name'])}, the checkpoint of step {view['step']}:</p>")
         body.append(report_html.views_html([view]))

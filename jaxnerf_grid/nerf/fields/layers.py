@@ -95,7 +95,7 @@ def first_colour_layer(layer: dict, feature: jnp.ndarray, viewdirs, appearance, 
     The layer's weight rows are [feature C | encoded direction D | appearance A], so
     W [f, d, a] + b = W_f f + W_d d + W_a a + b. A ray's direction (viewdirs [rays, 1, 3]
     against feature [rays, samples, C]) is encoded and multiplied once per ray instead of once
-    per sample (issue 40: the sines and cosines and D x width of the layer's multiply-adds per
+    per sample (the sines and cosines and D x width of the layer's multiply-adds per
     sample). Same value up to float rounding. viewdirs and appearance broadcast against feature's
     leading shape.
     feature: [..., C] -> [..., width]."""
