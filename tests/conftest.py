@@ -164,7 +164,7 @@ def _free_compiled_programs():
 
 @pytest.fixture(autouse=True)
 def _free_compiled_programs_in_a_long_module():
-    """Within one module (tests/test_train.py trains dozens of models), clears the caches after
+    """Within one module (tests/train/test_loop.py trains dozens of models), clears the caches after
     a test once the process holds more than MAPPINGS_BEFORE_CLEARING mappings."""
     yield
     if _mapping_count() > MAPPINGS_BEFORE_CLEARING:
@@ -176,11 +176,11 @@ def _free_compiled_programs_in_a_long_module():
 # --no-loadscope-reorder`, README command 2): a worker takes the next file when it is nearly idle,
 # so starting with the long files lets the two finish together (most of a test's time here is
 # XLA compiling, on one core). Without xdist the order changes nothing a test depends on.
-LONGEST_FIRST = ("test_train_robust.py", "test_distributed.py", "test_train.py", "test_cli_train.py",
-                 "test_a_train_resume.py", "test_unprivileged.py", "test_report_html.py", "test_join_eval.py",
+LONGEST_FIRST = ("test_robust_training.py", "test_distributed.py", "test_loop.py", "test_train_render_eval.py",
+                 "test_exact_resume.py", "test_unprivileged.py", "test_html.py", "test_join_eval.py",
                  "test_bad_input.py", "test_dpt_parity.py", "test_experiments.py", "test_join_demo.py",
                  "test_mask_domain.py", "test_step_profile.py", "test_videos.py", "test_models.py",
-                 "test_hashgrid.py", "test_hostile_round3.py", "test_working_resolution.py")
+                 "test_hashgrid.py", "test_hostile_corpus.py", "test_working_resolution.py")
 
 
 def pytest_collection_modifyitems(config, items):
