@@ -1,4 +1,4 @@
-"""Ground control point layouts of `synth --gps-origin` (`data.gps_scene`, issue 41): the
+"""Ground control point layouts of `synth --gps-origin` (`capture.gps_photos`): the
 spread layout's points against hand-computed world positions and pixels (a camera straight above
 each point: closed-form projection), the depth map's visibility honoured, the ground layout as
 the committed code wrote it, a layout written into an existing folder, and bad input refused."""
@@ -107,7 +107,7 @@ def test_spread_rows_match_hand_projections_and_honour_visibility(tmp_path):
         assert truth[k]["photos"] == 3 and truth[k]["check"] == (k == 3)
 
 
-# gcp.csv as the committed code (before issue 41's layouts) wrote it for tiny_scene(GCP_POINTS),
+# gcp.csv as the ground layout (the only layout before the spread one) wrote it for tiny_scene(GCP_POINTS),
 # base BASE, seed 0: `gcp_rows(root, meta, BASE, 0)`
 COMMITTED_GROUND = """\
 image,x,y,X,Y,Z,check

@@ -1,4 +1,4 @@
-"""Issue 43: data/poses.py's cameras and metric frame, model choice and COLMAP options, block by block.
+"""capture/poses.py's cameras and metric frame, model choice and COLMAP options, block by block.
 
 Each block is checked against a reference written here, never against its own output: COLMAP
 cameras (a text model written by hand in COLMAP's documented format, read back by pycolmap)
@@ -774,7 +774,7 @@ def test_prepare_photo_writes_scaled_jpegs_at_its_quality_and_names_a_copy_it_ca
 
 
 # ----------------------------------------------------------------------------------------
-# branch h43n: the top view and the summary, pixel for pixel and word for word
+# the top view and the summary, pixel for pixel and word for word
 
 
 def _topview_by_hand(c2w, points, size):

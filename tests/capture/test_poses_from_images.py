@@ -1,4 +1,4 @@
-"""Issue 43: data/poses.py's `poses_from_images` end to end, and its staging and recovery
+"""capture/poses.py's `poses_from_images` end to end, and its staging and recovery
 functions (`check_out`, `make_stage`, `_siblings`, `_staged_names`, `recover`, `_finish_swap`,
 `move_into_place`, `_inside`), with no COLMAP feature, matching or mapping run.
 

@@ -1,4 +1,4 @@
-"""Issue 43: `data.poses.run_colmap` and `_map`, the COLMAP options and the mapping choice, with
+"""`capture.poses.run_colmap` and `_map`, the COLMAP options and the mapping choice, with
 a stand-in for pycolmap's four running calls (no COLMAP run).
 
 The stand-in has the signatures and defaults of pycolmap 4's `extract_features`,

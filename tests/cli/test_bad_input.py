@@ -1,4 +1,4 @@
-"""The bad-input corpus of issue 14 (docs/RELIABILITY.md): every broken dataset, config and flag,
+"""The bad-input corpus (docs/RELIABILITY.md): every broken dataset, config and flag,
 built from one tiny `synth` scene and one tiny finished run, goes through the real CLI entry
 point (`jaxnerf_grid.cli.main`). Each case asserts a non-zero exit, one line of error naming the
 file or key, no traceback, and that no file that was there before is lost or changed.
@@ -128,7 +128,7 @@ BAD_CONFIGS = [
 @pytest.mark.parametrize("change, names", [c[1:] for c in BAD_CONFIGS], ids=[c[0] for c in BAD_CONFIGS])
 def test_bad_config_is_refused_before_the_run_is_touched(scene, capsys, change, names):
     """Each bad value, even with --overwrite on a finished run, exits 1 with a line naming the
-    key, and the run is left exactly as it was (issue 14, items 2-4)."""
+    key, and the run is left exactly as it was."""
     cfg = config_file(scene, "bad", change)
     before = snapshot(scene["run"], scene["data"])
     rc, err = run_cli(["train", *PAPER_MLP,
@@ -183,7 +183,7 @@ def test_set_changes_the_config(scene, capsys, tmp_path):
 
 
 def test_overwrite_never_clears_the_dataset(scene, capsys):
-    """Issue 14, item 1: `train --data D --out D --overwrite` deleted D's depth/."""
+    """`train --data D --out D --overwrite` deleted D's depth/."""
     before = snapshot(scene["data"])
     for extra in ([], ["--overwrite"]):
         rc, err = run_cli(["train", *PAPER_MLP,
@@ -273,7 +273,7 @@ def test_demo_checks_its_recipe_before_writing(capsys, tmp_path):
 
 
 def test_camera_far_outside_the_others(scene, capsys, tmp_path):
-    """Issue 14, item 3: a camera translated 1e30 away trained on a garbage frame."""
+    """A camera translated 1e30 away trained on a garbage frame."""
     data = tmp_path / "data"
     shutil.copytree(scene["data"], data)
     meta = io.read_json(data / "transforms.json")
@@ -330,7 +330,7 @@ def test_eval_writes_over_a_folder(scene, capsys, tmp_path):
 
 
 def test_eval_render_and_export_refuse_another_dataset(scene, capsys, tmp_path):
-    """Issue 14, item 7: a run trained on 8 frames of 32x24 scored (or exported) on another dataset."""
+    """A run trained on 8 frames of 32x24 scored (or exported) on another dataset."""
     other = tmp_path / "other"
     assert cli.main(["synth", "--out", str(other), "--width", "40", "--height", "30", "--num-train", "8",
                      "--num-test", "2", "--supersample", "1", "--workers", "1", "--quiet"]) == 0
@@ -498,7 +498,7 @@ def _slow_mask_child(data: str, pause: str) -> None:
 
 @pytest.mark.parametrize("stage", ["writing", "swapping"])
 def test_killed_mask_overwrite_leaves_old_or_new(scene, capsys, tmp_path, stage):
-    """Issue 14, item 6: a killed `mask --overwrite` left 4 masks of one set and 6 of another."""
+    """A killed `mask --overwrite` left 4 masks of one set and 6 of another."""
     old_data, new_data = tmp_path / "old", tmp_path / "new"
     shutil.copytree(scene["data"], old_data)
     assert cli.main(["mask", "--data", str(old_data), "--source", "gt", "--quiet"]) == 0
@@ -540,13 +540,13 @@ def test_killed_mask_overwrite_leaves_old_or_new(scene, capsys, tmp_path, stage)
     assert outcomes == (["old", "old"] if stage == "writing" else ["new", "new"]), outcomes
 
 
-# --------------------------------------------------------------------------- issue 39: round two
+# --------------------------------------------------------------------------- folders that are not the command's own
 
 EXPORT_FAST = ["--resolution", "16", "--views", "2", "--box=-10,-10,0,10,10,20", "--threshold", "0.0001", "--quiet"]
 
 
 def test_export_never_writes_into_a_folder_it_did_not_make(scene, capsys, tmp_path):
-    """Issue 39: `export --overwrite --out DIR` replaced a user's box.json and appended to their
+    """`export --overwrite --out DIR` replaced a user's box.json and appended to their
     report.md. A folder without export's marker is refused, --overwrite or not."""
     mine = tmp_path / "mine"
     mine.mkdir()
@@ -564,7 +564,7 @@ def test_export_never_writes_into_a_folder_it_did_not_make(scene, capsys, tmp_pa
 
 
 def test_out_inside_the_dataset_is_refused_for_every_command(scene, capsys, tmp_path):
-    """Issue 39: export through a symlink into a dataset added files to it; train's --out inside
+    """Export through a symlink into a dataset added files to it; train's --out inside
     the dataset was taken. Links are resolved."""
     alias = tmp_path / "alias"
     alias.symlink_to(scene["data"], target_is_directory=True)
@@ -583,7 +583,7 @@ def test_out_inside_the_dataset_is_refused_for_every_command(scene, capsys, tmp_
 
 
 def test_overwrite_refuses_a_symlinked_checkpoints_folder(scene, capsys, tmp_path):
-    """Issue 39: with checkpoints/ a link (weights on a bigger disk) `train --overwrite` skipped
+    """With checkpoints/ a link (weights on a bigger disk) `train --overwrite` skipped
     it and reported "already trained": old weights under a new config.json."""
     run, disk = tmp_path / "run", tmp_path / "big_disk"
     shutil.copytree(scene["run"], run)
@@ -682,7 +682,7 @@ def test_eval_reads_a_broken_reference_ply_before_rendering(scene, capsys, tmp_p
 
 
 def test_export_with_non_ascii_and_space_paths_and_a_full_disk(scene, capsys, tmp_path, monkeypatch):
-    """Issue 39: the run path went into the PLY header (ASCII) and export died with a traceback.
+    """The run path went into the PLY header (ASCII) and export died with a traceback.
     Then a full disk while writing the mesh names the file (write() raises ENOSPC without one)."""
     run, out = tmp_path / "Lauf ü" / "run 1", tmp_path / "Ausgabe é"
     shutil.copytree(scene["run"], run)
@@ -711,7 +711,7 @@ def test_export_with_non_ascii_and_space_paths_and_a_full_disk(scene, capsys, tm
 
 
 def test_a_fingerprint_that_is_not_an_object_is_named(scene, capsys, tmp_path):
-    """Issue 39: a dataset.json that was not an object turned the check off without a word."""
+    """A dataset.json that was not an object turned the check off without a word."""
     run = tmp_path / "run"
     shutil.copytree(scene["run"], run)
     (run / runs.FINGERPRINT_FILE).write_text("[1, 2, 3]\n")
@@ -822,7 +822,7 @@ def export_files() -> tuple:
 
 
 def test_poses_single_camera_on_two_photo_sizes_says_why(capsys, tmp_path):
-    """Issue 39: the photos of the other size stayed unregistered without a word."""
+    """The photos of the other size stayed unregistered without a word."""
     pytest.importorskip("pycolmap")
     photos = tmp_path / "photos"
     rng = np.random.default_rng(0)
@@ -836,7 +836,7 @@ def test_poses_single_camera_on_two_photo_sizes_says_why(capsys, tmp_path):
 
 
 def test_demo_takes_a_dataset_layout_train_takes(scene, capsys, tmp_path, monkeypatch):
-    """Issue 39: `demo --data` refused a COLMAP folder `train` accepts (demo masked it first, and
+    """`demo --data` refused a COLMAP folder `train` accepts (demo masked it first, and
     `mask` writes only into the transforms.json layout). Checked here on an LLFF folder (the same
     path: no transforms.json): auto trains robust, nothing is written into the dataset; a forced
     --masks dpt is refused in one line. Training itself is stubbed (the recipe is the demo's)."""

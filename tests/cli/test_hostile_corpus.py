@@ -1,5 +1,5 @@
-"""Issue 39, round three: the fresh hostile-user corpus (scripts/hostile_corpus.py,
-docs/RELIABILITY.md "Fresh corpus, round three"). Each case that failed there, and a sample of
+"""The fresh hostile-user corpus (scripts/hostile_corpus.py,
+docs/RELIABILITY.md). Each case that once failed there, and a sample of
 those that held, through the real CLI entry point (`jaxnerf_grid.cli.main`): the exit code, one
 line of error naming the file or key, no traceback, and the trees hash-identical before and after.
 """
@@ -296,7 +296,7 @@ def test_bad_timeout_variables_are_named_in_a_single_process_run(scene, capsys, 
     assert not (tmp_path / "r").exists()
 
 
-# --- process-wide side effects, scoped to the command line (issue 39) ---
+# --- process-wide side effects, scoped to the command line ---
 
 def _opencv_level() -> int:
     import cv2
@@ -370,7 +370,7 @@ def test_the_library_leaves_the_warning_format_and_opencv_log_alone(scene, tmp_p
     assert "WARN" in done.stderr and "grfmt_png" in done.stderr, done.stderr[-2000:]
 
 
-# --- render --orbit killed mid-video (issue 39) ---
+# --- render --orbit killed mid-video ---
 
 VIDEO = ["--orbit", "--frames", "4", "--width", "16", "--quiet"]
 

@@ -1,4 +1,4 @@
-"""Issue 39: read-only folders, permission-denied files and a full disk, as they really happen:
+"""Read-only folders, permission-denied files and a full disk, as they really happen:
 each command runs as the unprivileged user 65534 (`tests/support/unprivileged.py`: `setpriv`; the full
 disk a tmpfs of a few KiB mounted for that command only), where the suite itself runs as root,
 which ignores permissions. Each case asserts exit code 1, one line of error naming the path, no

@@ -1,4 +1,4 @@
-"""Issue 43: the normalisation's rules where the block tests left them open (the survivors of
+"""The normalisation's rules where the block tests left them open (the survivors of
 mutmut's run on data/normalize.py, docs/TESTING.md): the orbit's region of interest when its cap
 decides, far from the origin, below one unit, for one point or none; forward-facing captures;
 the shape checks; z_up_normalization's two paths; check_rotation's tolerance. Each expected value

@@ -1,4 +1,4 @@
-"""Issue 39: the marker rule (`folders.prepare_output`, docs/RELIABILITY.md) for the two writers
+"""The marker rule (`folders.prepare_output`, docs/RELIABILITY.md) for the two writers
 of whole folders outside the commands: `data.formats.save_transforms_json` and
 `data.preprocess.preprocess_images`. The expected trees are written out by hand (the user's own
 files, the names a second run must leave), never read back from the code under test.

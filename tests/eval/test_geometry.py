@@ -143,7 +143,7 @@ def test_score_against_ply(tmp_path):
 def test_read_reference_points_returns_the_vertices_and_refuses_empty_or_non_finite_word_for_word(tmp_path):
     """The vertices of a written cloud as written (float32: 0.5, -1.25, 3.0 are exact); one point
     is enough; no point, or one coordinate nan, +inf or -inf among finite ones, is a DataError
-    whose whole message names the file and says which (issue 43, item 3)."""
+    whose whole message names the file and says which."""
     pts = np.array([[0.5, -1.25, 3.0], [1.0, 2.0, -7.5]], np.float32)
     io.write_ply(tmp_path / "two.ply", pts)
     np.testing.assert_array_equal(geometry.read_reference_points(tmp_path / "two.ply"), pts)

@@ -546,7 +546,7 @@ def test_throughput_times_a_case_with_and_without_computed_once(tmp_path):
 
 
 def test_throughput_concat_case_traces_the_per_sample_colour_input_with_the_same_value():
-    """The "-concat" suffix traces the colour branch as before issue 40 (the direction encoded at
+    """The "-concat" suffix traces the colour branch as the per-sample-direction field did (the direction encoded at
     every sample): same rgb as fields.layers.first_colour_layer, one more sine per sample, and
     the module restored afterwards."""
     import jax

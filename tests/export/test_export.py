@@ -1,4 +1,4 @@
-"""`jaxnerf-grid export` (issue 15, docs/EXPORT.md): marching cubes on analytic densities, the
+"""`jaxnerf-grid export` (docs/EXPORT.md): marching cubes on analytic densities, the
 metric round trip, the RANSAC ground, depth fusion, the measurements, the scores against brute
 force, the PLY read back by plyfile, and the command's refusals on bad input."""
 
@@ -151,7 +151,7 @@ def test_metric_map_of_a_missing_or_partial_record_is_the_identity_in_what_is_mi
 
 def test_box_corners_are_the_eight_corners_each_once():
     """The 8 corners of [0, 1] x [-2, 2] x [3, 5] (integers in, float64 out), each once, against
-    itertools.product of the bounds (issue 43: a ninth row, a repeat of lo, changed no box
+    itertools.product of the bounds (a ninth row, a repeat of lo, changed no box
     extent)."""
     import itertools
 
@@ -286,7 +286,7 @@ def test_settling_stops_after_twenty_rounds_by_default():
 def test_plane_through_and_refine_plane_against_a_known_tilted_plane():
     """Three points 2 cm apart (a normalised scene's scale) and a cloud on the plane
     n . x + d = 0, n = (sin 20, 0, cos 20), d = 0.3: the unit normal with n_z > 0 whatever the
-    points' order, d exactly; collinear points give None (issue 43, round two)."""
+    points' order, d exactly; collinear points give None."""
     n_true = np.array([np.sin(np.radians(20)), 0.0, np.cos(np.radians(20))])
     d_true = 0.3
     u, v = np.array([np.cos(np.radians(20)), 0.0, -np.sin(np.radians(20))]), np.array([0.0, 1.0, 0.0])
@@ -307,7 +307,7 @@ def test_plane_through_and_refine_plane_against_a_known_tilted_plane():
 def test_ransac_needs_three_points_is_reproducible_and_returns_float64():
     """Exactly three points are enough, two are refused by a message that says so; the same seed
     gives the same plane on a slab where every sample gives another (three iterations); the
-    lowest points of float32 input are float64, as documented (issue 43, round two)."""
+    lowest points of float32 input are float64, as documented."""
     three = np.array([[0.0, 0.0, 0.1], [1.0, 0.0, 0.1], [0.0, 1.0, 0.1]])
     n, d, inliers = ground.fit_plane_ransac(three, 0.01)
     np.testing.assert_allclose(n, [0, 0, 1], atol=1e-12)
@@ -324,7 +324,7 @@ def test_ransac_needs_three_points_is_reproducible_and_returns_float64():
 def test_ransac_prefers_the_ground_to_a_larger_wall_and_refuses_a_wall_alone():
     """300 points on a vertical wall x = 0.5 (z above -0.3) and a 15 x 15 lattice on the ground z = -0.5 (its
     rows make some samples collinear): the plane within 45 degrees of horizontal is the ground,
-    not the wall with more points; the wall alone is refused, by name (round two)."""
+    not the wall with more points; the wall alone is refused, by name."""
     rng = np.random.default_rng(11)
     wall = np.column_stack([np.full(300, 0.5), rng.uniform(-1, 1, 300), rng.uniform(-0.3, 1, 300)])
     xs, ys = np.meshgrid(np.linspace(-1, 0.3, 15), np.linspace(-1, 1, 15))
@@ -339,7 +339,7 @@ def test_ransac_prefers_the_ground_to_a_larger_wall_and_refuses_a_wall_alone():
 def test_ransac_keeps_its_sample_plane_when_the_refit_tilts_past_the_limit():
     """A noisy slab sloping 50 degrees and a threshold that takes all of it: only noisy samples
     within 45 degrees are accepted, and the least-squares refit of their inliers (50 degrees)
-    would pass the limit, so the sample's plane is kept: within 45 degrees (round two)."""
+    would pass the limit, so the sample's plane is kept: within 45 degrees."""
     rng = np.random.default_rng(13)
     xy = rng.uniform(-0.5, 0.5, (300, 2))
     slab = np.column_stack([xy, np.tan(np.radians(50)) * xy[:, 0] + rng.uniform(-0.15, 0.15, 300)])
@@ -351,7 +351,7 @@ def test_ransac_keeps_its_sample_plane_when_the_refit_tilts_past_the_limit():
 
 def test_plane_z_and_largest_cluster_of_none_and_one_point():
     """z of the plane 0.2 x - 0.3 y + z + 0.5 = 0 (normalised) at a few (x, y), by hand; the
-    largest cluster of no points is an empty bool mask, of one point that point (round two)."""
+    largest cluster of no points is an empty bool mask, of one point that point."""
     n = np.array([0.2, -0.3, 1.0]) / np.linalg.norm([0.2, -0.3, 1.0])
     d = 0.5 / np.linalg.norm([0.2, -0.3, 1.0])
     x, y = np.array([0.0, 1.0, 2.0, -1.5]), np.array([0.0, 2.0, -1.0, 0.5])
@@ -387,7 +387,7 @@ def _clusters_by_hand(cells: list, counts: list) -> set:
 def test_largest_cluster_joins_cells_three_apart_diagonally_and_not_four_apart():
     """Cells of side 1: two 3-point cells (3, 3, 3) apart (one group of 6, joined only through
     their corners) and three pairs of 5-point cells 4 apart along x, y and z (never joined):
-    the group of 6 is the largest, as the union-find over cells says (issue 43, round two: a
+    the group of 6 is the largest, as the union-find over cells says (a
     face-only dilation or labelling, or a 4-cell structure on any axis, passed the test above)."""
     cells = [(0, 0, 0), (3, 3, 3), (20, 0, 0), (24, 0, 0), (0, 20, 0), (0, 24, 0), (0, 0, 20), (0, 0, 24)]
     counts = [3, 3, 5, 5, 5, 5, 5, 5]
@@ -432,7 +432,7 @@ def test_tower_box_on_sloping_ground_clears_its_highest_corner_and_refuses_by_na
     the highest once), a column of points standing on it: the box is the column's extent plus
     one cell, its bottom `clearance` above the plane at its highest bottom corner (each corner's
     z by hand); one point above the ground is a tower, none is refused with the documented
-    message (issue 43, round two)."""
+    message."""
     rng = np.random.default_rng(12)
     xy = rng.uniform([-0.1, 0.2], [0.1, 0.35], (3000, 2))
     rise = rng.uniform(0.0, 0.8, 3000)
@@ -816,7 +816,7 @@ def test_parse_box():
             parse_box(bad)
 
 
-# --------------------------------------------------------------------------- measurements by hand (issue 43)
+# --------------------------------------------------------------------------- measurements by hand
 # Each figure of export/measure.py on a cloud built so that its answer is known exactly: a
 # tower frame q = (a, b, height) turned by TURN and moved by SHIFT into the world, so that the
 # ground's normal is not z and its offset d = -n . SHIFT is not 0.

@@ -1,4 +1,4 @@
-"""Issue 43, mutation round seven: the blocks of export/run.py around `export_run` (the checks
+"""The blocks of export/run.py around `export_run` (the checks
 before anything is written, the ground of the dense cloud, the survey record, the geoid step, the
 report's place), each against answers worked out by hand in the test, without an export."""
 

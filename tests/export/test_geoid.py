@@ -1,4 +1,4 @@
-"""Issue 41: `export --geoid GRID`, heights above a geoid (docs/GEOREFERENCE.md). The grids are
+"""`export --geoid GRID`, heights above a geoid (docs/GEOREFERENCE.md). The grids are
 GTX files written here by hand (a big-endian header, then float32 rows from south to north)
 holding a field whose bilinear interpolation is exact (N = a + b lat + c lon, or a constant), so
 that the heights are checked against a closed form in NumPy; the export is the analytic tower's

@@ -1,5 +1,4 @@
-"""The corners of export/measure.py's `cross_arms` and `axis_tilt` that round four of mutation
-testing left unpinned (docs/TESTING.md "Round five"): an arm in the lowest slice, slices of
+"""The corners of export/measure.py's `cross_arms` and `axis_tilt`: an arm in the lowest slice, slices of
 exactly two points, widths exactly `ratio` apart, slices under 1 m across, the median count over
 slices with points only, the MAD rule's constants and its third pass, a fit left with exactly
 three slices or two. Each answer is worked out by hand in the docstring (level ground z = 0,
@@ -194,7 +193,7 @@ def test_axis_tilt_goes_on_with_three_slices_and_stops_at_two():
     assert tilt["tilt_degrees"] == pytest.approx(0.0, abs=1e-9)
 
 
-# --------------------------------------------------------------------------- branch h43n: the picture
+# --------------------------------------------------------------------------- the picture
 
 SHIFT = np.array([10.0, -5.0, 3.0])
 

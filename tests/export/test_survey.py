@@ -1,4 +1,4 @@
-"""Issue 41 items 3-4 (docs/EXPORT.md "Survey outputs"): the export's units from the
+"""The survey outputs of `export` (docs/EXPORT.md "Survey outputs"): the export's units from the
 georeference record, boxes mapped by their 8 corners, LAS 1.4 with a CRS, the tilt of the
 tower's axis, the conductors' clearance and the alignment's uncertainty, each against an
 independent answer (hand-computed boxes, generated geometry with known tilt, a Monte Carlo of the

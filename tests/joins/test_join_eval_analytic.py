@@ -1,4 +1,4 @@
-"""Issue 43: `evaluate.evaluate_run` (and its `_lift`, `_fit_left_half`) on the analytic tower
+"""`evaluate.evaluate_run` (and its `_lift`, `_fit_left_half`) on the analytic tower
 (tests/support/analytic_field.py), no training: `train.load_params` returns the closed-form field's
 constants and `fields.apply` is the analytic field, as in test_join_export.py.
 
@@ -453,7 +453,7 @@ def test_a_missing_or_empty_reference_or_missing_lpips_weights_is_refused_before
         assert "load_params" not in handed and list((tmp_path / name).iterdir()) == []
 
 
-# --------------------------------------------------------------------------- branch h43n
+# --------------------------------------------------------------------------- what each block is handed
 
 
 def test_lpips_from_a_weights_file_scores_each_view_and_its_right_half(evaluated, tmp_path, monkeypatch):

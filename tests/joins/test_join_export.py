@@ -1,4 +1,4 @@
-"""Issue 43: `export_run` on the analytic tower (tests/support/analytic_field.py), no training: the
+"""`export_run` on the analytic tower (tests/support/analytic_field.py), no training: the
 views are rendered from the closed-form field through the model (`models.render_rays`), then
 fused, the ground fitted, the box found, the mesh extracted and measured, all checked in metres
 against the tower's exact geometry (a normalisation with a turn, a scale and a translation, from
@@ -313,7 +313,7 @@ def test_ground_height_footprint_and_cross_arm_are_the_towers_in_metres(exported
 def test_the_cross_arms_end_points_are_where_the_arm_is_and_the_page_carries_them(exported):
     """measurements.json records the arm's two ends (metric frame): in the tower's frame within a
     voxel of (cx -+ ARM_HALF_SPAN, cy) at the arm's height; report.html's data carry the same ends
-    and the 3-D view draws the arm between them (issue 42)."""
+    and the 3-D view draws the arm between them."""
     import json
     import re
 
@@ -514,7 +514,7 @@ def leaning_apply(lean: np.ndarray):
 
 
 def test_a_tower_tilted_1_degree_is_measured_within_0_3_degrees(tmp_path):
-    """Issue 41's target through the whole export: on level ground (a metric frame that is the
+    """The tilt target (docs/EXPORT.md) through the whole export: on level ground (a metric frame that is the
     tower's, no turn), the tower alone turned 1 degree about the axis (cos 30, sin 30, 0) through
     its base centre: its axis is `lean` z, 1 degree from vertical and from the ground's normal;
     top offset HEIGHT tan 1 degree (the axis' offset at the highest point's height)."""
@@ -638,7 +638,7 @@ def test_an_unknown_crs_in_the_record_is_refused_before_anything_is_written(tmp_
     assert not (tmp_path / "run" / "export").exists()
 
 
-# --------------------------------------------------------------------------- branch h43n: what each step is handed
+# --------------------------------------------------------------------------- what each step is handed
 
 
 def _spied_export(root, record: dict, ds, apply=af.apply, spies=(), field=None, cfg=None, **kwargs) -> dict:

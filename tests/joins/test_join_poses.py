@@ -1,4 +1,4 @@
-"""Issue 43: `poses`' dataset stage (`data.poses.write_dataset`) against the cameras it was given.
+"""`poses`' dataset stage (`data.poses.write_dataset`) against the cameras it was given.
 
 A COLMAP text model is written by hand (COLMAP's documented format: cameras.txt, images.txt,
 points3D.txt) from known metric cameras on an orbit and points projected into them; the

@@ -1,7 +1,6 @@
-"""Issue 43: the joins of geometry scoring, export's score, export's field, the loss weights and
+"""The joins of geometry scoring, export's score, export's field, the loss weights and
 the proposal sampler held to answers computed independently (hand counts, per-pixel loops,
-closed forms, NumPy), each test written against a one-line mistake that the suite missed
-(docs/TESTING.md, "Issue 43")."""
+closed forms, NumPy), each test written against a one-line mistake that the rest of the suite would miss."""
 
 import dataclasses
 
@@ -125,7 +124,7 @@ def test_export_section_reads_the_files_record_the_users_reference_and_a_record_
     its own translation) is mapped through that record; a user's reference in the dataset's
     units replaces a missing tower; a dataset record without a scale scores in its own units
     (strip = DEFAULT_GROUND_STRIP). Each time the counts by hand of the test above: 9 of 10
-    layers, P = 1, R = 0.5 (issue 43, round two)."""
+    layers, P = 1, R = 0.5."""
     ref = _lattice([0, 0, 0], [7, 3, 9], 1.0) * [1, 1, 1.5]
     _export_folder(tmp_path / "run" / "export", _half_of(ref, 1e-3), ref, 13.5)
     norm = {"scale": 0.05, "translation": [-3.5, -1.5, -6.75], "rotation": af.TURN_Z.tolist()}
@@ -328,7 +327,7 @@ def test_loss_weights_cap_masked_pixels_at_one_minus_the_floor(floor):
 @pytest.mark.parametrize("mode", ["robust", "dpt+robust"])
 def test_prior_weights_are_ones_or_the_capped_weights_whatever_use_masks_says(mode):
     """train.robust's prior: ones in mode robust; in dpt+robust the dataset's weights clipped to
-    [0, 1] and capped at 1 - floor under the mask, even with train.use_masks off (round two)."""
+    [0, 1] and capped at 1 - floor under the mask, even with train.use_masks off."""
     ds = tiny_dataset()
     rng = np.random.default_rng(6)
     ds.weights = rng.uniform(-0.2, 1.2, ds.weights.shape).astype(np.float32)
@@ -347,8 +346,8 @@ def test_prior_weights_are_ones_or_the_capped_weights_whatever_use_masks_says(mo
 def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch():
     """Weights without masks (a dataset's own weights files) are only clipped, whatever the floor;
     prior_weights refuses dpt+robust without weights (DataError) and a patch larger than the
-    frames (ConfigError), but not a batch that is no multiple of the patch (round two), nor one
-    with scattered rays (round three)."""
+    frames (ConfigError), but not a batch that is no multiple of the patch, nor one
+    with scattered rays."""
     ds = tiny_dataset()
     ds.weights = np.linspace(-0.5, 1.5, ds.weights.size, dtype=np.float32).reshape(ds.weights.shape)
     ds.masks = None

@@ -51,7 +51,7 @@ def test_dmax_is_per_image_in_a_batch():
 def test_eq7_with_depths_below_one_and_a_dmax_per_image():
     """DPT's relative depths 1 / r are far below 1 (r in the hundreds): Eq. 7 is scale-free, so
     the depths of the test above divided by 100 give the same M_w, an infinite depth included;
-    and a dmax given per image ([2] for a batch of 2) is each image's own (issue 43, round two)."""
+    and a dmax given per image ([2] for a batch of 2) is each image's own."""
     mask = np.ones((1, 4))
     depth = np.array([[0.01, 0.02, 0.04, np.inf]])        # Dmax = 0.04 (inf counts as it)
     np.testing.assert_allclose(np.asarray(fg.depth_weighted_mask(mask, depth)), [[0.75, 0.5, 0.0, 0.0]],

@@ -1,4 +1,4 @@
-"""Knowing when the DPT is out of its domain (issue 36 item 2, docs/MASKS.md): the per-frame
+"""Knowing when the DPT is out of its domain (docs/MASKS.md): the per-frame
 figures `mask` records (`masked_share`, `dpt_confidence`), the dataset-level rule
 (`masking.domain_verdict`: out of domain when more than half of the frames have more than 40 %
 of their pixels masked), and what `demo --masks` trains with (`demo.mask_plan`).

@@ -610,7 +610,7 @@ def test_dpt_classes_refused_by_the_model_folder_and_by_its_labels(tmp_path):
     assert "mask_path" not in io.read_json(data / "transforms.json")["frames"][0]
 
 
-# --------------------------------------------------------------------------- branch h43n: what is shown
+# --------------------------------------------------------------------------- what is shown
 
 
 def test_overlays_are_scaled_to_the_preview_size_and_the_progress_is_shown_by_default(tmp_path, monkeypatch,

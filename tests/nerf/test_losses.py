@@ -23,7 +23,7 @@ def test_weighted_mean_normalised_by_weight_sum():
 
 def test_weighted_mean_with_weights_summing_below_one():
     """The total's guard (1e-12) only stops a division by zero: weights summing to 0.3, given or
-    summed, still divide by 0.3 (issue 43, round two: a guard of ~1 passed the tests above)."""
+    summed, still divide by 0.3 (a guard of ~1 passed the tests above)."""
     per_ray = np.array([2.0, 5.0, 1.0], np.float32)
     w = np.array([0.1, 0.0, 0.2], np.float32)
     want = (2.0 * 0.1 + 1.0 * 0.2) / 0.3
@@ -122,7 +122,7 @@ def test_interlevel_loss_batched_zero_when_bounded_and_only_proposal_learns():
 
 def test_interlevel_loss_of_a_main_weight_as_small_as_eps_is_finite():
     """A main interval of weight 1e-7 (eps) with no proposal mass over it: w^2 / (w + eps) =
-    5e-8, not a division by zero (issue 43, round two: w - eps passed the tests above)."""
+    5e-8, not a division by zero (w - eps passed the tests above)."""
     edges = jnp.asarray([0.0, 0.5, 1.0], jnp.float32)
     got = losses.interlevel_ray_loss(edges, jnp.asarray([1e-7, 0.5], jnp.float32), edges,
                                      jnp.asarray([0.0, 0.5], jnp.float32))
@@ -149,7 +149,7 @@ def test_distortion_loss_matches_quadratic_sum_and_prefers_one_narrow_interval()
 
 def test_squared_error_and_distortion_per_ray_of_a_batch():
     """[..., 3] colours and [..., n] weights of a batch of rays: one value per ray, each the
-    NumPy mean / the quadratic sum of its own row (issue 43, round two: the last axis, not axis
+    NumPy mean / the quadratic sum of its own row (the last axis, not axis
     1 or all of them)."""
     rng = np.random.default_rng(7)
     rgb, target = rng.uniform(size=(2, 4, 3)), rng.uniform(size=(2, 4, 3))

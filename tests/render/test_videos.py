@@ -1,4 +1,4 @@
-"""Fly-around videos (issue 42, docs/VIDEOS.md): the orbit against its closed form, the camera-path
+"""Fly-around videos (docs/VIDEOS.md): the orbit against its closed form, the camera-path
 reader and its refusals, and `render --orbit / --path` on a tiny run read back with OpenCV."""
 
 import json

@@ -1,4 +1,4 @@
-"""report.html (issue 42, docs/REPORT_HTML.md): the helpers against brute force and closed forms,
+"""report.html (docs/REPORT_HTML.md): the helpers against brute force and closed forms,
 the page of a tiny run (self-contained, the views, the measurements as measurements.json has
 them) and its screenshot in headless Chromium (the 3-D view holds the model's pixels: those that
 change when the model's traces are hidden, whatever the model's colours)."""

@@ -1,4 +1,4 @@
-"""report.py's blocks without training a run (issue 43, item 3): the figures, the tower box,
+"""report.py's blocks without training a run: the figures, the tower box,
 the number formats, the geometry / export / survey sections, the training-weights figure,
 `set_section` and `write_report`'s tables, each against answers built in the test by hand
 (NumPy, OpenCV, f-strings of the hand-written metrics). Each test takes well under a second."""

@@ -1,4 +1,4 @@
-"""An analytic tower for tests (issue 43): a field whose density and colour are known in closed
+"""An analytic tower for tests: a field whose density and colour are known in closed
 form, at a known metric scale, rotation and translation, usable wherever a trained field is.
 
 The scene, in metres, in the tower's own frame (z up; `to_metric_frame` / `to_tower_frame` turn

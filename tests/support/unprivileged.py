@@ -1,4 +1,4 @@
-"""Running the command line as an unprivileged user (issue 39): read-only folders,
+"""Running the command line as an unprivileged user: read-only folders,
 permission-denied files and a full disk as they really happen, where the tests run as root
 (which ignores permissions). Shared by tests/cli/test_unprivileged.py and scripts/hostile_corpus.py.
 

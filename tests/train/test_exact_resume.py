@@ -50,7 +50,7 @@ def test_killed_run_resumes_exactly(tmp_path, robust):
             proc.kill()
     steps = [s for s, _ in checkpoint.list_checkpoints(killed)]
     assert steps and max(steps) < 30, steps          # it really died mid-run
-    # a full disk or a kill while appending leaves half a line: the resume must trim it (issue 14)
+    # a full disk or a kill while appending leaves half a line: the resume must trim it
     with open(killed / "metrics.jsonl", "a") as fh:
         fh.write('{"step": 7, "loss": 0.0')
     resumed = train.train(tiny_dataset(), _config(robust), killed, progress=False)

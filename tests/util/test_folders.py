@@ -1,5 +1,5 @@
 """The marker rule (`folders`), the staged swap (`staging`) and the recovery of a `poses` run
-killed while swapping its dataset in (`data.poses.recover`), issue 39.
+killed while swapping its dataset in (`data.poses.recover`).
 
 The expected trees are written out by hand (the old set, the new set, the user's own file),
 never read back from the code under test. The kill tests stop the swap after each of its
@@ -171,7 +171,7 @@ def test_a_swap_stopped_after_any_rename_is_finished_by_recover(tmp_path, monkey
 
 
 def test_recover_finishes_the_older_versions_interrupted_swap(tmp_path):
-    """The state issue 39 found: old images/ and sparse/ moved to `.NAME.old-*`, the new set still
+    """The state an older version left when killed: old images/ and sparse/ moved to `.NAME.old-*`, the new set still
     in `.NAME.poses-*` (no OWNER or COMPLETE: written by the version before them)."""
     out = tmp_path / "d"
     write(out, {"transforms.json": "old transforms", **USER})
