@@ -171,6 +171,22 @@ def _free_compiled_programs_in_a_long_module():
         _clear_compiled_programs()
 
 
+@pytest.fixture(autouse=True)
+def _progress_bars_on_a_stopped_clock(monkeypatch):
+    """The package's progress bars read a stopped clock unless the test gives one, so a bar in log
+    mode (stderr not a terminal, as under pytest) prints only its final line, "... 0.0 s", however
+    long a loaded machine takes: no test's output depends on its speed. The throttle itself is
+    tested with a fake clock (tests/util/test_progress.py)."""
+    from jaxnerf_grid.util import progress
+
+    real_bar = progress.bar
+
+    def bar(*args, clock=None, **kwargs):
+        return real_bar(*args, clock=clock or (lambda: 0.0), **kwargs)
+
+    monkeypatch.setattr(progress, "bar", bar)
+
+
 # The files that take longest on the two-core CI machine (the durations it prints), longest first.
 # CI runs the suite on two pytest-xdist workers, a whole file to a worker (`-n 2 --dist loadfile
 # --no-loadscope-reorder`, README command 2): a worker takes the next file when it is nearly idle,

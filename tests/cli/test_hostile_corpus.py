@@ -222,7 +222,7 @@ def test_warnings_are_one_line_each(scene, tmp_path):
         if p.is_file():
             p.write_bytes(b"")
     done = subprocess.run([sys.executable, "-m", "jaxnerf_grid", "render", "--run", str(run), "--quiet"],
-                          capture_output=True, text=True, timeout=120, cwd=ROOT,
+                          capture_output=True, text=True, timeout=600, cwd=ROOT,
                           env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
     lines = done.stderr.strip().splitlines()
     assert done.returncode == 1 and "Traceback" not in done.stderr and len(lines) >= 2, done.stderr
@@ -442,7 +442,7 @@ def test_killed_video_leaves_a_partial_the_next_render_removes(scene, tmp_path):
                 pass
         return found
 
-    kill_when([__file__, "video", str(scene["run"]), str(folder / "orbit"), "0.5"], timeout=180,
+    kill_when([__file__, "video", str(scene["run"]), str(folder / "orbit"), "0.5"], timeout=600,
               ready=lambda: bool(partials()))
     assert partials() and not (folder / "orbit.mp4").exists()  # it really died mid-video
     assert cli.main(["render", "--run", str(scene["run"]), "--out", str(folder / "orbit"), *VIDEO]) == 0

@@ -238,7 +238,7 @@ def test_demo_without_a_device_count_renders_on_every_core_and_trains_on_one(dat
     env.update(JAX_PLATFORMS="cpu", PYTHONPATH=str(Path(__file__).resolve().parents[2]))
     probe = subprocess.run([sys.executable, "-c", "import os; from jaxnerf_grid.cli.render import use_every_cpu_core; "
                             "use_every_cpu_core(cores=2); import jax; print(jax.local_device_count())"],
-                           env=env, capture_output=True, text=True, timeout=120)
+                           env=env, capture_output=True, text=True, timeout=600)
     assert probe.stdout.strip() == "2", probe.stderr  # the flag reaches a fresh process's CPU backend
     done = subprocess.run([sys.executable, "-m", "jaxnerf_grid", "demo", "--data", str(data), "--out",
                            str(tmp_path / "demo"), "--steps", "2", "--quiet", "--no-video"],

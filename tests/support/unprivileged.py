@@ -31,7 +31,7 @@ NOBODY = 65534
 def _probe(argv: list[str]) -> str | None:
     """None when `argv` runs and exits 0 (from ROOT, with ROOT on PYTHONPATH), else its stderr's last line."""
     try:
-        done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=120,
+        done = subprocess.run(argv, cwd=ROOT, capture_output=True, text=True, timeout=600,
                               env={**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": "cpu"})
     except (OSError, subprocess.TimeoutExpired) as err:
         return str(err)

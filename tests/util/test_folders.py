@@ -217,7 +217,7 @@ def test_poses_swap_killed_with_sigkill_is_finished_by_recover(tmp_path, after_m
     base = tmp_path / "base"
     base.mkdir()
     marks = base / "moves"
-    kill_when([__file__, str(base), "0.3"], timeout=60, poll=0.01,
+    kill_when([__file__, str(base), "0.3"], timeout=600, poll=0.01,
               ready=lambda: marks.exists() and int(marks.read_text() or 0) >= after_moves)
     out = base / "Mast Nord ü"
     assert tree(out) != expected_new()  # it really stopped half-way
