@@ -69,7 +69,8 @@ def join_negative_values(argv: list[str]) -> list[str]:
     or none (`tests/cli/test_hostile_corpus.py` checks it), so the joined form means what the user
     typed, and a switch given such a value stays an error ("ignored explicit argument").
     Arguments after `--`, and `--flag=VALUE` already joined, are left as they are."""
-    out, k = [], 0
+    out: list[str] = []
+    k = 0
     while k < len(argv):
         arg = argv[k]
         if arg == "--":

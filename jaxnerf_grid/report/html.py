@@ -250,7 +250,9 @@ def _polyline(parts: list[np.ndarray]) -> tuple[list, list, list]:
             xs.append(float(x) if ok else None)
             ys.append(float(y) if ok else None)
             zs.append(float(z) if ok else None)
-        xs.append(None), ys.append(None), zs.append(None)
+        xs.append(None)
+        ys.append(None)
+        zs.append(None)
     return xs, ys, zs
 
 
