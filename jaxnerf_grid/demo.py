@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import json
 import time
+from collections.abc import Sequence
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -88,7 +90,7 @@ def timings_lines(timings: dict) -> list[str]:
     return lines
 
 
-def record_timings(run_dir: Path, timings: dict, lines: list[str] = ()) -> None:
+def record_timings(run_dir: Path, timings: dict, lines: Sequence[str] = ()) -> None:
     """Writes RUN/timings.json ({stage: seconds}) and appends `lines` (Markdown) and the "Time per
     stage" table to RUN/report.md (written just before by evaluate_run)."""
     io.write_json(run_dir / "timings.json", {k: round(float(v), 2) for k, v in timings.items()})
@@ -191,7 +193,7 @@ def mask_plan(choice: str, domain: dict | None) -> dict:
                    "chosen automatically: the dataset's masks (not judged by the out-of-domain rule)")
     else:
         mode, why = choice, f"forced by the user (demo.masks = {choice})"
-    train_over = {"use_masks": mode in ("dpt", "dpt+robust")}
+    train_over: dict[str, Any] = {"use_masks": mode in ("dpt", "dpt+robust")}
     robust = {"dpt": "off", "none": "off"}.get(mode, mode)
     if robust != "off":
         train_over["robust"] = robust
@@ -290,12 +292,13 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
                           "no masks can be written into it; use demo.masks robust or none (or auto)")
     if (out / "run").exists() and not (out / "run").is_dir():
         raise DataError(f"{out / 'run'}: exists and is not a folder")
-    timings = {}
+    timings: dict[str, float] = {}
     # multi-process (docs/DISTRIBUTED.md): process 0 makes the data, every process trains, process 0 evaluates
     if distributed.is_main():
         data = _dataset_folder(data, out, progress, timings)
-        if poses_seconds(data) is not None:
-            timings["poses"] = poses_seconds(data)
+        seconds = poses_seconds(data)
+        if seconds is not None:
+            timings["poses"] = seconds
         mask_source = (_ensure_masks(data, progress, timings) if masks not in ("robust", "none") and layout
                        else None)
     distributed.barrier("jaxnerf_grid.demo.data")
@@ -305,7 +308,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     built = build.build(request, data=data)  # the dataset's bounds, then --set and --max-side on top
     recipe, bounds = built.overrides, built.bounds
     # every process reads the same verdict from the dataset, so all train the same config
-    plan = mask_plan(masks, dataset_domain(Path(data)))
+    plan = mask_plan(masks, dataset_domain(Path(data or out / "data")))  # set above on every process
     if not layout and masks == "auto":
         plan = dict(mask_plan("robust", None), why="chosen automatically: the dataset is not in the transforms.json "
                     "layout, so it has no masks and `mask` cannot write any")

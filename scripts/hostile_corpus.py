@@ -14,7 +14,7 @@ a success: exit 0; "any": either, an error's last line naming it, notices before
 with no traceback and nothing lost. One-line warnings (`jaxnerf-grid NAME: warning: ...`) may
 come before the error line. Writes WORK_DIR/summary.json (or
 --summary) and prints one line per case. Not run in CI (minutes on two CPU cores);
-tests/test_hostile_round3.py holds the cases that failed, and a sample of those that held.
+tests/cli/test_hostile_corpus.py holds the cases that failed, and a sample of those that held.
 """
 
 from __future__ import annotations
@@ -30,9 +30,9 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests"))
-import unprivileged  # noqa: E402  (tests/unprivileged.py: setpriv, the tmpfs of a full disk)
-from test_bad_input import SYNTH, TINY  # noqa: E402  (the suite's tiny run and scene, shared)
+sys.path.insert(0, str(ROOT))  # the suite's helpers are the package `tests`
+from tests.cli.test_bad_input import SYNTH, TINY  # noqa: E402  (the suite's tiny run and scene, shared)
+from tests.support import unprivileged  # noqa: E402  (setpriv, the tmpfs of a full disk)
 
 TRAIN = ["train", "--recipe", "ours-paper-mlp", "--method", "nerf", "--quiet"]
 
@@ -61,7 +61,7 @@ def cli(argv, cwd: Path, env: dict | None = None, timeout: float = 300, nobody: 
     """`python -m jaxnerf_grid argv` in cwd (this checkout's package first on the path). With
     `nobody` ({"home": a folder it may write, "disk": a folder, "disk_kib": KiB}, the last two
     optional), as the unprivileged user 65534, on a tmpfs of disk_kib at disk when given
-    (tests/unprivileged.py)."""
+    (tests/support/unprivileged.py)."""
     full_env = {**os.environ, "PYTHONPATH": str(ROOT), "JAX_PLATFORMS": os.environ.get("JAX_PLATFORMS", "cpu"),
                 **(env or {})}
     command = [sys.executable, "-m", "jaxnerf_grid", *[str(a) for a in argv]]
@@ -521,7 +521,7 @@ def case_list():
 
 def permission_cases(add) -> None:
     """Read-only folders, unreadable files and a full disk, run as the unprivileged user 65534
-    (skipped with the reason where that cannot run: tests/unprivileged.py). The fixtures and the
+    (skipped with the reason where that cannot run: tests/support/unprivileged.py). The fixtures and the
     case's folder belong to root: the user may read them, not change them; it may write only
     the case's home/ (and a full disk's tmpfs)."""
     def N(argv, protect=(), absent=(), disk_kib=0, **kw):

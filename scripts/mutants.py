@@ -7,7 +7,7 @@ timeout. Not part of CI.
     python scripts/mutants.py                  every mutant, each against its own tests
     python scripts/mutants.py M3 M4            some of them
     python scripts/mutants.py --list           the table
-    python scripts/mutants.py --tests tests/test_export.py M1a
+    python scripts/mutants.py --tests tests/export/test_export.py M1a
                                                other tests (e.g. to show the old suite missed it)
 
 A mutant is "killed" when the tests fail, "survived" when they pass, "timeout" past --timeout
@@ -26,12 +26,12 @@ import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
-J = "tests/test_join_truth.py"
-E = "tests/test_join_export.py"
-P = "tests/test_join_poses.py"
-L = "tests/test_losses.py"
-X = "tests/test_export.py"
-N = "tests/test_normalize.py"
+J = "tests/joins/test_join_truth.py"
+E = "tests/joins/test_join_export.py"
+P = "tests/joins/test_join_poses.py"
+L = "tests/nerf/test_losses.py"
+X = "tests/export/test_export.py"
+N = "tests/data/test_normalize.py"
 ES = "test_export_section_reads_the_files_record_the_users_reference_and_a_record_without_scale"
 TW = "test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the_data_not_the_batch"
 
@@ -108,7 +108,7 @@ MUTANTS = {
             [f"{L}::test_squared_error_and_distortion_per_ray_of_a_batch"],
             "the distortion loss's running sum over the whole batch instead of each ray"),
     "M16": ("jaxnerf_grid/masks/foreground.py", "jnp.maximum(dmax, 1e-12)", "jnp.maximum(dmax, 1.0)",
-            ["tests/test_foreground.py::test_eq7_with_depths_below_one_and_a_dmax_per_image"],
+            ["tests/masks/test_foreground.py::test_eq7_with_depths_below_one_and_a_dmax_per_image"],
             "Eq. 7 dividing by at least 1 (DPT's depths, far below 1, give M_w near 0)"),
     "M17": ("jaxnerf_grid/export/ground.py", "n = n / norm\n    if n[UP] < 0:", "n = n / norm\n    if n[UP] > 1:",
             [f"{X}::test_plane_through_and_refine_plane_against_a_known_tilted_plane"],
@@ -166,36 +166,37 @@ MUTANTS = {
     "M30": ("jaxnerf_grid/masks/photo_consistency.py",
             "neighbours, frame, pixel // width, pixel % width, points)",
             "neighbours, frame, pixel % width, pixel // width, points)",
-            ["tests/test_photo_consistency.py::test_confirmed_at_ids_splits_flat_ids_as_numpy_unravels_them"],
+            ["tests/masks/test_photo_consistency.py::test_confirmed_at_ids_splits_flat_ids_as_numpy_unravels_them"],
             "the confirmation's flat pixel ids split with rows and columns crossed"),
     "M31": ("jaxnerf_grid/masks/photo_consistency.py", "return (error <= threshold).astype(jnp.float32)",
             "return (error >= threshold).astype(jnp.float32)",
-            ["tests/test_photo_consistency.py::test_confirmed_at_ids_splits_flat_ids_as_numpy_unravels_them"],
+            ["tests/masks/test_photo_consistency.py::test_confirmed_at_ids_splits_flat_ids_as_numpy_unravels_them"],
             "a pixel confirmed when its difference is at least the threshold"),
     "M32": ("jaxnerf_grid/train/loop.py", 'points = batch["origins"] + batch["directions"] * depth[:, None]',
             'points = batch["origins"] - batch["directions"] * depth[:, None]',
-            ["tests/test_train_robust.py::test_multiview_confirmation_keeps_pixels_the_other_photos_confirm"],
+            ["tests/train/test_robust_training.py::test_multiview_confirmation_keeps_pixels_the_other_photos_confirm"],
             "the confirmation's 3-D points behind the camera"),
     "M33": ("jaxnerf_grid/train/loop.py",
             'weight = jnp.where(state["opt_state"].count < warmup_steps, batch["weight"], evidence)',
             'weight = jnp.where(state["opt_state"].count < warmup_steps, evidence, batch["weight"])',
-            ["tests/test_train_robust.py"], "the robust warm-up's weights and the evidence's swapped"),
+            ["tests/train/test_robust_training.py"], "the robust warm-up's weights and the evidence's swapped"),
     "M34": ("jaxnerf_grid/train/loop.py", 'evidence = robust_lib.batch_weights(residual, batch["weight"], everyone,',
             'evidence = robust_lib.batch_weights(residual, 1.0 - batch["weight"], everyone,',
-            ["tests/test_train_robust.py"], "the evidence given the DPT's mask M_w as the prior instead of 1 - M_w"),
+            ["tests/train/test_robust_training.py"],
+            "the evidence given the DPT's mask M_w as the prior instead of 1 - M_w"),
     "M35": ("jaxnerf_grid/export/ground.py",
             "lo[UP] = float(corners_z.max()) + clearance   # a tower stands on the ground, seen or not",
             "lo[UP] = max(float(corners_z.max()) + clearance, float(tower[:, UP].min()) - cell)",
             [f"{X}::test_tower_box_reaches_down_to_the_ground_where_the_cloud_missed_the_legs"],
             "the auto box's floor where the fused cloud's tower begins (the legs it missed cut off)"),
     "M36": ("jaxnerf_grid/export/run.py", "reach = extrapolated * math.tan(math.radians(angle))", "reach = 0.0",
-            ["tests/test_export_blocks2.py::test_survey_record_of_a_full_measurement_by_hand"],
+            ["tests/export/test_export_run.py::test_survey_record_of_a_full_measurement_by_hand"],
             "the base centre's sigma without the tilt's error over the height it is extrapolated"),
     "M37": ("jaxnerf_grid/export/run.py", 'spread = float(tilt.get("thickness_spread_degrees", 0.0))',
-            "spread = 0.0", ["tests/test_export_blocks2.py::test_survey_record_of_a_full_measurement_by_hand"],
+            "spread = 0.0", ["tests/export/test_export_run.py::test_survey_record_of_a_full_measurement_by_hand"],
             "the tilt's sigma without its spread over slice thicknesses"),
     "M38": ("jaxnerf_grid/export/measure.py", '"lowest_height": float(h.min()),', '"lowest_height": float(h.max()),',
-            ["tests/test_export_survey.py::test_axis_tilt_thickness_spread_and_lowest_height_against_a_brute_force_refit"],
+            ["tests/export/test_survey.py::test_axis_tilt_thickness_spread_and_lowest_height_against_a_brute_force_refit"],
             "the height the base is extrapolated from taken at the top"),
 }
 

@@ -20,7 +20,7 @@ if [ "${1:-}" = "--test" ]; then
   # lpips declares torchvision, which has no CPU build here: install it alone;
   # tests/conftest.py gives it a small stand-in for torchvision's AlexNet.
   .venv/bin/python -m pip install -q --no-deps lpips==0.1.4
-  # headless Chromium screenshots report.html from a file:// URL (tests/test_report_html.py)
+  # headless Chromium screenshots report.html from a file:// URL (tests/report/test_html.py)
   if [ ! -x /usr/bin/chromium ]; then
     AS_ROOT=""
     if [ "$(id -u)" -ne 0 ]; then AS_ROOT="sudo -n"; fi

@@ -17,6 +17,7 @@ import os
 import subprocess
 import sys
 import types
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -164,11 +165,27 @@ def _free_compiled_programs():
 
 @pytest.fixture(autouse=True)
 def _free_compiled_programs_in_a_long_module():
-    """Within one module (tests/test_train.py trains dozens of models), clears the caches after
+    """Within one module (tests/train/test_loop.py trains dozens of models), clears the caches after
     a test once the process holds more than MAPPINGS_BEFORE_CLEARING mappings."""
     yield
     if _mapping_count() > MAPPINGS_BEFORE_CLEARING:
         _clear_compiled_programs()
+
+
+@pytest.fixture(autouse=True)
+def _progress_bars_on_a_stopped_clock(monkeypatch):
+    """The package's progress bars read a stopped clock unless the test gives one, so a bar in log
+    mode (stderr not a terminal, as under pytest) prints only its final line, "... 0.0 s", however
+    long a loaded machine takes: no test's output depends on its speed. The throttle itself is
+    tested with a fake clock (tests/util/test_progress.py)."""
+    from jaxnerf_grid.util import progress
+
+    real_bar = progress.bar
+
+    def bar(*args, clock=None, **kwargs):
+        return real_bar(*args, clock=clock or (lambda: 0.0), **kwargs)
+
+    monkeypatch.setattr(progress, "bar", bar)
 
 
 # The files that take longest on the two-core CI machine (the durations it prints), longest first.
@@ -176,14 +193,76 @@ def _free_compiled_programs_in_a_long_module():
 # --no-loadscope-reorder`, README command 2): a worker takes the next file when it is nearly idle,
 # so starting with the long files lets the two finish together (most of a test's time here is
 # XLA compiling, on one core). Without xdist the order changes nothing a test depends on.
-LONGEST_FIRST = ("test_train_robust.py", "test_distributed.py", "test_train.py", "test_cli_train.py",
-                 "test_a_train_resume.py", "test_unprivileged.py", "test_report_html.py", "test_join_eval.py",
-                 "test_bad_input.py", "test_dpt_parity.py", "test_experiments.py", "test_join_demo.py",
-                 "test_mask_domain.py", "test_step_profile.py", "test_videos.py", "test_models.py",
-                 "test_hashgrid.py", "test_hostile_round3.py", "test_working_resolution.py")
+LONGEST_FIRST = ("train/test_robust_training.py", "train/test_distributed.py", "train/test_loop.py",
+                 "cli/test_train_render_eval.py", "train/test_exact_resume.py", "cli/test_unprivileged.py",
+                 "report/test_html.py", "joins/test_join_eval.py", "cli/test_bad_input.py",
+                 "masks/test_dpt_parity.py", "experiments_and_benchmarks/test_experiments.py",
+                 "joins/test_join_demo.py", "masks/test_mask_domain.py",
+                 "experiments_and_benchmarks/test_step_profile.py", "render/test_videos.py", "nerf/test_models.py",
+                 "nerf/test_hashgrid.py", "cli/test_hostile_corpus.py", "data/test_working_resolution.py")
+
+# The slow tier: `pytest -m "not slow"` leaves it out (the inner loop), CI runs everything. A test is
+# slow when its file is in SLOW_FILES (every test there trains, or runs a command in a child process),
+# when it uses a module fixture of SLOW_FIXTURES (the fixture trains a run, exports one or runs
+# COLMAP, once per file), or when SLOW names it (file::function, every parameter of it). Ranked by
+# the suite's per-test times; tests/test_tiers.py checks that every name here still exists.
+SLOW_FILES = {
+    "cli/test_unprivileged.py", "joins/test_join_demo.py",
+    "train/test_distributed.py", "train/test_exact_resume.py", "train/test_robust_training.py",
+    "experiments_and_benchmarks/test_step_profile.py",
+}
+SLOW_FIXTURES = {
+    "capture/test_poses.py": {"orbit_run", "per_photo_run", "sequential_run"},
+    "cli/test_bad_input.py": {"scene"},
+    "cli/test_hostile_corpus.py": {"scene"},
+    "data/test_working_resolution.py": {"small_run"},
+    "export/test_export.py": {"tiny_run"},
+    "export/test_geoid.py": {"exports"},
+    "joins/test_join_eval.py": {"ours", "nerfw"},
+    "joins/test_join_eval_analytic.py": {"evaluated"},
+    "joins/test_join_export.py": {"exported"},
+    "render/test_videos.py": {"tiny_run"},
+    "report/test_html.py": {"tiny_run"},
+}
+SLOW = {
+    "cli/test_train_render_eval.py::test_train_render_eval",
+    "cli/test_train_render_eval.py::test_demo_runs_the_recipe_on_a_given_dataset",
+    "cli/test_train_render_eval.py::test_demo_takes_the_bounds_a_dataset_records",
+    "cli/test_train_render_eval.py::test_train_takes_near_far_and_radius_from_the_datasets_scene_bounds",
+    "cli/test_train_render_eval.py::test_demo_without_a_device_count_renders_on_every_core_and_trains_on_one",
+    "train/test_loop.py::test_two_devices_match_one_device",
+    "train/test_loop.py::test_sparse_adam_leaves_untouched_table_rows_where_dense_adam_moves_them",
+    "train/test_loop.py::test_grid_proposal_run_resumes_exactly",
+    "train/test_loop.py::test_training_learns_and_chunked_render_is_consistent",
+    "masks/test_dpt_parity.py::test_parity_with_transformers",
+    "experiments_and_benchmarks/test_experiments.py::test_machinery_end_to_end",
+    "experiments_and_benchmarks/test_experiments.py::test_throughput_times_a_case_with_and_without_computed_once",
+}
+
+
+def slow_reason(rel_path: str, function: str, fixtures) -> str | None:
+    """Why the test `function` of tests/`rel_path` using `fixtures` is slow (None: it is not)."""
+    if rel_path in SLOW_FILES:
+        return "file"
+    if SLOW_FIXTURES.get(rel_path, set()) & set(fixtures):
+        return "fixture"
+    if f"{rel_path}::{function}" in SLOW:
+        return "named"
+    return None
+
+
+def _relative(item) -> str:
+    """The test's file relative to tests/ ("train/test_loop.py")."""
+    tests = Path(__file__).parent
+    return item.path.relative_to(tests).as_posix() if item.path.is_relative_to(tests) else item.path.name
 
 
 def pytest_collection_modifyitems(config, items):
-    """Stable sort: the files of LONGEST_FIRST in that order, then every other file as collected."""
+    """Marks the slow tier (SLOW_FILES, SLOW_FIXTURES, SLOW), then a stable sort: the files of
+    LONGEST_FIRST in that order, then every other file as collected."""
+    for item in items:
+        function = getattr(item, "originalname", item.name)
+        if slow_reason(_relative(item), function, getattr(item, "fixturenames", ())):
+            item.add_marker(pytest.mark.slow)
     rank = {name: i for i, name in enumerate(LONGEST_FIRST)}
-    items.sort(key=lambda item: rank.get(item.path.name, len(rank)))
+    items.sort(key=lambda item: rank.get(_relative(item), len(rank)))

@@ -16,6 +16,7 @@ from __future__ import annotations
 
 import csv
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -136,6 +137,8 @@ def projected_crs(name: str | None, latitude: float | None = None, longitude: fl
     from pyproj.exceptions import CRSError
 
     if name is None:
+        if latitude is None or longitude is None:
+            raise ValueError("projected_crs: give a CRS name or a latitude and longitude")
         found = query_utm_crs_info(datum_name="WGS 84", area_of_interest=AreaOfInterest(
             west_lon_degree=longitude, south_lat_degree=latitude, east_lon_degree=longitude,
             north_lat_degree=latitude))
@@ -326,7 +329,7 @@ def parse_scale_bar(text: str) -> dict:
                 pixels.append((image.strip(), x, y))
             if len(pixels) != 4:
                 raise ValueError
-            out = {"pixels": pixels, "metres": float(metres)}
+            out: dict[str, Any] = {"pixels": pixels, "metres": float(metres)}
         else:
             values = [float(v) for v in text.split(",")]
             if len(values) != 7:
@@ -406,7 +409,7 @@ def align_model(model, gps: dict, *, crs_name=None, gcp_path=None, scale_bar=Non
     gcps = read_gcp_csv(gcp_path, sizes or {}) if gcp_path is not None else []
     control = [p for p in gcps if not p["check"]]
     check = [p for p in gcps if p["check"]]
-    record = {"units": "unknown", "source": None}
+    record: dict[str, Any] = {"units": "unknown", "source": None}
     if not with_gps and len(control) < 3:
         if gcps:
             raise DataError(f"{gcp_path}: {len(control)} control point(s) and no photo with GPS; the alignment "
@@ -495,7 +498,7 @@ def scale_bar_length(model, pixels: list, ratios: dict) -> float:
     return float(np.linalg.norm(ends[1] - ends[0]))
 
 
-def scale_bar_relative_sigma(model, pixels: list, ratios: dict, click_sigma_px: float = None) -> float:
+def scale_bar_relative_sigma(model, pixels: list, ratios: dict, click_sigma_px: float | None = None) -> float:
     """The 1-sigma relative error of a scale bar's length (so of the scale it gives) when each of
     its 4 clicks is off by `click_sigma_px` (default CLICK_SIGMA_PX) in x and in y, independently:
     sigma_L / L = click_sigma sqrt(sum_j (dL / dp_j)^2) / L over the 8 pixel coordinates p_j

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import re
 from pathlib import Path
+from typing import Any
 
 from jaxnerf_grid.util.io import DataError
 
@@ -80,7 +81,8 @@ def parse_dji_xmp(data: bytes) -> dict:
                 values[key.decode("ascii")] = float(text.decode("ascii", "replace").strip())
             except ValueError:
                 continue
-    out = {"relative_altitude": values.get("RelativeAltitude"), "absolute_altitude": values.get("AbsoluteAltitude")}
+    out: dict[str, Any] = {"relative_altitude": values.get("RelativeAltitude"),
+                           "absolute_altitude": values.get("AbsoluteAltitude")}
     for name, keys in DJI_ANGLES.items():
         out[name] = ({axis: values[k] for axis, k in zip(("roll", "pitch", "yaw"), keys)}
                      if all(k in values for k in keys) else None)

@@ -103,7 +103,7 @@ def visible_pixels(root: Path, meta: dict, points_norm: np.ndarray) -> list[list
     """For each point [P, 3] (normalised frame), the photos that see it: [(name.jpg, u, v)] per
     point, in frame order. Seen: in front of the camera, EDGE_PX inside the border, and the depth
     map's depth at its pixel within VISIBLE_DEPTH of its own (not hidden, not missed by a thin bar)."""
-    seen = [[] for _ in points_norm]
+    seen: list[list] = [[] for _ in points_norm]
     for frame in meta["frames"]:
         if "depth_file_path" not in frame:
             continue

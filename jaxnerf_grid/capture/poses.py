@@ -43,6 +43,7 @@ import sys
 import tempfile
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -104,9 +105,9 @@ AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
 # to 0.9: there 23 of 30 registered, 0.1-0.2 degrees median error; 0.93 and 0.95 registered
 # more (25, 29) but the first model was turned by 22 degrees and the second had photos 5
 # degrees and a quarter of the orbit radius off (look-alike tower faces matched).
-SIFT = {"estimate_affine_shape": True}
-MATCHING = {}
-MATCHING_SIFT = {"max_ratio": 0.9}
+SIFT: dict[str, Any] = {"estimate_affine_shape": True}
+MATCHING: dict[str, Any] = {}
+MATCHING_SIFT: dict[str, Any] = {"max_ratio": 0.9}
 # MAPPER: observations reprojecting more than 2 px off (COLMAP: 4) are dropped; with the looser
 # ratio test the test scene's 95th-percentile reprojection error otherwise reached 1.3 px.
 MAPPER = {"filter_max_reproj_error": 2.0}
@@ -459,7 +460,7 @@ def c2w_gl_from_cam_from_world(matrix) -> np.ndarray:
 def orient_z_up(pycolmap, model) -> np.ndarray:
     """Rotates a pycolmap.Reconstruction in place so its cameras' up axis is +z. Returns R [3, 3]."""
     c2w = np.stack(list(model_poses(model).values()))
-    rot = rotation_between(up_from_cameras(c2w), [0.0, 0.0, 1.0])
+    rot = rotation_between(up_from_cameras(c2w), np.array([0.0, 0.0, 1.0]))
     model.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rot), np.zeros(3)))
     return rot
 
@@ -512,8 +513,8 @@ def crop_to_common_size(pycolmap, model_dir: Path, images_dir: Path) -> tuple[in
             point.xy = point.xy - np.array([left, top], np.float64)
         path = images_dir / im.name
         pixels, _ = io.decode_raw(path, "undistorted photo", cv2.IMREAD_UNCHANGED)
-        params = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if path.suffix.lower() in (".jpg", ".jpeg") else []
-        ok, buf = cv2.imencode(path.suffix.lower(), pixels[top:top + h0, left:left + w0], params)
+        jpeg = [cv2.IMWRITE_JPEG_QUALITY, JPEG_QUALITY] if path.suffix.lower() in (".jpg", ".jpeg") else []
+        ok, buf = cv2.imencode(path.suffix.lower(), pixels[top:top + h0, left:left + w0], jpeg)
         if not ok:
             raise DataError(f"{path}: could not encode the cropped photo")
         io.atomic_write_bytes(path, buf.tobytes())
@@ -720,7 +721,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
     out.parent.mkdir(parents=True, exist_ok=True)
     stage_dir = make_stage(out)
     try:
-        timings = {}
+        timings: dict[str, float] = {}
         with _stage("photos", False, timings, "photos"):
             photo_dir, names, skipped, working_sizes = prepare_photos(photos, stage_dir / "_work" / "photos",
                                                                       max_side, progress)

@@ -66,10 +66,11 @@ def join_negative_values(argv: list[str]) -> list[str]:
     (`--box -30,-30,0,30,30,40`, `--gps-origin -33.9,18.4,10`) joined into `--flag=VALUE`:
     argparse reads such a value as an unknown flag unless it is a plain negative number.
     Only argv is read (no parser internals): every option of the subcommands takes one value
-    or none (`tests/test_hostile_round3.py` checks it), so the joined form means what the user
+    or none (`tests/cli/test_hostile_corpus.py` checks it), so the joined form means what the user
     typed, and a switch given such a value stays an error ("ignored explicit argument").
     Arguments after `--`, and `--flag=VALUE` already joined, are left as they are."""
-    out, k = [], 0
+    out: list[str] = []
+    k = 0
     while k < len(argv):
         arg = argv[k]
         if arg == "--":

@@ -155,11 +155,12 @@ class RunConfig:
 def make_config(method: str, overrides: dict | None = None) -> RunConfig:
     """The defaults of `method` with `overrides` (a nested dict, e.g. from --config) on top."""
     base = {"model": models.method_defaults(method), "train": {"use_masks": method == "ours"}}
-    if isinstance((overrides or {}).get("model"), dict):  # older flat sampler keys, over the old defaults
+    overrides = overrides or {}
+    if isinstance(overrides.get("model"), dict):  # older flat sampler keys, over the old defaults
         overrides = dict(overrides, model=models.ModelConfig.upgrade_dict(overrides["model"]))
     merged = config_lib.merge(config_lib.to_dict(RunConfig()), base)
-    merged = config_lib.merge(merged, overrides or {})
-    if "model" in (overrides or {}) and "method" in overrides["model"] and overrides["model"]["method"] != method:
+    merged = config_lib.merge(merged, overrides)
+    if "model" in overrides and "method" in overrides["model"] and overrides["model"]["method"] != method:
         raise ConfigError(f"config: model.method {overrides['model']['method']!r} contradicts run.method {method!r}")
     cfg = config_lib.from_dict(RunConfig, merged)
     config_lib.validate(cfg)

@@ -159,7 +159,8 @@ def _fields_of(target: Any) -> tuple[set, dict]:
     """(field names, type hints) of a dataclass, or of every variant of a tagged union (the
     first variant holding a name gives its hint); empty for a plain value."""
     classes = list((tagged_variants(target) or {}).values()) or ([target] if dataclasses.is_dataclass(target) else [])
-    names, hints = set(), {}
+    names: set = set()
+    hints: dict = {}
     for cls in classes:
         for name, hint in typing.get_type_hints(cls).items():
             if name in {f.name for f in dataclasses.fields(cls)}:
@@ -223,7 +224,7 @@ def parse_sets(items: list[str] | None, cls: type) -> dict:
     return out
 
 
-def to_dict(cfg: Any) -> dict:
+def to_dict(cfg: Any) -> Any:
     """A (nested) dataclass as plain JSON-able dicts/lists."""
     if dataclasses.is_dataclass(cfg):
         return {f.name: to_dict(getattr(cfg, f.name)) for f in dataclasses.fields(cfg)}
@@ -243,7 +244,7 @@ def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
     if upgrade is not None:
         data = upgrade(data)
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(cls)}
+    names = {f.name for f in dataclasses.fields(typing.cast(Any, cls))}
     unknown = sorted(set(data) - names)
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(names)}")
@@ -254,7 +255,7 @@ def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
         if variants:
             value = _tagged_from_dict(variants, value, f"{where}.{name}")
         elif dataclasses.is_dataclass(hint):
-            value = from_dict(hint, value, f"{where}.{name}")
+            value = from_dict(typing.cast(type, hint), value, f"{where}.{name}")
         elif typing.get_origin(hint) is tuple and isinstance(value, list):
             value = tuple(value)
         kwargs[name] = value
@@ -269,7 +270,7 @@ def _tagged_from_dict(variants: dict, data: Any, where: str) -> Any:
     if kind not in variants:
         raise ConfigError(f"{where}.kind = {_show(kind)}: choose from {sorted(variants)}")
     cls = variants[kind]
-    names = {f.name for f in dataclasses.fields(cls)}
+    names = {f.name for f in dataclasses.fields(typing.cast(Any, cls))}
     unknown = sorted(set(data) - names)
     if unknown:
         raise ConfigError(f"{where}: unknown key(s) {unknown} for kind {kind!r}; known: {sorted(names)}")
@@ -320,7 +321,7 @@ def strict_readmit_acts(setting: bool | None, robust: str, meta: dict) -> bool:
     return strict and robust == "dpt+robust"
 
 
-def resolve(cfg: T, dataset: Any, bounds: bool = True) -> T:
+def resolve(cfg: Any, dataset: Any, bounds: bool = True) -> Any:
     """A run config (anything with a `.model` holding num_images / near / far) settled on a
     dataset: model.num_images at least the dataset's frame count (the embedding tables' size),
     and, with `bounds`, model.near / model.far filled from the dataset where None; a

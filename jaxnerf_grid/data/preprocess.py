@@ -27,6 +27,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -92,7 +93,7 @@ def _list_images(folder: Path) -> list[Path]:
     files = sorted(p for p in folder.iterdir() if p.is_file() and p.suffix in formats.IMAGE_EXTENSIONS)
     if not files:
         raise DataError(f"{folder}: no images (.png / .jpg) found")
-    stems = {}
+    stems: dict = {}
     for p in files:
         if p.stem in stems:
             raise DataError(f"{p}: has the same name as {stems[p.stem].name}; the outputs would collide")
@@ -118,7 +119,7 @@ def _is_older_preprocess(out: Path) -> bool:
     return isinstance(meta, dict) and isinstance(meta.get("preprocess"), dict)
 
 
-def _read_source(src, out: Path, load_extras: bool, loader_kwargs: dict) -> tuple[str, object]:
+def _read_source(src, out: Path, load_extras: bool, loader_kwargs: dict) -> tuple[str, Any]:
     """("dataset", the Dataset), ("scene", a dataset's `formats.Scene`) or ("images", the image
     files) of `src`, read and checked before anything is written. DataError when `src` is none
     of them, or when it and `out` lie one inside the other (overwrite=True would clear the
@@ -153,7 +154,7 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
     out = Path(out_dir)
     legacy = _is_older_preprocess(out)
     folders.check_output(out, "preprocess", OUTPUTS, "preprocess.out", overwrite, legacy)  # before reading
-    opts = dict(clahe=clahe, normalize=normalize, clahe_clip=clahe_clip, clahe_grid=clahe_grid)
+    opts: dict[str, Any] = dict(clahe=clahe, normalize=normalize, clahe_clip=clahe_clip, clahe_grid=clahe_grid)
     record = {"size": list(size) if isinstance(size, (tuple, list)) else size, **opts}
     kind, source = _read_source(src, out, load_extras, loader_kwargs)
     folders.prepare_output(out, "preprocess", OUTPUTS, "preprocess.out", overwrite, legacy)
@@ -162,7 +163,8 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
     if kind == "scene":
         return _preprocess_scene(source, out, size, opts, load_extras)
     files = source
-    common, entries = None, []
+    common: Any = None
+    entries: list = []
     for path in progress.bar(files, desc="preprocessing", unit="image", enabled=len(files) >= 16, leave=False):
         img = io.read_image(path)  # EXIF orientation honoured
         h, w = img.shape[:2]
@@ -179,7 +181,8 @@ def preprocess_images(src, out_dir, *, size=None, clahe: bool = False, normalize
 def _preprocess_scene(scene: formats.Scene, out: Path, size, opts: dict, load_extras: bool) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     names = formats.split_names(scene.split, len(scene.frames))
-    common, frames = None, []
+    common: Any = None
+    frames: list = []
     num = len(scene.frames)
     for i in progress.bar(range(num), desc="preprocessing", unit="frame", enabled=num >= 16, leave=False):
         fr = formats.read_frame(scene, i, load_extras)
@@ -208,7 +211,7 @@ def _preprocess_scene(scene: formats.Scene, out: Path, size, opts: dict, load_ex
 def _preprocess_dataset(ds: Dataset, out: Path, size, opts: dict) -> Path:
     common = target_size(ds.width, ds.height, size)
     sx, sy = common[0] / ds.width, common[1] / ds.height
-    resized = {}
+    resized: dict[str, Any] = {}
     for name, interp in (("clean_images", "area"), ("depth", "nearest"), ("semantics", "nearest"),
                          ("distractor_masks", "nearest"), ("masks", "area"), ("weights", "area")):
         arr = getattr(ds, name)

@@ -29,6 +29,7 @@ Evaluation protocol (stored in metrics.json and the report):
 from __future__ import annotations
 
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import jax
@@ -180,7 +181,7 @@ def _protocol(ds, cfg) -> str:
 
 
 def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = True, dataset=None,
-                 distractor_views: int = 4, extra_notes: list[str] = (), reference_ply=None,
+                 distractor_views: int = 4, extra_notes: Sequence[str] = (), reference_ply=None,
                  cloud_views: int = 0, allow_other_data: bool = False, full_size: bool = False,
                  cloud_pixels: int = 0) -> dict:
     """Renders the test views, computes metrics.json and writes report.md. Returns the metrics.
@@ -205,7 +206,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     run_dir = Path(run_dir)
     cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data, full_size)
     ref = reference_cloud(ds, reference_ply)  # a missing or broken --reference-ply fails before rendering
-    if reference_ply:
+    if reference_ply and ref is not None:
         geometry.read_reference_points(ref[0])
     if lpips_weights and not Path(lpips_weights).is_file():
         raise DataError(f"{lpips_weights}: LPIPS weights file not found (eval.lpips_weights)")

@@ -28,6 +28,7 @@ from __future__ import annotations
 import os
 import warnings
 from pathlib import Path
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -72,7 +73,7 @@ def params_from_arrays(arrays, source: str = "<arrays>") -> dict:
         got = tuple(np.shape(arrays[key]))
         if got != shape:
             raise DataError(f"{source}: LPIPS key '{key}' has shape {got}, expected {shape}")
-    params = {name: {"w": jnp.asarray(arrays[f"{name}.weight"], jnp.float32),
+    params: dict[str, Any] = {name: {"w": jnp.asarray(arrays[f"{name}.weight"], jnp.float32),
                      "b": jnp.asarray(arrays[f"{name}.bias"], jnp.float32)}
               for name, *_ in CONVS}
     params["lin"] = tuple(jnp.asarray(arrays[f"lin{l}.weight"], jnp.float32).reshape(-1)
@@ -83,7 +84,7 @@ def params_from_arrays(arrays, source: str = "<arrays>") -> dict:
 def save_lpips(path: str | os.PathLike, arrays) -> None:
     """Write a weights file. arrays: mapping key -> array (validated first)."""
     params_from_arrays(arrays, str(path))
-    out = {k: np.asarray(arrays[k], np.float32) for k in expected_shapes()}
+    out: dict[str, Any] = {k: np.asarray(arrays[k], np.float32) for k in expected_shapes()}
     out["format"] = np.array(FORMAT)
     with open(path, "wb") as f:
         np.savez(f, **out)

@@ -62,11 +62,11 @@ def evaluate(params: dict, mcfg: models.ModelConfig, points: np.ndarray, viewdir
     points = np.asarray(points, np.float32).reshape(-1, 3)
     with_rgb = viewdirs is not None
     dirs = (np.asarray(viewdirs, np.float32).reshape(-1, 3) if with_rgb
-            else np.broadcast_to(np.float32([0, 0, 1]), points.shape))
+            else np.broadcast_to(np.array([0, 0, 1], np.float32), points.shape))
     fn = _fn_for(params, mcfg, with_rgb)
     count = len(points)
     chunk = int(max(1, chunk))          # one compiled shape: every call pads to it
-    pieces = {"sigma": []} | ({"rgb": []} if with_rgb else {})
+    pieces: dict[str, list] = {"sigma": []} | ({"rgb": []} if with_rgb else {})
     for start in range(0, count, chunk):
         part_p, valid = parallel.pad_to_multiple(points[start:start + chunk], chunk)
         part_d, _ = parallel.pad_to_multiple(dirs[start:start + chunk], chunk)

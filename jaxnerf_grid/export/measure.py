@@ -22,6 +22,8 @@ with the ground plane n . x + d = 0 (|n| = 1, n_z > 0; `export.ground`).
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 from jaxnerf_grid.export import ground
@@ -89,7 +91,7 @@ def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_heigh
     "slice_height", "ratio"} (heights above the plane; "ends": the span's two end points [2, 3] in
     the points' frame, |ends[1] - ends[0]| = span)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    out = {"region": None, "levels": [], "slice_height": float(slice_height), "ratio": float(ratio)}
+    out: dict[str, Any] = {"region": None, "levels": [], "slice_height": float(slice_height), "ratio": float(ratio)}
     if len(p) < 10:
         return out
     h = p @ np.asarray(normal, np.float64) + d
@@ -115,12 +117,12 @@ def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_heigh
     median = float(np.median(counts[counts > 0]))
     separation = 0.06 * float(np.ptp(h)) if separation is None else float(separation)
     peaks = []
-    for s in wide:
-        lo_count = counts[s - 1] if s > 0 else -1
-        hi_count = counts[s + 1] if s + 1 < nslices else -1
+    for s in wide.tolist():
+        lo_count = int(counts[s - 1]) if s > 0 else -1
+        hi_count = int(counts[s + 1]) if s + 1 < nslices else -1
         if counts[s] >= 1.5 * median and counts[s] >= lo_count and counts[s] > hi_count:
             peaks.append(int(s))
-    kept = []
+    kept: list[int] = []
     for s in sorted(peaks, key=lambda s: -counts[s]):        # the strongest first
         if all(abs(edges[s] - edges[k]) >= separation for k in kept):
             kept.append(s)

@@ -49,7 +49,8 @@ def grid_spec(box_min, box_max, resolution: int) -> tuple[np.ndarray, float, tup
     h = float(extent.max()) / int(resolution)
     voxels = np.maximum(np.ceil(extent / h - 1e-9).astype(int), 1)
     origin = 0.5 * (lo + hi) - 0.5 * h * voxels
-    return origin, h, tuple(int(v) + 1 for v in voxels)
+    nx, ny, nz = (int(v) + 1 for v in voxels)
+    return origin, h, (nx, ny, nz)
 
 
 def grid_points(origin, h: float, shape) -> np.ndarray:
@@ -79,7 +80,7 @@ def extract_mesh(density: np.ndarray, level: float, origin, h: float) -> tuple[n
     density = np.asarray(density, np.float32)
     if not np.isfinite(level) or not np.nanmax(density) > level:
         return np.zeros((0, 3)), np.zeros((0, 3), np.int64), np.zeros((0, 3))
-    padded = np.pad(np.nan_to_num(density, nan=0.0, posinf=np.float32(3e38)), 1, constant_values=0.0)
+    padded = np.pad(np.nan_to_num(density, nan=0.0, posinf=float(np.float32(3e38))), 1, constant_values=0.0)
     pad_level = min(float(level), float(np.finfo(np.float32).max))
     verts, faces, normals, _ = measure.marching_cubes(padded, level=pad_level, spacing=(h, h, h),
                                                       gradient_direction="descent", allow_degenerate=False)

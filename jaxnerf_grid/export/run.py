@@ -32,6 +32,7 @@ import os
 import resource
 import time
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -245,7 +246,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
 
     # 3. the box
     if given is not None:
-        lo, hi, box_stats = lo_given, hi_given, {}
+        lo, hi = lo_given, hi_given
+        box_stats: dict = {}
     else:
         if plane is None:
             raise DataError(f"{run_dir}: export.box auto found no ground in the rendered views ({len(points)} "
@@ -280,7 +282,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     tower_pts, tower_cols = to_metric64(points[inside], norm), colours[inside]
     lo_m, hi_m = box_to_metric(lo, hi, norm)
     box_m = {"min": [float(v) for v in lo_m], "max": [float(v) for v in hi_m]}
-    meas = {"units": units, "run": str(run_dir), "step": int(step),
+    meas: dict[str, Any] = {"units": units, "run": str(run_dir), "step": int(step),
             "box": {**box_m, "source": "given" if given is not None else "auto"},
             "resolution": int(resolution), "grid": list(shape), "voxel_size": h / scale,
             "threshold": {"opacity_per_voxel": float(opacity), "density": level,
@@ -318,7 +320,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     meas["survey"] = _survey(meas, geo, alignment, h / scale)
     # the CRS outputs (heights above the geoid with `geoid`), all converted before anything is written
     points_crs, mesh_crs = survey.to_crs(tower_pts, geo), None
-    if crs_name is not None:
+    if crs_name is not None and geo:  # a CRS name comes from a georeference record
         points_crs, mesh_crs = _vertical(meas["survey"], geo, crs_name, grid, geoid, points_crs,
                                          survey.to_crs(verts_m, geo), datum)
     comments = (units_comment(units), f"jaxnerf-grid export of {run_dir} at step {step}")
@@ -332,7 +334,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                       comments=comments + (f"depth of {len(ids)} views fused, each point confirmed by >= "
                                            f"{min_views} other views",))
     survey.write_las(out / "tower_points.las", points_crs, tower_cols, crs_name, datum)
-    if crs_name is not None:
+    if crs_name is not None and geo and mesh_crs is not None:  # all three, or none
         survey.write_ply_double(out / "tower_mesh_crs.ply", mesh_crs, vcolours, faces,
                                 comments=(f"crs: {crs_name} ({geo.get('crs_name')}); x = tower_mesh.ply's x + "
                                           f"origin {[float(v) for v in crs_origin]}",
@@ -399,7 +401,7 @@ def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict
     g = meas.get("ground") or {}
     ground_sigma = float(g.get("clearance", 0.0)) / 3.0
     vertex = voxel / math.sqrt(12.0)
-    out = {"alignment": alignment, "height": None, "cross_arm_heights": [], "cross_arm_spans": [],
+    out: dict[str, Any] = {"alignment": alignment, "height": None, "cross_arm_heights": [], "cross_arm_spans": [],
            "footprint": None, "tilt_degrees": None, "top_offset": None, "conductor_clearance": None,
            "base_centre": None, "vertical": None}
     ends = voxel * math.sqrt(2.0 / 12.0)
@@ -432,8 +434,8 @@ def _survey(meas: dict, geo: dict | None, alignment: dict, voxel: float) -> dict
         out["base_centre"] = {"local": [float(v) for v in base],
                               "crs": [float(v) for v in survey.to_crs(base, geo)] if crs_name else None,
                               "crs_name": crs_name, "extrapolated": extrapolated,
-                              **survey.with_sigma(0.0, math.sqrt(vertex ** 2 + ground_sigma ** 2 + reach ** 2),
-                                                    alignment, lever=lever, position=True)}
+                              **(survey.with_sigma(0.0, math.sqrt(vertex ** 2 + ground_sigma ** 2 + reach ** 2),
+                                                     alignment, lever=lever, position=True) or {})}
         out["base_centre"].pop("value", None)
     cond = meas.get("conductors") or {}
     if cond.get("reconstructed"):

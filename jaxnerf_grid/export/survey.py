@@ -125,7 +125,8 @@ def weighted_scale_sigma(sources: list[tuple], sigmas: list[float | None]) -> fl
     """s_rel = sqrt(sum_k w_k^2 sigma_k^2 S_k) / sum_k w_k S_k (`alignment_uncertainty`), S_k =
     n_k x the mean squared distance of source k's positions from the weighted centroid of all
     sources. None when a sigma is unknown or the positions have no spread."""
-    if any(s is None for s in sigmas):
+    known = [s for s in sigmas if s is not None]
+    if len(known) < len(sigmas):
         return None
     total = sum(w * n for _, n, _, w in sources)
     centroid = sum(w * n * pos.mean(0) for pos, n, _, w in sources) / total
@@ -133,7 +134,7 @@ def weighted_scale_sigma(sources: list[tuple], sigmas: list[float | None]) -> fl
     denominator = sum(w * sk for (_, _, _, w), sk in zip(sources, spread_sums))
     if not denominator > 0:
         return None
-    numerator = sum(w ** 2 * sg ** 2 * sk for (_, _, _, w), sg, sk in zip(sources, sigmas, spread_sums))
+    numerator = sum(w ** 2 * sg ** 2 * sk for (_, _, _, w), sg, sk in zip(sources, known, spread_sums))
     return math.sqrt(numerator) / denominator
 
 

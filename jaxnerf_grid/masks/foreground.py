@@ -177,7 +177,7 @@ def tile_layout(height: int, width: int, max_side: int, multiple: int, tiles: in
     over = int(round(overlap * side))
     scale = (side + (tiles - 1) * (side - over)) / max(height, width)
     resized = (max(multiple, round(height * scale)), max(multiple, round(width * scale)))
-    tile = tuple(min(side, f // multiple * multiple) for f in resized)
+    tile = (min(side, resized[0] // multiple * multiple), min(side, resized[1] // multiple * multiple))
     over = min(over, min(tile) - 1)
     return TileLayout(resized, tile, tile_starts(resized[0], tile[0], over), tile_starts(resized[1], tile[1], over),
                       over)
@@ -331,7 +331,8 @@ def predict_maps(seg_model, depth_model, images, classes, max_side: int = 384, b
             maps = (resize_map(prob[i], *shape), None if inv is None else np.maximum(resize_map(inv[i], *shape), 0.0))
             yield maps + (float(conf[i]),) if with_confidence else maps
 
-    batch, key = [], None
+    batch: list = []
+    key = None
     for image in images:
         image = np.asarray(image, np.float32)
         x = to_working_size(image, max_side, multiple)

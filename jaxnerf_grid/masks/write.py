@@ -35,6 +35,7 @@ source "gt" builds M from the synthetic ground truth `distractor_mask_path` and 
 from __future__ import annotations
 
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -282,7 +283,7 @@ def _write_frame(root: Path, frame: dict, index: int, ipath: Path, a, depth, pro
     mw = np.asarray(fg.depth_weighted_mask(mask, depth, floor=floor)) if depth is not None else mask.copy()
     mask, mw = fg.dilate(mask, dilate), fg.dilate(mw, dilate)
     stem = _frame_stem(frame, index)
-    rel = {"mask_path": f"masks/{stem}.png", "weight_path": f"weights/{stem}.exr",
+    rel: dict[str, Any] = {"mask_path": f"masks/{stem}.png", "weight_path": f"weights/{stem}.exr",
            "dpt_depth_path": f"dpt_depth/{stem}.exr", "overlay_path": f"overlays/{stem}.png",
            "masked_share": round(float(np.mean(mask > 0.5)), 4)}
     io.write_png(root / rel["mask_path"], mask)

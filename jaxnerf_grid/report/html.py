@@ -32,7 +32,7 @@ MAX_FACES = 30000         # faces of a mesh drawn (vertex clustering on a coarse
 MAX_VIEWS = 8             # test views shown
 VIEW_SIDE = 640           # longest side of an embedded view image (a larger one is shrunk)
 FRUSTUM_SHARE = 0.04      # a camera frustum's depth, as a share of the scene's extent
-PLOT_DIV = "scene3d"      # the id of the 3-D view's element (tests/test_report_html.py screenshots it)
+PLOT_DIV = "scene3d"      # the id of the 3-D view's element (tests/report/test_html.py screenshots it)
 METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "lpips")
 
 
@@ -250,7 +250,9 @@ def _polyline(parts: list[np.ndarray]) -> tuple[list, list, list]:
             xs.append(float(x) if ok else None)
             ys.append(float(y) if ok else None)
             zs.append(float(z) if ok else None)
-        xs.append(None), ys.append(None), zs.append(None)
+        xs.append(None)
+        ys.append(None)
+        zs.append(None)
     return xs, ys, zs
 
 

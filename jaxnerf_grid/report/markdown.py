@@ -8,6 +8,7 @@ the semantic map, 2x nearest-neighbour, when semantics exist).
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
@@ -258,7 +259,7 @@ def set_section(path, heading: str, lines: list[str]) -> Path:
     return path
 
 
-def write_report(run_dir, metrics: dict, cfg, data, views: list[dict], extra_lines: list[str] = ()) -> Path:
+def write_report(run_dir, metrics: dict, cfg, data, views: list[dict], extra_lines: Sequence[str] = ()) -> Path:
     """Writes run_dir/report.md (and its PNGs).
 
     metrics: the metrics.json dict (keys "mean", "regions", "protocol", ...);

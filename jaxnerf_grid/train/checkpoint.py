@@ -165,7 +165,7 @@ def _check_leaf(key: str, entry: dict, template_leaf, path: Path) -> None:
 # --------------------------------------------------------------------------- save
 
 
-def _write_npz(handle, arrays: dict[str, np.ndarray]) -> None:
+def _write_npz(handle, arrays: dict[str, Any]) -> None:
     """Writes the arrays as an uncompressed .npz to an open binary file (a test seam)."""
     np.savez(handle, **arrays)
 

@@ -58,12 +58,13 @@ def confirmed_frames(pool: dict, points: np.ndarray, threshold: float) -> np.nda
     """[T, H, W] 1.0 where a neighbouring training photo confirms the pixel at its point.
     pool: train.build_pool's dict (images, c2w, intrinsics, neighbours); points: [T, H, W, 3]."""
     frames, height, width = points.shape[:3]
-    photos = [jnp.asarray(pool[k]) for k in ("images", "c2w", "intrinsics", "neighbours")]  # uploaded once
+    images, c2w, intrinsics, neighbours = (jnp.asarray(pool[k]) for k in ("images", "c2w", "intrinsics",
+                                                                        "neighbours"))  # uploaded once
     out = []
     for k in range(frames):
         ids = jnp.arange(height * width, dtype=jnp.int32) + k * height * width
         out.append(np.asarray(photo_consistency.confirmed_at_ids(
-            *photos, ids, jnp.asarray(points[k].reshape(-1, 3)), threshold)))
+            images, c2w, intrinsics, neighbours, ids, jnp.asarray(points[k].reshape(-1, 3)), threshold)))
     return np.stack(out).reshape(frames, height, width)
 
 
@@ -74,7 +75,8 @@ def refined_weights(residual: np.ndarray, prior: np.ndarray, cfg: RunConfig,
     t = cfg.train
     inlier = robust_lib.pixel_inliers(jnp.asarray(residual), jnp.asarray(prior), jnp.asarray(residual).reshape(-1),
                                       t.robust_quantile, t.robust_flagged_quantile, t.robust_floor, t.robust_spread,
-                                      None if confirmed is None else jnp.asarray(confirmed), t.robust_strict_readmit)
+                                      None if confirmed is None else jnp.asarray(confirmed),
+                                      bool(t.robust_strict_readmit))
     return np.asarray(robust_lib.frame_evidence(inlier, t.robust_patch, t.robust_patch_share), np.float32)
 
 

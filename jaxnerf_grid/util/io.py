@@ -277,7 +277,8 @@ def _ply_header(path: Path, raw: bytes) -> tuple[str, list, int]:
     body = raw.find(b"\n", end) + 1
     if body <= 0:
         raise DataError(f"{path}: PLY header does not end with a newline")
-    fmt, elements = None, []
+    fmt = None
+    elements: list = []
     for line in raw[:end].decode("ascii", errors="replace").splitlines()[1:]:
         words = line.split()
         if not words or words[0] in ("comment", "obj_info"):

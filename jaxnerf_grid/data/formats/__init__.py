@@ -41,6 +41,7 @@ format and re-exports the public names, so `formats.load_dataset(path)` is the e
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from pathlib import Path
 
 from jaxnerf_grid.data.dataset import Dataset
@@ -119,8 +120,10 @@ def collect_scene(path, *, load_extras: bool = True, **kwargs) -> Scene:
     fmt = detect_format(path)
     if fmt == "llff" and path.is_file():
         path = path.parent
-    collect = {"transforms.json": collect_transforms_json, "blender": collect_blender,
-               "colmap": collect_colmap, "llff": collect_llff}[fmt]
+    collectors: dict[str, Callable[..., Scene]] = {
+        "transforms.json": collect_transforms_json, "blender": collect_blender, "colmap": collect_colmap,
+        "llff": collect_llff}
+    collect = collectors[fmt]
     return collect(path, load_extras=load_extras, **kwargs)
 
 

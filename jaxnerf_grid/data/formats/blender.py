@@ -24,7 +24,9 @@ def collect_blender(path, *, load_extras: bool = True, background=(1.0, 1.0, 1.0
     over `background`). Split: the file each frame came from ("val" frames are kept as a
     "val" split and stand in for "test" when there is no test file)."""
     root = Path(path)
-    entries, split, top = [], {}, None
+    entries: list = []
+    split: dict = {}
+    top = None
     for name in ("train", "val", "test"):
         json_path = root / f"transforms_{name}.json"
         if not json_path.is_file():

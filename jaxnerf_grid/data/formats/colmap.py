@@ -41,23 +41,21 @@ def _find_colmap(path: Path, images_dir) -> tuple[Path, str, Path, Path]:
         model_dir, ext = found
         candidates = [path.parent.parent / "images", path.parent / "images", path / "images"]
     else:
-        model_dir = ext = None
-        for sub in (path / "sparse" / "0", path / "sparse", path / "colmap" / "sparse" / "0"):
-            found = colmap_io.find_model_files(sub)
-            if found is not None:
-                model_dir, ext = found
-                break
-        if model_dir is None:
+        subs = (path / "sparse" / "0", path / "sparse", path / "colmap" / "sparse" / "0")
+        found = next((f for f in (colmap_io.find_model_files(sub) for sub in subs) if f is not None), None)
+        if found is None:
             raise DataError(f"{path}: no COLMAP sparse model (looked for cameras.bin/.txt in "
                             f"{path}, {path / 'sparse' / '0'}, {path / 'sparse'})")
+        model_dir, ext = found
         candidates = [path / "images"]
     if images_dir is not None:
         image_root = Path(images_dir)
     else:
-        image_root = next((c for c in candidates if c.is_dir()), None)
-        if image_root is None:
+        found_root = next((c for c in candidates if c.is_dir()), None)
+        if found_root is None:
             raise DataError(f"{model_dir}: no images folder next to the COLMAP model "
                             f"(looked in {', '.join(str(c) for c in candidates)}); pass images_dir")
+        image_root = found_root
     return model_dir, ext, image_root, image_root.parent
 
 

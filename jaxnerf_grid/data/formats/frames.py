@@ -6,7 +6,7 @@ from __future__ import annotations
 import dataclasses
 import os
 from pathlib import Path
-from typing import NamedTuple
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -93,7 +93,7 @@ def scale_intrinsics(intrinsics: np.ndarray, sx: float, sy: float) -> np.ndarray
     return k * np.array([sx, sy, sx, sy])
 
 
-def min_ray_cosine(intrinsics: np.ndarray, width: int, height: int) -> float:
+def min_ray_cosine(intrinsics: np.ndarray, width: float, height: float) -> float:
     """Smallest cosine between a pixel ray and the optical axis (at the image corners).
 
     intrinsics: [N, 4]. Used to turn z-depth bounds into ray-distance bounds (t = z / cos).
@@ -161,6 +161,9 @@ class Frame:
         self.dist = None if dist is None or not np.any(np.asarray(dist)) else np.asarray(dist, np.float64)
         self.extras = extras or {}  # field -> Path
         self.source = source
+        # set by the transforms.json loader: the frame's own (fl_x, fl_y, cx, cy) and camera angles
+        self.json_intrinsics: Any = None
+        self.json_angles: Any = None
 
 
 class Extra(NamedTuple):
@@ -243,10 +246,11 @@ def read_frame(scene: Scene, index: int, load_extras: bool = True) -> dict:
             raise DataError(f"{frame.source}: camera of {frame.image_path.name} has lens distortion "
                             f"{frame.dist.tolist()}; undistortion was turned off (undistort=False)")
         cache = scene.meta.setdefault("_undistort_maps", {})
-        key = (tuple(intr), tuple(frame.dist), w, h)
-        if key not in cache:
-            cache[key] = undistort_maps(*intr, frame.dist, w, h)
-        maps = cache[key]
+        fx, fy, cx, cy = intr
+        maps_key = (tuple(intr), tuple(frame.dist), w, h)
+        if maps_key not in cache:
+            cache[maps_key] = undistort_maps(fx, fy, cx, cy, frame.dist, w, h)
+        maps = cache[maps_key]
         img = _remap(img, maps, "linear")
         valid = _remap(np.ones((h, w), np.float32), maps, "nearest") > 0.5
     extras = {}
@@ -361,7 +365,7 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress:
         raise ValueError(f"give downscale ({downscale}) or max_side ({max_side}), not both")
     frames = scene.frames
     read = []
-    ref = None  # (W, H, path) of the first frame
+    ref: Any = None  # (W, H, path) of the first frame
     for i in progress_lib.bar(range(len(frames)), desc=f"loading {scene.meta.get('format', 'images')}",
                               unit="frame", enabled=progress and len(frames) >= 32, leave=False):
         fr, (w, h) = read_resized_frame(scene, i, load_extras, downscale=downscale, max_side=max_side,
@@ -374,7 +378,7 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress:
                             f"(resize them with jaxnerf_grid.data.preprocess first)")
         read.append(fr)
     scene.meta.pop("_undistort_maps", None)
-    out = {"images": np.stack([f["image"] for f in read]).astype(np.float32),
+    out: dict[str, Any] = {"images": np.stack([f["image"] for f in read]).astype(np.float32),
            "intrinsics": np.stack([f["intrinsics"] for f in read]).astype(np.float32),
            "undistorted": any(f["valid"] is not None for f in read), "native_size": ref[:2]}
     n, hh, ww = out["images"].shape[:3]

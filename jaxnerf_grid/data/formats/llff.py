@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import functools
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -95,7 +96,7 @@ def collect_llff(path, *, images_dir=None, normalize: str | bool = "cameras", ho
         frames.append(Frame(img_path, c2w, intr_fn, None, None, None, source))
     c2w = np.stack([f.c2w for f in frames])
     if normalize is False:
-        norm = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
+        norm: dict[str, Any] = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
     else:
         focus = float(np.median(bounds.mean(axis=1)))
         method = "cameras" if normalize is True else normalize

@@ -5,6 +5,7 @@ from __future__ import annotations
 import math
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -35,7 +36,7 @@ def read_meta(folder: str | os.PathLike) -> dict:
     return io.read_json(path) if path.is_file() else {}
 
 
-def _resolve_image(base: Path, file_path: str, json_path: Path, index: int) -> Path:
+def _resolve_image(base: Path, file_path: Any, json_path: Path, index: int) -> Path:
     if not isinstance(file_path, str) or not file_path:
         raise DataError(f"{json_path}: frame {index} has no file_path")
     path = (base / file_path)
@@ -115,24 +116,25 @@ def _normalise_json(c2w: np.ndarray, top: dict, json_path: Path, normalize, near
     `normalize=True`, which normalises again and composes the two maps.
     """
     near, far = top.get("near"), top.get("far")
-    base = None
+    base: dict[str, Any] | None = None
     if "scene_normalization" in top:
         sn = top["scene_normalization"]
         try:
-            base = {"scale": float(sn["scale"]), "translation": [float(v) for v in sn["translation"]]}
+            given: dict[str, Any] = {"scale": float(sn["scale"]), "translation": [float(v) for v in sn["translation"]]}
         except (KeyError, TypeError, ValueError):
             raise DataError(f"{json_path}: scene_normalization needs 'scale' and 'translation' [3]") from None
-        if len(base["translation"]) != 3 or not base["scale"] > 0:
+        if len(given["translation"]) != 3 or not given["scale"] > 0:
             raise DataError(f"{json_path}: scene_normalization needs a positive scale and a "
                             f"3-vector translation")
         if sn.get("rotation") is not None:  # absent: the identity (docs/DATASET.md)
-            base["rotation"] = check_rotation(sn["rotation"], str(json_path)).tolist()
+            given["rotation"] = check_rotation(sn["rotation"], str(json_path)).tolist()
+        base = given
         if normalize is not True:
             near = DEFAULT_NEAR if near is None else float(near)
             far = DEFAULT_FAR if far is None else float(far)
             return c2w, base, near, far
     base = base or {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
-    extra = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
+    extra: dict[str, Any] = {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}
     if normalize is not False:
         c2w, extra = normalize_poses(c2w)
     if near is None and near_far_default is not None and "scene_normalization" not in top:
@@ -196,7 +198,7 @@ def _json_split(top: dict, json_path: Path, test_every: int) -> dict:
     frames = top["frames"]
     names = [f.get("split") if isinstance(f, dict) else None for f in frames]
     if any(n is not None for n in names):
-        split = {}
+        split: dict[str, list] = {}
         for i, n in enumerate(names):
             split.setdefault(n if n is not None else "train", []).append(i)
         if "test" not in split and "val" in split:

@@ -82,7 +82,7 @@ def transforms_top(width: int, height: int, near: float, far: float, normalizati
 
 def split_names(split: dict, num_frames: int) -> list:
     """Per frame its split name ("train" / "test", first match; None when in neither)."""
-    names = [None] * num_frames
+    names: list[str | None] = [None] * num_frames
     for name in ("train", "test"):
         for i in np.asarray(split.get(name, []), np.int64):
             if names[int(i)] is None:

@@ -3,7 +3,7 @@
 A model is `Model(config, params)`; `params` is a plain pytree:
   {"vit": ..., "reassemble": ..., "fusion": ..., "segmentation"?: ..., "auxiliary"?: ..., "depth"?: ...}
 
-Output resolution (matches transformers' behaviour, checked by tests/test_dpt_parity.py): HF's
+Output resolution (matches transformers' behaviour, checked by tests/masks/test_dpt_parity.py): HF's
 finest fused map is at 8x the (deepest, halved) patch grid (ours is kept at 4x, before its x2,
 which the heads fold into their first conv; see fusion.py) and both heads upsample it x2, so
 HF's raw logits / predicted depth have `32 * ceil(g / 2)` rows for a g-row patch grid, i.e.

@@ -9,6 +9,8 @@ both corner conventions) so it matches torch's `interpolate` bit for bit up to f
 
 from __future__ import annotations
 
+from typing import Any
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -126,7 +128,7 @@ def conv2d_upsampled(p: dict, z, out_h: int, out_w: int, padding: int):
     k = p["w"].shape[0]
     taps = jnp.einsum("bhwc,yxco->bhwyxo", z, p["w"].astype(z.dtype))          # [B, h, w, k, k, Cout]
     r0, r1, rw0, rw1 = _shifted_taps(out_h, z.shape[1], k, padding)
-    rows = 0.0
+    rows: Any = 0.0
     for dy in range(k):  # -> [B, out_h, w, k(dx), Cout]
         t = taps[:, :, :, dy]
         rows = rows + (jnp.take(t, r0[:, dy], axis=1) * rw0[None, :, dy, None, None, None]

@@ -24,7 +24,7 @@ def init(key, cfg) -> dict:
     d = cfg.hidden_size
     n = len(cfg.neck_hidden_sizes)
     keys = split(key, 4 * n)
-    params = {"proj": [], "resample": [], "convs": []}
+    params: dict[str, list] = {"proj": [], "resample": [], "convs": []}
     if cfg.readout_type == "project":
         params["readout"] = [init_linear(keys[4 * i], 2 * d, d) for i in range(n)]
     for i, (c, f) in enumerate(zip(cfg.neck_hidden_sizes, cfg.reassemble_factors)):

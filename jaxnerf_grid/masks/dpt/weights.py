@@ -17,6 +17,7 @@ from __future__ import annotations
 import dataclasses
 import json
 from pathlib import Path
+from typing import Any
 
 import jax
 import numpy as np
@@ -81,11 +82,10 @@ def config_from_hf(hf: dict, where: str = "config.json") -> DPTConfig:
         return int(v)
 
     fields = {f.name for f in dataclasses.fields(DPTConfig)}
-    kw = {k: hf[k] for k in ("hidden_size", "num_hidden_layers", "num_attention_heads", "intermediate_size",
-                             "layer_norm_eps", "qkv_bias", "readout_type", "fusion_hidden_size",
-                             "head_in_index", "use_batch_norm_in_fusion_residual",
-                             "use_bias_in_fusion_residual", "add_projection", "num_channels")
-          if k in hf and k in fields}
+    kw: dict[str, Any] = {k: hf[k] for k in (
+        "hidden_size", "num_hidden_layers", "num_attention_heads", "intermediate_size", "layer_norm_eps", "qkv_bias",
+        "readout_type", "fusion_hidden_size", "head_in_index", "use_batch_norm_in_fusion_residual",
+        "use_bias_in_fusion_residual", "add_projection", "num_channels") if k in hf and k in fields}
     for k in ("backbone_out_indices", "reassemble_factors", "neck_hidden_sizes"):
         if k in hf:
             kw[k] = tuple(hf[k])
@@ -106,7 +106,7 @@ def config_from_hf(hf: dict, where: str = "config.json") -> DPTConfig:
 # ----------------------------------------------------------------- key mapping
 def hf_key_map(cfg: DPTConfig) -> list[tuple[str, tuple, str]]:
     """[(hf_key, path in our params pytree, transform kind)] for a single-head HF model."""
-    m = []
+    m: list[tuple[str, tuple, str]] = []
     e = "dpt.embeddings."
     m += [(e + "cls_token", ("vit", "cls"), "token"), (e + "position_embeddings", ("vit", "pos"), "pos"),
           (e + "patch_embeddings.projection.weight", ("vit", "patch", "w"), "conv"),
@@ -119,7 +119,8 @@ def hf_key_map(cfg: DPTConfig) -> list[tuple[str, tuple, str]]:
     conv = lambda hf, path, bias=True: [(hf + ".weight", path + ("w",), "conv")] + (  # noqa: E731
         [(hf + ".bias", path + ("b",), "vec")] if bias else [])
     for i in range(cfg.num_hidden_layers):
-        L, P = f"dpt.encoder.layer.{i}.", ("vit", "blocks", i)
+        L = f"dpt.encoder.layer.{i}."
+        P: tuple = ("vit", "blocks", i)  # a path in the params pytree
         for name in ("query", "key", "value"):
             m += lin(L + "attention.attention." + name, P + (name[0],), cfg.qkv_bias)
         m += lin(L + "attention.output.dense", P + ("o",))

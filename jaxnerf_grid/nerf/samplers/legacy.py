@@ -37,6 +37,8 @@ committed results files keep finding their runs.
 
 from __future__ import annotations
 
+from typing import Any
+
 from jaxnerf_grid.config import schema as config
 from jaxnerf_grid.nerf.samplers import proposal
 
@@ -94,7 +96,7 @@ def flat_keys(model_overrides: dict) -> dict:
     """The flat sampler keys, complete, of a model override dict (flat or tagged, merged over
     the old defaults), as an older full config.json would hold them: every key of OLD_DEFAULTS,
     proposal_field as a full field dict."""
-    flat = dict(OLD_DEFAULTS, proposal_field=config.to_dict(proposal.PROPOSAL_FIELD))
+    flat: dict[str, Any] = dict(OLD_DEFAULTS, proposal_field=config.to_dict(proposal.PROPOSAL_FIELD))
     current = model_overrides.get("sampler")
     layers = [_as_flat(current) if isinstance(current, dict) else ({"sampler": current} if current else {}),
               {k: model_overrides[k] for k in FLAT_KEYS if k in model_overrides}]
@@ -122,6 +124,6 @@ def upgrade_flat_model(model: dict) -> dict:
     out = {k: v for k, v in model.items() if k not in FLAT_KEYS}
     out["sampler"] = _from_flat(flat)
     if isinstance(current, dict):  # keys that are not its kind's stay, for config.from_dict to name
-        known = TAGGED_KEYS.get(current.get("kind"), ())
+        known = TAGGED_KEYS.get(str(current.get("kind")), ())
         out["sampler"].update({k: v for k, v in current.items() if k not in known})
     return out

@@ -80,7 +80,7 @@ def rounds(params: dict, cfg: Config, passes: Passes, key) -> tuple:
     """
     count = len(cfg.samples)
     keys = [None] * (count + 1) if key is None else list(jax.random.split(key, count + 1))
-    out = []
+    out: list = []
     s_edges = sampling.stratified_s(keys[0], passes.batch_shape, cfg.samples[0], passes.single_jitter)
     for k in range(count):
         if k > 0:

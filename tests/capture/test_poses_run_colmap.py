@@ -1,0 +1,280 @@
+"""`capture.poses.run_colmap` and `_map`, the COLMAP options and the mapping choice, with
+a stand-in for pycolmap's four running calls (no COLMAP run).
+
+The stand-in has the signatures and defaults of pycolmap 4's `extract_features`,
+`match_exhaustive`, `match_sequential`, `match_vocabtree` and `incremental_mapping` (an argument
+left out is seen as pycolmap's default) and records the values it is handed; the option objects
+are pycolmap's own. Its mapping runs hand back COLMAP models written by hand
+(`test_poses_frames._write_model`) and read by pycolmap. Each expectation is written out here:
+the options docs/POSES.md names (affine SIFT, Lowe's ratio 0.9, seed 0, the relaxed
+thresholds), the relaxed run below 90 % of the photos, the model with the most photos, then
+points, the seconds of each stage from a clock that gives known times.
+"""
+
+from __future__ import annotations
+
+import re
+
+import numpy as np
+import pytest
+from scipy.spatial.transform import Rotation
+
+from jaxnerf_grid.capture import poses
+from jaxnerf_grid.util import io
+from jaxnerf_grid.util.io import DataError
+from tests.capture.test_poses_cameras_and_frame import FOCAL, _rings, _write_model
+
+pycolmap = pytest.importorskip("pycolmap")
+
+
+class _StandIn:
+    """pycolmap with its running calls replaced: records what they are handed; each mapping run
+    hands back the next of `maps` ({id: model})."""
+
+    def __init__(self, maps):
+        self.maps, self.calls = list(maps), []
+        for name in ("ImageReaderOptions", "CameraMode", "FeatureExtractionOptions", "FeatureMatchingOptions",
+                     "SequentialPairingOptions", "VocabTreePairingOptions", "IncrementalPipelineOptions",
+                     "Reconstruction"):
+            setattr(self, name, getattr(pycolmap, name))
+
+    def set_random_seed(self, seed):
+        self.calls.append(("seed", seed))
+
+    def extract_features(self, database_path, image_path, image_names=(), camera_mode=pycolmap.CameraMode.AUTO,
+                         reader_options=None, extraction_options=None):
+        reader = reader_options or pycolmap.ImageReaderOptions()
+        extraction = extraction_options or pycolmap.FeatureExtractionOptions()
+        self.calls.append(("features", database_path, image_path, list(image_names), camera_mode,
+                           reader.camera_model, extraction.sift.estimate_affine_shape))
+
+    def _matching(self, kind, database_path, matching_options, pairing):
+        matching = matching_options or pycolmap.FeatureMatchingOptions()
+        self.calls.append((kind, database_path, matching.sift.max_ratio, pairing))
+        self.guided = matching.guided_matching
+
+    def match_exhaustive(self, database_path, matching_options=None):
+        self._matching("exhaustive", database_path, matching_options, None)
+
+    def match_sequential(self, database_path, matching_options=None, pairing_options=None):
+        pairing = pairing_options or pycolmap.SequentialPairingOptions()
+        self._matching("sequential", database_path, matching_options,
+                       (pairing.overlap, pairing.quadratic_overlap, pairing.loop_detection))
+
+    def match_vocabtree(self, database_path, matching_options=None, pairing_options=None):
+        pairing = pairing_options or pycolmap.VocabTreePairingOptions()
+        self._matching("vocab", database_path, matching_options, str(pairing.vocab_tree_path))
+
+    def incremental_mapping(self, database_path, image_path, output_path, options=None, next_image_callback=None):
+        options = options or pycolmap.IncrementalPipelineOptions()
+        self.calls.append(("mapping", database_path, image_path, output_path, options.random_seed,
+                           options.mapper.filter_max_reproj_error, options.mapper.abs_pose_min_num_inliers,
+                           options.mapper.init_min_num_inliers, options.mapper.init_min_tri_angle))
+        for _ in range(2):
+            if next_image_callback is not None:
+                next_image_callback()
+        return self.maps.pop(0)
+
+
+class _Undistorting(_StandIn):
+    """With pycolmap's undistort_images replaced: reads the model it is handed and writes, as
+    COLMAP does, output/images (each photo at its camera's size, pixels saying which photo) and
+    output/sparse (the model, its cameras PINHOLE)."""
+
+    def undistort_images(self, output_path, input_path, image_path, image_names=(), output_type="COLMAP",
+                         jpeg_quality=-1):
+        model = pycolmap.Reconstruction(input_path)
+        self.calls.append(("undistort", output_path, input_path, image_path, output_type, jpeg_quality,
+                           sorted(im.name for im in model.images.values())))
+        (output_path / "images").mkdir(parents=True)
+        (output_path / "sparse").mkdir()
+        for k, im in enumerate(sorted(model.images.values(), key=lambda im: im.name)):
+            cam = model.cameras[im.camera_id]
+            io.write_png(output_path / "images" / im.name, np.full((cam.height, cam.width, 3), (k + 1) / 10.0))
+        model.write(output_path / "sparse")
+
+
+class _Clock:
+    """time.monotonic giving the listed times in turn (no call past the list)."""
+
+    def __init__(self, times):
+        self.times = list(times)
+
+    def monotonic(self):
+        return self.times.pop(0)
+
+
+def _model(folder, count, num_points=30, turned=()):
+    """A pycolmap.Reconstruction of the first `count` of 18 ring cameras (names v00..v17), each
+    seeing `num_points` points where it projects them; the cameras in `turned` are written
+    turned by 20 degrees about their own y axis (their observations kept: they fail the vetting)."""
+    centres, w2cs = _rings()
+    points = np.array([1.0, -2.0, 3.0]) + np.random.default_rng(7).uniform(-2, 2, (num_points, 3))
+    images = [(f"v{k:02d}.png", 1, r, -r @ c) for k, (c, r) in enumerate(zip(centres, w2cs))][:count]
+    turn = Rotation.from_rotvec([0.0, np.radians(20.0), 0.0]).as_matrix()
+    written = {k: (turn @ w2cs[k], -turn @ w2cs[k] @ centres[k]) for k in turned}
+    _write_model(folder, {1: (80, 60, FOCAL, FOCAL, 40, 30)}, images, points, written=written)
+    return pycolmap.Reconstruction(folder)
+
+
+NAMES = [f"v{k:02d}.png" for k in range(18)]
+DEFAULT_MAPPER = (0, 2.0, 30, 100, 16.0)                   # seed, filter px, then COLMAP's defaults
+RELAXED_MAPPER = (0, 2.0, 15, 50, 8.0)
+
+
+def test_run_colmap_exhaustive_single_camera_sets_its_options_and_keeps_the_largest_model(
+        tmp_path, monkeypatch, capsys):
+    """All 12 photos register in the first mapping: no second run; of its three models the one
+    with the most photos, then the most points, is kept; the options handed to COLMAP are those
+    docs/POSES.md names, and MATCHING's (empty in the package; one set here) reach the matching
+    options; the seconds of features, matching and mapping come from the clock; nothing is
+    said with show=False."""
+    small, fewer_points, largest = (_model(tmp_path / n, c, p) for n, c, p in
+                                    (("small", 5, 30), ("fewer", 12, 20), ("largest", 12, 30)))
+    stand_in = _StandIn([{0: small, 1: largest, 2: fewer_points}])
+    monkeypatch.setattr(poses, "time", _Clock([100.0, 101.26, 101.3, 101.8, 102.0, 109.34]))
+    monkeypatch.setattr(poses, "MATCHING", {"guided_matching": True})
+    timings = {"photos": 0.4}
+    model, relaxed = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+                                      matcher="exhaustive", camera_model="OPENCV", single_camera=True, show=False,
+                                      timings=timings)
+    assert model is largest and relaxed is False
+    db = tmp_path / "work" / "database.db"
+    assert stand_in.calls == [
+        ("seed", 0),
+        ("features", db, tmp_path / "photos", NAMES[:12], pycolmap.CameraMode.SINGLE, "OPENCV", True),
+        ("exhaustive", db, 0.9, None),
+        ("mapping", db, tmp_path / "photos", tmp_path / "work" / "sparse0", *DEFAULT_MAPPER)]
+    assert stand_in.guided is True
+    assert timings == {"photos": 0.4, "features": 1.3, "matching": 0.5, "mapping": 7.3}
+    assert capsys.readouterr().err == ""
+
+
+def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_agreeing_model(
+        tmp_path, monkeypatch, capsys):
+    """9 of 12 photos register (under 0.9 x 12): a second, relaxed mapping into sparse1; its 12
+    photos, agreeing with the first model's 9, are kept. Sequential matching: each photo with
+    its next `overlap`, no quadratic overlap, no loop detection; AUTO camera mode without
+    --single-camera. Each stage is said on stderr by default, and each mapping run's progress
+    line counts the photos COLMAP reported (2 here) of the 12."""
+    first, second = _model(tmp_path / "first", 9), _model(tmp_path / "second", 12)
+    stand_in = _StandIn([{0: first}, {0: second}])
+    monkeypatch.setattr(poses, "time", _Clock([0.0, 1.0, 2.0, 3.0, 4.0, 5.0]))
+    model, relaxed = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+                                      matcher="sequential", camera_model="PINHOLE", single_camera=False, overlap=4,
+                                      keep_all=True)
+    assert model is second and relaxed is True
+    db, photos = tmp_path / "work" / "database.db", tmp_path / "photos"
+    assert stand_in.calls == [
+        ("seed", 0),
+        ("features", db, photos, NAMES[:12], pycolmap.CameraMode.AUTO, "PINHOLE", True),
+        ("sequential", db, 0.9, (4, False, False)),
+        ("mapping", db, photos, tmp_path / "work" / "sparse0", *DEFAULT_MAPPER),
+        ("mapping", db, photos, tmp_path / "work" / "sparse1", *RELAXED_MAPPER)]
+    err = capsys.readouterr().err
+    for line in ("poses: features (SIFT, 12 photos) ...", "poses: matching (sequential) ...",
+                 "poses: kept the relaxed model (12 photos)"):
+        assert line in err.splitlines(), line
+    for stage in ("features (SIFT, 12 photos)", "matching (sequential)"):
+        assert any(line.startswith(f"poses: {stage} done in ") for line in err.splitlines()), stage
+    for label in ("mapping", r"mapping again \(relaxed thresholds\)"):
+        assert len([line for line in err.splitlines()
+                    if re.fullmatch(rf"poses: {label}: 2/12 photos \(17%\), \d+\.\d s", line)]) == 1, label
+
+
+def test_run_colmap_counts_the_relaxed_model_by_the_vetting_unless_keep_all(tmp_path, monkeypatch):
+    """The relaxed model registers 12 photos to the first model's 9, but its 3 new ones are
+    turned 20 degrees (they fail the vetting): by the vetted count (9 against 9) the first model
+    stays; with keep_all, by the registered count, the relaxed model is kept. And 9 of 10
+    photos (0.9 x 10, not under it) map once."""
+    first = _model(tmp_path / "first", 9)
+    second = _model(tmp_path / "second", 12, turned=(9, 10, 11))
+    for keep_all, expected in ((False, first), (True, second)):
+        stand_in = _StandIn([{0: first}, {0: second}])
+        model, relaxed = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+                                          matcher="exhaustive", camera_model="OPENCV", single_camera=True,
+                                          show=False, keep_all=keep_all)
+        assert model is expected and relaxed is (expected is second), keep_all
+        assert [c[3].name for c in stand_in.calls if c[0] == "mapping"] == ["sparse0", "sparse1"]
+    stand_in = _StandIn([{0: first}, {0: second}])                    # keep_all left out: the vetted count
+    assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
+                            camera_model="OPENCV", single_camera=True, show=False) == (first, False)
+    stand_in = _StandIn([{0: first}])
+    assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:10], tmp_path / "work", matcher="exhaustive",
+                            camera_model="OPENCV", single_camera=True, show=False) == (first, False)
+    assert len([c for c in stand_in.calls if c[0] == "mapping"]) == 1
+
+
+def test_run_colmap_vocab_hands_on_the_tree_and_names_the_folder_when_no_model_is_built(tmp_path):
+    tree = tmp_path / "tree.bin"
+    stand_in = _StandIn([{}, {}])
+    with pytest.raises(DataError) as err:
+        poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:6], tmp_path / "work", matcher="vocab",
+                         camera_model="SIMPLE_RADIAL", single_camera=True, vocab_tree=tree, show=False,
+                         source=tmp_path / "input")
+    assert str(err.value) == (f"{tmp_path / 'input'}: no reconstruction: the photos share too few features (more "
+                              "overlap, more texture or more photos help; see docs/POSES.md)")
+    assert stand_in.calls[2] == ("vocab", tmp_path / "work" / "database.db", 0.9, str(tree))
+    assert [c[3].name for c in stand_in.calls if c[0] == "mapping"] == ["sparse0", "sparse1"]
+    with pytest.raises(DataError, match="^" + re.escape(f"{tmp_path / 'photos'}: no reconstruction: ")):
+        poses.run_colmap(_StandIn([{}, {}]), tmp_path / "photos", NAMES[:6], tmp_path / "work",
+                         matcher="exhaustive", camera_model="SIMPLE_RADIAL", single_camera=True, show=False)
+
+
+def test_run_colmap_lets_a_failing_stage_raise_and_does_not_say_it_is_done(tmp_path, capsys):
+    """COLMAP failing in feature extraction: its error comes out of run_colmap, nothing runs
+    after it, and no `done in` line is said for the stage."""
+    class _Failing(_StandIn):
+        def extract_features(self, *args, **kwargs):
+            raise RuntimeError("feature extraction failed")
+
+    stand_in = _Failing([{}, {}])
+    with pytest.raises(RuntimeError, match="feature extraction failed"):
+        poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:6], tmp_path / "work", matcher="exhaustive",
+                         camera_model="OPENCV", single_camera=True)
+    assert stand_in.calls == [("seed", 0)]
+    assert capsys.readouterr().err.splitlines() == ["poses: features (SIFT, 6 photos) ..."]
+
+
+def test_undistort_hands_colmap_the_model_and_lays_out_images_and_sparse_cut_to_one_size(tmp_path):
+    """Stage 5: the model written to _work/model is what COLMAP's undistortion reads (with the
+    photo folder, COLMAP output, JPEG_QUALITY); its images/ and sparse/ become the stage's
+    images/ and sparse/0, cut to the smallest size (70 x 50 and 64 x 48 -> 64 x 48)."""
+    centres, w2cs = _rings()
+    images = [("a.png", 1, w2cs[0], -w2cs[0] @ centres[0]), ("b.png", 2, w2cs[1], -w2cs[1] @ centres[1])]
+    _write_model(tmp_path / "text", {1: (70, 50, FOCAL, FOCAL, 35, 25), 2: (64, 48, FOCAL, FOCAL, 32, 24)}, images,
+                 np.array([[1.0, -2.0, 3.0]]))
+    model = pycolmap.Reconstruction(tmp_path / "text")
+    stage = tmp_path / "stage"
+    stage.mkdir()
+    stand_in = _Undistorting([])
+    poses.undistort(stand_in, model, tmp_path / "photos", stage)
+    assert stand_in.calls == [("undistort", stage / "_work" / "undistorted", stage / "_work" / "model",
+                               tmp_path / "photos", "COLMAP", 95, ["a.png", "b.png"])]
+    assert sorted(p.name for p in (stage / "images").iterdir()) == ["a.png", "b.png"]
+    for k, name in enumerate(["a.png", "b.png"]):
+        pixels = io.opencv().imread(str(stage / "images" / name))
+        assert pixels.shape == (48, 64, 3) and np.all(np.abs(pixels.astype(int) - round(25.5 * (k + 1))) <= 1)
+    out = pycolmap.Reconstruction(stage / "sparse" / "0")
+    assert {(c.width, c.height) for c in out.cameras.values()} == {(64, 48)}
+    np.testing.assert_allclose(out.cameras[1].params, [FOCAL, FOCAL, 32, 24])
+    assert sorted(p.name for p in stage.iterdir()) == ["_work", "images", "sparse"]
+    assert sorted(p.name for p in (stage / "sparse").iterdir()) == ["0"]
+
+
+def test_undistort_into_a_stage_already_holding_a_work_model_writes_over_it(tmp_path):
+    """A stage whose _work/model exists already (with a stale file): the model is written into it
+    and handed to COLMAP's undistortion, and the stage is laid out as from a fresh one."""
+    centres, w2cs = _rings()
+    images = [("a.png", 1, w2cs[0], -w2cs[0] @ centres[0]), ("b.png", 1, w2cs[1], -w2cs[1] @ centres[1])]
+    _write_model(tmp_path / "text", {1: (64, 48, FOCAL, FOCAL, 32, 24)}, images, np.array([[1.0, -2.0, 3.0]]))
+    model = pycolmap.Reconstruction(tmp_path / "text")
+    stage = tmp_path / "stage"
+    (stage / "_work" / "model").mkdir(parents=True)
+    (stage / "_work" / "model" / "stale.txt").write_text("from an earlier attempt")
+    stand_in = _Undistorting([])
+    poses.undistort(stand_in, model, tmp_path / "photos", stage)
+    assert stand_in.calls == [("undistort", stage / "_work" / "undistorted", stage / "_work" / "model",
+                               tmp_path / "photos", "COLMAP", 95, ["a.png", "b.png"])]
+    assert sorted(p.name for p in (stage / "images").iterdir()) == ["a.png", "b.png"]
+    assert {(c.width, c.height) for c in pycolmap.Reconstruction(stage / "sparse" / "0").cameras.values()} == {(64, 48)}
