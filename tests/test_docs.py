@@ -83,11 +83,11 @@ def test_the_checker_sees_paths_of_each_kind():
     """The rules above on a made-up doc: each kind of path is found, placeholders are not."""
     doc = ROOT / "docs" / "x.md"
     text = ("[a](../README.md) [b](GRID.md#grid) [c](https://x.org/y) `docs/GRID.md` "
-            "`dpt/reassemble.py` `docs/NOPE.md` `experiments/results/<setting>/t.md` "
+            "`masks/dpt/reassemble.py` `docs/NOPE.md` `experiments/results/<setting>/t.md` "
             "`runs/demo/run/report.md` `experiments/.cache/x/y` [d](nope/x.md)")
     assert link_targets(text) == ["../README.md", "GRID.md", "nope/x.md"]
     bases = {w: repo_path_base(w, doc.parent) for w in backtick_words(text)}
-    assert bases == {"docs/GRID.md": ROOT, "dpt/reassemble.py": ROOT / "jaxnerf_grid",
+    assert bases == {"docs/GRID.md": ROOT, "masks/dpt/reassemble.py": ROOT / "jaxnerf_grid",
                      "docs/NOPE.md": ROOT, "experiments/results/<setting>/t.md": None,
                      "runs/demo/run/report.md": None, "experiments/.cache/x/y": None}
 
