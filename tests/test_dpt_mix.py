@@ -48,14 +48,14 @@ def test_scores_of_a_hand_made_case():
 
 
 def write_scene(root, n=3):
-    """A synth-like scene at exactly the cache size: ground / sky, a 1-px bird, a 3x3 person and an
-    8x8 vehicle per frame (so sprites of three size buckets), depth 2 everywhere."""
+    """A synth-like scene at exactly the cache size: ground / sky, a 1-px bird, a 5-px person (a plus
+    sign) and an 8x8 vehicle per frame (so sprites of three size buckets), depth 2 everywhere."""
     frames = []
     for k in range(n):
         sem = np.full((H, W), 3, np.uint8)
         sem[:8] = 0
         sem[3, 5 + k] = 8
-        sem[10:13, 4:7] = 6
+        sem[10:13, 5] = sem[11, 4:7] = 6       # a plus: a sprite that is not its box
         sem[12:20, 14 + k:22 + k] = 7
         rgb = np.zeros((H, W, 3), np.float32)
         rgb[sem == 0], rgb[sem == 3] = (0.5, 0.7, 1.0), (0.3, 0.5, 0.2)
@@ -97,7 +97,7 @@ def test_cache_holds_real_photos_and_sprites_of_every_class_and_size(cache):
     c = dpt_data.load_cache(path)
     sprites = dpt_data.unpack_sprites(c)
     sizes = sorted({(int(m.sum()), cls) for _, m, cls in sprites})
-    assert sizes == [(1, 8), (9, 6), (64, 7)]
+    assert sizes == [(1, 8), (5, 6), (64, 7)]
     for rgb, m, cls in sprites:   # the colours cut out are the distractor's own
         expected = {6: (229, 26, 26), 7: (26, 26, 229), 8: (0, 0, 0)}[cls]
         np.testing.assert_allclose(rgb[m].mean(0), expected, atol=2)
@@ -137,6 +137,7 @@ def test_pasting_marks_exactly_the_pasted_pixels(cache):
         assert changed.mean() > 0
 
 
+@pytest.mark.slow
 def test_tiny_training_run_writes_weights_that_mask_uses(cache, tmp_path, monkeypatch):
     from experiments import train_dpt_mix
     from jaxnerf_grid import dpt, masking
