@@ -6,7 +6,8 @@ drawn from it with augmentation (for `experiments/train_dpt_mix.py`).
 
 The cache (one compressed .npz, `build_cache`), every frame at one size (cover-resize + centre crop):
 - synthetic frames: every training view of the `--scenes` (folders written by `jaxnerf-grid
-  synth`, any preset and clutter level): RGB, the 9-class semantic labels, inverse depth;
+  synth`, any preset and clutter level): RGB, the 9-class semantic labels, inverse depth; and
+  each cluttered view's clean twin (`load_synthetic`);
 - real photos (`--real`, folders of .jpg / .png; never committed): static scenes, so every pixel
   is "static, class unknown" (label STATIC_UNKNOWN) and they have no depth;
 - a sprite bank: every connected distractor component of the synthetic frames (person, vehicle,
@@ -62,23 +63,39 @@ def list_photos(folder) -> list[Path]:
 
 def load_synthetic(root: Path, height: int, width: int):
     """A synth scene's training views -> (rgb [N, h, w, 3] uint8, labels [N, h, w] uint8, inverse depth
-    [N, h, w] float16), cover-resized to (height, width); labels / depth by nearest neighbour."""
+    [N, h, w] float16), cover-resized to (height, width); labels / depth by nearest neighbour.
+
+    Each view with distractors also gives its clean twin (the generator's `clean_file_path`, the
+    same view without them), labelled like the view except that the pixels the distractors
+    covered are STATIC_UNKNOWN (static, class not rendered): an empty mask in the synthetic domain."""
     import cv2
 
     from jaxnerf_grid import io
 
+    def inverse(path):
+        depth = io.read_exr(path)
+        return np.where(np.isfinite(depth) & (depth > 0), 1.0 / np.maximum(depth, 1e-6), 0.0).astype(np.float32)
+
+    def rgb8(path):
+        return np.clip(io.read_image(path) * 255.0 + 0.5, 0, 255).astype(np.uint8)
+
     meta = io.read_json(root / "transforms.json")
     rgbs, labels, invs = [], [], []
-    for f in meta["frames"]:
-        if f.get("split", "train") != "train" or "semantic_file_path" not in f:
-            continue
-        rgb = np.clip(io.read_image(root / f["file_path"]) * 255.0 + 0.5, 0, 255).astype(np.uint8)
-        sem = cv2.imread(str(root / f["semantic_file_path"]), cv2.IMREAD_UNCHANGED)
-        depth = io.read_exr(root / f["depth_file_path"])
-        inv = np.where(np.isfinite(depth) & (depth > 0), 1.0 / np.maximum(depth, 1e-6), 0.0).astype(np.float32)
+
+    def add(rgb, sem, inv):
         rgbs.append(cover_resize(rgb, height, width))
         labels.append(cover_resize(sem, height, width, cv2.INTER_NEAREST))
         invs.append(cover_resize(inv, height, width, cv2.INTER_NEAREST))
+
+    for f in meta["frames"]:
+        if f.get("split", "train") != "train" or "semantic_file_path" not in f:
+            continue
+        sem = cv2.imread(str(root / f["semantic_file_path"]), cv2.IMREAD_UNCHANGED)
+        add(rgb8(root / f["file_path"]), sem, inverse(root / f["depth_file_path"]))
+        dyn = np.isin(sem, DYNAMIC)
+        if dyn.any() and "clean_file_path" in f and "clean_depth_file_path" in f:
+            add(rgb8(root / f["clean_file_path"]), np.where(dyn, STATIC_UNKNOWN, sem).astype(sem.dtype),
+                inverse(root / f["clean_depth_file_path"]))
     return np.stack(rgbs), np.stack(labels).astype(np.uint8), np.stack(invs).astype(np.float16)
 
 

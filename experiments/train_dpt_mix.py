@@ -128,6 +128,9 @@ class Prefetcher:
             t.start()
 
     def _run(self, make, i):
+        import cv2
+
+        cv2.setNumThreads(1)   # parallel across batches, not inside one OpenCV call
         rng = np.random.default_rng([i, int(time.time() * 1e3) % 2**31])
         while not self.stop.is_set():
             b = make(rng)
@@ -307,6 +310,14 @@ def main(argv=None) -> int:
     budget = args.minutes * 60.0
     step, skipped, s_rate = 0, 0, 0
 
+    def save_best():
+        extra = {"dynamic_classes": list(dpt_data.DYNAMIC), "max_side": args.max_side, "steps": step,
+                 "best_step": best["step"], "arch": args.arch if not args.init else None,
+                 "note": "trained by experiments/train_dpt_mix.py on synthetic tower scenes of every preset and "
+                         "clutter level, synthetic distractors pasted on real photos and static real photos; inputs "
+                         f"are resized to a working size with longest side ~{args.max_side} px"}
+        dpt.save(dpt.Model(cfg, best["params"]), args.out, dtype="float16", extra=extra)
+
     def validate():
         s = val_scores(params, cfg, val)
         s["step"], s["elapsed_s"] = step, time.time() - t0
@@ -314,6 +325,7 @@ def main(argv=None) -> int:
         iou = s["iou"] or 0.0
         if iou > best["iou"]:
             best.update(iou=iou, step=step, params=jax.tree_util.tree_map(np.asarray, params))
+            save_best()   # on disk at once: a run cut short by a timeout still leaves its best weights
         say(f"step {step}: val IoU {iou:.3f} precision {s['precision'] or 0:.3f} recall {s['recall'] or 0:.3f} "
             f"bird recall {s['class']['bird']['recall'] or 0:.3f} static share {s['static_share']}; "
             f"best {best['iou']:.3f} at step {best['step']}")
@@ -359,12 +371,6 @@ def main(argv=None) -> int:
     say(f"trained {step} steps in {train_s:.0f} s ({step / max(train_s, 1e-9):.2f} steps/s, batch {args.batch}); "
         f"{skipped} logged steps non-finite; best val IoU {best['iou']:.3f} at step {best['step']}")
 
-    extra = {"dynamic_classes": list(dpt_data.DYNAMIC), "max_side": args.max_side, "steps": step,
-             "best_step": best["step"], "arch": args.arch if not args.init else None,
-             "note": "trained by experiments/train_dpt_mix.py on synthetic tower scenes of every preset and clutter "
-                     "level, synthetic distractors pasted on real photos and static real photos; inputs are resized to "
-                     f"a working size with longest side ~{args.max_side} px"}
-    dpt.save(dpt.Model(cfg, best["params"]), args.out, dtype="float16", extra=extra)
     reloaded = dpt.load_pretrained(args.out)   # score exactly what ships (float16)
     final = val_scores(reloaded.params, reloaded.config, val)
     size_bytes = sum(f.stat().st_size for f in Path(args.out).iterdir())

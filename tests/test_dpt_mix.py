@@ -61,11 +61,15 @@ def write_scene(root, n=3):
         rgb[sem == 0], rgb[sem == 3] = (0.5, 0.7, 1.0), (0.3, 0.5, 0.2)
         rgb[sem == 6], rgb[sem == 7], rgb[sem == 8] = (0.9, 0.1, 0.1), (0.1, 0.1, 0.9), (0.0, 0.0, 0.0)
         io.write_png(root / f"images/f{k}.png", rgb)
+        clean = np.where((sem == 0)[..., None], (0.5, 0.7, 1.0), (0.3, 0.5, 0.2)).astype(np.float32)
+        io.write_png(root / f"clean/f{k}.png", clean)
+        io.write_exr(root / f"clean_depth/f{k}.exr", np.full((H, W), 4.0, np.float32))
         (root / "semantic").mkdir(parents=True, exist_ok=True)
         cv2.imwrite(str(root / f"semantic/f{k}.png"), sem)
         io.write_exr(root / f"depth/f{k}.exr", np.full((H, W), 2.0, np.float32))
         frames.append({"file_path": f"images/f{k}.png", "semantic_file_path": f"semantic/f{k}.png",
                        "depth_file_path": f"depth/f{k}.exr", "split": "train",
+                       "clean_file_path": f"clean/f{k}.png", "clean_depth_file_path": f"clean_depth/f{k}.exr",
                        "transform_matrix": np.eye(4).tolist()})
     io.write_json(root / "transforms.json", {"fl_x": 30.0, "w": W, "h": H, "frames": frames,
                                              "generator": {"seed": 7001}})
@@ -92,7 +96,7 @@ def cache(tmp_path):
 
 def test_cache_holds_real_photos_and_sprites_of_every_class_and_size(cache):
     path, summary = cache
-    assert summary["synthetic"] == 3 and summary["real"] == 2
+    assert summary["synthetic"] == 6 and summary["real"] == 2   # 3 views and their 3 clean twins
     assert summary["by_class"] == {"person": 3, "vehicle": 3, "bird": 3}
     c = dpt_data.load_cache(path)
     sprites = dpt_data.unpack_sprites(c)
@@ -102,6 +106,11 @@ def test_cache_holds_real_photos_and_sprites_of_every_class_and_size(cache):
         expected = {6: (229, 26, 26), 7: (26, 26, 229), 8: (0, 0, 0)}[cls]
         np.testing.assert_allclose(rgb[m].mean(0), expected, atol=2)
     assert json.loads(path.with_suffix(".json").read_text())["real_dirs"] == ["photos"]
+    cluttered, clean = c["syn_y"][0::2], c["syn_y"][1::2]
+    assert np.isin(cluttered, [6, 7, 8]).sum() == 3 * (1 + 5 + 64)
+    assert not np.isin(clean, [6, 7, 8]).any()                        # the twins: empty masks
+    np.testing.assert_array_equal(clean == dpt_data.STATIC_UNKNOWN, np.isin(cluttered, [6, 7, 8]))
+    np.testing.assert_allclose(c["syn_inv"][1::2].astype(np.float32), 0.25)   # the clean depth, 4
 
 
 def test_batches_mix_synthetic_pasted_and_empty_real_frames(cache):
@@ -113,8 +122,8 @@ def test_batches_mix_synthetic_pasted_and_empty_real_frames(cache):
     assert set(kinds.tolist()) == {0, 1, 2}
     assert np.array_equal(b["has_depth"], kinds == 0)
     real = kinds > 0
-    assert np.all(b["y"][kinds == 0] < dpt_data.NUM_CLASSES)             # synthetic: every class known
-    assert np.all(b["inv"][kinds == 0] == pytest.approx(0.5))            # 1 / depth 2
+    assert np.all(b["y"][kinds == 0] <= dpt_data.STATIC_UNKNOWN)
+    assert np.isin(b["inv"][kinds == 0], np.float32([0.5, 0.25])).all()   # 1 / depth 2, the clean twins' 1 / 4
     empty = b["y"][kinds == 2]
     assert np.all(empty == dpt_data.STATIC_UNKNOWN)                        # empty masks on static photos
     pasted = b["y"][kinds == 1]
@@ -154,7 +163,7 @@ def test_tiny_training_run_writes_weights_that_mask_uses(cache, tmp_path, monkey
                                "--max-side", "32", "--val-frames", "6", "--val-every", "0", "--workers", "1",
                                "--out", str(out), "--log-dir", str(logs)]) == 0
     result = json.loads((logs / "train_log.json").read_text())
-    assert result["steps"] == 30 and result["cache"] == {"synthetic": 3, "real": 2, "sprites": 9}
+    assert result["steps"] == 30 and result["cache"] == {"synthetic": 6, "real": 2, "sprites": 9}
     assert result["log"] and all(np.isfinite(r["loss"]) for r in result["log"])
     assert (logs / "loss_curve.png").stat().st_size > 0 and (logs / "train.log").read_text()
     model = dpt.load_pretrained(out)
