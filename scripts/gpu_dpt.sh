@@ -23,6 +23,6 @@ VAL=()
 timeout "${TIMEOUT_S:-540}" python3 -m experiments.train_dpt_mix --cache "${CACHE_DIR:-.dpt_cache}/train.npz" "${VAL[@]}" \
   --arch "${ARCH:-base-like}" --max-side "${MAX_SIDE:-160}" --minutes "${MINUTES:-6}" --steps "${STEPS:-20000}" \
   --batch "${BATCH:-32}" --lr "${LR:-1e-3}" --workers "${WORKERS:-12}" --val-every "${VAL_EVERY:-30}" \
-  --out "$OUT/dpt_builtin" --log-dir "$OUT" 2>&1 | grep -v "^E.*slow_operation_alarm"
+  --out "$OUT/dpt_builtin" --log-dir "$OUT" 2>&1 | grep --line-buffered -v "slow_operation_alarm"
 echo "gpu_dpt.sh: exit ${PIPESTATUS[0]}"
 ls -la "$OUT" "$OUT/dpt_builtin"
