@@ -34,6 +34,7 @@ from jaxnerf_grid.foreground import SYNTHETIC_DYNAMIC
 NUM_CLASSES = 9
 STATIC_UNKNOWN = 9           # label of a real photo's pixels: static, class unknown (no class loss, only "not dynamic")
 DYNAMIC = tuple(sorted(SYNTHETIC_DYNAMIC))   # (6 person, 7 vehicle, 8 bird)
+assert DYNAMIC == tuple(range(DYNAMIC[0], DYNAMIC[-1] + 1)), "paste counts coverage by an id range"
 PHOTO_SUFFIXES = (".jpg", ".jpeg", ".png")
 # Shares of a batch: synthetic frames, real photos with pasted sprites, real photos left empty.
 MIX = (0.55, 0.3, 0.15)
@@ -204,7 +205,7 @@ def paste(image: np.ndarray, labels: np.ndarray, sprites: list[tuple], rng: np.r
         y, x = int(rng.integers(0, h - sh + 1)), int(rng.integers(0, w - sw + 1))
         image[y:y + sh, x:x + sw][m] = rgb[m]
         region = labels[y:y + sh, x:x + sw]
-        covered += int(np.sum(m & ~np.isin(region, DYNAMIC)))
+        covered += int(np.sum(m & ((region < DYNAMIC[0]) | (region > DYNAMIC[-1]))))   # DYNAMIC: consecutive ids
         region[m] = cls
 
 
