@@ -372,7 +372,8 @@ def main(argv=None) -> int:
         f"{skipped} logged steps non-finite; best val IoU {best['iou']:.3f} at step {best['step']}")
 
     reloaded = dpt.load_pretrained(args.out)   # score exactly what ships (float16)
-    final = val_scores(reloaded.params, reloaded.config, val)
+    as_f32 = jax.tree_util.tree_map(lambda v: jnp.asarray(v, jnp.float32), reloaded.params)   # the compiled dtypes
+    final = val_scores(as_f32, reloaded.config, val)
     size_bytes = sum(f.stat().st_size for f in Path(args.out).iterdir())
     say(f"saved {args.out} ({size_bytes / 1e6:.2f} MB): val IoU {final['iou'] or 0:.3f} (float16 weights)")
     result = {"settings": {k: v for k, v in vars(args).items()}, "devices": [str(d) for d in jax.devices()],
