@@ -205,16 +205,18 @@ def check_weights(cfg, ds) -> None:
         raise DataError(f"{ds.root}: every training pixel has loss weight 0 (check the masks / weights)")
 
 
-def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0):
+def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0, uint8_images: bool = False):
     """The dataset of a folder (formats.load_dataset; `max_side`: its working resolution,
     data/working.py, 0 = full size), after finishing any `mask` run that was killed while
     swapping its new masks in (masking.recover), so the masks are one set, and any `poses` run
-    killed while swapping a new dataset in (data.poses.recover)."""
+    killed while swapping a new dataset in (data.poses.recover). uint8_images: images as uint8
+    (value / 255), what training holds (ray_pool)."""
     if Path(path).is_dir():
         poses.recover(path)
         masking.recover(path)
 
-    return formats.load_dataset(path, downscale=downscale, progress=progress, max_side=max_side)
+    return formats.load_dataset(path, downscale=downscale, progress=progress, max_side=max_side,
+                                uint8_images=uint8_images)
 
 
 def _with_steps(overrides: dict | None, steps: int | None) -> dict:
@@ -301,8 +303,9 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
     config_lib.check_value("run.progress_page", progress_page, int, config_lib.NONNEGATIVE)
     cfg = make_config(method, _with_steps(overrides, steps))
     side = cfg.train.max_side  # the working resolution (data/working.py)
+    # training holds the frames as 8 bits (ray_pool): loaded so, they reach the devices without a copy
     ds = working_dataset(dataset, side) if dataset is not None else load_dataset(data, progress=progress,
-                                                                                 max_side=side)
+                                                                                 max_side=side, uint8_images=True)
     cfg = dataclasses.replace(config_lib.resolve(cfg, ds, bounds=False), data=str(Path(data).resolve()))
     check_run(cfg, ds)
     wanted = run_config_dict(cfg)
