@@ -102,7 +102,7 @@ def check_size(pixels: int, root) -> None:
                         f"{MAX_PIXELS:,}: lower train.max_side or train on fewer photos")
 
 
-def _store_frames(images: np.ndarray, frames: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def _store_frames(images: np.ndarray, frames: np.ndarray, root) -> tuple[np.ndarray, np.ndarray]:
     """(frame rows [F, stride] uint8, store index [T] of `frames` in them): the dataset's own
     buffer when it is a `working.frame_buffer`, else a new one holding the frames (quantised)."""
     rows = working.frame_rows(images)
@@ -134,7 +134,7 @@ def make_pool(images: np.ndarray, frames: np.ndarray, weights_of, c2w: np.ndarra
     if working.frame_stride(h, w) > MAX_PIXELS:
         raise DataError(f"{root}: frames of {w}x{h} are too large for 32-bit pixel offsets")
     check_size(frames.size * h * w, root)
-    rows, store = _store_frames(images, frames)
+    rows, store = _store_frames(images, frames, root)
     pool = {"rows": rows, "store": store, "frame": np.asarray(image_index, np.int32),
             "c2w": np.asarray(c2w, np.float32), "intrinsics": np.asarray(intrinsics, np.float32),
             "grid": np.zeros((h, w, 0), np.uint8), "near": float(near), "far": float(far),

@@ -394,8 +394,8 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress:
             continue
         fill = {"clean_images": None, "depth": np.nan, "semantics": SEMANTIC_UNKNOWN,
                 "distractor_masks": 0, "masks": 0.0, "weights": 1.0}[name]
-        out[name] = np.stack([(working.as_float(out["images"][j]) if name == "clean_images" else np.full((hh, ww), fill))
-                              if v is None else v for j, v in enumerate(values)])
+        out[name] = np.stack([(working.as_float(out["images"][j]) if name == "clean_images"
+                               else np.full((hh, ww), fill)) if v is None else v for j, v in enumerate(values)])
     if out["masks"] is not None:
         out["masks"] = (out["masks"] > 0.5).astype(np.float32)
     if out["distractor_masks"] is not None:
