@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid import config as config_lib, distributed, folders, io, masking, progress as progress_lib, train, views
-from jaxnerf_grid import progress_page as progress_page_lib
+from jaxnerf_grid import progress_page as progress_page_lib, ray_pool
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data import formats, poses
 from jaxnerf_grid.data.formats import working_dataset
@@ -201,7 +201,12 @@ def check_weights(cfg, ds) -> None:
     train_ids = np.asarray(ds.split["train"], np.int64)
     if train_ids.size == 0:
         raise DataError(f"{ds.root}: the dataset has no training frames")
-    if cfg.train.robust == "off" and not np.any(train.loss_weights(ds, cfg.train)[train_ids] > 0):
+    t = cfg.train
+    if t.robust != "off" or not t.use_masks or ds.weights is None:
+        return  # every pixel has weight 1 (or the evidence sets the weights)
+    # frame by frame: the weights of every frame at once are 4 bytes a pixel
+    if not any(np.any(ray_pool.frame_weights(ds.weights[f], None if ds.masks is None else ds.masks[f], True,
+                                             t.mask_weight_floor, (ds.height, ds.width)) > 0) for f in train_ids):
         raise DataError(f"{ds.root}: every training pixel has loss weight 0 (check the masks / weights)")
 
 
