@@ -4,11 +4,14 @@ The run config (`RunConfig` = model + train) is made by `run_config.make_config`
 defaults with overrides merged on top) and settled on the dataset by `config.resolve` inside `train`.
 
 Training step (one `jax.pmap` over the local devices, axis "batch"):
-  * the ray pool (every training pixel with loss weight > 0, as flat pixel ids, plus the
-    images, weights and cameras) is uploaded once to every device;
+  * the ray pool (ray_pool.py: every training pixel with loss weight > 0; the frames as 8 bits,
+    split over the devices, each holding 1/n of them) is uploaded once;
   * from the state's PRNG key each device draws the same *global* batch of `batch_rays`
-    pixel ids (uniform, with replacement) and per-ray keys, and takes its own slice, so the
-    global batch does not depend on the device count;
+    pixel ids (uniform, with replacement) and per-ray keys; the devices holding the rays'
+    frames look the pixels up, one psum gives every device the whole batch, and each takes its
+    own slice, so the global batch does not depend on the device count;
+  * the host reads a step's finite flag when the loss is logged (or after MAX_UNREAD steps),
+    not after every step, so it can queue the next steps meanwhile;
   * per-device loss = sum_r w_r l_r / W with W the psum of the weights over the global batch
     (losses.weighted_mean), gradients psum-ed over devices (= the gradient of the global
     loss), then `optim.guarded_apply` (jaxopt's OptaxSolver update with clipping inside Adam)
@@ -97,7 +100,8 @@ def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
 
 
 def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
-    """Training data for on-device batch drawing (host NumPy arrays).
+    """Training data for on-device batch drawing (host NumPy arrays, float32): the robust step's
+    pool, and the reference the plain step's 8-bit pool (ray_pool.py) is tested against.
 
     Returns {"pixels": [P] int32 flat ids (frame-in-train * H*W + row * W + col) of every
     training pixel with weight > 0, "images": [T, H, W, 3], "weights": [T, H, W],
