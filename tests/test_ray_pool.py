@@ -145,3 +145,8 @@ def test_uint8_loading_matches_the_float_load_of_8bit_photos(tmp_path):
     bytes_ = formats.load_dataset(tmp_path / "data", progress=False, uint8_images=True)
     assert bytes_.images.dtype == np.uint8 and working.frame_rows(bytes_.images) is not None
     np.testing.assert_array_equal(working.as_float(bytes_.images), floats.images)
+    # resized working frames (16 x 12 -> 8 x 6, 2 x 2 means) are rounded to the nearest byte
+    small = formats.load_dataset(tmp_path / "data", progress=False, max_side=8, cache=False)
+    small_bytes = formats.load_dataset(tmp_path / "data", progress=False, max_side=8, cache=False, uint8_images=True)
+    error = np.abs(working.as_float(small_bytes.images) - small.images)
+    assert small.images.shape == (4, 6, 8, 3) and 0 < error.max() <= 0.5 / 255 + 1e-6
