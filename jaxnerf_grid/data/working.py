@@ -117,3 +117,74 @@ def store_entry(path: Path, native_size, native_intrinsics, frame: dict) -> bool
     except (OSError, io.DataError):  # a full disk or read-only cache (io.atomic_path names it): no cache
         return False
     return True
+
+
+# ------------------------------------------------------------------------------------ 8-bit frames
+# A capture's working frames are held as uint8 (1 byte a channel: a 20 MP capture's frames at
+# --max-side 1600 are 1.5 GB instead of 6 GB as float32) in one buffer laid out so that the
+# training pool can hand whole groups of frames to the devices without copying them
+# (`frame_rows`): every frame starts on a FRAME_ALIGN-byte boundary (XLA's CPU client then
+# aliases the host memory instead of copying it) and FRAME_SPARE frames of zeros follow the last,
+# so n * ceil(N / n) frames exist for any device count n dividing FRAME_SPARE + 1.
+
+FRAME_ALIGN = 64
+FRAME_SPARE = 7
+
+
+def frame_stride(height: int, width: int) -> int:
+    """Bytes from one frame's start to the next in a frame buffer: H * W * 3 rounded up to FRAME_ALIGN."""
+    return -(-int(height) * int(width) * 3 // FRAME_ALIGN) * FRAME_ALIGN
+
+
+def _aligned_zeros(nbytes: int) -> np.ndarray:
+    """[nbytes] uint8 zeros starting on a FRAME_ALIGN boundary (a view of a slightly larger owner)."""
+    owner = np.zeros(nbytes + FRAME_ALIGN, np.uint8)
+    start = (-owner.ctypes.data) % FRAME_ALIGN
+    return owner[start:start + nbytes]
+
+
+def frame_buffer(frames: int, height: int, width: int) -> np.ndarray:
+    """Zeroed uint8 images [frames, H, W, 3], each frame FRAME_ALIGN-aligned, with FRAME_SPARE spare
+    zero frames after the last in the same buffer (`frame_rows` finds them)."""
+    stride = frame_stride(height, width)
+    rows = _aligned_zeros((int(frames) + FRAME_SPARE) * stride).reshape(-1, stride)
+    return rows[:int(frames), :height * width * 3].reshape(int(frames), height, width, 3)
+
+
+def frame_rows(images: np.ndarray) -> np.ndarray | None:
+    """The buffer of a `frame_buffer` array as [F, stride] uint8 rows, one per frame (F >= N: the
+    spare frames included), sharing its memory; None for any other array (then a copy is needed).
+    images: [N, H, W, 3] uint8."""
+    if not isinstance(images, np.ndarray) or images.dtype != np.uint8 or images.ndim != 4:
+        return None
+    n, h, w, _ = images.shape
+    stride = frame_stride(h, w)
+    base = images.base
+    while isinstance(base, np.ndarray) and base.base is not None and base.ndim != 1:
+        base = base.base
+    if (not isinstance(base, np.ndarray) or base.ndim != 1 or base.dtype != np.uint8
+            or images.strides != (stride, w * 3, 3, 1) or images.ctypes.data % FRAME_ALIGN):
+        return None
+    offset = images.ctypes.data - base.ctypes.data
+    if offset < 0 or (base.size - offset) < n * stride:
+        return None
+    rows = (base.size - offset) // stride
+    return base[offset:offset + rows * stride].reshape(rows, stride)
+
+
+def to_uint8(images: np.ndarray) -> np.ndarray:
+    """Float images in [0, 1] as uint8 (round(255 x), clipped); exact for values k / 255 (8-bit
+    photos at their native size), within 0.5 / 255 for resized ones. [...] -> [...] uint8."""
+    images = np.asarray(images)
+    if images.dtype == np.uint8:
+        return images
+    return np.clip(np.rint(np.asarray(images, np.float32) * 255.0), 0, 255).astype(np.uint8)
+
+
+def as_float(images: np.ndarray) -> np.ndarray:
+    """Images as float32 in [0, 1]: uint8 ones divided by 255 (the same float32 operation as
+    io.read_image, so an 8-bit photo's values are bit-identical), others as float32."""
+    images = np.asarray(images)
+    if images.dtype == np.uint8:
+        return images.astype(np.float32) / 255.0
+    return images.astype(np.float32, copy=False)

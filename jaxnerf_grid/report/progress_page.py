@@ -15,6 +15,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxnerf_grid.data import working
 from jaxnerf_grid.render import views
 from jaxnerf_grid.report import html as report_html
 from jaxnerf_grid.train import checkpoint
@@ -87,7 +88,7 @@ def watcher(run_dir, ds, cfg, every: int):
         if checkpoint.latest_checkpoint(run_dir) is not None:
             params, saved = train.load_params(run_dir, cfg, ds)
             rendered = views.render_view(params, cfg, ds, index)
-            view = {"name": f"view {index}", "gt": np.asarray(targets[index], np.float32),
+            view = {"name": f"view {index}", "gt": working.as_float(targets[index]),
                     "rgb": np.clip(rendered["rgb"], 0, 1), "depth": rendered["depth"], "step": saved}
         write_progress_page(run_dir, train.read_log(run_dir / "metrics.jsonl"), step, view,
                             time.perf_counter() - start)

@@ -4,11 +4,14 @@ The run config (`RunConfig` = model + train) is made by `run_config.make_config`
 defaults with overrides merged on top) and settled on the dataset by `config.resolve` inside `train`.
 
 Training step (one `jax.pmap` over the local devices, axis "batch"):
-  * the ray pool (every training pixel with loss weight > 0, as flat pixel ids, plus the
-    images, weights and cameras) is uploaded once to every device;
+  * the ray pool (ray_pool.py: every training pixel with loss weight > 0; the frames as 8 bits,
+    split over the devices, each holding 1/n of them) is uploaded once;
   * from the state's PRNG key each device draws the same *global* batch of `batch_rays`
-    pixel ids (uniform, with replacement) and per-ray keys, and takes its own slice, so the
-    global batch does not depend on the device count;
+    pixel ids (uniform, with replacement) and per-ray keys; the devices holding the rays'
+    frames look the pixels up, one psum gives every device the whole batch, and each takes its
+    own slice, so the global batch does not depend on the device count;
+  * the host reads a step's finite flag when the loss is logged (or after MAX_UNREAD steps),
+    not after every step, so it can queue the next steps meanwhile;
   * per-device loss = sum_r w_r l_r / W with W the psum of the weights over the global batch
     (losses.weighted_mean), gradients psum-ed over devices (= the gradient of the global
     loss), then `optim.guarded_apply` (jaxopt's OptaxSolver update with clipping inside Adam)
@@ -54,12 +57,13 @@ from jaxnerf_grid.config.run_config import (  # noqa: F401
     scattered_rays,
 )
 from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.data import working
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.masks import photo_consistency
 from jaxnerf_grid.masks import robust as robust_lib
 from jaxnerf_grid.nerf import fields, losses, models
 from jaxnerf_grid.nerf import rays as rays_lib
-from jaxnerf_grid.train import checkpoint, distributed, optim, refine
+from jaxnerf_grid.train import checkpoint, distributed, optim, ray_pool, refine
 from jaxnerf_grid.util import io, parallel
 from jaxnerf_grid.util import progress as progress_lib
 from jaxnerf_grid.util.io import DataError
@@ -72,14 +76,10 @@ AXIS = parallel.AXIS
 
 
 def loss_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
-    """Per-pixel loss weights of every frame. Returns [N, H, W] float32 in [0, 1]."""
-    shape = dataset.images.shape[:3]
-    if not cfg.use_masks or dataset.weights is None:
-        return np.ones(shape, np.float32)
-    w = np.clip(np.asarray(dataset.weights, np.float32), 0.0, 1.0)
-    if cfg.mask_weight_floor > 0 and dataset.masks is not None:
-        w = np.where(dataset.masks > 0.5, np.minimum(w, 1.0 - cfg.mask_weight_floor), w)
-    return w.astype(np.float32)
+    """Per-pixel loss weights of every frame (`ray_pool.frame_weights` of each). Returns [N, H, W]
+    float32 in [0, 1]."""
+    return ray_pool.frame_weights(dataset.weights, dataset.masks, cfg.use_masks, cfg.mask_weight_floor,
+                                  dataset.images.shape[:3])
 
 
 def grown_masks(masks: np.ndarray, pixels: int) -> np.ndarray:
@@ -111,7 +111,8 @@ def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
 
 
 def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
-    """Training data for on-device batch drawing (host NumPy arrays).
+    """Training data for on-device batch drawing (host NumPy arrays, float32): the robust step's
+    pool, and the reference the plain step's 8-bit pool (ray_pool.py) is tested against.
 
     Returns {"pixels": [P] int32 flat ids (frame-in-train * H*W + row * W + col) of every
     training pixel with weight > 0, "images": [T, H, W, 3], "weights": [T, H, W],
@@ -133,7 +134,7 @@ def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     if not 0 < near < far:
         raise ConfigError(f"near/far: need 0 < near < far, got {near}, {far}")
     c2w = np.asarray(dataset.c2w[train_ids], np.float32)
-    pool = {"pixels": pixels, "images": np.asarray(dataset.images[train_ids], np.float32),
+    pool = {"pixels": pixels, "images": working.as_float(dataset.images[train_ids]),
             "weights": weights, "c2w": c2w, "intrinsics": np.asarray(dataset.intrinsics[train_ids], np.float32),
             "frame": train_ids.astype(np.int32), "near": near, "far": far}
     if robust_on and cfg.train.robust_confirm > 0:
@@ -219,6 +220,7 @@ def make_train_step(cfg: RunConfig, num_devices: int):
 @functools.lru_cache(maxsize=8)
 def _make_train_step(cfg: RunConfig, num_devices: int):
     """The pmapped step: (state [n, ...], pool [n, ...]) -> (state, stats {loss, mse, finite}).
+    The pool: `ray_pool.upload` of a `ray_pool` pool (train.robust off), else of `build_pool`'s.
 
     Cached per (config, device count), so runs with the same config share one compilation.
     """
@@ -232,12 +234,10 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
 
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
-        ids = jax.random.randint(k_batch, (tcfg.batch_rays,), 0, pool["pixels"].shape[0])
+        batch = ray_pool.device_batch(pool, k_batch, tcfg.batch_rays, per_device, AXIS)
         ray_keys = jax.random.split(k_rays, tcfg.batch_rays)
         start = jax.lax.axis_index(AXIS) * per_device
-        ids = jax.lax.dynamic_slice_in_dim(ids, start, per_device)
         ray_keys = jax.lax.dynamic_slice_in_dim(ray_keys, start, per_device)
-        batch = gather_batch(pool, pool["pixels"][ids])
         total = jax.lax.psum(jnp.sum(batch["weight"]), AXIS)
 
         def loss_fn(params):
@@ -455,6 +455,19 @@ def _run_step(p_step, state_r, pool, step: int):
             f"{str(err).splitlines()[0][:300]})") from err
 
 
+MAX_UNREAD = 64  # steps whose finite flag may wait unread (bounds what the host keeps)
+
+
+def _read_finite(unread: list, skipped: list) -> None:
+    """Reads the finite flags of the steps in `unread` ((step, finite [n], loss [n]), emptied),
+    appending each non-finite step to `skipped` and logging it (optim.log_nonfinite)."""
+    for step, finite, loss in unread:
+        if not bool(finite[0]):
+            skipped.append(step)
+            optim.log_nonfinite(step, loss[0])
+    unread.clear()
+
+
 def _freeze_evidence(state_r, pool_host: dict, dataset: Dataset, frozen_cfg: RunConfig, n: int, progress: bool):
     """train.robust_refine's switch (refine.py): judges the evidence on every training frame with
     the current parameters, puts the weights in the state's robust_record, and returns (state
@@ -463,7 +476,7 @@ def _freeze_evidence(state_r, pool_host: dict, dataset: Dataset, frozen_cfg: Run
     state = parallel.unreplicate(state_r)
     weights = refine.judge_frames(state["params"], frozen_cfg, dataset, pool_host, progress)
     state["robust_record"] = weights
-    pool = parallel.replicate(refine.frozen_pool(pool_host, weights), n)
+    pool = ray_pool.upload(ray_pool.from_host_pool(refine.frozen_pool(pool_host, weights), dataset.root), n)
     return parallel.replicate(state, n), pool, make_train_step(frozen_cfg, n), float(np.mean(weights))
 
 
@@ -495,7 +508,10 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     cfg = config_lib.resolve(cfg, dataset)
     mcfg, tcfg = cfg.model, cfg.train
     n = step_devices(tcfg)
-    pool_host = build_pool(dataset, cfg)
+    robust_on = tcfg.robust != "off"
+    # the robust step draws patches over replicated float32 frames (build_pool); the plain step
+    # its rays from 8-bit frames split over the devices (ray_pool)
+    pool_host = build_pool(dataset, cfg) if robust_on else ray_pool.build(dataset, cfg)
     state = init_state(cfg, train_frames_shape(dataset))
     step = 0
     main = distributed.is_main()  # process 0 (always, in one process) writes logs and checkpoints
@@ -514,15 +530,21 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     frozen_cfg = dataclasses.replace(cfg, train=dataclasses.replace(tcfg, robust="off"))
     frozen_mean = None  # the frozen weights' mean, once the evidence is frozen (train.robust_refine)
     if refine_at is not None and step > refine_at:  # resumed after the evidence was frozen: its record holds it
-        pool_host = refine.frozen_pool(pool_host, state["robust_record"])
-        frozen_mean = float(np.mean(pool_host["weights"]))
-    pool = parallel.replicate(pool_host, n)
+        frozen = refine.frozen_pool(pool_host, state["robust_record"])
+        frozen_mean = float(np.mean(frozen["weights"]))
+        pool = ray_pool.upload(ray_pool.from_host_pool(frozen, dataset.root), n)
+    elif robust_on:
+        pool = parallel.replicate(pool_host, n)
+    else:
+        pool = ray_pool.upload(pool_host, n)
+        pool_host = None  # the devices hold the frames now (on CPU the very same memory)
     state_r = parallel.replicate(state, n)
     p_step = make_train_step(cfg if frozen_mean is None else frozen_cfg, n)
     end = min(tcfg.max_steps, stop_at if stop_at is not None else tcfg.max_steps)
     first_step = step
     schedule = optim.make_lr_schedule(tcfg.lr_init, tcfg.lr_final, tcfg.warmup, tcfg.max_steps)
     skipped: list[int] = []
+    unread: list = []  # (step, finite [n], loss [n]) of the steps whose finite flag is not read yet
     # a run already at its last step trains no step: report its last logged loss and PSNR
     last_loss = float((last_record or {}).get("loss", float("nan")))
     last_psnr = float((last_record or {}).get("psnr", float("nan")))
@@ -541,9 +563,11 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
             state_r, stats = _run_step(p_step, state_r, pool, step)
             step += 1
             window_steps += 1
-            if not bool(stats["finite"][0]):
-                skipped.append(step)
-                optim.log_nonfinite(step, stats["loss"][0])
+            # the finite flags are read when the loss is logged, not after every step (a read
+            # waits for the step, and the host then cannot queue the next one meanwhile)
+            unread.append((step, stats["finite"], stats["loss"]))
+            if step % tcfg.log_every == 0 or step == end or len(unread) >= MAX_UNREAD:
+                _read_finite(unread, skipped)
             if step % tcfg.log_every == 0 or step == end:
                 last_loss = float(stats["loss"][0])
                 last_psnr = float(losses.mse_to_psnr(stats["mse"][0]))
@@ -565,12 +589,14 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
             if bar is not None:
                 bar.update(1)
             if (step % tcfg.checkpoint_every == 0 or step == end) and main:
+                _read_finite(unread, skipped)
                 checkpoint.save_checkpoint(run_dir, step, parallel.unreplicate(state_r), keep=tcfg.keep_checkpoints)
             if on_step is not None:
                 on_step(step)
     finally:
         if bar is not None:
             bar.close()
+    _read_finite(unread, skipped)
     final = parallel.unreplicate(state_r)
     if "robust_record" in final and main:
         write_robust_record(run_dir, dataset, final["robust_record"])

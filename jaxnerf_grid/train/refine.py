@@ -27,6 +27,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxnerf_grid.config.run_config import RunConfig
+from jaxnerf_grid.data import working
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.masks import photo_consistency
 from jaxnerf_grid.masks import robust as robust_lib
@@ -46,7 +47,7 @@ def render_training_frames(params, cfg: RunConfig, dataset: Dataset, frames: np.
                              leave=False) if progress else frames
     for frame in items:
         view = views.render_view(params, cfg, dataset, int(frame))
-        photo = np.asarray(dataset.images[int(frame)], np.float32)
+        photo = working.as_float(dataset.images[int(frame)])
         residuals.append(np.mean((np.clip(view["rgb"], 0.0, 1.0) - photo) ** 2, axis=-1))
         r = views.camera_rays(dataset, int(frame), 1.0, 2.0)
         distance = view["depth"] / np.asarray(r.cos_to_axis)  # z-depth -> distance along the unit ray

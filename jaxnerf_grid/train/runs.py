@@ -41,7 +41,7 @@ from jaxnerf_grid.masks import write as masking
 from jaxnerf_grid.nerf.samplers.legacy import upgrade_flat_model
 from jaxnerf_grid.render import views
 from jaxnerf_grid.report import progress_page as progress_page_lib
-from jaxnerf_grid.train import distributed
+from jaxnerf_grid.train import distributed, ray_pool
 from jaxnerf_grid.train import loop as train
 from jaxnerf_grid.util import folders, io
 from jaxnerf_grid.util import progress as progress_lib
@@ -183,20 +183,27 @@ def check_weights(cfg, ds) -> None:
     train_ids = np.asarray(ds.split["train"], np.int64)
     if train_ids.size == 0:
         raise DataError(f"{ds.root}: the dataset has no training frames")
-    if cfg.train.robust == "off" and not np.any(train.loss_weights(ds, cfg.train)[train_ids] > 0):
+    t = cfg.train
+    if t.robust != "off" or not t.use_masks or ds.weights is None:
+        return  # every pixel has weight 1 (or the evidence sets the weights)
+    # frame by frame: the weights of every frame at once are 4 bytes a pixel
+    if not any(np.any(ray_pool.frame_weights(ds.weights[f], None if ds.masks is None else ds.masks[f], True,
+                                             t.mask_weight_floor, (ds.height, ds.width)) > 0) for f in train_ids):
         raise DataError(f"{ds.root}: every training pixel has loss weight 0 (check the masks / weights)")
 
 
-def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0):
+def load_dataset(path, downscale: float = 1, progress: bool = True, max_side: int = 0, uint8_images: bool = False):
     """The dataset of a folder (formats.load_dataset; `max_side`: its working resolution,
     data/working.py, 0 = full size), after finishing any `mask` run that was killed while
     swapping its new masks in (masking.recover), so the masks are one set, and any `poses` run
-    killed while swapping a new dataset in (data.poses.recover)."""
+    killed while swapping a new dataset in (data.poses.recover). uint8_images: images as uint8
+    (value / 255), what training holds (ray_pool)."""
     if Path(path).is_dir():
         poses.recover(path)
         masking.recover(path)
 
-    return formats.load_dataset(path, downscale=downscale, progress=progress, max_side=max_side)
+    return formats.load_dataset(path, downscale=downscale, progress=progress, max_side=max_side,
+                                uint8_images=uint8_images)
 
 
 def _without(d: dict, key: str) -> dict:
@@ -273,8 +280,9 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
     config_lib.check_value("run.progress_page", progress_page, int, config_lib.NONNEGATIVE)
     cfg = make_config(method, build.with_steps(overrides, steps))
     side = cfg.train.max_side  # the working resolution (data/working.py)
+    # training holds the frames as 8 bits (ray_pool): loaded so, they reach the devices without a copy
     ds = working_dataset(dataset, side) if dataset is not None else load_dataset(data, progress=progress,
-                                                                                 max_side=side)
+                                                                                 max_side=side, uint8_images=True)
     cfg = dataclasses.replace(config_lib.resolve(cfg, ds, bounds=False), data=str(Path(data).resolve()))
     check_run(cfg, ds)
     wanted = run_config_dict(cfg)

@@ -128,7 +128,7 @@ def test_grid_proposal_run_resumes_exactly(tmp_path):
 
 def test_non_finite_steps_are_skipped_and_logged(tmp_path, caplog):
     ds = tiny_dataset()
-    ds.images[:] = np.nan
+    ds.intrinsics[:] = np.nan  # every ray non-finite (8-bit training frames cannot hold a NaN)
     cfg = tiny_config()
     before = train.init_state(dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=5)))
     with caplog.at_level("WARNING"):

@@ -128,18 +128,20 @@ def collect_scene(path, *, load_extras: bool = True, **kwargs) -> Scene:
 
 
 def load_dataset(path, split: str | None = None, *, downscale: float = 1, load_extras: bool = True,
-                 progress: bool = True, max_side: int = 0, cache: bool = True, **kwargs) -> Dataset:
+                 progress: bool = True, max_side: int = 0, cache: bool = True, uint8_images: bool = False,
+                 **kwargs) -> Dataset:
     """Loads any supported dataset (autodetected, see `detect_format`).
 
     max_side: the working resolution's budget (data/working.py: the long side at most max_side
     px, an integer downscale factor; 0 = full size), or `downscale` to divide the size; cache:
-    keep the resized frames in the dataset's cache (working.py).
+    keep the resized frames in the dataset's cache (working.py); uint8_images: images as uint8
+    (value / 255; working.frame_buffer), what training holds.
     split: None (all frames, `Dataset.split` says which are which) or a split name, which
     returns only those frames (`Dataset.subset`). Other keyword arguments go to the loader.
     """
     scene = collect_scene(path, load_extras=load_extras, **kwargs)
     ds = scene_to_dataset(scene, downscale=downscale, load_extras=load_extras, progress=progress,
-                          max_side=max_side, cache=cache)
+                          max_side=max_side, cache=cache, uint8_images=uint8_images)
     if split is None:
         return ds
     if split not in ds.split or len(ds.split[split]) == 0:

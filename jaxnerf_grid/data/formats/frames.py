@@ -358,13 +358,17 @@ def read_resized_frame(scene: Scene, index: int, load_extras: bool, *, downscale
 
 
 def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress: bool = True,
-                 max_side: int = 0, cache: bool = True) -> dict:
+                 max_side: int = 0, cache: bool = True, uint8_images: bool = False) -> dict:
     """Reads every frame, checks they share one size, downscales (by `downscale`, or to the
-    working resolution of `max_side`, read_resized_frame). Returns stacked arrays."""
+    working resolution of `max_side`, read_resized_frame). Returns stacked arrays.
+
+    Each frame's image goes into one preallocated array as it is read (float32, or uint8 in a
+    `working.frame_buffer` with `uint8_images`), so at most one full-size photo is in memory."""
     if max_side and downscale != 1:
         raise ValueError(f"give downscale ({downscale}) or max_side ({max_side}), not both")
     frames = scene.frames
     read = []
+    images: Any = None  # [N, H, W, 3], allocated once the first frame's working size is known
     ref: Any = None  # (W, H, path) of the first frame
     for i in progress_lib.bar(range(len(frames)), desc=f"loading {scene.meta.get('format', 'images')}",
                               unit="frame", enabled=progress and len(frames) >= 32, leave=False):
@@ -376,9 +380,14 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress:
             raise DataError(f"{frames[i].image_path}: image is {w}x{h} but {ref[2].name} is "
                             f"{ref[0]}x{ref[1]}; every image of a dataset must have one size "
                             f"(resize them with jaxnerf_grid.data.preprocess first)")
-        read.append(fr)
+        if images is None:
+            hh, ww = fr["image"].shape[:2]
+            images = working.frame_buffer(len(frames), hh, ww) if uint8_images else \
+                np.empty((len(frames), hh, ww, 3), np.float32)
+        images[i] = working.to_uint8(fr["image"]) if uint8_images else fr["image"]
+        read.append(dict(fr, image=None))  # the image lives in `images` only
     scene.meta.pop("_undistort_maps", None)
-    out: dict[str, Any] = {"images": np.stack([f["image"] for f in read]).astype(np.float32),
+    out: dict[str, Any] = {"images": images,
            "intrinsics": np.stack([f["intrinsics"] for f in read]).astype(np.float32),
            "undistorted": any(f["valid"] is not None for f in read), "native_size": ref[:2]}
     n, hh, ww = out["images"].shape[:3]
@@ -389,8 +398,8 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress:
             continue
         fill = {"clean_images": None, "depth": np.nan, "semantics": SEMANTIC_UNKNOWN,
                 "distractor_masks": 0, "masks": 0.0, "weights": 1.0}[name]
-        out[name] = np.stack([(out["images"][j] if name == "clean_images" else np.full((hh, ww), fill))
-                              if v is None else v for j, v in enumerate(values)])
+        out[name] = np.stack([(working.as_float(out["images"][j]) if name == "clean_images"
+                               else np.full((hh, ww), fill)) if v is None else v for j, v in enumerate(values)])
     if out["masks"] is not None:
         out["masks"] = (out["masks"] > 0.5).astype(np.float32)
     if out["distractor_masks"] is not None:
@@ -410,13 +419,15 @@ def _load_frames(scene: Scene, *, downscale: float, load_extras: bool, progress:
 
 
 def scene_to_dataset(scene: Scene, *, downscale: float = 1, load_extras: bool = True,
-                     progress: bool = True, max_side: int = 0, cache: bool = True) -> Dataset:
+                     progress: bool = True, max_side: int = 0, cache: bool = True,
+                     uint8_images: bool = False) -> Dataset:
     """Reads the pixels of a collected scene into a `Dataset` (`progress`: a bar for 32+ frames),
     at the working resolution of `max_side` (0: full size; working.py) or divided by `downscale`;
-    `cache`: keep the resized frames in the dataset's cache (working.py). meta["native_size"] is
-    the photos' (W, H)."""
+    `cache`: keep the resized frames in the dataset's cache (working.py); `uint8_images`: images
+    as uint8 (value / 255) in a `working.frame_buffer`, for training. meta["native_size"] is the
+    photos' (W, H)."""
     arrays = _load_frames(scene, downscale=downscale, load_extras=load_extras, progress=progress,
-                          max_side=max_side, cache=cache)
+                          max_side=max_side, cache=cache, uint8_images=uint8_images)
     paths = []
     for frame in scene.frames:
         try:
