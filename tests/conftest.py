@@ -246,6 +246,7 @@ SLOW = {
     "nerf/test_hashgrid.py::test_every_method_runs_with_the_grid_field",
     "joins/test_join_eval.py::test_a_robust_run_reports_the_weights_training_used",
     "report/test_html.py::test_train_progress_page_is_rewritten_while_training",
+    "report/test_html.py::test_a_grey_model_is_found_in_the_screenshot",  # headless Chromium
     "util/test_folders.py::test_poses_swap_killed_with_sigkill_is_finished_by_recover",
     "experiments_and_benchmarks/test_experiments.py::test_machinery_end_to_end",
     "experiments_and_benchmarks/test_experiments.py::test_throughput_times_a_case_with_and_without_computed_once",
