@@ -215,6 +215,7 @@ SLOW_FIXTURES = {
     "capture/test_poses.py": {"orbit_run", "per_photo_run", "sequential_run"},
     "cli/test_bad_input.py": {"scene"},
     "cli/test_hostile_corpus.py": {"scene"},
+    "data/test_synthetic_scene.py": {"tiny"},
     "data/test_working_resolution.py": {"small_run"},
     "export/test_export.py": {"tiny_run"},
     "export/test_geoid.py": {"exports"},
@@ -234,9 +235,23 @@ SLOW = {
     "train/test_loop.py::test_sparse_adam_leaves_untouched_table_rows_where_dense_adam_moves_them",
     "train/test_loop.py::test_grid_proposal_run_resumes_exactly",
     "train/test_loop.py::test_training_learns_and_chunked_render_is_consistent",
+    "train/test_loop.py::test_non_finite_steps_are_skipped_and_logged",
+    "train/test_refine.py::test_refine_two_devices_match_one_and_the_record_holds_the_frozen_weights",
+    "train/test_refine.py::test_refine_resumes_exactly_on_either_side_of_the_switch",
     "masks/test_dpt_parity.py::test_parity_with_transformers",
+    "masks/test_dpt_parity.py::test_auxiliary_head_and_patch16_resolution",
+    "masks/test_dpt_parity.py::test_depth_head_with_projection",
+    "masks/test_mask_domain.py::test_rule_fires_on_photos_unlike_the_builtin_models_training_data",
+    "masks/test_mask_domain.py::test_rule_stays_quiet_on_the_synthetic_scenes",
+    "nerf/test_hashgrid.py::test_every_method_runs_with_the_grid_field",
+    "joins/test_join_eval.py::test_a_robust_run_reports_the_weights_training_used",
+    "report/test_html.py::test_train_progress_page_is_rewritten_while_training",
+    "report/test_html.py::test_a_grey_model_is_found_in_the_screenshot",  # headless Chromium
+    "util/test_folders.py::test_poses_swap_killed_with_sigkill_is_finished_by_recover",
     "experiments_and_benchmarks/test_experiments.py::test_machinery_end_to_end",
     "experiments_and_benchmarks/test_experiments.py::test_throughput_times_a_case_with_and_without_computed_once",
+    "experiments_and_benchmarks/test_experiments.py::test_train_only_trains_the_chosen_runs_and_reads_the_others_from_the_cache",
+    "experiments_and_benchmarks/test_experiments.py::test_recorded_runs_stand_in_for_a_lost_cache",
 }
 
 
