@@ -11,7 +11,6 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from test_train import tiny_config, tiny_dataset
 
 from jaxnerf_grid.data import working
 from jaxnerf_grid.data.dataset import Dataset
@@ -19,6 +18,7 @@ from jaxnerf_grid.train import loop as train
 from jaxnerf_grid.train import ray_pool
 from jaxnerf_grid.util import parallel
 from jaxnerf_grid.util.io import DataError
+from tests.train.test_loop import tiny_config, tiny_dataset
 
 BATCH = 64
 
