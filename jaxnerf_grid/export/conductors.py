@@ -45,6 +45,7 @@ import numpy as np
 DEFAULT_SIGMAS = (1.0,)           # px: the ridge filter's scale (a sub-pixel wire, blurred by lens and pixel)
 DEFAULT_THRESHOLD = 4.0           # detections: response above this many robust scales
 DEFAULT_MIN_LENGTH = 12           # px: shorter thinned pieces are texture, not wires
+PIECE = 32                        # px: the grid the detections are cut on before the straightness test
 DEFAULT_TOL_PX = 1.5              # px: a projection this close to a detection lies on it
 DEFAULT_MIN_SUPPORT = 0.5         # share of the photos seeing a cross-section cell that support it
 DEFAULT_MIN_VIEWS = 6             # photos that must see a cell for it to count
@@ -93,9 +94,10 @@ def detections(response: np.ndarray, threshold: float = DEFAULT_THRESHOLD, floor
     their two neighbours across the ridge, `ridge_normals`: non-maximum suppression), linked by
     hysteresis (`skimage.filters.apply_hysteresis_threshold`: above median + threshold x the
     map's robust scale, 1.4826 MAD and at least `floor`, or above half of that and joined to
-    such), kept in 8-connected pieces that are long and straight (`skimage.measure.regionprops`:
-    major axis >= min_length pixels, minor axis <= max_width_ratio of it): the ground's texture
-    leaves dots and rings, a wire a line."""
+    such), cut on a grid of PIECE pixels and kept in 8-connected pieces that are long and
+    straight (`skimage.measure.regionprops`: major axis >= min_length pixels, minor axis <=
+    max_width_ratio of it): the ground's texture leaves dots and rings, a wire a line (a curved
+    one straight over a piece)."""
     from scipy import ndimage
     from skimage.filters import apply_hysteresis_threshold
     from skimage.measure import label, regionprops
@@ -109,6 +111,8 @@ def detections(response: np.ndarray, threshold: float = DEFAULT_THRESHOLD, floor
     behind = ndimage.map_coordinates(r, [rows - ny, cols - nx], order=1, mode="nearest")
     crest = np.where((r >= ahead) & (r >= behind), r, 0.0)
     lines = apply_hysteresis_threshold(crest, median + 0.5 * threshold * scale, median + threshold * scale)
+    lines[::PIECE, :] = False          # pieces of at most PIECE pixels a side: a curve is straight over that
+    lines[:, ::PIECE] = False
     labels = label(lines, connectivity=2)
     keep = np.zeros(labels.max() + 1, bool)
     for region in regionprops(labels):
@@ -499,7 +503,9 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
         v = fig[k]
         s = None if sig is None else sig[k]
         if np.ndim(v):
-            rec[k] = {"value": [_num(x) for x in v], "sigma": None if s is None else [_num(x) for x in s]}
+            finite = bool(np.all(np.isfinite(v)))
+            rec[k] = {"value": [float(x) for x in v] if finite else None,
+                      "sigma": [_num(x) for x in s] if finite and s is not None else None}
         else:
             rec[k] = {"value": _num(v), "sigma": None if s is None else _num(s)}
     rec.update({"side": int(fit["side"]), "theta": [float(v) for v in theta],
