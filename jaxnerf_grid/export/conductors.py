@@ -51,6 +51,7 @@ DEFAULT_MIN_SUPPORT = 0.5         # share of the photos seeing a cross-section c
 DEFAULT_MIN_VIEWS = 6             # photos that must see a cell for it to count
 DEFAULT_MIN_INLIER_SHARE = 0.5    # share of a fitted span's projections on a detection
 SAMPLES = 100                     # samples along a span in the fit
+BEHIND_PX = 50.0                  # px: the residual of a fixed observation whose point went behind the camera
 
 
 # --- detection --------------------------------------------------------------------------------
@@ -291,13 +292,18 @@ class Views:
         self.index = np.stack(index)
         self.has = self.masks.reshape(len(self.masks), -1).any(axis=1)
 
-    def offsets(self, points: np.ndarray, switch_px: float = 3 * DEFAULT_TOL_PX):
+    def offsets(self, points: np.ndarray, switch_px: float = 3 * DEFAULT_TOL_PX, observed=None):
         """For points [M, 3]: (residual [N, M]: the signed distance from each projection to its nearest
         detection's line (along its normal) where that detection is within switch_px, the distance
         to it beyond; distance [N, M] to the nearest detection's centre; seen [N, M] bool (in
-        front, inside the photo, the photo has detections)). Zero where not seen."""
+        front, inside the photo, the photo has detections)). Zero where not seen. With `observed`
+        [N, M] bool (the pairs a fit holds fixed), those pairs keep their residual when the
+        projection leaves the photo (measured from the nearest detection inside it), BEHIND_PX
+        behind the camera: a curve cannot lower its cost by leaving the photos."""
         u, v, z = project_all(points, self.c2w, self.intrinsics)
         seen = (z > 0) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height) & self.has[:, None]
+        if observed is not None:
+            seen = np.asarray(observed, bool)
         col = np.clip(np.floor(u), 0, self.width - 1).astype(np.int64)
         row = np.clip(np.floor(v), 0, self.height - 1).astype(np.int64)
         n = np.arange(len(self.c2w))[:, None]
@@ -306,6 +312,8 @@ class Views:
         dist = np.hypot(du, dv)
         along = du * det[..., 2] + dv * det[..., 3]
         residual = np.where(np.isfinite(along) & (dist <= switch_px), along, dist)
+        residual = np.where(z > 0, residual, BEHIND_PX)
+        dist = np.where(z > 0, dist, BEHIND_PX)
         return np.where(seen, residual, 0.0), np.where(seen, dist, 0.0), seen
 
 
@@ -348,9 +356,10 @@ def cross_section_peaks(views: Views, centre, psi: float, station: float, across
     return np.asarray(kept, np.float64).reshape(-1, 3)
 
 
-def _residuals(theta, views: Views, centre, s: np.ndarray, up) -> np.ndarray:
-    """The image residuals [N K] of the span's samples at s [K] (`Views.offsets`)."""
-    return views.offsets(curve_points(theta, centre, s, up))[0].ravel()
+def _residuals(theta, views: Views, centre, s: np.ndarray, up, observed: np.ndarray) -> np.ndarray:
+    """The image residuals [N K] of the span's samples at s [K] in the observed pairs [N, K]
+    (`Views.offsets`)."""
+    return views.offsets(curve_points(theta, centre, s, up), observed=observed)[0].ravel()
 
 
 def _stations(theta, s_min: float, reach: float, count: int) -> np.ndarray:
@@ -364,23 +373,31 @@ def _stations(theta, s_min: float, reach: float, count: int) -> np.ndarray:
 
 
 def fit_span(views: Views, theta0, centre, s_min: float, reaches, up=(0.0, 0.0, 1.0),
-             tol_px: float = DEFAULT_TOL_PX, samples: int = SAMPLES, reject_below: float = 0.0) -> dict:
+             tol_px: float = DEFAULT_TOL_PX, samples: int = SAMPLES, reject_below: float = 0.0,
+             length_scale: float = 30.0) -> dict:
     """Robust fit of one span (module docstring) from theta0 = (c, z_a, psi, m0, kappa): least
     squares on the image offsets with a Cauchy loss of scale tol_px, the samples' reach from
     s_min grown through `reaches` (export units, increasing; the last one the whole span); with
     reject_below, the growing stops after the first reach when fewer than that share of the
-    projections lie on a detection (the caller drops the fit).
+    projections lie on a detection (the caller drops the fit); length_scale: the tower's height
+    (the curvature is bounded by 0.3 / length_scale). The photos that see each sample at the
+    start of a stage are held for that stage (`Views.offsets`' observed).
     Returns {"theta" [5], "cov" [5, 5], "sigma_px", "inlier_share", "residuals": inliers used,
     "seen": projections, "stations" [K] (the last stage's samples)}."""
     from scipy.optimize import least_squares
 
     theta = np.asarray(theta0, np.float64)
-    lower = np.array([-np.inf, -np.inf, -np.inf, -5.0, -1.0])
-    upper = np.array([np.inf, np.inf, np.inf, 5.0, 1.0])
+    # a >= 3 tower heights (kappa <= 0.3 / length_scale), slopes within 45 degrees: no overflow in cosh
+    kmax = 0.3 / length_scale
+    lower = np.array([-np.inf, -np.inf, -np.inf, -1.0, -kmax])
+    upper = np.array([np.inf, np.inf, np.inf, 1.0, kmax])
     scale = np.array([1.0, 1.0, 0.01, 0.01, 1e-4])
     for k, reach in enumerate(reaches):
         s = _stations(theta, s_min, reach, samples)
-        res = least_squares(_residuals, theta, args=(views, centre, s, up), loss="cauchy", f_scale=tol_px,
+        observed = views.offsets(curve_points(theta, centre, s, up))[2]     # held fixed through the stage
+        if not observed.any():
+            break
+        res = least_squares(_residuals, theta, args=(views, centre, s, up, observed), loss="cauchy", f_scale=tol_px,
                             x_scale=scale, bounds=(lower, upper), method="trf", max_nfev=30 if k < len(reaches) - 1
                             else 60)
         theta = res.x
@@ -473,7 +490,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                    tower_height for f in fits):
                 continue   # on a wire already fitted: the support is a ridge across the plane, not a point
             fit = fit_span(views, (c, z, psi_side, 0.0, 0.0), centre, half_length,
-                           reaches_from(4 * margin, 30 * tower_height), up, tol_px, reject_below=min_inlier_share)
+                           reaches_from(4 * margin, 30 * tower_height), up, tol_px, reject_below=min_inlier_share,
+                           length_scale=tower_height)
             if fit["inlier_share"] >= min_inlier_share:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)], **fit})
         spans += _distinct(fits, centre, step * 4, up)
