@@ -77,3 +77,22 @@ def test_classified_las_reads_back_with_the_asprs_classes(tmp_path):
     las = laspy.read(str(path))
     np.testing.assert_array_equal(np.asarray(las.classification), expected + [14, 14])
     np.testing.assert_allclose(np.stack([las.x, las.y, las.z], 1)[-2:], wire, atol=1e-3)
+
+
+def test_the_report_table_shows_each_span_its_sigmas_and_its_flag():
+    from jaxnerf_grid import report
+
+    theta = np.array([-7.6, ATTACH_Z, math.pi / 2, -math.sinh(XV / A), 1.0 / A])
+    fit = {"theta": theta, "cov": np.diag([1e-4, 1e-4, 1e-8, 1e-8, 1e-14]), "side": 1, "sigma_px": 0.5,
+           "inlier_share": 0.9, "residuals": 100, "seen": 110, "stations": np.array([4.5, 320.0])}
+    rec = cond.span_record(fit, np.zeros(3))
+    rec["clearance"] = {"ground": 6.9, "ground_sigma": 0.01, "objects": None, "flag": True}
+    lines = report.conductor_lines({"conductor_spans": {"found": 1, "photos": 40, "min_clearance": 8.0, "flagged": 1,
+                                                        "spans": [rec]}}, "m", "conductors_views.png")
+    text = "\n".join(lines)
+    sag = A * (math.cosh(XV / A) - 1.0)
+    assert f"{sag:.2f} +- " in text and "14.90 +- 0.01" in text and "6.90 +- 0.01" in text
+    assert "**below**" in text and "clearance below 8.00 m: **1**" in text
+    assert "![the fitted conductors on the photos](conductors_views.png)" in text
+    none = report.conductor_lines({"conductor_spans": {"found": 0, "photos": 40, "spans": [], "why": "no wire"}}, "m")
+    assert "No conductor found in the 40 photos: no wire" in "\n".join(none)

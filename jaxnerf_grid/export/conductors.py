@@ -475,7 +475,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     least); tower_height: the scale of the
     station's margin and of the reach (30 tower heights).
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), fit_span's keys}],
-    the kept fits only (inlier share >= min_inlier_share; one per wire)."""
+    the kept fits only (inlier share >= min_inlier_share, the attachment within the cross-section's
+    window widened by the station's margin; one per wire)."""
     spans = []
     margin = 0.3 * tower_height
     for side in (1, -1):
@@ -492,7 +493,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             fit = fit_span(views, (c, z, psi_side, 0.0, 0.0), centre, half_length,
                            reaches_from(4 * margin, 30 * tower_height), up, tol_px, reject_below=min_inlier_share,
                            length_scale=tower_height)
-            if fit["inlier_share"] >= min_inlier_share:
+            c_fit, z_fit = fit["theta"][0], fit["theta"][1]
+            inside = abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin
+            if fit["inlier_share"] >= min_inlier_share and inside:   # run off the searched window: not here
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)], **fit})
         spans += _distinct(fits, centre, step * 4, up)
     return spans
