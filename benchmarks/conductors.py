@@ -102,13 +102,39 @@ def score(records: list[dict], truth: list[dict]) -> dict:
             "worst_lowest_z_error": worst("lowest_z_error"), "worst_clearance_error": worst("clearance_error")}
 
 
-def true_camera_views(data: Path):
+def scene_meta(data: Path, size: tuple[int, int] | None = None) -> dict:
+    """transforms.json of a generated scene; with `size` (W, H) and no transforms.json yet (synth
+    still rendering), the same record rebuilt from the generator (tower-small, seed 0: its camera
+    path, `data.synthetic.cameras.camera_path`) for the training photos already written."""
+    from jaxnerf_grid import io
+
+    if (data / "transforms.json").is_file() or size is None:
+        return io.read_json(data / "transforms.json")
+    from jaxnerf_grid.data.synthetic import NORMALIZATION, cameras
+    from jaxnerf_grid.data.synthetic.generate import make_config
+
+    cfg = make_config("tower-small", 0, width=size[0], height=size[1])
+    c2w, split = cameras.camera_path(cfg.num_train, cfg.num_test, cfg.orbits, cfg.low_pass,
+                                     np.random.default_rng([cfg.seed, 1]))
+    intr = cameras.intrinsics(size[0], size[1], cfg.fov_deg)
+    frames, counts = [], {"train": 0, "test": 0}
+    for pose, sp in zip(c2w, split):
+        name = f"images/{sp}_{counts[sp]:03d}.png"
+        counts[sp] += 1
+        if sp == "train" and (data / name).is_file():
+            frames.append({"file_path": name, "split": sp, "transform_matrix":
+                           cameras.normalise_pose(pose, NORMALIZATION["scale"], NORMALIZATION["translation"]).tolist()})
+    return {**intr, "frames": frames, "generator": {"preset": "tower-small", "seed": 0, "conductors": True,
+                                                    "partial": f"{len(frames)} of {cfg.num_train} training photos"}}
+
+
+def true_camera_views(data: Path, size: tuple[int, int] | None = None):
     """(images [N, H, W, 3], Views in metres) of a generated scene's training photos, TRUE cameras."""
     from jaxnerf_grid import io
     from jaxnerf_grid.data.synthetic import NORMALIZATION
     from jaxnerf_grid.export import conductors as cond
 
-    meta = io.read_json(data / "transforms.json")
+    meta = scene_meta(data, size)
     frames = [f for f in meta["frames"] if f.get("split", "train") == "train"]
     images = np.stack([io.read_image(data / f["file_path"])[..., :3] for f in frames])
     c2w = cond.metric_cameras(np.stack([np.asarray(f["transform_matrix"], np.float64) for f in frames]),
@@ -119,14 +145,14 @@ def true_camera_views(data: Path):
     return images, cond.Views(c2w, intr, masks, responses)
 
 
-def true_camera_fit(data: Path, picture: Path | None = None) -> tuple[list[dict], dict]:
+def true_camera_fit(data: Path, picture: Path | None = None, size=None) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side). Returns (records, timings)."""
     from jaxnerf_grid import io
     from jaxnerf_grid.export import conductors as cond
 
     t0 = time.perf_counter()
-    images, views = true_camera_views(data)
+    images, views = true_camera_views(data, size)
     t1 = time.perf_counter()
     f = float(np.median(views.intrinsics[:, 0]))
     dist = float(np.median(np.linalg.norm(views.c2w[:, :3, 3], axis=1)))
@@ -158,6 +184,9 @@ def main(argv=None) -> int:
                    help="export folders (measurements.json), one per --data in order, from the trained chain")
     p.add_argument("--pictures", type=Path, default=None, help="folder for each scene's conductors_views.png")
     p.add_argument("--no-true-cameras", action="store_true", help="score the --export folders only")
+    p.add_argument("--partial", default=None, metavar="W,H",
+                   help="a tower-small scene (seed 0) of this size still being rendered: the training photos "
+                        "written so far, with the generator's cameras")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/conductors.json"))
     args = p.parse_args(argv)
     from jaxnerf_grid import io
@@ -165,7 +194,8 @@ def main(argv=None) -> int:
     truth_all = true_spans(scene_attachments())
     results = []
     for i, data in enumerate(args.data):
-        meta = io.read_json(data / "transforms.json")
+        size = tuple(int(v) for v in args.partial.split(",")) if args.partial else None
+        meta = scene_meta(data, size)
         gen = meta.get("generator", {})
         truth = truth_all if gen.get("conductors", True) else []
         picture = None
@@ -174,9 +204,9 @@ def main(argv=None) -> int:
             picture = args.pictures / f"{data.name}_conductors_views.png"
         entry = {"data": data.name, "preset": gen.get("preset"), "seed": gen.get("seed"),
                  "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
-                 "size": [meta["w"], meta["h"]]}
+                 "size": [meta["w"], meta["h"]], "partial": gen.get("partial")}
         if not args.no_true_cameras:
-            records, timings = true_camera_fit(data, picture)
+            records, timings = true_camera_fit(data, picture, size)
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):

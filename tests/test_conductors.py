@@ -118,3 +118,16 @@ def test_spans_found_on_both_sides_and_none_in_clutter_alone():
     clutter = render_photos(c2w, [], rng, clutter=400, lines=12)
     assert cond.find_spans(views_of(clutter, c2w), np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11,
                            30.4) == []
+
+
+def test_synth_without_conductors_leaves_out_every_cable_and_nothing_else():
+    from jaxnerf_grid.data.synthetic import scene as sc
+
+    with_wires, attach = sc.static_scene(np.random.default_rng(0))
+    without, attach2 = sc.static_scene(np.random.default_rng(0), conductors=False)
+    cls = np.concatenate([a["cls"] for a in with_wires.attrs.values()])
+    cls2 = np.concatenate([a["cls"] for a in without.attrs.values()])
+    spans = sc.conductor_spans(attach)
+    assert (cls == sc.CONDUCTOR).sum() == 32 * len(spans) and (cls2 == sc.CONDUCTOR).sum() == 0
+    assert len(cls2) == len(cls) - 32 * len(spans)
+    np.testing.assert_array_equal(attach, attach2)
