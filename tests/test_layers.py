@@ -15,12 +15,13 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "jaxnerf_grid"
 # low to high: a unit imports only units before it
-LAYERS = ["util", "schema", "nerf", "data", "capture", "masks", "config", "optim", "render", "train", "report",
-          "runs", "export", "eval", "demo", "cli", "__main__"]
+LAYERS = ["util", "catenary", "schema", "nerf", "data", "capture", "masks", "config", "optim", "render", "train",
+          "report", "runs", "export", "eval", "demo", "cli", "__main__"]
 # modules that are their own unit, and why
 LEAVES = {
     "jaxnerf_grid.config.schema": "schema",  # the frozen-dataclass machinery every stage's config uses
     "jaxnerf_grid.train.optim": "optim",  # the optimiser: training, and NeRF-W's test-time appearance fit in render/
+    "jaxnerf_grid.export.catenary": "catenary",  # a span's curve: export fits it, report/html.py draws it
 }
 RUN_LEVEL = {  # modules that load or drive a whole run, above train/, render/ and report/
     "jaxnerf_grid.train.runs": "runs", "jaxnerf_grid.render.videos": "runs",

@@ -37,6 +37,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vertical-crs", default=None, metavar="EPSG:CODE",
                    help="with --geoid, the vertical datum the grid realises (EPSG:5773 for EGM96, EPSG:3855 for "
                         "EGM2008): tower_points.las's header carries the compound CRS")
+    p.add_argument("--min-clearance", type=float, default=None, metavar="M",
+                   help="flag the spans whose conductor clearance over the ground or the objects beneath is below M "
+                        "(export units; no default: the clearance a line needs depends on its voltage and country)")
     p.add_argument("--overwrite", action="store_true", help="write into an output folder that holds files")
     p.add_argument("--allow-other-data", action="store_true",
                    help="export from a dataset other than the one the run was trained on (its fingerprint differs)")
@@ -54,7 +57,7 @@ def main(argv: list[str] | None = None) -> int:
     m = run.export_run(args.run, args.out, resolution=args.resolution, box=args.box, opacity=args.threshold,
                        views=args.views, overwrite=args.overwrite, progress=not args.quiet,
                        allow_other_data=args.allow_other_data, geoid=args.geoid,
-                       vertical_crs=args.vertical_crs)
+                       vertical_crs=args.vertical_crs, min_clearance=args.min_clearance)
     out = Path(args.out) if args.out else Path(args.run) / "export"
     unit = "m" if m["units"] == "metres" else "units (unknown scale)"
     height = "n/a" if m["height"] is None else f"{m['height']:.2f} {unit}"

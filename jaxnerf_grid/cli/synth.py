@@ -21,6 +21,7 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--mode", choices=["teleport", "jitter"], default=None,
                    help="re-place distractors anew in every view (teleport) or jitter a fixed layout")
     p.add_argument("--no-shadows", action="store_true", help="no cast shadows (sun always visible)")
+    p.add_argument("--no-conductors", action="store_true", help="no power lines (the towers alone)")
     p.add_argument("--width", type=int, default=None)
     p.add_argument("--height", type=int, default=None)
     p.add_argument("--num-train", type=int, default=None)
@@ -89,7 +90,7 @@ def main(argv: list[str] | None = None) -> int:
         args.preset, args.out, seed=args.seed, distractors=args.distractors, overwrite=args.overwrite,
         progress=not args.quiet, workers=workers, width=args.width, height=args.height,
         num_train=args.num_train, num_test=args.num_test, supersample=args.supersample, mode=args.mode,
-        shadows=False if args.no_shadows else None,
+        shadows=False if args.no_shadows else None, conductors=False if args.no_conductors else None,
     )
     if args.preview:
         contact_sheet(path.parent, path.parent / "preview.png")

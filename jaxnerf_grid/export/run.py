@@ -41,6 +41,7 @@ from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.export import (
     box_to_metric,
     box_to_scene,
+    classes,
     field,
     fuse,
     ground,
@@ -49,6 +50,8 @@ from jaxnerf_grid.export import (
     survey,
     to_metric64,
 )
+from jaxnerf_grid.export import clearance as clearance_lib
+from jaxnerf_grid.export import conductors as conductors_lib
 from jaxnerf_grid.export import geoid as geoid_lib
 from jaxnerf_grid.export import mesh as mesh_lib
 from jaxnerf_grid.render import clouds
@@ -68,7 +71,7 @@ GROUND_CELL = 0.02          # normalised units: columns of the ground fit, cells
 GROUND_INLIER = 0.025       # normalised units: RANSAC inlier distance
 SCENE_LIMIT = 1.0           # the region of interest: the unit sphere's cube [-1, 1]^3 (normalised)
 FILES = ("tower_mesh.ply", "tower_points.ply", "tower_points.las", "box.json", "measurements.json",
-         "export_views.png")
+         "export_views.png", "classified_points.las", "conductors_views.png")
 CRS_FILES = ("tower_mesh_crs.ply",)     # written only for a georeferenced dataset
 # what overwrite=True may clear in a folder holding export's marker (folders.MARKERS["export"])
 OUTPUTS = FILES + CRS_FILES + ("report.md", "report.html")
@@ -195,7 +198,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                colour_cameras: int = DEFAULT_COLOUR_CAMERAS,
                min_component_fraction: float = mesh_lib.DEFAULT_MIN_COMPONENT_FRACTION,
                overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False,
-               geoid=None, vertical_crs: str | None = None) -> dict:
+               geoid=None, vertical_crs: str | None = None, min_clearance: float | None = None) -> dict:
     """Exports the tower of a trained run (module docstring). Returns measurements.json's dict.
     A dataset other than the run's (its fingerprint) is refused unless `allow_other_data`.
 
@@ -205,6 +208,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     H = h - N (`export.geoid`); the local-frame files and every relative measurement are unchanged.
     vertical_crs: with geoid, the vertical datum the grid realises ('EPSG:5773'): the LAS header's
     CRS becomes the compound of the horizontal one and it (`export.vertical_crs`).
+    min_clearance: spans whose conductor clearance over the ground or the objects beneath is
+    below this (export units) are flagged (`export.clearance`); None flags nothing.
     DataError / ConfigError for a run without a checkpoint, an empty box or one outside the
     scene, an occupied folder, a box without a surface, a geoid grid that is missing, unreadable,
     not covering the site or given for a dataset without a CRS; nothing is written then.
@@ -217,6 +222,9 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     check_views(views, min_views)
     if not 0 < float(opacity) < 1:
         raise ConfigError(f"export.opacity (of one voxel) must be in (0, 1), got {opacity}")
+    if min_clearance is not None and not (isinstance(min_clearance, (int, float)) and math.isfinite(min_clearance)
+                                          and min_clearance > 0):
+        raise ConfigError(f"export.min_clearance must be a positive number (export units), got {min_clearance!r}")
     out = Path(out) if out is not None else run_dir / "export"
     check_out(out, data, overwrite)
     grid = geoid_lib.open_grid(geoid) if geoid is not None else None   # a missing file fails before the dataset loads
@@ -294,7 +302,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
             "points": {"count": int(len(tower_pts)), "views": [int(i) for i in ids], "min_views": int(min_views),
                        **fuse_stats},
             "ground": None, "height": None, "footprint": None, "cross_arms": None, "tilt": None,
-            "conductors": None}
+            "conductors": None, "conductor_spans": None}
     alignment = survey.alignment_uncertainty(geo, units, to_metric64(centres, norm))
     if plane is not None:
         n_m, d_m = plane_to_metric(plane["normal"], plane["offset"], norm)
@@ -317,6 +325,10 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
             to_metric64(points, norm), n_m, d_m, lo_m, hi_m,
             0.5 * min(level["height"] for level in levels) if levels else 0.5 * height, GROUND_CELL / scale)
     meas["box"].update(box_stats)
+    # 6. the conductors from the photos, their clearance; the classified cloud
+    cloud_m = to_metric64(points, norm)
+    meas["conductor_spans"] = _conductors(ds, train_ids, meas, cloud_m, lo_m, hi_m, units, min_clearance, progress)
+    timings["conductors"] = time.perf_counter() - start - sum(timings.values())
     meas["survey"] = _survey(meas, geo, alignment, h / scale)
     # the CRS outputs (heights above the geoid with `geoid`), all converted before anything is written
     points_crs, mesh_crs = survey.to_crs(tower_pts, geo), None
@@ -334,6 +346,12 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                       comments=comments + (f"depth of {len(ids)} views fused, each point confirmed by >= "
                                            f"{min_views} other views",))
     survey.write_las(out / "tower_points.las", points_crs, tower_cols, crs_name, datum)
+    cls_points, cls_colours, cls_classes = _classified_cloud(meas, cloud_m, colours, lo_m, hi_m)
+    cls_crs = survey.to_crs(cls_points, geo)
+    if grid is not None:
+        cls_crs, _ = geoid_lib.orthometric(cls_crs, crs_name, grid, Path(geoid))
+    survey.write_las(out / "classified_points.las", cls_crs, cls_colours, crs_name, datum, classification=cls_classes)
+    io.write_png(out / "conductors_views.png", meas["conductor_spans"].pop("_picture"))
     if crs_name is not None and geo and mesh_crs is not None:  # all three, or none
         survey.write_ply_double(out / "tower_mesh_crs.ply", mesh_crs, vcolours, faces,
                                 comments=(f"crs: {crs_name} ({geo.get('crs_name')}); x = tower_mesh.ply's x + "
@@ -350,6 +368,111 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     io.write_json(out / "measurements.json", meas)
     _update_report(run_dir, out, meas, ds)
     return meas
+
+
+CORRIDOR = 0.5            # tower heights: the objects this far across a span's wire count for its clearance
+CONDUCTOR_SPACING = 0.5   # export units between the classified cloud's points along each fitted span
+
+
+def _line_azimuth(meas: dict, up: np.ndarray) -> float | None:
+    """The line's azimuth (`conductors.line_axes`) across the cross-arms: the arms' axis (the
+    footprint's axis of the most levels) turned a quarter about up; None without cross-arms."""
+    levels = (meas.get("cross_arms") or {}).get("levels") or []
+    fp = meas.get("footprint") or {}
+    if not levels or not fp:
+        return None
+    names = [lv["axis"] for lv in levels]
+    arm = np.asarray(fp["axis_a"] if names.count("a") >= names.count("b") else fp["axis_b"], np.float64)
+    line = np.cross(up, arm)
+    e1, e2, _ = conductors_lib.line_axes(0.0, up)
+    return math.atan2(float(line @ e2), float(line @ e1))
+
+
+def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, units: str, min_clearance,
+                progress: bool) -> dict:
+    """measurements.json's `conductor_spans` (`export.conductors`, `export.clearance`): the spans
+    found in the training photos, each with its figures, its clearance and its flag; "_picture"
+    (conductors_views.png's image, taken out before writing). Seeds: the cross-arms' direction,
+    heights and span (the module's find_spans), the tower's axis and box."""
+    n_m = np.asarray((meas.get("ground") or {}).get("normal", [0.0, 0.0, 1.0]), np.float64)
+    d_m = float((meas.get("ground") or {}).get("offset", 0.0))
+    # the frame's z is up where it is metric (georeferenced: east, north, up; the generator's
+    # world); else the ground's normal is the best vertical there is
+    up = np.array([0.0, 0.0, 1.0]) if units == "metres" else n_m
+    images = np.asarray(ds.images)[train_ids]
+    out = {"found": 0, "spans": [], "why": None, "up": [float(v) for v in up],
+           "min_clearance": min_clearance, "flagged": 0, "photos": int(len(train_ids)),
+           "_picture": np.ones((8, 8, 3), np.float32)}
+    height = meas.get("height")
+    psi = _line_azimuth(meas, up)
+    if meas.get("ground") is None or height is None or psi is None:
+        out["why"] = "no ground, height or cross-arms measured: the line's direction and heights are unknown"
+        return out
+    tilt = meas.get("tilt") or {}
+    centre = np.asarray(tilt.get("base", 0.5 * (np.asarray(lo_m) + np.asarray(hi_m))), np.float64)
+    line, across_axis, _ = conductors_lib.line_axes(psi, up)
+    box = measure_box_corners(lo_m, hi_m)
+    half_length = float(np.max(np.abs((box - centre) @ line)))
+    levels = meas["cross_arms"]["levels"]
+    ground_at_centre = float(centre @ up - (centre @ n_m + d_m) / max(float(n_m @ up), 1e-6))
+    lowest_arm = min(lv["height"] for lv in levels)
+    heights = (ground_at_centre + lowest_arm - 0.35 * height, ground_at_centre + 1.1 * height)
+    across = 0.5 * max(lv["span"] for lv in levels) + 0.3 * height
+    c2w = conductors_lib.metric_cameras(np.asarray(ds.c2w)[train_ids], ds.normalization)
+    intr = np.asarray(ds.intrinsics, np.float64)[train_ids]
+    station = centre + (half_length + 0.3 * height) * line
+    step = float(np.median(np.linalg.norm(c2w[:, :3, 3] - station, axis=1) / intr[:, 0]))
+    responses = [conductors_lib.ridge_map(im) for im in progress_lib.bar(images, desc="export: wires", unit="photo",
+                                                                        enabled=progress)]
+    masks = np.stack([conductors_lib.detections(r) for r in responses])
+    views = conductors_lib.Views(c2w, intr, masks, responses)
+    del responses
+    fits = conductors_lib.find_spans(views, centre, psi, half_length, heights, across, step, float(height), up)
+    plane_band = float(meas["ground"]["clearance"])
+    for fit in fits:
+        rec = conductors_lib.span_record(fit, centre, up)
+        curve = conductors_lib.sample_span(fit["theta"], centre, CONDUCTOR_SPACING, up)
+        low = rec["lowest_point"]["value"]
+        ground_clear = None if low is None else float(np.asarray(low) @ n_m + d_m)
+        objects = clearance_lib.objects_beneath(curve, cloud_m, n_m, d_m, plane_band, CORRIDOR * float(height), up,
+                                                (lo_m, hi_m)) if len(curve) > 1 else None
+        rec["clearance"] = {"ground": ground_clear,
+                            "ground_sigma": None if low is None else rec["lowest_point"]["sigma"][2],
+                            "objects": objects,
+                            "flag": clearance_lib.flag(ground_clear, (objects or {}).get("clearance"), min_clearance)}
+        out["spans"].append(rec)
+    out["found"] = len(out["spans"])
+    out["flagged"] = sum(1 for r in out["spans"] if r["clearance"]["flag"])
+    if not fits:
+        out["why"] = (f"no wire crossing the line's cross-section beyond the tower was seen by enough photos "
+                      f"({int(masks.reshape(len(masks), -1).sum(1).mean())} wire pixels a photo on average)")
+    out["_picture"] = conductors_lib.views_picture(images, views, fits, centre, up)
+    return out
+
+
+def measure_box_corners(lo, hi) -> np.ndarray:
+    """The 4 horizontal corners [4, 3] of the box lo [3] - hi [3] at its bottom."""
+    lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
+    return np.array([[x, y, lo[2]] for x in (lo[0], hi[0]) for y in (lo[1], hi[1])])
+
+
+def _classified_cloud(meas: dict, cloud_m: np.ndarray, colours: np.ndarray, lo_m, hi_m):
+    """classified_points.las's points [M, 3], colours [M, 3] and ASPRS classes [M] (`export.classes`):
+    the whole fused cloud, and the fitted spans sampled every CONDUCTOR_SPACING (class 14, orange)."""
+    g = meas.get("ground")
+    pts, cols = np.asarray(cloud_m, np.float64), np.asarray(colours, np.float32)
+    if g is None:
+        return pts, cols, np.ones(len(pts), np.uint8)          # 1: unclassified (no ground to stand on)
+    cls = classes.classify(pts, g["normal"], g["offset"], g["clearance"], (lo_m, hi_m))
+    spans = (meas.get("conductor_spans") or {}).get("spans") or []
+    wires = [conductors_lib.sample_span(r["theta"], r["centre"], CONDUCTOR_SPACING, r["up"]) for r in spans]
+    wires = [w for w in wires if len(w) > 1]
+    if wires:
+        w = np.concatenate(wires)
+        pts = np.concatenate([pts, w])
+        cols = np.concatenate([cols, np.tile(np.array([[1.0, 0.5, 0.0]], np.float32), (len(w), 1))])
+        cls = np.concatenate([cls, np.full(len(w), classes.CONDUCTOR, np.uint8)])
+    return pts, cols, cls
 
 
 BOX_FRAME = ("min / max: axis-aligned in the export's units (the dataset's frame); the mesh grid is "
@@ -449,8 +572,9 @@ def _update_report(run_dir: Path, out: Path, meas: dict, ds) -> None:
     (`report_html`) when the export is RUN/export (the default), else OUT/report.md and
     OUT/report.html."""
     if out.resolve() == (run_dir / "export").resolve():
-        path, image = run_dir / "report.md", "export/export_views.png"
+        path, image, wires = run_dir / "report.md", "export/export_views.png", "export/conductors_views.png"
     else:
-        path, image = out / "report.md", "export_views.png"
-    report.set_section(path, report.EXPORT_HEADING, report.export_lines({"measurements": meas, "image": image}))
+        path, image, wires = out / "report.md", "export_views.png", "conductors_views.png"
+    report.set_section(path, report.EXPORT_HEADING, report.export_lines({"measurements": meas, "image": image,
+                                                                         "conductors_image": wires}))
     report_html.write_report_html(path.with_suffix(".html"), run_dir, ds, export_dir=out)

@@ -173,11 +173,12 @@ def pyproj_crs(name: str):
 
 
 def write_las(path, points: np.ndarray, colours: np.ndarray, crs_name: str | None = None,
-              vertical=None) -> Path:
+              vertical=None, classification: np.ndarray | None = None) -> Path:
     """Points [N, 3] (float64, the CRS's coordinates when crs_name is given) and colours [N, 3]
     in [0, 1] -> LAS 1.4, point format 7 (16-bit RGB), scale 1 mm, offset the points' minimum
     floored to the metre, the CRS's WKT in the header (`LasHeader.add_crs`) when named; with
-    `vertical` (a pyproj vertical CRS) the compound CRS of the two.
+    `vertical` (a pyproj vertical CRS) the compound CRS of the two; classification [N] (ASPRS
+    classes, `export.classes`) when given, else 0 (never classified).
     Written to a temporary name, then renamed. Returns the path."""
     import laspy
     import pyproj
@@ -195,6 +196,8 @@ def write_las(path, points: np.ndarray, colours: np.ndarray, crs_name: str | Non
     las.x, las.y, las.z = p[:, 0], p[:, 1], p[:, 2]
     rgb = np.round(np.clip(np.asarray(colours, np.float64).reshape(-1, 3), 0, 1) * 65535).astype(np.uint16)
     las.red, las.green, las.blue = rgb[:, 0], rgb[:, 1], rgb[:, 2]
+    if classification is not None:
+        las.classification = np.asarray(classification, np.uint8).reshape(-1)
     path = Path(path)
     tmp = path.with_name(path.name + ".tmp")
     las.write(str(tmp))

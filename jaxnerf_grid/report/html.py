@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid.data.normalize import apply_normalization_to_points, invert_normalization
+from jaxnerf_grid.export import catenary
 from jaxnerf_grid.report import markdown as report
 from jaxnerf_grid.util import io
 
@@ -230,7 +231,16 @@ def scene_of_run(run_dir, ds, export_dir=None) -> dict:
         moved[ok] = move(lines[ok])
         cameras.append(moved)
     return {"units": (meas or {}).get("units", "normalised scene units") if meas else "normalised scene units",
-            "points": points, "mesh": mesh, "cameras": cameras, "measurements": meas, "counts": counts}
+            "points": points, "mesh": mesh, "cameras": cameras, "measurements": meas, "counts": counts,
+            "conductors": conductor_lines(meas)}
+
+
+def conductor_lines(meas: dict | None, spacing: float = 1.0) -> list[np.ndarray]:
+    """The fitted spans of measurements.json's `conductor_spans` as polylines [K, 3] in the export's
+    units (`export.catenary.sample_span`, a point every `spacing` horizontally); [] without."""
+    spans = ((meas or {}).get("conductor_spans") or {}).get("spans") or []
+    lines = [catenary.sample_span(r["theta"], r["centre"], spacing, r["up"]) for r in spans]
+    return [line for line in lines if len(line) > 1]
 
 
 # --------------------------------------------------------------------------- the page
@@ -273,6 +283,10 @@ def figure(scene: dict):
     xs, ys, zs = _polyline(scene["cameras"])
     traces.append(go.Scatter3d(x=xs, y=ys, z=zs, mode="lines", name="training cameras",
                                line={"color": "#1f4fbf", "width": 2}, hoverinfo="skip"))
+    if scene.get("conductors"):
+        cx, cy, cz = _polyline(scene["conductors"])
+        traces.append(go.Scatter3d(x=cx, y=cy, z=cz, mode="lines", name="conductors (fitted catenaries)",
+                                   line={"color": "#ff7f00", "width": 3}))
     meas = scene["measurements"]
     if meas:
         unit = "m" if meas.get("units") == "metres" else "units"

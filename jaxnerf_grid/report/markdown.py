@@ -226,6 +226,55 @@ def export_lines(info: dict | None) -> list[str]:
         lines.append("")
     if info.get("image"):
         lines += [f"![front | side | top]({info['image']})", ""]
+    lines += conductor_lines(m, unit, info.get("conductors_image"))
+    return lines
+
+
+def _sig(fig: dict | None, digits: int = 2, index: int | None = None) -> str:
+    """'8.01 +- 0.02' of a conductor figure {"value", "sigma"} (index: one coordinate of a point)."""
+    if not fig or fig.get("value") is None:
+        return "n/a"
+    v, s = fig["value"], fig.get("sigma")
+    if index is not None:
+        v, s = v[index], None if s is None else s[index]
+    return f"{_fmt(float(v), digits)} +- {_fmt(float(s), digits)}" if s is not None else _fmt(float(v), digits)
+
+
+def conductor_lines(m: dict, unit: str, image: str | None = None) -> list[str]:
+    """The "Conductors" table of the export section: one row per span fitted in the photos
+    (`export.conductors`, measurements.json's `conductor_spans`), each figure +- its 1-sigma;
+    the clearances (`export.clearance`) and the flag against --min-clearance."""
+    cs = m.get("conductor_spans")
+    if not cs:
+        return []
+    lines = ["### Conductors", ""]
+    if not cs.get("spans"):
+        return lines + [f"No conductor found in the {cs.get('photos', '?')} photos: {cs.get('why') or ''}", ""]
+    limit = cs.get("min_clearance")
+    lines += [f"{cs['found']} spans fitted as catenaries to the wires detected in {cs.get('photos', '?')} photos "
+              "(each far end assumed level with the near one: the neighbouring tower is outside the model). "
+              + (f"Flagged: clearance below {_fmt(float(limit))} {unit}: **{cs.get('flagged', 0)}**."
+                 if limit is not None else "No clearance given (`export.min_clearance`): nothing flagged."), "",
+              f"| span | side | attachment height ({unit}) | sag ({unit}) | catenary parameter ({unit}) | "
+              f"lowest point above the ground ({unit}) | clearance over objects beneath ({unit}; horizontal "
+              "offset) | fit (px, share on wires) | flag |",
+              "|---|---|---|---|---|---|---|---|---|"]
+    for i, r in enumerate(cs["spans"]):
+        c = r.get("clearance") or {}
+        obj = c.get("objects") or {}
+        over = (f"{_fmt(obj['clearance'])} ({_fmt(obj['horizontal_distance'])})" if obj.get("clearance") is not None
+                else "none seen" + (f" (cloud covers {_fmt(obj['covered'][0], 0)}-{_fmt(obj['covered'][1], 0)})"
+                                    if obj.get("covered") else ""))
+        ground = "n/a" if c.get("ground") is None else (
+            f"{_fmt(c['ground'])} +- {_fmt(c['ground_sigma'])}" if c.get("ground_sigma") is not None
+            else _fmt(c["ground"]))
+        flag = {None: "-", True: "**below**", False: "ok"}[c.get("flag")]
+        lines.append(f"| {i + 1} | {'+' if r['side'] > 0 else '-'} | {_sig(r['attachment'], 2, 2)} | "
+                     f"{_sig(r['sag'])} | {_sig(r['catenary_parameter'], 0)} | {ground} | {over} | "
+                     f"{_fmt(r.get('sigma_px'), 2)}, {_fmt(r.get('inlier_share'), 2)} | {flag} |")
+    lines.append("")
+    if image:
+        lines += [f"![the fitted conductors on the photos]({image})", ""]
     return lines
 
 

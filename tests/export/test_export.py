@@ -719,6 +719,7 @@ def test_export_writes_metric_files_inside_the_given_box(tiny_run, tmp_path, cap
     assert sorted(p.name for p in out.iterdir()) == sorted(["box.json", "export_views.png", "measurements.json",
                                                             "report.md", "report.html", "tower_mesh.ply",
                                                             "tower_points.ply", "tower_points.las",
+                                                            "classified_points.las", "conductors_views.png",
                                                             ".jaxnerf-grid-export"])  # the marker (folders)
     saved = io.read_json(out / "box.json")
     np.testing.assert_allclose(saved["min"] + saved["max"], [float(v) for v in box.split(",")], atol=1e-4)

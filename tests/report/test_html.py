@@ -336,3 +336,48 @@ def test_train_progress_page_is_rewritten_while_training(tmp_path):
     assert text.count('class="view"') == 3
     with pytest.raises(Exception, match="run.progress_page"):
         runs.train_run(str(tmp_path / "data"), "ours", tmp_path / "run2", overrides, progress=False, progress_page=-1)
+
+
+def test_every_layer_of_the_3d_view_lies_in_the_export_frame_at_hand_worked_positions(tmp_path):
+    """The cloud, the mesh, the cameras, the measurement lines and the conductors of one page, all in
+    metres: each checked at a position worked out by hand from NORM (x = x_norm / 0.05 - t)."""
+    import math
+
+    ds = tiny_dataset()
+    ds.normalization = NORM
+    meas = _export_folder(tmp_path / "run" / "export")
+    a, xv = 1600.0, 160.0
+    theta = [-7.6, 14.9, math.pi / 2, -math.sinh(xv / a), 1.0 / a]    # x = 7.6, along +y, lowest at y = 160
+    meas["conductor_spans"] = {"spans": [{"theta": theta, "centre": [0.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0]}]}
+    io.write_json(tmp_path / "run" / "export" / "measurements.json", meas)
+    scene = report_html.scene_of_run(tmp_path / "run", ds, export_dir=tmp_path / "run" / "export")
+    fig = report_html.figure(scene)
+    traces = {t.name: t for t in fig.data}
+
+    def xyz(trace):
+        return np.array([[x, y, z] for x, y, z in zip(trace.x, trace.y, trace.z) if x is not None], np.float64)
+
+    # the conductors: the attachment (7.6, 0, 14.9), the lowest point a (cosh(x_v / a) - 1) below it at y = 160
+    wire = xyz(traces["conductors (fitted catenaries)"])
+    np.testing.assert_allclose(wire[0], [7.6, 0.0, 14.9], atol=1e-9)
+    low = wire[np.argmin(wire[:, 2])]
+    np.testing.assert_allclose(low, [7.6, 160.0, 14.9 - a * (math.cosh(xv / a) - 1.0)], atol=1e-3)
+    np.testing.assert_allclose(wire[-1], [7.6, 320.0, 14.9], atol=1e-6)
+    # the cloud and the mesh: the file's metres as written (the tetrahedron 0..10 m)
+    np.testing.assert_allclose(np.sort(xyz(traces["tower points"]), axis=0),
+                               np.sort(np.array([[0, 0, 0], [10, 0, 0], [0, 10, 0], [0, 0, 10.0]]), axis=0), atol=1e-5)
+    mesh = traces["mesh"]
+    np.testing.assert_allclose(sorted(mesh.x), [0, 0, 0, 10], atol=1e-5)
+    # the cameras: each frustum's apex is the camera's centre, x_norm / 0.05 - (3, -2, -15)
+    apex = np.asarray(ds.c2w[0])[:3, 3] / 0.05 - np.array([3.0, -2.0, -15.0])
+    cams = xyz(traces["training cameras"])
+    assert np.min(np.linalg.norm(cams - apex, axis=1)) < 1e-6
+    # the measurement lines: the height line's foot on the ground, its top 30 m up the normal
+    height = next(t for n, t in traces.items() if n.startswith("height"))
+    foot, top = xyz(height)
+    n, d = np.array([0.0, 0.6, 0.8]), 1.5
+    assert foot @ n + d == pytest.approx(0.0, abs=1e-9) and top @ n + d == pytest.approx(30.0, abs=1e-9)
+    # the box: its corners are measurements.json's, in metres
+    box = xyz(traces["box"])
+    np.testing.assert_allclose(box.min(axis=0), [-5.0, -5.0, -2.0]) and np.testing.assert_allclose(
+        box.max(axis=0), [5.0, 5.0, 30.0])

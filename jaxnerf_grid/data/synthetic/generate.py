@@ -61,6 +61,7 @@ class SynthConfig:
     buildings: int = 26
     orbits: tuple = ()
     low_pass: tuple = ()
+    conductors: bool = True          # the power lines (False: the towers alone, for the wire finder's test)
 
 
 def make_config(preset: str, seed: int = 0, distractors: str | None = None, **overrides) -> SynthConfig:
@@ -405,7 +406,8 @@ class StaticWorld:
 
     def __init__(self, cfg: SynthConfig):
         rng = np.random.default_rng([cfg.seed, 0])
-        self.scene, self.attachments = sc.static_scene(rng, trees=cfg.trees, buildings=cfg.buildings)
+        self.scene, self.attachments = sc.static_scene(rng, trees=cfg.trees, buildings=cfg.buildings,
+                                                       conductors=cfg.conductors)
         self.bounds = scene_bounds(self.scene)
         self.sun = shading.sun_direction(rng.uniform(35.0, 55.0), rng.uniform(0.0, 360.0))
         self.tex_seed = int(rng.integers(1 << 20))
@@ -585,7 +587,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
     """Renders a synthetic dataset; returns the path of its transforms.json.
 
     overrides: any SynthConfig field (width, height, num_train, num_test, supersample, mode,
-    shadows, fov_deg, trees, buildings). `workers` > 1 renders views in that many spawned
+    shadows, fov_deg, trees, buildings, conductors). `workers` > 1 renders views in that many spawned
     processes (the output is identical for any worker count). Refuses a non-empty `out_dir`
     unless `overwrite` (then only this generator's own files and folders there are replaced).
     """
@@ -670,6 +672,7 @@ def generate_scene(preset: str, out_dir, seed: int = 0, distractors: str | None 
         "generator": {
             "name": "jaxnerf_grid.data.synthetic", "preset": cfg.preset, "seed": cfg.seed,
             "distractors": cfg.distractors, "distractor_mode": cfg.mode, "shadows": cfg.shadows,
+            "conductors": cfg.conductors,
             "supersample": cfg.supersample, "fov_deg": cfg.fov_deg,
             "sun_direction": [round(float(x), 6) for x in world.sun],
             "depth": "z-depth along camera -z, normalised units, +inf on sky; semantic and depth from the pixel-centre ray",

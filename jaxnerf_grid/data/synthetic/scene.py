@@ -215,20 +215,31 @@ def catenary(p0, p1, sag: float, segments: int) -> np.ndarray:
     return pts
 
 
+PHASE_SAG, EARTH_SAG = 8.0, 6.0      # m: the `catenary` sag argument of each kind of cable
+
+
+def conductor_spans(attach: np.ndarray, spans: int = 2) -> list[dict]:
+    """Every cable span of `add_conductors`: [{"p0" [3], "p1" [3], "sag" (catenary's argument),
+    "earth" (bool), "radius" (m), "wire" (index into attach), "k" (the span from y = k SPAN to
+    (k + 1) SPAN)}] (phase conductors first, then the two earth wires, as attach)."""
+    n_phase = len(attach) - 2
+    out = []
+    for i, p in enumerate(np.asarray(attach, float)):
+        earth = i >= n_phase
+        for k in range(-spans, spans):
+            out.append({"p0": p + np.array([0.0, k * SPAN, 0.0]), "p1": p + np.array([0.0, (k + 1) * SPAN, 0.0]),
+                        "sag": EARTH_SAG if earth else PHASE_SAG, "earth": earth, "radius": 0.03 if earth else 0.045,
+                        "wire": i, "k": k})
+    return out
+
+
 def add_conductors(builder: Builder, attach: np.ndarray, spans: int = 2, segments: int = 32):
     """Cables along +-y through towers at y = k * SPAN, from y = -spans*SPAN to +spans*SPAN."""
-    n_phase = len(attach) - 2
-    for i, p in enumerate(attach):
-        earth = i >= n_phase
-        r = 0.03 if earth else 0.045
-        sag = 6.0 if earth else 8.0
-        albedo = [0.30, 0.30, 0.31] if earth else [0.36, 0.36, 0.37]
-        for k in range(-spans, spans):
-            p0 = p + np.array([0.0, k * SPAN, 0.0])
-            p1 = p + np.array([0.0, (k + 1) * SPAN, 0.0])
-            pts = catenary(p0, p1, sag, segments)
-            for a, b in zip(pts[:-1], pts[1:]):
-                builder.capsule(a, b, r, CONDUCTOR, albedo, PLAIN, 2)
+    for span in conductor_spans(attach, spans):
+        albedo = [0.30, 0.30, 0.31] if span["earth"] else [0.36, 0.36, 0.37]
+        pts = catenary(span["p0"], span["p1"], span["sag"], segments)
+        for a, b in zip(pts[:-1], pts[1:]):
+            builder.capsule(a, b, span["radius"], CONDUCTOR, albedo, PLAIN, 2)
 
 
 def add_trees(builder: Builder, rng: np.random.Generator, density: float = 1.0):
@@ -290,14 +301,16 @@ def add_buildings(builder: Builder, rng: np.random.Generator, count: int = 26):
 
 
 def static_scene(rng: np.random.Generator, neighbours: bool = True, trees: float = 1.0,
-                 buildings: int = 26) -> tuple[Scene, np.ndarray]:
-    """The part of the world shared by all views. Returns (scene, main-tower attachments [K, 3])."""
+                 buildings: int = 26, conductors: bool = True) -> tuple[Scene, np.ndarray]:
+    """The part of the world shared by all views (without the cables when not `conductors`).
+    Returns (scene, main-tower attachments [K, 3])."""
     builder = Builder()
     attach = add_tower(builder, np.random.default_rng(rng.integers(2**31)), obj=1)
     if neighbours:
         for k in (-1, 1):
             add_tower(builder, np.random.default_rng(rng.integers(2**31)), offset=(0.0, k * SPAN, 0.0), obj=3)
-    add_conductors(builder, attach)
+    if conductors:
+        add_conductors(builder, attach)
     add_trees(builder, rng, trees)
     add_buildings(builder, rng, buildings)
     return builder.finish(), attach

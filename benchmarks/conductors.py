@@ -1,0 +1,228 @@
+"""The conductors found in the photos against the generator's truth (docs/EXPORT.md "Conductors").
+
+Usage:
+  python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
+      [--out benchmarks/results/conductors.json]
+
+For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
+it has conductors) the wires are found with the TRUE cameras (`export.conductors`: detection in
+the training photos, the spans fitted from the true tower's axis and line direction) and scored
+against the scene's own cables (`data.synthetic.scene.conductor_spans`); with `--export`, an
+export's measurements.json (its `conductors` record, from the trained chain) is scored against
+the scene of the same position in --data. Per span in view (the two spans at the main tower:
+6 phase conductors and 2 earth wires on each side): found or not, the RMS distance of the fitted
+curve to the true one over the true span (metres), the sag error (the true sag: the lowest point
+below the attachments), the lowest point's height error, the lowest point's clearance above the
+true ground (z = 0) against the truth; and the spans found that match no cable (invented).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+MATCH_RADIUS = 1.0      # m: a fitted span matches a cable when their attachments lie this close
+
+
+def true_spans(attach: np.ndarray) -> list[dict]:
+    """The spans in view (at the main tower, y = 0) as the export sees them: side +1 goes to +y
+    (the generator's span k = 0), side -1 to -y (k = -1). Each {"wire", "earth", "side",
+    "attachment" [3], "far" [3], "sag" (the true lowest point below the attachment), "points"
+    [K, 3] (dense)}."""
+    from jaxnerf_grid.data.synthetic import scene as sc
+
+    out = []
+    for span in sc.conductor_spans(attach):
+        if span["k"] not in (-1, 0):
+            continue
+        side = 1 if span["k"] == 0 else -1
+        pts = sc.catenary(span["p0"], span["p1"], span["sag"], 4000)
+        near, far = (span["p0"], span["p1"]) if side == 1 else (span["p1"], span["p0"])
+        out.append({"wire": span["wire"], "earth": span["earth"], "side": side, "attachment": near, "far": far,
+                    "sag": float(near[2] - pts[:, 2].min()), "lowest_z": float(pts[:, 2].min()), "points": pts})
+    return out
+
+
+def curve_rms(fitted: np.ndarray, truth: np.ndarray) -> float:
+    """RMS over the true curve's points [K, 3] of their distance to the fitted polyline's
+    points [M, 3] (sampled finely: nearest point, `scipy.spatial.cKDTree`)."""
+    from scipy.spatial import cKDTree
+
+    d, _ = cKDTree(fitted).query(truth[::10])
+    return float(np.sqrt(np.mean(d ** 2)))
+
+
+def score(records: list[dict], truth: list[dict]) -> dict:
+    """Matches fitted spans (measurements.json's `conductors.spans` records) to the true ones by
+    side and attachment (within MATCH_RADIUS) and scores each (module docstring)."""
+    from jaxnerf_grid.export import conductors as cond
+
+    rows, used = [], set()
+    for t in truth:
+        best, best_d = None, MATCH_RADIUS
+        for i, r in enumerate(records):
+            a = np.asarray(r["attachment"]["value"], np.float64)
+            d = float(np.linalg.norm(a - t["attachment"]))
+            if r["side"] == t["side"] and d < best_d and i not in used:
+                best, best_d = i, d
+        row = {"wire": t["wire"], "earth": bool(t["earth"]), "side": t["side"], "found": best is not None,
+               "true_sag": t["sag"], "true_lowest_z": t["lowest_z"]}
+        if best is not None:
+            used.add(best)
+            r = records[best]
+            length = float(np.linalg.norm((t["far"] - t["attachment"])[:2]))
+            fitted = cond.curve_points(r["theta"], r.get("centre", [0.0, 0.0, 0.0]),
+                                       np.linspace(0.0, length, 8000), r.get("up", [0.0, 0.0, 1.0]))
+            sag, low = r["sag"]["value"], r["lowest_point"]["value"]
+            row.update({"attachment_error": best_d, "rms": curve_rms(fitted, t["points"]),
+                        "sag": sag, "sag_sigma": r["sag"]["sigma"],
+                        "sag_error_rel": None if sag is None else (sag - t["sag"]) / t["sag"],
+                        "lowest_z": None if low is None else low[2],
+                        "lowest_z_error": None if low is None else low[2] - t["lowest_z"],
+                        "clearance": (r.get("clearance") or {}).get("ground"),
+                        "inlier_share": r["inlier_share"], "observed_stations": r["observed_stations"]})
+            g = row["clearance"]
+            row["clearance_error"] = None if g is None else g - t["lowest_z"]
+        rows.append(row)
+    found = [r for r in rows if r["found"]]
+
+    def worst(key):
+        vals = [abs(r[key]) for r in found if r.get(key) is not None]
+        return max(vals) if vals else None
+
+    return {"spans": rows, "found": len(found), "existing": len(truth), "invented": len(records) - len(used),
+            "worst_rms": worst("rms"), "worst_sag_error_rel": worst("sag_error_rel"),
+            "worst_lowest_z_error": worst("lowest_z_error"), "worst_clearance_error": worst("clearance_error")}
+
+
+def scene_meta(data: Path, size: tuple[int, int] | None = None) -> dict:
+    """transforms.json of a generated scene; with `size` (W, H) and no transforms.json yet (synth
+    still rendering), the same record rebuilt from the generator (tower-small, seed 0: its camera
+    path, `data.synthetic.cameras.camera_path`) for the training photos already written."""
+    from jaxnerf_grid.util import io
+
+    if (data / "transforms.json").is_file() or size is None:
+        return io.read_json(data / "transforms.json")
+    from jaxnerf_grid.data.synthetic import NORMALIZATION, cameras
+    from jaxnerf_grid.data.synthetic.generate import make_config
+
+    cfg = make_config("tower-small", 0, width=size[0], height=size[1])
+    c2w, split = cameras.camera_path(cfg.num_train, cfg.num_test, cfg.orbits, cfg.low_pass,
+                                     np.random.default_rng([cfg.seed, 1]))
+    intr = cameras.intrinsics(size[0], size[1], cfg.fov_deg)
+    frames, counts = [], {"train": 0, "test": 0}
+    for pose, sp in zip(c2w, split):
+        name = f"images/{sp}_{counts[sp]:03d}.png"
+        counts[sp] += 1
+        if sp == "train" and (data / name).is_file():
+            frames.append({"file_path": name, "split": sp, "transform_matrix":
+                           cameras.normalise_pose(pose, NORMALIZATION["scale"], NORMALIZATION["translation"]).tolist()})
+    return {**intr, "frames": frames, "generator": {"preset": "tower-small", "seed": 0, "conductors": True,
+                                                    "partial": f"{len(frames)} of {cfg.num_train} training photos"}}
+
+
+def true_camera_views(data: Path, size: tuple[int, int] | None = None):
+    """(images [N, H, W, 3], Views in metres) of a generated scene's training photos, TRUE cameras."""
+    from jaxnerf_grid.data.synthetic import NORMALIZATION
+    from jaxnerf_grid.export import conductors as cond
+    from jaxnerf_grid.util import io
+
+    meta = scene_meta(data, size)
+    frames = [f for f in meta["frames"] if f.get("split", "train") == "train"]
+    images = np.stack([io.read_image(data / f["file_path"])[..., :3] for f in frames])
+    c2w = cond.metric_cameras(np.stack([np.asarray(f["transform_matrix"], np.float64) for f in frames]),
+                              NORMALIZATION)
+    intr = np.tile([meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"]], (len(frames), 1))
+    responses = [cond.ridge_map(im) for im in images]
+    masks = np.stack([cond.detections(r) for r in responses])
+    return images, cond.Views(c2w, intr, masks, responses)
+
+
+def true_camera_fit(data: Path, picture: Path | None = None, size=None) -> tuple[list[dict], dict]:
+    """The spans found with the true cameras and the true tower (axis at the origin, line along y,
+    30.4 m tall, box 4.5 m either side). Returns (records, timings)."""
+    from jaxnerf_grid.export import conductors as cond
+    from jaxnerf_grid.util import io
+
+    t0 = time.perf_counter()
+    images, views = true_camera_views(data, size)
+    t1 = time.perf_counter()
+    f = float(np.median(views.intrinsics[:, 0]))
+    dist = float(np.median(np.linalg.norm(views.c2w[:, :3, 3], axis=1)))
+    step = dist / f
+    centre = np.zeros(3)
+    spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4)
+    t2 = time.perf_counter()
+    if picture is not None:
+        io.write_png(picture, cond.views_picture(images, views, spans, centre))
+    records = []
+    for s in spans:
+        rec = cond.span_record(s, centre)
+        rec["clearance"] = {"ground": rec["lowest_point"]["value"][2] if rec["lowest_point"]["value"] else None}
+        records.append(rec)
+    return records, {"detect_s": t1 - t0, "fit_s": t2 - t1, "views": int(len(images)),
+                     "size": [int(images.shape[2]), int(images.shape[1])]}
+
+
+def scene_attachments():
+    from jaxnerf_grid.data.synthetic import scene as sc
+
+    return sc.tower_members(np.random.default_rng(0))[3]
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--data", nargs="+", required=True, type=Path, help="generated scene folders")
+    p.add_argument("--export", nargs="*", default=[], type=Path,
+                   help="export folders (measurements.json), one per --data in order, from the trained chain")
+    p.add_argument("--pictures", type=Path, default=None, help="folder for each scene's conductors_views.png")
+    p.add_argument("--no-true-cameras", action="store_true", help="score the --export folders only")
+    p.add_argument("--partial", default=None, metavar="W,H",
+                   help="a tower-small scene (seed 0) of this size still being rendered: the training photos "
+                        "written so far, with the generator's cameras")
+    p.add_argument("--out", type=Path, default=Path("benchmarks/results/conductors.json"))
+    args = p.parse_args(argv)
+    from jaxnerf_grid.util import io
+
+    truth_all = true_spans(scene_attachments())
+    results = []
+    for i, data in enumerate(args.data):
+        size = tuple(int(v) for v in args.partial.split(",")) if args.partial else None
+        meta = scene_meta(data, size)
+        gen = meta.get("generator", {})
+        truth = truth_all if gen.get("conductors", True) else []
+        picture = None
+        if args.pictures is not None:
+            args.pictures.mkdir(parents=True, exist_ok=True)
+            picture = args.pictures / f"{data.name}_conductors_views.png"
+        entry = {"data": data.name, "preset": gen.get("preset"), "seed": gen.get("seed"),
+                 "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
+                 "size": [meta["w"], meta["h"]], "partial": gen.get("partial")}
+        if not args.no_true_cameras:
+            records, timings = true_camera_fit(data, picture, size)
+            entry["true_cameras"] = {**score(records, truth), "timings": timings}
+            print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
+        if i < len(args.export):
+            m = io.read_json(args.export[i] / "measurements.json")
+            spans = ((m.get("conductor_spans") or {}).get("spans")) or []
+            timings = m.get("timings") or {}
+            entry["export"] = {"folder": str(args.export[i]), **score(spans, truth),
+                               "export_seconds": m.get("seconds"), "conductor_seconds": timings.get("conductors")}
+            print(json.dumps({k: v for k, v in entry["export"].items() if k != "spans"}), file=sys.stderr)
+        results.append(entry)
+    out = {"benchmark": "conductors", "load_avg": os.getloadavg(), "results": results}
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    args.out.write_text(json.dumps(out, indent=1))
+    print(f"wrote {args.out}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,99 @@
+"""A span's clearance (export.clearance) over a known ground and a known tree, worked out by hand,
+and the classified cloud's ASPRS classes (export.classes) read back with laspy."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid.export import classes, clearance, survey
+from jaxnerf_grid.export import conductors as cond
+
+A, XV = 1600.0, 160.0                 # catenary parameter, lowest point's station (m)
+ATTACH_Z = 14.9
+GROUND_Z = 0.5                        # the ground: the plane z = 0.5 (n = +z, d = -0.5)
+
+
+def span_curve() -> np.ndarray:
+    """The span x = 7.6, y = s in [0, 320], z = ATTACH_Z + a (cosh((s - x_v) / a) - cosh(x_v / a)). [K, 3]"""
+    theta = (-7.6, ATTACH_Z, math.pi / 2, -math.sinh(XV / A), 1.0 / A)
+    return cond.sample_span(theta, np.zeros(3), 0.25)
+
+
+def tree(centre, radius: float, top: float, count: int = 4000, seed: int = 0) -> np.ndarray:
+    """Points [count, 3] filling a vertical cylinder of the radius from the ground to `top`."""
+    rng = np.random.default_rng(seed)
+    r, phi = radius * np.sqrt(rng.uniform(size=count)), rng.uniform(0, 2 * np.pi, count)
+    z = rng.uniform(GROUND_Z + 1.0, top, count)
+    return np.stack([centre[0] + r * np.cos(phi), centre[1] + r * np.sin(phi), z], 1)
+
+
+def test_lowest_point_clearance_over_a_known_ground():
+    curve = span_curve()
+    sag = A * (math.cosh(XV / A) - 1.0)
+    height, point = clearance.lowest_above_ground(curve, [0.0, 0.0, 1.0], -GROUND_Z)
+    assert height == pytest.approx(ATTACH_Z - sag - GROUND_Z, abs=1e-4)
+    assert point[1] == pytest.approx(XV, abs=0.25)
+
+
+def test_clearance_over_a_known_tree_beneath_the_span():
+    curve = span_curve()
+    # a tree 2 m across the wire (x = 9.6) at y = 100, its top at 5 m: the wire's height there by hand
+    wire_z = ATTACH_Z + A * (math.cosh((100.0 - XV) / A) - math.cosh(XV / A))
+    crown = tree((9.6, 100.0), 0.3, 5.0)
+    ground = np.stack(np.meshgrid(np.linspace(-20, 20, 41), np.linspace(0, 320, 161)), -1).reshape(-1, 2)
+    ground = np.concatenate([ground, np.full((len(ground), 1), GROUND_Z)], 1)
+    far_tree = tree((40.0, 150.0), 0.5, 25.0, seed=1)          # outside the 10 m corridor: not counted
+    cloud = np.concatenate([ground, crown, far_tree])
+    out = clearance.objects_beneath(curve, cloud, [0.0, 0.0, 1.0], -GROUND_Z, 0.2, 10.0)
+    # by hand: the wire's height over each crown point from the closed form, the least gap
+    gaps = ATTACH_Z + A * (np.cosh((crown[:, 1] - XV) / A) - math.cosh(XV / A)) - crown[:, 2]
+    worst = crown[np.argmin(gaps)]
+    assert out["count"] == len(crown)
+    assert out["clearance"] == pytest.approx(gaps.min(), abs=1e-3)
+    assert out["clearance"] == pytest.approx(wire_z - 5.0, abs=0.05)          # about the crown's top
+    assert out["horizontal_distance"] == pytest.approx(abs(worst[0] - 7.6), abs=1e-6)
+    assert out["height_above_ground"] == pytest.approx(worst[2] - GROUND_Z, abs=1e-9)
+    assert out["covered"][0] == pytest.approx(0.0, abs=1e-9) and out["covered"][1] == pytest.approx(320.0, abs=1.0)
+    assert clearance.flag(6.0, out["clearance"], 20.0) is True
+    assert clearance.flag(6.0, out["clearance"], 3.0) is False
+    assert clearance.flag(6.0, out["clearance"], None) is None
+
+
+def test_classified_las_reads_back_with_the_asprs_classes(tmp_path):
+    laspy = pytest.importorskip("laspy")
+    points = np.array([[0.0, 0.0, 0.5], [5.0, 5.0, 0.6], [5.0, 5.0, 0.9], [5.0, 5.0, 2.0], [5.0, 5.0, 9.0],
+                       [0.0, 0.0, 20.0], [30.0, 30.0, 4.0]])
+    box = (np.array([-4.0, -4.0, 1.0]), np.array([4.0, 4.0, 31.0]))
+    building = np.array([False, False, False, False, False, False, True])
+    got = classes.classify(points, [0.0, 0.0, 1.0], -0.5, 0.2, box, building)
+    # heights 0, 0.1 (ground band) | 0.4 low | 1.5 medium | 8.5 high | inside the box: tower | building
+    expected = [2, 2, 3, 4, 5, 15, 6]
+    np.testing.assert_array_equal(got, expected)
+    wire = np.array([[7.6, 10.0, 14.0], [7.6, 10.5, 13.9]])
+    path = survey.write_las(tmp_path / "c.las", np.concatenate([points, wire]), np.full((9, 3), 0.5),
+                            classification=np.concatenate([got, [classes.CONDUCTOR] * 2]))
+    las = laspy.read(str(path))
+    np.testing.assert_array_equal(np.asarray(las.classification), expected + [14, 14])
+    np.testing.assert_allclose(np.stack([las.x, las.y, las.z], 1)[-2:], wire, atol=1e-3)
+
+
+def test_the_report_table_shows_each_span_its_sigmas_and_its_flag():
+    from jaxnerf_grid.report import markdown as report
+
+    theta = np.array([-7.6, ATTACH_Z, math.pi / 2, -math.sinh(XV / A), 1.0 / A])
+    fit = {"theta": theta, "cov": np.diag([1e-4, 1e-4, 1e-8, 1e-8, 1e-14]), "side": 1, "sigma_px": 0.5,
+           "inlier_share": 0.9, "residuals": 100, "seen": 110, "stations": np.array([4.5, 320.0])}
+    rec = cond.span_record(fit, np.zeros(3))
+    rec["clearance"] = {"ground": 6.9, "ground_sigma": 0.01, "objects": None, "flag": True}
+    lines = report.conductor_lines({"conductor_spans": {"found": 1, "photos": 40, "min_clearance": 8.0, "flagged": 1,
+                                                        "spans": [rec]}}, "m", "conductors_views.png")
+    text = "\n".join(lines)
+    sag = A * (math.cosh(XV / A) - 1.0)
+    assert f"{sag:.2f} +- " in text and "14.90 +- 0.01" in text and "6.90 +- 0.01" in text
+    assert "**below**" in text and "clearance below 8.00 m: **1**" in text
+    assert "![the fitted conductors on the photos](conductors_views.png)" in text
+    none = report.conductor_lines({"conductor_spans": {"found": 0, "photos": 40, "spans": [], "why": "no wire"}}, "m")
+    assert "No conductor found in the 40 photos: no wire" in "\n".join(none)

@@ -1,0 +1,133 @@
+"""The conductors' catenary fit (export.conductors) against closed forms, on 2-D detections drawn
+in known cameras, with pixel noise and clutter added."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid.export import conductors as cond
+
+W, H, F = 640, 480, 554.0
+A_TRUE, XV_TRUE = 1600.0, 160.0          # catenary parameter and the lowest point's station (m)
+ATTACH = np.array([7.6, 0.0, 14.9])       # the near attachment; the line runs along +y
+
+
+def look_at(eye, target) -> np.ndarray:
+    """OpenGL camera-to-world [4, 4]: -z towards the target, +y as near +z as possible."""
+    eye, target = np.asarray(eye, float), np.asarray(target, float)
+    f = (target - eye) / np.linalg.norm(target - eye)
+    right = np.cross(f, [0.0, 0.0, 1.0])
+    right /= np.linalg.norm(right)
+    up = np.cross(right, f)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = right, up, -f, eye
+    return m
+
+
+def ring_cameras(count: int = 16) -> np.ndarray:
+    """[count, 4, 4]: drone views on a 60 m ring, 10-40 m high, 30 degrees clear of the line (as
+    the generator flies them), looking at the tower's middle."""
+    out = []
+    for k in range(count):
+        az = math.radians(-60 + 120 * (k // 2) / max(count // 2 - 1, 1) + 180 * (k % 2))
+        out.append(look_at([60 * math.cos(az), 60 * math.sin(az), 10 + 30 * (k % 3) / 2], [0.0, 0.0, 15.0]))
+    return np.stack(out)
+
+
+def true_curve(side: int = 1, step: float = 0.02) -> np.ndarray:
+    """The true span's points [K, 3]: a (cosh((s - x_v) / a) - cosh(x_v / a)) below ATTACH, s in [0, 2 x_v]."""
+    s = np.arange(0.0, 2 * XV_TRUE + step, step)
+    z = A_TRUE * (np.cosh((s - XV_TRUE) / A_TRUE) - np.cosh(XV_TRUE / A_TRUE))
+    return np.stack([np.full_like(s, ATTACH[0]), side * s, ATTACH[2] + z], axis=1)
+
+
+def render_photos(c2w: np.ndarray, curves: list[np.ndarray], rng, clutter: int = 40, lines: int = 3) -> np.ndarray:
+    """Photos [N, H, W, 3] in [0, 1]: a bright noisy sky with each curve drawn as a dark
+    anti-aliased line one pixel wide (OpenCV, sub-pixel positions), plus `lines` random straight
+    dark lines and `clutter` dark dots per photo (what the fit must ignore)."""
+    import cv2
+
+    intr = np.tile([F, F, W / 2, H / 2], (len(c2w), 1))
+    out = []
+    for i in range(len(c2w)):
+        img = np.full((H, W), 200, np.uint8)
+        for pts in curves:
+            u, v, z = cond.project_all(pts, c2w[i:i + 1], intr[i:i + 1])
+            ok = (z[0] > 0) & (np.abs(u[0]) < 4 * W) & (np.abs(v[0]) < 4 * H)
+            line = np.stack([u[0][ok] - 0.5, v[0][ok] - 0.5], 1)           # OpenCV: pixel centres at integers
+            cv2.polylines(img, [np.round(line * 256).astype(np.int32)], False, 110, 1, cv2.LINE_AA, shift=8)
+        for _ in range(lines):
+            a, b = rng.uniform([0, 0], [W, H]), rng.uniform([0, 0], [W, H])
+            cv2.line(img, tuple(int(x) for x in a), tuple(int(x) for x in b), 120, 1, cv2.LINE_AA)
+        for _ in range(clutter):
+            cv2.circle(img, (int(rng.integers(0, W)), int(rng.integers(0, H))), int(rng.integers(1, 4)), 90, -1)
+        grey = img.astype(np.float64) / 255.0 + rng.normal(0, 0.004, img.shape)
+        out.append(np.repeat(grey[..., None], 3, axis=2))
+    return np.stack(out)
+
+
+def views_of(photos: np.ndarray, c2w: np.ndarray) -> cond.Views:
+    """The detections of the photos (`ridge_map`, `detections`) in the known cameras."""
+    responses = [cond.ridge_map(p) for p in photos]
+    masks = np.stack([cond.detections(r) for r in responses])
+    return cond.Views(c2w, np.tile([F, F, W / 2, H / 2], (len(c2w), 1)), masks, responses)
+
+
+def test_sag_profile_is_the_closed_form_catenary_and_a_line_without_curvature():
+    s = np.linspace(0.0, 320.0, 33)
+    beta = XV_TRUE / A_TRUE
+    closed = A_TRUE * (np.cosh((s - XV_TRUE) / A_TRUE) - np.cosh(XV_TRUE / A_TRUE))
+    np.testing.assert_allclose(cond.sag_profile(s, -math.sinh(beta), 1.0 / A_TRUE), closed, atol=1e-9)
+    np.testing.assert_allclose(cond.sag_profile(s, -0.1, 0.0), -0.1 * s, atol=1e-12)
+    fig = cond.derived((-ATTACH[0], ATTACH[2], math.pi / 2, -math.sinh(beta), 1.0 / A_TRUE), np.zeros(3))
+    assert fig["sag"] == pytest.approx(A_TRUE * (math.cosh(beta) - 1.0), rel=1e-12)
+    np.testing.assert_allclose(fig["lowest_point"], [ATTACH[0], XV_TRUE, ATTACH[2] - fig["sag"]], atol=1e-9)
+    np.testing.assert_allclose(fig["far_attachment"], [ATTACH[0], 2 * XV_TRUE, ATTACH[2]], atol=1e-9)
+
+
+def test_fit_recovers_a_known_catenary_from_noisy_cluttered_detections():
+    rng = np.random.default_rng(0)
+    c2w = ring_cameras()
+    views = views_of(render_photos(c2w, [true_curve()], rng), c2w)
+    seed = (-ATTACH[0] + 0.4, ATTACH[2] + 0.5, math.pi / 2 + 0.003, 0.0, 0.0)
+    fit = cond.fit_span(views, seed, np.zeros(3), 4.5, cond.reaches_from(36.0, 900.0))
+    fig = cond.derived(fit["theta"], np.zeros(3))
+    sig = cond.derived_sigmas(fit["theta"], fit["cov"], np.zeros(3))
+    sag_true = A_TRUE * (math.cosh(XV_TRUE / A_TRUE) - 1.0)
+    assert fit["inlier_share"] > 0.8
+    assert fig["sag"] == pytest.approx(sag_true, rel=0.03)
+    np.testing.assert_allclose(fig["attachment"], ATTACH, atol=0.1)
+    np.testing.assert_allclose(fig["lowest_point"][[0, 2]], [ATTACH[0], ATTACH[2] - sag_true], atol=0.15)
+    assert fig["lowest_station"] == pytest.approx(XV_TRUE, abs=10.0)
+    # the 1-sigma figures are finite, small, and the errors are within a few of them
+    assert 0 < sig["sag"] < 0.5
+    assert abs(fig["sag"] - sag_true) < 5 * sig["sag"] + 0.05
+
+
+def test_spans_found_on_both_sides_and_none_in_clutter_alone():
+    rng = np.random.default_rng(1)
+    c2w = ring_cameras()
+    wires = render_photos(c2w, [true_curve(1), true_curve(-1)], rng)
+    found = cond.find_spans(views_of(wires, c2w), np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4)
+    assert sorted(f["side"] for f in found) == [-1, 1]
+    for f in found:
+        np.testing.assert_allclose(cond.derived(f["theta"], np.zeros(3))["attachment"], ATTACH, atol=0.15)
+    clutter = render_photos(c2w, [], rng, clutter=400, lines=12)
+    assert cond.find_spans(views_of(clutter, c2w), np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11,
+                           30.4) == []
+
+
+def test_synth_without_conductors_leaves_out_every_cable_and_nothing_else():
+    from jaxnerf_grid.data.synthetic import scene as sc
+
+    with_wires, attach = sc.static_scene(np.random.default_rng(0))
+    without, attach2 = sc.static_scene(np.random.default_rng(0), conductors=False)
+    cls = np.concatenate([a["cls"] for a in with_wires.attrs.values()])
+    cls2 = np.concatenate([a["cls"] for a in without.attrs.values()])
+    spans = sc.conductor_spans(attach)
+    assert (cls == sc.CONDUCTOR).sum() == 32 * len(spans) and (cls2 == sc.CONDUCTOR).sum() == 0
+    assert len(cls2) == len(cls) - 32 * len(spans)
+    np.testing.assert_array_equal(attach, attach2)
