@@ -25,8 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid import (config as config_lib, distributed, evaluate, folders, io, masking, recipes, report_html,
-                          runs, videos)
+from jaxnerf_grid import (budget as budget_lib, config as config_lib, distributed, evaluate, folders, io, masking,
+                          recipes, report_html, runs, train, videos)
 from jaxnerf_grid.config import ConfigError
 from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
 from jaxnerf_grid.data.formats.transforms_json import read_meta
@@ -254,18 +254,21 @@ def _mask_note(mask_source: str | None, plan: dict | None = None) -> str:
 
 def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None, overwrite: bool = False,
              progress: bool = True, sets: list[str] | None = None, max_side: int | None = None,
-             masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES) -> dict:
+             masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES, minutes: float | None = None) -> dict:
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
     has no masks and they are needed) -> train the demo's recipe (DEMO_RECIPE) -> evaluate -> the
     fly-around video (`write_demo_video`, unless video_frames is 0). Returns {"run_dir", "metrics",
     "timings" (s per stage, STAGES), "total_seconds", "mask_source", "mask_plan", "video"
     (render_video's dict, None without a video)}. sets: --set KEY=VALUE changes to DEMO_CONFIG;
     max_side: train.max_side (the working resolution; None: the default, 640 px); masks: one of
-    MASK_CHOICES (`mask_plan`). The config is checked (run_config.make_config) before anything is
-    written."""
+    MASK_CHOICES (`mask_plan`); minutes: the training time budget the steps are chosen within when
+    `steps` is None (`budget.py`; None: budget.DEFAULT_MINUTES). The config is checked
+    (run_config.make_config) before anything is written."""
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
         raise ConfigError(f"demo.steps = {steps}: must be an integer >= 1")
     check_video_frames(video_frames)
+    if minutes is not None:
+        config_lib.check_value("demo.minutes", minutes, float, config_lib.POSITIVE)
     method = recipes.get(DEMO_RECIPE).method
     base = recipes.overrides(DEMO_RECIPE)
     if max_side is not None:
@@ -305,9 +308,20 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     if not layout and masks == "auto":
         plan = dict(mask_plan("robust", None), why="chosen automatically: the dataset is not in the transforms.json "
                     "layout, so it has no masks and `mask` cannot write any")
+    overrides = _with_plan(recipe, plan)
+    settled = make_config(method, runs._with_steps(overrides, steps))
+    settled, chosen = budget_lib.apply(settled, budget_lib.capture_pixels(data, settled.train.max_side),
+                                       train.step_devices(settled.train), minutes,
+                                       budget_lib.steps_given_by(steps, runs.overrides_with_sets({}, sets)),
+                                       distributed.jax.default_backend())
+    if progress and distributed.is_main():
+        print(budget_lib.report_line(chosen), flush=True)
+    if budget_lib.warning(chosen) and distributed.is_main():
+        print(budget_lib.warning(chosen), flush=True)
     t = time.perf_counter()
-    run_dir, _, _ = runs.train_run(str(data), method, out / "run", _with_plan(recipe, plan), steps, overwrite,
-                                   progress)
+    run_dir, _, _ = runs.train_run(str(data), method, out / "run",
+                                   config_lib.merge(overrides, budget_lib.train_overrides(chosen)), None, overwrite,
+                                   progress, budget=chosen)
     timings["train"] = time.perf_counter() - t
     if not distributed.is_main():
         return {"run_dir": run_dir, "metrics": None, "timings": timings, "total_seconds": time.perf_counter() - start,

@@ -2,13 +2,16 @@
 
     jaxnerf-grid train --data DIR [--recipe NAME] [--method ours|nerf|nerfw] [--config FILE] [--set KEY=VALUE ...]
                        [--out RUN]
-                       [--steps N] [--max-side N] [--overwrite] [--allow-other-data] [--eval]
+                       [--steps N | --minutes N] [--max-side N] [--overwrite] [--allow-other-data] [--eval]
                        [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
 
 The settings start from a recipe (`recipes`, docs/RECIPES.md; `jaxnerf-grid recipes` lists them):
 --recipe NAME, or with only --method M the recipe named M; neither: `ours`, the recipe that
 resolves the tower (the demo's). --method with --recipe trains that recipe's settings as method M.
 --config and --set are laid on top.
+Without --steps (or train.max_steps in --config / --set) the steps follow the capture: the training
+budget (`budget.py`, docs/RECIPES.md) draws each training pixel about 4 times, at least the recipe's
+steps, at most what fits in --minutes of training (default 12) on two idle cores.
 """
 
 from __future__ import annotations
@@ -66,7 +69,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one config value, dotted key, JSON value (e.g. model.warp=log, train.batch_rays=2048, "
                         "model.sampler.samples=[64,32]); repeatable; applied after --config")
     p.add_argument("--out", default=None, help="run directory (default runs/<recipe>)")
-    p.add_argument("--steps", type=int, default=None, help="override train.max_steps")
+    p.add_argument("--steps", type=int, default=None,
+                   help="train.max_steps (default: chosen from the capture's training pixels within --minutes)")
+    p.add_argument("--minutes", type=float, default=None, metavar="N",
+                   help="the training time budget the steps are chosen within when --steps is not given "
+                        "(default 12, on two idle cores; budget.py)")
     p.add_argument("--max-side", type=int, default=None, metavar="N",
                    help="train with the photos' long side at most N px (an integer downscale factor, "
                         "intrinsics scaled; 0 = full size; default 640); sets train.max_side")
@@ -96,7 +103,7 @@ def train_summary(cfg, result, run_dir) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     multi = start_distributed(args)
-    from jaxnerf_grid import config as config_lib, distributed, evaluate, recipes, run_config, runs
+    from jaxnerf_grid import budget, config as config_lib, distributed, evaluate, recipes, run_config, runs, train
     from jaxnerf_grid.data.bounds import bounds_line, folder_bounds, recipe_with_bounds
 
     recipe, method = recipes.resolve(args.recipe, args.method)
@@ -106,14 +113,24 @@ def main(argv: list[str] | None = None) -> int:
     if bounds and run_config.make_config(method, overrides).model.use_contraction:
         overrides = recipe_with_bounds(overrides, bounds)   # --config and --set still win
         print(bounds_line(bounds))
-    overrides = config_lib.merge(overrides, runs.read_overrides(args.config))
-    overrides = runs.overrides_with_sets(overrides, args.set)
+    user = runs.overrides_with_sets(runs.read_overrides(args.config), args.set)
+    overrides = config_lib.merge(overrides, user)
     if args.max_side is not None:
         overrides = runs.overrides_with_sets(overrides, [f"train.max_side={args.max_side}"])
+    if args.minutes is not None:
+        config_lib.check_value("run.minutes", args.minutes, float, config_lib.POSITIVE)
+    settled = run_config.make_config(method, runs._with_steps(overrides, args.steps))
+    settled, chosen = budget.apply(settled, budget.capture_pixels(args.data, settled.train.max_side),
+                                   train.step_devices(settled.train), args.minutes,
+                                   budget.steps_given_by(args.steps, user), distributed.jax.default_backend())
+    overrides = config_lib.merge(overrides, budget.train_overrides(chosen))
+    print(budget.report_line(chosen))
+    if budget.warning(chosen):
+        print(budget.warning(chosen))
     try:
-        run_dir, cfg, result = runs.train_run(args.data, method, out, overrides, args.steps, args.overwrite,
+        run_dir, cfg, result = runs.train_run(args.data, method, out, overrides, None, args.overwrite,
                                               not args.quiet, allow_other_data=args.allow_other_data,
-                                              progress_page=args.progress_page)
+                                              progress_page=args.progress_page, budget=chosen)
     except distributed.DistributedError as err:
         exit_on_distributed_error("train", err)
     if multi and not distributed.is_main():
