@@ -5,6 +5,11 @@
 #
 #   bash scripts/gpu_fullsize.sh DATA            # e.g. DATA=.gpu_data/fountain-P11
 #
+# The size trained is the dataset's: `poses --max-side 1600` writes 1599x1066 photos for
+# fountain-P11 (4.4 MB of JPEGs, 9 training frames: 15.3 M training pixels, 9x the CPU's 533x355);
+# `poses` without --max-side keeps the camera's 3072x2048 (about 31 MB to carry). Poses run here
+# (pycolmap is not on the GPU image); carry the folder with .whl (64 MiB in all).
+#
 # Trains the demo's recipe on DATA at the photos' full size (MAX_SIDE=0; give MAX_SIDE=N for the
 # largest working size that fits when full size does not) with BATCH rays a step (default 65536: at
 # 1024 rays a step the H200 is launch-bound, 1.2 ms a step, docs/GPU.md), for at most MINUTES (4) of
