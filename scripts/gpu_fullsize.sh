@@ -27,8 +27,11 @@ MAX_SIDE=${MAX_SIDE:-0}
 BATCH=${BATCH:-65536}
 MINUTES=${MINUTES:-4}
 MASKS=${MASKS:-robust}
+WORK=${WORK:-/tmp/fullsize}   # the probe's and the run's folders
 mkdir -p "$OUT"
-python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "${WHL:-.whl}"/*.whl || exit 1
+if [ -z "${NO_WHL:-}" ]; then  # NO_WHL=1: the environment has every package (a dry run on a CPU machine)
+  python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --upgrade --target /tmp/site "${WHL:-.whl}"/*.whl || exit 1
+fi
 export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 nvidia-smi -L
 nvidia-smi --query-gpu=memory.used,memory.total --format=csv
@@ -36,22 +39,21 @@ python3 -c "import jax; print('jax', jax.__version__, jax.devices())"
 SETS=(--set "train.batch_rays=$BATCH" --set train.log_every=20 --set train.checkpoint_every=100000)
 {
   echo "== probe: 40 steps of $BATCH rays at max_side $MAX_SIDE"
-  ( time timeout 150 python3 -m jaxnerf_grid demo --data "$DATA" --out /tmp/probe --max-side "$MAX_SIDE" \
+  ( time timeout "${PROBE_TIMEOUT:-150}" python3 -m jaxnerf_grid demo --data "$DATA" --out "$WORK"/probe --max-side "$MAX_SIDE" \
       --masks "$MASKS" --steps 40 --no-video --quiet "${SETS[@]}" ) 2>&1 | grep -v "^warning: 40 steps"
-  [ -f /tmp/probe/run/metrics.jsonl ] || { echo "the probe did not train"; exit 1; }
+  [ -f "$WORK"/probe/run/metrics.jsonl ] || { echo "the probe did not train"; exit 1; }
   RPS=$(python3 -c "
 import json
-recs = [json.loads(l) for l in open('/tmp/probe/run/metrics.jsonl')]
+recs = [json.loads(l) for l in open('$WORK/probe/run/metrics.jsonl')]
 print(int(recs[-1]['rays_per_s']))   # the last window, after the compile")
   STEPS=$(python3 -c "print(max(200, int($MINUTES * 60 * $RPS / $BATCH) // 100 * 100))")
   echo "== probe: $RPS rays/s after the compile -> $STEPS steps for $MINUTES min"
   nvidia-smi --query-gpu=memory.used,memory.total --format=csv
-  ( time timeout 420 python3 -m jaxnerf_grid demo --data "$DATA" --out /tmp/full --max-side "$MAX_SIDE" \
+  ( time timeout "${RUN_TIMEOUT:-420}" python3 -m jaxnerf_grid demo --data "$DATA" --out "$WORK"/full --max-side "$MAX_SIDE" \
       --masks "$MASKS" --steps "$STEPS" --no-video --quiet "${SETS[@]}" ) 2>&1
-  python3 - "$RPS" "$STEPS" "$BATCH" "$OUT/fullsize.json" <<'EOF'
+  python3 - "$RPS" "$STEPS" "$BATCH" "$OUT/fullsize.json" "$WORK/full/run" <<'EOF'
 import json, sys
-rps, steps, batch, out = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4]
-run = "/tmp/full/run"
+rps, steps, batch, out, run = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
 m = json.load(open(f"{run}/metrics.json"))
 t = json.load(open(f"{run}/timings.json"))
 log = [json.loads(l) for l in open(f"{run}/metrics.jsonl")]
@@ -65,4 +67,4 @@ json.dump(rec, open(out, "w"), indent=1)
 print(json.dumps(rec))
 EOF
 } 2>&1 | tee "$OUT/fullsize.log"
-for f in report.md report_views.png metrics.json; do cp "/tmp/full/run/$f" "$OUT/$f" 2>/dev/null; done
+for f in report.md report_views.png metrics.json; do cp "$WORK/full/run/$f" "$OUT/$f" 2>/dev/null; done
