@@ -25,6 +25,11 @@ def test_small_capture_keeps_the_recipes_steps():
 def test_the_defaults_keep_the_synthetic_demo_at_1600_steps():
     b = budget.choose_budget(40 * 160 * 120, 1, None, DEMO_TRAIN)
     assert b.steps == 1600 and b.minutes == budget.DEFAULT_MINUTES
+    # the demo's whole config on tower-small (40 training frames of 160x120) is the recipe's, unchanged
+    from jaxnerf_grid import demo, recipes
+
+    cfg = recipes.make_config(demo.DEMO_RECIPE)
+    assert budget.apply(cfg, 40 * 160 * 120)[0] == cfg
 
 
 def test_medium_capture_gets_its_epochs():
