@@ -41,6 +41,8 @@ import math
 from pathlib import Path
 
 from jaxnerf_grid import config as config_lib
+from jaxnerf_grid.data import formats, working
+from jaxnerf_grid.io import DataError
 
 # Each training pixel drawn about this many times. Measured on fountain-P11 and the synthetic tower
 # at 640x480 (docs/RESULTS.md "A training budget that follows the capture").
@@ -143,8 +145,6 @@ def capture_pixels(data, max_side: int) -> int:
     (data/working.py): the sum over its training frames of W' x H', read from the dataset's
     record and the images' headers, no pixel decoded. DataError naming the folder as the loaders
     say it."""
-    from jaxnerf_grid.data import formats, working
-
     scene = formats.collect_scene(Path(data), load_extras=False)
     total = 0
     for i in scene.split["train"]:
@@ -159,9 +159,7 @@ def _frame_size(frame) -> tuple[int, int]:
     W and H, not their product)."""
     if frame.size is not None:
         return int(frame.size[0]), int(frame.size[1])
-    from PIL import Image
-
-    from jaxnerf_grid.io import DataError
+    from PIL import Image  # Pillow reads the header alone
 
     try:
         with Image.open(frame.image_path) as img:
@@ -196,8 +194,8 @@ def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None =
 def apply(cfg, train_pixels: int, n_devices: int = 1, minutes: float | None = None, given_by: str | None = None,
           platform: str = "cpu") -> tuple:
     """(cfg with the budget's steps and stretched schedules, its record) for a settled RunConfig
-    whose recipe steps are train.max_steps. given_by: the flag that fixed the steps (--steps,
-    --set train.max_steps, --config) or None; when given, cfg is returned as it is and the record
+    whose recipe steps are train.max_steps. given_by: the setting that fixed the steps
+    (`steps_given_by`: run.steps, train.max_steps) or None; when given, cfg is returned as it is and the record
     says so."""
     if given_by is not None:
         return cfg, record(None, cfg, train_pixels, given_by)
@@ -207,10 +205,10 @@ def apply(cfg, train_pixels: int, n_devices: int = 1, minutes: float | None = No
 
 
 def steps_given_by(steps: int | None, overrides: dict | None) -> str | None:
-    """Which of the user's settings fixed the steps: "--steps" (steps not None), "train.max_steps"
+    """Which of the user's settings fixed the steps: "run.steps" (steps not None), "train.max_steps"
     (in the --config / --set overrides), else None (the budget chooses)."""
     if steps is not None:
-        return "--steps"
+        return "run.steps"
     if "max_steps" in ((overrides or {}).get("train") or {}):
         return "train.max_steps"
     return None
@@ -229,7 +227,7 @@ def report_line(rec: dict) -> str:
                 f"{rec['train_pixels'] / 1e6:.2f} M training pixels ({rec['why']}).")
     return (f"Training budget: {rec['steps']} steps x {rec['batch_rays']} rays, {rec['epochs']:.2f} epochs of "
             f"{rec['train_pixels'] / 1e6:.2f} M training pixels, about {rec['estimated_minutes']:.1f} min on the "
-            f"reference machine; why: {rec['why']} (`--minutes`, `--steps`; docs/RECIPES.md).")
+            f"reference machine; why: {rec['why']} (docs/RECIPES.md \"The training budget\").")
 
 
 # Below this many epochs a capture's renders were smeared (the 50-photo phone capture at 0.15
@@ -239,11 +237,11 @@ FEW_EPOCHS = 0.5
 
 def warning(rec: dict) -> str | None:
     """A one-line warning before a run the budget expects to be poor: fewer steps than its recipe
-    (a short --minutes), or under FEW_EPOCHS epochs; None otherwise."""
+    (a short time budget), or under FEW_EPOCHS epochs; None otherwise."""
     if rec.get("rule") == "budget" and rec["steps"] < rec["recipe_steps"]:
-        return (f"warning: --minutes {rec['minutes']:g} allows {rec['steps']} steps, fewer than the recipe's "
-                f"{rec['recipe_steps']}: expect a softer model")
+        return (f"warning: a time budget of {rec['minutes']:g} min allows {rec['steps']} steps, fewer than the "
+                f"recipe's {rec['recipe_steps']}: expect a softer model")
     if rec["epochs"] < FEW_EPOCHS:
         return (f"warning: {rec['steps']} steps draw each training pixel {rec['epochs']:.2f} times "
-                f"(under {FEW_EPOCHS:g}): expect smeared renders; give more --minutes (or --steps)")
+                f"(under {FEW_EPOCHS:g}): expect smeared renders; give a longer time budget or more steps")
     return None

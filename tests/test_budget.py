@@ -104,8 +104,8 @@ def test_apply_leaves_steps_the_user_gave():
     from jaxnerf_grid.run_config import RunConfig
 
     cfg = RunConfig(train=dataclasses.replace(DEMO_TRAIN, max_steps=300))
-    same, rec = budget.apply(cfg, 12 * 10 ** 6, given_by="--steps")
-    assert same == cfg and rec["rule"] == "given" and rec["steps"] == 300 and "--steps" in rec["why"]
+    same, rec = budget.apply(cfg, 12 * 10 ** 6, given_by="run.steps")
+    assert same == cfg and rec["rule"] == "given" and rec["steps"] == 300 and "run.steps" in rec["why"]
     assert rec["epochs"] == pytest.approx(300 * 1024 / 12e6, abs=1e-3)
     assert budget.warning(rec).startswith("warning: 300 steps draw each training pixel 0.03 times")
     chosen, rec = budget.apply(RunConfig(train=DEMO_TRAIN), 9 * 533 * 355, minutes=12)
@@ -118,7 +118,7 @@ def test_apply_leaves_steps_the_user_gave():
 
 
 def test_steps_given_by_names_the_flag_or_key():
-    assert budget.steps_given_by(5, {}) == "--steps"
+    assert budget.steps_given_by(5, {}) == "run.steps"
     assert budget.steps_given_by(None, {"train": {"max_steps": 9}}) == "train.max_steps"
     assert budget.steps_given_by(None, {"train": {"batch_rays": 9}}) is None
     assert budget.steps_given_by(None, None) is None
