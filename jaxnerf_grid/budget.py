@@ -44,11 +44,14 @@ from jaxnerf_grid import config as config_lib
 from jaxnerf_grid.data import formats, working
 from jaxnerf_grid.io import DataError
 
-# Each training pixel drawn about this many times. Measured on fountain-P11 and the synthetic tower
-# at 640x480 (docs/RESULTS.md "A training budget that follows the capture").
+# Each training pixel drawn about this many times: the most that keeps the synthetic demo at its
+# 1600 steps (2.13 epochs), where tower-small has saturated (1000 to 2400 steps within 0.05 dB on
+# the GPU, docs/GPU.md). Larger captures were not yet measured at other counts (docs/RECIPES.md).
 TARGET_EPOCHS = 2.0
-# Minutes of training when the user gives none (`--minutes`): with poses, masks, evaluation and the
-# video, a 50-photo capture stays within 20 minutes from photos to report on two idle cores.
+# Minutes of training when the user gives none (`--minutes`). A 50-photo phone capture (10.9 M
+# training pixels) then trains 7700 steps, 0.73 epochs: more than the 6400 steps (0.6 epochs) that
+# made its renders sharp (25.8 dB against 22.9 at 1600), and, with its 219 s of poses and the
+# evaluation, about 18 minutes from photos to report on two idle cores (an estimate from those runs).
 DEFAULT_MINUTES = 12.0
 # Steps are rounded to this (readable step counts; the cap rounds down, the wish up).
 STEP_ROUND = 100
@@ -59,8 +62,6 @@ STEP_ROUND = 100
 #   docs/RESULTS.md);
 # gpu: one H200, the training loop at 1024 rays a step, 2.8 ms a step (docs/GPU.md): 365k.
 REFERENCE_RAYS_PER_S = {"cpu": 11000.0, "gpu": 365000.0}
-# Platforms whose devices add up (a CPU's devices share its cores).
-PARALLEL_PLATFORMS = ("gpu", "cuda", "rocm", "tpu")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -88,7 +89,7 @@ class Budget:
 def rays_per_second(platform: str, n_devices: int) -> float:
     """The estimated train rays a second of the demo's recipe on `n_devices` devices of `platform`
     (jax.default_backend(): "cpu", "gpu", ...): REFERENCE_RAYS_PER_S per device, times the devices
-    on a platform whose devices add up (PARALLEL_PLATFORMS); an unknown accelerator counts as a GPU."""
+    on an accelerator (any platform but "cpu" counts as a GPU); a CPU's devices share its cores."""
     if platform == "cpu":
         return REFERENCE_RAYS_PER_S["cpu"]
     return REFERENCE_RAYS_PER_S["gpu"] * max(1, int(n_devices))
@@ -230,8 +231,8 @@ def report_line(rec: dict) -> str:
             f"reference machine; why: {rec['why']} (docs/RECIPES.md \"The training budget\").")
 
 
-# Below this many epochs a capture's renders were smeared (the 50-photo phone capture at 0.15
-# epochs, issue text of the budget's measurements, docs/RESULTS.md).
+# Below this many epochs a capture's renders were smeared (the 50-photo phone capture: smeared at
+# 0.15 epochs, sharp at 0.6).
 FEW_EPOCHS = 0.5
 
 
