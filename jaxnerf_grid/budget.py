@@ -46,7 +46,7 @@ from jaxnerf_grid.io import DataError
 
 # Each training pixel drawn about this many times: the most that keeps the synthetic demo at its
 # 1600 steps (2.13 epochs), where tower-small has saturated (1000 to 2400 steps within 0.05 dB on
-# the GPU, docs/GPU.md). Larger captures were not yet measured at other counts (docs/RECIPES.md).
+# the GPU, docs/GPU.md). On fountain-P11 it gives 3400 steps, +1.3 dB over 1600 (docs/RECIPES.md).
 TARGET_EPOCHS = 2.0
 # Minutes of training when the user gives none (`--minutes`). A 50-photo phone capture (10.9 M
 # training pixels) then trains 7700 steps, 0.73 epochs: more than the 6400 steps (0.6 epochs) that
