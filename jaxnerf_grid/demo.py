@@ -28,6 +28,7 @@ from typing import Any
 import numpy as np
 
 from jaxnerf_grid.capture.bounds import bounds_line
+from jaxnerf_grid.config import budget as budget_lib
 from jaxnerf_grid.config import build, recipes
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.run_config import make_config
@@ -39,6 +40,7 @@ from jaxnerf_grid.masks import write as masking
 from jaxnerf_grid.render import videos
 from jaxnerf_grid.report import html as report_html
 from jaxnerf_grid.train import distributed, runs
+from jaxnerf_grid.train import loop as train
 from jaxnerf_grid.util import folders, io
 from jaxnerf_grid.util.io import DataError
 
@@ -262,19 +264,23 @@ def _mask_note(mask_source: str | None, plan: dict | None = None) -> str:
 
 def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None, overwrite: bool = False,
              progress: bool = True, sets: list[str] | None = None, max_side: int | None = None,
-             masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES) -> dict:
+             masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES, minutes: float | None = None) -> dict:
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
     has no masks and they are needed) -> train the demo's recipe (DEMO_RECIPE) -> evaluate -> the
     fly-around video (`write_demo_video`, unless video_frames is 0). Returns {"run_dir", "metrics",
     "timings" (s per stage, STAGES), "total_seconds", "mask_source", "mask_plan", "video"
     (render_video's dict, None without a video)}. sets: --set KEY=VALUE changes to DEMO_CONFIG;
     max_side: train.max_side (the working resolution; None: the default, 640 px); masks: one of
-    MASK_CHOICES (`mask_plan`). The config is checked (run_config.make_config) before anything is
-    written."""
+    MASK_CHOICES (`mask_plan`); minutes: the training time budget the steps are chosen within when
+    `steps` is None (`budget.py`; None: budget.DEFAULT_MINUTES). The config is checked
+    (run_config.make_config) before anything is written."""
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
         raise ConfigError(f"demo.steps = {steps}: must be an integer >= 1")
     check_video_frames(video_frames)
-    request = build.Request(recipe=DEMO_RECIPE, sets=tuple(sets or ()), max_side=max_side, steps=steps)
+    if minutes is not None:
+        config_lib.check_value("demo.minutes", minutes, float, config_lib.POSITIVE)
+    request = build.Request(recipe=DEMO_RECIPE, sets=tuple(sets or ()), max_side=max_side, steps=steps,
+                            minutes=minutes)
     recipe = build.build(request).overrides  # a bad --set fails before synth / mask
     method = recipes.get(DEMO_RECIPE).method
     forced = mask_plan(masks, None)  # a bad --masks fails here; auto is settled after masking
@@ -305,16 +311,22 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     if not distributed.is_main():
         data = Path(data) if data is not None else out / "data"
         mask_source = None
-    built = build.build(request, data=data)  # the dataset's bounds, then --set and --max-side on top
-    recipe, bounds = built.overrides, built.bounds
     # every process reads the same verdict from the dataset, so all train the same config
     plan = mask_plan(masks, dataset_domain(Path(data or out / "data")))  # set above on every process
     if not layout and masks == "auto":
         plan = dict(mask_plan("robust", None), why="chosen automatically: the dataset is not in the transforms.json "
                     "layout, so it has no masks and `mask` cannot write any")
+    # the dataset's bounds, --set and --max-side on top, the mask plan, then the training budget
+    built = build.build(request, data=data, extra=_with_plan({}, plan), devices_of=train.step_devices,
+                        platform=distributed.jax.default_backend())
+    bounds = built.bounds
+    if built.budget is not None and progress and distributed.is_main():
+        print(budget_lib.report_line(built.budget), flush=True)
+    if built.budget is not None and budget_lib.warning(built.budget) and distributed.is_main():
+        print(budget_lib.warning(built.budget), flush=True)
     t = time.perf_counter()
-    run_dir, _, _ = runs.train_run(str(data), method, out / "run", _with_plan(recipe, plan), None, overwrite,
-                                   progress)
+    run_dir, _, _ = runs.train_run(str(data), method, out / "run", built.overrides, None, overwrite, progress,
+                                   budget=built.budget)
     timings["train"] = time.perf_counter() - t
     if not distributed.is_main():
         return {"run_dir": run_dir, "metrics": None, "timings": timings, "total_seconds": time.perf_counter() - start,

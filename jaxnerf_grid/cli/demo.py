@@ -1,7 +1,8 @@
 """`jaxnerf-grid demo`: tower-small (or --data DIR) -> masks -> train ours -> render -> report -> a short
 fly-around video (`demo.run_demo`).
 
-    jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N] [--max-side N] [--set KEY=VALUE ...] [--overwrite]
+    jaxnerf-grid demo [--data DIR] [--out runs/demo] [--steps N | --minutes N] [--max-side N]
+                      [--set KEY=VALUE ...] [--overwrite]
                       [--masks auto|dpt|robust|dpt+robust|none]   (docs/MASKS.md)
                       [--video-frames N | --no-video]   (docs/VIDEOS.md)
                       [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
@@ -22,7 +23,11 @@ def build_parser() -> argparse.ArgumentParser:
                         "skips mask when the dataset already has masks)")
     p.add_argument("--out", default="runs/demo")
     p.add_argument("--steps", type=int, default=None,
-                   help="training steps (default: the recipe's, demo.DEMO_CONFIG)")
+                   help="training steps (default: chosen from the capture's training pixels within --minutes: "
+                        "the recipe's 1600 on the synthetic scene, more on a larger capture; budget.py)")
+    p.add_argument("--minutes", type=float, default=None, metavar="N",
+                   help="the training time budget the steps are chosen within when --steps is not given "
+                        "(default 12, on two idle cores; budget.py)")
     p.add_argument("--max-side", type=int, default=None, metavar="N",
                    help="train and evaluate with the photos' long side at most N px (an integer downscale "
                         "factor, intrinsics scaled; 0 = full size; default 640; train.max_side)")
@@ -76,7 +81,8 @@ def main(argv: list[str] | None = None) -> int:
     frames = 0 if args.no_video else demo.DEMO_VIDEO_FRAMES if args.video_frames is None else args.video_frames
     try:
         result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=sets,
-                               max_side=args.max_side, masks=args.masks, video_frames=frames)
+                               max_side=args.max_side, masks=args.masks, video_frames=frames,
+                               minutes=args.minutes)
     except distributed.DistributedError as err:
         exit_on_distributed_error("demo", err)
     if not distributed.is_main():

@@ -32,6 +32,7 @@ FLAGS = {  # subcommand -> {key: flag}
              **_SWITCHES},
     "train": {"run.out": "--out", "run.data": "--data", "run.steps": "--steps", "run.method": "--method",
               "run.progress_page": "--progress-page", "train.max_side": "--max-side",
+              "run.minutes": "--minutes",
               **_SWITCHES, **_OTHER_DATA, **_DISTRIBUTED},
     "render": {"render.frames": "--frames", "render.out": "--out",
                "render.fps": "--fps", "render.width": "--width", "render.path": "--path",
@@ -43,7 +44,7 @@ FLAGS = {  # subcommand -> {key: flag}
                "export.vertical_crs": "--vertical-crs",
                **_SWITCHES, **_OTHER_DATA},
     "demo": {"demo.data": "--data", "train.max_side": "--max-side",
-             "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks",
+             "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks", "demo.minutes": "--minutes",
              "demo.video_frames": "--video-frames",
              **_SWITCHES, **_DISTRIBUTED},
 }

@@ -2,13 +2,16 @@
 
     jaxnerf-grid train --data DIR [--recipe NAME] [--method ours|nerf|nerfw] [--config FILE] [--set KEY=VALUE ...]
                        [--out RUN]
-                       [--steps N] [--max-side N] [--overwrite] [--allow-other-data] [--eval]
+                       [--steps N | --minutes N] [--max-side N] [--overwrite] [--allow-other-data] [--eval]
                        [--coordinator HOST:PORT|auto --num-processes N --process-id I]   (docs/DISTRIBUTED.md)
 
 The settings start from a recipe (`recipes`, docs/RECIPES.md; `jaxnerf-grid recipes` lists them):
 --recipe NAME, or with only --method M the recipe named M; neither: `ours`, the recipe that
 resolves the tower (the demo's). --method with --recipe trains that recipe's settings as method M.
 --config and --set are laid on top.
+Without --steps (or train.max_steps in --config / --set) the steps follow the capture: the training
+budget (`budget.py`, docs/RECIPES.md) draws each training pixel about 4 times, at least the recipe's
+steps, at most what fits in --minutes of training (default 12) on two idle cores.
 """
 
 from __future__ import annotations
@@ -66,7 +69,11 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one config value, dotted key, JSON value (e.g. model.warp=log, train.batch_rays=2048, "
                         "model.sampler.samples=[64,32]); repeatable; applied after --config")
     p.add_argument("--out", default=None, help="run directory (default runs/<recipe>)")
-    p.add_argument("--steps", type=int, default=None, help="override train.max_steps")
+    p.add_argument("--steps", type=int, default=None,
+                   help="train.max_steps (default: chosen from the capture's training pixels within --minutes)")
+    p.add_argument("--minutes", type=float, default=None, metavar="N",
+                   help="the training time budget the steps are chosen within when --steps is not given "
+                        "(default 12, on two idle cores; budget.py)")
     p.add_argument("--max-side", type=int, default=None, metavar="N",
                    help="train with the photos' long side at most N px (an integer downscale factor, "
                         "intrinsics scaled; 0 = full size; default 640); sets train.max_side")
@@ -97,19 +104,26 @@ def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     multi = start_distributed(args)
     from jaxnerf_grid.capture.bounds import bounds_line
-    from jaxnerf_grid.config import build
+    from jaxnerf_grid.config import budget, build
     from jaxnerf_grid.eval import evaluate
     from jaxnerf_grid.train import distributed, runs
+    from jaxnerf_grid.train import loop as train
 
-    built = build.build(build.Request(args.recipe, args.method, args.config, tuple(args.set), args.max_side,
-                                      args.steps), data=args.data)
+    request = build.Request(args.recipe, args.method, args.config, tuple(args.set), args.max_side, args.steps,
+                            args.minutes)
+    built = build.build(request, data=args.data, devices_of=train.step_devices,
+                        platform=distributed.jax.default_backend())
     out = args.out or f"runs/{built.recipe}"
     if built.bounds:
         print(bounds_line(built.bounds))
+    if built.budget is not None:
+        print(budget.report_line(built.budget))
+        if budget.warning(built.budget):
+            print(budget.warning(built.budget))
     try:
         run_dir, cfg, result = runs.train_run(args.data, built.method, out, built.overrides, None, args.overwrite,
                                               not args.quiet, allow_other_data=args.allow_other_data,
-                                              progress_page=args.progress_page)
+                                              progress_page=args.progress_page, budget=built.budget)
     except distributed.DistributedError as err:
         exit_on_distributed_error("train", err)
     if multi and not distributed.is_main():

@@ -4,24 +4,31 @@ turns what a user asked for into a run's config here, in one order.
     recipe (its method's defaults and its settings, config/recipes.py)
       -> the dataset's bounds (model.near / far / contract_radius, capture/bounds.py; only for a
          method that contracts space, and only when the dataset records them)
-      -> the caller's own layer (`extra`: e.g. the demo's mask plan)
       -> a config file (`--config FILE`, a JSON object {"model": {...}, "train": {...}})
       -> `--set KEY=VALUE` flags, in their order
       -> the working resolution (`--max-side N`: train.max_side)
       -> the step count (`--steps N`: train.max_steps)
+      -> the caller's own layer (`extra`: e.g. the demo's mask plan, which wins over --set)
+      -> the training budget (config/budget.py: when neither --steps nor train.max_steps was
+         given, the steps from the capture's training pixels within `--minutes`; only when the
+         caller names how to count its devices, `devices_of`)
 
 Each later layer wins over the ones before it. `build` returns the recipe's name, the method,
-the overrides dict (what `runs.train_run` lays over the method's defaults) and the bounds it
-used (None: the recipe's constants), after checking the whole config (`run_config.make_config`),
-so a bad key or value fails in one line before anything is written.
+the overrides dict (what `runs.train_run` lays over the method's defaults), the bounds it used
+(None: the recipe's constants) and the budget's record (None: no budget asked), after checking
+the whole config (`run_config.make_config`), so a bad key or value fails in one line before
+anything is written.
 """
 
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from pathlib import Path
+from typing import Any
 
 from jaxnerf_grid.capture.bounds import folder_bounds, recipe_with_bounds
+from jaxnerf_grid.config import budget as budget_lib
 from jaxnerf_grid.config import recipes
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.run_config import RunConfig, make_config
@@ -39,16 +46,19 @@ class Request:
     sets: tuple[str, ...] = ()
     max_side: int | None = None
     steps: int | None = None
+    minutes: float | None = None
 
 
 @dataclasses.dataclass(frozen=True)
 class Built:
-    """The outcome of `build`: recipe name, method, the overrides over the method's defaults, and
-    the dataset bounds laid in (None when the recipe's constants stand)."""
+    """The outcome of `build`: recipe name, method, the overrides over the method's defaults, the
+    dataset bounds laid in (None when the recipe's constants stand) and the training budget's
+    record (None when no budget was asked for)."""
     recipe: str
     method: str
     overrides: dict
     bounds: dict | None
+    budget: dict | None = None
 
     def config(self) -> RunConfig:
         """The checked RunConfig (before it is settled on a dataset)."""
@@ -95,20 +105,31 @@ def with_max_side(overrides: dict, max_side: int | None) -> dict:
     return overrides if max_side is None else with_sets(overrides, [f"train.max_side={max_side}"])
 
 
-def build(request: Request, data: str | Path | None = None, extra: dict | None = None) -> Built:
+def build(request: Request, data: str | Path | None = None, extra: dict | None = None,
+          devices_of: Callable[[Any], int] | None = None, platform: str = "cpu") -> Built:
     """The run config's overrides from a Request, in the module's order (recipe -> bounds of the
-    dataset folder `data` -> extra -> config file -> sets -> max_side -> steps), checked."""
+    dataset folder `data` -> config file -> sets -> max_side -> steps -> extra -> budget), checked.
+    devices_of: train config -> the training step's device count (`train.loop.step_devices`);
+    given with `data`, the budget chooses the steps; platform: JAX's backend ("cpu", "gpu")."""
     recipe, method = recipes.resolve(request.recipe, request.method)
+    if request.minutes is not None:
+        config_lib.check_value("run.minutes", request.minutes, float, config_lib.POSITIVE)
     overrides = recipes.overrides(recipe)
     bounds = folder_bounds(data) if data is not None and Path(data).is_dir() else None
     if bounds and not make_config(method, overrides).model.use_contraction:
         bounds = None  # a method in a bounded box keeps its own near / far
     overrides = recipe_with_bounds(overrides, bounds)
-    overrides = config_lib.merge(overrides, extra or {})
-    overrides = config_lib.merge(overrides, read_config_file(request.config_file))
-    overrides = with_sets(overrides, request.sets)
+    user = with_sets(read_config_file(request.config_file), request.sets)  # what the user set by key
+    overrides = config_lib.merge(overrides, user)
     overrides = with_max_side(overrides, request.max_side)
     overrides = with_steps(overrides, request.steps)
-    built = Built(recipe, method, overrides, bounds)
-    built.config()  # every key and value checked before anything is written
-    return built
+    overrides = config_lib.merge(overrides, extra or {})
+    settled = make_config(method, overrides)  # every key and value checked before anything is written
+    chosen = None
+    if data is not None and devices_of is not None and Path(data).is_dir():  # a missing folder: train_run says so
+        pixels = budget_lib.capture_pixels(data, settled.train.max_side)
+        _, chosen = budget_lib.apply(settled, pixels, devices_of(settled.train), request.minutes,
+                                     budget_lib.steps_given_by(request.steps, user), platform)
+        if chosen.get("rule") == "budget":
+            overrides = config_lib.merge(overrides, budget_lib.train_overrides(chosen))
+    return Built(recipe, method, overrides, bounds, chosen)

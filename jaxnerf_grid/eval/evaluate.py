@@ -35,6 +35,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxnerf_grid.config import budget as budget_lib
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.eval import export_score as score
 from jaxnerf_grid.eval import geometry, lpips, metrics
@@ -256,9 +257,14 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
         late = robust_lib.late_ignored_share(train.read_log(run_dir / "metrics.jsonl"), cfg.train.max_steps)
         result["training_weights"] = {"mode": cfg.train.robust, "ignored_share": weights["ignored_share"],
                                       "late_batch_ignored_share": late}
+    chosen = read_budget(run_dir)
+    if chosen is not None:
+        result["budget"] = chosen
     io.write_json(run_dir / "metrics.json", result)
     clouds.write_point_cloud(run_dir / "tower_points.ply", cloud)
     notes = list(extra_notes)
+    if chosen is not None:
+        notes.append(budget_lib.report_line(chosen))
     notes.append(resolution_note(result["resolution"]))
     if weights is not None:
         late = result["training_weights"]["late_batch_ignored_share"]
@@ -280,6 +286,19 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     report.write_report(run_dir, result, cfg, data, figures, notes)
     report_html.write_report_html(run_dir / "report.html", run_dir, ds, result, figures, run_dir / "export")
     return result
+
+
+def read_budget(run_dir) -> dict | None:
+    """The training budget's record of a run (RUN/budget.json, `budget.apply`); None for a run
+    without one (trained before the budget, or by a library call that gave none)."""
+    path = Path(run_dir) / "budget.json"
+    if not path.is_file():
+        return None
+    rec = io.read_json(path)
+    if not isinstance(rec, dict) or not {"rule", "steps", "batch_rays", "epochs", "train_pixels"} <= set(rec):
+        raise DataError(f"{path}: not a training budget record (an object with rule, steps, batch_rays, "
+                        "epochs, train_pixels expected)")
+    return rec
 
 
 def resolution_record(ds, cfg, full_size: bool) -> dict:

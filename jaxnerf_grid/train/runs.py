@@ -51,7 +51,8 @@ RUN_MARKER = folders.marker("train")
 FINGERPRINT_FILE = "dataset.json"
 RUN_OUTPUT_DIRS = ("checkpoints", "renders", "depth", "opacity", "videos")
 RUN_OUTPUT_FILES = ("metrics.jsonl", "metrics.json", "report.md", "report.html", "progress.html", "report_views.png",
-                    "report_crops.png", "tower_points.ply", "config.json", FINGERPRINT_FILE, "timings.json")
+                    "report_crops.png", "tower_points.ply", "config.json", FINGERPRINT_FILE, "timings.json",
+                    "budget.json")
 
 
 def run_config_dict(cfg, data_path=None) -> dict:
@@ -265,13 +266,14 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
 
 def train_run(data: str, method: str, out, overrides: dict | None = None, steps: int | None = None,
               overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False,
-              progress_page: int = 0):
+              progress_page: int = 0, budget: dict | None = None):
     """Creates (or resumes) a run and trains it. Returns (run_dir, RunConfig, TrainResult).
 
     data: the dataset folder (loaded unless `dataset` is given); method: ours | nerf | nerfw;
     overrides: nested dict over the method's defaults; steps: train.max_steps;
     allow_other_data: resume a run on a dataset whose fingerprint differs;
-    progress_page: rewrite RUN/progress.html every that many steps (`progress_page`; 0 = never).
+    progress_page: rewrite RUN/progress.html every that many steps (`progress_page`; 0 = never);
+    budget: the training budget's record (`budget.apply`), written to RUN/budget.json.
     Everything is checked (`check_run`, `check_out`, the fingerprint) before the run folder is
     created, cleared or written.
     """
@@ -293,6 +295,8 @@ def train_run(data: str, method: str, out, overrides: dict | None = None, steps:
         folders.write_marker(run_dir, "train")
         io.write_json(run_dir / FINGERPRINT_FILE, dataset_fingerprint(ds))
         io.write_json(run_dir / "config.json", wanted)
+        if budget is not None:
+            io.write_json(run_dir / "budget.json", budget)
     distributed.barrier("jaxnerf_grid.train.runs.train_run")
     on_step = (progress_page_lib.watcher(run_dir, ds, cfg, progress_page)
                if progress_page and distributed.is_main() else None)

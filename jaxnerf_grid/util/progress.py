@@ -5,7 +5,8 @@
   * stderr is a terminal: a real tqdm bar (dynamic_ncols);
   * stderr is not a terminal (CI, `> log.txt 2>&1`): no carriage-return stream; one plain line
     at most every `interval` seconds (10 s) and a final one at the end, e.g.
-    `train ours: 300/1000 steps (30%), 12.3 s, loss=0.0100`. A bar made with `leave=False`
+    `train ours: 300/1000 steps (30%), 12.3 s, 28.7 s left, loss=0.0100` (the time left at the
+    rate of the units done since the bar started; not on the final line). A bar made with `leave=False`
     (short inner loops) prints its final line only when it printed a line before, so short
     loops stay silent in logs;
   * `enabled=False`: nothing at all (the iterable is passed through).
@@ -40,13 +41,24 @@ def _plural(unit: str, n) -> str:
     return unit if n == 1 or not unit or unit.endswith("s") else unit + "s"
 
 
-def format_line(desc: str, n, total, unit: str, elapsed: float, postfix: dict) -> str:
-    """One log line: `desc: n/total units (pct%), elapsed, k=v, ...` (no total: `desc: n units, ...`)."""
+def seconds_left(n, total, initial, elapsed: float) -> float | None:
+    """The time to reach `total` at the rate of the units done since `initial` (elapsed seconds
+    for n - initial units); None without a total, before the first unit, or when done."""
+    done = (n or 0) - (initial or 0)
+    if not total or done <= 0 or n >= total or elapsed <= 0:
+        return None
+    return (total - n) * elapsed / done
+
+
+def format_line(desc: str, n, total, unit: str, elapsed: float, postfix: dict, left: float | None = None) -> str:
+    """One log line: `desc: n/total units (pct%), elapsed[, left s left], k=v, ...` (no total:
+    `desc: n units, ...`)."""
     if total:
         count = f"{n}/{total} {_plural(unit, total)} ({100.0 * n / total:.0f}%)"
     else:
         count = f"{n} {_plural(unit, n)}"
-    parts = [count, format_seconds(elapsed)] + [f"{k}={v}" for k, v in postfix.items()]
+    parts = [count, format_seconds(elapsed)] + ([f"{format_seconds(left)} left"] if left is not None else [])
+    parts += [f"{k}={v}" for k, v in postfix.items()]
     return (f"{desc}: " if desc else "") + ", ".join(parts)
 
 
@@ -94,6 +106,7 @@ class LogBar(NullBar):
         if total is None and iterable is not None and hasattr(iterable, "__len__"):
             total = len(iterable)
         super().__init__(iterable, total, initial)
+        self.initial = initial
         self.desc, self.unit, self.leave = desc, unit, leave
         self.stream, self.clock, self.interval = stream, clock, float(interval)
         self.postfix: dict = {}
@@ -109,7 +122,9 @@ class LogBar(NullBar):
 
     def _write(self, now: float) -> None:
         stream = self.stream if self.stream is not None else sys.stderr
-        stream.write(format_line(self.desc, self.n, self.total, self.unit, now - self.start, self.postfix) + "\n")
+        elapsed = now - self.start
+        left = seconds_left(self.n, self.total, self.initial, elapsed)
+        stream.write(format_line(self.desc, self.n, self.total, self.unit, elapsed, self.postfix, left) + "\n")
         stream.flush()
         self.last = now
         self.lines += 1

@@ -137,6 +137,9 @@ def test_demo_runs_the_recipe_on_a_given_dataset(data_dir, tmp_path, capsys):
     m = io.read_json(tmp_path / "demo" / "run" / "metrics.json")
     assert m["step"] == 2 and m["geometry"] is not None
     report = (tmp_path / "demo" / "run" / "report.md").read_text()
+    # the budget's record: the steps the user gave, 2 x 1024 rays over 4 training frames of 16x12
+    assert m["budget"]["rule"] == "given" and m["budget"]["train_pixels"] == 4 * 16 * 12
+    assert "Training budget: 2 steps x 1024 rays, 2.67 epochs" in report
     assert "sampling in s: proposal 64 -> 24 main, 88 samples per ray, opaque far bin" in report
     assert "hash grid, 8 levels x 2 features" in report and "Tower geometry" in report
     assert m["cloud_views"]["test"] == [4] and m["cloud_views"]["train"] == [0, 1, 2, 3]  # 16 asked, 4 exist
@@ -245,3 +248,22 @@ def test_demo_without_a_device_count_renders_on_every_core_and_trains_on_one(dat
                           env=env, capture_output=True, text=True, timeout=600)
     assert done.returncode == 0, done.stderr[-2000:]
     assert io.read_json(tmp_path / "demo" / "run" / "config.json")["train"]["num_devices"] == 1
+
+
+def test_train_without_steps_takes_the_budgets_steps_and_records_why(data_dir, tmp_path, capsys):
+    """No --steps: the budget chooses (here --minutes so short that one step fits: 0.0001 min x 60 x
+    11000 rays/s / 64 rays = 1.03 steps), the schedules follow, and budget.json says why."""
+    cfg_file = tmp_path / "cfg.json"
+    train_keys = {k: v for k, v in TINY["train"].items() if k != "max_steps"}
+    cfg_file.write_text(json.dumps({**TINY, "train": train_keys}))
+    run = tmp_path / "run"
+    assert cli.main(["train", *PAPER_MLP, "--data", str(data_dir), "--config", str(cfg_file), "--out", str(run),
+                     "--quiet", "--minutes", "0.0001"]) == 0
+    out = capsys.readouterr().out
+    assert "Training budget: 1 steps x 64 rays" in out and "fewer than the recipe's 2000" in out
+    saved = json.loads((run / "config.json").read_text())
+    assert saved["train"]["max_steps"] == 1 and saved["train"]["warmup"] == 0    # 5 x 1 / 2000, rounded
+    rec = json.loads((run / "budget.json").read_text())
+    assert (rec["rule"], rec["limited_by"], rec["steps"], rec["train_pixels"]) == ("budget", "minutes", 1, 4 * 16 * 12)
+    assert cli.main(["train", "--data", str(data_dir), "--out", str(tmp_path / "r2"), "--minutes", "0"]) == 1
+    assert "--minutes = 0" in capsys.readouterr().err

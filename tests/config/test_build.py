@@ -1,8 +1,10 @@
-"""The one config builder: recipe -> dataset bounds -> extra -> config file -> --set -> --max-side -> --steps,
-each later layer winning, checked before anything is written; what `train` and `demo` both call."""
+"""The one config builder: recipe -> dataset bounds -> config file -> --set -> --max-side -> --steps -> the
+caller's layer -> the training budget, each later layer winning, checked before anything is written; what
+`train` and `demo` both call."""
 
 import json
 
+import numpy as np
 import pytest
 
 from jaxnerf_grid.config import build, recipes
@@ -35,16 +37,48 @@ def test_each_layer_wins_over_the_ones_before_it(tmp_path):
     config_file.write_text(json.dumps({"model": {"far": 7.0, "near": 0.3}, "train": {"max_side": 100}}))
     request = build.Request(recipe="ours-lean", config_file=str(config_file), sets=("model.near=0.4",
                             "train.max_side=200", "train.max_steps=5"), max_side=320, steps=7)
-    built = build.build(request, data=data, extra={"model": {"far": 8.0, "contract_radius": 2.5}})
+    built = build.build(request, data=data, extra={"model": {"contract_radius": 2.5}, "train": {"max_steps": 9}})
     model, train = built.overrides["model"], built.overrides["train"]
-    assert model["contract_radius"] == 2.5  # extra over the bounds' 3.0
-    assert model["far"] == 7.0  # the file over extra's 8.0 and the bounds' 9.5
+    assert model["far"] == 7.0  # the file over the bounds' 9.5
     assert model["near"] == 0.4  # --set over the file's 0.3 and the bounds' 0.25
     assert train["max_side"] == 320  # --max-side over --set's 200 and the file's 100
-    assert train["max_steps"] == 7  # --steps over --set's 5
-    assert built.bounds["far"] == 9.5
+    assert model["contract_radius"] == 2.5  # the caller's layer over the bounds' 3.0
+    assert train["max_steps"] == 9  # the caller's layer over --steps' 7 and --set's 5
+    assert built.bounds["far"] == 9.5 and built.budget is None  # no devices_of: no budget
     cfg = built.config()
-    assert (cfg.model.near, cfg.model.far, cfg.train.max_side, cfg.train.max_steps) == (0.4, 7.0, 320, 7)
+    assert (cfg.model.near, cfg.model.far, cfg.train.max_side, cfg.train.max_steps) == (0.4, 7.0, 320, 9)
+
+
+def frames_folder(tmp_path, count, width, height):
+    """A dataset folder of `count` training photos of width x height (budget.capture_pixels reads
+    their headers), no recorded bounds."""
+    from jaxnerf_grid.util import io
+
+    folder = tmp_path / "frames"
+    folder.mkdir()
+    frames = []
+    for i in range(count):
+        io.write_png(folder / f"{i}.png", np.zeros((height, width, 3), np.float32))
+        frames.append({"file_path": f"{i}.png", "transform_matrix": np.eye(4).tolist()})
+    meta = {"fl_x": 100.0, "fl_y": 100.0, "cx": width / 2, "cy": height / 2, "w": width, "h": height,
+            "frames": frames}
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return folder
+
+
+def test_the_budget_chooses_the_steps_last_unless_the_user_gave_them(tmp_path):
+    """200 photos of 640x480 at 1024 rays a step: 2 epochs want ceil(2 x 61.44 M / 1024 / 100) x 100 =
+    120,000 steps, more than 12 minutes at 11k rays/s allow (floor(12 x 60 x 11000 / 1024 / 100) x 100 =
+    7,700); --steps or train.max_steps keep the user's count."""
+    data = frames_folder(tmp_path, 200, 640, 480)
+    one = lambda train_cfg: 1  # noqa: E731
+    built = build.build(build.Request(recipe="ours-lean"), data=data, devices_of=one)
+    assert built.budget["rule"] == "budget" and built.budget["limited_by"] == "minutes"
+    assert built.overrides["train"]["max_steps"] == 7700 == built.config().train.max_steps
+    given = build.build(build.Request(recipe="ours-lean", steps=50), data=data, devices_of=one)
+    assert given.budget["rule"] == "given" and given.config().train.max_steps == 50
+    by_set = build.build(build.Request(recipe="ours-lean", sets=("train.max_steps=60",)), data=data, devices_of=one)
+    assert by_set.budget["rule"] == "given" and by_set.config().train.max_steps == 60
 
 
 def test_recorded_bounds_replace_the_recipes_constants(tmp_path):
@@ -93,7 +127,7 @@ def test_train_and_demo_build_their_configs_here(monkeypatch, tmp_path):
     class Stop(Exception):
         pass
 
-    def spy(request, data=None, extra=None):
+    def spy(request, data=None, extra=None, devices_of=None, platform="cpu"):
         seen.append((request, data))
         raise Stop
 
@@ -103,5 +137,5 @@ def test_train_and_demo_build_their_configs_here(monkeypatch, tmp_path):
                         "--max-side", "99", "--steps", "3"])
     with pytest.raises(Stop):
         demo.run_demo(None, tmp_path / "out", steps=4, sets=["train.batch_rays=32"], max_side=88)
-    assert seen[0] == (build.Request("ours-lean", None, None, ("train.batch_rays=64",), 99, 3), str(tmp_path))
+    assert seen[0] == (build.Request("ours-lean", None, None, ("train.batch_rays=64",), 99, 3, None), str(tmp_path))
     assert seen[1][0] == build.Request(recipe=demo.DEMO_RECIPE, sets=("train.batch_rays=32",), max_side=88, steps=4)

@@ -1,0 +1,248 @@
+"""The training budget: how many steps a run trains, chosen from the capture and a time budget.
+
+The recipes were sized for the synthetic demo (40 frames of 160x120: 1600 steps x 1024 rays, about
+two epochs). A real capture has ten to a hundred times the pixels, and the same 1600 steps then
+draw each training pixel a fraction of a time: the renders are smeared. `choose_budget` scales the
+steps with the capture instead:
+
+    wanted = ceil(TARGET_EPOCHS x training pixels / batch_rays)      (each pixel drawn ~E times)
+    cap    = floor(minutes x 60 x rays_per_second / batch_rays)      (what fits in the time budget)
+    steps  = min(max(base.max_steps, wanted), cap), rounded to STEP_ROUND
+
+so a capture never trains fewer steps than its recipe (the hash grid needs its iterations whatever
+the capture's size: the synthetic demo keeps its 1600 steps), more when the capture has more pixels,
+and never more than `minutes` of training at the estimated speed (`rays_per_second`: measured
+figures of the demo's recipe, REFERENCE_RAYS_PER_S; a slower recipe, or a busy machine, takes
+longer than the budget says). A `minutes` below what the recipe's steps need wins: the user asked
+for it, and the record says the run is short of its recipe.
+
+The batch stays the recipe's: on the CPU a larger batch trains no more rays a second, only fewer,
+larger steps; on a GPU a larger batch does fill the device (docs/GPU.md), and is set with
+`--set train.batch_rays=N`: the rule counts rays, so the steps follow the batch.
+
+`stretch_schedules(train_cfg, steps)` stretches everything that counts steps with the run:
+train.max_steps and train.warmup (the learning-rate schedule, optim.lr_schedule, is then the same
+function of the fraction of the run); train.robust_warmup and train.robust_refine are fractions of
+max_steps already (robust.warmup_steps, robust.refine_step), the samplers have no schedule. Kept
+as they are: checkpoint_every and log_every (how often a run is saved and logged, in steps: a
+longer run saves and logs more often, so a kill loses as many seconds as before) and
+appearance_steps (the test-time NeRF-W fit, not training).
+
+`apply(cfg, train_pixels, ...)` is the one call an entry point makes on a settled RunConfig: it
+returns the config with the chosen steps and a record ({"steps", "epochs", "limited_by", "why",
+...}) that the run keeps in budget.json, metrics.json's "budget" and a line of report.md
+(`report_line`).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from pathlib import Path
+
+from jaxnerf_grid.config import schema as config_lib
+from jaxnerf_grid.data import formats, working
+from jaxnerf_grid.util.io import DataError
+
+# Each training pixel drawn about this many times: the most that keeps the synthetic demo at its
+# 1600 steps (2.13 epochs), where tower-small has saturated (1000 to 2400 steps within 0.05 dB on
+# the GPU, docs/GPU.md). On fountain-P11 it gives 3400 steps, +1.3 dB over 1600 (docs/RECIPES.md).
+TARGET_EPOCHS = 2.0
+# Minutes of training when the user gives none (`--minutes`). A 50-photo phone capture (10.9 M
+# training pixels) then trains 7700 steps, 0.73 epochs: more than the 6400 steps (0.6 epochs) that
+# made its renders sharp (25.8 dB against 22.9 at 1600), and, with its 219 s of poses and the
+# evaluation, about 18 minutes from photos to report on two idle cores (an estimate from those runs).
+DEFAULT_MINUTES = 12.0
+# Steps are rounded to this (readable step counts; the cap rounds down, the wish up).
+STEP_ROUND = 100
+# Train rays a second of the demo's recipe (`ours-lean`, 1024 rays a step), per device of a platform.
+# cpu: the 2-core machine, idle, one device (two CPU devices on two cores train no faster,
+#   docs/GRID.md), 11.1-13.2k (`benchmarks.throughput`, docs/GRID.md "Train rays/s side by side,
+#   idle machine"); a real capture's demo trained 1600 steps in 144 s, 11.4k (fountain-P11,
+#   docs/RESULTS.md);
+# gpu: one H200, the training loop at 1024 rays a step, 2.8 ms a step (docs/GPU.md): 365k.
+REFERENCE_RAYS_PER_S = {"cpu": 11000.0, "gpu": 365000.0}
+
+
+@dataclasses.dataclass(frozen=True)
+class Budget:
+    """What `choose_budget` chose. steps: optimiser steps; batch_rays: rays a step; epochs: steps x
+    batch / training pixels; wanted_steps: the steps TARGET_EPOCHS asks for (before the recipe's
+    floor and the cap); cap_steps: the steps that fit in `minutes`; limited_by: "recipe" (the
+    recipe's steps, the floor), "epochs" (the target), "minutes" (the time cap); minutes: the
+    budget; estimated_minutes: steps at rays_per_second; rays_per_second: the estimate used;
+    target_epochs: E; recipe_steps: base.max_steps."""
+
+    steps: int
+    batch_rays: int
+    epochs: float
+    wanted_steps: int
+    cap_steps: int
+    limited_by: str
+    minutes: float
+    estimated_minutes: float
+    rays_per_second: float
+    target_epochs: float
+    recipe_steps: int
+
+
+def rays_per_second(platform: str, n_devices: int) -> float:
+    """The estimated train rays a second of the demo's recipe on `n_devices` devices of `platform`
+    (jax.default_backend(): "cpu", "gpu", ...): REFERENCE_RAYS_PER_S per device, times the devices
+    on an accelerator (any platform but "cpu" counts as a GPU); a CPU's devices share its cores."""
+    if platform == "cpu":
+        return REFERENCE_RAYS_PER_S["cpu"]
+    return REFERENCE_RAYS_PER_S["gpu"] * max(1, int(n_devices))
+
+
+def _round_up(steps: float) -> int:
+    return max(STEP_ROUND, int(math.ceil(steps / STEP_ROUND)) * STEP_ROUND)
+
+
+def _round_down(steps: float) -> int:
+    """Down to a multiple of STEP_ROUND, or to a whole step below STEP_ROUND (at least 1)."""
+    if steps >= STEP_ROUND:
+        return int(steps // STEP_ROUND) * STEP_ROUND
+    return max(1, int(steps))
+
+
+def choose_budget(train_pixels: int, n_devices: int, minutes: float | None, base, platform: str = "cpu",
+                  target_epochs: float = TARGET_EPOCHS, speed: float | None = None) -> Budget:
+    """The steps of a run (module docstring's rule).
+
+    train_pixels: the training frames' pixels at the working resolution (`capture_pixels`);
+    n_devices: the train step's devices; minutes: the training time budget (None: DEFAULT_MINUTES);
+    base: the recipe's train config (its max_steps, the floor, and batch_rays); platform: the JAX
+    backend; speed: train rays a second (None: `rays_per_second(platform, n_devices)`).
+    """
+    minutes = DEFAULT_MINUTES if minutes is None else float(minutes)
+    config_lib.check_value("run.minutes", minutes, float, config_lib.POSITIVE)
+    config_lib.check_value("run.train_pixels", int(train_pixels), int, config_lib.AT_LEAST_ONE)
+    batch = int(base.batch_rays)
+    speed = rays_per_second(platform, n_devices) if speed is None else float(speed)
+    wanted = _round_up(target_epochs * train_pixels / batch)
+    cap = _round_down(minutes * 60.0 * speed / batch)
+    steps, limited_by = max(int(base.max_steps), wanted), ("epochs" if wanted > base.max_steps else "recipe")
+    if steps > cap:
+        steps, limited_by = cap, "minutes"
+    return Budget(steps=steps, batch_rays=batch, epochs=steps * batch / train_pixels, wanted_steps=wanted,
+                  cap_steps=cap, limited_by=limited_by, minutes=minutes,
+                  estimated_minutes=steps * batch / speed / 60.0, rays_per_second=speed,
+                  target_epochs=float(target_epochs), recipe_steps=int(base.max_steps))
+
+
+def stretch_schedules(train_cfg, steps: int):
+    """train_cfg (a TrainConfig) for a run of `steps` steps, its schedules stretched: max_steps =
+    steps, warmup scaled by steps / max_steps (rounded); the other keys as they are (module
+    docstring: the robust schedules are fractions already, the step-counted I/O keys are not
+    schedules)."""
+    config_lib.check_value("run.steps", steps, int, config_lib.AT_LEAST_ONE)
+    factor = steps / train_cfg.max_steps
+    return dataclasses.replace(train_cfg, max_steps=int(steps), warmup=int(round(train_cfg.warmup * factor)))
+
+
+def capture_pixels(data, max_side: int) -> int:
+    """The training pixels of a dataset folder at the working resolution of `max_side`
+    (data/working.py): the sum over its training frames of W' x H', read from the dataset's
+    record and the images' headers, no pixel decoded. DataError naming the folder as the loaders
+    say it."""
+    scene = formats.collect_scene(Path(data), load_extras=False)
+    total = 0
+    for i in scene.split["train"]:
+        w, h = _frame_size(scene.frames[int(i)])
+        ww, hh = working.working_size(w, h, int(max_side))
+        total += ww * hh
+    return total
+
+
+def _frame_size(frame) -> tuple[int, int]:
+    """(W, H) of a collected frame: its stated size, else its image's header (an EXIF turn swaps
+    W and H, not their product)."""
+    if frame.size is not None:
+        return int(frame.size[0]), int(frame.size[1])
+    from PIL import Image  # Pillow reads the header alone
+
+    try:
+        with Image.open(frame.image_path) as img:
+            return img.size
+    except OSError as err:
+        raise DataError(f"{frame.image_path}: cannot read the image's size ({err})") from None
+
+
+def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None = None) -> dict:
+    """The run's budget record (budget.json, metrics.json's "budget"): the chosen figures and a
+    sentence on why; given_by names the flag when the user fixed the steps (then budget is None)."""
+    tc = cfg.train
+    epochs = tc.max_steps * tc.batch_rays / train_pixels
+    if budget is None:
+        return {"rule": "given", "steps": tc.max_steps, "batch_rays": tc.batch_rays, "warmup": tc.warmup,
+                "train_pixels": int(train_pixels), "epochs": round(epochs, 3),
+                "why": f"steps given by the user ({given_by}); no budget chosen"}
+    reason = {"recipe": f"the recipe's steps: the capture needs only {budget.wanted_steps} for "
+                        f"{budget.target_epochs:g} epochs",
+              "epochs": f"{budget.target_epochs:g} epochs of the capture's training pixels",
+              "minutes": f"capped by the time budget: {budget.minutes:g} min at an estimated "
+                         f"{budget.rays_per_second / 1000:.0f}k rays/s ({budget.target_epochs:g} epochs would "
+                         f"need {budget.wanted_steps} steps)"}[budget.limited_by]
+    return {"rule": "budget", "steps": budget.steps, "batch_rays": budget.batch_rays, "warmup": tc.warmup,
+            "train_pixels": int(train_pixels), "epochs": round(budget.epochs, 3),
+            "target_epochs": budget.target_epochs, "wanted_steps": budget.wanted_steps,
+            "cap_steps": budget.cap_steps, "limited_by": budget.limited_by, "minutes": budget.minutes,
+            "estimated_minutes": round(budget.estimated_minutes, 2),
+            "rays_per_second": budget.rays_per_second, "recipe_steps": budget.recipe_steps, "why": reason}
+
+
+def apply(cfg, train_pixels: int, n_devices: int = 1, minutes: float | None = None, given_by: str | None = None,
+          platform: str = "cpu") -> tuple:
+    """(cfg with the budget's steps and stretched schedules, its record) for a settled RunConfig
+    whose recipe steps are train.max_steps. given_by: the setting that fixed the steps
+    (`steps_given_by`: run.steps, train.max_steps) or None; when given, cfg is returned as it is and the record
+    says so."""
+    if given_by is not None:
+        return cfg, record(None, cfg, train_pixels, given_by)
+    chosen = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform)
+    out = dataclasses.replace(cfg, train=stretch_schedules(cfg.train, chosen.steps))
+    return out, record(chosen, out, train_pixels)
+
+
+def steps_given_by(steps: int | None, overrides: dict | None) -> str | None:
+    """Which of the user's settings fixed the steps: "run.steps" (steps not None), "train.max_steps"
+    (in the --config / --set overrides), else None (the budget chooses)."""
+    if steps is not None:
+        return "run.steps"
+    if "max_steps" in ((overrides or {}).get("train") or {}):
+        return "train.max_steps"
+    return None
+
+
+def train_overrides(rec: dict) -> dict:
+    """The override dict of a budget record's train keys ({"train": {"max_steps", "warmup"}}), to
+    lay over a run's overrides."""
+    return {"train": {"max_steps": int(rec["steps"]), "warmup": int(rec["warmup"])}}
+
+
+def report_line(rec: dict) -> str:
+    """report.md's line on the training budget (a budget record)."""
+    if rec.get("rule") == "given":
+        return (f"Training budget: {rec['steps']} steps x {rec['batch_rays']} rays, {rec['epochs']:.2f} epochs of "
+                f"{rec['train_pixels'] / 1e6:.2f} M training pixels ({rec['why']}).")
+    return (f"Training budget: {rec['steps']} steps x {rec['batch_rays']} rays, {rec['epochs']:.2f} epochs of "
+            f"{rec['train_pixels'] / 1e6:.2f} M training pixels, about {rec['estimated_minutes']:.1f} min on the "
+            f"reference machine; why: {rec['why']} (docs/RECIPES.md \"The training budget\").")
+
+
+# Below this many epochs a capture's renders were smeared (the 50-photo phone capture: smeared at
+# 0.15 epochs, sharp at 0.6).
+FEW_EPOCHS = 0.5
+
+
+def warning(rec: dict) -> str | None:
+    """A one-line warning before a run the budget expects to be poor: fewer steps than its recipe
+    (a short time budget), or under FEW_EPOCHS epochs; None otherwise."""
+    if rec.get("rule") == "budget" and rec["steps"] < rec["recipe_steps"]:
+        return (f"warning: a time budget of {rec['minutes']:g} min allows {rec['steps']} steps, fewer than the "
+                f"recipe's {rec['recipe_steps']}: expect a softer model")
+    if rec["epochs"] < FEW_EPOCHS:
+        return (f"warning: {rec['steps']} steps draw each training pixel {rec['epochs']:.2f} times "
+                f"(under {FEW_EPOCHS:g}): expect smeared renders; give a longer time budget or more steps")
+    return None

@@ -1,0 +1,172 @@
+"""The training budget (budget.py): the rule against steps computed by hand, the schedules
+stretched with the steps, the training pixels of a dataset folder, and the record a run keeps."""
+
+import dataclasses
+import json
+
+import pytest
+
+from jaxnerf_grid.config import budget
+from jaxnerf_grid.config.run_config import TrainConfig
+from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.masks import robust
+from jaxnerf_grid.train import optim
+from jaxnerf_grid.util import progress
+
+# the demo recipe's train settings (recipes.py "ours-lean"): 1600 steps x 1024 rays, warm-up 50
+DEMO_TRAIN = TrainConfig(batch_rays=1024, max_steps=1600, warmup=50, lr_init=2e-2, lr_final=2e-3)
+
+
+def test_small_capture_keeps_the_recipes_steps():
+    # the synthetic demo: 40 frames of 160x120 = 768 000 px; 2 epochs = 1500 steps < the recipe's 1600
+    b = budget.choose_budget(40 * 160 * 120, 1, 12, DEMO_TRAIN, "cpu", target_epochs=2.0, speed=11000.0)
+    assert (b.steps, b.wanted_steps, b.limited_by) == (1600, 1500, "recipe")
+    assert b.cap_steps == 7700                    # 12 x 60 x 11000 / 1024 = 7734.4, down to 7700
+    assert b.epochs == pytest.approx(1600 * 1024 / 768000)
+
+
+def test_the_defaults_keep_the_synthetic_demo_at_1600_steps():
+    b = budget.choose_budget(40 * 160 * 120, 1, None, DEMO_TRAIN)
+    assert b.steps == 1600 and b.minutes == budget.DEFAULT_MINUTES
+    # the demo's whole config on tower-small (40 training frames of 160x120) is the recipe's, unchanged
+    from jaxnerf_grid import demo
+    from jaxnerf_grid.config import recipes
+
+    cfg = recipes.make_config(demo.DEMO_RECIPE)
+    assert budget.apply(cfg, 40 * 160 * 120)[0] == cfg
+
+
+def test_medium_capture_gets_its_epochs():
+    # 9 training frames of 533x355 (fountain-P11 at the working resolution): 1 702 935 px;
+    # 2 epochs = 3326.05 steps, up to 3400
+    b = budget.choose_budget(9 * 533 * 355, 1, 12, DEMO_TRAIN, "cpu", target_epochs=2.0, speed=11000.0)
+    assert (b.steps, b.limited_by) == (3400, "epochs")
+    assert b.estimated_minutes == pytest.approx(3400 * 1024 / 11000 / 60)
+
+
+def test_large_capture_is_capped_by_the_minutes():
+    # 49 frames of 353x628 (the phone capture): 10 862 516 px; 2 epochs = 21215.9 -> 21300 steps,
+    # 12 min at 11000 rays/s fit 7734 -> 7700
+    b = budget.choose_budget(49 * 353 * 628, 1, 12, DEMO_TRAIN, "cpu", target_epochs=2.0, speed=11000.0)
+    assert (b.wanted_steps, b.cap_steps, b.steps, b.limited_by) == (21300, 7700, 7700, "minutes")
+    # 30 minutes: 30 x 60 x 11000 / 1024 = 19335.9 -> 19300
+    assert budget.choose_budget(49 * 353 * 628, 1, 30, DEMO_TRAIN, "cpu", target_epochs=2.0,
+                                speed=11000.0).steps == 19300
+
+
+def test_a_short_budget_wins_over_the_recipe_and_warns():
+    # 1 minute: 60 x 11000 / 1024 = 644.5 -> 600 steps, below the recipe's 1600
+    b = budget.choose_budget(40 * 160 * 120, 1, 1, DEMO_TRAIN, "cpu", target_epochs=2.0, speed=11000.0)
+    assert (b.steps, b.limited_by) == (600, "minutes")
+    cfg = type("Cfg", (), {"train": dataclasses.replace(DEMO_TRAIN, max_steps=600)})()
+    assert "fewer than the recipe's 1600" in budget.warning(budget.record(b, cfg, 40 * 160 * 120))
+    # a budget below one rounding unit still trains at least one step
+    tiny = budget.choose_budget(10 ** 6, 1, 1e-4, DEMO_TRAIN, "cpu", speed=11000.0)
+    assert tiny.steps == 1
+
+
+def test_the_rule_counts_rays_so_a_larger_batch_takes_fewer_steps():
+    # the phone capture on a GPU at 4 M rays/s: 2 epochs of 10 862 516 px are 21215.9 steps of 1024
+    # rays (-> 21300) or 2651.99 steps of 8192 (-> 2700); 12 min fit 351 562 steps of 8192
+    pixels = 49 * 353 * 628
+    small = budget.choose_budget(pixels, 1, 12, DEMO_TRAIN, "gpu", target_epochs=2.0, speed=4e6)
+    big = budget.choose_budget(pixels, 1, 12, dataclasses.replace(DEMO_TRAIN, batch_rays=8192), "gpu",
+                               target_epochs=2.0, speed=4e6)
+    assert (small.steps, big.steps, big.batch_rays, big.limited_by) == (21300, 2700, 8192, "epochs")
+
+
+def test_devices_add_up_on_a_gpu_not_on_a_cpu():
+    assert budget.rays_per_second("cpu", 2) == budget.rays_per_second("cpu", 1)
+    assert budget.rays_per_second("gpu", 2) == 2 * budget.rays_per_second("gpu", 1)
+
+
+def test_a_bad_budget_is_a_config_error_naming_the_key():
+    with pytest.raises(ConfigError, match="run.minutes"):
+        budget.choose_budget(1000, 1, 0, DEMO_TRAIN)
+    with pytest.raises(ConfigError, match="run.steps"):
+        budget.stretch_schedules(DEMO_TRAIN, 0)
+
+
+@pytest.mark.parametrize("steps", [6400, 400])
+def test_stretched_schedules_take_the_same_values_at_the_same_fractions_of_the_run(steps):
+    """lr_schedule (warm-up and decay), the robust warm-up and the refine step of the stretched
+    config, at fractions of the run, equal the recipe's at the same fractions."""
+    base = dataclasses.replace(DEMO_TRAIN, warmup=100, robust_warmup=0.2, robust_refine=0.5)
+    out = budget.stretch_schedules(base, steps)
+    assert out.max_steps == steps and out.warmup == 100 * steps // 1600
+    for fraction in (0.0, 0.01, 0.03, 0.0625, 0.1, 0.5, 0.9, 1.0):   # 0.0625: the end of the warm-up
+        def lr(tc, f=fraction):
+            return float(optim.lr_schedule(f * tc.max_steps, tc.lr_init, tc.lr_final, tc.warmup, tc.max_steps))
+        assert lr(out) == pytest.approx(lr(base), rel=1e-5), fraction
+    assert robust.warmup_steps(out.robust_warmup, steps) / steps == robust.warmup_steps(0.2, 1600) / 1600
+    assert robust.refine_step(out.robust_refine, steps) / steps == robust.refine_step(0.5, 1600) / 1600
+    # the rest of the config is the recipe's
+    assert dataclasses.replace(out, max_steps=base.max_steps, warmup=base.warmup) == base
+
+
+def test_apply_leaves_steps_the_user_gave():
+    from jaxnerf_grid.config.run_config import RunConfig
+
+    cfg = RunConfig(train=dataclasses.replace(DEMO_TRAIN, max_steps=300))
+    same, rec = budget.apply(cfg, 12 * 10 ** 6, given_by="run.steps")
+    assert same == cfg and rec["rule"] == "given" and rec["steps"] == 300 and "run.steps" in rec["why"]
+    assert rec["epochs"] == pytest.approx(300 * 1024 / 12e6, abs=1e-3)
+    assert budget.warning(rec).startswith("warning: 300 steps draw each training pixel 0.03 times")
+    chosen, rec = budget.apply(RunConfig(train=DEMO_TRAIN), 9 * 533 * 355, minutes=12)
+    assert chosen.train.max_steps == rec["steps"] == budget.choose_budget(9 * 533 * 355, 1, 12, DEMO_TRAIN).steps
+    assert chosen.train.warmup == round(50 * rec["steps"] / 1600)
+    assert budget.train_overrides(rec) == {"train": {"max_steps": rec["steps"], "warmup": chosen.train.warmup}}
+    json.dumps(rec)     # the record is JSON (budget.json, metrics.json)
+    line = budget.report_line(rec)
+    assert line.startswith(f"Training budget: {rec['steps']} steps x 1024 rays") and rec["why"] in line
+
+
+def test_steps_given_by_names_the_flag_or_key():
+    assert budget.steps_given_by(5, {}) == "run.steps"
+    assert budget.steps_given_by(None, {"train": {"max_steps": 9}}) == "train.max_steps"
+    assert budget.steps_given_by(None, {"train": {"batch_rays": 9}}) is None
+    assert budget.steps_given_by(None, None) is None
+
+
+def test_capture_pixels_counts_the_training_frames_at_the_working_resolution(tmp_path):
+    from jaxnerf_grid.data.formats import save_transforms_json
+    from tests.train.test_loop import tiny_dataset
+
+    ds = tiny_dataset(width=16, height=12, frames=5)    # 4 training frames, 1 test frame
+    ds.frame_paths = [f"images/frame_{i:03d}.png" for i in range(ds.num_frames)]
+    save_transforms_json(ds, tmp_path / "data")
+    assert budget.capture_pixels(tmp_path / "data", 0) == 4 * 16 * 12
+    assert budget.capture_pixels(tmp_path / "data", 8) == 4 * 8 * 6       # factor 2
+    assert budget.capture_pixels(tmp_path / "data", 5) == 4 * 4 * 3       # factor 4: 16/4 x 12/4
+    # the same as the loaded dataset's training frames at that working resolution
+    from jaxnerf_grid.data.formats import load_dataset
+
+    loaded = load_dataset(tmp_path / "data", max_side=5, progress=False, cache=False)
+    assert loaded.images[loaded.split["train"]].shape[:3] == (4, 3, 4)
+    # without a stated size, the images' headers give it
+    meta = json.loads((tmp_path / "data" / "transforms.json").read_text())
+    for key in ("w", "h"):
+        meta.pop(key, None)
+    (tmp_path / "data" / "transforms.json").write_text(json.dumps(meta))
+    assert budget.capture_pixels(tmp_path / "data", 0) == 4 * 16 * 12
+
+
+def test_the_progress_line_says_the_time_left():
+    assert progress.seconds_left(30, 100, 10, 40.0) == pytest.approx(140.0)   # 20 units in 40 s, 70 to go
+    assert progress.seconds_left(100, 100, 0, 40.0) is None
+    assert progress.seconds_left(10, 100, 10, 40.0) is None and progress.seconds_left(5, None, 0, 1.0) is None
+    import io as pyio
+
+    class Clock:
+        now = 0.0
+
+        def __call__(self):
+            return self.now
+
+    stream, clock = pyio.StringIO(), Clock()
+    bar = progress.bar(total=400, desc="train ours", unit="step", stream=stream, clock=clock, interval=10.0)
+    clock.now = 10.0
+    bar.update(100)
+    assert stream.getvalue().splitlines()[0] == "train ours: 100/400 steps (25%), 10.0 s, 30.0 s left"
+    bar.close()
+    assert stream.getvalue().splitlines()[-1] == "train ours: 100/400 steps (25%), 10.0 s, 30.0 s left"
