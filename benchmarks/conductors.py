@@ -28,6 +28,8 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxnerf_grid.export import catenary
+
 MATCH_RADIUS = 1.0      # m: a fitted span matches a cable when their attachments lie this close
 
 
@@ -62,7 +64,6 @@ def curve_rms(fitted: np.ndarray, truth: np.ndarray) -> float:
 def score(records: list[dict], truth: list[dict]) -> dict:
     """Matches fitted spans (measurements.json's `conductors.spans` records) to the true ones by
     side and attachment (within MATCH_RADIUS) and scores each (module docstring)."""
-    from jaxnerf_grid.export import conductors as cond
 
     rows, used = [], set()
     for t in truth:
@@ -78,7 +79,7 @@ def score(records: list[dict], truth: list[dict]) -> dict:
             used.add(best)
             r = records[best]
             length = float(np.linalg.norm((t["far"] - t["attachment"])[:2]))
-            fitted = cond.curve_points(r["theta"], r.get("centre", [0.0, 0.0, 0.0]),
+            fitted = catenary.curve_points(r["theta"], r.get("centre", [0.0, 0.0, 0.0]),
                                        np.linspace(0.0, length, 8000), r.get("up", [0.0, 0.0, 1.0]))
             sag, low = r["sag"]["value"], r["lowest_point"]["value"]
             row.update({"attachment_error": best_d, "rms": curve_rms(fitted, t["points"]),

@@ -41,6 +41,7 @@ from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.export import (
     box_to_metric,
     box_to_scene,
+    catenary,
     classes,
     field,
     fuse,
@@ -375,7 +376,7 @@ CONDUCTOR_SPACING = 0.5   # export units between the classified cloud's points a
 
 
 def _line_azimuth(meas: dict, up: np.ndarray) -> float | None:
-    """The line's azimuth (`conductors.line_axes`) across the cross-arms: the arms' axis (the
+    """The line's azimuth (`catenary.line_axes`) across the cross-arms: the arms' axis (the
     footprint's axis of the most levels) turned a quarter about up; None without cross-arms."""
     levels = (meas.get("cross_arms") or {}).get("levels") or []
     fp = meas.get("footprint") or {}
@@ -384,7 +385,7 @@ def _line_azimuth(meas: dict, up: np.ndarray) -> float | None:
     names = [lv["axis"] for lv in levels]
     arm = np.asarray(fp["axis_a"] if names.count("a") >= names.count("b") else fp["axis_b"], np.float64)
     line = np.cross(up, arm)
-    e1, e2, _ = conductors_lib.line_axes(0.0, up)
+    e1, e2, _ = catenary.line_axes(0.0, up)
     return math.atan2(float(line @ e2), float(line @ e1))
 
 
@@ -410,7 +411,7 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
         return out
     tilt = meas.get("tilt") or {}
     centre = np.asarray(tilt.get("base", 0.5 * (np.asarray(lo_m) + np.asarray(hi_m))), np.float64)
-    line, across_axis, _ = conductors_lib.line_axes(psi, up)
+    line, across_axis, _ = catenary.line_axes(psi, up)
     box = measure_box_corners(lo_m, hi_m)
     half_length = float(np.max(np.abs((box - centre) @ line)))
     levels = meas["cross_arms"]["levels"]

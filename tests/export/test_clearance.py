@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxnerf_grid.export import classes, clearance, survey
+from jaxnerf_grid.export import catenary, classes, clearance, survey
 from jaxnerf_grid.export import conductors as cond
 
 A, XV = 1600.0, 160.0                 # catenary parameter, lowest point's station (m)
@@ -19,7 +19,7 @@ GROUND_Z = 0.5                        # the ground: the plane z = 0.5 (n = +z, d
 def span_curve() -> np.ndarray:
     """The span x = 7.6, y = s in [0, 320], z = ATTACH_Z + a (cosh((s - x_v) / a) - cosh(x_v / a)). [K, 3]"""
     theta = (-7.6, ATTACH_Z, math.pi / 2, -math.sinh(XV / A), 1.0 / A)
-    return cond.sample_span(theta, np.zeros(3), 0.25)
+    return catenary.sample_span(theta, np.zeros(3), 0.25)
 
 
 def tree(centre, radius: float, top: float, count: int = 4000, seed: int = 0) -> np.ndarray:

@@ -8,6 +8,7 @@ import math
 import numpy as np
 import pytest
 
+from jaxnerf_grid.export import catenary
 from jaxnerf_grid.export import conductors as cond
 
 W, H, F = 640, 480, 554.0
@@ -80,9 +81,9 @@ def test_sag_profile_is_the_closed_form_catenary_and_a_line_without_curvature():
     s = np.linspace(0.0, 320.0, 33)
     beta = XV_TRUE / A_TRUE
     closed = A_TRUE * (np.cosh((s - XV_TRUE) / A_TRUE) - np.cosh(XV_TRUE / A_TRUE))
-    np.testing.assert_allclose(cond.sag_profile(s, -math.sinh(beta), 1.0 / A_TRUE), closed, atol=1e-9)
-    np.testing.assert_allclose(cond.sag_profile(s, -0.1, 0.0), -0.1 * s, atol=1e-12)
-    fig = cond.derived((-ATTACH[0], ATTACH[2], math.pi / 2, -math.sinh(beta), 1.0 / A_TRUE), np.zeros(3))
+    np.testing.assert_allclose(catenary.sag_profile(s, -math.sinh(beta), 1.0 / A_TRUE), closed, atol=1e-9)
+    np.testing.assert_allclose(catenary.sag_profile(s, -0.1, 0.0), -0.1 * s, atol=1e-12)
+    fig = catenary.derived((-ATTACH[0], ATTACH[2], math.pi / 2, -math.sinh(beta), 1.0 / A_TRUE), np.zeros(3))
     assert fig["sag"] == pytest.approx(A_TRUE * (math.cosh(beta) - 1.0), rel=1e-12)
     np.testing.assert_allclose(fig["lowest_point"], [ATTACH[0], XV_TRUE, ATTACH[2] - fig["sag"]], atol=1e-9)
     np.testing.assert_allclose(fig["far_attachment"], [ATTACH[0], 2 * XV_TRUE, ATTACH[2]], atol=1e-9)
@@ -94,7 +95,7 @@ def test_fit_recovers_a_known_catenary_from_noisy_cluttered_detections():
     views = views_of(render_photos(c2w, [true_curve()], rng), c2w)
     seed = (-ATTACH[0] + 0.4, ATTACH[2] + 0.5, math.pi / 2 + 0.003, 0.0, 0.0)
     fit = cond.fit_span(views, seed, np.zeros(3), 4.5, cond.reaches_from(36.0, 900.0))
-    fig = cond.derived(fit["theta"], np.zeros(3))
+    fig = catenary.derived(fit["theta"], np.zeros(3))
     sig = cond.derived_sigmas(fit["theta"], fit["cov"], np.zeros(3))
     sag_true = A_TRUE * (math.cosh(XV_TRUE / A_TRUE) - 1.0)
     assert fit["inlier_share"] > 0.8
@@ -114,7 +115,7 @@ def test_spans_found_on_both_sides_and_none_in_clutter_alone():
     found = cond.find_spans(views_of(wires, c2w), np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4)
     assert sorted(f["side"] for f in found) == [-1, 1]
     for f in found:
-        np.testing.assert_allclose(cond.derived(f["theta"], np.zeros(3))["attachment"], ATTACH, atol=0.15)
+        np.testing.assert_allclose(catenary.derived(f["theta"], np.zeros(3))["attachment"], ATTACH, atol=0.15)
     clutter = render_photos(c2w, [], rng, clutter=400, lines=12)
     assert cond.find_spans(views_of(clutter, c2w), np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11,
                            30.4) == []
