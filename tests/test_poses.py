@@ -254,6 +254,53 @@ def test_poses_sequential_matches_the_next_photos_and_closes_the_orbit(orbit_run
     assert (names[0], names[7]) in got and (names[0], names[6]) in got   # across the end: the orbit closes
 
 
+def _broken_orbit() -> np.ndarray:
+    """16 views named in flight order round the test scene, in two legs of 8 at 22.5 degrees
+    apart: the first from 0 to 157.5 degrees, then a jump of 120 degrees (nothing in common
+    across it), the second from 277.5 round to 435 = 75 degrees, so the flight ends over the
+    ground it began on: only pairs across the end of the sequence join the two legs."""
+    angles = np.radians(np.concatenate([np.arange(8) * 22.5, 277.5 + np.arange(8) * 22.5]))
+    return np.stack([_look_at(np.array([RADIUS * np.cos(a), RADIUS * np.sin(a), HEIGHT + 0.3 * np.sin(3 * a)]),
+                              TARGET) for a in angles])
+
+
+def test_auto_sequential_matching_closes_an_orbit_and_registers_its_ends(tmp_path, monkeypatch):
+    """auto on a set above the exhaustive limit (lowered to 50 pairs here: 19 photos are 171),
+    named in sequence: sequential matching with loop closure (next 3). The flight is
+    `_broken_orbit` with 3 blank photos (the camera turned to the sky) flown between its legs,
+    so the next 3 of the first leg's last photo see nothing: only pairs across the end of the
+    sequence (or the quadratic overlap's longer steps) join the legs. Every view registers,
+    the ends included, within 2 degrees of the truth; plain sequential matching (next 3 only)
+    leaves a leg out."""
+    pytest.importorskip("pycolmap")
+    from jaxnerf_grid.data import poses as poses_module
+
+    monkeypatch.setattr(poses_module, "EXHAUSTIVE_MAX_PAIRS", 50)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    views = _broken_orbit()
+    cv2, scene = io.opencv(), _scene()
+    names, k = [], 0
+    for i, c2w in enumerate(views):
+        if i == 8:                                   # the transit: three blank photos
+            for _ in range(3):
+                cv2.imwrite(str(photos / f"view_{k:02d}.png"), np.full((H, W, 3), 128, np.uint8))
+                k += 1
+        names.append(f"view_{k:02d}.png")
+        cv2.imwrite(str(photos / names[-1]), np.round(_render(scene, c2w)[..., ::-1] * 255).astype(np.uint8))
+        k += 1
+    out = tmp_path / "data"
+    code = cli.main(["poses", "--images", str(photos), "--out", str(out), "--single-camera", "--overlap", "3",
+                     "--quiet"])
+    assert code == 0
+    summary = io.read_json(out / "transforms.json")["poses"]
+    assert (summary["matcher"], summary["matcher_asked"]) == ("sequential", "auto")
+    assert summary["unregistered"] == ["view_08.png", "view_09.png", "view_10.png"]   # the blank ones
+    assert summary["registered"] == summary["in_dataset"] == 16
+    _, _, rot_err, _ = _orbit_errors(dict(out=out, names=names, views=views))
+    assert rot_err.max() < 2.0, rot_err
+
+
 def test_names_look_ordered():
     assert names_look_ordered(["0000.jpg", "0001.jpg", "0002.jpg", "0010.jpg"])
     assert names_look_ordered(["DJI_0007.JPG", "DJI_0008.JPG", "DJI_0012.JPG"])  # gaps: deleted photos

@@ -279,14 +279,16 @@ def names_look_ordered(names: list[str]) -> bool:
 
 
 def choose_matcher(matcher: str, names: list[str], with_gps: int = 0,
-                   max_pairs: int = EXHAUSTIVE_MAX_PAIRS) -> tuple[str, str]:
+                   max_pairs: int | None = None) -> tuple[str, str]:
     """The matcher to run for `matcher` (one of MATCHERS) on the readable photos `names`, and
     why, in words. with_gps: how many of them carry a GPS position. `auto`: exhaustive while
     the pairs (n (n - 1) / 2) are at most `max_pairs`; above it spatial when every photo
     carries GPS, sequential with loop closure when the names look ordered
-    (`names_look_ordered`), else exhaustive (EXHAUSTIVE_MAX_PAIRS has the figures)."""
+    (`names_look_ordered`), else exhaustive (EXHAUSTIVE_MAX_PAIRS, the default `max_pairs`, has
+    the figures)."""
     if matcher != "auto":
         return matcher, "asked for"
+    max_pairs = EXHAUSTIVE_MAX_PAIRS if max_pairs is None else max_pairs
     n = len(names)
     pairs = pairing.pair_count(n)
     if pairs <= max_pairs:
