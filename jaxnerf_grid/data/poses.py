@@ -111,7 +111,10 @@ AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
 # to 0.9: there 23 of 30 registered, 0.1-0.2 degrees median error; 0.93 and 0.95 registered
 # more (25, 29) but the first model was turned by 22 degrees and the second had photos 5
 # degrees and a quarter of the orbit radius off (look-alike tower faces matched).
-SIFT = {"estimate_affine_shape": True}
+# SIFT_PEAK: COLMAP's 0.0067 lowered to 0.004 finds the fainter corners of small photos: on the
+# 36-photo tower-small orbit (low clutter, seed 0, 320x240) the mapping then registered 28,
+# relaxed 30 and after `register_left_out` 35 photos against 26, 29 and 31 (docs/POSES.md).
+SIFT = {"estimate_affine_shape": True, "peak_threshold": 0.004}
 MATCHING = {}
 MATCHING_SIFT = {"max_ratio": 0.9}
 # MAPPER: observations reprojecting more than 2 px off (COLMAP: 4) are dropped; with the looser
@@ -121,7 +124,10 @@ MIN_COMPARED = 8  # a smaller first model is no judge: the relaxed one is kept
 # Registering the photos a first model left out (`register_left_out`): the relaxed thresholds
 # and fewer inliers still, more tries per photo; kept only when it agrees with the first model
 # (`poses_agree`) and adds photos that pass the vetting.
+# Two-view tracks are kept there: a photo seen only with one registered neighbour gets its 2-D -
+# 3-D matches from them (on that orbit 35 of 36 against 33 without).
 LEFT_OUT = {"abs_pose_min_num_inliers": 10, "max_reg_trials": 6}
+LEFT_OUT_TRIANGULATION = {"ignore_two_view_tracks": False}
 
 
 def import_pycolmap():
@@ -420,15 +426,16 @@ def match_photos(pycolmap, database, matcher: str, names: list[str], work_dir: P
 
 def register_left_out(pycolmap, database, photo_dir, model, total: int, work_dir: Path, show: bool,
                       priors: bool = False):
-    """Item 3 of mapping: the photos a model left out, registered into it with the thresholds
-    of LEFT_OUT (fewer inliers, more tries), the model's cameras as the start (COLMAP's
-    incremental mapper continuing an existing model). Returns the extended model, or None."""
+    """The photos a model left out, registered into it with the relaxed thresholds and LEFT_OUT
+    (fewer inliers, more tries, two-view tracks kept), the model's cameras as the start
+    (COLMAP's incremental mapper continuing an existing model, `input_path`). Returns the
+    extended model, or None."""
     start, out = work_dir / "start", work_dir / "sparse"
     start.mkdir(parents=True, exist_ok=True)
     out.mkdir(parents=True, exist_ok=True)
     model.write(start)
     return _map(pycolmap, database, photo_dir, out, total, True, "registering the photos left out", show,
-                priors=priors, start_from=start, extra=LEFT_OUT)
+                priors=priors, start_from=start, extra=LEFT_OUT, triangulation=LEFT_OUT_TRIANGULATION)
 
 
 def _registered_count(model) -> int:
@@ -492,10 +499,12 @@ def poses_agree(a: dict, b: dict, *, max_deg: float = AGREE_DEG, max_centre: flo
     return bool(np.median(angle) <= max_deg and np.median(centre) <= max_centre * max(spread, 1e-12))
 
 
-def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | None = None):
+def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | None = None,
+                   triangulation: dict | None = None):
     """COLMAP's incremental mapper options: its defaults, or with `relaxed` the thresholds for
     small or texture-poor photos (RELAXED: fewer inliers to start a model and to register a
-    photo, a smaller starting triangulation angle); `extra`: more mapper options on top; with
+    photo, a smaller starting triangulation angle); `extra` / `triangulation`: more mapper /
+    triangulation options on top; with
     `priors` the database's pose priors (GPS) enter the bundle adjustment
     (`use_prior_position`, a robust loss: a GPS outlier does not bend the model)."""
     options = pycolmap.IncrementalPipelineOptions()
@@ -507,6 +516,8 @@ def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | 
             setattr(options.mapper, key, value)
     for key, value in (extra or {}).items():
         setattr(options.mapper, key, value)
+    for key, value in (triangulation or {}).items():
+        setattr(options.triangulation, key, value)
     if priors:
         options.use_prior_position = True
         options.use_robust_loss_on_prior_position = True
@@ -514,7 +525,7 @@ def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | 
 
 
 def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show, *, priors=False, start_from=None,
-         extra=None):
+         extra=None, triangulation=None):
     """One incremental mapping run (`pycolmap.incremental_mapping`), from scratch or continuing
     the model in the folder `start_from`. Returns its largest model or None. The progress line
     counts registered photos (`RegisteredCount`), at most `total`."""
@@ -523,7 +534,7 @@ def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show, *,
     kwargs = {} if start_from is None else {"input_path": start_from}
     try:
         models = pycolmap.incremental_mapping(database, photo_dir, out_dir,
-                                              options=mapper_options(pycolmap, relaxed, priors, extra),
+                                              options=mapper_options(pycolmap, relaxed, priors, extra, triangulation),
                                               initial_image_pair_callback=count.new_model,
                                               next_image_callback=count.next_image, **kwargs)
     finally:
