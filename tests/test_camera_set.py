@@ -95,3 +95,19 @@ def test_demo_camera_line_says_how_many_photos_trained(tmp_path):
     assert "trained anyway" not in check_camera_set(ok)
     assert check_camera_set(tmp_path) is None                     # not a poses dataset: no rule
 
+
+
+def test_a_camera_far_from_its_gps_fix_is_left_out():
+    """The GPS residuals' outliers (more than 9 m after the alignment, `georef.INLIER_METRES`)
+    are left out with the distance as the reason; inliers stay; no GPS, nothing."""
+    from jaxnerf_grid.data.poses import gps_outliers, mark_left_out
+
+    geo = {"gps": {"residuals": [{"name": "a.jpg", "error": 2.5, "inlier": True},
+                                 {"name": "b.jpg", "error": 31.04, "inlier": False}]}}
+    far = gps_outliers(geo)
+    assert far == [("b.jpg", "31.0 m from its GPS position (more than 9 m)")]
+    rows = [{"name": "a.jpg", "kept": True, "reasons": []}, {"name": "b.jpg", "kept": True, "reasons": []}]
+    mark_left_out(rows, far)
+    assert rows == [{"name": "a.jpg", "kept": True, "reasons": []},
+                    {"name": "b.jpg", "kept": False, "reasons": ["31.0 m from its GPS position (more than 9 m)"]}]
+    assert gps_outliers({"units": "unknown"}) == []
