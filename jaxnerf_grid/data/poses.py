@@ -111,10 +111,15 @@ AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
 # to 0.9: there 23 of 30 registered, 0.1-0.2 degrees median error; 0.93 and 0.95 registered
 # more (25, 29) but the first model was turned by 22 degrees and the second had photos 5
 # degrees and a quarter of the orbit radius off (look-alike tower faces matched).
-# SIFT_PEAK: COLMAP's 0.0067 lowered to 0.004 finds the fainter corners of small photos: on the
+SIFT = {"estimate_affine_shape": True}
+# SIFT_SMALL, for photos whose working size is at most SMALL_SIDE px on the long side: COLMAP's
+# peak threshold 0.0067 lowered to 0.004 finds the fainter corners of small photos. On the
 # 36-photo tower-small orbit (low clutter, seed 0, 320x240) the mapping then registered 28,
-# relaxed 30 and after `register_left_out` 35 photos against 26, 29 and 31 (docs/POSES.md).
-SIFT = {"estimate_affine_shape": True, "peak_threshold": 0.004}
+# relaxed 30 and after `register_left_out` 35 photos against 26, 29 and 31. Larger photos give
+# thousands of features anyway, and there it cost time (fountain-P11 at 1024 px: features 126 s
+# against 93 s, docs/POSES.md).
+SIFT_SMALL = {"peak_threshold": 0.004}
+SMALL_SIDE = 800
 MATCHING = {}
 MATCHING_SIFT = {"max_ratio": 0.9}
 # MAPPER: observations reprojecting more than 2 px off (COLMAP: 4) are dropped; with the looser
@@ -312,7 +317,7 @@ def choose_matcher(matcher: str, names: list[str], with_gps: int = 0,
 def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
                camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None,
                keep_all: bool = False, overlap: int = SEQUENTIAL_OVERLAP, timings: dict | None = None,
-               priors: dict | None = None):
+               priors: dict | None = None, small_photos: bool = False):
     """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
     whether it comes from the relaxed mapping, whether photos left out by the first model were
     registered afterwards (`register_left_out`)). The relaxed model is judged by its photos that
@@ -321,7 +326,8 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     `timings` ({stage: seconds}, when given) gets the seconds of features, matching and mapping.
     priors: {photo name: [3] GPS position in local metres of a projected CRS}: written to the
     database as pose priors (`write_gps_priors`), used by the spatial matcher and by the
-    mapper's bundle adjustment (`mapper_options`, use_prior_position).
+    mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL
+    on top of SIFT (every working photo at most SMALL_SIDE px on its long side).
 
     DataError (naming `source`, the input folder) when no model could be built.
     """
@@ -333,7 +339,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         reader.camera_model = camera_model
         mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
         extraction = pycolmap.FeatureExtractionOptions()  # SIFT on top of COLMAP's defaults
-        for key, value in SIFT.items():
+        for key, value in {**SIFT, **(SIFT_SMALL if small_photos else {})}.items():
             setattr(extraction.sift, key, value)
         pycolmap.extract_features(database, photo_dir, image_names=names, camera_mode=mode, reader_options=reader,
                                   extraction_options=extraction)
@@ -903,7 +909,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         model, relaxed, extended = run_colmap(
             pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
             single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir, keep_all=keep_all,
-            overlap=overlap, timings=timings, priors=priors)
+            overlap=overlap, timings=timings, priors=priors,
+            small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE)
         registered = sorted(model.images[i].name for i in model.reg_image_ids())
         unregistered = sorted(set(names) - set(registered))
         why_unregistered = unregistered_reasons(pycolmap, stage_dir / "_work" / "database.db", unregistered,
