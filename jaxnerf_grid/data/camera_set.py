@@ -10,9 +10,10 @@ that, in one line, unless the user says to go on (`accept_few_cameras`). The rul
 - arc: the kept cameras must cover at least MIN_ARC_SHARE of the arc the flight covers around
   the scene centre (the point the cameras look at), arcs measured as azimuths about the
   vertical (`arc_covered_deg`: 360 degrees less the largest gap between neighbouring
-  cameras). The flight's arc comes from every photo's GPS position when the photos carry GPS
-  (the photos that did not register count there too); without GPS only the registered
-  cameras' places are known, so the arc compares the kept cameras with the registered ones.
+  cameras). The flight's arc is that of the registered cameras (before the vetting) and, when
+  the photos' GPS is close enough to place them (its residual RMS under a quarter of the
+  cameras' distance from the centre: `data.poses.gps_places_cameras`), of the GPS positions of
+  the photos that did not register; else the places of unregistered photos are unknown.
 
 Why these shares: on tower-small orbits the runs that trained on 16 of 36 photos (44 %, under
 half the orbit) rendered a ghost and `export --box auto` found no ground; real captures keep

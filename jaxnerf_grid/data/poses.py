@@ -996,20 +996,36 @@ def gps_local_positions(positions: dict, crs_name: str | None) -> tuple[dict, np
 def camera_set_of(model, readable: int, registered_centres: np.ndarray, priors: dict, priors_origin,
                   georeference: dict) -> dict:
     """`camera_set.camera_set_record` of a z-up model (its registered photos less those left
-    out): the kept cameras' arc about the point they look at, against the flight's: every
-    photo's GPS position (`priors`, local metres from `priors_origin`) when the model is in
-    metres from the GPS, else the registered cameras' (`registered_centres` [R, 3], in the
-    model's frame, before the vetting)."""
-    c2w = np.stack(list(model_poses(model).values()))
+    out): the kept cameras' arc about the point they look at, against the flight's: the
+    registered cameras (`registered_centres` [R, 3], in the model's frame, before the vetting)
+    and, when the model is in metres from the GPS and the GPS is close enough to tell the
+    cameras' places apart (`gps_places_cameras`), the GPS positions of the photos that did not
+    register (`priors`, local metres from `priors_origin`)."""
+    poses_now = model_poses(model)
+    c2w = np.stack(list(poses_now.values()))
     centre = camera_set.look_at_point(c2w)
     arc_kept = camera_set.arc_covered_deg(camera_set.azimuths_deg(c2w[:, :3, 3], centre))
-    if priors and georeference.get("units") == "metres" and "gps" in georeference:
+    flight, arc_from = registered_centres, "registered"
+    registered = set(poses_now) | {row["name"] for row in (georeference.get("gps") or {}).get("residuals") or []}
+    missing = [name for name in priors if name not in registered]
+    if missing and gps_places_cameras(georeference, c2w[:, :3, 3], centre):
         shift = np.asarray(priors_origin, np.float64) - np.asarray(georeference["origin"], np.float64)
-        flight, arc_from = np.stack([np.asarray(p) + shift for p in priors.values()]), "gps"
-    else:
-        flight, arc_from = registered_centres, "registered"
+        flight = np.concatenate([flight, np.stack([np.asarray(priors[n]) + shift for n in missing])])
+        arc_from = "gps"
     arc_flight = camera_set.arc_covered_deg(camera_set.azimuths_deg(flight, centre))
     return camera_set.camera_set_record(readable, len(c2w), arc_kept, arc_flight, arc_from)
+
+
+def gps_places_cameras(georeference: dict, centres: np.ndarray, centre: np.ndarray) -> bool:
+    """Whether the photos' GPS tells where around the scene a camera is: the model is in metres
+    from the GPS and its GPS residual RMS is under a quarter of the cameras' median horizontal
+    distance from the scene centre (a phone's 3-5 m error around a 5 m tree says nothing of
+    the side a photo was taken from). centres: [N, 3] local metres; centre: [3]."""
+    rms_m = (georeference.get("gps") or {}).get("rms_m")
+    if georeference.get("units") != "metres" or rms_m is None:
+        return False
+    radius = float(np.median(np.linalg.norm(np.asarray(centres)[:, :2] - np.asarray(centre)[:2], axis=1)))
+    return rms_m < 0.25 * radius
 
 
 def unregistered_reasons(pycolmap, database, unregistered: list[str], registered: list[str]) -> dict:
