@@ -111,3 +111,15 @@ def test_a_camera_far_from_its_gps_fix_is_left_out():
     assert rows == [{"name": "a.jpg", "kept": True, "reasons": []},
                     {"name": "b.jpg", "kept": False, "reasons": ["31.0 m from its GPS position (more than 9 m)"]}]
     assert gps_outliers({"units": "unknown"}) == []
+
+
+def test_gps_places_cameras_only_when_its_error_is_small_against_the_capture():
+    """A 4 m GPS RMS places cameras 60 m from the scene (4 < 60 / 4), not cameras 5 m from a tree
+    (4 > 5 / 4); no GPS alignment, no placing."""
+    from jaxnerf_grid.data.poses import gps_places_cameras
+
+    ring = np.stack([np.cos(np.linspace(0, 6, 8)), np.sin(np.linspace(0, 6, 8)), np.zeros(8)], -1)
+    geo = {"units": "metres", "gps": {"rms_m": 4.0}}
+    assert gps_places_cameras(geo, 60.0 * ring, np.zeros(3))
+    assert not gps_places_cameras(geo, 5.0 * ring, np.zeros(3))
+    assert not gps_places_cameras({"units": "unknown"}, 60.0 * ring, np.zeros(3))
