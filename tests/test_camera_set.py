@@ -123,3 +123,14 @@ def test_gps_places_cameras_only_when_its_error_is_small_against_the_capture():
     assert gps_places_cameras(geo, 60.0 * ring, np.zeros(3))
     assert not gps_places_cameras(geo, 5.0 * ring, np.zeros(3))
     assert not gps_places_cameras({"units": "unknown"}, 60.0 * ring, np.zeros(3))
+
+
+def test_gps_priors_hold_only_over_a_wide_capture():
+    """GPS enters the mapping only when the positions spread over 30 m (their median distance
+    from their mean): a 60 m orbit yes, a 5 m walk round a tree no, none no."""
+    from jaxnerf_grid.data.poses import priors_hold
+
+    ring = {f"p{k}": np.array([np.cos(a), np.sin(a), 0.0]) for k, a in enumerate(np.linspace(0, 6, 12))}
+    assert priors_hold({k: 60.0 * v for k, v in ring.items()})
+    assert not priors_hold({k: 5.0 * v for k, v in ring.items()})
+    assert not priors_hold({})

@@ -81,6 +81,11 @@ SPATIAL_MAX_DISTANCE = 1e6  # metres: the neighbour count, not a distance, bound
 # GPS as pose priors (`write_gps_priors`): a consumer receiver's error as the prior's standard
 # deviation, horizontal and vertical (data/gps_scene.py draws 1-3 m and 2-5 m)
 PRIOR_SIGMA_M = (3.0, 5.0)
+# ... and only when the GPS positions spread over PRIOR_MIN_SPREAD_M at least (their median
+# horizontal distance from their mean, `gps_spread_m`): a phone's 3-5 m error around a tree
+# photographed from 5 m would pull the cameras about, not hold them (monstree, 23 photos: with
+# the priors the GPS alignment came out mirrored, docs/POSES.md); a drone orbit spreads 40-60 m.
+PRIOR_MIN_SPREAD_M = 30.0
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
@@ -349,7 +354,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree)
     n = len(names)
     start = time.monotonic()
-    use_priors = bool(priors)
+    use_priors = priors_hold(priors or {})
     default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", n, False, "mapping", show,
                    priors=use_priors)
     best = default
@@ -370,6 +375,18 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
     return best, relaxed_used, extended
+
+
+def priors_hold(priors: dict) -> bool:
+    """Whether GPS positions ({name: [3]}) enter the mapping as priors: any, spread over
+    PRIOR_MIN_SPREAD_M at least."""
+    return bool(priors) and gps_spread_m(priors) >= PRIOR_MIN_SPREAD_M
+
+
+def gps_spread_m(priors: dict) -> float:
+    """The median horizontal distance (m) of GPS positions ({name: [3]}) from their mean."""
+    xy = np.stack([np.asarray(p, np.float64)[:2] for p in priors.values()])
+    return float(np.median(np.linalg.norm(xy - xy.mean(0), axis=1)))
 
 
 def write_gps_priors(pycolmap, database, priors: dict) -> int:
@@ -956,8 +973,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "camera_model": camera_model, "single_camera": bool(single_camera),
                        "max_side": max_side, "relaxed_mapping": bool(relaxed), "up_rotation": rot.tolist(),
                        "registered_left_out": bool(extended), "unregistered_why": why_unregistered,
-                       "gps_priors": len(priors), "camera_set": dict(cameras, verdict=verdict,
-                                                                     accepted=bool(accept_few_cameras)),
+                       "gps_priors": len(priors) if priors_hold(priors) else 0,
+                       "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
                        "georeference": georeference}
             undistort(pycolmap, model, photo_dir, stage_dir)
