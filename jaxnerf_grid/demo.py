@@ -27,12 +27,14 @@ from typing import Any
 
 import numpy as np
 
+from jaxnerf_grid.capture import camera_set
 from jaxnerf_grid.capture.bounds import bounds_line
 from jaxnerf_grid.config import budget as budget_lib
 from jaxnerf_grid.config import build, recipes
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.run_config import make_config
 from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.data.formats.frames import default_split
 from jaxnerf_grid.data.formats.transforms_json import read_meta
 from jaxnerf_grid.data.synthetic import generate as synth_generate
 from jaxnerf_grid.eval import evaluate
@@ -262,9 +264,41 @@ def _mask_note(mask_source: str | None, plan: dict | None = None) -> str:
     return note + why
 
 
+def check_camera_set(data: Path, accept_few_cameras: bool = False) -> str | None:
+    """For a dataset `jaxnerf-grid poses` wrote: DataError (one line, naming the counts) when its
+    camera set is too thin to train on (`capture.camera_set.camera_set_verdict` on transforms.json's
+    poses.camera_set), unless `accept_few_cameras`. Returns the line the report gets ("trained
+    on N of the M photos ..."), None for a dataset poses did not write."""
+    meta = read_meta(data)
+    record = (meta.get("poses") or {}).get("camera_set") if isinstance(meta.get("poses"), dict) else None
+    if not isinstance(record, dict):
+        return None
+    verdict = camera_set.camera_set_verdict(record)
+    if verdict is not None and not accept_few_cameras:
+        raise DataError(f"{data}: {verdict}; not trained (a NeRF trained on them renders the rest as a ghost); "
+                        "accept_few_cameras=True trains anyway (docs/POSES.md)")
+    frames = len(meta.get("frames") or [])
+    split = _json_split_counts(meta, frames)
+    return (f"Cameras: {split['train']} photos trained ({split['test']} held out for testing) of the "
+            f"{record['photos']} photos given to `poses` ({record['kept']} kept, covering "
+            f"{record['arc_kept_deg']:.0f} of {record['arc_flight_deg']:.0f} degrees around the scene)"
+            + (f"; {verdict}, trained anyway" if verdict else "") + ".")
+
+
+def _json_split_counts(meta: dict, frames: int) -> dict:
+    """{"train", "test"}: how many frames of a transforms.json train and test (their `split`
+    when every frame names one, else every 8th tests, `formats.frames.default_split`)."""
+    named = [f.get("split") for f in meta.get("frames") or [] if isinstance(f, dict)]
+    if named and all(n in ("train", "test") for n in named):
+        return {"train": named.count("train"), "test": named.count("test")}
+    split = default_split(frames)
+    return {"train": len(split["train"]), "test": len(split["test"])}
+
+
 def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None, overwrite: bool = False,
              progress: bool = True, sets: list[str] | None = None, max_side: int | None = None,
-             masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES, minutes: float | None = None) -> dict:
+             masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES, minutes: float | None = None,
+             accept_few_cameras: bool = False) -> dict:
     """The demo recipe as a library call: (synth when data is None) -> mask (when the dataset
     has no masks and they are needed) -> train the demo's recipe (DEMO_RECIPE) -> evaluate -> the
     fly-around video (`write_demo_video`, unless video_frames is 0). Returns {"run_dir", "metrics",
@@ -272,8 +306,10 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
     (render_video's dict, None without a video)}. sets: --set KEY=VALUE changes to DEMO_CONFIG;
     max_side: train.max_side (the working resolution; None: the default, 640 px); masks: one of
     MASK_CHOICES (`mask_plan`); minutes: the training time budget the steps are chosen within when
-    `steps` is None (`budget.py`; None: budget.DEFAULT_MINUTES). The config is checked
-    (run_config.make_config) before anything is written."""
+    `steps` is None (config/budget.py; None: budget.DEFAULT_MINUTES). The config is checked
+    (run_config.make_config) before anything is written; so is the camera set of a dataset `poses`
+    wrote (`check_camera_set`: refused when too thin to train on, unless accept_few_cameras), and
+    the report says how many photos trained."""
     if steps is not None and (isinstance(steps, bool) or not isinstance(steps, int) or steps < 1):
         raise ConfigError(f"demo.steps = {steps}: must be an integer >= 1")
     check_video_frames(video_frames)
@@ -298,6 +334,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
                           "no masks can be written into it; use demo.masks robust or none (or auto)")
     if (out / "run").exists() and not (out / "run").is_dir():
         raise DataError(f"{out / 'run'}: exists and is not a folder")
+    cameras_line = check_camera_set(Path(data), accept_few_cameras) if data is not None and layout else None
     timings: dict[str, float] = {}
     # multi-process (docs/DISTRIBUTED.md): process 0 makes the data, every process trains, process 0 evaluates
     if distributed.is_main():
@@ -332,7 +369,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         return {"run_dir": run_dir, "metrics": None, "timings": timings, "total_seconds": time.perf_counter() - start,
                 "mask_source": mask_source, "mask_plan": plan, "video": None}
     t = time.perf_counter()
-    notes = [_mask_note(mask_source, plan), bounds_line(bounds)]
+    notes = [_mask_note(mask_source, plan), bounds_line(bounds)] + ([cameras_line] if cameras_line else [])
     metrics_out = evaluate.evaluate_run(run_dir, progress=progress, extra_notes=notes, distractor_views=2,
                                         cloud_views=DEMO_CLOUD_VIEWS, cloud_pixels=DEMO_CLOUD_PIXELS)
     timings["eval"] = time.perf_counter() - t

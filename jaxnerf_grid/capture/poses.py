@@ -8,15 +8,21 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      scaled to a working size (working copies are written only for the photos that need it);
   2. features: SIFT (`pycolmap.extract_features`), one camera for all photos with
      `single_camera`, else COLMAP's per-photo cameras;
-  3. matching: exhaustive, sequential (each photo with its next `overlap` in name order, as a
-     flight records them; no loop detection, which needs a vocabulary tree), a vocabulary
-     tree (`vocab_tree`: a file; none is downloaded), or `auto` (`choose_matcher`: exhaustive
-     up to AUTO_EXHAUSTIVE_MAX photos, sequential above it when the names are numbered in
-     sequence);
-  4. mapping: incremental mapping (`pycolmap.incremental_mapping`), once more with relaxed
-     thresholds when under 90 % of the photos register (`choose_model` keeps the relaxed
-     model only when it is consistent with the first); the largest model is kept, the photos
-     outside it are named;
+  3. matching (`match_photos`): exhaustive, spatial (each photo with its nearest by GPS),
+     sequential (each photo with its next `overlap` in name order, as a flight records them,
+     with loop closure: the pairs across the sequence's end that close an orbit and COLMAP's
+     quadratic overlap, `pairing.sequential_pairs`; COLMAP's own loop detection needs a
+     vocabulary tree, which is not shipped nor downloaded), a vocabulary tree (`vocab_tree`: a
+     file), or `auto` (`choose_matcher`: exhaustive while the pairs are few, spatial when every
+     photo has GPS, sequential when the names are numbered in sequence);
+  4. mapping: incremental mapping (`pycolmap.incremental_mapping`), with the photos' GPS as
+     position priors in its bundle adjustment (`write_gps_priors`, `mapper_options`), once
+     more with relaxed thresholds when under 90 % of the photos register (`choose_model` keeps
+     the relaxed model only when it is consistent with the first); the photos the kept model
+     left out are then tried again, continuing that model with looser thresholds
+     (`register_left_out`, kept when it agrees); the largest model is kept, the photos outside
+     it are named with why (`unregistered_reasons`); a camera set too thin to train on is
+     refused (`camera_set`, unless `accept_few_cameras`);
   5. undistortion to PINHOLE (`pycolmap.undistort_images`): DATA_DIR/images/ holds the
      undistorted photos under their input names, cropped to one size when each photo has its
      own camera (`crop_to_common_size`);
@@ -47,7 +53,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxnerf_grid.capture import georef, gps, vetting
+from jaxnerf_grid.capture import camera_set, georef, gps, pairing, vetting
 from jaxnerf_grid.capture.bounds import scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
@@ -63,18 +69,28 @@ from jaxnerf_grid.util.io import DataError
 MIN_PHOTOS = 3        # fewer readable photos: refused before any work
 MIN_REGISTERED = 3    # fewer registered photos: no dataset is written ...
 MIN_REGISTERED_FRACTION = 0.25  # ... nor below a quarter of the readable photos (`enough_registered`)
-MATCHERS = ("auto", "exhaustive", "sequential", "vocab")
-# `sequential` matches each photo with its next SEQUENTIAL_OVERLAP photos in name order (COLMAP's
-# sequential matcher, its quadratic overlap and loop detection off: loop detection needs a
-# vocabulary tree file, which is not shipped nor downloaded). `auto` matches every pair up to
-# AUTO_EXHAUSTIVE_MAX photos, sequentially above it when the names are numbered in sequence
-# (`names_look_ordered`), else every pair. Why 20 (docs/POSES.md, "Choosing the matcher"): up
-# to 20 photos sequential matching skips at most 45 of 190 pairs (under 20 s of matching at
-# 3072x2048 here) and loses the pairs that close an orbit; on Herz-Jesus-P25 (25 photos, in
-# name order) it matched 195 pairs instead of 300, 18 to 56 s less matching, with the same
-# accuracy (benchmarks/results/strecha_e2e/poses_matchers.md).
+MATCHERS = ("auto", "exhaustive", "spatial", "sequential", "vocab")
+# `auto` (`choose_matcher`): exhaustive matching while it is cheap, up to EXHAUSTIVE_MAX_PAIRS
+# pairs (50 photos): about 0.03 s a pair at 320x240 (tower-small, 36 photos: 630 pairs in 17 s)
+# and 0.2-0.5 s a pair at 3072x2048 (Herz-Jesus-P25, docs/POSES.md), so at most about 40 s to
+# 10 min; every pair matched closes every loop. Above it: spatial matching by GPS
+# (`pycolmap.match_spatial`, each photo with its SPATIAL_NEIGHBOURS nearest by GPS position) when
+# every photo carries GPS; else sequential matching with loop closure when the names are
+# numbered in sequence (`names_look_ordered`; `pairing.sequential_pairs`: each photo with its
+# next SEQUENTIAL_OVERLAP, the wrap-around pairs that close an orbit and COLMAP's quadratic
+# overlap); else every pair, however many (the capture order is unknown).
 SEQUENTIAL_OVERLAP = 10
-AUTO_EXHAUSTIVE_MAX = 20
+EXHAUSTIVE_MAX_PAIRS = 1225
+SPATIAL_NEIGHBOURS = 20
+SPATIAL_MAX_DISTANCE = 1e6  # metres: the neighbour count, not a distance, bounds the pairs
+# GPS as pose priors (`write_gps_priors`): a consumer receiver's error as the prior's standard
+# deviation, horizontal and vertical (data/gps_scene.py draws 1-3 m and 2-5 m)
+PRIOR_SIGMA_M = (3.0, 5.0)
+# ... and only when the GPS positions spread over PRIOR_MIN_SPREAD_M at least (their median
+# horizontal distance from their mean, `gps_spread_m`): a phone's 3-5 m error around a tree
+# photographed from 5 m would pull the cameras about, not hold them (monstree, 23 photos: with
+# the priors the GPS alignment came out mirrored, docs/POSES.md); a drone orbit spreads 40-60 m.
+PRIOR_MIN_SPREAD_M = 30.0
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
@@ -106,12 +122,27 @@ AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
 # more (25, 29) but the first model was turned by 22 degrees and the second had photos 5
 # degrees and a quarter of the orbit radius off (look-alike tower faces matched).
 SIFT: dict[str, Any] = {"estimate_affine_shape": True}
+# SIFT_SMALL, for photos whose working size is at most SMALL_SIDE px on the long side: COLMAP's
+# peak threshold 0.0067 lowered to 0.004 finds the fainter corners of small photos. On the
+# 36-photo tower-small orbit (low clutter, seed 0, 320x240) the mapping then registered 28,
+# relaxed 30 and after `register_left_out` 35 photos against 26, 29 and 31. Larger photos give
+# thousands of features anyway, and there it cost time (fountain-P11 at 1024 px: features 126 s
+# against 93 s, docs/POSES.md).
+SIFT_SMALL: dict[str, Any] = {"peak_threshold": 0.004}
+SMALL_SIDE = 800
 MATCHING: dict[str, Any] = {}
 MATCHING_SIFT: dict[str, Any] = {"max_ratio": 0.9}
 # MAPPER: observations reprojecting more than 2 px off (COLMAP: 4) are dropped; with the looser
 # ratio test the test scene's 95th-percentile reprojection error otherwise reached 1.3 px.
 MAPPER = {"filter_max_reproj_error": 2.0}
 MIN_COMPARED = 8  # a smaller first model is no judge: the relaxed one is kept
+# Registering the photos a first model left out (`register_left_out`): the relaxed thresholds
+# and fewer inliers still, more tries per photo; kept only when it agrees with the first model
+# (`poses_agree`) and adds photos that pass the vetting.
+# Two-view tracks are kept there: a photo seen only with one registered neighbour gets its 2-D -
+# 3-D matches from them (on that orbit 35 of 36 against 33 without).
+LEFT_OUT = {"abs_pose_min_num_inliers": 10, "max_reg_trials": 6}
+LEFT_OUT_TRIANGULATION = {"ignore_two_view_tracks": False}
 
 
 def import_pycolmap():
@@ -268,28 +299,45 @@ def names_look_ordered(names: list[str]) -> bool:
             and [number for _, number in sorted(zip(names, numbers))] == sorted(numbers))
 
 
-def choose_matcher(matcher: str, names: list[str], exhaustive_max: int = AUTO_EXHAUSTIVE_MAX) -> tuple[str, str]:
+def choose_matcher(matcher: str, names: list[str], with_gps: int = 0,
+                   max_pairs: int | None = None) -> tuple[str, str]:
     """The matcher to run for `matcher` (one of MATCHERS) on the readable photos `names`, and
-    why, in words. `auto`: exhaustive up to `exhaustive_max` photos, sequential above it when
-    the names look ordered (`names_look_ordered`), else exhaustive."""
+    why, in words. with_gps: how many of them carry a GPS position. `auto`: exhaustive while
+    the pairs (n (n - 1) / 2) are at most `max_pairs`; above it spatial when every photo
+    carries GPS, sequential with loop closure when the names look ordered
+    (`names_look_ordered`), else exhaustive (EXHAUSTIVE_MAX_PAIRS, the default `max_pairs`, has
+    the figures)."""
     if matcher != "auto":
         return matcher, "asked for"
+    max_pairs = EXHAUSTIVE_MAX_PAIRS if max_pairs is None else max_pairs
     n = len(names)
-    if n <= exhaustive_max:
-        return "exhaustive", f"auto: {n} photos, at most {exhaustive_max}"
+    pairs = pairing.pair_count(n)
+    if pairs <= max_pairs:
+        return "exhaustive", f"auto: {n} photos, {pairs} pairs, at most {max_pairs}"
+    if with_gps == n:
+        return "spatial", (f"auto: {n} photos, {pairs} pairs, more than {max_pairs}; every photo has GPS: each "
+                           f"with its {SPATIAL_NEIGHBOURS} nearest")
     if names_look_ordered(names):
-        return "sequential", f"auto: {n} photos, more than {exhaustive_max}, named in sequence"
-    return "exhaustive", f"auto: {n} photos, more than {exhaustive_max}, but the names are not numbered in sequence"
+        return "sequential", (f"auto: {n} photos, {pairs} pairs, more than {max_pairs}, named in sequence: with "
+                              "loop closure")
+    return "exhaustive", (f"auto: {n} photos, {pairs} pairs, more than {max_pairs}, but no GPS on every photo and "
+                          "the names are not numbered in sequence")
 
 
 def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
                camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None,
-               keep_all: bool = False, overlap: int = SEQUENTIAL_OVERLAP, timings: dict | None = None):
+               keep_all: bool = False, overlap: int = SEQUENTIAL_OVERLAP, timings: dict | None = None,
+               priors: dict | None = None, small_photos: bool = False):
     """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
-    whether it comes from the relaxed mapping). The relaxed model is judged by its photos that
+    whether it comes from the relaxed mapping, whether photos left out by the first model were
+    registered afterwards (`register_left_out`)). The relaxed model is judged by its photos that
     pass the vetting (`vetted_count`; all its photos with `keep_all`). `matcher`: exhaustive,
-    sequential (each photo with its next `overlap`) or vocab. `timings` ({stage: seconds}, when
-    given) gets the seconds of features, matching and mapping.
+    spatial, sequential (each photo with its next `overlap`, with loop closure) or vocab.
+    `timings` ({stage: seconds}, when given) gets the seconds of features, matching and mapping.
+    priors: {photo name: [3] GPS position in local metres of a projected CRS}: written to the
+    database as pose priors (`write_gps_priors`), used by the spatial matcher and by the
+    mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL
+    on top of SIFT (every working photo at most SMALL_SIDE px on its long side).
 
     DataError (naming `source`, the input folder) when no model could be built.
     """
@@ -301,39 +349,121 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         reader.camera_model = camera_model
         mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
         extraction = pycolmap.FeatureExtractionOptions()  # SIFT on top of COLMAP's defaults
-        for key, value in SIFT.items():
+        for key, value in {**SIFT, **(SIFT_SMALL if small_photos else {})}.items():
             setattr(extraction.sift, key, value)
         pycolmap.extract_features(database, photo_dir, image_names=names, camera_mode=mode, reader_options=reader,
                                   extraction_options=extraction)
+        if priors:
+            write_gps_priors(pycolmap, database, priors)
     with _stage(f"matching ({matcher})", show, timings, "matching"):
-        matching = pycolmap.FeatureMatchingOptions()
-        for key, value in MATCHING.items():
-            setattr(matching, key, value)
-        for key, value in MATCHING_SIFT.items():
-            setattr(matching.sift, key, value)
-        if matcher == "exhaustive":
-            pycolmap.match_exhaustive(database, matching_options=matching)
-        elif matcher == "sequential":
-            pairing = pycolmap.SequentialPairingOptions()
-            pairing.overlap, pairing.quadratic_overlap, pairing.loop_detection = overlap, False, False
-            pycolmap.match_sequential(database, matching_options=matching, pairing_options=pairing)
-        else:
-            pairing = pycolmap.VocabTreePairingOptions()
-            pairing.vocab_tree_path = str(vocab_tree)
-            pycolmap.match_vocabtree(database, matching_options=matching, pairing_options=pairing)
+        match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree)
     n = len(names)
     start = time.monotonic()
-    default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", n, False, "mapping", show)
+    use_priors = priors_hold(priors or {})
+    default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", n, False, "mapping", show,
+                   priors=use_priors)
     best = default
+    count = _registered_count if keep_all else vetted_count
     if default is None or default.num_reg_images() < RELAX_BELOW * n:
         relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", n, True,
-                       "mapping again (relaxed thresholds)", show)
-        best = choose_model(default, relaxed, show, count=_registered_count if keep_all else vetted_count)
+                       "mapping again (relaxed thresholds)", show, priors=use_priors)
+        best = choose_model(default, relaxed, show, count=count)
+    relaxed_used, extended = best is not default, False
+    if best is not None and best.num_reg_images() < n:
+        more = register_left_out(pycolmap, database, photo_dir, best, n, work_dir / "extend", show, use_priors)
+        if more is not None and count(more) > count(best) and poses_agree(model_poses(best), model_poses(more)):
+            _say(f"poses: registered {more.num_reg_images() - best.num_reg_images()} more photo(s) the first model "
+                 "left out", show)
+            best, extended = more, True
     timings["mapping"] = round(time.monotonic() - start, 1)
     if best is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
-    return best, best is not default
+    return best, relaxed_used, extended
+
+
+def priors_hold(priors: dict) -> bool:
+    """Whether GPS positions ({name: [3]}) enter the mapping as priors: any, spread over
+    PRIOR_MIN_SPREAD_M at least."""
+    return bool(priors) and gps_spread_m(priors) >= PRIOR_MIN_SPREAD_M
+
+
+def gps_spread_m(priors: dict) -> float:
+    """The median horizontal distance (m) of GPS positions ({name: [3]}) from their mean."""
+    xy = np.stack([np.asarray(p, np.float64)[:2] for p in priors.values()])
+    return float(np.median(np.linalg.norm(xy - xy.mean(0), axis=1)))
+
+
+def write_gps_priors(pycolmap, database, priors: dict) -> int:
+    """Replaces the database's pose priors (COLMAP writes the EXIF GPS of the photos it reads
+    in WGS 84, and none for a working copy) with `priors`: {photo name: [3] position in local
+    metres of a projected CRS}, as CARTESIAN `pycolmap.PosePrior`s with a diagonal covariance
+    of PRIOR_SIGMA_M (horizontal, vertical). Returns the priors written."""
+    db = pycolmap.Database.open(database)
+    try:
+        db.clear_pose_priors()
+        h, v = PRIOR_SIGMA_M
+        cov = np.diag([h * h, h * h, v * v])
+        written = 0
+        for image in db.read_all_images():
+            if image.name in priors:
+                prior = pycolmap.PosePrior(corr_data_id=image.data_id,
+                                           position=np.asarray(priors[image.name], np.float64),
+                                           position_covariance=cov,
+                                           coordinate_system=pycolmap.PosePriorCoordinateSystem.CARTESIAN)
+                db.write_pose_prior(prior)
+                written += 1
+    finally:
+        db.close()
+    return written
+
+
+def match_photos(pycolmap, database, matcher: str, names: list[str], work_dir: Path, overlap: int,
+                 vocab_tree=None) -> None:
+    """Stage 3: COLMAP's matcher for `matcher` (module docstring) on the database's photos.
+    sequential: the pairs of `pairing.sequential_pairs` (next `overlap`, wrap-around, quadratic)
+    through `pycolmap.match_image_pairs`; with a space in a name (COLMAP's pair list splits on
+    spaces) COLMAP's own sequential matcher with its quadratic overlap instead (no wrap)."""
+    matching = pycolmap.FeatureMatchingOptions()
+    for key, value in MATCHING.items():
+        setattr(matching, key, value)
+    for key, value in MATCHING_SIFT.items():
+        setattr(matching.sift, key, value)
+    if matcher == "exhaustive":
+        pycolmap.match_exhaustive(database, matching_options=matching)
+    elif matcher == "spatial":
+        options = pycolmap.SpatialPairingOptions()
+        options.max_num_neighbors, options.max_distance = SPATIAL_NEIGHBOURS, SPATIAL_MAX_DISTANCE
+        pycolmap.match_spatial(database, matching_options=matching, pairing_options=options)
+    elif matcher == "sequential" and not any(" " in name for name in names):
+        pairs_file = Path(work_dir) / "pairs.txt"
+        pairs_file.parent.mkdir(parents=True, exist_ok=True)
+        pairs_file.write_text(pairing.pairs_file_text(pairing.sequential_pairs(sorted(names), overlap)))
+        options = pycolmap.ImportedPairingOptions()
+        options.match_list_path = str(pairs_file)
+        pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=options)
+    elif matcher == "sequential":
+        options = pycolmap.SequentialPairingOptions()
+        options.overlap, options.quadratic_overlap, options.loop_detection = overlap, True, False
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=options)
+    else:
+        options = pycolmap.VocabTreePairingOptions()
+        options.vocab_tree_path = str(vocab_tree)
+        pycolmap.match_vocabtree(database, matching_options=matching, pairing_options=options)
+
+
+def register_left_out(pycolmap, database, photo_dir, model, total: int, work_dir: Path, show: bool,
+                      priors: bool = False):
+    """The photos a model left out, registered into it with the relaxed thresholds and LEFT_OUT
+    (fewer inliers, more tries, two-view tracks kept), the model's cameras as the start
+    (COLMAP's incremental mapper continuing an existing model, `input_path`). Returns the
+    extended model, or None."""
+    start, out = work_dir / "start", work_dir / "sparse"
+    start.mkdir(parents=True, exist_ok=True)
+    out.mkdir(parents=True, exist_ok=True)
+    model.write(start)
+    return _map(pycolmap, database, photo_dir, out, total, True, "registering the photos left out", show,
+                priors=priors, start_from=start, extra=LEFT_OUT, triangulation=LEFT_OUT_TRIANGULATION)
 
 
 def _registered_count(model) -> int:
@@ -397,10 +527,14 @@ def poses_agree(a: dict, b: dict, *, max_deg: float = AGREE_DEG, max_centre: flo
     return bool(np.median(angle) <= max_deg and np.median(centre) <= max_centre * max(spread, 1e-12))
 
 
-def mapper_options(pycolmap, relaxed: bool):
+def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | None = None,
+                   triangulation: dict | None = None):
     """COLMAP's incremental mapper options: its defaults, or with `relaxed` the thresholds for
     small or texture-poor photos (RELAXED: fewer inliers to start a model and to register a
-    photo, a smaller starting triangulation angle)."""
+    photo, a smaller starting triangulation angle); `extra` / `triangulation`: more mapper /
+    triangulation options on top; with
+    `priors` the database's pose priors (GPS) enter the bundle adjustment
+    (`use_prior_position`, a robust loss: a GPS outlier does not bend the model)."""
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = 0
     for key, value in MAPPER.items():
@@ -408,24 +542,64 @@ def mapper_options(pycolmap, relaxed: bool):
     if relaxed:
         for key, value in RELAXED.items():
             setattr(options.mapper, key, value)
+    for key, value in (extra or {}).items():
+        setattr(options.mapper, key, value)
+    for key, value in (triangulation or {}).items():
+        setattr(options.triangulation, key, value)
+    if priors:
+        options.use_prior_position = True
+        options.use_robust_loss_on_prior_position = True
     return options
 
 
-def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show):
-    """One incremental mapping run. Returns its largest model or None."""
+def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show, *, priors=False, start_from=None,
+         extra=None, triangulation=None):
+    """One incremental mapping run (`pycolmap.incremental_mapping`), from scratch or continuing
+    the model in the folder `start_from`. Returns its largest model or None. The progress line
+    counts registered photos (`RegisteredCount`), at most `total`."""
     bar = progress.bar(total=total, desc=f"poses: {label}", unit="photo", enabled=show)
-
-    def next_image():
-        bar.update(1)
-
+    count = RegisteredCount(bar, total, start=0 if start_from is None else _model_size(pycolmap, start_from))
+    kwargs = {} if start_from is None else {"input_path": start_from}
     try:
-        models = pycolmap.incremental_mapping(database, photo_dir, out_dir, options=mapper_options(pycolmap, relaxed),
-                                              next_image_callback=next_image)
+        models = pycolmap.incremental_mapping(database, photo_dir, out_dir,
+                                              options=mapper_options(pycolmap, relaxed, priors, extra, triangulation),
+                                              initial_image_pair_callback=count.new_model,
+                                              next_image_callback=count.next_image, **kwargs)
     finally:
         bar.close()
     if not models:
         return None
     return max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+
+
+def _model_size(pycolmap, folder) -> int:
+    return pycolmap.Reconstruction(folder).num_reg_images()
+
+
+class RegisteredCount:
+    """The mapping's progress in registered photos. COLMAP calls back once for the first two
+    photos of each model it starts (`new_model`) and once for each photo registered next
+    (`next_image`), in every model it tries, so the calls add up past the photos ("80/57" on a
+    57-photo capture); the bar shows the largest model's photos so far, at most `total`.
+    `start`: the photos of a model the mapping continues."""
+
+    def __init__(self, bar, total: int, start: int = 0):
+        self.bar, self.total, self.current, self.shown = bar, total, start, 0
+        self._show(start)
+
+    def new_model(self):
+        self.current = 2
+        self._show(self.current)
+
+    def next_image(self):
+        self.current += 1
+        self._show(self.current)
+
+    def _show(self, count: int):
+        count = min(count, self.total)
+        if count > self.shown:
+            self.bar.update(count - self.shown)
+            self.shown = count
 
 
 class _stage:
@@ -651,7 +825,20 @@ def format_summary(summary: dict) -> str:
         lines.append(f"time: {summary['seconds']:.0f} s in all; "
                      + ", ".join(f"{key} {value:.0f} s" for key, value in summary["timings_s"].items()))
     if summary["unregistered"]:
-        lines.append(f"not registered ({len(summary['unregistered'])}): {', '.join(summary['unregistered'])}")
+        why = summary.get("unregistered_why") or {}
+        lines.append(f"not registered ({len(summary['unregistered'])}): "
+                     + ", ".join(f"{name} ({why[name]})" if name in why else name for name in summary["unregistered"]))
+    if summary.get("registered_left_out"):
+        lines.append("the photos the first model left out were tried again (relaxed thresholds, continuing the model)")
+    cameras = summary.get("camera_set")
+    if cameras:
+        where = "the photos' GPS" if cameras["arc_from"] == "gps" else "the registered cameras"
+        lines.append(f"cameras kept for training: {cameras['kept']} of {cameras['photos']} photos, covering "
+                     f"{cameras['arc_kept_deg']:.0f} of the {cameras['arc_flight_deg']:.0f} degrees around the scene "
+                     f"centre that {where} cover"
+                     + (f"; {cameras['verdict']}, written anyway as asked" if cameras.get("verdict") else ""))
+    if summary.get("gps_priors"):
+        lines.append(f"GPS as pose priors in the bundle adjustment: {summary['gps_priors']} photos")
     vet = summary.get("vetting") or {}
     if vet.get("left_out"):
         why = {row["name"]: "; ".join(row["reasons"]) for row in vet.get("photos", [])}
@@ -682,7 +869,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                       single_camera: bool = False, max_side: int | None = None, vocab_tree=None,
                       overlap: int = SEQUENTIAL_OVERLAP,
                       overwrite: bool = False, progress: bool = True, keep_all: bool = False, crs: str | None = None,
-                      gcp=None, scale_bar: str | None = None, ignore_gps: bool = False) -> dict:
+                      gcp=None, scale_bar: str | None = None, ignore_gps: bool = False,
+                      accept_few_cameras: bool = False) -> dict:
     """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
 
     Returns the summary: photos, registered, in_dataset (registered less those left out),
@@ -725,10 +913,13 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         with _stage("photos", False, timings, "photos"):
             photo_dir, names, skipped, working_sizes = prepare_photos(photos, stage_dir / "_work" / "photos",
                                                                       max_side, progress)
-        used, reason = choose_matcher(matcher, names)
         check_one_size({n: working_sizes[n] for n in names}, images_dir, single_camera)
         readable = [images_dir / name for name in names]
         positions = {} if ignore_gps else gps.read_all(readable)
+        used, reason = choose_matcher(matcher, names, with_gps=len(positions))
+        if used == "spatial" and len(positions) < len(names):
+            raise DataError(f"{images_dir}: poses.matcher spatial pairs photos by their GPS, and only "
+                            f"{len(positions)} of {len(names)} photos carry GPS; use exhaustive or sequential")
         sizes = {path.name: gps.upright_size(path) for path in readable}
         ratios = {name: tuple(w1 / w0 for w1, w0 in zip(working_size(*size, max_side), size))
                   for name, size in sizes.items()}
@@ -736,13 +927,19 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
             georef.read_gcp_csv(gcp, sizes)
         if positions:
             georef.precheck_gps(positions, crs, len(names), images_dir)
-        model, relaxed = run_colmap(pycolmap, photo_dir, names, stage_dir / "_work", matcher=used,
-                           camera_model=camera_model, single_camera=single_camera, vocab_tree=vocab_tree,
-                           show=progress, source=images_dir, keep_all=keep_all, overlap=overlap, timings=timings)
+        priors, priors_origin = gps_local_positions(positions, crs)
+        model, relaxed, extended = run_colmap(
+            pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
+            single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir, keep_all=keep_all,
+            overlap=overlap, timings=timings, priors=priors,
+            small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE)
         registered = sorted(model.images[i].name for i in model.reg_image_ids())
         unregistered = sorted(set(names) - set(registered))
+        why_unregistered = unregistered_reasons(pycolmap, stage_dir / "_work" / "database.db", unregistered,
+                                                registered)
         rows = vetting.vet(vetting.records_from_pycolmap(model))
         left_out = [] if keep_all else [row["name"] for row in rows if not row["kept"]]
+        registered_centres = np.stack([c2w[:3, 3] for c2w in model_poses(model).values()])
         leave_out(model, left_out)
         kept = len(registered) - len(left_out)
         if kept < enough_registered(len(names)):
@@ -756,8 +953,21 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
             rot = orient_z_up(pycolmap, model)
             sim, georeference = georef.align_model(model, positions, crs_name=crs, gcp_path=gcp, scale_bar=scale_bar,
                                                    sizes=sizes, ratios=ratios, source=images_dir)
+            registered_centres = registered_centres @ rot.T
             if sim is not None:
                 model.transform(pycolmap.Sim3d(sim[0], pycolmap.Rotation3d(sim[1]), sim[2]))
+                registered_centres = georef.apply_similarity(sim, registered_centres)
+            far = [] if keep_all else gps_outliers(georeference)
+            if far:  # a camera far from its GPS fix was registered in the wrong place: vetted out too
+                leave_out(model, [name for name, _ in far])
+                mark_left_out(rows, far)
+                left_out += [name for name, _ in far]
+                kept -= len(far)
+            cameras = camera_set_of(model, len(names), registered_centres, priors, priors_origin, georeference)
+            verdict = camera_set.camera_set_verdict(cameras)
+            if verdict is not None and not accept_few_cameras:
+                raise DataError(f"{images_dir}: {verdict}; not written (a NeRF trained on them renders the rest as "
+                                f"a ghost); accept_few_cameras=True writes it anyway (docs/POSES.md)")
             summary = {"photos": len(photos), "registered": len(registered), "in_dataset": kept,
                        "unregistered": unregistered,
                        "vetting": {"keep_all": bool(keep_all), "left_out": left_out, "photos": rows},
@@ -767,6 +977,9 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "overlap": overlap if used == "sequential" else None,
                        "camera_model": camera_model, "single_camera": bool(single_camera),
                        "max_side": max_side, "relaxed_mapping": bool(relaxed), "up_rotation": rot.tolist(),
+                       "registered_left_out": bool(extended), "unregistered_why": why_unregistered,
+                       "gps_priors": len(priors) if priors_hold(priors) else 0,
+                       "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
                        "georeference": georeference}
             undistort(pycolmap, model, photo_dir, stage_dir)
@@ -783,6 +996,109 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         raise
     summary["transforms"] = str(out / "transforms.json")
     return summary
+
+
+def gps_local_positions(positions: dict, crs_name: str | None) -> tuple[dict, np.ndarray | None]:
+    """The photos' GPS as positions in local metres of a projected CRS (`crs_name`, else the
+    GPS's UTM zone; heights as `georef.gps_heights` reads them), for the pose priors. Returns
+    ({name: [3]}, the local origin in the CRS [3]); ({}, None) without GPS."""
+    if not positions:
+        return {}, None
+    names = sorted(positions)
+    records = [positions[n] for n in names]
+    lat = np.asarray([r["latitude"] for r in records])
+    lon = np.asarray([r["longitude"] for r in records])
+    heights, _ = georef.gps_heights(records)
+    crs = georef.projected_crs(crs_name, float(np.median(lat)), float(np.median(lon)))
+    xyz = georef.geodetic_to_projected(crs, lat, lon, heights)
+    origin = georef.local_origin(xyz)
+    return {n: (p - origin) for n, p in zip(names, xyz)}, origin
+
+
+def camera_set_of(model, readable: int, registered_centres: np.ndarray, priors: dict, priors_origin,
+                  georeference: dict) -> dict:
+    """`camera_set.camera_set_record` of a z-up model (its registered photos less those left
+    out): the kept cameras' arc about the point they look at, against the flight's: the
+    registered cameras (`registered_centres` [R, 3], in the model's frame, before the vetting)
+    and, when the model is in metres from the GPS and the GPS is close enough to tell the
+    cameras' places apart (`gps_places_cameras`), the GPS positions of the photos that did not
+    register (`priors`, local metres from `priors_origin`)."""
+    poses_now = model_poses(model)
+    c2w = np.stack(list(poses_now.values()))
+    centre = camera_set.look_at_point(c2w)
+    arc_kept = camera_set.arc_covered_deg(camera_set.azimuths_deg(c2w[:, :3, 3], centre))
+    flight, arc_from = registered_centres, "registered"
+    registered = set(poses_now) | {row["name"] for row in (georeference.get("gps") or {}).get("residuals") or []}
+    missing = [name for name in priors if name not in registered]
+    if missing and gps_places_cameras(georeference, c2w[:, :3, 3], centre):
+        shift = np.asarray(priors_origin, np.float64) - np.asarray(georeference["origin"], np.float64)
+        flight = np.concatenate([flight, np.stack([np.asarray(priors[n]) + shift for n in missing])])
+        arc_from = "gps"
+    arc_flight = camera_set.arc_covered_deg(camera_set.azimuths_deg(flight, centre))
+    return camera_set.camera_set_record(readable, len(c2w), arc_kept, arc_flight, arc_from)
+
+
+def gps_places_cameras(georeference: dict, centres: np.ndarray, centre: np.ndarray) -> bool:
+    """Whether the photos' GPS tells where around the scene a camera is: the model is in metres
+    from the GPS and its GPS residual RMS is under a quarter of the cameras' median horizontal
+    distance from the scene centre (a phone's 3-5 m error around a 5 m tree says nothing of
+    the side a photo was taken from). centres: [N, 3] local metres; centre: [3]."""
+    rms_m = (georeference.get("gps") or {}).get("rms_m")
+    if georeference.get("units") != "metres" or rms_m is None:
+        return False
+    radius = float(np.median(np.linalg.norm(np.asarray(centres)[:, :2] - np.asarray(centre)[:2], axis=1)))
+    return rms_m < 0.25 * radius
+
+
+def unregistered_reasons(pycolmap, database, unregistered: list[str], registered: list[str]) -> dict:
+    """Why each unregistered photo stayed out, from the matching database: {name: phrase}
+    naming its verified pairs with registered photos and the most inliers of one (a photo
+    needs LEFT_OUT's inliers at least to register)."""
+    if not unregistered or not Path(database).is_file():
+        return {}
+    db = pycolmap.Database.open(database)
+    try:
+        ids = {im.image_id: im.name for im in db.read_all_images()}
+        pair_ids, geometries = db.read_two_view_geometries()
+        links = {name: [] for name in unregistered}
+        for pair_id, geometry in zip(pair_ids, geometries):
+            a, b = pycolmap.pair_id_to_image_pair(pair_id)
+            names = ids.get(a), ids.get(b)
+            inliers = int(np.asarray(geometry.inlier_matches).shape[0])
+            for one, other in (names, names[::-1]):
+                if one in links and other in registered and inliers > 0:
+                    links[one].append(inliers)
+    finally:
+        db.close()
+    need = LEFT_OUT["abs_pose_min_num_inliers"]
+    out = {}
+    for name, found in links.items():
+        if not found:
+            out[name] = "no verified match with a registered photo"
+        else:
+            out[name] = (f"{len(found)} verified pair(s) with registered photos, at most {max(found)} inliers "
+                         f"(registering needs {need} that fit one pose)")
+    return out
+
+
+def gps_outliers(georeference: dict) -> list[tuple[str, str]]:
+    """The registered photos whose camera lies more than `georef.INLIER_METRES` from its GPS
+    position after the alignment (the GPS residuals' outliers), with the reason in words:
+    [(name, reason)]. A consumer receiver errs by 1-5 m; a camera 9 m or more off was put in
+    the wrong place by the mapping (on a 30-photo orbit one such camera was kept by the
+    vetting 105 degrees off, and tilted the rest by 10 degrees in the alignment)."""
+    rows = (georeference.get("gps") or {}).get("residuals") or []
+    return [(r["name"], f"{r['error']:.1f} m from its GPS position (more than {georef.INLIER_METRES:.0f} m)")
+            for r in rows if not r["inlier"]]
+
+
+def mark_left_out(rows: list[dict], far: list[tuple[str, str]]) -> None:
+    """Marks the vetting rows of `far` ([(name, reason)]) left out, with the reason (in place)."""
+    why = dict(far)
+    for row in rows:
+        if row["name"] in why:
+            row["kept"] = False
+            row["reasons"] = list(row["reasons"]) + [why[row["name"]]]
 
 
 def leave_out(model, names: list[str]) -> None:

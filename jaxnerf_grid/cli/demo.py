@@ -44,6 +44,9 @@ def build_parser() -> argparse.ArgumentParser:
                             "orbit_depth.mp4, 80 px wide, 8 fps; default 32; docs/VIDEOS.md)")
     video.add_argument("--no-video", action="store_true", help="write no fly-around video")
     p.add_argument("--overwrite", action="store_true", help="retrain the run (the data are kept)")
+    p.add_argument("--accept-few-cameras", action="store_true",
+                   help="train on a `poses` dataset even when it kept too few of the photos or too small an arc "
+                        "of the scene (refused by default, docs/POSES.md)")
     p.add_argument("--quiet", action="store_true")
     from jaxnerf_grid.cli.train import add_distributed_flags
 
@@ -82,7 +85,7 @@ def main(argv: list[str] | None = None) -> int:
     try:
         result = demo.run_demo(args.data, args.out, args.steps, args.overwrite, not args.quiet, sets=sets,
                                max_side=args.max_side, masks=args.masks, video_frames=frames,
-                               minutes=args.minutes)
+                               minutes=args.minutes, accept_few_cameras=args.accept_few_cameras)
     except distributed.DistributedError as err:
         exit_on_distributed_error("demo", err)
     if not distributed.is_main():

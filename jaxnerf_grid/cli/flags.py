@@ -24,7 +24,7 @@ FLAGS = {  # subcommand -> {key: flag}
               "poses.max_side": "--max-side",
               "poses.single_camera": "--single-camera",
               "poses.out": "--out", "poses.crs": "--crs", "poses.gcp": "--gcp", "poses.scale_bar": "--scale-bar",
-              "ignore_gps=True": "--ignore-gps", **_SWITCHES},
+              "ignore_gps=True": "--ignore-gps", "accept_few_cameras=True": "--accept-few-cameras", **_SWITCHES},
     "mask": {"mask.data": "--data", "mask.source": "--source", "mask.weights": "--weights",
              "mask.classes": "--classes", "mask.threshold": "--threshold",
              "mask.floor": "--floor", "mask.dilate": "--dilate", "mask.max_side": "--max-side",
@@ -45,7 +45,7 @@ FLAGS = {  # subcommand -> {key: flag}
                **_SWITCHES, **_OTHER_DATA},
     "demo": {"demo.data": "--data", "train.max_side": "--max-side",
              "demo.out": "--out", "demo.steps": "--steps", "demo.masks": "--masks", "demo.minutes": "--minutes",
-             "demo.video_frames": "--video-frames",
+             "demo.video_frames": "--video-frames", "accept_few_cameras=True": "--accept-few-cameras",
              **_SWITCHES, **_DISTRIBUTED},
 }
 

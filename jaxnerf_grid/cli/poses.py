@@ -3,9 +3,10 @@ Python bindings, pycolmap), written as a dataset that `mask`, `train` and `demo 
 
 The work is `data.poses.poses_from_images`; this module parses the arguments.
 
-    jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher auto|exhaustive|sequential|vocab]
+    jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher auto|exhaustive|spatial|sequential|vocab]
                        [--overlap K]
                        [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--keep-all] [--overwrite]
+                       [--accept-few-cameras]
                        [--crs EPSG:XXXX] [--gcp FILE] [--scale-bar SPEC] [--ignore-gps]
 
 DATA_DIR gets images/ (the undistorted photos, same names), transforms.json (docs/DATASET.md,
@@ -22,7 +23,14 @@ from __future__ import annotations
 
 import argparse
 
-from jaxnerf_grid.capture.poses import AUTO_EXHAUSTIVE_MAX, CAMERA_MODELS, MATCHERS, SEQUENTIAL_OVERLAP
+from jaxnerf_grid.capture.camera_set import MIN_ARC_SHARE, MIN_KEPT_SHARE
+from jaxnerf_grid.capture.poses import (
+    CAMERA_MODELS,
+    EXHAUSTIVE_MAX_PAIRS,
+    MATCHERS,
+    SEQUENTIAL_OVERLAP,
+    SPATIAL_NEIGHBOURS,
+)
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -31,10 +39,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--images", required=True, help="folder of photos (PNG / JPEG; subfolders are ignored)")
     p.add_argument("--out", required=True, help="dataset folder to write (DATA_DIR)")
     p.add_argument("--matcher", default="auto", metavar="{" + ",".join(MATCHERS) + "}",
-                   help=f"exhaustive: every pair (up to a few hundred photos); sequential: each photo with its "
-                        f"next --overlap in name order (a flight's sequence; no loop detection); vocab: a "
-                        f"vocabulary tree (needs --vocab-tree); auto (default): exhaustive up to "
-                        f"{AUTO_EXHAUSTIVE_MAX} photos, sequential above when the names are numbered in sequence")
+                   help=f"exhaustive: every pair (up to a few hundred photos); spatial: each photo with its "
+                        f"{SPATIAL_NEIGHBOURS} nearest by GPS; sequential: each photo with its next --overlap in "
+                        f"name order (a flight's sequence), the pairs across the end that close an orbit and "
+                        f"COLMAP's quadratic overlap; vocab: a vocabulary tree (needs --vocab-tree); auto "
+                        f"(default): exhaustive up to {EXHAUSTIVE_MAX_PAIRS} pairs, above it spatial when every "
+                        f"photo has GPS, else sequential when the names are numbered in sequence, else exhaustive")
     p.add_argument("--overlap", type=int, default=SEQUENTIAL_OVERLAP,
                    help="sequential matching: the next photos (in name order) each photo is matched with")
     p.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file for --matcher vocab")
@@ -48,6 +58,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="replace a DATA_DIR written by poses (its outputs only; other folders are refused)")
     p.add_argument("--keep-all", action="store_true",
                    help="keep every registered photo, also those the vetting would leave out (docs/POSES.md)")
+    p.add_argument("--accept-few-cameras", action="store_true",
+                   help=f"write the dataset even when fewer than {MIN_KEPT_SHARE:.0%} of the photos are kept or the "
+                        f"kept cameras cover less than {MIN_ARC_SHARE:.0%} of the flight's arc around the scene "
+                        "(a NeRF trained on them renders the rest poorly; docs/POSES.md)")
     p.add_argument("--crs", default=None,
                    help="projected CRS for the GPS alignment, e.g. EPSG:32633 (default: the GPS's UTM zone)")
     p.add_argument("--gcp", default=None,
@@ -70,7 +84,7 @@ def main(argv: list[str] | None = None) -> int:
                                 single_camera=args.single_camera, max_side=args.max_side,
                                 vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet,
                                 keep_all=args.keep_all, crs=args.crs, gcp=args.gcp, scale_bar=args.scale_bar,
-                                ignore_gps=args.ignore_gps)
+                                ignore_gps=args.ignore_gps, accept_few_cameras=args.accept_few_cameras)
     print(format_summary(summary))
     print(f"wrote {summary['transforms']}")
     return 0

@@ -238,26 +238,79 @@ def test_poses_sequential_matcher_recovers_the_orbit_as_exhaustive(sequential_ru
     assert "matcher: sequential (asked for, each photo with its next 3)" in (sequential_run["out"] / REPORT).read_text()
 
 
-def test_poses_sequential_matches_only_the_next_photos(orbit_run, tmp_path, monkeypatch):
-    """The pairs COLMAP's sequential matcher is given: each photo with its next `overlap` in name
-    order and no others (no quadratic overlap, no loop detection): read back from its options."""
+def test_poses_sequential_matches_the_next_photos_and_closes_the_orbit(orbit_run, tmp_path, monkeypatch):
+    """The pairs COLMAP is handed for sequential matching (read back from the pair list given to
+    `match_image_pairs`): 8 photos in name order, each with the next 2, the same across the end
+    of the sequence (the last photos with the first: an orbit closes) and the quadratic
+    overlap's step 4: every pair but those 3 apart either way round the ring of 8 (3 or 5 apart
+    in name order)."""
     pycolmap = pytest.importorskip("pycolmap")
     seen = {}
-    real = pycolmap.match_sequential
+    real = pycolmap.match_image_pairs
 
     def spy(database, matching_options=None, pairing_options=None, **kw):
-        seen["options"] = pairing_options
+        seen["pairs"] = Path(pairing_options.match_list_path).read_text().split("\n")
         return real(database, matching_options=matching_options, pairing_options=pairing_options, **kw)
 
-    monkeypatch.setattr(pycolmap, "match_sequential", spy)
+    monkeypatch.setattr(pycolmap, "match_image_pairs", spy)
     photos = tmp_path / "p"
     photos.mkdir()
-    for name in orbit_run["names"][:6]:
+    names = sorted(orbit_run["names"][:8])
+    for name in names:
         shutil.copyfile(orbit_run["photos"] / name, photos / name)
     cli.main(["poses", "--images", str(photos), "--out", str(tmp_path / "d"), "--single-camera",
               "--matcher", "sequential", "--overlap", "2", "--quiet"])
-    options = seen["options"]
-    assert (options.overlap, options.quadratic_overlap, options.loop_detection) == (2, False, False)
+    got = {tuple(line.split()) for line in seen["pairs"] if line}
+    expected = {(names[i], names[j]) for i in range(8) for j in range(i + 1, 8) if j - i not in (3, 5)}
+    assert got == expected
+    assert (names[0], names[7]) in got and (names[0], names[6]) in got   # across the end: the orbit closes
+
+
+def _broken_orbit() -> np.ndarray:
+    """16 views named in flight order round the test scene, in two legs of 8 at 22.5 degrees
+    apart: the first from 0 to 157.5 degrees, then a jump of 120 degrees (nothing in common
+    across it), the second from 277.5 round to 435 = 75 degrees, so the flight ends over the
+    ground it began on: only pairs across the end of the sequence join the two legs."""
+    angles = np.radians(np.concatenate([np.arange(8) * 22.5, 277.5 + np.arange(8) * 22.5]))
+    return np.stack([_look_at(np.array([RADIUS * np.cos(a), RADIUS * np.sin(a), HEIGHT + 0.3 * np.sin(3 * a)]),
+                              TARGET) for a in angles])
+
+
+def test_auto_sequential_matching_closes_an_orbit_and_registers_its_ends(tmp_path, monkeypatch):
+    """auto on a set above the exhaustive limit (lowered to 50 pairs here: 19 photos are 171),
+    named in sequence: sequential matching with loop closure (next 3). The flight is
+    `_broken_orbit` with 3 blank photos (the camera turned to the sky) flown between its legs,
+    so the next 3 of the first leg's last photo see nothing: only pairs across the end of the
+    sequence (or the quadratic overlap's longer steps) join the legs. Every view registers,
+    the ends included, within 2 degrees of the truth; plain sequential matching (next 3 only)
+    leaves a leg out."""
+    pytest.importorskip("pycolmap")
+    from jaxnerf_grid.capture import poses as poses_module
+
+    monkeypatch.setattr(poses_module, "EXHAUSTIVE_MAX_PAIRS", 50)
+    photos = tmp_path / "photos"
+    photos.mkdir()
+    views = _broken_orbit()
+    cv2, scene = io.opencv(), _scene()
+    names, k = [], 0
+    for i, c2w in enumerate(views):
+        if i == 8:                                   # the transit: three blank photos
+            for _ in range(3):
+                cv2.imwrite(str(photos / f"view_{k:02d}.png"), np.full((H, W, 3), 128, np.uint8))
+                k += 1
+        names.append(f"view_{k:02d}.png")
+        cv2.imwrite(str(photos / names[-1]), np.round(_render(scene, c2w)[..., ::-1] * 255).astype(np.uint8))
+        k += 1
+    out = tmp_path / "data"
+    code = cli.main(["poses", "--images", str(photos), "--out", str(out), "--single-camera", "--overlap", "3",
+                     "--quiet"])
+    assert code == 0
+    summary = io.read_json(out / "transforms.json")["poses"]
+    assert (summary["matcher"], summary["matcher_asked"]) == ("sequential", "auto")
+    assert summary["unregistered"] == ["view_08.png", "view_09.png", "view_10.png"]   # the blank ones
+    assert summary["registered"] == summary["in_dataset"] == 16
+    _, _, rot_err, _ = _orbit_errors(dict(out=out, names=names, views=views))
+    assert rot_err.max() < 2.0, rot_err
 
 
 def test_names_look_ordered():
@@ -271,14 +324,39 @@ def test_names_look_ordered():
 
 
 def test_choose_matcher_auto_rule():
-    ordered = [f"DJI_{i:04d}.JPG" for i in range(1, 22)]      # 21 photos
-    shuffled = [f"p{i}.jpg" for i in range(1, 22)]             # p1, p10, p11, ... in name order
-    assert choose_matcher("auto", ordered[:20])[0] == "exhaustive"     # 20: at most AUTO_EXHAUSTIVE_MAX
+    """auto: every pair up to 1225 pairs (50 photos); above, spatial when every photo has GPS,
+    sequential (with loop closure) when the names are numbered in sequence, else every pair."""
+    ordered = [f"DJI_{i:04d}.JPG" for i in range(1, 52)]      # 51 photos: 1275 pairs
+    shuffled = [f"p{i}.jpg" for i in range(1, 52)]             # p1, p10, p11, ... in name order
+    assert choose_matcher("auto", ordered[:50])[0] == "exhaustive"     # 50 * 49 / 2 = 1225 pairs: small
+    assert choose_matcher("auto", ordered[:50], with_gps=50)[0] == "exhaustive"   # small: GPS changes nothing
     assert choose_matcher("auto", ordered)[0] == "sequential"
-    assert choose_matcher("auto", shuffled)[0] == "exhaustive"
-    assert choose_matcher("auto", ordered[:5], exhaustive_max=4)[0] == "sequential"
-    for matcher in ("exhaustive", "sequential", "vocab"):        # an explicit choice is kept
+    assert choose_matcher("auto", ordered, with_gps=51)[0] == "spatial"
+    assert choose_matcher("auto", shuffled, with_gps=51)[0] == "spatial"          # unnamed, GPS everywhere
+    assert choose_matcher("auto", ordered, with_gps=50)[0] == "sequential"        # one photo without GPS
+    assert choose_matcher("auto", shuffled)[0] == "exhaustive"                    # unnamed, no GPS: every pair
+    assert choose_matcher("auto", ordered[:5], max_pairs=9)[0] == "sequential"    # 10 pairs > 9
+    assert choose_matcher("auto", ordered[:5], max_pairs=10)[0] == "exhaustive"
+    assert "1275 pairs" in choose_matcher("auto", ordered)[1]
+    for matcher in ("exhaustive", "spatial", "sequential", "vocab"):   # an explicit choice is kept
         assert choose_matcher(matcher, ordered) == (matcher, "asked for")
+
+
+def test_sequential_pairs_listed_by_hand():
+    """`pairing.sequential_pairs` on 6 photos against pairs written out: next 1 only (no wrap, no
+    quadratic: a line); with the wrap (5-0 too: a ring); with the quadratic overlap's steps
+    2 and 4 as well (every pair but the 3 opposite ones)."""
+    from jaxnerf_grid.capture.pairing import pair_count, sequential_pairs
+
+    names = list("abcdef")
+    line = [("a", "b"), ("b", "c"), ("c", "d"), ("d", "e"), ("e", "f")]
+    assert sequential_pairs(names, 1, wrap=False, quadratic=False) == line
+    assert sequential_pairs(names, 1, wrap=True, quadratic=False) == sorted(line + [("a", "f")])
+    opposite = {("a", "d"), ("b", "e"), ("c", "f")}
+    every = {(x, y) for i, x in enumerate(names) for y in names[i + 1:]}
+    assert set(sequential_pairs(names, 1)) == every - opposite
+    assert len(sequential_pairs(names, 1)) == 12
+    assert set(sequential_pairs(names, 10)) == every and pair_count(6) == 15
 
 
 def test_pair_count_against_enumerated_pairs():
@@ -306,7 +384,12 @@ def test_poses_summary_names_skipped_and_unregistered(orbit_run, capsys):
     assert list(timings) == ["photos", "features", "matching", "mapping", "writing"]
     assert all(v >= 0 for v in timings.values()) and sum(timings.values()) <= summary["seconds"] + 0.5
     report = (orbit_run["out"] / REPORT).read_text()
-    assert "matcher: exhaustive (auto: 17 photos, at most 20)" in report and "matching " in report
+    assert "matcher: exhaustive (auto: 17 photos, 136 pairs, at most 1225)" in report and "matching " in report
+    # the blank photo stayed out, and why; the camera set: all 16 views kept, the whole orbit
+    assert "not registered (1): zz_blank.png (no verified match with a registered photo)" in report
+    cameras = summary["camera_set"]
+    assert (cameras["photos"], cameras["kept"], cameras["verdict"]) == (17, 16, None)
+    assert cameras["arc_kept_deg"] == cameras["arc_flight_deg"] == pytest.approx(360 - 360 / 16, abs=2)
     assert (orbit_run["out"] / "poses_topview.png").is_file()
     # nothing of the input was touched
     assert {p.name: p.read_bytes() for p in orbit_run["photos"].iterdir()} == orbit_run["before"]

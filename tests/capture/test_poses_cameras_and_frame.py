@@ -595,7 +595,8 @@ def test_check_options_refuses_each_bad_option_and_names_the_choices(tmp_path):
     poses.check_options("vocab", "SIMPLE_PINHOLE", tree, 1)
     with pytest.raises(DataError) as err:
         poses.check_options("nearest", "OPENCV", None)
-    assert str(err.value) == "unknown poses.matcher 'nearest'; choose one of auto, exhaustive, sequential, vocab"
+    assert str(err.value) == ("unknown poses.matcher 'nearest'; choose one of auto, exhaustive, spatial, sequential, "
+                              "vocab")
     for overlap in (0, -3, True, 2.0, "5"):
         with pytest.raises(DataError, match=r"^poses\.overlap must be a whole number of photos, at least 1, got "):
             poses.check_options("sequential", "OPENCV", None, overlap)

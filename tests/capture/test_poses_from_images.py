@@ -59,7 +59,7 @@ def _write_photos(folder, names, size=(80, 60)):
 
 class _Colmap:
     """Stand-in for `poses.run_colmap`: records its arguments and what the staging folder holds
-    when it is called, adds known seconds to `timings`, and returns (the model, relaxed)."""
+    when it is called, adds known seconds to `timings`, and returns (the model, relaxed, extended)."""
 
     def __init__(self, model_dir, relaxed=False, fail=None):
         self.model_dir, self.relaxed, self.fail, self.calls = model_dir, relaxed, fail, []
@@ -73,7 +73,7 @@ class _Colmap:
         if self.fail is not None:
             raise self.fail
         kwargs["timings"].update(TIMES)
-        return pycolmap.Reconstruction(self.model_dir), self.relaxed
+        return pycolmap.Reconstruction(self.model_dir), self.relaxed, False
 
 
 def _scene(tmp_path, registered=12, photos=13, turned=(5,), tilt=None, camera=(80, 60, FOCAL, FOCAL, 40, 30),
@@ -155,10 +155,16 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
     assert [(r["name"], r["kept"]) for r in rows["photos"]] == [(n, n != "v05.png") for n in names[:12]]
     np.testing.assert_allclose(summary.pop("up_rotation"), up_rotation, atol=1e-9)
     assert summary.pop("mean_reprojection_error") == pytest.approx(0.1)  # each point's error as written
+    cameras = summary.pop("camera_set")   # 11 of the 13 readable kept: 85 %, at least 75 %
+    assert {k: cameras[k] for k in ("photos", "kept", "arc_from", "verdict", "accepted")} == {
+        "photos": 13, "kept": 11, "arc_from": "registered", "verdict": None, "accepted": False}
+    assert (summary.pop("registered_left_out"), summary.pop("gps_priors")) == (False, 0)
+    assert summary.pop("unregistered_why") == {}   # no matching database from the stand-in
     assert summary == {
         "photos": 14, "registered": 12, "in_dataset": 11, "unregistered": ["v12.png"], "skipped": ["broken.png"],
         "points3d": 40, "matcher": "exhaustive", "matcher_asked": "auto",
-        "matcher_reason": "auto: 13 photos, at most 20", "overlap": None, "camera_model": "SIMPLE_RADIAL",
+        "matcher_reason": "auto: 13 photos, 78 pairs, at most 1225", "overlap": None,
+        "camera_model": "SIMPLE_RADIAL",
         "single_camera": False, "max_side": None, "relaxed_mapping": False,
         "pycolmap": pycolmap.__version__, "georeference": {"units": "unknown", "source": None},
         "seconds": 12.3, "timings_s": {"photos": 0.5, **TIMES, "writing": 9.4},
@@ -431,12 +437,18 @@ def test_poses_from_images_refuses_too_few_registered_and_keeps_the_old_dataset(
 
 
 def test_poses_from_images_writes_a_dataset_at_exactly_enough_registered(tmp_path, monkeypatch):
-    """4 of 13 registered and vetted: a quarter of 13 rounded up, enough."""
+    """4 of 13 registered and vetted: a quarter of 13 rounded up, enough for a model; too few to
+    train on (under 75 %): refused in one line naming the count, written with
+    accept_few_cameras, and the record says so."""
     folder, model_dir, _ = _scene(tmp_path, registered=5, photos=13, turned=(1,))
     monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
-    summary = poses.poses_from_images(folder, tmp_path / "data", progress=False)
+    with pytest.raises(DataError, match=r": only 4 of 13 photos kept \(31 %; training needs 10, 75%\); not written"):
+        poses.poses_from_images(folder, tmp_path / "data", progress=False)
+    assert not (tmp_path / "data").exists()
+    summary = poses.poses_from_images(folder, tmp_path / "data", progress=False, accept_few_cameras=True)
     assert (summary["registered"], summary["in_dataset"]) == (5, 4)
     assert len(io.read_json(tmp_path / "data" / "transforms.json")["frames"]) == 4
+    assert summary["camera_set"]["accepted"] is True and summary["camera_set"]["verdict"].startswith("only 4 of 13")
 
 
 class Killed(BaseException):

@@ -14,6 +14,7 @@ points, the seconds of each stage from a clock that gives known times.
 from __future__ import annotations
 
 import re
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -35,7 +36,7 @@ class _StandIn:
         self.maps, self.calls = list(maps), []
         for name in ("ImageReaderOptions", "CameraMode", "FeatureExtractionOptions", "FeatureMatchingOptions",
                      "SequentialPairingOptions", "VocabTreePairingOptions", "IncrementalPipelineOptions",
-                     "Reconstruction"):
+                     "Reconstruction", "ImportedPairingOptions"):
             setattr(self, name, getattr(pycolmap, name))
 
     def set_random_seed(self, seed):
@@ -61,19 +62,23 @@ class _StandIn:
         self._matching("sequential", database_path, matching_options,
                        (pairing.overlap, pairing.quadratic_overlap, pairing.loop_detection))
 
+    def match_image_pairs(self, database_path, matching_options=None, pairing_options=None):
+        pairing = pairing_options or pycolmap.ImportedPairingOptions()
+        self._matching("pairs", database_path, matching_options, Path(pairing.match_list_path).read_text())
+
     def match_vocabtree(self, database_path, matching_options=None, pairing_options=None):
         pairing = pairing_options or pycolmap.VocabTreePairingOptions()
         self._matching("vocab", database_path, matching_options, str(pairing.vocab_tree_path))
 
-    def incremental_mapping(self, database_path, image_path, output_path, options=None, next_image_callback=None):
+    def incremental_mapping(self, database_path, image_path, output_path, options=None, input_path="",
+                            initial_image_pair_callback=None, next_image_callback=None):
         options = options or pycolmap.IncrementalPipelineOptions()
         self.calls.append(("mapping", database_path, image_path, output_path, options.random_seed,
                            options.mapper.filter_max_reproj_error, options.mapper.abs_pose_min_num_inliers,
                            options.mapper.init_min_num_inliers, options.mapper.init_min_tri_angle))
-        for _ in range(2):
-            if next_image_callback is not None:
-                next_image_callback()
-        return self.maps.pop(0)
+        if initial_image_pair_callback is not None:  # a first model of 2 photos
+            initial_image_pair_callback()
+        return self.maps.pop(0) if self.maps else {}
 
 
 class _Undistorting(_StandIn):
@@ -118,6 +123,10 @@ def _model(folder, count, num_points=30, turned=()):
 
 
 NAMES = [f"v{k:02d}.png" for k in range(18)]
+# 12 photos, each with its next 4, across the end too, and the quadratic overlap's step 8: every
+# pair whose distance round the ring of 12 is 1-4 (8 apart is 4 the other way round)
+RING_12_NEXT_4 = "".join(f"{NAMES[i]} {NAMES[j]}\n" for i in range(12) for j in range(i + 1, 12)
+                         if min(j - i, 12 - (j - i)) <= 4)
 DEFAULT_MAPPER = (0, 2.0, 30, 100, 16.0)                   # seed, filter px, then COLMAP's defaults
 RELAXED_MAPPER = (0, 2.0, 15, 50, 8.0)
 
@@ -135,10 +144,10 @@ def test_run_colmap_exhaustive_single_camera_sets_its_options_and_keeps_the_larg
     monkeypatch.setattr(poses, "time", _Clock([100.0, 101.26, 101.3, 101.8, 102.0, 109.34]))
     monkeypatch.setattr(poses, "MATCHING", {"guided_matching": True})
     timings = {"photos": 0.4}
-    model, relaxed = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+    model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                       matcher="exhaustive", camera_model="OPENCV", single_camera=True, show=False,
                                       timings=timings)
-    assert model is largest and relaxed is False
+    assert model is largest and relaxed is False and extended is False
     db = tmp_path / "work" / "database.db"
     assert stand_in.calls == [
         ("seed", 0),
@@ -160,15 +169,15 @@ def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_
     first, second = _model(tmp_path / "first", 9), _model(tmp_path / "second", 12)
     stand_in = _StandIn([{0: first}, {0: second}])
     monkeypatch.setattr(poses, "time", _Clock([0.0, 1.0, 2.0, 3.0, 4.0, 5.0]))
-    model, relaxed = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+    model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                       matcher="sequential", camera_model="PINHOLE", single_camera=False, overlap=4,
                                       keep_all=True)
-    assert model is second and relaxed is True
+    assert model is second and relaxed is True and extended is False
     db, photos = tmp_path / "work" / "database.db", tmp_path / "photos"
     assert stand_in.calls == [
         ("seed", 0),
         ("features", db, photos, NAMES[:12], pycolmap.CameraMode.AUTO, "PINHOLE", True),
-        ("sequential", db, 0.9, (4, False, False)),
+        ("pairs", db, 0.9, RING_12_NEXT_4),
         ("mapping", db, photos, tmp_path / "work" / "sparse0", *DEFAULT_MAPPER),
         ("mapping", db, photos, tmp_path / "work" / "sparse1", *RELAXED_MAPPER)]
     err = capsys.readouterr().err
@@ -191,18 +200,19 @@ def test_run_colmap_counts_the_relaxed_model_by_the_vetting_unless_keep_all(tmp_
     second = _model(tmp_path / "second", 12, turned=(9, 10, 11))
     for keep_all, expected in ((False, first), (True, second)):
         stand_in = _StandIn([{0: first}, {0: second}])
-        model, relaxed = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+        model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                           matcher="exhaustive", camera_model="OPENCV", single_camera=True,
                                           show=False, keep_all=keep_all)
-        assert model is expected and relaxed is (expected is second), keep_all
-        assert [c[3].name for c in stand_in.calls if c[0] == "mapping"] == ["sparse0", "sparse1"]
+        assert model is expected and relaxed is (expected is second) and extended is False, keep_all
+        assert [c[3].name for c in stand_in.calls if c[0] == "mapping"][:2] == ["sparse0", "sparse1"]
     stand_in = _StandIn([{0: first}, {0: second}])                    # keep_all left out: the vetted count
     assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
-                            camera_model="OPENCV", single_camera=True, show=False) == (first, False)
+                            camera_model="OPENCV", single_camera=True, show=False) == (first, False, False)
     stand_in = _StandIn([{0: first}])
     assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:10], tmp_path / "work", matcher="exhaustive",
-                            camera_model="OPENCV", single_camera=True, show=False) == (first, False)
-    assert len([c for c in stand_in.calls if c[0] == "mapping"]) == 1
+                            camera_model="OPENCV", single_camera=True, show=False) == (first, False, False)
+    # one mapping, then the one photo it left out tried again continuing its model (no model back here)
+    assert [c[3].name for c in stand_in.calls if c[0] == "mapping"] == ["sparse0", "sparse"]
 
 
 def test_run_colmap_vocab_hands_on_the_tree_and_names_the_folder_when_no_model_is_built(tmp_path):
@@ -278,3 +288,28 @@ def test_undistort_into_a_stage_already_holding_a_work_model_writes_over_it(tmp_
                                tmp_path / "photos", "COLMAP", 95, ["a.png", "b.png"])]
     assert sorted(p.name for p in (stage / "images").iterdir()) == ["a.png", "b.png"]
     assert {(c.width, c.height) for c in pycolmap.Reconstruction(stage / "sparse" / "0").cameras.values()} == {(64, 48)}
+
+
+def test_mapping_progress_counts_registered_photos_never_more_than_the_photos(tmp_path, monkeypatch, capsys):
+    """A stand-in mapper that registers each of the 12 photos twice (a first model of all 12, then
+    a second one of all 12 again: 24 registrations, as COLMAP reports each model it tries): the
+    progress line counts 12/12 at most, and says 12/12 at the end."""
+    class _Twice(_StandIn):
+        def incremental_mapping(self, database_path, image_path, output_path, options=None, input_path="",
+                                initial_image_pair_callback=None, next_image_callback=None):
+            for _ in range(2):                      # two models, each registering every photo
+                initial_image_pair_callback()       # its first two photos
+                for _ in range(10):
+                    next_image_callback()           # the other ten, one by one
+            return self.maps.pop(0)
+
+    real_bar = poses.progress.bar
+    monkeypatch.setattr(poses.progress, "_is_tty", lambda stream: False)   # plain lines, every update written
+    monkeypatch.setattr(poses.progress, "bar", lambda *a, **k: real_bar(*a, **k, interval=0.0))
+    stand_in = _Twice([{0: _model(tmp_path / "all", 12)}])
+    poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
+                     camera_model="OPENCV", single_camera=True)
+    counts = [tuple(map(int, m.groups())) for m in
+              re.finditer(r"poses: mapping: (\d+)/(\d+) photos", capsys.readouterr().err)]
+    assert len(counts) > 10 and all(total == 12 and done <= 12 for done, total in counts), counts
+    assert counts[-1] == (12, 12)

@@ -1,0 +1,143 @@
+"""The too-few-cameras rule (`capture.camera_set`): arcs against closed forms, the rule at its
+thresholds, and `poses` / `demo --data` refusing a thin camera set in one line."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxnerf_grid import cli
+from jaxnerf_grid.capture.camera_set import (
+    MIN_ARC_SHARE,
+    MIN_KEPT_SHARE,
+    arc_covered_deg,
+    azimuths_deg,
+    camera_set_record,
+    camera_set_verdict,
+    look_at_point,
+)
+
+
+def _look_at(eye, target):
+    """OpenGL camera-to-world [4, 4] looking from `eye` at `target`, z up."""
+    f = np.asarray(target, float) - eye
+    f /= np.linalg.norm(f)
+    r = np.cross(f, [0.0, 0.0, 1.0])
+    r /= np.linalg.norm(r)
+    m = np.eye(4)
+    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, np.cross(r, f), -f, eye
+    return m
+
+
+def test_arc_covered_is_360_less_the_largest_gap():
+    assert arc_covered_deg([0.0, 90.0, 180.0]) == pytest.approx(180.0)          # gap 180 from 180 round to 360
+    assert arc_covered_deg([350.0, 10.0, 30.0]) == pytest.approx(40.0)          # across 0
+    assert arc_covered_deg(np.arange(0.0, 360.0, 10.0)) == pytest.approx(350.0)
+    assert arc_covered_deg([42.0]) == 0.0 and arc_covered_deg([]) == 0.0
+
+
+def test_azimuths_and_the_looked_at_point_of_a_ring():
+    """Cameras on a ring of radius 5 about (1, 2, 3), at 0, 90 and 225 degrees, 2 m above it, all
+    looking at it: the point nearest their axes is (1, 2, 3), their azimuths the ring's."""
+    target = np.array([1.0, 2.0, 3.0])
+    angles = np.radians([0.0, 90.0, 225.0])
+    eyes = target + np.stack([5 * np.cos(angles), 5 * np.sin(angles), np.full(3, 2.0)], -1)
+    c2w = np.stack([_look_at(e, target) for e in eyes])
+    assert np.allclose(look_at_point(c2w), target, atol=1e-9)
+    assert np.allclose(azimuths_deg(eyes, target), [0.0, 90.0, 225.0])
+
+
+@pytest.mark.parametrize("kept, ok", [(27, True), (26, False)])
+def test_kept_share_at_its_threshold(kept, ok):
+    """36 photos: 27 kept is 75 % (enough), 26 is not; the reason names the counts."""
+    assert MIN_KEPT_SHARE == 0.75
+    verdict = camera_set_verdict(camera_set_record(36, kept, 300.0, 300.0, "gps"))
+    assert (verdict is None) is ok
+    if not ok:
+        assert verdict.startswith("only 26 of 36 photos kept (72 %; training needs 27, 75%)")
+
+
+@pytest.mark.parametrize("arc, ok", [(225.0, True), (224.9, False)])
+def test_arc_share_at_its_threshold(arc, ok):
+    """The flight covers 300 degrees: kept cameras over 225 (75 %) are enough, 224.9 are not."""
+    assert MIN_ARC_SHARE == 0.75
+    verdict = camera_set_verdict(camera_set_record(36, 36, arc, 300.0, "gps"))
+    assert (verdict is None) is ok
+    if not ok:
+        assert "the 36 kept cameras cover 225 of the 300 degrees" in verdict and "GPS" in verdict
+
+
+def _thin_dataset(folder, kept=16, photos=36, arc=160.0):
+    """A transforms.json as `poses` writes it, its camera set thin (16 of 36 kept, 160 of 300
+    degrees)."""
+    folder.mkdir()
+    record = dict(camera_set_record(photos, kept, arc, 300.0, "gps"), verdict="x", accepted=False)
+    (folder / "transforms.json").write_text(json.dumps({"frames": [{"file_path": f"images/{k}.png"}
+                                                                   for k in range(kept)],
+                                                        "poses": {"camera_set": record}}))
+    return folder
+
+
+def test_demo_refuses_a_thin_poses_dataset_in_one_line(tmp_path, capsys):
+    data = _thin_dataset(tmp_path / "data")
+    code = cli.main(["demo", "--data", str(data), "--out", str(tmp_path / "run"), "--quiet"])
+    err = capsys.readouterr().err.strip()
+    assert code != 0 and len(err.splitlines()) == 1, err
+    assert "only 16 of 36 photos kept" in err and "--accept-few-cameras" in err
+    assert not (tmp_path / "run" / "run").exists()
+
+
+def test_demo_camera_line_says_how_many_photos_trained(tmp_path):
+    from jaxnerf_grid.demo import check_camera_set
+
+    data = _thin_dataset(tmp_path / "data")
+    line = check_camera_set(data, accept_few_cameras=True)
+    # 16 frames: every 8th (0, 8) tests, 14 train
+    assert line.startswith("Cameras: 14 photos trained (2 held out for testing) of the 36 photos given to `poses` "
+                           "(16 kept")
+    assert "trained anyway" in line
+    ok = _thin_dataset(tmp_path / "ok", kept=36, arc=290.0)
+    assert "trained anyway" not in check_camera_set(ok)
+    assert check_camera_set(tmp_path) is None                     # not a poses dataset: no rule
+
+
+
+def test_a_camera_far_from_its_gps_fix_is_left_out():
+    """The GPS residuals' outliers (more than 9 m after the alignment, `georef.INLIER_METRES`)
+    are left out with the distance as the reason; inliers stay; no GPS, nothing."""
+    from jaxnerf_grid.capture.poses import gps_outliers, mark_left_out
+
+    geo = {"gps": {"residuals": [{"name": "a.jpg", "error": 2.5, "inlier": True},
+                                 {"name": "b.jpg", "error": 31.04, "inlier": False}]}}
+    far = gps_outliers(geo)
+    assert far == [("b.jpg", "31.0 m from its GPS position (more than 9 m)")]
+    rows = [{"name": "a.jpg", "kept": True, "reasons": []}, {"name": "b.jpg", "kept": True, "reasons": []}]
+    mark_left_out(rows, far)
+    assert rows == [{"name": "a.jpg", "kept": True, "reasons": []},
+                    {"name": "b.jpg", "kept": False, "reasons": ["31.0 m from its GPS position (more than 9 m)"]}]
+    assert gps_outliers({"units": "unknown"}) == []
+
+
+def test_gps_places_cameras_only_when_its_error_is_small_against_the_capture():
+    """A 4 m GPS RMS places cameras 60 m from the scene (4 < 60 / 4), not cameras 5 m from a tree
+    (4 > 5 / 4); no GPS alignment, no placing."""
+    from jaxnerf_grid.capture.poses import gps_places_cameras
+
+    ring = np.stack([np.cos(np.linspace(0, 6, 8)), np.sin(np.linspace(0, 6, 8)), np.zeros(8)], -1)
+    geo = {"units": "metres", "gps": {"rms_m": 4.0}}
+    assert gps_places_cameras(geo, 60.0 * ring, np.zeros(3))
+    assert not gps_places_cameras(geo, 5.0 * ring, np.zeros(3))
+    assert not gps_places_cameras({"units": "unknown"}, 60.0 * ring, np.zeros(3))
+
+
+def test_gps_priors_hold_only_over_a_wide_capture():
+    """GPS enters the mapping only when the positions spread over 30 m (their median distance
+    from their mean): a 60 m orbit yes, a 5 m walk round a tree no, none no."""
+    from jaxnerf_grid.capture.poses import priors_hold
+
+    ring = {f"p{k}": np.array([np.cos(a), np.sin(a), 0.0]) for k, a in enumerate(np.linspace(0, 6, 12))}
+    assert priors_hold({k: 60.0 * v for k, v in ring.items()})
+    assert not priors_hold({k: 5.0 * v for k, v in ring.items()})
+    assert not priors_hold({})
