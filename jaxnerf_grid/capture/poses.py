@@ -1060,7 +1060,7 @@ def unregistered_reasons(pycolmap, database, unregistered: list[str], registered
     try:
         ids = {im.image_id: im.name for im in db.read_all_images()}
         pair_ids, geometries = db.read_two_view_geometries()
-        links = {name: [] for name in unregistered}
+        links: dict[str, list] = {name: [] for name in unregistered}
         for pair_id, geometry in zip(pair_ids, geometries):
             a, b = pycolmap.pair_id_to_image_pair(pair_id)
             names = ids.get(a), ids.get(b)

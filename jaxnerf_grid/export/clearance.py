@@ -22,6 +22,8 @@ n . x + d the height above it), the span a dense polyline of points along it
 
 from __future__ import annotations
 
+from typing import Any
+
 import numpy as np
 
 
@@ -60,7 +62,7 @@ def objects_beneath(curve: np.ndarray, points: np.ndarray, normal, d: float, gro
     wire_offset = float(np.median((curve - start) @ across))
     in_corridor = (np.abs(offset - wire_offset) <= corridor) & (station >= station_curve.min()) & \
         (station <= station_curve.max())
-    out = {"count": 0, "covered": None, "clearance": None, "point": None, "horizontal_distance": None,
+    out: dict[str, Any] = {"count": 0, "covered": None, "clearance": None, "point": None, "horizontal_distance": None,
            "height_above_ground": None, "nearest": None}
     if in_corridor.any():
         out["covered"] = [float(station[in_corridor].min()), float(station[in_corridor].max())]

@@ -39,6 +39,7 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
 from __future__ import annotations
 
 import math
+from typing import Any
 
 import numpy as np
 
@@ -73,7 +74,7 @@ def ridge_map(image: np.ndarray, sigmas=DEFAULT_SIGMAS) -> np.ndarray:
     return sato(grey, sigmas=sigmas, black_ridges=True, mode="reflect")
 
 
-def ridge_normals(response: np.ndarray) -> tuple[np.ndarray, ...]:
+def ridge_normals(response: np.ndarray) -> tuple:
     """Per pixel of a ridge map [H, W]: (n_x, n_y) the unit normal across the ridge (the response's
     Hessian eigenvector of the largest |eigenvalue|, finite differences), the gradient (g_x, g_y)
     and the curvature n^T H n. Returns six [H, W] arrays (n_x, n_y, g_x, g_y, curvature)."""
@@ -204,10 +205,11 @@ def derived_sigmas(theta, cov: np.ndarray, centre, up=(0.0, 0.0, 1.0)) -> dict:
         jac[:, k] = (_flat(derived(hi, centre, up)) - _flat(derived(lo, centre, up))) / (2 * step)
     var = np.einsum("ik,kl,il->i", jac, cov, jac)
     sig = np.sqrt(np.maximum(var, 0.0))
-    out, i = {}, 0
-    for k in FIGURES:
-        n = 3 if k in ("attachment", "far_attachment", "lowest_point") else 1
-        out[k] = sig[i:i + n] if n == 3 else float(sig[i])
+    out: dict[str, Any] = {}
+    i = 0
+    for name in FIGURES:
+        n = 3 if name in ("attachment", "far_attachment", "lowest_point") else 1
+        out[name] = sig[i:i + n] if n == 3 else float(sig[i])
         i += n
     return out
 
@@ -249,7 +251,8 @@ class Views:
         projection leaves the photo (measured from the nearest detection inside it), BEHIND_PX
         behind the camera: a curve cannot lower its cost by leaving the photos."""
         u, v, z = project_all(points, self.c2w, self.intrinsics)
-        seen = (z > 0) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height) & self.has[:, None]
+        seen = np.asarray((z > 0) & (u >= 0) & (u < self.width) & (v >= 0) & (v < self.height)
+                          & np.asarray(self.has, bool)[:, None], bool)
         if observed is not None:
             seen = np.asarray(observed, bool)
         col = np.clip(np.floor(u), 0, self.width - 1).astype(np.int64)
@@ -297,7 +300,7 @@ def cross_section_peaks(views: Views, centre, psi: float, station: float, across
     idx = np.argwhere(peak)
     order = np.argsort(-share[peak], kind="stable")
     sep = 4 * step if separation is None else separation
-    kept = []
+    kept: list = []
     for i, j in idx[order]:
         if all(math.hypot(cs[i] - c, zs[j] - z) >= sep for c, z, _ in kept):
             kept.append((float(cs[i]), float(zs[j]), float(share[i, j])))
@@ -432,7 +435,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
         station = half_length + margin
         peaks = cross_section_peaks(views, centre, psi_side, station, (-across, across), heights, step, up,
                                     tol_px, min_support, min_views, separation=3 * tol_px * step)
-        fits = []
+        fits: list[dict] = []
         for c, z, share in peaks:
             seed = curve_points((c, z, psi_side, 0.0, 0.0), centre, np.array([station]), up)[0]
             if any(np.linalg.norm(curve_points(f["theta"], centre, np.array([station]), up)[0] - seed) < 0.033 *
@@ -452,7 +455,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
 def _distinct(fits: list[dict], centre, radius: float, up) -> list[dict]:
     """One fit per wire: of fits whose curves pass within `radius` of each other at the seed's
     station and 4 times as far, the one with the most inlier offsets."""
-    kept = []
+    kept: list[dict] = []
     for f in sorted(fits, key=lambda f: -f["residuals"]):
         s = np.array([f["stations"][0], f["stations"][0] * 4])
         p = curve_points(f["theta"], centre, s, up)
@@ -467,7 +470,7 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
     theta, cov = fit["theta"], fit["cov"]
     fig = derived(theta, centre, up)
     sig = derived_sigmas(theta, cov, centre, up) if np.all(np.isfinite(cov)) else None
-    rec = {}
+    rec: dict[str, Any] = {}
     for k in FIGURES:
         v = fig[k]
         s = None if sig is None else sig[k]

@@ -349,7 +349,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     survey.write_las(out / "tower_points.las", points_crs, tower_cols, crs_name, datum)
     cls_points, cls_colours, cls_classes = _classified_cloud(meas, cloud_m, colours, lo_m, hi_m)
     cls_crs = survey.to_crs(cls_points, geo)
-    if grid is not None:
+    if grid is not None and crs_name is not None:  # a geoid grid needs a CRS (checked above)
         cls_crs, _ = geoid_lib.orthometric(cls_crs, crs_name, grid, Path(geoid))
     survey.write_las(out / "classified_points.las", cls_crs, cls_colours, crs_name, datum, classification=cls_classes)
     io.write_png(out / "conductors_views.png", meas["conductor_spans"].pop("_picture"))

@@ -537,7 +537,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
         pool = parallel.replicate(pool_host, n)
     else:
         pool = ray_pool.upload(pool_host, n)
-        pool_host = None  # the devices hold the frames now (on CPU the very same memory)
+        pool_host = {}  # the devices hold the frames now (on CPU the very same memory)
     state_r = parallel.replicate(state, n)
     p_step = make_train_step(cfg if frozen_mean is None else frozen_cfg, n)
     end = min(tcfg.max_steps, stop_at if stop_at is not None else tcfg.max_steps)

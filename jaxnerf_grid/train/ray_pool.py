@@ -68,7 +68,7 @@ def weight_table(frames) -> np.ndarray | None:
     exactly: k / 255 when each weight is one, else the sorted distinct values (padded with the
     last); None when there are more than 256 distinct values (keep float32)."""
     k255 = BYTE_VALUES
-    distinct: set = set()
+    distinct: set | None = set()
     all_k255 = True
     for w in frames:
         if all_k255:
@@ -116,7 +116,9 @@ def _store_frames(images: np.ndarray, frames: np.ndarray, root) -> tuple[np.ndar
         if images.dtype != np.uint8 and not np.all(np.isfinite(images[f])):
             raise DataError(f"{root}: frame {int(f)} has non-finite pixel values")
         buffer[k] = working.to_uint8(images[f])
-    return working.frame_rows(buffer), np.arange(frames.size, dtype=np.int32)
+    rows = working.frame_rows(buffer)
+    assert rows is not None  # a frame_buffer always has its rows
+    return rows, np.arange(frames.size, dtype=np.int32)
 
 
 def make_pool(images: np.ndarray, frames: np.ndarray, weights_of, c2w: np.ndarray, intrinsics: np.ndarray,
