@@ -13,9 +13,9 @@ as constant + bytes_per_pixel x working pixels (least squares, per device count)
 with the target: at most 1.5 x the uint8 bytes of the working frames (4.5 bytes a pixel) plus
 the constant.
 
---big: a 300-photo capture of 20 MP photos (5472 x 3648 JPEGs) trained at --max-side 1600
-(1600 x 1067 working frames: the long side is divided by 4, so 1368 x 912), a few steps, its
-peak and wall time recorded; the photos are deleted afterwards.
+--big: a 300-photo capture of 20 MP photos (5472 x 3648 JPEGs) trained at --max-side 1600 (the
+working rule's integer factor ceil(5472 / 1600) = 4 gives 1368 x 912 working frames), a few
+steps, its peak and wall time recorded; the photos are deleted afterwards.
 
 Results (JSON) go to --out. The photos are generated, never downloaded; --work should be a
 scratch folder (it is emptied of what this script wrote).
@@ -174,14 +174,15 @@ def main(argv=None) -> int:
         p.error("--work is required")
     args.work.mkdir(parents=True, exist_ok=True)
     result = json.loads(args.out.read_text()) if args.out.is_file() else {}
-    result.update({"command": "python -m benchmarks.train_memory " + " ".join(sys.argv[1:] if argv is None else argv),
+    words = [("WORK" if w == str(args.work) else w) for w in (sys.argv[1:] if argv is None else argv)]
+    result.update({"command": "python -m benchmarks.train_memory " + " ".join(words),  # no machine path
                    "steps": STEPS, "train_sets": TRAIN_SETS, "cpus": os.cpu_count(),
                    "load_average_start": os.getloadavg()[0]})
     if not args.big_only:
         width, height = (int(v) for v in args.size.split("x"))
-        result["sweep"] = sweep(args.work, args.frames, width, height, args.devices)
+        result["sweep"] = dict(sweep(args.work, args.frames, width, height, args.devices), command=result["command"])
     if args.big or args.big_only:
-        result["big_capture"] = big_capture(args.work, max(args.devices))
+        result["big_capture"] = dict(big_capture(args.work, max(args.devices)), command=result["command"])
     result["load_average_end"] = os.getloadavg()[0]
     args.out.parent.mkdir(parents=True, exist_ok=True)
     args.out.write_text(json.dumps(result, indent=2) + "\n")
