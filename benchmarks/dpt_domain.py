@@ -1,16 +1,19 @@
 """Is the built-in DPT in its domain? Its masked share and confidence on real photos and on the
 synthetic presets, and whether `mask`'s out-of-domain rule fires (docs/MASKS.md).
 
-    python -m benchmarks.dpt_domain [--strecha STRECHA_DIR] [--no-skimage] [--no-synthetic]
-        [--work benchmarks/.cache/dpt_domain] [--out benchmarks/results/dpt_domain]
+    python -m benchmarks.dpt_domain [--strecha STRECHA_DIR] [--photos DIR ...] [--no-skimage]
+        [--no-synthetic] [--weights DIR ...] [--work benchmarks/.cache/dpt_domain]
+        [--out benchmarks/results/dpt_domain]
 
 Per photo set, every photo goes through the built-in DPT exactly as `jaxnerf-grid mask` runs it
 (`foreground.predict_maps` at the model's working size, its own dynamic classes, T = 0.5):
 the share of pixels in M per frame and the frame's confidence (the mean largest class
 probability, `foreground.max_class_probability`); then `masking.domain_verdict` on the set.
+--weights scores other DPT weights (native folders) beside or instead of the built-in model.
 Sets: the Strecha scenes (STRECHA_DIR = Benchmarking_Camera_Calibration_2008 of
 openMVG/SfM_quality_evaluation, photos shrunk to a long side of 640 first), scikit-image's
-sample photos (shipped with the package), and small renders of the synthetic presets (16 + 2
+sample photos (shipped with the package), any other folder of photos (--photos: each folder one
+set, named by the folder, shrunk like Strecha's), and small renders of the synthetic presets (16 + 2
 views, seed 1, cached under --work) at each preset's clutter and at tower-small's none / high.
 """
 
@@ -62,6 +65,11 @@ def photo_sets(args):
             photos = sorted((Path(args.strecha) / scene / "images").glob("*.jpg"))
             if photos:
                 yield f"Strecha {scene}", "real", (_shrunk(io.read_image(p)) for p in photos)
+    for folder in args.photos:
+        photos = sorted(p for p in Path(folder).iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+        if not photos:
+            raise SystemExit(f"--photos {folder}: no .jpg / .png photos")
+        yield Path(folder).name, "real", (_shrunk(io.read_image(p)) for p in photos)
     if not args.no_skimage:
         from skimage import data as skdata
 
@@ -86,12 +94,13 @@ def markdown(rows: list[dict], argv: list[str]) -> str:
     lines = ["# The built-in DPT in and out of its domain", "",
              "`python -m benchmarks.dpt_domain " + " ".join(argv) + "`", "",
              f"Rule: {rows[0]['verdict']['rule'] if rows else ''} (`masking.domain_verdict`).", "",
-             ("| photos | kind | frames | masked share: mean (min-max) | frames > "
+             ("| weights | photos | kind | frames | masked share: mean (min-max) | frames > "
               f"{masking.OOD_FRAME_SHARE:.0%} | confidence: mean (min-max) | out of domain |"),
-             "| --- | --- | --- | --- | --- | --- | --- |"]
+             "| --- | --- | --- | --- | --- | --- | --- | --- |"]
     for r in rows:
         v = r["verdict"]
-        lines.append(f"| {r['set']} | {r['kind']} | {v['frames']} | {v['mean_share']:.1%} ({r['min_share']:.1%}-"
+        lines.append(f"| {r.get('weights', 'built-in')} | {r['set']} | {r['kind']} | {v['frames']} | "
+                     f"{v['mean_share']:.1%} ({r['min_share']:.1%}-"
                      f"{r['max_share']:.1%}) | {v['frames_mostly_masked']} | {v['mean_confidence']:.3f} "
                      f"({r['min_confidence']:.3f}-{r['max_confidence']:.3f}) | "
                      f"{'yes' if v['out_of_domain'] else 'no'} |")
@@ -101,6 +110,8 @@ def markdown(rows: list[dict], argv: list[str]) -> str:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(prog="python -m benchmarks.dpt_domain", description=__doc__.split("\n\n")[0])
     p.add_argument("--strecha", default=None, help="the folder Benchmarking_Camera_Calibration_2008")
+    p.add_argument("--photos", nargs="*", default=[], help="other folders of static real photos, one set each")
+    p.add_argument("--weights", nargs="*", default=[None], help="DPT weight folders (default: the built-in model)")
     p.add_argument("--no-skimage", action="store_true")
     p.add_argument("--no-synthetic", action="store_true")
     p.add_argument("--work", default=str(ROOT / "benchmarks/.cache/dpt_domain"))
@@ -110,16 +121,18 @@ def main(argv=None) -> int:
     from jaxnerf_grid.masks import write as masking
     from jaxnerf_grid.util import io
 
-    seg, _, wdir = masking.load_models(None, None)
     rows = []
-    for name, kind, images in photo_sets(args):
-        r = measure(name, images, (seg, wdir))
-        r["kind"] = kind
-        rows.append(r)
-        v = r["verdict"]
-        print(f"{name}: {v['frames']} frames, masked share mean {v['mean_share']:.1%} "
-              f"({r['min_share']:.1%}-{r['max_share']:.1%}), {v['frames_mostly_masked']} mostly masked, "
-              f"confidence {v['mean_confidence']:.3f}, out of domain: {v['out_of_domain']}", flush=True)
+    for weights in args.weights:
+        seg, _, wdir = masking.load_models(weights, None)
+        shown_weights = "built-in" if weights is None else "/".join(Path(weights).resolve().parts[-2:])
+        for name, kind, images in photo_sets(args):
+            r = measure(name, images, (seg, wdir))
+            r["kind"], r["weights"] = kind, shown_weights
+            rows.append(r)
+            v = r["verdict"]
+            print(f"{shown_weights} {name}: {v['frames']} frames, masked share mean {v['mean_share']:.1%} "
+                  f"({r['min_share']:.1%}-{r['max_share']:.1%}), {v['frames_mostly_masked']} mostly masked, "
+                  f"confidence {v['mean_confidence']:.3f}, out of domain: {v['out_of_domain']}", flush=True)
     # no folder of this machine in the results
     from benchmarks.pasted_transients import shown_argv
 
