@@ -241,7 +241,7 @@ SLOW = {
     "masks/test_dpt_parity.py::test_parity_with_transformers",
     "masks/test_dpt_parity.py::test_auxiliary_head_and_patch16_resolution",
     "masks/test_dpt_parity.py::test_depth_head_with_projection",
-    "masks/test_mask_domain.py::test_rule_fires_on_photos_unlike_the_builtin_models_training_data",
+    "masks/test_mask_domain.py::test_builtin_model_stays_quiet_on_everyday_photos_without_transients",
     "masks/test_mask_domain.py::test_rule_stays_quiet_on_the_synthetic_scenes",
     "nerf/test_hashgrid.py::test_every_method_runs_with_the_grid_field",
     "joins/test_join_eval.py::test_a_robust_run_reports_the_weights_training_used",
