@@ -18,17 +18,7 @@ from jaxnerf_grid.capture.camera_set import (
     camera_set_verdict,
     look_at_point,
 )
-
-
-def _look_at(eye, target):
-    """OpenGL camera-to-world [4, 4] looking from `eye` at `target`, z up."""
-    f = np.asarray(target, float) - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, np.cross(r, f), -f, eye
-    return m
+from tests.support.cameras import look_at
 
 
 def test_arc_covered_is_360_less_the_largest_gap():
@@ -44,7 +34,7 @@ def test_azimuths_and_the_looked_at_point_of_a_ring():
     target = np.array([1.0, 2.0, 3.0])
     angles = np.radians([0.0, 90.0, 225.0])
     eyes = target + np.stack([5 * np.cos(angles), 5 * np.sin(angles), np.full(3, 2.0)], -1)
-    c2w = np.stack([_look_at(e, target) for e in eyes])
+    c2w = np.stack([look_at(e, target) for e in eyes])
     assert np.allclose(look_at_point(c2w), target, atol=1e-9)
     assert np.allclose(azimuths_deg(eyes, target), [0.0, 90.0, 225.0])
 

@@ -12,26 +12,16 @@ from scipy.spatial.transform import Rotation
 
 from jaxnerf_grid.data import normalize
 from jaxnerf_grid.util.io import DataError
+from tests.support.cameras import look_at
 
 CENTRE = np.array([100.0, -50.0, 20.0])
-
-
-def _look_at(eye, target) -> np.ndarray:
-    """OpenGL camera-to-world [4, 4]: -z towards the target, +x horizontal."""
-    f = np.asarray(target, float) - eye
-    f /= np.linalg.norm(f)
-    r = np.cross(f, [0.0, 0.0, 1.0])
-    r /= np.linalg.norm(r)
-    m = np.eye(4)
-    m[:3, 0], m[:3, 1], m[:3, 2], m[:3, 3] = r, np.cross(r, f), -f, eye
-    return m
 
 
 def _orbit(radius, centre=CENTRE, n=8, height=0.3) -> np.ndarray:
     """[n, 4, 4] cameras on a ring of `radius` around `centre`, `height` above it, looking at it."""
     angles = 2 * np.pi * (np.arange(n) + 0.25) / n
     eyes = centre + np.column_stack([radius * np.cos(angles), radius * np.sin(angles), np.full(n, height)])
-    return np.stack([_look_at(e, centre) for e in eyes])
+    return np.stack([look_at(e, centre) for e in eyes])
 
 
 def _shell(distances, centre=CENTRE, seed=0) -> np.ndarray:
@@ -70,7 +60,7 @@ def test_orbit_roi_of_points_at_the_centre_and_of_cameras_at_one_point():
     c2w = _orbit(3.0)
     assert normalize.orbit_roi(c2w, np.tile(CENTRE, (5, 1)))[1] == 1.0
     headings = np.linspace(0, 2 * np.pi, 6, endpoint=False)
-    panorama = np.stack([_look_at(CENTRE, CENTRE + [np.cos(a), np.sin(a), 0.0]) for a in headings])
+    panorama = np.stack([look_at(CENTRE, CENTRE + [np.cos(a), np.sin(a), 0.0]) for a in headings])
     distances = np.linspace(2.0, 4.0, 21)
     centre, radius = normalize.orbit_roi(panorama, _shell(distances))
     np.testing.assert_allclose(centre, CENTRE, atol=1e-9)
@@ -85,7 +75,7 @@ def test_forward_facing_cameras_centre_at_the_points_median_depth():
     docstring), for orbit_roi and normalize_poses alike; without points, by the cameras' spread
     (the largest distance from their mean, 1.5), or by 1 for a single camera."""
     eyes = np.column_stack([np.linspace(-1.5, 1.5, 5), np.zeros(5), np.full(5, 2.0)])
-    c2w = np.stack([_look_at(e, e + [0.0, 1.0, 0.0]) for e in eyes])
+    c2w = np.stack([look_at(e, e + [0.0, 1.0, 0.0]) for e in eyes])
     points = np.array([[0.0, 5.0, 2.0], [1.0, 6.0, 2.0], [-2.0, 4.0, 3.0]])
     depth = np.median(np.linalg.norm(points - eyes.mean(0), axis=1))
     expected = eyes.mean(0) + [0.0, depth, 0.0]
@@ -209,7 +199,7 @@ def test_rotation_between_opposite_and_unnormalised_directions(a):
 def _heading_y(eye, pitch_deg):
     """OpenGL c2w at eye, heading +y, pitched down by pitch_deg, level (no roll)."""
     p = np.radians(pitch_deg)
-    return _look_at(np.asarray(eye, float), np.asarray(eye, float) + [0.0, np.cos(p), -np.sin(p)])
+    return look_at(np.asarray(eye, float), np.asarray(eye, float) + [0.0, np.cos(p), -np.sin(p)])
 
 
 def test_up_from_cameras_one_heading_small_plane_blob_and_wall():
@@ -250,7 +240,7 @@ def test_up_from_cameras_of_pitched_orbits_is_plus_z_whatever_the_eigenvectors_s
     for several starting headings (the eigenvector's sign is the solver's choice)."""
     angles = np.radians(turn + np.linspace(0, 120, 5))
     eyes = np.column_stack([10 * np.cos(angles), 10 * np.sin(angles), np.full(5, 6.0)])
-    c2w = np.stack([_look_at(e, [0.0, 0.0, 0.0]) for e in eyes])
+    c2w = np.stack([look_at(e, [0.0, 0.0, 0.0]) for e in eyes])
     np.testing.assert_allclose(normalize.up_from_cameras(c2w), [0.0, 0.0, 1.0], atol=1e-9)
 
 
@@ -260,10 +250,10 @@ def test_scene_center_of_two_cameras_nearly_parallel_axes_and_bad_requests():
     fallback, the mean centre moved along the mean view by the points' median distance. The
     points method without points, and an unknown method, are refused by name."""
     target = np.array([3.0, 4.0, 1.0])
-    two = np.stack([_look_at(target + [5.0, 0.0, 0.5], target), _look_at(target + [0.0, -5.0, 0.5], target)])
+    two = np.stack([look_at(target + [5.0, 0.0, 0.5], target), look_at(target + [0.0, -5.0, 0.5], target)])
     np.testing.assert_allclose(normalize.scene_center(two), target, atol=1e-9)
     eyes = np.column_stack([np.linspace(-1.0, 1.0, 5), np.zeros(5), np.full(5, 2.0)])
-    c2w = np.stack([_look_at(e, [0.0, 10.0, 2.0]) for e in eyes])
+    c2w = np.stack([look_at(e, [0.0, 10.0, 2.0]) for e in eyes])
     points = np.array([[0.0, 6.0, 2.0], [0.5, 6.0, 2.0], [-0.5, 6.0, 2.0]])
     depth = np.median(np.linalg.norm(points - eyes.mean(0), axis=1))
     forward = -c2w[:, :3, 2].mean(0)

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from experiments import dpt_heldout_eval
-from jaxnerf_grid.masks import dpt
 from jaxnerf_grid.util import io
+from tests.support.constant_dpt import constant_dpt
 
 
 def _scene(root, labels_per_frame):
@@ -24,20 +24,6 @@ def _scene(root, labels_per_frame):
     (root / "transforms.json").write_text(json.dumps({"frames": frames}))
 
 
-def _constant_dpt(folder, winner: int):
-    """A tiny 9-class DPT whose classifier is its bias alone, `winner` far ahead: every pixel is that class."""
-    cfg = dpt.DPTConfig(hidden_size=16, num_hidden_layers=2, num_attention_heads=2, intermediate_size=32,
-                        image_size=32, patch_size=16, backbone_out_indices=(0, 0, 1, 1),
-                        neck_hidden_sizes=(8, 8, 8, 8), fusion_hidden_size=8, num_labels=9,
-                        heads=("segmentation",))
-    model = dpt.init(0, cfg)
-    cls = model.params["segmentation"]["cls"]
-    cls["w"] = np.zeros_like(np.asarray(cls["w"]))
-    cls["b"] = np.where(np.arange(9) == winner, 50.0, 0.0).astype(np.float32)
-    dpt.save(model, folder, dtype="float32", extra={"dynamic_classes": [6, 7, 8], "max_side": 32})
-    return folder
-
-
 def test_a_model_that_masks_everything_scores_the_distractor_share(tmp_path):
     a = np.zeros((24, 32), np.uint8)
     a[2:4, 2:4] = 8                      # a bird of 4 px
@@ -50,7 +36,7 @@ def test_a_model_that_masks_everything_scores_the_distractor_share(tmp_path):
     _scene(tmp_path / "plad-like_low_7102", [c])
     scenes = [tmp_path / "tower-small_low_7101", tmp_path / "plad-like_low_7102"]
 
-    everything = dpt_heldout_eval.score_weights(_constant_dpt(tmp_path / "all", 8), scenes)
+    everything = dpt_heldout_eval.score_weights(constant_dpt(tmp_path / "all", 8), scenes)
     pixels = 3 * 24 * 32
     assert everything["all"]["recall"] == 1.0
     assert everything["all"]["precision"] == pytest.approx((4 + 100 + 1 + 36) / pixels)
@@ -61,7 +47,7 @@ def test_a_model_that_masks_everything_scores_the_distractor_share(tmp_path):
     sizes = everything["all"]["size"]
     assert sizes["1-4 px"]["objects"] == 2 and sizes["33-256 px"]["objects"] == 2
 
-    nothing = dpt_heldout_eval.score_weights(_constant_dpt(tmp_path / "none", 0), scenes)
+    nothing = dpt_heldout_eval.score_weights(constant_dpt(tmp_path / "none", 0), scenes)
     assert nothing["all"]["recall"] == 0.0 and nothing["all"]["tp"] == 0 and nothing["all"]["fn"] == 141
 
 
