@@ -111,6 +111,7 @@ class LogBar(NullBar):
         self.stream, self.clock, self.interval = stream, clock, float(interval)
         self.postfix: dict = {}
         self.start = self.last = clock()
+        self.first: tuple | None = None  # (n, time) at the first update: the rate leaves out the start-up
         self.lines = 0
         self.closed = False
 
@@ -123,7 +124,8 @@ class LogBar(NullBar):
     def _write(self, now: float) -> None:
         stream = self.stream if self.stream is not None else sys.stderr
         elapsed = now - self.start
-        left = seconds_left(self.n, self.total, self.initial, elapsed)
+        # the time left at the rate since the first unit: the first one carries the compile
+        left = None if self.first is None else seconds_left(self.n, self.total, self.first[0], now - self.first[1])
         stream.write(format_line(self.desc, self.n, self.total, self.unit, elapsed, self.postfix, left) + "\n")
         stream.flush()
         self.last = now
@@ -132,6 +134,8 @@ class LogBar(NullBar):
     def update(self, n=1):
         self.n += n
         now = self.clock()
+        if self.first is None:
+            self.first = (self.n, now)
         if not self.closed and now - self.last >= self.interval:
             self._write(now)
 

@@ -165,8 +165,11 @@ def test_the_progress_line_says_the_time_left():
 
     stream, clock = pyio.StringIO(), Clock()
     bar = progress.bar(total=400, desc="train ours", unit="step", stream=stream, clock=clock, interval=10.0)
-    clock.now = 10.0
-    bar.update(100)
-    assert stream.getvalue().splitlines()[0] == "train ours: 100/400 steps (25%), 10.0 s, 30.0 s left"
+    clock.now = 30.0   # the first step carries the compile: no rate from it
+    bar.update(1)
+    assert stream.getvalue().splitlines()[0] == "train ours: 1/400 steps (0%), 30.0 s"
+    clock.now = 40.0   # 99 steps in 10 s since the first: 300 steps to go take 300 x 10 / 99 s
+    bar.update(99)
+    assert stream.getvalue().splitlines()[1] == "train ours: 100/400 steps (25%), 40.0 s, 30.3 s left"
     bar.close()
-    assert stream.getvalue().splitlines()[-1] == "train ours: 100/400 steps (25%), 10.0 s, 30.0 s left"
+    assert stream.getvalue().splitlines()[-1] == "train ours: 100/400 steps (25%), 40.0 s, 30.3 s left"
