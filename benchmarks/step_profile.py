@@ -162,7 +162,7 @@ def profile(recipe: str = "ours", rays: int = 1024, repeats: int = 10, extra: di
 
     step_fn = train.make_train_step(cfg, 1)
     state_r = parallel.replicate(state, 1)
-    pool_r = parallel.replicate(pool_host, 1)
+    pool_r = train.device_pool(ds, cfg, 1)  # what the training loop's step draws from
     state_r, stats = step_fn(state_r, pool_r)  # compile
     jax.block_until_ready(stats)
     for stage, synced in (("step", False), ("step_synced", True)):

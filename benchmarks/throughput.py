@@ -159,7 +159,7 @@ class Case:
         self.cfg = cfg = config_lib.resolve(cfg, ds)  # as train.train settles it
         self.method, self.name = method, name
         self.n = n = train.step_devices(cfg.train)  # every process's devices under jax.distributed
-        self.pool = parallel.replicate(train.build_pool(ds, cfg), n)
+        self.pool = train.device_pool(ds, cfg, n)
         self.state = parallel.replicate(train.init_state(cfg, train.train_frames_shape(ds)), n)
         self.step = train.make_train_step(cfg, n)
         self.render_fn = None  # None: render through views' renderer, cached per config

@@ -258,7 +258,8 @@ class Views:
         col = np.clip(np.floor(u), 0, self.width - 1).astype(np.int64)
         row = np.clip(np.floor(v), 0, self.height - 1).astype(np.int64)
         n = np.arange(len(self.c2w))[:, None]
-        det = self.table[np.maximum(self.index[n, row, col], 0)]                 # [N, M, 4]
+        table = self.table if len(self.table) else np.full((1, 4), np.nan)  # no detection in any photo
+        det = table[np.maximum(self.index[n, row, col], 0)]                      # [N, M, 4]
         du, dv = det[..., 0] - u, det[..., 1] - v
         dist = np.hypot(du, dv)
         along = du * det[..., 2] + dv * det[..., 3]

@@ -426,6 +426,9 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
     responses = [conductors_lib.ridge_map(im) for im in progress_lib.bar(images, desc="export: wires", unit="photo",
                                                                         enabled=progress)]
     masks = np.stack([conductors_lib.detections(r) for r in responses])
+    if not masks.any():
+        out["why"] = "no wire detected in any photo"
+        return out
     views = conductors_lib.Views(c2w, intr, masks, responses)
     del responses
     fits = conductors_lib.find_spans(views, centre, psi, half_length, heights, across, step, float(height), up)

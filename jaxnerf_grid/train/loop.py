@@ -495,6 +495,14 @@ class TrainResult:
     steps_run: int = 0
 
 
+
+def device_pool(dataset: Dataset, cfg: RunConfig, n: int) -> dict:
+    """The training step's pool on n devices, as `train` lays it out: the robust step's float32
+    pool replicated (`build_pool`), else the 8-bit frames split over the devices (`ray_pool`)."""
+    if cfg.train.robust != "off":
+        return parallel.replicate(build_pool(dataset, cfg), n)
+    return ray_pool.upload(ray_pool.build(dataset, cfg), n)
+
 def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
           stop_at: int | None = None, on_step=None) -> TrainResult:
     """Trains (or resumes) a run in `run_dir` up to cfg.train.max_steps (or `stop_at`).

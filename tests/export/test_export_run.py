@@ -436,8 +436,9 @@ def test_check_geoid_site_names_why_a_dataset_without_a_crs_is_refused(tmp_path)
 
 @pytest.mark.parametrize("default", [True, False])
 def test_update_report_writes_beside_the_run_or_the_export(tmp_path, monkeypatch, default):
-    """RUN/export: RUN/report.md with the picture at export/export_views.png; elsewhere:
-    OUT/report.md with export_views.png beside it; report.html next to the report.md."""
+    """RUN/export: RUN/report.md with the pictures at export/export_views.png and
+    export/conductors_views.png; elsewhere: OUT/report.md with both beside it; report.html next
+    to the report.md."""
     from jaxnerf_grid.report import html as report_html
     from jaxnerf_grid.report import markdown as report
 
@@ -452,8 +453,10 @@ def test_update_report_writes_beside_the_run_or_the_export(tmp_path, monkeypatch
     meas, ds = {"height": 1.0}, object()
     export_run._update_report(run_dir, out, meas, ds)
     md = run_dir / "report.md" if default else out / "report.md"
-    image = "export/export_views.png" if default else "export_views.png"
-    assert calls["section"] == (md, report.EXPORT_HEADING, ("lines", {"measurements": meas, "image": image}))
+    folder = "export/" if default else ""
+    info = {"measurements": meas, "image": f"{folder}export_views.png",
+            "conductors_image": f"{folder}conductors_views.png"}
+    assert calls["section"] == (md, report.EXPORT_HEADING, ("lines", info))
     assert calls["html"] == (md.with_suffix(".html"), run_dir, ds, out)
 
 

@@ -143,7 +143,7 @@ def test_measurements_json_is_the_returned_record_and_its_timings_split_the_seco
     on_disk = io.read_json(out / "measurements.json")
     assert on_disk == json.loads(json.dumps(meas))
     t = meas["timings"]
-    assert list(t) == ["load", "views", "density", "mesh", "colours", "write"]
+    assert list(t) == ["load", "views", "density", "mesh", "colours", "conductors", "write"]
     assert all(0.0 <= v <= meas["seconds"] for v in t.values()), t
     assert sum(t.values()) == pytest.approx(meas["seconds"], rel=1e-9)
     # the marching-cubes level: -ln(1 - opacity) / h per normalised unit, h = the voxel in metres
@@ -155,8 +155,8 @@ def test_measurements_json_is_the_returned_record_and_its_timings_split_the_seco
 
 
 RECORD_KEYS = {"units", "run", "step", "box", "resolution", "grid", "voxel_size", "threshold", "mesh", "points",
-               "ground", "height", "footprint", "cross_arms", "tilt", "conductors", "survey", "seconds", "timings",
-               "peak_memory_mib"}
+               "ground", "height", "footprint", "cross_arms", "tilt", "conductors", "conductor_spans", "survey",
+               "seconds", "timings", "peak_memory_mib"}
 
 
 def test_the_record_names_its_figures_and_its_grid_mesh_and_points_are_the_files_by_hand(exported):
@@ -813,8 +813,8 @@ def test_the_auto_box_of_an_empty_scene_and_of_ground_alone_is_refused_in_words(
 
 def test_the_progress_lines_and_the_views_timing_of_an_export_by_default(tmp_path, capsys):
     """By default export_run shows its progress (stderr is not a terminal here: one final line a
-    bar): "export: views: 8/8 views (100%), ..." and "export: density: N/N points (100%), ..."
-    with N the grid's points, the product of the record's grid shape; and the
+    bar): "export: views: 8/8 views (100%), ...", "export: density: N/N points (100%), ..." and
+    "export: wires: 8/8 photos (100%), ..." with N the grid's points, the product of the record's grid shape; and the
     "views" timing is the rendering's own: at least the time spent in `_render_cloud` and less
     than it plus half the load before it, which takes 1 s here (a sleep in the params' stand-in;
     the margin is wide so that a loaded machine does not fail it). (export_run mutants 5, 131,
@@ -849,9 +849,11 @@ def test_the_progress_lines_and_the_views_timing_of_an_export_by_default(tmp_pat
     points = int(np.prod(meas["grid"]))
     assert [line for line in lines if line.startswith("export: ")] == [
         line for line in lines if re.fullmatch(r"export: views: 8/8 views \(100%\), \d+\.\d s", line)
-        or re.fullmatch(rf"export: density: {points}/{points} points \(100%\), \d+\.\d s", line)]
+        or re.fullmatch(rf"export: density: {points}/{points} points \(100%\), \d+\.\d s", line)
+        or re.fullmatch(r"export: wires: 8/8 photos \(100%\), \d+\.\d s", line)]
     assert sum(line.startswith("export: views: ") for line in lines) == 1
     assert sum(line.startswith("export: density: ") for line in lines) == 1
+    assert sum(line.startswith("export: wires: ") for line in lines) == 1
     (span,) = spans
     assert meas["timings"]["load"] >= 1.0
     assert span <= meas["timings"]["views"] < span + 0.5
