@@ -31,6 +31,7 @@ from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.schema import merge
 from jaxnerf_grid.data.formats.transforms_json import read_meta
 from jaxnerf_grid.nerf import models
+from jaxnerf_grid.nerf.fields.base import old_layout
 from jaxnerf_grid.nerf.samplers.legacy import flat_keys
 from jaxnerf_grid.util import io
 
@@ -192,7 +193,7 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
     meta: the dataset's transforms.json (read here when None).
 
     scheme "current": LATER_TRAIN_KEYS at their defaults are left out, and so is
-    train.robust_strict_readmit wherever it does nothing (`config.strict_readmit_acts` on the
+    train.robust.strict_readmit wherever it does nothing (`config.strict_readmit_acts` on the
     dataset: off is what ran before it existed); where it acts it is in the key as true.
     scheme "refine_keys_always": the key of runs made while robust_refine, robust_prior_grow
     and robust_strict_readmit (then false by default) were always in the key (`run_keys`); there
@@ -201,7 +202,9 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
     cfg = config_lib.to_dict(run_config.make_config(method, with_steps))
     cfg["model"] = {**{k: v for k, v in cfg["model"].items() if k != "sampler"},  # the flat sampler keys, as
                     **flat_keys(with_steps.get("model", {}))}  # before model.sampler: runs keep their keys
-    defaults = config_lib.to_dict(run_config.TrainConfig())
+    cfg["model"]["field"] = old_layout(cfg["model"]["field"])  # every kind's keys, as before the field kinds
+    cfg["train"] = run_config.flat_robust(cfg["train"])  # the flat robust keys, as before train.robust nested
+    defaults = run_config.flat_robust(config_lib.to_dict(run_config.TrainConfig()))
     meta = read_meta(data_dir) if meta is None else meta
     acts = config_lib.strict_readmit_acts(cfg["train"]["robust_strict_readmit"], cfg["train"]["robust"], meta)
     later = LATER_TRAIN_KEYS if scheme == "current" else LATER_TRAIN_KEYS[:-2]

@@ -555,7 +555,7 @@ def test_throughput_concat_case_traces_the_per_sample_colour_input_with_the_same
     from jaxnerf_grid.nerf import fields
     from jaxnerf_grid.nerf.fields import layers
 
-    cfg = fields.FieldConfig(kind="grid", view_depth=2, view_width=8, dir_max_deg=2, appearance_dim=3, geo_features=4)
+    cfg = fields.grid.Config(view_depth=2, view_width=8, dir_max_deg=2, appearance_dim=3, geo_features=4)
     params = fields.init(jax.random.PRNGKey(0), cfg)
     rng = np.random.default_rng(0)
     feature = jax.numpy.asarray(rng.normal(size=(3, 5, 4)), jax.numpy.float32)

@@ -1,4 +1,4 @@
-"""train.robust_refine (jaxnerf_grid/train/refine.py): the evidence judged once on whole frames, then
+"""train.robust.refine (jaxnerf_grid/train/refine.py): the evidence judged once on whole frames, then
 frozen. The frame rule against a brute-force loop, the rendered points against the cameras,
 the weights of hand-made residuals, and the trainer's switch: 1 vs 2 devices, exact resume on
 either side of it, the frozen weights in the record and in the log."""
@@ -171,7 +171,7 @@ def test_refine_resumes_exactly_on_either_side_of_the_switch(tmp_path, stop):
 
 
 def test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel():
-    """train.robust_prior_grow: the prior is 0 wherever a masked pixel lies within the disc of
+    """train.robust.prior_grow: the prior is 0 wherever a masked pixel lies within the disc of
     radius g (OpenCV's elliptical element: offsets (dr, dc) with (dr/g)^2 + (dc/g)^2 <= 1 up to its
     rasterisation, checked here against cv2's own element written out as offsets), else the
     ungrown prior; without binary masks it is refused."""
