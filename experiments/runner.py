@@ -26,7 +26,7 @@ import jax
 import numpy as np
 
 from experiments import settings, tables
-from jaxnerf_grid.config import run_config
+from jaxnerf_grid.config import build, run_config
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.schema import merge
 from jaxnerf_grid.data.formats.transforms_json import read_meta
@@ -226,6 +226,16 @@ def run_keys(data_dir: Path, method: str, overrides: dict, steps: int) -> list[s
     return list(dict.fromkeys(keys))
 
 
+def condition_config(setting: str, method: str, overrides: dict, steps: int) -> build.Built:
+    """A condition's config through the one builder (config/build.py): the setting's recipe with
+    `method`, the steps pinned (so no training budget applies), the condition's `overrides` (the
+    setting's, its space and the table's own, in the flat layout the run keys hash) as the last
+    layer. No dataset folder is given: a condition's space is the setting's, never the dataset's
+    recorded bounds (the committed runs trained so, and their keys say so)."""
+    request = build.Request(recipe=settings.TRAIN_SETTINGS[setting]["recipe"], method=method, steps=int(steps))
+    return build.build(request, extra=overrides)
+
+
 def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: str,
                   overrides: dict | None = None, steps: int | None = None) -> dict | None:
     """Trains and evaluates one condition (skipped when its metrics.json exists).
@@ -269,7 +279,9 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     from jaxnerf_grid.data.formats import load_dataset
 
     ds = load_dataset(data_dir, progress=ctx.progress)
-    _, cfg, result = runs.train_run(str(data_dir), method, run_dir, ov, steps, progress=ctx.progress, dataset=ds)
+    built = condition_config(ctx.setting, method, ov, steps)
+    _, cfg, result = runs.train_run(str(data_dir), method, run_dir, built.overrides, steps, progress=ctx.progress,
+                                    dataset=ds)
     t_train = time.perf_counter() - t0
     t1 = time.perf_counter()
     metrics = evaluate.evaluate_run(run_dir, ctx.lpips_weights, progress=ctx.progress, dataset=ds,
