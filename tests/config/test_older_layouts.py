@@ -4,6 +4,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import json
 from pathlib import Path
 
@@ -74,13 +75,7 @@ def test_set_field_kind_grid_gives_the_grids_defaults(tmp_path):
     assert built.config().model.field == fields.grid.Config()
     # a key of the kind it already has merges into it
     built = build.build(build.Request(recipe="ours", sets=("model.field.width=32",)))
-    assert built.config().model.field == dataclasses_replace(recipes.make_config("ours").model.field, width=32)
-
-
-def dataclasses_replace(obj, **kw):
-    import dataclasses
-
-    return dataclasses.replace(obj, **kw)
+    assert built.config().model.field == dataclasses.replace(recipes.make_config("ours").model.field, width=32)
 
 
 def test_set_train_robust_to_a_mode_sets_the_mode():

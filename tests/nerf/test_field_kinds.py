@@ -31,8 +31,8 @@ def test_every_kind_is_a_module_with_the_same_functions_and_its_own_config():
 def test_init_and_apply_dispatch_through_the_registry(kind):
     cfg = fields.KINDS[kind].Config(depth=1, width=8, view_width=8, dir_max_deg=1)
     if kind == "grid":
-        cfg = dataclasses.replace(cfg, grid=fields.HashConfig(num_levels=2, log2_table_size=8, min_resolution=4, max_resolution=8),
-                                  geo_features=3)
+        small = fields.HashConfig(num_levels=2, log2_table_size=8, min_resolution=4, max_resolution=8)
+        cfg = dataclasses.replace(cfg, grid=small, geo_features=3)
     params = fields.init(jax.random.PRNGKey(0), cfg)
     x = jnp.zeros((5, 3))
     out = fields.apply(params, cfg, x, jnp.ones((5, 3)) / jnp.sqrt(3.0))
