@@ -61,8 +61,8 @@ ROWS = ("none", "dpt", "robust", "dpt+robust", "gt")
 # demo has since moved to ours-lean); kept so that new seeds join the recorded ones.
 RECIPE = "ours"
 ROW_TRAIN = {"none": {"use_masks": False}, "dpt": {"use_masks": True},
-             "robust": {"use_masks": False, "robust": "robust"},
-             "dpt+robust": {"use_masks": True, "robust": "dpt+robust"}, "gt": {"use_masks": True}}
+             "robust": {"use_masks": False, "robust": {"mode": "robust"}},
+             "dpt+robust": {"use_masks": True, "robust": {"mode": "dpt+robust"}}, "gt": {"use_masks": True}}
 ROW_DATA = {"none": "plain", "robust": "plain", "dpt": "dpt", "dpt+robust": "dpt", "gt": "gt"}
 NEAR = 0.3  # normalised units; normalize_orbit puts the cameras about 3 units from the centre
 SPRITE_SCENE = dict(preset="tower-small", distractors="high", width=320, height=240, num_train=10, num_test=1,
