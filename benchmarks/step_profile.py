@@ -178,7 +178,7 @@ def profile(recipe: str = "ours", rays: int = 1024, repeats: int = 10, extra: di
             "config": {"recipe": recipe, "rays": rays, "samples": list(sampler.samples),
                        "main_samples": sampler.main_samples, "main_levels": main_cfg.grid.num_levels,
                        "proposal_levels": prop_cfg.grid.num_levels, "sparse_adam": tcfg.sparse_adam,
-                       "robust": tcfg.robust,
+                       "robust": tcfg.robust.mode,
                        "params": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
                        "scene": {"width": size[0], "height": size[1], "frames": size[2]},
                        "repeats": repeats, "device": str(jax.local_devices()[0])}}
