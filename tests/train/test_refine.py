@@ -115,7 +115,7 @@ def test_frozen_pool_draws_only_the_kept_pixels_and_refuses_an_empty_one():
     out = refine.frozen_pool(pool, weights)
     np.testing.assert_array_equal(out["pixels"], [0 * 12 + 0 * 4 + 1, 1 * 12 + 2 * 4 + 3])
     assert "neighbours" not in out and out["near"] == 1.0 and out["weights"] is not pool["weights"]
-    with pytest.raises(DataError, match="robust_refine"):
+    with pytest.raises(DataError, match="robust.refine"):
         refine.frozen_pool(pool, np.zeros_like(weights))
 
 
@@ -194,5 +194,5 @@ def test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel():
         np.testing.assert_array_equal(got, np.where(near, 0.0, base))
         assert near.sum() > (masks > 0.5).sum()
     ds.masks = None
-    with pytest.raises(DataError, match="robust_prior_grow"):
+    with pytest.raises(DataError, match="robust.prior_grow"):
         train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4, robust_prior_grow=1).train)
