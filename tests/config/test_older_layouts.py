@@ -84,7 +84,7 @@ def test_set_train_robust_to_a_mode_sets_the_mode():
     # the shorthand after a nested key keeps it: the mode is one key of the section
     cfg = build.build(build.Request(sets=("train.robust.quantile=0.7", "train.robust=dpt+robust"))).config()
     assert (cfg.train.robust.mode, cfg.train.robust.quantile) == ("dpt+robust", 0.7)
-    with pytest.raises(ConfigError, match="train.robust.patch: unknown key"):
+    with pytest.raises(ConfigError, match="train.robust_patch: unknown key"):
         build.build(build.Request(sets=("train.robust_patch=8",)))
 
 
