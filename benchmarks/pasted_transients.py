@@ -61,8 +61,8 @@ ROWS = ("none", "dpt", "robust", "dpt+robust", "gt")
 # demo has since moved to ours-lean); kept so that new seeds join the recorded ones.
 RECIPE = "ours"
 ROW_TRAIN = {"none": {"use_masks": False}, "dpt": {"use_masks": True},
-             "robust": {"use_masks": False, "robust": "robust"},
-             "dpt+robust": {"use_masks": True, "robust": "dpt+robust"}, "gt": {"use_masks": True}}
+             "robust": {"use_masks": False, "robust": {"mode": "robust"}},
+             "dpt+robust": {"use_masks": True, "robust": {"mode": "dpt+robust"}}, "gt": {"use_masks": True}}
 ROW_DATA = {"none": "plain", "robust": "plain", "dpt": "dpt", "dpt+robust": "dpt", "gt": "gt"}
 NEAR = 0.3  # normalised units; normalize_orbit puts the cameras about 3 units from the centre
 SPRITE_SCENE = dict(preset="tower-small", distractors="high", width=320, height=240, num_train=10, num_test=1,
@@ -306,7 +306,7 @@ def row_overrides(row: str, seed: int, steps: int, sets: dict | None = None) -> 
 def prior_data(base: Path, row: str, prior: str = "dpt") -> Path:
     """The dataset a row trains on (`variant`); for the dpt and dpt+robust rows `prior` (--prior)
     picks their masks: "dpt" (the built-in DPT's), "gt" (the pasted masks: in the dpt+robust row
-    with train.robust_warmup=1 the evidence never applies, so the row is the ground-truth masks
+    with train.robust.warmup=1 the evidence never applies, so the row is the ground-truth masks
     trained on patches) or a masked copy of the scene's dataset, a folder whose path may hold
     {scene} (e.g. one written by scripts/sweep_masks_offline.py)."""
     if row not in ("dpt", "dpt+robust") or prior == "dpt":
@@ -432,7 +432,7 @@ def main(argv=None) -> int:
     p.add_argument("--reuse", action="store_true",
                    help="score a row's run again without training when it finished with the same settings")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="change a training setting of the robust rows (e.g. train.robust_spread=2), repeatable")
+                   help="change a training setting of the robust rows (e.g. train.robust.spread=2), repeatable")
     p.add_argument("--tag", default="", help="suffix of the run folders (keeps runs with other --set apart)")
     p.add_argument("--prior", default="dpt",
                    help="the masks of the dpt and dpt+robust rows: dpt, gt, or a masked copy of the scene's dataset "

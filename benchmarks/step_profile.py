@@ -111,7 +111,7 @@ def profile(recipe: str = "ours", rays: int = 1024, repeats: int = 10, extra: di
     pool_host = train.build_pool(ds, cfg)
     pool = jax.device_put({k: v for k, v in pool_host.items() if k not in ("near", "far")})
     pool_near_far = {"near": pool_host["near"], "far": pool_host["far"]}
-    state = train.init_state(cfg, train.train_frames_shape(ds) if tcfg.robust != "off" else None)
+    state = train.init_state(cfg, train.train_frames_shape(ds) if tcfg.robust.mode != "off" else None)
     params = state["params"]
     key = jax.random.PRNGKey(0)
     ms = {}
@@ -178,7 +178,7 @@ def profile(recipe: str = "ours", rays: int = 1024, repeats: int = 10, extra: di
             "config": {"recipe": recipe, "rays": rays, "samples": list(sampler.samples),
                        "main_samples": sampler.main_samples, "main_levels": main_cfg.grid.num_levels,
                        "proposal_levels": prop_cfg.grid.num_levels, "sparse_adam": tcfg.sparse_adam,
-                       "robust": tcfg.robust,
+                       "robust": tcfg.robust.mode,
                        "params": int(sum(x.size for x in jax.tree_util.tree_leaves(params))),
                        "scene": {"width": size[0], "height": size[1], "frames": size[2]},
                        "repeats": repeats, "device": str(jax.local_devices()[0])}}

@@ -26,11 +26,12 @@ import jax
 import numpy as np
 
 from experiments import settings, tables
-from jaxnerf_grid.config import run_config
+from jaxnerf_grid.config import build, run_config
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.schema import merge
 from jaxnerf_grid.data.formats.transforms_json import read_meta
 from jaxnerf_grid.nerf import models
+from jaxnerf_grid.nerf.fields.base import old_layout
 from jaxnerf_grid.nerf.samplers.legacy import flat_keys
 from jaxnerf_grid.util import io
 
@@ -192,7 +193,7 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
     meta: the dataset's transforms.json (read here when None).
 
     scheme "current": LATER_TRAIN_KEYS at their defaults are left out, and so is
-    train.robust_strict_readmit wherever it does nothing (`config.strict_readmit_acts` on the
+    train.robust.strict_readmit wherever it does nothing (`config.strict_readmit_acts` on the
     dataset: off is what ran before it existed); where it acts it is in the key as true.
     scheme "refine_keys_always": the key of runs made while robust_refine, robust_prior_grow
     and robust_strict_readmit (then false by default) were always in the key (`run_keys`); there
@@ -201,7 +202,9 @@ def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: st
     cfg = config_lib.to_dict(run_config.make_config(method, with_steps))
     cfg["model"] = {**{k: v for k, v in cfg["model"].items() if k != "sampler"},  # the flat sampler keys, as
                     **flat_keys(with_steps.get("model", {}))}  # before model.sampler: runs keep their keys
-    defaults = config_lib.to_dict(run_config.TrainConfig())
+    cfg["model"]["field"] = old_layout(cfg["model"]["field"])  # every kind's keys, as before the field kinds
+    cfg["train"] = run_config.flat_robust(cfg["train"])  # the flat robust keys, as before train.robust nested
+    defaults = run_config.flat_robust(config_lib.to_dict(run_config.TrainConfig()))
     meta = read_meta(data_dir) if meta is None else meta
     acts = config_lib.strict_readmit_acts(cfg["train"]["robust_strict_readmit"], cfg["train"]["robust"], meta)
     later = LATER_TRAIN_KEYS if scheme == "current" else LATER_TRAIN_KEYS[:-2]
@@ -221,6 +224,16 @@ def run_keys(data_dir: Path, method: str, overrides: dict, steps: int) -> list[s
     meta = read_meta(data_dir)
     keys = [run_key(data_dir, method, overrides, steps, scheme, meta) for scheme in ("current", "refine_keys_always")]
     return list(dict.fromkeys(keys))
+
+
+def condition_config(setting: str, method: str, overrides: dict, steps: int) -> build.Built:
+    """A condition's config through the one builder (config/build.py): the setting's recipe with
+    `method`, the steps pinned (so no training budget applies), the condition's `overrides` (the
+    setting's, its space and the table's own, in the flat layout the run keys hash) as the last
+    layer. No dataset folder is given: a condition's space is the setting's, never the dataset's
+    recorded bounds (the committed runs trained so, and their keys say so)."""
+    request = build.Request(recipe=settings.TRAIN_SETTINGS[setting]["recipe"], method=method, steps=int(steps))
+    return build.build(request, extra=overrides)
 
 
 def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: str,
@@ -266,7 +279,9 @@ def run_condition(ctx: Context, data_dir: Path, method: str, seed: int, label: s
     from jaxnerf_grid.data.formats import load_dataset
 
     ds = load_dataset(data_dir, progress=ctx.progress)
-    _, cfg, result = runs.train_run(str(data_dir), method, run_dir, ov, steps, progress=ctx.progress, dataset=ds)
+    built = condition_config(ctx.setting, method, ov, steps)
+    _, cfg, result = runs.train_run(str(data_dir), method, run_dir, built.overrides, steps, progress=ctx.progress,
+                                    dataset=ds)
     t_train = time.perf_counter() - t0
     t1 = time.perf_counter()
     metrics = evaluate.evaluate_run(run_dir, ctx.lpips_weights, progress=ctx.progress, dataset=ds,

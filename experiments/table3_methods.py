@@ -16,6 +16,7 @@ NeRF | NeRF-W), nearest-neighbour upscaled.
 
 from __future__ import annotations
 
+import dataclasses
 import sys
 from pathlib import Path
 
@@ -23,6 +24,7 @@ import numpy as np
 
 from experiments import figures, runner, scenes, tables
 from jaxnerf_grid.config.schema import merge
+from jaxnerf_grid.nerf.fields.base import FieldBase
 
 METHODS = (("ours", "ours", {"train": {"use_masks": True}}), ("NeRF", "nerf", {}), ("NeRF-W", "nerfw", {}))
 # A check on the baseline at --standard: NeRF without the recipe's opaque far bin and distortion
@@ -68,13 +70,22 @@ MLP_FIELD = {"model": {"field": {"kind": "mlp", "depth": 4, "width": 64, "skip":
              "train": {"lr_init": 5e-3, "lr_final": 5e-4}}
 
 
+def mlp_field(setting: dict) -> dict:
+    """MLP_FIELD over the keys every field kind shares (fields.base.FieldBase) of the setting's
+    field `setting["model"]["field"]`: a field dict of another kind replaces the setting's, and
+    these runs kept its shared keys (the grid setting's two colour layers), as their keys record."""
+    shared = {f.name for f in dataclasses.fields(FieldBase)}
+    field = {k: v for k, v in setting.get("model", {}).get("field", {}).items() if k in shared}
+    return merge(MLP_FIELD, {"model": {"field": merge(field, MLP_FIELD["model"]["field"])}})
+
+
 def main(argv=None) -> int:
     p = runner.base_parser(__doc__)
     p.add_argument("--field", choices=("setting", "mlp"), default="setting",
                    help="the setting's field (default), or an MLP field for every method (results: table3_methods_mlp)")
     args = p.parse_args(argv)
     ctx = runner.make_context(args, "table3_methods.py")
-    field_ov = MLP_FIELD if args.field == "mlp" else {}
+    field_ov = mlp_field(ctx.overrides) if args.field == "mlp" else {}
     methods = METHODS + CHECKS.get(ctx.setting, ())
     records = {label: [] for label, _, _ in methods}
     data0 = None

@@ -177,8 +177,8 @@ def mask_plan(choice: str, domain: dict | None) -> dict:
     ground-truth masks or masks made before the rule existed).
 
     Returns {"mode": "dpt" | "robust" | "dpt+robust" | "none", "overrides": the train.* config
-    changes ({"train": {"use_masks": bool[, "robust": mode]}}; `robust` only when not "off", its
-    default), "why": a sentence for the report}.
+    changes ({"train": {"use_masks": bool[, "robust": {"mode": mode}]}}; `robust` only when not "off",
+    its default), "why": a sentence for the report}.
     """
     if choice not in MASK_CHOICES:
         raise ConfigError(f"demo.masks = {choice!r}: must be one of {', '.join(MASK_CHOICES)}")
@@ -200,7 +200,7 @@ def mask_plan(choice: str, domain: dict | None) -> dict:
     train_over: dict[str, Any] = {"use_masks": mode in ("dpt", "dpt+robust")}
     robust = {"dpt": "off", "none": "off"}.get(mode, mode)
     if robust != "off":
-        train_over["robust"] = robust
+        train_over["robust"] = {"mode": robust}
     return {"mode": mode, "overrides": {"train": train_over}, "why": why}
 
 

@@ -83,7 +83,7 @@ def main(argv: list[str]) -> int:
                                          for im in images]), 1e-6, 1.0))
     stats = [local_stats(im) for im in images]
     colour = np.concatenate([images, np.stack([s[0] for s in stats]), np.stack([s[1] for s in stats])], -1)
-    print(f"strict re-admission: {cfg.train.robust_strict_readmit}")
+    print(f"strict re-admission: {cfg.train.robust.strict_readmit}")
     print("DPT prior alone:", shares(pool["weights"], truth, tower))
     print("rule alone:", shares(rule, truth, tower))
     features = {"dpt": log_probs, "dpt+rgb": np.concatenate([log_probs, colour], -1), "rgb": colour}

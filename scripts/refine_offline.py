@@ -1,9 +1,9 @@
-"""What `train.robust_refine`'s whole-frame rule (jaxnerf_grid/train/refine.py) makes of a trained
+"""What `train.robust.refine`'s whole-frame rule (jaxnerf_grid/train/refine.py) makes of a trained
 run's training frames, against the scene's distractor masks (the synthetic scenes'): the share
 of distractor and of static pixels it ignores, beside the DPT prior alone (and, for the rule,
 what it does with the distractor pixels the DPT missed and found), the rule without multi-view
 confirmation, the prior dilated by 1-3 px, tighter spread bounds, and strict re-admission
-(`train.robust_strict_readmit`); with the scene's semantics, also the share of the tower's and
+(`train.robust.strict_readmit`); with the scene's semantics, also the share of the tower's and
 conductors' pixels (classes 1-2, distractors excluded) each ignores.
 
     python scripts/refine_offline.py RUN STEP
@@ -39,7 +39,7 @@ def shares(weights: np.ndarray, distractor: np.ndarray, tower: np.ndarray | None
 
 def dilated_prior(prior: np.ndarray, masks: np.ndarray, px: int) -> np.ndarray:
     """The prior with 0 wherever the binary masks [T, H, W], grown by px, reach: what
-    train.robust_prior_grow = px gives (`train.grown_masks`)."""
+    train.robust.prior_grow = px gives (`train.grown_masks`)."""
     return np.where(train.grown_masks(masks, px), 0.0, prior).astype(np.float32)
 
 
@@ -55,7 +55,7 @@ def rendered_run(run: str, step: int):
                                        train.init_state(cfg, train.train_frames_shape(ds)))
     pool = train.build_pool(ds, cfg)
     residual, points = refine.render_training_frames(state["params"], cfg, ds, pool["frame"])
-    confirmed = refine.confirmed_frames(pool, points, cfg.train.robust_confirm)
+    confirmed = refine.confirmed_frames(pool, points, cfg.train.robust.confirm)
     return cfg, ds, pool, np.asarray(ds.split["train"]), residual, confirmed
 
 

@@ -6,8 +6,8 @@ multi-view confirmation, for a few spread bounds: a quick look before a long tra
 
 FRAMES: comma-separated dataset indices of training frames. For each frame the run renders
 it (rgb and median depth), takes the residuals of the whole frame as the batch, applies the
-rule of `jaxnerf_grid/masks/robust.py` over the frame cut into train.robust_patch squares (the
-inlier quantile is the run's train.robust_quantile unless --quantile says another; 0 leaves
+rule of `jaxnerf_grid/masks/robust.py` over the frame cut into train.robust.patch squares (the
+inlier quantile is the run's train.robust.quantile unless --quantile says another; 0 leaves
 the spread bound alone), with the confirmation of `jaxnerf_grid/masks/photo_consistency.py` against the
 --views nearest training photos, and prints the share of the frame it would ignore; where
 the dataset has distractor masks (the pasted-transient benchmark's), the share of the
@@ -64,14 +64,14 @@ def print_breakdown(index: int, res_t, err_t, residual, truth, tcfg, patch: int)
     import cv2
 
     ones = jnp.ones_like(jnp.asarray(res_t))
-    args = (jnp.asarray(res_t), ones, jnp.asarray(residual.ravel()), tcfg.robust_quantile,
-            tcfg.robust_flagged_quantile, tcfg.robust_floor, tcfg.robust_spread)
-    confirmed = jnp.asarray(err_t <= tcfg.robust_confirm, jnp.float32)
+    args = (jnp.asarray(res_t), ones, jnp.asarray(residual.ravel()), tcfg.robust.quantile,
+            tcfg.robust.flagged_quantile, tcfg.robust.floor, tcfg.robust.spread)
+    confirmed = jnp.asarray(err_t <= tcfg.robust.confirm, jnp.float32)
     h, w = residual.shape
     t = truth[:h // patch * patch, :w // patch * patch]
     alone = untile(np.asarray(robust.pixel_inliers(*args)), h, w, patch) < 0.5
     conf = untile(np.asarray(confirmed), h, w, patch) > 0.5
-    final = untile(np.asarray(robust.evidence(robust.pixel_inliers(*args, confirmed), tcfg.robust_patch_share)),
+    final = untile(np.asarray(robust.evidence(robust.pixel_inliers(*args, confirmed), tcfg.robust.patch_share)),
                    h, w, patch) < 0.5
     inside = cv2.erode(t.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
     print(f"frame {index} breakdown: residual test alone marks distractor {alone[t].mean():.1%} / static "
@@ -96,7 +96,7 @@ def main(argv: list[str]) -> int:
     cfg, _, ds = load_run_and_dataset(args.run, None, False, False, False)
     params, _ = train.load_params(args.run, cfg, ds)
     tcfg = cfg.train
-    patch = tcfg.robust_patch
+    patch = tcfg.robust.patch
     train_ids = np.asarray(ds.split["train"])
     for index in (int(a) for a in args.frames.split(",")):
         view = views.render_view(params, cfg, ds, index)
@@ -109,16 +109,16 @@ def main(argv: list[str]) -> int:
         if truth is not None and args.breakdown:
             print_breakdown(index, res_t, err_t, residual, truth, tcfg, patch)
         for k in (float(a) for a in args.spreads.split(",")):
-            quantile = tcfg.robust_quantile if args.quantile is None else args.quantile
+            quantile = tcfg.robust.quantile if args.quantile is None else args.quantile
             for confirm in (float(a) for a in args.confirms.split(",")):
                 confirmed = jnp.asarray(err_t <= confirm, jnp.float32) if confirm > 0 else None
                 inlier = robust.pixel_inliers(jnp.asarray(res_t), jnp.ones_like(jnp.asarray(res_t)),
-                                              jnp.asarray(residual.ravel()), quantile, tcfg.robust_flagged_quantile,
-                                              tcfg.robust_floor, k, confirmed)
+                                              jnp.asarray(residual.ravel()), quantile, tcfg.robust.flagged_quantile,
+                                              tcfg.robust.floor, k, confirmed)
                 for disconfirm in [None, *(float(a) for a in args.disconfirms.split(",") if a)]:
                     kept = inlier if disconfirm is None else jnp.where(
                         jnp.asarray(np.isfinite(err_t) & (err_t > disconfirm)), 0.0, inlier)
-                    w = robust.evidence(kept, tcfg.robust_patch_share)
+                    w = robust.evidence(kept, tcfg.robust.patch_share)
                     ignored = untile(np.asarray(w), height, width, patch) < 0.5
                     line = (f"frame {index} quantile {quantile:g} spread {k:g} confirm {confirm:g}"
                             + ("" if disconfirm is None else f" disconfirm {disconfirm:g}")

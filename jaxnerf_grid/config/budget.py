@@ -22,7 +22,7 @@ larger steps; on a GPU a larger batch does fill the device (docs/GPU.md), and is
 
 `stretch_schedules(train_cfg, steps)` stretches everything that counts steps with the run:
 train.max_steps and train.warmup (the learning-rate schedule, optim.lr_schedule, is then the same
-function of the fraction of the run); train.robust_warmup and train.robust_refine are fractions of
+function of the fraction of the run); train.robust.warmup and train.robust.refine are fractions of
 max_steps already (robust.warmup_steps, robust.refine_step), the samplers have no schedule. Kept
 as they are: checkpoint_every and log_every (how often a run is saved and logged, in steps: a
 longer run saves and logs more often, so a kill loses as many seconds as before) and

@@ -31,9 +31,8 @@ from jaxnerf_grid.capture.bounds import folder_bounds, recipe_with_bounds
 from jaxnerf_grid.config import budget as budget_lib
 from jaxnerf_grid.config import recipes
 from jaxnerf_grid.config import schema as config_lib
-from jaxnerf_grid.config.run_config import RunConfig, make_config
+from jaxnerf_grid.config.run_config import RunConfig, make_config, upgrade_flat_robust, upgrade_run_dict
 from jaxnerf_grid.config.schema import ConfigError
-from jaxnerf_grid.nerf.samplers.legacy import upgrade_flat_model
 from jaxnerf_grid.util import io
 
 
@@ -67,7 +66,8 @@ class Built:
 
 def read_config_file(path: str | Path | None) -> dict:
     """A --config file's overrides ({} when no file is given): a JSON object; its `data` key is
-    dropped (the dataset is run.data) and a flat pre-sampler `model` section is upgraded."""
+    dropped (the dataset is run.data) and the older flat sampler and robust keys are upgraded
+    (`run_config.upgrade_run_dict`), so the layers laid over it meet the current layout."""
     if not path:
         return {}
     data = io.read_json(path)
@@ -75,9 +75,17 @@ def read_config_file(path: str | Path | None) -> dict:
         raise ConfigError(f"{path}: a config file must hold a JSON object")
     data = dict(data)
     data.pop("data", None)
-    if isinstance(data.get("model"), dict):
-        data["model"] = upgrade_flat_model(data["model"])
-    return data
+    return upgrade_run_dict(data)
+
+
+def with_robust_nested(layer: dict) -> dict:
+    """An override layer with its flat robust keys nested (`run_config.upgrade_flat_robust`),
+    so a mode string merges into, rather than replaces, the train.robust dict below it. (Its
+    flat sampler keys stay: alone they would read as over the old defaults, not the layers below;
+    `make_config` reads them once every layer is merged.)"""
+    if not isinstance(layer.get("train"), dict):
+        return layer
+    return dict(layer, train=upgrade_flat_robust(layer["train"]))
 
 
 def with_sets(overrides: dict | None, sets: list[str] | tuple[str, ...] | None) -> dict:
@@ -123,7 +131,7 @@ def build(request: Request, data: str | Path | None = None, extra: dict | None =
     overrides = config_lib.merge(overrides, user)
     overrides = with_max_side(overrides, request.max_side)
     overrides = with_steps(overrides, request.steps)
-    overrides = config_lib.merge(overrides, extra or {})
+    overrides = config_lib.merge(overrides, with_robust_nested(extra or {}))
     settled = make_config(method, overrides)  # every key and value checked before anything is written
     chosen = None
     if data is not None and devices_of is not None and Path(data).is_dir():  # a missing folder: train_run says so

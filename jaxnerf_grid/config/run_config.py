@@ -23,6 +23,118 @@ from jaxnerf_grid.util.io import DataError
 
 
 @dataclasses.dataclass(frozen=True)
+class RobustConfig:
+    """train.robust: the photometric evidence (`masks/robust.py`, docs/ROBUST.md).
+
+    mode: "off" (the loss weights of TrainConfig), "robust" (no masks: the weight is the
+      evidence of the residuals) or "dpt+robust" (the dataset's 1 - M_w, whatever use_masks
+      says, sets how strict the evidence is per pixel); when on, training draws
+      batch_rays / patch^2 patches of patch^2 rays. `--set train.robust=MODE` sets it (SHORTHAND).
+    quantile, flagged_quantile: the inlier quantile of the batch's residuals for an unflagged
+      pixel (prior 1) and a flagged one (prior 0; linear in between);
+    patch: patch side in pixels; patch_stride: the distance in pixels between a patch's
+      neighbouring pixels (1: adjacent); patch_share: a patch with fewer pixels passing the 3x3
+      vote is a transient patch; floor: a residual (squared error) at most this is always an
+      inlier; spread: k of the spread bound (robust.spread_thresholds: a residual within
+      median + k MAD-sigmas of the batch is an inlier whatever the quantile says; 0 = the
+      quantile alone); warmup: the fraction of max_steps trained on the prior alone before the
+      evidence applies (robust.warmup_steps);
+    confirm: multi-view confirmation (`photo_consistency.py`): a pixel whose 3x3 neighbourhood a
+      neighbouring training photo shows again at the pixel's rendered 3-D point, with a mean
+      squared difference at most this, is an inlier whatever its residual (0 = off); views: how
+      many neighbouring photos (nearest camera centres) are looked at;
+    scattered: the share of batch_rays drawn as single pixels scattered over the frames instead
+      of patches (`scattered_rays`); a scattered ray has no neighbours to vote, so its weight is
+      its own inlier test (`robust.pixel_inliers`), confirmation included (0 = patches only);
+    refine: the fraction of max_steps after which the evidence is judged once on whole training
+      frames and frozen (`refine.py`): every training frame is rendered, the rule is applied to
+      it (`robust.frame_evidence`), and the rest of the run trains on scattered rays with those
+      weights, as a run with masks does (0 = patches to the end);
+    prior_grow: dpt+robust only: pixels within this many px of a masked pixel are flagged in the
+      prior too (`train.grown_masks`), so the rims of the transients that the DPT's masks fall
+      short of are not trained on before the evidence decides (0 = the masks as they are);
+    strict_readmit: a flagged pixel (prior < 1/2) is re-admitted only when its residual is an
+      inlier *and* a neighbouring photo confirms it (`robust.pixel_inliers`); off, either
+      suffices. Once re-admitted a pixel is trained on and its residual falls, so a transient
+      re-admitted on its residual alone stays in (docs/ROBUST.md). None (the default): on unless
+      `mask` judged the dataset's DPT masks out of their domain (`config.strict_readmit_auto`).
+    """
+
+    mode: str = "off"
+    quantile: float = 0.8
+    flagged_quantile: float = 0.5
+    patch: int = 4
+    patch_stride: int = 1
+    patch_share: float = 0.6
+    floor: float = 1e-3
+    spread: float = 1.5
+    warmup: float = 0.2
+    confirm: float = 0.01
+    views: int = 8
+    scattered: float = 0.0
+    refine: float = 0.0
+    prior_grow: int = 0
+    strict_readmit: bool | None = None
+
+    SHORTHAND: typing.ClassVar[str] = "mode"  # `--set train.robust=robust` sets the mode
+    # allowed values, checked by config.validate (docs/RELIABILITY.md)
+    RANGES: typing.ClassVar[dict] = {
+        "quantile": config_lib.UNIT, "flagged_quantile": config_lib.UNIT, "patch": config_lib.AT_LEAST_ONE,
+        "patch_stride": config_lib.AT_LEAST_ONE, "patch_share": config_lib.UNIT, "floor": config_lib.NONNEGATIVE,
+        "spread": config_lib.NONNEGATIVE, "warmup": config_lib.UNIT, "confirm": config_lib.NONNEGATIVE,
+        "views": config_lib.AT_LEAST_ONE, "scattered": config_lib.FRACTION, "refine": config_lib.FRACTION,
+        "prior_grow": config_lib.NONNEGATIVE}
+
+
+# Older train dicts held the robust settings flat: train.robust the mode string, the others as
+# train.robust_<key> (robust_quantile, robust_patch, ...): `upgrade_flat_robust` reads them.
+FLAT_ROBUST_PREFIX = "robust_"
+
+
+def upgrade_flat_robust(train: dict) -> dict:
+    """A train dict with the older flat robust keys nested in train.robust: a mode string
+    becomes {"mode": ...}, robust_X becomes robust.X (laid over a robust dict it holds; an
+    unknown X is named by `config.from_dict`). Returned unchanged when it has neither; the
+    input is not changed."""
+    if not isinstance(train, dict):
+        return train
+    flat = {k[len(FLAT_ROBUST_PREFIX):]: v for k, v in train.items() if k.startswith(FLAT_ROBUST_PREFIX)}
+    current = train.get("robust")
+    if not flat and not isinstance(current, str):
+        return train
+    robust = dict(current) if isinstance(current, dict) else ({} if current is None else {"mode": current})
+    out = {k: v for k, v in train.items() if not k.startswith(FLAT_ROBUST_PREFIX)}
+    out["robust"] = {**robust, **flat}
+    return out
+
+
+def flat_robust(train: dict) -> dict:
+    """A train dict (as `to_dict` writes it) in the older flat layout: train.robust the mode,
+    the other robust settings as robust_X keys (what the experiments' run keys hash)."""
+    robust = train.get("robust")
+    if not isinstance(robust, dict):
+        return train
+    out = {k: v for k, v in train.items() if k != "robust"}
+    out["robust"] = robust.get("mode", "off")
+    out.update({FLAT_ROBUST_PREFIX + k: v for k, v in robust.items() if k != "mode"})
+    return out
+
+
+def upgrade_run_dict(data: dict) -> dict:
+    """A run config dict (config.json, a --config file, overrides) with the older layouts read
+    where they can be without the defaults: the flat sampler keys (samplers/legacy.py) and the
+    flat robust keys. (Each field kind's stray keys are read by its `Config.upgrade_dict`.)"""
+    if not isinstance(data, dict):
+        return data
+    out = dict(data)
+    if isinstance(out.get("model"), dict):
+        out["model"] = models.ModelConfig.upgrade_dict(out["model"])
+    if isinstance(out.get("train"), dict):
+        out["train"] = upgrade_flat_robust(out["train"])
+    return out
+
+
+@dataclasses.dataclass(frozen=True)
 class TrainConfig:
     """Optimisation and I/O settings.
 
@@ -44,39 +156,7 @@ class TrainConfig:
       (the hierarchical sampler's first pass; losses.per_ray_loss's level_weight);
     interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (levels without colour);
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
-    robust: photometric evidence (`robust.py`, docs/ROBUST.md): "off" (the weights above),
-      "robust" (no masks: the weight is the evidence of the residuals) or "dpt+robust" (the
-      dataset's 1 - M_w, whatever use_masks says, sets how strict the evidence is per pixel);
-      when on, training draws batch_rays / robust_patch^2 patches of robust_patch^2 rays;
-    robust_quantile, robust_flagged_quantile: the inlier quantile of the batch's residuals for
-      an unflagged pixel (prior 1) and a flagged one (prior 0; linear in between);
-    robust_patch: patch side in pixels; robust_patch_stride: the distance in pixels between a
-      patch's neighbouring pixels (1: adjacent); robust_patch_share: a patch with fewer pixels passing
-      the 3x3 vote is a transient patch; robust_floor: a residual (squared error) at most this
-      is always an inlier; robust_spread: k of the spread bound (robust.spread_thresholds: a
-      residual within median + k MAD-sigmas of the batch is an inlier whatever the quantile
-      says; 0 = the quantile alone); robust_warmup: the fraction of max_steps trained on the
-      prior alone before the evidence applies (robust.warmup_steps);
-    robust_confirm: multi-view confirmation (`photo_consistency.py`): a pixel whose 3x3
-      neighbourhood a neighbouring training photo shows again at the pixel's rendered 3-D
-      point, with a mean squared difference at most this, is an inlier whatever its residual
-      (0 = off); robust_views: how many neighbouring photos (nearest camera centres) are looked at;
-    robust_scattered: the share of batch_rays drawn as single pixels scattered over the frames
-      instead of patches (`scattered_rays`); a scattered ray has no neighbours to vote, so its
-      weight is its own inlier test (`robust.pixel_inliers`), confirmation included (0 = patches
-      only);
-    robust_refine: the fraction of max_steps after which the evidence is judged once on whole
-      training frames and frozen (`refine.py`): every training frame is rendered, the rule is
-      applied to it (`robust.frame_evidence`), and the rest of the run trains on scattered
-      rays with those weights, as a run with masks does (0 = patches to the end);
-    robust_prior_grow: dpt+robust only: pixels within this many px of a masked pixel are flagged
-      in the prior too (`train.grown_masks`), so the rims of the transients that the DPT's masks
-      fall short of are not trained on before the evidence decides (0 = the masks as they are);
-    robust_strict_readmit: a flagged pixel (prior < 1/2) is re-admitted only when its residual is
-      an inlier *and* a neighbouring photo confirms it (`robust.pixel_inliers`); off, either
-      suffices. Once re-admitted a pixel is trained on and its residual falls, so a transient
-      re-admitted on its residual alone stays in (docs/ROBUST.md). None (the default): on unless
-      `mask` judged the dataset's DPT masks out of their domain (`config.strict_readmit_auto`).
+    robust: the photometric evidence's settings (`RobustConfig`, docs/ROBUST.md).
     """
 
     batch_rays: int = 1024
@@ -104,21 +184,7 @@ class TrainConfig:
     appearance_lr: float = 0.05
     appearance_rays: int = 1024
     max_side: int = 640
-    robust: str = "off"
-    robust_quantile: float = 0.8
-    robust_flagged_quantile: float = 0.5
-    robust_patch: int = 4
-    robust_patch_stride: int = 1
-    robust_patch_share: float = 0.6
-    robust_floor: float = 1e-3
-    robust_spread: float = 1.5
-    robust_warmup: float = 0.2
-    robust_confirm: float = 0.01
-    robust_views: int = 8
-    robust_scattered: float = 0.0
-    robust_refine: float = 0.0
-    robust_prior_grow: int = 0
-    robust_strict_readmit: bool | None = None
+    robust: RobustConfig = RobustConfig()
 
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
@@ -132,14 +198,12 @@ class TrainConfig:
         "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
         "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
         "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE,
-        "max_side": config_lib.NONNEGATIVE,
-        "robust_quantile": config_lib.UNIT, "robust_flagged_quantile": config_lib.UNIT,
-        "robust_patch": config_lib.AT_LEAST_ONE, "robust_patch_stride": config_lib.AT_LEAST_ONE,
-        "robust_patch_share": config_lib.UNIT,
-        "robust_floor": config_lib.NONNEGATIVE, "robust_spread": config_lib.NONNEGATIVE,
-        "robust_warmup": config_lib.UNIT, "robust_confirm": config_lib.NONNEGATIVE,
-        "robust_views": config_lib.AT_LEAST_ONE, "robust_scattered": config_lib.FRACTION,
-        "robust_refine": config_lib.FRACTION, "robust_prior_grow": config_lib.NONNEGATIVE}
+        "max_side": config_lib.NONNEGATIVE}
+
+    @staticmethod
+    def upgrade_dict(data: dict) -> dict:
+        """An older train dict (flat robust_* keys, train.robust a mode string) nested."""
+        return upgrade_flat_robust(data)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -155,9 +219,7 @@ class RunConfig:
 def make_config(method: str, overrides: dict | None = None) -> RunConfig:
     """The defaults of `method` with `overrides` (a nested dict, e.g. from --config) on top."""
     base = {"model": models.method_defaults(method), "train": {"use_masks": method == "ours"}}
-    overrides = overrides or {}
-    if isinstance(overrides.get("model"), dict):  # older flat sampler keys, over the old defaults
-        overrides = dict(overrides, model=models.ModelConfig.upgrade_dict(overrides["model"]))
+    overrides = upgrade_run_dict(overrides or {})  # older flat sampler / robust keys, over the old defaults
     merged = config_lib.merge(config_lib.to_dict(RunConfig()), base)
     merged = config_lib.merge(merged, overrides)
     if "model" in overrides and "method" in overrides["model"] and overrides["model"]["method"] != method:
@@ -180,35 +242,36 @@ def resolve_devices(cfg: TrainConfig) -> int:
 
 def scattered_rays(cfg: TrainConfig) -> int:
     """How many of a robust batch's rays are scattered single pixels: batch_rays x
-    robust_scattered, rounded."""
-    return int(round(cfg.batch_rays * cfg.robust_scattered))
+    robust.scattered, rounded."""
+    return int(round(cfg.batch_rays * cfg.robust.scattered))
 
 
 def check_robust(cfg: TrainConfig, num_devices: int = 1, dataset: Dataset | None = None) -> None:
-    """ConfigError unless train.robust is a known mode and, when on, the batch splits into whole
-    patches, and the patches over the devices; with a dataset, also that a patch fits in its
-    frames (ConfigError) and that dpt+robust has masks (DataError)."""
-    if cfg.robust not in robust_lib.MODES:
-        raise ConfigError(f"train.robust = {cfg.robust!r}: must be one of {', '.join(robust_lib.MODES)}")
-    if cfg.robust == "off":
+    """ConfigError unless train.robust.mode is a known mode and, when on, the batch splits into
+    whole patches, and the patches over the devices; with a dataset, also that a patch fits in
+    its frames (ConfigError) and that dpt+robust has masks (DataError)."""
+    r = cfg.robust
+    if r.mode not in robust_lib.MODES:
+        raise ConfigError(f"train.robust.mode = {r.mode!r}: must be one of {', '.join(robust_lib.MODES)}")
+    if r.mode == "off":
         return
-    area = cfg.robust_patch ** 2
+    area = r.patch ** 2
     scattered = scattered_rays(cfg)
     patch_rays = cfg.batch_rays - scattered
     if patch_rays <= 0 or patch_rays % area or (patch_rays // area) % num_devices:
         raise ConfigError(f"train.batch_rays = {cfg.batch_rays}: with train.robust on, its patch part "
-                          f"({patch_rays} rays after train.robust_scattered's {scattered}) must be a positive "
-                          f"multiple of train.robust_patch^2 ({area}) times the device count ({num_devices})")
+                          f"({patch_rays} rays after train.robust.scattered's {scattered}) must be a positive "
+                          f"multiple of train.robust.patch^2 ({area}) times the device count ({num_devices})")
     if scattered % num_devices:
-        raise ConfigError(f"train.robust_scattered = {cfg.robust_scattered}: its {scattered} scattered rays "
+        raise ConfigError(f"train.robust.scattered = {r.scattered}: its {scattered} scattered rays "
                           f"must divide over the {num_devices} devices")
     if dataset is None:
         return
-    span = robust_lib.patch_span(cfg.robust_patch, cfg.robust_patch_stride)
+    span = robust_lib.patch_span(r.patch, r.patch_stride)
     if min(dataset.height, dataset.width) < span:
-        raise ConfigError(f"train.robust_patch = {cfg.robust_patch} at train.robust_patch_stride = "
-                          f"{cfg.robust_patch_stride}: spans {span} px, more than the "
+        raise ConfigError(f"train.robust.patch = {r.patch} at train.robust.patch_stride = "
+                          f"{r.patch_stride}: spans {span} px, more than the "
                           f"{dataset.width}x{dataset.height} images")
-    if cfg.robust == "dpt+robust" and dataset.weights is None:
+    if r.mode == "dpt+robust" and dataset.weights is None:
         raise DataError(f"{dataset.root}: train.robust = dpt+robust needs the dataset's masks "
                         "(run jaxnerf-grid mask first, or use train.robust = robust)")

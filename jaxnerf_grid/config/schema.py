@@ -12,12 +12,17 @@ strings) and against the `Range` its class lists in a `RANGES` class variable, w
 `parse_sets(["model.warp=log", ...], cls)` turns `--set key=value` flags into an override dict.
 
 Tagged unions: a field whose type hint is a union of dataclasses that each have a `kind` field
-(e.g. `ModelConfig.sampler`) holds one of them, chosen by "kind" in its dict. `from_dict` lays
-the given keys over that kind's defaults (an unknown key for that kind is a ConfigError naming
-it); `merge` replaces, rather than merges into, a tagged dict of another kind, so
-`--set model.sampler.kind=proposal` switches to the proposal sampler with its defaults.
+(`ModelConfig.sampler`, `ModelConfig.field`) holds one of them, chosen by "kind" in its dict.
+`from_dict` lays the given keys over that kind's defaults (an unknown key for that kind is a
+ConfigError naming it; a dict without "kind" is laid over the field's default); `merge`
+replaces, rather than merges into, a tagged dict of another kind, so
+`--set model.sampler.kind=proposal` switches to the proposal sampler with its defaults, and
+`--set model.field.kind=grid` to the grid field with its.
 A class may define `upgrade_dict(data) -> data` (a static method) to read an older layout of
-its dict; `from_dict` calls it first (ModelConfig: the flat sampler keys of older runs).
+its dict; `from_dict` calls it first (ModelConfig: the flat sampler keys of older runs; each
+field kind: the other kinds' keys older runs wrote; TrainConfig: the flat robust keys).
+A section class may name a `SHORTHAND` key: `--set train.robust=robust` (a plain value where
+the section is) sets that key, `train.robust.mode`.
 
 This module imports nothing of the NeRF side (models, train): it sits below them, so they
 import it and it only reads the duck-typed fields of the configs it is given.
@@ -216,6 +221,9 @@ def parse_sets(items: list[str] | None, cls: type) -> dict:
             else:
                 if _is_section(target):
                     value = _parse_value(text)
+                    shorthand = getattr(target, "SHORTHAND", None)
+                    if not isinstance(value, dict) and shorthand:
+                        value = {shorthand: value}  # e.g. train.robust=robust: train.robust.mode
                     if not isinstance(value, dict):
                         raise ConfigError(f"{key}: a section; give a JSON object or set its keys")
                     node[part] = merge(node.get(part, {}), value)
@@ -240,19 +248,20 @@ def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
     tagged union's dict is laid over the defaults of its "kind"."""
     if not isinstance(data, dict):
         raise ConfigError(f"{where}: expected an object, got {type(data).__name__}")
-    upgrade = getattr(cls, "upgrade_dict", None)
-    if upgrade is not None:
-        data = upgrade(data)
+    data = _upgraded(cls, data, where)
     hints = typing.get_type_hints(cls)
-    names = {f.name for f in dataclasses.fields(typing.cast(Any, cls))}
-    unknown = sorted(set(data) - names)
+    fields = {f.name: f for f in dataclasses.fields(typing.cast(Any, cls))}
+    unknown = sorted(set(data) - set(fields))
     if unknown:
-        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(names)}")
+        raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {sorted(fields)}")
     kwargs = {}
     for name, value in data.items():
         hint = hints[name]
         variants = tagged_variants(hint)
         if variants:
+            default = fields[name].default
+            if isinstance(value, dict) and "kind" not in value and dataclasses.is_dataclass(default):
+                value = merge(to_dict(default), value)  # no kind given: the default's kind and keys
             value = _tagged_from_dict(variants, value, f"{where}.{name}")
         elif dataclasses.is_dataclass(hint):
             value = from_dict(typing.cast(type, hint), value, f"{where}.{name}")
@@ -260,6 +269,18 @@ def from_dict(cls: type[T], data: dict, where: str = "config") -> T:
             value = tuple(value)
         kwargs[name] = value
     return cls(**kwargs)
+
+
+def _upgraded(cls: type, data: dict, where: str) -> dict:
+    """`data` read through cls.upgrade_dict (an older layout of its dict), if it has one; its
+    ConfigError names `where`."""
+    upgrade = getattr(cls, "upgrade_dict", None)
+    if upgrade is None:
+        return data
+    try:
+        return upgrade(data)
+    except ConfigError as exc:
+        raise ConfigError(f"{where}: {exc}") from None
 
 
 def _tagged_from_dict(variants: dict, data: Any, where: str) -> Any:
@@ -270,6 +291,7 @@ def _tagged_from_dict(variants: dict, data: Any, where: str) -> Any:
     if kind not in variants:
         raise ConfigError(f"{where}.kind = {_show(kind)}: choose from {sorted(variants)}")
     cls = variants[kind]
+    data = _upgraded(cls, data, where)
     names = {f.name for f in dataclasses.fields(typing.cast(Any, cls))}
     unknown = sorted(set(data) - names)
     if unknown:
@@ -278,9 +300,9 @@ def _tagged_from_dict(variants: dict, data: Any, where: str) -> Any:
 
 
 # The keys whose value is a tagged union (a dataclass chosen by its "kind", each kind with only
-# its own fields): `model.sampler`. A field config's `kind` ("mlp" / "grid") is a plain field of
-# one dataclass, so a field dict of another kind still merges key by key.
-TAGGED_UNION_KEYS = ("sampler",)
+# its own fields): `model.sampler`, `model.field` (and the proposal sampler's grid `field`, so a
+# dict of another kind replaces it there too, for its check to name).
+TAGGED_UNION_KEYS = ("sampler", "field")
 
 
 def merge(base: dict, extra: dict) -> dict:
@@ -304,7 +326,7 @@ def near_far(model_cfg: Any, dataset: Any) -> tuple[float, float]:
 
 
 def strict_readmit_auto(meta: dict) -> bool:
-    """train.robust_strict_readmit's automatic value (None) on a dataset whose transforms.json
+    """train.robust.strict_readmit's automatic value (None) on a dataset whose transforms.json
     gave `meta`: on, unless `mask` judged the dataset's DPT masks out of their domain
     (`mask_domain.out_of_domain`, masking.domain_verdict). In its domain the prior is trusted
     more, and strict re-admission gains on every seed of Table 1's dpt+robust row; out of it a
@@ -314,8 +336,8 @@ def strict_readmit_auto(meta: dict) -> bool:
 
 
 def strict_readmit_acts(setting: bool | None, robust: str, meta: dict) -> bool:
-    """Whether strict re-admission acts in a run with train.robust_strict_readmit `setting`
-    (None: `strict_readmit_auto` on the dataset's `meta`) and train.robust `robust`: only
+    """Whether strict re-admission acts in a run with train.robust.strict_readmit `setting`
+    (None: `strict_readmit_auto` on the dataset's `meta`) and train.robust.mode `robust`: only
     "dpt+robust" has flagged pixels to re-admit."""
     strict = strict_readmit_auto(meta) if setting is None else bool(setting)
     return strict and robust == "dpt+robust"
@@ -325,8 +347,8 @@ def resolve(cfg: Any, dataset: Any, bounds: bool = True) -> Any:
     """A run config (anything with a `.model` holding num_images / near / far) settled on a
     dataset: model.num_images at least the dataset's frame count (the embedding tables' size),
     and, with `bounds`, model.near / model.far filled from the dataset where None; a
-    `.train.robust_strict_readmit` of None (automatic) becomes `strict_readmit_acts`: on the
-    dataset's meta with train.robust "dpt+robust", else false (it acts in no other mode, and
+    `.train.robust.strict_readmit` of None (automatic) becomes `strict_readmit_acts`: on the
+    dataset's meta with train.robust.mode "dpt+robust", else false (it acts in no other mode, and
     false is what runs recorded before it was automatic, so they resume), whatever `bounds`
     (what trained is what a run's config.json records).
 
@@ -336,9 +358,11 @@ def resolve(cfg: Any, dataset: Any, bounds: bool = True) -> Any:
     validate(cfg)
     changes = {"num_images": max(cfg.model.num_images, dataset.num_frames)}
     train_cfg = getattr(cfg, "train", None)
-    if train_cfg is not None and getattr(train_cfg, "robust_strict_readmit", False) is None:
-        acts = strict_readmit_acts(None, getattr(train_cfg, "robust", "off"), getattr(dataset, "meta", {}))
-        cfg = dataclasses.replace(cfg, train=dataclasses.replace(train_cfg, robust_strict_readmit=acts))
+    robust = getattr(train_cfg, "robust", None)
+    if train_cfg is not None and robust is not None and robust.strict_readmit is None:
+        acts = strict_readmit_acts(None, robust.mode, getattr(dataset, "meta", {}))
+        robust = dataclasses.replace(robust, strict_readmit=acts)
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(train_cfg, robust=robust))
     if bounds:
         changes["near"], changes["far"] = near_far(cfg.model, dataset)
         if not 0 < changes["near"] < changes["far"]:

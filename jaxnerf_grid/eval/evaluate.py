@@ -255,7 +255,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     weights = training_weights(run_dir, ds)
     if weights is not None:
         late = robust_lib.late_ignored_share(train.read_log(run_dir / "metrics.jsonl"), cfg.train.max_steps)
-        result["training_weights"] = {"mode": cfg.train.robust, "ignored_share": weights["ignored_share"],
+        result["training_weights"] = {"mode": cfg.train.robust.mode, "ignored_share": weights["ignored_share"],
                                       "late_batch_ignored_share": late}
     chosen = read_budget(run_dir)
     if chosen is not None:
@@ -270,7 +270,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
         late = result["training_weights"]["late_batch_ignored_share"]
         late_text = "" if late is None else (f"{100 * late:.1f} % of the pixels of each batch in the last "
                                              "quarter of training, and ")
-        notes.append(f"Photometric evidence (`train.robust = {cfg.train.robust}`): training ignored "
+        notes.append(f"Photometric evidence (`train.robust.mode = {cfg.train.robust.mode}`): training ignored "
                      f"{late_text}{100 * weights['ignored_share']:.1f} % of the training pixels in its per-pixel "
                      "record (pixels never drawn count as used; weights in `weights/`, docs/ROBUST.md)."
                      + strict_note(cfg.train))
@@ -323,17 +323,17 @@ def resolution_note(res: dict) -> str:
 
 def strict_note(train_cfg) -> str:
     """The report's sentence on how dpt+robust re-admitted the pixels its prior flagged
-    (train.robust_strict_readmit as the run settled it: config.strict_readmit_auto); "" for
+    (train.robust.strict_readmit as the run settled it: config.strict_readmit_auto); "" for
     other modes or a run recorded before the key existed."""
-    strict = getattr(train_cfg, "robust_strict_readmit", None)
-    if train_cfg.robust != "dpt+robust" or strict is None:
+    strict = train_cfg.robust.strict_readmit
+    if train_cfg.robust.mode != "dpt+robust" or strict is None:
         return ""
     if strict:
         return (" A pixel the DPT flagged was re-admitted only when its residual was an inlier and a "
-                "neighbouring photo confirmed it (`train.robust_strict_readmit` on; on by default unless `mask` "
+                "neighbouring photo confirmed it (`train.robust.strict_readmit` on; on by default unless `mask` "
                 "judged the masks out of their domain).")
     return (" A pixel the DPT flagged was re-admitted when its residual was an inlier or a neighbouring "
-            "photo confirmed it (`train.robust_strict_readmit` off; off by default only where `mask` judged "
+            "photo confirmed it (`train.robust.strict_readmit` off; off by default only where `mask` judged "
             "the masks out of their domain).")
 
 

@@ -13,7 +13,7 @@ surface behind it, where the model puts it) the other photos show the background
 `confirmation_errors` returns, per pixel, the smallest mean squared difference of the two
 3x3 neighbourhoods over the neighbouring photos that see the point (in front of the camera,
 the 3x3 neighbourhood inside the photo), +inf where none does. `robust.robust_weights` counts a
-pixel whose error is at most train.robust_confirm as an inlier, whatever its residual
+pixel whose error is at most train.robust.confirm as an inlier, whatever its residual
 (docs/ROBUST.md has the measurements that chose the default). Nothing here is differentiated:
 the depth is stop-gradient, the colours are photos.
 

@@ -31,13 +31,13 @@ The rule, per training step (`evidence`):
 
 The weight is 1 for a pixel that counts, 0 otherwise.
 
-Multi-view confirmation (train.robust_confirm > 0, `photo_consistency.py`): before the vote,
+Multi-view confirmation (train.robust.confirm > 0, `photo_consistency.py`): before the vote,
 a pixel that a neighbouring photo confirms (its 3x3 neighbourhood seen again at its rendered
-3-D point, mean squared difference at most robust_confirm) is an inlier whatever its
+3-D point, mean squared difference at most train.robust.confirm) is an inlier whatever its
 residual: static detail the model has not learnt yet is not a transient, and the spread bound
-can then be tighter (robust_spread) without ignoring it.
+can then be tighter (train.robust.spread) without ignoring it.
 
-Warm-up: for the first `warmup_steps` of a run (train.robust_warmup, a fraction of
+Warm-up: for the first `warmup_steps` of a run (train.robust.warmup, a fraction of
 max_steps) the weight is the prior itself (1 everywhere in mode `robust`, 1 - M_w in
 `dpt+robust`). A model that has not formed the scene's geometry yet explains every pixel
 badly, and any rule that drops the worst-fitted pixels then drops the textured, high-contrast
@@ -70,12 +70,12 @@ EMA_RATE = 0.5    # a pixel's recorded weight moves this far towards each new we
 
 def warmup_steps(warmup: float, max_steps: int) -> int:
     """The steps trained on the prior alone before the evidence applies: round(warmup x
-    max_steps) (train.robust_warmup, a fraction of the run)."""
+    max_steps) (train.robust.warmup, a fraction of the run)."""
     return int(round(float(warmup) * int(max_steps)))
 
 
 def refine_step(refine: float, max_steps: int) -> int | None:
-    """The optimiser step after which the evidence is frozen on whole frames (train.robust_refine,
+    """The optimiser step after which the evidence is frozen on whole frames (train.robust.refine,
     `refine.py`): round(refine x max_steps), at least 1; None when refine is 0 (off)."""
     if float(refine) <= 0:
         return None
@@ -158,7 +158,7 @@ def evidence(inlier: jnp.ndarray, patch_share: float) -> jnp.ndarray:
 
 
 def frame_evidence(inlier: jnp.ndarray, patch: int, patch_share: float) -> jnp.ndarray:
-    """`evidence` on whole frames (train.robust_refine, `refine.py`): the 3x3 vote over each
+    """`evidence` on whole frames (train.robust.refine, `refine.py`): the 3x3 vote over each
     pixel's neighbours in its frame (not only in its patch), and the patch rule over the frame
     cut into patch x patch tiles from the top-left corner (the last row and column of tiles
     cut short by the frame's edge, their share taken over the pixels they hold).
@@ -183,7 +183,7 @@ def pixel_inliers(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: j
                   confirmed: jnp.ndarray | None = None, strict_readmit: bool = False) -> jnp.ndarray:
     """Step 1 of the rule, pixel by pixel: 1.0 where a pixel is an inlier (its residual at most
     its threshold or the floor, or confirmed by another photo), else 0.0. With strict_readmit
-    (train.robust_strict_readmit) a flagged pixel (prior < 1/2) needs both: its residual within
+    (train.robust.strict_readmit) a flagged pixel (prior < 1/2) needs both: its residual within
     its threshold *and* another photo's confirmation (none without confirmation), so a transient
     the model has begun to fit is not re-admitted on its residual alone.
 
@@ -191,7 +191,7 @@ def pixel_inliers(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: j
     residuals of the whole global batch (all devices), which the thresholds are figures of;
     spread: k of the spread bound (0: the quantile alone); confirmed: None or [...] in {0, 1},
     pixels another photo confirms (`photo_consistency`). Returns [...] in {0, 1}. The weight of
-    a scattered ray (train.robust_scattered) is this alone: it has no neighbours to vote.
+    a scattered ray (train.robust.scattered) is this alone: it has no neighbours to vote.
     """
     thresholds = jnp.maximum(quantile_of(batch_residuals, pixel_quantiles(prior, quantile, flagged_quantile)),
                              spread_thresholds(batch_residuals, prior, spread))
@@ -239,7 +239,7 @@ def batch_weights(residuals: jnp.ndarray, prior: jnp.ndarray, batch_residuals: j
 
 def draw_pixels(key, count: int, num_frames: int, height: int, width: int) -> jnp.ndarray:
     """Flat pixel ids (frame * H * W + row * W + col) of `count` pixels drawn uniformly over the
-    frames (train.robust_scattered's scattered rays). Returns [count] int32."""
+    frames (train.robust.scattered's scattered rays). Returns [count] int32."""
     return jax.random.randint(key, (count,), 0, num_frames * height * width).astype(jnp.int32)
 
 
@@ -264,7 +264,7 @@ def draw_patches(key, num_patches: int, num_frames: int, height: int, width: int
                  stride: int = 1) -> jnp.ndarray:
     """Flat pixel ids (frame * H * W + row * W + col) of `num_patches` random p x p patches lying
     inside the frames, patch-major; a patch's pixels are `stride` apart along rows and columns
-    (train.robust_patch_stride; 1 = adjacent). Returns [num_patches * p * p] int32."""
+    (train.robust.patch_stride; 1 = adjacent). Returns [num_patches * p * p] int32."""
     k_frame, k_row, k_col = jax.random.split(key, 3)
     span = patch_span(patch, stride)
     frame = jax.random.randint(k_frame, (num_patches,), 0, num_frames)

@@ -81,7 +81,7 @@ class ModelConfig:
     """
 
     method: str = "ours"
-    field: fields.FieldConfig = fields.FieldConfig()
+    field: fields.FieldConfig = fields.mlp.Config()
     use_contraction: bool = True
     contract_radius: float = 2.0
     encoding_scale: float = 0.0

@@ -13,7 +13,7 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxnerf_grid.nerf import models
+from jaxnerf_grid.nerf import fields, models
 from jaxnerf_grid.util import io
 
 
@@ -72,16 +72,14 @@ def _samples_line(model) -> str:
             f"{', opaque far bin' if model.opaque_far else ''}")
 
 
+def _robust_mode(train_cfg) -> str:
+    """train.robust.mode of a run config's `train` ("off" for a config from before it)."""
+    return getattr(getattr(train_cfg, "robust", None), "mode", "off")
+
+
 def _field_line(field) -> str:
     """The field's kind and shape, from a run config's `model.field` (fields.FieldConfig)."""
-    if field.kind == "grid":
-        grid = field.grid
-        return (f"hash grid, {grid.num_levels} levels x {grid.features_per_level} features, "
-                f"table 2^{grid.log2_table_size}, resolution {grid.min_resolution}-"
-                f"{grid.max_resolution}; MLPs {field.depth} x {field.width} (density), "
-                f"{field.view_depth} x {field.view_width} (colour)")
-    return (f"MLP {field.depth} x {field.width} (skip after {field.skip}), PE "
-            f"{field.pos_max_deg} octaves, view dirs {field.use_viewdirs}")
+    return fields.describe(field)
 
 
 def geometry_lines(geometry: dict | None) -> list[str]:
@@ -367,7 +365,7 @@ def write_report(run_dir, metrics: dict, cfg, data, views: list[dict], extra_lin
               f"- field: {_field_line(model.field)}",
               f"- NeRF-W: appearance {model.use_appearance}, transient {model.use_transient}",
               f"- loss weights from masks: {train_cfg.use_masks} (floor {train_cfg.mask_weight_floor})",
-              f"- photometric evidence (train.robust): {getattr(train_cfg, 'robust', 'off')}",
+              f"- photometric evidence (train.robust.mode): {_robust_mode(train_cfg)}",
               f"- batch {train_cfg.batch_rays} rays, {train_cfg.max_steps} steps, lr "
               f"{train_cfg.lr_init} -> {train_cfg.lr_final} (warm-up {train_cfg.warmup}), "
               f"clip {train_cfg.max_grad_norm}", ""]

@@ -21,7 +21,7 @@ Training step (one `jax.pmap` over the local devices, axis "batch"):
     patches drawn over whole frames and each pixel's weight is the photometric evidence of the
     residuals (their quantiles taken over the all-gathered global batch); the state then also
     holds "robust_record", the per-pixel average of the weights used, written at the end as
-    RUN/weights/NAME.png; with train.robust_refine the evidence is judged once on whole frames
+    RUN/weights/NAME.png; with train.robust.refine the evidence is judged once on whole frames
     at that step (`refine.py`), the record becomes those 0 / 1 weights, and the run goes on with
     the plain step on scattered rays among the pixels they keep.
 
@@ -96,17 +96,18 @@ def grown_masks(masks: np.ndarray, pixels: int) -> np.ndarray:
 def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
     """The per-pixel prior of the photometric evidence (train.robust on). [N, H, W] in [0, 1]:
     ones for "robust"; for "dpt+robust" the dataset's 1 - M_w (with mask_weight_floor), which
-    must exist, and 0 within train.robust_prior_grow pixels of a masked pixel (`grown_masks`;
+    must exist, and 0 within train.robust.prior_grow pixels of a masked pixel (`grown_masks`;
     needs the binary masks)."""
-    check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust_patch ** 2, robust_scattered=0.0), 1, dataset)
-    if cfg.robust == "robust":
+    check_robust(dataclasses.replace(cfg, batch_rays=cfg.robust.patch ** 2,
+                                     robust=dataclasses.replace(cfg.robust, scattered=0.0)), 1, dataset)
+    if cfg.robust.mode == "robust":
         return np.ones(dataset.images.shape[:3], np.float32)
     prior = loss_weights(dataset, dataclasses.replace(cfg, use_masks=True))
-    if cfg.robust_prior_grow > 0:
+    if cfg.robust.prior_grow > 0:
         if dataset.masks is None:
-            raise DataError(f"{dataset.root}: train.robust_prior_grow needs the dataset's binary masks "
+            raise DataError(f"{dataset.root}: train.robust.prior_grow needs the dataset's binary masks "
                             "(mask_path, written by jaxnerf-grid mask)")
-        prior = np.where(grown_masks(dataset.masks, cfg.robust_prior_grow), 0.0, prior).astype(np.float32)
+        prior = np.where(grown_masks(dataset.masks, cfg.robust.prior_grow), 0.0, prior).astype(np.float32)
     return prior
 
 
@@ -119,13 +120,13 @@ def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     "c2w": [T, 4, 4], "intrinsics": [T, 4], "frame": [T] int32 dataset frame ids,
     "near", "far": floats}. With train.robust on, "weights" is the evidence's prior
     (`prior_weights`) and "pixels" every training pixel, the flagged ones included (patches
-    are drawn over whole frames); with train.robust_confirm > 0 also "neighbours": [T, K]
+    are drawn over whole frames); with train.robust.confirm > 0 also "neighbours": [T, K]
     int32 (`photo_consistency.neighbour_frames`, indices into the pool's frames).
     """
     train_ids = np.asarray(dataset.split["train"], np.int64)
     if train_ids.size == 0:
         raise DataError(f"{dataset.root}: the dataset has no training frames")
-    robust_on = cfg.train.robust != "off"
+    robust_on = cfg.train.robust.mode != "off"
     weights = (prior_weights(dataset, cfg.train) if robust_on else loss_weights(dataset, cfg.train))[train_ids]
     pixels = (np.arange(weights.size) if robust_on else np.flatnonzero(weights.reshape(-1) > 0)).astype(np.int32)
     if pixels.size == 0:
@@ -137,8 +138,8 @@ def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     pool = {"pixels": pixels, "images": working.as_float(dataset.images[train_ids]),
             "weights": weights, "c2w": c2w, "intrinsics": np.asarray(dataset.intrinsics[train_ids], np.float32),
             "frame": train_ids.astype(np.int32), "near": near, "far": far}
-    if robust_on and cfg.train.robust_confirm > 0:
-        pool["neighbours"] = photo_consistency.neighbour_frames(c2w, cfg.train.robust_views)
+    if robust_on and cfg.train.robust.confirm > 0:
+        pool["neighbours"] = photo_consistency.neighbour_frames(c2w, cfg.train.robust.views)
     return pool
 
 
@@ -182,7 +183,7 @@ def init_state(cfg: RunConfig, frames_shape: tuple | None = None) -> dict:
     key, k_init = jax.random.split(key)
     params = models.init(k_init, cfg.model)
     state = {"params": params, "opt_state": make_optimizer(cfg.train).init(params), "key": key}
-    if cfg.train.robust != "off":
+    if cfg.train.robust.mode != "off":
         if frames_shape is None:
             raise ValueError("init_state: train.robust is on, give the training frames' shape")
         state["robust_record"] = np.ones(tuple(frames_shape), np.float32)
@@ -229,7 +230,7 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         raise ConfigError(f"train.batch_rays ({tcfg.batch_rays}) must divide by the device count ({num_devices})")
     per_device = tcfg.batch_rays // num_devices
     opt = make_optimizer(tcfg)
-    if tcfg.robust != "off":
+    if tcfg.robust.mode != "off":
         return _make_robust_step(cfg, num_devices, opt)
 
     def step(state, pool):
@@ -248,7 +249,7 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
         loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
         params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
-        # other state (a robust run's frozen record, train.robust_refine) passes through unchanged
+        # other state (a robust run's frozen record, train.robust.refine) passes through unchanged
         new_state = dict(state, params=params, opt_state=opt_state, key=key)
         return new_state, {"loss": loss, "mse": mse, "finite": finite}
 
@@ -258,39 +259,39 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
 def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     """The pmapped step with photometric evidence (train.robust on; robust.py): the global batch
     is (batch_rays - S) / p^2 patches of p x p pixels and S scattered pixels (S =
-    `scattered_rays`, train.robust_scattered) drawn from the state's key (the same for any
+    `scattered_rays`, train.robust.scattered) drawn from the state's key (the same for any
     device count), each device renders its share of whole patches then its share of the
     scattered pixels (`robust.device_layout`); the residuals (final pass,
     stop-gradient) are all-gathered so every device takes the quantiles of the same global
     batch; each pixel's loss weight is `robust.batch_weights` (its patch's evidence, or a
     scattered pixel's own inlier test) with the pool's
     weight as the prior, after the first `robust.warmup_steps` optimiser steps (Adam's count,
-    so resume is exact), and the prior itself before them; with train.robust_confirm > 0 a pixel
+    so resume is exact), and the prior itself before them; with train.robust.confirm > 0 a pixel
     that a neighbouring photo confirms at its rendered median depth is an inlier
     (`photo_consistency.py`). The state's robust_record takes the
     batch's weights (all-gathered, the same update on every device). Stats add
     "robust_weight": the mean weight of the batch."""
     tcfg = cfg.train
     check_robust(tcfg, num_devices)
-    p = tcfg.robust_patch
+    p = tcfg.robust.patch
     scattered = scattered_rays(tcfg)
     num_patches = (tcfg.batch_rays - scattered) // (p * p)
     per_device = tcfg.batch_rays // num_devices
     local_patch_rays = num_patches * p * p // num_devices  # each device: its patches, then its scattered rays
     layout = robust_lib.device_layout(num_patches * p * p, scattered, num_devices)
-    warmup_steps = robust_lib.warmup_steps(tcfg.robust_warmup, tcfg.max_steps)
-    confirm = tcfg.robust_confirm > 0
+    warmup_steps = robust_lib.warmup_steps(tcfg.robust.warmup, tcfg.max_steps)
+    confirm = tcfg.robust.confirm > 0
 
     def confirmed_pixels(pool, ids, batch, depth):
         """[B] 1.0 where a neighbouring photo confirms the pixel at its rendered depth."""
         points = batch["origins"] + batch["directions"] * depth[:, None]
         return photo_consistency.confirmed_at_ids(pool["images"], pool["c2w"], pool["intrinsics"],
-                                                  pool["neighbours"], ids, points, tcfg.robust_confirm)
+                                                  pool["neighbours"], ids, points, tcfg.robust.confirm)
 
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
         frames, height, width = pool["weights"].shape
-        ids = robust_lib.draw_patches(k_batch, num_patches, frames, height, width, p, tcfg.robust_patch_stride)
+        ids = robust_lib.draw_patches(k_batch, num_patches, frames, height, width, p, tcfg.robust.patch_stride)
         ray_keys = jax.random.split(k_rays, tcfg.batch_rays)
         if scattered:  # the same global batch for any device count, laid out device by device
             ids = jnp.concatenate([ids, robust_lib.draw_pixels(jax.random.fold_in(k_batch, 1), scattered,
@@ -310,9 +311,9 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
                 depth = jax.lax.stop_gradient(out["final"]["median_depth"])
                 confirmed = confirmed_pixels(pool, local_ids, batch, depth)
             evidence = robust_lib.batch_weights(residual, batch["weight"], everyone, local_patch_rays, p,
-                                                tcfg.robust_quantile, tcfg.robust_flagged_quantile,
-                                                tcfg.robust_patch_share, tcfg.robust_floor, tcfg.robust_spread,
-                                                confirmed, tcfg.robust_strict_readmit)
+                                                tcfg.robust.quantile, tcfg.robust.flagged_quantile,
+                                                tcfg.robust.patch_share, tcfg.robust.floor, tcfg.robust.spread,
+                                                confirmed, tcfg.robust.strict_readmit)
             weight = jnp.where(state["opt_state"].count < warmup_steps, batch["weight"], evidence)
             total = jax.lax.psum(jnp.sum(weight), AXIS)
             loss = losses.weighted_mean(terms["loss"], weight, total)
@@ -347,7 +348,7 @@ ACTIVATION_COPIES = 4  # a sample's activations: forward values, pre-activations
 def field_floats(f: fields.FieldConfig) -> int:
     """Rough float32 activations of one sample through a field (encoding, trunk, colour branch,
     heads); a hash grid also gathers 8 corners per level."""
-    enc = (9 * fields.hashgrid.encoded_size(f.grid)) if f.kind == "grid" else fields.pos_input_size(f)
+    enc = fields.encoding_floats(f)
     transient = f.transient_depth * f.transient_width if f.transient_dim else 0
     return (enc + f.depth * f.width + fields.dir_input_size(f) + f.view_depth * f.view_width
             + f.appearance_dim + f.transient_dim + transient + 8)
@@ -469,7 +470,7 @@ def _read_finite(unread: list, skipped: list) -> None:
 
 
 def _freeze_evidence(state_r, pool_host: dict, dataset: Dataset, frozen_cfg: RunConfig, n: int, progress: bool):
-    """train.robust_refine's switch (refine.py): judges the evidence on every training frame with
+    """train.robust.refine's switch (refine.py): judges the evidence on every training frame with
     the current parameters, puts the weights in the state's robust_record, and returns (state
     [n, ...], the frozen pool [n, ...], the plain step of `frozen_cfg`: robust off, the weights'
     mean)."""
@@ -499,7 +500,7 @@ class TrainResult:
 def device_pool(dataset: Dataset, cfg: RunConfig, n: int) -> dict:
     """The training step's pool on n devices, as `train` lays it out: the robust step's float32
     pool replicated (`build_pool`), else the 8-bit frames split over the devices (`ray_pool`)."""
-    if cfg.train.robust != "off":
+    if cfg.train.robust.mode != "off":
         return parallel.replicate(build_pool(dataset, cfg), n)
     return ray_pool.upload(ray_pool.build(dataset, cfg), n)
 
@@ -516,7 +517,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     cfg = config_lib.resolve(cfg, dataset)
     mcfg, tcfg = cfg.model, cfg.train
     n = step_devices(tcfg)
-    robust_on = tcfg.robust != "off"
+    robust_on = tcfg.robust.mode != "off"
     # the robust step draws patches over replicated float32 frames (build_pool); the plain step
     # its rays from 8-bit frames split over the devices (ray_pool)
     pool_host = build_pool(dataset, cfg) if robust_on else ray_pool.build(dataset, cfg)
@@ -534,9 +535,10 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     last_record = _trim_log(log_path, step) if main else None
     check_batch(cfg, n)
     check_robust(tcfg, n)
-    refine_at = robust_lib.refine_step(tcfg.robust_refine, tcfg.max_steps) if tcfg.robust != "off" else None
-    frozen_cfg = dataclasses.replace(cfg, train=dataclasses.replace(tcfg, robust="off"))
-    frozen_mean = None  # the frozen weights' mean, once the evidence is frozen (train.robust_refine)
+    refine_at = robust_lib.refine_step(tcfg.robust.refine, tcfg.max_steps) if tcfg.robust != "off" else None
+    frozen_cfg = dataclasses.replace(cfg, train=dataclasses.replace(
+        tcfg, robust=dataclasses.replace(tcfg.robust, mode="off")))
+    frozen_mean = None  # the frozen weights' mean, once the evidence is frozen (train.robust.refine)
     if refine_at is not None and step > refine_at:  # resumed after the evidence was frozen: its record holds it
         frozen = refine.frozen_pool(pool_host, state["robust_record"])
         frozen_mean = float(np.mean(frozen["weights"]))
@@ -586,7 +588,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                           "time": time.perf_counter() - start_time}
                 if "robust_weight" in stats:
                     record["robust_weight"] = float(stats["robust_weight"][0])
-                elif frozen_mean is not None:  # the frozen weights' mean (train.robust_refine)
+                elif frozen_mean is not None:  # the frozen weights' mean (train.robust.refine)
                     record["robust_weight"] = frozen_mean
                 if main:
                     with io.naming_path(log_path), open(log_path, "a") as fh:  # a full disk names the file

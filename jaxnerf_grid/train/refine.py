@@ -1,9 +1,9 @@
-"""The evidence judged once on whole training frames, then frozen (train.robust_refine).
+"""The evidence judged once on whole training frames, then frozen (train.robust.refine).
 
 A robust run (`robust.py`) trains on square patches so that the evidence can be judged over
 neighbourhoods, and patches cost accuracy by themselves: a batch of 1024 rays in 4 x 4
 patches visits 64 places a step, not 1024 (docs/ROBUST.md: 0.6 dB on the pasted fountain-P11
-with the ground-truth weights). With `train.robust_refine` = r > 0, after r x max_steps steps
+with the ground-truth weights). With `train.robust.refine` = r > 0, after r x max_steps steps
 (`robust.refine_step`) training stops once, renders every training frame with the model it
 has, and applies the same rule to whole frames:
 
@@ -11,7 +11,7 @@ has, and applies the same rule to whole frames:
    against the thresholds of all the training frames' residuals together (the batch is now
    every training pixel), with the pool's prior (1, or 1 - M_w for dpt+robust), the spread
    bound and the floor (`robust.pixel_inliers`);
-2. with train.robust_confirm > 0, a pixel that a neighbouring photo confirms at its rendered
+2. with train.robust.confirm > 0, a pixel that a neighbouring photo confirms at its rendered
    median depth is an inlier (`photo_consistency.confirmed_at_ids`);
 3. the 3x3 vote over the pixel's neighbours in its frame and the patch rule over the frame's
    tiles (`robust.frame_evidence`).
@@ -75,19 +75,19 @@ def refined_weights(residual: np.ndarray, prior: np.ndarray, cfg: RunConfig,
     [T, H, W]. Returns [T, H, W] float32 in {0, 1}."""
     t = cfg.train
     inlier = robust_lib.pixel_inliers(jnp.asarray(residual), jnp.asarray(prior), jnp.asarray(residual).reshape(-1),
-                                      t.robust_quantile, t.robust_flagged_quantile, t.robust_floor, t.robust_spread,
+                                      t.robust.quantile, t.robust.flagged_quantile, t.robust.floor, t.robust.spread,
                                       None if confirmed is None else jnp.asarray(confirmed),
-                                      bool(t.robust_strict_readmit))
-    return np.asarray(robust_lib.frame_evidence(inlier, t.robust_patch, t.robust_patch_share), np.float32)
+                                      bool(t.robust.strict_readmit))
+    return np.asarray(robust_lib.frame_evidence(inlier, t.robust.patch, t.robust.patch_share), np.float32)
 
 
 def judge_frames(params, cfg: RunConfig, dataset: Dataset, pool: dict, progress: bool = False) -> np.ndarray:
     """Renders the pool's training frames and returns their frozen weights [T, H, W] in {0, 1}
-    (`refined_weights`, confirmation included when train.robust_confirm > 0)."""
+    (`refined_weights`, confirmation included when train.robust.confirm > 0)."""
     residual, points = render_training_frames(params, cfg, dataset, pool["frame"], progress)
     confirmed = None
-    if cfg.train.robust_confirm > 0 and "neighbours" in pool:
-        confirmed = confirmed_frames(pool, points, cfg.train.robust_confirm)
+    if cfg.train.robust.confirm > 0 and "neighbours" in pool:
+        confirmed = confirmed_frames(pool, points, cfg.train.robust.confirm)
     return refined_weights(residual, pool["weights"], cfg, confirmed)
 
 
@@ -97,8 +97,8 @@ def frozen_pool(pool: dict, weights: np.ndarray) -> dict:
     neighbours. DataError when no pixel is left."""
     pixels = np.flatnonzero(np.asarray(weights).reshape(-1) > 0).astype(np.int32)
     if pixels.size == 0:
-        raise DataError("train.robust_refine: the evidence ignored every training pixel; "
-                        "lower train.robust_refine or raise train.robust_spread")
+        raise DataError("train.robust.refine: the evidence ignored every training pixel; "
+                        "lower train.robust.refine or raise train.robust.spread")
     out = {k: v for k, v in pool.items() if k != "neighbours"}
     out.update(weights=np.asarray(weights, np.float32), pixels=pixels)
     return out

@@ -32,13 +32,13 @@ import numpy as np
 from jaxnerf_grid.capture import poses
 from jaxnerf_grid.config import build
 from jaxnerf_grid.config import schema as config_lib
-from jaxnerf_grid.config.run_config import RunConfig, make_config
+from jaxnerf_grid.config.run_config import RunConfig, make_config, upgrade_run_dict
 from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.data import formats
 from jaxnerf_grid.data.dataset import check_camera_centres
 from jaxnerf_grid.data.formats import working_dataset
 from jaxnerf_grid.masks import write as masking
-from jaxnerf_grid.nerf.samplers.legacy import upgrade_flat_model
+from jaxnerf_grid.nerf import fields
 from jaxnerf_grid.render import views
 from jaxnerf_grid.report import progress_page as progress_page_lib
 from jaxnerf_grid.train import distributed, ray_pool
@@ -185,7 +185,7 @@ def check_weights(cfg, ds) -> None:
     if train_ids.size == 0:
         raise DataError(f"{ds.root}: the dataset has no training frames")
     t = cfg.train
-    if t.robust != "off" or not t.use_masks or ds.weights is None:
+    if t.robust.mode != "off" or not t.use_masks or ds.weights is None:
         return  # every pixel has weight 1 (or the evidence sets the weights)
     # frame by frame: the weights of every frame at once are 4 bytes a pixel
     if not any(np.any(ray_pool.frame_weights(ds.weights[f], None if ds.masks is None else ds.masks[f], True,
@@ -232,6 +232,26 @@ def check_out(run_dir: Path, data=None) -> None:
     folders.check_outside(run_dir, data, "run.out")
 
 
+def _field_of_its_kind(field):
+    """A field dict without the keys of other kinds that older runs wrote (fields/base.py)."""
+    if isinstance(field, dict) and field.get("kind") in fields.KINDS:
+        return fields.base.drop_other_kinds(field, field["kind"])
+    return field
+
+
+def fields_upgraded(model):
+    """A config.json's model dict with its fields (model.field, the proposal sampler's field) as
+    `to_dict` of the current config writes them; the input is not changed."""
+    if not isinstance(model, dict):
+        return model
+    out = dict(model)
+    if "field" in out:
+        out["field"] = _field_of_its_kind(out["field"])
+    if isinstance(out.get("sampler"), dict) and "field" in out["sampler"]:
+        out["sampler"] = dict(out["sampler"], field=_field_of_its_kind(out["sampler"]["field"]))
+    return out
+
+
 def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
     """Makes run_dir ready for a run of config `wanted` (run_config_dict): with `overwrite`
     clears a previous run's outputs (only in a folder holding RUN_MARKER, and only the files a
@@ -253,8 +273,8 @@ def check_existing(run_dir: Path, wanted: dict, overwrite: bool) -> None:
         old = io.read_json(existing)
         if not isinstance(old, dict) or not isinstance(old.get("train"), dict):
             raise DataError(f"{existing}: not a run's config (expected an object with \"train\")")
-        if isinstance(old.get("model"), dict):  # a run from before model.sampler: its flat keys
-            old = dict(old, model=upgrade_flat_model(old["model"]))
+        old = upgrade_run_dict(old)  # a run from before model.sampler / train.robust: its flat keys
+        old = dict(old, model=fields_upgraded(old.get("model")))
         if _without(old, "train") != _without(wanted, "train") or \
                 _without(old["train"], "max_steps") != _without(wanted["train"], "max_steps"):
             raise ConfigError(f"{existing}: the run exists with a different config; pass overwrite=True "

@@ -91,15 +91,16 @@ def test_a_bad_budget_is_a_config_error_naming_the_key():
 def test_stretched_schedules_take_the_same_values_at_the_same_fractions_of_the_run(steps):
     """lr_schedule (warm-up and decay), the robust warm-up and the refine step of the stretched
     config, at fractions of the run, equal the recipe's at the same fractions."""
-    base = dataclasses.replace(DEMO_TRAIN, warmup=100, robust_warmup=0.2, robust_refine=0.5)
+    base = dataclasses.replace(DEMO_TRAIN, warmup=100, robust=dataclasses.replace(DEMO_TRAIN.robust, warmup=0.2,
+                                                                                   refine=0.5))
     out = budget.stretch_schedules(base, steps)
     assert out.max_steps == steps and out.warmup == 100 * steps // 1600
     for fraction in (0.0, 0.01, 0.03, 0.0625, 0.1, 0.5, 0.9, 1.0):   # 0.0625: the end of the warm-up
         def lr(tc, f=fraction):
             return float(optim.lr_schedule(f * tc.max_steps, tc.lr_init, tc.lr_final, tc.warmup, tc.max_steps))
         assert lr(out) == pytest.approx(lr(base), rel=1e-5), fraction
-    assert robust.warmup_steps(out.robust_warmup, steps) / steps == robust.warmup_steps(0.2, 1600) / 1600
-    assert robust.refine_step(out.robust_refine, steps) / steps == robust.refine_step(0.5, 1600) / 1600
+    assert robust.warmup_steps(out.robust.warmup, steps) / steps == robust.warmup_steps(0.2, 1600) / 1600
+    assert robust.refine_step(out.robust.refine, steps) / steps == robust.refine_step(0.5, 1600) / 1600
     # the rest of the config is the recipe's
     assert dataclasses.replace(out, max_steps=base.max_steps, warmup=base.warmup) == base
 

@@ -30,12 +30,13 @@ def test_resolve_fills_num_images_and_bounds_from_the_dataset():
     # the one train key settled on the dataset: strict re-admission, false where it cannot act
     # (train.robust off here); with dpt+robust on where no `mask` verdict says the masks are out of
     # their domain (this dataset has no meta at all)
-    assert cfg.train.robust_strict_readmit is None
-    assert stored.train == dataclasses.replace(cfg.train, robust_strict_readmit=False) == full.train
+    assert cfg.train.robust.strict_readmit is None
+    settled = dataclasses.replace(cfg.train, robust=dataclasses.replace(cfg.train.robust, strict_readmit=False))
+    assert stored.train == settled == full.train
     mixed = train.make_config("ours", {"train": {"robust": "dpt+robust"}})
-    assert config_lib.resolve(mixed, ds).train.robust_strict_readmit is True
+    assert config_lib.resolve(mixed, ds).train.robust.strict_readmit is True
     robust = train.make_config("ours", {"train": {"robust": "robust"}})
-    assert config_lib.resolve(robust, ds).train.robust_strict_readmit is False
+    assert config_lib.resolve(robust, ds).train.robust.strict_readmit is False
 
 
 def test_run_config_holds_the_data_path_and_the_compiled_step_ignores_it():

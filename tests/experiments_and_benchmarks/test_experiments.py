@@ -555,7 +555,7 @@ def test_throughput_concat_case_traces_the_per_sample_colour_input_with_the_same
     from jaxnerf_grid.nerf import fields
     from jaxnerf_grid.nerf.fields import layers
 
-    cfg = fields.FieldConfig(kind="grid", view_depth=2, view_width=8, dir_max_deg=2, appearance_dim=3, geo_features=4)
+    cfg = fields.grid.Config(view_depth=2, view_width=8, dir_max_deg=2, appearance_dim=3, geo_features=4)
     params = fields.init(jax.random.PRNGKey(0), cfg)
     rng = np.random.default_rng(0)
     feature = jax.numpy.asarray(rng.normal(size=(3, 5, 4)), jax.numpy.float32)
@@ -713,3 +713,38 @@ def test_run_keys_find_a_strict_run_under_its_older_key_and_the_default_now_mean
         assert keys(strict, out) == keys(False, False)
     assert keys(None, False, "robust") == keys(True, True, "robust") == keys(False, False, "robust")
     assert keys(None, False)[0] != keys(False, False)[0]  # a new strict run is made under its own key
+
+
+def _condition(setting: str, method: str, robust: str | None = None, mlp: bool = False) -> dict:
+    """A table's overrides as run_condition assembles them: the setting's, its space, the
+    condition's own (the older flat robust keys, as the tables give them)."""
+    from experiments import table3_methods
+
+    own = table3_methods.mlp_field(settings.TRAIN_SETTINGS[setting]["overrides"]) if mlp else {}
+    if robust:
+        own = merge(own, {"train": {"robust": robust, "robust_patch": 8}})
+    base = json.loads(json.dumps(settings.TRAIN_SETTINGS[setting]["overrides"]))
+    return merge(merge(base, settings.space_overrides(setting, method, own)), own)
+
+
+# Keys computed by the code before the field kinds and train.robust were nested (the configs
+# hashed in their older layout): a run keeps its key, so the results files keep finding it.
+PINNED_KEYS = [("standard", "ours", None, False, 100, "7d3d6ed2df"),
+               ("standard", "nerfw", "dpt+robust", False, 100, "97a1d29bd5"),
+               ("quick", "nerf", "robust", False, 100, "6c13e446ca"), ("full", "ours", None, False, 100, "3291fc7714"),
+               ("standard", "nerf", None, True, 1200, "ab963bc97d"), ("quick", "ours", None, True, 1200, "2573dbb0cd")]
+
+
+@pytest.mark.parametrize("setting, method, robust, mlp, steps, key", PINNED_KEYS)
+def test_run_keys_hash_the_older_layout_and_the_builder_gives_the_hashed_config(tmp_path, setting, method, robust,
+                                                                                mlp, steps, key):
+    """run_key hashes the resolved config in the layout of the committed runs (flat robust keys,
+    every field kind's keys), and run_condition's config through config.build is that config."""
+    from jaxnerf_grid.config import run_config
+
+    data = tmp_path / "tower-small"
+    data.mkdir()
+    ov = _condition(setting, method, robust, mlp)
+    assert runner.run_keys(data, method, ov, steps)[0] == key
+    built = runner.condition_config(setting, method, ov, steps)
+    assert built.config() == run_config.make_config(method, merge(ov, {"train": {"max_steps": steps}}))

@@ -161,13 +161,13 @@ def test_set_changes_the_robust_rows_only():
     from jaxnerf_grid.config import schema as config
     from jaxnerf_grid.train import loop as train
 
-    sets = config.parse_sets(["train.robust_confirm=0.02", "train.robust_spread=2"], run_config.RunConfig)
+    sets = config.parse_sets(["train.robust.confirm=0.02", "train.robust.spread=2"], run_config.RunConfig)
     robust = train.make_config("ours", pt.row_overrides("robust", 0, 10, sets)).train
-    assert (robust.robust, robust.robust_confirm, robust.robust_spread) == ("robust", 0.02, 2.0)
+    assert (robust.robust.mode, robust.robust.confirm, robust.robust.spread) == ("robust", 0.02, 2.0)
     gt = train.make_config("ours", pt.row_overrides("gt", 0, 10, sets)).train
     default = train.make_config("ours").train
-    assert gt.robust == "off" and (gt.robust_confirm, gt.robust_spread) == (default.robust_confirm,
-                                                                           default.robust_spread)
+    assert gt.robust.mode == "off" and (gt.robust.confirm, gt.robust.spread) == (default.robust.confirm,
+                                                                           default.robust.spread)
     with pytest.raises(SystemExit, match="--set"):
         pt.main(["somewhere", "--set", "train.no_such_key=1"])
 

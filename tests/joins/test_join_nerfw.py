@@ -16,7 +16,7 @@ import numpy as np
 
 from jaxnerf_grid.nerf import fields, models, samplers
 
-SMALL = fields.FieldConfig(depth=2, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8)
+SMALL = fields.mlp.Config(depth=2, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8)
 BACKGROUND = 0.2
 
 

@@ -357,12 +357,14 @@ def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the
     assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=50)) == 1.0)
     # a quarter of the batch scattered (64 = 16 scattered + 3 patches of 16): the prior checks one
     # patch without them (4 of its 16 rays scattered would leave 12, no whole patch)
-    assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=64, robust_scattered=0.25)) == 1.0)
-    with pytest.raises(ConfigError, match="robust_patch"):                 # 13 > the 16 x 12 frames
-        train.prior_weights(ds, dataclasses.replace(robust, robust_patch=13))
-    with pytest.raises(ConfigError, match="robust_patch_stride = 4: spans 13 px"):  # (4 - 1) 4 + 1 > 12
-        train.prior_weights(ds, dataclasses.replace(robust, robust_patch_stride=4))
-    assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=16, robust_patch_stride=3)) == 1.0)
+    quarter = dataclasses.replace(robust, batch_rays=64, robust=dataclasses.replace(robust.robust, scattered=0.25))
+    assert np.all(train.prior_weights(ds, quarter) == 1.0)
+    with pytest.raises(ConfigError, match="robust.patch"):                 # 13 > the 16 x 12 frames
+        train.prior_weights(ds, dataclasses.replace(robust, robust=dataclasses.replace(robust.robust, patch=13)))
+    with pytest.raises(ConfigError, match="robust.patch_stride = 4: spans 13 px"):  # (4 - 1) 4 + 1 > 12
+        train.prior_weights(ds, dataclasses.replace(robust, robust=dataclasses.replace(robust.robust, patch_stride=4)))
+    assert np.all(train.prior_weights(ds, dataclasses.replace(robust, batch_rays=16, robust=dataclasses.replace(
+        robust.robust, patch_stride=3))) == 1.0)
     ds.weights = None
     with pytest.raises(DataError, match="dpt\\+robust"):
         train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4).train)
@@ -371,7 +373,7 @@ def test_loss_weights_without_masks_ignore_the_floor_and_prior_weights_check_the
 def test_grown_masks_of_no_growth_skip_opencv_and_the_grown_prior_is_float32_or_refused_word_for_word(monkeypatch):
     """grown_masks masks where > 0.5 (0.5 itself is not masked, 0.5 + 2^-20 is) and, with no
     growth (0 or fewer pixels), returns that without loading OpenCV (`io.opencv` made to fail
-    here). prior_weights with train.robust_prior_grow: float32 like its other branches; without
+    here). prior_weights with train.robust.prior_grow: float32 like its other branches; without
     binary masks a DataError whose whole message names the dataset and what writes the masks."""
     masks = np.zeros((2, 3, 4), np.float32)
     masks[0, 1, 2], masks[1, 0, 0], masks[1, 2, 3] = 0.5, 0.5 + 2.0 ** -20, 1.0
@@ -395,7 +397,7 @@ def test_grown_masks_of_no_growth_skip_opencv_and_the_grown_prior_is_float32_or_
     ds.masks = None
     with pytest.raises(DataError) as err:
         train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4, robust_prior_grow=1).train)
-    assert str(err.value) == (f"{ds.root}: train.robust_prior_grow needs the dataset's binary masks "
+    assert str(err.value) == (f"{ds.root}: train.robust.prior_grow needs the dataset's binary masks "
                               "(mask_path, written by jaxnerf-grid mask)")
 
 

@@ -150,14 +150,14 @@ def test_ground_truth_masks_record_shares_but_no_verdict(tmp_path):
 
 @pytest.mark.parametrize("choice, domain, mode, train", [
     ("auto", {"out_of_domain": True, "frames": 4, "frames_mostly_masked": 4, "median_share": 0.7}, "robust",
-     {"use_masks": False, "robust": "robust"}),
+     {"use_masks": False, "robust": {"mode": "robust"}}),
     ("auto", {"out_of_domain": False, "frames": 4, "frames_mostly_masked": 1, "median_share": 0.1}, "dpt",
      {"use_masks": True}),
     ("auto", None, "dpt", {"use_masks": True}),
     ("dpt", {"out_of_domain": True, "frames": 4, "frames_mostly_masked": 4, "median_share": 0.7}, "dpt",
      {"use_masks": True}),
-    ("robust", None, "robust", {"use_masks": False, "robust": "robust"}),
-    ("dpt+robust", None, "dpt+robust", {"use_masks": True, "robust": "dpt+robust"}),
+    ("robust", None, "robust", {"use_masks": False, "robust": {"mode": "robust"}}),
+    ("dpt+robust", None, "dpt+robust", {"use_masks": True, "robust": {"mode": "dpt+robust"}}),
     ("none", None, "none", {"use_masks": False}),
 ])
 def test_mask_plan(choice, domain, mode, train):
@@ -199,7 +199,7 @@ def test_dataset_domain_judges_dpt_masks_made_before_the_rule(tmp_path):
     ({"out_of_domain": True}, True, True),
 ])
 def test_strict_readmission_follows_the_masks_domain_verdict(tmp_path, domain, asked, settled):
-    """train.robust_strict_readmit None is settled on the dataset's transforms.json: the
+    """train.robust.strict_readmit None is settled on the dataset's transforms.json: the
     `mask_domain` that `mask` wrote reaches the loaded dataset and `config.resolve`, with and
     without the ray bounds (what a run's config.json stores)."""
 
@@ -214,9 +214,9 @@ def test_strict_readmission_follows_the_masks_domain_verdict(tmp_path, domain, a
         io.write_json(tmp_path / "transforms.json", top)
     ds = formats.load_dataset(tmp_path)
     cfg = make_config("ours", {"train": {"robust": "dpt+robust", "robust_strict_readmit": asked}})
-    assert cfg.train.robust_strict_readmit is asked
+    assert cfg.train.robust.strict_readmit is asked
     for bounds in (True, False):
-        assert config.resolve(cfg, ds, bounds=bounds).train.robust_strict_readmit is settled
+        assert config.resolve(cfg, ds, bounds=bounds).train.robust.strict_readmit is settled
 
 
 def test_the_report_says_how_flagged_pixels_were_readmitted():
@@ -227,7 +227,7 @@ def test_the_report_says_how_flagged_pixels_were_readmitted():
     from jaxnerf_grid.eval import evaluate
 
     def note(robust, strict):
-        return evaluate.strict_note(SimpleNamespace(robust=robust, robust_strict_readmit=strict))
+        return evaluate.strict_note(SimpleNamespace(robust=SimpleNamespace(mode=robust, strict_readmit=strict)))
 
     assert "only when its residual was an inlier and a neighbouring photo confirmed it" in note("dpt+robust", True)
     assert "when its residual was an inlier or a neighbouring photo confirmed it" in note("dpt+robust", False)

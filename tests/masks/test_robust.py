@@ -188,7 +188,7 @@ def test_smoothing_counts_only_neighbours_inside_the_patch():
 
 
 def test_scattered_rays_are_judged_alone_against_numpy():
-    """robust.pixel_inliers (a scattered ray's weight, train.robust_scattered): the threshold,
+    """robust.pixel_inliers (a scattered ray's weight, train.robust.scattered): the threshold,
     floor and confirmation of each pixel with no vote, against the loop."""
     rng = np.random.default_rng(1)
     res = (rng.random(200) ** 3).astype(np.float32)
@@ -206,7 +206,7 @@ def test_scattered_rays_are_judged_alone_against_numpy():
 
 
 def test_strict_readmission_needs_the_residual_and_the_confirmation_of_a_flagged_pixel():
-    """train.robust_strict_readmit: a flagged pixel (prior < 1/2) is an inlier only when its
+    """train.robust.strict_readmit: a flagged pixel (prior < 1/2) is an inlier only when its
     residual passes *and* another photo confirms it (never without confirmation); a pixel with
     prior 1/2 or more keeps the usual either-or. robust.pixel_inliers and robust.batch_weights
     (patches and scattered rays) against the loops, and the cases by hand."""
@@ -292,7 +292,7 @@ def test_patches_are_squares_inside_the_frames():
 
 
 def test_strided_patches_are_grids_inside_the_frames():
-    """train.robust_patch_stride: a patch's pixels `stride` apart along rows and columns, the
+    """train.robust.patch_stride: a patch's pixels `stride` apart along rows and columns, the
     whole grid, (p - 1) stride + 1 pixels across, inside the frame (every start reachable)."""
     assert robust.patch_span(4, 1) == 4 and robust.patch_span(4, 3) == 10 and robust.patch_span(1, 5) == 1
     ids = np.asarray(robust.draw_patches(jax.random.PRNGKey(1), 400, 2, 12, 11, 4, 3)).reshape(400, 4, 4)
@@ -335,10 +335,10 @@ def test_the_switch_is_settable_with_set():
     from jaxnerf_grid.config import schema as config
     from jaxnerf_grid.train import loop as train
 
-    overrides = config.parse_sets(["train.robust=dpt+robust", "train.robust_patch=16"], train.RunConfig)
+    overrides = config.parse_sets(["train.robust=dpt+robust", "train.robust.patch=16"], train.RunConfig)
     cfg = train.make_config("nerf", overrides)
-    assert cfg.train.robust == "dpt+robust" and cfg.train.robust_patch == 16
-    assert train.make_config("nerf").train.robust == "off"
+    assert cfg.train.robust.mode == "dpt+robust" and cfg.train.robust.patch == 16
+    assert train.make_config("nerf").train.robust.mode == "off"
 
 
 def test_bad_settings_are_one_line_errors_naming_the_key_or_folder():
@@ -349,7 +349,7 @@ def test_bad_settings_are_one_line_errors_naming_the_key_or_folder():
     from tests.train.test_loop import tiny_config, tiny_dataset
 
     ds = tiny_dataset()                                    # 16 x 12 frames
-    with pytest.raises(ConfigError, match="train.robust_patch = 16"):
+    with pytest.raises(ConfigError, match="train.robust.patch = 16"):
         train.build_pool(ds, tiny_config(robust="robust", robust_patch=16, batch_rays=512))
     ds.weights = None
     with pytest.raises(DataError, match="tiny: train.robust = dpt\\+robust needs the dataset's masks"):

@@ -54,7 +54,7 @@ def _np_field(p, cfg, x, d, app=None, tr=None):
 
 @pytest.mark.parametrize("activation", ["softplus", "relu"])
 def test_apply_matches_numpy_mlp(activation):
-    cfg = fields.FieldConfig(depth=4, width=32, skip=2, pos_max_deg=6, dir_max_deg=3,
+    cfg = fields.mlp.Config(depth=4, width=32, skip=2, pos_max_deg=6, dir_max_deg=3,
                              view_width=16, density_activation=activation)
     params = fields.init(jax.random.PRNGKey(0), cfg)
     rng = np.random.default_rng(0)
@@ -70,7 +70,7 @@ def test_apply_matches_numpy_mlp(activation):
 
 
 def test_transient_and_appearance_heads_match_numpy():
-    cfg = fields.FieldConfig(depth=3, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8,
+    cfg = fields.mlp.Config(depth=3, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8,
                              appearance_dim=5, transient_dim=4, transient_depth=2, transient_width=8)
     params = fields.init(jax.random.PRNGKey(1), cfg)
     rng = np.random.default_rng(1)
@@ -86,7 +86,7 @@ def test_transient_and_appearance_heads_match_numpy():
 
 
 def test_parameter_count_closed_form():
-    cfg = fields.FieldConfig(depth=4, width=64, skip=2, pos_max_deg=10, dir_max_deg=4, view_width=32)
+    cfg = fields.mlp.Config(depth=4, width=64, skip=2, pos_max_deg=10, dir_max_deg=4, view_width=32)
     pos, dirs = 3 + 3 * 2 * 10, 3 + 3 * 2 * 4
     expected = ((pos * 64 + 64) + (64 * 64 + 64) + ((64 + pos) * 64 + 64) + (64 * 64 + 64)
                 + (64 + 1) + (64 * 64 + 64) + ((64 + dirs) * 32 + 32) + (32 * 3 + 3))
@@ -94,7 +94,7 @@ def test_parameter_count_closed_form():
 
 
 def test_init_scales_he_and_glorot():
-    cfg = fields.FieldConfig(depth=2, width=256, skip=0, pos_max_deg=10)
+    cfg = fields.mlp.Config(depth=2, width=256, skip=0, pos_max_deg=10)
     params = fields.init(jax.random.PRNGKey(3), cfg)
     w = np.asarray(params["trunk"][1]["w"])
     assert abs(w.std() - np.sqrt(2.0 / 256)) < 0.05 * np.sqrt(2.0 / 256)
@@ -104,7 +104,7 @@ def test_init_scales_he_and_glorot():
 
 
 def test_gradients_finite_and_errors():
-    cfg = fields.FieldConfig(depth=2, width=8, skip=1, pos_max_deg=3, view_width=8)
+    cfg = fields.mlp.Config(depth=2, width=8, skip=1, pos_max_deg=3, view_width=8)
     params = fields.init(jax.random.PRNGKey(0), cfg)
     x = jnp.ones((4, 3)) * 0.3
     d = jnp.tile(jnp.array([[1.0, 0, 0]]), (4, 1))
@@ -122,7 +122,7 @@ def test_colour_branch_with_one_direction_per_ray_matches_the_concatenated_input
     """A ray's direction [rays, 1, 3] against its samples' features [rays, samples, C], as
     models.render_rays passes it (and an appearance code per ray or one for all): the colour
     branch equals NumPy's MLP on the input concatenated at every sample."""
-    cfg = fields.FieldConfig(kind="grid", view_depth=view_depth, view_width=16, dir_max_deg=3,
+    cfg = fields.grid.Config(view_depth=view_depth, view_width=16, dir_max_deg=3,
                              use_viewdirs=use_viewdirs, appearance_dim=5 if app_shape else 0, geo_features=6)
     params = fields.init(jax.random.PRNGKey(2), cfg)
     rng = np.random.default_rng(2)

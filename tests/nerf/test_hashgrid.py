@@ -139,7 +139,7 @@ def _grid_cfg(**kw):
                 grid=hashgrid.HashConfig(num_levels=3, features_per_level=2, log2_table_size=10, min_resolution=4,
                                          max_resolution=32))
     base.update(kw)
-    return fields.FieldConfig(**base)
+    return fields.grid.Config(**base)
 
 
 def test_grid_field_matches_numpy_composition():

@@ -155,8 +155,9 @@ def test_set_flags_land_on_the_sampler_of_an_older_config_file(tmp_path):
 
 
 def test_flat_keys_give_the_old_layout_for_run_keys():
-    """What the experiments' run keys hash: the flat keys a tagged or flat override stands for."""
-    field = config.to_dict(proposal.PROPOSAL_FIELD)
+    """What the experiments' run keys hash: the flat keys a tagged or flat override stands for,
+    the proposal field with every field kind's keys (the older single field layout)."""
+    field = {**config.to_dict(proposal.PROPOSAL_FIELD), "skip": 2, "pos_min_deg": 0, "pos_max_deg": 10}
     tagged = legacy.flat_keys({"sampler": {"kind": "proposal", "samples": [64], "main_samples": 32,
                                            "field": {"density_bias": -4.0}}})
     flat = legacy.flat_keys({"sampler": "proposal", "proposal_samples": [64], "num_fine": 32,
@@ -187,6 +188,7 @@ def test_merge_replaces_only_a_tagged_union_of_another_kind():
     out = config.merge(base, {"sampler": {"kind": "hierarchical", "samples": [8, 8]},
                               "field": {"kind": "mlp", "width": 32}})
     assert out["sampler"] == {"kind": "hierarchical", "samples": [8, 8]}  # another kind: replaced
-    assert out["field"] == {"kind": "mlp", "view_depth": 2, "width": 32}  # a field's kind: merged
+    assert out["field"] == {"kind": "mlp", "width": 32}  # the field is a tagged choice too
     assert config.merge(base, {"sampler": {"samples": [16]}})["sampler"] == \
         {"kind": "proposal", "samples": [16], "main_samples": 32}  # same kind: merged
+    assert config.merge(base, {"field": {"width": 32}})["field"] == {"kind": "grid", "view_depth": 2, "width": 32}

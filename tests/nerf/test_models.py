@@ -12,7 +12,7 @@ from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.nerf import fields, models
 from jaxnerf_grid.nerf.samplers import hierarchical, proposal
 
-SMALL = fields.FieldConfig(depth=2, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8)
+SMALL = fields.mlp.Config(depth=2, width=16, skip=1, pos_max_deg=4, dir_max_deg=2, view_width=8)
 
 
 @functools.cache
@@ -199,7 +199,7 @@ def _sphere_and_sky_field(params, cfg, x, viewdirs=None, appearance=None, transi
 def test_proposal_sampling_finds_sphere_surface_and_opaque_far_shows_the_far_colour(monkeypatch, opaque_far):
     monkeypatch.setattr(fields, "apply", _sphere_and_sky_field)
     monkeypatch.setattr(fields.proposal, "density", _sphere_density)
-    grid = fields.FieldConfig(kind="grid", depth=1, width=8, density_activation="exp",
+    grid = fields.grid.Config(depth=1, width=8, density_activation="exp",
                               grid=fields.HashConfig(num_levels=2, log2_table_size=8, min_resolution=4,
                                                      max_resolution=8))
     cfg = _cfg("ours", sampler=proposal.Config(samples=(64,), main_samples=16, field=grid), field=grid,

@@ -414,7 +414,7 @@ def test_write_report_tables_and_sections_by_hand(tmp_path):
         f"- field: {report._field_line(m.field)}",
         f"- NeRF-W: appearance {m.use_appearance}, transient {m.use_transient}",
         "- loss weights from masks: True (floor 0.3)",
-        f"- photometric evidence (train.robust): {t.robust}",
+        f"- photometric evidence (train.robust.mode): {t.robust.mode}",
         f"- batch {t.batch_rays} rays, {t.max_steps} steps, lr {t.lr_init} -> {t.lr_final} (warm-up {t.warmup}), "
         f"clip {t.max_grad_norm}", ""]
     v = lines.index("## Views (ground truth | render | depth)")
@@ -475,7 +475,7 @@ def test_write_report_of_no_views_and_bare_metrics(tmp_path):
 def test_write_report_names_the_robust_setting(tmp_path, robust):
     cfg = make_config("ours", {"train": {"robust": robust}})
     report.write_report(tmp_path, {}, cfg, "d", [])
-    assert f"- photometric evidence (train.robust): {robust}" in (tmp_path / "report.md").read_text().split("\n")
+    assert f"- photometric evidence (train.robust.mode): {robust}" in (tmp_path / "report.md").read_text().split("\n")
 
 
 def test_write_report_of_a_config_from_before_robust_says_off(tmp_path):
@@ -486,7 +486,7 @@ def test_write_report_of_a_config_from_before_robust_says_off(tmp_path):
     cfg = make_config("ours")
     old_train = types.SimpleNamespace(**{k: v for k, v in dataclasses.asdict(cfg.train).items() if k != "robust"})
     report.write_report(tmp_path, {}, types.SimpleNamespace(model=cfg.model, train=old_train), "d", [])
-    assert "- photometric evidence (train.robust): off" in (tmp_path / "report.md").read_text().split("\n")
+    assert "- photometric evidence (train.robust.mode): off" in (tmp_path / "report.md").read_text().split("\n")
 
 
 def test_colourise_depth_of_a_half_float_depth():

@@ -1,4 +1,4 @@
-"""train.robust_refine (jaxnerf_grid/train/refine.py): the evidence judged once on whole frames, then
+"""train.robust.refine (jaxnerf_grid/train/refine.py): the evidence judged once on whole frames, then
 frozen. The frame rule against a brute-force loop, the rendered points against the cameras,
 the weights of hand-made residuals, and the trainer's switch: 1 vs 2 devices, exact resume on
 either side of it, the frozen weights in the record and in the log."""
@@ -115,7 +115,7 @@ def test_frozen_pool_draws_only_the_kept_pixels_and_refuses_an_empty_one():
     out = refine.frozen_pool(pool, weights)
     np.testing.assert_array_equal(out["pixels"], [0 * 12 + 0 * 4 + 1, 1 * 12 + 2 * 4 + 3])
     assert "neighbours" not in out and out["near"] == 1.0 and out["weights"] is not pool["weights"]
-    with pytest.raises(DataError, match="robust_refine"):
+    with pytest.raises(DataError, match="robust.refine"):
         refine.frozen_pool(pool, np.zeros_like(weights))
 
 
@@ -171,7 +171,7 @@ def test_refine_resumes_exactly_on_either_side_of_the_switch(tmp_path, stop):
 
 
 def test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel():
-    """train.robust_prior_grow: the prior is 0 wherever a masked pixel lies within the disc of
+    """train.robust.prior_grow: the prior is 0 wherever a masked pixel lies within the disc of
     radius g (OpenCV's elliptical element: offsets (dr, dc) with (dr/g)^2 + (dc/g)^2 <= 1 up to its
     rasterisation, checked here against cv2's own element written out as offsets), else the
     ungrown prior; without binary masks it is refused."""
@@ -194,5 +194,5 @@ def test_grown_prior_flags_the_pixels_within_the_disc_of_a_masked_pixel():
         np.testing.assert_array_equal(got, np.where(near, 0.0, base))
         assert near.sum() > (masks > 0.5).sum()
     ds.masks = None
-    with pytest.raises(DataError, match="robust_prior_grow"):
+    with pytest.raises(DataError, match="robust.prior_grow"):
         train.prior_weights(ds, tiny_config(robust="dpt+robust", robust_patch=4, robust_prior_grow=1).train)

@@ -59,7 +59,7 @@ def test_robust_warmup_trains_on_the_prior_alone(tmp_path, mode):
 
 
 def test_multiview_confirmation_keeps_pixels_the_other_photos_confirm(tmp_path):
-    """train.robust_confirm joined into the loss weights: with the quantile alone (no spread
+    """train.robust.confirm joined into the loss weights: with the quantile alone (no spread
     bound, no warm-up) the evidence drops a fifth of each batch; with a confirmation threshold
     no colour difference exceeds, every pixel some neighbour photo sees is kept, so far fewer
     are dropped; with one that nothing passes, as many as without."""
@@ -101,7 +101,7 @@ def test_robust_readmits_a_wrong_prior_and_drops_a_missed_transient(tmp_path, st
 
 
 def test_strict_readmission_reaches_the_trainers_weights(tmp_path):
-    """train.robust_strict_readmit joined into the loss weights: without confirmation a flagged
+    """train.robust.strict_readmit joined into the loss weights: without confirmation a flagged
     pixel can never be re-admitted under it, so every flagged pixel drawn has its record moved
     down (at most 1/2 after its first draw) and none back up; without it the residual alone
     re-admits some of the same pixels (the draws do not depend on the weights). The prior flags

@@ -40,6 +40,7 @@ from __future__ import annotations
 from typing import Any
 
 from jaxnerf_grid.config import schema as config
+from jaxnerf_grid.nerf.fields.base import old_layout
 from jaxnerf_grid.nerf.samplers import proposal
 
 TAGGED_KEYS = {"hierarchical": ("kind", "samples", "union", "shared_field"),
@@ -95,8 +96,8 @@ def flat_model(model: dict) -> dict:
 def flat_keys(model_overrides: dict) -> dict:
     """The flat sampler keys, complete, of a model override dict (flat or tagged, merged over
     the old defaults), as an older full config.json would hold them: every key of OLD_DEFAULTS,
-    proposal_field as a full field dict."""
-    flat: dict[str, Any] = dict(OLD_DEFAULTS, proposal_field=config.to_dict(proposal.PROPOSAL_FIELD))
+    proposal_field as a full field dict of the older layout (every kind's keys, fields/base.py)."""
+    flat: dict[str, Any] = dict(OLD_DEFAULTS, proposal_field=old_layout(config.to_dict(proposal.PROPOSAL_FIELD)))
     current = model_overrides.get("sampler")
     layers = [_as_flat(current) if isinstance(current, dict) else ({"sampler": current} if current else {}),
               {k: model_overrides[k] for k in FLAT_KEYS if k in model_overrides}]

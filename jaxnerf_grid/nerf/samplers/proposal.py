@@ -28,7 +28,7 @@ from jaxnerf_grid.nerf.volume import alpha_weights
 KIND = "proposal"
 
 # The proposal field: a small density-only hash grid (nerfacto's sizes).
-PROPOSAL_FIELD = fields.FieldConfig(kind="grid", depth=1, width=16, density_activation="exp",
+PROPOSAL_FIELD = fields.grid.Config(depth=1, width=16, density_activation="exp",
                                     grid=fields.HashConfig(num_levels=5, features_per_level=2, log2_table_size=17,
                                                            min_resolution=16, max_resolution=256))
 
@@ -44,7 +44,7 @@ class Config:
     kind: str = KIND
     samples: tuple[int, ...] = (64,)
     main_samples: int = 32
-    field: fields.FieldConfig = PROPOSAL_FIELD
+    field: fields.grid.Config = PROPOSAL_FIELD
     padding: float = 0.01
 
     RANGES: typing.ClassVar[dict] = {"samples": config.AT_LEAST_ONE, "main_samples": config.AT_LEAST_ONE,
