@@ -186,6 +186,8 @@ class TrainConfig:
     max_side: int = 640
     robust: RobustConfig = RobustConfig()
 
+    # `--set train.robust_X` (the older flat name) is refused naming train.robust.X
+    RENAMED_PREFIXES: typing.ClassVar[dict] = {FLAT_ROBUST_PREFIX: "robust."}
     # allowed values, checked by config.validate (docs/RELIABILITY.md)
     RANGES: typing.ClassVar[dict] = {
         "batch_rays": config_lib.AT_LEAST_ONE, "max_steps": config_lib.AT_LEAST_ONE,

@@ -195,6 +195,15 @@ def _parse_value(text: str) -> Any:
         return text
 
 
+def _renamed(cls: type, part: str) -> str | None:
+    """The dotted name an older key `part` of section `cls` has now (the section's
+    RENAMED_PREFIXES, e.g. TrainConfig's robust_X -> robust.X), or None."""
+    for old, new in getattr(cls, "RENAMED_PREFIXES", {}).items():
+        if part.startswith(old) and len(part) > len(old):
+            return new + part[len(old):]
+    return None
+
+
 def parse_sets(items: list[str] | None, cls: type) -> dict:
     """--set flags ["model.field.width=64", "train.lr_init=1e-3", ...] as a nested override dict
     for the dataclass `cls` (later flags win). Each dotted key must name a field of `cls` (a
@@ -210,6 +219,9 @@ def parse_sets(items: list[str] | None, cls: type) -> dict:
         target, node = cls, out
         for depth, part in enumerate(parts):
             names, hints = _fields_of(target)
+            renamed = _renamed(target, part)
+            if part not in names and renamed:
+                raise ConfigError(f"{key}: renamed {'.'.join([*parts[:depth], renamed, *parts[depth + 1:]])}")
             if part not in names:
                 prefix = ".".join(parts[:depth]) or "the config"
                 raise ConfigError(f"{key}: unknown key {part!r} in {prefix}; known: {sorted(names)}")

@@ -84,8 +84,13 @@ def test_set_train_robust_to_a_mode_sets_the_mode():
     # the shorthand after a nested key keeps it: the mode is one key of the section
     cfg = build.build(build.Request(sets=("train.robust.quantile=0.7", "train.robust=dpt+robust"))).config()
     assert (cfg.train.robust.mode, cfg.train.robust.quantile) == ("dpt+robust", 0.7)
-    with pytest.raises(ConfigError, match="train.robust_patch: unknown key"):
+
+
+def test_an_older_flat_robust_key_in_set_is_refused_with_its_new_name():
+    with pytest.raises(ConfigError, match=r"^train\.robust_patch: renamed train\.robust\.patch$"):
         build.build(build.Request(sets=("train.robust_patch=8",)))
+    with pytest.raises(ConfigError, match="unknown key 'robust_'"):  # the bare prefix is no older key
+        build.build(build.Request(sets=("train.robust_=8",)))
 
 
 def test_an_older_config_file_then_set_keeps_the_files_robust_mode(tmp_path):
