@@ -171,10 +171,13 @@ def _dataset_folder(data, out: Path, progress: bool, timings: dict) -> Path:
 MASK_CHOICES = ("auto", "dpt", "robust", "dpt+robust", "none")
 
 
-def mask_plan(choice: str, domain: dict | None) -> dict:
+def mask_plan(choice: str, domain: dict | None, capture: bool = False) -> dict:
     """What trains, for `demo --masks choice` on a dataset whose masks got the verdict `domain`
     (transforms.json's `mask_domain`: `masking.domain_verdict`; None when not judged, e.g.
-    ground-truth masks or masks made before the rule existed).
+    ground-truth masks or masks made before the rule existed). capture: the dataset is real
+    photos registered by `poses` (`is_capture`): "auto" then adds the photometric evidence to
+    the DPT's masks, for what masks do not cover (pose error, exposure, view-dependent light,
+    what few photos see; measured in docs/RESULTS.md, "Real photos").
 
     Returns {"mode": "dpt" | "robust" | "dpt+robust" | "none", "overrides": the train.* config
     changes ({"train": {"use_masks": bool[, "robust": {"mode": mode}]}}; `robust` only when not "off",
@@ -190,11 +193,15 @@ def mask_plan(choice: str, domain: dict | None) -> dict:
                    f"{_share_text()} of their pixels masked, median {domain['median_share']:.0%}), so its "
                    "masks are not used")
         else:
-            mode = "dpt"
+            mode = "dpt+robust" if capture else "dpt"
             why = ("chosen automatically: the DPT is in its domain on these photos "
                    f"({domain['frames_mostly_masked']} of {domain['frames']} frames mostly masked, median "
                    f"{domain['median_share']:.0%})" if domain is not None else
                    "chosen automatically: the dataset's masks (not judged by the out-of-domain rule)")
+            if capture:
+                why += ("; the photos are a real capture (registered by `poses`), so the photometric evidence "
+                        "also judges each pixel, for what masks do not cover: pose error, exposure, "
+                        "view-dependent light")
     else:
         mode, why = choice, f"forced by the user (demo.masks = {choice})"
     train_over: dict[str, Any] = {"use_masks": mode in ("dpt", "dpt+robust")}
@@ -202,6 +209,15 @@ def mask_plan(choice: str, domain: dict | None) -> dict:
     if robust != "off":
         train_over["robust"] = {"mode": robust}
     return {"mode": mode, "overrides": {"train": train_over}, "why": why}
+
+
+def is_capture(data: Path) -> bool:
+    """Whether a transforms.json dataset is real photos registered by `poses` (its "poses"
+    record); False for generated scenes and other layouts."""
+    try:
+        return isinstance(read_meta(data).get("poses"), dict)
+    except (DataError, OSError, ValueError):
+        return False
 
 
 def _share_text() -> str:
@@ -349,7 +365,8 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         data = Path(data) if data is not None else out / "data"
         mask_source = None
     # every process reads the same verdict from the dataset, so all train the same config
-    plan = mask_plan(masks, dataset_domain(Path(data or out / "data")))  # set above on every process
+    data_dir = Path(data or out / "data")  # set above on every process
+    plan = mask_plan(masks, dataset_domain(data_dir), is_capture(data_dir))
     if not layout and masks == "auto":
         plan = dict(mask_plan("robust", None), why="chosen automatically: the dataset is not in the transforms.json "
                     "layout, so it has no masks and `mask` cannot write any")

@@ -267,3 +267,34 @@ def test_train_without_steps_takes_the_budgets_steps_and_records_why(data_dir, t
     assert (rec["rule"], rec["limited_by"], rec["steps"], rec["train_pixels"]) == ("budget", "minutes", 1, 4 * 16 * 12)
     assert cli.main(["train", "--data", str(data_dir), "--out", str(tmp_path / "r2"), "--minutes", "0"]) == 1
     assert "--minutes = 0" in capsys.readouterr().err
+
+
+def test_demo_on_a_capture_from_poses_trains_the_masks_with_the_photometric_evidence(data_dir, tmp_path,
+                                                                                    monkeypatch):
+    """`demo --data` with masks "auto" on a dataset `poses` registered (its "poses" record) trains
+    dpt+robust; the same dataset without the record trains its masks alone."""
+    import shutil
+
+    from jaxnerf_grid import demo
+
+    class Trained(Exception):
+        pass
+
+    def stop(data, method, run_dir, overrides, *args, **kwargs):
+        raise Trained(overrides)
+
+    monkeypatch.setattr(demo.runs, "train_run", stop)
+    trained = {}
+    for name, record in (("capture", {"photos": 5, "registered": 5}), ("generated", None)):
+        data = tmp_path / name
+        shutil.copytree(data_dir, data)
+        meta = io.read_json(data / "transforms.json")
+        meta.pop("poses", None)
+        if record is not None:
+            meta["poses"] = record
+        io.write_json(data / "transforms.json", meta)
+        with pytest.raises(Trained) as caught:
+            demo.run_demo(data, tmp_path / f"out_{name}", steps=1, progress=False)
+        trained[name] = caught.value.args[0]["train"]
+    assert trained["capture"]["robust"]["mode"] == "dpt+robust" and trained["capture"]["use_masks"]
+    assert trained["generated"].get("robust", {}).get("mode", "off") == "off" and trained["generated"]["use_masks"]

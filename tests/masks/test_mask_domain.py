@@ -170,6 +170,33 @@ def test_mask_plan(choice, domain, mode, train):
         assert "out of its domain" in note and "4 of 4 frames" in note
 
 
+@pytest.mark.parametrize("domain, mode", [
+    ({"out_of_domain": False, "frames": 4, "frames_mostly_masked": 0, "median_share": 0.0}, "dpt+robust"),
+    ({"out_of_domain": True, "frames": 4, "frames_mostly_masked": 4, "median_share": 0.7}, "robust"),
+    (None, "dpt+robust"),
+])
+def test_auto_adds_the_photometric_evidence_to_the_masks_of_a_real_capture(domain, mode):
+    plan = demo.mask_plan("auto", domain, capture=True)
+    assert plan["mode"] == mode
+    assert plan["overrides"]["train"]["robust"] == {"mode": mode}
+    assert plan["overrides"]["train"]["use_masks"] == (mode == "dpt+robust")
+    assert ("real capture" in plan["why"]) == (mode == "dpt+robust")
+    # a forced choice stays the user's on a capture too
+    assert demo.mask_plan("dpt", domain, capture=True)["mode"] == "dpt"
+
+
+def test_a_dataset_is_a_capture_when_poses_registered_it(tmp_path):
+    made = tmp_path / "made"
+    made.mkdir()
+    (made / "transforms.json").write_text(json.dumps({"frames": [], "poses": {"photos": 3, "registered": 3}}))
+    generated = tmp_path / "generated"
+    generated.mkdir()
+    (generated / "transforms.json").write_text(json.dumps({"frames": []}))
+    assert demo.is_capture(made)
+    assert not demo.is_capture(generated)
+    assert not demo.is_capture(tmp_path / "missing")
+
+
 def test_mask_plan_refuses_an_unknown_choice():
     with pytest.raises(ConfigError, match="demo.masks"):
         demo.mask_plan("sometimes", None)
