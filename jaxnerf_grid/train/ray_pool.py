@@ -1,9 +1,10 @@
 """The ray pool of the plain training step (train.robust off): 8-bit frames split over the devices.
 
-What the step draws from is the same as `train.build_pool`'s float32 pool (kept for the robust
-step and as the reference of the tests): the training pixels of loss weight > 0 in flat order
-(training frame, row, col), a batch of `batch_rays` drawn uniformly (with replacement) from the
-state's key, the same global batch for any device count. What is held differs:
+What the step draws from is the same as `train.build_pool`'s float32 pool (kept as the tests'
+reference; the robust step's pool holds its frames and weights as below too, `lean_frames`): the
+training pixels of loss weight > 0 in flat order (training frame, row, col), a batch of
+`batch_rays` drawn uniformly (with replacement) from the state's key, the same global batch for
+any device count. What is held differs:
 
 * images as uint8 (value / 255, converted to float32 in the step: for 8-bit photos at their
   native size the same float32 as `io.read_image`; resized working frames are rounded to 8 bits,
