@@ -60,41 +60,46 @@ def project(points: jnp.ndarray, c2w: jnp.ndarray, intrinsics: jnp.ndarray) -> t
     return u, v, ahead > 1e-6
 
 
-def neighbourhoods(images: jnp.ndarray, frame: jnp.ndarray, row: jnp.ndarray, col: jnp.ndarray) -> jnp.ndarray:
+def neighbourhoods(images: jnp.ndarray, frame: jnp.ndarray, row: jnp.ndarray, col: jnp.ndarray,
+                   table: jnp.ndarray | None = None) -> jnp.ndarray:
     """The 3x3 neighbourhood of pixels, rows and columns clamped to the photo.
 
-    images: [T, H, W, 3]; frame, row, col: [...] int. Returns [..., 9, 3] (OFFSETS order)."""
+    images: [T, H, W, 3] float, or uint8 codes read through `table` [256] (the float value of
+    each byte: `ray_pool.BYTE_VALUES`); frame, row, col: [...] int. Returns [..., 9, 3] float
+    (OFFSETS order)."""
     _, height, width, _ = images.shape
     rows = jnp.clip(row[..., None] + jnp.array([dy for dy, _ in OFFSETS]), 0, height - 1)
     cols = jnp.clip(col[..., None] + jnp.array([dx for _, dx in OFFSETS]), 0, width - 1)
-    return images[frame[..., None], rows, cols]
+    values = images[frame[..., None], rows, cols]
+    return values if table is None else jnp.asarray(table)[values]
 
 
 def confirmation_errors(images: jnp.ndarray, c2w: jnp.ndarray, intrinsics: jnp.ndarray,
                         neighbours: jnp.ndarray, frame: jnp.ndarray, row: jnp.ndarray, col: jnp.ndarray,
-                        points: jnp.ndarray) -> jnp.ndarray:
+                        points: jnp.ndarray, table: jnp.ndarray | None = None) -> jnp.ndarray:
     """The smallest 3x3-neighbourhood colour difference of each pixel over its neighbour photos.
 
     images: [T, H, W, 3]; c2w: [T, 4, 4]; intrinsics: [T, 4]; neighbours: [T, K] frame
     indices (`neighbour_frames`); frame, row, col: [N] int the pixels; points: [N, 3] their
-    3-D points (world). Returns [N]: min over the K neighbours that see the point (in front,
+    3-D points (world); table: as `neighbourhoods`. Returns [N]: min over the K neighbours that see the point (in front,
     the whole 3x3 neighbourhood inside the photo) of mean((own - theirs)^2) over the 27
     values; +inf where no neighbour sees it (or K = 0)."""
     _, height, width, _ = images.shape
-    own = neighbourhoods(images, frame, row, col)                      # [N, 9, 3]
+    own = neighbourhoods(images, frame, row, col, table)               # [N, 9, 3]
     others = neighbours[frame]                                         # [N, K]
     u, v, ahead = project(points[:, None, :], c2w[others], intrinsics[others])
     pu, pv = jnp.floor(u), jnp.floor(v)
     inside = ahead & (pu >= 1) & (pu <= width - 2) & (pv >= 1) & (pv <= height - 2)
     pu = jnp.clip(pu, 0, width - 1).astype(jnp.int32)
     pv = jnp.clip(pv, 0, height - 1).astype(jnp.int32)
-    theirs = neighbourhoods(images, others, pv, pu)                    # [N, K, 9, 3]
+    theirs = neighbourhoods(images, others, pv, pu, table)             # [N, K, 9, 3]
     error = jnp.mean((theirs - own[:, None]) ** 2, axis=(-2, -1))      # [N, K]
     return jnp.min(jnp.where(inside, error, jnp.inf), axis=-1, initial=jnp.inf)
 
 
 def confirmed_at_ids(images: jnp.ndarray, c2w: jnp.ndarray, intrinsics: jnp.ndarray, neighbours: jnp.ndarray,
-                     ids: jnp.ndarray, points: jnp.ndarray, threshold: float) -> jnp.ndarray:
+                     ids: jnp.ndarray, points: jnp.ndarray, threshold: float,
+                     table: jnp.ndarray | None = None) -> jnp.ndarray:
     """Which pixels a neighbouring photo confirms: the training step's join.
 
     ids: [N] flat pixel indices into the training frames [T, H, W] (frame * H * W + row * W +
@@ -103,5 +108,6 @@ def confirmed_at_ids(images: jnp.ndarray, c2w: jnp.ndarray, intrinsics: jnp.ndar
     the smallest 3x3 difference is at most `threshold`, else 0.0."""
     _, height, width, _ = images.shape
     frame, pixel = ids // (height * width), ids % (height * width)
-    error = confirmation_errors(images, c2w, intrinsics, neighbours, frame, pixel // width, pixel % width, points)
+    error = confirmation_errors(images, c2w, intrinsics, neighbours, frame, pixel // width, pixel % width, points,
+                                table)
     return (error <= threshold).astype(jnp.float32)

@@ -111,9 +111,32 @@ def prior_weights(dataset: Dataset, cfg: TrainConfig) -> np.ndarray:
     return prior
 
 
+def _training_frames(dataset: Dataset, cfg: RunConfig) -> tuple[np.ndarray, np.ndarray, dict]:
+    """What `build_pool` and `robust_pool` share: (train_ids [T], weights [T, H, W] float32 (the
+    evidence's prior with train.robust on, else the loss weights), {"c2w", "intrinsics", "frame",
+    "near", "far"[, "neighbours"]})."""
+    train_ids = np.asarray(dataset.split["train"], np.int64)
+    if train_ids.size == 0:
+        raise DataError(f"{dataset.root}: the dataset has no training frames")
+    robust_on = cfg.train.robust.mode != "off"
+    weights = (prior_weights(dataset, cfg.train) if robust_on else loss_weights(dataset, cfg.train))[train_ids]
+    if weights.size == 0 or not (robust_on or np.any(weights > 0)):
+        raise DataError(f"{dataset.root}: every training pixel has loss weight 0 (check the masks)")
+    near, far = config_lib.near_far(cfg.model, dataset)
+    if not 0 < near < far:
+        raise ConfigError(f"near/far: need 0 < near < far, got {near}, {far}")
+    c2w = np.asarray(dataset.c2w[train_ids], np.float32)
+    rest = {"c2w": c2w, "intrinsics": np.asarray(dataset.intrinsics[train_ids], np.float32),
+            "frame": train_ids.astype(np.int32), "near": near, "far": far}
+    if robust_on and cfg.train.robust.confirm > 0:
+        rest["neighbours"] = photo_consistency.neighbour_frames(c2w, cfg.train.robust.views)
+    return train_ids, weights, rest
+
+
 def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
-    """Training data for on-device batch drawing (host NumPy arrays, float32): the robust step's
-    pool, and the reference the plain step's 8-bit pool (ray_pool.py) is tested against.
+    """Training data for on-device batch drawing (host NumPy arrays, float32): the reference the
+    robust step's lean pool (`robust_pool`) and the plain step's 8-bit pool (ray_pool.py) are
+    tested against.
 
     Returns {"pixels": [P] int32 flat ids (frame-in-train * H*W + row * W + col) of every
     training pixel with weight > 0, "images": [T, H, W, 3], "weights": [T, H, W],
@@ -123,29 +146,28 @@ def build_pool(dataset: Dataset, cfg: RunConfig) -> dict:
     are drawn over whole frames); with train.robust.confirm > 0 also "neighbours": [T, K]
     int32 (`photo_consistency.neighbour_frames`, indices into the pool's frames).
     """
-    train_ids = np.asarray(dataset.split["train"], np.int64)
-    if train_ids.size == 0:
-        raise DataError(f"{dataset.root}: the dataset has no training frames")
+    train_ids, weights, rest = _training_frames(dataset, cfg)
     robust_on = cfg.train.robust.mode != "off"
-    weights = (prior_weights(dataset, cfg.train) if robust_on else loss_weights(dataset, cfg.train))[train_ids]
     pixels = (np.arange(weights.size) if robust_on else np.flatnonzero(weights.reshape(-1) > 0)).astype(np.int32)
-    if pixels.size == 0:
-        raise DataError(f"{dataset.root}: every training pixel has loss weight 0 (check the masks)")
-    near, far = config_lib.near_far(cfg.model, dataset)
-    if not 0 < near < far:
-        raise ConfigError(f"near/far: need 0 < near < far, got {near}, {far}")
-    c2w = np.asarray(dataset.c2w[train_ids], np.float32)
-    pool = {"pixels": pixels, "images": working.as_float(dataset.images[train_ids]),
-            "weights": weights, "c2w": c2w, "intrinsics": np.asarray(dataset.intrinsics[train_ids], np.float32),
-            "frame": train_ids.astype(np.int32), "near": near, "far": far}
-    if robust_on and cfg.train.robust.confirm > 0:
-        pool["neighbours"] = photo_consistency.neighbour_frames(c2w, cfg.train.robust.views)
-    return pool
+    return {"pixels": pixels, "images": working.as_float(dataset.images[train_ids]), "weights": weights, **rest}
+
+
+def robust_pool(dataset: Dataset, cfg: RunConfig) -> dict:
+    """The robust step's pool (train.robust on): `build_pool`'s without "pixels" (the step draws
+    flat ids over whole frames), its images and weights held by `ray_pool.lean_frames` (8-bit
+    frames as uint8, the weights as uint8 codes with "levels" [256] where a table codes them), so
+    `gather_batch`, the confirmation and refine.py read the same float32 values from it."""
+    if cfg.train.robust.mode == "off":
+        raise ValueError("robust_pool: train.robust is off (the plain step's pool is ray_pool.build)")
+    train_ids, weights, rest = _training_frames(dataset, cfg)
+    every = np.array_equal(train_ids, np.arange(len(dataset.images)))
+    images = dataset.images if every else dataset.images[train_ids]  # no copy when every frame trains
+    return {**ray_pool.lean_frames(images, weights), **rest}
 
 
 def gather_batch(pool: dict, ids: jnp.ndarray) -> dict:
-    """Rays and targets of flat pixel ids. ids: [B] -> dict of [B, ...] (origins, directions,
-    near, far, rgb, weight, image_index)."""
+    """Rays and targets of flat pixel ids. pool: `build_pool`'s or `robust_pool`'s (decoded
+    here); ids: [B] -> dict of [B, ...] (origins, directions, near, far, rgb, weight, image_index)."""
     _, height, width, _ = pool["images"].shape
     frame = ids // (height * width)
     pix = ids % (height * width)
@@ -155,7 +177,8 @@ def gather_batch(pool: dict, ids: jnp.ndarray) -> dict:
                                  col.astype(jnp.float32) + 0.5, row.astype(jnp.float32) + 0.5,
                                  pool["near"], pool["far"])
     return {"origins": r.origins, "directions": r.directions, "near": r.near, "far": r.far,
-            "rgb": pool["images"][frame, row, col], "weight": pool["weights"][frame, row, col],
+            "rgb": ray_pool.colours(pool["images"], frame, row, col),
+            "weight": ray_pool.weights_at(pool, frame, row, col),
             "image_index": pool["frame"][frame]}
 
 
@@ -221,7 +244,8 @@ def make_train_step(cfg: RunConfig, num_devices: int):
 @functools.lru_cache(maxsize=8)
 def _make_train_step(cfg: RunConfig, num_devices: int):
     """The pmapped step: (state [n, ...], pool [n, ...]) -> (state, stats {loss, mse, finite}).
-    The pool: `ray_pool.upload` of a `ray_pool` pool (train.robust off), else of `build_pool`'s.
+    The pool: `ray_pool.upload` of a `ray_pool` pool (train.robust off), else `robust_pool`'s
+    (or `build_pool`'s) replicated.
 
     Cached per (config, device count), so runs with the same config share one compilation.
     """
@@ -286,7 +310,8 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
         """[B] 1.0 where a neighbouring photo confirms the pixel at its rendered depth."""
         points = batch["origins"] + batch["directions"] * depth[:, None]
         return photo_consistency.confirmed_at_ids(pool["images"], pool["c2w"], pool["intrinsics"],
-                                                  pool["neighbours"], ids, points, tcfg.robust.confirm)
+                                                  pool["neighbours"], ids, points, tcfg.robust.confirm,
+                                                  ray_pool.byte_table(pool["images"]))
 
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
@@ -498,10 +523,10 @@ class TrainResult:
 
 
 def device_pool(dataset: Dataset, cfg: RunConfig, n: int) -> dict:
-    """The training step's pool on n devices, as `train` lays it out: the robust step's float32
-    pool replicated (`build_pool`), else the 8-bit frames split over the devices (`ray_pool`)."""
+    """The training step's pool on n devices, as `train` lays it out: the robust step's lean pool
+    replicated (`robust_pool`), else the 8-bit frames split over the devices (`ray_pool`)."""
     if cfg.train.robust.mode != "off":
-        return parallel.replicate(build_pool(dataset, cfg), n)
+        return parallel.replicate(robust_pool(dataset, cfg), n)
     return ray_pool.upload(ray_pool.build(dataset, cfg), n)
 
 def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
@@ -518,9 +543,9 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     mcfg, tcfg = cfg.model, cfg.train
     n = step_devices(tcfg)
     robust_on = tcfg.robust.mode != "off"
-    # the robust step draws patches over replicated float32 frames (build_pool); the plain step
+    # the robust step draws patches over replicated lean frames (robust_pool); the plain step
     # its rays from 8-bit frames split over the devices (ray_pool)
-    pool_host = build_pool(dataset, cfg) if robust_on else ray_pool.build(dataset, cfg)
+    pool_host = robust_pool(dataset, cfg) if robust_on else ray_pool.build(dataset, cfg)
     state = init_state(cfg, train_frames_shape(dataset))
     step = 0
     main = distributed.is_main()  # process 0 (always, in one process) writes logs and checkpoints

@@ -1,9 +1,10 @@
 """The ray pool of the plain training step (train.robust off): 8-bit frames split over the devices.
 
-What the step draws from is the same as `train.build_pool`'s float32 pool (kept for the robust
-step and as the reference of the tests): the training pixels of loss weight > 0 in flat order
-(training frame, row, col), a batch of `batch_rays` drawn uniformly (with replacement) from the
-state's key, the same global batch for any device count. What is held differs:
+What the step draws from is the same as `train.build_pool`'s float32 pool (kept as the tests'
+reference; the robust step's pool holds its frames and weights as below too, `lean_frames`): the
+training pixels of loss weight > 0 in flat order (training frame, row, col), a batch of
+`batch_rays` drawn uniformly (with replacement) from the state's key, the same global batch for
+any device count. What is held differs:
 
 * images as uint8 (value / 255, converted to float32 in the step: for 8-bit photos at their
   native size the same float32 as `io.read_image`; resized working frames are rounded to 8 bits,
@@ -328,3 +329,51 @@ def device_batch(pool: dict, key, batch: int, per_device: int, axis: str = paral
 def host_bytes(pool: dict) -> int:
     """Bytes of the pool's arrays (the frame rows counted once, whether shared or not)."""
     return int(sum(np.asarray(v).nbytes for v in pool.values() if isinstance(v, np.ndarray)))
+
+
+# --------------------------------------------------------------------------- the robust step's pool
+# The robust step draws patches over whole frames (flat ids frame * H * W + row * W + col, no
+# list of them) from frames replicated on every device; held as below they take 4 bytes a pixel
+# (8-bit frames, coded weights) instead of `train.build_pool`'s 20, and read the same float32.
+
+
+def lean_frames(images: np.ndarray, weights: np.ndarray) -> dict:
+    """The robust step's frames and weights as held: images [T, H, W, 3] uint8 kept as uint8
+    (read through BYTE_VALUES: the float32 of `working.as_float`), others as float32; weights
+    [T, H, W] float32 (T >= 1) as uint8 codes with their "levels" [256] float32 (`weight_table`), or as
+    float32 when no table codes them. Returns {"images", "weights"[, "levels"]}."""
+    images = np.asarray(images)
+    out = {"images": images if images.dtype == np.uint8 else working.as_float(images)}
+    weights = np.asarray(weights, np.float32)
+    table = weight_table(weights)
+    if table is None:
+        out["weights"] = weights
+    else:  # frame by frame: encode_weights' search holds 8 bytes a pixel while it runs
+        out["weights"] = np.stack([encode_weights(w, table) for w in weights])
+        out["levels"] = table
+    return out
+
+
+def byte_table(images) -> np.ndarray | None:
+    """BYTE_VALUES ([256] float32) when `images` (NumPy or JAX, traced too) are uint8, else None."""
+    return BYTE_VALUES if images.dtype == np.uint8 else None
+
+
+def colours(images, *index):
+    """images[index] as float32: uint8 frames through BYTE_VALUES (exact), float ones as held."""
+    values = images[index]
+    table = byte_table(images)
+    return values if table is None else jnp.asarray(table)[values]
+
+
+def weights_at(pool: dict, *index):
+    """pool["weights"][index] as float32, decoded through pool["levels"] when coded."""
+    values = pool["weights"][index]
+    return pool["levels"][values] if "levels" in pool else values
+
+
+def host_weights(pool: dict) -> np.ndarray:
+    """A robust pool's weights [T, H, W] as float32 on the host (decoded when coded)."""
+    if "levels" in pool:
+        return np.asarray(pool["levels"], np.float32)[np.asarray(pool["weights"])]
+    return np.asarray(pool["weights"], np.float32)

@@ -32,6 +32,7 @@ from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.masks import photo_consistency
 from jaxnerf_grid.masks import robust as robust_lib
 from jaxnerf_grid.render import views
+from jaxnerf_grid.train import ray_pool
 from jaxnerf_grid.util import progress as progress_lib
 from jaxnerf_grid.util.io import DataError
 
@@ -57,15 +58,17 @@ def render_training_frames(params, cfg: RunConfig, dataset: Dataset, frames: np.
 
 def confirmed_frames(pool: dict, points: np.ndarray, threshold: float) -> np.ndarray:
     """[T, H, W] 1.0 where a neighbouring training photo confirms the pixel at its point.
-    pool: train.build_pool's dict (images, c2w, intrinsics, neighbours); points: [T, H, W, 3]."""
+    pool: train.robust_pool's (or build_pool's) dict (images, c2w, intrinsics, neighbours);
+    points: [T, H, W, 3]."""
     frames, height, width = points.shape[:3]
     images, c2w, intrinsics, neighbours = (jnp.asarray(pool[k]) for k in ("images", "c2w", "intrinsics",
                                                                         "neighbours"))  # uploaded once
+    table = ray_pool.byte_table(images)  # 8-bit frames: their float32 values
     out = []
     for k in range(frames):
         ids = jnp.arange(height * width, dtype=jnp.int32) + k * height * width
         out.append(np.asarray(photo_consistency.confirmed_at_ids(
-            images, c2w, intrinsics, neighbours, ids, jnp.asarray(points[k].reshape(-1, 3)), threshold)))
+            images, c2w, intrinsics, neighbours, ids, jnp.asarray(points[k].reshape(-1, 3)), threshold, table)))
     return np.stack(out).reshape(frames, height, width)
 
 
@@ -88,17 +91,17 @@ def judge_frames(params, cfg: RunConfig, dataset: Dataset, pool: dict, progress:
     confirmed = None
     if cfg.train.robust.confirm > 0 and "neighbours" in pool:
         confirmed = confirmed_frames(pool, points, cfg.train.robust.confirm)
-    return refined_weights(residual, pool["weights"], cfg, confirmed)
+    return refined_weights(residual, ray_pool.host_weights(pool), cfg, confirmed)
 
 
 def frozen_pool(pool: dict, weights: np.ndarray) -> dict:
     """The pool of the run's last part: the robust pool with `weights` [T, H, W] as its weights and
     the pixels of weight > 0 as the ones drawn (flat ids, `train.build_pool`'s numbering), no
-    neighbours. DataError when no pixel is left."""
+    neighbours, float32 weights (no "levels"). DataError when no pixel is left."""
     pixels = np.flatnonzero(np.asarray(weights).reshape(-1) > 0).astype(np.int32)
     if pixels.size == 0:
         raise DataError("train.robust.refine: the evidence ignored every training pixel; "
                         "lower train.robust.refine or raise train.robust.spread")
-    out = {k: v for k, v in pool.items() if k != "neighbours"}
+    out = {k: v for k, v in pool.items() if k not in ("neighbours", "levels")}
     out.update(weights=np.asarray(weights, np.float32), pixels=pixels)
     return out
