@@ -300,6 +300,18 @@ SLOW = {
     "train/test_ray_pool.py::test_sharded_uint8_batch_equals_the_float32_pools",
     "train/test_refine.py::test_frame_evidence_against_a_pixel_loop",
     "train/test_refine.py::test_rendered_points_lie_on_their_pixels_rays_at_the_rendered_z_depth",
+    "capture/test_georef.py::test_poses_aligns_photos_with_gps_to_metres",
+    "eval/test_metrics.py::test_evaluate_image_without_lpips",
+    "joins/test_join_export.py::test_a_tower_without_cross_arms_looks_for_conductors_above_half_its_height",
+    "joins/test_join_foreground.py::test_mask_command_dpt_source_against_eq6_to_8",
+    "masks/test_photo_consistency.py::test_confirmation_errors_match_a_numpy_loop",
+    "masks/test_write.py::test_overlays_are_scaled_to_the_preview_size_and_the_progress_is_shown_by_default",
+    "masks/test_write.py::test_tiled_masks_record_the_tiling_and_use_its_overlap",
+    "nerf/test_field_kinds.py::test_init_and_apply_dispatch_through_the_registry",
+    "train/test_ray_pool.py::test_mask_floor_weights_are_coded_exactly",
+    "train/test_robust_pool.py::test_lean_pool_batch_and_confirmation_equal_the_float32_pools",
+    "train/test_robust_pool.py::test_refine_reads_the_same_weights_and_confirmation_from_the_lean_pool",
+    "train/test_robust_pool.py::test_robust_steps_on_the_lean_pool_give_the_float32_pools_params",
 }
 
 
