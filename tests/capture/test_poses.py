@@ -455,7 +455,9 @@ def test_poses_overwrite_replaces_only_its_outputs(orbit_run, tmp_path, capsys):
                      "--overwrite", "--quiet"])
     assert code == 0, capsys.readouterr().err
     assert (out / "notes.txt").read_text() == "mine" and not (out / "images" / "stale.png").exists()
-    assert len(io.read_json(out / "transforms.json")["frames"]) == NUM_VIEWS and (out / MARKER).is_file()
+    # rewritten from every photo (how many of them COLMAP registers is tested by the orbit tests)
+    top = io.read_json(out / "transforms.json")
+    assert len(top["frames"]) == top["poses"]["in_dataset"] >= NUM_VIEWS - 2 and (out / MARKER).is_file()
     assert not any((out / name).exists() for name in ("masks", "weights", "dpt_depth", "overlays"))
     assert sorted(p.name for p in tmp_path.iterdir()) == ["again"]
 

@@ -854,7 +854,7 @@ def test_demo_takes_a_dataset_layout_train_takes(scene, capsys, tmp_path, monkey
     monkeypatch.setattr(runs, "train_run", stub_train_run)
     with pytest.raises(Stop):
         demo.run_demo(root, tmp_path / "demo", steps=2, progress=False)
-    assert seen["data"] == str(root) and seen["overrides"]["train"]["robust"] == "robust"
+    assert seen["data"] == str(root) and seen["overrides"]["train"]["robust"] == {"mode": "robust"}
     assert seen["overrides"]["train"]["use_masks"] is False
     assert snapshot(root) == before
     rc, err = run_cli(["demo", "--data", root, "--out", tmp_path / "demo2", "--masks", "dpt", "--quiet"], capsys)

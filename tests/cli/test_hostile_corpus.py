@@ -234,7 +234,7 @@ def test_warnings_are_one_line_each(scene, tmp_path):
 def test_max_side_names_the_flag(scene, capsys, tmp_path, command):
     """Failed: `--max-side -3` was refused naming the key train.max_side, not the flag."""
     argv = ([command, "--data", scene["data"], "--out", tmp_path / "r", "--max-side", "-3", "--quiet"]
-            + (["--config", scene["cfg"]] if command == "train" else []))
+            + ([*PAPER_MLP, "--config", scene["cfg"]] if command == "train" else []))
     rc, err = run_cli(argv, capsys)
     assert_one_line_error(rc, err, "--max-side", "-3")
     assert not (tmp_path / "r").exists()

@@ -27,7 +27,8 @@ TINY = {"model": {"field": {"depth": 1, "width": 16, "skip": 0, "pos_max_deg": 2
 
 
 def test_machinery_end_to_end(tmp_path, monkeypatch):
-    monkeypatch.setitem(settings.TRAIN_SETTINGS, "quick", {"steps": 3, "seeds": 1, "distractor_views": 1,
+    monkeypatch.setitem(settings.TRAIN_SETTINGS, "quick", {"recipe": "ours-paper-mlp", "steps": 3, "seeds": 1,
+                                                        "distractor_views": 1,
                                                         "overrides": TINY})
     monkeypatch.setitem(settings.SCENE_SIZES, "quick", {"tower-small": (24, 16, 2, 1, 1)})
     ctx = runner.Context("quick", 1, 3, tmp_path / "cache", tmp_path / "results", None, None, False, "test")

@@ -359,14 +359,14 @@ def test_a_call_with_the_defaults_on_a_robust_runs_folder(evaluated, tmp_path):
     for key, value in score.items():
         assert result["geometry"][key] == (pytest.approx(value, rel=1e-4, abs=1e-6)
                                            if isinstance(value, float) else value), key
-    weights = {"mode": cfg.train.robust, "ignored_share": pytest.approx(0.125, abs=1e-6),
+    weights = {"mode": cfg.train.robust.mode, "ignored_share": pytest.approx(0.125, abs=1e-6),
                "late_batch_ignored_share": pytest.approx(0.3, abs=1e-9)}
     assert result["training_weights"] == weights
     assert io.read_json(run_dir / "metrics.json")["training_weights"] == weights
     report = (run_dir / "report.md").read_text()
     for line in (f"Data: `{tmp_path / 'dataset'}`",
                  f"Resolution: test views rendered at the photos' full size, {W}x{H} (`--full-size`).",
-                 f"Photometric evidence (`train.robust = {cfg.train.robust}`): training ignored 30.0 % of the "
+                 f"Photometric evidence (`train.robust.mode = {cfg.train.robust.mode}`): training ignored 30.0 % of the "
                  "pixels of each batch in the last quarter of training, and 12.5 % of the training pixels in its "
                  "per-pixel record (pixels never drawn count as used; weights in `weights/`, docs/ROBUST.md).",
                  "![training weights](report_weights.png)",
@@ -550,7 +550,7 @@ def test_a_robust_runs_report_without_a_late_share_says_the_record_alone(evaluat
     (run_dir / "metrics.jsonl").write_text(json.dumps({"step": cfg.train.max_steps, "loss": 0.1}) + "\n")
     result, _ = _evaluate(tmp_path, "run", cfg, ds, af.params(cfg.model), {}, progress=False)
     assert result["training_weights"]["late_batch_ignored_share"] is None
-    assert (f"Photometric evidence (`train.robust = {cfg.train.robust}`): training ignored 12.5 % of the training "
+    assert (f"Photometric evidence (`train.robust.mode = {cfg.train.robust.mode}`): training ignored 12.5 % of the training "
             "pixels in its per-pixel record (pixels never drawn count as used; weights in `weights/`, "
             "docs/ROBUST.md).") in (run_dir / "report.md").read_text()
 
