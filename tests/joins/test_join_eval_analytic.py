@@ -366,7 +366,8 @@ def test_a_call_with_the_defaults_on_a_robust_runs_folder(evaluated, tmp_path):
     report = (run_dir / "report.md").read_text()
     for line in (f"Data: `{tmp_path / 'dataset'}`",
                  f"Resolution: test views rendered at the photos' full size, {W}x{H} (`--full-size`).",
-                 f"Photometric evidence (`train.robust.mode = {cfg.train.robust.mode}`): training ignored 30.0 % of the "
+                 f"Photometric evidence (`train.robust.mode = {cfg.train.robust.mode}`): training ignored 30.0 % "
+                 "of the "
                  "pixels of each batch in the last quarter of training, and 12.5 % of the training pixels in its "
                  "per-pixel record (pixels never drawn count as used; weights in `weights/`, docs/ROBUST.md).",
                  "![training weights](report_weights.png)",
@@ -550,7 +551,8 @@ def test_a_robust_runs_report_without_a_late_share_says_the_record_alone(evaluat
     (run_dir / "metrics.jsonl").write_text(json.dumps({"step": cfg.train.max_steps, "loss": 0.1}) + "\n")
     result, _ = _evaluate(tmp_path, "run", cfg, ds, af.params(cfg.model), {}, progress=False)
     assert result["training_weights"]["late_batch_ignored_share"] is None
-    assert (f"Photometric evidence (`train.robust.mode = {cfg.train.robust.mode}`): training ignored 12.5 % of the training "
+    assert (f"Photometric evidence (`train.robust.mode = {cfg.train.robust.mode}`): training ignored 12.5 % "
+            "of the training "
             "pixels in its per-pixel record (pixels never drawn count as used; weights in `weights/`, "
             "docs/ROBUST.md).") in (run_dir / "report.md").read_text()
 
