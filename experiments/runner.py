@@ -183,7 +183,7 @@ def make_context(args, script: str) -> Context:
 LATER_TRAIN_KEYS = ("max_side", "robust", "robust_quantile", "robust_flagged_quantile", "robust_patch",
                     "robust_patch_stride",
                     "robust_patch_share", "robust_floor", "robust_spread",
-                    "robust_warmup", "robust_confirm", "robust_views", "sparse_adam", "robust_scattered",
+                    "robust_warmup", "robust_confirm", "robust_views", "sparse_adam", "robust_scattered", "depth",
                     "robust_refine", "robust_prior_grow")
 
 

@@ -86,6 +86,32 @@ class RobustConfig:
         "prior_grow": config_lib.NONNEGATIVE}
 
 
+@dataclasses.dataclass(frozen=True)
+class DepthConfig:
+    """train.depth: the capture's sparse points as a depth prior (`train/sparse_depth.py`).
+
+    weight: the term's weight at the first step (0 = off); decay: its weight at the end of the
+      run is weight * decay (log-linear in between, a fraction of max_steps); rays: depth rays
+      rendered each step beside the batch (split over the devices like it); tolerance: the
+      relative distance within which a ray's weight costs nothing; max_error_px: points with a
+      larger reprojection error are not used; min_views: a point must be seen by this many
+      training photos. `--set train.depth=W` sets the weight (SHORTHAND).
+    """
+
+    weight: float = 0.0
+    decay: float = 0.1
+    rays: int = 128
+    tolerance: float = 0.01
+    max_error_px: float = 2.0
+    min_views: int = 2
+
+    SHORTHAND: typing.ClassVar[str] = "weight"
+    RANGES: typing.ClassVar[dict] = {
+        "weight": config_lib.NONNEGATIVE, "decay": config_lib.POSITIVE, "rays": config_lib.AT_LEAST_ONE,
+        "tolerance": config_lib.NONNEGATIVE, "max_error_px": config_lib.POSITIVE,
+        "min_views": config_lib.AT_LEAST_ONE}
+
+
 # Older train dicts held the robust settings flat: train.robust the mode string, the others as
 # train.robust_<key> (robust_quantile, robust_patch, ...): `upgrade_flat_robust` reads them.
 FLAT_ROBUST_PREFIX = "robust_"
@@ -157,6 +183,8 @@ class TrainConfig:
     interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (levels without colour);
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
     robust: the photometric evidence's settings (`RobustConfig`, docs/ROBUST.md).
+    depth: the sparse points' depth prior (`DepthConfig`, off by default; `demo --data` turns it
+      on for a capture from `poses`).
     """
 
     batch_rays: int = 1024
@@ -185,6 +213,7 @@ class TrainConfig:
     appearance_rays: int = 1024
     max_side: int = 640
     robust: RobustConfig = RobustConfig()
+    depth: DepthConfig = DepthConfig()
 
     # `--set train.robust_X` (the older flat name) is refused naming train.robust.X
     RENAMED_PREFIXES: typing.ClassVar[dict] = {FLAT_ROBUST_PREFIX: "robust."}

@@ -63,7 +63,7 @@ from jaxnerf_grid.masks import photo_consistency
 from jaxnerf_grid.masks import robust as robust_lib
 from jaxnerf_grid.nerf import fields, losses, models
 from jaxnerf_grid.nerf import rays as rays_lib
-from jaxnerf_grid.train import checkpoint, distributed, optim, ray_pool, refine
+from jaxnerf_grid.train import checkpoint, distributed, optim, ray_pool, refine, sparse_depth
 from jaxnerf_grid.util import io, parallel
 from jaxnerf_grid.util import progress as progress_lib
 from jaxnerf_grid.util.io import DataError
@@ -234,6 +234,63 @@ def batch_terms(params: dict, cfg: RunConfig, batch: dict, ray_keys) -> tuple[di
     return out, terms
 
 
+def depth_term(params: dict, cfg: RunConfig, table: dict, key, count, num_devices: int) -> tuple:
+    """train.depth's term on this device (sparse_depth.py): the global draw of train.depth.rays
+    depth rays from the pool's replicated "depth" table and their keys (from `key`, the same for
+    any device count), this device's slice rendered. Returns (weight(count) x sum of this
+    device's ray losses / rays: the psum over the devices is the global mean, that mean of this
+    device's share unweighted)."""
+    mcfg, dcfg = cfg.model, cfg.train.depth
+    per_device = dcfg.rays // num_devices
+    k_draw, k_rays = jax.random.split(key)
+    rays = sparse_depth.draw(table, k_draw, dcfg.rays)
+    keys = jax.random.split(k_rays, dcfg.rays)
+    start = jax.lax.axis_index(AXIS) * per_device
+
+    def mine(x):
+        return jax.lax.dynamic_slice_in_dim(x, start, per_device)
+
+    rays, keys = jax.tree_util.tree_map(mine, rays), mine(keys)
+    near = jnp.broadcast_to(table["near"], rays["t"].shape)
+    far = jnp.broadcast_to(table["far"], rays["t"].shape)
+    out = models.render_rays(params, mcfg, rays["origins"], rays["directions"], near, far, keys, rays["camera"])
+    per_ray = sparse_depth.ray_loss(out["final"]["t_edges"], out["final"]["weights"], rays["t"], dcfg.tolerance)
+    weight = sparse_depth.weight_at(count, dcfg.weight, dcfg.decay, cfg.train.max_steps)
+    return weight * jnp.sum(per_ray) / dcfg.rays, jnp.sum(per_ray) / dcfg.rays
+
+
+def depth_enabled(tcfg: TrainConfig) -> bool:
+    """train.depth is on (a positive weight)."""
+    return tcfg.depth.weight > 0
+
+
+def depth_table(dataset: Dataset, cfg: RunConfig) -> tuple[dict | None, str]:
+    """The depth rays of train.depth (`sparse_depth.dataset_rays` on the training frames), those
+    whose point lies between the run's near and far, with "near" and "far" added: (table of host
+    arrays, or None when there are none, and a sentence saying what was used or why not)."""
+    dcfg = cfg.train.depth
+    rays, why = sparse_depth.dataset_rays(dataset, dataset.split["train"], dcfg.max_error_px, dcfg.min_views)
+    if rays is None:
+        return None, why
+    near, far = config_lib.near_far(cfg.model, dataset)
+    keep = (rays["t"] > near) & (rays["t"] < far)
+    if not np.any(keep):
+        return None, f"none of the {len(keep)} depth rays' points lies between near ({near:.3g}) and far ({far:.3g})"
+    table = {k: v[keep] for k, v in rays.items()}
+    table.update(near=np.float32(near), far=np.float32(far))
+    dropped = int(np.sum(~keep))
+    return table, why + (f"; {dropped} nearer than near or beyond far left out" if dropped else "")
+
+
+def with_depth(pool: dict, table: dict | None, n: int) -> dict:
+    """A device pool with the depth table replicated on its n devices under "depth" (unchanged when
+    the table is None)."""
+    return pool if table is None else dict(pool, depth=parallel.replicate(table, n))
+
+
+DEPTH_FOLD = 7  # the depth rays' keys are folded off the batch key: the colour batch's draws stay as they were
+
+
 def make_train_step(cfg: RunConfig, num_devices: int):
     """The pmapped step of `cfg` on `num_devices` devices (see `_make_train_step`). The dataset
     path does not shape the step, so it is left out of the cache key: the same model on two
@@ -254,6 +311,9 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         raise ConfigError(f"train.batch_rays ({tcfg.batch_rays}) must divide by the device count ({num_devices})")
     per_device = tcfg.batch_rays // num_devices
     opt = make_optimizer(tcfg)
+    depth_on = depth_enabled(tcfg)
+    if depth_on and tcfg.depth.rays % num_devices:
+        raise ConfigError(f"train.depth.rays ({tcfg.depth.rays}) must divide by the device count ({num_devices})")
     if tcfg.robust.mode != "off":
         return _make_robust_step(cfg, num_devices, opt)
 
@@ -268,14 +328,22 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         def loss_fn(params):
             _, terms = batch_terms(params, cfg, batch, ray_keys)
             loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
-            return loss, losses.weighted_mean(terms["mse"], batch["weight"], total)
+            depth = jnp.float32(0.0)
+            if depth_on:
+                extra, depth = depth_term(params, cfg, pool["depth"], jax.random.fold_in(k_batch, DEPTH_FOLD),
+                                          state["opt_state"].count, num_devices)
+                loss = loss + extra
+            return loss, (losses.weighted_mean(terms["mse"], batch["weight"], total), depth)
 
-        (loss, mse), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
-        loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
+        (loss, (mse, depth)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+        loss, mse, depth, grads = jax.lax.psum((loss, mse, depth, grads), AXIS)
         params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
         # other state (a robust run's frozen record, train.robust.refine) passes through unchanged
         new_state = dict(state, params=params, opt_state=opt_state, key=key)
-        return new_state, {"loss": loss, "mse": mse, "finite": finite}
+        stats = {"loss": loss, "mse": mse, "finite": finite}
+        if depth_on:
+            stats["depth_loss"] = depth
+        return new_state, stats
 
     return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
 
@@ -305,6 +373,7 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
     layout = robust_lib.device_layout(num_patches * p * p, scattered, num_devices)
     warmup_steps = robust_lib.warmup_steps(tcfg.robust.warmup, tcfg.max_steps)
     confirm = tcfg.robust.confirm > 0
+    depth_on = depth_enabled(tcfg)
 
     def confirmed_pixels(pool, ids, batch, depth):
         """[B] 1.0 where a neighbouring photo confirms the pixel at its rendered depth."""
@@ -342,15 +411,23 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
             weight = jnp.where(state["opt_state"].count < warmup_steps, batch["weight"], evidence)
             total = jax.lax.psum(jnp.sum(weight), AXIS)
             loss = losses.weighted_mean(terms["loss"], weight, total)
-            return loss, (losses.weighted_mean(terms["mse"], weight, total), weight)
+            depth = jnp.float32(0.0)
+            if depth_on:
+                extra, depth = depth_term(params, cfg, pool["depth"], jax.random.fold_in(k_batch, DEPTH_FOLD),
+                                          state["opt_state"].count, num_devices)
+                loss = loss + extra
+            return loss, (losses.weighted_mean(terms["mse"], weight, total), weight, depth)
 
-        (loss, (mse, weight)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
-        loss, mse, grads = jax.lax.psum((loss, mse, grads), AXIS)
+        (loss, (mse, weight, depth)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+        loss, mse, depth, grads = jax.lax.psum((loss, mse, depth, grads), AXIS)
         params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
         all_weights = jax.lax.all_gather(weight, AXIS, tiled=True)
         record = robust_lib.ema_update(state["robust_record"], ids, all_weights)
         new_state = {"params": params, "opt_state": opt_state, "key": key, "robust_record": record}
-        return new_state, {"loss": loss, "mse": mse, "finite": finite, "robust_weight": jnp.mean(all_weights)}
+        stats = {"loss": loss, "mse": mse, "finite": finite, "robust_weight": jnp.mean(all_weights)}
+        if depth_on:
+            stats["depth_loss"] = depth
+        return new_state, stats
 
     return jax.pmap(step, axis_name=AXIS, donate_argnums=(0,), devices=parallel.devices(num_devices))
 
@@ -481,6 +558,7 @@ def _run_step(p_step, state_r, pool, step: int):
             f"{str(err).splitlines()[0][:300]})") from err
 
 
+DEPTH_RECORD = "depth_prior.json"  # the run's record of train.depth: used or not, and why
 MAX_UNREAD = 64  # steps whose finite flag may wait unread (bounds what the host keeps)
 
 
@@ -543,6 +621,19 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     mcfg, tcfg = cfg.model, cfg.train
     n = step_devices(tcfg)
     robust_on = tcfg.robust.mode != "off"
+    depth_rays = None
+    if depth_enabled(tcfg):
+        depth_rays, why = depth_table(dataset, cfg)
+        if depth_rays is None:
+            logger.warning("train.depth is on but no depth prior is used: %s", why)
+            cfg = dataclasses.replace(cfg, train=dataclasses.replace(
+                tcfg, depth=dataclasses.replace(tcfg.depth, weight=0.0)))
+            tcfg = cfg.train
+        else:
+            logger.info("depth prior: %s", why)
+        if distributed.is_main():
+            io.write_json(run_dir / DEPTH_RECORD, {"used": depth_rays is not None, "why": why,
+                                                   "rays": 0 if depth_rays is None else int(len(depth_rays["t"]))})
     # the robust step draws patches over replicated lean frames (robust_pool); the plain step
     # its rays from 8-bit frames split over the devices (ray_pool)
     pool_host = robust_pool(dataset, cfg) if robust_on else ray_pool.build(dataset, cfg)
@@ -573,6 +664,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     else:
         pool = ray_pool.upload(pool_host, n)
         pool_host = {}  # the devices hold the frames now (on CPU the very same memory)
+    pool = with_depth(pool, depth_rays, n)
     state_r = parallel.replicate(state, n)
     p_step = make_train_step(cfg if frozen_mean is None else frozen_cfg, n)
     end = min(tcfg.max_steps, stop_at if stop_at is not None else tcfg.max_steps)
@@ -593,6 +685,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
             if step == refine_at:  # freeze the evidence on whole frames (refine.py), then scattered rays
                 state_r, pool, p_step, frozen_mean = _freeze_evidence(state_r, pool_host, dataset, frozen_cfg, n,
                                                                       progress and main)
+                pool = with_depth(pool, depth_rays, n)
                 logger.info("step %d: the evidence, judged on whole frames, ignores %.1f %% of the training pixels",
                             step, 100 * (1.0 - frozen_mean))
             state_r, stats = _run_step(p_step, state_r, pool, step)
@@ -611,6 +704,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                           "lr": float(schedule(step - 1)), "skipped_total": len(skipped),
                           "rays_per_s": window_steps * tcfg.batch_rays / max(elapsed, 1e-9),
                           "time": time.perf_counter() - start_time}
+                if "depth_loss" in stats:
+                    record["depth_loss"] = float(stats["depth_loss"][0])
                 if "robust_weight" in stats:
                     record["robust_weight"] = float(stats["robust_weight"][0])
                 elif frozen_mean is not None:  # the frozen weights' mean (train.robust.refine)
