@@ -409,6 +409,7 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray) -> tuple
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
+MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
 
 
 def gated_support(views: Views, points: np.ndarray, tangents: np.ndarray, tol_px: float = DEFAULT_TOL_PX,
@@ -454,10 +455,10 @@ def _projected_direction(views: Views, points: np.ndarray, tangents: np.ndarray,
 
 
 def fit_profile(s: np.ndarray, z: np.ndarray, weight: np.ndarray, kappa_max: float, span_length: float | None = None,
-                tol: float = 0.1) -> tuple[np.ndarray, np.ndarray]:
+                tol: float = 0.1, kappa_min: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
     """The catenary's vertical profile through tracked heights z [K] at horizontal distances s [K]
     (weights [K]): (z_a, m0, kappa) minimising the Cauchy-robust (scale tol) weighted residuals
-    z_a + sag_profile(s, m0, kappa) - z, kappa within [0, kappa_max]. With span_length L (the
+    z_a + sag_profile(s, m0, kappa) - z, kappa within [kappa_min, kappa_max]. With span_length L (the
     distance to the next tower, level span): kappa = 2 asinh(-m0) / L, only (z_a, m0) free.
     Fewer than 3 heights or under tol of curvature over their reach: a straight line.
     Returns (params [3], cov [3, 3] of (z_a, m0, kappa))."""
@@ -484,9 +485,9 @@ def fit_profile(s: np.ndarray, z: np.ndarray, weight: np.ndarray, kappa_max: flo
     else:
         def res(p):
             return sw * (p[0] + catenary.sag_profile(s, p[1], p[2]) - z)
-        x0 = np.array([line[0], line[1], 0.5 * kappa_max])
+        x0 = np.array([line[0], line[1], 0.5 * (kappa_min + kappa_max)])
         out = least_squares(res, x0, loss="cauchy", f_scale=tol, x_scale=[1.0, 0.01, 0.1 * kappa_max],
-                            bounds=([-np.inf, -1.0, 0.0], [np.inf, 1.0, kappa_max]))
+                            bounds=([-np.inf, -1.0, kappa_min], [np.inf, 1.0, kappa_max]))
         params, jmap = out.x, np.eye(3)
     r = out.fun
     dof = max(len(r) - out.x.size, 1)
@@ -511,7 +512,8 @@ def _footprint(views: Views, points: np.ndarray, fallback: float) -> np.ndarray:
 def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: float, s_end: float,
                fallback_px: float, length_scale: float, up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX,
                min_share: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
-               span_length: float | None = None, chunk: int = 6, max_misses: int = 12) -> dict:
+               span_length: float | None = None, chunk: int = 6, max_misses: int = 12,
+               max_turn: float = 0.002) -> dict:
     """Follow a wire from a seed (across offset c0, height z0 at horizontal distance s_start along
     e_line(psi) from centre) outwards to s_end: stations every length_scale / 15; at each one the
     cell of a small grid across the predicted curve (across x height, half a pixel's footprint
@@ -520,10 +522,12 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
     min_share of >= min_views photos. After each `chunk` stations the curve is refitted (across:
     a line c0 + g s, i.e. the azimuth corrected by atan g; height: `fit_profile`, the catenary
     parameter at least MIN_CATENARY_PARAMETER length_scales, or the level span of span_length).
-    Stops after max_misses stations in a row not found (or seen by too few photos).
+    Stops after max_misses stations in a row not found (or seen by too few photos). max_turn: the
+    azimuth's correction is at most atan(max_turn) (the line's direction comes from the tower).
     Returns {"theta" [5] (c, z_a, psi, m0, kappa), "profile_cov" [3, 3], "found" [F, 3] (s, c, z of
     the stations found), "tried": stations tried while seen, "reach": the last station found}."""
     kappa_max = 1.0 / (MIN_CATENARY_PARAMETER * length_scale)
+    kappa_min = 1.0 / (MAX_CATENARY_PARAMETER * length_scale)
     line, across, u = line_axes(psi, up)
     base = np.asarray(centre, np.float64)
     base = base - (base @ u) * u
@@ -568,9 +572,11 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
             w = f[:, 3]
             if len(f) >= 4 and f[-1, 0] - f[0, 0] > 4 * ds:
                 lateral = np.polyfit(f[:, 0] - s_start, f[:, 1], 1, w=np.sqrt(w))[::-1]
+                lateral[1] = float(np.clip(lateral[1], -max_turn, max_turn))
             else:
                 lateral = np.array([np.average(f[:, 1], weights=w), 0.0])
-            profile, pcov = fit_profile(f[:, 0], f[:, 2], w, kappa_max, span_length, tol=float(np.median(fp)))
+            profile, pcov = fit_profile(f[:, 0], f[:, 2], w, kappa_max, span_length, float(np.median(fp)),
+                                        kappa_min)
         s = st[-1] + ds
     g = float(lateral[1])
     c_axis = float(lateral[0] - g * s_start)        # across offset extrapolated to the axis plane
@@ -634,7 +640,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
                              "track": track["found"], **fit})
-        spans += _distinct(fits, centre, step * 4, up)
+        spans += _distinct(fits, centre, 0.033 * tower_height, up)
     return spans
 
 
@@ -652,13 +658,17 @@ def _finish(views: Views, theta, centre, s_min: float, reach: float, up, tol_px:
 
 
 def _distinct(fits: list[dict], centre, radius: float, up) -> list[dict]:
-    """One fit per wire: of fits whose curves pass within `radius` of each other at the seed's
-    station and 4 times as far, the one with the most inlier offsets."""
+    """One fit per wire: of fits whose curves pass within `radius` of each other (median over 20
+    stations of the shorter observed reach), the one with the most stations found on its track,
+    then the most inlier offsets."""
     kept: list[dict] = []
-    for f in sorted(fits, key=lambda f: -f["residuals"]):
-        s = np.array([f["stations"][0], f["stations"][0] * 4])
-        p = curve_points(f["theta"], centre, s, up)
-        if all(np.max(np.linalg.norm(p - curve_points(k["theta"], centre, s, up), axis=1)) > radius for k in kept):
+    for f in sorted(fits, key=lambda f: (-len(f.get("track", ())), -f["residuals"])):
+        same = False
+        for k in kept:
+            s = np.linspace(f["stations"][0], min(f["stations"][-1], k["stations"][-1]), 20)
+            gap = np.linalg.norm(curve_points(f["theta"], centre, s, up) - curve_points(k["theta"], centre, s, up), axis=1)
+            same = same or float(np.median(gap)) <= radius
+        if not same:
             kept.append(f)
     return kept
 
