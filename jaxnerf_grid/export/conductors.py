@@ -413,12 +413,13 @@ MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's w
 
 
 def gated_support(views: Views, points: np.ndarray, tangents: np.ndarray, tol_px: float = DEFAULT_TOL_PX,
-                  max_angle: float = DEFAULT_MAX_ANGLE) -> tuple[np.ndarray, np.ndarray]:
+                  max_angle: float = DEFAULT_MAX_ANGLE, with_detections: bool = False) -> tuple:
     """Per point [M, 3] with the curve's direction there tangents [M, 3]: (the share of the photos
     seeing it whose nearest detection lies within tol_px of its projection AND runs along the
     projected curve (the detection's normal within max_angle degrees of the projected normal)
     [M], how many photos see it [M]). The ground's texture (dots, rings, blobs) has ridges of every
-    direction; a wire's detections run along its projection."""
+    direction; a wire's detections run along its projection. with_detections: also (ok [N, M] bool:
+    the supporting pairs, det [N, M, 2]: their detections' (u, v))."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
     t = np.asarray(tangents, np.float64).reshape(-1, 3)
     t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
@@ -436,6 +437,8 @@ def gated_support(views: Views, points: np.ndarray, tangents: np.ndarray, tol_px
     along = np.where(np.isfinite(across), across <= math.sin(math.radians(max_angle)), True)
     ok = seen & near & along & (views.index[n, row, col] >= 0)
     count = seen.sum(axis=0)
+    if with_detections:
+        return ok.sum(axis=0) / np.maximum(count, 1), count, ok, det[..., :2]
     return ok.sum(axis=0) / np.maximum(count, 1), count
 
 
@@ -599,7 +602,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                step: float, tower_height: float, up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX,
                min_support: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
-               min_found: int = 10) -> list[dict]:
+               min_found: int = 10, max_shared: float = 0.5) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -613,7 +616,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     Each seed (the given ones, then the cross-section's peaks of `support` >= min_support) is
     followed outwards (`track_span`); a wire is kept when at least min_found stations and
     min_inlier_share of those tried were found, its attachment within the cross-section's window
-    widened by the station's margin; one per wire (`_distinct`).
+    widened by the station's margin; one per wire (`_distinct`); strongest first (the sum of its
+    stations' support), a wire is dropped when more than max_shared of its support lies on the
+    wires kept before it (`shared_evidence`).
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov",
     "sigma_px", "inlier_share", "residuals", "seen", "stations", "track" [F, 4]}]."""
     spans = []
@@ -640,7 +645,13 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
                              "track": track["found"], **fit})
-        spans += _distinct(fits, centre, 0.033 * tower_height, up)
+        kept: list[dict] = []
+        for f in sorted(_distinct(fits, centre, 0.033 * tower_height, up),
+                        key=lambda f: -float(f["track"][:, 3].sum())):
+            if shared_evidence(views, f["track"], f["theta"], [k["theta"] for k in kept], centre, f["psi"], up,
+                               tol_px) <= max_shared:
+                kept.append(f)
+        spans += kept
     return spans
 
 
@@ -655,6 +666,48 @@ def _finish(views: Views, theta, centre, s_min: float, reach: float, up, tol_px:
     return {"theta": np.asarray(theta, np.float64), "cov": cov, "sigma_px": sigma,
             "inlier_share": float(inlier.sum() / max(seen.sum(), 1)), "residuals": int(inlier.sum()),
             "seen": int(seen.sum()), "stations": s}
+
+
+def shared_evidence(views: Views, track: np.ndarray, theta, others: list, centre, psi: float, up,
+                    tol_px: float = DEFAULT_TOL_PX) -> float:
+    """The share of a tracked wire's support that lies on other wires: track [F, 4] (s, c, z,
+    share: `track_span`'s stations found, across offsets along e_line(psi)); others: the thetas
+    [5] of the wires kept already (each drawn from its attachment to the track's last station).
+    Of the (photo, station) pairs supporting the track (`gated_support`), the share whose
+    detection lies within tol_px of another wire's projected polyline in that photo. A curve
+    beside a wire, that photos looking along the line cannot tell from it, is supported by that
+    wire's detections only (share near 1); a wire of its own by its own (near 0)."""
+    from scipy.spatial import cKDTree
+
+    if not len(others) or not len(track):
+        return 0.0
+    line, across, u = line_axes(psi, up)
+    base = np.asarray(centre, np.float64)
+    base = base - (base @ u) * u
+    pts = base[None] + track[:, 1:2] * across + track[:, 0:1] * line + track[:, 2:3] * u
+    slope = catenary.sag_profile(track[:, 0] + 1e-3, theta[3], theta[4]) - catenary.sag_profile(track[:, 0], theta[3],
+                                                                                                  theta[4])
+    tangent = line[None] * 1e-3 + slope[:, None] * u[None]
+    _, _, ok, det = gated_support(views, pts, tangent, tol_px, with_detections=True)
+    if not ok.any():
+        return 0.0
+    s_far = np.linspace(0.0, float(track[-1, 0]) * 1.1, 600)
+    drawn = [project_all(curve_points(t, centre, s_far, up), views.c2w, views.intrinsics) for t in others]
+    shared = np.zeros_like(ok)
+    for i in np.nonzero(ok.any(axis=1))[0]:
+        poly = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
+        poly = np.concatenate([q for q in poly if len(q)] or [np.full((1, 2), 1e12)])
+        d, _ = cKDTree(poly).query(det[i][ok[i]])
+        # the polyline's samples are up to a few pixels apart: a detection on it is within half that
+        shared[i, np.nonzero(ok[i])[0]] = d <= tol_px + 0.5 * _sample_gap(poly)
+    return float(shared.sum() / ok.sum())
+
+
+def _sample_gap(poly: np.ndarray) -> float:
+    """The median distance between consecutive points of a polyline [P, 2] (pixels)."""
+    if len(poly) < 2:
+        return 0.0
+    return float(np.median(np.linalg.norm(np.diff(poly, axis=0), axis=1)))
 
 
 def _distinct(fits: list[dict], centre, radius: float, up) -> list[dict]:
