@@ -719,7 +719,8 @@ def _distinct(fits: list[dict], centre, radius: float, up) -> list[dict]:
         same = False
         for k in kept:
             s = np.linspace(f["stations"][0], min(f["stations"][-1], k["stations"][-1]), 20)
-            gap = np.linalg.norm(curve_points(f["theta"], centre, s, up) - curve_points(k["theta"], centre, s, up), axis=1)
+            gap = np.linalg.norm(curve_points(f["theta"], centre, s, up) - curve_points(k["theta"], centre, s, up),
+                                 axis=1)
             same = same or float(np.median(gap)) <= radius
         if not same:
             kept.append(f)
