@@ -2,7 +2,7 @@
 
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
-      [--out benchmarks/results/conductors.json]
+      [--span-length M] [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
 it has conductors) the wires are found with the TRUE cameras (`export.conductors`: detection in

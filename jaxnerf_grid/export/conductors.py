@@ -21,12 +21,19 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   a (cosh((s - x_v) / a) - cosh(x_v / a)) written so that kappa -> 0 is a straight line). The
   far tower lies outside the export: its attachment is taken at A's height (a level span), so
   the lowest point is at x_v = beta / kappa, the span 2 x_v and the sag (cosh(beta) - 1) / kappa.
-* Finding the spans (`cross_section_peaks`): a vertical plane across the line at a station
+* Seeds (`cross_section_peaks`): a vertical plane across the line at a station
   beyond the tower's box is gridded; each cell's support is the share of the photos that see it
   whose detections pass within `tol_px` of its projection. A wire crossing the plane is
   supported by nearly every photo; a point on one photo's wire lies off it in the others.
   Peaks above `min_support` seed one span each (the cross-arms' direction gives the line's).
-* Fit (`fit_span`): robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
+* Track (`track_span`, what `find_spans` uses): each seed followed outwards station by station,
+  at each the best cell of a small grid across the predicted curve by `gated_support` (detections
+  near the projection AND running along it), the curve refitted every few stations
+  (`fit_profile`: the catenary parameter bounded to plausible values, or fixed by the slope and a
+  given span length); wires that only borrow another wire's detections dropped
+  (`shared_evidence`).
+* Fit (`fit_span`, a library function the track replaced in `find_spans`):
+  robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
   transform's nearest-pixel map: iterated closest points), the samples' range grown in steps
   from the station outwards so the sag is found before the far part is asked to match. The
