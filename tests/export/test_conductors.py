@@ -152,13 +152,13 @@ def textured_photos(c2w: np.ndarray, curves: list[np.ndarray], rng) -> np.ndarra
 
 def test_gated_support_counts_detections_along_the_curve_not_across_it():
     rng = np.random.default_rng(2)
-    c2w = ring_cameras()
+    c2w = ring_cameras(8)
     views = views_of(render_photos(c2w, [true_curve()], rng, clutter=0, lines=0), c2w)
     curve = true_curve()
     pts = curve[(curve[:, 1] > 10) & (curve[:, 1] < 40)][::50]
     tangent = np.gradient(pts, axis=0)
     share, count = cond.gated_support(views, pts, tangent)
-    assert count.min() >= 6 and np.median(share) > 0.7
+    assert count.min() >= 3 and np.median(share) > 0.7
     # the same points asked for a curve running across the wire (vertical): its detections do not run that way
     across, _ = cond.gated_support(views, pts, np.tile([0.0, 0.0, 1.0], (len(pts), 1)))
     assert np.median(across) < 0.1
