@@ -2,7 +2,7 @@
 
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
-      [--out benchmarks/results/conductors.json]
+      [--span-length M] [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
 it has conductors) the wires are found with the TRUE cameras (`export.conductors`: detection in
@@ -146,9 +146,11 @@ def true_camera_views(data: Path, size: tuple[int, int] | None = None):
     return images, cond.Views(c2w, intr, masks, responses)
 
 
-def true_camera_fit(data: Path, picture: Path | None = None, size=None) -> tuple[list[dict], dict]:
+def true_camera_fit(data: Path, picture: Path | None = None, size=None,
+                    span_length: float | None = None) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
-    30.4 m tall, box 4.5 m either side). Returns (records, timings)."""
+    30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
+    span of that length), None: the catenary parameter free. Returns (records, timings)."""
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
 
@@ -159,7 +161,7 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None) -> tuple
     dist = float(np.median(np.linalg.norm(views.c2w[:, :3, 3], axis=1)))
     step = dist / f
     centre = np.zeros(3)
-    spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4)
+    spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length)
     t2 = time.perf_counter()
     if picture is not None:
         io.write_png(picture, cond.views_picture(images, views, spans, centre))
@@ -188,6 +190,9 @@ def main(argv=None) -> int:
     p.add_argument("--partial", default=None, metavar="W,H",
                    help="a tower-small scene (seed 0) of this size still being rendered: the training photos "
                         "written so far, with the generator's cameras")
+    p.add_argument("--span-length", type=float, default=None, metavar="M",
+                   help="the towers' spacing given to the fit (the generator's is 320 m): each span level and "
+                        "this long; without it the catenary parameter is fitted from the photos alone")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/conductors.json"))
     args = p.parse_args(argv)
     from jaxnerf_grid.util import io
@@ -205,9 +210,9 @@ def main(argv=None) -> int:
             picture = args.pictures / f"{data.name}_conductors_views.png"
         entry = {"data": data.name, "preset": gen.get("preset"), "seed": gen.get("seed"),
                  "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
-                 "size": [meta["w"], meta["h"]], "partial": gen.get("partial")}
+                 "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length}
         if not args.no_true_cameras:
-            records, timings = true_camera_fit(data, picture, size)
+            records, timings = true_camera_fit(data, picture, size, args.span_length)
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):

@@ -21,12 +21,19 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   a (cosh((s - x_v) / a) - cosh(x_v / a)) written so that kappa -> 0 is a straight line). The
   far tower lies outside the export: its attachment is taken at A's height (a level span), so
   the lowest point is at x_v = beta / kappa, the span 2 x_v and the sag (cosh(beta) - 1) / kappa.
-* Finding the spans (`cross_section_peaks`): a vertical plane across the line at a station
+* Seeds (`cross_section_peaks`): a vertical plane across the line at a station
   beyond the tower's box is gridded; each cell's support is the share of the photos that see it
   whose detections pass within `tol_px` of its projection. A wire crossing the plane is
   supported by nearly every photo; a point on one photo's wire lies off it in the others.
   Peaks above `min_support` seed one span each (the cross-arms' direction gives the line's).
-* Fit (`fit_span`): robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
+* Track (`track_span`, what `find_spans` uses): each seed followed outwards station by station,
+  at each the best cell of a small grid across the predicted curve by `gated_support` (detections
+  near the projection AND running along it), the curve refitted every few stations
+  (`fit_profile`: the catenary parameter bounded to plausible values, or fixed by the slope and a
+  given span length); wires that only borrow another wire's detections dropped
+  (`shared_evidence`).
+* Fit (`fit_span`, a library function the track replaced in `find_spans`):
+  robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
   transform's nearest-pixel map: iterated closest points), the samples' range grown in steps
   from the station outwards so the sag is found before the far part is asked to match. The
@@ -44,7 +51,7 @@ from typing import Any
 import numpy as np
 
 from jaxnerf_grid.data.normalize import normalization_rotation
-from jaxnerf_grid.export import to_metric64
+from jaxnerf_grid.export import catenary, to_metric64
 from jaxnerf_grid.export.catenary import curve_points, derived, line_axes, sample_span
 
 DEFAULT_SIGMAS = (1.0,)           # px: the ridge filter's scale (a sub-pixel wire, blurred by lens and pixel)
@@ -404,6 +411,190 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray) -> tuple
     return cov, math.sqrt(sigma2)
 
 
+# --- the guided track ------------------------------------------------------------------------------
+
+DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
+DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
+MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
+MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
+
+
+def gated_support(views: Views, points: np.ndarray, tangents: np.ndarray, tol_px: float = DEFAULT_TOL_PX,
+                  max_angle: float = DEFAULT_MAX_ANGLE, with_detections: bool = False) -> tuple:
+    """Per point [M, 3] with the curve's direction there tangents [M, 3]: (the share of the photos
+    seeing it whose nearest detection lies within tol_px of its projection AND runs along the
+    projected curve (the detection's normal within max_angle degrees of the projected normal)
+    [M], how many photos see it [M]). The ground's texture (dots, rings, blobs) has ridges of every
+    direction; a wire's detections run along its projection. with_detections: also (ok [N, M] bool:
+    the supporting pairs, det [N, M, 2]: their detections' (u, v))."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    t = np.asarray(tangents, np.float64).reshape(-1, 3)
+    t = t / np.maximum(np.linalg.norm(t, axis=1, keepdims=True), 1e-12)
+    u, v, z = project_all(p, views.c2w, views.intrinsics)
+    eps = 1e-3 * np.maximum(np.abs(z), 1e-6)                          # [N, M]: a short step along the curve
+    du, dv = _projected_direction(views, p, t, eps)
+    seen = (z > 0) & (u >= 0) & (u < views.width) & (v >= 0) & (v < views.height) & views.has[:, None]
+    col = np.clip(np.floor(u), 0, views.width - 1).astype(np.int64)
+    row = np.clip(np.floor(v), 0, views.height - 1).astype(np.int64)
+    n = np.arange(len(views.c2w))[:, None]
+    table = views.table if len(views.table) else np.full((1, 4), np.nan)
+    det = table[np.maximum(views.index[n, row, col], 0)]               # [N, M, 4]
+    near = np.hypot(det[..., 0] - u, det[..., 1] - v) <= tol_px
+    across = np.abs(det[..., 2] * du + det[..., 3] * dv)              # |n_det . t_proj|: 0 along the curve
+    along = np.where(np.isfinite(across), across <= math.sin(math.radians(max_angle)), True)
+    ok = seen & near & along & (views.index[n, row, col] >= 0)
+    count = seen.sum(axis=0)
+    if with_detections:
+        return ok.sum(axis=0) / np.maximum(count, 1), count, ok, det[..., :2]
+    return ok.sum(axis=0) / np.maximum(count, 1), count
+
+
+def _projected_direction(views: Views, points: np.ndarray, tangents: np.ndarray, eps: np.ndarray):
+    """The unit image direction [N, M] (du, dv) of the curve through points [M, 3] along tangents
+    [M, 3] (unit) in each photo, a finite step eps [N, M] (export units) along it."""
+    rot, centre = views.c2w[:, :3, :3], views.c2w[:, :3, 3]
+    cam = np.einsum("nmi,nij->nmj", points[None] - centre[:, None], rot)
+    dcam = np.einsum("mi,nij->nmj", tangents, rot)
+    fx, fy = views.intrinsics[:, 0:1], views.intrinsics[:, 1:2]
+    z0 = np.maximum(-cam[..., 2], 1e-9)
+    z1 = np.maximum(-(cam[..., 2] + eps * dcam[..., 2]), 1e-9)
+    du = fx * ((cam[..., 0] + eps * dcam[..., 0]) / z1 - cam[..., 0] / z0)
+    dv = -fy * ((cam[..., 1] + eps * dcam[..., 1]) / z1 - cam[..., 1] / z0)
+    norm = np.maximum(np.hypot(du, dv), 1e-12)
+    return du / norm, dv / norm
+
+
+def fit_profile(s: np.ndarray, z: np.ndarray, weight: np.ndarray, kappa_max: float, span_length: float | None = None,
+                tol: float = 0.1, kappa_min: float = 0.0) -> tuple[np.ndarray, np.ndarray]:
+    """The catenary's vertical profile through tracked heights z [K] at horizontal distances s [K]
+    (weights [K]): (z_a, m0, kappa) minimising the Cauchy-robust (scale tol) weighted residuals
+    z_a + sag_profile(s, m0, kappa) - z, kappa within [kappa_min, kappa_max]. With span_length L (the
+    distance to the next tower, level span): kappa = 2 asinh(-m0) / L, only (z_a, m0) free.
+    Fewer than 3 heights or under tol of curvature over their reach: a straight line.
+    Returns (params [3], cov [3, 3] of (z_a, m0, kappa))."""
+    from scipy.optimize import least_squares
+
+    s, z, w = (np.asarray(a, np.float64) for a in (s, z, weight))
+    sw = np.sqrt(w / max(float(w.mean()), 1e-12))
+    a_mat = np.stack([np.ones_like(s), s], 1) * sw[:, None]
+    line = np.linalg.lstsq(a_mat, z * sw, rcond=None)[0]
+    if len(s) < 4:
+        return np.array([line[0], line[1], 0.0]), np.diag([np.inf, np.inf, np.inf])
+
+    def kappa_of(m0):
+        return 2.0 * math.asinh(max(-m0, 0.0)) / span_length
+
+    if span_length:
+        def res(p):
+            return sw * (p[0] + catenary.sag_profile(s, p[1], kappa_of(p[1])) - z)
+        x0 = np.array([line[0], min(line[1], -1e-4)])
+        out = least_squares(res, x0, loss="cauchy", f_scale=tol, bounds=([-np.inf, -1.0], [np.inf, 0.0]))
+        params = np.array([out.x[0], out.x[1], kappa_of(out.x[1])])
+        jmap = np.array([[1.0, 0.0], [0.0, 1.0],
+                         [0.0, -2.0 / (span_length * math.sqrt(1.0 + out.x[1] ** 2))]])
+    else:
+        def res(p):
+            return sw * (p[0] + catenary.sag_profile(s, p[1], p[2]) - z)
+        x0 = np.array([line[0], line[1], 0.5 * (kappa_min + kappa_max)])
+        out = least_squares(res, x0, loss="cauchy", f_scale=tol, x_scale=[1.0, 0.01, 0.1 * kappa_max],
+                            bounds=([-np.inf, -1.0, kappa_min], [np.inf, 1.0, kappa_max]))
+        params, jmap = out.x, np.eye(3)
+    r = out.fun
+    dof = max(len(r) - out.x.size, 1)
+    try:
+        cov_x = float(r @ r) / dof * np.linalg.inv(out.jac.T @ out.jac)
+    except np.linalg.LinAlgError:
+        cov_x = np.full((out.x.size, out.x.size), np.inf)
+    return params, jmap @ cov_x @ jmap.T
+
+
+def _footprint(views: Views, points: np.ndarray, fallback: float) -> np.ndarray:
+    """Per point [M, 3]: the median over the photos seeing it of its depth / focal length (a
+    pixel's size there, export units) [M]; `fallback` where none sees it."""
+    u, v, z = project_all(points, views.c2w, views.intrinsics)
+    seen = (z > 0) & (u >= 0) & (u < views.width) & (v >= 0) & (v < views.height)
+    fp = np.where(seen, z / views.intrinsics[:, :1], np.nan)
+    with np.errstate(all="ignore"):
+        out = np.nanmedian(np.where(seen.any(axis=0)[None], fp, fallback), axis=0)
+    return np.where(np.isfinite(out), out, fallback)
+
+
+def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: float, s_end: float,
+               fallback_px: float, length_scale: float, up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX,
+               min_share: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
+               span_length: float | None = None, chunk: int = 6, max_misses: int = 12,
+               max_turn: float = 0.002) -> dict:
+    """Follow a wire from a seed (across offset c0, height z0 at horizontal distance s_start along
+    e_line(psi) from centre) outwards to s_end: stations every length_scale / 15; at each one the
+    cell of a small grid across the predicted curve (across x height, half a pixel's footprint
+    apart, 4 footprints wide, the height window widening with the distance from the last station
+    found) with the highest `gated_support`; a station is found when that support reaches
+    min_share of >= min_views photos. After each `chunk` stations the curve is refitted (across:
+    a line c0 + g s, i.e. the azimuth corrected by atan g; height: `fit_profile`, the catenary
+    parameter at least MIN_CATENARY_PARAMETER length_scales, or the level span of span_length).
+    Stops after max_misses stations in a row not found (or seen by too few photos). max_turn: the
+    azimuth's correction is at most atan(max_turn) (the line's direction comes from the tower).
+    Returns {"theta" [5] (c, z_a, psi, m0, kappa), "profile_cov" [3, 3], "found" [F, 3] (s, c, z of
+    the stations found), "tried": stations tried while seen, "reach": the last station found}."""
+    kappa_max = 1.0 / (MIN_CATENARY_PARAMETER * length_scale)
+    kappa_min = 1.0 / (MAX_CATENARY_PARAMETER * length_scale)
+    line, across, u = line_axes(psi, up)
+    base = np.asarray(centre, np.float64)
+    base = base - (base @ u) * u
+    ds = length_scale / 15.0
+    lateral = np.array([c0, 0.0])          # c(s) = lateral[0] + lateral[1] (s - s_start)
+    profile, pcov = np.array([z0, 0.0, 0.0]), np.diag([np.inf] * 3)
+    found: list = []
+    tried, misses, s_last = 0, 0, s_start
+    s = s_start
+    while s <= s_end and misses < max_misses:
+        st = s + ds * np.arange(chunk)
+        st = st[st <= s_end]
+        if not len(st):
+            break
+        c_pred = lateral[0] + lateral[1] * (st - s_start)
+        z_pred = profile[0] + catenary.sag_profile(st, profile[1], profile[2])
+        slope = np.gradient(z_pred, st) if len(st) > 1 else np.full(len(st), profile[1])
+        pts = base[None] + c_pred[:, None] * across + st[:, None] * line + z_pred[:, None] * u
+        fp = _footprint(views, pts, fallback_px)
+        for k in range(len(st)):
+            half_c = 4.0 * fp[k]
+            half_z = 4.0 * fp[k] + 0.03 * (st[k] - s_last)
+            dc = np.arange(-half_c, half_c + 1e-9, 0.5 * fp[k])
+            dz = np.arange(-half_z, half_z + 1e-9, 0.5 * fp[k])
+            cc, zz = np.meshgrid(dc, dz, indexing="ij")
+            cells = pts[k][None] + cc.reshape(-1, 1) * across + zz.reshape(-1, 1) * u
+            tangent = line + slope[k] * u
+            share, count = gated_support(views, cells, np.tile(tangent, (len(cells), 1)), tol_px)
+            share = np.where(count >= min_views, share, 0.0)
+            if not (count >= min_views).any():
+                misses += 1
+                continue
+            tried += 1
+            best = int(np.argmax(share))
+            if share[best] >= min_share:
+                found.append((st[k], c_pred[k] + cc.ravel()[best], z_pred[k] + zz.ravel()[best], share[best]))
+                misses, s_last = 0, st[k]
+            else:
+                misses += 1
+        if found:
+            f = np.asarray(found)
+            w = f[:, 3]
+            if len(f) >= 4 and f[-1, 0] - f[0, 0] > 4 * ds:
+                lateral = np.polyfit(f[:, 0] - s_start, f[:, 1], 1, w=np.sqrt(w))[::-1]
+                lateral[1] = float(np.clip(lateral[1], -max_turn, max_turn))
+            else:
+                lateral = np.array([np.average(f[:, 1], weights=w), 0.0])
+            profile, pcov = fit_profile(f[:, 0], f[:, 2], w, kappa_max, span_length, float(np.median(fp)),
+                                        kappa_min)
+        s = st[-1] + ds
+    g = float(lateral[1])
+    c_axis = float(lateral[0] - g * s_start)        # across offset extrapolated to the axis plane
+    theta = np.array([c_axis * math.cos(math.atan(g)), profile[0], psi + math.atan(g), profile[1], profile[2]])
+    return {"theta": theta, "profile_cov": pcov, "found": np.asarray(found, np.float64).reshape(-1, 4),
+            "tried": tried, "reach": float(s_last)}
+
+
 # --- the spans of a tower -------------------------------------------------------------------------
 
 def reaches_from(first: float, last: float) -> list[float]:
@@ -416,51 +607,129 @@ def reaches_from(first: float, last: float) -> list[float]:
 
 def find_spans(views: Views, centre, psi: float, half_length: float, heights: tuple, across: float,
                step: float, tower_height: float, up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX,
-               min_support: float = DEFAULT_MIN_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
-               min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE) -> list[dict]:
+               min_support: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
+               min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
+               min_found: int = 10, max_shared: float = 0.5) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
     box reaches this far along the line from the axis (the lattice is left out of the fit);
     heights (lo, hi): the cross-section's heights (along up, the frame's zero); across: its half
     width; step: its cell (about a pixel's footprint there; peaks 3 tol_px cells apart at
-    least); tower_height: the scale of the
-    station's margin and of the reach (30 tower heights).
-    Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), fit_span's keys}],
-    the kept fits only (inlier share >= min_inlier_share, the attachment within the cross-section's
-    window widened by the station's margin; one per wire)."""
+    least); tower_height: the scale of the station's margin, of the track's stations and of the
+    reach (30 tower heights); seeds [(c, z)]: attachment points (across offset, height: the
+    cross-arms' tips) tried first, on both sides; span_length: the distance to the next towers
+    (a level span of that length, `fit_profile`), None: the catenary parameter free.
+    Each seed (the given ones, then the cross-section's peaks of `support` >= min_support) is
+    followed outwards (`track_span`); a wire is kept when at least min_found stations and
+    min_inlier_share of those tried were found, its attachment within the cross-section's window
+    widened by the station's margin; one per wire (`_distinct`); strongest first (the sum of its
+    stations' support), a wire is dropped when more than max_shared of its support lies on the
+    wires kept before it (`shared_evidence`).
+    Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov",
+    "sigma_px", "inlier_share", "residuals", "seen", "stations", "track" [F, 4]}]."""
     spans = []
     margin = 0.3 * tower_height
+    station = half_length + margin
     for side in (1, -1):
         psi_side = psi if side == 1 else psi + math.pi
-        station = half_length + margin
         peaks = cross_section_peaks(views, centre, psi_side, station, (-across, across), heights, step, up,
                                     tol_px, min_support, min_views, separation=3 * tol_px * step)
+        given = [(float(c) * side, float(z), float("nan")) for c, z in seeds]   # across flips with the side
         fits: list[dict] = []
-        for c, z, share in peaks:
+        for c, z, share in given + [tuple(p) for p in peaks]:
             seed = curve_points((c, z, psi_side, 0.0, 0.0), centre, np.array([station]), up)[0]
             if any(np.linalg.norm(curve_points(f["theta"], centre, np.array([station]), up)[0] - seed) < 0.033 *
                    tower_height for f in fits):
                 continue   # on a wire already fitted: the support is a ridge across the plane, not a point
-            fit = fit_span(views, (c, z, psi_side, 0.0, 0.0), centre, half_length,
-                           reaches_from(4 * margin, 30 * tower_height), up, tol_px, reject_below=min_inlier_share,
-                           length_scale=tower_height)
+            track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height, up,
+                               tol_px, min_support, min_views, span_length)
+            kept = len(track["found"])
+            if kept < min_found or kept < min_inlier_share * max(track["tried"], 1):
+                continue
+            fit = _finish(views, track["theta"], centre, half_length, track["reach"], up, tol_px)
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
-            inside = abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin
-            if fit["inlier_share"] >= min_inlier_share and inside:   # run off the searched window: not here
-                fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)], **fit})
-        spans += _distinct(fits, centre, step * 4, up)
+            if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
+                fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
+                             "track": track["found"], **fit})
+        kept: list[dict] = []
+        for f in sorted(_distinct(fits, centre, 0.033 * tower_height, up),
+                        key=lambda f: -float(f["track"][:, 3].sum())):
+            if shared_evidence(views, f["track"], f["theta"], [k["theta"] for k in kept], centre, f["psi"], up,
+                               tol_px) <= max_shared:
+                kept.append(f)
+        spans += kept
     return spans
 
 
+def _finish(views: Views, theta, centre, s_min: float, reach: float, up, tol_px: float,
+            samples: int = SAMPLES) -> dict:
+    """fit_span's record of a tracked curve theta [5] observed from s_min to reach: the share of
+    its projected samples within 2 tol_px of a detection, the covariance (`_covariance`)."""
+    s = np.linspace(s_min, max(reach, s_min + 1e-6), samples)
+    _, dist, seen = views.offsets(curve_points(theta, centre, s, up))
+    inlier = seen & (dist <= 2 * tol_px)
+    cov, sigma = _covariance(theta, views, centre, s, up, inlier)
+    return {"theta": np.asarray(theta, np.float64), "cov": cov, "sigma_px": sigma,
+            "inlier_share": float(inlier.sum() / max(seen.sum(), 1)), "residuals": int(inlier.sum()),
+            "seen": int(seen.sum()), "stations": s}
+
+
+def shared_evidence(views: Views, track: np.ndarray, theta, others: list, centre, psi: float, up,
+                    tol_px: float = DEFAULT_TOL_PX) -> float:
+    """The share of a tracked wire's support that lies on other wires: track [F, 4] (s, c, z,
+    share: `track_span`'s stations found, across offsets along e_line(psi)); others: the thetas
+    [5] of the wires kept already (each drawn from its attachment to the track's last station).
+    Of the (photo, station) pairs supporting the track (`gated_support`), the share whose
+    detection lies within tol_px of another wire's projected polyline in that photo. A curve
+    beside a wire, that photos looking along the line cannot tell from it, is supported by that
+    wire's detections only (share near 1); a wire of its own by its own (near 0)."""
+    from scipy.spatial import cKDTree
+
+    if not len(others) or not len(track):
+        return 0.0
+    line, across, u = line_axes(psi, up)
+    base = np.asarray(centre, np.float64)
+    base = base - (base @ u) * u
+    pts = base[None] + track[:, 1:2] * across + track[:, 0:1] * line + track[:, 2:3] * u
+    slope = catenary.sag_profile(track[:, 0] + 1e-3, theta[3], theta[4]) - catenary.sag_profile(track[:, 0], theta[3],
+                                                                                                  theta[4])
+    tangent = line[None] * 1e-3 + slope[:, None] * u[None]
+    _, _, ok, det = gated_support(views, pts, tangent, tol_px, with_detections=True)
+    if not ok.any():
+        return 0.0
+    s_far = np.linspace(0.0, float(track[-1, 0]) * 1.1, 600)
+    drawn = [project_all(curve_points(t, centre, s_far, up), views.c2w, views.intrinsics) for t in others]
+    shared = np.zeros_like(ok)
+    for i in np.nonzero(ok.any(axis=1))[0]:
+        poly = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
+        poly = np.concatenate([q for q in poly if len(q)] or [np.full((1, 2), 1e12)])
+        d, _ = cKDTree(poly).query(det[i][ok[i]])
+        # the polyline's samples are up to a few pixels apart: a detection on it is within half that
+        shared[i, np.nonzero(ok[i])[0]] = d <= tol_px + 0.5 * _sample_gap(poly)
+    return float(shared.sum() / ok.sum())
+
+
+def _sample_gap(poly: np.ndarray) -> float:
+    """The median distance between consecutive points of a polyline [P, 2] (pixels)."""
+    if len(poly) < 2:
+        return 0.0
+    return float(np.median(np.linalg.norm(np.diff(poly, axis=0), axis=1)))
+
+
 def _distinct(fits: list[dict], centre, radius: float, up) -> list[dict]:
-    """One fit per wire: of fits whose curves pass within `radius` of each other at the seed's
-    station and 4 times as far, the one with the most inlier offsets."""
+    """One fit per wire: of fits whose curves pass within `radius` of each other (median over 20
+    stations of the shorter observed reach), the one with the most stations found on its track,
+    then the most inlier offsets."""
     kept: list[dict] = []
-    for f in sorted(fits, key=lambda f: -f["residuals"]):
-        s = np.array([f["stations"][0], f["stations"][0] * 4])
-        p = curve_points(f["theta"], centre, s, up)
-        if all(np.max(np.linalg.norm(p - curve_points(k["theta"], centre, s, up), axis=1)) > radius for k in kept):
+    for f in sorted(fits, key=lambda f: (-len(f.get("track", ())), -f["residuals"])):
+        same = False
+        for k in kept:
+            s = np.linspace(f["stations"][0], min(f["stations"][-1], k["stations"][-1]), 20)
+            gap = np.linalg.norm(curve_points(f["theta"], centre, s, up) - curve_points(k["theta"], centre, s, up),
+                                 axis=1)
+            same = same or float(np.median(gap)) <= radius
+        if not same:
             kept.append(f)
     return kept
 

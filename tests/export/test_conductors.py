@@ -132,3 +132,77 @@ def test_synth_without_conductors_leaves_out_every_cable_and_nothing_else():
     assert (cls == sc.CONDUCTOR).sum() == 32 * len(spans) and (cls2 == sc.CONDUCTOR).sum() == 0
     assert len(cls2) == len(cls) - 32 * len(spans)
     np.testing.assert_array_equal(attach, attach2)
+
+
+def textured_photos(c2w: np.ndarray, curves: list[np.ndarray], rng) -> np.ndarray:
+    """`render_photos` over a textured ground: the sky's grey replaced by blotches of +-15 % (dark
+    and bright dots of 1-6 px, what the generator's grass and flowers leave), 200 dots a photo."""
+    import cv2
+
+    base = render_photos(c2w, curves, rng, clutter=0, lines=0)[..., 0]
+    out = []
+    for img in base:
+        tex = np.zeros((H, W), np.float64)
+        for _ in range(200):
+            cv2.circle(tex, (int(rng.integers(0, W)), int(rng.integers(0, H))), int(rng.integers(1, 7)),
+                       float(rng.choice([-0.12, 0.12])), -1)
+        out.append(np.repeat(np.clip(img + tex * (img > 0.7), 0, 1)[..., None], 3, axis=2))
+    return np.stack(out)
+
+
+def test_gated_support_counts_detections_along_the_curve_not_across_it():
+    rng = np.random.default_rng(2)
+    c2w = ring_cameras(8)
+    views = views_of(render_photos(c2w, [true_curve()], rng, clutter=0, lines=0), c2w)
+    curve = true_curve()
+    pts = curve[(curve[:, 1] > 10) & (curve[:, 1] < 40)][::50]
+    tangent = np.gradient(pts, axis=0)
+    share, count = cond.gated_support(views, pts, tangent)
+    assert count.min() >= 3 and np.median(share) > 0.7
+    # the same points asked for a curve running across the wire (vertical): its detections do not run that way
+    across, _ = cond.gated_support(views, pts, np.tile([0.0, 0.0, 1.0], (len(pts), 1)))
+    assert np.median(across) < 0.1
+    # a metre beside the wire: no support
+    beside, _ = cond.gated_support(views, pts + [0.0, 0.0, 1.0], tangent)
+    assert np.median(beside) < 0.1
+
+
+def test_profile_fit_recovers_the_closed_form_and_the_span_length_fixes_the_curvature():
+    rng = np.random.default_rng(3)
+    s = np.linspace(14.0, 80.0, 40)                                    # the near part, all the photos see
+    closed = A_TRUE * (np.cosh((s - XV_TRUE) / A_TRUE) - np.cosh(XV_TRUE / A_TRUE))
+    z = ATTACH[2] + closed + rng.normal(0.0, 0.01, len(s))
+    m0_true, kappa_true = -math.sinh(XV_TRUE / A_TRUE), 1.0 / A_TRUE
+    sag_true = A_TRUE * (math.cosh(XV_TRUE / A_TRUE) - 1.0)
+    free, _ = cond.fit_profile(s, z, np.ones_like(s), kappa_max=0.01)
+    assert free[0] == pytest.approx(ATTACH[2], abs=0.03) and free[1] == pytest.approx(m0_true, abs=0.003)
+    # a level span of the true length: the curvature follows from the slope, the sag within 2 %
+    fixed, cov = cond.fit_profile(s, z, np.ones_like(s), kappa_max=0.01, span_length=2 * XV_TRUE)
+    assert fixed[2] == pytest.approx(2 * math.asinh(-fixed[1]) / (2 * XV_TRUE), rel=1e-12)
+    assert fixed[2] == pytest.approx(kappa_true, rel=0.02)
+    sag = catenary.derived((0.0, fixed[0], 0.0, fixed[1], fixed[2]), np.zeros(3))["sag"]
+    assert sag == pytest.approx(sag_true, rel=0.02)
+    assert np.all(np.isfinite(cov)) and cov[2, 2] > 0
+    # the curvature cannot leave its bounds, however the heights run
+    wild = ATTACH[2] - 0.01 * (s - 14.0) ** 2
+    bounded, _ = cond.fit_profile(s, wild, np.ones_like(s), kappa_max=1e-3, kappa_min=1e-4)
+    assert 1e-4 <= bounded[2] <= 1e-3
+
+
+def test_track_finds_a_wire_over_textured_ground_with_its_sag_from_the_span_length():
+    rng = np.random.default_rng(4)
+    c2w = ring_cameras()
+    views = views_of(textured_photos(c2w, [true_curve(1), true_curve(-1)], rng), c2w)
+    found = cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                            span_length=2 * XV_TRUE)
+    assert sorted(f["side"] for f in found) == [-1, 1]
+    sag_true = A_TRUE * (math.cosh(XV_TRUE / A_TRUE) - 1.0)
+    for f in found:
+        fig = catenary.derived(f["theta"], np.zeros(3))
+        np.testing.assert_allclose(fig["attachment"], ATTACH, atol=0.15)
+        assert fig["sag"] == pytest.approx(sag_true, rel=0.05)
+        assert fig["lowest_point"][2] == pytest.approx(ATTACH[2] - sag_true, abs=0.3)
+    # the same ground without the wire: nothing
+    bare = views_of(textured_photos(c2w, [], rng), c2w)
+    assert cond.find_spans(bare, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                           span_length=2 * XV_TRUE) == []
