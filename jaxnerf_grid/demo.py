@@ -34,6 +34,7 @@ from jaxnerf_grid.config import build, recipes
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.run_config import make_config
 from jaxnerf_grid.config.schema import ConfigError
+from jaxnerf_grid.data.formats import colmap_model
 from jaxnerf_grid.data.formats.frames import default_split
 from jaxnerf_grid.data.formats.transforms_json import read_meta
 from jaxnerf_grid.data.synthetic import generate as synth_generate
@@ -41,7 +42,7 @@ from jaxnerf_grid.eval import evaluate
 from jaxnerf_grid.masks import write as masking
 from jaxnerf_grid.render import videos
 from jaxnerf_grid.report import html as report_html
-from jaxnerf_grid.train import distributed, runs
+from jaxnerf_grid.train import distributed, runs, sparse_depth
 from jaxnerf_grid.train import loop as train
 from jaxnerf_grid.util import folders, io
 from jaxnerf_grid.util.io import DataError
@@ -211,6 +212,20 @@ def mask_plan(choice: str, domain: dict | None, capture: bool = False) -> dict:
     return {"mode": mode, "overrides": {"train": train_over}, "why": why}
 
 
+# train.depth.weight on a capture from `poses` (docs/RECIPES.md "The depth prior"; measured in
+# docs/RESULTS.md, "Real photos")
+DEPTH_WEIGHT = 0.1
+
+
+def depth_defaults(capture: bool, data: Path) -> dict:
+    """The demo's train.depth for a dataset: on at DEPTH_WEIGHT for a capture from `poses` with its
+    sparse model (DATA/sparse/0), else nothing. A default layer (`build.build`'s defaults), so a
+    user's --set train.depth=... or config file changes it."""
+    if not capture or colmap_model.find_model_files(sparse_depth.model_folder(data)) is None:
+        return {}
+    return {"train": {"depth": {"weight": DEPTH_WEIGHT}}}
+
+
 def is_capture(data: Path) -> bool:
     """Whether a transforms.json dataset is real photos registered by `poses` (its "poses"
     record); False for generated scenes and other layouts."""
@@ -366,13 +381,14 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         mask_source = None
     # every process reads the same verdict from the dataset, so all train the same config
     data_dir = Path(data or out / "data")  # set above on every process
-    plan = mask_plan(masks, dataset_domain(data_dir), is_capture(data_dir))
+    capture = is_capture(data_dir)
+    plan = mask_plan(masks, dataset_domain(data_dir), capture)
     if not layout and masks == "auto":
         plan = dict(mask_plan("robust", None), why="chosen automatically: the dataset is not in the transforms.json "
                     "layout, so it has no masks and `mask` cannot write any")
     # the dataset's bounds, --set and --max-side on top, the mask plan, then the training budget
     built = build.build(request, data=data, extra=_with_plan({}, plan), devices_of=train.step_devices,
-                        platform=distributed.jax.default_backend())
+                        platform=distributed.jax.default_backend(), defaults=depth_defaults(capture, data_dir))
     bounds = built.bounds
     if built.budget is not None and progress and distributed.is_main():
         print(budget_lib.report_line(built.budget), flush=True)

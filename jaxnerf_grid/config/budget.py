@@ -6,7 +6,7 @@ draw each training pixel a fraction of a time: the renders are smeared. `choose_
 steps with the capture instead:
 
     wanted = ceil(TARGET_EPOCHS x training pixels / batch_rays)      (each pixel drawn ~E times)
-    cap    = floor(minutes x 60 x rays_per_second / batch_rays)      (what fits in the time budget)
+    cap    = floor(minutes x 60 x rays_per_second / (batch_rays + depth rays))   (what fits in the time budget)
     steps  = min(max(base.max_steps, wanted), cap), rounded to STEP_ROUND
 
 so a capture never trains fewer steps than its recipe (the hash grid needs its iterations whatever
@@ -106,6 +106,13 @@ def _round_down(steps: float) -> int:
     return max(1, int(steps))
 
 
+def step_rays(train_cfg) -> int:
+    """Rays a step renders: the batch, plus train.depth's rays when the depth prior is on (they
+    cost time like the batch's but are not training pixels drawn, so the epochs leave them out)."""
+    depth = getattr(train_cfg, "depth", None)
+    return int(train_cfg.batch_rays) + (int(depth.rays) if depth is not None and depth.weight > 0 else 0)
+
+
 def choose_budget(train_pixels: int, n_devices: int, minutes: float | None, base, platform: str = "cpu",
                   target_epochs: float = TARGET_EPOCHS, speed: float | None = None) -> Budget:
     """The steps of a run (module docstring's rule).
@@ -121,13 +128,14 @@ def choose_budget(train_pixels: int, n_devices: int, minutes: float | None, base
     batch = int(base.batch_rays)
     speed = rays_per_second(platform, n_devices) if speed is None else float(speed)
     wanted = _round_up(target_epochs * train_pixels / batch)
-    cap = _round_down(minutes * 60.0 * speed / batch)
+    rendered = step_rays(base)
+    cap = _round_down(minutes * 60.0 * speed / rendered)
     steps, limited_by = max(int(base.max_steps), wanted), ("epochs" if wanted > base.max_steps else "recipe")
     if steps > cap:
         steps, limited_by = cap, "minutes"
     return Budget(steps=steps, batch_rays=batch, epochs=steps * batch / train_pixels, wanted_steps=wanted,
                   cap_steps=cap, limited_by=limited_by, minutes=minutes,
-                  estimated_minutes=steps * batch / speed / 60.0, rays_per_second=speed,
+                  estimated_minutes=steps * rendered / speed / 60.0, rays_per_second=speed,
                   target_epochs=float(target_epochs), recipe_steps=int(base.max_steps))
 
 

@@ -4,6 +4,8 @@ turns what a user asked for into a run's config here, in one order.
     recipe (its method's defaults and its settings, config/recipes.py)
       -> the dataset's bounds (model.near / far / contract_radius, capture/bounds.py; only for a
          method that contracts space, and only when the dataset records them)
+      -> the caller's defaults for the dataset (`defaults`: e.g. the demo's depth prior on a
+         capture from `poses`, which the user's settings below change)
       -> a config file (`--config FILE`, a JSON object {"model": {...}, "train": {...}})
       -> `--set KEY=VALUE` flags, in their order
       -> the working resolution (`--max-side N`: train.max_side)
@@ -114,9 +116,11 @@ def with_max_side(overrides: dict, max_side: int | None) -> dict:
 
 
 def build(request: Request, data: str | Path | None = None, extra: dict | None = None,
-          devices_of: Callable[[Any], int] | None = None, platform: str = "cpu") -> Built:
+          devices_of: Callable[[Any], int] | None = None, platform: str = "cpu",
+          defaults: dict | None = None) -> Built:
     """The run config's overrides from a Request, in the module's order (recipe -> bounds of the
-    dataset folder `data` -> config file -> sets -> max_side -> steps -> extra -> budget), checked.
+    dataset folder `data` -> defaults -> config file -> sets -> max_side -> steps -> extra ->
+    budget), checked.
     devices_of: train config -> the training step's device count (`train.loop.step_devices`);
     given with `data`, the budget chooses the steps; platform: JAX's backend ("cpu", "gpu")."""
     recipe, method = recipes.resolve(request.recipe, request.method)
@@ -127,6 +131,7 @@ def build(request: Request, data: str | Path | None = None, extra: dict | None =
     if bounds and not make_config(method, overrides).model.use_contraction:
         bounds = None  # a method in a bounded box keeps its own near / far
     overrides = recipe_with_bounds(overrides, bounds)
+    overrides = config_lib.merge(overrides, defaults or {})
     user = with_sets(read_config_file(request.config_file), request.sets)  # what the user set by key
     overrides = config_lib.merge(overrides, user)
     overrides = with_max_side(overrides, request.max_side)

@@ -260,12 +260,17 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     chosen = read_budget(run_dir)
     if chosen is not None:
         result["budget"] = chosen
+    depth_prior = read_depth_prior(run_dir)
+    if depth_prior is not None:
+        result["depth_prior"] = depth_prior
     io.write_json(run_dir / "metrics.json", result)
     clouds.write_point_cloud(run_dir / "tower_points.ply", cloud)
     notes = list(extra_notes)
     if chosen is not None:
         notes.append(budget_lib.report_line(chosen))
     notes.append(resolution_note(result["resolution"]))
+    if depth_prior is not None:
+        notes.append(depth_prior_note(depth_prior, cfg.train))
     if weights is not None:
         late = result["training_weights"]["late_batch_ignored_share"]
         late_text = "" if late is None else (f"{100 * late:.1f} % of the pixels of each batch in the last "
@@ -286,6 +291,28 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     report.write_report(run_dir, result, cfg, data, figures, notes)
     report_html.write_report_html(run_dir / "report.html", run_dir, ds, result, figures, run_dir / "export")
     return result
+
+
+def read_depth_prior(run_dir) -> dict | None:
+    """The run's record of train.depth (RUN/depth_prior.json: {"used", "why", "rays"}); None when
+    the run did not ask for it or the record does not parse."""
+    path = Path(run_dir) / train.DEPTH_RECORD
+    if not path.is_file():
+        return None
+    try:
+        rec = io.read_json(path)
+    except DataError:
+        return None
+    return rec if isinstance(rec, dict) and {"used", "why"} <= set(rec) else None
+
+
+def depth_prior_note(rec: dict, tcfg) -> str:
+    """report.md's line on the sparse points' depth prior."""
+    if not rec["used"]:
+        return f"Depth prior (`train.depth`): asked for but not used: {rec['why']}."
+    d = tcfg.depth
+    return (f"Depth prior (`train.depth.weight = {d.weight:g}`, decaying to {d.weight * d.decay:g}): "
+            f"{rec['why']}; {d.rays} of them rendered each step (docs/RECIPES.md).")
 
 
 def read_budget(run_dir) -> dict | None:

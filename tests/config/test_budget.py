@@ -54,6 +54,20 @@ def test_large_capture_is_capped_by_the_minutes():
                                 speed=11000.0).steps == 19300
 
 
+def test_the_depth_priors_rays_count_in_the_time_but_not_in_the_epochs():
+    from jaxnerf_grid.config.run_config import DepthConfig
+
+    with_depth = dataclasses.replace(DEMO_TRAIN, depth=DepthConfig(weight=0.1, rays=128))
+    # 12 x 60 x 11000 / (1024 + 128) = 6875 -> 6800 steps; the epochs count the 1024 colour rays
+    b = budget.choose_budget(49 * 353 * 628, 1, 12, with_depth, "cpu", target_epochs=2.0, speed=11000.0)
+    assert (b.cap_steps, b.steps) == (6800, 6800)
+    assert b.epochs == pytest.approx(6800 * 1024 / (49 * 353 * 628))
+    assert b.estimated_minutes == pytest.approx(6800 * 1152 / 11000 / 60)
+    # off (weight 0) its rays cost nothing
+    off = dataclasses.replace(DEMO_TRAIN, depth=DepthConfig(weight=0.0, rays=128))
+    assert budget.choose_budget(49 * 353 * 628, 1, 12, off, "cpu", target_epochs=2.0, speed=11000.0).steps == 7700
+
+
 def test_a_short_budget_wins_over_the_recipe_and_warns():
     # 1 minute: 60 x 11000 / 1024 = 644.5 -> 600 steps, below the recipe's 1600
     b = budget.choose_budget(40 * 160 * 120, 1, 1, DEMO_TRAIN, "cpu", target_epochs=2.0, speed=11000.0)

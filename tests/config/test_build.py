@@ -49,6 +49,15 @@ def test_each_layer_wins_over_the_ones_before_it(tmp_path):
     assert (cfg.model.near, cfg.model.far, cfg.train.max_side, cfg.train.max_steps) == (0.4, 7.0, 320, 9)
 
 
+def test_the_callers_defaults_lie_under_the_users_settings(tmp_path):
+    data = dataset_folder(tmp_path)
+    defaults = {"train": {"depth": {"weight": 0.1, "rays": 64}}}
+    alone = build.build(build.Request(recipe="ours-lean"), data=data, defaults=defaults).config()
+    assert (alone.train.depth.weight, alone.train.depth.rays) == (0.1, 64)
+    user = build.build(build.Request(recipe="ours-lean", sets=("train.depth=0",)), data=data, defaults=defaults)
+    assert (user.config().train.depth.weight, user.config().train.depth.rays) == (0.0, 64)
+
+
 def frames_folder(tmp_path, count, width, height):
     """A dataset folder of `count` training photos of width x height (budget.capture_pixels reads
     their headers), no recorded bounds."""

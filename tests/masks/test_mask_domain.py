@@ -197,6 +197,17 @@ def test_a_dataset_is_a_capture_when_poses_registered_it(tmp_path):
     assert not demo.is_capture(tmp_path / "missing")
 
 
+def test_the_depth_prior_is_on_for_a_capture_with_its_sparse_model(tmp_path):
+    from jaxnerf_grid.data.formats import colmap_model
+
+    made = tmp_path / "made"
+    (made / "sparse" / "0").mkdir(parents=True)
+    assert demo.depth_defaults(True, made) == {}  # no model yet
+    colmap_model.write_model(made / "sparse" / "0", {}, {}, {})
+    assert demo.depth_defaults(True, made) == {"train": {"depth": {"weight": demo.DEPTH_WEIGHT}}}
+    assert demo.depth_defaults(False, made) == {}  # a generated scene keeps the recipe
+
+
 def test_mask_plan_refuses_an_unknown_choice():
     with pytest.raises(ConfigError, match="demo.masks"):
         demo.mask_plan("sometimes", None)

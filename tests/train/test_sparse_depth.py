@@ -166,3 +166,16 @@ def test_the_robust_step_takes_the_depth_term_too(tmp_path):
         params.append(train.train(ds, cfg, tmp_path / f"w{weight}", progress=False, stop_at=3).params)
     gap = jax.tree_util.tree_map(lambda x, y: float(np.max(np.abs(x - y))), *params)
     assert max(jax.tree_util.tree_leaves(gap)) > 1e-4
+
+
+def test_the_report_says_whether_the_depth_prior_trained_and_why(tmp_path):
+    from jaxnerf_grid.eval import evaluate
+
+    assert evaluate.read_depth_prior(tmp_path) is None
+    (tmp_path / train.DEPTH_RECORD).write_text(json.dumps({"used": True, "why": "120 depth rays from 40 points",
+                                                           "rays": 120}))
+    cfg = tiny_config(depth={"weight": 0.1, "rays": 16}).train
+    note = evaluate.depth_prior_note(evaluate.read_depth_prior(tmp_path), cfg)
+    assert "120 depth rays from 40 points" in note and "0.1" in note and "16 of them" in note
+    (tmp_path / train.DEPTH_RECORD).write_text(json.dumps({"used": False, "why": "no sparse model in X"}))
+    assert "not used: no sparse model in X" in evaluate.depth_prior_note(evaluate.read_depth_prior(tmp_path), cfg)
