@@ -609,7 +609,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                step: float, tower_height: float, up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX,
                min_support: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
-               min_found: int = 10, max_shared: float = 0.5) -> list[dict]:
+               min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -618,8 +618,12 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     width; step: its cell (about a pixel's footprint there; peaks 3 tol_px cells apart at
     least); tower_height: the scale of the station's margin, of the track's stations and of the
     reach (30 tower heights); seeds [(c, z)]: attachment points (across offset, height: the
-    cross-arms' tips) tried first, on both sides; span_length: the distance to the next towers
-    (a level span of that length, `fit_profile`), None: the catenary parameter free.
+    cross-arms' tips) tried first, on both sides; seed_window (half width across, depth below,
+    height above; None: the seeds are the attachments themselves): each seed stands for the
+    window of the cross-section around it, where the wire hangs from a tip by an insulator of
+    unknown length, and the window's peaks of `support` >= min_support are tried (`seed_peaks`);
+    span_length: the distance to the next towers (a level span of that length, `fit_profile`),
+    None: the catenary parameter free.
     Each seed (the given ones, then the cross-section's peaks of `support` >= min_support) is
     followed outwards (`track_span`); a wire is kept when at least min_found stations and
     min_inlier_share of those tried were found, its attachment within the cross-section's window
@@ -635,7 +639,11 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
         psi_side = psi if side == 1 else psi + math.pi
         peaks = cross_section_peaks(views, centre, psi_side, station, (-across, across), heights, step, up,
                                     tol_px, min_support, min_views, separation=3 * tol_px * step)
-        given = [(float(c) * side, float(z), float("nan")) for c, z in seeds]   # across flips with the side
+        if seed_window is None:
+            given = [(float(c) * side, float(z), float("nan")) for c, z in seeds]   # across flips with the side
+        else:
+            given = seed_peaks(views, centre, psi_side, station, [(float(c) * side, float(z)) for c, z in seeds],
+                               seed_window, step, up, tol_px, min_support, min_views)
         fits: list[dict] = []
         for c, z, share in given + [tuple(p) for p in peaks]:
             seed = curve_points((c, z, psi_side, 0.0, 0.0), centre, np.array([station]), up)[0]
@@ -660,6 +668,23 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 kept.append(f)
         spans += kept
     return spans
+
+
+def seed_peaks(views: Views, centre, psi: float, station: float, seeds, window: tuple, step: float,
+               up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, min_support: float = DEFAULT_TRACK_SUPPORT,
+               min_views: int = DEFAULT_MIN_VIEWS) -> list[tuple]:
+    """The cross-section's peaks (`cross_section_peaks` at `station`) in the window around each seed
+    (c, z) [S, 2] (the across offset and height of a cross-arm's tip on this side): across
+    [c - w, c + w], heights [z - below, z + above] for window (w, below, above). A suspension
+    insulator hangs the wire below its tip, and the wire falls on its way to the station. Returns
+    [(across, height, support)], strongest first within each window, the seeds in their order."""
+    w, below, above = (float(v) for v in window)
+    out: list[tuple] = []
+    for c, z in seeds:
+        peaks = cross_section_peaks(views, centre, psi, station, (c - w, c + w), (z - below, z + above), step, up,
+                                    tol_px, min_support, min_views, separation=3 * tol_px * step)
+        out += [tuple(float(v) for v in p) for p in peaks]
+    return out
 
 
 def _finish(views: Views, theta, centre, s_min: float, reach: float, up, tol_px: float,

@@ -206,3 +206,23 @@ def test_track_finds_a_wire_over_textured_ground_with_its_sag_from_the_span_leng
     bare = views_of(textured_photos(c2w, [], rng), c2w)
     assert cond.find_spans(bare, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
                            span_length=2 * XV_TRUE) == []
+
+
+def test_seed_window_below_a_cross_arm_tip_finds_the_wire_its_insulator_hangs():
+    """A cross-arm tip 2.6 m above the wire's attachment (a suspension insulator): the window
+    below it (`seed_peaks`, 1.5 m across, 7.6 m below, 1.5 m above) has its strongest peak at the
+    wire's height at the station by the closed form (a (cosh((s - x_v) / a) - cosh(x_v / a))
+    below the attachment) within 0.2 m and its across offset within 0.3 m (weaker ones lie along
+    the wire's ridge of support across the plane, which `find_spans` skips once the wire is
+    tracked); a tip on the other side of the tower, where no wire hangs, gives none."""
+    rng = np.random.default_rng(5)
+    c2w = ring_cameras()
+    views = views_of(render_photos(c2w, [true_curve()], rng, clutter=0, lines=0), c2w)
+    station = 13.6
+    z_true = ATTACH[2] + A_TRUE * (math.cosh((station - XV_TRUE) / A_TRUE) - math.cosh(XV_TRUE / A_TRUE))
+    tip = (-ATTACH[0], ATTACH[2] + 2.6)                  # e_across = -x for the line along +y
+    peaks = cond.seed_peaks(views, np.zeros(3), math.pi / 2, station, [tip], (1.5, 7.6, 1.5), 0.11)
+    assert len(peaks) >= 1
+    assert peaks[0][0] == pytest.approx(-ATTACH[0], abs=0.3) and peaks[0][1] == pytest.approx(z_true, abs=0.2)
+    assert cond.seed_peaks(views, np.zeros(3), math.pi / 2, station, [(ATTACH[0], tip[1])], (1.5, 7.6, 1.5),
+                           0.11) == []
