@@ -373,10 +373,14 @@ def fit_span(views: Views, theta0, centre, s_min: float, reaches, up=(0.0, 0.0, 
             "residuals": int(inlier.sum()), "seen": int(seen.sum()), "stations": s}
 
 
-def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray) -> tuple[np.ndarray, float]:
+def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
+                span_length: float | None = None) -> tuple[np.ndarray, float]:
     """sigma^2 (J^T J)^-1 over the inlier residuals [N, K] (their nearest detections held fixed:
     a central-difference Jacobian of the residuals); sigma^2 their mean square over
-    (inliers - 5) degrees of freedom."""
+    (inliers - free parameters) degrees of freedom. With span_length L (a level span of that
+    length: kappa = 2 asinh(-m0) / L, `fit_profile`) the four free parameters (c, z_a, psi, m0)
+    have the covariance, mapped to theta's [5, 5] through d kappa / d m0 = -2 / (L sqrt(1 + m0^2)):
+    the curvature moves with the slope, and the span stays L."""
     theta = np.asarray(theta, np.float64)
     points = curve_points(theta, centre, s, up)
     u0, v0, _ = project_all(points, views.c2w, views.intrinsics)
@@ -392,20 +396,31 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray) -> tuple
         has = np.any(normal != 0, axis=1)
         return np.where(has, du * normal[:, 0] + dv * normal[:, 1], np.hypot(du, dv))
 
-    r = along(theta)
-    jac = np.zeros((len(r), len(theta)))
-    for k in range(len(theta)):
-        step = 1e-6 * max(abs(theta[k]), 1.0) if k < 3 else 1e-7
-        hi, lo = theta.copy(), theta.copy()
+    if span_length:
+        def full(q):       # theta of the four free parameters
+            return np.append(q, 2.0 * math.asinh(max(-float(q[3]), 0.0)) / span_length)
+        m0 = float(theta[3])
+        mapping = np.vstack([np.eye(4), [0.0, 0.0, 0.0, -2.0 / (span_length * math.sqrt(1.0 + m0 * m0))
+                                         if m0 < 0 else 0.0]])
+    else:
+        def full(q):
+            return q
+        mapping = np.eye(5)
+    free = theta[:mapping.shape[1]].copy()
+    r = along(full(free))
+    jac = np.zeros((len(r), len(free)))
+    for k in range(len(free)):
+        step = 1e-6 * max(abs(free[k]), 1.0) if k < 3 else 1e-7
+        hi, lo = free.copy(), free.copy()
         hi[k] += step
         lo[k] -= step
-        jac[:, k] = (along(hi) - along(lo)) / (2 * step)
-    dof = len(r) - len(theta)
+        jac[:, k] = (along(full(hi)) - along(full(lo))) / (2 * step)
+    dof = len(r) - len(free)
     if dof <= 0:
         return np.full((5, 5), np.inf), float("nan")
     sigma2 = float(r @ r) / dof
     try:
-        cov = sigma2 * np.linalg.inv(jac.T @ jac)
+        cov = mapping @ (sigma2 * np.linalg.inv(jac.T @ jac)) @ mapping.T
     except np.linalg.LinAlgError:
         cov = np.full((5, 5), np.inf)
     return cov, math.sqrt(sigma2)
@@ -629,7 +644,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     min_inlier_share of those tried were found, its attachment within the cross-section's window
     widened by the station's margin; one per wire (`_distinct`); strongest first (the sum of its
     stations' support), a wire is dropped when more than max_shared of its support lies on the
-    wires kept before it (`shared_evidence`).
+    wires kept before it (`shared_evidence`), then when more than that lies on all the others
+    (`borrowers_dropped`).
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov",
     "sigma_px", "inlier_share", "residuals", "seen", "stations", "track" [F, 4]}]."""
     spans = []
@@ -655,7 +671,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             kept = len(track["found"])
             if kept < min_found or kept < min_inlier_share * max(track["tried"], 1):
                 continue
-            fit = _finish(views, track["theta"], centre, half_length, track["reach"], up, tol_px)
+            fit = _finish(views, track["theta"], centre, half_length, track["reach"], up, tol_px,
+                          span_length=span_length)
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
@@ -666,8 +683,28 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if shared_evidence(views, f["track"], f["theta"], [k["theta"] for k in kept], centre, f["psi"], up,
                                tol_px) <= max_shared:
                 kept.append(f)
-        spans += kept
+        spans += borrowers_dropped(views, kept, centre, up, tol_px, max_shared)
     return spans
+
+
+def borrowers_dropped(views: Views, kept: list[dict], centre, up, tol_px: float = DEFAULT_TOL_PX,
+                      max_shared: float = 0.5) -> list[dict]:
+    """The wires of one side (`find_spans`' records, each with "track", "theta", "psi") less those
+    that only borrow the others' detections: each wire's `shared_evidence` against ALL the others;
+    while the largest exceeds max_shared, that wire is dropped and the shares recomputed. A curve
+    between two wires, which the photos from one side of the line see on one wire and those from
+    the other side on the other, borrows from a wire kept after it (the strongest-first pass
+    compares it with the wires before it only); a wire of its own keeps its own support, the
+    photos along the line seeing it alone."""
+    kept = list(kept)
+    while len(kept) > 1:
+        shares = [shared_evidence(views, f["track"], f["theta"], [k["theta"] for k in kept if k is not f], centre,
+                                  f["psi"], up, tol_px) for f in kept]
+        worst = int(np.argmax(shares))
+        if shares[worst] <= max_shared:
+            break
+        kept.pop(worst)
+    return kept
 
 
 def seed_peaks(views: Views, centre, psi: float, station: float, seeds, window: tuple, step: float,
@@ -688,16 +725,17 @@ def seed_peaks(views: Views, centre, psi: float, station: float, seeds, window: 
 
 
 def _finish(views: Views, theta, centre, s_min: float, reach: float, up, tol_px: float,
-            samples: int = SAMPLES) -> dict:
+            samples: int = SAMPLES, span_length: float | None = None) -> dict:
     """fit_span's record of a tracked curve theta [5] observed from s_min to reach: the share of
-    its projected samples within 2 tol_px of a detection, the covariance (`_covariance`)."""
+    its projected samples within 2 tol_px of a detection, the covariance (`_covariance`; with
+    span_length, the curvature tied to the slope as the track fitted it)."""
     s = np.linspace(s_min, max(reach, s_min + 1e-6), samples)
     _, dist, seen = views.offsets(curve_points(theta, centre, s, up))
     inlier = seen & (dist <= 2 * tol_px)
-    cov, sigma = _covariance(theta, views, centre, s, up, inlier)
+    cov, sigma = _covariance(theta, views, centre, s, up, inlier, span_length)
     return {"theta": np.asarray(theta, np.float64), "cov": cov, "sigma_px": sigma,
             "inlier_share": float(inlier.sum() / max(seen.sum(), 1)), "residuals": int(inlier.sum()),
-            "seen": int(seen.sum()), "stations": s}
+            "seen": int(seen.sum()), "stations": s, "span_length": span_length}
 
 
 def shared_evidence(views: Views, track: np.ndarray, theta, others: list, centre, psi: float, up,
@@ -781,7 +819,8 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 "inliers": int(fit["residuals"]), "projections": int(fit["seen"]),
                 "observed_stations": [float(fit["stations"][0]), float(fit["stations"][-1])],
                 "centre": [float(v) for v in np.asarray(centre, np.float64)],
-                "up": [float(v) for v in np.asarray(up, np.float64)], "level_span_assumed": True})
+                "up": [float(v) for v in np.asarray(up, np.float64)], "level_span_assumed": True,
+                "span_length_given": None if fit.get("span_length") is None else float(fit["span_length"])})
     return rec
 
 

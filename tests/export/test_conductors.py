@@ -202,6 +202,9 @@ def test_track_finds_a_wire_over_textured_ground_with_its_sag_from_the_span_leng
         np.testing.assert_allclose(fig["attachment"], ATTACH, atol=0.15)
         assert fig["sag"] == pytest.approx(sag_true, rel=0.05)
         assert fig["lowest_point"][2] == pytest.approx(ATTACH[2] - sag_true, abs=0.3)
+        # the span's length given: no uncertainty in it, the sag's from the slope alone
+        assert f["span_length"] == 2 * XV_TRUE
+        assert cond.derived_sigmas(f["theta"], f["cov"], np.zeros(3))["span"] < 1e-6 * XV_TRUE
     # the same ground without the wire: nothing
     bare = views_of(textured_photos(c2w, [], rng), c2w)
     assert cond.find_spans(bare, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
@@ -226,3 +229,68 @@ def test_seed_window_below_a_cross_arm_tip_finds_the_wire_its_insulator_hangs():
     assert peaks[0][0] == pytest.approx(-ATTACH[0], abs=0.3) and peaks[0][1] == pytest.approx(z_true, abs=0.2)
     assert cond.seed_peaks(views, np.zeros(3), math.pi / 2, station, [(ATTACH[0], tip[1])], (1.5, 7.6, 1.5),
                            0.11) == []
+
+
+def _straight_record(c: float, z_a: float, slope: float = -0.1) -> dict:
+    """`find_spans`' record of a straight wire (kappa 0) on side +1 of a line along +y
+    (e_across = -x): theta and its track's stations every 2 m from 14 to 80 m (support 1)."""
+    s = np.arange(14.0, 80.0, 2.0)
+    track = np.stack([s, np.full_like(s, c), z_a + slope * s, np.ones_like(s)], 1)
+    return {"side": 1, "psi": math.pi / 2, "theta": np.array([c, z_a, math.pi / 2, slope, 0.0]), "track": track}
+
+
+def test_a_curve_between_two_wires_seen_on_each_from_its_side_is_dropped_and_both_wires_kept():
+    """Two wires A (x = +7.45) and B (x = -7.45), 22.9 m high, and a phantom P midway 0.8 m lower,
+    all straight and parallel (slope -0.1 along +y). Four photos lie in the plane of P and A
+    (beyond A: there P projects onto A's line), four in that of P and B, eight look along the
+    line (there P falls between the wires, on no detection). P's support lies on A in the
+    first four and on B in the next four: against A alone half of it (the strongest-first pass,
+    max_shared 0.5, keeps it), against A and B all of it; about a fifth of A's and of B's lies on
+    the others. `borrowers_dropped` keeps A and B, in their order, and drops P."""
+    rng = np.random.default_rng(7)
+    s = np.linspace(0.0, 200.0, 4001)
+    wire = lambda x, z: np.stack([np.full_like(s, x), s, z - 0.1 * s], 1)   # noqa: E731
+    a, b = wire(7.45, 22.9), wire(-7.45, 22.9)          # P (x = 0, 22.1 m) is drawn in no photo
+    cams = []
+    for sign in (1.0, -1.0):                              # in the plane of P and A (sign +1), of P and B (-1)
+        d = np.array([sign * 7.45, 0.0, 0.8])
+        for s0 in (10.0, 25.0, 40.0, 55.0):
+            eye = np.array([0.0, s0, 22.1 - 0.1 * s0]) + 8.0 * d
+            cams.append(look_at(eye, [0.0, s0 + 25.0, 22.1 - 0.1 * (s0 + 25.0)]))
+    for x, z in ((-20, 18), (-10, 35), (0, 40), (10, 15), (20, 30), (-15, 26), (15, 44), (5, 12)):
+        cams.append(look_at([x, -40.0, z], [0.0, 40.0, 20.0]))
+    c2w = np.stack(cams)
+    views = views_of(render_photos(c2w, [a, b], rng, clutter=0, lines=0), c2w)
+    rec_a, rec_b, rec_p = _straight_record(-7.45, 22.9), _straight_record(7.45, 22.9), _straight_record(0.0, 22.1)
+    alone = cond.shared_evidence(views, rec_p["track"], rec_p["theta"], [rec_a["theta"]], np.zeros(3), math.pi / 2,
+                                 (0.0, 0.0, 1.0))
+    assert 0.3 <= alone <= 0.5
+    kept = cond.borrowers_dropped(views, [rec_a, rec_p, rec_b], np.zeros(3), (0.0, 0.0, 1.0))
+    assert [r["theta"][0] for r in kept] == [-7.45, 7.45]
+
+
+def test_the_sag_sigma_with_a_given_span_length_follows_the_slope_alone_by_the_closed_form():
+    """The true curve's covariance from its detections in 8 photos (`_finish`), with the span
+    length given (kappa = 2 beta / L, beta = asinh(-m0)): the span is L with no uncertainty, the
+    curvature's sigma is 2 sigma_m0 / (L sqrt(1 + m0^2)) and the sag's, L (cosh beta - 1) / (2 beta)
+    differentiated, |L (beta sinh beta - cosh beta + 1) / (2 beta^2)| sigma_m0 / sqrt(1 + m0^2); the
+    curvature left free instead, the sag's sigma is larger (the curvature is poorly seen)."""
+    rng = np.random.default_rng(8)
+    c2w = ring_cameras(8)
+    views = views_of(render_photos(c2w, [true_curve()], rng, clutter=0, lines=0), c2w)
+    length = 2 * XV_TRUE
+    beta = XV_TRUE / A_TRUE
+    m0 = -math.sinh(beta)
+    theta = np.array([-ATTACH[0], ATTACH[2], math.pi / 2, m0, 2 * beta / length])
+    fixed = cond._finish(views, theta, np.zeros(3), 4.5, 150.0, (0.0, 0.0, 1.0), cond.DEFAULT_TOL_PX,
+                         span_length=length)
+    sig = cond.derived_sigmas(theta, fixed["cov"], np.zeros(3))
+    s_m0 = math.sqrt(fixed["cov"][3, 3])
+    assert 0 < s_m0 < 0.01
+    assert sig["span"] < 1e-6 * length and sig["lowest_station"] < 1e-6 * length
+    assert math.sqrt(fixed["cov"][4, 4]) == pytest.approx(2 * s_m0 / (length * math.sqrt(1 + m0 ** 2)), rel=1e-9)
+    dsag = length * (beta * math.sinh(beta) - math.cosh(beta) + 1.0) / (2 * beta ** 2)
+    assert sig["sag"] == pytest.approx(abs(dsag) * s_m0 / math.sqrt(1 + m0 ** 2), rel=1e-3)
+    free = cond._finish(views, theta, np.zeros(3), 4.5, 150.0, (0.0, 0.0, 1.0), cond.DEFAULT_TOL_PX)
+    assert cond.derived_sigmas(theta, free["cov"], np.zeros(3))["sag"] > 1.2 * sig["sag"]
+    assert cond.span_record({**fixed, "side": 1}, np.zeros(3))["span_length_given"] == length
