@@ -2,7 +2,7 @@
 
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
-      [--span-length M] [--out benchmarks/results/conductors.json]
+      [--span-length M] [--arm-seeds] [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
 it has conductors) the wires are found with the TRUE cameras (`export.conductors`: detection in
@@ -146,11 +146,21 @@ def true_camera_views(data: Path, size: tuple[int, int] | None = None):
     return images, cond.Views(c2w, intr, masks, responses)
 
 
+def true_arm_seeds() -> list[tuple[float, float]]:
+    """The main tower's cross-arm tips as `find_spans` seeds (across offset along side +1's
+    e_across = -x, height), as the export measures them (`export.run.arm_seeds`)."""
+    from jaxnerf_grid.data.synthetic import scene as sc
+
+    return [(-s * (sc.half_width(z) + length), z) for z, length in zip(sc.ARM_LEVELS, sc.ARM_LENGTHS) for s in (-1, 1)]
+
+
 def true_camera_fit(data: Path, picture: Path | None = None, size=None,
-                    span_length: float | None = None) -> tuple[list[dict], dict]:
+                    span_length: float | None = None, arm_seeds: bool = False) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
-    span of that length), None: the catenary parameter free. Returns (records, timings)."""
+    span of that length), None: the catenary parameter free; arm_seeds: the cross-arm tips as
+    seeds, each searched in the export's window below it (`export.run.SEED_WINDOW`).
+    Returns (records, timings)."""
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
 
@@ -161,7 +171,13 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
     dist = float(np.median(np.linalg.norm(views.c2w[:, :3, 3], axis=1)))
     step = dist / f
     centre = np.zeros(3)
-    spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length)
+    kw = {}
+    if arm_seeds:
+        from jaxnerf_grid.export.run import SEED_WINDOW
+
+        kw = {"seeds": true_arm_seeds(), "seed_window": tuple(v * 30.4 for v in SEED_WINDOW)}
+    spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length,
+                            **kw)
     t2 = time.perf_counter()
     if picture is not None:
         io.write_png(picture, cond.views_picture(images, views, spans, centre))
@@ -193,6 +209,8 @@ def main(argv=None) -> int:
     p.add_argument("--span-length", type=float, default=None, metavar="M",
                    help="the towers' spacing given to the fit (the generator's is 320 m): each span level and "
                         "this long; without it the catenary parameter is fitted from the photos alone")
+    p.add_argument("--arm-seeds", action="store_true",
+                   help="the cross-arm tips as seeds (as the export passes the ones it measures)")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/conductors.json"))
     args = p.parse_args(argv)
     from jaxnerf_grid.util import io
@@ -210,9 +228,10 @@ def main(argv=None) -> int:
             picture = args.pictures / f"{data.name}_conductors_views.png"
         entry = {"data": data.name, "preset": gen.get("preset"), "seed": gen.get("seed"),
                  "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
-                 "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length}
+                 "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length,
+                 "arm_seeds": bool(args.arm_seeds)}
         if not args.no_true_cameras:
-            records, timings = true_camera_fit(data, picture, size, args.span_length)
+            records, timings = true_camera_fit(data, picture, size, args.span_length, args.arm_seeds)
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):

@@ -31,7 +31,10 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   near the projection AND running along it), the curve refitted every few stations
   (`fit_profile`: the catenary parameter bounded to plausible values, or fixed by the slope and a
   given span length); wires that only borrow another wire's detections dropped
-  (`shared_evidence`).
+  (`shared_evidence`, `borrowers_dropped`). A tracked span's 1-sigma figures
+  (`combined_covariance`): the height, slope and curvature from the profile fit through the
+  stations' heights (with a span length, the curvature moves with the slope), the across offset
+  and azimuth from the image residuals.
 * Fit (`fit_span`, a library function the track replaced in `find_spans`):
   robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
@@ -646,8 +649,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     stations' support), a wire is dropped when more than max_shared of its support lies on the
     wires kept before it (`shared_evidence`), then when more than that lies on all the others
     (`borrowers_dropped`).
-    Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov",
-    "sigma_px", "inlier_share", "residuals", "seen", "stations", "track" [F, 4]}]."""
+    Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov"
+    (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
+    "seen", "stations", "track" [F, 4], "span_length"}]."""
     spans = []
     margin = 0.3 * tower_height
     station = half_length + margin
@@ -676,7 +680,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
-                             "track": track["found"], **fit})
+                             "track": track["found"], **fit, "image_cov": fit["cov"],
+                             "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
         for f in sorted(_distinct(fits, centre, 0.033 * tower_height, up),
                         key=lambda f: -float(f["track"][:, 3].sum())):
@@ -705,6 +710,21 @@ def borrowers_dropped(views: Views, kept: list[dict], centre, up, tol_px: float 
             break
         kept.pop(worst)
     return kept
+
+
+def combined_covariance(image_cov: np.ndarray, profile_cov: np.ndarray) -> np.ndarray:
+    """theta's covariance [5, 5] of a tracked span: the across offset and the azimuth (theta[0],
+    theta[2]) from the image residuals' (`_covariance`, image_cov [5, 5]), the height, slope and
+    curvature (theta[1], theta[3], theta[4]) from the profile fit through the track's station
+    heights (`fit_profile`, profile_cov [3, 3] of (z_a, m0, kappa)), no correlation between the
+    two blocks. The profile fit is what sets the vertical parameters; the image covariance counts
+    every (photo, sample) pair as an independent observation, though neighbouring samples fall on
+    the same detections, and states the sag several times too precisely."""
+    cov = np.zeros((5, 5))
+    lateral, vertical = [0, 2], [1, 3, 4]
+    cov[np.ix_(lateral, lateral)] = np.asarray(image_cov, np.float64)[np.ix_(lateral, lateral)]
+    cov[np.ix_(vertical, vertical)] = np.asarray(profile_cov, np.float64)
+    return cov
 
 
 def seed_peaks(views: Views, centre, psi: float, station: float, seeds, window: tuple, step: float,
