@@ -12,8 +12,9 @@ export's measurements.json (its `conductors` record, from the trained chain) is 
 the scene of the same position in --data. Per span in view (the two spans at the main tower:
 6 phase conductors and 2 earth wires on each side): found or not, the RMS distance of the fitted
 curve to the true one over the true span (metres), the sag error (the true sag: the lowest point
-below the attachments), the lowest point's height error, the lowest point's clearance above the
-true ground (z = 0) against the truth; and the spans found that match no cable (invented).
+below the attachments) and that error in the sag's stated 1-sigma, the lowest point's height
+error, the lowest point's clearance above the true ground (z = 0) against the truth; and the
+spans found that match no cable (invented).
 """
 
 from __future__ import annotations
@@ -85,6 +86,8 @@ def score(records: list[dict], truth: list[dict]) -> dict:
             row.update({"attachment_error": best_d, "rms": curve_rms(fitted, t["points"]),
                         "sag": sag, "sag_sigma": r["sag"]["sigma"],
                         "sag_error_rel": None if sag is None else (sag - t["sag"]) / t["sag"],
+                        "sag_error_sigmas": None if sag is None or not r["sag"]["sigma"] else
+                        (sag - t["sag"]) / r["sag"]["sigma"],
                         "lowest_z": None if low is None else low[2],
                         "lowest_z_error": None if low is None else low[2] - t["lowest_z"],
                         "clearance": (r.get("clearance") or {}).get("ground"),
@@ -100,7 +103,8 @@ def score(records: list[dict], truth: list[dict]) -> dict:
 
     return {"spans": rows, "found": len(found), "existing": len(truth), "invented": len(records) - len(used),
             "worst_rms": worst("rms"), "worst_sag_error_rel": worst("sag_error_rel"),
-            "worst_lowest_z_error": worst("lowest_z_error"), "worst_clearance_error": worst("clearance_error")}
+            "worst_lowest_z_error": worst("lowest_z_error"), "worst_clearance_error": worst("clearance_error"),
+            "worst_sag_error_sigmas": worst("sag_error_sigmas")}
 
 
 def scene_meta(data: Path, size: tuple[int, int] | None = None) -> dict:
