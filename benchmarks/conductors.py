@@ -2,7 +2,7 @@
 
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
-      [--span-length M] [--arm-seeds] [--out benchmarks/results/conductors.json]
+      [--span-length M] [--arm-seeds] [--detect-threshold K] [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
 it has conductors) the wires are found with the TRUE cameras (`export.conductors`: detection in
@@ -133,8 +133,9 @@ def scene_meta(data: Path, size: tuple[int, int] | None = None) -> dict:
                                                     "partial": f"{len(frames)} of {cfg.num_train} training photos"}}
 
 
-def true_camera_views(data: Path, size: tuple[int, int] | None = None):
-    """(images [N, H, W, 3], Views in metres) of a generated scene's training photos, TRUE cameras."""
+def true_camera_views(data: Path, size: tuple[int, int] | None = None, threshold: float | None = None):
+    """(images [N, H, W, 3], Views in metres) of a generated scene's training photos, TRUE cameras;
+    threshold: the detections' (`export.conductors.detections`; None: its default)."""
     from jaxnerf_grid.data.synthetic import NORMALIZATION
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
@@ -146,7 +147,8 @@ def true_camera_views(data: Path, size: tuple[int, int] | None = None):
                               NORMALIZATION)
     intr = np.tile([meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"]], (len(frames), 1))
     responses = [cond.ridge_map(im) for im in images]
-    masks = np.stack([cond.detections(r) for r in responses])
+    kw = {} if threshold is None else {"threshold": float(threshold)}
+    masks = np.stack([cond.detections(r, **kw) for r in responses])
     return images, cond.Views(c2w, intr, masks, responses)
 
 
@@ -159,7 +161,8 @@ def true_arm_seeds() -> list[tuple[float, float]]:
 
 
 def true_camera_fit(data: Path, picture: Path | None = None, size=None,
-                    span_length: float | None = None, arm_seeds: bool = False) -> tuple[list[dict], dict]:
+                    span_length: float | None = None, arm_seeds: bool = False,
+                    threshold: float | None = None) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
     span of that length), None: the catenary parameter free; arm_seeds: the cross-arm tips as
@@ -169,7 +172,7 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
     from jaxnerf_grid.util import io
 
     t0 = time.perf_counter()
-    images, views = true_camera_views(data, size)
+    images, views = true_camera_views(data, size, threshold)
     t1 = time.perf_counter()
     f = float(np.median(views.intrinsics[:, 0]))
     dist = float(np.median(np.linalg.norm(views.c2w[:, :3, 3], axis=1)))
@@ -215,6 +218,9 @@ def main(argv=None) -> int:
                         "this long; without it the catenary parameter is fitted from the photos alone")
     p.add_argument("--arm-seeds", action="store_true",
                    help="the cross-arm tips as seeds (as the export passes the ones it measures)")
+    p.add_argument("--detect-threshold", type=float, default=None, metavar="K",
+                   help="the detections' hysteresis threshold in robust scales (export.conductors.detections; "
+                        "default its own)")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/conductors.json"))
     args = p.parse_args(argv)
     from jaxnerf_grid.util import io
@@ -233,9 +239,10 @@ def main(argv=None) -> int:
         entry = {"data": data.name, "preset": gen.get("preset"), "seed": gen.get("seed"),
                  "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
                  "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length,
-                 "arm_seeds": bool(args.arm_seeds)}
+                 "arm_seeds": bool(args.arm_seeds), "detect_threshold": args.detect_threshold}
         if not args.no_true_cameras:
-            records, timings = true_camera_fit(data, picture, size, args.span_length, args.arm_seeds)
+            records, timings = true_camera_fit(data, picture, size, args.span_length, args.arm_seeds,
+                                               args.detect_threshold)
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):

@@ -25,7 +25,9 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   beyond the tower's box is gridded; each cell's support is the share of the photos that see it
   whose detections pass within `tol_px` of its projection. A wire crossing the plane is
   supported by nearly every photo; a point on one photo's wire lies off it in the others.
-  Peaks above `min_support` seed one span each (the cross-arms' direction gives the line's).
+  Peaks above `min_support` seed one span each (the cross-arms' direction gives the line's);
+  with the cross-arms' tips given, each tip's window below it (`seed_peaks`) at `min_support`
+  and the rest of the plane at `DEFAULT_PEAK_SUPPORT`.
 * Track (`track_span`, what `find_spans` uses): each seed followed outwards station by station,
   at each the best cell of a small grid across the predicted curve by `gated_support` (detections
   near the projection AND running along it), the curve refitted every few stations
@@ -58,7 +60,7 @@ from jaxnerf_grid.export import catenary, to_metric64
 from jaxnerf_grid.export.catenary import curve_points, derived, line_axes, sample_span
 
 DEFAULT_SIGMAS = (1.0,)           # px: the ridge filter's scale (a sub-pixel wire, blurred by lens and pixel)
-DEFAULT_THRESHOLD = 4.0           # detections: response above this many robust scales
+DEFAULT_THRESHOLD = 3.0           # detections: response above this many robust scales (at 4 the wires over ground fade)
 DEFAULT_MIN_LENGTH = 12           # px: shorter thinned pieces are texture, not wires
 PIECE = 32                        # px: the grid the detections are cut on before the straightness test
 DEFAULT_TOL_PX = 1.5              # px: a projection this close to a detection lies on it
@@ -433,6 +435,7 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
 
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
+DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
 
@@ -627,7 +630,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                step: float, tower_height: float, up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX,
                min_support: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
-               min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None) -> list[dict]:
+               min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
+               peak_support: float = DEFAULT_PEAK_SUPPORT) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -641,7 +645,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     window of the cross-section around it, where the wire hangs from a tip by an insulator of
     unknown length, and the window's peaks of `support` >= min_support are tried (`seed_peaks`);
     span_length: the distance to the next towers (a level span of that length, `fit_profile`),
-    None: the catenary parameter free.
+    None: the catenary parameter free; peak_support: with seeds and a seed_window, the
+    cross-section's peaks outside the windows need this support (the windows' peaks and the
+    track min_support): a wire hangs below a cross-arm's tip or at the top of the tower, and a
+    weak peak elsewhere is as often the ground's texture lined up (a path along the line).
     Each seed (the given ones, then the cross-section's peaks of `support` >= min_support) is
     followed outwards (`track_span`); a wire is kept when at least min_found stations and
     min_inlier_share of those tried were found, its attachment within the cross-section's window
@@ -657,8 +664,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     station = half_length + margin
     for side in (1, -1):
         psi_side = psi if side == 1 else psi + math.pi
+        windowed = seed_window is not None and len(seeds) > 0
         peaks = cross_section_peaks(views, centre, psi_side, station, (-across, across), heights, step, up,
-                                    tol_px, min_support, min_views, separation=3 * tol_px * step)
+                                    tol_px, max(min_support, peak_support) if windowed else min_support, min_views,
+                                    separation=3 * tol_px * step)
         if seed_window is None:
             given = [(float(c) * side, float(z), float("nan")) for c, z in seeds]   # across flips with the side
         else:

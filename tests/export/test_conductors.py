@@ -336,3 +336,49 @@ def test_combined_covariance_takes_the_lateral_block_from_the_image_and_the_vert
                      [0, 110, 0, 111, 112],
                      [0, 120, 0, 121, 122]], float)
     np.testing.assert_array_equal(cond.combined_covariance(image, profile), want)
+
+
+def test_a_wire_few_photos_see_is_tracked_from_a_cross_arms_window_not_from_the_open_plane():
+    """The true span drawn in 6 of 16 cluttered photos (its cross-section support 6/16, between the
+    track's 0.3 and the open plane's 0.45 where cross-arm tips are given): without seeds it is
+    found (the plane's peaks need 0.3); with a tip above it (2.6 m, an insulator) it is found from
+    the tip's window; with tips only on the other side of the tower it is not (the open plane's
+    peaks need `DEFAULT_PEAK_SUPPORT`)."""
+    rng = np.random.default_rng(10)
+    c2w = ring_cameras()
+    photos = render_photos(c2w, [true_curve()], rng)
+    photos[6:] = render_photos(c2w[6:], [], rng)           # clutter only: photos with detections, none on it
+    views = views_of(photos, c2w)
+    window = (1.5, 7.6, 1.5)
+
+    def found(**kw):
+        return [catenary.derived(f["theta"], np.zeros(3))["attachment"]
+                for f in cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                                         span_length=2 * XV_TRUE, **kw) if f["side"] == 1]
+
+    open_plane = found()
+    assert len(open_plane) == 1 and np.linalg.norm(open_plane[0] - ATTACH) < 0.3
+    from_tip = found(seeds=[(-ATTACH[0], ATTACH[2] + 2.6)], seed_window=window)
+    assert len(from_tip) == 1 and np.linalg.norm(from_tip[0] - ATTACH) < 0.3
+    assert found(seeds=[(ATTACH[0], ATTACH[2] + 2.6)], seed_window=window) == []
+
+
+def test_default_detections_keep_a_faint_wire_a_threshold_of_4_loses():
+    """A one-pixel line 25 grey levels darker than a sky of 200 (a wire over the ground has about
+    that contrast against its lighter patches), pixel noise 0.004 and 30 darker dots: the default
+    detections (3 robust scales, the floor 0.01 ruling here) hold over 100 pixels within 1.5 px of
+    the line and none of the dots; at 4 scales none of the line."""
+    import cv2
+
+    rng = np.random.default_rng(11)
+    img = np.full((120, 160), 200, np.uint8)
+    cv2.line(img, (10, 40), (150, 70), 175, 1, cv2.LINE_AA)
+    for _ in range(30):
+        cv2.circle(img, (int(rng.integers(0, 160)), int(rng.integers(0, 120))), int(rng.integers(1, 3)), 185, -1)
+    response = cond.ridge_map(img / 255.0 + rng.normal(0, 0.004, img.shape))
+    rows, cols = np.mgrid[0:120, 0:160]
+    gap = np.abs(30 * cols - 140 * rows + 150 * 40 - 70 * 10) / math.hypot(30, 140)   # to the line (10,40)-(150,70)
+    near = (gap < 1.5) & (cols > 12) & (cols < 148)
+    default = cond.detections(response)
+    assert (default & near).sum() > 100 and (default & ~near).sum() == 0
+    assert (cond.detections(response, threshold=4.0) & near).sum() == 0
