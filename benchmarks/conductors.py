@@ -2,7 +2,7 @@
 
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
-      [--span-length M] [--out benchmarks/results/conductors.json]
+      [--span-length M] [--arm-seeds] [--detect-threshold K] [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
 it has conductors) the wires are found with the TRUE cameras (`export.conductors`: detection in
@@ -12,8 +12,9 @@ export's measurements.json (its `conductors` record, from the trained chain) is 
 the scene of the same position in --data. Per span in view (the two spans at the main tower:
 6 phase conductors and 2 earth wires on each side): found or not, the RMS distance of the fitted
 curve to the true one over the true span (metres), the sag error (the true sag: the lowest point
-below the attachments), the lowest point's height error, the lowest point's clearance above the
-true ground (z = 0) against the truth; and the spans found that match no cable (invented).
+below the attachments) and that error in the sag's stated 1-sigma, the lowest point's height
+error, the lowest point's clearance above the true ground (z = 0) against the truth; and the
+spans found that match no cable (invented).
 """
 
 from __future__ import annotations
@@ -85,6 +86,8 @@ def score(records: list[dict], truth: list[dict]) -> dict:
             row.update({"attachment_error": best_d, "rms": curve_rms(fitted, t["points"]),
                         "sag": sag, "sag_sigma": r["sag"]["sigma"],
                         "sag_error_rel": None if sag is None else (sag - t["sag"]) / t["sag"],
+                        "sag_error_sigmas": None if sag is None or not r["sag"]["sigma"] else
+                        (sag - t["sag"]) / r["sag"]["sigma"],
                         "lowest_z": None if low is None else low[2],
                         "lowest_z_error": None if low is None else low[2] - t["lowest_z"],
                         "clearance": (r.get("clearance") or {}).get("ground"),
@@ -100,7 +103,8 @@ def score(records: list[dict], truth: list[dict]) -> dict:
 
     return {"spans": rows, "found": len(found), "existing": len(truth), "invented": len(records) - len(used),
             "worst_rms": worst("rms"), "worst_sag_error_rel": worst("sag_error_rel"),
-            "worst_lowest_z_error": worst("lowest_z_error"), "worst_clearance_error": worst("clearance_error")}
+            "worst_lowest_z_error": worst("lowest_z_error"), "worst_clearance_error": worst("clearance_error"),
+            "worst_sag_error_sigmas": worst("sag_error_sigmas")}
 
 
 def scene_meta(data: Path, size: tuple[int, int] | None = None) -> dict:
@@ -129,8 +133,9 @@ def scene_meta(data: Path, size: tuple[int, int] | None = None) -> dict:
                                                     "partial": f"{len(frames)} of {cfg.num_train} training photos"}}
 
 
-def true_camera_views(data: Path, size: tuple[int, int] | None = None):
-    """(images [N, H, W, 3], Views in metres) of a generated scene's training photos, TRUE cameras."""
+def true_camera_views(data: Path, size: tuple[int, int] | None = None, threshold: float | None = None):
+    """(images [N, H, W, 3], Views in metres) of a generated scene's training photos, TRUE cameras;
+    threshold: the detections' (`export.conductors.detections`; None: its default)."""
     from jaxnerf_grid.data.synthetic import NORMALIZATION
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
@@ -142,26 +147,44 @@ def true_camera_views(data: Path, size: tuple[int, int] | None = None):
                               NORMALIZATION)
     intr = np.tile([meta["fl_x"], meta["fl_y"], meta["cx"], meta["cy"]], (len(frames), 1))
     responses = [cond.ridge_map(im) for im in images]
-    masks = np.stack([cond.detections(r) for r in responses])
+    kw = {} if threshold is None else {"threshold": float(threshold)}
+    masks = np.stack([cond.detections(r, **kw) for r in responses])
     return images, cond.Views(c2w, intr, masks, responses)
 
 
+def true_arm_seeds() -> list[tuple[float, float]]:
+    """The main tower's cross-arm tips as `find_spans` seeds (across offset along side +1's
+    e_across = -x, height), as the export measures them (`export.run.arm_seeds`)."""
+    from jaxnerf_grid.data.synthetic import scene as sc
+
+    return [(-s * (sc.half_width(z) + length), z) for z, length in zip(sc.ARM_LEVELS, sc.ARM_LENGTHS) for s in (-1, 1)]
+
+
 def true_camera_fit(data: Path, picture: Path | None = None, size=None,
-                    span_length: float | None = None) -> tuple[list[dict], dict]:
+                    span_length: float | None = None, arm_seeds: bool = False,
+                    threshold: float | None = None) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
-    span of that length), None: the catenary parameter free. Returns (records, timings)."""
+    span of that length), None: the catenary parameter free; arm_seeds: the cross-arm tips as
+    seeds, each searched in the export's window below it (`export.run.SEED_WINDOW`).
+    Returns (records, timings)."""
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
 
     t0 = time.perf_counter()
-    images, views = true_camera_views(data, size)
+    images, views = true_camera_views(data, size, threshold)
     t1 = time.perf_counter()
     f = float(np.median(views.intrinsics[:, 0]))
     dist = float(np.median(np.linalg.norm(views.c2w[:, :3, 3], axis=1)))
     step = dist / f
     centre = np.zeros(3)
-    spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length)
+    kw = {}
+    if arm_seeds:
+        from jaxnerf_grid.export.run import SEED_WINDOW
+
+        kw = {"seeds": true_arm_seeds(), "seed_window": tuple(v * 30.4 for v in SEED_WINDOW)}
+    spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length,
+                            **kw)
     t2 = time.perf_counter()
     if picture is not None:
         io.write_png(picture, cond.views_picture(images, views, spans, centre))
@@ -193,6 +216,11 @@ def main(argv=None) -> int:
     p.add_argument("--span-length", type=float, default=None, metavar="M",
                    help="the towers' spacing given to the fit (the generator's is 320 m): each span level and "
                         "this long; without it the catenary parameter is fitted from the photos alone")
+    p.add_argument("--arm-seeds", action="store_true",
+                   help="the cross-arm tips as seeds (as the export passes the ones it measures)")
+    p.add_argument("--detect-threshold", type=float, default=None, metavar="K",
+                   help="the detections' hysteresis threshold in robust scales (export.conductors.detections; "
+                        "default its own)")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/conductors.json"))
     args = p.parse_args(argv)
     from jaxnerf_grid.util import io
@@ -210,9 +238,11 @@ def main(argv=None) -> int:
             picture = args.pictures / f"{data.name}_conductors_views.png"
         entry = {"data": data.name, "preset": gen.get("preset"), "seed": gen.get("seed"),
                  "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
-                 "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length}
+                 "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length,
+                 "arm_seeds": bool(args.arm_seeds), "detect_threshold": args.detect_threshold}
         if not args.no_true_cameras:
-            records, timings = true_camera_fit(data, picture, size, args.span_length)
+            records, timings = true_camera_fit(data, picture, size, args.span_length, args.arm_seeds,
+                                               args.detect_threshold)
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):

@@ -1,7 +1,8 @@
 """`jaxnerf-grid export`: the metric 3D model of a trained run's tower (`export.run.export_run`).
 
     jaxnerf-grid export --run RUN [--out DIR] [--resolution N] [--box auto|xmin,ymin,zmin,xmax,ymax,zmax]
-                        [--threshold OPACITY] [--views N] [--geoid GRID [--vertical-crs EPSG:CODE]] [--overwrite]
+                        [--threshold OPACITY] [--views N] [--geoid GRID [--vertical-crs EPSG:CODE]]
+                        [--min-clearance M] [--span-length M] [--overwrite]
 
 Writes tower_mesh.ply, tower_points.ply, box.json, measurements.json and export_views.png into
 DIR (default RUN/export/), in the dataset's original units (metres for the synthetic scenes),
@@ -40,6 +41,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--min-clearance", type=float, default=None, metavar="M",
                    help="flag the spans whose conductor clearance over the ground or the objects beneath is below M "
                         "(export units; no default: the clearance a line needs depends on its voltage and country)")
+    p.add_argument("--span-length", type=float, default=None, metavar="M",
+                   help="the distance between the towers (export units): each span's conductors fitted as a level "
+                        "span of that length; without it their curvature comes from the photos alone, poorly "
+                        "observed where few photos see the far part of a wire (docs/EXPORT.md)")
     p.add_argument("--overwrite", action="store_true", help="write into an output folder that holds files")
     p.add_argument("--allow-other-data", action="store_true",
                    help="export from a dataset other than the one the run was trained on (its fingerprint differs)")
@@ -57,7 +62,8 @@ def main(argv: list[str] | None = None) -> int:
     m = run.export_run(args.run, args.out, resolution=args.resolution, box=args.box, opacity=args.threshold,
                        views=args.views, overwrite=args.overwrite, progress=not args.quiet,
                        allow_other_data=args.allow_other_data, geoid=args.geoid,
-                       vertical_crs=args.vertical_crs, min_clearance=args.min_clearance)
+                       vertical_crs=args.vertical_crs, min_clearance=args.min_clearance,
+                       span_length=args.span_length)
     out = Path(args.out) if args.out else Path(args.run) / "export"
     unit = "m" if m["units"] == "metres" else "units (unknown scale)"
     height = "n/a" if m["height"] is None else f"{m['height']:.2f} {unit}"

@@ -25,13 +25,18 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   beyond the tower's box is gridded; each cell's support is the share of the photos that see it
   whose detections pass within `tol_px` of its projection. A wire crossing the plane is
   supported by nearly every photo; a point on one photo's wire lies off it in the others.
-  Peaks above `min_support` seed one span each (the cross-arms' direction gives the line's).
+  Peaks above `min_support` seed one span each (the cross-arms' direction gives the line's);
+  with the cross-arms' tips given, each tip's window below it (`seed_peaks`) at `min_support`
+  and the rest of the plane at `DEFAULT_PEAK_SUPPORT`.
 * Track (`track_span`, what `find_spans` uses): each seed followed outwards station by station,
   at each the best cell of a small grid across the predicted curve by `gated_support` (detections
   near the projection AND running along it), the curve refitted every few stations
   (`fit_profile`: the catenary parameter bounded to plausible values, or fixed by the slope and a
   given span length); wires that only borrow another wire's detections dropped
-  (`shared_evidence`).
+  (`shared_evidence`, `borrowers_dropped`). A tracked span's 1-sigma figures
+  (`combined_covariance`): the height, slope and curvature from the profile fit through the
+  stations' heights (with a span length, the curvature moves with the slope), the across offset
+  and azimuth from the image residuals.
 * Fit (`fit_span`, a library function the track replaced in `find_spans`):
   robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
@@ -55,7 +60,7 @@ from jaxnerf_grid.export import catenary, to_metric64
 from jaxnerf_grid.export.catenary import curve_points, derived, line_axes, sample_span
 
 DEFAULT_SIGMAS = (1.0,)           # px: the ridge filter's scale (a sub-pixel wire, blurred by lens and pixel)
-DEFAULT_THRESHOLD = 4.0           # detections: response above this many robust scales
+DEFAULT_THRESHOLD = 3.0           # detections: response above this many robust scales (at 4 the wires over ground fade)
 DEFAULT_MIN_LENGTH = 12           # px: shorter thinned pieces are texture, not wires
 PIECE = 32                        # px: the grid the detections are cut on before the straightness test
 DEFAULT_TOL_PX = 1.5              # px: a projection this close to a detection lies on it
@@ -373,10 +378,14 @@ def fit_span(views: Views, theta0, centre, s_min: float, reaches, up=(0.0, 0.0, 
             "residuals": int(inlier.sum()), "seen": int(seen.sum()), "stations": s}
 
 
-def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray) -> tuple[np.ndarray, float]:
+def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
+                span_length: float | None = None) -> tuple[np.ndarray, float]:
     """sigma^2 (J^T J)^-1 over the inlier residuals [N, K] (their nearest detections held fixed:
     a central-difference Jacobian of the residuals); sigma^2 their mean square over
-    (inliers - 5) degrees of freedom."""
+    (inliers - free parameters) degrees of freedom. With span_length L (a level span of that
+    length: kappa = 2 asinh(-m0) / L, `fit_profile`) the four free parameters (c, z_a, psi, m0)
+    have the covariance, mapped to theta's [5, 5] through d kappa / d m0 = -2 / (L sqrt(1 + m0^2)):
+    the curvature moves with the slope, and the span stays L."""
     theta = np.asarray(theta, np.float64)
     points = curve_points(theta, centre, s, up)
     u0, v0, _ = project_all(points, views.c2w, views.intrinsics)
@@ -392,20 +401,31 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray) -> tuple
         has = np.any(normal != 0, axis=1)
         return np.where(has, du * normal[:, 0] + dv * normal[:, 1], np.hypot(du, dv))
 
-    r = along(theta)
-    jac = np.zeros((len(r), len(theta)))
-    for k in range(len(theta)):
-        step = 1e-6 * max(abs(theta[k]), 1.0) if k < 3 else 1e-7
-        hi, lo = theta.copy(), theta.copy()
+    if span_length:
+        def full(q):       # theta of the four free parameters
+            return np.append(q, 2.0 * math.asinh(max(-float(q[3]), 0.0)) / span_length)
+        m0 = float(theta[3])
+        mapping = np.vstack([np.eye(4), [0.0, 0.0, 0.0, -2.0 / (span_length * math.sqrt(1.0 + m0 * m0))
+                                         if m0 < 0 else 0.0]])
+    else:
+        def full(q):
+            return q
+        mapping = np.eye(5)
+    free = theta[:mapping.shape[1]].copy()
+    r = along(full(free))
+    jac = np.zeros((len(r), len(free)))
+    for k in range(len(free)):
+        step = 1e-6 * max(abs(free[k]), 1.0) if k < 3 else 1e-7
+        hi, lo = free.copy(), free.copy()
         hi[k] += step
         lo[k] -= step
-        jac[:, k] = (along(hi) - along(lo)) / (2 * step)
-    dof = len(r) - len(theta)
+        jac[:, k] = (along(full(hi)) - along(full(lo))) / (2 * step)
+    dof = len(r) - len(free)
     if dof <= 0:
         return np.full((5, 5), np.inf), float("nan")
     sigma2 = float(r @ r) / dof
     try:
-        cov = sigma2 * np.linalg.inv(jac.T @ jac)
+        cov = mapping @ (sigma2 * np.linalg.inv(jac.T @ jac)) @ mapping.T
     except np.linalg.LinAlgError:
         cov = np.full((5, 5), np.inf)
     return cov, math.sqrt(sigma2)
@@ -415,6 +435,7 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray) -> tuple
 
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
+DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
 
@@ -609,7 +630,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                step: float, tower_height: float, up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX,
                min_support: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
-               min_found: int = 10, max_shared: float = 0.5) -> list[dict]:
+               min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
+               peak_support: float = DEFAULT_PEAK_SUPPORT) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -618,24 +640,39 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     width; step: its cell (about a pixel's footprint there; peaks 3 tol_px cells apart at
     least); tower_height: the scale of the station's margin, of the track's stations and of the
     reach (30 tower heights); seeds [(c, z)]: attachment points (across offset, height: the
-    cross-arms' tips) tried first, on both sides; span_length: the distance to the next towers
-    (a level span of that length, `fit_profile`), None: the catenary parameter free.
+    cross-arms' tips) tried first, on both sides; seed_window (half width across, depth below,
+    height above; None: the seeds are the attachments themselves): each seed stands for the
+    window of the cross-section around it, where the wire hangs from a tip by an insulator of
+    unknown length, and the window's peaks of `support` >= min_support are tried (`seed_peaks`);
+    span_length: the distance to the next towers (a level span of that length, `fit_profile`),
+    None: the catenary parameter free; peak_support: with seeds and a seed_window, the
+    cross-section's peaks outside the windows need this support (the windows' peaks and the
+    track min_support): a wire hangs below a cross-arm's tip or at the top of the tower, and a
+    weak peak elsewhere is as often the ground's texture lined up (a path along the line).
     Each seed (the given ones, then the cross-section's peaks of `support` >= min_support) is
     followed outwards (`track_span`); a wire is kept when at least min_found stations and
     min_inlier_share of those tried were found, its attachment within the cross-section's window
     widened by the station's margin; one per wire (`_distinct`); strongest first (the sum of its
     stations' support), a wire is dropped when more than max_shared of its support lies on the
-    wires kept before it (`shared_evidence`).
-    Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov",
-    "sigma_px", "inlier_share", "residuals", "seen", "stations", "track" [F, 4]}]."""
+    wires kept before it (`shared_evidence`), then when more than that lies on all the others
+    (`borrowers_dropped`).
+    Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov"
+    (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
+    "seen", "stations", "track" [F, 4], "span_length"}]."""
     spans = []
     margin = 0.3 * tower_height
     station = half_length + margin
     for side in (1, -1):
         psi_side = psi if side == 1 else psi + math.pi
+        windowed = seed_window is not None and len(seeds) > 0
         peaks = cross_section_peaks(views, centre, psi_side, station, (-across, across), heights, step, up,
-                                    tol_px, min_support, min_views, separation=3 * tol_px * step)
-        given = [(float(c) * side, float(z), float("nan")) for c, z in seeds]   # across flips with the side
+                                    tol_px, max(min_support, peak_support) if windowed else min_support, min_views,
+                                    separation=3 * tol_px * step)
+        if seed_window is None:
+            given = [(float(c) * side, float(z), float("nan")) for c, z in seeds]   # across flips with the side
+        else:
+            given = seed_peaks(views, centre, psi_side, station, [(float(c) * side, float(z)) for c, z in seeds],
+                               seed_window, step, up, tol_px, min_support, min_views)
         fits: list[dict] = []
         for c, z, share in given + [tuple(p) for p in peaks]:
             seed = curve_points((c, z, psi_side, 0.0, 0.0), centre, np.array([station]), up)[0]
@@ -647,32 +684,87 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             kept = len(track["found"])
             if kept < min_found or kept < min_inlier_share * max(track["tried"], 1):
                 continue
-            fit = _finish(views, track["theta"], centre, half_length, track["reach"], up, tol_px)
+            fit = _finish(views, track["theta"], centre, half_length, track["reach"], up, tol_px,
+                          span_length=span_length)
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
-                             "track": track["found"], **fit})
+                             "track": track["found"], **fit, "image_cov": fit["cov"],
+                             "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
         for f in sorted(_distinct(fits, centre, 0.033 * tower_height, up),
                         key=lambda f: -float(f["track"][:, 3].sum())):
             if shared_evidence(views, f["track"], f["theta"], [k["theta"] for k in kept], centre, f["psi"], up,
                                tol_px) <= max_shared:
                 kept.append(f)
-        spans += kept
+        spans += borrowers_dropped(views, kept, centre, up, tol_px, max_shared)
     return spans
 
 
+def borrowers_dropped(views: Views, kept: list[dict], centre, up, tol_px: float = DEFAULT_TOL_PX,
+                      max_shared: float = 0.5) -> list[dict]:
+    """The wires of one side (`find_spans`' records, each with "track", "theta", "psi") less those
+    that only borrow the others' detections: each wire's `shared_evidence` against ALL the others;
+    while the largest exceeds max_shared, that wire is dropped and the shares recomputed. A curve
+    between two wires, which the photos from one side of the line see on one wire and those from
+    the other side on the other, borrows from a wire kept after it (the strongest-first pass
+    compares it with the wires before it only); a wire of its own keeps its own support, the
+    photos along the line seeing it alone."""
+    kept = list(kept)
+    while len(kept) > 1:
+        shares = [shared_evidence(views, f["track"], f["theta"], [k["theta"] for k in kept if k is not f], centre,
+                                  f["psi"], up, tol_px) for f in kept]
+        worst = int(np.argmax(shares))
+        if shares[worst] <= max_shared:
+            break
+        kept.pop(worst)
+    return kept
+
+
+def combined_covariance(image_cov: np.ndarray, profile_cov: np.ndarray) -> np.ndarray:
+    """theta's covariance [5, 5] of a tracked span: the across offset and the azimuth (theta[0],
+    theta[2]) from the image residuals' (`_covariance`, image_cov [5, 5]), the height, slope and
+    curvature (theta[1], theta[3], theta[4]) from the profile fit through the track's station
+    heights (`fit_profile`, profile_cov [3, 3] of (z_a, m0, kappa)), no correlation between the
+    two blocks. The profile fit is what sets the vertical parameters; the image covariance counts
+    every (photo, sample) pair as an independent observation, though neighbouring samples fall on
+    the same detections, and states the sag several times too precisely."""
+    cov = np.zeros((5, 5))
+    lateral, vertical = [0, 2], [1, 3, 4]
+    cov[np.ix_(lateral, lateral)] = np.asarray(image_cov, np.float64)[np.ix_(lateral, lateral)]
+    cov[np.ix_(vertical, vertical)] = np.asarray(profile_cov, np.float64)
+    return cov
+
+
+def seed_peaks(views: Views, centre, psi: float, station: float, seeds, window: tuple, step: float,
+               up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, min_support: float = DEFAULT_TRACK_SUPPORT,
+               min_views: int = DEFAULT_MIN_VIEWS) -> list[tuple]:
+    """The cross-section's peaks (`cross_section_peaks` at `station`) in the window around each seed
+    (c, z) [S, 2] (the across offset and height of a cross-arm's tip on this side): across
+    [c - w, c + w], heights [z - below, z + above] for window (w, below, above). A suspension
+    insulator hangs the wire below its tip, and the wire falls on its way to the station. Returns
+    [(across, height, support)], strongest first within each window, the seeds in their order."""
+    w, below, above = (float(v) for v in window)
+    out: list[tuple] = []
+    for c, z in seeds:
+        peaks = cross_section_peaks(views, centre, psi, station, (c - w, c + w), (z - below, z + above), step, up,
+                                    tol_px, min_support, min_views, separation=3 * tol_px * step)
+        out += [tuple(float(v) for v in p) for p in peaks]
+    return out
+
+
 def _finish(views: Views, theta, centre, s_min: float, reach: float, up, tol_px: float,
-            samples: int = SAMPLES) -> dict:
+            samples: int = SAMPLES, span_length: float | None = None) -> dict:
     """fit_span's record of a tracked curve theta [5] observed from s_min to reach: the share of
-    its projected samples within 2 tol_px of a detection, the covariance (`_covariance`)."""
+    its projected samples within 2 tol_px of a detection, the covariance (`_covariance`; with
+    span_length, the curvature tied to the slope as the track fitted it)."""
     s = np.linspace(s_min, max(reach, s_min + 1e-6), samples)
     _, dist, seen = views.offsets(curve_points(theta, centre, s, up))
     inlier = seen & (dist <= 2 * tol_px)
-    cov, sigma = _covariance(theta, views, centre, s, up, inlier)
+    cov, sigma = _covariance(theta, views, centre, s, up, inlier, span_length)
     return {"theta": np.asarray(theta, np.float64), "cov": cov, "sigma_px": sigma,
             "inlier_share": float(inlier.sum() / max(seen.sum(), 1)), "residuals": int(inlier.sum()),
-            "seen": int(seen.sum()), "stations": s}
+            "seen": int(seen.sum()), "stations": s, "span_length": span_length}
 
 
 def shared_evidence(views: Views, track: np.ndarray, theta, others: list, centre, psi: float, up,
@@ -756,7 +848,8 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 "inliers": int(fit["residuals"]), "projections": int(fit["seen"]),
                 "observed_stations": [float(fit["stations"][0]), float(fit["stations"][-1])],
                 "centre": [float(v) for v in np.asarray(centre, np.float64)],
-                "up": [float(v) for v in np.asarray(up, np.float64)], "level_span_assumed": True})
+                "up": [float(v) for v in np.asarray(up, np.float64)], "level_span_assumed": True,
+                "span_length_given": None if fit.get("span_length") is None else float(fit["span_length"])})
     return rec
 
 

@@ -199,7 +199,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
                colour_cameras: int = DEFAULT_COLOUR_CAMERAS,
                min_component_fraction: float = mesh_lib.DEFAULT_MIN_COMPONENT_FRACTION,
                overwrite: bool = False, progress: bool = True, dataset=None, allow_other_data: bool = False,
-               geoid=None, vertical_crs: str | None = None, min_clearance: float | None = None) -> dict:
+               geoid=None, vertical_crs: str | None = None, min_clearance: float | None = None,
+               span_length: float | None = None) -> dict:
     """Exports the tower of a trained run (module docstring). Returns measurements.json's dict.
     A dataset other than the run's (its fingerprint) is refused unless `allow_other_data`.
 
@@ -211,12 +212,15 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     CRS becomes the compound of the horizontal one and it (`export.vertical_crs`).
     min_clearance: spans whose conductor clearance over the ground or the objects beneath is
     below this (export units) are flagged (`export.clearance`); None flags nothing.
+    span_length: the distance between the towers (export units): each span's catenary a level span
+    of that length (`export.conductors.fit_profile`); None: its curvature from the photos alone.
     DataError / ConfigError for a run without a checkpoint, an empty box or one outside the
     scene, an occupied folder, a box without a surface, a geoid grid that is missing, unreadable,
     not covering the site or given for a dataset without a CRS; nothing is written then.
     """
     start = time.perf_counter()
     run_dir = Path(run_dir)
+    check_span_length(span_length)         # a value alone: refused before the run folder is read
     cfg, data = runs.load_run(run_dir)  # the config first: a bad run folder fails before the dataset loads
     given = parse_box(box)
     check_resolution(resolution)
@@ -328,7 +332,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     meas["box"].update(box_stats)
     # 6. the conductors from the photos, their clearance; the classified cloud
     cloud_m = to_metric64(points, norm)
-    meas["conductor_spans"] = _conductors(ds, train_ids, meas, cloud_m, lo_m, hi_m, units, min_clearance, progress)
+    meas["conductor_spans"] = _conductors(ds, train_ids, meas, cloud_m, lo_m, hi_m, units, min_clearance, progress,
+                                          span_length)
     timings["conductors"] = time.perf_counter() - start - sum(timings.values())
     meas["survey"] = _survey(meas, geo, alignment, h / scale)
     # the CRS outputs (heights above the geoid with `geoid`), all converted before anything is written
@@ -389,12 +394,40 @@ def _line_azimuth(meas: dict, up: np.ndarray) -> float | None:
     return math.atan2(float(line @ e2), float(line @ e1))
 
 
+def check_span_length(span_length) -> None:
+    """ConfigError naming export.span_length unless it is None or a positive finite number."""
+    if span_length is None:
+        return
+    if isinstance(span_length, bool) or not isinstance(span_length, (int, float)) or not math.isfinite(span_length) \
+            or span_length <= 0:
+        raise ConfigError(f"export.span_length must be a positive number (export units), got {span_length!r}")
+
+
+SEED_WINDOW = (0.05, 0.25, 0.05)   # tower heights: each cross-arm tip's window (across, below, above)
+
+
+def arm_seeds(levels: list[dict], centre, psi: float, up) -> list[tuple[float, float]]:
+    """The cross-arms' tips as `find_spans` seeds [(across offset, height)]: each level's two ends
+    (`measure.cross_arms`, the export's frame) as the offset across the line (along
+    `catenary.line_axes(psi)`'s e_across, from the axis point centre) and the height along up."""
+    _, across, u = catenary.line_axes(psi, up)
+    centre = np.asarray(centre, np.float64)
+    out = []
+    for level in levels:
+        for end in level.get("ends") or []:
+            e = np.asarray(end, np.float64)
+            out.append((float((e - centre) @ across), float(e @ u)))
+    return out
+
+
 def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, units: str, min_clearance,
-                progress: bool) -> dict:
+                progress: bool, span_length: float | None = None) -> dict:
     """measurements.json's `conductor_spans` (`export.conductors`, `export.clearance`): the spans
     found in the training photos, each with its figures, its clearance and its flag; "_picture"
     (conductors_views.png's image, taken out before writing). Seeds: the cross-arms' direction,
-    heights and span (the module's find_spans), the tower's axis and box."""
+    heights and span (the module's find_spans), the cross-arms' tips (`arm_seeds`, each searched
+    in a window below it: SEED_WINDOW), the tower's axis and box; span_length: the towers'
+    spacing given (a level span of that length), None: the curvature from the photos."""
     n_m = np.asarray((meas.get("ground") or {}).get("normal", [0.0, 0.0, 1.0]), np.float64)
     d_m = float((meas.get("ground") or {}).get("offset", 0.0))
     # the frame's z is up where it is metric (georeferenced: east, north, up; the generator's
@@ -403,6 +436,7 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
     images = np.asarray(ds.images)[train_ids]
     out = {"found": 0, "spans": [], "why": None, "up": [float(v) for v in up],
            "min_clearance": min_clearance, "flagged": 0, "photos": int(len(train_ids)),
+           "span_length": None if span_length is None else float(span_length), "seeds": [],
            "_picture": np.ones((8, 8, 3), np.float32)}
     height = meas.get("height")
     psi = _line_azimuth(meas, up)
@@ -431,7 +465,11 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
         return out
     views = conductors_lib.Views(c2w, intr, masks, responses)
     del responses
-    fits = conductors_lib.find_spans(views, centre, psi, half_length, heights, across, step, float(height), up)
+    seeds = arm_seeds(levels, centre, psi, up)
+    out["seeds"] = [[c, z] for c, z in seeds]
+    fits = conductors_lib.find_spans(views, centre, psi, half_length, heights, across, step, float(height), up,
+                                     seeds=seeds, span_length=span_length,
+                                     seed_window=tuple(v * float(height) for v in SEED_WINDOW))
     plane_band = float(meas["ground"]["clearance"])
     for fit in fits:
         rec = conductors_lib.span_record(fit, centre, up)

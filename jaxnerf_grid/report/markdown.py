@@ -249,8 +249,12 @@ def conductor_lines(m: dict, unit: str, image: str | None = None) -> list[str]:
     if not cs.get("spans"):
         return lines + [f"No conductor found in the {cs.get('photos', '?')} photos: {cs.get('why') or ''}", ""]
     limit = cs.get("min_clearance")
-    lines += [f"{cs['found']} spans fitted as catenaries to the wires detected in {cs.get('photos', '?')} photos "
-              "(each far end assumed level with the near one: the neighbouring tower is outside the model). "
+    length = cs.get("span_length")
+    spacing = (f"each a level span of {_fmt(float(length))} {unit} (`export.span_length`). " if length is not None
+               else "each far end assumed level with the near one and the curvature from the photos alone "
+                    "(no `export.span_length`: the neighbouring tower is outside the model). ")
+    lines += [f"{cs['found']} spans fitted as catenaries to the wires detected in {cs.get('photos', '?')} photos, "
+              + spacing
               + (f"Flagged: clearance below {_fmt(float(limit))} {unit}: **{cs.get('flagged', 0)}**."
                  if limit is not None else "No clearance given (`export.min_clearance`): nothing flagged."), "",
               f"| span | side | attachment height ({unit}) | sag ({unit}) | catenary parameter ({unit}) | "

@@ -95,5 +95,9 @@ def test_the_report_table_shows_each_span_its_sigmas_and_its_flag():
     assert f"{sag:.2f} +- " in text and "14.90 +- 0.01" in text and "6.90 +- 0.01" in text
     assert "**below**" in text and "clearance below 8.00 m: **1**" in text
     assert "![the fitted conductors on the photos](conductors_views.png)" in text
+    assert "curvature from the photos alone" in text
+    given = report.conductor_lines({"conductor_spans": {"found": 1, "photos": 40, "min_clearance": None,
+                                                        "span_length": 320.0, "spans": [rec]}}, "m")
+    assert "each a level span of 320.00 m (`export.span_length`)" in "\n".join(given)
     none = report.conductor_lines({"conductor_spans": {"found": 0, "photos": 40, "spans": [], "why": "no wire"}}, "m")
     assert "No conductor found in the 40 photos: no wire" in "\n".join(none)

@@ -202,7 +202,183 @@ def test_track_finds_a_wire_over_textured_ground_with_its_sag_from_the_span_leng
         np.testing.assert_allclose(fig["attachment"], ATTACH, atol=0.15)
         assert fig["sag"] == pytest.approx(sag_true, rel=0.05)
         assert fig["lowest_point"][2] == pytest.approx(ATTACH[2] - sag_true, abs=0.3)
+        # the span's length given: no uncertainty in it, the sag's from the slope alone, and its
+        # error within 3 of its sigmas (the image residuals' covariance alone states a sigma of
+        # 0.013-0.017 m here, for errors of 0.1-0.2 m)
+        assert f["span_length"] == 2 * XV_TRUE
+        sig = cond.derived_sigmas(f["theta"], f["cov"], np.zeros(3))
+        assert sig["span"] < 1e-6 * XV_TRUE
+        assert abs(fig["sag"] - sag_true) <= 3 * sig["sag"]
     # the same ground without the wire: nothing
     bare = views_of(textured_photos(c2w, [], rng), c2w)
     assert cond.find_spans(bare, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
                            span_length=2 * XV_TRUE) == []
+
+
+def test_seed_window_below_a_cross_arm_tip_finds_the_wire_its_insulator_hangs():
+    """A cross-arm tip 2.6 m above the wire's attachment (a suspension insulator): the window
+    below it (`seed_peaks`, 1.5 m across, 7.6 m below, 1.5 m above) has its strongest peak at the
+    wire's height at the station by the closed form (a (cosh((s - x_v) / a) - cosh(x_v / a))
+    below the attachment) within 0.2 m and its across offset within 0.3 m (weaker ones lie along
+    the wire's ridge of support across the plane, which `find_spans` skips once the wire is
+    tracked); a tip on the other side of the tower, where no wire hangs, gives none."""
+    rng = np.random.default_rng(5)
+    c2w = ring_cameras()
+    views = views_of(render_photos(c2w, [true_curve()], rng, clutter=0, lines=0), c2w)
+    station = 13.6
+    z_true = ATTACH[2] + A_TRUE * (math.cosh((station - XV_TRUE) / A_TRUE) - math.cosh(XV_TRUE / A_TRUE))
+    tip = (-ATTACH[0], ATTACH[2] + 2.6)                  # e_across = -x for the line along +y
+    peaks = cond.seed_peaks(views, np.zeros(3), math.pi / 2, station, [tip], (1.5, 7.6, 1.5), 0.11)
+    assert len(peaks) >= 1
+    assert peaks[0][0] == pytest.approx(-ATTACH[0], abs=0.3) and peaks[0][1] == pytest.approx(z_true, abs=0.2)
+    assert cond.seed_peaks(views, np.zeros(3), math.pi / 2, station, [(ATTACH[0], tip[1])], (1.5, 7.6, 1.5),
+                           0.11) == []
+
+
+def _straight_record(c: float, z_a: float, slope: float = -0.1) -> dict:
+    """`find_spans`' record of a straight wire (kappa 0) on side +1 of a line along +y
+    (e_across = -x): theta and its track's stations every 2 m from 14 to 80 m (support 1)."""
+    s = np.arange(14.0, 80.0, 2.0)
+    track = np.stack([s, np.full_like(s, c), z_a + slope * s, np.ones_like(s)], 1)
+    return {"side": 1, "psi": math.pi / 2, "theta": np.array([c, z_a, math.pi / 2, slope, 0.0]), "track": track}
+
+
+def test_a_curve_between_two_wires_seen_on_each_from_its_side_is_dropped_and_both_wires_kept():
+    """Two wires A (x = +7.45) and B (x = -7.45), 22.9 m high, and a phantom P midway 0.8 m lower,
+    all straight and parallel (slope -0.1 along +y). Four photos lie in the plane of P and A
+    (beyond A: there P projects onto A's line), four in that of P and B, eight look along the
+    line (there P falls between the wires, on no detection). P's support lies on A in the
+    first four and on B in the next four: against A alone half of it (the strongest-first pass,
+    max_shared 0.5, keeps it), against A and B all of it; about a fifth of A's and of B's lies on
+    the others. `borrowers_dropped` keeps A and B, in their order, and drops P."""
+    rng = np.random.default_rng(7)
+    s = np.linspace(0.0, 200.0, 4001)
+    wire = lambda x, z: np.stack([np.full_like(s, x), s, z - 0.1 * s], 1)   # noqa: E731
+    a, b = wire(7.45, 22.9), wire(-7.45, 22.9)          # P (x = 0, 22.1 m) is drawn in no photo
+    cams = []
+    for sign in (1.0, -1.0):                              # in the plane of P and A (sign +1), of P and B (-1)
+        d = np.array([sign * 7.45, 0.0, 0.8])
+        for s0 in (10.0, 25.0, 40.0, 55.0):
+            eye = np.array([0.0, s0, 22.1 - 0.1 * s0]) + 8.0 * d
+            cams.append(look_at(eye, [0.0, s0 + 25.0, 22.1 - 0.1 * (s0 + 25.0)]))
+    for x, z in ((-20, 18), (-10, 35), (0, 40), (10, 15), (20, 30), (-15, 26), (15, 44), (5, 12)):
+        cams.append(look_at([x, -40.0, z], [0.0, 40.0, 20.0]))
+    c2w = np.stack(cams)
+    views = views_of(render_photos(c2w, [a, b], rng, clutter=0, lines=0), c2w)
+    rec_a, rec_b, rec_p = _straight_record(-7.45, 22.9), _straight_record(7.45, 22.9), _straight_record(0.0, 22.1)
+    alone = cond.shared_evidence(views, rec_p["track"], rec_p["theta"], [rec_a["theta"]], np.zeros(3), math.pi / 2,
+                                 (0.0, 0.0, 1.0))
+    assert 0.3 <= alone <= 0.5
+    kept = cond.borrowers_dropped(views, [rec_a, rec_p, rec_b], np.zeros(3), (0.0, 0.0, 1.0))
+    assert [r["theta"][0] for r in kept] == [-7.45, 7.45]
+
+
+def test_the_sag_sigma_with_a_given_span_length_follows_the_slope_alone_by_the_closed_form():
+    """The true curve's covariance from its detections in 8 photos (`_finish`), with the span
+    length given (kappa = 2 beta / L, beta = asinh(-m0)): the span is L with no uncertainty, the
+    curvature's sigma is 2 sigma_m0 / (L sqrt(1 + m0^2)) and the sag's, L (cosh beta - 1) / (2 beta)
+    differentiated, |L (beta sinh beta - cosh beta + 1) / (2 beta^2)| sigma_m0 / sqrt(1 + m0^2); the
+    curvature left free instead, the sag's sigma is larger (the curvature is poorly seen)."""
+    rng = np.random.default_rng(8)
+    c2w = ring_cameras(8)
+    views = views_of(render_photos(c2w, [true_curve()], rng, clutter=0, lines=0), c2w)
+    length = 2 * XV_TRUE
+    beta = XV_TRUE / A_TRUE
+    m0 = -math.sinh(beta)
+    theta = np.array([-ATTACH[0], ATTACH[2], math.pi / 2, m0, 2 * beta / length])
+    fixed = cond._finish(views, theta, np.zeros(3), 4.5, 150.0, (0.0, 0.0, 1.0), cond.DEFAULT_TOL_PX,
+                         span_length=length)
+    sig = cond.derived_sigmas(theta, fixed["cov"], np.zeros(3))
+    s_m0 = math.sqrt(fixed["cov"][3, 3])
+    assert 0 < s_m0 < 0.01
+    assert sig["span"] < 1e-6 * length and sig["lowest_station"] < 1e-6 * length
+    assert math.sqrt(fixed["cov"][4, 4]) == pytest.approx(2 * s_m0 / (length * math.sqrt(1 + m0 ** 2)), rel=1e-9)
+    dsag = length * (beta * math.sinh(beta) - math.cosh(beta) + 1.0) / (2 * beta ** 2)
+    assert sig["sag"] == pytest.approx(abs(dsag) * s_m0 / math.sqrt(1 + m0 ** 2), rel=1e-3)
+    free = cond._finish(views, theta, np.zeros(3), 4.5, 150.0, (0.0, 0.0, 1.0), cond.DEFAULT_TOL_PX)
+    assert cond.derived_sigmas(theta, free["cov"], np.zeros(3))["sag"] > 1.2 * sig["sag"]
+    assert cond.span_record({**fixed, "side": 1}, np.zeros(3))["span_length_given"] == length
+
+
+def test_profile_fits_sag_sigma_with_a_span_length_matches_the_scatter_of_repeated_fits():
+    """Station heights of the true curve (the near 14-80 m, every 2 m) with 5 cm of Gaussian noise,
+    fitted 300 times with the span length given (`fit_profile`): the sag's 1-sigma each fit
+    states (its covariance through `derived_sigmas`, the curvature tied to the slope) agrees with
+    the standard deviation of the 300 sags within 20 %, and the curvature's sigma is the slope's
+    times 2 / (L sqrt(1 + m0^2))."""
+    rng = np.random.default_rng(9)
+    s = np.arange(14.0, 80.0, 2.0)
+    z_true = ATTACH[2] + A_TRUE * (np.cosh((s - XV_TRUE) / A_TRUE) - np.cosh(XV_TRUE / A_TRUE))
+    length = 2 * XV_TRUE
+    sags, sigmas = [], []
+    for _ in range(300):
+        params, pcov = cond.fit_profile(s, z_true + rng.normal(0.0, 0.05, len(s)), np.ones_like(s), kappa_max=0.01,
+                                        span_length=length)
+        theta = np.array([-ATTACH[0], params[0], math.pi / 2, params[1], params[2]])
+        cov = cond.combined_covariance(np.eye(5), pcov)
+        sags.append(catenary.derived(theta, np.zeros(3))["sag"])
+        sigmas.append(cond.derived_sigmas(theta, cov, np.zeros(3))["sag"])
+        m0 = params[1]
+        assert math.sqrt(pcov[2, 2]) == pytest.approx(2 * math.sqrt(pcov[1, 1]) / (length * math.sqrt(1 + m0 ** 2)),
+                                                      rel=1e-9)
+    assert float(np.median(sigmas)) == pytest.approx(float(np.std(sags)), rel=0.2)
+
+
+def test_combined_covariance_takes_the_lateral_block_from_the_image_and_the_vertical_from_the_profile():
+    """By hand: image covariance entries 10 i + j, profile ones 100 + 10 i + j; theta = (c, z_a,
+    psi, m0, kappa): (c, psi) = indices 0, 2 from the image, (z_a, m0, kappa) = 1, 3, 4 from the
+    profile, zero between the blocks."""
+    image = np.add.outer(10.0 * np.arange(5), np.arange(5))
+    profile = 100.0 + np.add.outer(10.0 * np.arange(3), np.arange(3))
+    want = np.array([[0, 0, 2, 0, 0],
+                     [0, 100, 0, 101, 102],
+                     [20, 0, 22, 0, 0],
+                     [0, 110, 0, 111, 112],
+                     [0, 120, 0, 121, 122]], float)
+    np.testing.assert_array_equal(cond.combined_covariance(image, profile), want)
+
+
+def test_a_wire_few_photos_see_is_tracked_from_a_cross_arms_window_not_from_the_open_plane():
+    """The true span drawn in 6 of 16 cluttered photos (its cross-section support 6/16, between the
+    track's 0.3 and the open plane's 0.45 where cross-arm tips are given): without seeds it is
+    found (the plane's peaks need 0.3); with a tip above it (2.6 m, an insulator) it is found from
+    the tip's window; with tips only on the other side of the tower it is not (the open plane's
+    peaks need `DEFAULT_PEAK_SUPPORT`)."""
+    rng = np.random.default_rng(10)
+    c2w = ring_cameras()
+    photos = render_photos(c2w, [true_curve()], rng)
+    photos[6:] = render_photos(c2w[6:], [], rng)           # clutter only: photos with detections, none on it
+    views = views_of(photos, c2w)
+    window = (1.5, 7.6, 1.5)
+
+    def found(**kw):
+        return [catenary.derived(f["theta"], np.zeros(3))["attachment"]
+                for f in cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                                         span_length=2 * XV_TRUE, **kw) if f["side"] == 1]
+
+    open_plane = found()
+    assert len(open_plane) == 1 and np.linalg.norm(open_plane[0] - ATTACH) < 0.3
+    from_tip = found(seeds=[(-ATTACH[0], ATTACH[2] + 2.6)], seed_window=window)
+    assert len(from_tip) == 1 and np.linalg.norm(from_tip[0] - ATTACH) < 0.3
+    assert found(seeds=[(ATTACH[0], ATTACH[2] + 2.6)], seed_window=window) == []
+
+
+def test_default_detections_keep_a_faint_wire_a_threshold_of_4_loses():
+    """A one-pixel line 25 grey levels darker than a sky of 200 (a wire over the ground has about
+    that contrast against its lighter patches), pixel noise 0.004 and 30 darker dots: the default
+    detections (3 robust scales, the floor 0.01 ruling here) hold over 100 pixels within 1.5 px of
+    the line and none of the dots; at 4 scales none of the line."""
+    import cv2
+
+    rng = np.random.default_rng(11)
+    img = np.full((120, 160), 200, np.uint8)
+    cv2.line(img, (10, 40), (150, 70), 175, 1, cv2.LINE_AA)
+    for _ in range(30):
+        cv2.circle(img, (int(rng.integers(0, 160)), int(rng.integers(0, 120))), int(rng.integers(1, 3)), 185, -1)
+    response = cond.ridge_map(img / 255.0 + rng.normal(0, 0.004, img.shape))
+    rows, cols = np.mgrid[0:120, 0:160]
+    gap = np.abs(30 * cols - 140 * rows + 150 * 40 - 70 * 10) / math.hypot(30, 140)   # to the line (10,40)-(150,70)
+    near = (gap < 1.5) & (cols > 12) & (cols < 148)
+    default = cond.detections(response)
+    assert (default & near).sum() > 100 and (default & ~near).sum() == 0
+    assert (cond.detections(response, threshold=4.0) & near).sum() == 0

@@ -1084,3 +1084,76 @@ def test_project_of_a_point_in_the_cameras_plane_warns_nothing():
     np.testing.assert_array_equal(z, [2.0, 0.0, 0.0])
     assert (u[0], v[0]) == (10.0, 9.0)
     assert np.isinf(u[1]) and np.isnan(v[1]) and np.isnan(u[2]) and np.isnan(v[2])
+
+
+def test_export_cli_passes_the_span_length_and_refuses_a_non_positive_one_in_one_line(monkeypatch, tmp_path, capsys):
+    """`jaxnerf-grid export --span-length 320` hands 320.0 to the export; without it None. 0, -5
+    and nan are refused with one line naming the flag, before the run folder is read (tmp_path
+    holds no run: a refusal that came later would name the missing config instead)."""
+    from jaxnerf_grid import cli
+    from jaxnerf_grid.export import run as run_lib
+
+    for bad in ("0", "-5", "nan"):
+        assert cli.main(["export", "--run", str(tmp_path), "--quiet", "--span-length", bad]) == 1
+        err = capsys.readouterr().err
+        assert err == (f"jaxnerf-grid export: error: --span-length must be a positive number (export units), "
+                       f"got {float(bad)!r}\n")
+    seen = []
+
+    def fake(*a, **k):
+        seen.append(k.get("span_length"))
+        return {"units": "metres", "height": 30.0, "mesh": {"vertices": 3, "faces": 1}, "points": {"count": 5},
+                "seconds": 1.0}
+
+    monkeypatch.setattr(run_lib, "export_run", fake)
+    assert cli.main(["export", "--run", str(tmp_path), "--quiet", "--span-length", "320"]) == 0
+    assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
+    assert seen == [320.0, None]
+
+
+def test_arm_seeds_are_the_cross_arm_ends_across_the_line_by_hand():
+    """A line along +y (psi = pi / 2: e_across = up x e_line = -x), the axis at (1, 2, 0): a level
+    whose ends are (9.45, 2, 21.5) and (-7.45, 2, 21.5) gives the seeds (-8.45, 21.5) and
+    (8.45, 21.5); a level without ends gives none."""
+    levels = [{"height": 21.5, "span": 16.9, "axis": "a", "ends": [[9.45, 2.0, 21.5], [-7.45, 2.0, 21.5]]},
+              {"height": 25.0, "span": 0.0, "axis": "a"}]
+    seeds = export_run.arm_seeds(levels, [1.0, 2.0, 0.0], math.pi / 2, np.array([0.0, 0.0, 1.0]))
+    np.testing.assert_allclose(seeds, [[-8.45, 21.5], [8.45, 21.5]], atol=1e-12)
+
+
+def test_conductor_step_hands_the_span_length_and_the_arm_tips_to_find_spans_and_records_them(monkeypatch):
+    """`_conductors` on four 64 x 48 photos with a dark line (so that detections exist), the
+    spans' search replaced by a recorder: it receives span_length 320, the cross-arm ends as
+    seeds by hand (line along +y, axis at the origin: e_across = -x) and the window SEED_WINDOW x
+    the tower's height; measurements.json's record carries the span length and the seeds."""
+    from types import SimpleNamespace
+
+    from jaxnerf_grid.export import conductors as cond
+
+    images = np.full((4, 48, 64, 3), 0.8, np.float32)
+    images[:, 20, 5:60] = 0.2
+    c2w = np.tile(np.eye(4), (4, 1, 1))
+    c2w[:, :3, 3] = [[0.0, -60.0 + 5 * k, 15.0] for k in range(4)]
+    ds = SimpleNamespace(images=images, c2w=c2w, intrinsics=np.tile([50.0, 50.0, 32.0, 24.0], (4, 1)),
+                         normalization=None)
+    meas = {"ground": {"normal": [0.0, 0.0, 1.0], "offset": 0.0, "clearance": 0.1}, "height": 30.0,
+            "footprint": {"axis_a": [1.0, 0.0, 0.0], "axis_b": [0.0, 1.0, 0.0]}, "tilt": {"base": [0.0, 0.0, 0.0]},
+            "cross_arms": {"levels": [{"height": 17.5, "span": 14.0, "axis": "a",
+                                       "ends": [[7.0, 0.0, 17.5], [-7.0, 0.0, 17.5]]}]}}
+    calls = []
+
+    def recorder(*args, **kwargs):
+        calls.append(kwargs)
+        return []
+
+    monkeypatch.setattr(cond, "find_spans", recorder)
+    out = export_run._conductors(ds, np.arange(4), meas, np.zeros((0, 3)), [-5.0, -5.0, 0.0], [5.0, 5.0, 31.0],
+                                 "metres", None, False, span_length=320.0)
+    assert len(calls) == 1
+    assert calls[0]["span_length"] == 320.0
+    np.testing.assert_allclose(calls[0]["seeds"], [[-7.0, 17.5], [7.0, 17.5]], atol=1e-12)
+    np.testing.assert_allclose(calls[0]["seed_window"], np.array(export_run.SEED_WINDOW) * 30.0)
+    assert out["span_length"] == 320.0 and out["seeds"] == [[-7.0, 17.5], [7.0, 17.5]]
+    out = export_run._conductors(ds, np.arange(4), meas, np.zeros((0, 3)), [-5.0, -5.0, 0.0], [5.0, 5.0, 31.0],
+                                 "metres", None, False)
+    assert calls[1]["span_length"] is None and out["span_length"] is None
