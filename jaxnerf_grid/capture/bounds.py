@@ -18,7 +18,10 @@ The rule:
 - near: NEAR_FACTOR x the distance from the nearest camera to the ROI sphere (rays start just
   short of where the ROI can begin; nearer things are outside it: birds, the ground under a low
   pass), and never below `points_near` (the dataset's own near: 0.9 x the 0.5th percentile of
-  the depths of the points the photos see, as the COLMAP loader computes it);
+  the depths of the points the photos see, as the COLMAP loader computes it); except when more
+  than NEAR_SHARE of one photo's observations of sparse points (`observation_depths`) lie
+  nearer than that: static geometry fills part of that photo there (a wall at the end of an
+  arc), which rays starting beyond it could only paint as fog, so near is then `points_near`;
 - contract_radius: CONTRACT_RADIUS. Not a distance in the scene: `coords.contract` leaves the
   unit ball (the ROI, by the normalisation) as it is and maps everything outside it into the
   shell between 1 and this radius; 2 gives the background a shell as thick as the ROI's
@@ -41,6 +44,7 @@ from jaxnerf_grid.util.io import DataError
 ROI_PERCENTILE = 95.0
 ROI_CAMERA_FRACTION = 1.0 / 3.0
 NEAR_FACTOR = 0.9      # the same 10 % margin as the COLMAP loader's near (data/formats/colmap.py)
+NEAR_SHARE = 0.1       # a photo with more of its observations nearer than the ROI's near: near from the points
 CONTRACT_RADIUS = 2.0
 FAR_GAP = 5e-4         # far's contracted image within 0.05 % of the outer radius
 BOUND_KEYS = ("near", "far", "contract_radius")
@@ -60,12 +64,29 @@ def far_for_radius(contract_radius: float) -> float:
     return (r - 1.0) / (r * FAR_GAP)
 
 
-def scene_bounds(c2w: np.ndarray, points: np.ndarray | None, points_near: float | None = None) -> dict:
+def observation_depths(c2w: np.ndarray, points: np.ndarray, observed: list) -> list[np.ndarray]:
+    """Per photo, the z-depths of its observations of sparse points (those in front of it). c2w:
+    [N, 3|4, 4] OpenGL; points: [P, 3]; observed: per photo an index array into points (or None).
+    Returns N arrays [K_i] float64 (empty where a photo observes none)."""
+    out = []
+    for m, idx in zip(np.asarray(c2w, np.float64), observed):
+        if idx is None or len(idx) == 0:
+            out.append(np.zeros(0))
+            continue
+        z = -(np.asarray(points, np.float64)[np.asarray(idx)] - m[:3, 3]) @ m[:3, 2]
+        out.append(z[z > 0])
+    return out
+
+
+def scene_bounds(c2w: np.ndarray, points: np.ndarray | None, points_near: float | None = None,
+                 depths: list[np.ndarray] | None = None) -> dict:
     """The bounds of a capture (module docstring). c2w: [N, 3|4, 4] OpenGL in the normalised
-    scene; points: optional [P, 3] there; points_near: the dataset's near from its points (or None).
+    scene; points: optional [P, 3] there; points_near: the dataset's near from its points (or None);
+    depths: optional per photo the z-depths of its observations (`observation_depths`).
 
     Returns {"near", "far", "contract_radius", "roi_centre" [3], "roi_radius",
-    "nearest_camera_to_roi" (distance from the nearest camera centre to the ROI sphere)}.
+    "nearest_camera_to_roi" (distance from the nearest camera centre to the ROI sphere)[,
+    "observations_nearer": the largest share of one photo's depths nearer than the ROI rule's near]}.
     """
     c2w = np.asarray(c2w, np.float64)
     if c2w.ndim != 3 or c2w.shape[1:] not in ((3, 4), (4, 4)) or len(c2w) == 0:
@@ -73,14 +94,18 @@ def scene_bounds(c2w: np.ndarray, points: np.ndarray | None, points_near: float 
     centre, radius = roi_sphere(c2w, points)
     gap = float(np.min(np.linalg.norm(c2w[:, :3, 3] - centre, axis=-1))) - radius
     near = NEAR_FACTOR * gap
+    shares = [float(np.mean(np.asarray(d) < near)) for d in (depths or []) if len(d)]
+    nearer = max(shares) if shares else None
     if points_near is not None:
-        near = max(near, float(points_near))
+        near = float(points_near) if nearer is not None and nearer > NEAR_SHARE else max(near, float(points_near))
     if not np.isfinite(near) or near <= 0:
         raise DataError(f"scene_bounds: no positive near (a camera inside the region of interest, "
                         f"{gap:.3g} from its sphere, and no points' near)")
-    return {"near": float(near), "far": far_for_radius(CONTRACT_RADIUS), "contract_radius": CONTRACT_RADIUS,
-            "roi_centre": [float(v) for v in centre], "roi_radius": float(radius),
-            "nearest_camera_to_roi": gap}
+    out = {"near": float(near), "far": far_for_radius(CONTRACT_RADIUS), "contract_radius": CONTRACT_RADIUS,
+           "roi_centre": [float(v) for v in centre], "roi_radius": float(radius), "nearest_camera_to_roi": gap}
+    if nearer is not None:
+        out["observations_nearer"] = nearer
+    return out
 
 
 def read_bounds(meta: dict, source) -> dict | None:

@@ -54,7 +54,7 @@ from typing import Any
 import numpy as np
 
 from jaxnerf_grid.capture import camera_set, georef, gps, pairing, vetting
-from jaxnerf_grid.capture.bounds import scene_bounds
+from jaxnerf_grid.capture.bounds import observation_depths, scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
 from jaxnerf_grid.data.normalize import (
@@ -715,7 +715,8 @@ def write_dataset(stage_dir: Path, summary: dict) -> dict:
     width, height = scene.frames[0].size
     top = transforms_top(width, height, scene.near * scale, scene.far * scale, norm, {}, stage_dir, stage_dir)
     points_norm = apply_normalization_to_points(points, norm)
-    top["scene_bounds"] = scene_bounds(c2w, points_norm if len(points) else None, scene.near * scale)
+    depths = observation_depths(c2w, points_norm, scene.meta["observed"]) if len(points) else None
+    top["scene_bounds"] = scene_bounds(c2w, points_norm if len(points) else None, scene.near * scale, depths)
     top["poses"] = {key: value for key, value in summary.items() if key != "georeference"}
     top["georeference"] = scene_georeference(summary.get("georeference") or {"units": "unknown"}, norm)
     top["frames"] = frames

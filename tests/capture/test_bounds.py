@@ -59,6 +59,31 @@ def test_bounds_of_a_point_cloud_with_outliers_closed_form():
     assert bounds.scene_bounds(c2w, 5 * _cloud_with_outliers())["roi_radius"] == pytest.approx(1.0)
 
 
+def test_observation_depths_are_each_photos_points_along_its_axis():
+    c2w = _ring()  # camera 0 at (3, 0, 0) looking at the origin: z-depth = 3 - x
+    points = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.2], [4.0, 0.0, 0.0]])  # the last is behind camera 0
+    got = bounds.observation_depths(c2w[:2], points, [np.array([0, 1, 2]), None])
+    np.testing.assert_allclose(got[0], [3.0, 2.0])
+    assert got[1].size == 0
+
+
+def test_a_photo_whose_points_the_rois_near_cuts_off_starts_its_rays_at_the_points():
+    """near by the ROI rule 0.9 x (2.5 - roi) = 1.3779; photo 3 sees 100 points, 11 of them
+    nearer than that: more than NEAR_SHARE (a tenth), so near is the points' near 0.6; with 9 of
+    100 nearer the ROI rule stands."""
+    c2w = _ring(closest=2.5)
+    roi_near = 0.9 * (2.5 - (0.969 + 0.05 * 0.001))
+
+    def depths(nearer):
+        photo = np.concatenate([np.full(nearer, 0.7), np.full(100 - nearer, 2.4)])
+        return [np.full(50, 2.8)] * 3 + [photo] + [np.full(50, 2.8)] * 6
+
+    cut = bounds.scene_bounds(c2w, _cloud_with_outliers(), points_near=0.6, depths=depths(11))
+    assert cut["near"] == 0.6 and cut["observations_nearer"] == pytest.approx(0.11)
+    kept = bounds.scene_bounds(c2w, _cloud_with_outliers(), points_near=0.6, depths=depths(9))
+    assert kept["near"] == pytest.approx(roi_near, abs=1e-9) and kept["observations_nearer"] == pytest.approx(0.09)
+
+
 def test_far_is_where_contraction_stops_changing():
     """contract(far) lies within FAR_GAP of the outer radius, for any radius R > 1."""
     for r in (1.5, 2.0, 4.0):

@@ -140,6 +140,6 @@ def collect_colmap(path, *, images_dir=None, undistort: bool = True, normalize: 
     split = check_split(default_split(len(frames), test_every), model_dir)
     meta = {"format": "colmap", "source": str(model_dir),
             "camera_models": sorted({cameras[im.camera_id].model for im in images.values()}),
-            "points3d": xyz_norm.astype(np.float32),
+            "points3d": xyz_norm.astype(np.float32), "observed": observed,
             "points3d_rgb": np.array([p.rgb for p in points3d.values()], np.uint8).reshape(-1, 3)}
     return Scene(root, frames, c2w, split, near, far, norm, meta, None, undistort, honour_exif)
