@@ -25,6 +25,10 @@ from jaxnerf_grid.util.io import DataError, read_text
 MIN_GPS_PHOTOS = 3           # fewer registered photos with GPS: no alignment (an error)
 MIN_GPS_SPREAD = 1.0         # metres: GPS positions closer than this to their mean are "one spot"
 GPS_SIGMA = 3.0              # metres: a consumer receiver's error (horizontal 1-3 m, vertical 2-5 m)
+# GPS alone sets no scale for photos spread over less than this (RMS horizontal distance of their
+# positions to the mean): the receivers' error is then the spread's size, and the fitted scale is
+# noise, even negative (a mirrored scene).
+MIN_GPS_SCALE_SPREAD = 3.0 * GPS_SIGMA
 GCP_SIGMA = 0.05             # metres: a surveyed ground control point
 RANSAC_ITERATIONS = 500
 INLIER_METRES = 3.0 * GPS_SIGMA  # a centre farther than this from its GPS position is an outlier
@@ -219,6 +223,21 @@ def check_gps(names: list[str], positions: np.ndarray, total: int, source, what:
         raise DataError(f"{source}: the GPS positions of all {len(names)} photos lie within {spread:.2f} m of one "
                         f"spot; the alignment needs photos taken from different places (ignore_gps=True leaves "
                         f"the GPS unread)")
+
+
+def gps_too_close(positions: np.ndarray, scale: float) -> str | None:
+    """Why GPS alone cannot scale a model whose photos have the local `positions` [N, 3] and whose
+    fit gave `scale`, or None when it can: positions spread (RMS horizontal distance to their mean)
+    under MIN_GPS_SCALE_SPREAD, or a scale that is not positive."""
+    xy = np.asarray(positions, np.float64)[:, :2]
+    spread = float(np.sqrt(np.mean(np.sum((xy - xy.mean(0)) ** 2, axis=1))))
+    if spread < MIN_GPS_SCALE_SPREAD:
+        return (f"the photos' GPS positions spread over {spread:.1f} m (RMS about their mean), under "
+                f"{MIN_GPS_SCALE_SPREAD:g} m, three times a receiver's error: GPS sets no scale for so small a "
+                "capture (give control points or a scale bar)")
+    if not scale > 0:
+        return f"the GPS fit gives a scale of {scale:.3g}, not positive: the GPS positions do not follow the cameras"
+    return None
 
 
 def residual_rows(names: list[str], predicted: np.ndarray, target: np.ndarray, inliers=None) -> list[dict]:
@@ -447,6 +466,12 @@ def align_model(model, gps: dict, *, crs_name=None, gcp_path=None, scale_bar=Non
         record["source"] = "gps+gcp" if with_gps else "gcp"
     yaw_only = len(control) < 3
     sim = umeyama(np.concatenate(src_parts), np.concatenate(dst_parts), np.concatenate(weights), yaw_only)
+    if with_gps and not control:
+        ignored = gps_too_close(dst_gps, sim[0])
+        if ignored is not None:
+            if crs_name is not None:
+                raise DataError(f"{source}: poses.crs = {crs_name}: {ignored}")
+            return None, {"units": "unknown", "source": None, "gps_ignored": ignored}
     rotation = YAW_ONLY_NOTE if yaw_only else "full (3 or more control points)"
     record.update({"units": "metres", "rotation": rotation, "crs": None if crs is None else crs_label(crs),
                    "crs_name": None if crs is None else crs.name, "origin": origin.tolist(),

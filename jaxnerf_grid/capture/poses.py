@@ -745,6 +745,8 @@ def scene_georeference(record: dict, norm: dict) -> dict:
 def georef_report_lines(geo: dict) -> list[str]:
     """poses_report.md's section on metric scale and georeference (docs/GEOREFERENCE.md)."""
     lines = ["## Scale and georeference (docs/GEOREFERENCE.md)", ""]
+    if geo.get("units") != "metres" and geo.get("gps_ignored"):
+        return lines + [f"Units unknown: {geo['gps_ignored']}; the model is in arbitrary units.", ""]
     if geo.get("units") != "metres":
         return lines + ["Units unknown: no GPS read from the photos, no ground control points, no scale bar; "
                         "the model is in arbitrary units.", ""]
@@ -854,6 +856,8 @@ def format_summary(summary: dict) -> str:
                      f"{geo['metres_per_model_unit']:.4g} m per model unit{gps_line}"
                      + ("; residuals too large: check the reconstruction (poses_report.md)" if georef.suspect(geo)
                         else ""))
+    elif geo.get("gps_ignored"):
+        lines.append(f"units unknown: {geo['gps_ignored']}")
     elif "georeference" in summary:
         lines.append("units unknown (no GPS read from the photos, no ground control points, no scale bar)")
     if summary.get("relaxed_mapping"):

@@ -292,6 +292,27 @@ def test_gps_alignment_recovers_scale_with_an_outlier(tmp_path):
                                atol=1e-4)
 
 
+def test_gps_of_photos_closer_together_than_its_error_sets_no_scale():
+    """A phone's photos on a 2 m ring round a tree trunk, each GPS fix 3 m off (the receivers'
+    error) in a direction opposite its camera: a fit would mirror the scene (negative scale). The
+    spread of the fixes (RMS about their mean, 2 + 3 = 5 m) is under 9 m: no scale, units unknown
+    and why; with a CRS asked for, a one-line error."""
+    local = ring(8, 2.0, 1.5)
+    model = FakeModel(local)
+    flipped = local * [-2.5, -2.5, 1.0] + [466000.0, 5247000.0, 400.0]
+    sim, record = georef.align_model(model, gps_records(flipped))
+    assert sim is None and record["units"] == "unknown" and "5.0 m" in record["gps_ignored"]
+    with pytest.raises(DataError, match="poses.crs = EPSG:32632: the photos' GPS positions spread over 5.0 m"):
+        georef.align_model(model, gps_records(flipped), crs_name="EPSG:32632")
+    # spread wide enough (a 10 m ring) but heights swinging +-20 m upside down in the fixes: the yaw-only fit's
+    # scale sum_i d_i.(R x_i) / sum_i |x_i|^2 = (800 - 1600) / (800 + 1600) < 0, refused too
+    hilly = ring(8, 10.0, 0.0)
+    hilly[:, 2] = 20.0 * np.sin(2 * np.linspace(0, 2 * np.pi, 8, endpoint=False) + 0.3)
+    upside_down = hilly * [1.0, 1.0, -1.0] + [466000.0, 5247000.0, 400.0]
+    assert "not positive" in georef.align_model(FakeModel(hilly), gps_records(upside_down))[1]["gps_ignored"]
+    assert georef.gps_too_close(ring(8, 10.0), 1.0) is None
+
+
 def test_scale_bar_points_and_parse_errors():
     model = FakeModel(ring())
     sim, record = georef.align_model(model, {}, scale_bar="0,0,0,3,4,0,10")
