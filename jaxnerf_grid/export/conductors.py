@@ -454,7 +454,8 @@ def gated_support(views: Views, points: np.ndarray, tangents: np.ndarray, tol_px
     u, v, z = project_all(p, views.c2w, views.intrinsics)
     eps = 1e-3 * np.maximum(np.abs(z), 1e-6)                          # [N, M]: a short step along the curve
     du, dv = _projected_direction(views, p, t, eps)
-    seen = (z > 0) & (u >= 0) & (u < views.width) & (v >= 0) & (v < views.height) & views.has[:, None]
+    has = np.asarray(views.has, dtype=np.bool_).reshape(-1, 1)           # [N, 1]
+    seen = (z > 0) & (u >= 0) & (u < views.width) & (v >= 0) & (v < views.height) & has
     col = np.clip(np.floor(u), 0, views.width - 1).astype(np.int64)
     row = np.clip(np.floor(v), 0, views.height - 1).astype(np.int64)
     n = np.arange(len(views.c2w))[:, None]
@@ -681,8 +682,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 continue   # on a wire already fitted: the support is a ridge across the plane, not a point
             track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height, up,
                                tol_px, min_support, min_views, span_length)
-            kept = len(track["found"])
-            if kept < min_found or kept < min_inlier_share * max(track["tried"], 1):
+            found = len(track["found"])
+            if found < min_found or found < min_inlier_share * max(track["tried"], 1):
                 continue
             fit = _finish(views, track["theta"], centre, half_length, track["reach"], up, tol_px,
                           span_length=span_length)
@@ -794,8 +795,8 @@ def shared_evidence(views: Views, track: np.ndarray, theta, others: list, centre
     drawn = [project_all(curve_points(t, centre, s_far, up), views.c2w, views.intrinsics) for t in others]
     shared = np.zeros_like(ok)
     for i in np.nonzero(ok.any(axis=1))[0]:
-        poly = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
-        poly = np.concatenate([q for q in poly if len(q)] or [np.full((1, 2), 1e12)])
+        pieces = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
+        poly = np.concatenate([q for q in pieces if len(q)] or [np.full((1, 2), 1e12)])
         d, _ = cKDTree(poly).query(det[i][ok[i]])
         # the polyline's samples are up to a few pixels apart: a detection on it is within half that
         shared[i, np.nonzero(ok[i])[0]] = d <= tol_px + 0.5 * _sample_gap(poly)
