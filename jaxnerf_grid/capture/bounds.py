@@ -19,9 +19,10 @@ The rule:
   short of where the ROI can begin; nearer things are outside it: birds, the ground under a low
   pass), and never below `points_near` (the dataset's own near: 0.9 x the 0.5th percentile of
   the depths of the points the photos see, as the COLMAP loader computes it); except when more
-  than NEAR_SHARE of one photo's observations of sparse points (`observation_depths`) lie
-  nearer than that: static geometry fills part of that photo there (a wall at the end of an
-  arc), which rays starting beyond it could only paint as fog, so near is then `points_near`;
+  than NEAR_SHARE of one photo's observations of sparse points (`observation_depths`, photos
+  with at least NEAR_MIN_OBSERVATIONS of them) lie nearer than that: static geometry fills part
+  of that photo there (a wall at the end of an arc), which rays starting beyond it could only
+  paint as fog, so near is then the smaller of the two;
 - contract_radius: CONTRACT_RADIUS. Not a distance in the scene: `coords.contract` leaves the
   unit ball (the ROI, by the normalisation) as it is and maps everything outside it into the
   shell between 1 and this radius; 2 gives the background a shell as thick as the ROI's
@@ -45,6 +46,7 @@ ROI_PERCENTILE = 95.0
 ROI_CAMERA_FRACTION = 1.0 / 3.0
 NEAR_FACTOR = 0.9      # the same 10 % margin as the COLMAP loader's near (data/formats/colmap.py)
 NEAR_SHARE = 0.1       # a photo with more of its observations nearer than the ROI's near: near from the points
+NEAR_MIN_OBSERVATIONS = 100  # a photo with fewer observations says too little to move near
 CONTRACT_RADIUS = 2.0
 FAR_GAP = 5e-4         # far's contracted image within 0.05 % of the outer radius
 BOUND_KEYS = ("near", "far", "contract_radius")
@@ -86,7 +88,8 @@ def scene_bounds(c2w: np.ndarray, points: np.ndarray | None, points_near: float 
 
     Returns {"near", "far", "contract_radius", "roi_centre" [3], "roi_radius",
     "nearest_camera_to_roi" (distance from the nearest camera centre to the ROI sphere)[,
-    "observations_nearer": the largest share of one photo's depths nearer than the ROI rule's near]}.
+    "observations_nearer": the largest share of one photo's depths nearer than the ROI rule's near,
+    among photos with NEAR_MIN_OBSERVATIONS or more]}.
     """
     c2w = np.asarray(c2w, np.float64)
     if c2w.ndim != 3 or c2w.shape[1:] not in ((3, 4), (4, 4)) or len(c2w) == 0:
@@ -94,10 +97,11 @@ def scene_bounds(c2w: np.ndarray, points: np.ndarray | None, points_near: float 
     centre, radius = roi_sphere(c2w, points)
     gap = float(np.min(np.linalg.norm(c2w[:, :3, 3] - centre, axis=-1))) - radius
     near = NEAR_FACTOR * gap
-    shares = [float(np.mean(np.asarray(d) < near)) for d in (depths or []) if len(d)]
+    shares = [float(np.mean(np.asarray(d) < near)) for d in (depths or []) if len(d) >= NEAR_MIN_OBSERVATIONS]
     nearer = max(shares) if shares else None
     if points_near is not None:
-        near = float(points_near) if nearer is not None and nearer > NEAR_SHARE else max(near, float(points_near))
+        cut = nearer is not None and nearer > NEAR_SHARE
+        near = min(near, float(points_near)) if cut else max(near, float(points_near))
     if not np.isfinite(near) or near <= 0:
         raise DataError(f"scene_bounds: no positive near (a camera inside the region of interest, "
                         f"{gap:.3g} from its sphere, and no points' near)")

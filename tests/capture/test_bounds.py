@@ -82,6 +82,12 @@ def test_a_photo_whose_points_the_rois_near_cuts_off_starts_its_rays_at_the_poin
     assert cut["near"] == 0.6 and cut["observations_nearer"] == pytest.approx(0.11)
     kept = bounds.scene_bounds(c2w, _cloud_with_outliers(), points_near=0.6, depths=depths(9))
     assert kept["near"] == pytest.approx(roi_near, abs=1e-9) and kept["observations_nearer"] == pytest.approx(0.09)
+    # a points' near beyond the ROI's is never taken when a photo is cut: the smaller of the two
+    farther = bounds.scene_bounds(c2w, _cloud_with_outliers(), points_near=1.5, depths=depths(11))
+    assert farther["near"] == pytest.approx(roi_near, abs=1e-9)
+    # a photo with 99 observations, 20 of them nearer, says too little: the usual rule, the larger near
+    few = [np.full(50, 2.8)] * 9 + [np.concatenate([np.full(20, 0.7), np.full(79, 2.4)])]
+    assert bounds.scene_bounds(c2w, _cloud_with_outliers(), points_near=1.5, depths=few)["near"] == 1.5
 
 
 def test_far_is_where_contraction_stops_changing():
