@@ -29,6 +29,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from jaxnerf_grid.capture import georef
 from jaxnerf_grid.data.formats import colmap_model
 
 logger = logging.getLogger(__name__)
@@ -42,22 +43,6 @@ CENTRE_TOLERANCE = 1e-3
 def model_folder(root) -> Path:
     """DATA/sparse/0, where `poses` writes its model."""
     return Path(root).joinpath(*SPARSE_FOLDER)
-
-
-def similarity_fit(src: np.ndarray, dst: np.ndarray) -> tuple[float, np.ndarray, np.ndarray]:
-    """Umeyama's least-squares similarity dst ~ s R src + t. src, dst: [N, 3], N >= 3.
-    Returns (s, R [3, 3], t [3])."""
-    src, dst = np.asarray(src, np.float64), np.asarray(dst, np.float64)
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    u, sing, vt = np.linalg.svd(b.T @ a / len(src))
-    flip = np.eye(3)
-    if np.linalg.det(u) * np.linalg.det(vt) < 0:
-        flip[2, 2] = -1.0
-    rot = u @ flip @ vt
-    var = np.mean(np.sum(a * a, axis=1))
-    scale = float(np.trace(np.diag(sing) @ flip) / max(var, 1e-300))
-    return scale, rot, mu_d - scale * rot @ mu_s
 
 
 def observations(points: np.ndarray, seen_by: list[np.ndarray], c2w: np.ndarray, intrinsics: np.ndarray,
@@ -116,7 +101,7 @@ def from_model(folder, frame_names: list[str], c2w: np.ndarray, intrinsics: np.n
     ids = list(image_to_camera)
     model_centres = np.stack([-colmap_model.qvec_to_rotmat(images[i].qvec).T @ images[i].tvec for i in ids])
     data_centres = np.asarray(c2w, np.float64)[[image_to_camera[i] for i in ids], :3, 3]
-    scale, rot, shift = similarity_fit(model_centres, data_centres)
+    scale, rot, shift = georef.umeyama(model_centres, data_centres)
     spread = float(np.max(np.linalg.norm(data_centres - data_centres.mean(0), axis=1)))
     misfit = float(np.max(np.linalg.norm(scale * model_centres @ rot.T + shift - data_centres, axis=1)))
     if not spread > 0 or misfit > CENTRE_TOLERANCE * spread:

@@ -81,9 +81,11 @@ def brute_force(ds, points, tracks, errors, max_error=2.0, min_views=2) -> list[
     return sorted(out)
 
 
-def test_similarity_fit_recovers_a_known_similarity():
+def test_the_model_is_moved_by_a_similarity_fit_that_recovers_a_known_one():
+    from jaxnerf_grid.capture import georef
+
     src = np.random.default_rng(1).normal(size=(10, 3))
-    scale, rot, shift = sparse_depth.similarity_fit(src, S * src @ R.T + T)
+    scale, rot, shift = georef.umeyama(src, S * src @ R.T + T)
     assert scale == pytest.approx(S)
     np.testing.assert_allclose(rot, R, atol=1e-9)
     np.testing.assert_allclose(shift, T, atol=1e-9)
