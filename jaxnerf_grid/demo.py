@@ -226,11 +226,11 @@ def depth_defaults(capture: bool, data: Path) -> dict:
     return {"train": {"depth": {"weight": DEPTH_WEIGHT}}}
 
 
-def is_capture(data: Path) -> bool:
+def is_capture(data: Path, meta: dict | None = None) -> bool:
     """Whether a transforms.json dataset is real photos registered by `poses` (its "poses"
-    record); False for generated scenes and other layouts."""
+    record); False for generated scenes and other layouts. meta: its transforms.json already read."""
     try:
-        return isinstance(read_meta(data).get("poses"), dict)
+        return isinstance((read_meta(data) if meta is None else meta).get("poses"), dict)
     except (DataError, OSError, ValueError):
         return False
 
@@ -239,11 +239,12 @@ def _share_text() -> str:
     return f"{masking.OOD_FRAME_SHARE:.0%}"
 
 
-def dataset_domain(data: Path) -> dict | None:
+def dataset_domain(data: Path, meta: dict | None = None) -> dict | None:
     """The out-of-domain verdict of a dataset's DPT masks: transforms.json's `mask_domain`; for
     DPT masks written before `mask` recorded it, `masking.domain_verdict` of the masks' shares,
-    read from masks/; None for other masks (ground truth, the user's own) or none."""
-    meta = read_meta(data)
+    read from masks/; None for other masks (ground truth, the user's own) or none. meta: its
+    transforms.json already read."""
+    meta = read_meta(data) if meta is None else meta
     if meta.get("mask_domain") is not None:
         return meta["mask_domain"]
     frames = [f for f in meta.get("frames", []) if isinstance(f, dict)]
@@ -381,8 +382,9 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
         mask_source = None
     # every process reads the same verdict from the dataset, so all train the same config
     data_dir = Path(data or out / "data")  # set above on every process
-    capture = is_capture(data_dir)
-    plan = mask_plan(masks, dataset_domain(data_dir), capture)
+    meta = read_meta(data_dir)  # {} for another layout
+    capture = is_capture(data_dir, meta)
+    plan = mask_plan(masks, dataset_domain(data_dir, meta), capture)
     if not layout and masks == "auto":
         plan = dict(mask_plan("robust", None), why="chosen automatically: the dataset is not in the transforms.json "
                     "layout, so it has no masks and `mask` cannot write any")

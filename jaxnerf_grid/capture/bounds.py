@@ -19,7 +19,7 @@ The rule:
   short of where the ROI can begin; nearer things are outside it: birds, the ground under a low
   pass), and never below `points_near` (the dataset's own near: 0.9 x the 0.5th percentile of
   the depths of the points the photos see, as the COLMAP loader computes it); except when more
-  than NEAR_SHARE of one photo's observations of sparse points (`observation_depths`, photos
+  than NEAR_SHARE of one photo's observations of sparse points (`colmap.observation_depths`, photos
   with at least NEAR_MIN_OBSERVATIONS of them) lie nearer than that: static geometry fills part
   of that photo there (a wall at the end of an arc), which rays starting beyond it could only
   paint as fog, so near is then the smaller of the two;
@@ -66,25 +66,11 @@ def far_for_radius(contract_radius: float) -> float:
     return (r - 1.0) / (r * FAR_GAP)
 
 
-def observation_depths(c2w: np.ndarray, points: np.ndarray, observed: list) -> list[np.ndarray]:
-    """Per photo, the z-depths of its observations of sparse points (those in front of it). c2w:
-    [N, 3|4, 4] OpenGL; points: [P, 3]; observed: per photo an index array into points (or None).
-    Returns N arrays [K_i] float64 (empty where a photo observes none)."""
-    out = []
-    for m, idx in zip(np.asarray(c2w, np.float64), observed):
-        if idx is None or len(idx) == 0:
-            out.append(np.zeros(0))
-            continue
-        z = -(np.asarray(points, np.float64)[np.asarray(idx)] - m[:3, 3]) @ m[:3, 2]
-        out.append(z[z > 0])
-    return out
-
-
 def scene_bounds(c2w: np.ndarray, points: np.ndarray | None, points_near: float | None = None,
                  depths: list[np.ndarray] | None = None) -> dict:
     """The bounds of a capture (module docstring). c2w: [N, 3|4, 4] OpenGL in the normalised
     scene; points: optional [P, 3] there; points_near: the dataset's near from its points (or None);
-    depths: optional per photo the z-depths of its observations (`observation_depths`).
+    depths: optional per photo the z-depths of its observations (`colmap.observation_depths`).
 
     Returns {"near", "far", "contract_radius", "roi_centre" [3], "roi_radius",
     "nearest_camera_to_roi" (distance from the nearest camera centre to the ROI sphere)[,

@@ -54,8 +54,8 @@ from typing import Any
 import numpy as np
 
 from jaxnerf_grid.capture import camera_set, georef, gps, pairing, vetting
-from jaxnerf_grid.capture.bounds import observation_depths, scene_bounds
-from jaxnerf_grid.data.formats.colmap import collect_colmap
+from jaxnerf_grid.capture.bounds import scene_bounds
+from jaxnerf_grid.data.formats.colmap import collect_colmap, observation_depths
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
 from jaxnerf_grid.data.normalize import (
     apply_normalization_to_points,

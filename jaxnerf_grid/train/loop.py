@@ -298,6 +298,16 @@ def make_train_step(cfg: RunConfig, num_devices: int):
     return _make_train_step(dataclasses.replace(cfg, data=None), num_devices)
 
 
+def plus_depth_term(loss, params: dict, cfg: RunConfig, pool: dict, k_batch, count, num_devices: int) -> tuple:
+    """(loss + train.depth's term, the depth loss) inside a step; (loss, 0) when train.depth is
+    off. The depth rays' key is folded off the batch key (DEPTH_FOLD)."""
+    if not depth_enabled(cfg.train):
+        return loss, jnp.float32(0.0)
+    extra, depth = depth_term(params, cfg, pool["depth"], jax.random.fold_in(k_batch, DEPTH_FOLD), count,
+                              num_devices)
+    return loss + extra, depth
+
+
 @functools.lru_cache(maxsize=8)
 def _make_train_step(cfg: RunConfig, num_devices: int):
     """The pmapped step: (state [n, ...], pool [n, ...]) -> (state, stats {loss, mse, finite}).
@@ -328,11 +338,7 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
         def loss_fn(params):
             _, terms = batch_terms(params, cfg, batch, ray_keys)
             loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
-            depth = jnp.float32(0.0)
-            if depth_on:
-                extra, depth = depth_term(params, cfg, pool["depth"], jax.random.fold_in(k_batch, DEPTH_FOLD),
-                                          state["opt_state"].count, num_devices)
-                loss = loss + extra
+            loss, depth = plus_depth_term(loss, params, cfg, pool, k_batch, state["opt_state"].count, num_devices)
             return loss, (losses.weighted_mean(terms["mse"], batch["weight"], total), depth)
 
         (loss, (mse, depth)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
@@ -411,11 +417,7 @@ def _make_robust_step(cfg: RunConfig, num_devices: int, opt):
             weight = jnp.where(state["opt_state"].count < warmup_steps, batch["weight"], evidence)
             total = jax.lax.psum(jnp.sum(weight), AXIS)
             loss = losses.weighted_mean(terms["loss"], weight, total)
-            depth = jnp.float32(0.0)
-            if depth_on:
-                extra, depth = depth_term(params, cfg, pool["depth"], jax.random.fold_in(k_batch, DEPTH_FOLD),
-                                          state["opt_state"].count, num_devices)
-                loss = loss + extra
+            loss, depth = plus_depth_term(loss, params, cfg, pool, k_batch, state["opt_state"].count, num_devices)
             return loss, (losses.weighted_mean(terms["mse"], weight, total), weight, depth)
 
         (loss, (mse, weight, depth)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])

@@ -9,6 +9,7 @@ import pytest
 from jaxnerf_grid import demo
 from jaxnerf_grid.capture import bounds
 from jaxnerf_grid.config import build
+from jaxnerf_grid.data.formats import colmap
 from jaxnerf_grid.nerf import coords
 from jaxnerf_grid.util.io import DataError
 
@@ -62,7 +63,7 @@ def test_bounds_of_a_point_cloud_with_outliers_closed_form():
 def test_observation_depths_are_each_photos_points_along_its_axis():
     c2w = _ring()  # camera 0 at (3, 0, 0) looking at the origin: z-depth = 3 - x
     points = np.array([[0.0, 0.0, 0.0], [1.0, 0.5, 0.2], [4.0, 0.0, 0.0]])  # the last is behind camera 0
-    got = bounds.observation_depths(c2w[:2], points, [np.array([0, 1, 2]), None])
+    got = colmap.observation_depths(c2w[:2], points, [np.array([0, 1, 2]), None])
     np.testing.assert_allclose(got[0], [3.0, 2.0])
     assert got[1].size == 0
 

@@ -59,21 +59,31 @@ def _find_colmap(path: Path, images_dir) -> tuple[Path, str, Path, Path]:
     return model_dir, ext, image_root, image_root.parent
 
 
+def observation_depths(c2w: np.ndarray, points: np.ndarray, observed: list) -> list[np.ndarray]:
+    """Per photo, the z-depths of its observations of sparse points (those in front of it). c2w:
+    [N, 3|4, 4] OpenGL; points: [P, 3]; observed: per photo an index array into points (or None).
+    Returns N arrays [K_i] float64 (empty where a photo observes none)."""
+    out = []
+    for m, idx in zip(np.asarray(c2w, np.float64), observed):
+        if idx is None or len(idx) == 0:
+            out.append(np.zeros(0))
+            continue
+        z = -(np.asarray(points, np.float64)[np.asarray(idx)] - m[:3, 3]) @ m[:3, 2]  # depth along -z
+        out.append(z[z > 0])
+    return out
+
+
 def _near_far_from_points(c2w: np.ndarray, points: np.ndarray, min_cos: float,
                           observed: list | None = None) -> tuple[float, float] | None:
     """Ray-distance bounds from point z-depths (see module docstring).
 
     c2w: [N, 4, 4] OpenGL, normalised; points: [P, 3] normalised; observed: per frame an index
-    array into points (None: all points, keeping those in front of the camera).
+    array into points (None, or a frame's None: all points, keeping those in front of the camera).
     """
-    depths = []
-    for i, m in enumerate(c2w):
-        pts = points if observed is None or observed[i] is None else points[observed[i]]
-        if len(pts) == 0:
-            continue
-        z = -(pts - m[:3, 3]) @ m[:3, 2]  # depth along the viewing axis (-z)
-        depths.append(z[z > 0])
-    if not depths or sum(len(d) for d in depths) == 0:
+    every = np.arange(len(points))
+    per_frame = [every if observed is None or observed[i] is None else observed[i] for i in range(len(c2w))]
+    depths = observation_depths(c2w, points, per_frame)
+    if sum(len(d) for d in depths) == 0:
         return None
     z = np.concatenate(depths)
     near = max(0.9 * float(np.percentile(z, 0.5)), 1e-3)
