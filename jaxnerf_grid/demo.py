@@ -217,13 +217,18 @@ def mask_plan(choice: str, domain: dict | None, capture: bool = False) -> dict:
 DEPTH_WEIGHT = 0.1
 
 
-def depth_defaults(capture: bool, data: Path) -> dict:
-    """The demo's train.depth for a dataset: on at DEPTH_WEIGHT for a capture from `poses` with its
-    sparse model (DATA/sparse/0), else nothing. A default layer (`build.build`'s defaults), so a
-    user's --set train.depth=... or config file changes it."""
-    if not capture or colmap_model.find_model_files(sparse_depth.model_folder(data)) is None:
+def capture_defaults(capture: bool, data: Path) -> dict:
+    """The demo's defaults for a capture from `poses` (docs/RECIPES.md "On a capture from poses"):
+    the per-photo appearance embedding (cameras change exposure and white balance between
+    photos; held-out views are then scored by NeRF-W's protocol) and, when its sparse model
+    (DATA/sparse/0) is there, train.depth at DEPTH_WEIGHT; nothing for other datasets. A default
+    layer (`build.build`'s defaults), so a user's --set or config file changes it."""
+    if not capture:
         return {}
-    return {"train": {"depth": {"weight": DEPTH_WEIGHT}}}
+    out: dict = {"model": {"use_appearance": True}}
+    if colmap_model.find_model_files(sparse_depth.model_folder(data)) is not None:
+        out["train"] = {"depth": {"weight": DEPTH_WEIGHT}}
+    return out
 
 
 def is_capture(data: Path, meta: dict | None = None) -> bool:
@@ -390,7 +395,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
                     "layout, so it has no masks and `mask` cannot write any")
     # the dataset's bounds, --set and --max-side on top, the mask plan, then the training budget
     built = build.build(request, data=data, extra=_with_plan({}, plan), devices_of=train.step_devices,
-                        platform=distributed.jax.default_backend(), defaults=depth_defaults(capture, data_dir))
+                        platform=distributed.jax.default_backend(), defaults=capture_defaults(capture, data_dir))
     bounds = built.bounds
     if built.budget is not None and progress and distributed.is_main():
         print(budget_lib.report_line(built.budget), flush=True)

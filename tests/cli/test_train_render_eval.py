@@ -272,7 +272,8 @@ def test_train_without_steps_takes_the_budgets_steps_and_records_why(data_dir, t
 def test_demo_on_a_capture_from_poses_trains_the_masks_with_the_photometric_evidence(data_dir, tmp_path,
                                                                                     monkeypatch):
     """`demo --data` with masks "auto" on a dataset `poses` registered (its "poses" record) trains
-    dpt+robust; the same dataset without the record trains its masks alone."""
+    dpt+robust and an appearance embedding; the same dataset without the record trains its masks
+    alone, without one."""
     import shutil
 
     from jaxnerf_grid import demo
@@ -295,6 +296,10 @@ def test_demo_on_a_capture_from_poses_trains_the_masks_with_the_photometric_evid
         io.write_json(data / "transforms.json", meta)
         with pytest.raises(Trained) as caught:
             demo.run_demo(data, tmp_path / f"out_{name}", steps=1, progress=False)
-        trained[name] = caught.value.args[0]["train"]
-    assert trained["capture"]["robust"]["mode"] == "dpt+robust" and trained["capture"]["use_masks"]
-    assert trained["generated"].get("robust", {}).get("mode", "off") == "off" and trained["generated"]["use_masks"]
+        trained[name] = caught.value.args[0]
+    assert trained["capture"]["train"]["robust"]["mode"] == "dpt+robust" and trained["capture"]["train"]["use_masks"]
+    assert (trained["generated"]["train"].get("robust", {}).get("mode", "off") == "off"
+            and trained["generated"]["train"]["use_masks"])
+    # the capture trains a per-photo appearance embedding; the generated scene keeps the recipe's colour
+    assert trained["capture"]["model"]["use_appearance"] is True
+    assert not trained["generated"].get("model", {}).get("use_appearance", False)

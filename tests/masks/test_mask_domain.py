@@ -197,15 +197,16 @@ def test_a_dataset_is_a_capture_when_poses_registered_it(tmp_path):
     assert not demo.is_capture(tmp_path / "missing")
 
 
-def test_the_depth_prior_is_on_for_a_capture_with_its_sparse_model(tmp_path):
+def test_a_capture_trains_appearance_and_the_depth_prior_when_its_sparse_model_is_there(tmp_path):
     from jaxnerf_grid.data.formats import colmap_model
 
     made = tmp_path / "made"
     (made / "sparse" / "0").mkdir(parents=True)
-    assert demo.depth_defaults(True, made) == {}  # no model yet
+    appearance = {"model": {"use_appearance": True}}
+    assert demo.capture_defaults(True, made) == appearance  # no sparse model yet: no depth prior
     colmap_model.write_model(made / "sparse" / "0", {}, {}, {})
-    assert demo.depth_defaults(True, made) == {"train": {"depth": {"weight": demo.DEPTH_WEIGHT}}}
-    assert demo.depth_defaults(False, made) == {}  # a generated scene keeps the recipe
+    assert demo.capture_defaults(True, made) == {**appearance, "train": {"depth": {"weight": demo.DEPTH_WEIGHT}}}
+    assert demo.capture_defaults(False, made) == {}  # a generated scene keeps the recipe
 
 
 def test_mask_plan_refuses_an_unknown_choice():
