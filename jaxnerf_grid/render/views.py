@@ -128,12 +128,26 @@ def camera_rays(dataset: Dataset, index: int, near: float, far: float) -> rays_l
                                   near, far)
 
 
+def held_out_appearance(params, cfg: RunConfig, dataset: Dataset, index: int) -> np.ndarray | None:
+    """The appearance embedding [A] a frame renders with when it did not train (its row of the
+    table was never fitted): the mean of the training frames' rows; None for a training frame
+    (its own row) or a model without the embedding."""
+    train_ids = np.asarray(dataset.split["train"], np.int64)
+    if not cfg.model.use_appearance or int(index) in train_ids or "appearance" not in params:
+        return None
+    table = np.asarray(params["appearance"])
+    return table[train_ids[train_ids < len(table)]].mean(axis=0)
+
+
 def render_view(params, cfg: RunConfig, dataset: Dataset, index: int, appearance=None,
                 progress: bool = False) -> dict:
     """Renders frame `index` of the dataset. Returns rgb [H, W, 3], depth, expected_depth,
-    opacity [H, W] (NumPy)."""
+    opacity [H, W] (NumPy). appearance: [A] or None (a training frame's own embedding, a held-out
+    frame's `held_out_appearance`)."""
     r = camera_rays(dataset, index, *config_lib.near_far(cfg.model, dataset))
     image_index = min(int(index), max(cfg.model.num_images - 1, 0))
+    if appearance is None:
+        appearance = held_out_appearance(params, cfg, dataset, index)
     return render_rays_chunked(params, cfg.model, r, image_index, appearance, cfg.train.chunk,
                                resolve_devices(cfg.train), progress)
 

@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.nerf import rays as rays_lib
 from jaxnerf_grid.render import views
@@ -178,6 +179,27 @@ def test_nerfw_appearance_fit_reduces_error():
     after = views.render_rays_chunked(params, mcfg, r, 0, emb, 256)
     err = lambda out: float(np.mean((out["rgb"] - ds.images[4]) ** 2))  # noqa: E731
     assert err(after) < err(before)
+
+
+def test_a_held_out_view_renders_with_the_training_photos_mean_appearance():
+    ds = tiny_dataset()  # frames 0-3 train, frame 4 is held out
+    cfg = tiny_config("nerfw")
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=5, appearance_dim=4,
+                                                             use_transient=False))
+    params = train.init_state(cfg)["params"]
+    rows = np.arange(20, dtype=np.float32).reshape(5, 4) / 10.0  # distinct rows; row 4 never trained
+    params = dict(params, appearance=jnp.asarray(rows))
+    mean_of_training_rows = sum(rows[i] for i in range(4)) / 4
+    held_out = views.render_view(params, cfg, ds, 4)["rgb"]
+    r = views.camera_rays(ds, 4, *config_lib.near_far(cfg.model, ds))
+    expected = views.render_rays_chunked(params, cfg.model, r, 0, mean_of_training_rows, 256)["rgb"]
+    np.testing.assert_allclose(held_out, expected, atol=1e-6)
+    own_row = views.render_rays_chunked(params, cfg.model, r, 4, None, 256)["rgb"]
+    assert np.max(np.abs(held_out - own_row)) > 1e-3  # the untrained row would colour it otherwise
+    trained = views.render_view(params, cfg, ds, 2)["rgb"]  # a training frame keeps its own row
+    r2 = views.camera_rays(ds, 2, *config_lib.near_far(cfg.model, ds))
+    np.testing.assert_allclose(trained, views.render_rays_chunked(params, cfg.model, r2, 2, None, 256)["rgb"],
+                               atol=1e-6)
 
 
 def test_loss_weights_floor_and_switch():
