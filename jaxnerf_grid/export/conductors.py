@@ -437,6 +437,8 @@ DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when i
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
+REFINE = (0, 1, 2, 3)
+SHARED = True
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
 
 
@@ -530,6 +532,21 @@ def fit_profile(s: np.ndarray, z: np.ndarray, weight: np.ndarray, kappa_max: flo
     return params, jmap @ cov_x @ jmap.T
 
 
+def plateau_centre(share: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[float, float]:
+    """The centre (x, y) of the best cells of a support grid share [X, Y] over xs [X] x ys [Y]:
+    the centroid of the 4-connected cells holding the maximum around the first of them.
+    The support counts photos, so a wire's maximum is a plateau as wide as the tolerance band
+    (3 px across a 1.5 px tol): the first cell of it sits at its low corner, a pixel's footprint
+    off the wire, and a footprint grows with the distance (an azimuth's worth of bias)."""
+    from scipy import ndimage
+
+    top = share >= share.max()
+    labels, _ = ndimage.label(top)
+    i, j = np.unravel_index(int(np.argmax(share)), share.shape)
+    rows, cols = np.nonzero(labels == labels[i, j])
+    return float(np.mean(xs[rows])), float(np.mean(ys[cols]))
+
+
 def _footprint(views: Views, points: np.ndarray, fallback: float) -> np.ndarray:
     """Per point [M, 3]: the median over the photos seeing it of its depth / focal length (a
     pixel's size there, export units) [M]; `fallback` where none sees it."""
@@ -595,7 +612,8 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
             tried += 1
             best = int(np.argmax(share))
             if share[best] >= min_share:
-                found.append((st[k], c_pred[k] + cc.ravel()[best], z_pred[k] + zz.ravel()[best], share[best]))
+                c_best, z_best = plateau_centre(share.reshape(cc.shape), dc, dz)
+                found.append((st[k], c_pred[k] + c_best, z_pred[k] + z_best, share[best]))
                 misses, s_last = 0, st[k]
             else:
                 misses += 1
@@ -615,6 +633,82 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
     theta = np.array([c_axis * math.cos(math.atan(g)), profile[0], psi + math.atan(g), profile[1], profile[2]])
     return {"theta": theta, "profile_cov": pcov, "found": np.asarray(found, np.float64).reshape(-1, 4),
             "tried": tried, "reach": float(s_last)}
+
+
+def curve_tangents(theta, centre, s: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """The span's direction [K, 3] (not unit) at horizontal distances s [K]: e_line + z'(s) up."""
+    line, _, u = catenary.line_axes(float(theta[2]), up)
+    h = 1e-3
+    slope = (catenary.sag_profile(np.asarray(s, np.float64) + h, theta[3], theta[4])
+             - catenary.sag_profile(np.asarray(s, np.float64) - h, theta[3], theta[4])) / (2 * h)
+    return line[None] + slope[:, None] * u[None]
+
+
+def near_other_wires(views: Views, points: np.ndarray, others, centre, reach: float, up=(0.0, 0.0, 1.0),
+                     radius_px: float = 3 * DEFAULT_TOL_PX) -> np.ndarray:
+    """[N, M] bool: the photos in which point m [M, 3] projects within radius_px of another wire's
+    projection (others: thetas [5], each drawn from its attachment to `reach`, 400 samples)."""
+    from scipy.spatial import cKDTree
+
+    u, v, z = project_all(points, views.c2w, views.intrinsics)
+    out = np.zeros(u.shape, bool)
+    s_far = np.linspace(0.0, reach, 400)
+    drawn = [project_all(curve_points(t, centre, s_far, up), views.c2w, views.intrinsics) for t in others]
+    for i in range(len(views.c2w)):
+        pieces = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
+        poly = np.concatenate([q for q in pieces if len(q)] or [np.full((1, 2), 1e12)])
+        d, _ = cKDTree(poly).query(np.stack([u[i], v[i]], 1))
+        out[i] = (d <= radius_px + 0.5 * _sample_gap(poly)) & (z[i] > 0)
+    return out
+
+
+def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0, 0.0, 1.0),
+                tol_px: float = DEFAULT_TOL_PX, span_length: float | None = None, free=(0, 1, 2, 3),
+                samples: int = 60, rounds: int = 3, max_turn: float = 0.01, loss_px: float = 0.5,
+                others=(), clear_px: float = 3 * DEFAULT_TOL_PX) -> np.ndarray:
+    """theta [5] of a tracked span refined on the detections' sub-pixel centres: least squares
+    (Cauchy, scale loss_px) of the signed distances along each detection's normal (`Views.offsets`)
+    at `samples` stations from s_from to s_to, over the (photo, station) pairs whose nearest
+    detection supports the curve (`gated_support`: within tol_px and running along it), the pairs
+    chosen again each round. free: the indices of theta fitted (with span_length the curvature
+    follows the slope, kappa = 2 asinh(-m0) / L; else kappa is free when 4 is in free); the azimuth
+    within max_turn (rad) of theta's. The track's stations sit on a grid of half a pixel's
+    footprint and a station's support is a plateau a few pixels wide: its centre is good to a
+    pixel, and a pixel at 80 m is a milliradian of azimuth (decimetres at the far end); the
+    detections' centres are good to a tenth of one. others: the thetas [5] of the other wires
+    found; a pair whose projection lies within clear_px of one of theirs is left out
+    (`near_other_wires`: the photos looking along the line see the wires converge, and the
+    nearest detection there may be the neighbour's). Returns theta [5]."""
+    from scipy.optimize import least_squares
+
+    theta = np.asarray(theta, np.float64).copy()
+    free = list(free)
+    s = np.linspace(s_from, max(s_to, s_from + 1e-3), samples)
+    psi0 = float(theta[2])
+
+    def full(q):
+        t = theta.copy()
+        t[free] = q
+        if span_length:
+            t[4] = 2.0 * math.asinh(max(-float(t[3]), 0.0)) / span_length
+        return t
+
+    lower = np.array([{2: psi0 - max_turn, 3: -1.0, 4: 0.0}.get(k, -np.inf) for k in free])
+    upper = np.array([{2: psi0 + max_turn, 3: 0.0 if span_length else 1.0, 4: 1.0}.get(k, np.inf) for k in free])
+    scale = np.array([{2: 1e-3, 3: 1e-3, 4: 1e-5}.get(k, 0.05) for k in free])
+    for _ in range(rounds):
+        pts = curve_points(theta, centre, s, up)
+        _, _, ok, _ = gated_support(views, pts, curve_tangents(theta, centre, s, up), tol_px, with_detections=True)
+        if len(others):
+            ok &= ~near_other_wires(views, pts, others, centre, 1.2 * float(s[-1]), up, clear_px)
+        if ok.sum() <= len(free):
+            break
+        x0 = np.clip(theta[free], lower + 1e-12, upper - 1e-12)
+        res = least_squares(lambda q: views.offsets(curve_points(full(q), centre, s, up), observed=ok)[0][ok], x0,
+                            loss="cauchy", f_scale=loss_px, x_scale=scale, bounds=(lower, upper), method="trf",
+                            max_nfev=40)
+        theta = full(res.x)
+    return theta
 
 
 # --- the spans of a tower -------------------------------------------------------------------------
@@ -685,12 +779,16 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             found = len(track["found"])
             if found < min_found or found < min_inlier_share * max(track["tried"], 1):
                 continue
-            fit = _finish(views, track["theta"], centre, half_length, track["reach"], up, tol_px,
+            theta = track["theta"]
+            if REFINE:
+                theta = refine_span(views, theta, centre, float(track["found"][0, 0]), track["reach"], up, tol_px,
+                                    span_length, free=REFINE)
+            fit = _finish(views, theta, centre, half_length, track["reach"], up, tol_px,
                           span_length=span_length)
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
-                             "track": track["found"], **fit, "image_cov": fit["cov"],
+                             "track": track["found"], "profile_cov": track["profile_cov"], **fit, "image_cov": fit["cov"],
                              "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
         for f in sorted(_distinct(fits, centre, 0.033 * tower_height, up),
@@ -698,8 +796,46 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if shared_evidence(views, f["track"], f["theta"], [k["theta"] for k in kept], centre, f["psi"], up,
                                tol_px) <= max_shared:
                 kept.append(f)
-        spans += borrowers_dropped(views, kept, centre, up, tol_px, max_shared)
+        kept = borrowers_dropped(views, kept, centre, up, tol_px, max_shared)
+        if REFINE:
+            kept = [_refined(views, f, [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
+                             span_length) for f in kept]
+            if SHARED and len(kept) > 1:
+                psi_shared, psi_sigma = shared_azimuth(np.array([f["theta"][2] for f in kept]))
+                kept = [_refined(views, {**f, "theta": np.r_[f["theta"][:2], psi_shared, f["theta"][3:]]},
+                                 [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
+                                 span_length, free=tuple(i for i in REFINE if i != 2), psi_sigma=psi_sigma)
+                        for f in kept]
+        spans += kept
     return spans
+
+
+def shared_azimuth(psis: np.ndarray) -> tuple[float, float]:
+    """The azimuth [rad] the wires of one side share, from each wire's own psis [K]: their
+    median, and its 1-sigma 1.4826 MAD / sqrt(K) (at least 1e-4 rad). The wires of a side run
+    to the same next tower, parallel where its cross-arms are like this one's; each wire's own
+    azimuth rests on the few photos that see its far part (a milliradian off, decimetres at the
+    far end) and on which of two converging wires' detections those photos hold: the median
+    keeps the wires that agree."""
+    psis = np.asarray(psis, np.float64)
+    med = float(np.median(psis))
+    mad = 1.4826 * float(np.median(np.abs(psis - med)))
+    return med, max(mad / math.sqrt(len(psis)), 1e-4)
+
+
+def _refined(views: Views, f: dict, others: list, centre, half_length: float, up, tol_px: float,
+             span_length: float | None, free: tuple | None = None, psi_sigma: float | None = None) -> dict:
+    """A kept wire's record (`find_spans`) with theta refined clear of the other wires
+    (`refine_span` with others) and its image figures (`_finish`) recomputed."""
+    reach = float(f["stations"][-1])
+    theta = refine_span(views, f["theta"], centre, float(f["track"][0, 0]), reach, up, tol_px, span_length,
+                        free=REFINE if free is None else free, others=others)
+    fit = _finish(views, theta, centre, half_length, reach, up, tol_px, span_length=span_length)
+    cov = combined_covariance(fit["cov"], f["profile_cov"])
+    if psi_sigma is not None:     # the azimuth the side's wires share: its own sigma, no correlation
+        cov[2, :], cov[:, 2] = 0.0, 0.0
+        cov[2, 2] = psi_sigma ** 2
+    return {**f, **fit, "image_cov": fit["cov"], "cov": cov}
 
 
 def borrowers_dropped(views: Views, kept: list[dict], centre, up, tol_px: float = DEFAULT_TOL_PX,
