@@ -437,8 +437,6 @@ DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when i
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
-REFINE = (0, 1, 2, 3)
-SHARED = True
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
 
 
@@ -665,7 +663,7 @@ def near_other_wires(views: Views, points: np.ndarray, others, centre, reach: fl
 def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0, 0.0, 1.0),
                 tol_px: float = DEFAULT_TOL_PX, span_length: float | None = None, free=(0, 1, 2, 3),
                 samples: int = 60, rounds: int = 3, max_turn: float = 0.01, loss_px: float = 0.5,
-                others=(), clear_px: float = 3 * DEFAULT_TOL_PX) -> np.ndarray:
+                others=(), clear_px: float = 3 * DEFAULT_TOL_PX, kappa_bounds: tuple = (0.0, 1.0)) -> np.ndarray:
     """theta [5] of a tracked span refined on the detections' sub-pixel centres: least squares
     (Cauchy, scale loss_px) of the signed distances along each detection's normal (`Views.offsets`)
     at `samples` stations from s_from to s_to, over the (photo, station) pairs whose nearest
@@ -693,8 +691,9 @@ def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0
             t[4] = 2.0 * math.asinh(max(-float(t[3]), 0.0)) / span_length
         return t
 
-    lower = np.array([{2: psi0 - max_turn, 3: -1.0, 4: 0.0}.get(k, -np.inf) for k in free])
-    upper = np.array([{2: psi0 + max_turn, 3: 0.0 if span_length else 1.0, 4: 1.0}.get(k, np.inf) for k in free])
+    lower = np.array([{2: psi0 - max_turn, 3: -1.0, 4: kappa_bounds[0]}.get(k, -np.inf) for k in free])
+    upper = np.array([{2: psi0 + max_turn, 3: 0.0 if span_length else 1.0, 4: kappa_bounds[1]}.get(k, np.inf)
+                      for k in free])
     scale = np.array([{2: 1e-3, 3: 1e-3, 4: 1e-5}.get(k, 0.05) for k in free])
     for _ in range(rounds):
         pts = curve_points(theta, centre, s, up)
@@ -726,7 +725,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                min_support: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
                min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
-               peak_support: float = DEFAULT_PEAK_SUPPORT) -> list[dict]:
+               peak_support: float = DEFAULT_PEAK_SUPPORT, refine: bool = True,
+               shared_azimuth: bool = True) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -757,6 +757,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     spans = []
     margin = 0.3 * tower_height
     station = half_length + margin
+    # the refinement fits the curvature too unless the span length ties it to the slope
+    free = (0, 1, 2, 3) if span_length else (0, 1, 2, 3, 4)
+    kappa_bounds = (1.0 / (MAX_CATENARY_PARAMETER * tower_height), 1.0 / (MIN_CATENARY_PARAMETER * tower_height))
     for side in (1, -1):
         psi_side = psi if side == 1 else psi + math.pi
         windowed = seed_window is not None and len(seeds) > 0
@@ -780,9 +783,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if found < min_found or found < min_inlier_share * max(track["tried"], 1):
                 continue
             theta = track["theta"]
-            if REFINE:
+            if refine:
                 theta = refine_span(views, theta, centre, float(track["found"][0, 0]), track["reach"], up, tol_px,
-                                    span_length, free=REFINE)
+                                    span_length, free=free, kappa_bounds=kappa_bounds)
             fit = _finish(views, theta, centre, half_length, track["reach"], up, tol_px,
                           span_length=span_length)
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
@@ -797,20 +800,19 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                                tol_px) <= max_shared:
                 kept.append(f)
         kept = borrowers_dropped(views, kept, centre, up, tol_px, max_shared)
-        if REFINE:
+        if refine:
             kept = [_refined(views, f, [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
-                             span_length) for f in kept]
-            if SHARED and len(kept) > 1:
-                psi_shared, psi_sigma = shared_azimuth(np.array([f["theta"][2] for f in kept]))
+                             span_length, free, kappa_bounds) for f in kept]
+            if shared_azimuth and len(kept) > 1:
+                psi_shared, psi_sigma = side_azimuth(np.array([f["theta"][2] for f in kept]))
                 kept = [_refined(views, {**f, "theta": np.r_[f["theta"][:2], psi_shared, f["theta"][3:]]},
                                  [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
-                                 span_length, free=tuple(i for i in REFINE if i != 2), psi_sigma=psi_sigma)
-                        for f in kept]
+                                 span_length, tuple(i for i in free if i != 2), kappa_bounds, psi_sigma) for f in kept]
         spans += kept
     return spans
 
 
-def shared_azimuth(psis: np.ndarray) -> tuple[float, float]:
+def side_azimuth(psis: np.ndarray) -> tuple[float, float]:
     """The azimuth [rad] the wires of one side share, from each wire's own psis [K]: their
     median, and its 1-sigma 1.4826 MAD / sqrt(K) (at least 1e-4 rad). The wires of a side run
     to the same next tower, parallel where its cross-arms are like this one's; each wire's own
@@ -824,12 +826,12 @@ def shared_azimuth(psis: np.ndarray) -> tuple[float, float]:
 
 
 def _refined(views: Views, f: dict, others: list, centre, half_length: float, up, tol_px: float,
-             span_length: float | None, free: tuple | None = None, psi_sigma: float | None = None) -> dict:
+             span_length: float | None, free: tuple, kappa_bounds: tuple, psi_sigma: float | None = None) -> dict:
     """A kept wire's record (`find_spans`) with theta refined clear of the other wires
     (`refine_span` with others) and its image figures (`_finish`) recomputed."""
     reach = float(f["stations"][-1])
     theta = refine_span(views, f["theta"], centre, float(f["track"][0, 0]), reach, up, tol_px, span_length,
-                        free=REFINE if free is None else free, others=others)
+                        free=free, others=others, kappa_bounds=kappa_bounds)
     fit = _finish(views, theta, centre, half_length, reach, up, tol_px, span_length=span_length)
     cov = combined_covariance(fit["cov"], f["profile_cov"])
     if psi_sigma is not None:     # the azimuth the side's wires share: its own sigma, no correlation
