@@ -435,6 +435,7 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
 
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
+DEFAULT_WINDOW_SUPPORT = 0.25     # the track from a cross-arm window's peak (a wire hangs there)
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
@@ -725,7 +726,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                min_support: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
                min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
-               peak_support: float = DEFAULT_PEAK_SUPPORT, refine: bool = True,
+               peak_support: float = DEFAULT_PEAK_SUPPORT, window_support: float = DEFAULT_WINDOW_SUPPORT,
+               refine: bool = True,
                shared_azimuth: bool = True) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
@@ -772,13 +774,19 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             given = seed_peaks(views, centre, psi_side, station, [(float(c) * side, float(z)) for c, z in seeds],
                                seed_window, step, up, tol_px, min_support, min_views)
         fits: list[dict] = []
-        for c, z, share in given + [tuple(p) for p in peaks]:
+        for k_seed, (c, z, share) in enumerate(given + [tuple(p) for p in peaks]):
+            in_window = seed_window is not None and k_seed < len(given)
             seed = curve_points((c, z, psi_side, 0.0, 0.0), centre, np.array([station]), up)[0]
             if any(np.linalg.norm(curve_points(f["theta"], centre, np.array([station]), up)[0] - seed) < 0.033 *
                    tower_height for f in fits):
                 continue   # on a wire already fitted: the support is a ridge across the plane, not a point
             track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height, up,
                                tol_px, min_support, min_views, span_length)
+            if in_window and not _enough(track, min_found, min_inlier_share) and window_support < min_support:
+                # a wire hangs below every cross-arm tip: one over the ground, its detections broken by
+                # the texture, is followed at a lower support when the usual one loses it
+                track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height,
+                                   up, tol_px, window_support, min_views, span_length)
             found = len(track["found"])
             if found < min_found or found < min_inlier_share * max(track["tried"], 1):
                 continue
@@ -804,31 +812,52 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             kept = [_refined(views, f, [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
                              span_length, free, kappa_bounds) for f in kept]
             if shared_azimuth and len(kept) > 1:
-                psi_shared, psi_sigma = side_azimuth(np.array([f["theta"][2] for f in kept]))
+                psi_shared, psi_sigma = side_azimuth(np.array([f["theta"][2] for f in kept]),
+                                                     np.array([f["image_cov"][2, 2] for f in kept]))
                 kept = [_refined(views, {**f, "theta": np.r_[f["theta"][:2], psi_shared, f["theta"][3:]]},
                                  [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
-                                 span_length, tuple(i for i in free if i != 2), kappa_bounds, psi_sigma) for f in kept]
+                                 span_length, tuple(i for i in free if i != 2), kappa_bounds, psi_sigma)
+                        for f in kept]
         spans += kept
     return spans
 
 
-def side_azimuth(psis: np.ndarray) -> tuple[float, float]:
-    """The azimuth [rad] the wires of one side share, from each wire's own psis [K]: their
-    median, and its 1-sigma 1.4826 MAD / sqrt(K) (at least 1e-4 rad). The wires of a side run
-    to the same next tower, parallel where its cross-arms are like this one's; each wire's own
-    azimuth rests on the few photos that see its far part (a milliradian off, decimetres at the
-    far end) and on which of two converging wires' detections those photos hold: the median
-    keeps the wires that agree."""
+def side_azimuth(psis: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
+    """The azimuth [rad] the wires of one side share, from each wire's own psis [K] and their
+    variances [K] (rad^2, from the image residuals): the median weighted by 1 / variance, and its
+    1-sigma, 1.4826 times the weighted median absolute deviation over sqrt of the weights' effective
+    count (at least 1e-4 rad). The wires of a side run to the same next tower, parallel where its
+    cross-arms are like this one's. Each wire's own azimuth rests on the few photos that see its
+    far part, and a low wire's on detections over the ground or on a converging neighbour's: a
+    few milliradians off, where the earth wires against the sky agree to a few tenths."""
     psis = np.asarray(psis, np.float64)
-    med = float(np.median(psis))
-    mad = 1.4826 * float(np.median(np.abs(psis - med)))
-    return med, max(mad / math.sqrt(len(psis)), 1e-4)
+    w = 1.0 / np.maximum(np.asarray(variances, np.float64), 1e-12)
+    w = np.where(np.isfinite(w), w, 0.0) + 1e-12
+    med = weighted_median(psis, w)
+    mad = 1.4826 * weighted_median(np.abs(psis - med), w)
+    n_eff = float(w.sum() ** 2 / (w ** 2).sum())
+    return med, max(mad / math.sqrt(n_eff), 1e-4)
+
+
+def weighted_median(x: np.ndarray, w: np.ndarray) -> float:
+    """The weighted median of x [K] with weights w [K] > 0: the smallest x whose cumulative weight
+    (x sorted) reaches half the total."""
+    order = np.argsort(x, kind="stable")
+    cum = np.cumsum(np.asarray(w, np.float64)[order])
+    return float(np.asarray(x, np.float64)[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+def _enough(track: dict, min_found: int, min_share: float) -> bool:
+    """Whether a track (`track_span`) found at least min_found stations and min_share of those tried."""
+    found = len(track["found"])
+    return found >= min_found and found >= min_share * max(track["tried"], 1)
 
 
 def _refined(views: Views, f: dict, others: list, centre, half_length: float, up, tol_px: float,
              span_length: float | None, free: tuple, kappa_bounds: tuple, psi_sigma: float | None = None) -> dict:
     """A kept wire's record (`find_spans`) with theta refined clear of the other wires
-    (`refine_span` with others) and its image figures (`_finish`) recomputed."""
+    (`refine_span` with others) and its image figures (`_finish`) recomputed; with psi_sigma (the
+    side's shared azimuth held fixed) that azimuth's 1-sigma in the covariance."""
     reach = float(f["stations"][-1])
     theta = refine_span(views, f["theta"], centre, float(f["track"][0, 0]), reach, up, tol_px, span_length,
                         free=free, others=others, kappa_bounds=kappa_bounds)
