@@ -661,6 +661,11 @@ def near_other_wires(views: Views, points: np.ndarray, others, centre, reach: fl
     return out
 
 
+def _pair_residuals(q, views: Views, full, centre, s: np.ndarray, up, pairs: np.ndarray) -> np.ndarray:
+    """The offsets [P] (`Views.offsets`) of the curve full(q) at s [K] in the (photo, station) pairs [N, K]."""
+    return views.offsets(curve_points(full(q), centre, s, up), observed=pairs)[0][pairs]
+
+
 def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0, 0.0, 1.0),
                 tol_px: float = DEFAULT_TOL_PX, span_length: float | None = None, free=(0, 1, 2, 3),
                 samples: int = 60, rounds: int = 3, max_turn: float = 0.01, loss_px: float = 0.5,
@@ -704,9 +709,8 @@ def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0
         if ok.sum() <= len(free):
             break
         x0 = np.clip(theta[free], lower + 1e-12, upper - 1e-12)
-        res = least_squares(lambda q: views.offsets(curve_points(full(q), centre, s, up), observed=ok)[0][ok], x0,
-                            loss="cauchy", f_scale=loss_px, x_scale=scale, bounds=(lower, upper), method="trf",
-                            max_nfev=40)
+        res = least_squares(_pair_residuals, x0, args=(views, full, centre, s, up, ok), loss="cauchy",
+                            f_scale=loss_px, x_scale=scale, bounds=(lower, upper), method="trf", max_nfev=40)
         theta = full(res.x)
     return theta
 
@@ -799,8 +803,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
-                             "track": track["found"], "profile_cov": track["profile_cov"], **fit, "image_cov": fit["cov"],
-                             "cov": combined_covariance(fit["cov"], track["profile_cov"])})
+                             "track": track["found"], "profile_cov": track["profile_cov"], **fit,
+                             "image_cov": fit["cov"], "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
         for f in sorted(_distinct(fits, centre, 0.033 * tower_height, up),
                         key=lambda f: -float(f["track"][:, 3].sum())):
@@ -814,12 +818,25 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if shared_azimuth and len(kept) > 1:
                 psi_shared, psi_sigma = side_azimuth(np.array([f["theta"][2] for f in kept]),
                                                      np.array([f["image_cov"][2, 2] for f in kept]))
-                kept = [_refined(views, {**f, "theta": np.r_[f["theta"][:2], psi_shared, f["theta"][3:]]},
+                pivots = [float(np.median(f["track"][:, 0])) for f in kept]
+                kept = [_refined(views, {**f, "theta": turned(f["theta"], psi_shared, pivot)},
                                  [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
                                  span_length, tuple(i for i in free if i != 2), kappa_bounds, psi_sigma)
-                        for f in kept]
+                        for f, pivot in zip(kept, pivots)]
         spans += kept
     return spans
+
+
+def turned(theta, psi: float, pivot: float) -> np.ndarray:
+    """theta [5] with the azimuth psi, turned about the point at horizontal distance `pivot` (its
+    across offset there kept: c + pivot (psi_old - psi), to first order): the middle of the track,
+    where the wire's detections are, stays; turned about the attachment instead, a correction of a
+    few milliradians would move the observed part by decimetres and leave the refinement a pixel
+    off, in another local minimum."""
+    out = np.asarray(theta, np.float64).copy()
+    out[0] += pivot * (out[2] - psi)
+    out[2] = psi
+    return out
 
 
 def side_azimuth(psis: np.ndarray, variances: np.ndarray) -> tuple[float, float]:

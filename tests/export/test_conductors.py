@@ -382,3 +382,91 @@ def test_default_detections_keep_a_faint_wire_a_threshold_of_4_loses():
     default = cond.detections(response)
     assert (default & near).sum() > 100 and (default & ~near).sum() == 0
     assert (cond.detections(response, threshold=4.0) & near).sum() == 0
+
+
+def test_plateau_centre_is_the_middle_of_the_tied_best_cells_not_their_first_corner():
+    """A support grid whose maximum 0.5 is a 4 x 3 plateau (rows 2-5, columns 1-3) and one more
+    cell of 0.5 apart from it (8, 6): the centre is the plateau's middle by hand, x = mean of
+    0.2-0.5 = 0.35, y = mean of 0.2-0.6 = 0.4, not its first cell (0.2, 0.2) and not pulled
+    towards the lone cell."""
+    share = np.zeros((9, 7))
+    share[2:6, 1:4] = 0.5
+    share[8, 6] = 0.5
+    share[3, 5] = 0.4
+    xs, ys = 0.1 * np.arange(9), 0.2 * np.arange(7)
+    assert cond.plateau_centre(share, xs, ys) == pytest.approx((0.35, 0.4), abs=1e-12)
+
+
+def test_weighted_median_minimises_the_weighted_absolute_deviation_by_brute_force():
+    rng = np.random.default_rng(12)
+    for _ in range(50):
+        x, w = rng.normal(size=7), rng.uniform(0.1, 5.0, 7)
+        cost = [float(np.sum(w * np.abs(x - m))) for m in (cond.weighted_median(x, w), *x)]
+        assert cost[0] == pytest.approx(min(cost[1:]), abs=1e-12)
+
+
+def test_side_azimuth_follows_the_precise_wires_not_the_count_of_imprecise_ones():
+    """Two wires at 0 with a sigma of 0.3 mrad (earth wires against the sky) and three at 1, 4 and
+    5 mrad with 1 mrad (low wires over the ground): the shared azimuth is 0 (the weighted median:
+    weights 11.1 each against 1, by hand), where the plain median would be 1 mrad; its sigma is
+    positive and under the precise wires'."""
+    psis = np.array([0.0, 0.0, 1e-3, 4e-3, 5e-3])
+    variances = np.array([0.3e-3, 0.3e-3, 1e-3, 1e-3, 1e-3]) ** 2
+    psi, sigma = cond.side_azimuth(psis, variances)
+    assert psi == 0.0
+    assert 0 < sigma < 0.3e-3
+
+
+def test_near_other_wires_flags_the_pairs_within_the_radius_of_a_neighbours_projection():
+    """A camera 50 m above the line looking straight down (c2w the identity, OpenGL: it looks
+    along -z), a neighbour wire along +y through x = 0 at z = -50: it projects onto the column
+    u = cx. Points 3 and 8 px beside it at the same depth (x = 3 or 8 x 50 / F) lie 3 and 8 px
+    from it by the pinhole's closed form: within 4.5 px the first, not the second."""
+    views = cond.Views(np.eye(4)[None], np.array([[F, F, W / 2, H / 2]]), np.zeros((1, H, W), bool))
+    neighbour = np.array([0.0, -50.0, math.pi / 2, 0.0, 0.0])          # across = -x, straight and level
+    pts = np.array([[3 * 50 / F, 10.0, -50.0], [8 * 50 / F, 10.0, -50.0], [-3 * 50 / F, -5.0, -50.0]])
+    flagged = cond.near_other_wires(views, pts, [neighbour], np.zeros(3), 100.0, radius_px=4.5)
+    assert flagged.tolist() == [[True, False, True]]
+
+
+def test_refine_span_recovers_azimuth_and_offsets_a_track_leaves_a_pixel_off():
+    """The true span (a = 1600 m, level over 320 m) drawn in 16 cluttered photos; a start a track
+    could leave, 0.15 m across, 0.1 m high, 2 mrad of azimuth (0.64 m at the far tower) and 0.002
+    of slope off: `refine_span` on the detections' sub-pixel centres, the span length given,
+    returns the closed form's theta within 0.03 m, 0.3 mrad and 5e-4 of slope."""
+    rng = np.random.default_rng(13)
+    c2w = ring_cameras()
+    views = views_of(render_photos(c2w, [true_curve()], rng), c2w)
+    beta = XV_TRUE / A_TRUE
+    truth = np.array([-ATTACH[0], ATTACH[2], math.pi / 2, -math.sinh(beta), 1.0 / A_TRUE])
+    start = truth + np.array([0.15, 0.1, 2e-3, 2e-3, 0.0])
+    start[4] = 2 * math.asinh(-start[3]) / (2 * XV_TRUE)
+    theta = cond.refine_span(views, start, np.zeros(3), 13.6, 80.0, span_length=2 * XV_TRUE)
+    assert abs(theta[0] - truth[0]) < 0.03 and abs(theta[1] - truth[1]) < 0.03
+    assert abs(theta[2] - truth[2]) < 3e-4
+    assert abs(theta[3] - truth[3]) < 5e-4
+    assert theta[4] == pytest.approx(2 * math.asinh(-theta[3]) / (2 * XV_TRUE), rel=1e-12)
+
+
+def wire_at(x: float, z: float, side: int = 1, step: float = 0.02) -> np.ndarray:
+    """`true_curve` of a wire attached at (x, 0, z) instead of ATTACH."""
+    return true_curve(side, step) + np.array([x - ATTACH[0], 0.0, z - ATTACH[2]])
+
+
+def test_the_wires_of_a_side_share_one_azimuth_within_a_few_tenths_of_a_milliradian():
+    """Three parallel wires along +y (as the generator hangs them: 14.9, 22.9 and 30.3 m high),
+    16 cluttered photos, the span length given: every span found on that side has the same
+    azimuth (`side_azimuth` of the wires' own), within 0.5 mrad of the line's (pi / 2: 0.16 m
+    at the far tower), and its attachment within 0.15 m of the truth."""
+    rng = np.random.default_rng(14)
+    c2w = ring_cameras()
+    attach = [(7.6, 14.9), (-7.6, 22.9), (2.6, 30.3)]
+    views = views_of(render_photos(c2w, [wire_at(x, z) for x, z in attach], rng), c2w)
+    found = [f for f in cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                                        span_length=2 * XV_TRUE) if f["side"] == 1]
+    assert len(found) == 3
+    psis = {float(f["theta"][2]) for f in found}
+    assert len(psis) == 1 and abs(psis.pop() - math.pi / 2) < 5e-4
+    for f in found:
+        a = catenary.derived(f["theta"], np.zeros(3))["attachment"]
+        assert min(math.hypot(a[0] - x, a[2] - z) for x, z in attach) < 0.15
