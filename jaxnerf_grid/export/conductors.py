@@ -827,6 +827,20 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     return spans
 
 
+def tied_curvature(cov: np.ndarray, theta, span_length: float) -> np.ndarray:
+    """theta's covariance [5, 5] with the curvature's row and column those of kappa = 2 asinh(-m0) / L
+    at theta's slope (d kappa / d m0 = -2 / (L sqrt(1 + m0^2))): the profile's covariance ties
+    them at the track's slope, and the refined slope differs a little (the span's sigma would not
+    be zero)."""
+    m0 = float(theta[3])
+    d = -2.0 / (span_length * math.sqrt(1.0 + m0 * m0)) if m0 < 0 else 0.0
+    out = np.asarray(cov, np.float64).copy()
+    out[4, :] = d * out[3, :]
+    out[:, 4] = d * out[:, 3]
+    out[4, 4] = d * d * out[3, 3]
+    return out
+
+
 def turned(theta, psi: float, pivot: float) -> np.ndarray:
     """theta [5] with the azimuth psi, turned about the point at horizontal distance `pivot` (its
     across offset there kept: c + pivot (psi_old - psi), to first order): the middle of the track,
@@ -880,6 +894,8 @@ def _refined(views: Views, f: dict, others: list, centre, half_length: float, up
                         free=free, others=others, kappa_bounds=kappa_bounds)
     fit = _finish(views, theta, centre, half_length, reach, up, tol_px, span_length=span_length)
     cov = combined_covariance(fit["cov"], f["profile_cov"])
+    if span_length:
+        cov = tied_curvature(cov, theta, span_length)
     if psi_sigma is not None:     # the azimuth the side's wires share: its own sigma, no correlation
         cov[2, :], cov[:, 2] = 0.0, 0.0
         cov[2, 2] = psi_sigma ** 2
