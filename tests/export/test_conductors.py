@@ -453,7 +453,7 @@ def wire_at(x: float, z: float, side: int = 1, step: float = 0.02) -> np.ndarray
     return true_curve(side, step) + np.array([x - ATTACH[0], 0.0, z - ATTACH[2]])
 
 
-def test_the_wires_of_a_side_share_one_azimuth_within_a_few_tenths_of_a_milliradian():
+def test_the_wires_of_a_side_share_one_azimuth():
     """Three parallel wires along +y (as the generator hangs them: 14.9, 22.9 and 30.3 m high),
     16 cluttered photos, the span length given: every span found on that side has the same
     azimuth (`side_azimuth` of the wires' own), and its attachment within 0.15 m of the truth.
@@ -501,3 +501,18 @@ def test_a_wire_the_far_photos_lose_is_kept_from_a_cross_arms_window_at_the_lowe
     assert len(kept) == 1 and np.linalg.norm(kept[0] - ATTACH) < 0.1
     assert found(-ATTACH[0], window_support=0.3) == []
     assert found(ATTACH[0]) == []
+
+
+def test_turned_keeps_the_curve_at_the_pivot_and_turns_it_about_there():
+    """A span turned by 3 mrad about 50 m (`turned`): its point at 50 m stays on the old curve
+    (within 3 mm: the across offset's correction 50 x 0.003 = 0.15 m keeps it, to first order; the
+    across axis turns too, shifting it 7.6 x 0.003 = 2.3 cm along a wire sloping 0.07 there),
+    and at 320 m it lies 270 x 0.003 = 0.81 m across from the old one by the closed form."""
+    theta = np.array([-ATTACH[0], ATTACH[2], math.pi / 2, -math.sinh(XV_TRUE / A_TRUE), 1.0 / A_TRUE])
+    new = cond.turned(theta, math.pi / 2 + 3e-3, 50.0)
+    assert new[2] == math.pi / 2 + 3e-3 and new[0] == pytest.approx(theta[0] - 0.15, abs=1e-12)
+    old = catenary.curve_points(theta, np.zeros(3), np.linspace(0.0, 320.0, 320001))
+    at_pivot = catenary.curve_points(new, np.zeros(3), np.array([50.0]))[0]
+    assert np.min(np.linalg.norm(old - at_pivot, axis=1)) < 3e-3
+    far_new = catenary.curve_points(new, np.zeros(3), np.array([320.0]))[0]
+    assert np.min(np.linalg.norm(old - far_new, axis=1)) == pytest.approx(0.81, abs=0.01)
