@@ -36,7 +36,14 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   (`shared_evidence`, `borrowers_dropped`). A tracked span's 1-sigma figures
   (`combined_covariance`): the height, slope and curvature from the profile fit through the
   stations' heights (with a span length, the curvature moves with the slope), the across offset
-  and azimuth from the image residuals.
+  and azimuth from the image residuals. A cross-arm window's track that loses its wire at the
+  track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground).
+* Refinement (`refine_span`): a station's cell is good to a pixel, and a pixel at 80 m is a
+  milliradian of azimuth, decimetres at the far tower. Each kept wire is refined on the
+  detections' sub-pixel centres (the along-normal offsets of the pairs that support it, clear of
+  the other wires: `near_other_wires`); then the wires of a side share the variance-weighted
+  median of their azimuths (`side_azimuth`: parallel wires to the same next tower), each turned
+  to it about the middle of its track (`turned`) and refined again with it held.
 * Fit (`fit_span`, a library function the track replaced in `find_spans`):
   robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
