@@ -12,10 +12,10 @@ against the scene's own cables (`data.synthetic.scene.conductor_spans`); with `-
 export's measurements.json (its `conductors` record, from the trained chain) is scored against
 the scene of the same position in --data. Per span in view (the two spans at the main tower:
 6 phase conductors and 2 earth wires on each side): found or not, the RMS distance of the fitted
-curve to the true one over the true span (metres), the sag error (the true sag: the lowest point
-below the attachments) and that error in the sag's stated 1-sigma, the lowest point's height
-error, the lowest point's clearance above the true ground (z = 0) against the truth; and the
-spans found that match no cable (invented).
+curve to the true one over the true span (metres), the azimuth's error (radians), the sag
+error (the true sag: the lowest point below the attachments) and that error in the sag's stated
+1-sigma, the lowest point's height error, the lowest point's clearance above the true ground
+(z = 0) against the truth; and the spans found that match no cable (invented).
 """
 
 from __future__ import annotations
@@ -84,7 +84,9 @@ def score(records: list[dict], truth: list[dict]) -> dict:
             fitted = catenary.curve_points(r["theta"], r.get("centre", [0.0, 0.0, 0.0]),
                                        np.linspace(0.0, length, 8000), r.get("up", [0.0, 0.0, 1.0]))
             sag, low = r["sag"]["value"], r["lowest_point"]["value"]
-            row.update({"attachment_error": best_d, "rms": curve_rms(fitted, t["points"]),
+            true_psi = math.atan2(*(t["far"] - t["attachment"])[1::-1])      # the line's azimuth from x, about z
+            psi_error = (float(r["theta"][2]) - true_psi + math.pi) % (2 * math.pi) - math.pi
+            row.update({"attachment_error": best_d, "rms": curve_rms(fitted, t["points"]), "azimuth_error": psi_error,
                         "sag": sag, "sag_sigma": r["sag"]["sigma"],
                         "sag_error_rel": None if sag is None else (sag - t["sag"]) / t["sag"],
                         "sag_error_sigmas": None if sag is None or not r["sag"]["sigma"] else
