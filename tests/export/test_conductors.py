@@ -516,3 +516,40 @@ def test_turned_keeps_the_curve_at_the_pivot_and_turns_it_about_there():
     assert np.min(np.linalg.norm(old - at_pivot, axis=1)) < 3e-3
     far_new = catenary.curve_points(new, np.zeros(3), np.array([320.0]))[0]
     assert np.min(np.linalg.norm(old - far_new, axis=1)) == pytest.approx(0.81, abs=0.01)
+
+
+def test_side_span_is_the_median_of_the_wires_own_and_ignores_a_confident_outlier():
+    """Spans of 308, 323, 319, 320, 297, 321, 317 m and one wire whose curvature ran to its bound,
+    147 m: the shared span is their median, 318 m by hand (the mean of the sorted 4th and 5th,
+    317 and 319; the outlier moves it by one place only), and its sigma 1.4826 MAD / sqrt(8); `with_span`
+    gives each wire the curvature of that level span at its slope, 2 asinh(-m0) / L."""
+    lengths = np.array([308.0, 323.0, 319.0, 320.0, 297.0, 321.0, 317.0, 147.0])
+    length, sigma = cond.side_span(lengths)
+    assert length == 318.0
+    mad = float(np.median(np.abs(lengths - 318.0)))            # |dev|: 10 5 1 2 21 3 1 171 -> 4.0
+    assert mad == 4.0 and sigma == pytest.approx(1.4826 * 4.0 / math.sqrt(8), rel=1e-12)
+    theta = cond.with_span(np.array([-ATTACH[0], ATTACH[2], math.pi / 2, -0.1, 5.0]), length)
+    assert theta[4] == pytest.approx(2 * math.asinh(0.1) / 318.0, rel=1e-12)
+    assert catenary.derived(theta, np.zeros(3))["span"] == pytest.approx(318.0, rel=1e-12)
+
+
+def test_without_a_span_length_the_wires_of_a_side_share_one_and_each_records_it():
+    """The three parallel wires of `test_the_wires_of_a_side_share_one_azimuth`, the span length
+    not given: every span found on that side is as long as the others (`side_span` of their
+    own, 320 m true, within 10 % here), records that length and its sigma as
+    "span_length_shared" and no given one, and states a finite sag sigma."""
+    rng = np.random.default_rng(14)
+    c2w = ring_cameras()
+    attach = [(7.6, 14.9), (-7.6, 22.9), (2.6, 30.3)]
+    views = views_of(render_photos(c2w, [wire_at(x, z) for x, z in attach], rng), c2w)
+    found = [f for f in cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4)
+             if f["side"] == 1]
+    assert len(found) == 3
+    spans = [catenary.derived(f["theta"], np.zeros(3))["span"] for f in found]
+    shared = found[0]["span_length_shared"][0]
+    np.testing.assert_allclose(spans, shared, rtol=1e-9)
+    assert shared == pytest.approx(2 * XV_TRUE, rel=0.1)
+    for f in found:
+        rec = cond.span_record(f, np.zeros(3))
+        assert rec["span_length_given"] is None and rec["span_length_shared"][0] == shared
+        assert 0 < rec["sag"]["sigma"] < math.inf
