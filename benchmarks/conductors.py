@@ -95,7 +95,8 @@ def score(records: list[dict], truth: list[dict]) -> dict:
                         "lowest_z": None if low is None else low[2],
                         "lowest_z_error": None if low is None else low[2] - t["lowest_z"],
                         "clearance": (r.get("clearance") or {}).get("ground"),
-                        "inlier_share": r["inlier_share"], "observed_stations": r["observed_stations"]})
+                        "inlier_share": r["inlier_share"], "observed_stations": r["observed_stations"],
+                        "span_length_shared": r.get("span_length_shared")})
             g = row["clearance"]
             row["clearance_error"] = None if g is None else g - t["lowest_z"]
         rows.append(row)
