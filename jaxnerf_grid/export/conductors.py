@@ -689,7 +689,8 @@ def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0
     detections' centres are good to a tenth of one. others: the thetas [5] of the other wires
     found; a pair whose projection lies within clear_px of one of theirs is left out
     (`near_other_wires`: the photos looking along the line see the wires converge, and the
-    nearest detection there may be the neighbour's). Returns theta [5]."""
+    nearest detection there may be the neighbour's). kappa_bounds: the curvature's (lo, hi) when
+    it is fitted. Returns theta [5]."""
     from scipy.optimize import least_squares
 
     theta = np.asarray(theta, np.float64).copy()
@@ -763,10 +764,15 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     widened by the station's margin; one per wire (`_distinct`); strongest first (the sum of its
     stations' support), a wire is dropped when more than max_shared of its support lies on the
     wires kept before it (`shared_evidence`), then when more than that lies on all the others
-    (`borrowers_dropped`).
+    (`borrowers_dropped`). window_support: a window's track that loses its wire at min_support is
+    retried at this support. refine: each candidate refined on the sub-pixel detections
+    (`refine_span`), each kept wire again clear of the others; shared_azimuth: then the side's
+    wires turned to one azimuth (`side_azimuth`, `turned`) and refined with it held; shared_span:
+    without span_length, then refined with one level span the side's wires share (`side_span`).
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov"
     (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
-    "seen", "stations", "track" [F, 4], "span_length"}]."""
+    "seen", "stations", "track" [F, 4], "span_length", "profile_cov", and with shared_span
+    "span_length_shared" (L, sigma)}]."""
     spans = []
     margin = 0.3 * tower_height
     station = half_length + margin
