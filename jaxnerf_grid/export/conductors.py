@@ -33,7 +33,7 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   near the projection AND running along it), the curve refitted every few stations
   (`fit_profile`: the catenary parameter bounded to plausible values, or fixed by the slope and a
   given span length); wires that only borrow another wire's detections dropped
-  (`shared_evidence`, `borrowers_dropped`). A tracked span's 1-sigma figures
+  (`shared_evidence`, `borrowers_dropped`). An unrefined span's 1-sigma figures
   (`combined_covariance`): the height, slope and curvature from the profile fit through the
   stations' heights (with a span length, the curvature moves with the slope), the across offset
   and azimuth from the image residuals. A cross-arm window's track that loses its wire at the
@@ -43,7 +43,9 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   detections' sub-pixel centres (the along-normal offsets of the pairs that support it, clear of
   the other wires: `near_other_wires`); then the wires of a side share the variance-weighted
   median of their azimuths (`side_azimuth`: parallel wires to the same next tower), each turned
-  to it about the middle of its track (`turned`) and refined again with it held.
+  to it about the middle of its track (`turned`) and refined again with it held; without a span
+  length, once more with the span the side's wires share (`side_span`). A refined span's 1-sigma
+  figures: its image residuals' covariance, the shared azimuth's sigma in place of its own.
 * Fit (`fit_span`, a library function the track replaced in `find_spans`):
   robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
@@ -885,20 +887,6 @@ def _shared_span(views: Views, kept: list[dict], centre, half_length: float, up,
     return out
 
 
-def tied_curvature(cov: np.ndarray, theta, span_length: float) -> np.ndarray:
-    """theta's covariance [5, 5] with the curvature's row and column those of kappa = 2 asinh(-m0) / L
-    at theta's slope (d kappa / d m0 = -2 / (L sqrt(1 + m0^2))): the profile's covariance ties
-    them at the track's slope, and the refined slope differs a little (the span's sigma would not
-    be zero)."""
-    m0 = float(theta[3])
-    d = -2.0 / (span_length * math.sqrt(1.0 + m0 * m0)) if m0 < 0 else 0.0
-    out = np.asarray(cov, np.float64).copy()
-    out[4, :] = d * out[3, :]
-    out[:, 4] = d * out[:, 3]
-    out[4, 4] = d * d * out[3, 3]
-    return out
-
-
 def turned(theta, psi: float, pivot: float) -> np.ndarray:
     """theta [5] with the azimuth psi, turned about the point at horizontal distance `pivot` (its
     across offset there kept: c + pivot (psi_old - psi), to first order): the middle of the track,
@@ -951,9 +939,10 @@ def _refined(views: Views, f: dict, others: list, centre, half_length: float, up
     theta = refine_span(views, f["theta"], centre, float(f["track"][0, 0]), reach, up, tol_px, span_length,
                         free=free, others=others, kappa_bounds=kappa_bounds)
     fit = _finish(views, theta, centre, half_length, reach, up, tol_px, span_length=span_length)
-    cov = combined_covariance(fit["cov"], f["profile_cov"])
-    if span_length:
-        cov = tied_curvature(cov, theta, span_length)
+    # the image residuals' covariance of the refined curve (the curvature tied with a span length):
+    # the profile's, through the track's stations a pixel apart, states the refined sag's error 3-20
+    # times too wide at 640x480
+    cov = np.array(fit["cov"], np.float64)
     if psi_sigma is not None:     # the azimuth the side's wires share: its own sigma, no correlation
         cov[2, :], cov[:, 2] = 0.0, 0.0
         cov[2, 2] = psi_sigma ** 2
