@@ -2,7 +2,9 @@
 
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
-      [--span-length M] [--arm-seeds] [--detect-threshold K] [--out benchmarks/results/conductors.json]
+      [--span-length M] [--arm-seeds] [--detect-threshold K] [--no-refine] [--no-shared-azimuth]
+      [--no-shared-span]
+      [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
 it has conductors) the wires are found with the TRUE cameras (`export.conductors`: detection in
@@ -11,10 +13,10 @@ against the scene's own cables (`data.synthetic.scene.conductor_spans`); with `-
 export's measurements.json (its `conductors` record, from the trained chain) is scored against
 the scene of the same position in --data. Per span in view (the two spans at the main tower:
 6 phase conductors and 2 earth wires on each side): found or not, the RMS distance of the fitted
-curve to the true one over the true span (metres), the sag error (the true sag: the lowest point
-below the attachments) and that error in the sag's stated 1-sigma, the lowest point's height
-error, the lowest point's clearance above the true ground (z = 0) against the truth; and the
-spans found that match no cable (invented).
+curve to the true one over the true span (metres), the azimuth's error (radians), the sag
+error (the true sag: the lowest point below the attachments) and that error in the sag's stated
+1-sigma, the lowest point's height error, the lowest point's clearance above the true ground
+(z = 0) against the truth; and the spans found that match no cable (invented).
 """
 
 from __future__ import annotations
@@ -83,7 +85,9 @@ def score(records: list[dict], truth: list[dict]) -> dict:
             fitted = catenary.curve_points(r["theta"], r.get("centre", [0.0, 0.0, 0.0]),
                                        np.linspace(0.0, length, 8000), r.get("up", [0.0, 0.0, 1.0]))
             sag, low = r["sag"]["value"], r["lowest_point"]["value"]
-            row.update({"attachment_error": best_d, "rms": curve_rms(fitted, t["points"]),
+            true_psi = math.atan2(*(t["far"] - t["attachment"])[1::-1])      # the line's azimuth from x, about z
+            psi_error = (float(r["theta"][2]) - true_psi + math.pi) % (2 * math.pi) - math.pi
+            row.update({"attachment_error": best_d, "rms": curve_rms(fitted, t["points"]), "azimuth_error": psi_error,
                         "sag": sag, "sag_sigma": r["sag"]["sigma"],
                         "sag_error_rel": None if sag is None else (sag - t["sag"]) / t["sag"],
                         "sag_error_sigmas": None if sag is None or not r["sag"]["sigma"] else
@@ -91,7 +95,8 @@ def score(records: list[dict], truth: list[dict]) -> dict:
                         "lowest_z": None if low is None else low[2],
                         "lowest_z_error": None if low is None else low[2] - t["lowest_z"],
                         "clearance": (r.get("clearance") or {}).get("ground"),
-                        "inlier_share": r["inlier_share"], "observed_stations": r["observed_stations"]})
+                        "inlier_share": r["inlier_share"], "observed_stations": r["observed_stations"],
+                        "span_length_shared": r.get("span_length_shared")})
             g = row["clearance"]
             row["clearance_error"] = None if g is None else g - t["lowest_z"]
         rows.append(row)
@@ -162,11 +167,14 @@ def true_arm_seeds() -> list[tuple[float, float]]:
 
 def true_camera_fit(data: Path, picture: Path | None = None, size=None,
                     span_length: float | None = None, arm_seeds: bool = False,
-                    threshold: float | None = None) -> tuple[list[dict], dict]:
+                    threshold: float | None = None, refine: bool = True,
+                    shared_azimuth: bool = True, shared_span: bool = True) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
     span of that length), None: the catenary parameter free; arm_seeds: the cross-arm tips as
-    seeds, each searched in the export's window below it (`export.run.SEED_WINDOW`).
+    seeds, each searched in the export's window below it (`export.run.SEED_WINDOW`); refine,
+    shared_azimuth, shared_span: `find_spans`' (the track's curves refined on the sub-pixel
+    detections, the side's wires sharing one azimuth, and one span length when none is given).
     Returns (records, timings)."""
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
@@ -184,7 +192,7 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
 
         kw = {"seeds": true_arm_seeds(), "seed_window": tuple(v * 30.4 for v in SEED_WINDOW)}
     spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length,
-                            **kw)
+                            refine=refine, shared_azimuth=shared_azimuth, shared_span=shared_span, **kw)
     t2 = time.perf_counter()
     if picture is not None:
         io.write_png(picture, cond.views_picture(images, views, spans, centre))
@@ -221,6 +229,13 @@ def main(argv=None) -> int:
     p.add_argument("--detect-threshold", type=float, default=None, metavar="K",
                    help="the detections' hysteresis threshold in robust scales (export.conductors.detections; "
                         "default its own)")
+    p.add_argument("--no-refine", action="store_true",
+                   help="the track's curves as they are (find_spans refine=False: no sub-pixel refinement, no shared "
+                        "azimuth)")
+    p.add_argument("--no-shared-azimuth", action="store_true",
+                   help="each wire keeps its own refined azimuth (find_spans shared_azimuth=False)")
+    p.add_argument("--no-shared-span", action="store_true",
+                   help="without --span-length, each wire keeps its own curvature (find_spans shared_span=False)")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/conductors.json"))
     args = p.parse_args(argv)
     from jaxnerf_grid.util import io
@@ -239,10 +254,14 @@ def main(argv=None) -> int:
         entry = {"data": data.name, "preset": gen.get("preset"), "seed": gen.get("seed"),
                  "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
                  "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length,
-                 "arm_seeds": bool(args.arm_seeds), "detect_threshold": args.detect_threshold}
+                 "arm_seeds": bool(args.arm_seeds), "detect_threshold": args.detect_threshold,
+                 "refine": not args.no_refine, "shared_azimuth": not (args.no_refine or args.no_shared_azimuth),
+                 "shared_span": not (args.no_refine or args.no_shared_span)}
         if not args.no_true_cameras:
             records, timings = true_camera_fit(data, picture, size, args.span_length, args.arm_seeds,
-                                               args.detect_threshold)
+                                               args.detect_threshold, not args.no_refine,
+                                               not (args.no_refine or args.no_shared_azimuth),
+                                               not (args.no_refine or args.no_shared_span))
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):

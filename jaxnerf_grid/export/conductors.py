@@ -33,10 +33,19 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   near the projection AND running along it), the curve refitted every few stations
   (`fit_profile`: the catenary parameter bounded to plausible values, or fixed by the slope and a
   given span length); wires that only borrow another wire's detections dropped
-  (`shared_evidence`, `borrowers_dropped`). A tracked span's 1-sigma figures
+  (`shared_evidence`, `borrowers_dropped`). An unrefined span's 1-sigma figures
   (`combined_covariance`): the height, slope and curvature from the profile fit through the
   stations' heights (with a span length, the curvature moves with the slope), the across offset
-  and azimuth from the image residuals.
+  and azimuth from the image residuals. A cross-arm window's track that loses its wire at the
+  track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground).
+* Refinement (`refine_span`): a station's cell is good to a pixel, and a pixel at 80 m is a
+  milliradian of azimuth, decimetres at the far tower. Each kept wire is refined on the
+  detections' sub-pixel centres (the along-normal offsets of the pairs that support it, clear of
+  the other wires: `near_other_wires`); then the wires of a side share the variance-weighted
+  median of their azimuths (`side_azimuth`: parallel wires to the same next tower), each turned
+  to it about the middle of its track (`turned`) and refined again with it held; without a span
+  length, once more with the span the side's wires share (`side_span`). A refined span's 1-sigma
+  figures: its image residuals' covariance, the shared azimuth's sigma in place of its own.
 * Fit (`fit_span`, a library function the track replaced in `find_spans`):
   robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
@@ -435,6 +444,7 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
 
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
+DEFAULT_WINDOW_SUPPORT = 0.25     # the track from a cross-arm window's peak (a wire hangs there)
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
@@ -530,6 +540,21 @@ def fit_profile(s: np.ndarray, z: np.ndarray, weight: np.ndarray, kappa_max: flo
     return params, jmap @ cov_x @ jmap.T
 
 
+def plateau_centre(share: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[float, float]:
+    """The centre (x, y) of the best cells of a support grid share [X, Y] over xs [X] x ys [Y]:
+    the centroid of the 4-connected cells holding the maximum around the first of them.
+    The support counts photos, so a wire's maximum is a plateau as wide as the tolerance band
+    (3 px across a 1.5 px tol): the first cell of it sits at its low corner, a pixel's footprint
+    off the wire, and a footprint grows with the distance (an azimuth's worth of bias)."""
+    from scipy import ndimage
+
+    top = share >= share.max()
+    labels, _ = ndimage.label(top)
+    i, j = np.unravel_index(int(np.argmax(share)), share.shape)
+    rows, cols = np.nonzero(labels == labels[i, j])
+    return float(np.mean(xs[rows])), float(np.mean(ys[cols]))
+
+
 def _footprint(views: Views, points: np.ndarray, fallback: float) -> np.ndarray:
     """Per point [M, 3]: the median over the photos seeing it of its depth / focal length (a
     pixel's size there, export units) [M]; `fallback` where none sees it."""
@@ -595,7 +620,8 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
             tried += 1
             best = int(np.argmax(share))
             if share[best] >= min_share:
-                found.append((st[k], c_pred[k] + cc.ravel()[best], z_pred[k] + zz.ravel()[best], share[best]))
+                c_best, z_best = plateau_centre(share.reshape(cc.shape), dc, dz)
+                found.append((st[k], c_pred[k] + c_best, z_pred[k] + z_best, share[best]))
                 misses, s_last = 0, st[k]
             else:
                 misses += 1
@@ -617,6 +643,88 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
             "tried": tried, "reach": float(s_last)}
 
 
+def curve_tangents(theta, centre, s: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """The span's direction [K, 3] (not unit) at horizontal distances s [K]: e_line + z'(s) up."""
+    line, _, u = catenary.line_axes(float(theta[2]), up)
+    h = 1e-3
+    slope = (catenary.sag_profile(np.asarray(s, np.float64) + h, theta[3], theta[4])
+             - catenary.sag_profile(np.asarray(s, np.float64) - h, theta[3], theta[4])) / (2 * h)
+    return line[None] + slope[:, None] * u[None]
+
+
+def near_other_wires(views: Views, points: np.ndarray, others, centre, reach: float, up=(0.0, 0.0, 1.0),
+                     radius_px: float = 3 * DEFAULT_TOL_PX) -> np.ndarray:
+    """[N, M] bool: the photos in which point m [M, 3] projects within radius_px of another wire's
+    projection (others: thetas [5], each drawn from its attachment to `reach`, 400 samples)."""
+    from scipy.spatial import cKDTree
+
+    u, v, z = project_all(points, views.c2w, views.intrinsics)
+    out = np.zeros(u.shape, bool)
+    s_far = np.linspace(0.0, reach, 400)
+    drawn = [project_all(curve_points(t, centre, s_far, up), views.c2w, views.intrinsics) for t in others]
+    for i in range(len(views.c2w)):
+        pieces = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
+        poly = np.concatenate([q for q in pieces if len(q)] or [np.full((1, 2), 1e12)])
+        d, _ = cKDTree(poly).query(np.stack([u[i], v[i]], 1))
+        out[i] = (d <= radius_px + 0.5 * _sample_gap(poly)) & (z[i] > 0)
+    return out
+
+
+def _pair_residuals(q, views: Views, full, centre, s: np.ndarray, up, pairs: np.ndarray) -> np.ndarray:
+    """The offsets [P] (`Views.offsets`) of the curve full(q) at s [K] in the (photo, station) pairs [N, K]."""
+    return views.offsets(curve_points(full(q), centre, s, up), observed=pairs)[0][pairs]
+
+
+def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0, 0.0, 1.0),
+                tol_px: float = DEFAULT_TOL_PX, span_length: float | None = None, free=(0, 1, 2, 3),
+                samples: int = 60, rounds: int = 3, max_turn: float = 0.01, loss_px: float = 0.5,
+                others=(), clear_px: float = 3 * DEFAULT_TOL_PX, kappa_bounds: tuple = (0.0, 1.0)) -> np.ndarray:
+    """theta [5] of a tracked span refined on the detections' sub-pixel centres: least squares
+    (Cauchy, scale loss_px) of the signed distances along each detection's normal (`Views.offsets`)
+    at `samples` stations from s_from to s_to, over the (photo, station) pairs whose nearest
+    detection supports the curve (`gated_support`: within tol_px and running along it), the pairs
+    chosen again each round. free: the indices of theta fitted (with span_length the curvature
+    follows the slope, kappa = 2 asinh(-m0) / L; else kappa is free when 4 is in free); the azimuth
+    within max_turn (rad) of theta's. The track's stations sit on a grid of half a pixel's
+    footprint and a station's support is a plateau a few pixels wide: its centre is good to a
+    pixel, and a pixel at 80 m is a milliradian of azimuth (decimetres at the far end); the
+    detections' centres are good to a tenth of one. others: the thetas [5] of the other wires
+    found; a pair whose projection lies within clear_px of one of theirs is left out
+    (`near_other_wires`: the photos looking along the line see the wires converge, and the
+    nearest detection there may be the neighbour's). kappa_bounds: the curvature's (lo, hi) when
+    it is fitted. Returns theta [5]."""
+    from scipy.optimize import least_squares
+
+    theta = np.asarray(theta, np.float64).copy()
+    free = list(free)
+    s = np.linspace(s_from, max(s_to, s_from + 1e-3), samples)
+    psi0 = float(theta[2])
+
+    def full(q):
+        t = theta.copy()
+        t[free] = q
+        if span_length:
+            t[4] = 2.0 * math.asinh(max(-float(t[3]), 0.0)) / span_length
+        return t
+
+    lower = np.array([{2: psi0 - max_turn, 3: -1.0, 4: kappa_bounds[0]}.get(k, -np.inf) for k in free])
+    upper = np.array([{2: psi0 + max_turn, 3: 0.0 if span_length else 1.0, 4: kappa_bounds[1]}.get(k, np.inf)
+                      for k in free])
+    scale = np.array([{2: 1e-3, 3: 1e-3, 4: 1e-5}.get(k, 0.05) for k in free])
+    for _ in range(rounds):
+        pts = curve_points(theta, centre, s, up)
+        _, _, ok, _ = gated_support(views, pts, curve_tangents(theta, centre, s, up), tol_px, with_detections=True)
+        if len(others):
+            ok &= ~near_other_wires(views, pts, others, centre, 1.2 * float(s[-1]), up, clear_px)
+        if ok.sum() <= len(free):
+            break
+        x0 = np.clip(theta[free], lower + 1e-12, upper - 1e-12)
+        res = least_squares(_pair_residuals, x0, args=(views, full, centre, s, up, ok), loss="cauchy",
+                            f_scale=loss_px, x_scale=scale, bounds=(lower, upper), method="trf", max_nfev=40)
+        theta = full(res.x)
+    return theta
+
+
 # --- the spans of a tower -------------------------------------------------------------------------
 
 def reaches_from(first: float, last: float) -> list[float]:
@@ -632,7 +740,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                min_support: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
                min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
-               peak_support: float = DEFAULT_PEAK_SUPPORT) -> list[dict]:
+               peak_support: float = DEFAULT_PEAK_SUPPORT, window_support: float = DEFAULT_WINDOW_SUPPORT,
+               refine: bool = True,
+               shared_azimuth: bool = True, shared_span: bool = True) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -656,13 +766,21 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     widened by the station's margin; one per wire (`_distinct`); strongest first (the sum of its
     stations' support), a wire is dropped when more than max_shared of its support lies on the
     wires kept before it (`shared_evidence`), then when more than that lies on all the others
-    (`borrowers_dropped`).
+    (`borrowers_dropped`). window_support: a window's track that loses its wire at min_support is
+    retried at this support. refine: each candidate refined on the sub-pixel detections
+    (`refine_span`), each kept wire again clear of the others; shared_azimuth: then the side's
+    wires turned to one azimuth (`side_azimuth`, `turned`) and refined with it held; shared_span:
+    without span_length, then refined with one level span the side's wires share (`side_span`).
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "theta", "cov"
     (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
-    "seen", "stations", "track" [F, 4], "span_length"}]."""
+    "seen", "stations", "track" [F, 4], "span_length", "profile_cov", and with shared_span
+    "span_length_shared" (L, sigma)}]."""
     spans = []
     margin = 0.3 * tower_height
     station = half_length + margin
+    # the refinement fits the curvature too unless the span length ties it to the slope
+    free = (0, 1, 2, 3) if span_length else (0, 1, 2, 3, 4)
+    kappa_bounds = (1.0 / (MAX_CATENARY_PARAMETER * tower_height), 1.0 / (MIN_CATENARY_PARAMETER * tower_height))
     for side in (1, -1):
         psi_side = psi if side == 1 else psi + math.pi
         windowed = seed_window is not None and len(seeds) > 0
@@ -675,31 +793,160 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             given = seed_peaks(views, centre, psi_side, station, [(float(c) * side, float(z)) for c, z in seeds],
                                seed_window, step, up, tol_px, min_support, min_views)
         fits: list[dict] = []
-        for c, z, share in given + [tuple(p) for p in peaks]:
+        for k_seed, (c, z, share) in enumerate(given + [tuple(p) for p in peaks]):
+            in_window = seed_window is not None and k_seed < len(given)
             seed = curve_points((c, z, psi_side, 0.0, 0.0), centre, np.array([station]), up)[0]
             if any(np.linalg.norm(curve_points(f["theta"], centre, np.array([station]), up)[0] - seed) < 0.033 *
                    tower_height for f in fits):
                 continue   # on a wire already fitted: the support is a ridge across the plane, not a point
             track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height, up,
                                tol_px, min_support, min_views, span_length)
+            if in_window and not _enough(track, min_found, min_inlier_share) and window_support < min_support:
+                # a wire hangs below every cross-arm tip: one over the ground, its detections broken by
+                # the texture, is followed at a lower support when the usual one loses it
+                track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height,
+                                   up, tol_px, window_support, min_views, span_length)
             found = len(track["found"])
             if found < min_found or found < min_inlier_share * max(track["tried"], 1):
                 continue
-            fit = _finish(views, track["theta"], centre, half_length, track["reach"], up, tol_px,
+            theta = track["theta"]
+            if refine:
+                theta = refine_span(views, theta, centre, float(track["found"][0, 0]), track["reach"], up, tol_px,
+                                    span_length, free=free, kappa_bounds=kappa_bounds)
+            fit = _finish(views, theta, centre, half_length, track["reach"], up, tol_px,
                           span_length=span_length)
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
-                             "track": track["found"], **fit, "image_cov": fit["cov"],
-                             "cov": combined_covariance(fit["cov"], track["profile_cov"])})
+                             "track": track["found"], "profile_cov": track["profile_cov"], **fit,
+                             "image_cov": fit["cov"], "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
         for f in sorted(_distinct(fits, centre, 0.033 * tower_height, up),
                         key=lambda f: -float(f["track"][:, 3].sum())):
             if shared_evidence(views, f["track"], f["theta"], [k["theta"] for k in kept], centre, f["psi"], up,
                                tol_px) <= max_shared:
                 kept.append(f)
-        spans += borrowers_dropped(views, kept, centre, up, tol_px, max_shared)
+        kept = borrowers_dropped(views, kept, centre, up, tol_px, max_shared)
+        if refine:
+            kept = [_refined(views, f, [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
+                             span_length, free, kappa_bounds) for f in kept]
+            if shared_azimuth and len(kept) > 1:
+                psi_shared, psi_sigma = side_azimuth(np.array([f["theta"][2] for f in kept]),
+                                                     np.array([f["image_cov"][2, 2] for f in kept]))
+                pivots = [float(np.median(f["track"][:, 0])) for f in kept]
+                kept = [_refined(views, {**f, "theta": turned(f["theta"], psi_shared, pivot)},
+                                 [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
+                                 span_length, tuple(i for i in free if i != 2), kappa_bounds, psi_sigma)
+                        for f, pivot in zip(kept, pivots)]
+            if shared_span and not span_length and len(kept) > 1:
+                kept = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds)
+        spans += kept
     return spans
+
+
+def side_span(lengths: np.ndarray) -> tuple[float, float]:
+    """The level span [export units] the wires of one side share, from each wire's own (`derived`
+    "span" of its refined curve, the curvature free) lengths [K]: their median and its 1-sigma,
+    1.4826 MAD / sqrt(K) (at least 1e-3 of the median). Unweighted: the image residuals' sigma
+    of a span rests on the curvature, which the photos barely see, and a wire whose curvature
+    ran to its bound states the smallest sigma of all (the lowest phase wire at 640x480: 147 m
+    +- 3 against 297-323 m for the others)."""
+    x = np.asarray(lengths, np.float64)
+    med = float(np.median(x))
+    mad = 1.4826 * float(np.median(np.abs(x - med)))
+    return med, max(mad / math.sqrt(len(x)), 1e-3 * abs(med))
+
+
+def with_span(theta, length: float) -> np.ndarray:
+    """theta [5] with the curvature of a level span of that length at its slope: 2 asinh(-m0) / L."""
+    out = np.asarray(theta, np.float64).copy()
+    out[4] = 2.0 * math.asinh(max(-float(out[3]), 0.0)) / length
+    return out
+
+
+def _shared_span(views: Views, kept: list[dict], centre, half_length: float, up, tol_px: float,
+                 kappa_bounds: tuple) -> list[dict]:
+    """The wires of one side, no span length given, refined again with the span they share
+    (`side_span` of their own; the same next tower, a level span): the curvature tied to each
+    wire's slope, the azimuth held; the shared length's variance added to the curvature's
+    ((kappa / L)^2 sigma_L^2). Each record gets "span_length_shared" (L, sigma_L); its
+    "span_length" (the given one) stays None."""
+    lengths = np.array([derived(f["theta"], centre, up)["span"] for f in kept])
+    finite = np.isfinite(lengths)
+    if not finite.any():
+        return kept
+    length, sigma = side_span(lengths[finite])
+    out = []
+    for f in kept:
+        others = [k["theta"] for k in kept if k is not f]
+        r = _refined(views, {**f, "theta": with_span(f["theta"], length)}, others, centre, half_length, up, tol_px,
+                     length, (0, 1, 3), kappa_bounds, math.sqrt(max(float(f["cov"][2, 2]), 0.0)))
+        cov = r["cov"].copy()
+        cov[4, 4] += (float(r["theta"][4]) / length) ** 2 * sigma ** 2
+        out.append({**r, "cov": cov, "span_length": None, "span_length_shared": (length, sigma)})
+    return out
+
+
+def turned(theta, psi: float, pivot: float) -> np.ndarray:
+    """theta [5] with the azimuth psi, turned about the point at horizontal distance `pivot` (its
+    across offset there kept: c + pivot (psi_old - psi), to first order): the middle of the track,
+    where the wire's detections are, stays; turned about the attachment instead, a correction of a
+    few milliradians would move the observed part by decimetres and leave the refinement a pixel
+    off, in another local minimum."""
+    out = np.asarray(theta, np.float64).copy()
+    out[0] += pivot * (out[2] - psi)
+    out[2] = psi
+    return out
+
+
+def side_azimuth(psis: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
+    """The azimuth [rad] the wires of one side share, from each wire's own psis [K] and their
+    variances [K] (rad^2, from the image residuals): the median weighted by 1 / variance, and its
+    1-sigma, 1.4826 times the weighted median absolute deviation over sqrt of the weights' effective
+    count (at least 1e-4 rad). The wires of a side run to the same next tower, parallel where its
+    cross-arms are like this one's. Each wire's own azimuth rests on the few photos that see its
+    far part, and a low wire's on detections over the ground or on a converging neighbour's: a
+    few milliradians off, where the earth wires against the sky agree to a few tenths."""
+    psis = np.asarray(psis, np.float64)
+    w = 1.0 / np.maximum(np.asarray(variances, np.float64), 1e-12)
+    w = np.where(np.isfinite(w), w, 0.0) + 1e-12
+    med = weighted_median(psis, w)
+    mad = 1.4826 * weighted_median(np.abs(psis - med), w)
+    n_eff = float(w.sum() ** 2 / (w ** 2).sum())
+    return med, max(mad / math.sqrt(n_eff), 1e-4)
+
+
+def weighted_median(x: np.ndarray, w: np.ndarray) -> float:
+    """The weighted median of x [K] with weights w [K] > 0: the smallest x whose cumulative weight
+    (x sorted) reaches half the total."""
+    order = np.argsort(x, kind="stable")
+    cum = np.cumsum(np.asarray(w, np.float64)[order])
+    return float(np.asarray(x, np.float64)[order][np.searchsorted(cum, 0.5 * cum[-1])])
+
+
+def _enough(track: dict, min_found: int, min_share: float) -> bool:
+    """Whether a track (`track_span`) found at least min_found stations and min_share of those tried."""
+    found = len(track["found"])
+    return found >= min_found and found >= min_share * max(track["tried"], 1)
+
+
+def _refined(views: Views, f: dict, others: list, centre, half_length: float, up, tol_px: float,
+             span_length: float | None, free: tuple, kappa_bounds: tuple, psi_sigma: float | None = None) -> dict:
+    """A kept wire's record (`find_spans`) with theta refined clear of the other wires
+    (`refine_span` with others) and its image figures (`_finish`) recomputed; with psi_sigma (the
+    side's shared azimuth held fixed) that azimuth's 1-sigma in the covariance."""
+    reach = float(f["stations"][-1])
+    theta = refine_span(views, f["theta"], centre, float(f["track"][0, 0]), reach, up, tol_px, span_length,
+                        free=free, others=others, kappa_bounds=kappa_bounds)
+    fit = _finish(views, theta, centre, half_length, reach, up, tol_px, span_length=span_length)
+    # the image residuals' covariance of the refined curve (the curvature tied with a span length):
+    # the profile's, through the track's stations a pixel apart, states the refined sag's error 3-20
+    # times too wide at 640x480
+    cov = np.array(fit["cov"], np.float64)
+    if psi_sigma is not None:     # the azimuth the side's wires share: its own sigma, no correlation
+        cov[2, :], cov[:, 2] = 0.0, 0.0
+        cov[2, 2] = psi_sigma ** 2
+    return {**f, **fit, "image_cov": fit["cov"], "cov": cov}
 
 
 def borrowers_dropped(views: Views, kept: list[dict], centre, up, tol_px: float = DEFAULT_TOL_PX,
@@ -850,7 +1097,9 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 "observed_stations": [float(fit["stations"][0]), float(fit["stations"][-1])],
                 "centre": [float(v) for v in np.asarray(centre, np.float64)],
                 "up": [float(v) for v in np.asarray(up, np.float64)], "level_span_assumed": True,
-                "span_length_given": None if fit.get("span_length") is None else float(fit["span_length"])})
+                "span_length_given": None if fit.get("span_length") is None else float(fit["span_length"]),
+                "span_length_shared": None if fit.get("span_length_shared") is None else
+                [float(v) for v in fit["span_length_shared"]]})
     return rec
 
 
