@@ -218,17 +218,18 @@ DEPTH_WEIGHT = 0.1
 
 
 def capture_defaults(capture: bool, data: Path) -> dict:
-    """The demo's defaults for a capture from `poses` (docs/RECIPES.md "On a capture from poses"):
-    the per-photo appearance embedding (cameras change exposure and white balance between
-    photos; held-out views are then scored by NeRF-W's protocol) and, when its sparse model
+    """The demo's defaults for a capture from `poses` (docs/RECIPES.md "The appearance embedding
+    on a capture"): the per-photo appearance embedding (cameras change exposure and white balance
+    between photos), held-out views rendered with the training photos' mean embedding
+    (train.appearance_steps 0: no test-time fit, whole views scored) and, when its sparse model
     (DATA/sparse/0) is there, train.depth at DEPTH_WEIGHT; nothing for other datasets. A default
     layer (`build.build`'s defaults), so a user's --set or config file changes it."""
     if not capture:
         return {}
-    out: dict = {"model": {"use_appearance": True}}
+    train: dict = {"appearance_steps": 0}
     if colmap_model.find_model_files(sparse_depth.model_folder(data)) is not None:
-        out["train"] = {"depth": {"weight": DEPTH_WEIGHT}}
-    return out
+        train["depth"] = {"weight": DEPTH_WEIGHT}
+    return {"model": {"use_appearance": True}, "train": train}
 
 
 def is_capture(data: Path, meta: dict | None = None) -> bool:

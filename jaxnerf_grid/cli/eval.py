@@ -25,6 +25,10 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--full-size", action="store_true",
                    help="render and score the test views at the photos' full size (default: the run's "
                         "working resolution, train.max_side)")
+    p.add_argument("--appearance-steps", type=int, default=None,
+                   help="a model with the appearance embedding: the test-time fit's steps (default: the run's "
+                        "train.appearance_steps); 0 renders held-out views with the training photos' mean "
+                        "embedding and scores whole views, more fits it on each view's left half (NeRF-W)")
     p.add_argument("--quiet", action="store_true")
     return p
 
@@ -42,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
 
     m = evaluate.evaluate_run(args.run, args.lpips_weights, not args.quiet, distractor_views=args.distractor_views,
                               reference_ply=args.reference_ply, allow_other_data=args.allow_other_data,
-                              full_size=args.full_size)
+                              full_size=args.full_size, appearance_steps=args.appearance_steps)
     ssim = m["mean"]["ssim"]  # None when every view is smaller than the SSIM window
     print(f"test PSNR {m['mean']['psnr']:.2f} dB, SSIM {'n/a' if ssim is None else f'{ssim:.4f}'}; "
           f"report: {Path(args.run) / 'report.md'}")

@@ -28,6 +28,7 @@ Evaluation protocol (stored in metrics.json and the report):
 
 from __future__ import annotations
 
+import dataclasses
 import time
 from collections.abc import Sequence
 from pathlib import Path
@@ -173,18 +174,29 @@ def _lift(ds, index: int, near: float, far: float, rgb: np.ndarray, view: dict):
     return clouds.lift_view(views.camera_rays(ds, index, near, far), rgb, view["depth"], view["opacity"])
 
 
+def fits_left_half(cfg) -> bool:
+    """Whether held-out views are scored by NeRF-W's protocol (the embedding fitted on the left
+    half, the right half scored): a model with the appearance embedding and
+    train.appearance_steps > 0; with 0 steps they render with the mean of the training photos'
+    embeddings (`views.held_out_appearance`, no test pixel used) and whole views are scored."""
+    return bool(cfg.model.use_appearance and cfg.train.appearance_steps > 0)
+
+
 def _protocol(ds, cfg) -> str:
     protocol = ("targets are the clean images" if ds.clean_images is not None else "targets are the images")
-    if cfg.model.use_appearance:
+    if fits_left_half(cfg):
         protocol += ("; NeRF-W: the appearance embedding of each test image is fitted on its left half "
                      "(network frozen) and the headline metrics are computed on the right half only")
+    elif cfg.model.use_appearance:
+        protocol += ("; each test image renders with the mean of the training photos' appearance embeddings "
+                     "(no test pixel used, train.appearance_steps = 0)")
     return protocol + ("; rendering shows the static scene only" if cfg.model.use_transient else "")
 
 
 def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = True, dataset=None,
                  distractor_views: int = 4, extra_notes: Sequence[str] = (), reference_ply=None,
                  cloud_views: int = 0, allow_other_data: bool = False, full_size: bool = False,
-                 cloud_pixels: int = 0) -> dict:
+                 cloud_pixels: int = 0, appearance_steps: int | None = None) -> dict:
     """Renders the test views, computes metrics.json and writes report.md. Returns the metrics.
 
     The views are rendered and scored at the run's working resolution (`train.max_side`,
@@ -198,6 +210,9 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     training views in all (`clouds.views_within`: at least 2 views), so large photos cost
     what small ones do.
     allow_other_data: score a dataset other than the run's (runs.check_fingerprint refuses it).
+    appearance_steps: the test-time fit's steps instead of the run's train.appearance_steps (a
+    model with the appearance embedding: 0 scores whole views rendered with the training
+    photos' mean embedding, more NeRF-W's right halves; `fits_left_half`).
     Everything is checked (the dataset's fingerprint, --reference-ply, the LPIPS weights file)
     before anything is rendered or written.
     """
@@ -206,6 +221,9 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
         config_lib.check_value(key, value, int, config_lib.NONNEGATIVE)
     run_dir = Path(run_dir)
     cfg, data, ds = load_run_and_dataset(run_dir, dataset, progress, allow_other_data, full_size)
+    if appearance_steps is not None:
+        config_lib.check_value("eval.appearance_steps", appearance_steps, int, config_lib.NONNEGATIVE)
+        cfg = dataclasses.replace(cfg, train=dataclasses.replace(cfg.train, appearance_steps=appearance_steps))
     ref = reference_cloud(ds, reference_ply)  # a missing or broken --reference-ply fails before rendering
     if reference_ply and ref is not None:
         geometry.read_reference_points(ref[0])
@@ -214,7 +232,7 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     params, step = train.load_params(run_dir, cfg, ds)
     lpips_params = lpips.load_lpips(lpips_weights) if lpips_weights else None
     targets = ds.clean_images if ds.clean_images is not None else ds.images
-    fit_left = cfg.model.use_appearance
+    fit_left = fits_left_half(cfg)
     near, far = config_lib.near_far(cfg.model, ds)
     per_view, figures, cloud = [], [], []
     for i in bar(np.asarray(ds.split["test"]), progress, "eval"):

@@ -269,6 +269,36 @@ def test_train_without_steps_takes_the_budgets_steps_and_records_why(data_dir, t
     assert "--minutes = 0" in capsys.readouterr().err
 
 
+def test_eval_of_an_appearance_model_scores_whole_views_with_the_mean_embedding_or_right_halves(data_dir, tmp_path,
+                                                                                                 capsys):
+    """With train.appearance_steps 0 the held-out view renders with the mean of the training
+    photos' embeddings and the whole view is the headline; with steps it is NeRF-W's right half."""
+    from jaxnerf_grid.train.runs import load_dataset
+    from jaxnerf_grid.util.io import read_image
+
+    cfg_file = tmp_path / "cfg.json"
+    cfg_file.write_text(json.dumps(TINY))
+    run = tmp_path / "run"
+    assert cli.main(["train", *PAPER_MLP, "--data", str(data_dir), "--config", str(cfg_file), "--out", str(run),
+                     "--set", "model.use_appearance=true", "--set", "train.max_steps=10", "--quiet"]) == 0
+    target = load_dataset(data_dir, progress=False).clean_images[4]
+    assert cli.main(["eval", "--run", str(run), "--appearance-steps", "0", "--quiet"]) == 0
+    m = json.loads((run / "metrics.json").read_text())
+    pred = read_image(next((run / "renders").glob("*.png")))
+    whole = -10 * np.log10(np.mean((pred - target) ** 2))
+    assert abs(m["mean"]["psnr"] - whole) < 0.01 and "mean of the training photos'" in m["protocol"]
+    half = target.shape[1] // 2
+    right = -10 * np.log10(np.mean((pred[:, half:] - target[:, half:]) ** 2))
+    assert abs(m["mean_right_half"]["psnr"] - right) < 0.01 and abs(whole - right) > 0.05
+    assert cli.main(["eval", "--run", str(run), "--quiet"]) == 0   # the run's own 30 steps: NeRF-W
+    m = json.loads((run / "metrics.json").read_text())
+    assert m["mean"]["psnr"] == m["mean_right_half"]["psnr"] and "NeRF-W" in m["protocol"]
+    capsys.readouterr()
+    assert cli.main(["eval", "--run", str(run), "--appearance-steps", "-1", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "--appearance-steps" in err and len(err.strip().splitlines()) == 1
+
+
 def test_demo_on_a_capture_from_poses_trains_the_masks_with_the_photometric_evidence(data_dir, tmp_path,
                                                                                     monkeypatch):
     """`demo --data` with masks "auto" on a dataset `poses` registered (its "poses" record) trains
@@ -302,4 +332,5 @@ def test_demo_on_a_capture_from_poses_trains_the_masks_with_the_photometric_evid
             and trained["generated"]["train"]["use_masks"])
     # the capture trains a per-photo appearance embedding; the generated scene keeps the recipe's colour
     assert trained["capture"]["model"]["use_appearance"] is True
+    assert trained["capture"]["train"]["appearance_steps"] == 0  # held-out views: the mean embedding, no fit
     assert not trained["generated"].get("model", {}).get("use_appearance", False)

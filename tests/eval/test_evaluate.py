@@ -151,9 +151,9 @@ def test_distractor_psnr_pools_the_masked_pixels_of_the_first_views(monkeypatch)
 # --------------------------------------------------------------------------- words
 
 
-def _cfg(appearance=False, transient=False, max_side=800):
+def _cfg(appearance=False, transient=False, max_side=800, appearance_steps=30):
     return SimpleNamespace(model=SimpleNamespace(use_appearance=appearance, use_transient=transient),
-                           train=SimpleNamespace(max_side=max_side))
+                           train=SimpleNamespace(max_side=max_side, appearance_steps=appearance_steps))
 
 
 def test_protocol_in_words():
@@ -167,6 +167,9 @@ def test_protocol_in_words():
                                                                "scene only")
     assert evaluate._protocol(plain, _cfg(True, True)) == ("targets are the images" + nerfw
                                                            + "; rendering shows the static scene only")
+    assert evaluate._protocol(plain, _cfg(True, appearance_steps=0)) == (
+        "targets are the images; each test image renders with the mean of the training photos' appearance "
+        "embeddings (no test pixel used, train.appearance_steps = 0)")
 
 
 def test_resolution_record_and_its_line():

@@ -202,10 +202,11 @@ def test_a_capture_trains_appearance_and_the_depth_prior_when_its_sparse_model_i
 
     made = tmp_path / "made"
     (made / "sparse" / "0").mkdir(parents=True)
-    appearance = {"model": {"use_appearance": True}}
-    assert demo.capture_defaults(True, made) == appearance  # no sparse model yet: no depth prior
+    appearance = {"use_appearance": True}
+    assert demo.capture_defaults(True, made) == {"model": appearance, "train": {"appearance_steps": 0}}  # no depth yet
     colmap_model.write_model(made / "sparse" / "0", {}, {}, {})
-    assert demo.capture_defaults(True, made) == {**appearance, "train": {"depth": {"weight": demo.DEPTH_WEIGHT}}}
+    assert demo.capture_defaults(True, made) == {
+        "model": appearance, "train": {"appearance_steps": 0, "depth": {"weight": demo.DEPTH_WEIGHT}}}
     assert demo.capture_defaults(False, made) == {}  # a generated scene keeps the recipe
 
 
