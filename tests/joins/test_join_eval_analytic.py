@@ -108,7 +108,8 @@ def test_defaults_are_the_documented_ones():
     got = {k: v.default for k, v in inspect.signature(evaluate.evaluate_run).parameters.items()}
     assert got == {"run_dir": inspect.Parameter.empty, "lpips_weights": None, "progress": True, "dataset": None,
                    "distractor_views": 4, "extra_notes": (), "reference_ply": None, "cloud_views": 0,
-                   "allow_other_data": False, "full_size": False, "cloud_pixels": 0}
+                   "allow_other_data": False, "full_size": False, "cloud_pixels": 0,
+                   "appearance_steps": None}  # None: the run's own train.appearance_steps
 
 
 def test_metrics_json_is_the_returned_record_with_one_row_per_test_view(evaluated):
