@@ -387,6 +387,12 @@ def fit_span(views: Views, theta0, centre, s_min: float, reaches, up=(0.0, 0.0, 
             "residuals": int(inlier.sum()), "seen": int(seen.sum()), "stations": s}
 
 
+def level_kappa(m0: float, span_length: float) -> float:
+    """The curvature of a level span of that length leaving its attachment at slope m0:
+    2 asinh(-m0) / L (0 for a wire that does not fall from its attachment)."""
+    return 2.0 * math.asinh(max(-m0, 0.0)) / span_length
+
+
 def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
                 span_length: float | None = None) -> tuple[np.ndarray, float]:
     """sigma^2 (J^T J)^-1 over the inlier residuals [N, K] (their nearest detections held fixed:
@@ -412,7 +418,7 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
 
     if span_length:
         def full(q):       # theta of the four free parameters
-            return np.append(q, 2.0 * math.asinh(max(-float(q[3]), 0.0)) / span_length)
+            return np.append(q, level_kappa(float(q[3]), span_length))
         m0 = float(theta[3])
         mapping = np.vstack([np.eye(4), [0.0, 0.0, 0.0, -2.0 / (span_length * math.sqrt(1.0 + m0 * m0))
                                          if m0 < 0 else 0.0]])
@@ -514,7 +520,7 @@ def fit_profile(s: np.ndarray, z: np.ndarray, weight: np.ndarray, kappa_max: flo
         return np.array([line[0], line[1], 0.0]), np.diag([np.inf, np.inf, np.inf])
 
     def kappa_of(m0):
-        return 2.0 * math.asinh(max(-m0, 0.0)) / span_length
+        return level_kappa(m0, span_length)
 
     if span_length:
         def res(p):
@@ -652,6 +658,13 @@ def curve_tangents(theta, centre, s: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarr
     return line[None] + slope[:, None] * u[None]
 
 
+def _polyline_in(drawn: list, i: int) -> np.ndarray:
+    """The projected samples [Q, 2] in front of photo i of the curves `drawn` (each `project_all`'s
+    (u, v, z) [N, S]); one point far off when none is in front, so a nearest-point query finds nothing near."""
+    pieces = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
+    return np.concatenate([q for q in pieces if len(q)] or [np.full((1, 2), 1e12)])
+
+
 def near_other_wires(views: Views, points: np.ndarray, others, centre, reach: float, up=(0.0, 0.0, 1.0),
                      radius_px: float = 3 * DEFAULT_TOL_PX) -> np.ndarray:
     """[N, M] bool: the photos in which point m [M, 3] projects within radius_px of another wire's
@@ -663,8 +676,7 @@ def near_other_wires(views: Views, points: np.ndarray, others, centre, reach: fl
     s_far = np.linspace(0.0, reach, 400)
     drawn = [project_all(curve_points(t, centre, s_far, up), views.c2w, views.intrinsics) for t in others]
     for i in range(len(views.c2w)):
-        pieces = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
-        poly = np.concatenate([q for q in pieces if len(q)] or [np.full((1, 2), 1e12)])
+        poly = _polyline_in(drawn, i)
         d, _ = cKDTree(poly).query(np.stack([u[i], v[i]], 1))
         out[i] = (d <= radius_px + 0.5 * _sample_gap(poly)) & (z[i] > 0)
     return out
@@ -704,7 +716,7 @@ def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0
         t = theta.copy()
         t[free] = q
         if span_length:
-            t[4] = 2.0 * math.asinh(max(-float(t[3]), 0.0)) / span_length
+            t[4] = level_kappa(float(t[3]), span_length)
         return t
 
     lower = np.array([{2: psi0 - max_turn, 3: -1.0, 4: kappa_bounds[0]}.get(k, -np.inf) for k in free])
@@ -806,8 +818,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 # the texture, is followed at a lower support when the usual one loses it
                 track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height,
                                    up, tol_px, window_support, min_views, span_length)
-            found = len(track["found"])
-            if found < min_found or found < min_inlier_share * max(track["tried"], 1):
+            if not _enough(track, min_found, min_inlier_share):
                 continue
             theta = track["theta"]
             if refine:
@@ -860,7 +871,7 @@ def side_span(lengths: np.ndarray) -> tuple[float, float]:
 def with_span(theta, length: float) -> np.ndarray:
     """theta [5] with the curvature of a level span of that length at its slope: 2 asinh(-m0) / L."""
     out = np.asarray(theta, np.float64).copy()
-    out[4] = 2.0 * math.asinh(max(-float(out[3]), 0.0)) / length
+    out[4] = level_kappa(float(out[3]), length)
     return out
 
 
@@ -1042,8 +1053,7 @@ def shared_evidence(views: Views, track: np.ndarray, theta, others: list, centre
     drawn = [project_all(curve_points(t, centre, s_far, up), views.c2w, views.intrinsics) for t in others]
     shared = np.zeros_like(ok)
     for i in np.nonzero(ok.any(axis=1))[0]:
-        pieces = [np.stack([uu[i], vv[i]], 1)[zz[i] > 0] for uu, vv, zz in drawn]
-        poly = np.concatenate([q for q in pieces if len(q)] or [np.full((1, 2), 1e12)])
+        poly = _polyline_in(drawn, int(i))
         d, _ = cKDTree(poly).query(det[i][ok[i]])
         # the polyline's samples are up to a few pixels apart: a detection on it is within half that
         shared[i, np.nonzero(ok[i])[0]] = d <= tol_px + 0.5 * _sample_gap(poly)
