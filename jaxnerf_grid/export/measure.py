@@ -8,9 +8,12 @@ with the ground plane n . x + d = 0 (|n| = 1, n_z > 0; `export.ground`).
   height, at least one voxel), projected on the plane; the minimum-area rectangle around them
   (`min_area_rectangle`, exact: one side lies on an edge of the convex hull) gives the base
   width along its two sides.
+* the arms' axes (`arm_axes`): the principal axes of the horizontal spread of the mesh's upper
+  half, where the arms are the widest members (the footprint's rectangle is no guide to them: a
+  base seen by its two lowest legs gives a diagonal rectangle).
 * cross-arms (`cross_arms`, a heuristic): the mesh is cut into horizontal slices; a slice
-  belongs to the cross-arm region when its width along the footprint's first axis or second
-  axis exceeds `ratio` times the body width (the other axis's width in that slice). Within that
+  belongs to the cross-arm region when its width along the arms' axis or the one across it
+  exceeds `ratio` times the body width (the other axis's width in that slice). Within that
   region, a cross-arm level is a slice holding a local maximum of vertices (arms are horizontal
   members, dense in height) with at least 1.5 times the median count of all slices; its span is the
   extent of the vertices within one slice of it along the wide axis, and its end points are that
@@ -82,16 +85,41 @@ def footprint(points: np.ndarray, normal, d: float, band: float) -> dict:
             "axis_b": [float(v) for v in np.cross(n, axis_a)], "band": [low, low + band], "points": int(len(base))}
 
 
+def arm_axes(points: np.ndarray, normal, d: float, top_share: float = 0.5) -> tuple[np.ndarray, np.ndarray]:
+    """The cross-arms' axis and the one across it, both in the plane: the principal axes of the
+    plane coordinates of the points [N, 3] in the upper `top_share` of their height range.
+    Returns (axis [3], across [3] = n x axis), unit vectors; the world x projected on the plane
+    and n x it when the points are fewer than two or spread alike both ways."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    n = np.asarray(normal, np.float64)
+    n = n / np.linalg.norm(n)
+    e1, e2 = plane_basis(n)
+    if len(p) < 2:
+        return e1, e2
+    h = p @ n + d
+    top = p[h >= h.min() + (1.0 - top_share) * np.ptp(h)]
+    q = np.stack([top @ e1, top @ e2], axis=1)
+    q -= q.mean(axis=0)
+    values, vectors = np.linalg.eigh(q.T @ q)      # ascending
+    if values[1] <= values[0] * (1.0 + 1e-9):
+        return e1, e2
+    major = vectors[:, 1]
+    axis = major[0] * e1 + major[1] * e2
+    return axis, np.cross(n, axis)
+
+
 def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_height: float, ratio: float = 1.5,
                separation: float | None = None) -> dict:
     """The cross-arm region and levels of a tower (module docstring). points [N, 3]; axis_a,
-    axis_b: the footprint's axes [3]; separation: levels closer than this keep only the one
+    axis_b: the axes the widths are taken along [3] (`arm_axes`); separation: levels closer than this keep only the one
     with more vertices (default 6 % of the points' height range).
     Returns {"region": [low, high] | None, "levels": [{"height", "span", "axis", "ends"}],
-    "slice_height", "ratio"} (heights above the plane; "ends": the span's two end points [2, 3] in
-    the points' frame, |ends[1] - ends[0]| = span)."""
+    "slice_height", "ratio", "axis_a", "axis_b"} (heights above the plane; a level's "axis": "a" or
+    "b", the one its arms lie along; "ends": the span's two end points [2, 3] in the points' frame,
+    |ends[1] - ends[0]| = span)."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    out: dict[str, Any] = {"region": None, "levels": [], "slice_height": float(slice_height), "ratio": float(ratio)}
+    out: dict[str, Any] = {"region": None, "levels": [], "slice_height": float(slice_height), "ratio": float(ratio),
+                           "axis_a": [float(v) for v in axis_a], "axis_b": [float(v) for v in axis_b]}
     if len(p) < 10:
         return out
     h = p @ np.asarray(normal, np.float64) + d

@@ -321,7 +321,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         meas["height"] = height
         fp = measure.footprint(verts_m, n_m, d_m, max(0.05 * (height - float(heights.min())), 2 * h / scale))
         meas["footprint"] = fp
-        meas["cross_arms"] = measure.cross_arms(verts_m, n_m, d_m, fp["axis_a"], fp["axis_b"],
+        meas["cross_arms"] = measure.cross_arms(verts_m, n_m, d_m, *measure.arm_axes(verts_m, n_m, d_m),
                                                 max(0.01 * height, 2 * h / scale))
         meas["tilt"] = measure.axis_tilt(verts_m, n_m, d_m, fp["axis_a"], fp["axis_b"],
                                          max(0.01 * height, 2 * h / scale))
@@ -381,14 +381,15 @@ CONDUCTOR_SPACING = 0.5   # export units between the classified cloud's points a
 
 
 def _line_azimuth(meas: dict, up: np.ndarray) -> float | None:
-    """The line's azimuth (`catenary.line_axes`) across the cross-arms: the arms' axis (the
-    footprint's axis of the most levels) turned a quarter about up; None without cross-arms."""
-    levels = (meas.get("cross_arms") or {}).get("levels") or []
-    fp = meas.get("footprint") or {}
-    if not levels or not fp:
+    """The line's azimuth (`catenary.line_axes`) across the cross-arms: the arms' axis (of the
+    cross-arms' two axes, the one most levels lie along) turned a quarter about up; None without
+    cross-arms."""
+    arms = meas.get("cross_arms") or {}
+    levels = arms.get("levels") or []
+    if not levels or "axis_a" not in arms:
         return None
     names = [lv["axis"] for lv in levels]
-    arm = np.asarray(fp["axis_a"] if names.count("a") >= names.count("b") else fp["axis_b"], np.float64)
+    arm = np.asarray(arms["axis_a"] if names.count("a") >= names.count("b") else arms["axis_b"], np.float64)
     line = np.cross(up, arm)
     e1, e2, _ = catenary.line_axes(0.0, up)
     return math.atan2(float(line @ e2), float(line @ e1))

@@ -1137,8 +1137,10 @@ def test_conductor_step_hands_the_span_length_and_the_arm_tips_to_find_spans_and
     ds = SimpleNamespace(images=images, c2w=c2w, intrinsics=np.tile([50.0, 50.0, 32.0, 24.0], (4, 1)),
                          normalization=None)
     meas = {"ground": {"normal": [0.0, 0.0, 1.0], "offset": 0.0, "clearance": 0.1}, "height": 30.0,
-            "footprint": {"axis_a": [1.0, 0.0, 0.0], "axis_b": [0.0, 1.0, 0.0]}, "tilt": {"base": [0.0, 0.0, 0.0]},
-            "cross_arms": {"levels": [{"height": 17.5, "span": 14.0, "axis": "a",
+            # a diagonal footprint (two lowest legs): the line's direction comes from the arms' axes
+            "footprint": {"axis_a": [0.6, 0.8, 0.0], "axis_b": [-0.8, 0.6, 0.0]}, "tilt": {"base": [0.0, 0.0, 0.0]},
+            "cross_arms": {"axis_a": [1.0, 0.0, 0.0], "axis_b": [0.0, 1.0, 0.0],
+                           "levels": [{"height": 17.5, "span": 14.0, "axis": "a",
                                        "ends": [[7.0, 0.0, 17.5], [-7.0, 0.0, 17.5]]}]}}
     calls = []
 

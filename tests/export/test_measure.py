@@ -97,6 +97,56 @@ def test_cross_arms_median_counts_only_the_slices_with_points():
     assert _levels(arms) == [(3.5, 4.0, "a")]
 
 
+def _lattice_tower(theta_deg: float) -> tuple[np.ndarray, list[float]]:
+    """A tower's surface points [N, 3] on level ground z = 0: four legs from (+-4, +-4) at z = 0 to
+    (+-1, +-1) at z = 30 (the +x+y leg and the -x-y one reach down to z = 0, the other two stop
+    at z = 2, so the lowest band holds two feet on a diagonal), and three arms at z = 15, 19, 23,
+    each 16 long and 0.5 wide, centred on the axis, along the direction theta_deg from x.
+    Returns (points, the arms' heights)."""
+    pts = []
+    for sx, sy in ((1, 1), (-1, -1), (1, -1), (-1, 1)):
+        z0 = 0.0 if sx == sy else 2.0
+        for z in np.arange(z0, 30.0, 0.1):
+            r = 4.0 - 3.0 * z / 30.0
+            pts.append((sx * r, sy * r, z))
+    t = np.radians(theta_deg)
+    along, across = np.array([np.cos(t), np.sin(t)]), np.array([-np.sin(t), np.cos(t)])
+    heights = [15.0, 19.0, 23.0]
+    for z in heights:
+        for u in np.arange(-8.0, 8.01, 0.1):
+            for v in (-0.25, 0.25):
+                for dz in (0.0, 0.2):
+                    pts.append((*(u * along + v * across), z + dz))
+    return np.asarray(pts), heights
+
+
+def test_arm_axes_lie_along_the_arms_whatever_the_legs():
+    """The tower above with arms at 20 degrees from x: the arms' axis within 0.5 degrees of 20 (or
+    200), the other axis a quarter turn from it, both in the ground plane."""
+    pts, _ = _lattice_tower(20.0)
+    axis, across = measure.arm_axes(pts, UP, 0.0)
+    angle = np.degrees(np.arctan2(axis[1], axis[0])) % 180.0
+    assert abs(angle - 20.0) < 0.5
+    np.testing.assert_allclose([axis @ across, axis[2], across[2]], 0.0, atol=1e-12)
+    np.testing.assert_allclose([np.linalg.norm(axis), np.linalg.norm(across)], 1.0, atol=1e-12)
+
+
+def test_cross_arms_along_the_arm_axes_finds_every_arm_where_the_footprint_axes_find_none():
+    """The tower above (arms along x): its footprint is the two feet on the diagonal, a rectangle
+    along (1, 1) / sqrt 2, across which an arm along x is as wide as along it, so no slice is
+    wide and no level is found; along `arm_axes` every arm is found, within one 0.3-high slice
+    of its middle height (z + 0.1), each span 16 within one point spacing and two slices' spread."""
+    pts, heights = _lattice_tower(0.0)
+    fp = measure.footprint(pts, UP, 0.0, band=1.5)
+    assert abs(abs(fp["axis_a"][0]) - np.sqrt(0.5)) < 1e-6
+    assert measure.cross_arms(pts, UP, 0.0, fp["axis_a"], fp["axis_b"], slice_height=0.3)["levels"] == []
+    arms = measure.cross_arms(pts, UP, 0.0, *measure.arm_axes(pts, UP, 0.0), slice_height=0.3)
+    found = sorted(lv["height"] for lv in arms["levels"])
+    assert len(found) == 3
+    np.testing.assert_allclose(found, np.array(heights) + 0.1, atol=0.3)   # the arm's middle height
+    np.testing.assert_allclose([lv["span"] for lv in arms["levels"]], 16.0, atol=0.2)
+
+
 # --------------------------------------------------------------------------- axis_tilt
 # slice k of a tower: a square (or rectangle) of 4 points centred on (a, b), two at z = k + 0.25,
 # two at k + 0.75 (mean height k + 0.5; the lowest point 0.25 starts the slices, so slice k is
