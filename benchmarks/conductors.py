@@ -64,9 +64,22 @@ def curve_rms(fitted: np.ndarray, truth: np.ndarray) -> float:
     return float(np.sqrt(np.mean(d ** 2)))
 
 
+def goes_along(record: dict, t: dict) -> bool:
+    """Whether a fitted span runs from its attachment the way the true span t does: its far
+    attachment ahead along t's horizontal direction. A record's own "side" counts along the line
+    direction its export chose (the cross-arms' axis turned a quarter, of either sign), so it is
+    used only when the far attachment is unknown."""
+    far = (record.get("far_attachment") or {}).get("value")
+    if far is None:
+        return record["side"] == t["side"]
+    ahead = np.asarray(far, np.float64) - np.asarray(record["attachment"]["value"], np.float64)
+    return float(ahead[:2] @ (t["far"] - t["attachment"])[:2]) > 0.0
+
+
 def score(records: list[dict], truth: list[dict]) -> dict:
     """Matches fitted spans (measurements.json's `conductors.spans` records) to the true ones by
-    side and attachment (within MATCH_RADIUS) and scores each (module docstring)."""
+    direction (`goes_along`) and attachment (within MATCH_RADIUS) and scores each (module
+    docstring)."""
 
     rows, used = [], set()
     for t in truth:
@@ -74,7 +87,7 @@ def score(records: list[dict], truth: list[dict]) -> dict:
         for i, r in enumerate(records):
             a = np.asarray(r["attachment"]["value"], np.float64)
             d = float(np.linalg.norm(a - t["attachment"]))
-            if r["side"] == t["side"] and d < best_d and i not in used:
+            if goes_along(r, t) and d < best_d and i not in used:
                 best, best_d = i, d
         row = {"wire": t["wire"], "earth": bool(t["earth"]), "side": t["side"], "found": best is not None,
                "true_sag": t["sag"], "true_lowest_z": t["lowest_z"]}
