@@ -125,12 +125,13 @@ METRIC_KEYS = ("psnr", "ssim", "ms_ssim", "lpips")
 
 def _fit_left_half(params, cfg, ds, index: int, target: np.ndarray, rays) -> np.ndarray:
     """NeRF-W's test protocol: the appearance embedding [A] of a test image fitted on its left
-    half (network frozen). target: [H, W, 3]; rays: the view's Rays [H, W]."""
+    half (network frozen), from the mean of the training photos' rows (`held_out_appearance`).
+    target: [H, W, 3]; rays: the view's Rays [H, W]."""
     half = ds.width // 2
     left = rays_lib.Rays(*(jax.numpy.asarray(np.asarray(x)[:, :half].reshape(-1, *np.asarray(x).shape[2:]))
                            for x in rays))
     return views.fit_appearance(params, cfg.model, cfg.train, left, target[:, :half].reshape(-1, 3),
-                                jax.random.PRNGKey(index))
+                                jax.random.PRNGKey(index), views.held_out_appearance(params, cfg, ds, index))
 
 
 def _right_half_metrics(rgb: np.ndarray, target: np.ndarray, lpips_params) -> dict:

@@ -156,11 +156,12 @@ def render_view(params, cfg: RunConfig, dataset: Dataset, index: int, appearance
 
 
 def fit_appearance(params, mcfg: models.ModelConfig, tcfg: TrainConfig, r: rays_lib.Rays,
-                   target: np.ndarray, key) -> np.ndarray:
+                   target: np.ndarray, key, start=None) -> np.ndarray:
     """Fits one appearance embedding to some pixels with the network frozen (NeRF-W's test
     protocol, used on the left half of a test image).
 
-    r: Rays [M]; target: [M, 3]. Starts from the mean of the training embeddings, runs
+    r: Rays [M]; target: [M, 3]; start: [A], the embedding the fit starts from (the held-out
+    frame's `held_out_appearance`; None: the mean of every row of the table). Runs
     `appearance_steps` Adam steps on batches of `appearance_rays` pixels against the static
     rendering. Returns [A] NumPy.
     """
@@ -168,7 +169,7 @@ def fit_appearance(params, mcfg: models.ModelConfig, tcfg: TrainConfig, r: rays_
         raise ValueError("fit_appearance: the model has no appearance embedding")
     count = r.origins.shape[0]
     opt = optim.adam(tcfg.appearance_lr)
-    emb = jnp.mean(params["appearance"], axis=0)
+    emb = jnp.mean(params["appearance"], axis=0) if start is None else jnp.asarray(start, jnp.float32)
     opt_state = opt.init(emb)
 
     @jax.jit

@@ -181,6 +181,24 @@ def test_nerfw_appearance_fit_reduces_error():
     assert err(after) < err(before)
 
 
+def test_the_left_half_fit_starts_from_the_training_photos_mean_appearance():
+    """With no fitting step, NeRF-W's left-half fit of held-out frame 4 returns where it starts:
+    the mean of the training rows 0-3, not of all five (row 4 was never trained)."""
+    from jaxnerf_grid.eval import evaluate
+
+    ds = tiny_dataset()  # frames 0-3 train, frame 4 is held out
+    cfg = tiny_config("nerfw")
+    cfg = dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, num_images=5, appearance_dim=4,
+                                                             use_transient=False),
+                              train=dataclasses.replace(cfg.train, appearance_steps=0))
+    params = train.init_state(cfg)["params"]
+    rows = np.arange(20, dtype=np.float32).reshape(5, 4) / 10.0
+    params = dict(params, appearance=jnp.asarray(rows))
+    rays = views.camera_rays(ds, 4, *config_lib.near_far(cfg.model, ds))
+    emb = evaluate._fit_left_half(params, cfg, ds, 4, np.asarray(ds.images[4]), rays)
+    np.testing.assert_allclose(emb, sum(rows[i] for i in range(4)) / 4, atol=1e-6)
+
+
 def test_a_held_out_view_renders_with_the_training_photos_mean_appearance():
     ds = tiny_dataset()  # frames 0-3 train, frame 4 is held out
     cfg = tiny_config("nerfw")
