@@ -17,6 +17,12 @@ curve to the true one over the true span (metres), the azimuth's error (radians)
 error (the true sag: the lowest point below the attachments) and that error in the sag's stated
 1-sigma, the lowest point's height error, the lowest point's clearance above the true ground
 (z = 0) against the truth; and the spans found that match no cable (invented).
+
+An export of photos posed by `poses` from their GPS (a scene `synth --gps-origin` wrote, its
+gps_truth.json beside it) is in the CRS's local frame: its spans are moved into the generator's
+world by the translation between the two (`gps_shift`), so the GPS's own error stays in the
+figures (`--match-radius` widens the attachments' match for it); the clearance is over the
+export's own ground and needs no move.
 """
 
 from __future__ import annotations
@@ -76,14 +82,14 @@ def goes_along(record: dict, t: dict) -> bool:
     return float(ahead[:2] @ (t["far"] - t["attachment"])[:2]) > 0.0
 
 
-def score(records: list[dict], truth: list[dict]) -> dict:
+def score(records: list[dict], truth: list[dict], match_radius: float = MATCH_RADIUS) -> dict:
     """Matches fitted spans (measurements.json's `conductors.spans` records) to the true ones by
-    direction (`goes_along`) and attachment (within MATCH_RADIUS) and scores each (module
+    direction (`goes_along`) and attachment (within match_radius, m) and scores each (module
     docstring)."""
 
     rows, used = [], set()
     for t in truth:
-        best, best_d = None, MATCH_RADIUS
+        best, best_d = None, match_radius
         for i, r in enumerate(records):
             a = np.asarray(r["attachment"]["value"], np.float64)
             d = float(np.linalg.norm(a - t["attachment"]))
@@ -123,6 +129,40 @@ def score(records: list[dict], truth: list[dict]) -> dict:
             "worst_rms": worst("rms"), "worst_sag_error_rel": worst("sag_error_rel"),
             "worst_lowest_z_error": worst("lowest_z_error"), "worst_clearance_error": worst("clearance_error"),
             "worst_sag_error_sigmas": worst("sag_error_sigmas")}
+
+
+def gps_shift(measurements: dict, data: Path) -> np.ndarray | None:
+    """The translation [3] from an export's frame to the generator's world, for a scene written by
+    `synth --gps-origin` (its gps_truth.json: x_crs = x_world + tower_base_crs) and an export in a
+    CRS (measurements.json survey.base_centre: crs = local + the dataset's origin): origin -
+    tower_base_crs. None when either is missing (the export is in the generator's frame)."""
+    truth_file = Path(data) / "gps_truth.json"
+    base = ((measurements.get("survey") or {}).get("base_centre")) or {}
+    if not truth_file.is_file() or base.get("crs") is None:
+        return None
+    truth = json.loads(truth_file.read_text())
+    origin = np.asarray(base["crs"], np.float64) - np.asarray(base["local"], np.float64)
+    return origin - np.asarray(truth["tower_base_crs"], np.float64)
+
+
+def shifted(record: dict, shift: np.ndarray) -> dict:
+    """A span record moved by shift [3]: its points, and its curve (the horizontal part of the
+    shift on "centre", the part along "up" on the attachment height theta[1])."""
+    shift = np.asarray(shift, np.float64)
+    up = np.asarray(record.get("up", [0.0, 0.0, 1.0]), np.float64)
+    up = up / np.linalg.norm(up)
+    out = dict(record)
+    for key in ("attachment", "far_attachment", "lowest_point"):
+        fig = record.get(key) or {}
+        if fig.get("value") is not None:
+            out[key] = {**fig, "value": [float(v) for v in np.asarray(fig["value"], np.float64) + shift]}
+    vertical = float(shift @ up)
+    out["centre"] = [float(v) for v in np.asarray(record.get("centre", [0.0, 0.0, 0.0]), np.float64)
+                     + shift - vertical * up]
+    theta = [float(v) for v in record["theta"]]
+    theta[1] += vertical
+    out["theta"] = theta
+    return out
 
 
 def scene_meta(data: Path, size: tuple[int, int] | None = None) -> dict:
@@ -249,6 +289,9 @@ def main(argv=None) -> int:
                    help="each wire keeps its own refined azimuth (find_spans shared_azimuth=False)")
     p.add_argument("--no-shared-span", action="store_true",
                    help="without --span-length, each wire keeps its own curvature (find_spans shared_span=False)")
+    p.add_argument("--match-radius", type=float, default=MATCH_RADIUS, metavar="M",
+                   help=f"a fitted span matches a cable when their attachments lie this close "
+                        f"(default {MATCH_RADIUS} m; an export georeferenced by GPS is off by the GPS's error)")
     p.add_argument("--out", type=Path, default=Path("benchmarks/results/conductors.json"))
     args = p.parse_args(argv)
     from jaxnerf_grid.util import io
@@ -280,8 +323,13 @@ def main(argv=None) -> int:
         if i < len(args.export):
             m = io.read_json(args.export[i] / "measurements.json")
             spans = ((m.get("conductor_spans") or {}).get("spans")) or []
+            shift = gps_shift(m, data)
+            if shift is not None:
+                spans = [shifted(r, shift) for r in spans]
             timings = m.get("timings") or {}
-            entry["export"] = {"folder": str(args.export[i]), **score(spans, truth),
+            entry["export"] = {"folder": str(args.export[i]),
+                               "shift_to_world": None if shift is None else [float(v) for v in shift],
+                               **score(spans, truth, args.match_radius),
                                "export_seconds": m.get("seconds"), "conductor_seconds": timings.get("conductors")}
             print(json.dumps({k: v for k, v in entry["export"].items() if k != "spans"}), file=sys.stderr)
         results.append(entry)

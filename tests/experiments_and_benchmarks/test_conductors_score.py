@@ -46,3 +46,28 @@ def test_a_span_labelled_the_other_side_is_matched_with_the_true_span_it_runs_al
     assert out["found"] == 2 and out["invented"] == 0
     assert out["worst_rms"] < 0.02          # the fitted polyline's points lie 0.04 m apart
     assert out["worst_sag_error_rel"] < 1e-6
+
+
+def test_a_shifted_record_is_the_same_curve_moved_by_the_shift():
+    """`shifted` by t = (3, -2, 1.5): the record's curve at every station is the original's + t, and
+    its attachment, far attachment and lowest point are the original's + t."""
+    record = _record(-math.pi / 2, +1)
+    t = np.array([3.0, -2.0, 1.5])
+    moved = bench.shifted(record, t)
+    s = np.linspace(0.0, L, 50)
+    before = catenary.curve_points(record["theta"], record["centre"], s, record["up"])
+    after = catenary.curve_points(moved["theta"], moved["centre"], s, moved["up"])
+    np.testing.assert_allclose(after, before + t, atol=1e-9)
+    for key in ("attachment", "far_attachment", "lowest_point"):
+        np.testing.assert_allclose(moved[key]["value"], np.asarray(record[key]["value"]) + t, atol=1e-9)
+
+
+def test_gps_shift_is_the_export_origin_less_the_tower_base(tmp_path):
+    """An export whose base centre is at local (1, 2, 3), CRS (501, 1002, 403) (origin (500, 1000,
+    400)), a scene whose tower base is at CRS (499, 1001, 401): the shift is (1, -1, -1); no
+    gps_truth.json, or no CRS in the export: None."""
+    meas = {"survey": {"base_centre": {"local": [1.0, 2.0, 3.0], "crs": [501.0, 1002.0, 403.0]}}}
+    assert bench.gps_shift(meas, tmp_path) is None
+    (tmp_path / "gps_truth.json").write_text('{"tower_base_crs": [499.0, 1001.0, 401.0]}')
+    np.testing.assert_allclose(bench.gps_shift(meas, tmp_path), [1.0, -1.0, -1.0])
+    assert bench.gps_shift({"survey": {"base_centre": {"local": [1.0, 2.0, 3.0], "crs": None}}}, tmp_path) is None
