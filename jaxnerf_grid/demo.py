@@ -176,9 +176,9 @@ def mask_plan(choice: str, domain: dict | None, capture: bool = False) -> dict:
     """What trains, for `demo --masks choice` on a dataset whose masks got the verdict `domain`
     (transforms.json's `mask_domain`: `masking.domain_verdict`; None when not judged, e.g.
     ground-truth masks or masks made before the rule existed). capture: the dataset is real
-    photos registered by `poses` (`is_capture`): "auto" then adds the photometric evidence to
-    the DPT's masks, for what masks do not cover (pose error, exposure, view-dependent light,
-    what few photos see; measured in docs/RESULTS.md, "Real photos").
+    photos registered by `poses` (`is_capture`): "auto" trains on the DPT's masks there too,
+    without the photometric evidence, which takes a tower's thin members for outliers (docs/MASKS.md
+    "Which masks train"; measured in docs/RESULTS.md, "Real photos"), and the report says so.
 
     Returns {"mode": "dpt" | "robust" | "dpt+robust" | "none", "overrides": the train.* config
     changes ({"train": {"use_masks": bool[, "robust": {"mode": mode}]}}; `robust` only when not "off",
@@ -194,15 +194,14 @@ def mask_plan(choice: str, domain: dict | None, capture: bool = False) -> dict:
                    f"{_share_text()} of their pixels masked, median {domain['median_share']:.0%}), so its "
                    "masks are not used")
         else:
-            mode = "dpt+robust" if capture else "dpt"
+            mode = "dpt"
             why = ("chosen automatically: the DPT is in its domain on these photos "
                    f"({domain['frames_mostly_masked']} of {domain['frames']} frames mostly masked, median "
                    f"{domain['median_share']:.0%})" if domain is not None else
                    "chosen automatically: the dataset's masks (not judged by the out-of-domain rule)")
             if capture:
-                why += ("; the photos are a real capture (registered by `poses`), so the photometric evidence "
-                        "also judges each pixel, for what masks do not cover: pose error, exposure, "
-                        "view-dependent light")
+                why += ("; the photometric evidence is not added on a real capture: it takes a tower's thin "
+                        "members for outliers (`--masks dpt+robust` adds it)")
     else:
         mode, why = choice, f"forced by the user (demo.masks = {choice})"
     train_over: dict[str, Any] = {"use_masks": mode in ("dpt", "dpt+robust")}

@@ -171,18 +171,21 @@ def test_mask_plan(choice, domain, mode, train):
 
 
 @pytest.mark.parametrize("domain, mode", [
-    ({"out_of_domain": False, "frames": 4, "frames_mostly_masked": 0, "median_share": 0.0}, "dpt+robust"),
+    ({"out_of_domain": False, "frames": 4, "frames_mostly_masked": 0, "median_share": 0.0}, "dpt"),
     ({"out_of_domain": True, "frames": 4, "frames_mostly_masked": 4, "median_share": 0.7}, "robust"),
-    (None, "dpt+robust"),
+    (None, "dpt"),
 ])
-def test_auto_adds_the_photometric_evidence_to_the_masks_of_a_real_capture(domain, mode):
+def test_auto_trains_a_real_capture_on_the_dpt_masks_without_the_photometric_evidence(domain, mode):
+    """On a capture, auto is the DPT's masks alone where they are in their domain (the evidence
+    takes a tower's thin members for outliers), the evidence alone where they are not; the
+    report's sentence says why the evidence is left out; a forced choice stays the user's."""
     plan = demo.mask_plan("auto", domain, capture=True)
     assert plan["mode"] == mode
-    assert plan["overrides"]["train"]["robust"] == {"mode": mode}
-    assert plan["overrides"]["train"]["use_masks"] == (mode == "dpt+robust")
-    assert ("real capture" in plan["why"]) == (mode == "dpt+robust")
-    # a forced choice stays the user's on a capture too
-    assert demo.mask_plan("dpt", domain, capture=True)["mode"] == "dpt"
+    assert plan["overrides"]["train"]["use_masks"] == (mode == "dpt")
+    assert plan["overrides"]["train"].get("robust") == (None if mode == "dpt" else {"mode": "robust"})
+    assert ("thin members" in plan["why"]) == (mode == "dpt")
+    assert demo.mask_plan("dpt+robust", domain, capture=True)["mode"] == "dpt+robust"
+    assert "thin members" not in demo.mask_plan("auto", domain)["why"]
 
 
 def test_a_dataset_is_a_capture_when_poses_registered_it(tmp_path):
