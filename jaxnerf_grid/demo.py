@@ -201,7 +201,7 @@ def mask_plan(choice: str, domain: dict | None, capture: bool = False) -> dict:
                    "chosen automatically: the dataset's masks (not judged by the out-of-domain rule)")
             if capture:
                 why += ("; the photometric evidence is not added on a real capture: it takes a tower's thin "
-                        "members for outliers (`--masks dpt+robust` adds it)")
+                        "members for outliers (demo.masks = dpt+robust adds it)")
     else:
         mode, why = choice, f"forced by the user (demo.masks = {choice})"
     train_over: dict[str, Any] = {"use_masks": mode in ("dpt", "dpt+robust")}

@@ -131,7 +131,7 @@ def _fit_left_half(params, cfg, ds, index: int, target: np.ndarray, rays) -> np.
     left = rays_lib.Rays(*(jax.numpy.asarray(np.asarray(x)[:, :half].reshape(-1, *np.asarray(x).shape[2:]))
                            for x in rays))
     return views.fit_appearance(params, cfg.model, cfg.train, left, target[:, :half].reshape(-1, 3),
-                                jax.random.PRNGKey(index), views.held_out_appearance(params, cfg, ds, index))
+                                jax.random.PRNGKey(index), start=views.held_out_appearance(params, cfg, ds, index))
 
 
 def _right_half_metrics(rgb: np.ndarray, target: np.ndarray, lpips_params) -> dict:

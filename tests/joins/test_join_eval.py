@@ -139,8 +139,8 @@ class _FitSpy:
     def __init__(self, real):
         self.real, self.calls = real, []
 
-    def __call__(self, params, mcfg, tcfg, r, target, key):
-        emb = self.real(params, mcfg, tcfg, r, target, key)
+    def __call__(self, params, mcfg, tcfg, r, target, key, start=None):
+        emb = self.real(params, mcfg, tcfg, r, target, key, start=start)
         self.calls.append({"rays": r, "target": np.asarray(target), "emb": np.asarray(emb)})
         return emb
 

@@ -251,7 +251,7 @@ def test_fit_left_half_hands_fit_appearance_the_left_half_and_the_views_key(monk
     target = np.random.default_rng(1).uniform(0, 1, (H, W + 1, 3)).astype(np.float32)
     calls = []
 
-    def fit(params, mcfg, tcfg, r, tgt, key):
+    def fit(params, mcfg, tcfg, r, tgt, key, start=None):
         calls.append((params, mcfg, tcfg, r, np.asarray(tgt), np.asarray(key)))
         return np.arange(4.0)
 
@@ -397,7 +397,7 @@ def test_nerfw_protocol_fits_each_test_views_appearance_on_its_left_half(evaluat
     params = dict(af.params(cfg.model), appearance=np.zeros((FRAMES, 3), np.float32))
     fitted, rendered = [], []
 
-    def fit(params_, mcfg, tcfg, r, tgt, key):
+    def fit(params_, mcfg, tcfg, r, tgt, key, start=None):
         fitted.append((params_, mcfg, tcfg, r, np.asarray(tgt), np.asarray(key)))
         return np.full(3, 0.25 * len(fitted), np.float32)
 
