@@ -553,3 +553,57 @@ def test_without_a_span_length_the_wires_of_a_side_share_one_and_each_records_it
         rec = cond.span_record(f, np.zeros(3))
         assert rec["span_length_given"] is None and rec["span_length_shared"][0] == shared
         assert 0 < rec["sag"]["sigma"] < math.inf
+
+
+def test_side_slope_is_the_median_of_the_wires_own_and_its_sigma_the_scaled_mad():
+    """Slopes -0.100, -0.101, -0.099, -0.1005 and one wire tracked onto its neighbour near the
+    tower, -0.131: the shared slope is the median, -0.1005 by hand (the sorted middle one), the
+    outlier moving it by one place only; its sigma 1.4826 MAD / sqrt(5), the deviations 0.0005,
+    0.0005, 0.0015, 0 and 0.0305 giving MAD 0.0005."""
+    slopes = np.array([-0.100, -0.101, -0.099, -0.1005, -0.131])
+    slope, sigma = cond.side_slope(slopes)
+    assert slope == -0.1005
+    assert sigma == pytest.approx(1.4826 * 0.0005 / math.sqrt(5), rel=1e-9)
+    theta = cond.with_slope(np.array([7.6, 14.9, math.pi / 2, -0.2, 0.0]), slope, 320.0)
+    assert theta[3] == slope and theta[4] == pytest.approx(2 * math.asinh(0.1005) / 320.0, rel=1e-12)
+
+
+def test_the_wires_hung_from_the_arms_share_one_sag_the_median_and_the_earth_wire_keeps_its_own():
+    """Four wires hung from cross-arm tips (an insulator 2.6 m below each tip) and an earth wire at
+    the top, no span length: three of the arms' wires hang as the true span (sag 8.01 m by the
+    closed form), one 30 % deeper (a stand-in for a wire whose own fit went wrong). With
+    `shared_sag` the four arms' wires have one slope and one sag, the majority's within 2 % (a
+    mean would be 7 % off), and each records it as "slope_shared"; the deeper one alone keeps
+    its own sag (over 20 % deeper) without it; the earth wire, found in the open plane, keeps its
+    own curve and records no shared slope either way."""
+    rng = np.random.default_rng(21)
+    c2w = ring_cameras()
+    arms = [(7.6, 14.9), (-7.6, 18.9), (7.6, 22.9), (-7.6, 26.9)]
+    s = np.arange(0.0, 2 * XV_TRUE + 0.02, 0.02)
+    deep = 1.3 * A_TRUE * (np.cosh((s - XV_TRUE) / A_TRUE) - np.cosh(XV_TRUE / A_TRUE))
+    curves = [wire_at(x, z) for x, z in arms] + [wire_at(0.0, 30.3)]
+    curves[1] = np.stack([np.full_like(s, arms[1][0]), s, arms[1][1] + deep], axis=1)
+    views = views_of(render_photos(c2w, curves, rng), c2w)
+    seeds = [(-x, z + 2.6) for x, z in arms]            # e_across = -x on side +1
+    true_sag = A_TRUE * (math.cosh(XV_TRUE / A_TRUE) - 1.0)
+
+    def side(**kw):
+        out = {}
+        for f in cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4, seeds=seeds,
+                                 seed_window=(1.5, 7.6, 1.5), **kw):
+            if f["side"] == 1:
+                z = catenary.derived(f["theta"], np.zeros(3))["attachment"][2]
+                out[round(float(z) / 4.0)] = f             # by height: 4, 5, 6, 7 the arms', 8 the earth wire
+        return out
+
+    own, shared = side(shared_sag=False), side()
+    assert sorted(own) == sorted(shared) == [4, 5, 6, 7, 8]
+    sags = {k: catenary.derived(f["theta"], np.zeros(3))["sag"] for k, f in shared.items()}
+    assert len({float(shared[k]["theta"][3]) for k in (4, 5, 6, 7)}) == 1
+    for k in (4, 5, 6, 7):
+        assert sags[k] == pytest.approx(true_sag, rel=0.02)
+        assert shared[k]["slope_shared"][0] == shared[k]["theta"][3]
+        assert cond.span_record(shared[k], np.zeros(3))["slope_shared"] is not None
+    assert catenary.derived(own[5]["theta"], np.zeros(3))["sag"] > 1.2 * true_sag
+    assert not shared[8]["from_arm"] and "slope_shared" not in shared[8]
+    np.testing.assert_array_equal(shared[8]["theta"], own[8]["theta"])
