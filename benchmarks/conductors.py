@@ -3,7 +3,7 @@
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
       [--span-length M] [--arm-seeds] [--detect-threshold K] [--no-refine] [--no-shared-azimuth]
-      [--no-shared-span] [--no-shared-sag]
+      [--no-shared-span] [--no-shared-sag] [--no-settle]
       [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
@@ -222,14 +222,15 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
                     span_length: float | None = None, arm_seeds: bool = False,
                     threshold: float | None = None, refine: bool = True,
                     shared_azimuth: bool = True, shared_span: bool = True,
-                    shared_sag: bool = True) -> tuple[list[dict], dict]:
+                    shared_sag: bool = True, settle: bool = True) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
     span of that length), None: the catenary parameter free; arm_seeds: the cross-arm tips as
     seeds, each searched in the export's window below it (`export.run.SEED_WINDOW`); refine,
     shared_azimuth, shared_span, shared_sag: `find_spans`' (the track's curves refined on the
     sub-pixel detections, the side's wires sharing one azimuth, one span length when none is
-    given, and the wires hung from the arms one sag).
+    given, and the wires hung from the arms one sag); settle: each wire's attachment scanned for
+    more support after the first refinement).
     Returns (records, timings)."""
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
@@ -248,7 +249,7 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
         kw = {"seeds": true_arm_seeds(), "seed_window": tuple(v * 30.4 for v in SEED_WINDOW)}
     spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length,
                             refine=refine, shared_azimuth=shared_azimuth, shared_span=shared_span,
-                            shared_sag=shared_sag, **kw)
+                            shared_sag=shared_sag, settle=settle, **kw)
     t2 = time.perf_counter()
     if picture is not None:
         io.write_png(picture, cond.views_picture(images, views, spans, centre))
@@ -294,6 +295,8 @@ def main(argv=None) -> int:
                    help="without --span-length, each wire keeps its own curvature (find_spans shared_span=False)")
     p.add_argument("--no-shared-sag", action="store_true",
                    help="each wire hung from a cross-arm keeps its own sag (find_spans shared_sag=False)")
+    p.add_argument("--no-settle", action="store_true",
+                   help="no scan of each wire's attachment after the first refinement (find_spans settle=False)")
     p.add_argument("--match-radius", type=float, default=MATCH_RADIUS, metavar="M",
                    help=f"a fitted span matches a cable when their attachments lie this close "
                         f"(default {MATCH_RADIUS} m; an export georeferenced by GPS is off by the GPS's error)")
@@ -318,13 +321,15 @@ def main(argv=None) -> int:
                  "arm_seeds": bool(args.arm_seeds), "detect_threshold": args.detect_threshold,
                  "refine": not args.no_refine, "shared_azimuth": not (args.no_refine or args.no_shared_azimuth),
                  "shared_span": not (args.no_refine or args.no_shared_span),
-                 "shared_sag": not (args.no_refine or args.no_shared_sag)}
+                 "shared_sag": not (args.no_refine or args.no_shared_sag),
+                 "settle": not (args.no_refine or args.no_settle)}
         if not args.no_true_cameras:
             records, timings = true_camera_fit(data, picture, size, args.span_length, args.arm_seeds,
                                                args.detect_threshold, not args.no_refine,
                                                not (args.no_refine or args.no_shared_azimuth),
                                                not (args.no_refine or args.no_shared_span),
-                                               not (args.no_refine or args.no_shared_sag))
+                                               not (args.no_refine or args.no_shared_sag),
+                                               not (args.no_refine or args.no_settle))
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):

@@ -687,6 +687,45 @@ def _pair_residuals(q, views: Views, full, centre, s: np.ndarray, up, pairs: np.
     return views.offsets(curve_points(full(q), centre, s, up), observed=pairs)[0][pairs]
 
 
+SETTLE_REACH = 0.033     # tower heights: the attachment scan's half window (`_distinct`'s radius: one wire)
+SETTLE_GAIN = 0.05       # share of the photos: a scanned attachment must gain this much support to move
+
+
+def curve_support(views: Views, theta, centre, s: np.ndarray, up=(0.0, 0.0, 1.0),
+                  tol_px: float = DEFAULT_TOL_PX) -> float:
+    """The mean over stations s [K] of the curve theta's `gated_support`: the share of the photos
+    seeing each station whose detection lies on the projected curve and runs along it."""
+    share, _ = gated_support(views, curve_points(theta, centre, s, up), curve_tangents(theta, centre, s, up), tol_px)
+    return float(np.mean(share))
+
+
+def settled(views: Views, theta, centre, s_from: float, s_to: float, reach: float, step: float,
+            up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, gain: float = SETTLE_GAIN,
+            samples: int = 60) -> tuple[np.ndarray, bool]:
+    """theta [5] with its attachment moved, height then across offset (twice), to the offset within
+    +-reach (a grid of `step`) where `curve_support` from s_from to s_to is highest, when that
+    gains more than `gain` over theta's own; else theta. The refinement's pairs are gated within
+    tol_px of the curve: a curve that ended a few pixels off its wire over the far part has no
+    pairs on it left to pull it back (on the 640x480 scene a phase wire's attachment stayed
+    0.52 m high, its support 0.07 there and 0.21 at 0.5 m lower). Returns (theta, moved)."""
+    theta = np.asarray(theta, np.float64)
+    s = np.linspace(s_from, max(s_to, s_from + 1e-3), samples)
+    offsets = np.arange(-reach, reach + 0.5 * step, step)
+    own = curve_support(views, theta, centre, s, up, tol_px)
+    best, best_share = theta.copy(), own
+    for _ in range(2):
+        for k in (1, 0):
+            for d in offsets:
+                t = best.copy()
+                t[k] = theta[k] + d
+                share = curve_support(views, t, centre, s, up, tol_px)
+                if share > best_share:
+                    best, best_share = t, share
+    if best_share > own + gain:
+        return best, True
+    return theta, False
+
+
 def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0, 0.0, 1.0),
                 tol_px: float = DEFAULT_TOL_PX, span_length: float | None = None, free=(0, 1, 2, 3),
                 samples: int = 60, rounds: int = 3, max_turn: float = 0.01, loss_px: float = 0.5,
@@ -754,7 +793,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
                peak_support: float = DEFAULT_PEAK_SUPPORT, window_support: float = DEFAULT_WINDOW_SUPPORT,
                refine: bool = True,
-               shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True) -> list[dict]:
+               shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
+               settle: bool = True) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -786,7 +826,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     shared_sag: then the side's wires hung in the cross-arms' windows (the phase conductors: one
     conductor strung to one tension on one span hangs to one sag) refined with one slope at the
     attachment (`side_slope`; with a level span of one length that is one sag), from 3 such wires
-    on a side (`_shared_sag`); the others (the earth wires above the arms) keep their own.
+    on a side (`_shared_sag`); the others (the earth wires above the arms) keep their own;
+    settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
+    support there is moved and its attachment refined again (`settled`, `_settled`).
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "from_arm", "theta", "cov"
     (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
     "seen", "stations", "track" [F, 4], "span_length", "profile_cov", with shared_span
@@ -858,6 +900,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 kept = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds)
             if shared_sag:
                 kept = _shared_sag(views, kept, centre, half_length, up, tol_px, span_length, kappa_bounds)
+            if settle:
+                kept = [_settled(views, f, kept, centre, half_length, up, tol_px, kappa_bounds,
+                                 SETTLE_REACH * tower_height, step) for f in kept]
         spans += kept
     return spans
 
@@ -1026,6 +1071,26 @@ def _refined(views: Views, f: dict, others: list, centre, half_length: float, up
     return {**f, **fit, "image_cov": fit["cov"], "cov": cov}
 
 
+def _settled(views: Views, f: dict, kept: list[dict], centre, half_length: float, up, tol_px: float,
+             kappa_bounds: tuple, reach: float, step: float) -> dict:
+    """A wire's final record (`find_spans`) with its attachment scanned (`settled`) over its
+    track's stations and, when it moved, the attachment (across, height) refined again clear of
+    the other wires, the rest of theta held (with the span's length in use: the given one, else
+    the side's shared one, else none); its covariance keeps the held parameters' rows and takes
+    the attachment's block from the new image residuals. "settled": whether it moved."""
+    theta, moved = settled(views, f["theta"], centre, float(f["track"][0, 0]), float(f["stations"][-1]), reach,
+                           step, up, tol_px)
+    if not moved:
+        return {**f, "settled": False}
+    others = [k["theta"] for k in kept if k is not f]
+    length = f.get("span_length") or (f.get("span_length_shared") or (None,))[0]
+    r = _refined(views, {**f, "theta": theta}, others, centre, half_length, up, tol_px, length, (0, 1), kappa_bounds)
+    cov = np.array(f["cov"], np.float64).copy()
+    cov[:2, :], cov[:, :2] = 0.0, 0.0
+    cov[:2, :2] = np.asarray(r["image_cov"], np.float64)[:2, :2]
+    return {**r, "cov": cov, "span_length": f.get("span_length"), "settled": True}
+
+
 def borrowers_dropped(views: Views, kept: list[dict], centre, up, tol_px: float = DEFAULT_TOL_PX,
                       max_shared: float = 0.5) -> list[dict]:
     """The wires of one side (`find_spans`' records, each with "track", "theta", "psi") less those
@@ -1176,7 +1241,8 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 "span_length_given": None if fit.get("span_length") is None else float(fit["span_length"]),
                 "span_length_shared": None if fit.get("span_length_shared") is None else
                 [float(v) for v in fit["span_length_shared"]],
-                "slope_shared": None if fit.get("slope_shared") is None else [float(v) for v in fit["slope_shared"]]})
+                "slope_shared": None if fit.get("slope_shared") is None else [float(v) for v in fit["slope_shared"]],
+                "settled": bool(fit.get("settled", False))})
     return rec
 
 
