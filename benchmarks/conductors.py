@@ -85,7 +85,7 @@ def goes_along(record: dict, t: dict) -> bool:
 def score(records: list[dict], truth: list[dict], match_radius: float = MATCH_RADIUS) -> dict:
     """Matches fitted spans (measurements.json's `conductors.spans` records) to the true ones by
     direction (`goes_along`) and attachment (within match_radius, m) and scores each (module
-    docstring)."""
+    docstring); "invented_spans": each record matching no cable, with its nearest cable."""
 
     rows, used = [], set()
     for t in truth:
@@ -125,7 +125,19 @@ def score(records: list[dict], truth: list[dict], match_radius: float = MATCH_RA
         vals = [abs(r[key]) for r in found if r.get(key) is not None]
         return max(vals) if vals else None
 
+    invented = []
+    for i, r in enumerate(records):
+        if i in used:
+            continue
+        a = np.asarray(r["attachment"]["value"], np.float64)
+        near = min(truth, key=lambda t: float(np.linalg.norm(a - t["attachment"])), default=None)
+        invented.append({"side": r.get("side"), "attachment": [float(v) for v in a],
+                         "sag": r["sag"]["value"], "inlier_share": r.get("inlier_share"),
+                         "nearest_cable": None if near is None else
+                         {"wire": near["wire"], "side": near["side"],
+                          "distance": float(np.linalg.norm(a - near["attachment"]))}})
     return {"spans": rows, "found": len(found), "existing": len(truth), "invented": len(records) - len(used),
+            "invented_spans": invented,
             "worst_rms": worst("rms"), "worst_sag_error_rel": worst("sag_error_rel"),
             "worst_lowest_z_error": worst("lowest_z_error"), "worst_clearance_error": worst("clearance_error"),
             "worst_sag_error_sigmas": worst("sag_error_sigmas")}

@@ -828,7 +828,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     attachment (`side_slope`; with a level span of one length that is one sag), from 3 such wires
     on a side (`_shared_sag`); the others (the earth wires above the arms) keep their own;
     settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
-    support there is moved and its attachment refined again (`settled`, `_settled`).
+    support there is moved and its attachment refined again (`settled`, `_settled`), and of wires
+    that then lie on one another the one whose curve gathers the most support is kept.
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "from_arm", "theta", "cov"
     (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
     "seen", "stations", "track" [F, 4], "span_length", "profile_cov", with shared_span
@@ -903,6 +904,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if settle:
                 kept = [_settled(views, f, kept, centre, half_length, up, tol_px, kappa_bounds,
                                  SETTLE_REACH * tower_height, step) for f in kept]
+                # a weak curve beside a wire is moved onto it by the scan: one record per wire
+                kept = _distinct(kept, centre, 0.033 * tower_height, up, key=lambda f: -f["support"])
         spans += kept
     return spans
 
@@ -1077,18 +1080,21 @@ def _settled(views: Views, f: dict, kept: list[dict], centre, half_length: float
     track's stations and, when it moved, the attachment (across, height) refined again clear of
     the other wires, the rest of theta held (with the span's length in use: the given one, else
     the side's shared one, else none); its covariance keeps the held parameters' rows and takes
-    the attachment's block from the new image residuals. "settled": whether it moved."""
-    theta, moved = settled(views, f["theta"], centre, float(f["track"][0, 0]), float(f["stations"][-1]), reach,
-                           step, up, tol_px)
-    if not moved:
-        return {**f, "settled": False}
-    others = [k["theta"] for k in kept if k is not f]
-    length = f.get("span_length") or (f.get("span_length_shared") or (None,))[0]
-    r = _refined(views, {**f, "theta": theta}, others, centre, half_length, up, tol_px, length, (0, 1), kappa_bounds)
-    cov = np.array(f["cov"], np.float64).copy()
-    cov[:2, :], cov[:, :2] = 0.0, 0.0
-    cov[:2, :2] = np.asarray(r["image_cov"], np.float64)[:2, :2]
-    return {**r, "cov": cov, "span_length": f.get("span_length"), "settled": True}
+    the attachment's block from the new image residuals. "settled": whether it moved; "support":
+    its curve's `curve_support` over the track's stations, as it is returned."""
+    s_from, s_to = float(f["track"][0, 0]), float(f["stations"][-1])
+    theta, moved = settled(views, f["theta"], centre, s_from, s_to, reach, step, up, tol_px)
+    if moved:
+        others = [k["theta"] for k in kept if k is not f]
+        length = f.get("span_length") or (f.get("span_length_shared") or (None,))[0]
+        r = _refined(views, {**f, "theta": theta}, others, centre, half_length, up, tol_px, length, (0, 1),
+                     kappa_bounds)
+        cov = np.array(f["cov"], np.float64).copy()
+        cov[:2, :], cov[:, :2] = 0.0, 0.0
+        cov[:2, :2] = np.asarray(r["image_cov"], np.float64)[:2, :2]
+        f = {**r, "cov": cov, "span_length": f.get("span_length")}
+    support = curve_support(views, f["theta"], centre, np.linspace(s_from, max(s_to, s_from + 1e-3), 60), up, tol_px)
+    return {**f, "settled": moved, "support": support}
 
 
 def borrowers_dropped(views: Views, kept: list[dict], centre, up, tol_px: float = DEFAULT_TOL_PX,
@@ -1198,12 +1204,13 @@ def _sample_gap(poly: np.ndarray) -> float:
     return float(np.median(np.linalg.norm(np.diff(poly, axis=0), axis=1)))
 
 
-def _distinct(fits: list[dict], centre, radius: float, up) -> list[dict]:
+def _distinct(fits: list[dict], centre, radius: float, up, key=None) -> list[dict]:
     """One fit per wire: of fits whose curves pass within `radius` of each other (median over 20
-    stations of the shorter observed reach), the one with the most stations found on its track,
-    then the most inlier offsets."""
+    stations of the shorter observed reach), the first by `key` (None: the most stations found on
+    its track, then the most inlier offsets)."""
     kept: list[dict] = []
-    for f in sorted(fits, key=lambda f: (-len(f.get("track", ())), -f["residuals"])):
+    order = key or (lambda f: (-len(f.get("track", ())), -f["residuals"]))
+    for f in sorted(fits, key=order):
         same = False
         for k in kept:
             s = np.linspace(f["stations"][0], min(f["stations"][-1], k["stations"][-1]), 20)

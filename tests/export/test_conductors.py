@@ -629,3 +629,21 @@ def test_settled_brings_an_attachment_left_off_its_wire_back_and_leaves_one_on_i
     assert not moved and np.array_equal(same, true)
     far = true + np.array([0.0, 3.0, 0.0, 0.0, 0.0])
     assert not cond.settled(views, far, np.zeros(3), 14.0, 60.0, 1.0, 0.1)[1]
+
+
+def test_of_two_curves_on_one_wire_the_one_with_more_support_is_kept_when_ranked_by_it():
+    """Two straight curves 0.4 m apart (within the 1 m radius of one wire) and a third 5 m away:
+    ranked by the support their curves gather (`_distinct` with key), the stronger of the two
+    near ones is kept whatever the order given, with the far one; by the default ranking (the
+    longer track first) the one with the longer track is kept."""
+    def rec(z: float, support: float, stations: int) -> dict:
+        r = _straight_record(7.6, z)
+        return {**r, "track": r["track"][:stations], "stations": r["track"][:stations, 0], "residuals": 10,
+                "support": support}
+
+    weak, strong, far = rec(14.9, 0.2, 30), rec(15.3, 0.5, 20), rec(19.9, 0.3, 25)
+    for fits in ([weak, strong, far], [far, strong, weak]):
+        kept = cond._distinct(fits, np.zeros(3), 1.0, (0.0, 0.0, 1.0), key=lambda f: -f["support"])
+        assert sorted(f["support"] for f in kept) == [0.3, 0.5]
+    kept = cond._distinct([weak, strong, far], np.zeros(3), 1.0, (0.0, 0.0, 1.0))
+    assert sorted(f["support"] for f in kept) == [0.2, 0.3]
