@@ -241,8 +241,8 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
     seeds, each searched in the export's window below it (`export.run.SEED_WINDOW`); refine,
     shared_azimuth, shared_span, shared_sag: `find_spans`' (the track's curves refined on the
     sub-pixel detections, the side's wires sharing one azimuth, one span length when none is
-    given, and the wires hung from the arms one sag); settle: each wire's attachment scanned for
-    more support after the first refinement).
+    given, and the wires hung from the arms one sag); settle: last, each wire's attachment scanned
+    for more support).
     Returns (records, timings)."""
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
@@ -308,7 +308,7 @@ def main(argv=None) -> int:
     p.add_argument("--no-shared-sag", action="store_true",
                    help="each wire hung from a cross-arm keeps its own sag (find_spans shared_sag=False)")
     p.add_argument("--no-settle", action="store_true",
-                   help="no scan of each wire's attachment after the first refinement (find_spans settle=False)")
+                   help="no last scan of each wire's attachment for more support (find_spans settle=False)")
     p.add_argument("--match-radius", type=float, default=MATCH_RADIUS, metavar="M",
                    help=f"a fitted span matches a cable when their attachments lie this close "
                         f"(default {MATCH_RADIUS} m; an export georeferenced by GPS is off by the GPS's error)")
@@ -317,6 +317,10 @@ def main(argv=None) -> int:
     from jaxnerf_grid.util import io
 
     truth_all = true_spans(scene_attachments())
+    # find_spans' steps: every one after the refinement goes with it
+    steps = {"refine": not args.no_refine,
+             **{key: not (args.no_refine or getattr(args, f"no_{key}"))
+                for key in ("shared_azimuth", "shared_span", "shared_sag", "settle")}}
     results = []
     for i, data in enumerate(args.data):
         size = tuple(int(v) for v in args.partial.split(",")) if args.partial else None
@@ -331,17 +335,10 @@ def main(argv=None) -> int:
                  "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
                  "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length,
                  "arm_seeds": bool(args.arm_seeds), "detect_threshold": args.detect_threshold,
-                 "refine": not args.no_refine, "shared_azimuth": not (args.no_refine or args.no_shared_azimuth),
-                 "shared_span": not (args.no_refine or args.no_shared_span),
-                 "shared_sag": not (args.no_refine or args.no_shared_sag),
-                 "settle": not (args.no_refine or args.no_settle)}
+                 **steps}
         if not args.no_true_cameras:
             records, timings = true_camera_fit(data, picture, size, args.span_length, args.arm_seeds,
-                                               args.detect_threshold, not args.no_refine,
-                                               not (args.no_refine or args.no_shared_azimuth),
-                                               not (args.no_refine or args.no_shared_span),
-                                               not (args.no_refine or args.no_shared_sag),
-                                               not (args.no_refine or args.no_settle))
+                                               args.detect_threshold, **steps)
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):
