@@ -42,7 +42,7 @@ from jaxnerf_grid.eval import evaluate
 from jaxnerf_grid.masks import write as masking
 from jaxnerf_grid.render import videos
 from jaxnerf_grid.report import html as report_html
-from jaxnerf_grid.train import distributed, runs, sparse_depth
+from jaxnerf_grid.train import distributed, runs, sparse_depth, speed
 from jaxnerf_grid.train import loop as train
 from jaxnerf_grid.util import folders, io
 from jaxnerf_grid.util.io import DataError
@@ -332,6 +332,10 @@ def _json_split_counts(meta: dict, frames: int) -> dict:
     return {"train": len(split["train"]), "test": len(split["test"])}
 
 
+def _say(line: str) -> None:
+    print(line, flush=True)
+
+
 def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None, overwrite: bool = False,
              progress: bool = True, sets: list[str] | None = None, max_side: int | None = None,
              masks: str = "auto", video_frames: int = DEMO_VIDEO_FRAMES, minutes: float | None = None,
@@ -395,7 +399,9 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
                     "layout, so it has no masks and `mask` cannot write any")
     # the dataset's bounds, --set and --max-side on top, the mask plan, then the training budget
     built = build.build(request, data=data, extra=_with_plan({}, plan), devices_of=train.step_devices,
-                        platform=distributed.jax.default_backend(), defaults=capture_defaults(capture, data_dir))
+                        platform=distributed.jax.default_backend(), defaults=capture_defaults(capture, data_dir),
+                        measure=speed.planner(out / "run", overwrite,
+                                              _say if progress and distributed.is_main() else None))
     bounds = built.bounds
     if built.budget is not None and progress and distributed.is_main():
         print(budget_lib.report_line(built.budget), flush=True)

@@ -10,8 +10,9 @@ The settings start from a recipe (`recipes`, docs/RECIPES.md; `jaxnerf-grid reci
 resolves the tower (the demo's). --method with --recipe trains that recipe's settings as method M.
 --config and --set are laid on top.
 Without --steps (or train.max_steps in --config / --set) the steps follow the capture: the training
-budget (`budget.py`, docs/RECIPES.md) draws each training pixel about 4 times, at least the recipe's
-steps, at most what fits in --minutes of training (default 12) on two idle cores.
+budget (`budget.py`, docs/RECIPES.md) draws each training pixel about twice, at least the recipe's
+steps, at most what fits in --minutes of training (default 12) at this machine's speed (timed
+first when the minutes may bind, `train/speed.py`).
 """
 
 from __future__ import annotations
@@ -111,9 +112,13 @@ def main(argv: list[str] | None = None) -> int:
 
     request = build.Request(args.recipe, args.method, args.config, tuple(args.set), args.max_side, args.steps,
                             args.minutes)
+    from jaxnerf_grid.config import recipes
+    from jaxnerf_grid.train import speed
+
+    out = args.out or f"runs/{recipes.resolve(args.recipe, args.method)[0]}"
     built = build.build(request, data=args.data, devices_of=train.step_devices,
-                        platform=distributed.jax.default_backend())
-    out = args.out or f"runs/{built.recipe}"
+                        platform=distributed.jax.default_backend(),
+                        measure=speed.planner(out, args.overwrite, None if args.quiet else print))
     if built.bounds:
         print(bounds_line(built.bounds))
     if built.budget is not None:

@@ -11,10 +11,13 @@ steps with the capture instead:
 
 so a capture never trains fewer steps than its recipe (the hash grid needs its iterations whatever
 the capture's size: the synthetic demo keeps its 1600 steps), more when the capture has more pixels,
-and never more than `minutes` of training at the estimated speed (`rays_per_second`: measured
-figures of the demo's recipe, REFERENCE_RAYS_PER_S; a slower recipe, or a busy machine, takes
-longer than the budget says). A `minutes` below what the recipe's steps need wins: the user asked
-for it, and the record says the run is short of its recipe.
+and never more than `minutes` of training at the speed of this machine. The speed is first the
+reference estimate (REFERENCE_RAYS_PER_S, figures of the demo's recipe on the reference machines);
+when that estimate fills more than MEASURE_SHARE of the minutes, so that the cap may bind, the
+entry point's `measure` times the run's own step on this machine (train/speed.py: about 10 s) and
+the steps are chosen again at the measured speed. A resumed run plans at the speed its budget.json
+recorded (`recorded_speed`), so it finds the steps it began with. A `minutes` below what the
+recipe's steps need wins: the user asked for it, and the record says the run is short of its recipe.
 
 The batch stays the recipe's: on the CPU a larger batch trains no more rays a second, only fewer,
 larger steps; on a GPU a larger batch does fill the device (docs/GPU.md), and is set with
@@ -37,6 +40,7 @@ returns the config with the chosen steps and a record ({"steps", "epochs", "limi
 from __future__ import annotations
 
 import dataclasses
+import json
 import math
 from pathlib import Path
 
@@ -62,6 +66,11 @@ STEP_ROUND = 100
 #   docs/RESULTS.md);
 # gpu: one H200, the training loop at 1024 rays a step, 2.8 ms a step (docs/GPU.md): 365k.
 REFERENCE_RAYS_PER_S = {"cpu": 11000.0, "gpu": 365000.0}
+# The speed is measured (`apply`'s `measure`) when the reference estimate fills more than this share
+# of the minutes: below it only a machine over 1 / MEASURE_SHARE times slower than the reference
+# could overrun. The synthetic demo (2.4 of 12 min) is not measured.
+MEASURE_SHARE = 0.25
+REFERENCE = "reference estimate"
 
 
 @dataclasses.dataclass(frozen=True)
@@ -84,6 +93,7 @@ class Budget:
     rays_per_second: float
     target_epochs: float
     recipe_steps: int
+    speed_source: str = REFERENCE
 
 
 def rays_per_second(platform: str, n_devices: int) -> float:
@@ -114,13 +124,15 @@ def step_rays(train_cfg) -> int:
 
 
 def choose_budget(train_pixels: int, n_devices: int, minutes: float | None, base, platform: str = "cpu",
-                  target_epochs: float = TARGET_EPOCHS, speed: float | None = None) -> Budget:
+                  target_epochs: float = TARGET_EPOCHS, speed: float | None = None,
+                  speed_source: str = REFERENCE) -> Budget:
     """The steps of a run (module docstring's rule).
 
     train_pixels: the training frames' pixels at the working resolution (`capture_pixels`);
     n_devices: the train step's devices; minutes: the training time budget (None: DEFAULT_MINUTES);
     base: the recipe's train config (its max_steps, the floor, and batch_rays); platform: the JAX
-    backend; speed: train rays a second (None: `rays_per_second(platform, n_devices)`).
+    backend; speed: train rays a second (None: `rays_per_second(platform, n_devices)`) and
+    speed_source: where it comes from (REFERENCE, or how it was measured).
     """
     minutes = DEFAULT_MINUTES if minutes is None else float(minutes)
     config_lib.check_value("run.minutes", minutes, float, config_lib.POSITIVE)
@@ -136,7 +148,8 @@ def choose_budget(train_pixels: int, n_devices: int, minutes: float | None, base
     return Budget(steps=steps, batch_rays=batch, epochs=steps * batch / train_pixels, wanted_steps=wanted,
                   cap_steps=cap, limited_by=limited_by, minutes=minutes,
                   estimated_minutes=steps * rendered / speed / 60.0, rays_per_second=speed,
-                  target_epochs=float(target_epochs), recipe_steps=int(base.max_steps))
+                  target_epochs=float(target_epochs), recipe_steps=int(base.max_steps),
+                  speed_source=REFERENCE if speed_source is None else str(speed_source))
 
 
 def stretch_schedules(train_cfg, steps: int):
@@ -189,26 +202,37 @@ def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None =
     reason = {"recipe": f"the recipe's steps: the capture needs only {budget.wanted_steps} for "
                         f"{budget.target_epochs:g} epochs",
               "epochs": f"{budget.target_epochs:g} epochs of the capture's training pixels",
-              "minutes": f"capped by the time budget: {budget.minutes:g} min at an estimated "
-                         f"{budget.rays_per_second / 1000:.0f}k rays/s ({budget.target_epochs:g} epochs would "
-                         f"need {budget.wanted_steps} steps)"}[budget.limited_by]
+              "minutes": f"capped by the time budget: {budget.minutes:g} min at {speed_words(budget)} "
+                         f"({budget.target_epochs:g} epochs would need {budget.wanted_steps} steps)"}[budget.limited_by]
     return {"rule": "budget", "steps": budget.steps, "batch_rays": budget.batch_rays, "warmup": tc.warmup,
             "train_pixels": int(train_pixels), "epochs": round(budget.epochs, 3),
             "target_epochs": budget.target_epochs, "wanted_steps": budget.wanted_steps,
             "cap_steps": budget.cap_steps, "limited_by": budget.limited_by, "minutes": budget.minutes,
             "estimated_minutes": round(budget.estimated_minutes, 2),
-            "rays_per_second": budget.rays_per_second, "recipe_steps": budget.recipe_steps, "why": reason}
+            "rays_per_second": round(budget.rays_per_second, 1), "speed_source": budget.speed_source,
+            "recipe_steps": budget.recipe_steps, "why": reason}
+
+
+def speed_words(budget: Budget) -> str:
+    """"11.0k rays/s (reference estimate)" or "9.9k rays/s (measured on this machine)"."""
+    return f"{budget.rays_per_second / 1000:.1f}k rays/s ({budget.speed_source})"
 
 
 def apply(cfg, train_pixels: int, n_devices: int = 1, minutes: float | None = None, given_by: str | None = None,
-          platform: str = "cpu") -> tuple:
+          platform: str = "cpu", measure=None) -> tuple:
     """(cfg with the budget's steps and stretched schedules, its record) for a settled RunConfig
     whose recipe steps are train.max_steps. given_by: the setting that fixed the steps
     (`steps_given_by`: run.steps, train.max_steps) or None; when given, cfg is returned as it is and the record
-    says so."""
+    says so. measure: None, or callable(cfg) -> (train rays a second, where the figure comes from),
+    called when the reference estimate fills more than MEASURE_SHARE of the minutes (module
+    docstring); the steps are then chosen at its speed."""
     if given_by is not None:
         return cfg, record(None, cfg, train_pixels, given_by)
     chosen = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform)
+    if measure is not None and chosen.estimated_minutes > MEASURE_SHARE * chosen.minutes:
+        speed, source = measure(cfg)
+        chosen = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform, speed=speed,
+                               speed_source=source)
     out = dataclasses.replace(cfg, train=stretch_schedules(cfg.train, chosen.steps))
     return out, record(chosen, out, train_pixels)
 
@@ -223,6 +247,21 @@ def steps_given_by(steps: int | None, overrides: dict | None) -> str | None:
     return None
 
 
+def recorded_speed(run_dir) -> tuple[float, str] | None:
+    """(rays a second, source) a run folder's budget.json planned with, so that a resumed run
+    chooses the steps it began with; None when the folder has no budget record (a new run, or
+    steps given by the user) or an unreadable one."""
+    path = Path(run_dir) / "budget.json"
+    try:
+        rec = json.loads(path.read_text())
+        speed = float(rec["rays_per_second"])
+    except (OSError, ValueError, KeyError, TypeError):
+        return None
+    if rec.get("rule") != "budget" or not math.isfinite(speed) or speed <= 0:
+        return None
+    return speed, f"as planned when the run began: {rec.get('speed_source', REFERENCE)}"
+
+
 def train_overrides(rec: dict) -> dict:
     """The override dict of a budget record's train keys ({"train": {"max_steps", "warmup"}}), to
     lay over a run's overrides."""
@@ -235,8 +274,9 @@ def report_line(rec: dict) -> str:
         return (f"Training budget: {rec['steps']} steps x {rec['batch_rays']} rays, {rec['epochs']:.2f} epochs of "
                 f"{rec['train_pixels'] / 1e6:.2f} M training pixels ({rec['why']}).")
     return (f"Training budget: {rec['steps']} steps x {rec['batch_rays']} rays, {rec['epochs']:.2f} epochs of "
-            f"{rec['train_pixels'] / 1e6:.2f} M training pixels, about {rec['estimated_minutes']:.1f} min on the "
-            f"reference machine; why: {rec['why']} (docs/RECIPES.md \"The training budget\").")
+            f"{rec['train_pixels'] / 1e6:.2f} M training pixels, about {rec['estimated_minutes']:.1f} min at "
+            f"{rec['rays_per_second'] / 1000:.1f}k rays/s ({rec.get('speed_source', REFERENCE)}); why: {rec['why']} "
+            f"(docs/RECIPES.md \"The training budget\").")
 
 
 # Below this many epochs a capture's renders were smeared (the 50-photo phone capture: smeared at

@@ -117,12 +117,14 @@ def with_max_side(overrides: dict, max_side: int | None) -> dict:
 
 def build(request: Request, data: str | Path | None = None, extra: dict | None = None,
           devices_of: Callable[[Any], int] | None = None, platform: str = "cpu",
-          defaults: dict | None = None) -> Built:
+          defaults: dict | None = None, measure=None) -> Built:
     """The run config's overrides from a Request, in the module's order (recipe -> bounds of the
     dataset folder `data` -> defaults -> config file -> sets -> max_side -> steps -> extra ->
     budget), checked.
     devices_of: train config -> the training step's device count (`train.loop.step_devices`);
-    given with `data`, the budget chooses the steps; platform: JAX's backend ("cpu", "gpu")."""
+    given with `data`, the budget chooses the steps; platform: JAX's backend ("cpu", "gpu");
+    measure: the budget's speed measurement (`budget.apply`, `train.speed.planner`; None: the
+    reference estimate)."""
     recipe, method = recipes.resolve(request.recipe, request.method)
     if request.minutes is not None:
         config_lib.check_value("run.minutes", request.minutes, float, config_lib.POSITIVE)
@@ -142,7 +144,7 @@ def build(request: Request, data: str | Path | None = None, extra: dict | None =
     if data is not None and devices_of is not None and Path(data).is_dir():  # a missing folder: train_run says so
         pixels = budget_lib.capture_pixels(data, settled.train.max_side)
         _, chosen = budget_lib.apply(settled, pixels, devices_of(settled.train), request.minutes,
-                                     budget_lib.steps_given_by(request.steps, user), platform)
+                                     budget_lib.steps_given_by(request.steps, user), platform, measure)
         if chosen.get("rule") == "budget":
             overrides = config_lib.merge(overrides, budget_lib.train_overrides(chosen))
     return Built(recipe, method, overrides, bounds, chosen)

@@ -269,6 +269,50 @@ def test_train_without_steps_takes_the_budgets_steps_and_records_why(data_dir, t
     assert "--minutes = 0" in capsys.readouterr().err
 
 
+def test_train_and_demo_plan_their_steps_at_the_measured_speed_and_a_resumed_run_at_its_recorded_one(
+        data_dir, tmp_path, capsys, monkeypatch):
+    """With the time cap able to bind (MEASURE_SHARE 0 here), `train` times its step and fits the
+    steps to the minutes at that speed: 0.05 min x 60 x 640 rays/s / 64 rays = 30 steps (the
+    reference 11k would give 500); run again on the same folder it plans at the recorded speed
+    without timing, so it resumes the same run; `demo` hands its run folder's planner to the budget."""
+    from jaxnerf_grid import demo
+    from jaxnerf_grid.config import budget
+    from jaxnerf_grid.train import speed
+
+    monkeypatch.setattr(budget, "MEASURE_SHARE", 0.0)
+    monkeypatch.setattr(speed, "measure", lambda cfg, seconds=speed.SECONDS: 640.0)
+    cfg_file = tmp_path / "cfg.json"
+    cfg_file.write_text(json.dumps({**TINY, "train": {k: v for k, v in TINY["train"].items() if k != "max_steps"}}))
+    run = tmp_path / "run"
+    args = ["train", *PAPER_MLP, "--data", str(data_dir), "--config", str(cfg_file), "--out", str(run),
+            "--minutes", "0.05"]
+    assert cli.main(args) == 0
+    assert "timing the training step on this machine" in capsys.readouterr().out
+    rec = json.loads((run / "budget.json").read_text())
+    assert (rec["steps"], rec["rays_per_second"], rec["speed_source"]) == (30, 640.0, speed.MEASURED)
+
+    def never(cfg, seconds=speed.SECONDS):
+        raise AssertionError("the resumed run timed its step again")
+
+    monkeypatch.setattr(speed, "measure", never)
+    assert cli.main(args) == 0
+    assert json.loads((run / "config.json").read_text())["train"]["max_steps"] == 30
+
+    class Trained(Exception):
+        pass
+
+    def stop(data, method, run_dir, overrides, *rest, **kwargs):
+        raise Trained(overrides, kwargs["budget"])
+
+    monkeypatch.setattr(demo.runs, "train_run", stop)
+    monkeypatch.setattr(speed, "measure", lambda cfg, seconds=speed.SECONDS: 640.0)
+    with pytest.raises(Trained) as caught:
+        demo.run_demo(data_dir, tmp_path / "demo", minutes=0.05, progress=False)
+    overrides, rec = caught.value.args
+    # the demo's recipe trains 1024 rays a step: 0.05 x 60 x 640 / 1024 = 1.9 -> 1 step
+    assert overrides["train"]["max_steps"] == rec["steps"] == 1 and rec["speed_source"] == speed.MEASURED
+
+
 def test_eval_of_an_appearance_model_scores_whole_views_with_the_mean_embedding_or_right_halves(data_dir, tmp_path,
                                                                                                  capsys):
     """With train.appearance_steps 0 the held-out view renders with the mean of the training
