@@ -136,7 +136,7 @@ def test_train_and_demo_build_their_configs_here(monkeypatch, tmp_path):
     class Stop(Exception):
         pass
 
-    def spy(request, data=None, extra=None, devices_of=None, platform="cpu"):
+    def spy(request, data=None, extra=None, devices_of=None, platform="cpu", **kwargs):
         seen.append((request, data))
         raise Stop
 
