@@ -23,6 +23,16 @@ The batch stays the recipe's: on the CPU a larger batch trains no more rays a se
 larger steps; on a GPU a larger batch does fill the device (docs/GPU.md), and is set with
 `--set train.batch_rays=N`: the rule counts rays, so the steps follow the batch.
 
+A capture whose epochs fit well inside its minutes (limited by "epochs", and the steps fit at
+GROWN_GRID_COST times the time) spends them on a larger hash grid (GROWN_GRID: 2^19 rows a level,
+finest resolution 4096) rather than on more epochs: on fountain-P11 the larger grid scored +0.3 dB
+and +0.04 SSIM at the same steps, where twice the epochs on the recipe's grid lost 0.36 dB
+(docs/RECIPES.md). Where the minutes bind (a large capture) the grid stays the recipe's: there the
+larger grid's slower steps buy nothing (the demo's scene at 640x480, equal time). The grid is left
+alone when the user set any model.field key (`grid_free`), and when the field is no hash grid or
+is as large already. When the larger grid's measured speed no longer fits the epochs, the recipe's
+grid is measured and kept.
+
 `stretch_schedules(train_cfg, steps)` stretches everything that counts steps with the run:
 train.max_steps and train.warmup (the learning-rate schedule, optim.lr_schedule, is then the same
 function of the fraction of the run); train.robust.warmup and train.robust.refine are fractions of
@@ -32,7 +42,7 @@ longer run saves and logs more often, so a kill loses as many seconds as before)
 appearance_steps (the test-time NeRF-W fit, not training).
 
 `apply(cfg, train_pixels, ...)` is the one call an entry point makes on a settled RunConfig: it
-returns the config with the chosen steps and a record ({"steps", "epochs", "limited_by", "why",
+returns the config with the chosen steps (and grid) and a record ({"steps", "epochs", "limited_by", "why",
 ...}) that the run keeps in budget.json, metrics.json's "budget" and a line of report.md
 (`report_line`).
 """
@@ -71,6 +81,10 @@ REFERENCE_RAYS_PER_S = {"cpu": 11000.0, "gpu": 365000.0}
 # could overrun. The synthetic demo (2.4 of 12 min) is not measured.
 MEASURE_SHARE = 0.25
 REFERENCE = "reference estimate"
+# The hash grid a capture with minutes to spare trains (model.field.grid keys), and its cost a step
+# against the demo recipe's grid: 1.36-1.39x on the 2-core machine (docs/RECIPES.md).
+GROWN_GRID = {"log2_table_size": 19, "max_resolution": 4096}
+GROWN_GRID_COST = 1.4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -190,9 +204,11 @@ def _frame_size(frame) -> tuple[int, int]:
         raise DataError(f"{frame.image_path}: cannot read the image's size ({err})") from None
 
 
-def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None = None) -> dict:
+def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None = None,
+           grid: dict | None = None) -> dict:
     """The run's budget record (budget.json, metrics.json's "budget"): the chosen figures and a
-    sentence on why; given_by names the flag when the user fixed the steps (then budget is None)."""
+    sentence on why; given_by names the flag when the user fixed the steps (then budget is None);
+    grid: the model.field.grid keys the budget grew (`grid_growth`), or None."""
     tc = cfg.train
     epochs = tc.max_steps * tc.batch_rays / train_pixels
     if budget is None:
@@ -204,13 +220,16 @@ def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None =
               "epochs": f"{budget.target_epochs:g} epochs of the capture's training pixels",
               "minutes": f"capped by the time budget: {budget.minutes:g} min at {speed_words(budget)} "
                          f"({budget.target_epochs:g} epochs would need {budget.wanted_steps} steps)"}[budget.limited_by]
+    if grid:
+        reason += (f"; a larger hash grid ({', '.join(f'{k} {v}' for k, v in grid.items())}), as the "
+                   f"epochs fit in the minutes with time to spare")
     return {"rule": "budget", "steps": budget.steps, "batch_rays": budget.batch_rays, "warmup": tc.warmup,
             "train_pixels": int(train_pixels), "epochs": round(budget.epochs, 3),
             "target_epochs": budget.target_epochs, "wanted_steps": budget.wanted_steps,
             "cap_steps": budget.cap_steps, "limited_by": budget.limited_by, "minutes": budget.minutes,
             "estimated_minutes": round(budget.estimated_minutes, 2),
             "rays_per_second": round(budget.rays_per_second, 1), "speed_source": budget.speed_source,
-            "recipe_steps": budget.recipe_steps, "why": reason}
+            "recipe_steps": budget.recipe_steps, "grid": grid, "why": reason}
 
 
 def speed_words(budget: Budget) -> str:
@@ -218,23 +237,61 @@ def speed_words(budget: Budget) -> str:
     return f"{budget.rays_per_second / 1000:.1f}k rays/s ({budget.speed_source})"
 
 
+def grid_growth(mcfg) -> dict | None:
+    """The model.field.grid keys that grow a model's hash grid to GROWN_GRID, or None when its
+    field is no hash grid or is at least that large on both keys."""
+    grid = getattr(mcfg.field, "grid", None)
+    if getattr(mcfg.field, "kind", None) != "grid" or grid is None:
+        return None
+    grow = {k: v for k, v in GROWN_GRID.items() if getattr(grid, k) < v}
+    return grow or None
+
+
+def with_grid(cfg, grow: dict):
+    """RunConfig cfg with model.field.grid's keys `grow` replaced."""
+    field = cfg.model.field
+    field = dataclasses.replace(field, grid=dataclasses.replace(field.grid, **grow))
+    return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, field=field))
+
+
+def _planned(cfg, train_pixels: int, n_devices: int, minutes, platform: str, measure, cost: float = 1.0):
+    """choose_budget for cfg at the reference speed / cost, then, where the minutes may bind
+    (MEASURE_SHARE), at the speed `measure` gives for cfg."""
+    ref = rays_per_second(platform, n_devices) / cost
+    chosen = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform, speed=ref)
+    if measure is not None and chosen.estimated_minutes > MEASURE_SHARE * chosen.minutes:
+        speed, source = measure(cfg)
+        chosen = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform, speed=speed,
+                               speed_source=source)
+    return chosen
+
+
 def apply(cfg, train_pixels: int, n_devices: int = 1, minutes: float | None = None, given_by: str | None = None,
-          platform: str = "cpu", measure=None) -> tuple:
+          platform: str = "cpu", measure=None, grid_free: bool = False) -> tuple:
     """(cfg with the budget's steps and stretched schedules, its record) for a settled RunConfig
     whose recipe steps are train.max_steps. given_by: the setting that fixed the steps
     (`steps_given_by`: run.steps, train.max_steps) or None; when given, cfg is returned as it is and the record
     says so. measure: None, or callable(cfg) -> (train rays a second, where the figure comes from),
     called when the reference estimate fills more than MEASURE_SHARE of the minutes (module
-    docstring); the steps are then chosen at its speed."""
+    docstring); the steps are then chosen at its speed. grid_free: the user set no model.field key,
+    so a capture with minutes to spare may train the larger grid (module docstring)."""
     if given_by is not None:
         return cfg, record(None, cfg, train_pixels, given_by)
-    chosen = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform)
-    if measure is not None and chosen.estimated_minutes > MEASURE_SHARE * chosen.minutes:
-        speed, source = measure(cfg)
-        chosen = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform, speed=speed,
-                               speed_source=source)
+    estimate = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform)
+    spare = estimate.limited_by == "epochs" and estimate.estimated_minutes * GROWN_GRID_COST <= estimate.minutes
+    grow = grid_growth(cfg.model) if grid_free and spare else None
+    chosen = None
+    if grow is not None:
+        grown = _planned(with_grid(cfg, grow), train_pixels, n_devices, minutes, platform, measure,
+                         GROWN_GRID_COST)
+        if grown.limited_by == "epochs":  # its epochs still fit at the larger grid's speed
+            cfg, chosen = with_grid(cfg, grow), grown
+        else:
+            grow = None
+    if chosen is None:
+        chosen = _planned(cfg, train_pixels, n_devices, minutes, platform, measure)
     out = dataclasses.replace(cfg, train=stretch_schedules(cfg.train, chosen.steps))
-    return out, record(chosen, out, train_pixels)
+    return out, record(chosen, out, train_pixels, grid=grow)
 
 
 def steps_given_by(steps: int | None, overrides: dict | None) -> str | None:
@@ -262,10 +319,13 @@ def recorded_speed(run_dir) -> tuple[float, str] | None:
     return speed, f"as planned when the run began: {rec.get('speed_source', REFERENCE)}"
 
 
-def train_overrides(rec: dict) -> dict:
-    """The override dict of a budget record's train keys ({"train": {"max_steps", "warmup"}}), to
-    lay over a run's overrides."""
-    return {"train": {"max_steps": int(rec["steps"]), "warmup": int(rec["warmup"])}}
+def run_overrides(rec: dict) -> dict:
+    """The override dict of what a budget record chose ({"train": {"max_steps", "warmup"}}, and
+    {"model": {"field": {"grid": ...}}} when it grew the grid), to lay over a run's overrides."""
+    out: dict = {"train": {"max_steps": int(rec["steps"]), "warmup": int(rec["warmup"])}}
+    if rec.get("grid"):
+        out["model"] = {"field": {"grid": dict(rec["grid"])}}
+    return out
 
 
 def report_line(rec: dict) -> str:

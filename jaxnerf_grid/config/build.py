@@ -143,8 +143,10 @@ def build(request: Request, data: str | Path | None = None, extra: dict | None =
     chosen = None
     if data is not None and devices_of is not None and Path(data).is_dir():  # a missing folder: train_run says so
         pixels = budget_lib.capture_pixels(data, settled.train.max_side)
+        field_set = bool((user.get("model") or {}).get("field"))  # the user's own field: left as it is
         _, chosen = budget_lib.apply(settled, pixels, devices_of(settled.train), request.minutes,
-                                     budget_lib.steps_given_by(request.steps, user), platform, measure)
+                                     budget_lib.steps_given_by(request.steps, user), platform, measure,
+                                     grid_free=not field_set)
         if chosen.get("rule") == "budget":
-            overrides = config_lib.merge(overrides, budget_lib.train_overrides(chosen))
+            overrides = config_lib.merge(overrides, budget_lib.run_overrides(chosen))
     return Built(recipe, method, overrides, bounds, chosen)

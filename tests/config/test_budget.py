@@ -130,7 +130,7 @@ def test_apply_leaves_steps_the_user_gave():
     chosen, rec = budget.apply(RunConfig(train=DEMO_TRAIN), 9 * 533 * 355, minutes=12)
     assert chosen.train.max_steps == rec["steps"] == budget.choose_budget(9 * 533 * 355, 1, 12, DEMO_TRAIN).steps
     assert chosen.train.warmup == round(50 * rec["steps"] / 1600)
-    assert budget.train_overrides(rec) == {"train": {"max_steps": rec["steps"], "warmup": chosen.train.warmup}}
+    assert budget.run_overrides(rec) == {"train": {"max_steps": rec["steps"], "warmup": chosen.train.warmup}}
     json.dumps(rec)     # the record is JSON (budget.json, metrics.json)
     line = budget.report_line(rec)
     assert line.startswith(f"Training budget: {rec['steps']} steps x 1024 rays") and rec["why"] in line
@@ -188,3 +188,60 @@ def test_the_progress_line_says_the_time_left():
     assert stream.getvalue().splitlines()[1] == "train ours: 100/400 steps (25%), 40.0 s, 30.3 s left"
     bar.close()
     assert stream.getvalue().splitlines()[-1] == "train ours: 100/400 steps (25%), 40.0 s, 30.3 s left"
+
+
+def _lean():
+    from jaxnerf_grid.config import recipes
+
+    return recipes.make_config("ours-lean")  # its grid: 2^16 rows, finest resolution 1024
+
+
+def test_a_capture_with_minutes_to_spare_trains_the_larger_grid_at_its_epochs():
+    # fountain-P11: 3400 steps x 1024 rays at 11k rays/s = 5.27 min; at 1.4x a step 7.39 min <= 12
+    out, rec = budget.apply(_lean(), 9 * 533 * 355, minutes=12, grid_free=True)
+    grid = out.model.field.grid
+    assert (grid.log2_table_size, grid.max_resolution, out.train.max_steps) == (19, 4096, 3400)
+    assert rec["grid"] == {"log2_table_size": 19, "max_resolution": 4096} and "larger hash grid" in rec["why"]
+    # the larger grid's speed, 11000 / 1.4 rays/s, in the record and its minutes
+    assert rec["rays_per_second"] == pytest.approx(11000 / 1.4, abs=0.1)
+    assert rec["estimated_minutes"] == pytest.approx(3400 * 1024 / (11000 / 1.4) / 60, abs=0.01)
+    assert budget.run_overrides(rec) == {"train": {"max_steps": 3400, "warmup": round(50 * 3400 / 1600)},
+                                         "model": {"field": {"grid": {"log2_table_size": 19, "max_resolution": 4096}}}}
+
+
+def test_the_grid_stays_the_recipes_where_the_epochs_would_not_fit_or_the_user_chose_the_field():
+    lean = _lean()
+    recipe_grid = lean.model.field.grid
+    # 3.2 M px: 6300 steps fill 9.77 of 12 min; at 1.4x, 13.7: the grid stays, the epochs are kept
+    timed = []
+    out, rec = budget.apply(lean, 3_200_000, minutes=12, grid_free=True,
+                            measure=lambda cfg: timed.append(cfg.model.field.grid) or (11000.0, "stand-in"))
+    assert out.model.field.grid == recipe_grid and rec["grid"] is None and out.train.max_steps == 6300
+    assert timed == [recipe_grid]  # the larger grid is not even timed
+    # a large capture (the minutes bind) and the synthetic demo (the recipe's steps) keep it too
+    for pixels in (49 * 353 * 628, 40 * 160 * 120):
+        out, rec = budget.apply(lean, pixels, minutes=12, grid_free=True)
+        assert out.model.field.grid == recipe_grid and rec["grid"] is None
+    # the user set a model.field key: the grid is never grown
+    out, rec = budget.apply(lean, 9 * 533 * 355, minutes=12, grid_free=False)
+    assert out.model.field.grid == recipe_grid and out.train.max_steps == 3400
+    # a grid already as large
+    big = budget.with_grid(lean, {"log2_table_size": 20, "max_resolution": 8192})
+    assert budget.grid_growth(big.model) is None
+
+
+def test_a_larger_grid_too_slow_on_this_machine_gives_way_to_the_recipes():
+    timed = []
+
+    def measure(cfg):  # this machine: the larger grid at 3000 rays/s, the recipe's at 11000
+        timed.append(cfg.model.field.grid.log2_table_size)
+        return (3000.0 if cfg.model.field.grid.log2_table_size == 19 else 11000.0), "stand-in"
+
+    out, rec = budget.apply(_lean(), 9 * 533 * 355, minutes=12, grid_free=True, measure=measure)
+    # 12 x 60 x 3000 / 1024 = 2109 steps < 3400: the larger grid would cut the epochs, so it is dropped
+    assert timed == [19, 16] and out.model.field.grid.log2_table_size == 16 and out.train.max_steps == 3400
+    assert rec["grid"] is None and rec["rays_per_second"] == 11000.0
+    timed.clear()
+    fast = budget.apply(_lean(), 9 * 533 * 355, minutes=12, grid_free=True,
+                        measure=lambda cfg: timed.append(1) or (8000.0, "stand-in"))[0]
+    assert timed == [1] and fast.model.field.grid.log2_table_size == 19   # measured once, the grid kept
