@@ -79,4 +79,7 @@ def main(argv: list[str] | None = None) -> int:
         warnings.warn(f"the model's tower begins {low:.2f} {unit} above the ground (its legs were not "
                       "reconstructed there): the base centre and the tilt are extrapolated (docs/EXPORT.md)",
                       stacklevel=1)
+    tilt = report.tilt_doubtful(m)
+    if tilt is not None:
+        warnings.warn(f"the tower's axis leans {tilt:.2f} deg from vertical: {report.TILT_WORDS}", stacklevel=1)
     return 0

@@ -103,6 +103,9 @@ def geometry_lines(geometry: dict | None) -> list[str]:
 
 EXPORT_HEADING = "## Tower model (export)"
 LEGS_MISSING = 0.05   # "lower part missing" when the mesh begins higher than this share of the height
+# "tilt doubtful" past this many degrees from vertical: the towers measured here lean 0.02-1.74
+# degrees in their exports (docs/EXPORT.md); a ghost of a model leaned 7.25.
+TILT_DOUBTFUL = 3.0
 
 
 def lower_part_missing(m: dict) -> float | None:
@@ -111,6 +114,19 @@ def lower_part_missing(m: dict) -> float | None:
     The report's "lower part missing" row and `jaxnerf-grid export`'s warning both ask this."""
     low = (((m.get("survey") or {}).get("base_centre")) or {}).get("extrapolated") or 0.0
     return float(low) if low > LEGS_MISSING * float(m.get("height") or 0.0) > 0 else None
+
+
+def tilt_doubtful(m: dict) -> float | None:
+    """The tower axis' tilt from vertical in degrees, from measurements.json `m` (its survey's
+    `tilt_degrees`), when it is more than TILT_DOUBTFUL; else None. The report's "tilt doubtful"
+    row and `jaxnerf-grid export`'s warning both ask this."""
+    tilt = ((m.get("survey") or {}).get("tilt_degrees") or {}).get("value")
+    return float(tilt) if tilt is not None and float(tilt) > TILT_DOUBTFUL else None
+
+
+TILT_WORDS = ("a standing lattice tower leans under 2 degrees in every export measured here: either this one "
+              "leans, or the model's tower is incomplete or misplaced (look at report_views.png), and its "
+              "height, cross-arm levels and the conductors' clearance are doubtful")
 
 
 def _xyz(v, digits=2) -> str:
@@ -155,6 +171,9 @@ def _survey_lines(m: dict, unit: str) -> list[str]:
             lines.append(f"| **lower part missing** | the model's tower begins {_fmt(low)} {unit} above the ground: "
                          "its legs were not reconstructed there, so the base centre and the tilt come from the "
                          "axis extended down that far (train longer, or add low oblique photos) |")
+    tilt = tilt_doubtful(m)
+    if tilt is not None:
+        lines.append(f"| **tilt doubtful** | the tower's axis leans {_fmt(tilt)} deg from vertical: {TILT_WORDS} |")
     vertical = sv.get("vertical")
     if vertical:
         lines.append(f"| heights of the CRS coordinates (base centre, tower_points.las, tower_mesh_crs.ply) | "

@@ -1159,3 +1159,24 @@ def test_conductor_step_hands_the_span_length_and_the_arm_tips_to_find_spans_and
     out = export_run._conductors(ds, np.arange(4), meas, np.zeros((0, 3)), [-5.0, -5.0, 0.0], [5.0, 5.0, 31.0],
                                  "metres", None, False)
     assert calls[1]["span_length"] is None and out["span_length"] is None
+
+
+def test_export_cli_warns_when_the_towers_axis_leans_past_three_degrees(monkeypatch, tmp_path):
+    """A model's tower leaning 7.25 deg (a ghost of a model measured so): one warning naming the
+    angle; 1.74 deg (the most a sound export measured) and exactly 3: none. The export is a
+    stand-in returning the keys the CLI reads."""
+    from jaxnerf_grid import cli
+    from jaxnerf_grid.export import run as run_lib
+
+    def fake(tilt):
+        return lambda *a, **k: {"units": "metres", "height": 21.76, "tilt": {"tilt_degrees": tilt},
+                                "survey": {"height": {"sigma": 0.39}, "tilt_degrees": {"value": tilt, "sigma": 0.4}},
+                                "mesh": {"vertices": 3, "faces": 1}, "points": {"count": 5}, "seconds": 1.0}
+
+    for tilt, expected in ((7.25, ["the tower's axis leans 7.25 deg from vertical: a standing lattice"]),
+                           (1.74, []), (3.0, [])):
+        monkeypatch.setattr(run_lib, "export_run", fake(tilt))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
+        assert [str(w.message)[:65] for w in caught] == expected

@@ -320,6 +320,24 @@ def test_lower_part_missing_by_hand_and_its_row_word_for_word():
         "longer, or add low oblique photos) |")
 
 
+def test_tilt_doubtful_past_three_degrees_and_its_row_word_for_word():
+    """tilt_doubtful: the survey's tilt when over 3 degrees (7.25, a ghost of a model's; 3.01), not
+    at 3 or 1.74 (the most a sound export measured); no tilt: None. The row in full."""
+    def m(tilt):
+        return {"height": 21.76, "survey": {"height": _fig(21.76, 0.39),
+                                            "tilt_degrees": None if tilt is None else _fig(tilt, 0.4)}}
+
+    assert report.tilt_doubtful(m(7.25)) == 7.25 and report.tilt_doubtful(m(3.01)) == 3.01
+    assert report.tilt_doubtful(m(3.0)) is None and report.tilt_doubtful(m(1.74)) is None
+    assert report.tilt_doubtful(m(None)) is None and report.tilt_doubtful({}) is None
+    assert report._survey_lines(m(7.25), "m")[-1] == (
+        "| **tilt doubtful** | the tower's axis leans 7.25 deg from vertical: a standing lattice tower leans under "
+        "2 degrees in every export measured here: either this one leans, or the model's tower is incomplete or "
+        "misplaced (look at report_views.png), and its height, cross-arm levels and the conductors' clearance are "
+        "doubtful |")
+    assert not any("tilt doubtful" in line for line in report._survey_lines(m(1.74), "m"))
+
+
 def test_weights_figure_panels_by_hand(tmp_path):
     assert report.weights_figure(tmp_path, []) == [] and not (tmp_path / "report_weights.png").exists()
     photo = _image(7)
