@@ -25,13 +25,15 @@ larger steps; on a GPU a larger batch does fill the device (docs/GPU.md), and is
 
 A capture whose epochs fit well inside its minutes (limited by "epochs", and the steps fit at
 GROWN_GRID_COST times the time) spends them on a larger hash grid (GROWN_GRID: 2^19 rows a level,
-finest resolution 4096) rather than on more epochs: on fountain-P11 the larger grid scored +0.3 dB
-and +0.04 SSIM at the same steps, where twice the epochs on the recipe's grid lost 0.36 dB
-(docs/RECIPES.md). Where the minutes bind (a large capture) the grid stays the recipe's: there the
-larger grid's slower steps buy nothing (the demo's scene at 640x480, equal time). The grid is left
-alone when the user set any model.field key (`grid_free`), and when the field is no hash grid or
-is as large already. When the larger grid's measured speed no longer fits the epochs, the recipe's
-grid is measured and kept.
+finest resolution 4096) trained over the whole time budget (limited_by "grid": the steps that fit
+in the minutes at the larger grid's speed). Measured on the two Strecha scenes it applies to
+(docs/RECIPES.md): the larger grid beat the recipe's at the same steps on both, and its longer run
+beat its 2-epoch run by 1.7 dB on entry-P10 (0.05 on fountain-P11), where twice the epochs on the
+recipe's grid lost 0.36 dB on fountain-P11. Where the minutes bind (a large capture) the grid stays
+the recipe's: there the larger grid's slower steps buy nothing (the demo's scene at 640x480, equal
+time). The grid is left alone when the user set any model.field key (`grid_free`), and when the
+field is no hash grid or is as large already. When the larger grid's measured speed no longer fits
+the epochs, the recipe's grid is measured and kept, at its epochs.
 
 `stretch_schedules(train_cfg, steps)` stretches everything that counts steps with the run:
 train.max_steps and train.warmup (the learning-rate schedule, optim.lr_schedule, is then the same
@@ -92,7 +94,8 @@ class Budget:
     """What `choose_budget` chose. steps: optimiser steps; batch_rays: rays a step; epochs: steps x
     batch / training pixels; wanted_steps: the steps TARGET_EPOCHS asks for (before the recipe's
     floor and the cap); cap_steps: the steps that fit in `minutes`; limited_by: "recipe" (the
-    recipe's steps, the floor), "epochs" (the target), "minutes" (the time cap); minutes: the
+    recipe's steps, the floor), "epochs" (the target), "minutes" (the time cap), "grid" (the
+    larger grid over the whole time budget, `_filled`); minutes: the
     budget; estimated_minutes: steps at rays_per_second; rays_per_second: the estimate used;
     target_epochs: E; recipe_steps: base.max_steps."""
 
@@ -219,10 +222,11 @@ def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None =
                         f"{budget.target_epochs:g} epochs",
               "epochs": f"{budget.target_epochs:g} epochs of the capture's training pixels",
               "minutes": f"capped by the time budget: {budget.minutes:g} min at {speed_words(budget)} "
-                         f"({budget.target_epochs:g} epochs would need {budget.wanted_steps} steps)"}[budget.limited_by]
-    if grid:
-        reason += (f"; a larger hash grid ({', '.join(f'{k} {v}' for k, v in grid.items())}), as the "
-                   f"epochs fit in the minutes with time to spare")
+                         f"({budget.target_epochs:g} epochs would need {budget.wanted_steps} steps)",
+              "grid": f"a larger hash grid ({', '.join(f'{k} {v}' for k, v in (grid or {}).items())}) over the "
+                      f"whole time budget, {budget.minutes:g} min at {speed_words(budget)}, as "
+                      f"{budget.target_epochs:g} epochs ({budget.wanted_steps} steps) fit in it with time to spare"
+              }[budget.limited_by]
     return {"rule": "budget", "steps": budget.steps, "batch_rays": budget.batch_rays, "warmup": tc.warmup,
             "train_pixels": int(train_pixels), "epochs": round(budget.epochs, 3),
             "target_epochs": budget.target_epochs, "wanted_steps": budget.wanted_steps,
@@ -252,6 +256,14 @@ def with_grid(cfg, grow: dict):
     field = cfg.model.field
     field = dataclasses.replace(field, grid=dataclasses.replace(field.grid, **grow))
     return dataclasses.replace(cfg, model=dataclasses.replace(cfg.model, field=field))
+
+
+def _filled(b: Budget) -> Budget:
+    """Budget b (limited by its epochs) with its steps raised to its cap: the whole time budget,
+    limited_by "grid"."""
+    grow = b.cap_steps / b.steps
+    return dataclasses.replace(b, steps=b.cap_steps, epochs=b.epochs * grow, limited_by="grid",
+                               estimated_minutes=b.estimated_minutes * grow)
 
 
 def _planned(cfg, train_pixels: int, n_devices: int, minutes, platform: str, measure, cost: float = 1.0):
@@ -284,8 +296,8 @@ def apply(cfg, train_pixels: int, n_devices: int = 1, minutes: float | None = No
     if grow is not None:
         grown = _planned(with_grid(cfg, grow), train_pixels, n_devices, minutes, platform, measure,
                          GROWN_GRID_COST)
-        if grown.limited_by == "epochs":  # its epochs still fit at the larger grid's speed
-            cfg, chosen = with_grid(cfg, grow), grown
+        if grown.limited_by == "epochs":  # its epochs still fit at the larger grid's speed: fill the minutes
+            cfg, chosen = with_grid(cfg, grow), _filled(grown)
         else:
             grow = None
     if chosen is None:

@@ -93,8 +93,8 @@ def test_the_budget_chooses_the_steps_last_unless_the_user_gave_them(tmp_path):
 def test_a_small_capture_trains_the_larger_grid_unless_the_user_set_the_field(tmp_path):
     """12 photos of 640x480, 10 of them training (3.07 M px): 2 epochs = 6000 steps, 9.3 min at 11k
     rays/s, 13.0 at the larger grid's 1.4x: over 12, so the recipe's grid; 4 photos, 3 training
-    (0.92 M px, 1800 steps), fit in 3.9 min at 1.4x, so the larger grid, which --set model.field...
-    keeps from being chosen."""
+    (0.92 M px, 1800 steps), fit in 3.9 min at 1.4x, so the larger grid over the 12 minutes (12 x 60 x
+    11000 / 1.4 / 1024 = 5524.6 -> 5500 steps), which --set model.field... keeps from being chosen."""
     one = lambda train_cfg: 1  # noqa: E731
     (tmp_path / "ten").mkdir()
     (tmp_path / "four").mkdir()
@@ -105,11 +105,12 @@ def test_a_small_capture_trains_the_larger_grid_unless_the_user_set_the_field(tm
     four = frames_folder(tmp_path / "four", 4, 640, 480)
     built = build.build(build.Request(recipe="ours-lean"), data=four, devices_of=one)
     grid = built.config().model.field.grid
-    assert (grid.log2_table_size, grid.max_resolution, built.config().train.max_steps) == (19, 4096, 1800)
+    assert (grid.log2_table_size, grid.max_resolution, built.config().train.max_steps) == (19, 4096, 5500)
     own = build.build(build.Request(recipe="ours-lean", sets=("model.field.grid.num_levels=10",)), data=four,
                       devices_of=one)
     grid = own.config().model.field.grid
     assert (grid.log2_table_size, grid.max_resolution, grid.num_levels) == (16, 1024, 10) and own.budget["grid"] is None
+    assert own.config().train.max_steps == 1800
 
 
 def test_recorded_bounds_replace_the_recipes_constants(tmp_path):
