@@ -208,10 +208,11 @@ def _frame_size(frame) -> tuple[int, int]:
 
 
 def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None = None,
-           grid: dict | None = None) -> dict:
+           grid: dict | None = None, grid_speed: float | None = None) -> dict:
     """The run's budget record (budget.json, metrics.json's "budget"): the chosen figures and a
     sentence on why; given_by names the flag when the user fixed the steps (then budget is None);
-    grid: the model.field.grid keys the budget grew (`grid_growth`), or None."""
+    grid: the model.field.grid keys the budget grew (`grid_growth`), or None; grid_speed: the
+    larger grid's speed where the budget timed it and fell back to the recipe's grid."""
     tc = cfg.train
     epochs = tc.max_steps * tc.batch_rays / train_pixels
     if budget is None:
@@ -233,7 +234,7 @@ def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None =
             "cap_steps": budget.cap_steps, "limited_by": budget.limited_by, "minutes": budget.minutes,
             "estimated_minutes": round(budget.estimated_minutes, 2),
             "rays_per_second": round(budget.rays_per_second, 1), "speed_source": budget.speed_source,
-            "recipe_steps": budget.recipe_steps, "grid": grid, "why": reason}
+            "recipe_steps": budget.recipe_steps, "grid": grid, "grid_rays_per_second": grid_speed, "why": reason}
 
 
 def speed_words(budget: Budget) -> str:
@@ -292,18 +293,18 @@ def apply(cfg, train_pixels: int, n_devices: int = 1, minutes: float | None = No
     estimate = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform)
     spare = estimate.limited_by == "epochs" and estimate.estimated_minutes * GROWN_GRID_COST <= estimate.minutes
     grow = grid_growth(cfg.model) if grid_free and spare else None
-    chosen = None
+    chosen, grid_speed = None, None
     if grow is not None:
         grown = _planned(with_grid(cfg, grow), train_pixels, n_devices, minutes, platform, measure,
                          GROWN_GRID_COST)
         if grown.limited_by == "epochs":  # its epochs still fit at the larger grid's speed: fill the minutes
             cfg, chosen = with_grid(cfg, grow), _filled(grown)
-        else:
-            grow = None
+        else:  # kept in the record, so that a resumed run falls back as this one did
+            grow, grid_speed = None, grown.rays_per_second
     if chosen is None:
         chosen = _planned(cfg, train_pixels, n_devices, minutes, platform, measure)
     out = dataclasses.replace(cfg, train=stretch_schedules(cfg.train, chosen.steps))
-    return out, record(chosen, out, train_pixels, grid=grow)
+    return out, record(chosen, out, train_pixels, grid=grow, grid_speed=grid_speed)
 
 
 def steps_given_by(steps: int | None, overrides: dict | None) -> str | None:
@@ -316,14 +317,17 @@ def steps_given_by(steps: int | None, overrides: dict | None) -> str | None:
     return None
 
 
-def recorded_speed(run_dir) -> tuple[float, str] | None:
+def recorded_speed(run_dir, larger_grid: bool = False) -> tuple[float, str] | None:
     """(rays a second, source) a run folder's budget.json planned with, so that a resumed run
-    chooses the steps it began with; None when the folder has no budget record (a new run, or
-    steps given by the user) or an unreadable one."""
+    chooses the steps (and grid) it began with; larger_grid: the speed the larger grid was timed
+    at where the budget then fell back to the recipe's grid (`grid_rays_per_second`; else the
+    record's one speed). None when the folder has no budget record (a new run, or steps given by
+    the user) or an unreadable one."""
     path = Path(run_dir) / "budget.json"
     try:
         rec = json.loads(path.read_text())
-        speed = float(rec["rays_per_second"])
+        key = "grid_rays_per_second" if larger_grid and rec.get("grid_rays_per_second") else "rays_per_second"
+        speed = float(rec[key])
     except (OSError, ValueError, KeyError, TypeError):
         return None
     if rec.get("rule") != "budget" or not math.isfinite(speed) or speed <= 0:

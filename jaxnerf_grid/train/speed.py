@@ -114,9 +114,9 @@ def planner(run_dir, overwrite: bool = False, say=None):
 
     if distributed.is_distributed():
         return None
-    recorded = None if overwrite else budget.recorded_speed(run_dir)
-    if recorded is not None:
-        return lambda cfg: recorded
+    if not overwrite and budget.recorded_speed(run_dir) is not None:
+        # the speed recorded for the config asked about: the larger grid's where it was timed apart
+        return lambda cfg: budget.recorded_speed(run_dir, larger_grid=budget.grid_growth(cfg.model) is None)
 
     def measured(cfg) -> tuple[float, str]:
         if say is not None:

@@ -243,7 +243,7 @@ def test_a_larger_grid_too_slow_on_this_machine_gives_way_to_the_recipes():
     out, rec = budget.apply(_lean(), 9 * 533 * 355, minutes=12, grid_free=True, measure=measure)
     # 12 x 60 x 3000 / 1024 = 2109 steps < 3400: the larger grid would cut the epochs, so it is dropped
     assert timed == [19, 16] and out.model.field.grid.log2_table_size == 16 and out.train.max_steps == 3400
-    assert rec["grid"] is None and rec["rays_per_second"] == 11000.0
+    assert rec["grid"] is None and rec["rays_per_second"] == 11000.0 and rec["grid_rays_per_second"] == 3000.0
     timed.clear()
     fast = budget.apply(_lean(), 9 * 533 * 355, minutes=12, grid_free=True,
                         measure=lambda cfg: timed.append(1) or (8000.0, "stand-in"))[0]

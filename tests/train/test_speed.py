@@ -78,6 +78,21 @@ def test_a_resumed_run_plans_at_the_speed_its_budget_recorded(tmp_path, monkeypa
     assert rec2["rays_per_second"] == 7321.0 and rec2["speed_source"].startswith("as planned when the run began")
 
 
+def test_a_run_that_fell_back_to_the_recipes_grid_resumes_with_the_same_grid_and_steps(tmp_path, monkeypatch):
+    from jaxnerf_grid.config import recipes
+
+    def measure(cfg):  # the larger grid too slow for fountain-P11's 2 epochs on this machine
+        return (3000.0 if cfg.model.field.grid.log2_table_size == 19 else 11000.0), speed.MEASURED
+
+    lean = recipes.make_config("ours-lean")
+    first, rec = budget.apply(lean, 9 * 533 * 355, minutes=12, grid_free=True, measure=measure)
+    (tmp_path / "budget.json").write_text(json.dumps(rec))
+    monkeypatch.setattr(speed, "measure", lambda cfg, seconds=speed.SECONDS: 1 / 0)  # never timed again
+    again, rec2 = budget.apply(lean, 9 * 533 * 355, minutes=12, grid_free=True, measure=speed.planner(tmp_path))
+    assert first.model.field.grid.log2_table_size == again.model.field.grid.log2_table_size == 16
+    assert first.train.max_steps == again.train.max_steps == 3400 and rec2["grid_rays_per_second"] == 3000.0
+
+
 def test_no_recorded_speed_for_a_new_run_given_steps_or_a_bad_record(tmp_path):
     assert budget.recorded_speed(tmp_path) is None
     (tmp_path / "budget.json").write_text(json.dumps({"rule": "given", "steps": 300}))
