@@ -27,7 +27,7 @@ def build_parser() -> argparse.ArgumentParser:
                         "the recipe's 1600 on the synthetic scene, more on a larger capture; budget.py)")
     p.add_argument("--minutes", type=float, default=None, metavar="N",
                    help="the training time budget the steps are chosen within when --steps is not given "
-                        "(default 12, on two idle cores; budget.py)")
+                        "(default 12; the steps fit it at this machine's speed, timed first; budget.py)")
     p.add_argument("--max-side", type=int, default=None, metavar="N",
                    help="train and evaluate with the photos' long side at most N px (an integer downscale "
                         "factor, intrinsics scaled; 0 = full size; default 640; train.max_side)")

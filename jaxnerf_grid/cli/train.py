@@ -74,7 +74,7 @@ def build_parser() -> argparse.ArgumentParser:
                    help="train.max_steps (default: chosen from the capture's training pixels within --minutes)")
     p.add_argument("--minutes", type=float, default=None, metavar="N",
                    help="the training time budget the steps are chosen within when --steps is not given "
-                        "(default 12, on two idle cores; budget.py)")
+                        "(default 12; the steps fit it at this machine's speed, timed first; budget.py)")
     p.add_argument("--max-side", type=int, default=None, metavar="N",
                    help="train with the photos' long side at most N px (an integer downscale factor, "
                         "intrinsics scaled; 0 = full size; default 640); sets train.max_side")
