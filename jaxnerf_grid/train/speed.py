@@ -28,9 +28,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from jaxnerf_grid.config import budget
 from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.nerf import rays as rays_lib
+from jaxnerf_grid.train import distributed, loop
 from jaxnerf_grid.util import parallel
 
 CALIBRATION_FRAMES = 4
@@ -82,8 +84,6 @@ def timing_config(cfg):
 def measure(cfg, seconds: float = SECONDS) -> float:
     """Train rays a second of RunConfig `cfg`'s step on this machine's step devices (module
     docstring)."""
-    from jaxnerf_grid.train import loop  # the step's builder; loop imports this module's callers
-
     scene = calibration_scene()
     timed = config_lib.resolve(timing_config(cfg), scene)
     n = loop.step_devices(timed.train)
@@ -109,9 +109,6 @@ def planner(run_dir, overwrite: bool = False, say=None):
     steps it began with; else this machine's (`measure`, with a line through `say` first). None in
     a multi-process run: every process must choose the same steps, so they plan at the reference
     estimate."""
-    from jaxnerf_grid.config import budget
-    from jaxnerf_grid.train import distributed
-
     if distributed.is_distributed():
         return None
     if not overwrite and budget.recorded_speed(run_dir) is not None:
