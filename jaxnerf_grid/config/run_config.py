@@ -182,6 +182,9 @@ class TrainConfig:
       (the hierarchical sampler's first pass; losses.per_ray_loss's level_weight);
     interlevel_loss_weight: weight of mip-NeRF 360's proposal loss (levels without colour);
     distortion_loss_weight: weight of mip-NeRF 360's distortion loss, in s (0 = off).
+    lowres_share, lowres_factor: the resolution schedule (train/lowres.py): the first
+      lowres_share of the steps train on the frames shrunk by lowres_factor (block means), the
+      rest at the working resolution (0 = off; only with train.robust off).
     robust: the photometric evidence's settings (`RobustConfig`, docs/ROBUST.md).
     depth: the sparse points' depth prior (`DepthConfig`, off by default; `demo --data` turns it
       on for a capture from `poses`).
@@ -212,6 +215,8 @@ class TrainConfig:
     appearance_lr: float = 0.05
     appearance_rays: int = 1024
     max_side: int = 640
+    lowres_share: float = 0.0
+    lowres_factor: int = 2
     robust: RobustConfig = RobustConfig()
     depth: DepthConfig = DepthConfig()
 
@@ -229,7 +234,8 @@ class TrainConfig:
         "log_every": config_lib.AT_LEAST_ONE, "chunk": config_lib.AT_LEAST_ONE,
         "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
         "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE,
-        "max_side": config_lib.NONNEGATIVE}
+        "max_side": config_lib.NONNEGATIVE, "lowres_share": config_lib.UNIT,
+        "lowres_factor": config_lib.AT_LEAST_ONE}
 
     @staticmethod
     def upgrade_dict(data: dict) -> dict:

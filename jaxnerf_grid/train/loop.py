@@ -63,7 +63,7 @@ from jaxnerf_grid.masks import photo_consistency
 from jaxnerf_grid.masks import robust as robust_lib
 from jaxnerf_grid.nerf import fields, losses, models
 from jaxnerf_grid.nerf import rays as rays_lib
-from jaxnerf_grid.train import checkpoint, distributed, optim, ray_pool, refine, sparse_depth
+from jaxnerf_grid.train import checkpoint, distributed, lowres, optim, ray_pool, refine, sparse_depth
 from jaxnerf_grid.util import io, parallel
 from jaxnerf_grid.util import progress as progress_lib
 from jaxnerf_grid.util.io import DataError
@@ -639,6 +639,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
     # the robust step draws patches over replicated lean frames (robust_pool); the plain step
     # its rays from 8-bit frames split over the devices (ray_pool)
     pool_host = robust_pool(dataset, cfg) if robust_on else ray_pool.build(dataset, cfg)
+    lowres_end = lowres.end_step(tcfg)  # the steps before it draw from the shrunk frames (lowres.py)
     state = init_state(cfg, train_frames_shape(dataset))
     step = 0
     main = distributed.is_main()  # process 0 (always, in one process) writes logs and checkpoints
@@ -651,6 +652,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
         step = int(step)
     log_path = run_dir / "metrics.jsonl"
     last_record = _trim_log(log_path, step) if main else None
+    lowres_host = ray_pool.build(lowres.lowres_dataset(dataset, cfg), cfg) if step < lowres_end else None
     check_batch(cfg, n)
     check_robust(tcfg, n)
     refine_at = robust_lib.refine_step(tcfg.robust.refine, tcfg.max_steps) if tcfg.robust != "off" else None
@@ -663,6 +665,8 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
         pool = ray_pool.upload(ray_pool.from_host_pool(frozen, dataset.root), n)
     elif robust_on:
         pool = parallel.replicate(pool_host, n)
+    elif lowres_host is not None:  # the working frames are uploaded at lowres_end
+        pool = ray_pool.upload(lowres_host, n)
     else:
         pool = ray_pool.upload(pool_host, n)
         pool_host = {}  # the devices hold the frames now (on CPU the very same memory)
@@ -690,6 +694,10 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                 pool = with_depth(pool, depth_rays, n)
                 logger.info("step %d: the evidence, judged on whole frames, ignores %.1f %% of the training pixels",
                             step, 100 * (1.0 - frozen_mean))
+            if lowres_host is not None and step == lowres_end:  # the resolution schedule's switch
+                pool = with_depth(ray_pool.upload(pool_host, n), depth_rays, n)
+                pool_host, lowres_host = {}, None
+                logger.info("step %d: training at the working resolution from here", step)
             state_r, stats = _run_step(p_step, state_r, pool, step)
             step += 1
             window_steps += 1
