@@ -16,6 +16,14 @@ n . x + d the height above it), the span a dense polyline of points along it
   least 3-D distance of any of them to the wire. The fused cloud reaches only as far as the
   photos' region of interest: `covered` gives the stretch of the span (stations) where the
   cloud has any point within the corridor, so a reader knows what was checked.
+* `ground_seen`: whether the ground beneath the span's lowest point is seen, and where the
+  plane says it is. The clearance over the ground is the lowest point's height above a plane fitted
+  to the ground the cloud holds, which may be only the ground around the tower: beneath a sag
+  point far out the figure is the plane's extrapolation. The evidence: the cloud's ground points
+  (at most `ground_band` above the plane, as `export.classes` calls ground) within a horizontal
+  radius of the lowest point, their count and their median height above the plane; doubtful when
+  fewer than `min_count` (the ground there not seen) or that median is more than `tolerance` off
+  the plane (the plane does not fit the ground there).
 * `flag`: a span is flagged when its ground or object clearance is below the clearance the user
   gives (`export --min-clearance`; no default: regulations differ by voltage and country).
 """
@@ -84,6 +92,43 @@ def objects_beneath(curve: np.ndarray, points: np.ndarray, normal, d: float, gro
                 "horizontal_distance": float(abs(offset[keep][k] - wire_offset)),
                 "height_above_ground": float(height[keep][k]), "nearest": float(nearest.min())})
     return out
+
+
+# of the span's horizontal length, the radius around the lowest point where the ground counts: a
+# catenary's bottom is flat, the wire 5 % of the span either side of its lowest point is within
+# (2 x 0.05)^2 = 1 % of the sag of its height there, so that ground is what its clearance stands over
+GROUND_RADIUS_SHARE = 0.05
+# ground points the radius must hold: the demo's cloud has about 3 a 0.4 m ground column (6431 on
+# 2108 columns, benchmarks/results/demo_export_settled.json) and a 16 m radius (a 320 m span)
+# thousands where the ground is seen; fewer than 10 are a few stray points, not a surface
+GROUND_MIN_POINTS = 10
+# the ground's robust spread (the survey's ground sigma: its band / 3) the median height may be off
+# the plane: past twice it, the clearance is off by more than its ground term says
+GROUND_OFF_SPREADS = 2.0
+NOT_SEEN, OFF_PLANE = "too few ground points", "ground off the plane"
+
+
+def ground_seen(point, points: np.ndarray, normal, d: float, ground_band: float, radius: float,
+                up=(0.0, 0.0, 1.0), min_count: int = GROUND_MIN_POINTS,
+                tolerance: float | None = None) -> dict:
+    """The evidence for the ground beneath a span's lowest point [3] (module docstring) in a cloud
+    points [N, 3]: its ground points (height above the plane n . x + d = 0 at most ground_band)
+    within `radius` horizontally (across up) of the point. tolerance: how far their median height
+    may be off the plane (default GROUND_OFF_SPREADS x ground_band / 3).
+    Returns {"radius", "count", "min_count", "median_height": None without points, "tolerance",
+    "doubtful": bool, "reason": NOT_SEEN | OFF_PLANE | None}."""
+    p = np.asarray(points, np.float64).reshape(-1, 3)
+    u = np.asarray(up, np.float64) / np.linalg.norm(up)
+    rel = p - np.asarray(point, np.float64)
+    across_up = rel - np.outer(rel @ u, u)
+    height = p @ np.asarray(normal, np.float64) + float(d)
+    near = (height <= ground_band) & (np.linalg.norm(across_up, axis=1) <= radius)
+    count = int(near.sum())
+    median = float(np.median(height[near])) if count else None
+    tol = GROUND_OFF_SPREADS * float(ground_band) / 3.0 if tolerance is None else float(tolerance)
+    reason = NOT_SEEN if count < min_count else OFF_PLANE if median is not None and abs(median) > tol else None
+    return {"radius": float(radius), "count": count, "min_count": int(min_count), "median_height": median,
+            "tolerance": tol, "doubtful": reason is not None, "reason": reason}
 
 
 def flag(ground: float | None, objects: float | None, min_clearance: float | None) -> bool | None:

@@ -424,7 +424,8 @@ def arm_seeds(levels: list[dict], centre, psi: float, up) -> list[tuple[float, f
 def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, units: str, min_clearance,
                 progress: bool, span_length: float | None = None) -> dict:
     """measurements.json's `conductor_spans` (`export.conductors`, `export.clearance`): the spans
-    found in the training photos, each with its figures, its clearance and its flag; "_picture"
+    found in the training photos, each with its figures, its clearance, whether the ground beneath
+    its lowest point is seen (`clearance.ground_seen`) and its flag; "_picture"
     (conductors_views.png's image, taken out before writing). Seeds: the cross-arms' direction,
     heights and span (the module's find_spans), the cross-arms' tips (`arm_seeds`, each searched
     in a window below it: SEED_WINDOW), the tower's axis and box; span_length: the towers'
@@ -479,8 +480,12 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
         ground_clear = None if low is None else float(np.asarray(low) @ n_m + d_m)
         objects = clearance_lib.objects_beneath(curve, cloud_m, n_m, d_m, plane_band, CORRIDOR * float(height), up,
                                                 (lo_m, hi_m)) if len(curve) > 1 else None
+        span = rec["span"]["value"]
+        seen = None if low is None or span is None else clearance_lib.ground_seen(
+            low, cloud_m, n_m, d_m, plane_band, clearance_lib.GROUND_RADIUS_SHARE * float(span), up)
         rec["clearance"] = {"ground": ground_clear,
                             "ground_sigma": None if low is None else rec["lowest_point"]["sigma"][2],
+                            "ground_seen": seen,
                             "objects": objects,
                             "flag": clearance_lib.flag(ground_clear, (objects or {}).get("clearance"), min_clearance)}
         out["spans"].append(rec)

@@ -129,6 +129,31 @@ TILT_WORDS = ("a standing lattice tower leans under 2 degrees in every export me
               "height, cross-arm levels and the conductors' clearance are doubtful")
 
 
+def clearance_doubtful(m: dict, unit: str) -> list[tuple[str, str]]:
+    """(the span's name as the conductors' table has it, the words) of each span in
+    measurements.json `m` whose clearance over the ground rests on a doubtful ground (its
+    clearance's `ground_seen`, `export.clearance.ground_seen`); [] when none. The report's
+    "clearance doubtful" rows and `jaxnerf-grid export`'s warnings both ask this."""
+    out = []
+    for i, r in enumerate(((m.get("conductor_spans") or {}).get("spans")) or []):
+        seen = (r.get("clearance") or {}).get("ground_seen") or {}
+        if seen.get("doubtful"):
+            out.append((f"span {i + 1} (side {'+' if r.get('side', 1) > 0 else '-'})", ground_doubt_words(seen, unit)))
+    return out
+
+
+def ground_doubt_words(seen: dict, unit: str) -> str:
+    """Why a span's clearance over the ground is doubtful, from its `ground_seen` record."""
+    if seen["count"] < seen["min_count"]:
+        return (f"only {seen['count']} ground points of the cloud within {_fmt(seen['radius'])} {unit} of the point "
+                f"beneath its lowest point (at least {seen['min_count']} needed): the ground there is not seen, and "
+                "its clearance over the ground is the fitted plane's extrapolation")
+    return (f"the cloud's ground within {_fmt(seen['radius'])} {unit} of the point beneath its lowest point has a "
+            f"median height of {_fmt(seen['median_height'])} {unit} above the fitted plane (beyond +- "
+            f"{_fmt(seen['tolerance'])} {unit}): the plane does not fit the ground there, and its clearance over the "
+            "ground is off by about that much")
+
+
 def _xyz(v, digits=2) -> str:
     return "(" + ", ".join(_fmt(x, digits) for x in v) + ")" if v is not None else "n/a"
 
@@ -210,6 +235,7 @@ def export_lines(info: dict | None) -> list[str]:
         lines.append("| cross-arm levels (height: span, heuristic) | " + "; ".join(
             f"{_fmt(a['height'], 1)}: {_fmt(a['span'], 1)}" for a in arms) + f" {unit} |")
     lines += _survey_lines(m, unit)
+    lines += [f"| **clearance doubtful** | {span}: {words} |" for span, words in clearance_doubtful(m, unit)]
     g = m.get("ground") or {}
     if g:
         lines.append(f"| ground plane n . x + d = 0 | n = {_xyz(g.get('normal'), 4)}, d = {_fmt(g.get('offset'), 3)} "
@@ -288,7 +314,7 @@ def conductor_lines(m: dict, unit: str, image: str | None = None) -> list[str]:
                                     if obj.get("covered") else ""))
         ground = "n/a" if c.get("ground") is None else (
             f"{_fmt(c['ground'])} +- {_fmt(c['ground_sigma'])}" if c.get("ground_sigma") is not None
-            else _fmt(c["ground"]))
+            else _fmt(c["ground"])) + (" (doubtful)" if (c.get("ground_seen") or {}).get("doubtful") else "")
         flag = {None: "-", True: "**below**", False: "ok"}[c.get("flag")]
         lines.append(f"| {i + 1} | {'+' if r['side'] > 0 else '-'} | {_sig(r['attachment'], 2, 2)} | "
                      f"{_sig(r['sag'])} | {_sig(r['catenary_parameter'], 0)} | {ground} | {over} | "

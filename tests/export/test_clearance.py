@@ -101,3 +101,80 @@ def test_the_report_table_shows_each_span_its_sigmas_and_its_flag():
     assert "each a level span of 320.00 m (`export.span_length`)" in "\n".join(given)
     none = report.conductor_lines({"conductor_spans": {"found": 0, "photos": 40, "spans": [], "why": "no wire"}}, "m")
     assert "No conductor found in the 40 photos: no wire" in "\n".join(none)
+
+
+# --------------------------------------------------------------------------- the ground beneath the lowest point
+
+LOW = np.array([7.6, XV, 6.9])          # the span's lowest point (x = 7.6, y = x_v); the plane z = 0.5
+RADIUS = clearance.GROUND_RADIUS_SHARE * 2 * XV   # 5 % of the 320 m span: 16 m
+BAND = 0.3                              # the ground's clearance band: the tolerance 2 x 0.3 / 3 = 0.2
+
+
+def ground_grid(y_lo: float, y_hi: float, z: float) -> np.ndarray:
+    """The ground z over x in [-20, 20] every 1 m, y in [y_lo, y_hi] every 2 m. [N, 3]"""
+    xy = np.stack(np.meshgrid(np.arange(-20.0, 20.5, 1.0), np.arange(y_lo, y_hi + 1.0, 2.0)), -1).reshape(-1, 2)
+    return np.concatenate([xy, np.full((len(xy), 1), z)], 1)
+
+
+def test_ground_seen_all_along_the_span_is_not_doubtful():
+    """A flat ground on the plane sampled all along the span, and a tree 3-5 m tall beneath the
+    lowest point (not ground: above the band): the ground points within 16 m of the point beneath,
+    counted here by hand, their median height 0."""
+    ground = ground_grid(0.0, 320.0, GROUND_Z)
+    crown = tree((7.6, XV), 2.0, 5.5)
+    seen = clearance.ground_seen(LOW, np.concatenate([ground, crown]), [0.0, 0.0, 1.0], -GROUND_Z, BAND, RADIUS)
+    by_hand = sum(1 for x, y, _ in ground if math.hypot(x - 7.6, y - XV) <= 16.0)
+    assert RADIUS == pytest.approx(16.0, abs=1e-12) and by_hand > 300
+    assert seen == {"radius": RADIUS, "count": by_hand, "min_count": clearance.GROUND_MIN_POINTS,
+                    "median_height": 0.0, "tolerance": pytest.approx(0.2, abs=1e-12), "doubtful": False,
+                    "reason": None}
+
+
+def test_ground_seen_only_near_the_tower_is_doubtful_too_few():
+    """The cloud's ground reaches 20 m from the tower (the unit sphere's reach on the generated
+    scenes), the lowest point 160 m out: no ground point within 16 m of the point beneath."""
+    seen = clearance.ground_seen(LOW, ground_grid(-20.0, 20.0, GROUND_Z), [0.0, 0.0, 1.0], -GROUND_Z, BAND, RADIUS)
+    assert seen["count"] == 0 and seen["median_height"] is None
+    assert seen["doubtful"] is True and seen["reason"] == clearance.NOT_SEEN == "too few ground points"
+
+
+def test_ground_two_metres_off_the_plane_beneath_is_doubtful():
+    """The plane on the ground around the tower (z = 0.5, y < 100); beneath the span the ground
+    2 m lower (z = -1.5): counted as ground (below the band's top), its median height -2 off the
+    plane. 2 m higher instead (z = 2.5) it is above the band, no ground there: too few."""
+    near_tower = ground_grid(0.0, 98.0, GROUND_Z)
+    low = clearance.ground_seen(LOW, np.concatenate([near_tower, ground_grid(100.0, 320.0, GROUND_Z - 2.0)]),
+                                [0.0, 0.0, 1.0], -GROUND_Z, BAND, RADIUS)
+    assert low["count"] > 300 and low["median_height"] == pytest.approx(-2.0, abs=1e-12)
+    assert low["doubtful"] is True and low["reason"] == clearance.OFF_PLANE == "ground off the plane"
+    high = clearance.ground_seen(LOW, np.concatenate([near_tower, ground_grid(100.0, 320.0, GROUND_Z + 2.0)]),
+                                 [0.0, 0.0, 1.0], -GROUND_Z, BAND, RADIUS)
+    assert high["count"] == 0 and high["reason"] == clearance.NOT_SEEN
+
+
+def test_ground_seen_thresholds_at_their_limits():
+    """The plane z = 0, the lowest point (8, 160, 10), radius 16, band 0.75 (tolerance 2 x 0.75 / 3
+    = 0.5 exactly). Exactly 10 points (GROUND_MIN_POINTS) within the radius, one at exactly 16 m:
+    seen; 9, or that one 1e-9 m further out: too few. The median height exactly +-0.5: on the
+    plane; 1e-9 past it: off."""
+    assert clearance.GROUND_MIN_POINTS == 10
+    point, up = np.array([8.0, 160.0, 10.0]), [0.0, 0.0, 1.0]
+
+    def cloud(count: int, z: float, edge: float = 24.0) -> np.ndarray:
+        pts = np.array([[8.0 + 0.5 * k, 160.0, z] for k in range(count - 1)] + [[edge, 160.0, z]])
+        return np.concatenate([pts, [[8.0, 177.0, 0.0], [8.0, 160.0, 0.76]]])   # out of the radius; above the band
+
+    def check(pts: np.ndarray) -> dict:
+        return clearance.ground_seen(point, pts, up, 0.0, 0.75, 16.0)
+
+    at = check(cloud(10, 0.0))
+    assert (at["count"], at["tolerance"], at["doubtful"]) == (10, 0.5, False)
+    assert check(cloud(9, 0.0))["reason"] == clearance.NOT_SEEN
+    assert check(cloud(10, 0.0, edge=24.0 + 1e-9))["reason"] == clearance.NOT_SEEN
+    for z in (0.5, -0.5):
+        assert check(cloud(10, z))["doubtful"] is False
+    for z in (0.5 + 1e-9, -0.5 - 1e-9):
+        assert check(cloud(10, z))["reason"] == clearance.OFF_PLANE
+    # a tolerance given overrides the band's
+    assert clearance.ground_seen(point, cloud(10, 0.3), up, 0.0, 0.75, 16.0, tolerance=0.25)["reason"] == \
+        clearance.OFF_PLANE

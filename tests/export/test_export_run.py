@@ -1180,3 +1180,80 @@ def test_export_cli_warns_when_the_towers_axis_leans_past_three_degrees(monkeypa
             warnings.simplefilter("always")
             assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
         assert [str(w.message)[:65] for w in caught] == expected
+
+
+def test_conductor_step_records_whether_the_ground_beneath_each_span_is_seen(monkeypatch):
+    """`_conductors` with the spans' search replaced by one known span (line along +y from the
+    axis at the origin, its lowest point 160 m out: a 320 m level span): its clearance carries
+    `ground_seen` with the radius 5 % of the span (16 m) and the cloud's ground within the
+    ground's band (0.1): a cloud whose ground reaches 20 m from the tower gives none there,
+    doubtful; the same ground all along the span gives its points, on the plane, sound."""
+    from types import SimpleNamespace
+
+    from jaxnerf_grid.export import clearance as clearance_lib
+    from jaxnerf_grid.export import conductors as cond
+
+    images = np.full((4, 48, 64, 3), 0.8, np.float32)
+    images[:, 20, 5:60] = 0.2
+    c2w = np.tile(np.eye(4), (4, 1, 1))
+    c2w[:, :3, 3] = [[0.0, -60.0 + 5 * k, 15.0] for k in range(4)]
+    ds = SimpleNamespace(images=images, c2w=c2w, intrinsics=np.tile([50.0, 50.0, 32.0, 24.0], (4, 1)),
+                         normalization=None)
+    meas = {"ground": {"normal": [0.0, 0.0, 1.0], "offset": 0.0, "clearance": 0.1}, "height": 30.0,
+            "tilt": {"base": [0.0, 0.0, 0.0]},
+            "cross_arms": {"axis_a": [1.0, 0.0, 0.0], "axis_b": [0.0, 1.0, 0.0],
+                           "levels": [{"height": 17.5, "span": 14.0, "axis": "a",
+                                       "ends": [[7.0, 0.0, 17.5], [-7.0, 0.0, 17.5]]}]}}
+    a, xv = 1600.0, 160.0
+    fit = {"theta": np.array([-7.6, 14.9, math.pi / 2, -math.sinh(xv / a), 1.0 / a]),
+           "cov": np.diag([1e-4, 1e-4, 1e-8, 1e-8, 1e-14]), "side": 1, "sigma_px": 0.5, "inlier_share": 0.9,
+           "residuals": 100, "seen": 110, "stations": np.array([4.5, 320.0])}
+    monkeypatch.setattr(cond, "find_spans", lambda *a, **k: [fit])
+
+    def ground(y_hi: float) -> np.ndarray:
+        xy = np.stack(np.meshgrid(np.arange(-20.0, 20.5, 1.0), np.arange(-20.0, y_hi + 1.0, 2.0)), -1).reshape(-1, 2)
+        return np.concatenate([xy, np.zeros((len(xy), 1))], 1)
+
+    def seen(cloud: np.ndarray) -> dict:
+        out = export_run._conductors(ds, np.arange(4), meas, cloud, [-5.0, -5.0, 0.0], [5.0, 5.0, 31.0], "metres",
+                                     None, False)
+        assert out["found"] == 1
+        return out["spans"][0]["clearance"]["ground_seen"]
+
+    near_tower = seen(ground(20.0))
+    assert near_tower["radius"] == pytest.approx(16.0, abs=1e-6)
+    assert (near_tower["count"], near_tower["doubtful"], near_tower["reason"]) == (0, True, clearance_lib.NOT_SEEN)
+    assert near_tower["tolerance"] == pytest.approx(2 * 0.1 / 3, abs=1e-12)
+    along = seen(ground(320.0))
+    assert along["count"] > 300 and along["median_height"] == 0.0 and along["doubtful"] is False
+
+
+def test_export_cli_warns_once_for_each_span_whose_ground_clearance_is_doubtful(monkeypatch, tmp_path):
+    """Two spans, the first doubtful (no ground seen beneath it), the second sound: one warning
+    naming the first span and its reason, in the export's units; both sound: none. The export is a
+    stand-in returning the keys the CLI reads."""
+    from jaxnerf_grid import cli
+    from jaxnerf_grid.export import run as run_lib
+
+    not_seen = {"radius": 16.0, "count": 0, "min_count": 10, "median_height": None, "tolerance": 0.2,
+                "doubtful": True, "reason": "too few ground points"}
+    sound = {**not_seen, "count": 500, "median_height": 0.01, "doubtful": False, "reason": None}
+
+    def fake(first, units="metres"):
+        spans = [{"side": 1, "clearance": {"ground_seen": first}}, {"side": -1, "clearance": {"ground_seen": sound}}]
+        return lambda *a, **k: {"units": units, "height": 30.0, "mesh": {"vertices": 3, "faces": 1},
+                                "points": {"count": 5}, "seconds": 1.0, "conductor_spans": {"spans": spans}}
+
+    for first, units, expected in (
+            (not_seen, "metres", ["span 1 (side +)'s clearance over the ground is doubtful: only 0 ground points of "
+                                  "the cloud within 16.00 m of the point beneath its lowest point (at least 10 "
+                                  "needed): the ground there is not seen, and its clearance over the ground is the "
+                                  "fitted plane's extrapolation"]),
+            (not_seen, "unknown", ["span 1 (side +)'s clearance over the ground is doubtful: only 0 ground points of "
+                                   "the cloud within 16.00 units of"]),
+            (sound, "metres", [])):
+        monkeypatch.setattr(run_lib, "export_run", fake(first, units))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
+        assert [str(w.message)[:len(e)] for w, e in zip(caught, expected)] == expected and len(caught) == len(expected)

@@ -338,6 +338,54 @@ def test_tilt_doubtful_past_three_degrees_and_its_row_word_for_word():
     assert not any("tilt doubtful" in line for line in report._survey_lines(m(1.74), "m"))
 
 
+def _doubt_spans(*seen):
+    """measurements.json's conductor_spans with a span (side + then -) per `ground_seen` record."""
+    spans = [{**_span_row(), "side": 1 if i % 2 == 0 else -1, "clearance": {"ground": 6.9, "ground_seen": s}}
+             for i, s in enumerate(seen)]
+    return {"units": "metres", "conductor_spans": {"found": len(spans), "photos": 40, "spans": spans}}
+
+
+NOT_SEEN = {"radius": 16.0, "count": 3, "min_count": 10, "median_height": 0.05, "tolerance": 0.2, "doubtful": True,
+            "reason": "too few ground points"}
+OFF_PLANE = {"radius": 16.0, "count": 812, "min_count": 10, "median_height": -2.0, "tolerance": 0.2,
+             "doubtful": True, "reason": "ground off the plane"}
+SEEN = {"radius": 16.0, "count": 812, "min_count": 10, "median_height": 0.0, "tolerance": 0.2, "doubtful": False,
+        "reason": None}
+
+
+def test_clearance_doubtful_names_each_doubtful_span_and_its_row_word_for_word():
+    """clearance_doubtful: the spans whose `ground_seen` is doubtful, by the conductors' table's
+    number and side; a sound span, a span without the record (none measured) and an export without
+    spans: nothing. The rows in full in the export section's table, in the export's units."""
+    m = _doubt_spans(NOT_SEEN, SEEN, None, OFF_PLANE)
+    got = report.clearance_doubtful(m, "m")
+    assert [span for span, _ in got] == ["span 1 (side +)", "span 4 (side -)"]
+    assert report.clearance_doubtful(_doubt_spans(SEEN, None), "m") == []
+    assert report.clearance_doubtful({}, "m") == [] and report.clearance_doubtful({"conductor_spans": None}, "m") == []
+    lines = report.export_lines({"measurements": m})
+    rows = [line for line in lines if "clearance doubtful" in line]
+    assert rows == [
+        "| **clearance doubtful** | span 1 (side +): only 3 ground points of the cloud within 16.00 m of the point "
+        "beneath its lowest point (at least 10 needed): the ground there is not seen, and its clearance over the "
+        "ground is the fitted plane's extrapolation |",
+        "| **clearance doubtful** | span 4 (side -): the cloud's ground within 16.00 m of the point beneath its "
+        "lowest point has a median height of -2.00 m above the fitted plane (beyond +- 0.20 m): the plane does not "
+        "fit the ground there, and its clearance over the ground is off by about that much |"]
+    assert not any("clearance doubtful" in line for line in report.export_lines({"measurements": _doubt_spans(SEEN)}))
+    # the spans' table marks the figure
+    table = report.conductor_lines({"conductor_spans": {"found": 2, "photos": 40, "spans": [
+        {**_span_row(), "clearance": {"ground": 6.9, "ground_sigma": 0.01, "ground_seen": NOT_SEEN}},
+        {**_span_row(), "clearance": {"ground": 6.9, "ground_sigma": 0.01, "ground_seen": SEEN}}]}}, "m")
+    assert [line.split(" | ")[5] for line in table if line.startswith("| 1 |") or line.startswith("| 2 |")] == \
+        ["6.90 +- 0.01 (doubtful)", "6.90 +- 0.01"]
+
+
+def _span_row() -> dict:
+    """The figures of a conductors' table row the marker test does not look at."""
+    fig = _fig(1.0, 0.1)
+    return {"side": 1, "attachment": _fig([0.0, 0.0, 14.9], [0.0, 0.0, 0.01]), "sag": fig, "catenary_parameter": fig}
+
+
 def test_weights_figure_panels_by_hand(tmp_path):
     assert report.weights_figure(tmp_path, []) == [] and not (tmp_path / "report_weights.png").exists()
     photo = _image(7)
