@@ -130,6 +130,11 @@ SIFT: dict[str, Any] = {"estimate_affine_shape": True}
 # against 93 s, docs/POSES.md).
 SIFT_SMALL: dict[str, Any] = {"peak_threshold": 0.004}
 SMALL_SIDE = 800
+# SIFT runs on the photos scaled to at most FEATURE_SIDE px on the long side (COLMAP's
+# max_image_size; its own default 3200); the keypoints come back in the photos' pixels and the
+# dataset keeps the photos' size. Feature extraction is most of a full-size run's time; the
+# measured trade-off is in docs/POSES.md ("Feature size"). 0: COLMAP's own size.
+FEATURE_SIDE = 1600
 MATCHING: dict[str, Any] = {}
 MATCHING_SIFT: dict[str, Any] = {"max_ratio": 0.9}
 # MAPPER: observations reprojecting more than 2 px off (COLMAP: 4) are dropped; with the looser
@@ -327,7 +332,7 @@ def choose_matcher(matcher: str, names: list[str], with_gps: int = 0,
 def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
                camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None,
                keep_all: bool = False, overlap: int = SEQUENTIAL_OVERLAP, timings: dict | None = None,
-               priors: dict | None = None, small_photos: bool = False):
+               priors: dict | None = None, small_photos: bool = False, feature_side: int = FEATURE_SIDE):
     """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
     whether it comes from the relaxed mapping, whether photos left out by the first model were
     registered afterwards (`register_left_out`)). The relaxed model is judged by its photos that
@@ -337,7 +342,8 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     priors: {photo name: [3] GPS position in local metres of a projected CRS}: written to the
     database as pose priors (`write_gps_priors`), used by the spatial matcher and by the
     mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL
-    on top of SIFT (every working photo at most SMALL_SIDE px on its long side).
+    on top of SIFT (every working photo at most SMALL_SIDE px on its long side). feature_side: the
+    long side SIFT sees at most (FEATURE_SIDE; 0: COLMAP's own).
 
     DataError (naming `source`, the input folder) when no model could be built.
     """
@@ -349,6 +355,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         reader.camera_model = camera_model
         mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
         extraction = pycolmap.FeatureExtractionOptions()  # SIFT on top of COLMAP's defaults
+        extraction.max_image_size = feature_side if feature_side > 0 else -1
         for key, value in {**SIFT, **(SIFT_SMALL if small_photos else {})}.items():
             setattr(extraction.sift, key, value)
         pycolmap.extract_features(database, photo_dir, image_names=names, camera_mode=mode, reader_options=reader,
@@ -875,7 +882,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                       overlap: int = SEQUENTIAL_OVERLAP,
                       overwrite: bool = False, progress: bool = True, keep_all: bool = False, crs: str | None = None,
                       gcp=None, scale_bar: str | None = None, ignore_gps: bool = False,
-                      accept_few_cameras: bool = False) -> dict:
+                      accept_few_cameras: bool = False, feature_side: int = FEATURE_SIDE) -> dict:
     """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
 
     Returns the summary: photos, registered, in_dataset (registered less those left out),
@@ -890,13 +897,16 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
     COLMAP's frame), georeference (`georef.align_model`'s record: the photos' GPS, `gcp` (a
     ground control point file) and `crs` (EPSG:XXXX, else the GPS's UTM zone) align the model to
     metres in a projected CRS; without GPS, `scale_bar` scales it; else units stay unknown,
-    docs/GEOREFERENCE.md; `ignore_gps`: the photos' GPS is not read), transforms (path).
+    docs/GEOREFERENCE.md; `ignore_gps`: the photos' GPS is not read), feature_side (SIFT's
+    largest side, FEATURE_SIDE; 0: COLMAP's own), transforms (path).
     DataError (one line, naming the path) for bad input; nothing is written then.
     """
     start = time.monotonic()
     check_options(matcher, camera_model, vocab_tree, overlap)
     if max_side is not None and max_side < 16:
         raise DataError(f"poses.max_side must be at least 16 pixels, got {max_side}")
+    if feature_side != 0 and feature_side < 16:
+        raise DataError(f"poses.feature_side must be 0 (COLMAP's own) or at least 16 pixels, got {feature_side}")
     images_dir, out = Path(images_dir), Path(out_dir)
     photos = list_photos(images_dir)
     if scale_bar is not None:
@@ -937,7 +947,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
             pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
             single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir, keep_all=keep_all,
             overlap=overlap, timings=timings, priors=priors,
-            small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE)
+            small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE, feature_side=feature_side)
         registered = sorted(model.images[i].name for i in model.reg_image_ids())
         unregistered = sorted(set(names) - set(registered))
         why_unregistered = unregistered_reasons(pycolmap, stage_dir / "_work" / "database.db", unregistered,
@@ -981,7 +991,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "matcher": used, "matcher_asked": matcher, "matcher_reason": reason,
                        "overlap": overlap if used == "sequential" else None,
                        "camera_model": camera_model, "single_camera": bool(single_camera),
-                       "max_side": max_side, "relaxed_mapping": bool(relaxed), "up_rotation": rot.tolist(),
+                       "max_side": max_side, "feature_side": feature_side, "relaxed_mapping": bool(relaxed),
+                       "up_rotation": rot.tolist(),
                        "registered_left_out": bool(extended), "unregistered_why": why_unregistered,
                        "gps_priors": len(priors) if priors_hold(priors) else 0,
                        "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),

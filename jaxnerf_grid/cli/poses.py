@@ -5,7 +5,8 @@ The work is `data.poses.poses_from_images`; this module parses the arguments.
 
     jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher auto|exhaustive|spatial|sequential|vocab]
                        [--overlap K]
-                       [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--keep-all] [--overwrite]
+                       [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--feature-side N]
+                       [--keep-all] [--overwrite]
                        [--accept-few-cameras]
                        [--crs EPSG:XXXX] [--gcp FILE] [--scale-bar SPEC] [--ignore-gps]
 
@@ -27,6 +28,7 @@ from jaxnerf_grid.capture.camera_set import MIN_ARC_SHARE, MIN_KEPT_SHARE
 from jaxnerf_grid.capture.poses import (
     CAMERA_MODELS,
     EXHAUSTIVE_MAX_PAIRS,
+    FEATURE_SIDE,
     MATCHERS,
     SEQUENTIAL_OVERLAP,
     SPATIAL_NEIGHBOURS,
@@ -54,6 +56,9 @@ def build_parser() -> argparse.ArgumentParser:
                    help="one camera (intrinsics) shared by all photos: right for one drone camera at one zoom")
     p.add_argument("--max-side", type=int, default=None,
                    help="scale the photos so the longer side is at most N pixels (the dataset keeps this size)")
+    p.add_argument("--feature-side", type=int, default=FEATURE_SIDE,
+                   help=f"SIFT sees the photos scaled to at most N px on the long side (default {FEATURE_SIDE}; "
+                        "0: COLMAP's own 3200); the dataset keeps the photos' size")
     p.add_argument("--overwrite", action="store_true",
                    help="replace a DATA_DIR written by poses (its outputs only; other folders are refused)")
     p.add_argument("--keep-all", action="store_true",
@@ -84,7 +89,8 @@ def main(argv: list[str] | None = None) -> int:
                                 single_camera=args.single_camera, max_side=args.max_side,
                                 vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet,
                                 keep_all=args.keep_all, crs=args.crs, gcp=args.gcp, scale_bar=args.scale_bar,
-                                ignore_gps=args.ignore_gps, accept_few_cameras=args.accept_few_cameras)
+                                ignore_gps=args.ignore_gps, accept_few_cameras=args.accept_few_cameras,
+                                feature_side=args.feature_side)
     print(format_summary(summary))
     print(f"wrote {summary['transforms']}")
     return 0
