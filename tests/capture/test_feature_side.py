@@ -44,10 +44,20 @@ def test_sift_sees_at_most_the_feature_side_and_zero_leaves_colmaps_own(tmp_path
     assert pycolmap.FeatureExtractionOptions().eff_max_image_size() == 3200
 
 
-def test_the_cli_passes_the_feature_side_and_a_tiny_one_is_refused(tmp_path):
+def test_the_cli_passes_the_feature_side_and_a_tiny_one_is_refused(tmp_path, monkeypatch):
     args = poses_cli.build_parser().parse_args(["--images", "a", "--out", "b"])
     assert args.feature_side == poses.FEATURE_SIDE
-    assert poses_cli.build_parser().parse_args(["--images", "a", "--out", "b", "--feature-side", "0"]).feature_side == 0
+    asked = {}
+
+    def stand_in(images, out, **kwargs):
+        asked.update(kwargs)
+        raise _Stop
+
+    monkeypatch.setattr(poses, "poses_from_images", stand_in)
+    with pytest.raises(_Stop):
+        poses_cli.main(["--images", "a", "--out", "b", "--feature-side", "800"])
+    assert asked["feature_side"] == 800
+    monkeypatch.undo()
     (tmp_path / "photos").mkdir()
     with pytest.raises(DataError, match="poses.feature_side must be 0 .COLMAP's own. or at least 16 pixels, got 8"):
         poses.poses_from_images(tmp_path / "photos", tmp_path / "out", feature_side=8, progress=False)
