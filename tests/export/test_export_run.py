@@ -1121,21 +1121,28 @@ def test_arm_seeds_are_the_cross_arm_ends_across_the_line_by_hand():
     np.testing.assert_allclose(seeds, [[-8.45, 21.5], [8.45, 21.5]], atol=1e-12)
 
 
-def test_conductor_step_hands_the_span_length_and_the_arm_tips_to_find_spans_and_records_them(monkeypatch):
-    """`_conductors` on four 64 x 48 photos with a dark line (so that detections exist), the
-    spans' search replaced by a recorder: it receives span_length 320, the cross-arm ends as
-    seeds by hand (line along +y, axis at the origin: e_across = -x) and the window SEED_WINDOW x
-    the tower's height; measurements.json's record carries the span length and the seeds."""
+def _dark_line_photos():
+    """Four 64 x 48 photos with a dark line across (so that detections exist), looking down -z
+    from 15 m along y: a stand-in dataset for `_conductors`."""
     from types import SimpleNamespace
-
-    from jaxnerf_grid.export import conductors as cond
 
     images = np.full((4, 48, 64, 3), 0.8, np.float32)
     images[:, 20, 5:60] = 0.2
     c2w = np.tile(np.eye(4), (4, 1, 1))
     c2w[:, :3, 3] = [[0.0, -60.0 + 5 * k, 15.0] for k in range(4)]
-    ds = SimpleNamespace(images=images, c2w=c2w, intrinsics=np.tile([50.0, 50.0, 32.0, 24.0], (4, 1)),
-                         normalization=None)
+    return SimpleNamespace(images=images, c2w=c2w, intrinsics=np.tile([50.0, 50.0, 32.0, 24.0], (4, 1)),
+                           normalization=None)
+
+
+def test_conductor_step_hands_the_span_length_and_the_arm_tips_to_find_spans_and_records_them(monkeypatch):
+    """`_conductors` on four 64 x 48 photos with a dark line (so that detections exist), the
+    spans' search replaced by a recorder: it receives span_length 320, the cross-arm ends as
+    seeds by hand (line along +y, axis at the origin: e_across = -x) and the window SEED_WINDOW x
+    the tower's height; measurements.json's record carries the span length and the seeds."""
+
+    from jaxnerf_grid.export import conductors as cond
+
+    ds = _dark_line_photos()
     meas = {"ground": {"normal": [0.0, 0.0, 1.0], "offset": 0.0, "clearance": 0.1}, "height": 30.0,
             # a diagonal footprint (two lowest legs): the line's direction comes from the arms' axes
             "footprint": {"axis_a": [0.6, 0.8, 0.0], "axis_b": [-0.8, 0.6, 0.0]}, "tilt": {"base": [0.0, 0.0, 0.0]},
@@ -1188,17 +1195,11 @@ def test_conductor_step_records_whether_the_ground_beneath_each_span_is_seen(mon
     `ground_seen` with the radius 5 % of the span (16 m) and the cloud's ground within the
     ground's band (0.1): a cloud whose ground reaches 20 m from the tower gives none there,
     doubtful; the same ground all along the span gives its points, on the plane, sound."""
-    from types import SimpleNamespace
 
     from jaxnerf_grid.export import clearance as clearance_lib
     from jaxnerf_grid.export import conductors as cond
 
-    images = np.full((4, 48, 64, 3), 0.8, np.float32)
-    images[:, 20, 5:60] = 0.2
-    c2w = np.tile(np.eye(4), (4, 1, 1))
-    c2w[:, :3, 3] = [[0.0, -60.0 + 5 * k, 15.0] for k in range(4)]
-    ds = SimpleNamespace(images=images, c2w=c2w, intrinsics=np.tile([50.0, 50.0, 32.0, 24.0], (4, 1)),
-                         normalization=None)
+    ds = _dark_line_photos()
     meas = {"ground": {"normal": [0.0, 0.0, 1.0], "offset": 0.0, "clearance": 0.1}, "height": 30.0,
             "tilt": {"base": [0.0, 0.0, 0.0]},
             "cross_arms": {"axis_a": [1.0, 0.0, 0.0], "axis_b": [0.0, 1.0, 0.0],
