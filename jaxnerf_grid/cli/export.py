@@ -83,5 +83,5 @@ def main(argv: list[str] | None = None) -> int:
     if tilt is not None:
         warnings.warn(f"the tower's axis leans {tilt:.2f} deg from vertical: {report.TILT_WORDS}", stacklevel=1)
     for span, words in report.clearance_doubtful(m, "m" if m["units"] == "metres" else "units"):
-        warnings.warn(f"{span}'s clearance over the ground is doubtful: {words}", stacklevel=1)
+        warnings.warn(f"the clearance over the ground of {span} is doubtful: {words}", stacklevel=1)
     return 0

@@ -130,27 +130,47 @@ TILT_WORDS = ("a standing lattice tower leans under 2 degrees in every export me
 
 
 def clearance_doubtful(m: dict, unit: str) -> list[tuple[str, str]]:
-    """(the span's name as the conductors' table has it, the words) of each span in
-    measurements.json `m` whose clearance over the ground rests on a doubtful ground (its
-    clearance's `ground_seen`, `export.clearance.ground_seen`); [] when none. The report's
-    "clearance doubtful" rows and `jaxnerf-grid export`'s warnings both ask this."""
-    out = []
+    """(the spans, as the conductors' table numbers them, the words) for the spans in
+    measurements.json `m` whose clearance over the ground rests on a doubtful ground (their
+    clearance's `ground_seen`, `export.clearance.ground_seen`); spans with the same words share one
+    entry ("span 1 (side +)", or "8 spans (1-4, 9-12)"): a cloud that holds the ground only around
+    the tower makes every span's the same. [] when none. The report's "clearance doubtful" rows
+    and `jaxnerf-grid export`'s warnings both ask this."""
+    groups: dict[str, list[tuple[int, int]]] = {}
     for i, r in enumerate(((m.get("conductor_spans") or {}).get("spans")) or []):
         seen = (r.get("clearance") or {}).get("ground_seen") or {}
         if seen.get("doubtful"):
-            out.append((f"span {i + 1} (side {'+' if r.get('side', 1) > 0 else '-'})", ground_doubt_words(seen, unit)))
+            groups.setdefault(ground_doubt_words(seen, unit), []).append((i + 1, r.get("side", 1)))
+    out = []
+    for words, spans in groups.items():
+        if len(spans) == 1:
+            number, side = spans[0]
+            out.append((f"span {number} (side {'+' if side > 0 else '-'})", words))
+        else:
+            out.append((f"{len(spans)} spans ({number_ranges([n for n, _ in spans])})", words))
     return out
+
+
+def number_ranges(numbers: list[int]) -> str:
+    """Sorted distinct integers as runs: [1, 2, 3, 5, 7, 8] -> "1-3, 5, 7-8"."""
+    runs: list[list[int]] = []
+    for n in sorted(numbers):
+        if runs and n == runs[-1][1] + 1:
+            runs[-1][1] = n
+        else:
+            runs.append([n, n])
+    return ", ".join(f"{a}" if a == b else f"{a}-{b}" for a, b in runs)
 
 
 def ground_doubt_words(seen: dict, unit: str) -> str:
     """Why a span's clearance over the ground is doubtful, from its `ground_seen` record."""
     if seen["count"] < seen["min_count"]:
         return (f"only {seen['count']} ground points of the cloud within {_fmt(seen['radius'])} {unit} of the point "
-                f"beneath its lowest point (at least {seen['min_count']} needed): the ground there is not seen, and "
-                "its clearance over the ground is the fitted plane's extrapolation")
-    return (f"the cloud's ground within {_fmt(seen['radius'])} {unit} of the point beneath its lowest point has a "
+                f"beneath the lowest point (at least {seen['min_count']} needed): the ground there is not seen, and "
+                "the clearance over the ground is the fitted plane's extrapolation")
+    return (f"the cloud's ground within {_fmt(seen['radius'])} {unit} of the point beneath the lowest point has a "
             f"median height of {_fmt(seen['median_height'])} {unit} above the fitted plane (beyond +- "
-            f"{_fmt(seen['tolerance'])} {unit}): the plane does not fit the ground there, and its clearance over the "
+            f"{_fmt(seen['tolerance'])} {unit}): the plane does not fit the ground there, and the clearance over the "
             "ground is off by about that much")
 
 

@@ -1229,7 +1229,7 @@ def test_conductor_step_records_whether_the_ground_beneath_each_span_is_seen(mon
     assert along["count"] > 300 and along["median_height"] == 0.0 and along["doubtful"] is False
 
 
-def test_export_cli_warns_once_for_each_span_whose_ground_clearance_is_doubtful(monkeypatch, tmp_path):
+def test_export_cli_warns_for_the_spans_whose_ground_clearance_is_doubtful(monkeypatch, tmp_path):
     """Two spans, the first doubtful (no ground seen beneath it), the second sound: one warning
     naming the first span and its reason, in the export's units; both sound: none. The export is a
     stand-in returning the keys the CLI reads."""
@@ -1246,12 +1246,12 @@ def test_export_cli_warns_once_for_each_span_whose_ground_clearance_is_doubtful(
                                 "points": {"count": 5}, "seconds": 1.0, "conductor_spans": {"spans": spans}}
 
     for first, units, expected in (
-            (not_seen, "metres", ["span 1 (side +)'s clearance over the ground is doubtful: only 0 ground points of "
-                                  "the cloud within 16.00 m of the point beneath its lowest point (at least 10 "
-                                  "needed): the ground there is not seen, and its clearance over the ground is the "
-                                  "fitted plane's extrapolation"]),
-            (not_seen, "unknown", ["span 1 (side +)'s clearance over the ground is doubtful: only 0 ground points of "
-                                   "the cloud within 16.00 units of"]),
+            (not_seen, "metres", ["the clearance over the ground of span 1 (side +) is doubtful: only 0 ground "
+                                  "points of the cloud within 16.00 m of the point beneath the lowest point (at "
+                                  "least 10 needed): the ground there is not seen, and the clearance over the "
+                                  "ground is the fitted plane's extrapolation"]),
+            (not_seen, "unknown", ["the clearance over the ground of span 1 (side +) is doubtful: only 0 ground "
+                                   "points of the cloud within 16.00 units of"]),
             (sound, "metres", [])):
         monkeypatch.setattr(run_lib, "export_run", fake(first, units))
         with warnings.catch_warnings(record=True) as caught:

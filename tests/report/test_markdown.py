@@ -353,7 +353,7 @@ SEEN = {"radius": 16.0, "count": 812, "min_count": 10, "median_height": 0.0, "to
         "reason": None}
 
 
-def test_clearance_doubtful_names_each_doubtful_span_and_its_row_word_for_word():
+def test_clearance_doubtful_names_the_doubtful_spans_grouped_by_their_words_and_the_rows_word_for_word():
     """clearance_doubtful: the spans whose `ground_seen` is doubtful, by the conductors' table's
     number and side; a sound span, a span without the record (none measured) and an export without
     spans: nothing. The rows in full in the export section's table, in the export's units."""
@@ -366,11 +366,15 @@ def test_clearance_doubtful_names_each_doubtful_span_and_its_row_word_for_word()
     rows = [line for line in lines if "clearance doubtful" in line]
     assert rows == [
         "| **clearance doubtful** | span 1 (side +): only 3 ground points of the cloud within 16.00 m of the point "
-        "beneath its lowest point (at least 10 needed): the ground there is not seen, and its clearance over the "
+        "beneath the lowest point (at least 10 needed): the ground there is not seen, and the clearance over the "
         "ground is the fitted plane's extrapolation |",
-        "| **clearance doubtful** | span 4 (side -): the cloud's ground within 16.00 m of the point beneath its "
+        "| **clearance doubtful** | span 4 (side -): the cloud's ground within 16.00 m of the point beneath the "
         "lowest point has a median height of -2.00 m above the fitted plane (beyond +- 0.20 m): the plane does not "
-        "fit the ground there, and its clearance over the ground is off by about that much |"]
+        "fit the ground there, and the clearance over the ground is off by about that much |"]
+    # spans with the same words share one entry, their numbers as runs
+    same = report.clearance_doubtful(_doubt_spans(NOT_SEEN, NOT_SEEN, SEEN, NOT_SEEN, OFF_PLANE, NOT_SEEN), "m")
+    assert [span for span, _ in same] == ["4 spans (1-2, 4, 6)", "span 5 (side +)"]
+    assert same[0][1] == got[0][1]
     assert not any("clearance doubtful" in line for line in report.export_lines({"measurements": _doubt_spans(SEEN)}))
     # the spans' table marks the figure
     table = report.conductor_lines({"conductor_spans": {"found": 2, "photos": 40, "spans": [
@@ -559,3 +563,9 @@ def test_colourise_depth_of_a_half_float_depth():
     """A float16 depth map (a half EXR) is coloured from its inverse in float64."""
     d = (np.arange(1, 201, dtype=np.float64).reshape(10, 20) * 0.37).astype(np.float16)
     np.testing.assert_array_equal(report.colourise_depth(d), _turbo(d.astype(np.float64)))
+
+
+def test_number_ranges_joins_consecutive_numbers_into_runs():
+    assert report.number_ranges([8, 1, 2, 3, 5, 7]) == "1-3, 5, 7-8"
+    assert report.number_ranges([4]) == "4" and report.number_ranges([]) == ""
+    assert report.number_ranges(list(range(1, 17))) == "1-16"
