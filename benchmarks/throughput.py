@@ -61,6 +61,7 @@ from jaxnerf_grid.nerf import rays as rays_lib
 from jaxnerf_grid.nerf.fields import hashgrid
 from jaxnerf_grid.render import views
 from jaxnerf_grid.train import loop as train
+from jaxnerf_grid.train import speed
 from jaxnerf_grid.util import parallel
 
 CONFIGS = {
@@ -128,16 +129,10 @@ def _tracing_as_before(suffix: str):
 
 
 def scene(width=160, height=120, frames=8) -> Dataset:
-    rng = np.random.default_rng(0)
-    fx = rays_lib.focal_from_fov(np.radians(60), width)
-    c2w = []
-    for k in range(frames):
-        a = 2 * np.pi * k / frames
-        c2w.append(np.asarray(rays_lib.look_at([3 * np.cos(a), 3 * np.sin(a), 0.5], [0, 0, 0])))
-    return Dataset(root=Path("bench"), images=rng.uniform(size=(frames, height, width, 3)).astype(np.float32),
-                   c2w=np.asarray(c2w, np.float32),
-                   intrinsics=np.tile(np.array([[fx, fx, width / 2, height / 2]], np.float32), (frames, 1)),
-                   split={"train": np.arange(frames - 1), "test": np.array([frames - 1])}, near=0.5, far=60.0)
+    """The budget's calibration scene (random colours, a ring of cameras), its last frame held out."""
+    ds = speed.calibration_scene(frames, (width, height))
+    return dataclasses.replace(ds, root=Path("bench"), split={"train": np.arange(frames - 1),
+                                                              "test": np.array([frames - 1])})
 
 
 def samples_per_ray(mcfg) -> str:
