@@ -184,7 +184,8 @@ LATER_TRAIN_KEYS = ("max_side", "robust", "robust_quantile", "robust_flagged_qua
                     "robust_patch_stride",
                     "robust_patch_share", "robust_floor", "robust_spread",
                     "robust_warmup", "robust_confirm", "robust_views", "sparse_adam", "robust_scattered", "depth",
-                    "robust_refine", "robust_prior_grow")
+                    "lowres_share", "lowres_factor",
+                    "robust_refine", "robust_prior_grow")  # the last two: scheme "refine_keys_always" keeps them
 
 
 def run_key(data_dir: Path, method: str, overrides: dict, steps: int, scheme: str = "current",

@@ -5,7 +5,7 @@
 loss weights, so a block touching a masked pixel is not drawn), with the intrinsics divided by f:
 a low-resolution pixel's ray passes through the centre of its block. The rest of the run trains
 at the working resolution. Each ray costs the same at either size, so a step does too; what
-changes is the target, a mean over a block, which fits the coarse structure before the detail.
+changes is the target, a mean over a block, which fits the large structure before the detail.
 Only the plain step (train.robust off) has the schedule: the robust step judges photometric
 evidence per pixel of the working frames.
 """
