@@ -12,6 +12,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from jaxnerf_grid.export import ground as ground_lib
+
 GROUND, LOW_VEGETATION_CLASS, MEDIUM_VEGETATION_CLASS, HIGH_VEGETATION_CLASS = 2, 3, 4, 5
 BUILDING, CONDUCTOR, TOWER = 6, 14, 15
 LOW_VEGETATION = 0.5      # m (export units) above the ground: below, low vegetation
@@ -24,7 +26,7 @@ def classify(points: np.ndarray, normal, d: float, ground_band: float, box: tupl
     """ASPRS classes [N] uint8 of points [N, 3] (module docstring). box: the tower's (lo [3], hi [3]);
     building: [N] bool or None."""
     p = np.asarray(points, np.float64).reshape(-1, 3)
-    h = p @ np.asarray(normal, np.float64) + float(d)
+    h = ground_lib.heights(p, normal, d)
     out = np.where(h < low, LOW_VEGETATION_CLASS, np.where(h < medium, MEDIUM_VEGETATION_CLASS,
                                                            HIGH_VEGETATION_CLASS)).astype(np.uint8)
     if building is not None:

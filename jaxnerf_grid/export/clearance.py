@@ -34,6 +34,8 @@ from typing import Any
 
 import numpy as np
 
+from jaxnerf_grid.export import ground as ground_lib
+
 
 def span_frame(curve: np.ndarray, up) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """(start [3], e_line [3], e_across [3]) of a span's polyline curve [K >= 2, 3]: the
@@ -121,7 +123,7 @@ def ground_seen(point, points: np.ndarray, normal, d: float, ground_band: float,
     u = np.asarray(up, np.float64) / np.linalg.norm(up)
     rel = p - np.asarray(point, np.float64)
     across_up = rel - np.outer(rel @ u, u)
-    height = p @ np.asarray(normal, np.float64) + float(d)
+    height = ground_lib.heights(p, normal, d)
     near = (height <= ground_band) & (np.linalg.norm(across_up, axis=1) <= radius)
     count = int(near.sum())
     median = float(np.median(height[near])) if count else None
