@@ -3,6 +3,7 @@
     python -m benchmarks.poses_accuracy [--cases NAME,...] [--views 30] [--out benchmarks/results/poses_accuracy.json]
     python -m benchmarks.poses_accuracy --strecha STRECHA/fountain-P11 [--max-side 1024] --out FILE.json
     python -m benchmarks.poses_accuracy --strecha STRECHA/fountain-P11 --dataset DATA --out FILE.json
+    python -m benchmarks.poses_accuracy --reference REF/transforms.json --photos PHOTOS --dataset DATA --out FILE.json
 
 Each case renders a synthetic scene (`generate_scene`), copies its photos (train and test, in
 the order of the flight, true poses hidden) into a bare folder, runs
@@ -14,6 +15,9 @@ tower's axis) and the tilt of the recovered +z from the true up. Prints a table 
 With --strecha, one real scene of Strecha's benchmark (photos with surveyed cameras; the photos
 are not part of the repository) instead: rotation error per photo, the vetting and the bounds;
 with --dataset, the cameras of a dataset `poses` already wrote for that scene (no new run).
+With --reference, a dataset `poses` wrote from the photos in --photos against the cameras of a
+capture's own transforms.json (a video's frames posed by another tool): the same errors, the
+centres in the reference's units.
 """
 
 from __future__ import annotations
@@ -111,10 +115,16 @@ def run_strecha(scene: Path, work: Path, max_side: int) -> dict:
 
 
 def strecha_errors(scene: Path, dataset: Path) -> dict:
-    """The cameras of a `poses` dataset against a Strecha scene's surveyed ones, after a
-    similarity alignment of the centres: {"per_photo": {name: {rotation_deg, centre_m}},
-    "rotation_deg_median", "rotation_deg_max", "scene_bounds", "near_points"}."""
-    true, found = strecha_cameras(scene / "gt_dense_cameras"), frames_by_name(dataset / "transforms.json")
+    """The cameras of a `poses` dataset against a Strecha scene's surveyed ones (`reference_errors`)."""
+    return reference_errors(strecha_cameras(scene / "gt_dense_cameras"), dataset)
+
+
+def reference_errors(true: dict, dataset: Path) -> dict:
+    """The cameras of a `poses` dataset against reference cameras `true` ({photo name: c2w [4, 4]
+    OpenGL}), after a similarity alignment of the centres: {"per_photo": {name: {rotation_deg,
+    centre_m}} (centre_m in the reference's units), "rotation_deg_median", "rotation_deg_max",
+    "scene_bounds", "near_points"}."""
+    found = frames_by_name(dataset / "transforms.json")
     names = sorted(set(true) & set(found))
     t, f = np.stack([true[n] for n in names]), np.stack([found[n] for n in names])
     scale, rot, shift = similarity_fit(f[:, :3, 3], t[:, :3, 3])
@@ -172,10 +182,24 @@ def main(argv=None) -> int:
     p.add_argument("--max-side", type=int, default=1024, help="working size of the Strecha photos")
     p.add_argument("--dataset", default=None,
                    help="with --strecha: score this existing `poses` dataset of the scene instead of running poses")
+    p.add_argument("--reference", default=None,
+                   help="with --dataset and --photos: score the dataset against the cameras of this transforms.json "
+                        "(nerfstudio / instant-ngp: OpenGL camera-to-world, frames named by their file_path)")
+    p.add_argument("--photos", default=None, help="with --reference: the folder of photos the dataset was posed from")
     args = p.parse_args(argv)
-    names = [] if args.strecha else list(CASES) if args.cases == "all" else args.cases.split(",")
+    names = [] if args.strecha or args.reference else list(CASES) if args.cases == "all" else args.cases.split(",")
     rows = []
-    if args.strecha and args.dataset:
+    if args.reference and args.dataset and args.photos:
+        dataset, folder = Path(args.dataset), Path(args.photos)
+        found = frames_by_name(dataset / "transforms.json")
+        photos = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))
+        row = {"case": f"reference:{folder.name}", "dataset": str(dataset.name), "photos": len(photos),
+               "in_dataset": len(found), "left_out": [n for n in photos if n not in found],
+               **reference_errors(frames_by_name(Path(args.reference)), dataset)}
+        rows.append(row)
+        print(f"{row['case']}: {row['in_dataset']}/{row['photos']} in the dataset ({len(row['left_out'])} left out), "
+              f"rotation {row['rotation_deg_median']:.2f} / {row['rotation_deg_max']:.2f} deg", flush=True)
+    elif args.strecha and args.dataset:
         scene, dataset = Path(args.strecha), Path(args.dataset)
         found = frames_by_name(dataset / "transforms.json")
         photos = sorted(p.name for p in (scene / "images").iterdir() if p.suffix.lower() in (".jpg", ".jpeg", ".png"))

@@ -90,3 +90,43 @@ def test_poses_accuracy_scores_a_dataset_against_the_surveyed_cameras(tmp_path):
     per_photo = poses_accuracy.strecha_errors(tmp_path / "scene", tmp_path / "out")["per_photo"]
     assert per_photo["0003.png"]["rotation_deg"] == pytest.approx(2.0, abs=1e-3)
     assert max(v["rotation_deg"] for n, v in per_photo.items() if n != "0003.png") < 1e-3
+
+
+def test_poses_accuracy_scores_a_dataset_against_a_captures_own_transforms(tmp_path):
+    """`--reference`: a dataset whose cameras are the reference's scaled, turned and moved scores
+    0 degrees, a frame turned 2 degrees scores 2, and a photo missing from the dataset is listed
+    as left out (the reference's frames named by their file_path, as nerfstudio writes them)."""
+    import json
+
+    from benchmarks import poses_accuracy
+
+    turn = _rotation([0.2, -0.4, 1.0], 0.7)
+    ref, found = [], []
+    for i in range(6):
+        c = 5 * np.array([np.cos(0.5 * i), np.sin(0.5 * i), 0.3])
+        z = c / np.linalg.norm(c)   # OpenGL: the camera looks along -z, away from c
+        x = np.cross([0, 0, 1.0], z)
+        x /= np.linalg.norm(x)
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = np.stack([x, np.cross(z, x), z], axis=1), c
+        ref.append({"file_path": f"images/frame_{i:05d}.png", "transform_matrix": m.tolist()})
+        if i == 5:
+            continue   # not registered
+        g = np.eye(4)
+        g[:3, :3], g[:3, 3] = turn @ m[:3, :3], 0.3 * turn @ c + np.array([1.0, -2.0, 0.5])
+        if i == 2:
+            g[:3, :3] = _rotation([1.0, 0.3, 0.1], np.radians(2.0)) @ g[:3, :3]
+        found.append({"file_path": f"images/frame_{i:05d}.png", "transform_matrix": g.tolist()})
+    (tmp_path / "ref.json").write_text(json.dumps({"frames": ref}))
+    (tmp_path / "data").mkdir()
+    (tmp_path / "data" / "transforms.json").write_text(json.dumps({"frames": found}))
+    (tmp_path / "photos").mkdir()
+    for i in range(6):
+        (tmp_path / "photos" / f"frame_{i:05d}.png").write_bytes(b"")
+    out = tmp_path / "acc.json"
+    assert poses_accuracy.main(["--reference", str(tmp_path / "ref.json"), "--photos", str(tmp_path / "photos"),
+                                "--dataset", str(tmp_path / "data"), "--out", str(out)]) == 0
+    row = json.loads(out.read_text())["rows"][0]
+    assert (row["photos"], row["in_dataset"], row["left_out"]) == (6, 5, ["frame_00005.png"])
+    assert row["per_photo"]["frame_00002.png"]["rotation_deg"] == pytest.approx(2.0, abs=0.05)
+    assert max(v["rotation_deg"] for n, v in row["per_photo"].items() if n != "frame_00002.png") < 0.1
