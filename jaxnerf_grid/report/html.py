@@ -1,6 +1,9 @@
 """report.html: one self-contained page of a run that opens from disk with no network (docs/REPORT_HTML.md).
 
-What it holds: the metrics tables (metrics.json), the test views beside the ground truth and the
+What it holds: above the 3-D view, a warning block with report.md's "tilt doubtful" and
+"clearance doubtful" rows when there are any (`doubt_html`); the export's measurements and
+report.md's per-span conductors' table (doubtful clearances marked); the metrics tables
+(metrics.json), the test views beside the ground truth and the
 depth (PNG, base64; each a thumbnail that opens full size on a click), and an interactive 3-D view
 (plotly, its JavaScript embedded from the Python package, `include_plotlyjs=True`): the tower
 cloud, the export's mesh where there is one, the training cameras as small frusta, the fitted
