@@ -84,4 +84,7 @@ def main(argv: list[str] | None = None) -> int:
         warnings.warn(f"the tower's axis leans {tilt:.2f} deg from vertical: {report.TILT_WORDS}", stacklevel=1)
     for span, words in report.clearance_doubtful(m, "m" if m["units"] == "metres" else "units"):
         warnings.warn(f"the clearance over the ground of {span} is doubtful: {words}", stacklevel=1)
+    lowest = report.lowest_point_doubtful(m, "m" if m["units"] == "metres" else "units")
+    if lowest is not None:
+        warnings.warn(f"the clearance of {report.LOWEST_POINT} is doubtful: {lowest}", stacklevel=1)
     return 0

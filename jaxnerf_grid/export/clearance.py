@@ -24,6 +24,8 @@ n . x + d the height above it), the span a dense polyline of points along it
   radius of the lowest point, their count and their median height above the plane; doubtful when
   fewer than `min_count` (the ground there not seen) or that median is more than `tolerance` off
   the plane (the plane does not fit the ground there).
+  `lowest_point_ground_seen` asks the same of `export.measure.conductor_clearance`'s lowest
+  reconstructed conductor point (the cloud-only heuristic), its radius from the wire group's reach.
 * `flag`: a span is flagged when its ground or object clearance is below the clearance the user
   gives (`export --min-clearance`; no default: regulations differ by voltage and country).
 """
@@ -131,6 +133,25 @@ def ground_seen(point, points: np.ndarray, normal, d: float, ground_band: float,
     reason = NOT_SEEN if count < min_count else OFF_PLANE if median is not None and abs(median) > tol else None
     return {"radius": float(radius), "count": count, "min_count": int(min_count), "median_height": median,
             "tolerance": tol, "doubtful": reason is not None, "reason": reason}
+
+
+# the least radius around the heuristic's lowest conductor point, in ground columns (the ground
+# fit's cell): with ~3 points a column (the demo's cloud), a seen ground gives pi x 5^2 ~ 78
+# columns' ~240 points there, far above GROUND_MIN_POINTS
+LOWEST_MIN_CELLS = 5
+
+
+def lowest_point_ground_seen(cond: dict, points: np.ndarray, normal, d: float, ground_band: float, cell: float,
+                             up=(0.0, 0.0, 1.0)) -> dict | None:
+    """`ground_seen` beneath the conductors' lowest reconstructed point of a cloud points [N, 3]:
+    cond is `export.measure.conductor_clearance`'s record ("lowest_point" [3], "extent"). The
+    radius: GROUND_RADIUS_SHARE of the wire group's extent, at least LOWEST_MIN_CELLS x cell (the
+    ground's column size). None when cond is not reconstructed."""
+    if not (cond or {}).get("reconstructed"):
+        return None
+    # no span length here: the group's reach from the tower stands in for the span the point hangs on
+    radius = max(GROUND_RADIUS_SHARE * float(cond["extent"]), LOWEST_MIN_CELLS * float(cell))
+    return ground_seen(cond["lowest_point"], points, normal, d, ground_band, radius, up)
 
 
 def flag(ground: float | None, objects: float | None, min_clearance: float | None) -> bool | None:

@@ -326,9 +326,13 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         meas["tilt"] = measure.axis_tilt(verts_m, n_m, d_m, fp["axis_a"], fp["axis_b"],
                                          max(0.01 * height, 2 * h / scale))
         levels = meas["cross_arms"]["levels"]
+        cloud_m = to_metric64(points, norm)
         meas["conductors"] = measure.conductor_clearance(
-            to_metric64(points, norm), n_m, d_m, lo_m, hi_m,
+            cloud_m, n_m, d_m, lo_m, hi_m,
             0.5 * min(level["height"] for level in levels) if levels else 0.5 * height, GROUND_CELL / scale)
+        meas["conductors"]["ground_seen"] = clearance_lib.lowest_point_ground_seen(
+            meas["conductors"], cloud_m, n_m, d_m, meas["ground"]["clearance"], GROUND_CELL / scale,
+            (0.0, 0.0, 1.0) if units == "metres" else n_m)
     meas["box"].update(box_stats)
     # 6. the conductors from the photos, their clearance; the classified cloud
     cloud_m = to_metric64(points, norm)

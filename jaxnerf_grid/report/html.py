@@ -1,6 +1,9 @@
 """report.html: one self-contained page of a run that opens from disk with no network (docs/REPORT_HTML.md).
 
-What it holds: the metrics tables (metrics.json), the test views beside the ground truth and the
+What it holds: above the 3-D view, a warning block with report.md's "tilt doubtful" and
+"clearance doubtful" rows when there are any (`doubt_html`); the export's measurements and
+report.md's per-span conductors' table (doubtful clearances marked); the metrics tables
+(metrics.json), the test views beside the ground truth and the
 depth (PNG, base64; each a thumbnail that opens full size on a click), and an interactive 3-D view
 (plotly, its JavaScript embedded from the Python package, `include_plotlyjs=True`): the tower
 cloud, the export's mesh where there is one, the training cameras as small frusta, the fitted
@@ -19,6 +22,7 @@ import base64
 import html
 import json
 import os
+import re
 from pathlib import Path
 
 import numpy as np
@@ -387,7 +391,8 @@ def metrics_html(metrics: dict | None) -> str:
 
 
 def measurements_html(meas: dict | None) -> str:
-    """The export's measurements as an HTML table (none without an export)."""
+    """The export's measurements as an HTML table (none without an export); the conductors' lowest
+    reconstructed point's clearance marked "(doubtful)" as report.md marks it."""
     if not meas:
         return ""
     unit = "m" if meas.get("units") == "metres" else "units (unknown scale)"
@@ -397,10 +402,59 @@ def measurements_html(meas: dict | None) -> str:
         rows.append(("base footprint", f"{_fmt(fp.get('width_a'), 2)} x {_fmt(fp.get('width_b'), 2)} {unit}"))
     for k, a in enumerate((meas.get("cross_arms") or {}).get("levels") or []):
         rows.append((f"cross-arm {k + 1} at {_fmt(a['height'], 1)}", f"span {_fmt(a['span'], 2)} {unit}"))
+    if (meas.get("conductors") or {}).get("reconstructed"):
+        doubt = report.lowest_point_doubtful(meas, unit) is not None
+        rows.append(("conductors' lowest reconstructed point above the ground",
+                     report._pm((meas.get("survey") or {}).get("conductor_clearance"), unit)
+                     + (" (doubtful)" if doubt else "")))
     box = meas.get("box") or {}
     rows.append(("box", f"{[round(v, 2) for v in box.get('min', [])]} - {[round(v, 2) for v in box.get('max', [])]}"))
     body = "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(v)}</td></tr>" for k, v in rows)
     return f"<h2>Measurements (export)</h2><table><tr><th>measurement</th><th>value</th></tr>{body}</table>"
+
+
+def inline_markdown(text: str) -> str:
+    """One line of report.md as HTML: escaped, **bold** as <b>, `code` as <code>."""
+    out = html.escape(text, quote=False)
+    out = re.sub(r"\*\*(.+?)\*\*", r"<b>\1</b>", out)
+    return re.sub(r"`(.+?)`", r"<code>\1</code>", out)
+
+
+def conductors_html(meas: dict | None) -> str:
+    """report.md's "Conductors" section (`report.markdown.conductor_lines`: one row per span fitted
+    in the photos, its clearance marked "(doubtful)" where the ground beneath is not seen) as HTML,
+    its text and table row for row; "" without fitted spans' record. The photos' picture is left out."""
+    lines = report.conductor_lines(meas, "m" if meas.get("units") == "metres" else "units") if meas else []
+    if not lines:
+        return ""
+    cells = [[c.strip() for c in line.strip().strip("|").split(" | ")] for line in lines
+             if line.startswith("|") and not line.startswith("|---")]
+    text = "".join(f"<p>{inline_markdown(line)}</p>" for line in lines
+                   if line and not line.startswith(("|", "#", "![")))
+    table = ""
+    if cells:
+        head = "".join(f"<th>{inline_markdown(c)}</th>" for c in cells[0])
+        body = "".join("<tr>" + "".join(f"<td>{inline_markdown(c)}</td>" for c in row) + "</tr>" for row in cells[1:])
+        table = f'<table id="{CONDUCTORS_ID}"><tr>{head}</tr>{body}</table>'
+    return f"<h2>Conductors</h2>{text}{table}"
+
+
+CONDUCTORS_ID = "conductors"   # the id of the per-span conductors' table
+DOUBT_ID = "doubt"         # the id of the warning block (tests/report/test_html.py reads it)
+
+
+def doubt_html(meas: dict | None) -> str:
+    """The warning block at the top of the page: report.md's bold "tilt doubtful" and "clearance
+    doubtful" rows (`report.markdown.doubt_rows`, the same words) as a table; "" when the export is
+    sound or there is none."""
+    rows = report.doubt_rows(meas, "m" if meas.get("units") == "metres" else "units") if meas else []
+    if not rows:
+        return ""
+    body = "".join(f"<tr><th>{html.escape(label)}</th><td>{html.escape(words, quote=False)}</td></tr>"
+                   for label, words in rows)
+    return (f'<div class="doubt" id="{DOUBT_ID}"><h2>Doubtful measurements</h2><table>{body}</table>'
+            "<p>The figures these rows name are in the measurements below and in report.md, marked "
+            "(doubtful) where they are.</p></div>")
 
 
 def views_html(views: list[dict]) -> str:
@@ -437,18 +491,19 @@ td,th{border:1px solid #bbb;padding:2px 8px;text-align:left}figure{display:inlin
 img.view{width:220px;image-rendering:pixelated;cursor:zoom-in;border:1px solid #ccc}
 .row{margin:6px 0}.name{font-weight:bold}#overlay{display:none;position:fixed;inset:0;
 background:rgba(0,0,0,.85);align-items:center;justify-content:center;cursor:zoom-out}
-#overlay img{max-width:95vw;max-height:95vh;image-rendering:pixelated;min-width:50vw}"""
+#overlay img{max-width:95vw;max-height:95vh;image-rendering:pixelated;min-width:50vw}
+.doubt{border:2px solid #b00000;background:#fff0f0;padding:0 1em;margin:.5em 0}.doubt th{color:#b00000}"""
 SCRIPT = ("function zoom(img){var o=document.getElementById('overlay');o.firstChild.src=img.src;"
           "o.style.display='flex';}")
 
 
-def page(title: str, plot_div: str, sections: list[str], embedded: dict) -> str:
-    """The whole HTML page."""
+def page(title: str, plot_div: str, sections: list[str], embedded: dict, warning: str = "") -> str:
+    """The whole HTML page: the title, `warning` (`doubt_html`), the 3-D view, the sections."""
     data = json.dumps(embedded, indent=1).replace("</", "<\\/")
     return "\n".join([
         "<!DOCTYPE html>", "<html><head><meta charset=\"utf-8\">", f"<title>{html.escape(title)}</title>",
         f"<style>{STYLE}</style>", f"<script>{SCRIPT}</script></head><body>",
-        f"<h1>{html.escape(title)}</h1>", plot_div, *sections,
+        f"<h1>{html.escape(title)}</h1>", warning, plot_div, *sections,
         f'<script type="application/json" id="measurements">{data}</script>',
         '<div id="overlay" onclick="this.style.display=\'none\'"><img alt="full size"></div>', "</body></html>"])
 
@@ -478,10 +533,12 @@ def write_report_html(path, run_dir, ds, metrics: dict | None = None, views: lis
         notes.append(f"mesh faces drawn: {counts['faces'][1]} of {counts['faces'][0]}")
     notes.append(f"{len(scene['cameras'])} training cameras")
     sections = [f"<p>{html.escape('; '.join(notes))}.</p>", measurements_html(scene["measurements"]),
+                conductors_html(scene["measurements"]),
                 metrics_html(metrics), views_html(views), videos_html(path.parent, run_dir)]
     title = f"Run report: {run_dir.name}"
     text = page(title, plot, sections, {"measurements": embedded_measurements(scene["measurements"]),
-                                        "units": scene["units"], "counts": counts})
+                                        "units": scene["units"], "counts": counts},
+                doubt_html(scene["measurements"]))
     with io.naming_path(path):
         io.atomic_write_bytes(path, text.encode("utf-8"))
     return path

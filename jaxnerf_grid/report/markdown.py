@@ -129,6 +129,43 @@ TILT_WORDS = ("a standing lattice tower leans under 2 degrees in every export me
               "height, cross-arm levels and the conductors' clearance are doubtful")
 
 
+def tilt_doubt_words(m: dict) -> str | None:
+    """The words of the "tilt doubtful" finding of measurements.json `m` (`tilt_doubtful`); None
+    when the tower does not lean past TILT_DOUBTFUL."""
+    tilt = tilt_doubtful(m)
+    return None if tilt is None else f"the tower's axis leans {_fmt(tilt)} deg from vertical: {TILT_WORDS}"
+
+
+LOWEST_POINT = "the conductors' lowest reconstructed point"
+
+
+def lowest_point_doubtful(m: dict, unit: str) -> str | None:
+    """Why the clearance of the conductors' lowest reconstructed point (measurements.json `m`'s
+    `conductors`, `export.measure.conductor_clearance`) is doubtful, from its `ground_seen`
+    (`export.clearance.lowest_point_ground_seen`); None when it is sound, unchecked or not
+    reconstructed. The report's mark and row and `jaxnerf-grid export`'s warning ask this."""
+    cond = m.get("conductors") or {}
+    seen = cond.get("ground_seen") or {}
+    return ground_doubt_words(seen, unit) if cond.get("reconstructed") and seen.get("doubtful") else None
+
+
+def clearance_doubt_words(m: dict, unit: str) -> list[str]:
+    """The words of each "clearance doubtful" finding of measurements.json `m`: "{spans}: {why}"
+    per group of `clearance_doubtful`, then "{LOWEST_POINT}: {why}" (`lowest_point_doubtful`)."""
+    out = [f"{span}: {words}" for span, words in clearance_doubtful(m, unit)]
+    lowest = lowest_point_doubtful(m, unit)
+    return out + ([f"{LOWEST_POINT}: {lowest}"] if lowest is not None else [])
+
+
+def doubt_rows(m: dict, unit: str) -> list[tuple[str, str]]:
+    """(label, words) of every doubt about measurements.json `m`: ("tilt doubtful",
+    `tilt_doubt_words`), then ("clearance doubtful", each of `clearance_doubt_words`); [] when
+    sound. report.md's bold rows and report.html's warning block show these."""
+    tilt = tilt_doubt_words(m)
+    return ([("tilt doubtful", tilt)] if tilt is not None else []) + \
+        [("clearance doubtful", words) for words in clearance_doubt_words(m, unit)]
+
+
 def clearance_doubtful(m: dict, unit: str) -> list[tuple[str, str]]:
     """(the spans, as the conductors' table numbers them, the words) for the spans in
     measurements.json `m` whose clearance over the ground rests on a doubtful ground (their
@@ -216,9 +253,9 @@ def _survey_lines(m: dict, unit: str) -> list[str]:
             lines.append(f"| **lower part missing** | the model's tower begins {_fmt(low)} {unit} above the ground: "
                          "its legs were not reconstructed there, so the base centre and the tilt come from the "
                          "axis extended down that far (train longer, or add low oblique photos) |")
-    tilt = tilt_doubtful(m)
+    tilt = tilt_doubt_words(m)
     if tilt is not None:
-        lines.append(f"| **tilt doubtful** | the tower's axis leans {_fmt(tilt)} deg from vertical: {TILT_WORDS} |")
+        lines.append(f"| **tilt doubtful** | {tilt} |")
     vertical = sv.get("vertical")
     if vertical:
         lines.append(f"| heights of the CRS coordinates (base centre, tower_points.las, tower_mesh_crs.ply) | "
@@ -226,7 +263,8 @@ def _survey_lines(m: dict, unit: str) -> list[str]:
     cond = m.get("conductors") or {}
     if cond.get("reconstructed"):
         lines.append(f"| conductors' lowest reconstructed point above the ground | "
-                     f"{_pm(sv.get('conductor_clearance'), unit)} |")
+                     f"{_pm(sv.get('conductor_clearance'), unit)}"
+                     + (" (doubtful)" if lowest_point_doubtful(m, unit) is not None else "") + " |")
     elif cond:
         lines.append(f"| conductors | not reconstructed: {cond.get('why', '')} |")
     return lines
@@ -255,7 +293,7 @@ def export_lines(info: dict | None) -> list[str]:
         lines.append("| cross-arm levels (height: span, heuristic) | " + "; ".join(
             f"{_fmt(a['height'], 1)}: {_fmt(a['span'], 1)}" for a in arms) + f" {unit} |")
     lines += _survey_lines(m, unit)
-    lines += [f"| **clearance doubtful** | {span}: {words} |" for span, words in clearance_doubtful(m, unit)]
+    lines += [f"| **clearance doubtful** | {words} |" for words in clearance_doubt_words(m, unit)]
     g = m.get("ground") or {}
     if g:
         lines.append(f"| ground plane n . x + d = 0 | n = {_xyz(g.get('normal'), 4)}, d = {_fmt(g.get('offset'), 3)} "

@@ -8,7 +8,7 @@ import math
 import numpy as np
 import pytest
 
-from jaxnerf_grid.export import catenary, classes, clearance, survey
+from jaxnerf_grid.export import catenary, classes, clearance, measure, survey
 from jaxnerf_grid.export import conductors as cond
 
 A, XV = 1600.0, 160.0                 # catenary parameter, lowest point's station (m)
@@ -178,3 +178,48 @@ def test_ground_seen_thresholds_at_their_limits():
     # a tolerance given overrides the band's
     assert clearance.ground_seen(point, cloud(10, 0.3), up, 0.0, 0.75, 16.0, tolerance=0.25)["reason"] == \
         clearance.OFF_PLANE
+
+
+def _wire_and_ground(x_hi: float) -> tuple[np.ndarray, np.ndarray]:
+    """A wire leaving the tower's box (x, y in [-1, 1]) at x = 1.25 and falling 0.25 m per 0.25 m
+    to its lowest point (6, 0, 7), 5 m above the ground z = 2 (test_survey's wire), and that ground
+    every 0.5 m over x in [-3, x_hi], y in [-3, 3]. Returns (wire [20, 3], ground [M, 3])."""
+    k = np.arange(1.0, 21.0)
+    wire = np.column_stack([1.0 + 0.25 * k, np.zeros_like(k), 12.0 - 0.25 * k])
+    xy = np.stack(np.meshgrid(np.arange(-3.0, x_hi + 0.25, 0.5), np.arange(-3.0, 3.25, 0.5)), -1).reshape(-1, 2)
+    return wire, np.concatenate([xy, np.full((len(xy), 1), 2.0)], 1)
+
+
+def test_ground_beneath_the_heuristic_lowest_conductor_point_seen_or_not():
+    """measure.conductor_clearance on a hand-built cloud (cells 0.5: its lowest point (6, 0, 7),
+    its extent 5 m) then lowest_point_ground_seen with the ground's band 0.3: the radius is the
+    floor, 5 cells = 2.5 m (5 % of 5 m is 0.25). The ground reaching x = 10: the ground points
+    within 2.5 m of (6, 0), counted by hand, on the plane: sound. The ground only around the tower
+    (x <= 3, 3 m from the point): none, doubtful (too few). Not reconstructed: None."""
+    n, d, lo, hi = [0.0, 0.0, 1.0], -2.0, [-1.0, -1.0, 2.0], [1.0, 1.0, 12.0]
+    for x_hi, doubtful in ((10.0, False), (3.0, True)):
+        wire, ground = _wire_and_ground(x_hi)
+        cloud = np.concatenate([wire, ground])
+        cond_rec = measure.conductor_clearance(cloud, n, d, lo, hi, 4.5, 0.5)
+        assert cond_rec["lowest_point"] == [6.0, 0.0, 7.0] and cond_rec["extent"] == 5.0
+        seen = clearance.lowest_point_ground_seen(cond_rec, cloud, n, d, 0.3, 0.5)
+        by_hand = sum(1 for x, y, _ in ground if math.hypot(x - 6.0, y) <= 2.5)
+        assert seen["radius"] == 2.5 and seen["count"] == by_hand
+        assert seen["doubtful"] is doubtful
+        if doubtful:
+            assert by_hand == 0 and seen["reason"] == clearance.NOT_SEEN
+        else:
+            assert by_hand > 60 and seen["median_height"] == 0.0 and seen["reason"] is None
+    assert clearance.lowest_point_ground_seen({"reconstructed": False, "why": "-"}, cloud, n, d, 0.3, 0.5) is None
+    assert clearance.lowest_point_ground_seen(None, cloud, n, d, 0.3, 0.5) is None
+
+
+def test_heuristic_radius_is_five_percent_of_the_wire_groups_extent_above_the_floor():
+    """A wire group reaching 100 m from the tower: the radius 5 m (5 % of 100, above the 2.5 m
+    floor of 5 cells of 0.5). Ten ground points at exactly 5 m from the lowest point (10, 0, 8)
+    along x and y, then 1e-9 m further: seen, then not."""
+    cond_rec = {"reconstructed": True, "lowest_point": [10.0, 0.0, 8.0], "extent": 100.0}
+    for r, doubtful in ((5.0, False), (5.0 + 1e-9, True)):
+        ring = np.array([[10.0 + r, 0.0, 0.0], [10.0 - r, 0.0, 0.0], [10.0, r, 0.0], [10.0, -r, 0.0]] * 3)[:10]
+        seen = clearance.lowest_point_ground_seen(cond_rec, ring, [0.0, 0.0, 1.0], 0.0, 0.3, 0.5)
+        assert seen["radius"] == 5.0 and seen["doubtful"] is doubtful

@@ -726,6 +726,9 @@ def test_export_writes_metric_files_inside_the_given_box(tiny_run, tmp_path, cap
     np.testing.assert_allclose(saved["normalised"]["min"], [-0.9] * 3, atol=1e-6)   # the round trip
     m = io.read_json(out / "measurements.json")
     assert m["units"] == "metres" and m["box"]["source"] == "given"
+    cond = m["conductors"]
+    if cond is not None:     # a ground was fitted: the heuristic's lowest point carries its ground's evidence
+        assert "ground_seen" in cond and (cond["ground_seen"] is None) == (not cond["reconstructed"])
     verts = io.read_ply_points(out / "tower_mesh.ply")
     voxel = m["voxel_size"]
     assert len(verts) == m["mesh"]["vertices"] > 0

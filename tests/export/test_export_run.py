@@ -1229,6 +1229,36 @@ def test_conductor_step_records_whether_the_ground_beneath_each_span_is_seen(mon
     assert along["count"] > 300 and along["median_height"] == 0.0 and along["doubtful"] is False
 
 
+def test_export_cli_warns_when_the_ground_beneath_the_lowest_reconstructed_conductor_point_is_doubtful(
+        monkeypatch, tmp_path):
+    """The heuristic `conductors` record with its `ground_seen` doubtful (no ground within 2.5 m):
+    one warning naming that point and the reason, in the export's units; sound, not reconstructed:
+    none. The export is a stand-in returning the keys the CLI reads."""
+    from jaxnerf_grid import cli
+    from jaxnerf_grid.export import run as run_lib
+
+    not_seen = {"radius": 2.5, "count": 0, "min_count": 10, "median_height": None, "tolerance": 0.2,
+                "doubtful": True, "reason": "too few ground points"}
+    sound = {**not_seen, "count": 80, "median_height": 0.0, "doubtful": False, "reason": None}
+
+    def fake(seen, reconstructed=True):
+        return lambda *a, **k: {"units": "metres", "height": 30.0, "mesh": {"vertices": 3, "faces": 1},
+                                "points": {"count": 5}, "seconds": 1.0,
+                                "conductors": {"reconstructed": reconstructed, "ground_seen": seen}}
+
+    for seen, reconstructed, expected in (
+            (not_seen, True, ["the clearance of the conductors' lowest reconstructed point is doubtful: only 0 "
+                              "ground points of the cloud within 2.50 m of the point beneath the lowest point (at "
+                              "least 10 needed): the ground there is not seen, and the clearance over the ground "
+                              "is the fitted plane's extrapolation"]),
+            (sound, True, []), (not_seen, False, [])):
+        monkeypatch.setattr(run_lib, "export_run", fake(seen, reconstructed))
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            assert cli.main(["export", "--run", str(tmp_path), "--quiet"]) == 0
+        assert [str(w.message) for w in caught] == expected
+
+
 def test_export_cli_warns_for_the_spans_whose_ground_clearance_is_doubtful(monkeypatch, tmp_path):
     """Two spans, the first doubtful (no ground seen beneath it), the second sound: one warning
     naming the first span and its reason, in the export's units; both sound: none. The export is a

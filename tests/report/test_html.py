@@ -4,6 +4,7 @@ them) and its screenshot in headless Chromium (the 3-D view holds the model's pi
 change when the model's traces are hidden, whatever the model's colours)."""
 
 import base64
+import html
 import json
 import os
 import re
@@ -15,6 +16,7 @@ import pytest
 
 from jaxnerf_grid import cli
 from jaxnerf_grid.report import html as report_html
+from jaxnerf_grid.report import markdown as report_markdown
 from jaxnerf_grid.util import io
 from tests.train.test_loop import TINY_FIELD, tiny_dataset
 
@@ -381,3 +383,101 @@ def test_every_layer_of_the_3d_view_lies_in_the_export_frame_at_hand_worked_posi
     box = xyz(traces["box"])
     np.testing.assert_allclose(box.min(axis=0), [-5.0, -5.0, -2.0]) and np.testing.assert_allclose(
         box.max(axis=0), [5.0, 5.0, 30.0])
+
+
+# --------------------------------------------------------------------------- the doubtful findings
+
+NOT_SEEN = {"radius": 16.0, "count": 3, "min_count": 10, "median_height": 0.05, "tolerance": 0.2, "doubtful": True,
+            "reason": "too few ground points"}
+SOUND = {**NOT_SEEN, "count": 812, "median_height": 0.0, "doubtful": False, "reason": None}
+NOT_SEEN_WORDS = ("only 3 ground points of the cloud within 16.00 m of the point beneath the lowest point (at least 10 "
+                  "needed): the ground there is not seen, and the clearance over the ground is the fitted plane's "
+                  "extrapolation")
+TILT_725 = ("the tower's axis leans 7.25 deg from vertical: a standing lattice tower leans under 2 degrees in every "
+            "export measured here: either this one leans, or the model's tower is incomplete or misplaced (look at "
+            "report_views.png), and its height, cross-arm levels and the conductors' clearance are doubtful")
+
+
+def _span(seen: dict | None, side: int = 1) -> dict:
+    """A fitted span's record: a 320 m level span along +y at x = 7.6 (as above), its lowest point
+    6.90 +- 0.01 above the ground, the ground beneath as `seen` says."""
+    fig = {"value": 1.0, "sigma": 0.1}
+    theta = [-7.6, 14.9, np.pi / 2, -np.sinh(0.1), 1.0 / 1600.0]
+    return {"theta": theta, "centre": [0.0, 0.0, 0.0], "up": [0.0, 0.0, 1.0], "side": side,
+            "attachment": {"value": [0.0, 0.0, 14.9], "sigma": [0.0, 0.0, 0.01]}, "sag": fig,
+            "catenary_parameter": fig, "clearance": {"ground": 6.9, "ground_sigma": 0.01, "ground_seen": seen}}
+
+
+def _page_of(tmp_path, extra: dict) -> str:
+    """The text of the page of an export whose measurements.json is `_export_folder`'s with `extra`."""
+    ds = tiny_dataset()
+    ds.normalization = NORM
+    meas = {**_export_folder(tmp_path / "run" / "export"), **extra}
+    io.write_json(tmp_path / "run" / "export" / "measurements.json", meas)
+    return report_html.write_report_html(tmp_path / "report.html", tmp_path / "run", ds,
+                                         export_dir=tmp_path / "run" / "export").read_text()
+
+
+def _doubt_block(text: str) -> list[tuple[str, str]] | None:
+    """The (label, words) rows of the page's warning block, unescaped; None when it has none."""
+    found = re.search(r'<div class="doubt" id="doubt">(.*?)</div>', text, re.S)
+    if found is None:
+        return None
+    return [(html.unescape(a), html.unescape(b)) for a, b in
+            re.findall(r"<tr><th>(.*?)</th><td>(.*?)</td></tr>", found.group(1), re.S)]
+
+
+def test_the_page_warns_at_its_top_of_a_leaning_tower_and_doubtful_spans_in_report_mds_words(tmp_path):
+    """A tower leaning 7.25 deg, spans 1 and 3 doubtful (too few ground points beneath), span 2
+    sound, the conductors' lowest reconstructed point's ground not seen: the page's warning block,
+    before the 3-D view, holds report.md's bold rows word for word, each written out here."""
+    lowest = {**NOT_SEEN, "radius": 2.5, "count": 0, "median_height": None}
+    text = _page_of(tmp_path, {"survey": {"tilt_degrees": {"value": 7.25, "sigma": 0.4},
+                                          "conductor_clearance": {"value": 11.0, "sigma": 0.5}},
+                               "conductors": {"reconstructed": True, "ground_seen": lowest},
+                               "conductor_spans": {"found": 3, "photos": 40,
+                                                   "spans": [_span(NOT_SEEN), _span(SOUND, -1), _span(NOT_SEEN)]}})
+    rows = _doubt_block(text)
+    assert rows == [
+        ("tilt doubtful", TILT_725),
+        ("clearance doubtful", "2 spans (1, 3): " + NOT_SEEN_WORDS),
+        ("clearance doubtful", "the conductors' lowest reconstructed point: only 0 ground points of the cloud "
+                               "within 2.50 m of the point beneath the lowest point (at least 10 needed): the ground "
+                               "there is not seen, and the clearance over the ground is the fitted plane's "
+                               "extrapolation")]
+    assert text.index('id="doubt"') < text.index(f'id="{report_html.PLOT_DIV}"')
+    # report.md's rows of the same measurements: the same words
+    md = report_markdown.export_lines({"measurements": io.read_json(tmp_path / "run" / "export" /
+                                                                    "measurements.json")})
+    assert [line for line in md if line.startswith("| **")] == [f"| **{a}** | {b} |" for a, b in rows]
+
+
+def test_the_page_has_no_warning_when_the_tower_stands_and_the_ground_is_seen(tmp_path):
+    """A tower leaning 1.74 deg (the most a sound export measured), its spans and its lowest
+    reconstructed point over a seen ground: no warning block; nor without an export's survey."""
+    text = _page_of(tmp_path, {"survey": {"tilt_degrees": {"value": 1.74, "sigma": 0.4}},
+                               "conductors": {"reconstructed": True, "ground_seen": SOUND},
+                               "conductor_spans": {"found": 2, "photos": 40, "spans": [_span(SOUND), _span(None)]}})
+    assert _doubt_block(text) is None and "doubtful" not in text.split(f'id="{report_html.PLOT_DIV}"')[0]
+    assert report_html.doubt_html(None) == "" and report_html.doubt_html({"units": "metres"}) == ""
+
+
+def test_the_pages_conductor_tables_mark_the_doubtful_clearances(tmp_path):
+    """The per-span conductors' table: span 1's clearance over the ground "6.90 +- 0.01 (doubtful)",
+    span 2's (ground seen) unmarked; the measurements table: the conductors' lowest reconstructed
+    point "11.00 m +- 0.50 m (doubtful)"."""
+    text = _page_of(tmp_path, {"survey": {"conductor_clearance": {"value": 11.0, "sigma": 0.5}},
+                               "conductors": {"reconstructed": True, "ground_seen": NOT_SEEN},
+                               "conductor_spans": {"found": 2, "photos": 40,
+                                                   "spans": [_span(NOT_SEEN), _span(SOUND, -1)]}})
+    table = re.search(r'<table id="conductors">(.*?)</table>', text, re.S).group(1)
+    head = re.findall(r"<th>(.*?)</th>", table)
+    column = head.index("lowest point above the ground (m)")
+    cells = [re.findall(r"<td>(.*?)</td>", row) for row in re.findall(r"<tr>(.*?)</tr>", table)[1:]]
+    assert [(row[0], row[1], row[column]) for row in cells] == [("1", "+", "6.90 +- 0.01 (doubtful)"),
+                                                               ("2", "-", "6.90 +- 0.01")]
+    assert ("<tr><td>conductors&#x27; lowest reconstructed point above the ground</td>"
+            "<td>11.00 m +- 0.50 m (doubtful)</td></tr>") in text
+    sound = _page_of(tmp_path / "sound", {"survey": {"conductor_clearance": {"value": 11.0, "sigma": 0.5}},
+                                          "conductors": {"reconstructed": True, "ground_seen": SOUND}})
+    assert "<td>11.00 m +- 0.50 m</td>" in sound and 'id="conductors"' not in sound

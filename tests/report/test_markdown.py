@@ -384,6 +384,27 @@ def test_clearance_doubtful_names_the_doubtful_spans_grouped_by_their_words_and_
         ["6.90 +- 0.01 (doubtful)", "6.90 +- 0.01"]
 
 
+def test_the_conductors_lowest_reconstructed_point_marked_doubtful_with_its_row_word_for_word():
+    """measurements.json's heuristic `conductors` with a `ground_seen` record: doubtful (no ground
+    seen within 2.50 m), its figure in the survey rows marked "(doubtful)" and a "clearance
+    doubtful" row naming it; sound, without the record, or not reconstructed: no mark, no row."""
+    seen = {**NOT_SEEN, "radius": 2.5, "count": 0, "median_height": None}
+
+    def rows(cond):
+        return [line for line in report.export_lines({"measurements": {**MEASUREMENTS, "conductors": cond}})
+                if "lowest reconstructed point" in line]
+
+    assert rows({"reconstructed": True, "ground_seen": seen}) == [
+        "| conductors' lowest reconstructed point above the ground | 11.00 m +- 0.50 m (doubtful) |",
+        "| **clearance doubtful** | the conductors' lowest reconstructed point: only 0 ground points of the cloud "
+        "within 2.50 m of the point beneath the lowest point (at least 10 needed): the ground there is not seen, and "
+        "the clearance over the ground is the fitted plane's extrapolation |"]
+    sound = ["| conductors' lowest reconstructed point above the ground | 11.00 m +- 0.50 m |"]
+    assert rows({"reconstructed": True, "ground_seen": SEEN}) == sound
+    assert rows({"reconstructed": True}) == rows({"reconstructed": True, "ground_seen": None}) == sound
+    assert rows({"reconstructed": False, "why": "none", "ground_seen": seen}) == []
+
+
 def _span_row() -> dict:
     """The figures of a conductors' table row the marker test does not look at."""
     fig = _fig(1.0, 0.1)
