@@ -22,7 +22,8 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      left out are then tried again, continuing that model with looser thresholds
      (`register_left_out`, kept when it agrees); the largest model is kept, the photos outside
      it are named with why (`unregistered_reasons`); a camera set too thin to train on is
-     refused (`camera_set`, unless `accept_few_cameras`);
+     refused (`camera_set`, unless `accept_few_cameras`), its reconstruction and report kept in
+     DATA_DIR.refused, which the same run with `accept_few_cameras` reuses (`refused`);
   5. undistortion to PINHOLE (`pycolmap.undistort_images`): DATA_DIR/images/ holds the
      undistorted photos under their input names, cropped to one size when each photo has its
      own camera (`crop_to_common_size`);
@@ -53,7 +54,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxnerf_grid.capture import camera_set, georef, gps, pairing, vetting
+from jaxnerf_grid.capture import camera_set, georef, gps, pairing, refused, vetting
 from jaxnerf_grid.capture.bounds import scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap, observation_depths
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
@@ -781,16 +782,19 @@ def georef_report_lines(geo: dict) -> list[str]:
     return lines + [""]
 
 
-def report_lines(summary: dict, bounds: dict) -> list[str]:
+def report_lines(summary: dict, bounds: dict | None) -> list[str]:
     """DATA_DIR/poses_report.md: the summary, the vetting table (every registered photo, the
-    left-out ones with their reasons) and the scene bounds (docs/POSES.md, docs/BOUNDS.md)."""
+    left-out ones with their reasons) and the scene bounds (docs/POSES.md, docs/BOUNDS.md; none
+    when `bounds` is None)."""
     vet = summary.get("vetting") or {}
     lines = ["# Camera poses", "", *format_summary(summary).splitlines(), "",
              "## Vetting (docs/POSES.md)", ""]
     if vet.get("keep_all"):
         lines += ["`--keep-all`: every registered photo kept, whatever its scores.", ""]
-    lines += vetting.format_table(vet.get("photos", [])) + ["", "## Scene bounds (docs/BOUNDS.md)", "",
-                                                             "| bound | value (normalised units) |", "|---|---|"]
+    lines += vetting.format_table(vet.get("photos", []))
+    if bounds is None:
+        return lines + [""]
+    lines += ["", "## Scene bounds (docs/BOUNDS.md)", "", "| bound | value (normalised units) |", "|---|---|"]
     for key in ("near", "far", "contract_radius", "roi_radius", "nearest_camera_to_roi"):
         lines.append(f"| {key} | {bounds[key]:.4g} |")
     lines.append(f"| roi_centre | {', '.join(f'{v:.3g}' for v in bounds['roi_centre'])} |")
@@ -846,7 +850,11 @@ def format_summary(summary: dict) -> str:
         lines.append(f"cameras kept for training: {cameras['kept']} of {cameras['photos']} photos, covering "
                      f"{cameras['arc_kept_deg']:.0f} of the {cameras['arc_flight_deg']:.0f} degrees around the scene "
                      f"centre that {where} cover"
-                     + (f"; {cameras['verdict']}, written anyway as asked" if cameras.get("verdict") else ""))
+                     + (f"; {cameras['verdict']}" + (", written anyway as asked" if cameras.get("accepted") else "")
+                        if cameras.get("verdict") else ""))
+    if summary.get("reconstruction_reused"):
+        lines.append("features, matching and mapping: taken from the refused run's reconstruction (the same photos "
+                     "and options)")
     if summary.get("gps_priors"):
         lines.append(f"GPS as pose priors in the bundle adjustment: {summary['gps_priors']} photos")
     vet = summary.get("vetting") or {}
@@ -898,7 +906,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
     ground control point file) and `crs` (EPSG:XXXX, else the GPS's UTM zone) align the model to
     metres in a projected CRS; without GPS, `scale_bar` scales it; else units stay unknown,
     docs/GEOREFERENCE.md; `ignore_gps`: the photos' GPS is not read), feature_side (SIFT's
-    largest side, FEATURE_SIDE; 0: COLMAP's own), transforms (path).
+    largest side, FEATURE_SIDE; 0: COLMAP's own), reconstruction_reused (COLMAP's model taken from
+    a refused run of the same photos and options, `refused.load`), transforms (path).
     DataError (one line, naming the path) for bad input; nothing is written then.
     """
     start = time.monotonic()
@@ -943,15 +952,29 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         if positions:
             georef.precheck_gps(positions, crs, len(names), images_dir)
         priors, priors_origin = gps_local_positions(positions, crs)
-        model, relaxed, extended = run_colmap(
-            pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
-            single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir, keep_all=keep_all,
-            overlap=overlap, timings=timings, priors=priors,
-            small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE, feature_side=feature_side)
+        key = refused.run_key([images_dir / n for n in names], {
+            "matcher": used, "camera_model": camera_model, "single_camera": single_camera, "max_side": max_side,
+            "vocab_tree": str(vocab_tree), "overlap": overlap, "keep_all": keep_all, "priors": priors,
+            "feature_side": feature_side, "pycolmap": str(getattr(pycolmap, "__version__", "")),
+            "code": colmap_settings()})
+        database, raw_model = stage_dir / "_work" / "database.db", stage_dir / "_work" / "model"
+        reused = refused.load(pycolmap, out, key)
+        if reused is None:
+            model, relaxed, extended = run_colmap(
+                pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
+                single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir,
+                keep_all=keep_all, overlap=overlap, timings=timings, priors=priors,
+                small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE, feature_side=feature_side)
+        else:
+            model, record, database = reused
+            relaxed, extended = bool(record["relaxed"]), bool(record["extended"])
+            _say(f"poses: features, matching and mapping taken from the refused run in {refused.folder_of(out)} "
+                 "(the same photos and options)", progress)
+        raw_model.mkdir(parents=True, exist_ok=True)
+        model.write(raw_model)  # as COLMAP returned it: what a refused run keeps
         registered = sorted(model.images[i].name for i in model.reg_image_ids())
         unregistered = sorted(set(names) - set(registered))
-        why_unregistered = unregistered_reasons(pycolmap, stage_dir / "_work" / "database.db", unregistered,
-                                                registered)
+        why_unregistered = unregistered_reasons(pycolmap, database, unregistered, registered)
         rows = vetting.vet(vetting.records_from_pycolmap(model))
         left_out = [] if keep_all else [row["name"] for row in rows if not row["kept"]]
         registered_centres = np.stack([c2w[:3, 3] for c2w in model_poses(model).values()])
@@ -980,9 +1003,6 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                 kept -= len(far)
             cameras = camera_set_of(model, len(names), registered_centres, priors, priors_origin, georeference)
             verdict = camera_set.camera_set_verdict(cameras)
-            if verdict is not None and not accept_few_cameras:
-                raise DataError(f"{images_dir}: {verdict}; not written (a NeRF trained on them renders the rest as "
-                                f"a ghost); accept_few_cameras=True writes it anyway (docs/POSES.md)")
             summary = {"photos": len(photos), "registered": len(registered), "in_dataset": kept,
                        "unregistered": unregistered,
                        "vetting": {"keep_all": bool(keep_all), "left_out": left_out, "photos": rows},
@@ -997,7 +1017,15 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "gps_priors": len(priors) if priors_hold(priors) else 0,
                        "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
+                       "reconstruction_reused": reused is not None,
                        "georeference": georeference}
+            if verdict is not None and not accept_few_cameras:
+                summary.update(seconds=round(time.monotonic() - start, 1), timings_s=dict(timings))
+                kept_in = keep_refused(out, key, raw_model, database, summary, model, relaxed, extended,
+                                       timings if reused is None else reused[1]["timings_s"])
+                raise DataError(f"{images_dir}: {verdict}; not written (a NeRF trained on them renders the rest as "
+                                f"a ghost); which photos and why: {kept_in / REPORT}; accept_few_cameras=True "
+                                "writes it anyway, reusing this run's reconstruction (docs/POSES.md)")
             undistort(pycolmap, model, photo_dir, stage_dir)
             shutil.rmtree(stage_dir / "_work")
             summary["seconds"] = round(time.monotonic() - start, 1)
@@ -1006,12 +1034,41 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
             write_dataset(stage_dir, summary)
             (stage_dir / MARKER).write_text("written by jaxnerf-grid poses; --overwrite replaces its outputs\n")
         move_into_place(stage_dir, out)
+        refused.discard(out)
     except BaseException:
         if not (stage_dir / COMPLETE).is_file():  # committed: `recover` finishes the swap, never undoes it
             shutil.rmtree(stage_dir, ignore_errors=True)
         raise
     summary["transforms"] = str(out / "transforms.json")
     return summary
+
+
+def colmap_settings() -> dict:
+    """The settings this module hands COLMAP on top of its defaults (part of a run's key,
+    `refused.run_key`: a reconstruction kept under other settings is not reused)."""
+    return {"sift": SIFT, "sift_small": SIFT_SMALL, "small_side": SMALL_SIDE, "matching": MATCHING,
+            "matching_sift": MATCHING_SIFT, "mapper": MAPPER, "relax_below": RELAX_BELOW, "relaxed": RELAXED,
+            "left_out": LEFT_OUT, "left_out_triangulation": LEFT_OUT_TRIANGULATION, "prior_sigma_m": PRIOR_SIGMA_M,
+            "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "spatial_neighbours": SPATIAL_NEIGHBOURS}
+
+
+def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: dict, model, relaxed: bool,
+                 extended: bool, colmap_timings: dict) -> Path:
+    """`refused.keep` of a run whose camera set was refused: the model as COLMAP returned it
+    (raw_model), the database, poses_report.md (the summary and vetting table, no scene bounds)
+    and the top view of the kept cameras. colmap_timings: the seconds of COLMAP's stages, kept
+    for the run that reuses them. Returns the folder."""
+    c2w = np.stack(list(model_poses(model).values()))
+    points = np.array([p.xyz for p in model.points3D.values()], np.float64).reshape(-1, 3)
+    c2w_norm, norm = normalize_orbit(c2w, points if len(points) else None)
+    points_norm = apply_normalization_to_points(points, norm) if len(points) else points
+    verdict = (summary.get("camera_set") or {}).get("verdict")
+    report = "\n".join([f"**Refused: {verdict}.** Not written; `poses` with accept_few_cameras=True on the same photos "
+                        "and options writes it from this reconstruction (docs/POSES.md).", "",
+                        *report_lines(summary, None)])
+    return refused.keep(out, key, raw_model, database,
+                        {"relaxed": relaxed, "extended": extended, "timings_s": colmap_timings}, report,
+                        lambda path: draw_topview(path, c2w_norm, points_norm))
 
 
 def gps_local_positions(positions: dict, crs_name: str | None) -> tuple[dict, np.ndarray | None]:

@@ -66,7 +66,9 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--accept-few-cameras", action="store_true",
                    help=f"write the dataset even when fewer than {MIN_KEPT_SHARE * 100:.0f} %% of the photos are "
                         f"kept or the kept cameras cover less than {MIN_ARC_SHARE * 100:.0f} %% of the flight's arc "
-                        "around the scene (a NeRF trained on them renders the rest poorly; docs/POSES.md)")
+                        "around the scene (a NeRF trained on them renders the rest poorly; docs/POSES.md); after a "
+                        "refusal, the same command with this flag reuses the refused run's reconstruction kept in "
+                        "DATA_DIR.refused")
     p.add_argument("--crs", default=None,
                    help="projected CRS for the GPS alignment, e.g. EPSG:32633 (default: the GPS's UTM zone)")
     p.add_argument("--gcp", default=None,

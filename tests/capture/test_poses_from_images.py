@@ -167,6 +167,7 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
         "camera_model": "SIMPLE_RADIAL",
         "single_camera": False, "max_side": None, "feature_side": 1600, "relaxed_mapping": False,
         "pycolmap": pycolmap.__version__, "georeference": {"units": "unknown", "source": None},
+        "reconstruction_reused": False,
         "seconds": 12.3, "timings_s": {"photos": 0.5, **TIMES, "writing": 9.4},
         "transforms": str(out / "transforms.json")}
     assert list(summary["timings_s"]) == ["photos", "features", "matching", "mapping", "writing"]
