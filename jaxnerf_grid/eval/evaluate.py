@@ -21,6 +21,9 @@ Evaluation protocol (stored in metrics.json and the report):
     less a ground strip). The reference is --reference-ply (a user's survey cloud, already in the
     dataset's normalised units) or else the dataset's `tower_ply` (synthetic data; converted from
     the file's `scene_normalization` to the loaded dataset's normalisation); None without one.
+  * "training_fit": the PSNR of the training batches over the last tenth of the run (`training_fit`,
+    from metrics.jsonl: each logged batch's weighted MSE, averaged, then as PSNR): how well the
+    model fits the photos it trained on, beside the held-out views' PSNR;
   * "export": when the run has been exported (`jaxnerf-grid export`, RUN/export/), its
     measurements and, with a reference, its score in the export's units (`eval.export_score`: F-score
     at 0.2, 0.4, 1.0 m, Chamfer, height error; docs/EXPORT.md).
@@ -52,6 +55,7 @@ from jaxnerf_grid.util import io
 from jaxnerf_grid.util.io import DataError
 
 FAR_BACKGROUND_METRES = 100.0
+TRAINING_FIT_TAIL = 0.1  # `training_fit`: the logged batches of the last tenth of the steps
 REGION_DEFINITION = ("tower = classes 1-2 (tower, conductor); near_ground = class 3; far_background = "
                      "class 0 (sky) + classes 4-5 (vegetation, building) with ground-truth z-depth > "
                      f"{FAR_BACKGROUND_METRES:.0f} m")
@@ -271,9 +275,11 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
               "per_view": per_view, "lpips": "computed" if lpips_params is not None else "unavailable",
               "resolution": resolution_record(ds, cfg, full_size),
               "eval_seconds": time.perf_counter() - start}
+    log = train.read_log(run_dir / "metrics.jsonl")
+    result["training_fit"] = training_fit(log, cfg.train.max_steps)
     weights = training_weights(run_dir, ds)
     if weights is not None:
-        late = robust_lib.late_ignored_share(train.read_log(run_dir / "metrics.jsonl"), cfg.train.max_steps)
+        late = robust_lib.late_ignored_share(log, cfg.train.max_steps)
         result["training_weights"] = {"mode": cfg.train.robust.mode, "ignored_share": weights["ignored_share"],
                                       "late_batch_ignored_share": late}
     chosen = read_budget(run_dir)
@@ -310,6 +316,21 @@ def evaluate_run(run_dir, lpips_weights: str | None = None, progress: bool = Tru
     report.write_report(run_dir, result, cfg, data, figures, notes)
     report_html.write_report_html(run_dir / "report.html", run_dir, ds, result, figures, run_dir / "export")
     return result
+
+
+def training_fit(log: list[dict], max_steps: int, tail: float = TRAINING_FIT_TAIL) -> dict | None:
+    """The training batches' PSNR late in a run: -10 log10 of the mean MSE (10^(-psnr / 10) of each
+    record) of the metrics.jsonl records (`log`: {"step", "psnr", ...}) whose step is past
+    (1 - tail) x max_steps. Each batch is a fresh draw of training pixels, so the mean estimates
+    the fit over the training photos (their masked pixels left out, as the loss leaves them).
+    Returns {"psnr", "batches", "from_step"}; None when no record lies there."""
+    start = (1.0 - tail) * max_steps
+    late = [float(r["psnr"]) for r in log if "psnr" in r and float(r.get("step", 0)) > start
+            and np.isfinite(float(r["psnr"]))]
+    if not late:
+        return None
+    mse = float(np.mean([10.0 ** (-v / 10.0) for v in late]))
+    return {"psnr": -10.0 * float(np.log10(mse)), "batches": len(late), "from_step": int(start)}
 
 
 def read_depth_prior(run_dir) -> dict | None:

@@ -270,6 +270,14 @@ def _survey_lines(m: dict, unit: str) -> list[str]:
     return lines
 
 
+# what the training batches' PSNR beside the held-out PSNR tells a reader
+FIT_WORDS = ("The training batches' PSNR is how well the model fits the photos it trained on. Far above the "
+             "held-out PSNR, the held-out views show what the training photos do not (frame edges, sides no "
+             "photo saw, floaters between the cameras): more photos around the scene help more than more "
+             "steps. Close to it and low, the model has not yet fitted its photos: more steps (a longer "
+             "time budget) help.")
+
+
 def export_lines(info: dict | None) -> list[str]:
     """Markdown lines of the "Tower model (export)" section (docs/EXPORT.md) from
     {"measurements": measurements.json, "image": the picture's path relative to the report,
@@ -461,7 +469,12 @@ def write_report(run_dir, metrics: dict, cfg, data, views: list[dict], extra_lin
         lines.append(f"| PSNR, {name.replace('_', ' ')} | {_fmt(value)} |")
     if metrics.get("distractor_psnr") is not None:
         lines.append(f"| PSNR inside distractors (train views vs clean) | {_fmt(metrics['distractor_psnr'])} |")
+    fit = metrics.get("training_fit")
+    if fit:
+        lines.append(f"| PSNR of the training batches, last tenth of the run | {_fmt(fit['psnr'])} |")
     lines += ["", f"Protocol: {metrics.get('protocol', '')}", ""]
+    if fit:
+        lines += [FIT_WORDS, ""]
     if metrics.get("region_definition"):
         lines += [f"Regions: {metrics['region_definition']}", ""]
     lines += geometry_lines(metrics.get("geometry"))

@@ -299,3 +299,15 @@ def test_region_masks_at_exactly_100_metres():
         "tower": [[0, 0, 0, 0, 0, 0, 0, 1, 1, 0]], "near_ground": [[0, 0, 0, 0, 0, 0, 0, 0, 0, 1]],
         "far_background": [[0, 0, 1, 0, 0, 1, 1, 0, 0, 0]]}
     assert evaluate.region_masks(SimpleNamespace(semantics=None), 0) == {}
+
+
+def test_training_fit_averages_the_late_batches_mse_not_their_psnr():
+    """Two late batches at 20 and 30 dB are MSEs 0.01 and 0.001: their mean 0.0055 is 22.60 dB
+    (the mean of the PSNRs would say 25); earlier records, records without a PSNR and a
+    non-finite one are left out; none late: None."""
+    log = [{"step": 50, "psnr": 10.0}, {"step": 90, "psnr": 40.0}, {"step": 91, "psnr": 20.0},
+           {"step": 95, "loss": 0.1}, {"step": 98, "psnr": float("nan")}, {"step": 100, "psnr": 30.0}]
+    fit = evaluate.training_fit(log, 100)
+    assert fit == {"psnr": pytest.approx(-10 * np.log10(0.0055), abs=1e-12), "batches": 2, "from_step": 90}
+    assert evaluate.training_fit(log, 100, tail=0.6)["batches"] == 4   # from step 40: 10, 40, 20 and 30 dB
+    assert evaluate.training_fit(log[:1], 100) is None and evaluate.training_fit([], 10) is None

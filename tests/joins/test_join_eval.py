@@ -16,6 +16,7 @@ run whose dataset is built here, so every region and every target is known by co
 """
 
 import json
+import math
 import re
 from pathlib import Path
 
@@ -260,6 +261,13 @@ def test_report_tables_match_metrics_json(ours, nerfw):
             assert rows[f"PSNR, {name.replace('_', ' ')}"] == f"{m['regions_mean'][name]:.2f}"
         assert rows["PSNR inside distractors (train views vs clean)"] == f"{m['distractor_psnr']:.2f}"
         assert f"Trained steps: {m['step']}" in (r["run"] / "report.md").read_text()
+        # the training batches of the last tenth of the run, from metrics.jsonl by hand: their MSEs averaged
+        log = [json.loads(line) for line in (r["run"] / "metrics.jsonl").read_text().splitlines()]
+        late = [rec["psnr"] for rec in log if rec["step"] > 0.9 * r["cfg"].train.max_steps]
+        assert late and m["training_fit"]["batches"] == len(late)
+        want = -10 * math.log10(sum(10 ** (-v / 10) for v in late) / len(late))
+        assert m["training_fit"]["psnr"] == pytest.approx(want, abs=1e-9)
+        assert rows["PSNR of the training batches, last tenth of the run"] == f"{want:.2f}"
 
 
 def _turbo_of_inverse_depth(depth):

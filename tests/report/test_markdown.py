@@ -590,3 +590,18 @@ def test_number_ranges_joins_consecutive_numbers_into_runs():
     assert report.number_ranges([8, 1, 2, 3, 5, 7]) == "1-3, 5, 7-8"
     assert report.number_ranges([4]) == "4" and report.number_ranges([]) == ""
     assert report.number_ranges(list(range(1, 17))) == "1-16"
+
+
+def test_the_training_fit_row_and_its_reading_appear_only_with_the_figure(tmp_path):
+    """report.md's metrics table gets the training batches' PSNR and the words that tell a reader
+    what its distance from the held-out PSNR means; without the figure, neither."""
+    cfg = make_config("ours-lean", {})
+    metrics = {"mean": {"psnr": 19.4, "ssim": 0.5}, "step": 10, "num_views": 1}
+    report.write_report(tmp_path, {**metrics, "training_fit": {"psnr": 27.315, "batches": 3, "from_step": 9}},
+                        cfg, "DATA", [], [])
+    text = (tmp_path / "report.md").read_text()
+    assert "| PSNR of the training batches, last tenth of the run | 27.32 |" in text
+    assert report.FIT_WORDS in text and report.FIT_WORDS.startswith("The training batches' PSNR is how well")
+    report.write_report(tmp_path, metrics, cfg, "DATA", [], [])
+    text = (tmp_path / "report.md").read_text()
+    assert "training batches" not in text
