@@ -595,7 +595,7 @@ def test_number_ranges_joins_consecutive_numbers_into_runs():
 def test_the_training_fit_row_and_its_reading_appear_only_with_the_figure(tmp_path):
     """report.md's metrics table gets the training batches' PSNR and the words that tell a reader
     what its distance from the held-out PSNR means; without the figure, neither."""
-    cfg = make_config("ours-lean", {})
+    cfg = make_config("ours")
     metrics = {"mean": {"psnr": 19.4, "ssim": 0.5}, "step": 10, "num_views": 1}
     report.write_report(tmp_path, {**metrics, "training_fit": {"psnr": 27.315, "batches": 3, "from_step": 9}},
                         cfg, "DATA", [], [])
