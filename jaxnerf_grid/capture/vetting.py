@@ -11,9 +11,13 @@ pycolmap.Reconstruction. Per photo:
   a camera whose pose no longer fits what it saw, e.g. turned by 20 degrees, shows here);
 - track_length: the mean number of photos that see each of its 3-D points;
 - neighbour_ratio: the median distance from its centre to the NEIGHBOURS photos it shares the
-  most 3-D points with, over the same distance's median across all photos. A photo registered
-  in the wrong place (look-alike faces of a lattice tower) still shares points with the photos
-  near its true place, which are then far from where it was put;
+  most 3-D points with, over the usual such distance: the same distance's median across all
+  photos, or NEIGHBOUR_DEPTH_FLOOR x the photos' median viewing depth (`viewing_depths`) when
+  that is larger. A photo registered in the wrong place (look-alike faces of a lattice tower)
+  still shares points with the photos near its true place, which are then far from where it
+  was put. The floor is for captures whose photos stand close together against the scene's
+  depth: the frames of a video, a few centimetres apart where the camera pans, made the usual
+  distance so small that 158 of a 302-frame capture were "hundreds of times" off it;
 - covisible: the number of other photos it shares at least one 3-D point with. A photo tied
   to the model only through a small corner of it (few photos, few points) can sit in a local
   model that is itself wrong; on synthetic tower orbits the photos registered beside a gap of
@@ -44,6 +48,7 @@ MAX_REPROJECTION_PX = 2.0        # the mapper's own per-observation filter (data
 MIN_TRACK_FRACTION = 0.5
 NEIGHBOURS = 3
 MAX_NEIGHBOUR_RATIO = 3.0
+NEIGHBOUR_DEPTH_FLOOR = 0.1  # the usual neighbour distance is at least this share of the viewing depth
 MIN_PHOTOS_FOR_LAYOUT = 5
 MIN_COVISIBLE_FRACTION = 2 / 3   # weakly tied: fewer covisible photos than 2/3 of the median photo's ...
 WEAK_OBSERVATIONS_FRACTION = 0.25  # ... and fewer observations than a quarter of the median photo's
@@ -95,6 +100,17 @@ def shared_points(point_index: list, num_points: int) -> np.ndarray:
     return shared
 
 
+def viewing_depths(cam_from_world: np.ndarray, point_index: list, xyz: np.ndarray) -> np.ndarray:
+    """Per photo the median depth (camera z) of the 3-D points it sees; NaN for a photo that sees
+    none. cam_from_world [N, 3, 4], point_index: per photo [k_i] into xyz [P, 3]. Returns [N]."""
+    out = np.full(len(point_index), np.nan)
+    for i, idx in enumerate(point_index):
+        if len(idx):
+            pts = xyz[np.asarray(idx, np.int64)]
+            out[i] = float(np.median(pts @ cam_from_world[i, 2, :3] + cam_from_world[i, 2, 3]))
+    return out
+
+
 def neighbour_distances(centres: np.ndarray, shared: np.ndarray, k: int = NEIGHBOURS) -> np.ndarray:
     """Per photo the median distance to the k photos it shares the most points with (ties: the
     lower index; only photos sharing at least one point; NaN when none). centres [N, 3], shared
@@ -124,6 +140,9 @@ def photo_scores(rec: Records) -> dict:
     shared = shared_points(rec.point_index, len(rec.xyz))
     dist = neighbour_distances(camera_centres(rec.cam_from_world), shared)
     typical = np.nanmedian(dist) if np.any(np.isfinite(dist)) else np.nan
+    depth = viewing_depths(rec.cam_from_world, rec.point_index, rec.xyz)
+    if np.any(np.isfinite(depth)) and np.isfinite(typical):
+        typical = max(typical, NEIGHBOUR_DEPTH_FLOOR * float(np.nanmedian(depth)))
     ratio = dist / typical if np.isfinite(typical) and typical > 0 else np.full(n, np.nan)
     return {"observations": obs, "reprojection_px": reproj, "track_length": track, "neighbour_ratio": ratio,
             "covisible": (shared > 0).sum(axis=1).astype(np.int64)}

@@ -174,3 +174,66 @@ def test_covisible_counts_the_photos_sharing_a_point():
     rows = vetting.vet(rec)
     assert [r["covisible"] for r in rows] == want
     assert "covisible photos" in vetting.format_table(rows)[0]
+
+
+def test_viewing_depths_are_each_photos_median_point_depth():
+    """A camera at the origin looking along +z sees points at depths 2, 3 and 10 (median 3); the
+    same camera moved 1 back along its axis sees them at 3, 4 and 11 (median 4); one that sees
+    no point has NaN."""
+    pose = np.concatenate([np.eye(3), np.zeros((3, 1))], 1)
+    back = np.concatenate([np.eye(3), np.array([[0.0], [0.0], [1.0]])], 1)   # centre (0, 0, -1)
+    xyz = np.array([[0.1, 0.0, 2.0], [0.0, -0.2, 3.0], [1.0, 1.0, 10.0]])
+    depths = vetting.viewing_depths(np.stack([pose, back, pose]), [np.arange(3), np.array([2, 0, 1]), []], xyz)
+    np.testing.assert_allclose(depths[:2], [3.0, 4.0])
+    assert np.isnan(depths[2])
+
+
+def _panning_capture(wrong: int | None = None):
+    """A video's frames: 8 frames panning in place (centres 1 mm apart, turning 10 degrees a frame)
+    then 4 walking 0.3 m a frame, all looking outwards at points on a sphere of radius 5 about the
+    origin; each sees the points within 35 degrees of its axis. Frame `wrong` is put 3 m to the
+    side. Returns vetting.Records with exact observations."""
+    rng = np.random.default_rng(1)
+    v = rng.normal(size=(3000, 3))
+    v[:, 2] *= 0.2
+    xyz = 5.0 * v / np.linalg.norm(v, axis=1, keepdims=True)
+    centres = [np.array([0.001 * i, 0.0, 0.0]) for i in range(8)] + \
+        [np.array([0.3 * (i - 7), 0.0, 0.0]) for i in range(8, 12)]
+    yaws = [np.radians(10.0 * i) for i in range(12)]
+    poses, index, observed = [], [], []
+    for i, (c, yaw) in enumerate(zip(centres, yaws)):
+        look = np.array([np.cos(yaw), np.sin(yaw), 0.0])
+        seen = np.flatnonzero((xyz - c) @ look / np.linalg.norm(xyz - c, axis=1) > np.cos(np.radians(35)))
+        if i == wrong:
+            c = c + np.array([0.0, 3.0, 0.0])
+        pose = _world_to_camera(c, c + look)
+        cam = xyz[seen] @ pose[:, :3].T + pose[:, 3]
+        poses.append(pose)
+        index.append(seen)
+        observed.append(cam[:, :2] / cam[:, 2:])
+    track = np.zeros(len(xyz))
+    for seen in index:
+        track[seen] += 1
+    return vetting.Records([f"frame_{i:02d}" for i in range(12)], np.stack(poses), np.full(12, FOCAL), index,
+                           observed, xyz, track)
+
+
+def test_frames_a_few_millimetres_apart_do_not_make_walking_frames_look_misplaced(monkeypatch):
+    """The usual neighbour distance of a panning video is a millimetre; the walking frames'
+    0.3-0.6 m is compared with the floor, a tenth of the ~5 m viewing depth, and every frame is
+    kept (with no floor they are hundreds of times the usual distance); a frame put 3 m to the
+    side is still left out (its neighbours ~3 m away: ratio ~6)."""
+    scores = vetting.photo_scores(_panning_capture())
+    depth = float(np.nanmedian(vetting.viewing_depths(*_arrays(_panning_capture()))))
+    assert 4.5 < depth < 5.5
+    assert np.nanmax(scores["neighbour_ratio"]) < 0.65 / (0.1 * depth)
+    assert all(not why for why in vetting.failures(scores))
+    monkeypatch.setattr(vetting, "NEIGHBOUR_DEPTH_FLOOR", 0.0)
+    assert np.nanmax(vetting.photo_scores(_panning_capture())["neighbour_ratio"]) > 100
+    wrong = vetting.failures(vetting.photo_scores(_panning_capture(wrong=5)))
+    assert any("usual distance" in w for w in wrong[5])
+    assert [i for i, why in enumerate(wrong) if any("usual distance" in w for w in why)] == [5]
+
+
+def _arrays(rec):
+    return rec.cam_from_world, rec.point_index, rec.xyz
