@@ -131,9 +131,15 @@ def reference_errors(true: dict, dataset: Path) -> dict:
     per_photo = {n: {"rotation_deg": angle_deg(rot @ found[n][:3, :3], true[n][:3, :3]),
                      "centre_m": float(np.linalg.norm(scale * found[n][:3, 3] @ rot.T + shift - true[n][:3, 3]))}
                  for n in names}
+    oriented = orientation_alignment(f[:, :3, :3], t[:, :3, :3])
+    for i, n in enumerate(names):  # the orientations aligned themselves: for centres too close to fix the turn
+        per_photo[n]["rotation_deg_oriented"] = angle_deg(oriented @ f[i, :3, :3], t[i, :3, :3])
     meta = json.loads((dataset / "transforms.json").read_text())
     rot_err = [v["rotation_deg"] for v in per_photo.values()]
+    oriented_err = [v["rotation_deg_oriented"] for v in per_photo.values()]
     return {"rotation_deg_median": float(np.median(rot_err)), "rotation_deg_max": float(np.max(rot_err)),
+            "rotation_deg_oriented_median": float(np.median(oriented_err)),
+            "rotation_deg_oriented_p95": float(np.percentile(oriented_err, 95)),
             "per_photo": per_photo, "scene_bounds": meta.get("scene_bounds"), "near_points": meta.get("near")}
 
 
@@ -198,7 +204,9 @@ def main(argv=None) -> int:
                **reference_errors(frames_by_name(Path(args.reference)), dataset)}
         rows.append(row)
         print(f"{row['case']}: {row['in_dataset']}/{row['photos']} in the dataset ({len(row['left_out'])} left out), "
-              f"rotation {row['rotation_deg_median']:.2f} / {row['rotation_deg_max']:.2f} deg", flush=True)
+              f"rotation {row['rotation_deg_median']:.2f} / {row['rotation_deg_max']:.2f} deg; orientations aligned: "
+              f"median {row['rotation_deg_oriented_median']:.2f}, 95th percentile "
+              f"{row['rotation_deg_oriented_p95']:.2f} deg", flush=True)
     elif args.strecha and args.dataset:
         scene, dataset = Path(args.strecha), Path(args.dataset)
         found = frames_by_name(dataset / "transforms.json")

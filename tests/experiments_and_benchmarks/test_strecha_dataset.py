@@ -130,3 +130,5 @@ def test_poses_accuracy_scores_a_dataset_against_a_captures_own_transforms(tmp_p
     assert (row["photos"], row["in_dataset"], row["left_out"]) == (6, 5, ["frame_00005.png"])
     assert row["per_photo"]["frame_00002.png"]["rotation_deg"] == pytest.approx(2.0, abs=0.05)
     assert max(v["rotation_deg"] for n, v in row["per_photo"].items() if n != "frame_00002.png") < 0.1
+    assert row["per_photo"]["frame_00002.png"]["rotation_deg_oriented"] == pytest.approx(2.0, abs=0.5)
+    assert row["rotation_deg_oriented_median"] < 0.5
