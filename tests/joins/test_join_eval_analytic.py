@@ -119,7 +119,7 @@ def test_metrics_json_is_the_returned_record_with_one_row_per_test_view(evaluate
     written = io.read_json(run_dir / "metrics.json")
     assert {"method", "step", "num_views", "target", "protocol", "mean", "mean_right_half", "regions_mean",
             "region_definition", "distractor_psnr", "geometry", "export", "cloud_views", "per_view", "lpips",
-            "resolution", "eval_seconds"} == set(written)
+            "resolution", "eval_seconds", "training_fit"} == set(written)
     assert written["step"] == result["step"] == 7
     assert written["num_views"] == 2 and written["target"] == "clean images"
     assert [r["index"] for r in written["per_view"]] == list(TEST_IDS)
