@@ -5,7 +5,8 @@
 #   python -m experiments.dpt_scenes SCENES --repeats 3 --views 10            # synthetic training scenes
 #   python -m experiments.dpt_data .dpt_cache/train.npz --scenes SCENES/* --real PHOTO_DIRS...   # <= 40 MB
 #   mkdir -p .whl_dpt && cp .whl/jaxopt-*.whl .whl/openexr-*.whl .whl_dpt/   # (scripts/gpu_wheels.sh fills .whl)
-# Then:  bash scripts/gpu_dpt.sh      (MINUTES=6 BATCH=32 ARCH=base-like MAX_SIDE=160 LR=1e-3 STEPS=20000)
+# Then:  bash scripts/gpu_dpt.sh      (MINUTES=6 BATCH=32 ARCH=base-like MAX_SIDE=160 LR=1e-3 STEPS=20000;
+#         INIT=DIR continues from the DPT in DIR, e.g. the shipped jaxnerf_grid/masks/assets/dpt_builtin)
 # Writes to $OUT (or ./gpu_out): dpt_builtin/ (config.json + params.safetensors, the best checkpoint),
 # train_log.json (loss curve, validation scores, step rate), loss_curve.png, train.log, env.log.
 set -uo pipefail
@@ -18,9 +19,11 @@ export PYTHONPATH=/tmp/site:$PWD PYTHONUNBUFFERED=1
 python3 -c "import jax, sys; sys.exit(0 if jax.devices()[0].platform == 'gpu' else 1)" \
   || echo "gpu_dpt.sh: WARNING: JAX sees no GPU; training on the CPU" | tee -a "$OUT/env.log"
 VAL=()
+INIT_ARGS=()
+[ -n "${INIT:-}" ] && INIT_ARGS=(--init "$INIT")
 [ -f "${CACHE_DIR:-.dpt_cache}/val.npz" ] && VAL=(--val-cache "${CACHE_DIR:-.dpt_cache}/val.npz")
 # The loop stops itself after MINUTES of training (compile excluded); the timeout is only a backstop.
-timeout "${TIMEOUT_S:-540}" python3 -m experiments.train_dpt_mix --cache "${CACHE_DIR:-.dpt_cache}/train.npz" "${VAL[@]}" \
+timeout "${TIMEOUT_S:-540}" python3 -m experiments.train_dpt_mix --cache "${CACHE_DIR:-.dpt_cache}/train.npz" "${VAL[@]}" "${INIT_ARGS[@]}" \
   --arch "${ARCH:-base-like}" --max-side "${MAX_SIDE:-160}" --minutes "${MINUTES:-6}" --steps "${STEPS:-20000}" \
   --batch "${BATCH:-32}" --lr "${LR:-1e-3}" --workers "${WORKERS:-12}" --val-every "${VAL_EVERY:-30}" \
   --out "$OUT/dpt_builtin" --log-dir "$OUT" 2>&1 | grep --line-buffered -v "slow_operation_alarm"
