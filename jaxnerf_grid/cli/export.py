@@ -65,6 +65,7 @@ def main(argv: list[str] | None = None) -> int:
                        vertical_crs=args.vertical_crs, min_clearance=args.min_clearance,
                        span_length=args.span_length)
     out = Path(args.out) if args.out else Path(args.run) / "export"
+    short_unit = "m" if m["units"] == "metres" else "units"
     unit = "m" if m["units"] == "metres" else "units (unknown scale)"
     height = "n/a" if m["height"] is None else f"{m['height']:.2f} {unit}"
     sigma = ((m.get("survey") or {}).get("height") or {}).get("sigma")
@@ -82,9 +83,9 @@ def main(argv: list[str] | None = None) -> int:
     tilt = report.tilt_doubtful(m)
     if tilt is not None:
         warnings.warn(f"the tower's axis leans {tilt:.2f} deg from vertical: {report.TILT_WORDS}", stacklevel=1)
-    for span, words in report.clearance_doubtful(m, "m" if m["units"] == "metres" else "units"):
+    for span, words in report.clearance_doubtful(m, short_unit):
         warnings.warn(f"the clearance over the ground of {span} is doubtful: {words}", stacklevel=1)
-    lowest = report.lowest_point_doubtful(m, "m" if m["units"] == "metres" else "units")
+    lowest = report.lowest_point_doubtful(m, short_unit)
     if lowest is not None:
         warnings.warn(f"the clearance of {report.LOWEST_POINT} is doubtful: {lowest}", stacklevel=1)
     return 0

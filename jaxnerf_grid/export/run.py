@@ -309,6 +309,7 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
             "ground": None, "height": None, "footprint": None, "cross_arms": None, "tilt": None,
             "conductors": None, "conductor_spans": None}
     alignment = survey.alignment_uncertainty(geo, units, to_metric64(centres, norm))
+    cloud_m = to_metric64(points, norm)   # the cloud in metres, once: the ground's and the wires' checks read it
     if plane is not None:
         n_m, d_m = plane_to_metric(plane["normal"], plane["offset"], norm)
         meas["ground"] = {"normal": [float(v) for v in n_m], "offset": d_m, "equation": "normal . x + offset = 0",
@@ -326,7 +327,6 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         meas["tilt"] = measure.axis_tilt(verts_m, n_m, d_m, fp["axis_a"], fp["axis_b"],
                                          max(0.01 * height, 2 * h / scale))
         levels = meas["cross_arms"]["levels"]
-        cloud_m = to_metric64(points, norm)
         meas["conductors"] = measure.conductor_clearance(
             cloud_m, n_m, d_m, lo_m, hi_m,
             0.5 * min(level["height"] for level in levels) if levels else 0.5 * height, GROUND_CELL / scale)
@@ -335,7 +335,6 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
             (0.0, 0.0, 1.0) if units == "metres" else n_m)
     meas["box"].update(box_stats)
     # 6. the conductors from the photos, their clearance; the classified cloud
-    cloud_m = to_metric64(points, norm)
     meas["conductor_spans"] = _conductors(ds, train_ids, meas, cloud_m, lo_m, hi_m, units, min_clearance, progress,
                                           span_length)
     timings["conductors"] = time.perf_counter() - start - sum(timings.values())
