@@ -17,16 +17,18 @@
 # are what fits in MINUTES at that speed (the training budget's rule, budget.py, with the measured
 # speed in place of its estimate; at least 200). Then the demo's evaluation. Writes to $OUT (default
 # gpu_out): fullsize.log, fullsize.json (rays/s of the probe and of the run, steps, epochs, train and
-# eval seconds, held-out PSNR / SSIM, the size trained), report.md, report_views.png, metrics.json.
-# MASKS (default robust: what the demo chooses on the Strecha scenes, the DPT being out of its
-# domain there) skips the mask stage.
+# eval seconds, held-out PSNR / SSIM, the size trained), report.md, report_views.jpg (a JPEG of
+# report_views.png, which at full size is over the device's file limit), metrics.json, budget.json.
+# MASKS (default auto, as the demo) is passed to the demo's --masks. BUDGET=1 skips the probe and
+# lets the training budget choose the steps within MINUTES, as the defaults do (the larger hash grid
+# when 2 epochs leave time to spare).
 set -uo pipefail
 DATA=${1:?usage: bash scripts/gpu_fullsize.sh DATA (a poses dataset folder)}
 OUT=${OUT:-gpu_out}
 MAX_SIDE=${MAX_SIDE:-0}
 BATCH=${BATCH:-65536}
 MINUTES=${MINUTES:-4}
-MASKS=${MASKS:-robust}
+MASKS=${MASKS:-auto}
 WORK=${WORK:-/tmp/fullsize}   # the probe's and the run's folders
 mkdir -p "$OUT"
 if [ -z "${NO_WHL:-}" ]; then  # NO_WHL=1: the environment has every package (a dry run on a CPU machine)
@@ -38,6 +40,15 @@ nvidia-smi --query-gpu=memory.used,memory.total --format=csv
 python3 -c "import jax; print('jax', jax.__version__, jax.devices())"
 SETS=(--set "train.batch_rays=$BATCH" --set train.log_every=20 --set train.checkpoint_every=100000)
 {
+if [ -n "${BUDGET:-}" ]; then
+  # BUDGET=1: the defaults' path, no probe: the demo times its step and the training budget chooses the
+  # steps (and the larger hash grid when 2 epochs leave minutes) within --minutes MINUTES.
+  echo "== the training budget's steps within $MINUTES min, $BATCH rays a step, max_side $MAX_SIDE"
+  ( time timeout "${RUN_TIMEOUT:-420}" python3 -m jaxnerf_grid demo --data "$DATA" --out "$WORK"/full --max-side "$MAX_SIDE" \
+      --masks "$MASKS" --minutes "$MINUTES" --no-video --quiet "${SETS[@]}" ) 2>&1
+  RPS=$(python3 -c "import json; print(int(json.load(open('$WORK/full/run/budget.json'))['rays_per_second']))")
+  STEPS=$(python3 -c "import json; print(int(json.load(open('$WORK/full/run/budget.json'))['steps']))")
+else
   echo "== probe: 40 steps of $BATCH rays at max_side $MAX_SIDE"
   ( time timeout "${PROBE_TIMEOUT:-150}" python3 -m jaxnerf_grid demo --data "$DATA" --out "$WORK"/probe --max-side "$MAX_SIDE" \
       --masks "$MASKS" --steps 40 --no-video --quiet "${SETS[@]}" ) 2>&1 | grep -v "^warning: 40 steps"
@@ -51,6 +62,7 @@ print(int(recs[-1]['rays_per_s']))   # the last window, after the compile")
   nvidia-smi --query-gpu=memory.used,memory.total --format=csv
   ( time timeout "${RUN_TIMEOUT:-420}" python3 -m jaxnerf_grid demo --data "$DATA" --out "$WORK"/full --max-side "$MAX_SIDE" \
       --masks "$MASKS" --steps "$STEPS" --no-video --quiet "${SETS[@]}" ) 2>&1
+fi
   python3 - "$RPS" "$STEPS" "$BATCH" "$OUT/fullsize.json" "$WORK/full/run" <<'EOF'
 import json, sys
 rps, steps, batch, out, run = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
@@ -67,4 +79,9 @@ json.dump(rec, open(out, "w"), indent=1)
 print(json.dumps(rec))
 EOF
 } 2>&1 | tee "$OUT/fullsize.log"
-for f in report.md report_views.png metrics.json; do cp "$WORK/full/run/$f" "$OUT/$f" 2>/dev/null; done
+for f in report.md metrics.json budget.json; do cp "$WORK/full/run/$f" "$OUT/$f" 2>/dev/null; done
+# report_views.png at full size is over the device's 16 MB a file: a JPEG of it comes back instead
+python3 -c "
+import cv2, sys
+im = cv2.imread('$WORK/full/run/report_views.png')
+im is None or cv2.imwrite('$OUT/report_views.jpg', im, [cv2.IMWRITE_JPEG_QUALITY, 92])"
