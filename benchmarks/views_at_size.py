@@ -21,6 +21,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from jaxnerf_grid.eval.metrics import psnr
+
 GAP = 2   # report.markdown.side_by_side's white gap between tiles
 
 
@@ -36,16 +38,11 @@ def split_views(grid: np.ndarray, width: int, height: int, gap: int = GAP) -> li
     return out
 
 
-def psnr(a: np.ndarray, b: np.ndarray) -> float:
-    """PSNR of two images in [0, 1] (peak 1)."""
-    return float(-10.0 * np.log10(np.mean((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2)))
-
-
 def psnr_at_size(photo: np.ndarray, render: np.ndarray, width: int, height: int) -> float:
     """PSNR of photo and render [H, W, 3] in [0, 1], both shrunk to width x height by area averaging."""
     def shrink(x):
         return x if x.shape[:2] == (height, width) else cv2.resize(x, (width, height), interpolation=cv2.INTER_AREA)
-    return psnr(shrink(photo.astype(np.float32)), shrink(render.astype(np.float32)))
+    return float(psnr(shrink(render.astype(np.float32)), shrink(photo.astype(np.float32))))
 
 
 def size_arg(text: str) -> tuple[int, int]:
