@@ -22,6 +22,21 @@ from pathlib import Path
 import numpy as np
 import pytest
 
+# The suite compiles far more than it runs (a few steps of many configs): XLA's LLVM optimisation
+# off cuts its CPU time by about a third (docs/TESTING.md). Set before any test creates the JAX
+# backend, so the children the tests spawn inherit it too; a flag the caller gave is kept.
+COMPILE_FAST_FLAGS = ("--xla_backend_optimization_level=0", "--xla_llvm_disable_expensive_passes=true")
+
+
+def with_compile_fast_flags(xla_flags: str) -> str:
+    """`xla_flags` (an XLA_FLAGS value) plus each of COMPILE_FAST_FLAGS whose name it lacks."""
+    names = {flag.split("=")[0] for flag in xla_flags.split()}
+    extra = [flag for flag in COMPILE_FAST_FLAGS if flag.split("=")[0] not in names]
+    return " ".join([xla_flags.strip(), *extra]).strip()
+
+
+os.environ["XLA_FLAGS"] = with_compile_fast_flags(os.environ.get("XLA_FLAGS", ""))
+
 
 def _real_torchvision_works() -> bool:
     if importlib.util.find_spec("torchvision") is None:

@@ -113,3 +113,16 @@ def test_every_package_module_is_imported_by_a_fast_test():
     reached = reached_by_fast_tests()
     missing = sorted(set(MODULES) - set(reached) - set(NOT_IMPORTED))
     assert not missing, f"package modules no fast test imports: {missing}"
+
+
+def test_compile_fast_flags_are_added_once_and_a_given_flag_is_kept():
+    from tests.conftest import with_compile_fast_flags
+
+    count = "--xla_force_host_platform_device_count=2"
+    assert with_compile_fast_flags(count) == (
+        f"{count} --xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true")
+    assert with_compile_fast_flags("") == "--xla_backend_optimization_level=0 --xla_llvm_disable_expensive_passes=true"
+    given = "--xla_backend_optimization_level=2"
+    assert with_compile_fast_flags(given) == f"{given} --xla_llvm_disable_expensive_passes=true"
+    once = with_compile_fast_flags(count)
+    assert with_compile_fast_flags(once) == once

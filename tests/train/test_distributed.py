@@ -18,6 +18,8 @@ import jax
 import numpy as np
 import pytest
 
+from tests.conftest import with_compile_fast_flags
+
 STEPS = int(os.environ.get("JAXNERF_DISTRIBUTED_STEPS", "12"))  # the issue asks 50; 12 keeps CI under its limit
 HEARTBEAT_S = 10  # the children's heartbeat timeout for the death test
 ROOT = Path(__file__).parents[2]
@@ -68,7 +70,7 @@ def _launch(mode: str, run_dirs: list[Path], cache: Path) -> list[subprocess.Pop
     """Two child processes on a free port, sharing the compilation cache `cache`."""
     port = _free_port()
     env = dict(os.environ, PYTHONPATH=str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", ""),
-               JAX_PLATFORMS="cpu", XLA_FLAGS="--xla_force_host_platform_device_count=1",
+               JAX_PLATFORMS="cpu", XLA_FLAGS=with_compile_fast_flags("--xla_force_host_platform_device_count=1"),
                JAX_COMPILATION_CACHE_DIR=str(cache),
                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0")
     env.pop("JAX_COORDINATOR_ADDRESS", None)
