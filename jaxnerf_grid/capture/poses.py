@@ -6,8 +6,9 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
   1. photos: the images of `images_dir` (not its subfolders), sorted by name; unreadable files
      are named and skipped; EXIF orientation is applied and, with `max_side`, the photos are
      scaled to a working size (working copies are written only for the photos that need it);
-  2. features: SIFT (`pycolmap.extract_features`), one camera for all photos with
-     `single_camera`, else COLMAP's per-photo cameras;
+  2. features: SIFT (`pycolmap.extract_features`), one camera for all photos when they share
+     one size and one EXIF camera, else one per photo (`camera_sharing`; `single_camera` True
+     or False decides instead);
   3. matching (`match_photos`): exhaustive, spatial (each photo with its nearest by GPS),
      sequential (each photo with its next `overlap` in name order, as a flight records them,
      with loop closure: the pairs across the sequence's end that close an orbit and COLMAP's
@@ -54,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxnerf_grid.capture import camera_set, georef, gps, pairing, refused, vetting
+from jaxnerf_grid.capture import camera_set, camera_sharing, georef, gps, pairing, refused, vetting
 from jaxnerf_grid.capture.bounds import scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap, observation_depths
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
@@ -835,6 +836,9 @@ def format_summary(summary: dict) -> str:
     if "matcher_reason" in summary:
         overlap = f", each photo with its next {summary['overlap']}" if summary.get("overlap") else ""
         lines.append(f"matcher: {summary['matcher']} ({summary['matcher_reason']}{overlap})")
+    if "camera_sharing" in summary:
+        shared = "one shared by every photo" if summary["single_camera"] else "one per photo"
+        lines.append(f"cameras: {shared} ({summary['camera_sharing']})")
     if summary.get("timings_s"):
         lines.append(f"time: {summary['seconds']:.0f} s in all; "
                      + ", ".join(f"{key} {value:.0f} s" for key, value in summary["timings_s"].items()))
@@ -886,7 +890,7 @@ def format_summary(summary: dict) -> str:
 
 
 def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_model: str = "SIMPLE_RADIAL",
-                      single_camera: bool = False, max_side: int | None = None, vocab_tree=None,
+                      single_camera: bool | None = None, max_side: int | None = None, vocab_tree=None,
                       overlap: int = SEQUENTIAL_OVERLAP,
                       overwrite: bool = False, progress: bool = True, keep_all: bool = False, crs: str | None = None,
                       gcp=None, scale_bar: str | None = None, ignore_gps: bool = False,
@@ -937,7 +941,10 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         with _stage("photos", False, timings, "photos"):
             photo_dir, names, skipped, working_sizes = prepare_photos(photos, stage_dir / "_work" / "photos",
                                                                       max_side, progress)
-        check_one_size({n: working_sizes[n] for n in names}, images_dir, single_camera)
+        used_sizes = {n: working_sizes[n] for n in names}
+        check_one_size(used_sizes, images_dir, single_camera)
+        single_camera, camera_reason = camera_sharing.choose_sharing(
+            single_camera, used_sizes, camera_sharing.read_cameras(images_dir, names))
         readable = [images_dir / name for name in names]
         positions = {} if ignore_gps else gps.read_all(readable)
         used, reason = choose_matcher(matcher, names, with_gps=len(positions))
@@ -1011,6 +1018,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "matcher": used, "matcher_asked": matcher, "matcher_reason": reason,
                        "overlap": overlap if used == "sequential" else None,
                        "camera_model": camera_model, "single_camera": bool(single_camera),
+                       "camera_sharing": camera_reason,
                        "max_side": max_side, "feature_side": feature_side, "relaxed_mapping": bool(relaxed),
                        "up_rotation": rot.tolist(),
                        "registered_left_out": bool(extended), "unregistered_why": why_unregistered,

@@ -5,7 +5,8 @@ The work is `data.poses.poses_from_images`; this module parses the arguments.
 
     jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher auto|exhaustive|spatial|sequential|vocab]
                        [--overlap K]
-                       [--camera-model SIMPLE_RADIAL] [--single-camera] [--max-side N] [--feature-side N]
+                       [--camera-model SIMPLE_RADIAL] [--single-camera | --camera-per-photo]
+                       [--max-side N] [--feature-side N]
                        [--keep-all] [--overwrite]
                        [--accept-few-cameras]
                        [--crs EPSG:XXXX] [--gcp FILE] [--scale-bar SPEC] [--ignore-gps]
@@ -52,8 +53,12 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file for --matcher vocab")
     p.add_argument("--camera-model", choices=CAMERA_MODELS, default="SIMPLE_RADIAL",
                    help="COLMAP camera model fitted to the photos (undistorted to PINHOLE afterwards)")
-    p.add_argument("--single-camera", action="store_true",
-                   help="one camera (intrinsics) shared by all photos: right for one drone camera at one zoom")
+    cams = p.add_mutually_exclusive_group()
+    cams.add_argument("--single-camera", dest="single_camera", action="store_const", const=True, default=None,
+                      help="one camera (intrinsics) shared by all photos: right for one drone camera at one zoom "
+                           "(default: shared when the photos have one size and one EXIF camera and focal length)")
+    cams.add_argument("--camera-per-photo", dest="single_camera", action="store_const", const=False,
+                      help="each photo its own camera (intrinsics), whatever the photos' EXIF says")
     p.add_argument("--max-side", type=int, default=None,
                    help="scale the photos so the longer side is at most N pixels (the dataset keeps this size)")
     p.add_argument("--feature-side", type=int, default=FEATURE_SIDE,

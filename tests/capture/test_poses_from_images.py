@@ -143,7 +143,7 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
         pycolmap, stage / "_work" / "photos", names, stage / "_work", names)
     assert {k: call[k] for k in ("matcher", "camera_model", "single_camera", "vocab_tree", "show", "source",
                                  "keep_all", "overlap", "feature_side")} == {
-        "matcher": "exhaustive", "camera_model": "SIMPLE_RADIAL", "single_camera": False, "vocab_tree": None,
+        "matcher": "exhaustive", "camera_model": "SIMPLE_RADIAL", "single_camera": True, "vocab_tree": None,
         "show": False, "source": photos, "keep_all": False, "overlap": 10, "feature_side": poses.FEATURE_SIDE}
     assert call["sizes"] == {n: (80, 60) for n in names}
     assert read == [[photos / n for n in names]]
@@ -165,7 +165,8 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
         "points3d": 40, "matcher": "exhaustive", "matcher_asked": "auto",
         "matcher_reason": "auto: 13 photos, 78 pairs, at most 1225", "overlap": None,
         "camera_model": "SIMPLE_RADIAL",
-        "single_camera": False, "max_side": None, "feature_side": 1600, "relaxed_mapping": False,
+        "single_camera": True, "camera_sharing": "one size, 80x60, and one camera: no EXIF camera",
+        "max_side": None, "feature_side": 1600, "relaxed_mapping": False,
         "pycolmap": pycolmap.__version__, "georeference": {"units": "unknown", "source": None},
         "reconstruction_reused": False,
         "seconds": 12.3, "timings_s": {"photos": 0.5, **TIMES, "writing": 9.4},
