@@ -238,7 +238,7 @@ def prepare_photos(photos: list[Path], work_dir: Path, max_side: int | None, sho
     return work_dir, names, skipped, sizes
 
 
-def check_one_size(sizes: dict, folder, single_camera: bool) -> None:
+def check_one_size(sizes: dict, folder, single_camera: bool | None) -> None:
     """DataError naming the folder and the sizes when `single_camera` is asked for photos of more
     than one (working) size: COLMAP's one camera has one image size, so the photos of the other
     sizes would silently stay unregistered. sizes: {name: (width, height)}."""
