@@ -598,7 +598,7 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
     lateral = np.array([c0, 0.0])          # c(s) = lateral[0] + lateral[1] (s - s_start)
     profile, pcov = np.array([z0, 0.0, 0.0]), np.diag([np.inf] * 3)
     found: list = []
-    tried, misses, s_last = 0, 0, s_start
+    tried, misses, s_last, tried_last = 0, 0, s_start, 0
     s = s_start
     while s <= s_end and misses < max_misses:
         st = s + ds * np.arange(chunk)
@@ -628,7 +628,7 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
             if share[best] >= min_share:
                 c_best, z_best = plateau_centre(share.reshape(cc.shape), dc, dz)
                 found.append((st[k], c_pred[k] + c_best, z_pred[k] + z_best, share[best]))
-                misses, s_last = 0, st[k]
+                misses, s_last, tried_last = 0, st[k], tried
             else:
                 misses += 1
         if found:
@@ -646,7 +646,7 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
     c_axis = float(lateral[0] - g * s_start)        # across offset extrapolated to the axis plane
     theta = np.array([c_axis * math.cos(math.atan(g)), profile[0], psi + math.atan(g), profile[1], profile[2]])
     return {"theta": theta, "profile_cov": pcov, "found": np.asarray(found, np.float64).reshape(-1, 4),
-            "tried": tried, "reach": float(s_last)}
+            "tried": tried, "tried_to_reach": tried_last, "reach": float(s_last)}
 
 
 def curve_tangents(theta, centre, s: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -1056,7 +1056,7 @@ def weighted_median(x: np.ndarray, w: np.ndarray) -> float:
 def _enough(track: dict, min_found: int, min_share: float) -> bool:
     """Whether a track (`track_span`) found at least min_found stations and min_share of those tried."""
     found = len(track["found"])
-    return found >= min_found and found >= min_share * max(track["tried"], 1)
+    return found >= min_found and found >= min_share * max(track.get("tried_to_reach", track["tried"]), 1)
 
 
 def _refined(views: Views, f: dict, others: list, centre, half_length: float, up, tol_px: float,
