@@ -794,7 +794,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                peak_support: float = DEFAULT_PEAK_SUPPORT, window_support: float = DEFAULT_WINDOW_SUPPORT,
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
-               settle: bool = True) -> list[dict]:
+               settle: bool = True, top_window: bool = True) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -851,9 +851,15 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
         else:
             given = seed_peaks(views, centre, psi_side, station, [(float(c) * side, float(z)) for c, z in seeds],
                                seed_window, step, up, tol_px, min_support, min_views)
+        top: list[tuple] = []
+        if top_window and windowed:
+            top = [tuple(float(v) for v in p) for p in
+                   cross_section_peaks(views, centre, psi_side, station, *earth_window(seeds, seed_window, heights),
+                                       step, up, tol_px, min_support, min_views, separation=3 * tol_px * step)]
         fits: list[dict] = []
-        for k_seed, (c, z, share) in enumerate(given + [tuple(p) for p in peaks]):
+        for k_seed, (c, z, share) in enumerate(given + top + [tuple(p) for p in peaks]):
             in_window = seed_window is not None and k_seed < len(given)
+            in_top = len(given) <= k_seed < len(given) + len(top)
             seed = curve_points((c, z, psi_side, 0.0, 0.0), centre, np.array([station]), up)[0]
             if any(np.linalg.norm(curve_points(f["theta"], centre, np.array([station]), up)[0] - seed) < 0.033 *
                    tower_height for f in fits):
@@ -876,7 +882,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
-                             "from_arm": bool(in_window),
+                             "from_arm": bool(in_window), "from_top": bool(in_top),
                              "track": track["found"], "profile_cov": track["profile_cov"], **fit,
                              "image_cov": fit["cov"], "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
@@ -908,6 +914,18 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 kept = _distinct(kept, centre, 0.033 * tower_height, up, key=lambda f: -f["support"])
         spans += kept
     return spans
+
+
+def earth_window(seeds, seed_window: tuple, heights: tuple) -> tuple[tuple, tuple]:
+    """The cross-section's window of the earth wires (across (lo, hi), heights (lo, hi)): above the
+    highest cross-arm's window (its tips' height + seed_window's `above`) up to the top of the
+    cross-section (heights[1]), across no wider than the cross-arms' tips (seeds [(c, z)]). An
+    earth wire runs from the tower's top, above the arms and within their reach; its peak in the
+    open plane falls short of DEFAULT_PEAK_SUPPORT where birds or the far sky break it."""
+    c = np.asarray([p[0] for p in seeds], np.float64)
+    z = np.asarray([p[1] for p in seeds], np.float64)
+    reach = float(np.max(np.abs(c)))
+    return (-reach, reach), (float(z.max()) + float(seed_window[2]), float(heights[1]))
 
 
 def side_span(lengths: np.ndarray) -> tuple[float, float]:
