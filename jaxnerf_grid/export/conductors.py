@@ -688,6 +688,7 @@ def _pair_residuals(q, views: Views, full, centre, s: np.ndarray, up, pairs: np.
 
 
 SETTLE_REACH = 0.033     # tower heights: the attachment scan's half window (`_distinct`'s radius: one wire)
+RESCAN_CAP = 0.1        # tower heights: the joint scan after the shared sag reaches at most this far (`rescanned`)
 SETTLE_GAIN = 0.05       # share of the photos: a scanned attachment must gain this much support to move
 
 
@@ -906,7 +907,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if shared_span and not span_length and len(kept) > 1:
                 kept = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds)
             if shared_sag:
-                kept = _shared_sag(views, kept, centre, half_length, up, tol_px, span_length, kappa_bounds)
+                kept = _shared_sag(views, kept, centre, half_length, up, tol_px, span_length, kappa_bounds,
+                                   (SETTLE_REACH * tower_height, RESCAN_CAP * tower_height, step))
             if settle:
                 kept = [_settled(views, f, kept, centre, half_length, up, tol_px, kappa_bounds,
                                  SETTLE_REACH * tower_height, step) for f in kept]
@@ -999,7 +1001,7 @@ def with_slope(theta, slope: float, length: float) -> np.ndarray:
 
 
 def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, tol_px: float,
-                span_length: float | None, kappa_bounds: tuple) -> list[dict]:
+                span_length: float | None, kappa_bounds: tuple, scan: tuple | None = None) -> list[dict]:
     """The wires of one side hung in the cross-arms' windows ("from_arm"), at least MIN_SHARED_SAG
     of them, refined again with the slope at the attachment they share (`side_slope`): with the
     span's one length (the given one, else "span_length_shared") one slope is one curvature and
@@ -1007,7 +1009,9 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
     slope's variance replaces the wire's own (no correlation with the fitted parameters), the
     curvature's follows it (d kappa / d m0 = -2 / (L sqrt(1 + m0^2))) plus the shared length's
     ((kappa / L)^2 sigma_L^2). Each such record gets "slope_shared" (m0, sigma); the others are
-    returned as they are. Nothing changes without a span length of either kind."""
+    returned as they are. Nothing changes without a span length of either kind. scan (floor, cap,
+    step): a wire whose own slope, over its track's reach, puts it more than floor off the shared
+    one's curve has its attachment scanned first (`rescanned`)."""
     arm = [f for f in kept if f.get("from_arm")]
     shared_length = next((f["span_length_shared"] for f in arm if f.get("span_length_shared")), (None, 0.0))
     length = span_length or shared_length[0]
@@ -1022,7 +1026,14 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
             continue
         others = [k["theta"] for k in kept if k is not f]
         psi_sigma = math.sqrt(max(float(f["cov"][2, 2]), 0.0))
-        r = _refined(views, {**f, "theta": with_slope(f["theta"], slope, length)}, others, centre, half_length,
+        theta = with_slope(f["theta"], slope, length)
+        if scan is not None:
+            reach = rescan_reach(float(f["theta"][3]), slope, float(f["stations"][-1]), scan[1])
+            if reach > scan[0]:
+                first = float(f["track"][0, 0])
+                theta = rescanned(views, pivoted(theta, f["theta"], first), centre, first, float(f["stations"][-1]),
+                                  scan[0], scan[2], up, tol_px)
+        r = _refined(views, {**f, "theta": theta}, others, centre, half_length,
                      up, tol_px, length, (0, 1), kappa_bounds, psi_sigma)
         kappa = float(r["theta"][4])
         dk = -2.0 / (length * math.sqrt(1.0 + slope * slope)) if slope < 0 else 0.0
@@ -1032,6 +1043,48 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
         cov[4, 3], cov[4, 4] = dk * sigma ** 2, (dk * sigma) ** 2 + (kappa / length) ** 2 * sigma_length ** 2
         out.append({**r, "cov": cov, "span_length": span_length, "slope_shared": (slope, sigma)})
     return out
+
+
+def rescan_reach(slope_own: float, slope: float, reach: float, cap: float) -> float:
+    """How far [export units] setting a wire's slope from slope_own to the side's `slope` moves its
+    curve at the end of its track's reach: |dm| reach, at most cap."""
+    return float(min(abs(slope_own - slope) * reach, cap))
+
+
+def pivoted(theta, own, pivot: float) -> np.ndarray:
+    """theta [5] (a wire given its side's slope and curvature) moved up or down to pass at the height
+    of its own curve own [5] at horizontal distance `pivot` (the first station its track found,
+    where every photo sees it)."""
+    out = np.asarray(theta, np.float64).copy()
+    at = np.array([pivot])
+    out[1] += float(catenary.sag_profile(at, own[3], own[4])[0] - catenary.sag_profile(at, out[3], out[4])[0])
+    return out
+
+
+def rescanned(views: Views, theta, centre, s_from: float, s_to: float, reach: float, step: float,
+              up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, gain: float = SETTLE_GAIN) -> np.ndarray:
+    """theta [5] with its attachment (across, height) moved to the cell of a joint grid within
+    +-reach (step apart) where its `curve_support` from s_from to s_to is highest, when that gains
+    more than `gain` over theta's own; else theta. A wire whose own slope ran off (tracked onto
+    the ground's texture or a neighbour over part of its reach) had its attachment extrapolated
+    with it: given the side's slope it lies metres off, across and in height at once, where the
+    alternating scan of `settled` climbs to a false maximum (on plad-like seed 2 a phase wire
+    1.3 m low and 0.8 m across: the alternating scan went to 1.6 m high, the joint one to the
+    wire, support 0.05 -> 0.29)."""
+    theta = np.asarray(theta, np.float64)
+    s = np.linspace(s_from, max(s_to, s_from + 1e-3), 60)
+    offsets = np.arange(-reach, reach + 0.5 * step, step)
+    best, best_share = theta, curve_support(views, theta, centre, s, up, tol_px)
+    own = best_share
+    for dc in offsets:
+        for dz in offsets:
+            t = theta.copy()
+            t[0] += dc
+            t[1] += dz
+            share = curve_support(views, t, centre, s, up, tol_px)
+            if share > best_share:
+                best, best_share = t, share
+    return best if best_share > own + gain else theta
 
 
 def turned(theta, psi: float, pivot: float) -> np.ndarray:
