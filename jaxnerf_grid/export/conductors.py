@@ -853,7 +853,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             given = seed_peaks(views, centre, psi_side, station, [(float(c) * side, float(z)) for c, z in seeds],
                                seed_window, step, up, tol_px, min_support, min_views)
         top: list[tuple] = []
-        if top_window and windowed:
+        if top_window and seed_window is not None and len(seeds) > 0:
             top = [tuple(float(v) for v in p) for p in
                    cross_section_peaks(views, centre, psi_side, station, *earth_window(seeds, seed_window, heights),
                                        step, up, tol_px, min_support, min_views, separation=3 * tol_px * step)]
