@@ -1011,7 +1011,10 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
     ((kappa / L)^2 sigma_L^2). Each such record gets "slope_shared" (m0, sigma); the others are
     returned as they are. Nothing changes without a span length of either kind. scan (floor, cap,
     step): a wire whose own slope, over its track's reach, puts it more than floor off the shared
-    one's curve has its attachment scanned first (`rescanned`)."""
+    one's curve is moved to pass its own curve's height at its track's first station (`pivoted`)
+    and its attachment scanned jointly within floor (`rescanned`), kept there when the shared
+    curve holds more support than the wire's own (its own slope ran off; a wire that does hang
+    deeper keeps its attachment)."""
     arm = [f for f in kept if f.get("from_arm")]
     shared_length = next((f["span_length_shared"] for f in arm if f.get("span_length_shared")), (None, 0.0))
     length = span_length or shared_length[0]
@@ -1030,9 +1033,14 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
         if scan is not None:
             reach = rescan_reach(float(f["theta"][3]), slope, float(f["stations"][-1]), scan[1])
             if reach > scan[0]:
-                first = float(f["track"][0, 0])
-                theta = rescanned(views, pivoted(theta, f["theta"], first), centre, first, float(f["stations"][-1]),
-                                  scan[0], scan[2], up, tol_px)
+                first, last = float(f["track"][0, 0]), float(f["stations"][-1])
+                moved = rescanned(views, pivoted(theta, f["theta"], first), centre, first, last, scan[0], scan[2], up,
+                                  tol_px)
+                # a wire that does hang to its own sag keeps its attachment: its own curve holds more support
+                s = np.linspace(first, max(last, first + 1e-3), 60)
+                if curve_support(views, moved, centre, s, up, tol_px) > curve_support(views, f["theta"], centre, s, up,
+                                                                                      tol_px):
+                    theta = moved
         r = _refined(views, {**f, "theta": theta}, others, centre, half_length,
                      up, tol_px, length, (0, 1), kappa_bounds, psi_sigma)
         kappa = float(r["theta"][4])
