@@ -588,7 +588,8 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
     Stops after max_misses stations in a row not found (or seen by too few photos). max_turn: the
     azimuth's correction is at most atan(max_turn) (the line's direction comes from the tower).
     Returns {"theta" [5] (c, z_a, psi, m0, kappa), "profile_cov" [3, 3], "found" [F, 3] (s, c, z of
-    the stations found), "tried": stations tried while seen, "reach": the last station found}."""
+    the stations found), "tried": stations tried while seen, "tried_to_reach": those up to the last
+    found (the misses that end the track left out), "reach": the last station found}."""
     kappa_max = 1.0 / (MIN_CATENARY_PARAMETER * length_scale)
     kappa_min = 1.0 / (MAX_CATENARY_PARAMETER * length_scale)
     line, across, u = line_axes(psi, up)
@@ -828,6 +829,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     conductor strung to one tension on one span hangs to one sag) refined with one slope at the
     attachment (`side_slope`; with a level span of one length that is one sag), from 3 such wires
     on a side (`_shared_sag`); the others (the earth wires above the arms) keep their own;
+    top_window: with seeds and a seed_window, the earth wires' window (`earth_window`) searched at
+    min_support after the arms' windows (its wires are not "from_arm"; "from_top" says so);
     settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
     support there is moved and its attachment refined again (`settled`, `_settled`), and of wires
     that then lie on one another the one whose curve gathers the most support is kept.
@@ -1133,7 +1136,9 @@ def weighted_median(x: np.ndarray, w: np.ndarray) -> float:
 
 
 def _enough(track: dict, min_found: int, min_share: float) -> bool:
-    """Whether a track (`track_span`) found at least min_found stations and min_share of those tried."""
+    """Whether a track (`track_span`) found at least min_found stations and min_share of those tried
+    up to the last one found: the 12 misses in a row that end every track would put a low wire
+    seen to 40-76 m (11-19 stations found) under half."""
     found = len(track["found"])
     return found >= min_found and found >= min_share * max(track.get("tried_to_reach", track["tried"]), 1)
 
