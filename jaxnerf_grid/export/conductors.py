@@ -26,14 +26,16 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   whose detections pass within `tol_px` of its projection. A wire crossing the plane is
   supported by nearly every photo; a point on one photo's wire lies off it in the others.
   Peaks above `min_support` seed one span each (the cross-arms' direction gives the line's);
-  with the cross-arms' tips given, each tip's window below it (`seed_peaks`) at `min_support`
-  and the rest of the plane at `DEFAULT_PEAK_SUPPORT`.
+  with the cross-arms' tips given, each tip's window below it (`seed_peaks`) and the earth
+  wires' window above the arms (`earth_window`) at `min_support`, the rest of the plane at
+  `DEFAULT_PEAK_SUPPORT`.
 * Track (`track_span`, what `find_spans` uses): each seed followed outwards station by station,
   at each the best cell of a small grid across the predicted curve by `gated_support` (detections
   near the projection AND running along it), the curve refitted every few stations
   (`fit_profile`: the catenary parameter bounded to plausible values, or fixed by the slope and a
   given span length); wires that only borrow another wire's detections dropped
-  (`shared_evidence`, `borrowers_dropped`). An unrefined span's 1-sigma figures
+  (`shared_evidence`, `borrowers_dropped`); a track is judged on the stations tried up to its
+  last one found (`_enough`: the misses that end every track left out). An unrefined span's 1-sigma figures
   (`combined_covariance`): the height, slope and curvature from the profile fit through the
   stations' heights (with a span length, the curvature moves with the slope), the across offset
   and azimuth from the image residuals. A cross-arm window's track that loses its wire at the
@@ -828,7 +830,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     shared_sag: then the side's wires hung in the cross-arms' windows (the phase conductors: one
     conductor strung to one tension on one span hangs to one sag) refined with one slope at the
     attachment (`side_slope`; with a level span of one length that is one sag), from 3 such wires
-    on a side (`_shared_sag`); the others (the earth wires above the arms) keep their own;
+    on a side (`_shared_sag`; a wire whose own slope ran off first pivoted and rescanned:
+    `pivoted`, `rescanned`); the others (the earth wires above the arms) keep their own;
     top_window: with seeds and a seed_window, the earth wires' window (`earth_window`) searched at
     min_support after the arms' windows (its wires are not "from_arm"; "from_top" says so);
     settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
