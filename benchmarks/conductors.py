@@ -3,7 +3,7 @@
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
       [--span-length M] [--arm-seeds] [--detect-threshold K] [--no-refine] [--no-shared-azimuth]
-      [--no-shared-span] [--no-shared-sag] [--no-settle]
+      [--no-shared-span] [--no-shared-sag] [--no-settle] [--no-top-window]
       [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
@@ -234,7 +234,7 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
                     span_length: float | None = None, arm_seeds: bool = False,
                     threshold: float | None = None, refine: bool = True,
                     shared_azimuth: bool = True, shared_span: bool = True,
-                    shared_sag: bool = True, settle: bool = True) -> tuple[list[dict], dict]:
+                    shared_sag: bool = True, settle: bool = True, top_window: bool = True) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
     span of that length), None: the catenary parameter free; arm_seeds: the cross-arm tips as
@@ -242,7 +242,8 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
     shared_azimuth, shared_span, shared_sag: `find_spans`' (the track's curves refined on the
     sub-pixel detections, the side's wires sharing one azimuth, one span length when none is
     given, and the wires hung from the arms one sag); settle: last, each wire's attachment scanned
-    for more support).
+    for more support); top_window: with arm_seeds, the earth wires' window above the arms searched at
+    the track's support (`export.conductors.earth_window`).
     Returns (records, timings)."""
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
@@ -261,7 +262,7 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
         kw = {"seeds": true_arm_seeds(), "seed_window": tuple(v * 30.4 for v in SEED_WINDOW)}
     spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length,
                             refine=refine, shared_azimuth=shared_azimuth, shared_span=shared_span,
-                            shared_sag=shared_sag, settle=settle, **kw)
+                            shared_sag=shared_sag, settle=settle, top_window=top_window, **kw)
     t2 = time.perf_counter()
     if picture is not None:
         io.write_png(picture, cond.views_picture(images, views, spans, centre))
@@ -309,6 +310,9 @@ def main(argv=None) -> int:
                    help="each wire hung from a cross-arm keeps its own sag (find_spans shared_sag=False)")
     p.add_argument("--no-settle", action="store_true",
                    help="no last scan of each wire's attachment for more support (find_spans settle=False)")
+    p.add_argument("--no-top-window", action="store_true",
+                   help="with --arm-seeds, the earth wires' peaks in the open plane only, at the plane's support "
+                        "(find_spans top_window=False; default: their window above the arms at the track's)")
     p.add_argument("--match-radius", type=float, default=MATCH_RADIUS, metavar="M",
                    help=f"a fitted span matches a cable when their attachments lie this close "
                         f"(default {MATCH_RADIUS} m; an export georeferenced by GPS is off by the GPS's error)")
@@ -335,10 +339,11 @@ def main(argv=None) -> int:
                  "distractors": gen.get("distractors"), "conductors": gen.get("conductors", True),
                  "size": [meta["w"], meta["h"]], "partial": gen.get("partial"), "span_length": args.span_length,
                  "arm_seeds": bool(args.arm_seeds), "detect_threshold": args.detect_threshold,
+                 "top_window": not args.no_top_window,
                  **steps}
         if not args.no_true_cameras:
             records, timings = true_camera_fit(data, picture, size, args.span_length, args.arm_seeds,
-                                               args.detect_threshold, **steps)
+                                               args.detect_threshold, **steps, top_window=not args.no_top_window)
             entry["true_cameras"] = {**score(records, truth), "timings": timings}
             print(json.dumps({k: v for k, v in entry["true_cameras"].items() if k != "spans"}), file=sys.stderr)
         if i < len(args.export):

@@ -26,14 +26,16 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   whose detections pass within `tol_px` of its projection. A wire crossing the plane is
   supported by nearly every photo; a point on one photo's wire lies off it in the others.
   Peaks above `min_support` seed one span each (the cross-arms' direction gives the line's);
-  with the cross-arms' tips given, each tip's window below it (`seed_peaks`) at `min_support`
-  and the rest of the plane at `DEFAULT_PEAK_SUPPORT`.
+  with the cross-arms' tips given, each tip's window below it (`seed_peaks`) and the earth
+  wires' window above the arms (`earth_window`) at `min_support`, the rest of the plane at
+  `DEFAULT_PEAK_SUPPORT`.
 * Track (`track_span`, what `find_spans` uses): each seed followed outwards station by station,
   at each the best cell of a small grid across the predicted curve by `gated_support` (detections
   near the projection AND running along it), the curve refitted every few stations
   (`fit_profile`: the catenary parameter bounded to plausible values, or fixed by the slope and a
   given span length); wires that only borrow another wire's detections dropped
-  (`shared_evidence`, `borrowers_dropped`). An unrefined span's 1-sigma figures
+  (`shared_evidence`, `borrowers_dropped`); a track is judged on the stations tried up to its
+  last one found (`_enough`: the misses that end every track left out). An unrefined span's 1-sigma figures
   (`combined_covariance`): the height, slope and curvature from the profile fit through the
   stations' heights (with a span length, the curvature moves with the slope), the across offset
   and azimuth from the image residuals. A cross-arm window's track that loses its wire at the
@@ -588,7 +590,8 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
     Stops after max_misses stations in a row not found (or seen by too few photos). max_turn: the
     azimuth's correction is at most atan(max_turn) (the line's direction comes from the tower).
     Returns {"theta" [5] (c, z_a, psi, m0, kappa), "profile_cov" [3, 3], "found" [F, 3] (s, c, z of
-    the stations found), "tried": stations tried while seen, "reach": the last station found}."""
+    the stations found), "tried": stations tried while seen, "tried_to_reach": those up to the last
+    found (the misses that end the track left out), "reach": the last station found}."""
     kappa_max = 1.0 / (MIN_CATENARY_PARAMETER * length_scale)
     kappa_min = 1.0 / (MAX_CATENARY_PARAMETER * length_scale)
     line, across, u = line_axes(psi, up)
@@ -598,7 +601,7 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
     lateral = np.array([c0, 0.0])          # c(s) = lateral[0] + lateral[1] (s - s_start)
     profile, pcov = np.array([z0, 0.0, 0.0]), np.diag([np.inf] * 3)
     found: list = []
-    tried, misses, s_last = 0, 0, s_start
+    tried, misses, s_last, tried_last = 0, 0, s_start, 0
     s = s_start
     while s <= s_end and misses < max_misses:
         st = s + ds * np.arange(chunk)
@@ -628,7 +631,7 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
             if share[best] >= min_share:
                 c_best, z_best = plateau_centre(share.reshape(cc.shape), dc, dz)
                 found.append((st[k], c_pred[k] + c_best, z_pred[k] + z_best, share[best]))
-                misses, s_last = 0, st[k]
+                misses, s_last, tried_last = 0, st[k], tried
             else:
                 misses += 1
         if found:
@@ -646,7 +649,7 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
     c_axis = float(lateral[0] - g * s_start)        # across offset extrapolated to the axis plane
     theta = np.array([c_axis * math.cos(math.atan(g)), profile[0], psi + math.atan(g), profile[1], profile[2]])
     return {"theta": theta, "profile_cov": pcov, "found": np.asarray(found, np.float64).reshape(-1, 4),
-            "tried": tried, "reach": float(s_last)}
+            "tried": tried, "tried_to_reach": tried_last, "reach": float(s_last)}
 
 
 def curve_tangents(theta, centre, s: np.ndarray, up=(0.0, 0.0, 1.0)) -> np.ndarray:
@@ -688,6 +691,7 @@ def _pair_residuals(q, views: Views, full, centre, s: np.ndarray, up, pairs: np.
 
 
 SETTLE_REACH = 0.033     # tower heights: the attachment scan's half window (`_distinct`'s radius: one wire)
+RESCAN_CAP = 0.1        # tower heights: the joint scan after the shared sag reaches at most this far (`rescanned`)
 SETTLE_GAIN = 0.05       # share of the photos: a scanned attachment must gain this much support to move
 
 
@@ -794,7 +798,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                peak_support: float = DEFAULT_PEAK_SUPPORT, window_support: float = DEFAULT_WINDOW_SUPPORT,
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
-               settle: bool = True) -> list[dict]:
+               settle: bool = True, top_window: bool = True) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -826,7 +830,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     shared_sag: then the side's wires hung in the cross-arms' windows (the phase conductors: one
     conductor strung to one tension on one span hangs to one sag) refined with one slope at the
     attachment (`side_slope`; with a level span of one length that is one sag), from 3 such wires
-    on a side (`_shared_sag`); the others (the earth wires above the arms) keep their own;
+    on a side (`_shared_sag`; a wire whose own slope ran off first pivoted and rescanned:
+    `pivoted`, `rescanned`); the others (the earth wires above the arms) keep their own;
+    top_window: with seeds and a seed_window, the earth wires' window (`earth_window`) searched at
+    min_support after the arms' windows (its wires are not "from_arm"; "from_top" says so);
     settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
     support there is moved and its attachment refined again (`settled`, `_settled`), and of wires
     that then lie on one another the one whose curve gathers the most support is kept.
@@ -851,9 +858,15 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
         else:
             given = seed_peaks(views, centre, psi_side, station, [(float(c) * side, float(z)) for c, z in seeds],
                                seed_window, step, up, tol_px, min_support, min_views)
+        top: list[tuple] = []
+        if top_window and seed_window is not None and len(seeds) > 0:
+            top = [tuple(float(v) for v in p) for p in
+                   cross_section_peaks(views, centre, psi_side, station, *earth_window(seeds, seed_window, heights),
+                                       step, up, tol_px, min_support, min_views, separation=3 * tol_px * step)]
         fits: list[dict] = []
-        for k_seed, (c, z, share) in enumerate(given + [tuple(p) for p in peaks]):
+        for k_seed, (c, z, share) in enumerate(given + top + [tuple(p) for p in peaks]):
             in_window = seed_window is not None and k_seed < len(given)
+            in_top = len(given) <= k_seed < len(given) + len(top)
             seed = curve_points((c, z, psi_side, 0.0, 0.0), centre, np.array([station]), up)[0]
             if any(np.linalg.norm(curve_points(f["theta"], centre, np.array([station]), up)[0] - seed) < 0.033 *
                    tower_height for f in fits):
@@ -876,7 +889,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
-                             "from_arm": bool(in_window),
+                             "from_arm": bool(in_window), "from_top": bool(in_top),
                              "track": track["found"], "profile_cov": track["profile_cov"], **fit,
                              "image_cov": fit["cov"], "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
@@ -900,7 +913,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if shared_span and not span_length and len(kept) > 1:
                 kept = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds)
             if shared_sag:
-                kept = _shared_sag(views, kept, centre, half_length, up, tol_px, span_length, kappa_bounds)
+                kept = _shared_sag(views, kept, centre, half_length, up, tol_px, span_length, kappa_bounds,
+                                   (SETTLE_REACH * tower_height, RESCAN_CAP * tower_height, step))
             if settle:
                 kept = [_settled(views, f, kept, centre, half_length, up, tol_px, kappa_bounds,
                                  SETTLE_REACH * tower_height, step) for f in kept]
@@ -908,6 +922,18 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 kept = _distinct(kept, centre, 0.033 * tower_height, up, key=lambda f: -f["support"])
         spans += kept
     return spans
+
+
+def earth_window(seeds, seed_window: tuple, heights: tuple) -> tuple[tuple, tuple]:
+    """The cross-section's window of the earth wires (across (lo, hi), heights (lo, hi)): above the
+    highest cross-arm's window (its tips' height + seed_window's `above`) up to the top of the
+    cross-section (heights[1]), across no wider than the cross-arms' tips (seeds [(c, z)]). An
+    earth wire runs from the tower's top, above the arms and within their reach; its peak in the
+    open plane falls short of DEFAULT_PEAK_SUPPORT where birds or the far sky break it."""
+    c = np.asarray([p[0] for p in seeds], np.float64)
+    z = np.asarray([p[1] for p in seeds], np.float64)
+    reach = float(np.max(np.abs(c)))
+    return (-reach, reach), (float(z.max()) + float(seed_window[2]), float(heights[1]))
 
 
 def side_span(lengths: np.ndarray) -> tuple[float, float]:
@@ -981,7 +1007,7 @@ def with_slope(theta, slope: float, length: float) -> np.ndarray:
 
 
 def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, tol_px: float,
-                span_length: float | None, kappa_bounds: tuple) -> list[dict]:
+                span_length: float | None, kappa_bounds: tuple, scan: tuple | None = None) -> list[dict]:
     """The wires of one side hung in the cross-arms' windows ("from_arm"), at least MIN_SHARED_SAG
     of them, refined again with the slope at the attachment they share (`side_slope`): with the
     span's one length (the given one, else "span_length_shared") one slope is one curvature and
@@ -989,7 +1015,12 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
     slope's variance replaces the wire's own (no correlation with the fitted parameters), the
     curvature's follows it (d kappa / d m0 = -2 / (L sqrt(1 + m0^2))) plus the shared length's
     ((kappa / L)^2 sigma_L^2). Each such record gets "slope_shared" (m0, sigma); the others are
-    returned as they are. Nothing changes without a span length of either kind."""
+    returned as they are. Nothing changes without a span length of either kind. scan (floor, cap,
+    step): a wire whose own slope, over its track's reach, puts it more than floor off the shared
+    one's curve is moved to pass its own curve's height at its track's first station (`pivoted`)
+    and its attachment scanned jointly within floor (`rescanned`), kept there when the shared
+    curve holds more support than the wire's own (its own slope ran off; a wire that does hang
+    deeper keeps its attachment)."""
     arm = [f for f in kept if f.get("from_arm")]
     shared_length = next((f["span_length_shared"] for f in arm if f.get("span_length_shared")), (None, 0.0))
     length = span_length or shared_length[0]
@@ -1004,7 +1035,19 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
             continue
         others = [k["theta"] for k in kept if k is not f]
         psi_sigma = math.sqrt(max(float(f["cov"][2, 2]), 0.0))
-        r = _refined(views, {**f, "theta": with_slope(f["theta"], slope, length)}, others, centre, half_length,
+        theta = with_slope(f["theta"], slope, length)
+        if scan is not None:
+            reach = rescan_reach(float(f["theta"][3]), slope, float(f["stations"][-1]), scan[1])
+            if reach > scan[0]:
+                first, last = float(f["track"][0, 0]), float(f["stations"][-1])
+                moved = rescanned(views, pivoted(theta, f["theta"], first), centre, first, last, scan[0], scan[2], up,
+                                  tol_px)
+                # a wire that does hang to its own sag keeps its attachment: its own curve holds more support
+                s = np.linspace(first, max(last, first + 1e-3), 60)
+                if curve_support(views, moved, centre, s, up, tol_px) > curve_support(views, f["theta"], centre, s, up,
+                                                                                      tol_px):
+                    theta = moved
+        r = _refined(views, {**f, "theta": theta}, others, centre, half_length,
                      up, tol_px, length, (0, 1), kappa_bounds, psi_sigma)
         kappa = float(r["theta"][4])
         dk = -2.0 / (length * math.sqrt(1.0 + slope * slope)) if slope < 0 else 0.0
@@ -1014,6 +1057,48 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
         cov[4, 3], cov[4, 4] = dk * sigma ** 2, (dk * sigma) ** 2 + (kappa / length) ** 2 * sigma_length ** 2
         out.append({**r, "cov": cov, "span_length": span_length, "slope_shared": (slope, sigma)})
     return out
+
+
+def rescan_reach(slope_own: float, slope: float, reach: float, cap: float) -> float:
+    """How far [export units] setting a wire's slope from slope_own to the side's `slope` moves its
+    curve at the end of its track's reach: |dm| reach, at most cap."""
+    return float(min(abs(slope_own - slope) * reach, cap))
+
+
+def pivoted(theta, own, pivot: float) -> np.ndarray:
+    """theta [5] (a wire given its side's slope and curvature) moved up or down to pass at the height
+    of its own curve own [5] at horizontal distance `pivot` (the first station its track found,
+    where every photo sees it)."""
+    out = np.asarray(theta, np.float64).copy()
+    at = np.array([pivot])
+    out[1] += float(catenary.sag_profile(at, own[3], own[4])[0] - catenary.sag_profile(at, out[3], out[4])[0])
+    return out
+
+
+def rescanned(views: Views, theta, centre, s_from: float, s_to: float, reach: float, step: float,
+              up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, gain: float = SETTLE_GAIN) -> np.ndarray:
+    """theta [5] with its attachment (across, height) moved to the cell of a joint grid within
+    +-reach (step apart) where its `curve_support` from s_from to s_to is highest, when that gains
+    more than `gain` over theta's own; else theta. A wire whose own slope ran off (tracked onto
+    the ground's texture or a neighbour over part of its reach) had its attachment extrapolated
+    with it: given the side's slope it lies metres off, across and in height at once, where the
+    alternating scan of `settled` climbs to a false maximum (on plad-like seed 2 a phase wire
+    1.3 m low and 0.8 m across: the alternating scan went to 1.6 m high, the joint one to the
+    wire, support 0.05 -> 0.29)."""
+    theta = np.asarray(theta, np.float64)
+    s = np.linspace(s_from, max(s_to, s_from + 1e-3), 60)
+    offsets = np.arange(-reach, reach + 0.5 * step, step)
+    best, best_share = theta, curve_support(views, theta, centre, s, up, tol_px)
+    own = best_share
+    for dc in offsets:
+        for dz in offsets:
+            t = theta.copy()
+            t[0] += dc
+            t[1] += dz
+            share = curve_support(views, t, centre, s, up, tol_px)
+            if share > best_share:
+                best, best_share = t, share
+    return best if best_share > own + gain else theta
 
 
 def turned(theta, psi: float, pivot: float) -> np.ndarray:
@@ -1054,9 +1139,11 @@ def weighted_median(x: np.ndarray, w: np.ndarray) -> float:
 
 
 def _enough(track: dict, min_found: int, min_share: float) -> bool:
-    """Whether a track (`track_span`) found at least min_found stations and min_share of those tried."""
+    """Whether a track (`track_span`) found at least min_found stations and min_share of those tried
+    up to the last one found: the 12 misses in a row that end every track would put a low wire
+    seen to 40-76 m (11-19 stations found) under half."""
     found = len(track["found"])
-    return found >= min_found and found >= min_share * max(track["tried"], 1)
+    return found >= min_found and found >= min_share * max(track.get("tried_to_reach", track["tried"]), 1)
 
 
 def _refined(views: Views, f: dict, others: list, centre, half_length: float, up, tol_px: float,

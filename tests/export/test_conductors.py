@@ -647,3 +647,81 @@ def test_of_two_curves_on_one_wire_the_one_with_more_support_is_kept_when_ranked
         assert sorted(f["support"] for f in kept) == [0.3, 0.5]
     kept = cond._distinct([weak, strong, far], np.zeros(3), 1.0, (0.0, 0.0, 1.0))
     assert sorted(f["support"] for f in kept) == [0.2, 0.3]
+
+
+def test_a_track_is_judged_on_the_stations_up_to_its_last_found_not_the_misses_that_end_it():
+    """The true span drawn in 16 cluttered photos only to 24 m from the tower (as a low wire's
+    detections end over the ground): from the seed at its attachment the track finds the stations
+    (a fifteenth of 30.4 m apart from 13.6 m) up to 24 m, 5 or 6, then misses the stations the
+    photos still see beyond, as many again or more, until 12 misses in a row end it. Judged on
+    the stations tried up to the last found it is kept (at 5 stations found), its attachment
+    within 0.1 m of the truth; with the misses that end it counted in (under half found), it would
+    be dropped (`_enough` with "tried")."""
+    rng = np.random.default_rng(11)
+    c2w = ring_cameras()
+    curve = true_curve()
+    views = views_of(render_photos(c2w, [curve[curve[:, 1] <= 24.0]], rng), c2w)
+    z_station = ATTACH[2] + float(catenary.sag_profile(np.array([13.6]), -math.sinh(XV_TRUE / A_TRUE),
+                                                       1.0 / A_TRUE)[0])
+    track = cond.track_span(views, np.zeros(3), math.pi / 2, -ATTACH[0], z_station, 13.6, 900.0, 0.11, 30.4,
+                            span_length=2 * XV_TRUE)
+    found = len(track["found"])
+    assert found >= 5 and track["tried_to_reach"] <= 6 and track["tried"] > 2 * found
+    assert cond._enough(track, 5, 0.5)
+    assert not cond._enough({**track, "tried_to_reach": track["tried"]}, 5, 0.5)
+    kept = cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                           span_length=2 * XV_TRUE, seeds=[(-ATTACH[0], ATTACH[2])], min_found=5)
+    assert len(kept) == 1
+    assert np.linalg.norm(catenary.derived(kept[0]["theta"], np.zeros(3))["attachment"] - ATTACH) < 0.1
+
+
+def test_pivoted_keeps_the_own_curves_height_at_the_pivot_by_the_closed_form():
+    """A wire's own curve (slope -0.06) given its side's slope -0.10 and a 320 m span: pivoted about
+    14 m, the new curve passes the own one's height there (z_a + sag_profile, the closed form) and
+    its attachment rises by the two profiles' difference there, 0.56 m; about 0 nothing moves."""
+    own = np.array([7.5, 21.6, math.pi / 2, -0.06, cond.level_kappa(-0.06, 320.0)])
+    given = cond.with_slope(own, -0.1, 320.0)
+    moved = cond.pivoted(given, own, 14.0)
+
+    def height(t, s):
+        return t[1] + float(catenary.sag_profile(np.array([s]), t[3], t[4])[0])
+
+    assert abs(height(moved, 14.0) - height(own, 14.0)) < 1e-12
+    assert abs((moved[1] - own[1]) - (height(own, 14.0) - height(given, 14.0))) < 1e-12
+    assert 0.5 < moved[1] - own[1] < 0.6
+    np.testing.assert_array_equal(np.delete(moved, 1), np.delete(given, 1))
+    np.testing.assert_array_equal(cond.pivoted(given, own, 0.0), given)
+
+
+def test_rescanned_finds_a_wire_metres_off_across_and_in_height_and_leaves_the_rest():
+    """One wire drawn in 16 cluttered photos; a curve of its shape with the attachment 1.4 m low and
+    0.8 m across (a wire whose own slope ran off, given its side's): the joint scan within 2 m
+    (0.1 m apart) brings it within a step of the truth; the true curve is not moved, and a curve
+    with no wire within the window is left alone."""
+    rng = np.random.default_rng(5)
+    c2w = ring_cameras()
+    views = views_of(render_photos(c2w, [true_curve()], rng), c2w)
+    true = np.array([-ATTACH[0], ATTACH[2], math.pi / 2, -math.sinh(XV_TRUE / A_TRUE), 1.0 / A_TRUE])
+    off = true + np.array([0.8, -1.4, 0.0, 0.0, 0.0])
+    theta = cond.rescanned(views, off, np.zeros(3), 14.0, 60.0, 2.0, 0.1)
+    assert abs(theta[0] - true[0]) <= 0.1 and abs(theta[1] - true[1]) <= 0.1
+    np.testing.assert_array_equal(theta[2:], true[2:])
+    np.testing.assert_array_equal(cond.rescanned(views, true, np.zeros(3), 14.0, 60.0, 2.0, 0.1), true)
+    far = true + np.array([0.0, 5.0, 0.0, 0.0, 0.0])
+    np.testing.assert_array_equal(cond.rescanned(views, far, np.zeros(3), 14.0, 60.0, 2.0, 0.1), far)
+
+
+def test_rescan_reach_is_the_slope_change_over_the_tracks_reach_capped():
+    """|dm| reach, at most the cap: a slope 0.04 off over 60 m moves the curve 2.4 m at its end."""
+    assert abs(cond.rescan_reach(-0.06, -0.10, 60.0, 3.0) - 2.4) < 1e-12
+    assert cond.rescan_reach(-0.02, -0.10, 60.0, 3.0) == 3.0
+    assert cond.rescan_reach(-0.10, -0.10, 60.0, 3.0) == 0.0
+
+
+def test_earth_window_lies_above_the_highest_arm_window_within_the_arms_reach():
+    """The cross-arm tips (+-7.45 at 17.5 m, +-8.45 at 21.5 m, +-7.45 at 25.5 m) and a window 1.5 m
+    above each: the earth wires' window runs from 27.0 m to the cross-section's top, 8.45 m either
+    side."""
+    seeds = [(s * c, z) for c, z in ((7.45, 17.5), (8.45, 21.5), (7.45, 25.5)) for s in (-1, 1)]
+    across, heights = cond.earth_window(seeds, (1.5, 7.6, 1.5), (7.5, 33.0))
+    assert across == (-8.45, 8.45) and heights == (27.0, 33.0)
