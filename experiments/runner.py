@@ -184,7 +184,7 @@ LATER_TRAIN_KEYS = ("max_side", "robust", "robust_quantile", "robust_flagged_qua
                     "robust_patch_stride",
                     "robust_patch_share", "robust_floor", "robust_spread",
                     "robust_warmup", "robust_confirm", "robust_views", "sparse_adam", "robust_scattered", "depth",
-                    "lowres_share", "lowres_factor",
+                    "lowres_share", "lowres_factor", "error_share", "error_tile",
                     "robust_refine", "robust_prior_grow")  # the last two: scheme "refine_keys_always" keeps them
 
 

@@ -185,6 +185,9 @@ class TrainConfig:
     lowres_share, lowres_factor: the resolution schedule (train/lowres.py): the first
       lowres_share of the steps train on the frames shrunk by lowres_factor (block means), the
       rest at the working resolution (0 = off; only with train.robust off).
+    error_share, error_tile: error-map sampling (train/error_map.py): error_share of each batch
+      drawn from tiles of error_tile x error_tile working pixels in proportion to their recent
+      error, the rest uniformly (0 = off; only with train.robust and the resolution schedule off).
     robust: the photometric evidence's settings (`RobustConfig`, docs/ROBUST.md).
     depth: the sparse points' depth prior (`DepthConfig`, off by default; `demo --data` turns it
       on for a capture from `poses`).
@@ -217,6 +220,8 @@ class TrainConfig:
     max_side: int = 640
     lowres_share: float = 0.0
     lowres_factor: int = 2
+    error_share: float = 0.0
+    error_tile: int = 16
     robust: RobustConfig = RobustConfig()
     depth: DepthConfig = DepthConfig()
 
@@ -235,7 +240,8 @@ class TrainConfig:
         "num_devices": config_lib.NONNEGATIVE, "appearance_steps": config_lib.NONNEGATIVE,
         "appearance_lr": config_lib.POSITIVE, "appearance_rays": config_lib.AT_LEAST_ONE,
         "max_side": config_lib.NONNEGATIVE, "lowres_share": config_lib.UNIT,
-        "lowres_factor": config_lib.AT_LEAST_ONE}
+        "lowres_factor": config_lib.AT_LEAST_ONE, "error_share": config_lib.UNIT,
+        "error_tile": config_lib.AT_LEAST_ONE}
 
     @staticmethod
     def upgrade_dict(data: dict) -> dict:

@@ -63,7 +63,7 @@ from jaxnerf_grid.masks import photo_consistency
 from jaxnerf_grid.masks import robust as robust_lib
 from jaxnerf_grid.nerf import fields, losses, models
 from jaxnerf_grid.nerf import rays as rays_lib
-from jaxnerf_grid.train import checkpoint, distributed, lowres, optim, ray_pool, refine, sparse_depth
+from jaxnerf_grid.train import checkpoint, distributed, error_map, lowres, optim, ray_pool, refine, sparse_depth
 from jaxnerf_grid.util import io, parallel
 from jaxnerf_grid.util import progress as progress_lib
 from jaxnerf_grid.util.io import DataError
@@ -200,12 +200,17 @@ def make_optimizer(cfg: TrainConfig) -> optim.GradientTransformation:
 def init_state(cfg: RunConfig, frames_shape: tuple | None = None) -> dict:
     """{"params", "opt_state", "key"} on the host (unreplicated); with train.robust on also
     "robust_record": [T, H, W] the per-pixel moving average of the weights training used
-    (`robust.ema_update`), ones at first; frames_shape = (T, H, W) of the training frames
+    (`robust.ema_update`), ones at first; with train.error_share on "error_map": [tiles] the
+    tiles' error record (error_map.py); frames_shape = (T, H, W) of the training frames
     (`train_frames_shape`) is then needed."""
     key = jax.random.PRNGKey(cfg.train.seed)
     key, k_init = jax.random.split(key)
     params = models.init(k_init, cfg.model)
     state = {"params": params, "opt_state": make_optimizer(cfg.train).init(params), "key": key}
+    if error_map.error_rays(cfg.train):
+        if frames_shape is None:
+            raise ValueError("init_state: train.error_share is on, give the training frames' shape")
+        state["error_map"] = error_map.init(*frames_shape, cfg.train.error_tile)
     if cfg.train.robust.mode != "off":
         if frames_shape is None:
             raise ValueError("init_state: train.robust is on, give the training frames' shape")
@@ -327,9 +332,12 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
     if tcfg.robust.mode != "off":
         return _make_robust_step(cfg, num_devices, opt)
 
+    from_errors = error_map.error_rays(tcfg)
+
     def step(state, pool):
         key, k_batch, k_rays = jax.random.split(state["key"], 3)
-        batch = ray_pool.device_batch(pool, k_batch, tcfg.batch_rays, per_device, AXIS)
+        batch = ray_pool.device_batch(pool, k_batch, tcfg.batch_rays, per_device, AXIS,
+                                      state.get("error_map"), from_errors, tcfg.error_tile)
         ray_keys = jax.random.split(k_rays, tcfg.batch_rays)
         start = jax.lax.axis_index(AXIS) * per_device
         ray_keys = jax.lax.dynamic_slice_in_dim(ray_keys, start, per_device)
@@ -339,13 +347,19 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
             _, terms = batch_terms(params, cfg, batch, ray_keys)
             loss = losses.weighted_mean(terms["loss"], batch["weight"], total)
             loss, depth = plus_depth_term(loss, params, cfg, pool, k_batch, state["opt_state"].count, num_devices)
-            return loss, (losses.weighted_mean(terms["mse"], batch["weight"], total), depth)
+            return loss, (losses.weighted_mean(terms["mse"], batch["weight"], total), depth, terms["mse"])
 
-        (loss, (mse, depth)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
+        (loss, (mse, depth, ray_mse)), grads = jax.value_and_grad(loss_fn, has_aux=True)(state["params"])
         loss, mse, depth, grads = jax.lax.psum((loss, mse, depth, grads), AXIS)
         params, opt_state, finite = optim.guarded_apply(opt, state["params"], state["opt_state"], grads, loss)
         # other state (a robust run's frozen record, train.robust.refine) passes through unchanged
         new_state = dict(state, params=params, opt_state=opt_state, key=key)
+        if from_errors:  # every device records the whole batch's errors: the maps stay equal
+            whole = jnp.zeros((2, tcfg.batch_rays), jnp.float32)
+            whole = jax.lax.dynamic_update_slice(whole, jnp.stack([ray_mse, batch["weight"]]), (0, start))
+            whole = jax.lax.psum(whole, AXIS)
+            new_state["error_map"] = jnp.where(finite, error_map.update(state["error_map"], batch["tiles"], whole[0],
+                                                                        whole[1]), state["error_map"])
         stats = {"loss": loss, "mse": mse, "finite": finite}
         if depth_on:
             stats["depth_loss"] = depth

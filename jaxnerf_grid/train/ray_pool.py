@@ -39,6 +39,7 @@ from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.data import working
 from jaxnerf_grid.data.dataset import Dataset
 from jaxnerf_grid.nerf import rays as rays_lib
+from jaxnerf_grid.train import error_map
 from jaxnerf_grid.util import parallel
 from jaxnerf_grid.util.io import DataError
 
@@ -277,7 +278,8 @@ def _weight_rows(pool: dict, local, row, w: int):
 def lookup(pool: dict, t, row, col, offset, axis: str = parallel.AXIS) -> dict:
     """The pixels of the global batch, assembled from the devices holding their frames: each
     device looks up those in its group of frames (zeros elsewhere) and one psum over `axis` sums
-    the exact integers. Returns {"col": [B] int32, "rgb": [B, 3] float32, "weight": [B] float32}."""
+    the exact integers. col: [B] or None; offset: [B] (`locate`'s, -1 where col is given) or None.
+    Returns {"col": [B] int32, "rgb": [B, 3] float32, "weight": [B] float32}."""
     h, w = pool["grid"].shape[:2]
     per = pool["rows"].shape[0]
     store = pool["store"][t]
@@ -286,8 +288,9 @@ def lookup(pool: dict, t, row, col, offset, axis: str = parallel.AXIS) -> dict:
     local = jnp.where(mine, store - me * per, 0)
     if offset is not None:  # the offset-th drawn pixel of the row: count the drawn ones along it
         drawn = (_weight_rows(pool, local, row, w) > 0).astype(jnp.int32)
-        col = jnp.sum(jnp.cumsum(drawn, axis=1) <= offset[:, None], axis=1).astype(jnp.int32)
-        col = jnp.minimum(col, w - 1)
+        counted = jnp.sum(jnp.cumsum(drawn, axis=1) <= offset[:, None], axis=1).astype(jnp.int32)
+        counted = jnp.minimum(counted, w - 1)
+        col = counted if col is None else jnp.where(offset >= 0, counted, col)  # offset -1: col given
     pix = row * w + col
     rgb = pool["rows"][local[:, None], pix[:, None] * 3 + jnp.arange(3)[None, :]].astype(jnp.int32)
     parts = [rgb]
@@ -306,12 +309,33 @@ def lookup(pool: dict, t, row, col, offset, axis: str = parallel.AXIS) -> dict:
     return out
 
 
-def device_batch(pool: dict, key, batch: int, per_device: int, axis: str = parallel.AXIS) -> dict:
-    """This device's share of the global batch drawn from `key` (`pixel_ids`, `locate`,
-    `lookup`): rays and targets, dict of [per_device, ...] (origins, directions, near, far, rgb,
-    weight, image_index) as `train.gather_batch` gives them."""
-    t, row, col, offset = locate(pool, pixel_ids(pool, key, batch))
+def draws(pool: dict, key, batch: int, errors=None, from_errors: int = 0, tile: int = 16):
+    """The global batch's pixels (t, row, col or None, offset or None; `locate`'s): batch -
+    from_errors drawn uniformly (`pixel_ids`), then from_errors from the error map `errors`
+    ([tiles], error_map.py; its key folded off `key`), whose columns are known (offset -1)."""
+    t, row, col, offset = locate(pool, pixel_ids(pool, key, batch - from_errors))
+    if not from_errors:
+        return t, row, col, offset
+    h, w = pool["grid"].shape[:2]
+    te, re, ce = error_map.draw(errors, jax.random.fold_in(key, error_map.ERROR_FOLD), from_errors, h, w, tile)
+    if offset is None:
+        return jnp.concatenate([t, te]), jnp.concatenate([row, re]), jnp.concatenate([col, ce]), None
+    return (jnp.concatenate([t, te]), jnp.concatenate([row, re]),
+            jnp.concatenate([jnp.zeros_like(offset), ce]), jnp.concatenate([offset, jnp.full_like(ce, -1)]))
+
+
+def device_batch(pool: dict, key, batch: int, per_device: int, axis: str = parallel.AXIS, errors=None,
+                 from_errors: int = 0, tile: int = 16) -> dict:
+    """This device's share of the global batch drawn from `key` (`draws`, `lookup`): rays and
+    targets, dict of [per_device, ...] (origins, directions, near, far, rgb, weight,
+    image_index) as `train.gather_batch` gives them; with an error map (`errors`, from_errors >
+    0) also "tiles": [batch] the whole batch's tile ids (error_map.tile_ids)."""
+    t, row, col, offset = draws(pool, key, batch, errors, from_errors, tile)
     values = lookup(pool, t, row, col, offset, axis)
+    tiles = None
+    if from_errors:
+        h, w = pool["grid"].shape[:2]
+        tiles = error_map.tile_ids(t, row, values["col"], h, w, tile)
     start = jax.lax.axis_index(axis) * per_device
 
     def mine(x):
@@ -322,8 +346,11 @@ def device_batch(pool: dict, key, batch: int, per_device: int, axis: str = paral
     r = rays_lib.rays_for_pixels(pool["c2w"][t], intr[:, 0], intr[:, 1], intr[:, 2], intr[:, 3],
                                  c.astype(jnp.float32) + 0.5, row.astype(jnp.float32) + 0.5,
                                  pool["near"], pool["far"])
-    return {"origins": r.origins, "directions": r.directions, "near": r.near, "far": r.far,
-            "rgb": mine(values["rgb"]), "weight": mine(values["weight"]), "image_index": pool["frame"][t]}
+    out = {"origins": r.origins, "directions": r.directions, "near": r.near, "far": r.far,
+           "rgb": mine(values["rgb"]), "weight": mine(values["weight"]), "image_index": pool["frame"][t]}
+    if tiles is not None:
+        out["tiles"] = tiles
+    return out
 
 
 def host_bytes(pool: dict) -> int:
