@@ -16,37 +16,44 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from PIL import Image, UnidentifiedImageError
+from jaxnerf_grid.capture import photo_exif
+from jaxnerf_grid.capture.photo_exif import PhotoExif, read_exif
 
-from jaxnerf_grid.util.io import DataError
+# the EXIF tags that name the camera (`photo_exif` reads them), named here as well
+EXIF_IFD, MAKE, MODEL = photo_exif.EXIF_IFD, photo_exif.MAKE, photo_exif.MODEL
+FOCAL_LENGTH, FOCAL_35MM, LENS_MODEL = photo_exif.FOCAL_LENGTH, photo_exif.FOCAL_35MM, photo_exif.LENS_MODEL
 
-EXIF_IFD = 0x8769  # the pointer to the Exif sub-IFD (EXIF 2.32, section 4.6.3)
-MAKE, MODEL = 0x010F, 0x0110  # IFD0
-FOCAL_LENGTH, FOCAL_35MM, LENS_MODEL = 0x920A, 0xA405, 0xA434  # Exif sub-IFD
+
+def exif_text(value) -> str | None:
+    """An EXIF text field stripped of NULs and blanks; None when absent or empty."""
+    return None if value is None else str(value).strip("\x00 ").strip() or None
+
+
+def exif_number(value) -> float | None:
+    """An EXIF number (a rational) rounded to 3 decimals; None when absent or not a number."""
+    try:
+        return None if value is None else round(float(value), 3)
+    except (TypeError, ValueError, ZeroDivisionError):
+        return None
+
+
+def camera_of(record: PhotoExif) -> tuple:
+    """The EXIF fields that name a photo's camera and zoom, from its header record (`read_exif`):
+    (make, model, lens model, focal length in mm, focal length in 35 mm terms), each None when
+    absent (all None without EXIF)."""
+    return (exif_text(record.make), exif_text(record.model), exif_text(record.lens),
+            exif_number(record.focal_mm), exif_number(record.focal_35mm))
 
 
 def exif_camera(path) -> tuple:
-    """The EXIF fields that name a photo's camera and zoom: (make, model, lens model, focal length
-    in mm, focal length in 35 mm terms), each None when absent (all None without EXIF). DataError
-    naming the file when it cannot be read."""
-    try:
-        with Image.open(path) as im:
-            exif = im.getexif()
-            sub = exif.get_ifd(EXIF_IFD)
-    except (OSError, UnidentifiedImageError, SyntaxError) as err:
-        raise DataError(f"{path}: cannot read the photo's EXIF: {err}") from None
+    """`camera_of` one photo, read from its file. DataError naming the file when it cannot be
+    read."""
+    return camera_of(read_exif(path, gps=False))
 
-    def text(value):
-        return None if value is None else str(value).strip("\x00 ").strip() or None
 
-    def number(value):
-        try:
-            return None if value is None else round(float(value), 3)
-        except (TypeError, ValueError, ZeroDivisionError):
-            return None
-
-    return (text(exif.get(MAKE)), text(exif.get(MODEL)), text(sub.get(LENS_MODEL)),
-            number(sub.get(FOCAL_LENGTH)), number(sub.get(FOCAL_35MM)))
+def cameras_of(records: dict) -> dict:
+    """{name: `camera_of`} of {name: `read_exif` record}."""
+    return {name: camera_of(record) for name, record in records.items()}
 
 
 def choose_sharing(asked: bool | None, sizes: dict, cameras: dict) -> tuple[bool, str]:

@@ -7,7 +7,8 @@ JPEG, PNG (eXIf) and TIFF alike. DJI's XMP packet is plain text in the file's fi
 its `drone-dji:` attributes are read with a regular expression (no XML library is needed
 for flat attributes, and none is installed).
 
-`read_gps(path)` -> a `GpsRecord` dict or None (no GPS in the photo):
+`read_gps(path)` (or `gps_of` on a photo's `photo_exif.read_exif` record, the photo opened once for
+all its readers) -> a `GpsRecord` dict or None (no GPS in the photo):
   {"latitude": deg (+N), "longitude": deg (+E), "altitude": m or None (EXIF GPSAltitude, negative
    below the reference when GPSAltitudeRef = 1), "relative_altitude": m or None (DJI XMP),
    "gimbal": {"roll", "pitch", "yaw"} deg or None, "flight": {...} or None}
@@ -19,9 +20,9 @@ import re
 from pathlib import Path
 from typing import Any
 
+from jaxnerf_grid.capture.photo_exif import PhotoExif, read_exif, upright_of
 from jaxnerf_grid.util.io import DataError
 
-GPS_IFD = 0x8825  # the EXIF pointer to the GPS IFD
 # GPS IFD tag numbers (EXIF 2.32, section 4.6.6)
 LATITUDE_REF, LATITUDE, LONGITUDE_REF, LONGITUDE, ALTITUDE_REF, ALTITUDE = 1, 2, 3, 4, 5, 6
 XMP_BYTES = 1 << 20  # the XMP packet sits in the first APP segments: only this much of a file is read
@@ -89,46 +90,51 @@ def parse_dji_xmp(data: bytes) -> dict:
     return out
 
 
+def read_head(path) -> bytes:
+    """The first XMP_BYTES of a file (where DJI's XMP packet sits). DataError naming the file when
+    it cannot be read."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(XMP_BYTES)
+    except OSError as err:
+        raise DataError(f"{path}: cannot read the photo's EXIF: {err}") from None
+
+
+def gps_of(record: PhotoExif) -> dict | None:
+    """The GPS record (module docstring) of a photo from its header record (`read_exif`), or None
+    when it has no EXIF GPS position; DJI's XMP values are read from the file's head when it has
+    one. DataError naming the file when its GPS tags are malformed or its head cannot be read."""
+    position = parse_gps_ifd(record.gps, record.path)
+    if position is None:
+        return None
+    dji = parse_dji_xmp(read_head(record.path))
+    return {**position, "relative_altitude": dji["relative_altitude"], "gimbal": dji["gimbal"],
+            "flight": dji["flight"]}
+
+
+def positions_of(records) -> dict:
+    """{file name: GPS record} (`gps_of`) of the photos that have one, from (file name, `read_exif`
+    record) pairs (e.g. a dict's items), taken in turn."""
+    out = {}
+    for name, record in records:
+        position = gps_of(record)
+        if position is not None:
+            out[name] = position
+    return out
+
+
 def read_gps(path) -> dict | None:
     """The GPS record of one photo (module docstring), or None when it has no EXIF GPS position.
     DataError naming the file when it cannot be read or its GPS tags are malformed."""
-    from PIL import Image, UnidentifiedImageError
-
-    path = Path(path)
-    try:
-        with Image.open(path) as im:
-            gps = dict(im.getexif().get_ifd(GPS_IFD))
-        with open(path, "rb") as f:
-            head = f.read(XMP_BYTES)
-    except (OSError, UnidentifiedImageError, SyntaxError) as err:
-        raise DataError(f"{path}: cannot read the photo's EXIF: {err}") from None
-    record = parse_gps_ifd(gps, path)
-    if record is None:
-        return None
-    dji = parse_dji_xmp(head)
-    record.update({"relative_altitude": dji["relative_altitude"], "gimbal": dji["gimbal"], "flight": dji["flight"]})
-    return record
+    return gps_of(read_exif(path))
 
 
 def read_all(paths) -> dict:
     """{file name: GPS record} of the photos that have one (`read_gps`)."""
-    out = {}
-    for path in paths:
-        record = read_gps(path)
-        if record is not None:
-            out[Path(path).name] = record
-    return out
+    return positions_of((Path(path).name, read_exif(path)) for path in paths)
 
 
 def upright_size(path) -> tuple[int, int]:
     """(W, H) of a photo as viewers show it (EXIF orientations 5-8 swap the sides), read from
-    its header. DataError naming the file when it cannot be read."""
-    from PIL import Image, UnidentifiedImageError
-
-    try:
-        with Image.open(path) as im:
-            width, height = im.size
-            orientation = im.getexif().get(0x0112, 1)
-    except (OSError, UnidentifiedImageError, SyntaxError) as err:
-        raise DataError(f"{path}: cannot read the photo: {err}") from None
-    return (height, width) if orientation in (5, 6, 7, 8) else (width, height)
+    its header (`photo_exif.upright_of`). DataError naming the file when it cannot be read."""
+    return upright_of(read_exif(path, gps=False, what="the photo"))

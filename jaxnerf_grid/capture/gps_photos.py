@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxnerf_grid.capture import georef
-from jaxnerf_grid.capture.gps import GPS_IFD
+from jaxnerf_grid.capture.photo_exif import GPS_IFD
 from jaxnerf_grid.data.normalize import apply_normalization_to_points, invert_normalization
 from jaxnerf_grid.data.synthetic.scene import ARM_LENGTHS, ARM_LEVELS, half_width
 from jaxnerf_grid.util import io

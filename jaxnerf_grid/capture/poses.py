@@ -55,7 +55,7 @@ from typing import Any
 
 import numpy as np
 
-from jaxnerf_grid.capture import camera_set, camera_sharing, georef, gps, pairing, refused, vetting
+from jaxnerf_grid.capture import camera_set, camera_sharing, georef, gps, pairing, photo_exif, refused, vetting
 from jaxnerf_grid.capture.bounds import scene_bounds
 from jaxnerf_grid.data.formats.colmap import collect_colmap, observation_depths
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
@@ -889,6 +889,19 @@ def format_summary(summary: dict) -> str:
 # The whole step
 
 
+def photo_headers(images_dir: Path, names: list[str], ignore_gps: bool = False) -> tuple[
+        dict[str, tuple], dict[str, dict], dict[str, tuple[int, int]]]:
+    """What the poses step reads from the photos `names` in `images_dir` beyond their pixels, each
+    photo opened once (`photo_exif.read_exif`): ({name: `camera_sharing.camera_of`}, {name:
+    `gps.gps_of`} of those with a GPS position ({} when `ignore_gps`: the GPS is not read), {name:
+    upright (width, height) of the photo itself, `photo_exif.upright_of`}). DataError naming the
+    first photo that cannot be read."""
+    records = photo_exif.read_all([Path(images_dir) / name for name in names], gps=not ignore_gps)
+    positions = {} if ignore_gps else gps.positions_of(records.items())
+    sizes = {name: photo_exif.upright_of(record) for name, record in records.items()}
+    return camera_sharing.cameras_of(records), positions, sizes
+
+
 def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_model: str = "SIMPLE_RADIAL",
                       single_camera: bool | None = None, max_side: int | None = None, vocab_tree=None,
                       overlap: int = SEQUENTIAL_OVERLAP,
@@ -943,15 +956,12 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                                                                       max_side, progress)
         used_sizes = {n: working_sizes[n] for n in names}
         check_one_size(used_sizes, images_dir, single_camera)
-        single_camera, camera_reason = camera_sharing.choose_sharing(
-            single_camera, used_sizes, camera_sharing.read_cameras(images_dir, names))
-        readable = [images_dir / name for name in names]
-        positions = {} if ignore_gps else gps.read_all(readable)
+        cameras, positions, sizes = photo_headers(images_dir, names, ignore_gps)
+        single_camera, camera_reason = camera_sharing.choose_sharing(single_camera, used_sizes, cameras)
         used, reason = choose_matcher(matcher, names, with_gps=len(positions))
         if used == "spatial" and len(positions) < len(names):
             raise DataError(f"{images_dir}: poses.matcher spatial pairs photos by their GPS, and only "
                             f"{len(positions)} of {len(names)} photos carry GPS; use exhaustive or sequential")
-        sizes = {path.name: gps.upright_size(path) for path in readable}
         ratios = {name: tuple(w1 / w0 for w1, w0 in zip(working_size(*size, max_side), size))
                   for name, size in sizes.items()}
         if gcp is not None:

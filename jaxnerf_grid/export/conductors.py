@@ -703,31 +703,54 @@ def curve_support(views: Views, theta, centre, s: np.ndarray, up=(0.0, 0.0, 1.0)
     return float(np.mean(share))
 
 
-def settled(views: Views, theta, centre, s_from: float, s_to: float, reach: float, step: float,
-            up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, gain: float = SETTLE_GAIN,
-            samples: int = 60) -> tuple[np.ndarray, bool]:
-    """theta [5] with its attachment moved, height then across offset (twice), to the offset within
-    +-reach (a grid of `step`) where `curve_support` from s_from to s_to is highest, when that
-    gains more than `gain` over theta's own; else theta. The refinement's pairs are gated within
-    tol_px of the curve: a curve that ended a few pixels off its wire over the far part has no
-    pairs on it left to pull it back (on the 640x480 scene a phase wire's attachment stayed
-    0.52 m high, its support 0.07 there and 0.21 at 0.5 m lower). Returns (theta, moved)."""
+def scan_moves(offsets: np.ndarray, joint: bool) -> list[tuple]:
+    """The attachment scan's candidate moves, in order, for offsets [N]: each a tuple of (index of
+    theta, offset from theta's own value) set together. joint: every cell of the grid (across 0,
+    height 1), across the outer loop; else height then across (index 1, then 0), each over the
+    offsets, twice."""
+    if joint:
+        return [((0, dc), (1, dz)) for dc in offsets for dz in offsets]
+    return [((k, d),) for _ in range(2) for k in (1, 0) for d in offsets]
+
+
+def scan_attachment(views: Views, theta, centre, s_from: float, s_to: float, reach: float, step: float,
+                    up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, gain: float = SETTLE_GAIN,
+                    samples: int = 60, joint: bool = False) -> tuple[np.ndarray, bool, float]:
+    """theta [5] with its attachment moved to the offset within +-reach (a grid of `step`) where
+    `curve_support` over `samples` stations from s_from to s_to is highest, when that gains more
+    than `gain` over theta's own; else theta. joint False: height then across offset (twice), each
+    move from theta's own value with the other at the best so far (`settled`); joint True: the
+    cells of the joint (across, height) grid about theta (`rescanned`); `scan_moves` lists them.
+    Returns (theta [5], moved, its `curve_support` over those stations)."""
     theta = np.asarray(theta, np.float64)
     s = np.linspace(s_from, max(s_to, s_from + 1e-3), samples)
     offsets = np.arange(-reach, reach + 0.5 * step, step)
     own = curve_support(views, theta, centre, s, up, tol_px)
     best, best_share = theta.copy(), own
-    for _ in range(2):
-        for k in (1, 0):
-            for d in offsets:
-                t = best.copy()
-                t[k] = theta[k] + d
-                share = curve_support(views, t, centre, s, up, tol_px)
-                if share > best_share:
-                    best, best_share = t, share
+    for move in scan_moves(offsets, joint):
+        t = (theta if joint else best).copy()
+        for k, d in move:
+            t[k] = theta[k] + d
+        share = curve_support(views, t, centre, s, up, tol_px)
+        if share > best_share:
+            best, best_share = t, share
     if best_share > own + gain:
-        return best, True
-    return theta, False
+        return best, True, best_share
+    return theta, False, own
+
+
+def settled(views: Views, theta, centre, s_from: float, s_to: float, reach: float, step: float,
+            up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, gain: float = SETTLE_GAIN,
+            samples: int = 60) -> tuple[np.ndarray, bool]:
+    """theta [5] with its attachment moved, height then across offset (twice), to the offset within
+    +-reach (a grid of `step`) where `curve_support` from s_from to s_to is highest, when that
+    gains more than `gain` over theta's own; else theta (`scan_attachment`, alternating). The
+    refinement's pairs are gated within tol_px of the curve: a curve that ended a few pixels off
+    its wire over the far part has no pairs on it left to pull it back (on the 640x480 scene a
+    phase wire's attachment stayed 0.52 m high, its support 0.07 there and 0.21 at 0.5 m lower).
+    Returns (theta, moved)."""
+    theta, moved, _ = scan_attachment(views, theta, centre, s_from, s_to, reach, step, up, tol_px, gain, samples)
+    return theta, moved
 
 
 def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0, 0.0, 1.0),
@@ -1040,12 +1063,11 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
             reach = rescan_reach(float(f["theta"][3]), slope, float(f["stations"][-1]), scan[1])
             if reach > scan[0]:
                 first, last = float(f["track"][0, 0]), float(f["stations"][-1])
-                moved = rescanned(views, pivoted(theta, f["theta"], first), centre, first, last, scan[0], scan[2], up,
-                                  tol_px)
+                moved, _, support = scan_attachment(views, pivoted(theta, f["theta"], first), centre, first, last,
+                                                    scan[0], scan[2], up, tol_px, joint=True)
                 # a wire that does hang to its own sag keeps its attachment: its own curve holds more support
                 s = np.linspace(first, max(last, first + 1e-3), 60)
-                if curve_support(views, moved, centre, s, up, tol_px) > curve_support(views, f["theta"], centre, s, up,
-                                                                                      tol_px):
+                if support > curve_support(views, f["theta"], centre, s, up, tol_px):
                     theta = moved
         r = _refined(views, {**f, "theta": theta}, others, centre, half_length,
                      up, tol_px, length, (0, 1), kappa_bounds, psi_sigma)
@@ -1079,26 +1101,13 @@ def rescanned(views: Views, theta, centre, s_from: float, s_to: float, reach: fl
               up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX, gain: float = SETTLE_GAIN) -> np.ndarray:
     """theta [5] with its attachment (across, height) moved to the cell of a joint grid within
     +-reach (step apart) where its `curve_support` from s_from to s_to is highest, when that gains
-    more than `gain` over theta's own; else theta. A wire whose own slope ran off (tracked onto
-    the ground's texture or a neighbour over part of its reach) had its attachment extrapolated
-    with it: given the side's slope it lies metres off, across and in height at once, where the
-    alternating scan of `settled` climbs to a false maximum (on plad-like seed 2 a phase wire
-    1.3 m low and 0.8 m across: the alternating scan went to 1.6 m high, the joint one to the
-    wire, support 0.05 -> 0.29)."""
-    theta = np.asarray(theta, np.float64)
-    s = np.linspace(s_from, max(s_to, s_from + 1e-3), 60)
-    offsets = np.arange(-reach, reach + 0.5 * step, step)
-    best, best_share = theta, curve_support(views, theta, centre, s, up, tol_px)
-    own = best_share
-    for dc in offsets:
-        for dz in offsets:
-            t = theta.copy()
-            t[0] += dc
-            t[1] += dz
-            share = curve_support(views, t, centre, s, up, tol_px)
-            if share > best_share:
-                best, best_share = t, share
-    return best if best_share > own + gain else theta
+    more than `gain` over theta's own; else theta (`scan_attachment`, joint). A wire whose own
+    slope ran off (tracked onto the ground's texture or a neighbour over part of its reach) had its
+    attachment extrapolated with it: given the side's slope it lies metres off, across and in
+    height at once, where the alternating scan of `settled` climbs to a false maximum (on
+    plad-like seed 2 a phase wire 1.3 m low and 0.8 m across: the alternating scan went to 1.6 m
+    high, the joint one to the wire, support 0.05 -> 0.29)."""
+    return scan_attachment(views, theta, centre, s_from, s_to, reach, step, up, tol_px, gain, joint=True)[0]
 
 
 def turned(theta, psi: float, pivot: float) -> np.ndarray:
@@ -1172,9 +1181,10 @@ def _settled(views: Views, f: dict, kept: list[dict], centre, half_length: float
     the other wires, the rest of theta held (with the span's length in use: the given one, else
     the side's shared one, else none); its covariance keeps the held parameters' rows and takes
     the attachment's block from the new image residuals. "settled": whether it moved; "support":
-    its curve's `curve_support` over the track's stations, as it is returned."""
+    its curve's `curve_support` over the track's stations, as it is returned (the scan's own when
+    it did not move)."""
     s_from, s_to = float(f["track"][0, 0]), float(f["stations"][-1])
-    theta, moved = settled(views, f["theta"], centre, s_from, s_to, reach, step, up, tol_px)
+    theta, moved, support = scan_attachment(views, f["theta"], centre, s_from, s_to, reach, step, up, tol_px)
     if moved:
         others = [k["theta"] for k in kept if k is not f]
         length = f.get("span_length") or (f.get("span_length_shared") or (None,))[0]
@@ -1184,7 +1194,8 @@ def _settled(views: Views, f: dict, kept: list[dict], centre, half_length: float
         cov[:2, :], cov[:, :2] = 0.0, 0.0
         cov[:2, :2] = np.asarray(r["image_cov"], np.float64)[:2, :2]
         f = {**r, "cov": cov, "span_length": f.get("span_length")}
-    support = curve_support(views, f["theta"], centre, np.linspace(s_from, max(s_to, s_from + 1e-3), 60), up, tol_px)
+        support = curve_support(views, f["theta"], centre, np.linspace(s_from, max(s_to, s_from + 1e-3), 60), up,
+                                tol_px)
     return {**f, "settled": moved, "support": support}
 
 

@@ -22,9 +22,11 @@ import os
 import re
 import socket
 import sys
+from pathlib import Path
 
 import numpy as np
 import pytest
+from PIL import Image
 from scipy.spatial.transform import Rotation
 
 from jaxnerf_grid.capture import georef, gps, poses
@@ -124,8 +126,9 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
     monkeypatch.setattr(poses, "run_colmap", stand_in)
     monkeypatch.setattr(georef, "precheck_gps", _no_gps_check)
     read = []
-    real_read_all = gps.read_all
-    monkeypatch.setattr(gps, "read_all", lambda paths: read.append(list(paths)) or real_read_all(paths))
+    real_positions_of = gps.positions_of
+    monkeypatch.setattr(gps, "positions_of",
+                        lambda records: read.append([r.path for _, r in records]) or real_positions_of(records))
     # the clock: start, photos in / out, writing, the last stage in, the total, the writing, out
     clock = iter([100.0, 100.2, 100.7, 103.0, 103.1, 112.34, 112.41, 115.0])
     monkeypatch.setattr(poses, "time", type("Clock", (), {"monotonic": staticmethod(lambda: next(clock))}))
@@ -227,7 +230,8 @@ def test_poses_from_images_hands_on_its_options_and_the_georeference(tmp_path, m
     names = [f"v{k:02d}.png" for k in range(13)]
     positions = {n: {"latitude": 47.0, "longitude": 8.0, "altitude": 400.0} for n in names}
     calls = []
-    monkeypatch.setattr(gps, "read_all", lambda paths: calls.append(("read_all", list(paths))) or positions)
+    monkeypatch.setattr(gps, "positions_of",
+                        lambda records: calls.append(("read_all", [r.path for _, r in records])) or positions)
     monkeypatch.setattr(georef, "read_gcp_csv", lambda path, sizes: calls.append(("gcp", path, sizes)) or [])
     monkeypatch.setattr(georef, "precheck_gps", lambda *args: calls.append(("precheck", *args)))
     z30 = Rotation.from_rotvec([0.0, 0.0, np.radians(30.0)]).as_matrix()
@@ -308,12 +312,30 @@ def test_poses_from_images_reads_no_gps_when_told_and_reads_it_else(tmp_path, mo
     photos, model_dir, _ = _scene(tmp_path, turned=())
     monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
     read, aligned = [], []
-    monkeypatch.setattr(gps, "read_all", lambda paths: read.append(1) or {})
+    monkeypatch.setattr(gps, "positions_of", lambda records: read.append(1) or {})
     real_align = georef.align_model
     monkeypatch.setattr(georef, "align_model", lambda model, positions, **kw: aligned.append(positions)
                         or real_align(model, positions, **kw))
     poses.poses_from_images(photos, tmp_path / "data", progress=False, ignore_gps=ignore_gps)
     assert (read, aligned) == ([] if ignore_gps else [1], [{}])
+
+
+def test_poses_from_images_opens_each_photo_once_for_its_exif(tmp_path, monkeypatch):
+    """The cameras, the GPS and the upright sizes come from one opening of each readable photo's
+    header (`photo_headers`), not one per reader: PIL's Image.open is called once per photo (the
+    pixels are decoded by OpenCV), and not at all for the broken file."""
+    photos, model_dir, _ = _scene(tmp_path, turned=())
+    monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
+    opened = []
+    real_open = Image.open
+
+    def counting_open(fp, *args, **kwargs):
+        opened.append(Path(getattr(fp, "name", fp)).name)
+        return real_open(fp, *args, **kwargs)
+
+    monkeypatch.setattr(Image, "open", counting_open)
+    poses.poses_from_images(photos, tmp_path / "data", progress=False)
+    assert sorted(opened) == [f"v{k:02d}.png" for k in range(13)]
 
 
 def test_poses_from_images_with_a_scale_bar_is_in_metres(tmp_path, monkeypatch):
