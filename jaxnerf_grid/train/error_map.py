@@ -9,7 +9,8 @@ Instant-NGP samples its training pixels from such an error map; this one is per 
 the map is small (1 / tile^2 of the pixels) and its cumulative sum cheap in every step.
 
 The loss is not re-weighted: the drawn share over-weights the tiles still in error, the uniform
-share keeps every pixel in the objective. Masked pixels (loss weight 0) drawn in a tile count
+share keeps every pixel in the objective. The PSNR the run logs is the uniform share's, an
+unbiased sample of the training pixels' fit. Masked pixels (loss weight 0) drawn in a tile count
 nothing and update nothing. The map is part of the training state (checkpointed: a resumed run
 draws what the straight run draws) and replicated: every device draws the same global batch
 from it, so 1 and 2 devices train the same.

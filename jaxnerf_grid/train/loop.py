@@ -360,6 +360,9 @@ def _make_train_step(cfg: RunConfig, num_devices: int):
             whole = jax.lax.psum(whole, AXIS)
             new_state["error_map"] = jnp.where(finite, error_map.update(state["error_map"], batch["tiles"], whole[0],
                                                                         whole[1]), state["error_map"])
+            if from_errors < tcfg.batch_rays:  # the logged fit is the uniform share's (the map's over-weights errors)
+                uniform = (jnp.arange(tcfg.batch_rays) < tcfg.batch_rays - from_errors) * whole[1]
+                mse = losses.weighted_mean(whole[0], uniform)
         stats = {"loss": loss, "mse": mse, "finite": finite}
         if depth_on:
             stats["depth_loss"] = depth

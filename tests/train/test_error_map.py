@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from jaxnerf_grid.config import schema as config_lib
 from jaxnerf_grid.config.schema import ConfigError
 from jaxnerf_grid.train import checkpoint, error_map, ray_pool
 from jaxnerf_grid.train import loop as train
@@ -138,3 +139,25 @@ def test_the_record_is_checkpointed_with_the_run_and_absent_without_the_map(tmp_
     # the plain run's state has no map
     assert "error_map" not in train.init_state(dataclasses.replace(tiny_config(), model=dataclasses.replace(
         tiny_config().model, num_images=5)), train.train_frames_shape(ds))
+
+
+def test_the_logged_fit_is_the_uniform_shares_mse_not_the_whole_batchs(tmp_path):
+    ds = tiny_dataset()
+    cfg = tiny_config(field="grid", error_share=0.5, error_tile=4, num_devices=1, log_every=1)
+    train.train(ds, cfg, tmp_path / "r", progress=False, stop_at=1)
+    logged = train.read_log(tmp_path / "r" / "metrics.jsonl")[0]["psnr"]
+    # the first step's batch, drawn and rendered again with the initial parameters
+    settled = config_lib.resolve(cfg, ds)
+    state = train.init_state(settled, train.train_frames_shape(ds))
+    _, k_batch, k_rays = jax.random.split(state["key"], 3)
+    pool = ray_pool.upload(ray_pool.build(ds, settled), 1)
+    batch = jax.pmap(lambda p, k, e: ray_pool.device_batch(p, k, 64, 64, errors=e, from_errors=32, tile=4),
+                     axis_name=parallel.AXIS, devices=parallel.devices(1))(
+        pool, parallel.replicate(k_batch, 1), parallel.replicate(jnp.asarray(state["error_map"]), 1))
+    batch = jax.tree_util.tree_map(lambda x: x[0], batch)
+    _, terms = train.batch_terms(state["params"], settled, batch, jax.random.split(k_rays, 64))
+    mse, w = np.asarray(terms["mse"], np.float64), np.asarray(batch["weight"], np.float64)
+    uniform = np.sum(mse[:32] * w[:32]) / np.sum(w[:32])
+    whole = np.sum(mse * w) / np.sum(w)
+    assert logged == pytest.approx(-10 * np.log10(uniform), abs=1e-3)
+    assert abs(-10 * np.log10(whole) - logged) > 1e-2
