@@ -59,9 +59,9 @@ def scaled_intrinsics(intrinsics: np.ndarray, factor: int) -> np.ndarray:
 
 
 def lowres_dataset(dataset: Dataset, cfg) -> Dataset:
-    """The dataset's frames shrunk by train.lowres_factor for the pool of the first steps, one
-    frame at a time (a shrunk copy is 1 / f^2 of the frames): images [N, H/f, W/f, 3] uint8 (block
-    means), weights [N, H/f, W/f] the block minimum of the run's loss weights
+    """The dataset's training frames shrunk by train.lowres_factor for the pool of the first steps,
+    one frame at a time (a shrunk copy is 1 / f^2 of the frames; the others are left black):
+    images [N, H/f, W/f, 3] uint8 (block means), weights [N, H/f, W/f] the block minimum of the run's loss weights
     (`ray_pool.frame_weights`, the mask floor applied; None when the run uses none), intrinsics
     divided by f. Only what the plain pool reads is kept. cfg: a RunConfig."""
     t = cfg.train
@@ -69,10 +69,10 @@ def lowres_dataset(dataset: Dataset, cfg) -> Dataset:
     if dataset.height < f or dataset.width < f:
         raise ConfigError(f"train.lowres_factor {f} is larger than the frames ({dataset.width}x{dataset.height})")
     n, h, w = dataset.num_frames, dataset.height // f, dataset.width // f
-    images = np.empty((n, h, w, 3), np.uint8)
+    images = np.zeros((n, h, w, 3), np.uint8)
     masked = t.use_masks and dataset.weights is not None
-    weights = np.empty((n, h, w), np.float32) if masked else None
-    for i in range(n):
+    weights = np.zeros((n, h, w), np.float32) if masked else None
+    for i in np.asarray(dataset.split["train"], np.int64):  # the pool reads the training frames only
         images[i] = block_mean_uint8(dataset.images[i], f)
         if weights is not None:
             assert dataset.weights is not None
