@@ -38,6 +38,7 @@ from pathlib import Path
 
 import numpy as np
 
+from jaxnerf_grid.data.formats import collect_scene
 from jaxnerf_grid.data.normalize import orbit_roi
 from jaxnerf_grid.util import io
 from jaxnerf_grid.util.io import DataError
@@ -134,6 +135,38 @@ def folder_bounds(data) -> dict | None:
     return read_bounds(meta, path) if isinstance(meta, dict) else None
 
 
+def unrecorded_bounds(c2w: np.ndarray, points_near: float, recipe_near: float | None, far: float,
+                      contract_radius: float) -> dict | None:
+    """Bounds for a contracted recipe on a dataset that records none (not written by `poses`):
+    None while the recipe's near holds, every camera at least recipe_near / NEAR_FACTOR outside
+    the unit sphere (a normalised capture's region of interest; the synthetic orbits are); else
+    the recipe's far and contraction radius with near lowered to NEAR_FACTOR x the nearest
+    camera's distance to that sphere, never below points_near (the dataset's own near), which is
+    near when a camera lies inside the sphere (a walk through a scene, not an orbit around one
+    subject, where a near of 1 cuts off all that lies within a unit of that camera). c2w: [N, 3|4,
+    4] in the normalised scene. Returns `scene_bounds`' keys (centre 0, radius 1) and "source":
+    "cameras", or None."""
+    if recipe_near is None:
+        return None  # the dataset's own near is used
+    gap = float(np.min(np.linalg.norm(np.asarray(c2w, np.float64)[:, :3, 3], axis=-1))) - 1.0
+    near = max(NEAR_FACTOR * gap, float(points_near))
+    if near >= float(recipe_near):
+        return None
+    return {"near": near, "far": float(far), "contract_radius": float(contract_radius), "roi_centre": [0.0, 0.0, 0.0],
+            "roi_radius": 1.0, "nearest_camera_to_roi": gap, "source": "cameras"}
+
+
+def folder_camera_bounds(data, model) -> dict | None:
+    """`unrecorded_bounds` of a dataset folder's cameras (read without the pixels) for a model
+    config (its near, far, contract_radius); None when they cannot be read (the run's loading
+    says why, in one line)."""
+    try:
+        scene = collect_scene(data, load_extras=False)
+    except DataError:
+        return None
+    return unrecorded_bounds(scene.c2w, scene.near, model.near, model.far, model.contract_radius)
+
+
 def recipe_with_bounds(recipe: dict, bounds: dict | None) -> dict:
     """The recipe (a config overrides dict) with model.near / far / contract_radius from a
     dataset's recorded `bounds` (None: the recipe unchanged; lay the user's --set flags on top
@@ -151,6 +184,13 @@ def bounds_line(bounds: dict | None) -> str:
     if not bounds:
         return ("Scene bounds: the recipe's constants (the dataset records no `scene_bounds`; "
                 "docs/BOUNDS.md).")
+    if bounds.get("source") == "cameras":
+        where = (f"a camera lies {-bounds['nearest_camera_to_roi']:.3g} inside the region of interest (the "
+                 "unit sphere): the photos walk through the scene rather than look at one subject, which the "
+                 "model resolves finest inside that sphere" if bounds["nearest_camera_to_roi"] < 0 else
+                 f"the nearest camera lies {bounds['nearest_camera_to_roi']:.3g} from the region of interest")
+        return (f"Scene bounds: the recipe's, with near lowered to {bounds['near']:.3g}: {where} (the dataset "
+                "records no `scene_bounds`; docs/BOUNDS.md).")
     return (f"Scene bounds from the data (docs/BOUNDS.md): near {bounds['near']:.3g}, far {bounds['far']:.4g}, "
             f"contraction radius {bounds['contract_radius']:g}, region of interest radius "
             f"{bounds['roi_radius']:.3g} around {', '.join(f'{v:.3g}' for v in bounds['roi_centre'])} "

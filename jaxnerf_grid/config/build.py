@@ -29,7 +29,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from jaxnerf_grid.capture.bounds import folder_bounds, recipe_with_bounds
+from jaxnerf_grid.capture.bounds import folder_bounds, folder_camera_bounds, recipe_with_bounds
 from jaxnerf_grid.config import budget as budget_lib
 from jaxnerf_grid.config import recipes
 from jaxnerf_grid.config import schema as config_lib
@@ -130,8 +130,11 @@ def build(request: Request, data: str | Path | None = None, extra: dict | None =
         config_lib.check_value("run.minutes", request.minutes, float, config_lib.POSITIVE)
     overrides = recipes.overrides(recipe)
     bounds = folder_bounds(data) if data is not None and Path(data).is_dir() else None
-    if bounds and not make_config(method, overrides).model.use_contraction:
+    recipe_model = make_config(method, overrides).model
+    if bounds and not recipe_model.use_contraction:
         bounds = None  # a method in a bounded box keeps its own near / far
+    elif bounds is None and recipe_model.use_contraction and data is not None and Path(data).is_dir():
+        bounds = folder_camera_bounds(data, recipe_model)  # None unless a camera is nearer than the recipe's near
     overrides = recipe_with_bounds(overrides, bounds)
     overrides = config_lib.merge(overrides, defaults or {})
     user = with_sets(read_config_file(request.config_file), request.sets)  # what the user set by key

@@ -3,8 +3,11 @@ recipe takes them (docs/BOUNDS.md)."""
 
 from __future__ import annotations
 
+import json
+
 import numpy as np
 import pytest
+from PIL import Image
 
 from jaxnerf_grid import demo
 from jaxnerf_grid.capture import bounds
@@ -135,3 +138,42 @@ def test_bad_recorded_bounds_name_the_file_and_key(bad, key):
         bounds.read_bounds({"scene_bounds": {**recorded, **bad}}, "data/t.json")
     with pytest.raises(DataError, match="^data/t.json: 'scene_bounds' must be an object"):
         bounds.read_bounds({"scene_bounds": [1, 2]}, "data/t.json")
+
+
+def test_without_recorded_bounds_the_recipes_near_holds_for_an_orbit_and_drops_for_a_nearer_camera():
+    ring = np.stack([_look_at_origin([3 * np.cos(a), 3 * np.sin(a), 0.5]) for a in np.linspace(0, 6, 8)])
+    assert bounds.unrecorded_bounds(ring, 0.05, 1.0, 1000.0, 2.0) is None          # 0.9 x (3.04 - 1) > 1
+    near_ring = ring.copy()
+    near_ring[0, :3, 3] = [1.5, 0.0, 0.0]                                            # 0.5 from the unit sphere
+    got = bounds.unrecorded_bounds(near_ring, 0.05, 1.0, 1000.0, 2.0)
+    assert got["near"] == pytest.approx(0.9 * 0.5) and got["nearest_camera_to_roi"] == pytest.approx(0.5)
+    assert (got["far"], got["contract_radius"], got["source"]) == (1000.0, 2.0, "cameras")
+    assert bounds.unrecorded_bounds(near_ring, 0.6, 1.0, 1000.0, 2.0)["near"] == 0.6  # never below the dataset's
+    inside = ring.copy()
+    inside[0, :3, 3] = [0.3, 0.0, 0.0]                                               # inside the sphere: a walk
+    got = bounds.unrecorded_bounds(inside, 0.05, 1.0, 1000.0, 2.0)
+    assert got["near"] == 0.05 and got["nearest_camera_to_roi"] == pytest.approx(-0.7)
+    assert "inside the region of interest" in bounds.bounds_line(got)
+    assert bounds.unrecorded_bounds(inside, 0.05, None, 1000.0, 2.0) is None        # the dataset's near is used
+
+
+def _normalised_folder(tmp_path, eyes, near=0.05):
+    """A transforms.json dataset, taken as normalised, of 16x12 black photos at `eyes`."""
+    folder = tmp_path / "walk"
+    (folder / "images").mkdir(parents=True)
+    frames = []
+    for k, eye in enumerate(eyes):
+        Image.new("RGB", (16, 12)).save(folder / "images" / f"{k}.png")
+        frames.append({"file_path": f"images/{k}.png", "transform_matrix": _look_at_origin(eye).tolist()})
+    meta = {"w": 16, "h": 12, "fl_x": 14.0, "fl_y": 14.0, "cx": 8.0, "cy": 6.0, "near": near, "far": 100.0,
+            "scene_normalization": {"scale": 1.0, "translation": [0.0, 0.0, 0.0]}, "frames": frames}
+    (folder / "transforms.json").write_text(json.dumps(meta))
+    return folder
+
+
+def test_the_config_of_a_capture_walking_through_its_scene_starts_the_rays_at_the_datasets_near(tmp_path):
+    walk = _normalised_folder(tmp_path, [[0.3, 0.0, 0.1], [2.0, 1.0, 0.3], [-2.5, 0.5, 0.2]])
+    built = build.build(build.Request(recipe="ours-lean"), data=walk)
+    assert built.overrides["model"]["near"] == pytest.approx(0.05) and built.bounds["source"] == "cameras"
+    orbit = _normalised_folder(tmp_path / "o", [[3.0, 0.0, 0.5], [0.0, 3.0, 0.5], [-3.0, 0.0, 0.5]])
+    assert build.build(build.Request(recipe="ours-lean"), data=orbit).bounds is None
