@@ -22,7 +22,8 @@ The rule:
   than NEAR_SHARE of one photo's observations of sparse points (`colmap.observation_depths`, photos
   with at least NEAR_MIN_OBSERVATIONS of them) lie nearer than that: static geometry fills part
   of that photo there (a wall at the end of an arc), which rays starting beyond it could only
-  paint as fog, so near is then the smaller of the two;
+  paint as fog, so near is then the smaller of the two; never below NEAR_FLOOR (the disparity
+  warp's samples would crowd in front of the cameras);
 - contract_radius: CONTRACT_RADIUS. Not a distance in the scene: `coords.contract` leaves the
   unit ball (the ROI, by the normalisation) as it is and maps everything outside it into the
   shell between 1 and this radius; 2 gives the background a shell as thick as the ROI's
@@ -48,6 +49,10 @@ ROI_CAMERA_FRACTION = 1.0 / 3.0
 NEAR_FACTOR = 0.9      # the same 10 % margin as the COLMAP loader's near (data/formats/colmap.py)
 NEAR_SHARE = 0.1       # a photo with more of its observations nearer than the ROI's near: near from the points
 NEAR_MIN_OBSERVATIONS = 100  # a photo with fewer observations says too little to move near
+# near never below this (normalised units, the ROI's radius 1): the disparity warp spends half its
+# samples between near and 2 x near, so a near of 0.001 (one point close to one camera) leaves the
+# scene a few percent of them
+NEAR_FLOOR = 0.05
 CONTRACT_RADIUS = 2.0
 FAR_GAP = 5e-4         # far's contracted image within 0.05 % of the outer radius
 BOUND_KEYS = ("near", "far", "contract_radius")
@@ -92,6 +97,7 @@ def scene_bounds(c2w: np.ndarray, points: np.ndarray | None, points_near: float 
     if not np.isfinite(near) or near <= 0:
         raise DataError(f"scene_bounds: no positive near (a camera inside the region of interest, "
                         f"{gap:.3g} from its sphere, and no points' near)")
+    near = max(near, NEAR_FLOOR)
     out = {"near": float(near), "far": far_for_radius(CONTRACT_RADIUS), "contract_radius": CONTRACT_RADIUS,
            "roi_centre": [float(v) for v in centre], "roi_radius": float(radius), "nearest_camera_to_roi": gap}
     if nearer is not None:
@@ -126,13 +132,16 @@ def read_bounds(meta: dict, source) -> dict | None:
 
 
 def folder_bounds(data) -> dict | None:
-    """The checked `scene_bounds` of a dataset folder's transforms.json (`read_bounds`); None
-    when the folder has no transforms.json (COLMAP, LLFF) or it records none."""
+    """The checked `scene_bounds` of a dataset folder's transforms.json (`read_bounds`), near at
+    least NEAR_FLOOR; None when the folder has no transforms.json (COLMAP, LLFF) or it records none."""
     path = Path(data) / "transforms.json"
     if not path.is_file():
         return None
     meta = io.read_json(path)
-    return read_bounds(meta, path) if isinstance(meta, dict) else None
+    bounds = read_bounds(meta, path) if isinstance(meta, dict) else None
+    if bounds is not None and bounds["near"] < NEAR_FLOOR:  # recorded before the floor
+        bounds = {**bounds, "near": NEAR_FLOOR}
+    return bounds
 
 
 def unrecorded_bounds(c2w: np.ndarray, points_near: float, recipe_near: float | None, far: float,
@@ -149,7 +158,7 @@ def unrecorded_bounds(c2w: np.ndarray, points_near: float, recipe_near: float | 
     if recipe_near is None:
         return None  # the dataset's own near is used
     gap = float(np.min(np.linalg.norm(np.asarray(c2w, np.float64)[:, :3, 3], axis=-1))) - 1.0
-    near = max(NEAR_FACTOR * gap, float(points_near))
+    near = max(NEAR_FACTOR * gap, float(points_near), NEAR_FLOOR)
     if near >= float(recipe_near):
         return None
     return {"near": near, "far": float(far), "contract_radius": float(contract_radius), "roi_centre": [0.0, 0.0, 0.0],

@@ -177,3 +177,21 @@ def test_the_config_of_a_capture_walking_through_its_scene_starts_the_rays_at_th
     assert built.overrides["model"]["near"] == pytest.approx(0.05) and built.bounds["source"] == "cameras"
     orbit = _normalised_folder(tmp_path / "o", [[3.0, 0.0, 0.5], [0.0, 3.0, 0.5], [-3.0, 0.0, 0.5]])
     assert build.build(build.Request(recipe="ours-lean"), data=orbit).bounds is None
+
+
+def test_near_never_drops_below_the_floor_where_one_point_lies_at_a_camera(tmp_path):
+    ring = np.stack([_look_at_origin([3 * np.cos(a), 3 * np.sin(a), 0.5]) for a in np.linspace(0, 6, 8)])
+    inside = ring.copy()
+    inside[0, :3, 3] = [0.3, 0.0, 0.0]
+    # a camera inside the region of interest: near is the points' own, here 0.001, floored at 0.05
+    assert bounds.scene_bounds(inside, None, points_near=0.001)["near"] == bounds.NEAR_FLOOR == 0.05
+    assert bounds.scene_bounds(inside, None, points_near=0.2)["near"] == pytest.approx(0.2)
+    assert bounds.unrecorded_bounds(inside, 0.001, 1.0, 1000.0, 2.0)["near"] == 0.05
+    # a dataset that recorded a smaller near runs with the floor
+    walk = _normalised_folder(tmp_path, [[0.3, 0.0, 0.1], [2.0, 1.0, 0.3]])
+    meta = json.loads((walk / "transforms.json").read_text())
+    meta["scene_bounds"] = {"near": 0.0009, "far": 1000.0, "contract_radius": 2.0, "roi_centre": [0, 0, 0],
+                            "roi_radius": 1.0}
+    (walk / "transforms.json").write_text(json.dumps(meta))
+    assert bounds.folder_bounds(walk)["near"] == 0.05
+    assert build.build(build.Request(recipe="ours-lean"), data=walk).overrides["model"]["near"] == 0.05
