@@ -28,7 +28,7 @@ from typing import Any
 import numpy as np
 
 from jaxnerf_grid.capture import camera_set
-from jaxnerf_grid.capture.bounds import bounds_line
+from jaxnerf_grid.capture.bounds import bounds_line, bounds_warning
 from jaxnerf_grid.config import budget as budget_lib
 from jaxnerf_grid.config import build, recipes
 from jaxnerf_grid.config import schema as config_lib
@@ -403,6 +403,8 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
                         measure=speed.planner(out / "run", overwrite,
                                               _say if progress and distributed.is_main() else None))
     bounds = built.bounds
+    if bounds_warning(bounds) and distributed.is_main():
+        print(bounds_warning(bounds), flush=True)
     if built.budget is not None and progress and distributed.is_main():
         print(budget_lib.report_line(built.budget), flush=True)
     if built.budget is not None and budget_lib.warning(built.budget) and distributed.is_main():

@@ -188,6 +188,19 @@ def recipe_with_bounds(recipe: dict, bounds: dict | None) -> dict:
     return {**recipe, "model": model}
 
 
+def bounds_warning(bounds: dict | None) -> str | None:
+    """A one-line warning before training when a camera lies inside the region of interest (its
+    recorded or camera-read "nearest_camera_to_roi" < 0): the photos look out from within the
+    scene, not at one subject, and the contracted model, finest inside the unit sphere, comes out
+    fogged on such a capture. None otherwise."""
+    gap = (bounds or {}).get("nearest_camera_to_roi")
+    if gap is None or gap >= 0:
+        return None
+    return (f"warning: a camera lies {-gap:.3g} inside the region of interest: the photos look out from within "
+            "the scene rather than at one subject; the model resolves the region around one subject finest, "
+            "so expect a fogged result (docs/BOUNDS.md)")
+
+
 def bounds_line(bounds: dict | None) -> str:
     """One report line on where a run's bounds come from."""
     if not bounds:

@@ -104,7 +104,7 @@ def train_summary(cfg, result, run_dir) -> str:
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
     multi = start_distributed(args)
-    from jaxnerf_grid.capture.bounds import bounds_line
+    from jaxnerf_grid.capture.bounds import bounds_line, bounds_warning
     from jaxnerf_grid.config import budget, build
     from jaxnerf_grid.eval import evaluate
     from jaxnerf_grid.train import distributed, runs
@@ -121,6 +121,8 @@ def main(argv: list[str] | None = None) -> int:
                         measure=speed.planner(out, args.overwrite, None if args.quiet else print))
     if built.bounds:
         print(bounds_line(built.bounds))
+    if bounds_warning(built.bounds):
+        print(bounds_warning(built.bounds))
     if built.budget is not None:
         print(budget.report_line(built.budget))
         if budget.warning(built.budget):

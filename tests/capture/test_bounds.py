@@ -195,3 +195,10 @@ def test_near_never_drops_below_the_floor_where_one_point_lies_at_a_camera(tmp_p
     (walk / "transforms.json").write_text(json.dumps(meta))
     assert bounds.folder_bounds(walk)["near"] == 0.05
     assert build.build(build.Request(recipe="ours-lean"), data=walk).overrides["model"]["near"] == 0.05
+
+
+def test_a_camera_inside_the_region_of_interest_is_warned_of_before_training():
+    assert bounds.bounds_warning(None) is None
+    assert bounds.bounds_warning({"nearest_camera_to_roi": 0.4}) is None          # an orbit outside the sphere
+    line = bounds.bounds_warning({"nearest_camera_to_roi": -0.903})
+    assert line.startswith("warning: a camera lies 0.903 inside the region of interest") and "\n" not in line
