@@ -210,7 +210,8 @@ def init_state(cfg: RunConfig, frames_shape: tuple | None = None) -> dict:
     if error_map.error_rays(cfg.train):
         if frames_shape is None:
             raise ValueError("init_state: train.error_share is on, give the training frames' shape")
-        state["error_map"] = error_map.init(*frames_shape, cfg.train.error_tile)
+        frames, height, width = frames_shape
+        state["error_map"] = error_map.init(frames, height, width, cfg.train.error_tile)
     if cfg.train.robust.mode != "off":
         if frames_shape is None:
             raise ValueError("init_state: train.robust is on, give the training frames' shape")
