@@ -14,14 +14,7 @@ False) wins over the photos' evidence.
 
 from __future__ import annotations
 
-from pathlib import Path
-
-from jaxnerf_grid.capture import photo_exif
 from jaxnerf_grid.capture.photo_exif import PhotoExif, read_exif
-
-# the EXIF tags that name the camera (`photo_exif` reads them), named here as well
-EXIF_IFD, MAKE, MODEL = photo_exif.EXIF_IFD, photo_exif.MAKE, photo_exif.MODEL
-FOCAL_LENGTH, FOCAL_35MM, LENS_MODEL = photo_exif.FOCAL_LENGTH, photo_exif.FOCAL_35MM, photo_exif.LENS_MODEL
 
 
 def exif_text(value) -> str | None:
@@ -72,8 +65,3 @@ def choose_sharing(asked: bool | None, sizes: dict, cameras: dict) -> tuple[bool
     size = next(iter(sizes.values()), (0, 0))
     named = " ".join(str(v) for v in camera[:2] if v) or "no EXIF camera"
     return True, f"one size, {size[0]}x{size[1]}, and one camera: {named}"
-
-
-def read_cameras(folder: Path, names: list[str]) -> dict:
-    """{name: `exif_camera`} of the photos `names` in `folder`."""
-    return {name: exif_camera(Path(folder) / name) for name in names}

@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from jaxnerf_grid.capture import camera_sharing
+from jaxnerf_grid.capture import camera_sharing, photo_exif
 from jaxnerf_grid.capture.camera_sharing import choose_sharing, exif_camera
 from jaxnerf_grid.util.io import DataError
 
@@ -18,18 +18,18 @@ def _jpeg(path, make=None, model=None, focal=None, focal35=None, lens=None, size
     """A JPEG whose EXIF holds exactly the given camera fields (Pillow writes them)."""
     exif = Image.Exif()
     if make is not None:
-        exif[camera_sharing.MAKE] = make
+        exif[photo_exif.MAKE] = make
     if model is not None:
-        exif[camera_sharing.MODEL] = model
+        exif[photo_exif.MODEL] = model
     sub = {}
     if focal is not None:
-        sub[camera_sharing.FOCAL_LENGTH] = focal
+        sub[photo_exif.FOCAL_LENGTH] = focal
     if focal35 is not None:
-        sub[camera_sharing.FOCAL_35MM] = focal35
+        sub[photo_exif.FOCAL_35MM] = focal35
     if lens is not None:
-        sub[camera_sharing.LENS_MODEL] = lens
+        sub[photo_exif.LENS_MODEL] = lens
     if sub:
-        exif[camera_sharing.EXIF_IFD] = sub
+        exif[photo_exif.EXIF_IFD] = sub
     Image.fromarray(np.full((size[1], size[0], 3), 128, np.uint8)).save(path, exif=exif)
     return path
 
@@ -81,11 +81,12 @@ def test_the_users_choice_wins_over_the_photos():
     assert choose_sharing(False, same, {"a": DRONE, "b": DRONE}) == (False, "as asked")
 
 
-def test_read_cameras_reads_each_named_photo_of_the_folder(tmp_path):
+def test_the_cameras_of_each_named_photo_of_the_folder_are_read(tmp_path):
     _jpeg(tmp_path / "a.jpg", make="DJI", model="FC6310", focal=8.8)
     _jpeg(tmp_path / "b.jpg", make="DJI", model="FC6310", focal=4.5)
     _jpeg(tmp_path / "c.jpg", make="Other")
-    assert camera_sharing.read_cameras(tmp_path, ["a.jpg", "b.jpg"]) == {
+    records = photo_exif.read_all([tmp_path / "a.jpg", tmp_path / "b.jpg"], gps=False)
+    assert camera_sharing.cameras_of(records) == {
         "a.jpg": ("DJI", "FC6310", None, 8.8, None), "b.jpg": ("DJI", "FC6310", None, 4.5, None)}
 
 
