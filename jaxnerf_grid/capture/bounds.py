@@ -139,7 +139,7 @@ def folder_bounds(data) -> dict | None:
         return None
     meta = io.read_json(path)
     bounds = read_bounds(meta, path) if isinstance(meta, dict) else None
-    if bounds is not None and bounds["near"] < NEAR_FLOOR:  # recorded before the floor
+    if bounds is not None and bounds["near"] < NEAR_FLOOR:  # a recorded near under the floor runs at the floor
         bounds = {**bounds, "near": NEAR_FLOOR}
     return bounds
 
