@@ -440,12 +440,41 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
     dof = len(r) - len(free)
     if dof <= 0:
         return np.full((5, 5), np.inf), float("nan")
-    sigma2 = float(r @ r) / dof
-    try:
-        cov = mapping @ (sigma2 * np.linalg.inv(jac.T @ jac)) @ mapping.T
-    except np.linalg.LinAlgError:
-        cov = np.full((5, 5), np.inf)
-    return cov, math.sqrt(sigma2)
+    return fit_covariance(jac, r, mapping), math.sqrt(float(r @ r) / dof)
+
+
+UNDETERMINED_RCOND = 1e-9   # J^T J's eigenvalues (unit columns) under this share of the largest: not fixed
+
+
+def fit_covariance(jac: np.ndarray, residuals: np.ndarray, jmap: np.ndarray | None = None,
+                   rcond: float = UNDETERMINED_RCOND) -> np.ndarray:
+    """A least-squares fit's covariance sigma^2 (J^T J)^-1 (jac [R, P] at the solution, residuals
+    [R], sigma^2 = r.r / max(R - P, 1)) mapped to the figures jmap [Q, P] derives from the
+    parameters (d figure / d parameter; None: the parameters themselves). Returns [Q, Q].
+    A parameter the residuals do not fix (in a direction of J^T J, its columns scaled to unit
+    norm, whose eigenvalue is under rcond of the largest: heights all at one distance leave the
+    slope and the curvature free) is undetermined: an infinite variance, no covariance with the
+    others; so is every figure that depends on it. The rest is the pseudo-inverse's, finite: the
+    plain inverse of a nearly singular J^T J is round-off (variances of 1e13, negative ones) and
+    its failure an infinite matrix that a map with zeros turns into NaN."""
+    jac = np.asarray(jac, np.float64)
+    r = np.asarray(residuals, np.float64)
+    n_par = jac.shape[1]
+    jmap = np.eye(n_par) if jmap is None else np.asarray(jmap, np.float64)
+    sigma2 = float(r @ r) / max(len(r) - n_par, 1)
+    norm = np.linalg.norm(jac, axis=0)
+    scale = np.where(norm > 0, 1.0 / np.where(norm > 0, norm, 1.0), 0.0)   # unit columns: units compared on one scale
+    lam, vec = np.linalg.eigh((jac * scale).T @ (jac * scale))
+    fixed = lam > rcond * max(float(lam.max(initial=0.0)), 1e-300)
+    undetermined = (norm == 0) | (np.linalg.norm(vec[:, ~fixed], axis=1) > 1e-6)
+    inv = (vec[:, fixed] / lam[fixed]) @ vec[:, fixed].T
+    cov_x = sigma2 * scale[:, None] * inv * scale[None, :]
+    cov_x[undetermined, :], cov_x[:, undetermined] = 0.0, 0.0
+    out = jmap @ cov_x @ jmap.T
+    lost = np.any((jmap[:, undetermined] != 0), axis=1)
+    out[lost, :], out[:, lost] = 0.0, 0.0
+    out[lost, lost] = np.inf
+    return out
 
 
 # --- the guided track ------------------------------------------------------------------------------
@@ -539,13 +568,7 @@ def fit_profile(s: np.ndarray, z: np.ndarray, weight: np.ndarray, kappa_max: flo
         out = least_squares(res, x0, loss="cauchy", f_scale=tol, x_scale=[1.0, 0.01, 0.1 * kappa_max],
                             bounds=([-np.inf, -1.0, kappa_min], [np.inf, 1.0, kappa_max]))
         params, jmap = out.x, np.eye(3)
-    r = out.fun
-    dof = max(len(r) - out.x.size, 1)
-    try:
-        cov_x = float(r @ r) / dof * np.linalg.inv(out.jac.T @ out.jac)
-    except np.linalg.LinAlgError:
-        cov_x = np.full((out.x.size, out.x.size), np.inf)
-    return params, jmap @ cov_x @ jmap.T
+    return params, fit_covariance(out.jac, out.fun, jmap)
 
 
 def plateau_centre(share: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[float, float]:

@@ -725,3 +725,36 @@ def test_earth_window_lies_above_the_highest_arm_window_within_the_arms_reach():
     seeds = [(s * c, z) for c, z in ((7.45, 17.5), (8.45, 21.5), (7.45, 25.5)) for s in (-1, 1)]
     across, heights = cond.earth_window(seeds, (1.5, 7.6, 1.5), (7.5, 33.0))
     assert across == (-8.45, 8.45) and heights == (27.0, 33.0)
+
+
+def test_fit_covariance_is_the_inverse_where_determined_and_infinite_only_where_not():
+    rng = np.random.default_rng(11)
+    r = rng.normal(0.0, 0.3, 30)
+    full = rng.normal(size=(30, 3))
+    sigma2 = float(r @ r) / 27
+    assert np.allclose(cond.fit_covariance(full, r), sigma2 * np.linalg.inv(full.T @ full))
+    # two parameters that move the residuals alike (only their sum is fixed) and a third apart:
+    # the third's variance is the closed form of its own column, sigma^2 / (y . y), the two undetermined
+    x = rng.normal(size=30)
+    y = rng.normal(size=30)
+    y -= (y @ x) / (x @ x) * x
+    cov = cond.fit_covariance(np.stack([x, x, y], 1), r)
+    assert np.isinf(cov[0, 0]) and np.isinf(cov[1, 1])
+    assert cov[2, 2] == pytest.approx(sigma2 / float(y @ y), rel=1e-9)
+    assert not np.isnan(cov).any() and cov[0, 2] == 0.0
+    # mapped: a figure of the third alone keeps its variance, one that needs the first is undetermined
+    mapped = cond.fit_covariance(np.stack([x, x, y], 1), r, np.array([[0.0, 0.0, 2.0], [1.0, 0.0, 1.0]]))
+    assert mapped[0, 0] == pytest.approx(4 * sigma2 / float(y @ y), rel=1e-9)
+    assert np.isinf(mapped[1, 1]) and not np.isnan(mapped).any()
+
+
+def test_profile_heights_at_one_distance_leave_the_slope_and_curvature_undetermined_not_nan():
+    s = np.full(6, 20.0)
+    z = 10.0 + np.array([0.0, 0.1, -0.1, 0.05, -0.05, 0.0])
+    for span_length in (None, 320.0):
+        with np.errstate(all="raise"):
+            _, cov = cond.fit_profile(s, z, np.ones_like(s), kappa_max=1e-3, span_length=span_length,
+                                      kappa_min=1e-4)
+        assert not np.isnan(cov).any()
+        # each of (z_a, m0, kappa) alone is free: one height at one distance fixes only their sum there
+        assert np.all(np.isinf(np.diag(cov)))
