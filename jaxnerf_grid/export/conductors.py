@@ -482,6 +482,7 @@ def fit_covariance(jac: np.ndarray, residuals: np.ndarray, jmap: np.ndarray | No
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
 DEFAULT_WINDOW_SUPPORT = 0.25     # the track from a cross-arm window's peak (a wire hangs there)
+DEFAULT_WINDOW_SHARE = 0.4        # that track's share of the stations tried to its last found that it must find
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
@@ -842,6 +843,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
                min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
                peak_support: float = DEFAULT_PEAK_SUPPORT, window_support: float = DEFAULT_WINDOW_SUPPORT,
+               window_share: float = DEFAULT_WINDOW_SHARE,
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
                settle: bool = True, top_window: bool = True) -> list[dict]:
@@ -917,14 +919,15 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if any(np.linalg.norm(curve_points(f["theta"], centre, np.array([station]), up)[0] - seed) < 0.033 *
                    tower_height for f in fits):
                 continue   # on a wire already fitted: the support is a ridge across the plane, not a point
-            track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height, up,
-                               tol_px, min_support, min_views, span_length)
+            track = {**track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height, up,
+                                  tol_px, min_support, min_views, span_length), "min_share": min_support}
             if in_window and not _enough(track, min_found, min_inlier_share) and window_support < min_support:
                 # a wire hangs below every cross-arm tip: one over the ground, its detections broken by
                 # the texture, is followed at a lower support when the usual one loses it
-                track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height,
-                                   up, tol_px, window_support, min_views, span_length)
-            if not _enough(track, min_found, min_inlier_share):
+                track = {**track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height,
+                                      up, tol_px, window_support, min_views, span_length), "min_share": window_support}
+            retried = in_window and track["min_share"] < min_support
+            if not _enough(track, min_found, window_share if retried else min_inlier_share):
                 continue
             theta = track["theta"]
             if refine:
@@ -967,6 +970,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 # a weak curve beside a wire is moved onto it by the scan: one record per wire
                 kept = _distinct(kept, centre, 0.033 * tower_height, up, key=lambda f: -f["support"])
         spans += kept
+    if refine and shared_sag and not span_length:
+        spans = _lone_earth_shared(views, spans, centre, half_length, up, tol_px, kappa_bounds)
     return spans
 
 
@@ -1101,6 +1106,67 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
         cov[3, 3], cov[3, 4] = sigma ** 2, dk * sigma ** 2
         cov[4, 3], cov[4, 4] = dk * sigma ** 2, (dk * sigma) ** 2 + (kappa / length) ** 2 * sigma_length ** 2
         out.append({**r, "cov": cov, "span_length": span_length, "slope_shared": (slope, sigma)})
+    return out
+
+
+def lone_earth_wires(spans: list[dict]) -> list[int]:
+    """The indices into spans (`find_spans`' records of both sides) of the earth wires (not
+    "from_arm") alone on their side while the other side has earth wires of its own: nothing on
+    their side to check their sag against, something across the tower to share it with."""
+    earth = [f["side"] for f in spans if not f.get("from_arm")]
+    return [i for i, f in enumerate(spans)
+            if not f.get("from_arm") and earth.count(f["side"]) == 1 and len(earth) > 1]
+
+
+def across_curvature(kappas: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
+    """The curvature (1 / the catenary parameter) a lone earth wire takes from the earth wires
+    across the tower, kappas [K] with their own variances [K]: their median and its 1-sigma, the
+    larger of the scaled MAD (`median_and_sigma`) and their own sigmas' root mean square (two
+    wires that agree by chance state no better than each of them)."""
+    kappa, sigma = median_and_sigma(kappas)
+    own = math.sqrt(float(np.mean(np.where(np.isfinite(variances), variances, 0.0))))
+    return kappa, max(sigma, own)
+
+
+def level_slope_jacobian(kappa: float, length: float) -> tuple[float, float]:
+    """(d m0 / d kappa, d m0 / d L) of a level span's slope at its attachment, m0 = -sinh(kappa L / 2)."""
+    c = math.cosh(0.5 * kappa * length)
+    return -0.5 * length * c, -0.5 * kappa * c
+
+
+def _lone_earth_shared(views: Views, spans: list[dict], centre, half_length: float, up, tol_px: float,
+                       kappa_bounds: tuple) -> list[dict]:
+    """The spans of both sides (no span length given) with each lone earth wire
+    (`lone_earth_wires`) given the curvature of the earth wires across the tower
+    (`across_curvature`): an earth wire strung over a suspension tower pulls the same horizontal
+    tension either side, the same catenary parameter. Its own sag rests on one wire's slope over
+    the span its side's phase wires measured (on ttpla-like seed 2 26.6 % deep, its stated sigma
+    3 %). With its side's span length ("span_length_shared") that curvature is one slope
+    (-sinh(kappa L / 2)); only the attachment (across, height) is refined, the azimuth held. Its
+    covariance: the attachment's block from the image residuals, the curvature's variance the
+    shared one's, the slope's through `level_slope_jacobian` with the span length's. Each such
+    record gets "curvature_shared" (kappa, sigma); a wire without a shared span length is left."""
+    out = list(spans)
+    for i in lone_earth_wires(spans):
+        f = spans[i]
+        if not f.get("span_length_shared"):
+            continue
+        length, sigma_length = (float(v) for v in f["span_length_shared"])
+        donors = [g for g in spans if not g.get("from_arm") and g["side"] != f["side"]]
+        kappa, sigma = across_curvature(np.array([g["theta"][4] for g in donors]),
+                                        np.array([g["cov"][4, 4] for g in donors]))
+        slope = -math.sinh(0.5 * kappa * length)
+        others = [g["theta"] for g in spans if g["side"] == f["side"] and g is not f]
+        psi_sigma = math.sqrt(max(float(f["cov"][2, 2]), 0.0))
+        r = _refined(views, {**f, "theta": with_slope(f["theta"], slope, length)}, others, centre, half_length,
+                     up, tol_px, length, (0, 1), kappa_bounds, psi_sigma)
+        dm_dk, dm_dl = level_slope_jacobian(kappa, length)
+        cov = r["cov"].copy()
+        cov[3:, :], cov[:, 3:] = 0.0, 0.0
+        cov[3, 3] = (dm_dk * sigma) ** 2 + (dm_dl * sigma_length) ** 2
+        cov[3, 4] = cov[4, 3] = dm_dk * sigma ** 2
+        cov[4, 4] = sigma ** 2
+        out[i] = {**r, "cov": cov, "span_length": None, "curvature_shared": (kappa, sigma)}
     return out
 
 
@@ -1374,6 +1440,8 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 "span_length_shared": None if fit.get("span_length_shared") is None else
                 [float(v) for v in fit["span_length_shared"]],
                 "slope_shared": None if fit.get("slope_shared") is None else [float(v) for v in fit["slope_shared"]],
+                "curvature_shared": None if fit.get("curvature_shared") is None else
+                [float(v) for v in fit["curvature_shared"]],
                 "settled": bool(fit.get("settled", False))})
     return rec
 
