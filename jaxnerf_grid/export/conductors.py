@@ -39,7 +39,8 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   (`combined_covariance`): the height, slope and curvature from the profile fit through the
   stations' heights (with a span length, the curvature moves with the slope), the across offset
   and azimuth from the image residuals. A cross-arm window's track that loses its wire at the
-  track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground).
+  track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground); that track
+  and the earth window's are kept at `DEFAULT_WINDOW_SHARE` of their stations found.
 * Refinement (`refine_span`): a station's cell is good to a pixel, and a pixel at 80 m is a
   milliradian of azimuth, decimetres at the far tower. Each kept wire is refined on the
   detections' sub-pixel centres (the along-normal offsets of the pairs that support it, clear of
@@ -482,7 +483,8 @@ def fit_covariance(jac: np.ndarray, residuals: np.ndarray, jmap: np.ndarray | No
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
 DEFAULT_WINDOW_SUPPORT = 0.25     # the track from a cross-arm window's peak (a wire hangs there)
-DEFAULT_WINDOW_SHARE = 0.4        # that track's share of the stations tried to its last found that it must find
+DEFAULT_WINDOW_SHARE = 0.4        # the share of its stations tried (to its last found) that track, or one from
+                                  # the earth wires' window, must find
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
@@ -871,8 +873,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     stations' support), a wire is dropped when more than max_shared of its support lies on the
     wires kept before it (`shared_evidence`), then when more than that lies on all the others
     (`borrowers_dropped`). window_support: a window's track that loses its wire at min_support is
-    retried at this support. refine: each candidate refined on the sub-pixel detections
-    (`refine_span`), each kept wire again clear of the others; shared_azimuth: then the side's
+    retried at this support; window_share: that track, and one from the earth wires' window, is
+    kept when it found this share of the stations it tried (min_inlier_share for the others).
+    refine: each candidate refined on the sub-pixel detections (`refine_span`), each kept wire
+    again clear of the others; shared_azimuth: then the side's
     wires turned to one azimuth (`side_azimuth`, `turned`) and refined with it held; shared_span:
     without span_length, then refined with one level span the side's wires share (`side_span`);
     shared_sag: then the side's wires hung in the cross-arms' windows (the phase conductors: one
@@ -884,11 +888,16 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     min_support after the arms' windows (its wires are not "from_arm"; "from_top" says so);
     settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
     support there is moved and its attachment refined again (`settled`, `_settled`), and of wires
-    that then lie on one another the one whose curve gathers the most support is kept.
+    that then lie on one another the one whose curve gathers the most support is kept. With
+    shared_sag, after both sides: a wire whose own slope ran off takes the attachment of its span
+    across the tower through the same clamp when that one's agreed with its side (`clamped`);
+    without span_length, a lone earth wire of a side takes the curvature of the earth wires across
+    the tower (`_lone_earth_shared`).
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "from_arm", "theta", "cov"
     (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
     "seen", "stations", "track" [F, 4], "span_length", "profile_cov", with shared_span
-    "span_length_shared" (L, sigma) and with shared_sag on the arms' wires "slope_shared" (m0, sigma)}]."""
+    "span_length_shared" (L, sigma), with shared_sag on the arms' wires "slope_shared" (m0, sigma)
+    and "slope_own", where they apply "clamp_shared" and "curvature_shared" (kappa, sigma)}]."""
     spans = []
     margin = 0.3 * tower_height
     station = half_length + margin
@@ -926,8 +935,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 # the texture, is followed at a lower support when the usual one loses it
                 track = {**track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height,
                                       up, tol_px, window_support, min_views, span_length), "min_share": window_support}
-            retried = in_window and track["min_share"] < min_support
-            if not _enough(track, min_found, window_share if retried else min_inlier_share):
+            # a window where a wire hangs (a cross-arm's, retried lower; the earth wires'): its track is
+            # judged at window_share, the low wires' and earth wires' support broken over half their stations
+            expected = in_top or (in_window and track["min_share"] < min_support)
+            if not _enough(track, min_found, window_share if expected else min_inlier_share):
                 continue
             theta = track["theta"]
             if refine:
@@ -970,6 +981,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 # a weak curve beside a wire is moved onto it by the scan: one record per wire
                 kept = _distinct(kept, centre, 0.033 * tower_height, up, key=lambda f: -f["support"])
         spans += kept
+    if refine and shared_sag:
+        spans = clamped(spans, centre, SETTLE_REACH * tower_height, RESCAN_CAP * tower_height, up)
     if refine and shared_sag and not span_length:
         spans = _lone_earth_shared(views, spans, centre, half_length, up, tol_px, kappa_bounds)
     return spans
@@ -1105,7 +1118,70 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
         cov[3:, :], cov[:, 3:] = 0.0, 0.0
         cov[3, 3], cov[3, 4] = sigma ** 2, dk * sigma ** 2
         cov[4, 3], cov[4, 4] = dk * sigma ** 2, (dk * sigma) ** 2 + (kappa / length) ** 2 * sigma_length ** 2
-        out.append({**r, "cov": cov, "span_length": span_length, "slope_shared": (slope, sigma)})
+        out.append({**r, "cov": cov, "span_length": span_length, "slope_shared": (slope, sigma),
+                    "slope_own": float(f["theta"][3])})
+    return out
+
+
+def clamp_pairs(spans: list[dict], centre, radius: float, up=(0.0, 0.0, 1.0)) -> list[tuple[int, int]]:
+    """Pairs (i, j) of indices into spans (`find_spans`' records of both sides) of wires hung from
+    the arms ("from_arm") with a shared slope ("slope_shared"), i on side +1 and j on side -1,
+    whose attachments (their curves at s = 0) lie within radius of each other, the nearest first
+    and each wire in one pair: one conductor through one suspension clamp, a span either side."""
+    att = [curve_points(f["theta"], centre, np.zeros(1), up)[0] for f in spans]
+    arm = [i for i, f in enumerate(spans) if f.get("from_arm") and f.get("slope_shared")]
+    near = sorted((float(np.linalg.norm(att[i] - att[j])), i, j) for i in arm for j in arm
+                  if spans[i]["side"] == 1 and spans[j]["side"] == -1)
+    used: set = set()
+    out = []
+    for d, i, j in near:
+        if d <= radius and i not in used and j not in used:
+            out.append((i, j))
+            used |= {i, j}
+    return out
+
+
+def attachment_on(theta, point, centre, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """theta [5] with its attachment (across, height) moved to the 3-D point [3] (its azimuth,
+    slope and curvature kept): across = (point - axis) . e_across(psi), height = point . up."""
+    out = np.asarray(theta, np.float64).copy()
+    _, across, u = line_axes(float(out[2]), up)
+    base = np.asarray(centre, np.float64)
+    base = base - (base @ u) * u
+    p = np.asarray(point, np.float64)
+    out[0], out[1] = float((p - base) @ across), float(p @ u)
+    return out
+
+
+def clamped(spans: list[dict], centre, floor: float, cap: float, up=(0.0, 0.0, 1.0)) -> list[dict]:
+    """The spans of both sides with the attachment of a wire whose own slope ran off taken from its
+    other span through the same clamp (`clamp_pairs` within floor): of a pair, the one whose own
+    slope ("slope_own"), over its track's reach, lies more than floor off its side's shared one
+    (`rescan_reach`, capped at cap) was tracked onto the ground's texture or a neighbour over part
+    of its reach and its attachment extrapolated with it (plad-like seed 2: 0.6 m low, its span
+    across the tower on the wire), while the other's own slope agreed with its side's. It takes
+    the other's attachment point (`attachment_on`) and its attachment's covariance, its shared
+    slope and curvature kept, and records "clamp_shared" True. Pairs that both agree, or both ran
+    off, are left."""
+    out = list(spans)
+    for i, j in clamp_pairs(spans, centre, floor, up):
+        off = [rescan_reach(float(spans[k].get("slope_own", spans[k]["theta"][3])),
+                            float(spans[k]["slope_shared"][0]), float(spans[k]["stations"][-1]), cap) > floor
+               for k in (i, j)]
+        if off[0] == off[1]:
+            continue
+        bad, good = (i, j) if off[0] else (j, i)
+        point = curve_points(spans[good]["theta"], centre, np.zeros(1), up)[0]
+        theta = attachment_on(spans[bad]["theta"], point, centre, up)
+        # the across axes of the two sides point opposite ways: the across-height covariance flips with them
+        flip = float(np.sign(line_axes(float(theta[2]), up)[1] @ line_axes(float(spans[good]["theta"][2]), up)[1]))
+        cov = np.array(spans[bad]["cov"], np.float64).copy()
+        cov[:2, :], cov[:, :2] = 0.0, 0.0
+        block = np.array(spans[good]["cov"], np.float64)[:2, :2].copy()
+        block[0, 1] *= flip
+        block[1, 0] *= flip
+        cov[:2, :2] = block
+        out[bad] = {**spans[bad], "theta": theta, "cov": cov, "clamp_shared": True}
     return out
 
 
@@ -1442,7 +1518,7 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 "slope_shared": None if fit.get("slope_shared") is None else [float(v) for v in fit["slope_shared"]],
                 "curvature_shared": None if fit.get("curvature_shared") is None else
                 [float(v) for v in fit["curvature_shared"]],
-                "settled": bool(fit.get("settled", False))})
+                "settled": bool(fit.get("settled", False)), "clamp_shared": bool(fit.get("clamp_shared", False))})
     return rec
 
 

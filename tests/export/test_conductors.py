@@ -3,6 +3,7 @@ in known cameras, with pixel noise and clutter added."""
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -850,3 +851,56 @@ def test_a_window_track_found_on_under_half_its_stations_is_kept_at_the_window_s
     assert len(kept) == 1 and kept[0]["from_arm"]
     assert np.linalg.norm(catenary.derived(kept[0]["theta"], np.zeros(3))["attachment"] - ATTACH) < 0.1
     assert found(window_share=0.5) == []
+
+
+def arm_record(side: int, x: float, z: float, own: float, shared: float = -0.1) -> dict:
+    """A kept arm wire's record on `side` attached at world (x, 0, z) (across = -x on side +1, +x on
+    side -1), its own slope `own` and its side's shared one, reaching 100 m."""
+    theta = np.array([-side * x, z, math.pi / 2 if side == 1 else -math.pi / 2, shared, 2 * math.asinh(-shared) / 320])
+    cov = np.diag([0.01, 0.04, 1e-8, 1e-8, 1e-12])
+    cov[0, 1] = cov[1, 0] = 0.005 * side
+    return {"side": side, "from_arm": True, "theta": theta, "cov": cov, "slope_shared": (shared, 1e-3),
+            "slope_own": own, "stations": np.linspace(4.5, 100.0, 10), "sigma_px": 0.5, "inlier_share": 0.6,
+            "residuals": 100, "seen": 160}
+
+
+def test_clamp_pairs_match_the_wires_across_the_tower_as_the_brute_force_matching_does():
+    """Side +1: the plad-like +0 wire 0.6 m low, a +x wire and a wire 0.3 m from the first (closer
+    than its span across); side -1: the spans across. The pairs are the matching of side +1 to
+    side -1 wires within 1 m with the most pairs, then the least total distance (every matching
+    tried); a non-arm wire and a same-side neighbour are never paired."""
+    spans = [arm_record(1, -7.45, 14.3, -0.057), arm_record(1, 7.45, 14.9, -0.1), arm_record(-1, -7.45, 14.9, -0.1),
+             arm_record(-1, 7.45, 14.85, -0.1), arm_record(-1, -8.45, 18.9, -0.1),
+             {**arm_record(1, -8.45, 18.9, -0.1), "from_arm": False}, arm_record(1, -7.45, 14.0, -0.1)]
+    att = [catenary.curve_points(f["theta"], np.zeros(3), np.zeros(1))[0] for f in spans]
+    np.testing.assert_allclose(att[0], [-7.45, 0.0, 14.3], atol=1e-12)
+    plus = [i for i, f in enumerate(spans) if f["side"] == 1 and f["from_arm"]]
+    minus = [i for i, f in enumerate(spans) if f["side"] == -1 and f["from_arm"]]
+    best: tuple = (0, 0.0, [])
+    for k in range(len(minus) + 1):
+        for chosen in itertools.permutations(minus, k):
+            for left in itertools.combinations(plus, k):
+                d = [float(np.linalg.norm(att[i] - att[j])) for i, j in zip(left, chosen)]
+                if all(x <= 1.0 for x in d) and (k, -sum(d)) > (best[0], -best[1]):
+                    best = (k, sum(d), sorted(zip(left, chosen)))
+    assert sorted(cond.clamp_pairs(spans, np.zeros(3), 1.0)) == best[2] == [(0, 2), (1, 3)]
+
+
+def test_a_wire_whose_own_slope_ran_off_takes_the_attachment_of_its_span_across_the_tower():
+    """The lowest wire of plad-like seed 2's +y side: its own slope -0.057 against its side's -0.100
+    over a 100 m reach (4.3 m at its end), its attachment 0.6 m low; its span across the tower
+    through the same clamp agrees with its side (-0.1). It takes that span's attachment point
+    (14.9 m) and its attachment's variances, its slope and curvature kept; the pair whose own
+    slopes both agree keeps its attachments; so does a wire that ran off with no span across."""
+    bad, good = arm_record(1, -7.45, 14.3, -0.057), arm_record(-1, -7.45, 14.9, -0.1)
+    fine_a, fine_b = arm_record(1, 7.45, 14.9, -0.1), arm_record(-1, 7.45, 14.85, -0.1)
+    out = cond.clamped([bad, good, fine_a, fine_b], np.zeros(3), 1.0, 3.0)
+    np.testing.assert_allclose(catenary.curve_points(out[0]["theta"], np.zeros(3), np.zeros(1))[0],
+                               [-7.45, 0.0, 14.9], atol=1e-9)
+    np.testing.assert_array_equal(out[0]["theta"][2:], bad["theta"][2:])
+    assert out[0]["clamp_shared"] and cond.span_record(out[0], np.zeros(3))["clamp_shared"]
+    np.testing.assert_allclose(np.diag(out[0]["cov"])[:2], np.diag(good["cov"])[:2])
+    assert out[0]["cov"][0, 1] == pytest.approx(-good["cov"][0, 1])     # the across axis flips between the sides
+    assert out[1] is good and out[2] is fine_a and out[3] is fine_b
+    alone = cond.clamped([bad, fine_b], np.zeros(3), 1.0, 3.0)
+    assert alone[0] is bad
