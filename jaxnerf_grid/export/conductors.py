@@ -49,13 +49,20 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   to it about the middle of its track (`turned`) and refined again with it held; without a span
   length, once more with the span the side's wires share (`side_span`). A refined span's 1-sigma
   figures: its image residuals' covariance, the shared azimuth's sigma in place of its own.
+* Across the tower: one conductor passes one suspension clamp, a span either side. A phase wire
+  whose own slope ran off takes its attachment from its span across the tower when that one's
+  agreed with its side (`clamped`); without a span length, a lone earth wire of a side takes the
+  curvature of the earth wires across the tower (the same horizontal tension either side:
+  `_lone_earth_shared`), each with the shared figure's sigma.
 * Fit (`fit_span`, a library function the track replaced in `find_spans`):
   robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
   transform's nearest-pixel map: iterated closest points), the samples' range grown in steps
   from the station outwards so the sag is found before the far part is asked to match. The
   1-sigma uncertainties are sigma^2 (J^T J)^-1 over the inlier residuals (sigma^2 their mean
-  square), propagated to every derived figure through its numerical Jacobian. A span is kept
+  square; `fit_covariance`: a parameter the residuals do not fix is undetermined, an infinite
+  sigma, and the record's sigmas None), propagated to every derived figure through its
+  numerical Jacobian. A span is kept
   when at least `min_inlier_share` of its projected samples lie within 2 `tol_px` of a
   detection.
 """
