@@ -957,6 +957,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
                              "from_arm": bool(in_window), "from_top": bool(in_top),
+                             "track_support": float(track["min_share"]),
                              "track": track["found"], "profile_cov": track["profile_cov"], **fit,
                              "image_cov": fit["cov"], "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
@@ -1480,10 +1481,9 @@ def _sample_gap(poly: np.ndarray) -> float:
 
 def _distinct(fits: list[dict], centre, radius: float, up, key=None) -> list[dict]:
     """One fit per wire: of fits whose curves pass within `radius` of each other (median over 20
-    stations of the shorter observed reach), the first by `key` (None: the most stations found on
-    its track, then the most inlier offsets)."""
+    stations of the shorter observed reach), the first by `key` (None: `track_rank`)."""
     kept: list[dict] = []
-    order = key or (lambda f: (-len(f.get("track", ())), -f["residuals"]))
+    order = key or track_rank
     for f in sorted(fits, key=order):
         same = False
         for k in kept:
@@ -1494,6 +1494,14 @@ def _distinct(fits: list[dict], centre, radius: float, up, key=None) -> list[dic
         if not same:
             kept.append(f)
     return kept
+
+
+def track_rank(fit: dict) -> tuple:
+    """The sort key of fits of one wire (`_distinct`), best first: the track that held it at the
+    higher support ("track_support": the usual one before a window's lower retry, which takes
+    cells the usual one rejected and on tower-small seed 2 ran 0.8-1 m beside the lowest wires,
+    one station more), then the most stations found, then the most inlier offsets."""
+    return -float(fit.get("track_support", 0.0)), -len(fit.get("track", ())), -fit["residuals"]
 
 
 def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
