@@ -904,3 +904,17 @@ def test_a_wire_whose_own_slope_ran_off_takes_the_attachment_of_its_span_across_
     assert out[1] is good and out[2] is fine_a and out[3] is fine_b
     alone = cond.clamped([bad, fine_b], np.zeros(3), 1.0, 3.0)
     assert alone[0] is bad
+
+
+def test_of_two_tracks_of_one_wire_the_one_held_at_the_usual_support_is_kept_over_a_longer_retry():
+    """tower-small seed 2's lowest wire: its track at the usual support (0.3) found 21 stations on
+    it; a window's retry at 0.25 from a peak beside it found 22, 0.8 m across off. Their curves
+    lie within `_distinct`'s radius: one record, the one held at 0.3. A wire 4 m above (another
+    level) is kept with it."""
+    def fit(x: float, z: float, support: float, stations: int) -> dict:
+        return {"theta": np.array([x, z, math.pi / 2, -0.1, 2 * math.asinh(0.1) / 320]), "track_support": support,
+                "track": np.zeros((stations, 4)), "residuals": 100, "stations": np.linspace(13.6, 95.0, 100)}
+
+    on, beside, above = fit(-7.45, 14.9, 0.3, 21), fit(-6.65, 14.95, 0.25, 22), fit(-8.45, 18.9, 0.3, 31)
+    kept = cond._distinct([beside, on, above], np.zeros(3), 1.0, (0.0, 0.0, 1.0))
+    assert len(kept) == 2 and any(k is on for k in kept) and any(k is above for k in kept)
