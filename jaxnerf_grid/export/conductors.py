@@ -39,7 +39,8 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   (`combined_covariance`): the height, slope and curvature from the profile fit through the
   stations' heights (with a span length, the curvature moves with the slope), the across offset
   and azimuth from the image residuals. A cross-arm window's track that loses its wire at the
-  track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground).
+  track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground); that track
+  and the earth window's are kept at `DEFAULT_WINDOW_SHARE` of their stations found.
 * Refinement (`refine_span`): a station's cell is good to a pixel, and a pixel at 80 m is a
   milliradian of azimuth, decimetres at the far tower. Each kept wire is refined on the
   detections' sub-pixel centres (the along-normal offsets of the pairs that support it, clear of
@@ -48,13 +49,20 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   to it about the middle of its track (`turned`) and refined again with it held; without a span
   length, once more with the span the side's wires share (`side_span`). A refined span's 1-sigma
   figures: its image residuals' covariance, the shared azimuth's sigma in place of its own.
+* Across the tower: one conductor passes one suspension clamp, a span either side. A phase wire
+  whose own slope ran off takes its attachment from its span across the tower when that one's
+  agreed with its side (`clamped`); without a span length, a lone earth wire of a side takes the
+  curvature of the earth wires across the tower (the same horizontal tension either side:
+  `_lone_earth_shared`), each with the shared figure's sigma.
 * Fit (`fit_span`, a library function the track replaced in `find_spans`):
   robust least squares (`scipy.optimize.least_squares`, Cauchy loss) on the
   image distance from each projected sample of the curve to the nearest detection (a distance
   transform's nearest-pixel map: iterated closest points), the samples' range grown in steps
   from the station outwards so the sag is found before the far part is asked to match. The
   1-sigma uncertainties are sigma^2 (J^T J)^-1 over the inlier residuals (sigma^2 their mean
-  square), propagated to every derived figure through its numerical Jacobian. A span is kept
+  square; `fit_covariance`: a parameter the residuals do not fix is undetermined, an infinite
+  sigma, and the record's sigmas None), propagated to every derived figure through its
+  numerical Jacobian. A span is kept
   when at least `min_inlier_share` of its projected samples lie within 2 `tol_px` of a
   detection.
 """
@@ -440,12 +448,41 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
     dof = len(r) - len(free)
     if dof <= 0:
         return np.full((5, 5), np.inf), float("nan")
-    sigma2 = float(r @ r) / dof
-    try:
-        cov = mapping @ (sigma2 * np.linalg.inv(jac.T @ jac)) @ mapping.T
-    except np.linalg.LinAlgError:
-        cov = np.full((5, 5), np.inf)
-    return cov, math.sqrt(sigma2)
+    return fit_covariance(jac, r, mapping), math.sqrt(float(r @ r) / dof)
+
+
+UNDETERMINED_RCOND = 1e-9   # J^T J's eigenvalues (unit columns) under this share of the largest: not fixed
+
+
+def fit_covariance(jac: np.ndarray, residuals: np.ndarray, jmap: np.ndarray | None = None,
+                   rcond: float = UNDETERMINED_RCOND) -> np.ndarray:
+    """A least-squares fit's covariance sigma^2 (J^T J)^-1 (jac [R, P] at the solution, residuals
+    [R], sigma^2 = r.r / max(R - P, 1)) mapped to the figures jmap [Q, P] derives from the
+    parameters (d figure / d parameter; None: the parameters themselves). Returns [Q, Q].
+    A parameter the residuals do not fix (in a direction of J^T J, its columns scaled to unit
+    norm, whose eigenvalue is under rcond of the largest: heights all at one distance leave the
+    slope and the curvature free) is undetermined: an infinite variance, no covariance with the
+    others; so is every figure that depends on it. The rest is the pseudo-inverse's, finite: the
+    plain inverse of a nearly singular J^T J is round-off (variances of 1e13, negative ones) and
+    its failure an infinite matrix that a map with zeros turns into NaN."""
+    jac = np.asarray(jac, np.float64)
+    r = np.asarray(residuals, np.float64)
+    n_par = jac.shape[1]
+    jmap = np.eye(n_par) if jmap is None else np.asarray(jmap, np.float64)
+    sigma2 = float(r @ r) / max(len(r) - n_par, 1)
+    norm = np.linalg.norm(jac, axis=0)
+    scale = np.where(norm > 0, 1.0 / np.where(norm > 0, norm, 1.0), 0.0)   # unit columns: units compared on one scale
+    lam, vec = np.linalg.eigh((jac * scale).T @ (jac * scale))
+    fixed = lam > rcond * max(float(lam.max(initial=0.0)), 1e-300)
+    undetermined = (norm == 0) | (np.linalg.norm(vec[:, ~fixed], axis=1) > 1e-6)
+    inv = (vec[:, fixed] / lam[fixed]) @ vec[:, fixed].T
+    cov_x = sigma2 * scale[:, None] * inv * scale[None, :]
+    cov_x[undetermined, :], cov_x[:, undetermined] = 0.0, 0.0
+    out = jmap @ cov_x @ jmap.T
+    lost = np.any((jmap[:, undetermined] != 0), axis=1)
+    out[lost, :], out[:, lost] = 0.0, 0.0
+    out[lost, lost] = np.inf
+    return out
 
 
 # --- the guided track ------------------------------------------------------------------------------
@@ -453,6 +490,8 @@ def _covariance(theta, views: Views, centre, s, up, inlier: np.ndarray,
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
 DEFAULT_WINDOW_SUPPORT = 0.25     # the track from a cross-arm window's peak (a wire hangs there)
+DEFAULT_WINDOW_SHARE = 0.4        # the share of its stations tried (to its last found) that track, or one from
+                                  # the earth wires' window, must find
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
@@ -539,13 +578,7 @@ def fit_profile(s: np.ndarray, z: np.ndarray, weight: np.ndarray, kappa_max: flo
         out = least_squares(res, x0, loss="cauchy", f_scale=tol, x_scale=[1.0, 0.01, 0.1 * kappa_max],
                             bounds=([-np.inf, -1.0, kappa_min], [np.inf, 1.0, kappa_max]))
         params, jmap = out.x, np.eye(3)
-    r = out.fun
-    dof = max(len(r) - out.x.size, 1)
-    try:
-        cov_x = float(r @ r) / dof * np.linalg.inv(out.jac.T @ out.jac)
-    except np.linalg.LinAlgError:
-        cov_x = np.full((out.x.size, out.x.size), np.inf)
-    return params, jmap @ cov_x @ jmap.T
+    return params, fit_covariance(out.jac, out.fun, jmap)
 
 
 def plateau_centre(share: np.ndarray, xs: np.ndarray, ys: np.ndarray) -> tuple[float, float]:
@@ -819,6 +852,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
                min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
                peak_support: float = DEFAULT_PEAK_SUPPORT, window_support: float = DEFAULT_WINDOW_SUPPORT,
+               window_share: float = DEFAULT_WINDOW_SHARE,
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
                settle: bool = True, top_window: bool = True) -> list[dict]:
@@ -846,8 +880,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     stations' support), a wire is dropped when more than max_shared of its support lies on the
     wires kept before it (`shared_evidence`), then when more than that lies on all the others
     (`borrowers_dropped`). window_support: a window's track that loses its wire at min_support is
-    retried at this support. refine: each candidate refined on the sub-pixel detections
-    (`refine_span`), each kept wire again clear of the others; shared_azimuth: then the side's
+    retried at this support; window_share: that track, and one from the earth wires' window, is
+    kept when it found this share of the stations it tried (min_inlier_share for the others).
+    refine: each candidate refined on the sub-pixel detections (`refine_span`), each kept wire
+    again clear of the others; shared_azimuth: then the side's
     wires turned to one azimuth (`side_azimuth`, `turned`) and refined with it held; shared_span:
     without span_length, then refined with one level span the side's wires share (`side_span`);
     shared_sag: then the side's wires hung in the cross-arms' windows (the phase conductors: one
@@ -859,11 +895,16 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     min_support after the arms' windows (its wires are not "from_arm"; "from_top" says so);
     settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
     support there is moved and its attachment refined again (`settled`, `_settled`), and of wires
-    that then lie on one another the one whose curve gathers the most support is kept.
+    that then lie on one another the one whose curve gathers the most support is kept. With
+    shared_sag, after both sides: a wire whose own slope ran off takes the attachment of its span
+    across the tower through the same clamp when that one's agreed with its side (`clamped`);
+    without span_length, a lone earth wire of a side takes the curvature of the earth wires across
+    the tower (`_lone_earth_shared`).
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "from_arm", "theta", "cov"
     (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
     "seen", "stations", "track" [F, 4], "span_length", "profile_cov", with shared_span
-    "span_length_shared" (L, sigma) and with shared_sag on the arms' wires "slope_shared" (m0, sigma)}]."""
+    "span_length_shared" (L, sigma), with shared_sag on the arms' wires "slope_shared" (m0, sigma)
+    and "slope_own", where they apply "clamp_shared" and "curvature_shared" (kappa, sigma)}]."""
     spans = []
     margin = 0.3 * tower_height
     station = half_length + margin
@@ -894,14 +935,17 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if any(np.linalg.norm(curve_points(f["theta"], centre, np.array([station]), up)[0] - seed) < 0.033 *
                    tower_height for f in fits):
                 continue   # on a wire already fitted: the support is a ridge across the plane, not a point
-            track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height, up,
-                               tol_px, min_support, min_views, span_length)
+            track = {**track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height, up,
+                                  tol_px, min_support, min_views, span_length), "min_share": min_support}
             if in_window and not _enough(track, min_found, min_inlier_share) and window_support < min_support:
                 # a wire hangs below every cross-arm tip: one over the ground, its detections broken by
                 # the texture, is followed at a lower support when the usual one loses it
-                track = track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height,
-                                   up, tol_px, window_support, min_views, span_length)
-            if not _enough(track, min_found, min_inlier_share):
+                track = {**track_span(views, centre, psi_side, c, z, station, 30 * tower_height, step, tower_height,
+                                      up, tol_px, window_support, min_views, span_length), "min_share": window_support}
+            # a window where a wire hangs (a cross-arm's, retried lower; the earth wires'): its track is
+            # judged at window_share, the low wires' and earth wires' support broken over half their stations
+            expected = in_top or (in_window and track["min_share"] < min_support)
+            if not _enough(track, min_found, window_share if expected else min_inlier_share):
                 continue
             theta = track["theta"]
             if refine:
@@ -913,6 +957,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
                              "from_arm": bool(in_window), "from_top": bool(in_top),
+                             "track_support": float(track["min_share"]),
                              "track": track["found"], "profile_cov": track["profile_cov"], **fit,
                              "image_cov": fit["cov"], "cov": combined_covariance(fit["cov"], track["profile_cov"])})
         kept: list[dict] = []
@@ -944,6 +989,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                 # a weak curve beside a wire is moved onto it by the scan: one record per wire
                 kept = _distinct(kept, centre, 0.033 * tower_height, up, key=lambda f: -f["support"])
         spans += kept
+    if refine and shared_sag:
+        spans = clamped(spans, centre, SETTLE_REACH * tower_height, RESCAN_CAP * tower_height, up)
+    if refine and shared_sag and not span_length:
+        spans = _lone_earth_shared(views, spans, centre, half_length, up, tol_px, kappa_bounds)
     return spans
 
 
@@ -1077,7 +1126,131 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
         cov[3:, :], cov[:, 3:] = 0.0, 0.0
         cov[3, 3], cov[3, 4] = sigma ** 2, dk * sigma ** 2
         cov[4, 3], cov[4, 4] = dk * sigma ** 2, (dk * sigma) ** 2 + (kappa / length) ** 2 * sigma_length ** 2
-        out.append({**r, "cov": cov, "span_length": span_length, "slope_shared": (slope, sigma)})
+        out.append({**r, "cov": cov, "span_length": span_length, "slope_shared": (slope, sigma),
+                    "slope_own": float(f["theta"][3])})
+    return out
+
+
+def clamp_pairs(spans: list[dict], centre, radius: float, up=(0.0, 0.0, 1.0)) -> list[tuple[int, int]]:
+    """Pairs (i, j) of indices into spans (`find_spans`' records of both sides) of wires hung from
+    the arms ("from_arm") with a shared slope ("slope_shared"), i on side +1 and j on side -1,
+    whose attachments (their curves at s = 0) lie within radius of each other, the nearest first
+    and each wire in one pair: one conductor through one suspension clamp, a span either side."""
+    att = [curve_points(f["theta"], centre, np.zeros(1), up)[0] for f in spans]
+    arm = [i for i, f in enumerate(spans) if f.get("from_arm") and f.get("slope_shared")]
+    near = sorted((float(np.linalg.norm(att[i] - att[j])), i, j) for i in arm for j in arm
+                  if spans[i]["side"] == 1 and spans[j]["side"] == -1)
+    used: set = set()
+    out = []
+    for d, i, j in near:
+        if d <= radius and i not in used and j not in used:
+            out.append((i, j))
+            used |= {i, j}
+    return out
+
+
+def attachment_on(theta, point, centre, up=(0.0, 0.0, 1.0)) -> np.ndarray:
+    """theta [5] with its attachment (across, height) moved to the 3-D point [3] (its azimuth,
+    slope and curvature kept): across = (point - axis) . e_across(psi), height = point . up."""
+    out = np.asarray(theta, np.float64).copy()
+    _, across, u = line_axes(float(out[2]), up)
+    base = np.asarray(centre, np.float64)
+    base = base - (base @ u) * u
+    p = np.asarray(point, np.float64)
+    out[0], out[1] = float((p - base) @ across), float(p @ u)
+    return out
+
+
+def clamped(spans: list[dict], centre, floor: float, cap: float, up=(0.0, 0.0, 1.0)) -> list[dict]:
+    """The spans of both sides with the attachment of a wire whose own slope ran off taken from its
+    other span through the same clamp (`clamp_pairs` within floor): of a pair, the one whose own
+    slope ("slope_own"), over its track's reach, lies more than floor off its side's shared one
+    (`rescan_reach`, capped at cap) was tracked onto the ground's texture or a neighbour over part
+    of its reach and its attachment extrapolated with it (plad-like seed 2: 0.6 m low, its span
+    across the tower on the wire), while the other's own slope agreed with its side's. It takes
+    the other's attachment point (`attachment_on`) and its attachment's covariance, its shared
+    slope and curvature kept, and records "clamp_shared" True. Pairs that both agree, or both ran
+    off, are left."""
+    out = list(spans)
+    for i, j in clamp_pairs(spans, centre, floor, up):
+        off = [rescan_reach(float(spans[k].get("slope_own", spans[k]["theta"][3])),
+                            float(spans[k]["slope_shared"][0]), float(spans[k]["stations"][-1]), cap) > floor
+               for k in (i, j)]
+        if off[0] == off[1]:
+            continue
+        bad, good = (i, j) if off[0] else (j, i)
+        point = curve_points(spans[good]["theta"], centre, np.zeros(1), up)[0]
+        theta = attachment_on(spans[bad]["theta"], point, centre, up)
+        # the across axes of the two sides point opposite ways: the across-height covariance flips with them
+        flip = float(np.sign(line_axes(float(theta[2]), up)[1] @ line_axes(float(spans[good]["theta"][2]), up)[1]))
+        cov = np.array(spans[bad]["cov"], np.float64).copy()
+        cov[:2, :], cov[:, :2] = 0.0, 0.0
+        block = np.array(spans[good]["cov"], np.float64)[:2, :2].copy()
+        block[0, 1] *= flip
+        block[1, 0] *= flip
+        cov[:2, :2] = block
+        out[bad] = {**spans[bad], "theta": theta, "cov": cov, "clamp_shared": True}
+    return out
+
+
+def lone_earth_wires(spans: list[dict]) -> list[int]:
+    """The indices into spans (`find_spans`' records of both sides) of the earth wires (not
+    "from_arm") alone on their side while the other side has earth wires of its own: nothing on
+    their side to check their sag against, something across the tower to share it with."""
+    earth = [f["side"] for f in spans if not f.get("from_arm")]
+    return [i for i, f in enumerate(spans)
+            if not f.get("from_arm") and earth.count(f["side"]) == 1 and len(earth) > 1]
+
+
+def across_curvature(kappas: np.ndarray, variances: np.ndarray) -> tuple[float, float]:
+    """The curvature (1 / the catenary parameter) a lone earth wire takes from the earth wires
+    across the tower, kappas [K] with their own variances [K]: their median and its 1-sigma, the
+    larger of the scaled MAD (`median_and_sigma`) and their own sigmas' root mean square (two
+    wires that agree by chance state no better than each of them)."""
+    kappa, sigma = median_and_sigma(kappas)
+    own = math.sqrt(float(np.mean(np.where(np.isfinite(variances), variances, 0.0))))
+    return kappa, max(sigma, own)
+
+
+def level_slope_jacobian(kappa: float, length: float) -> tuple[float, float]:
+    """(d m0 / d kappa, d m0 / d L) of a level span's slope at its attachment, m0 = -sinh(kappa L / 2)."""
+    c = math.cosh(0.5 * kappa * length)
+    return -0.5 * length * c, -0.5 * kappa * c
+
+
+def _lone_earth_shared(views: Views, spans: list[dict], centre, half_length: float, up, tol_px: float,
+                       kappa_bounds: tuple) -> list[dict]:
+    """The spans of both sides (no span length given) with each lone earth wire
+    (`lone_earth_wires`) given the curvature of the earth wires across the tower
+    (`across_curvature`): an earth wire strung over a suspension tower pulls the same horizontal
+    tension either side, the same catenary parameter. Its own sag rests on one wire's slope over
+    the span its side's phase wires measured (on ttpla-like seed 2 26.6 % deep, its stated sigma
+    3 %). With its side's span length ("span_length_shared") that curvature is one slope
+    (-sinh(kappa L / 2)); only the attachment (across, height) is refined, the azimuth held. Its
+    covariance: the attachment's block from the image residuals, the curvature's variance the
+    shared one's, the slope's through `level_slope_jacobian` with the span length's. Each such
+    record gets "curvature_shared" (kappa, sigma); a wire without a shared span length is left."""
+    out = list(spans)
+    for i in lone_earth_wires(spans):
+        f = spans[i]
+        if not f.get("span_length_shared"):
+            continue
+        length, sigma_length = (float(v) for v in f["span_length_shared"])
+        donors = [g for g in spans if not g.get("from_arm") and g["side"] != f["side"]]
+        kappa, sigma = across_curvature(np.array([g["theta"][4] for g in donors]),
+                                        np.array([g["cov"][4, 4] for g in donors]))
+        slope = -math.sinh(0.5 * kappa * length)
+        others = [g["theta"] for g in spans if g["side"] == f["side"] and g is not f]
+        psi_sigma = math.sqrt(max(float(f["cov"][2, 2]), 0.0))
+        r = _refined(views, {**f, "theta": with_slope(f["theta"], slope, length)}, others, centre, half_length,
+                     up, tol_px, length, (0, 1), kappa_bounds, psi_sigma)
+        dm_dk, dm_dl = level_slope_jacobian(kappa, length)
+        cov = r["cov"].copy()
+        cov[3:, :], cov[:, 3:] = 0.0, 0.0
+        cov[3, 3] = (dm_dk * sigma) ** 2 + (dm_dl * sigma_length) ** 2
+        cov[3, 4] = cov[4, 3] = dm_dk * sigma ** 2
+        cov[4, 4] = sigma ** 2
+        out[i] = {**r, "cov": cov, "span_length": None, "curvature_shared": (kappa, sigma)}
     return out
 
 
@@ -1308,10 +1481,9 @@ def _sample_gap(poly: np.ndarray) -> float:
 
 def _distinct(fits: list[dict], centre, radius: float, up, key=None) -> list[dict]:
     """One fit per wire: of fits whose curves pass within `radius` of each other (median over 20
-    stations of the shorter observed reach), the first by `key` (None: the most stations found on
-    its track, then the most inlier offsets)."""
+    stations of the shorter observed reach), the first by `key` (None: `track_rank`)."""
     kept: list[dict] = []
-    order = key or (lambda f: (-len(f.get("track", ())), -f["residuals"]))
+    order = key or track_rank
     for f in sorted(fits, key=order):
         same = False
         for k in kept:
@@ -1322,6 +1494,14 @@ def _distinct(fits: list[dict], centre, radius: float, up, key=None) -> list[dic
         if not same:
             kept.append(f)
     return kept
+
+
+def track_rank(fit: dict) -> tuple:
+    """The sort key of fits of one wire (`_distinct`), best first: the track that held it at the
+    higher support ("track_support": the usual one before a window's lower retry, which takes
+    cells the usual one rejected and on tower-small seed 2 ran 0.8-1 m beside the lowest wires,
+    one station more), then the most stations found, then the most inlier offsets."""
+    return -float(fit.get("track_support", 0.0)), -len(fit.get("track", ())), -fit["residuals"]
 
 
 def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
@@ -1351,7 +1531,9 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 "span_length_shared": None if fit.get("span_length_shared") is None else
                 [float(v) for v in fit["span_length_shared"]],
                 "slope_shared": None if fit.get("slope_shared") is None else [float(v) for v in fit["slope_shared"]],
-                "settled": bool(fit.get("settled", False))})
+                "curvature_shared": None if fit.get("curvature_shared") is None else
+                [float(v) for v in fit["curvature_shared"]],
+                "settled": bool(fit.get("settled", False)), "clamp_shared": bool(fit.get("clamp_shared", False))})
     return rec
 
 
