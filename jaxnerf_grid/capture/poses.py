@@ -148,8 +148,9 @@ TWO_VIEW: dict[str, Any] = {}
 # verified from 10 inliers (COLMAP: 15): an orbit's low photos looking up at the tower share
 # 10-37 with one to three others. Together, on the 12 generated orbits at 320x240 (one run
 # each): 391 of 396 photos registered and 338 kept (85 %) against 354 and 306 (77 %), the worst
-# kept camera 1.83 degrees against 2.06, 11 runs of 12 within 1 degree against 7; the mapping
-# took 30-60 s longer a run (docs/POSES.md, "Current figures"). On one orbit either alone did
+# kept camera 1.83 degrees against 2.06, 11 runs of 12 within 1 degree against 7; a 30-photo
+# orbit took 71-73 s against 30-34 s, most of it mapping (docs/POSES.md, "Current figures").
+# On one orbit either alone did
 # worse: 10 inliers without guided matching built a partly wrong model, guided matching alone
 # registered 26 of 30 against 29 (benchmarks/results/poses_orbits/levers_low-s0-30_gps.json).
 # Larger photos give thousands of matches a pair anyway, and guided matching among 8192
