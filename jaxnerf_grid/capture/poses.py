@@ -118,11 +118,10 @@ AGREE_DEG, AGREE_CENTRE = 2.0, 0.05
 # SIFT and matching options set on top of COLMAP's defaults. Affine-adapted features match
 # across the strong foreshortening of ground seen from an oblique drone camera: on tower-small
 # at 320x240 (30 photos, low clutter) they registered 19 photos against 16 without
-# (benchmarks/poses_accuracy.py; docs/POSES.md). Guided matching is left off: there it built
-# a model turned over by 54 degrees. MATCHING_SIFT loosens Lowe's ratio test from COLMAP's 0.8
-# to 0.9: there 23 of 30 registered, 0.1-0.2 degrees median error; 0.93 and 0.95 registered
-# more (25, 29) but the first model was turned by 22 degrees and the second had photos 5
-# degrees and a quarter of the orbit radius off (look-alike tower faces matched).
+# (benchmarks/poses_accuracy.py; docs/POSES.md). MATCHING_SIFT loosens Lowe's ratio test from
+# COLMAP's 0.8 to 0.9: there 23 of 30 registered, 0.1-0.2 degrees median error; 0.93 and 0.95
+# registered more (25, 29) but the first model was turned by 22 degrees and the second had
+# photos 5 degrees and a quarter of the orbit radius off (look-alike tower faces matched).
 SIFT: dict[str, Any] = {"estimate_affine_shape": True}
 # SIFT_SMALL, for photos whose working size is at most SMALL_SIDE px on the long side: COLMAP's
 # peak threshold 0.0067 lowered to 0.004 finds the fainter corners of small photos. On the
@@ -139,6 +138,25 @@ SMALL_SIDE = 800
 FEATURE_SIDE = 1600
 MATCHING: dict[str, Any] = {}
 MATCHING_SIFT: dict[str, Any] = {"max_ratio": 0.9}
+# TWO_VIEW: COLMAP's geometric verification of each matched pair (`TwoViewGeometryOptions`) on
+# top of its defaults.
+TWO_VIEW: dict[str, Any] = {}
+# For small photos (at most SMALL_SIDE px, as SIFT_SMALL), on top of MATCHING and TWO_VIEW.
+# MATCHING_SMALL: guided matching matches each verified pair again along its epipolar geometry:
+# the look-alike crosses of a lattice tower, which the ratio test drops, come back (a test
+# lattice at 320x240: 159 verified matches without, 1717 with). TWO_VIEW_SMALL: a pair is
+# verified from 10 inliers (COLMAP: 15): an orbit's low photos looking up at the tower share
+# 10-37 with one to three others. Together, on the 12 generated orbits at 320x240 (one run
+# each): 391 of 396 photos registered and 338 kept (85 %) against 354 and 306 (77 %), the worst
+# kept camera 1.83 degrees against 2.06, 11 runs of 12 within 1 degree against 7; a 30-photo
+# orbit took 71-73 s against 30-34 s, most of it mapping (docs/POSES.md, "Current figures").
+# On one orbit either alone did
+# worse: 10 inliers without guided matching built a partly wrong model, guided matching alone
+# registered 26 of 30 against 29 (benchmarks/results/poses_orbits/levers_low-s0-30_gps.json).
+# Larger photos give thousands of matches a pair anyway, and guided matching among 8192
+# features a photo is slow on the CPU (fountain-P11 at 1024 px, docs/POSES.md).
+MATCHING_SMALL: dict[str, Any] = {"guided_matching": True}
+TWO_VIEW_SMALL: dict[str, Any] = {"min_num_inliers": 10}
 # MAPPER: observations reprojecting more than 2 px off (COLMAP: 4) are dropped; with the looser
 # ratio test the test scene's 95th-percentile reprojection error otherwise reached 1.3 px.
 MAPPER = {"filter_max_reproj_error": 2.0}
@@ -343,8 +361,9 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     `timings` ({stage: seconds}, when given) gets the seconds of features, matching and mapping.
     priors: {photo name: [3] GPS position in local metres of a projected CRS}: written to the
     database as pose priors (`write_gps_priors`), used by the spatial matcher and by the
-    mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL
-    on top of SIFT (every working photo at most SMALL_SIDE px on its long side). feature_side: the
+    mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL,
+    MATCHING_SMALL and TWO_VIEW_SMALL on top of SIFT, MATCHING and TWO_VIEW (every working photo
+    at most SMALL_SIDE px on its long side). feature_side: the
     long side SIFT sees at most (FEATURE_SIDE; 0: COLMAP's own).
 
     DataError (naming `source`, the input folder) when no model could be built.
@@ -365,7 +384,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         if priors:
             write_gps_priors(pycolmap, database, priors)
     with _stage(f"matching ({matcher})", show, timings, "matching"):
-        match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree)
+        match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree, small_photos)
     n = len(names)
     start = time.monotonic()
     use_priors = priors_hold(priors or {})
@@ -427,38 +446,59 @@ def write_gps_priors(pycolmap, database, priors: dict) -> int:
     return written
 
 
-def match_photos(pycolmap, database, matcher: str, names: list[str], work_dir: Path, overlap: int,
-                 vocab_tree=None) -> None:
-    """Stage 3: COLMAP's matcher for `matcher` (module docstring) on the database's photos.
-    sequential: the pairs of `pairing.sequential_pairs` (next `overlap`, wrap-around, quadratic)
-    through `pycolmap.match_image_pairs`; with a space in a name (COLMAP's pair list splits on
-    spaces) COLMAP's own sequential matcher with its quadratic overlap instead (no wrap)."""
+def matching_options(pycolmap, small_photos: bool = False):
+    """COLMAP's feature matching options with MATCHING, MATCHING_SIFT (its SIFT part) and, for
+    small photos, MATCHING_SMALL on top."""
     matching = pycolmap.FeatureMatchingOptions()
-    for key, value in MATCHING.items():
+    for key, value in {**MATCHING, **(MATCHING_SMALL if small_photos else {})}.items():
         setattr(matching, key, value)
     for key, value in MATCHING_SIFT.items():
         setattr(matching.sift, key, value)
+    return matching
+
+
+def two_view_options(pycolmap, small_photos: bool = False):
+    """COLMAP's geometric verification options (`TwoViewGeometryOptions`) with TWO_VIEW and, for
+    small photos, TWO_VIEW_SMALL on top."""
+    verify = pycolmap.TwoViewGeometryOptions()
+    for key, value in {**TWO_VIEW, **(TWO_VIEW_SMALL if small_photos else {})}.items():
+        setattr(verify, key, value)
+    return verify
+
+
+def match_photos(pycolmap, database, matcher: str, names: list[str], work_dir: Path, overlap: int,
+                 vocab_tree=None, small_photos: bool = False) -> None:
+    """Stage 3: COLMAP's matcher for `matcher` (module docstring) on the database's photos.
+    sequential: the pairs of `pairing.sequential_pairs` (next `overlap`, wrap-around, quadratic)
+    through `pycolmap.match_image_pairs`; with a space in a name (COLMAP's pair list splits on
+    spaces) COLMAP's own sequential matcher with its quadratic overlap instead (no wrap).
+    small_photos: MATCHING_SMALL and TWO_VIEW_SMALL on top (every photo at most SMALL_SIDE px)."""
+    matching, verify = matching_options(pycolmap, small_photos), two_view_options(pycolmap, small_photos)
     if matcher == "exhaustive":
-        pycolmap.match_exhaustive(database, matching_options=matching)
+        pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verify)
     elif matcher == "spatial":
         options = pycolmap.SpatialPairingOptions()
         options.max_num_neighbors, options.max_distance = SPATIAL_NEIGHBOURS, SPATIAL_MAX_DISTANCE
-        pycolmap.match_spatial(database, matching_options=matching, pairing_options=options)
+        pycolmap.match_spatial(database, matching_options=matching, pairing_options=options,
+                               verification_options=verify)
     elif matcher == "sequential" and not any(" " in name for name in names):
         pairs_file = Path(work_dir) / "pairs.txt"
         pairs_file.parent.mkdir(parents=True, exist_ok=True)
         pairs_file.write_text(pairing.pairs_file_text(pairing.sequential_pairs(sorted(names), overlap)))
         options = pycolmap.ImportedPairingOptions()
         options.match_list_path = str(pairs_file)
-        pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=options)
+        pycolmap.match_image_pairs(database, matching_options=matching, pairing_options=options,
+                                   verification_options=verify)
     elif matcher == "sequential":
         options = pycolmap.SequentialPairingOptions()
         options.overlap, options.quadratic_overlap, options.loop_detection = overlap, True, False
-        pycolmap.match_sequential(database, matching_options=matching, pairing_options=options)
+        pycolmap.match_sequential(database, matching_options=matching, pairing_options=options,
+                                  verification_options=verify)
     else:
         options = pycolmap.VocabTreePairingOptions()
         options.vocab_tree_path = str(vocab_tree)
-        pycolmap.match_vocabtree(database, matching_options=matching, pairing_options=options)
+        pycolmap.match_vocabtree(database, matching_options=matching, pairing_options=options,
+                                 verification_options=verify)
 
 
 def register_left_out(pycolmap, database, photo_dir, model, total: int, work_dir: Path, show: bool,
@@ -1065,7 +1105,8 @@ def colmap_settings() -> dict:
     """The settings this module hands COLMAP on top of its defaults (part of a run's key,
     `refused.run_key`: a reconstruction kept under other settings is not reused)."""
     return {"sift": SIFT, "sift_small": SIFT_SMALL, "small_side": SMALL_SIDE, "matching": MATCHING,
-            "matching_sift": MATCHING_SIFT, "mapper": MAPPER, "relax_below": RELAX_BELOW, "relaxed": RELAXED,
+            "matching_sift": MATCHING_SIFT, "two_view": TWO_VIEW, "matching_small": MATCHING_SMALL,
+            "two_view_small": TWO_VIEW_SMALL, "mapper": MAPPER, "relax_below": RELAX_BELOW, "relaxed": RELAXED,
             "left_out": LEFT_OUT, "left_out_triangulation": LEFT_OUT_TRIANGULATION, "prior_sigma_m": PRIOR_SIGMA_M,
             "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "spatial_neighbours": SPATIAL_NEIGHBOURS}
 

@@ -400,7 +400,10 @@ def test_poses_summary_names_skipped_and_unregistered(orbit_run, capsys):
 @pytest.mark.parametrize("run", ["orbit_run", "per_photo_run"])
 def test_poses_dataset_loads_and_reprojects_within_a_pixel(run, request):
     """load_dataset reads DATA_DIR (the same names, the undistorted images, one size); its
-    cameras project the sparse/0 points onto their observations within a pixel."""
+    cameras project the sparse/0 points onto their observations within a pixel at the median
+    and within 1.5 px at the 95th percentile: guided matching on small photos (MATCHING_SMALL)
+    keeps more observations near the mapper's 2 px filter (0.30 / 1.40 px measured, 0.22 / 0.93
+    without it)."""
     orbit_run = request.getfixturevalue(run)
     assert orbit_run["code"] == 0
     out = orbit_run["out"]
@@ -428,7 +431,7 @@ def test_poses_dataset_loads_and_reprojects_within_a_pixel(run, request):
             errors.append(np.hypot(u - uv[0], v - uv[1]))
     errors = np.array(errors)
     assert len(errors) > 300
-    assert np.median(errors) < 0.5 and np.percentile(errors, 95) < 1.0, np.percentile(errors, [50, 95, 100])
+    assert np.median(errors) < 0.5 and np.percentile(errors, 95) < 1.5, np.percentile(errors, [50, 95, 100])
 
 
 def test_poses_refuses_existing_data_dir_and_keeps_it(orbit_run, capsys):

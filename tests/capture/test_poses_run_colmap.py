@@ -35,6 +35,7 @@ class _StandIn:
     def __init__(self, maps):
         self.maps, self.calls = list(maps), []
         for name in ("ImageReaderOptions", "CameraMode", "FeatureExtractionOptions", "FeatureMatchingOptions",
+                     "TwoViewGeometryOptions",
                      "SequentialPairingOptions", "VocabTreePairingOptions", "IncrementalPipelineOptions",
                      "Reconstruction", "ImportedPairingOptions"):
             setattr(self, name, getattr(pycolmap, name))
@@ -49,26 +50,31 @@ class _StandIn:
         self.calls.append(("features", database_path, image_path, list(image_names), camera_mode,
                            reader.camera_model, extraction.sift.estimate_affine_shape))
 
-    def _matching(self, kind, database_path, matching_options, pairing):
+    def _matching(self, kind, database_path, matching_options, pairing, verification_options):
         matching = matching_options or pycolmap.FeatureMatchingOptions()
         self.calls.append((kind, database_path, matching.sift.max_ratio, pairing))
         self.guided = matching.guided_matching
+        self.min_inliers = (verification_options or pycolmap.TwoViewGeometryOptions()).min_num_inliers
 
-    def match_exhaustive(self, database_path, matching_options=None):
-        self._matching("exhaustive", database_path, matching_options, None)
+    def match_exhaustive(self, database_path, matching_options=None, verification_options=None):
+        self._matching("exhaustive", database_path, matching_options, None, verification_options)
 
-    def match_sequential(self, database_path, matching_options=None, pairing_options=None):
+    def match_sequential(self, database_path, matching_options=None, pairing_options=None,
+                         verification_options=None):
         pairing = pairing_options or pycolmap.SequentialPairingOptions()
         self._matching("sequential", database_path, matching_options,
-                       (pairing.overlap, pairing.quadratic_overlap, pairing.loop_detection))
+                       (pairing.overlap, pairing.quadratic_overlap, pairing.loop_detection), verification_options)
 
-    def match_image_pairs(self, database_path, matching_options=None, pairing_options=None):
+    def match_image_pairs(self, database_path, matching_options=None, pairing_options=None,
+                          verification_options=None):
         pairing = pairing_options or pycolmap.ImportedPairingOptions()
-        self._matching("pairs", database_path, matching_options, Path(pairing.match_list_path).read_text())
+        self._matching("pairs", database_path, matching_options, Path(pairing.match_list_path).read_text(),
+                       verification_options)
 
-    def match_vocabtree(self, database_path, matching_options=None, pairing_options=None):
+    def match_vocabtree(self, database_path, matching_options=None, pairing_options=None,
+                        verification_options=None):
         pairing = pairing_options or pycolmap.VocabTreePairingOptions()
-        self._matching("vocab", database_path, matching_options, str(pairing.vocab_tree_path))
+        self._matching("vocab", database_path, matching_options, str(pairing.vocab_tree_path), verification_options)
 
     def incremental_mapping(self, database_path, image_path, output_path, options=None, input_path="",
                             initial_image_pair_callback=None, next_image_callback=None):
@@ -157,6 +163,17 @@ def test_run_colmap_exhaustive_single_camera_sets_its_options_and_keeps_the_larg
     assert stand_in.guided is True
     assert timings == {"photos": 0.4, "features": 1.3, "matching": 0.5, "mapping": 7.3}
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("small, guided, min_inliers", [(True, True, 10), (False, False, 15)])
+def test_run_colmap_hands_small_photos_guided_matching_and_ten_inliers(tmp_path, small, guided, min_inliers):
+    """Small photos (small_photos: every one at most SMALL_SIDE px) are matched with guided
+    matching and verified from 10 inliers; larger ones with COLMAP's own (no guided matching,
+    15 inliers)."""
+    stand_in = _StandIn([{0: _model(tmp_path / "m", 12)}])
+    poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
+                     camera_model="SIMPLE_RADIAL", single_camera=True, show=False, small_photos=small)
+    assert (stand_in.guided, stand_in.min_inliers) == (guided, min_inliers)
 
 
 def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_agreeing_model(
