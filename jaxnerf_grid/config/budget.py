@@ -23,17 +23,19 @@ The batch stays the recipe's: on the CPU a larger batch trains no more rays a se
 larger steps; on a GPU a larger batch does fill the device (docs/GPU.md), and is set with
 `--set train.batch_rays=N`: the rule counts rays, so the steps follow the batch.
 
-A capture whose epochs fit well inside its minutes (limited by "epochs", and the steps fit at
-GROWN_GRID_COST times the time) spends them on a larger hash grid (GROWN_GRID: 2^19 rows a level,
-finest resolution 4096) trained over the whole time budget (limited_by "grid": the steps that fit
-in the minutes at the larger grid's speed). Measured on the two Strecha scenes it applies to
-(docs/RECIPES.md): the larger grid beat the recipe's at the same steps on both, and its SSIM rose
-with the steps on both (entry-P10 0.831 / 0.843 / 0.853 at 3000 / 4000 / 4800), where twice the
-epochs on the recipe's grid lost 0.36 dB on fountain-P11. Where the minutes bind (a large capture) the grid stays
-the recipe's: there the larger grid's slower steps buy nothing (the demo's scene at 640x480, equal
-time). The grid is left alone when the user set any model.field key (`grid_free`), and when the
-field is no hash grid or is as large already. When the larger grid's measured speed no longer fits
-the epochs, the recipe's grid is measured and kept, at its epochs.
+A capture larger than its recipe's size (limited by "epochs" or "minutes", not "recipe") trains a
+larger hash grid (GROWN_GRID: 2^19 rows a level, finest resolution 4096) at its own speed, about
+GROWN_GRID_COST times the time a step: where its epochs still fit, over the whole time budget
+(limited_by "grid": the steps that fit in the minutes at its speed); where the minutes bind, for
+the steps they hold at its speed (limited_by "minutes", fewer steps than the recipe's grid would
+get), as long as those are at least the recipe's steps and this machine runs it at no less than
+1 / GROWN_GRID_MAX_COST of the recipe grid's reference speed (`grown_grid_pays`); else the recipe's
+grid is measured and kept. Measured (docs/RECIPES.md): with epochs to spare the larger grid beat
+the recipe's on both Strecha scenes it applies to; at about the same time, with the minutes
+binding, it scored higher on the phone capture, Herz-Jesus-P25 and the demo's scene at 640x480.
+The synthetic demo (the recipe's steps) keeps the recipe's grid; the grid is left alone when the
+user set any model.field key (`grid_free`), and when the field is no hash grid or is as large
+already.
 
 `stretch_schedules(train_cfg, steps)` stretches everything that counts steps with the run:
 train.max_steps and train.warmup (the learning-rate schedule, optim.lr_schedule, is then the same
@@ -83,10 +85,13 @@ REFERENCE_RAYS_PER_S = {"cpu": 11000.0, "gpu": 365000.0}
 # could overrun. The synthetic demo (2.4 of 12 min) is not measured.
 MEASURE_SHARE = 0.25
 REFERENCE = "reference estimate"
-# The hash grid a capture with minutes to spare trains (model.field.grid keys), and its cost a step
+# The hash grid a capture past its recipe's size trains (model.field.grid keys), and its cost a step
 # against the demo recipe's grid: 1.36-1.39x on the 2-core machine (docs/RECIPES.md).
 GROWN_GRID = {"log2_table_size": 19, "max_resolution": 4096}
 GROWN_GRID_COST = 1.4
+# Where the minutes bind, the larger grid is trained only when this machine runs it at no less than
+# the recipe grid's reference speed / this (`grown_grid_pays`).
+GROWN_GRID_MAX_COST = 2.0
 
 
 @dataclasses.dataclass(frozen=True)
@@ -223,7 +228,9 @@ def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None =
                         f"{budget.target_epochs:g} epochs",
               "epochs": f"{budget.target_epochs:g} epochs of the capture's training pixels",
               "minutes": f"capped by the time budget: {budget.minutes:g} min at {speed_words(budget)} "
-                         f"({budget.target_epochs:g} epochs would need {budget.wanted_steps} steps)",
+                         f"({budget.target_epochs:g} epochs would need {budget.wanted_steps} steps)"
+                         + (f", on a larger hash grid ({', '.join(f'{k} {v}' for k, v in grid.items())})"
+                            if grid else ""),
               "grid": f"a larger hash grid ({', '.join(f'{k} {v}' for k, v in (grid or {}).items())}) over the "
                       f"whole time budget, {budget.minutes:g} min at {speed_words(budget)}, as "
                       f"{budget.target_epochs:g} epochs ({budget.wanted_steps} steps) fit in it with time to spare"
@@ -267,6 +274,15 @@ def _filled(b: Budget) -> Budget:
                                estimated_minutes=b.estimated_minutes * grow)
 
 
+def grown_grid_pays(grown: Budget, reference_speed: float) -> bool:
+    """Whether the larger grid's plan `grown` (limited by the minutes, at its speed) is trained:
+    it keeps at least the recipe's steps and this machine runs it at no less than
+    1 / GROWN_GRID_MAX_COST of the recipe grid's reference_speed (rays a second). Where the minutes
+    bind, the larger grid won at the same time with 1.4x a step (module docstring); a machine
+    that runs it slower than that is not where it was measured."""
+    return grown.steps >= grown.recipe_steps and grown.rays_per_second * GROWN_GRID_MAX_COST >= reference_speed
+
+
 def _planned(cfg, train_pixels: int, n_devices: int, minutes, platform: str, measure, cost: float = 1.0):
     """choose_budget for cfg at the reference speed / cost, then, where the minutes may bind
     (MEASURE_SHARE), at the speed `measure` gives for cfg."""
@@ -287,18 +303,19 @@ def apply(cfg, train_pixels: int, n_devices: int = 1, minutes: float | None = No
     says so. measure: None, or callable(cfg) -> (train rays a second, where the figure comes from),
     called when the reference estimate fills more than MEASURE_SHARE of the minutes (module
     docstring); the steps are then chosen at its speed. grid_free: the user set no model.field key,
-    so a capture with minutes to spare may train the larger grid (module docstring)."""
+    so a capture past its recipe's size may train the larger grid (module docstring)."""
     if given_by is not None:
         return cfg, record(None, cfg, train_pixels, given_by)
     estimate = choose_budget(train_pixels, n_devices, minutes, cfg.train, platform)
-    spare = estimate.limited_by == "epochs" and estimate.estimated_minutes * GROWN_GRID_COST <= estimate.minutes
-    grow = grid_growth(cfg.model) if grid_free and spare else None
+    grow = grid_growth(cfg.model) if grid_free and estimate.limited_by != "recipe" else None
     chosen, grid_speed = None, None
     if grow is not None:
         grown = _planned(with_grid(cfg, grow), train_pixels, n_devices, minutes, platform, measure,
                          GROWN_GRID_COST)
         if grown.limited_by == "epochs":  # its epochs still fit at the larger grid's speed: fill the minutes
             cfg, chosen = with_grid(cfg, grow), _filled(grown)
+        elif grown_grid_pays(grown, estimate.rays_per_second):  # the minutes bind: fewer, larger-grid steps
+            cfg, chosen = with_grid(cfg, grow), grown
         else:  # kept in the record, so that a resumed run falls back as this one did
             grow, grid_speed = None, grown.rays_per_second
     if chosen is None:

@@ -212,22 +212,58 @@ def test_a_capture_with_minutes_to_spare_trains_the_larger_grid_over_the_whole_b
                                          "model": {"field": {"grid": {"log2_table_size": 19, "max_resolution": 4096}}}}
 
 
-def test_the_grid_stays_the_recipes_where_the_epochs_would_not_fit_or_the_user_chose_the_field():
+def test_where_the_minutes_bind_the_larger_grid_trains_the_steps_the_minutes_hold_at_its_speed():
+    lean = _lean()
+    # 3.2 M px: 2 epochs want ceil(6250) -> 6300 steps; the larger grid at 11000 / 1.4 rays/s holds
+    # 12 x 60 x 7857.1 / 1024 = 5524.6 -> 5500 in the minutes: those, on the larger grid
+    # a 50-photo phone capture, 49 x 353 x 628 px: the same 5500 (the recipe's grid would train 7700)
+    for pixels in (3_200_000, 49 * 353 * 628):
+        out, rec = budget.apply(lean, pixels, minutes=12, grid_free=True)
+        grid = out.model.field.grid
+        assert (grid.log2_table_size, grid.max_resolution, out.train.max_steps) == (19, 4096, 5500)
+        assert rec["limited_by"] == "minutes" and rec["grid"] == {"log2_table_size": 19, "max_resolution": 4096}
+        assert rec["epochs"] == pytest.approx(5500 * 1024 / pixels, abs=1e-3)
+        assert rec["why"].endswith("on a larger hash grid (log2_table_size 19, max_resolution 4096)")
+        assert out.train.warmup == round(50 * 5500 / 1600)
+    # timed on this machine: the larger grid's speed is what it measures, once
+    timed = []
+    out, rec = budget.apply(lean, 49 * 353 * 628, minutes=12, grid_free=True,
+                            measure=lambda cfg: timed.append(cfg.model.field.grid.log2_table_size)
+                            or (7000.0, "stand-in"))
+    # 12 x 60 x 7000 / 1024 = 4921.9 -> 4900
+    assert timed == [19] and out.model.field.grid.log2_table_size == 19 and out.train.max_steps == 4900
+
+
+def test_the_grid_stays_the_recipes_for_the_demo_a_slow_machine_or_the_users_field():
     lean = _lean()
     recipe_grid = lean.model.field.grid
-    # 3.2 M px: 6300 steps fill 9.77 of 12 min; at 1.4x, 13.7: the grid stays, the epochs are kept
+    # the synthetic demo: the recipe's steps, the recipe's grid, nothing timed
+    out, rec = budget.apply(lean, 40 * 160 * 120, minutes=12, grid_free=True,
+                            measure=lambda cfg: pytest.fail("timed"))
+    assert out.model.field.grid == recipe_grid and rec["grid"] is None and out.train.max_steps == 1600
+    # this machine runs the larger grid at 5000 rays/s, under 11000 / GROWN_GRID_MAX_COST (2): the
+    # recipe's grid, timed next at 9000: 12 x 60 x 9000 / 1024 = 6328 -> 6300 steps
     timed = []
-    out, rec = budget.apply(lean, 3_200_000, minutes=12, grid_free=True,
-                            measure=lambda cfg: timed.append(cfg.model.field.grid) or (11000.0, "stand-in"))
-    assert out.model.field.grid == recipe_grid and rec["grid"] is None and out.train.max_steps == 6300
-    assert timed == [recipe_grid]  # the larger grid is not even timed
-    # a large capture (the minutes bind) and the synthetic demo (the recipe's steps) keep it too
-    for pixels in (49 * 353 * 628, 40 * 160 * 120):
-        out, rec = budget.apply(lean, pixels, minutes=12, grid_free=True)
-        assert out.model.field.grid == recipe_grid and rec["grid"] is None
+
+    def measure(cfg):
+        timed.append(cfg.model.field.grid.log2_table_size)
+        return (5000.0 if cfg.model.field.grid.log2_table_size == 19 else 9000.0), "stand-in"
+
+    out, rec = budget.apply(lean, 49 * 353 * 628, minutes=12, grid_free=True, measure=measure)
+    assert timed == [19, 16] and out.model.field.grid == recipe_grid and out.train.max_steps == 6300
+    assert rec["grid"] is None and rec["grid_rays_per_second"] == 5000.0 and rec["limited_by"] == "minutes"
+    # at 5500 rays/s, 11000 / 2 exactly, the larger grid is trained: 12 x 60 x 5500 / 1024 = 3867 -> 3800
+    out = budget.apply(lean, 49 * 353 * 628, minutes=12, grid_free=True,
+                       measure=lambda cfg: (5500.0, "stand-in"))[0]
+    assert out.model.field.grid.log2_table_size == 19 and out.train.max_steps == 3800
+    # a short time budget whose larger-grid steps fall under the recipe's 1600: the recipe's grid
+    out, rec = budget.apply(lean, 49 * 353 * 628, minutes=3, grid_free=True)
+    # at 7857.1 rays/s, 3 x 60 x 7857.1 / 1024 = 1381 -> 1300 < 1600; the recipe's: 1933 -> 1900
+    assert out.model.field.grid == recipe_grid and out.train.max_steps == 1900
     # the user set a model.field key: the grid is never grown
-    out, rec = budget.apply(lean, 9 * 533 * 355, minutes=12, grid_free=False)
-    assert out.model.field.grid == recipe_grid and out.train.max_steps == 3400
+    for pixels in (9 * 533 * 355, 49 * 353 * 628):
+        out, rec = budget.apply(lean, pixels, minutes=12, grid_free=False)
+        assert out.model.field.grid == recipe_grid and rec["grid"] is None
     # a grid already as large
     big = budget.with_grid(lean, {"log2_table_size": 20, "max_resolution": 8192})
     assert budget.grid_growth(big.model) is None

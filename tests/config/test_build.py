@@ -77,31 +77,39 @@ def frames_folder(tmp_path, count, width, height):
 
 def test_the_budget_chooses_the_steps_last_unless_the_user_gave_them(tmp_path):
     """200 photos of 640x480 at 1024 rays a step: 2 epochs want ceil(2 x 61.44 M / 1024 / 100) x 100 =
-    120,000 steps, more than 12 minutes at 11k rays/s allow (floor(12 x 60 x 11000 / 1024 / 100) x 100 =
-    7,700); --steps or train.max_steps keep the user's count."""
+    120,000 steps, more than 12 minutes allow on the larger grid the budget then trains, at 11k / 1.4
+    rays/s (floor(12 x 60 x 7857.1 / 1024 / 100) x 100 = 5,500); --steps or train.max_steps keep
+    the user's count."""
     data = frames_folder(tmp_path, 200, 640, 480)
     one = lambda train_cfg: 1  # noqa: E731
     built = build.build(build.Request(recipe="ours-lean"), data=data, devices_of=one)
     assert built.budget["rule"] == "budget" and built.budget["limited_by"] == "minutes"
-    assert built.overrides["train"]["max_steps"] == 7700 == built.config().train.max_steps
+    assert built.overrides["train"]["max_steps"] == 5500 == built.config().train.max_steps
     given = build.build(build.Request(recipe="ours-lean", steps=50), data=data, devices_of=one)
     assert given.budget["rule"] == "given" and given.config().train.max_steps == 50
     by_set = build.build(build.Request(recipe="ours-lean", sets=("train.max_steps=60",)), data=data, devices_of=one)
     assert by_set.budget["rule"] == "given" and by_set.config().train.max_steps == 60
 
 
-def test_a_small_capture_trains_the_larger_grid_unless_the_user_set_the_field(tmp_path):
-    """12 photos of 640x480, 10 of them training (3.07 M px): 2 epochs = 6000 steps, 9.3 min at 11k
-    rays/s, 13.0 at the larger grid's 1.4x: over 12, so the recipe's grid; 4 photos, 3 training
-    (0.92 M px, 1800 steps), fit in 3.9 min at 1.4x, so the larger grid over the 12 minutes (12 x 60 x
-    11000 / 1.4 / 1024 = 5524.6 -> 5500 steps), which --set model.field... keeps from being chosen."""
+def test_a_capture_past_the_recipes_size_trains_the_larger_grid_unless_the_user_set_the_field(tmp_path):
+    """12 photos of 640x480, 10 of them training (3.07 M px): 2 epochs = 6000 steps, 13.0 min at the
+    larger grid's 11k / 1.4 rays/s: the minutes bind, so the larger grid for the 5500 steps they hold
+    (12 x 60 x 11000 / 1.4 / 1024 = 5524.6); 4 photos, 3 training (0.92 M px, 1800 steps), fit in
+    3.9 min at 1.4x, so the larger grid over the 12 minutes, the same 5500 steps; --set
+    model.field... keeps it from being chosen; 2 photos of 160x120 (the recipe's size) keep the
+    recipe's grid and 1600 steps."""
     one = lambda train_cfg: 1  # noqa: E731
-    (tmp_path / "ten").mkdir()
-    (tmp_path / "four").mkdir()
+    for name in ("ten", "four", "two"):
+        (tmp_path / name).mkdir()
     ten = build.build(build.Request(recipe="ours-lean"), data=frames_folder(tmp_path / "ten", 12, 640, 480),
                       devices_of=one)
-    assert ten.budget["grid"] is None and ten.config().model.field.grid.log2_table_size == 16
-    assert ten.config().train.max_steps == 6000
+    assert ten.budget["grid"] == {"log2_table_size": 19, "max_resolution": 4096}
+    assert ten.budget["limited_by"] == "minutes" and ten.config().model.field.grid.log2_table_size == 19
+    assert ten.config().train.max_steps == 5500
+    two = build.build(build.Request(recipe="ours-lean"), data=frames_folder(tmp_path / "two", 2, 160, 120),
+                      devices_of=one)
+    assert two.budget["grid"] is None and two.config().model.field.grid.log2_table_size == 16
+    assert two.config().train.max_steps == 1600
     four = frames_folder(tmp_path / "four", 4, 640, 480)
     built = build.build(build.Request(recipe="ours-lean"), data=four, devices_of=one)
     grid = built.config().model.field.grid
