@@ -224,14 +224,14 @@ def record(budget: Budget | None, cfg, train_pixels: int, given_by: str | None =
         return {"rule": "given", "steps": tc.max_steps, "batch_rays": tc.batch_rays, "warmup": tc.warmup,
                 "train_pixels": int(train_pixels), "epochs": round(epochs, 3),
                 "why": f"steps given by the user ({given_by}); no budget chosen"}
+    grown = f"a larger hash grid ({', '.join(f'{k} {v}' for k, v in (grid or {}).items())})"
     reason = {"recipe": f"the recipe's steps: the capture needs only {budget.wanted_steps} for "
                         f"{budget.target_epochs:g} epochs",
               "epochs": f"{budget.target_epochs:g} epochs of the capture's training pixels",
               "minutes": f"capped by the time budget: {budget.minutes:g} min at {speed_words(budget)} "
                          f"({budget.target_epochs:g} epochs would need {budget.wanted_steps} steps)"
-                         + (f", on a larger hash grid ({', '.join(f'{k} {v}' for k, v in grid.items())})"
-                            if grid else ""),
-              "grid": f"a larger hash grid ({', '.join(f'{k} {v}' for k, v in (grid or {}).items())}) over the "
+                         + (f", on {grown}" if grid else ""),
+              "grid": f"{grown} over the "
                       f"whole time budget, {budget.minutes:g} min at {speed_words(budget)}, as "
                       f"{budget.target_epochs:g} epochs ({budget.wanted_steps} steps) fit in it with time to spare"
               }[budget.limited_by]
