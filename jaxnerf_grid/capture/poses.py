@@ -377,8 +377,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         mode = pycolmap.CameraMode.SINGLE if single_camera else pycolmap.CameraMode.AUTO
         extraction = pycolmap.FeatureExtractionOptions()  # SIFT on top of COLMAP's defaults
         extraction.max_image_size = feature_side if feature_side > 0 else -1
-        for key, value in {**SIFT, **(SIFT_SMALL if small_photos else {})}.items():
-            setattr(extraction.sift, key, value)
+        set_options(extraction.sift, SIFT, SIFT_SMALL if small_photos else {})
         pycolmap.extract_features(database, photo_dir, image_names=names, camera_mode=mode, reader_options=reader,
                                   extraction_options=extraction)
         if priors:
@@ -446,14 +445,20 @@ def write_gps_priors(pycolmap, database, priors: dict) -> int:
     return written
 
 
+def set_options(options, *settings: dict) -> None:
+    """Sets each {attribute: value} of settings on a pycolmap options object (in place), later
+    dicts over earlier ones."""
+    for one in settings:
+        for key, value in one.items():
+            setattr(options, key, value)
+
+
 def matching_options(pycolmap, small_photos: bool = False):
     """COLMAP's feature matching options with MATCHING, MATCHING_SIFT (its SIFT part) and, for
     small photos, MATCHING_SMALL on top."""
     matching = pycolmap.FeatureMatchingOptions()
-    for key, value in {**MATCHING, **(MATCHING_SMALL if small_photos else {})}.items():
-        setattr(matching, key, value)
-    for key, value in MATCHING_SIFT.items():
-        setattr(matching.sift, key, value)
+    set_options(matching, MATCHING, MATCHING_SMALL if small_photos else {})
+    set_options(matching.sift, MATCHING_SIFT)
     return matching
 
 
@@ -461,8 +466,7 @@ def two_view_options(pycolmap, small_photos: bool = False):
     """COLMAP's geometric verification options (`TwoViewGeometryOptions`) with TWO_VIEW and, for
     small photos, TWO_VIEW_SMALL on top."""
     verify = pycolmap.TwoViewGeometryOptions()
-    for key, value in {**TWO_VIEW, **(TWO_VIEW_SMALL if small_photos else {})}.items():
-        setattr(verify, key, value)
+    set_options(verify, TWO_VIEW, TWO_VIEW_SMALL if small_photos else {})
     return verify
 
 
@@ -586,15 +590,8 @@ def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | 
     (`use_prior_position`, a robust loss: a GPS outlier does not bend the model)."""
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = 0
-    for key, value in MAPPER.items():
-        setattr(options.mapper, key, value)
-    if relaxed:
-        for key, value in RELAXED.items():
-            setattr(options.mapper, key, value)
-    for key, value in (extra or {}).items():
-        setattr(options.mapper, key, value)
-    for key, value in (triangulation or {}).items():
-        setattr(options.triangulation, key, value)
+    set_options(options.mapper, MAPPER, RELAXED if relaxed else {}, extra or {})
+    set_options(options.triangulation, triangulation or {})
     if priors:
         options.use_prior_position = True
         options.use_robust_loss_on_prior_position = True
