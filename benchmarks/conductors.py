@@ -116,7 +116,7 @@ def score(records: list[dict], truth: list[dict], match_radius: float = MATCH_RA
                         "clearance": (r.get("clearance") or {}).get("ground"),
                         "inlier_share": r["inlier_share"], "observed_stations": r["observed_stations"],
                         "span_length_shared": r.get("span_length_shared"),
-                        "curvature_across": r.get("curvature_across")})
+                        "curvature_across": r.get("curvature_across"), "curvature_own": r.get("curvature_own")})
             g = row["clearance"]
             row["clearance_error"] = None if g is None else g - t["lowest_z"]
         rows.append(row)

@@ -1126,7 +1126,8 @@ def _span_from_curvature(views: Views, kept: list[dict], centre, half_length: fl
     wire refined with the curvature held at kappa (the slope at the attachment freed from the
     curvature the photos barely see), the side's span from their slopes (`slope_span`), then
     every wire of the side refined with that span (`_shared_span`). Each record gets
-    "curvature_across" (kappa, sigma). A side without phase wires, or whose slopes give no span,
+    "curvature_across" (kappa, sigma) and "curvature_own" (its curvature and 1-sigma before, the
+    image residuals'). A side without phase wires, or whose slopes give no span,
     shares its wires' own span instead (`_shared_span`, from two wires)."""
     kappa, sigma_kappa = (float(v) for v in pooled)
     phase = phase_wires(kept)
@@ -1137,7 +1138,8 @@ def _span_from_curvature(views: Views, kept: list[dict], centre, half_length: fl
     if shared is None:
         return _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds) if len(kept) > 1 else kept
     out = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds, shared)
-    return [{**f, "curvature_across": (kappa, sigma_kappa)} for f in out]
+    own = [(float(f["theta"][4]), math.sqrt(max(float(f["image_cov"][4, 4]), 0.0))) for f in kept]
+    return [{**f, "curvature_across": (kappa, sigma_kappa), "curvature_own": k} for f, k in zip(out, own)]
 
 
 MIN_SHARED_SAG = 3   # the arms' wires on a side that make a median: with 2 an outlier is half of it
@@ -1618,6 +1620,8 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 [float(v) for v in fit["curvature_shared"]],
                 "curvature_across": None if fit.get("curvature_across") is None else
                 [float(v) for v in fit["curvature_across"]],
+                "curvature_own": None if fit.get("curvature_own") is None else
+                [_num(v) for v in fit["curvature_own"]],
                 "settled": bool(fit.get("settled", False)), "clamp_shared": bool(fit.get("clamp_shared", False))})
     return rec
 
