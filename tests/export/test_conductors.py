@@ -969,7 +969,8 @@ def test_without_a_span_length_both_sides_take_the_phase_wires_curvature_and_eac
     every wire of both sides records the one curvature pooled across the tower
     ("curvature_across", 1 / 1600 within 10 %), each side the span its slope gives at it
     ("span_length_shared" within 3 % of 320 m, the same for its wires), each phase wire's sag
-    the closed form's within 3 %. With shared_curvature off none records a pooled curvature."""
+    the closed form's within 3 %, its span's sigma holding the pooled curvature's and its sag's
+    finite. With shared_curvature off none records a pooled curvature."""
     rng = np.random.default_rng(41)
     c2w = ring_cameras()
     arms = [(7.6, 14.9), (-7.6, 18.9), (7.6, 22.9)]
@@ -990,9 +991,14 @@ def test_without_a_span_length_both_sides_take_the_phase_wires_curvature_and_eac
     for side in (1, -1):
         lengths = {f["span_length_shared"][0] for f in pooled if f["side"] == side}
         assert len(lengths) == 1 and lengths.pop() == pytest.approx(2 * XV_TRUE, rel=0.03)
+    kappa, sigma_kappa = pooled[0]["curvature_across"]
     for f in arm:
         assert catenary.derived(f["theta"], np.zeros(3))["sag"] == pytest.approx(true_sag, rel=0.03)
-        assert cond.span_record(f, np.zeros(3))["curvature_across"] is not None
+        rec = cond.span_record(f, np.zeros(3))
+        assert rec["curvature_across"] is not None and 0 < rec["sag"]["sigma"] < math.inf
+        # the side's span carries the pooled curvature's sigma at least: dL / dkappa = -L / kappa
+        length, sigma_length = f["span_length_shared"]
+        assert sigma_length >= length / kappa * sigma_kappa * (1 - 1e-9)
     assert all("curvature_across" not in f for f in spans(shared_curvature=False))
 
 
