@@ -1096,8 +1096,8 @@ def pooled_curvature(kappas: np.ndarray) -> tuple[float, float]:
 
 def phase_curvature(plus: list[dict], minus: list[dict]) -> tuple[float, float] | None:
     """`pooled_curvature` of the phase wires (`phase_wires`) of both sides' records (`find_spans`,
-    their curvature fitted), (kappa, sigma); None unless each side has one at least (a side
-    without phase wires says nothing of the other's tension) or the median is not a sag."""
+    their curvature fitted), (kappa, sigma); None when a side has none (a side without phase
+    wires says nothing of the other's tension) or the median curvature is not a sag (<= 0)."""
     wires = phase_wires(plus) + phase_wires(minus)
     if not phase_wires(plus) or not phase_wires(minus):
         return None
