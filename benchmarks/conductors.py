@@ -3,7 +3,7 @@
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
       [--span-length M] [--arm-seeds] [--detect-threshold K] [--no-refine] [--no-shared-azimuth]
-      [--no-shared-span] [--no-shared-sag] [--no-settle] [--no-top-window]
+      [--no-shared-span] [--no-shared-curvature] [--no-shared-sag] [--no-settle] [--no-top-window]
       [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
@@ -115,7 +115,8 @@ def score(records: list[dict], truth: list[dict], match_radius: float = MATCH_RA
                         "lowest_z_error": None if low is None else low[2] - t["lowest_z"],
                         "clearance": (r.get("clearance") or {}).get("ground"),
                         "inlier_share": r["inlier_share"], "observed_stations": r["observed_stations"],
-                        "span_length_shared": r.get("span_length_shared")})
+                        "span_length_shared": r.get("span_length_shared"),
+                        "curvature_across": r.get("curvature_across"), "curvature_own": r.get("curvature_own")})
             g = row["clearance"]
             row["clearance_error"] = None if g is None else g - t["lowest_z"]
         rows.append(row)
@@ -234,7 +235,8 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
                     span_length: float | None = None, arm_seeds: bool = False,
                     threshold: float | None = None, refine: bool = True,
                     shared_azimuth: bool = True, shared_span: bool = True,
-                    shared_sag: bool = True, settle: bool = True, top_window: bool = True) -> tuple[list[dict], dict]:
+                    shared_sag: bool = True, settle: bool = True, top_window: bool = True,
+                    shared_curvature: bool = True) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
     span of that length), None: the catenary parameter free; arm_seeds: the cross-arm tips as
@@ -243,7 +245,9 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
     sub-pixel detections, the side's wires sharing one azimuth, one span length when none is
     given, and the wires hung from the arms one sag); settle: last, each wire's attachment scanned
     for more support); top_window: with arm_seeds, the earth wires' window above the arms searched at
-    the track's support (`export.conductors.earth_window`).
+    the track's support (`export.conductors.earth_window`); shared_curvature: without span_length,
+    the phase wires' curvature pooled across the tower and each side's span from its slope
+    (`export.conductors.phase_curvature`).
     Returns (records, timings)."""
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.util import io
@@ -262,7 +266,8 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
         kw = {"seeds": true_arm_seeds(), "seed_window": tuple(v * 30.4 for v in SEED_WINDOW)}
     spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length,
                             refine=refine, shared_azimuth=shared_azimuth, shared_span=shared_span,
-                            shared_sag=shared_sag, settle=settle, top_window=top_window, **kw)
+                            shared_sag=shared_sag, settle=settle, top_window=top_window,
+                            shared_curvature=shared_curvature, **kw)
     t2 = time.perf_counter()
     if picture is not None:
         io.write_png(picture, cond.views_picture(images, views, spans, centre))
@@ -306,6 +311,9 @@ def main(argv=None) -> int:
                    help="each wire keeps its own refined azimuth (find_spans shared_azimuth=False)")
     p.add_argument("--no-shared-span", action="store_true",
                    help="without --span-length, each wire keeps its own curvature (find_spans shared_span=False)")
+    p.add_argument("--no-shared-curvature", action="store_true",
+                   help="without --span-length, each side's span the median of its wires' own, not from its slope "
+                        "and the phase wires' curvature pooled across the tower (find_spans shared_curvature=False)")
     p.add_argument("--no-shared-sag", action="store_true",
                    help="each wire hung from a cross-arm keeps its own sag (find_spans shared_sag=False)")
     p.add_argument("--no-settle", action="store_true",
@@ -324,7 +332,7 @@ def main(argv=None) -> int:
     # find_spans' steps: every one after the refinement goes with it
     steps = {"refine": not args.no_refine,
              **{key: not (args.no_refine or getattr(args, f"no_{key}"))
-                for key in ("shared_azimuth", "shared_span", "shared_sag", "settle")}}
+                for key in ("shared_azimuth", "shared_span", "shared_curvature", "shared_sag", "settle")}}
     results = []
     for i, data in enumerate(args.data):
         size = tuple(int(v) for v in args.partial.split(",")) if args.partial else None

@@ -47,7 +47,10 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   the other wires: `near_other_wires`); then the wires of a side share the variance-weighted
   median of their azimuths (`side_azimuth`: parallel wires to the same next tower), each turned
   to it about the middle of its track (`turned`) and refined again with it held; without a span
-  length, once more with the span the side's wires share (`side_span`). A refined span's 1-sigma
+  length, once more with the span the side's wires share: the level span its phase wires' slope
+  gives at the curvature they share with those across the tower (`phase_curvature`,
+  `slope_span`: one tension either side of a suspension clamp), or the median of the side's
+  wires' own where one side has no phase wire (`side_span`). A refined span's 1-sigma
   figures: its image residuals' covariance, the shared azimuth's sigma in place of its own.
 * Across the tower: one conductor passes one suspension clamp, a span either side. A phase wire
   whose own slope ran off takes its attachment from its span across the tower when that one's
@@ -855,7 +858,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                window_share: float = DEFAULT_WINDOW_SHARE,
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
-               settle: bool = True, top_window: bool = True) -> list[dict]:
+               settle: bool = True, top_window: bool = True, shared_curvature: bool = True) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -885,7 +888,11 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     refine: each candidate refined on the sub-pixel detections (`refine_span`), each kept wire
     again clear of the others; shared_azimuth: then the side's
     wires turned to one azimuth (`side_azimuth`, `turned`) and refined with it held; shared_span:
-    without span_length, then refined with one level span the side's wires share (`side_span`);
+    without span_length, then refined with one level span the side's wires share: with
+    shared_curvature and phase wires ("from_arm") on both sides, the span the side's phase wires'
+    slope gives at the curvature pooled over both sides' phase wires (`phase_curvature`,
+    `_span_from_curvature`: one tension either side of a suspension clamp), else the median of
+    the side's wires' own (`side_span`, from two wires);
     shared_sag: then the side's wires hung in the cross-arms' windows (the phase conductors: one
     conductor strung to one tension on one span hangs to one sag) refined with one slope at the
     attachment (`side_slope`; with a level span of one length that is one sag), from 3 such wires
@@ -903,9 +910,11 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "from_arm", "theta", "cov"
     (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
     "seen", "stations", "track" [F, 4], "span_length", "profile_cov", with shared_span
-    "span_length_shared" (L, sigma), with shared_sag on the arms' wires "slope_shared" (m0, sigma)
+    "span_length_shared" (L, sigma) and, the curvature pooled, "curvature_across" (kappa, sigma),
+    with shared_sag on the arms' wires "slope_shared" (m0, sigma)
     and "slope_own", where they apply "clamp_shared" and "curvature_shared" (kappa, sigma)}]."""
     spans = []
+    sides: dict[int, list[dict]] = {}
     margin = 0.3 * tower_height
     station = half_length + margin
     # the refinement fits the curvature too unless the span length ties it to the slope
@@ -978,7 +987,16 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                                  [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px,
                                  span_length, tuple(i for i in free if i != 2), kappa_bounds, psi_sigma)
                         for f, pivot in zip(kept, pivots)]
-            if shared_span and not span_length and len(kept) > 1:
+        sides[side] = kept
+    # the phase wires' curvature from both sides (one tension through the suspension clamps), no span length given
+    pooled = (phase_curvature(sides[1], sides[-1])
+              if refine and shared_span and shared_curvature and not span_length else None)
+    for side in (1, -1):
+        kept = sides[side]
+        if refine:
+            if pooled is not None:
+                kept = _span_from_curvature(views, kept, centre, half_length, up, tol_px, kappa_bounds, pooled)
+            elif shared_span and not span_length and len(kept) > 1:
                 kept = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds)
             if shared_sag:
                 kept = _shared_sag(views, kept, centre, half_length, up, tol_px, span_length, kappa_bounds,
@@ -1035,17 +1053,20 @@ def with_span(theta, length: float) -> np.ndarray:
 
 
 def _shared_span(views: Views, kept: list[dict], centre, half_length: float, up, tol_px: float,
-                 kappa_bounds: tuple) -> list[dict]:
+                 kappa_bounds: tuple, shared: tuple | None = None) -> list[dict]:
     """The wires of one side, no span length given, refined again with the span they share
-    (`side_span` of their own; the same next tower, a level span): the curvature tied to each
-    wire's slope, the azimuth held; the shared length's variance added to the curvature's
-    ((kappa / L)^2 sigma_L^2). Each record gets "span_length_shared" (L, sigma_L); its
-    "span_length" (the given one) stays None."""
-    lengths = np.array([derived(f["theta"], centre, up)["span"] for f in kept])
-    finite = np.isfinite(lengths)
-    if not finite.any():
-        return kept
-    length, sigma = side_span(lengths[finite])
+    (`side_span` of their own, or shared (L, sigma_L) where given; the same next tower, a level
+    span): the curvature tied to each wire's slope, the azimuth held; the shared length's variance
+    added to the curvature's ((kappa / L)^2 sigma_L^2). Each record gets "span_length_shared"
+    (L, sigma_L); its "span_length" (the given one) stays None."""
+    if shared is not None:
+        length, sigma = (float(v) for v in shared)
+    else:
+        lengths = np.array([derived(f["theta"], centre, up)["span"] for f in kept])
+        finite = np.isfinite(lengths)
+        if not finite.any():
+            return kept
+        length, sigma = side_span(lengths[finite])
     out = []
     for f in kept:
         others = [k["theta"] for k in kept if k is not f]
@@ -1055,6 +1076,70 @@ def _shared_span(views: Views, kept: list[dict], centre, half_length: float, up,
         cov[4, 4] += (float(r["theta"][4]) / length) ** 2 * sigma ** 2
         out.append({**r, "cov": cov, "span_length": None, "span_length_shared": (length, sigma)})
     return out
+
+
+def phase_wires(kept: list[dict]) -> list[dict]:
+    """The wires of a side's records (`find_spans`) hung in the cross-arms' windows ("from_arm"):
+    the phase conductors, one conductor type strung to one tension."""
+    return [f for f in kept if f.get("from_arm")]
+
+
+def pooled_curvature(kappas: np.ndarray) -> tuple[float, float]:
+    """The curvature (1 / the catenary parameter) the phase wires of both sides of a suspension
+    tower share, from each wire's own kappas [K] (both sides together): their median and its
+    1-sigma, 1.4826 MAD / sqrt(K) (at least 1e-3 of the median). The insulator string hangs
+    vertical, so a conductor pulls one horizontal tension either side: one a = H / w. The median,
+    as `side_span`'s: a wire whose curvature ran to its bound states the smallest sigma of all."""
+    kappa, sigma = median_and_sigma(kappas)
+    return kappa, max(sigma, 1e-3 * abs(kappa))
+
+
+def phase_curvature(plus: list[dict], minus: list[dict]) -> tuple[float, float] | None:
+    """`pooled_curvature` of the phase wires (`phase_wires`) of both sides' records (`find_spans`,
+    their curvature fitted), (kappa, sigma); None when a side has none (a side without phase
+    wires says nothing of the other's tension) or the median curvature is not a sag (<= 0)."""
+    wires = phase_wires(plus) + phase_wires(minus)
+    if not phase_wires(plus) or not phase_wires(minus):
+        return None
+    kappa, sigma = pooled_curvature(np.array([float(f["theta"][4]) for f in wires]))
+    return (kappa, sigma) if kappa > 0 else None
+
+
+def slope_span(slopes: np.ndarray, kappa: float, sigma_kappa: float) -> tuple[float, float] | None:
+    """The level span [export units] of one side from its phase wires' slopes at the attachment
+    slopes [K] (each fitted with the curvature held at kappa) and the curvature they share:
+    L = 2 asinh(-m) / kappa of their median m (`side_slope`), and its 1-sigma, first order in
+    both: (L / kappa)^2 sigma_kappa^2 + (2 / (kappa sqrt(1 + m^2)))^2 sigma_m^2. None when the
+    median slope does not fall from the attachment (no level span)."""
+    slope, sigma_m = side_slope(slopes)
+    if slope >= 0 or kappa <= 0:
+        return None
+    length = 2.0 * math.asinh(-slope) / kappa
+    dl_dm = -2.0 / (kappa * math.sqrt(1.0 + slope * slope))
+    return length, math.hypot(length / kappa * sigma_kappa, dl_dm * sigma_m)
+
+
+def _span_from_curvature(views: Views, kept: list[dict], centre, half_length: float, up, tol_px: float,
+                         kappa_bounds: tuple, pooled: tuple) -> list[dict]:
+    """The wires of one side, no span length given, with the span its phase wires' slopes give at
+    the curvature pooled across the tower (`phase_curvature`, pooled (kappa, sigma)): each phase
+    wire refined with the curvature held at kappa (the slope at the attachment freed from the
+    curvature the photos barely see), the side's span from their slopes (`slope_span`), then
+    every wire of the side refined with that span (`_shared_span`). Each record gets
+    "curvature_across" (kappa, sigma) and "curvature_own" (its curvature and 1-sigma before, the
+    image residuals'). A side without phase wires, or whose slopes give no span,
+    shares its wires' own span instead (`_shared_span`, from two wires)."""
+    kappa, sigma_kappa = (float(v) for v in pooled)
+    phase = phase_wires(kept)
+    held = [_refined(views, {**f, "theta": np.append(np.asarray(f["theta"], np.float64)[:4], kappa)},
+                     [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px, None, (0, 1, 3),
+                     kappa_bounds, math.sqrt(max(float(f["cov"][2, 2]), 0.0))) for f in phase]
+    shared = slope_span(np.array([float(f["theta"][3]) for f in held]), kappa, sigma_kappa) if held else None
+    if shared is None:
+        return _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds) if len(kept) > 1 else kept
+    out = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds, shared)
+    own = [(float(f["theta"][4]), math.sqrt(max(float(f["image_cov"][4, 4]), 0.0))) for f in kept]
+    return [{**f, "curvature_across": (kappa, sigma_kappa), "curvature_own": k} for f, k in zip(out, own)]
 
 
 MIN_SHARED_SAG = 3   # the arms' wires on a side that make a median: with 2 an outlier is half of it
@@ -1533,6 +1618,10 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 "slope_shared": None if fit.get("slope_shared") is None else [float(v) for v in fit["slope_shared"]],
                 "curvature_shared": None if fit.get("curvature_shared") is None else
                 [float(v) for v in fit["curvature_shared"]],
+                "curvature_across": None if fit.get("curvature_across") is None else
+                [float(v) for v in fit["curvature_across"]],
+                "curvature_own": None if fit.get("curvature_own") is None else
+                [_num(v) for v in fit["curvature_own"]],
                 "settled": bool(fit.get("settled", False)), "clamp_shared": bool(fit.get("clamp_shared", False))})
     return rec
 

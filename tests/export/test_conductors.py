@@ -918,3 +918,107 @@ def test_of_two_tracks_of_one_wire_the_one_held_at_the_usual_support_is_kept_ove
     on, beside, above = fit(-7.45, 14.9, 0.3, 21), fit(-6.65, 14.95, 0.25, 22), fit(-8.45, 18.9, 0.3, 31)
     kept = cond._distinct([beside, on, above], np.zeros(3), 1.0, (0.0, 0.0, 1.0))
     assert len(kept) == 2 and any(k is on for k in kept) and any(k is above for k in kept)
+
+
+def test_pooled_curvature_is_the_median_of_both_sides_phase_wires_and_its_sigma_the_scaled_mad():
+    """Six phase wires' own curvatures from side +1 (1e-3 times 0.62, 0.60, 0.66) and side -1
+    (0.64, 0.61, and one run to its bound, 3.3): pooled, their median is 0.63e-3 by hand (the
+    mean of the sorted 3rd and 4th, 0.62 and 0.64; the outlier moves it by one place only), the
+    deviations 0.01 0.03 0.03 0.01 0.02 2.67 giving MAD 0.025e-3, its sigma 1.4826 MAD / sqrt(6).
+    The earth wires (not "from_arm") take no part; a side without phase wires gives none."""
+    def wire(side, kappa, arm=True):
+        return {"side": side, "from_arm": arm, "theta": np.array([0.0, 20.0, math.pi / 2, -0.1, kappa])}
+
+    plus = [wire(1, 0.62e-3), wire(1, 0.60e-3), wire(1, 0.66e-3), wire(1, 0.1e-3, arm=False)]
+    minus = [wire(-1, 0.64e-3), wire(-1, 0.61e-3), wire(-1, 3.3e-3), wire(-1, 5.0e-3, arm=False)]
+    kappa, sigma = cond.phase_curvature(plus, minus)
+    assert kappa == pytest.approx(0.63e-3, rel=1e-12)
+    assert sigma == pytest.approx(1.4826 * 0.025e-3 / math.sqrt(6), rel=1e-9)
+    assert cond.pooled_curvature(np.array([0.62e-3, 0.60e-3, 0.66e-3, 0.64e-3, 0.61e-3, 3.3e-3])) == (kappa, sigma)
+    assert cond.phase_curvature(plus, minus[3:]) is None          # side -1: an earth wire only
+    assert cond.phase_curvature([], minus) is None
+    # six equal wires: no scatter, the sigma's floor of 1e-3 of the curvature
+    assert cond.pooled_curvature(np.full(6, 0.5e-3))[1] == pytest.approx(0.5e-6, rel=1e-12)
+
+
+def test_slope_span_is_the_closed_form_asinh_of_the_median_slope_and_its_sigma_first_order():
+    """A side's phase wires leaving their attachments at slopes -0.099, -0.1, -0.102 (one wire off
+    at -0.13) with the curvature 1 / 1600 pooled across the tower (sigma 2 %): the span is the
+    level span of the median slope, 2 asinh(0.101) / kappa (the closed form, 322.7 m), and its
+    sigma the first-order propagation of the curvature's and the median slope's sigmas
+    (`side_slope`) through central differences of that closed form. A slope that does not fall
+    gives no span."""
+    slopes = np.array([-0.099, -0.1, -0.102, -0.13])
+    kappa, sigma_kappa = 1.0 / 1600.0, 0.02 / 1600.0
+    length, sigma = cond.slope_span(slopes, kappa, sigma_kappa)
+    assert length == pytest.approx(2 * math.asinh(0.101) / kappa, rel=1e-12)
+
+    def closed(m, k):
+        return 2 * math.asinh(-m) / k
+
+    sigma_m = 1.4826 * float(np.median(np.abs(slopes + 0.101))) / 2.0       # 1.4826 MAD / sqrt(4)
+    dk = (closed(-0.101, kappa * (1 + 1e-6)) - closed(-0.101, kappa * (1 - 1e-6))) / (2e-6 * kappa)
+    dm = (closed(-0.101 + 1e-7, kappa) - closed(-0.101 - 1e-7, kappa)) / 2e-7
+    assert sigma == pytest.approx(math.hypot(dk * sigma_kappa, dm * sigma_m), rel=1e-5)
+    assert cond.slope_span(np.array([0.01, 0.02, 0.0]), kappa, sigma_kappa) is None
+
+
+def test_without_a_span_length_both_sides_take_the_phase_wires_curvature_and_each_its_span_from_its_slope():
+    """Three phase wires hung from cross-arm tips on each side of the tower (an insulator 2.6 m
+    below each tip), all as the true span (320 m, sag 8.01 m by the closed form), no span length:
+    every wire of both sides records the one curvature pooled across the tower
+    ("curvature_across", 1 / 1600 within 10 %), each side the span its slope gives at it
+    ("span_length_shared" within 3 % of 320 m, the same for its wires), each phase wire's sag
+    the closed form's within 3 %, its span's sigma holding the pooled curvature's and its sag's
+    finite. With shared_curvature off none records a pooled curvature."""
+    rng = np.random.default_rng(41)
+    c2w = ring_cameras()
+    arms = [(7.6, 14.9), (-7.6, 18.9), (7.6, 22.9)]
+    curves = [wire_at(x, z, side) for x, z in arms for side in (1, -1)]
+    views = views_of(render_photos(c2w, curves, rng), c2w)
+    seeds = [(-x, z + 2.6) for x, z in arms]            # e_across = -x on side +1
+    true_sag = A_TRUE * (math.cosh(XV_TRUE / A_TRUE) - 1.0)
+
+    def spans(**kw):
+        return cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4, seeds=seeds,
+                               seed_window=(1.5, 7.6, 1.5), **kw)
+
+    pooled = spans()
+    arm = [f for f in pooled if f["from_arm"]]
+    assert sorted(f["side"] for f in arm) == [-1, -1, -1, 1, 1, 1]
+    assert len({tuple(f["curvature_across"]) for f in pooled}) == 1
+    assert pooled[0]["curvature_across"][0] == pytest.approx(1.0 / A_TRUE, rel=0.1)
+    for side in (1, -1):
+        lengths = {f["span_length_shared"][0] for f in pooled if f["side"] == side}
+        assert len(lengths) == 1 and lengths.pop() == pytest.approx(2 * XV_TRUE, rel=0.03)
+    kappa, sigma_kappa = pooled[0]["curvature_across"]
+    for f in arm:
+        assert catenary.derived(f["theta"], np.zeros(3))["sag"] == pytest.approx(true_sag, rel=0.03)
+        rec = cond.span_record(f, np.zeros(3))
+        assert rec["curvature_across"] is not None and 0 < rec["sag"]["sigma"] < math.inf
+        # the side's span carries the pooled curvature's sigma at least: dL / dkappa = -L / kappa
+        length, sigma_length = f["span_length_shared"]
+        assert sigma_length >= length / kappa * sigma_kappa * (1 - 1e-9)
+    assert all("curvature_across" not in f for f in spans(shared_curvature=False))
+
+
+def test_a_side_without_phase_wires_keeps_each_sides_own_shared_span():
+    """Two phase wires hung from cross-arm tips on side +1 only, no span length: nothing across the
+    tower to pool the curvature with, so `find_spans` returns exactly what it does with
+    shared_curvature off (the side's span the median of its wires' own, `_shared_span`), and no
+    record carries a pooled curvature."""
+    rng = np.random.default_rng(43)
+    c2w = ring_cameras()
+    arms = [(7.6, 14.9), (-7.6, 18.9)]
+    views = views_of(render_photos(c2w, [wire_at(x, z) for x, z in arms], rng), c2w)
+    seeds = [(-x, z + 2.6) for x, z in arms]
+
+    def spans(**kw):
+        return cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4, seeds=seeds,
+                               seed_window=(1.5, 7.6, 1.5), **kw)
+
+    pooled, own = spans(), spans(shared_curvature=False)
+    assert len(pooled) == len(own) == 2 and all(f["side"] == 1 and f["from_arm"] for f in pooled)
+    for a, b in zip(pooled, own):
+        np.testing.assert_array_equal(a["theta"], b["theta"])
+        assert a["span_length_shared"] == b["span_length_shared"] and "curvature_across" not in a
