@@ -8,7 +8,11 @@ true cameras). Variants: `gps` runs `poses_from_images` on the scene's photos_gp
 (`--matcher auto`, the vetting), but accept_few_cameras: a camera set the default would refuse
 is written and scored, and the refusal recorded (`refused`: the verdict). Per run: photos,
 registered, kept, the rotation error of every kept camera after a similarity alignment of the
-centres (`poses_accuracy.compare`), the camera-set record, the GPS residual RMS, the wall time.
+centres (`poses_accuracy.compare`; `per_photo`: each camera's rotation and centre error, the
+centre's in orbit radii), the camera-set record, the GPS residual RMS, the wall time, and
+`vetting_fails`: the photos the vetting leaves out, with its reasons. With `--keep-all` (`poses
+--keep-all`) none is left out, so every registered camera is scored: what the vetting would
+have left out is then measured against the truth.
 """
 
 from __future__ import annotations
@@ -38,7 +42,7 @@ def photos_of(scene: Path, variant: str, work: Path) -> Path:
     return out
 
 
-def run_one(scene: Path, variant: str, work: Path) -> dict:
+def run_one(scene: Path, variant: str, work: Path, keep_all: bool = False) -> dict:
     from jaxnerf_grid.capture.poses import poses_from_images
     from jaxnerf_grid.util.io import DataError
 
@@ -47,7 +51,8 @@ def run_one(scene: Path, variant: str, work: Path) -> dict:
     row = {"scene": scene.name, "variant": variant}
     t0 = time.perf_counter()
     try:  # accept_few_cameras: a thin camera set is written (to be scored), its verdict recorded
-        summary = poses_from_images(photos, out, overwrite=True, progress=False, accept_few_cameras=True)
+        summary = poses_from_images(photos, out, overwrite=True, progress=False, accept_few_cameras=True,
+                                     keep_all=keep_all)
     except DataError as err:
         row.update(error=str(err), wall_s=time.perf_counter() - t0)
         return row
@@ -64,7 +69,10 @@ def run_one(scene: Path, variant: str, work: Path) -> dict:
                left_out=summary["vetting"]["left_out"], camera_set=summary.get("camera_set"),
                gps_rms_m=(geo.get("gps") or {}).get("rms_m"), timings_s=summary.get("timings_s"),
                rotation_deg_median=errors["rotation_deg_median"], rotation_deg_max=errors["rotation_deg_max"],
-               centre_median=errors["centre_median"], centre_max=errors["centre_max"])
+               centre_median=errors["centre_median"], centre_max=errors["centre_max"],
+               per_photo={name: {"rotation_deg": e["rotation_deg"], "centre": e["centre"]}
+                          for name, e in errors["per_photo"].items()},
+               vetting_fails={r["name"]: r["reasons"] for r in summary["vetting"]["photos"] if not r["kept"]})
     return row
 
 
@@ -74,11 +82,13 @@ def main(argv=None) -> int:
     p.add_argument("--variants", default="gps,bare")
     p.add_argument("--work", required=True)
     p.add_argument("--out", required=True)
+    p.add_argument("--keep-all", action="store_true",
+                   help="poses --keep-all: every registered photo scored, none left out by the vetting")
     args = p.parse_args(argv)
     rows = []
     for scene in args.scenes:
         for variant in args.variants.split(","):
-            row = run_one(Path(scene), variant, Path(args.work))
+            row = run_one(Path(scene), variant, Path(args.work), args.keep_all)
             rows.append(row)
             if "error" in row:
                 print(f"{row['scene']} {variant}: {row['error']}", flush=True)
