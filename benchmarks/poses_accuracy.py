@@ -63,21 +63,26 @@ def orientation_alignment(found: np.ndarray, true: np.ndarray) -> np.ndarray:
     return georef.nearest_rotation(np.einsum("nij,nkj->ik", true, found))
 
 
-def compare(true: dict, found: dict) -> dict:
+def compare(true: dict, found: dict, align_on=None) -> dict:
     """Errors of `found` ({name: c2w [4, 4]}) against `true` after a similarity alignment of the
     centres; the rotation errors also after aligning the orientations themselves
     (`orientation_alignment`): a ring of centres at one height fixes the tilt of the centres'
     fit poorly, so an error shared by every camera there is the alignment's, not the cameras'.
+    align_on: the names both alignments are fitted on (at least 3 of them; default every
+    photo), every photo scored: a camera 100 degrees off otherwise turns the fit of the rest.
     "per_photo": {name: {rotation_deg, rotation_deg_oriented, centre}}."""
     names = sorted(set(true) & set(found))
     t = np.stack([true[n] for n in names])
     f = np.stack([found[n] for n in names])
-    scale, rot, shift = similarity_fit(f[:, :3, 3], t[:, :3, 3])
+    fit = np.array([align_on is None or n in align_on for n in names])
+    if fit.sum() < 3:
+        fit[:] = True
+    scale, rot, shift = similarity_fit(f[fit, :3, 3], t[fit, :3, 3])
     centres = scale * f[:, :3, 3] @ rot.T + shift
     radius = float(np.median(np.linalg.norm(t[:, :2, 3], axis=1)))  # the tower's axis is x = y = 0
     centre_err = np.linalg.norm(centres - t[:, :3, 3], axis=1) / radius
     rot_err = np.array([angle_deg(rot @ f[i, :3, :3], t[i, :3, :3]) for i in range(len(names))])
-    oriented = orientation_alignment(f[:, :3, :3], t[:, :3, :3])
+    oriented = orientation_alignment(f[fit, :3, :3], t[fit, :3, :3])
     rot_oriented = np.array([angle_deg(oriented @ f[i, :3, :3], t[i, :3, :3]) for i in range(len(names))])
     up = rot @ np.array([0.0, 0.0, 1.0])
     return {"aligned": len(names), "rotation_deg_median": float(np.median(rot_err)),

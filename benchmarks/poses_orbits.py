@@ -12,7 +12,7 @@ centres (`poses_accuracy.compare`; `per_photo`: each camera's rotation and centr
 centre's in orbit radii), the camera-set record, the GPS residual RMS, the wall time, and
 `vetting_fails`: the photos the vetting leaves out, with its reasons. With `--keep-all` (`poses
 --keep-all`) none is left out, so every registered camera is scored: what the vetting would
-have left out is then measured against the truth.
+have left out is then measured against the truth (the alignment fitted on the photos it keeps).
 """
 
 from __future__ import annotations
@@ -62,7 +62,8 @@ def run_one(scene: Path, variant: str, work: Path, keep_all: bool = False) -> di
         row["refused"] = verdict
     true = {Path(k).stem: v for k, v in frames_by_name(scene / "transforms.json").items()}
     found = {Path(k).stem: v for k, v in frames_by_name(out / "transforms.json").items()}
-    errors = compare(true, found)
+    fails = {r["name"]: r["reasons"] for r in summary["vetting"]["photos"] if not r["kept"]}
+    errors = compare(true, found, align_on={n for n in found if not any(Path(f).stem == n for f in fails)})
     geo = summary.get("georeference") or {}
     row.update(photos=summary["photos"], registered=summary["registered"], kept=summary["in_dataset"],
                matcher=summary["matcher"], unregistered=summary["unregistered"],
@@ -72,7 +73,7 @@ def run_one(scene: Path, variant: str, work: Path, keep_all: bool = False) -> di
                centre_median=errors["centre_median"], centre_max=errors["centre_max"],
                per_photo={name: {"rotation_deg": e["rotation_deg"], "centre": e["centre"]}
                           for name, e in errors["per_photo"].items()},
-               vetting_fails={r["name"]: r["reasons"] for r in summary["vetting"]["photos"] if not r["kept"]})
+               vetting_fails=fails)
     return row
 
 

@@ -878,6 +878,37 @@ def test_orientation_alignment_recovers_a_shared_rotation_and_keeps_a_lone_error
     assert max(v["rotation_deg_oriented"] for n, v in per.items() if n != "p05") < 0.4
 
 
+def test_compare_fitted_on_the_kept_cameras_scores_a_camera_put_far_off_by_its_own_error():
+    """benchmarks.poses_accuracy.compare with align_on: found = true scaled by 2 and shifted,
+    one camera moved 10 ring radii and turned 90 degrees. Fitted on the other 11, every one of
+    them is exact and the moved one scores 10 radii and 90 degrees (closed form); fitted on all
+    12 the moved camera drags the fit and the others score off."""
+    from scipy.spatial.transform import Rotation
+
+    from benchmarks.poses_accuracy import compare
+
+    true, found = {}, {}
+    for k in range(12):
+        c2w = np.eye(4)
+        c2w[:3, :3] = Rotation.from_euler("zx", [30.0 * k, 80.0], degrees=True).as_matrix()
+        c2w[:3, 3] = [4 * np.cos(np.radians(30 * k)), 4 * np.sin(np.radians(30 * k)), 1.0]
+        true[f"p{k:02d}"] = c2w
+        f = c2w.copy()
+        f[:3, 3] = 2.0 * c2w[:3, 3] + [1.0, -2.0, 0.5]
+        found[f"p{k:02d}"] = f
+    found["p05"] = found["p05"].copy()
+    found["p05"][:3, 3] += 2.0 * 40.0 * np.array([0.0, 0.0, 1.0])  # 40 m up: 10 radii of 4
+    found["p05"][:3, :3] = found["p05"][:3, :3] @ Rotation.from_euler("y", 90.0, degrees=True).as_matrix()
+    kept = {n for n in found if n != "p05"}
+    per = compare(true, found, align_on=kept)["per_photo"]
+    assert per["p05"]["centre"] == pytest.approx(10.0, rel=1e-9)
+    assert per["p05"]["rotation_deg"] == pytest.approx(90.0, abs=1e-4)
+    assert max(per[n]["centre"] for n in kept) < 1e-9
+    assert max(per[n]["rotation_deg"] for n in kept) < 1e-4  # arccos near 1
+    dragged = compare(true, found)["per_photo"]
+    assert max(dragged[n]["centre"] for n in kept) > 0.5
+
+
 def test_poses_without_gps_says_units_unknown(orbit_run):
     """Photos without GPS and no scale bar: the dataset is written as before, its georeference
     says units unknown, and so do the summary and the report (docs/GEOREFERENCE.md)."""
