@@ -40,7 +40,9 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   stations' heights (with a span length, the curvature moves with the slope), the across offset
   and azimuth from the image residuals. A cross-arm window's track that loses its wire at the
   track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground); that track
-  and the earth window's are kept at `DEFAULT_WINDOW_SHARE` of their stations found.
+  and the earth window's are kept at `DEFAULT_WINDOW_SHARE` of their stations found; a window's
+  wire attached more than `MAX_INSULATOR` tower heights below the lowest tip is not kept (a phase
+  wire hangs from a tip by its insulator).
 * Refinement (`refine_span`): a station's cell is good to a pixel, and a pixel at 80 m is a
   milliradian of azimuth, decimetres at the far tower. Each kept wire is refined on the
   detections' sub-pixel centres (the along-normal offsets of the pairs that support it, clear of
@@ -498,6 +500,9 @@ DEFAULT_WINDOW_SHARE = 0.4        # the share of its stations tried (to its last
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
+MAX_INSULATOR = 0.15              # tower heights: a suspension string's longest drop below its cross-arm's tip (the
+#                                   generated towers' 2.6 m on 30.4 m is 0.09; the windows reach 0.25 for the fall
+#                                   to the station)
 
 
 def gated_support(views: Views, points: np.ndarray, tangents: np.ndarray, tol_px: float = DEFAULT_TOL_PX,
@@ -855,7 +860,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                min_inlier_share: float = DEFAULT_MIN_INLIER_SHARE, seeds=(), span_length: float | None = None,
                min_found: int = 10, max_shared: float = 0.5, seed_window: tuple | None = None,
                peak_support: float = DEFAULT_PEAK_SUPPORT, window_support: float = DEFAULT_WINDOW_SUPPORT,
-               window_share: float = DEFAULT_WINDOW_SHARE,
+               window_share: float = DEFAULT_WINDOW_SHARE, max_insulator: float = MAX_INSULATOR,
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
                settle: bool = True, top_window: bool = True, shared_curvature: bool = True) -> list[dict]:
@@ -885,6 +890,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     (`borrowers_dropped`). window_support: a window's track that loses its wire at min_support is
     retried at this support; window_share: that track, and one from the earth wires' window, is
     kept when it found this share of the stations it tried (min_inlier_share for the others).
+    max_insulator (tower heights): a wire from a cross-arm's window is kept when its attachment
+    lies at most this far below the lowest tip (a phase wire hangs from a tip by its insulator;
+    the window reaches further down for the wire's fall to the station).
     refine: each candidate refined on the sub-pixel detections (`refine_span`), each kept wire
     again clear of the others; shared_azimuth: then the side's
     wires turned to one azimuth (`side_azimuth`, `turned`) and refined with it held; shared_span:
@@ -920,6 +928,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     # the refinement fits the curvature too unless the span length ties it to the slope
     free = (0, 1, 2, 3) if span_length else (0, 1, 2, 3, 4)
     kappa_bounds = (1.0 / (MAX_CATENARY_PARAMETER * tower_height), 1.0 / (MIN_CATENARY_PARAMETER * tower_height))
+    # a phase wire hangs from a cross-arm's tip by its insulator: a window's curve attached further
+    # below every tip is not hung there (the window's depth is the fall to the station)
+    hung_floor = (min(float(z) for _, z in seeds) - max_insulator * tower_height
+                  if seed_window is not None and len(seeds) > 0 else -math.inf)
     for side in (1, -1):
         psi_side = psi if side == 1 else psi + math.pi
         windowed = seed_window is not None and len(seeds) > 0
@@ -963,7 +975,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             fit = _finish(views, theta, centre, half_length, track["reach"], up, tol_px,
                           span_length=span_length)
             c_fit, z_fit = fit["theta"][0], fit["theta"][1]
-            if abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin:
+            if (abs(c_fit) <= across + margin and heights[0] - margin <= z_fit <= heights[1] + margin
+                    and (not in_window or z_fit >= hung_floor)):
                 fits.append({"side": side, "psi": psi_side, "seed": [float(c), float(z), float(share)],
                              "from_arm": bool(in_window), "from_top": bool(in_top),
                              "track_support": float(track["min_share"]),

@@ -364,6 +364,29 @@ def test_a_wire_few_photos_see_is_tracked_from_a_cross_arms_window_not_from_the_
     assert found(seeds=[(ATTACH[0], ATTACH[2] + 2.6)], seed_window=window) == []
 
 
+def test_a_window_wire_attached_further_below_the_lowest_tip_than_an_insulator_is_not_kept():
+    """The few-photos span (support 6/16: only a cross-arm's window finds it) attached at 14.9 m.
+    A tip 2.6 m above it (an insulator): the floor is 17.5 - 0.15 * 30.4 = 12.94 m, the wire kept.
+    A tip 5.5 m above it: its window (20.4 - 7.6 = 12.8 m down) holds the wire at the 13.6 m
+    station (14.9 + 1600 (cosh(146.4 / 1600) - cosh(160 / 1600)) = 13.6 m), but the floor is
+    20.4 - 4.56 = 15.84 m, above the attachment: nothing is kept."""
+    rng = np.random.default_rng(10)
+    c2w = ring_cameras()
+    photos = render_photos(c2w, [true_curve()], rng)
+    photos[6:] = render_photos(c2w[6:], [], rng)
+    views = views_of(photos, c2w)
+
+    def found(drop):
+        return [catenary.derived(f["theta"], np.zeros(3))["attachment"]
+                for f in cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                                         span_length=2 * XV_TRUE, seeds=[(-ATTACH[0], ATTACH[2] + drop)],
+                                         seed_window=(1.5, 7.6, 1.5)) if f["side"] == 1]
+
+    hung = found(2.6)
+    assert len(hung) == 1 and np.linalg.norm(hung[0] - ATTACH) < 0.3
+    assert found(5.5) == []
+
+
 def test_default_detections_keep_a_faint_wire_a_threshold_of_4_loses():
     """A one-pixel line 25 grey levels darker than a sky of 200 (a wire over the ground has about
     that contrast against its lighter patches), pixel noise 0.004 and 30 darker dots: the default
