@@ -63,7 +63,7 @@ def run_one(scene: Path, variant: str, work: Path, keep_all: bool = False) -> di
     true = {Path(k).stem: v for k, v in frames_by_name(scene / "transforms.json").items()}
     found = {Path(k).stem: v for k, v in frames_by_name(out / "transforms.json").items()}
     fails = {r["name"]: r["reasons"] for r in summary["vetting"]["photos"] if not r["kept"]}
-    errors = compare(true, found, align_on={n for n in found if not any(Path(f).stem == n for f in fails)})
+    errors = compare(true, found, align_on=set(found) - {Path(name).stem for name in fails})
     geo = summary.get("georeference") or {}
     row.update(photos=summary["photos"], registered=summary["registered"], kept=summary["in_dataset"],
                matcher=summary["matcher"], unregistered=summary["unregistered"],

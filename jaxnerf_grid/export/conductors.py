@@ -930,11 +930,10 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     kappa_bounds = (1.0 / (MAX_CATENARY_PARAMETER * tower_height), 1.0 / (MIN_CATENARY_PARAMETER * tower_height))
     # a phase wire hangs from a cross-arm's tip by its insulator: a window's curve attached further
     # below every tip is not hung there (the window's depth is the fall to the station)
-    hung_floor = (min(float(z) for _, z in seeds) - max_insulator * tower_height
-                  if seed_window is not None and len(seeds) > 0 else -math.inf)
+    windowed = seed_window is not None and len(seeds) > 0
+    hung_floor = min(float(z) for _, z in seeds) - max_insulator * tower_height if windowed else -math.inf
     for side in (1, -1):
         psi_side = psi if side == 1 else psi + math.pi
-        windowed = seed_window is not None and len(seeds) > 0
         peaks = cross_section_peaks(views, centre, psi_side, station, (-across, across), heights, step, up,
                                     tol_px, max(min_support, peak_support) if windowed else min_support, min_views,
                                     separation=3 * tol_px * step)
@@ -1046,16 +1045,17 @@ def side_span(lengths: np.ndarray) -> tuple[float, float]:
     of a span rests on the curvature, which the photos barely see, and a wire whose curvature
     ran to its bound states the smallest sigma of all (the lowest phase wire at 640x480: 147 m
     +- 3 against 297-323 m for the others)."""
-    med, sigma = median_and_sigma(lengths)
-    return med, max(sigma, 1e-3 * abs(med))
+    return median_and_sigma(lengths, floor_share=1e-3)
 
 
-def median_and_sigma(values: np.ndarray) -> tuple[float, float]:
-    """The median of values [K] and its robust 1-sigma, 1.4826 MAD / sqrt(K): what the wires of a
-    side share (`side_span`, `side_slope`), one wire far off moving it by one place only."""
+def median_and_sigma(values: np.ndarray, floor_share: float = 0.0) -> tuple[float, float]:
+    """The median of values [K] and its robust 1-sigma, 1.4826 MAD / sqrt(K), at least floor_share
+    of the median's magnitude: what the wires of a side share (`side_span`, `side_slope`), one
+    wire far off moving it by one place only."""
     x = np.asarray(values, np.float64)
     med = float(np.median(x))
-    return med, 1.4826 * float(np.median(np.abs(x - med))) / math.sqrt(len(x))
+    sigma = 1.4826 * float(np.median(np.abs(x - med))) / math.sqrt(len(x))
+    return med, max(sigma, floor_share * abs(med))
 
 
 def with_span(theta, length: float) -> np.ndarray:
@@ -1103,18 +1103,17 @@ def pooled_curvature(kappas: np.ndarray) -> tuple[float, float]:
     1-sigma, 1.4826 MAD / sqrt(K) (at least 1e-3 of the median). The insulator string hangs
     vertical, so a conductor pulls one horizontal tension either side: one a = H / w. The median,
     as `side_span`'s: a wire whose curvature ran to its bound states the smallest sigma of all."""
-    kappa, sigma = median_and_sigma(kappas)
-    return kappa, max(sigma, 1e-3 * abs(kappa))
+    return median_and_sigma(kappas, floor_share=1e-3)
 
 
 def phase_curvature(plus: list[dict], minus: list[dict]) -> tuple[float, float] | None:
     """`pooled_curvature` of the phase wires (`phase_wires`) of both sides' records (`find_spans`,
     their curvature fitted), (kappa, sigma); None when a side has none (a side without phase
     wires says nothing of the other's tension) or the median curvature is not a sag (<= 0)."""
-    wires = phase_wires(plus) + phase_wires(minus)
-    if not phase_wires(plus) or not phase_wires(minus):
+    plus, minus = phase_wires(plus), phase_wires(minus)
+    if not plus or not minus:
         return None
-    kappa, sigma = pooled_curvature(np.array([float(f["theta"][4]) for f in wires]))
+    kappa, sigma = pooled_curvature(np.array([float(f["theta"][4]) for f in plus + minus]))
     return (kappa, sigma) if kappa > 0 else None
 
 
