@@ -94,8 +94,9 @@ def test_a_camera_turned_20_degrees_is_left_out():
 
 
 def test_a_camera_put_far_from_the_photos_it_shares_points_with_is_left_out():
-    """Camera 7 moved 1.7 ring radii outwards: its covisible cameras (6, 8 and then 5, the lower
-    of the tied 5 / 9) are 9.5 away instead of the usual 2 R sin 15 deg = 2.59 (ratio 3.7)."""
+    """Camera 7 moved 1.7 ring radii outwards: the nearest of its covisible cameras (6, 8 and then
+    5, the lower of the tied 5 / 9) is 9.5 away instead of the usual 2 R sin 15 deg = 2.59 (ratio
+    3.7)."""
     rec = _ring()
     eye = -rec.cam_from_world[7][:, :3].T @ rec.cam_from_world[7][:, 3]
     moved = eye * (1 + 1.7 * RING / np.linalg.norm(eye[:2]))
@@ -106,10 +107,37 @@ def test_a_camera_put_far_from_the_photos_it_shares_points_with_is_left_out():
     neighbours = [2 * np.pi * j / NUM_CAMS for j in (6, 8, 5)]
     dist = sorted(np.hypot(moved[0] - RING * np.cos(b), moved[1] - RING * np.sin(b)) for b in neighbours)
     assert np.linalg.norm(moved[:2]) == pytest.approx(RING * 2.7) and a7 > 0
-    assert scores["neighbour_ratio"][7] == pytest.approx(dist[1] / (2 * RING * np.sin(np.pi / NUM_CAMS)), rel=1e-6)
+    assert scores["neighbour_ratio"][7] == pytest.approx(dist[0] / (2 * RING * np.sin(np.pi / NUM_CAMS)), rel=1e-6)
     why = vetting.failures(scores)
     assert any("usual distance" in w for w in why[7])
     assert all(not any("usual distance" in w for w in why[i]) for i in range(NUM_CAMS) if i != 7)
+
+
+def test_a_photo_at_the_edge_of_a_gap_is_judged_by_its_nearest_best_shared_photo():
+    """Ten photos 1 apart on a line; photo 0 stands at the edge of a gap, its best-shared photos
+    (by shared points) are photo 1 beside it and photos 4 and 5 further along: 1, 4 and 5 away
+    (the median, 4, would be 4 times the usual 1). Every other photo shares the most with its
+    two neighbours and the next one on: nearest 1. Photo 9, sharing the most with photos 0-2
+    (8 and 9 away, nearest 7), is a photo put in the wrong place."""
+    centres = np.stack([np.arange(10.0), np.zeros(10), np.zeros(10)], 1)
+    shared = np.zeros((10, 10))
+    for i in range(1, 9):
+        for j, count in ((i - 1, 50), (i + 1, 50), (min(i + 2, 9) if i < 8 else i - 2, 30)):
+            shared[i, j] = shared[j, i] = count
+    shared[0, :] = shared[:, 0] = 0
+    for j, count in ((1, 60), (4, 50), (5, 40)):
+        shared[0, j] = shared[j, 0] = count
+    shared[9, :] = shared[:, 9] = 0
+    for j, count in ((0, 60), (1, 50), (2, 40)):
+        shared[9, j] = shared[j, 9] = count
+    dist = vetting.neighbour_distances(centres, shared)
+    assert dist[0] == 1.0 and dist[9] == 7.0
+    assert np.all(dist[1:9] == 1.0)
+    scores = {"observations": np.full(10, 200), "reprojection_px": np.full(10, 0.5),
+              "track_length": np.full(10, 4.0), "neighbour_ratio": dist / np.median(dist), "covisible": np.full(10, 3)}
+    why = vetting.failures(scores)
+    assert [bool(w) for w in why] == [False] * 9 + [True]
+    assert "7.0x the usual distance" in why[9][0]
 
 
 def test_few_observations_and_short_tracks_are_left_out():
@@ -228,11 +256,11 @@ def test_frames_a_few_millimetres_apart_do_not_make_walking_frames_look_misplace
     assert 4.5 < depth < 5.5
     assert np.nanmax(scores["neighbour_ratio"]) < 0.65 / (0.1 * depth)
     assert all(not why for why in vetting.failures(scores))
-    monkeypatch.setattr(vetting, "NEIGHBOUR_DEPTH_FLOOR", 0.0)
-    assert np.nanmax(vetting.photo_scores(_panning_capture())["neighbour_ratio"]) > 100
     wrong = vetting.failures(vetting.photo_scores(_panning_capture(wrong=5)))
     assert any("usual distance" in w for w in wrong[5])
     assert [i for i, why in enumerate(wrong) if any("usual distance" in w for w in why)] == [5]
+    monkeypatch.setattr(vetting, "NEIGHBOUR_DEPTH_FLOOR", 0.0)
+    assert np.nanmax(vetting.photo_scores(_panning_capture())["neighbour_ratio"]) > 100
 
 
 def _arrays(rec):
