@@ -42,7 +42,9 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground); that track
   and the earth window's are kept at `DEFAULT_WINDOW_SHARE` of their stations found; a window's
   wire attached more than `MAX_INSULATOR` tower heights below the lowest tip is not kept (a phase
-  wire hangs from a tip by its insulator).
+  wire hangs from a tip by its insulator). Each wire as it is returned must rest on
+  `MIN_EFFECTIVE_PHOTOS` photos (`single_view_dropped`, `effective_photos`): any curve in the plane
+  through one photo's centre and a wire lies on that wire's detections in that photo.
 * Refinement (`refine_span`): a station's cell is good to a pixel, and a pixel at 80 m is a
   milliradian of azimuth, decimetres at the far tower. Each kept wire is refined on the
   detections' sub-pixel centres (the along-normal offsets of the pairs that support it, clear of
