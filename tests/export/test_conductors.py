@@ -323,6 +323,24 @@ def test_a_curve_in_one_photos_plane_of_sight_through_a_wire_is_dropped_and_the_
     assert [r["theta"][0] for r in kept] == [-7.45]
 
 
+def test_find_spans_returns_a_wire_only_when_its_support_rests_on_min_photos_photos():
+    """The true span in the 16 ring photos: Kish's count of the photos holding its support is at
+    most 16 (equal when all 16 hold it equally), so with min_photos 17 nothing is returned, with
+    the default 3 the span is found at its attachment."""
+    rng = np.random.default_rng(1)
+    c2w = ring_cameras()
+    views = views_of(render_photos(c2w, [true_curve(1)], rng), c2w)
+
+    def found(min_photos):
+        return cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                               span_length=2 * XV_TRUE, min_photos=min_photos)
+
+    kept = found(cond.MIN_EFFECTIVE_PHOTOS)
+    assert len(kept) == 1
+    np.testing.assert_allclose(catenary.derived(kept[0]["theta"], np.zeros(3))["attachment"], ATTACH, atol=0.15)
+    assert found(len(c2w) + 1) == []
+
+
 def test_the_sag_sigma_with_a_given_span_length_follows_the_slope_alone_by_the_closed_form():
     """The true curve's covariance from its detections in 8 photos (`_finish`), with the span
     length given (kappa = 2 beta / L, beta = asinh(-m0)): the span is L with no uncertainty, the
