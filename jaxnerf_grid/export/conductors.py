@@ -42,7 +42,9 @@ frame and units (metres where the dataset has a scale), +z up (the frame's z; `u
   track's support is retried at `DEFAULT_WINDOW_SUPPORT` (a low wire over the ground); that track
   and the earth window's are kept at `DEFAULT_WINDOW_SHARE` of their stations found; a window's
   wire attached more than `MAX_INSULATOR` tower heights below the lowest tip is not kept (a phase
-  wire hangs from a tip by its insulator).
+  wire hangs from a tip by its insulator). Each wire as it is returned must rest on
+  `MIN_EFFECTIVE_PHOTOS` photos (`single_view_dropped`, `effective_photos`): any curve in the plane
+  through one photo's centre and a wire lies on that wire's detections in that photo.
 * Refinement (`refine_span`): a station's cell is good to a pixel, and a pixel at 80 m is a
   milliradian of azimuth, decimetres at the far tower. Each kept wire is refined on the
   detections' sub-pixel centres (the along-normal offsets of the pairs that support it, clear of
@@ -500,6 +502,8 @@ DEFAULT_WINDOW_SHARE = 0.4        # the share of its stations tried (to its last
 DEFAULT_PEAK_SUPPORT = 0.45       # the cross-section's peaks outside the cross-arms' windows, where those are given
 MIN_CATENARY_PARAMETER = 10.0     # tower heights: the plausible catenary parameter's floor (kappa <= 1 / (10 h))
 MAX_CATENARY_PARAMETER = 300.0    # tower heights: its ceiling (a 30 m tower's wire tighter than a = 9 km is not hung)
+MIN_EFFECTIVE_PHOTOS = 3.0        # photos a curve's support rests on (`effective_photos`): any two image curves
+                                  # triangulate to some 3-D curve, a third photo is the first that can disagree
 MAX_INSULATOR = 0.15              # tower heights: a suspension string's longest drop below its cross-arm's tip (the
 #                                   generated towers' 2.6 m on 30.4 m is 0.09; the windows reach 0.25 for the fall
 #                                   to the station)
@@ -863,7 +867,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                window_share: float = DEFAULT_WINDOW_SHARE, max_insulator: float = MAX_INSULATOR,
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
-               settle: bool = True, top_window: bool = True, shared_curvature: bool = True) -> list[dict]:
+               settle: bool = True, top_window: bool = True, shared_curvature: bool = True,
+               min_photos: float = MIN_EFFECTIVE_PHOTOS) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -910,7 +915,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     min_support after the arms' windows (its wires are not "from_arm"; "from_top" says so);
     settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
     support there is moved and its attachment refined again (`settled`, `_settled`), and of wires
-    that then lie on one another the one whose curve gathers the most support is kept. With
+    that then lie on one another the one whose curve gathers the most support is kept. Then a
+    wire whose support rests on fewer than min_photos photos is dropped (`single_view_dropped`,
+    `effective_photos`: one photo's plane of sight through a wire holds any curve). With
     shared_sag, after both sides: a wire whose own slope ran off takes the attachment of its span
     across the tower through the same clamp when that one's agreed with its side (`clamped`);
     without span_length, a lone earth wire of a side takes the curvature of the earth wires across
@@ -1018,6 +1025,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                                  SETTLE_REACH * tower_height, step) for f in kept]
                 # a weak curve beside a wire is moved onto it by the scan: one record per wire
                 kept = _distinct(kept, centre, 0.033 * tower_height, up, key=lambda f: -f["support"])
+        # the shared sag's rescan and the last scan move a weak curve where it gathers the most support,
+        # one photo's plane of sight through a wire among those places: judged as it is returned
+        kept = single_view_dropped(views, kept, centre, up, tol_px, min_photos)
         spans += kept
     if refine and shared_sag:
         spans = clamped(spans, centre, SETTLE_REACH * tower_height, RESCAN_CAP * tower_height, up)
@@ -1467,6 +1477,34 @@ def _settled(views: Views, f: dict, kept: list[dict], centre, half_length: float
         support = curve_support(views, f["theta"], centre, np.linspace(s_from, max(s_to, s_from + 1e-3), 60), up,
                                 tol_px)
     return {**f, "settled": moved, "support": support}
+
+
+def effective_photos(ok: np.ndarray) -> float:
+    """How many photos a curve's support rests on: ok [N, M] bool, the (photo, station) pairs
+    supporting it (`gated_support`'s); with n_i = ok[i].sum() [N], Kish's effective count
+    (sum n_i)^2 / sum n_i^2: k photos supporting it equally count k, one photo's support alone 1
+    however many stations it holds; 0 with no support."""
+    n = np.asarray(ok, bool).reshape(len(ok), -1).sum(axis=1).astype(np.float64)
+    square = float(np.sum(n * n))
+    return float(n.sum()) ** 2 / square if square > 0 else 0.0
+
+
+def single_view_dropped(views: Views, kept: list[dict], centre, up, tol_px: float = DEFAULT_TOL_PX,
+                        min_photos: float = MIN_EFFECTIVE_PHOTOS, samples: int = 60) -> list[dict]:
+    """The wires of one side (`find_spans`' records, each with "theta", "track", "stations") less
+    those whose support over their track's stations (`samples` of them, as `curve_support`) rests
+    on fewer than min_photos photos (`effective_photos`). Any curve in the plane through one
+    photo's centre and a wire projects onto that wire's detections in it: one photo's support
+    places a curve nowhere."""
+    out = []
+    for f in kept:
+        s = np.linspace(float(f["track"][0, 0]), max(float(f["stations"][-1]), float(f["track"][0, 0]) + 1e-3),
+                        samples)
+        _, _, ok, _ = gated_support(views, curve_points(f["theta"], centre, s, up),
+                                    curve_tangents(f["theta"], centre, s, up), tol_px, with_detections=True)
+        if effective_photos(ok) >= min_photos:
+            out.append(f)
+    return out
 
 
 def borrowers_dropped(views: Views, kept: list[dict], centre, up, tol_px: float = DEFAULT_TOL_PX,

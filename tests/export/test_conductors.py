@@ -274,6 +274,73 @@ def test_a_curve_between_two_wires_seen_on_each_from_its_side_is_dropped_and_bot
     assert [r["theta"][0] for r in kept] == [-7.45, 7.45]
 
 
+def test_effective_photos_is_kishs_count_of_the_photos_holding_the_support():
+    """By hand: (sum n_i)^2 / sum n_i^2 of the supporting pairs per photo. Three photos holding 10
+    stations each count 3; one photo holding 40, 1 (however many stations); 30 and 10, 1600 / 1000
+    = 1.6; 50 in one photo and 1 in each of 9 others (59^2 / 2509) 1.387; no support 0."""
+    def ok(counts, stations=60):
+        return np.array([[k < c for k in range(stations)] for c in counts])
+
+    assert cond.effective_photos(ok([10, 10, 10, 0])) == pytest.approx(3.0)
+    assert cond.effective_photos(ok([40, 0, 0])) == pytest.approx(1.0)
+    assert cond.effective_photos(ok([30, 10])) == pytest.approx(1.6)
+    assert cond.effective_photos(ok([50] + [1] * 9)) == pytest.approx(59 ** 2 / 2509)
+    assert cond.effective_photos(ok([0, 0, 0])) == 0.0
+
+
+def test_a_curve_in_one_photos_plane_of_sight_through_a_wire_is_dropped_and_the_wire_kept():
+    """A straight wire A (x = 7.45, 22.9 m high, slope -0.1 along +y) drawn in the 16 ring photos,
+    and a phantom P parallel to it 2 m further from photo 0's centre e along the ray e -> A(0):
+    P = A + 2 (A(0) - e) / |A(0) - e| lies in the plane of e and A, so in photo 0 it projects onto
+    A's line all along (the same plane through the eye, the same vanishing point), in the others
+    beside it. P's support is photo 0's alone (effective photos about 1), A's the 16 photos' that
+    see it (over MIN_EFFECTIVE_PHOTOS = 3); `single_view_dropped` keeps A and drops P."""
+    rng = np.random.default_rng(8)
+    c2w = ring_cameras()
+    s = np.linspace(0.0, 200.0, 4001)
+    a0, t = np.array([7.45, 0.0, 22.9]), np.array([0.0, 1.0, -0.1])
+    wire = a0[None] + s[:, None] * t[None]
+    views = views_of(render_photos(c2w, [wire], rng, clutter=0, lines=0), c2w)
+    ray = a0 - c2w[0, :3, 3]
+    p0 = a0 + 2.0 * ray / np.linalg.norm(ray)
+    p0 = p0 - p0[1] * t                                      # P's point at y = 0: its attachment
+    rec_a, rec_p = _straight_record(-7.45, 22.9), _straight_record(-p0[0], p0[2])   # e_across = -x
+    for r in (rec_a, rec_p):
+        r["stations"] = r["track"][:, 0]
+
+    def photos(rec):
+        st = rec["stations"]
+        pts = cond.curve_points(rec["theta"], np.zeros(3), st)
+        _, _, ok, _ = cond.gated_support(views, pts, cond.curve_tangents(rec["theta"], np.zeros(3), st),
+                                         with_detections=True)
+        return ok
+
+    ok_a, ok_p = photos(rec_a), photos(rec_p)
+    assert ok_p[0].sum() >= 0.8 * len(rec_p["stations"])          # on A's line in photo 0 ...
+    assert cond.effective_photos(ok_p) < 1.5                        # ... and nowhere else
+    assert cond.effective_photos(ok_a) > 2 * cond.MIN_EFFECTIVE_PHOTOS
+    kept = cond.single_view_dropped(views, [rec_a, rec_p], np.zeros(3), (0.0, 0.0, 1.0))
+    assert [r["theta"][0] for r in kept] == [-7.45]
+
+
+def test_find_spans_returns_a_wire_only_when_its_support_rests_on_min_photos_photos():
+    """The true span in the 16 ring photos: Kish's count of the photos holding its support is at
+    most 16 (equal when all 16 hold it equally), so with min_photos 17 nothing is returned, with
+    the default 3 the span is found at its attachment."""
+    rng = np.random.default_rng(1)
+    c2w = ring_cameras()
+    views = views_of(render_photos(c2w, [true_curve(1)], rng), c2w)
+
+    def found(min_photos):
+        return cond.find_spans(views, np.zeros(3), math.pi / 2, 4.5, (7.5, 33.0), 18.0, 0.11, 30.4,
+                               span_length=2 * XV_TRUE, min_photos=min_photos)
+
+    kept = found(cond.MIN_EFFECTIVE_PHOTOS)
+    assert len(kept) == 1
+    np.testing.assert_allclose(catenary.derived(kept[0]["theta"], np.zeros(3))["attachment"], ATTACH, atol=0.15)
+    assert found(len(c2w) + 1) == []
+
+
 def test_the_sag_sigma_with_a_given_span_length_follows_the_slope_alone_by_the_closed_form():
     """The true curve's covariance from its detections in 8 photos (`_finish`), with the span
     length given (kappa = 2 beta / L, beta = asinh(-m0)): the span is L with no uncertainty, the
