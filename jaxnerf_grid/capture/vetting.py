@@ -38,10 +38,6 @@ Rules (`vet`), each with its reason in the table:
   below WEAK_OBSERVATIONS_FRACTION x the median photo's (only with at least
   MIN_PHOTOS_FOR_LAYOUT photos). Both, so that the end photos of a straight flight line (half
   the neighbours of a middle photo, with the usual number of points) are kept.
-
-The observation share, track length and weakly-tied rules say how well the matches tie a photo,
-not that its pose is wrong; a photo failing only those (`gps_vouchable`) may be kept on its GPS
-(`capture.poses.gps_vouched`).
 """
 
 from __future__ import annotations
