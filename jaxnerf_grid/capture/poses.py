@@ -93,10 +93,6 @@ PRIOR_SIGMA_M = (3.0, 5.0)
 # photographed from 5 m would pull the cameras about, not hold them (monstree, 23 photos: with
 # the priors the GPS alignment came out mirrored, docs/POSES.md); a drone orbit spreads 40-60 m.
 PRIOR_MIN_SPREAD_M = 30.0
-# A photo the vetting left out only as weakly tied by the structure is kept when its aligned centre
-# lies within this many times the kept photos' GPS residual RMS of its GPS position (`gps_vouched`):
-# about the 90th percentile of a well-placed camera's residual under a receiver's anisotropic error
-GPS_VOUCH_FACTOR = 1.5
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
@@ -1035,8 +1031,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         why_unregistered = unregistered_reasons(pycolmap, database, unregistered, registered)
         rows = vetting.vet(vetting.records_from_pycolmap(model))
         left_out = [] if keep_all else [row["name"] for row in rows if not row["kept"]]
-        registered_poses = model_poses(model)
-        raw_centres = np.stack([c2w[:3, 3] for c2w in registered_poses.values()])
+        registered_centres = np.stack([c2w[:3, 3] for c2w in model_poses(model).values()])
         leave_out(model, left_out)
         kept = len(registered) - len(left_out)
         if kept < enough_registered(len(names)):
@@ -1047,20 +1042,13 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                             f"{shown}); more overlap and texture between photos help (docs/POSES.md)")
         writing = time.monotonic()
         with _stage("undistortion to PINHOLE, orientation, transforms.json", progress):
-            align = {"crs_name": crs, "gcp_path": gcp, "scale_bar": scale_bar, "sizes": sizes,
-                     "ratios": ratios, "source": images_dir}
-            registered_centres, georeference, rot = oriented_and_aligned(pycolmap, model, raw_centres, positions, align)
-            vouched = gps_vouched(rows, dict(zip(registered_poses, registered_centres)),
-                                  gps_in_model_frame(priors, priors_origin, georeference), georeference,
-                                  np.stack(list(model_poses(model).values())))
-            mark_vouched(rows, vouched)
-            if vouched and not keep_all:  # kept on their GPS: the model again from COLMAP's, less the others
-                model = pycolmap.Reconstruction(str(raw_model))
-                left_out = [name for name in left_out if name not in vouched]
-                leave_out(model, left_out)
-                kept += len(vouched)
-                registered_centres, georeference, rot = oriented_and_aligned(pycolmap, model, raw_centres, positions,
-                                                                             align)
+            rot = orient_z_up(pycolmap, model)
+            sim, georeference = georef.align_model(model, positions, crs_name=crs, gcp_path=gcp, scale_bar=scale_bar,
+                                                   sizes=sizes, ratios=ratios, source=images_dir)
+            registered_centres = registered_centres @ rot.T
+            if sim is not None:
+                model.transform(pycolmap.Sim3d(sim[0], pycolmap.Rotation3d(sim[1]), sim[2]))
+                registered_centres = georef.apply_similarity(sim, registered_centres)
             far = [] if keep_all else gps_outliers(georeference)
             if far:  # a camera far from its GPS fix was registered in the wrong place: vetted out too
                 leave_out(model, [name for name, _ in far])
@@ -1220,69 +1208,6 @@ def unregistered_reasons(pycolmap, database, unregistered: list[str], registered
             out[name] = (f"{len(found)} verified pair(s) with registered photos, at most {max(found)} inliers "
                          f"(registering needs {need} that fit one pose)")
     return out
-
-
-def oriented_and_aligned(pycolmap, model, raw_centres: np.ndarray, positions: dict,
-                         align: dict) -> tuple[np.ndarray, dict, np.ndarray]:
-    """Turns the model z-up (`orient_z_up`) and into the frame of its GPS / control points / scale
-    bar (`georef.align_model` with the photos' GPS `positions` and the keywords `align`), in
-    place. raw_centres [R, 3]: the registered cameras' centres in the model's frame as COLMAP
-    returned it, moved the same way.
-    Returns (those centres [R, 3], the georeference record, the up rotation [3, 3])."""
-    rot = orient_z_up(pycolmap, model)
-    sim, georeference = georef.align_model(model, positions, **align)
-    centres = np.asarray(raw_centres, np.float64) @ rot.T
-    if sim is not None:
-        model.transform(pycolmap.Sim3d(sim[0], pycolmap.Rotation3d(sim[1]), sim[2]))
-        centres = georef.apply_similarity(sim, centres)
-    return centres, georeference, rot
-
-
-def gps_in_model_frame(priors: dict, priors_origin, georeference: dict) -> dict:
-    """The photos' GPS positions ({name: [3]} local metres from `priors_origin`) in the frame of a
-    model aligned to the GPS (local metres from georeference["origin"]); {} when the model is
-    not in that frame."""
-    if not priors or georeference.get("source") != "gps" or georeference.get("origin") is None:
-        return {}
-    shift = np.asarray(priors_origin, np.float64) - np.asarray(georeference["origin"], np.float64)
-    return {name: np.asarray(p, np.float64) + shift for name, p in priors.items()}
-
-
-def gps_vouched(rows: list[dict], centres: dict, gps_positions: dict, georeference: dict,
-                kept_c2w: np.ndarray, factor: float = GPS_VOUCH_FACTOR) -> dict:
-    """The photos the vetting left out only as weakly tied (rows' "gps_vouchable") whose camera
-    centre (`centres`, {name: [3]} in the aligned frame) lies within `factor` x the kept photos'
-    GPS residual RMS of its GPS position (`gps_positions`, the same frame), where that GPS can
-    tell the cameras' places apart (`gps_places_cameras` on the kept cameras, kept_c2w [K, 4, 4]):
-    {name: (distance m, bound m)}. Where the matches tie a photo weakly, a receiver that agrees
-    with its place as well as with a well-tied photo's is evidence the structure lacks."""
-    rms_m = (georeference.get("gps") or {}).get("rms_m")
-    if not gps_positions or rms_m is None or len(kept_c2w) < 3:
-        return {}
-    kept_c2w = np.asarray(kept_c2w, np.float64)
-    if not gps_places_cameras(georeference, kept_c2w[:, :3, 3], camera_set.look_at_point(kept_c2w)):
-        return {}
-    bound = factor * float(rms_m)
-    out = {}
-    for row in rows:
-        name = row["name"]
-        if row["kept"] or not row.get("gps_vouchable") or name not in centres or name not in gps_positions:
-            continue
-        distance = float(np.linalg.norm(np.asarray(centres[name]) - gps_positions[name]))
-        if distance <= bound:
-            out[name] = (distance, bound)
-    return out
-
-
-def mark_vouched(rows: list[dict], vouched: dict) -> None:
-    """Marks the vetting rows of `vouched` ({name: (distance m, bound m)}, `gps_vouched`) kept, the
-    structure's reasons after the GPS's (in place)."""
-    for row in rows:
-        if row["name"] in vouched:
-            distance, bound = vouched[row["name"]]
-            row["kept"] = True
-            row["reasons"] = [f"kept on its GPS: {distance:.1f} m from it (within {bound:.1f} m), though "
-                              + "; ".join(row["reasons"])]
 
 
 def gps_outliers(georeference: dict) -> list[tuple[str, str]]:

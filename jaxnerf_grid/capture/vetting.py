@@ -56,7 +56,6 @@ NEIGHBOUR_DEPTH_FLOOR = 0.1  # the usual neighbour distance is at least this sha
 MIN_PHOTOS_FOR_LAYOUT = 5
 MIN_COVISIBLE_FRACTION = 2 / 3   # weakly tied: fewer covisible photos than 2/3 of the median photo's ...
 WEAK_OBSERVATIONS_FRACTION = 0.25  # ... and fewer observations than a quarter of the median photo's
-GPS_VOUCHABLE = {"observation_share", "track", "weak"}  # rules a photo's GPS can overrule (`gps_vouchable`)
 BEHIND_PX = 1e4  # the error given to a point behind the camera (it cannot be where the photo saw it)
 
 
@@ -155,21 +154,6 @@ def photo_scores(rec: Records) -> dict:
 
 def failures(scores: dict) -> list[list[str]]:
     """Per photo the rules it fails (module docstring), as short reasons; [] = kept."""
-    return [list(failed.values()) for failed in rule_failures(scores)]
-
-
-def gps_vouchable(scores: dict) -> np.ndarray:
-    """[N] bool: photos left out only by the rules that judge how well the structure ties them
-    (GPS_VOUCHABLE: observations under the median's share but at least MIN_OBSERVATIONS, short
-    tracks, weakly tied), none that says the pose is wrong (reprojection, neighbour ratio): where
-    the photos carry GPS, their GPS can vouch for their place (`capture.poses.gps_vouched`)."""
-    return np.array([bool(failed) and set(failed) <= GPS_VOUCHABLE for failed in rule_failures(scores)], bool)
-
-
-def rule_failures(scores: dict) -> list[dict[str, str]]:
-    """Per photo {rule: reason} of the rules it fails (module docstring); {} = kept. Rules:
-    "observations" (under MIN_OBSERVATIONS), "observation_share" (under the median's share only),
-    "reprojection", "track", "neighbour", "weak"."""
     obs, reproj = scores["observations"], scores["reprojection_px"]
     track, ratio, covisible = scores["track_length"], scores["neighbour_ratio"], scores["covisible"]
     n = len(obs)
@@ -181,36 +165,32 @@ def rule_failures(scores: dict) -> list[dict[str, str]]:
             & (obs < WEAK_OBSERVATIONS_FRACTION * typical_obs)) if n >= MIN_PHOTOS_FOR_LAYOUT else np.zeros(n, bool)
     out = []
     for i in range(n):
-        why = {}
+        why = []
         if obs[i] < min_obs:
-            why["observations" if obs[i] < MIN_OBSERVATIONS else "observation_share"] = \
-                f"{obs[i]} observations < {min_obs:.0f}"
+            why.append(f"{obs[i]} observations < {min_obs:.0f}")
         if not np.isfinite(reproj[i]) or reproj[i] > MAX_REPROJECTION_PX:
-            why["reprojection"] = f"reprojection {reproj[i]:.2f} px > {MAX_REPROJECTION_PX:g}"
+            why.append(f"reprojection {reproj[i]:.2f} px > {MAX_REPROJECTION_PX:g}")
         if np.isfinite(typical_track) and not track[i] >= MIN_TRACK_FRACTION * typical_track:
-            why["track"] = f"track length {track[i]:.2f} < {MIN_TRACK_FRACTION:g} x median {typical_track:.2f}"
+            why.append(f"track length {track[i]:.2f} < {MIN_TRACK_FRACTION:g} x median {typical_track:.2f}")
         if n >= MIN_PHOTOS_FOR_LAYOUT and np.isfinite(ratio[i]) and ratio[i] > MAX_NEIGHBOUR_RATIO:
-            why["neighbour"] = f"{ratio[i]:.1f}x the usual distance to the photos it shares points with"
+            why.append(f"{ratio[i]:.1f}x the usual distance to the photos it shares points with")
         if weak[i]:
-            why["weak"] = (f"weakly tied: shares points with {covisible[i]} photos (median {typical_covisible:g}) "
-                           f"through {obs[i]} observations (median {typical_obs:g})")
+            why.append(f"weakly tied: shares points with {covisible[i]} photos (median {typical_covisible:g}) "
+                       f"through {obs[i]} observations (median {typical_obs:g})")
         out.append(why)
     return out
 
 
 def vet(rec: Records) -> list[dict]:
     """One row per photo, in rec.names order: {"name", "observations", "reprojection_px",
-    "track_length", "neighbour_ratio" (None when not computed), "covisible", "kept", "reasons",
-    "gps_vouchable" (`gps_vouchable`)}."""
+    "track_length", "neighbour_ratio" (None when not computed), "covisible", "kept", "reasons"}."""
     scores = photo_scores(rec)
-    vouchable = gps_vouchable(scores)
     rows = []
     for i, why in enumerate(failures(scores)):
         rows.append({"name": rec.names[i], "observations": int(scores["observations"][i]),
                      **{key: (float(scores[key][i]) if np.isfinite(scores[key][i]) else None)
                         for key in ("reprojection_px", "track_length", "neighbour_ratio")},
-                     "covisible": int(scores["covisible"][i]), "kept": not why, "reasons": why,
-                     "gps_vouchable": bool(vouchable[i])})
+                     "covisible": int(scores["covisible"][i]), "kept": not why, "reasons": why})
     return rows
 
 

@@ -18,7 +18,6 @@ from jaxnerf_grid.capture.camera_set import (
     camera_set_verdict,
     look_at_point,
 )
-from jaxnerf_grid.capture.poses import gps_in_model_frame, gps_vouched, mark_vouched
 from tests.support.cameras import look_at
 
 
@@ -132,48 +131,3 @@ def test_gps_priors_hold_only_over_a_wide_capture():
     assert priors_hold({k: 60.0 * v for k, v in ring.items()})
     assert not priors_hold({k: 5.0 * v for k, v in ring.items()})
     assert not priors_hold({})
-
-
-def _ring_c2w(radius: float, count: int = 12) -> np.ndarray:
-    """count cameras on a ring of `radius` at height 10, looking at the origin: [count, 4, 4]."""
-    angles = 2 * np.pi * np.arange(count) / count
-    return np.stack([look_at(np.array([radius * np.cos(a), radius * np.sin(a), 10.0]), [0.0, 0.0, 0.0])
-                     for a in angles])
-
-
-def test_a_weakly_tied_photo_is_kept_on_its_gps_within_the_bound():
-    """Kept photos' GPS residual RMS 4 m (cameras 50 m out: the GPS places them): the bound is
-    1.5 x 4 = 6 m. A photo left out only as weakly tied is kept 5.9 m from its GPS fix, not 6.1 m;
-    one left out for its reprojection is not kept at 0 m; a kept photo is not listed; a photo
-    without GPS is not listed. With cameras 5 m out (4 > 5 / 4) the GPS vouches for none."""
-    geo = {"units": "metres", "source": "gps", "origin": [0.0, 0.0, 0.0], "gps": {"rms_m": 4.0}}
-    rows = [{"name": "near.jpg", "kept": False, "gps_vouchable": True, "reasons": ["40 observations < 44"]},
-            {"name": "far.jpg", "kept": False, "gps_vouchable": True, "reasons": ["track length 2.1 < 0.5 x median 6"]},
-            {"name": "wrong.jpg", "kept": False, "gps_vouchable": False, "reasons": ["reprojection 9.00 px > 2"]},
-            {"name": "kept.jpg", "kept": True, "gps_vouchable": False, "reasons": []},
-            {"name": "nogps.jpg", "kept": False, "gps_vouchable": True, "reasons": ["track length 2.1 < 0.5 x median 6"]}]
-    centres = {"near.jpg": np.array([50.0, 0.0, 10.0]), "far.jpg": np.array([0.0, 50.0, 10.0]),
-               "wrong.jpg": np.array([-50.0, 0.0, 10.0]), "kept.jpg": np.array([0.0, -50.0, 10.0]),
-               "nogps.jpg": np.array([35.0, 35.0, 10.0])}
-    gps_at = {"near.jpg": centres["near.jpg"] + [3.4, 0.0, 4.8],        # |(3.4, 0, 4.8)| = 5.88 m
-              "far.jpg": centres["far.jpg"] + [0.0, 6.1, 0.0],
-              "wrong.jpg": centres["wrong.jpg"], "kept.jpg": centres["kept.jpg"]}
-    vouched = gps_vouched(rows, centres, gps_at, geo, _ring_c2w(50.0))
-    assert list(vouched) == ["near.jpg"]
-    assert vouched["near.jpg"] == pytest.approx((np.hypot(3.4, 4.8), 6.0))
-    assert gps_vouched(rows, centres, gps_at, geo, _ring_c2w(5.0)) == {}
-    assert gps_vouched(rows, centres, {}, geo, _ring_c2w(50.0)) == {}
-    mark_vouched(rows, vouched)
-    assert rows[0]["kept"] and rows[0]["reasons"] == ["kept on its GPS: 5.9 m from it (within 6.0 m), though "
-                                                      "40 observations < 44"]
-    assert [r["kept"] for r in rows[1:]] == [False, False, True, False]
-
-
-def test_gps_positions_move_into_the_aligned_models_frame():
-    """Priors in local metres from (1000, 2000, 0); the model's frame from (990, 2010, 5): a prior
-    at (1, 2, 3) is at (11, -8, -2) there. A model not aligned to the GPS has none."""
-    priors = {"a.jpg": [1.0, 2.0, 3.0]}
-    geo = {"source": "gps", "origin": [990.0, 2010.0, 5.0]}
-    moved = gps_in_model_frame(priors, [1000.0, 2000.0, 0.0], geo)
-    np.testing.assert_allclose(moved["a.jpg"], [11.0, -8.0, -2.0])
-    assert gps_in_model_frame(priors, [1000.0, 2000.0, 0.0], {"source": "control points", "origin": [0, 0, 0]}) == {}

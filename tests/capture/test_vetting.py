@@ -265,19 +265,3 @@ def test_frames_a_few_millimetres_apart_do_not_make_walking_frames_look_misplace
 
 def _arrays(rec):
     return rec.cam_from_world, rec.point_index, rec.xyz
-
-
-def test_only_the_rules_of_how_well_a_photo_is_tied_can_be_overruled_by_its_gps():
-    """gps_vouchable on hand-made scores (median observations 200, floor 20; median track 4):
-    under the observation share alone (19), short tracks alone (1.9), weakly tied (covisible 2
-    and 40 observations): vouchable; under MIN_OBSERVATIONS (14), a reprojection of 2.5 px, a
-    neighbour ratio of 3.5 (each with short tracks too): not; a kept photo: not."""
-    n = 9
-    scores = {"observations": np.array([200, 200, 200, 19, 200, 40, 14, 200, 200]),
-              "reprojection_px": np.array([0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 0.5, 2.5, 0.5]),
-              "track_length": np.array([4.0, 4.0, 4.0, 4.0, 1.9, 4.0, 1.9, 1.9, 1.9]),
-              "neighbour_ratio": np.array([1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 1.0, 3.5]),
-              "covisible": np.array([7, 7, 7, 7, 7, 2, 7, 7, 7])}
-    assert vetting.gps_vouchable(scores).tolist() == [False, False, False, True, True, True, False, False, False]
-    assert len(vetting.failures(scores)) == n
-    assert [bool(w) for w in vetting.failures(scores)] == [False, False, False] + [True] * 6
