@@ -740,6 +740,16 @@ RESCAN_CAP = 0.1        # tower heights: the joint scan after the shared sag rea
 SETTLE_GAIN = 0.05       # share of the photos: a scanned attachment must gain this much support to move
 
 
+def station_samples(s_from: float, s_to: float, samples: int = 60) -> np.ndarray:
+    """[samples] stations from s_from to s_to, at least 1 mm long (a track of one station)."""
+    return np.linspace(s_from, max(s_to, s_from + 1e-3), samples)
+
+
+def track_samples(f: dict, samples: int = 60) -> np.ndarray:
+    """`station_samples` over a record's track: from its first station tried to its last found."""
+    return station_samples(float(f["track"][0, 0]), float(f["stations"][-1]), samples)
+
+
 def curve_support(views: Views, theta, centre, s: np.ndarray, up=(0.0, 0.0, 1.0),
                   tol_px: float = DEFAULT_TOL_PX) -> float:
     """The mean over stations s [K] of the curve theta's `gated_support`: the share of the photos
@@ -768,7 +778,7 @@ def scan_attachment(views: Views, theta, centre, s_from: float, s_to: float, rea
     cells of the joint (across, height) grid about theta (`rescanned`); `scan_moves` lists them.
     Returns (theta [5], moved, its `curve_support` over those stations)."""
     theta = np.asarray(theta, np.float64)
-    s = np.linspace(s_from, max(s_to, s_from + 1e-3), samples)
+    s = station_samples(s_from, s_to, samples)
     offsets = np.arange(-reach, reach + 0.5 * step, step)
     own = curve_support(views, theta, centre, s, up, tol_px)
     best, best_share = theta.copy(), own
@@ -820,7 +830,7 @@ def refine_span(views: Views, theta, centre, s_from: float, s_to: float, up=(0.0
 
     theta = np.asarray(theta, np.float64).copy()
     free = list(free)
-    s = np.linspace(s_from, max(s_to, s_from + 1e-3), samples)
+    s = station_samples(s_from, s_to, samples)
     psi0 = float(theta[2])
 
     def full(q):
@@ -1222,8 +1232,7 @@ def _shared_sag(views: Views, kept: list[dict], centre, half_length: float, up, 
                 moved, _, support = scan_attachment(views, pivoted(theta, f["theta"], first), centre, first, last,
                                                     scan[0], scan[2], up, tol_px, joint=True)
                 # a wire that does hang to its own sag keeps its attachment: its own curve holds more support
-                s = np.linspace(first, max(last, first + 1e-3), 60)
-                if support > curve_support(views, f["theta"], centre, s, up, tol_px):
+                if support > curve_support(views, f["theta"], centre, track_samples(f), up, tol_px):
                     theta = moved
         r = _refined(views, {**f, "theta": theta}, others, centre, half_length,
                      up, tol_px, length, (0, 1), kappa_bounds, psi_sigma)
@@ -1474,8 +1483,7 @@ def _settled(views: Views, f: dict, kept: list[dict], centre, half_length: float
         cov[:2, :], cov[:, :2] = 0.0, 0.0
         cov[:2, :2] = np.asarray(r["image_cov"], np.float64)[:2, :2]
         f = {**r, "cov": cov, "span_length": f.get("span_length")}
-        support = curve_support(views, f["theta"], centre, np.linspace(s_from, max(s_to, s_from + 1e-3), 60), up,
-                                tol_px)
+        support = curve_support(views, f["theta"], centre, station_samples(s_from, s_to), up, tol_px)
     return {**f, "settled": moved, "support": support}
 
 
@@ -1498,8 +1506,7 @@ def single_view_dropped(views: Views, kept: list[dict], centre, up, tol_px: floa
     places a curve nowhere."""
     out = []
     for f in kept:
-        s = np.linspace(float(f["track"][0, 0]), max(float(f["stations"][-1]), float(f["track"][0, 0]) + 1e-3),
-                        samples)
+        s = track_samples(f, samples)
         _, _, ok, _ = gated_support(views, curve_points(f["theta"], centre, s, up),
                                     curve_tangents(f["theta"], centre, s, up), tol_px, with_detections=True)
         if effective_photos(ok) >= min_photos:
