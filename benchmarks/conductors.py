@@ -3,7 +3,8 @@
 Usage:
   python -m benchmarks.conductors --data SCENE [--data SCENE2 ...] [--export EXPORT_DIR ...]
       [--span-length M] [--arm-seeds] [--detect-threshold K] [--no-refine] [--no-shared-azimuth]
-      [--no-shared-span] [--no-shared-curvature] [--no-shared-sag] [--no-settle] [--no-top-window]
+      [--no-shared-span] [--no-shared-curvature] [--no-next-tower] [--no-shared-sag] [--no-settle]
+      [--no-top-window]
       [--out benchmarks/results/conductors.json]
 
 For each generated scene (`jaxnerf-grid synth`; its transforms.json says preset, seed and whether
@@ -28,6 +29,7 @@ export's own ground and needs no move.
 from __future__ import annotations
 
 import argparse
+import functools
 import json
 import math
 import os
@@ -116,7 +118,8 @@ def score(records: list[dict], truth: list[dict], match_radius: float = MATCH_RA
                         "clearance": (r.get("clearance") or {}).get("ground"),
                         "inlier_share": r["inlier_share"], "observed_stations": r["observed_stations"],
                         "span_length_shared": r.get("span_length_shared"),
-                        "curvature_across": r.get("curvature_across"), "curvature_own": r.get("curvature_own")})
+                        "curvature_across": r.get("curvature_across"), "curvature_own": r.get("curvature_own"),
+                        "next_tower": r.get("next_tower")})
             g = row["clearance"]
             row["clearance_error"] = None if g is None else g - t["lowest_z"]
         rows.append(row)
@@ -236,7 +239,7 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
                     threshold: float | None = None, refine: bool = True,
                     shared_azimuth: bool = True, shared_span: bool = True,
                     shared_sag: bool = True, settle: bool = True, top_window: bool = True,
-                    shared_curvature: bool = True) -> tuple[list[dict], dict]:
+                    shared_curvature: bool = True, next_tower: bool = True) -> tuple[list[dict], dict]:
     """The spans found with the true cameras and the true tower (axis at the origin, line along y,
     30.4 m tall, box 4.5 m either side); span_length: the towers' spacing given to the fit (a level
     span of that length), None: the catenary parameter free; arm_seeds: the cross-arm tips as
@@ -247,9 +250,13 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
     for more support); top_window: with arm_seeds, the earth wires' window above the arms searched at
     the track's support (`export.conductors.earth_window`); shared_curvature: without span_length,
     the phase wires' curvature pooled across the tower and each side's span from its slope
-    (`export.conductors.phase_curvature`).
+    (`export.conductors.phase_curvature`); next_tower: with it, each side's span measured at the
+    next tower where the photos see it (`export.next_tower`, the true ground at z = 0).
     Returns (records, timings)."""
+    import cv2
+
     from jaxnerf_grid.export import conductors as cond
+    from jaxnerf_grid.export import next_tower as nt
     from jaxnerf_grid.util import io
 
     t0 = time.perf_counter()
@@ -264,6 +271,12 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
         from jaxnerf_grid.export.run import SEED_WINDOW
 
         kw = {"seeds": true_arm_seeds(), "seed_window": tuple(v * 30.4 for v in SEED_WINDOW)}
+    if next_tower:
+        gray = np.stack([nt.high_pass(cv2.cvtColor(np.asarray(im[..., :3], np.float32), cv2.COLOR_RGB2GRAY))
+                         for im in images])
+        half_width = max(abs(c) for c, _ in true_arm_seeds())
+        kw["next_tower"] = functools.partial(nt.next_tower, gray, views.c2w, views.intrinsics, centre,
+                                             (0.0, 0.0, 1.0), 0.0, 30.4, half_width)
     spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length,
                             refine=refine, shared_azimuth=shared_azimuth, shared_span=shared_span,
                             shared_sag=shared_sag, settle=settle, top_window=top_window,
@@ -314,6 +327,9 @@ def main(argv=None) -> int:
     p.add_argument("--no-shared-curvature", action="store_true",
                    help="without --span-length, each side's span the median of its wires' own, not from its slope "
                         "and the phase wires' curvature pooled across the tower (find_spans shared_curvature=False)")
+    p.add_argument("--no-next-tower", action="store_true",
+                   help="without --span-length, the spans from the wires' slopes and curvature only, the next towers "
+                        "not searched in the photos (find_spans next_tower=None)")
     p.add_argument("--no-shared-sag", action="store_true",
                    help="each wire hung from a cross-arm keeps its own sag (find_spans shared_sag=False)")
     p.add_argument("--no-settle", action="store_true",
@@ -332,7 +348,7 @@ def main(argv=None) -> int:
     # find_spans' steps: every one after the refinement goes with it
     steps = {"refine": not args.no_refine,
              **{key: not (args.no_refine or getattr(args, f"no_{key}"))
-                for key in ("shared_azimuth", "shared_span", "shared_curvature", "shared_sag", "settle")}}
+                for key in ("shared_azimuth", "shared_span", "shared_curvature", "next_tower", "shared_sag", "settle")}}
     results = []
     for i, data in enumerate(args.data):
         size = tuple(int(v) for v in args.partial.split(",")) if args.partial else None

@@ -43,7 +43,8 @@ def build_parser() -> argparse.ArgumentParser:
                         "(export units; no default: the clearance a line needs depends on its voltage and country)")
     p.add_argument("--span-length", type=float, default=None, metavar="M",
                    help="the distance between the towers (export units): each span's conductors fitted as a level "
-                        "span of that length; without it their curvature comes from the photos alone, poorly "
+                        "span of that length; without it each side's span is measured at the next tower where "
+                        "photos look along the line and see it, else it comes from the wires' curvature, poorly "
                         "observed where few photos see the far part of a wire (docs/EXPORT.md)")
     p.add_argument("--overwrite", action="store_true", help="write into an output folder that holds files")
     p.add_argument("--allow-other-data", action="store_true",

@@ -878,7 +878,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
                settle: bool = True, top_window: bool = True, shared_curvature: bool = True,
-               min_photos: float = MIN_EFFECTIVE_PHOTOS) -> list[dict]:
+               min_photos: float = MIN_EFFECTIVE_PHOTOS, next_tower=None) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -914,8 +914,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     without span_length, then refined with one level span the side's wires share: with
     shared_curvature and phase wires ("from_arm") on both sides, the span the side's phase wires'
     slope gives at the curvature pooled over both sides' phase wires (`phase_curvature`,
-    `_span_from_curvature`: one tension either side of a suspension clamp), else the median of
-    the side's wires' own (`side_span`, from two wires);
+    `_span_from_curvature`: one tension either side of a suspension clamp; with next_tower, the
+    sides' spans and that curvature from the next towers where the photos see them,
+    `side_lengths`), else the median of the side's wires' own (`side_span`, from two wires);
     shared_sag: then the side's wires hung in the cross-arms' windows (the phase conductors: one
     conductor strung to one tension on one span hangs to one sag) refined with one slope at the
     attachment (`side_slope`; with a level span of one length that is one sag), from 3 such wires
@@ -935,7 +936,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     Returns [{"side": +1 | -1, "psi", "seed" (across, height, support), "from_arm", "theta", "cov"
     (`combined_covariance`), "image_cov" (`_covariance`), "sigma_px", "inlier_share", "residuals",
     "seen", "stations", "track" [F, 4], "span_length", "profile_cov", with shared_span
-    "span_length_shared" (L, sigma) and, the curvature pooled, "curvature_across" (kappa, sigma),
+    "span_length_shared" (L, sigma) and, the curvature pooled, "curvature_across" (kappa, sigma) and
+    "next_tower" (the side's next tower found, None where not),
     with shared_sag on the arms' wires "slope_shared" (m0, sigma)
     and "slope_own", where they apply "clamp_shared" and "curvature_shared" (kappa, sigma)}]."""
     spans = []
@@ -1020,11 +1022,18 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     # the phase wires' curvature from both sides (one tension through the suspension clamps), no span length given
     pooled = (phase_curvature(sides[1], sides[-1])
               if refine and shared_span and shared_curvature and not span_length else None)
+    lengths: dict = {}
+    measured: dict = {}
+    if pooled is not None:
+        slopes = {side: held_slopes(views, sides[side], centre, half_length, up, tol_px, kappa_bounds, pooled[0])
+                  for side in (1, -1)}
+        lengths, pooled, measured = side_lengths(slopes, pooled, psi, next_tower)
     for side in (1, -1):
         kept = sides[side]
         if refine:
             if pooled is not None:
-                kept = _span_from_curvature(views, kept, centre, half_length, up, tol_px, kappa_bounds, pooled)
+                kept = _span_from_curvature(views, kept, centre, half_length, up, tol_px, kappa_bounds, pooled,
+                                            lengths.get(side), measured.get(side))
             elif shared_span and not span_length and len(kept) > 1:
                 kept = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds)
             if shared_sag:
@@ -1151,27 +1160,87 @@ def slope_span(slopes: np.ndarray, kappa: float, sigma_kappa: float) -> tuple[fl
     return length, math.hypot(length / kappa * sigma_kappa, dl_dm * sigma_m)
 
 
-def _span_from_curvature(views: Views, kept: list[dict], centre, half_length: float, up, tol_px: float,
-                         kappa_bounds: tuple, pooled: tuple) -> list[dict]:
-    """The wires of one side, no span length given, with the span its phase wires' slopes give at
-    the curvature pooled across the tower (`phase_curvature`, pooled (kappa, sigma)): each phase
-    wire refined with the curvature held at kappa (the slope at the attachment freed from the
-    curvature the photos barely see), the side's span from their slopes (`slope_span`), then
-    every wire of the side refined with that span (`_shared_span`). Each record gets
-    "curvature_across" (kappa, sigma) and "curvature_own" (its curvature and 1-sigma before, the
-    image residuals'). A side without phase wires, or whose slopes give no span,
-    shares its wires' own span instead (`_shared_span`, from two wires)."""
-    kappa, sigma_kappa = (float(v) for v in pooled)
+def held_slopes(views: Views, kept: list[dict], centre, half_length: float, up, tol_px: float,
+                kappa_bounds: tuple, kappa: float) -> np.ndarray:
+    """The slopes at the attachment [K] of one side's phase wires (`phase_wires`), each refined
+    with its curvature held at kappa (the slope freed from the curvature the photos barely see)."""
     phase = phase_wires(kept)
     held = [_refined(views, {**f, "theta": np.append(np.asarray(f["theta"], np.float64)[:4], kappa)},
                      [k["theta"] for k in kept if k is not f], centre, half_length, up, tol_px, None, (0, 1, 3),
                      kappa_bounds, math.sqrt(max(float(f["cov"][2, 2]), 0.0))) for f in phase]
-    shared = slope_span(np.array([float(f["theta"][3]) for f in held]), kappa, sigma_kappa) if held else None
+    return np.array([float(f["theta"][3]) for f in held])
+
+
+NEXT_TOWER_SIGMAS = 4.0   # the next tower's search window: the curvature's span +- this many of its sigmas,
+NEXT_TOWER_SHARE = 0.05   # and at least this share of it
+
+
+def next_tower_window(length: float, sigma: float) -> tuple[float, float]:
+    """The distances (lo, hi) the next tower is searched over about the span the curvature gives
+    (length, sigma): +- max(NEXT_TOWER_SIGMAS sigma, NEXT_TOWER_SHARE length)."""
+    half = max(NEXT_TOWER_SIGMAS * sigma, NEXT_TOWER_SHARE * length)
+    return max(length - half, 0.5 * length), length + half
+
+
+def curvature_from_spans(slopes: dict, measured: dict) -> tuple[float, float]:
+    """The curvature (kappa, sigma) of the sides' measured spans: each side's level span L at its
+    phase wires' median slope m (`side_slope`) gives kappa = 2 asinh(-m) / L, its variance first
+    order in both, (kappa sigma_L / L)^2 + (2 sigma_m / (L sqrt(1 + m^2)))^2; the sides'
+    inverse-variance mean. slopes {side: [K]}, measured {side: {"length", "sigma"}}."""
+    kappas, weights = [], []
+    for side, found in measured.items():
+        slope, sigma_m = side_slope(slopes[side])
+        length, sigma_l = float(found["length"]), float(found["sigma"])
+        kappa = 2.0 * math.asinh(-slope) / length
+        var = (kappa * sigma_l / length) ** 2 + (2.0 * sigma_m / (length * math.sqrt(1.0 + slope * slope))) ** 2
+        kappas.append(kappa)
+        weights.append(1.0 / max(var, 1e-30))
+    w = np.asarray(weights)
+    return float(np.asarray(kappas) @ w / w.sum()), float(1.0 / math.sqrt(w.sum()))
+
+
+def side_lengths(slopes: dict, pooled: tuple, psi: float, next_tower=None) -> tuple[dict, tuple, dict]:
+    """Each side's level span from its phase wires' slopes at the attachment slopes {side: [K]} and
+    the curvature pooled across the tower (kappa, sigma) (`slope_span`; None for a side without
+    phase wires or a fall). With next_tower (a callable (azimuth, (lo, hi)) -> {"length", "sigma",
+    ...} | None, `export.next_tower`), the next tower is searched on each side within
+    `next_tower_window` of that span; the sides where it is found set the curvature
+    (`curvature_from_spans`), their spans are the measured ones and the others' follow from
+    their slopes at it. Returns ({side: (L, sigma) | None}, (kappa, sigma), {side: found})."""
+    kappa, sigma = pooled
+    lengths = {side: slope_span(s, kappa, sigma) if len(s) else None for side, s in slopes.items()}
+    measured: dict = {}
+    if next_tower is not None:
+        for side, est in lengths.items():
+            if est is not None:
+                found = next_tower(psi if side == 1 else psi + math.pi, next_tower_window(*est))
+                if found is not None:
+                    measured[side] = found
+    if not measured:
+        return lengths, (kappa, sigma), {}
+    kappa, sigma = curvature_from_spans(slopes, measured)
+    lengths = {side: (float(measured[side]["length"]), float(measured[side]["sigma"])) if side in measured else
+               (slope_span(s, kappa, sigma) if len(s) else None) for side, s in slopes.items()}
+    return lengths, (kappa, sigma), measured
+
+
+def _span_from_curvature(views: Views, kept: list[dict], centre, half_length: float, up, tol_px: float,
+                         kappa_bounds: tuple, pooled: tuple, shared: tuple | None,
+                         measured: dict | None = None) -> list[dict]:
+    """The wires of one side, no span length given, refined with the span shared (L, sigma) its
+    phase wires' slopes give at the curvature pooled (kappa, sigma) (`side_lengths`: across the
+    tower, `phase_curvature`, or from the next towers measured), every wire of the side tied to
+    it (`_shared_span`). Each record gets "curvature_across" (kappa, sigma), "curvature_own" (its
+    curvature and 1-sigma before, the image residuals') and "next_tower" (measured: the side's
+    next tower found, `export.next_tower`; else None). A side whose slopes give no span shares
+    its wires' own span instead (`_shared_span`, from two wires)."""
     if shared is None:
         return _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds) if len(kept) > 1 else kept
+    kappa, sigma_kappa = (float(v) for v in pooled)
     out = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds, shared)
     own = [(float(f["theta"][4]), math.sqrt(max(float(f["image_cov"][4, 4]), 0.0))) for f in kept]
-    return [{**f, "curvature_across": (kappa, sigma_kappa), "curvature_own": k} for f, k in zip(out, own)]
+    return [{**f, "curvature_across": (kappa, sigma_kappa), "curvature_own": k, "next_tower": measured}
+            for f, k in zip(out, own)]
 
 
 MIN_SHARED_SAG = 3   # the arms' wires on a side that make a median: with 2 an outlier is half of it
@@ -1679,6 +1748,8 @@ def span_record(fit: dict, centre, up=(0.0, 0.0, 1.0)) -> dict:
                 [float(v) for v in fit["curvature_across"]],
                 "curvature_own": None if fit.get("curvature_own") is None else
                 [_num(v) for v in fit["curvature_own"]],
+                "next_tower": None if fit.get("next_tower") is None else
+                {k: float(v) if k in ("length", "sigma", "score") else int(v) for k, v in fit["next_tower"].items()},
                 "settled": bool(fit.get("settled", False)), "clamp_shared": bool(fit.get("clamp_shared", False))})
     return rec
 

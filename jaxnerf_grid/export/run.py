@@ -27,6 +27,7 @@ Every check (the output folder, the checkpoint, the box) runs before anything is
 
 from __future__ import annotations
 
+import functools
 import math
 import os
 import resource
@@ -34,6 +35,7 @@ import time
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
 
 from jaxnerf_grid.config import schema as config_lib
@@ -55,6 +57,7 @@ from jaxnerf_grid.export import clearance as clearance_lib
 from jaxnerf_grid.export import conductors as conductors_lib
 from jaxnerf_grid.export import geoid as geoid_lib
 from jaxnerf_grid.export import mesh as mesh_lib
+from jaxnerf_grid.export import next_tower as next_tower_lib
 from jaxnerf_grid.render import clouds
 from jaxnerf_grid.render import views as views_lib
 from jaxnerf_grid.report import html as report_html
@@ -213,7 +216,8 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
     min_clearance: spans whose conductor clearance over the ground or the objects beneath is
     below this (export units) are flagged (`export.clearance`); None flags nothing.
     span_length: the distance between the towers (export units): each span's catenary a level span
-    of that length (`export.conductors.fit_profile`); None: its curvature from the photos alone.
+    of that length (`export.conductors.fit_profile`); None: each side's span measured at the next
+    tower where the photos see it (`export.next_tower`), else from the wires' curvature.
     DataError / ConfigError for a run without a checkpoint, an empty box or one outside the
     scene, an occupied folder, a box without a surface, a geoid grid that is missing, unreadable,
     not covering the site or given for a dataset without a CRS; nothing is written then.
@@ -472,9 +476,16 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
     del responses
     seeds = arm_seeds(levels, centre, psi, up)
     out["seeds"] = [[c, z] for c, z in seeds]
+    # the next towers, where the photos look along the line: the spans without the curvature's doubt
+    gray = np.stack([next_tower_lib.high_pass(cv2.cvtColor(np.asarray(im[..., :3], np.float32), cv2.COLOR_RGB2GRAY))
+                     for im in images])
+    next_tower = functools.partial(next_tower_lib.next_tower, gray, c2w, intr, centre, up, ground_at_centre,
+                                   float(height), 0.5 * max(lv["span"] for lv in levels))
     fits = conductors_lib.find_spans(views, centre, psi, half_length, heights, across, step, float(height), up,
                                      seeds=seeds, span_length=span_length,
-                                     seed_window=tuple(v * float(height) for v in SEED_WINDOW))
+                                     seed_window=tuple(v * float(height) for v in SEED_WINDOW),
+                                     next_tower=next_tower)
+    del gray
     plane_band = float(meas["ground"]["clearance"])
     for fit in fits:
         rec = conductors_lib.span_record(fit, centre, up)

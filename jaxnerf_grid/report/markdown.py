@@ -349,6 +349,26 @@ def _sig(fig: dict | None, digits: int = 2, index: int | None = None) -> str:
     return f"{_fmt(float(v), digits)} +- {_fmt(float(s), digits)}" if s is not None else _fmt(float(v), digits)
 
 
+def span_sources(spans: list[dict], unit: str) -> str:
+    """Where each side's span length came from, in words (the records' `span_length_shared` and
+    `next_tower`, `export.conductors.side_lengths`): measured at the next tower seen along the
+    line, or from the wires' slopes and curvature; "the curvature from the photos alone" where no
+    side shares one."""
+    parts = []
+    for side in (1, -1):
+        rec = next((r for r in spans if r["side"] == side and r.get("span_length_shared")), None)
+        if rec is None:
+            continue
+        length, sigma = rec["span_length_shared"]
+        nt = rec.get("next_tower")
+        how = (f"measured at the next tower, seen along the line in {nt['photos']} photos" if nt
+               else "from the wires' slopes and curvature")
+        parts.append(f"side {'+' if side > 0 else '-'}: {_fmt(length)} +- {_fmt(sigma)} {unit}, {how}")
+    if not parts:
+        return "each wire's curvature from the photos alone. "
+    return "the span of " + "; ".join(parts) + ". "
+
+
 def conductor_lines(m: dict, unit: str, image: str | None = None) -> list[str]:
     """The "Conductors" table of the export section: one row per span fitted in the photos
     (`export.conductors`, measurements.json's `conductor_spans`), each figure +- its 1-sigma;
@@ -362,8 +382,8 @@ def conductor_lines(m: dict, unit: str, image: str | None = None) -> list[str]:
     limit = cs.get("min_clearance")
     length = cs.get("span_length")
     spacing = (f"each a level span of {_fmt(float(length))} {unit} (`export.span_length`). " if length is not None
-               else "each far end assumed level with the near one and the curvature from the photos alone "
-                    "(no `export.span_length`: the neighbouring tower is outside the model). ")
+               else "each far end assumed level with the near one (no `export.span_length`); "
+                    + span_sources(cs["spans"], unit))
     lines += [f"{cs['found']} spans fitted as catenaries to the wires detected in {cs.get('photos', '?')} photos, "
               + spacing
               + (f"Flagged: clearance below {_fmt(float(limit))} {unit}: **{cs.get('flagged', 0)}**."

@@ -99,6 +99,13 @@ def test_the_report_table_shows_each_span_its_sigmas_and_its_flag():
     given = report.conductor_lines({"conductor_spans": {"found": 1, "photos": 40, "min_clearance": None,
                                                         "span_length": 320.0, "spans": [rec]}}, "m")
     assert "each a level span of 320.00 m (`export.span_length`)" in "\n".join(given)
+    measured = {**rec, "span_length_shared": [320.9, 0.6],
+                "next_tower": {"length": 320.9, "sigma": 0.6, "score": 0.2, "photos": 5, "pairs": 7}}
+    other = {**rec, "side": -1, "span_length_shared": [319.6, 0.5], "next_tower": None}
+    both = "\n".join(report.conductor_lines({"conductor_spans": {"found": 2, "photos": 40, "spans": [measured, other]}},
+                                            "m"))
+    assert ("side +: 320.90 +- 0.60 m, measured at the next tower, seen along the line in 5 photos; "
+            "side -: 319.60 +- 0.50 m, from the wires' slopes and curvature") in both
     none = report.conductor_lines({"conductor_spans": {"found": 0, "photos": 40, "spans": [], "why": "no wire"}}, "m")
     assert "No conductor found in the 40 photos: no wire" in "\n".join(none)
 
