@@ -1156,6 +1156,8 @@ def test_conductor_step_hands_the_span_length_and_the_arm_tips_to_find_spans_and
         return []
 
     monkeypatch.setattr(cond, "find_spans", recorder)
+    swept = []
+    monkeypatch.setattr(export_run.next_tower_lib, "next_tower", lambda *args: swept.append(args))
     out = export_run._conductors(ds, np.arange(4), meas, np.zeros((0, 3)), [-5.0, -5.0, 0.0], [5.0, 5.0, 31.0],
                                  "metres", None, False, span_length=320.0)
     assert len(calls) == 1
@@ -1163,9 +1165,19 @@ def test_conductor_step_hands_the_span_length_and_the_arm_tips_to_find_spans_and
     np.testing.assert_allclose(calls[0]["seeds"], [[-7.0, 17.5], [7.0, 17.5]], atol=1e-12)
     np.testing.assert_allclose(calls[0]["seed_window"], np.array(export_run.SEED_WINDOW) * 30.0)
     assert out["span_length"] == 320.0 and out["seeds"] == [[-7.0, 17.5], [7.0, 17.5]]
+    # the ground 2 m above the frame's zero at the axis
+    meas["ground"] = {**meas["ground"], "offset": -2.0}
     out = export_run._conductors(ds, np.arange(4), meas, np.zeros((0, 3)), [-5.0, -5.0, 0.0], [5.0, 5.0, 31.0],
                                  "metres", None, False)
     assert calls[1]["span_length"] is None and out["span_length"] is None
+    # the next tower's search gets the photos high-passed, the cameras, the ground at the axis, the
+    # tower's height and the cross-arms' half span, then the side's azimuth and window
+    calls[1]["next_tower"](0.25, (300.0, 340.0))
+    images, c2w, intr, centre, up, ground, height, half_width, psi, window = swept[0]
+    assert images.shape == (4, 48, 64) and abs(float(images.mean())) < 1.0
+    np.testing.assert_allclose(c2w, cond.metric_cameras(np.asarray(ds.c2w)[:4], ds.normalization))
+    np.testing.assert_allclose(centre, [0.0, 0.0, 0.0])
+    assert (ground, height, half_width, psi, window) == (2.0, 30.0, 7.0, 0.25, (300.0, 340.0))
 
 
 def test_export_cli_warns_when_the_towers_axis_leans_past_three_degrees(monkeypatch, tmp_path):
