@@ -926,7 +926,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     min_support after the arms' windows (its wires are not "from_arm"; "from_top" says so);
     settle: last, each wire whose attachment, scanned within SETTLE_REACH tower heights, gains
     support there is moved and its attachment refined again (`settled`, `_settled`), and of wires
-    that then lie on one another the one whose curve gathers the most support is kept. Then a
+    that then lie on one another the one whose curve gathers the most support is kept. With seeds
+    and a seed_window, of the wires hung from one tip only the best supported is kept
+    (`one_per_tip`: one insulator string a phase conductor). Then a
     wire whose support rests on fewer than min_photos photos is dropped (`single_view_dropped`,
     `effective_photos`: one photo's plane of sight through a wire holds any curve). With
     shared_sag, after both sides: a wire whose own slope ran off takes the attachment of its span
@@ -1044,6 +1046,9 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                                  SETTLE_REACH * tower_height, step) for f in kept]
                 # a weak curve beside a wire is moved onto it by the scan: one record per wire
                 kept = _distinct(kept, centre, 0.033 * tower_height, up, key=lambda f: -f["support"])
+        if windowed:
+            kept = one_per_tip(kept, [(float(c) * side, float(z)) for c, z in seeds], max_insulator * tower_height,
+                               SETTLE_REACH * tower_height)
         # the shared sag's rescan and the last scan move a weak curve where it gathers the most support,
         # one photo's plane of sight through a wire among those places: judged as it is returned
         kept = single_view_dropped(views, kept, centre, up, tol_px, min_photos)
@@ -1554,6 +1559,35 @@ def _settled(views: Views, f: dict, kept: list[dict], centre, half_length: float
         f = {**r, "cov": cov, "span_length": f.get("span_length")}
         support = curve_support(views, f["theta"], centre, station_samples(s_from, s_to), up, tol_px)
     return {**f, "settled": moved, "support": support}
+
+
+def tip_of(theta, tips, drop: float, rise: float) -> int | None:
+    """The index of the cross-arm tip [(across, height)] a wire (theta [5]: its attachment's across
+    offset and height) hangs from: of the tips from `rise` below its attachment to `drop` above it
+    (an insulator's longest), the nearest across; None when there is none. The nearest tip in the
+    plane would be the wrong one: a wire hangs an insulator below its own tip, nearer the tip of
+    the level beneath."""
+    c, z = float(theta[0]), float(theta[1])
+    near = [(abs(tc - c), k) for k, (tc, tz) in enumerate(tips) if -rise <= tz - z <= drop]
+    return min(near)[1] if near else None
+
+
+def one_per_tip(kept: list[dict], tips, drop: float, rise: float) -> list[dict]:
+    """The records of one side with one wire per cross-arm tip (tips [(across, height)], `tip_of`):
+    of the wires hung in the arms' windows ("from_arm") that hang from one tip, the one whose
+    curve gathers the most support ("support", else "inlier_share"); the others as they are. A
+    phase conductor hangs from its tip by one insulator string (a bundle's sub-conductors lie
+    within one wire's radius and are one record already, `_distinct`); a second curve in a tip's
+    window, a metre or two beside the wire, rests on the wire's own detections seen from a few
+    photos."""
+    best: dict[int, dict] = {}
+    for f in kept:
+        k = tip_of(f["theta"], tips, drop, rise) if f.get("from_arm") else None
+        if k is not None and (k not in best or f.get("support", f["inlier_share"]) >
+                              best[k].get("support", best[k]["inlier_share"])):
+            best[k] = f
+    return [f for f in kept if not f.get("from_arm") or tip_of(f["theta"], tips, drop, rise) is None
+            or any(f is b for b in best.values())]
 
 
 def effective_photos(ok: np.ndarray) -> float:

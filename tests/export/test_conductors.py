@@ -1112,3 +1112,28 @@ def test_a_side_without_phase_wires_keeps_each_sides_own_shared_span():
     for a, b in zip(pooled, own):
         np.testing.assert_array_equal(a["theta"], b["theta"])
         assert a["span_length_shared"] == b["span_length_shared"] and "curvature_across" not in a
+
+
+def test_a_wire_hangs_from_the_tip_above_it_not_the_nearest_one_in_the_plane():
+    tips = [(7.5, 17.5), (8.5, 21.5), (7.5, 25.5)]
+    # 2.6 m below the middle tip: 1.7 m from the lowest tip in the plane, 2.6 m from its own
+    assert cond.tip_of([8.5, 18.9, 0.0, 0.0, 0.0], tips, 4.6, 1.0) == 1
+    assert cond.tip_of([7.45, 14.9, 0.0, 0.0, 0.0], tips, 4.6, 1.0) == 0
+    # more than an insulator below every tip, or above them all: hangs from none
+    assert cond.tip_of([7.5, 10.0, 0.0, 0.0, 0.0], tips, 4.6, 1.0) is None
+    assert cond.tip_of([7.5, 27.0, 0.0, 0.0, 0.0], tips, 4.6, 1.0) is None
+
+
+def test_of_two_curves_under_one_tip_the_better_supported_stays():
+    tips = [(-7.5, 17.5), (-8.5, 21.5)]
+    wire = {"theta": np.array([-7.47, 14.89, 0.0, -0.1, 1e-3]), "from_arm": True, "support": 0.40, "inlier_share": 0.4}
+    beside = {"theta": np.array([-9.04, 14.79, 0.0, -0.1, 1e-3]), "from_arm": True, "support": 0.29,
+              "inlier_share": 0.3}
+    upper = {"theta": np.array([-8.46, 18.9, 0.0, -0.1, 1e-3]), "from_arm": True, "support": 0.2, "inlier_share": 0.2}
+    earth = {"theta": np.array([-7.0, 14.9, 0.0, -0.1, 1e-3]), "from_arm": False, "support": 0.9, "inlier_share": 0.9}
+    kept = cond.one_per_tip([beside, upper, wire, earth], tips, 4.6, 1.0)
+    assert [id(f) for f in kept] == [id(upper), id(wire), id(earth)]
+    # without "support" (no last scan) the inlier share ranks them
+    bare = [{k: v for k, v in f.items() if k != "support"} for f in (wire, beside)]
+    bare[1]["inlier_share"] = 0.5
+    assert cond.one_per_tip(bare, tips, 4.6, 1.0) == [bare[1]]
