@@ -1036,7 +1036,7 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
             if pooled is not None:
                 kept = _span_from_curvature(views, kept, centre, half_length, up, tol_px, kappa_bounds, pooled,
                                             lengths.get(side), measured.get(side))
-            elif shared_span and not span_length and len(kept) > 1:
+            elif shared_span and not span_length:
                 kept = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds)
             if shared_sag:
                 kept = _shared_sag(views, kept, centre, half_length, up, tol_px, span_length, kappa_bounds,
@@ -1105,9 +1105,12 @@ def _shared_span(views: Views, kept: list[dict], centre, half_length: float, up,
     (`side_span` of their own, or shared (L, sigma_L) where given; the same next tower, a level
     span): the curvature tied to each wire's slope, the azimuth held; the shared length's variance
     added to the curvature's ((kappa / L)^2 sigma_L^2). Each record gets "span_length_shared"
-    (L, sigma_L); its "span_length" (the given one) stays None."""
+    (L, sigma_L); its "span_length" (the given one) stays None. Without `shared` it takes two
+    wires: one alone is returned as it is."""
     if shared is not None:
         length, sigma = (float(v) for v in shared)
+    elif len(kept) < 2:
+        return kept
     else:
         lengths = np.array([derived(f["theta"], centre, up)["span"] for f in kept])
         finite = np.isfinite(lengths)
@@ -1240,7 +1243,7 @@ def _span_from_curvature(views: Views, kept: list[dict], centre, half_length: fl
     next tower found, `export.next_tower`; else None). A side whose slopes give no span shares
     its wires' own span instead (`_shared_span`, from two wires)."""
     if shared is None:
-        return _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds) if len(kept) > 1 else kept
+        return _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds)
     kappa, sigma_kappa = (float(v) for v in pooled)
     out = _shared_span(views, kept, centre, half_length, up, tol_px, kappa_bounds, shared)
     own = [(float(f["theta"][4]), math.sqrt(max(float(f["image_cov"][4, 4]), 0.0))) for f in kept]
