@@ -253,8 +253,6 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
     (`export.conductors.phase_curvature`); next_tower: with it, each side's span measured at the
     next tower where the photos see it (`export.next_tower`, the true ground at z = 0).
     Returns (records, timings)."""
-    import cv2
-
     from jaxnerf_grid.export import conductors as cond
     from jaxnerf_grid.export import next_tower as nt
     from jaxnerf_grid.util import io
@@ -271,12 +269,10 @@ def true_camera_fit(data: Path, picture: Path | None = None, size=None,
         from jaxnerf_grid.export.run import SEED_WINDOW
 
         kw = {"seeds": true_arm_seeds(), "seed_window": tuple(v * 30.4 for v in SEED_WINDOW)}
-    if next_tower:
-        gray = np.stack([nt.high_pass(cv2.cvtColor(np.asarray(im[..., :3], np.float32), cv2.COLOR_RGB2GRAY))
-                         for im in images])
+    if next_tower and span_length is None:   # searched only without a span length (find_spans)
         half_width = max(abs(c) for c, _ in true_arm_seeds())
-        kw["next_tower"] = functools.partial(nt.next_tower, gray, views.c2w, views.intrinsics, centre,
-                                             (0.0, 0.0, 1.0), 0.0, 30.4, half_width)
+        kw["next_tower"] = functools.partial(nt.next_tower, nt.grey_high_passed(images), views.c2w,
+                                             views.intrinsics, centre, (0.0, 0.0, 1.0), 0.0, 30.4, half_width)
     spans = cond.find_spans(views, centre, math.pi / 2, 4.5, (7.5, 33.0), 18.0, step, 30.4, span_length=span_length,
                             refine=refine, shared_azimuth=shared_azimuth, shared_span=shared_span,
                             shared_sag=shared_sag, settle=settle, top_window=top_window,

@@ -1583,14 +1583,13 @@ def one_per_tip(kept: list[dict], tips, drop: float, rise: float) -> list[dict]:
     within one wire's radius and are one record already, `_distinct`); a second curve in a tip's
     window, a metre or two beside the wire, rests on the wire's own detections seen from a few
     photos."""
+    hung = [tip_of(f["theta"], tips, drop, rise) if f.get("from_arm") else None for f in kept]
     best: dict[int, dict] = {}
-    for f in kept:
-        k = tip_of(f["theta"], tips, drop, rise) if f.get("from_arm") else None
+    for k, f in zip(hung, kept):
         if k is not None and (k not in best or f.get("support", f["inlier_share"]) >
                               best[k].get("support", best[k]["inlier_share"])):
             best[k] = f
-    return [f for f in kept if not f.get("from_arm") or tip_of(f["theta"], tips, drop, rise) is None
-            or any(f is b for b in best.values())]
+    return [f for k, f in zip(hung, kept) if k is None or best[k] is f]
 
 
 def effective_photos(ok: np.ndarray) -> float:

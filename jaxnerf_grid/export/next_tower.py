@@ -39,6 +39,13 @@ def high_pass(gray: np.ndarray, sigma: float = HIGH_PASS_PX) -> np.ndarray:
     return g - cv2.GaussianBlur(g, (0, 0), sigma)
 
 
+def grey_high_passed(images: np.ndarray) -> np.ndarray:
+    """Photos [N, H, W, 3+] (RGB first) as the sweep reads them: grey, `high_pass`ed. Returns
+    [N, H, W] float32."""
+    return np.stack([high_pass(cv2.cvtColor(np.asarray(im[..., :3], np.float32), cv2.COLOR_RGB2GRAY))
+                     for im in images])
+
+
 def plane_points(centre, psi: float, up, distance: float, half_width: float, z_range: tuple,
                  spacing: float) -> np.ndarray:
     """Points [R, C, 3] of the plane across the line at `distance` along the line's direction at

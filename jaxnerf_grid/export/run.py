@@ -35,7 +35,6 @@ import time
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 
 from jaxnerf_grid.config import schema as config_lib
@@ -477,15 +476,15 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
     seeds = arm_seeds(levels, centre, psi, up)
     out["seeds"] = [[c, z] for c, z in seeds]
     # the next towers, where the photos look along the line: the spans without the curvature's doubt
-    gray = np.stack([next_tower_lib.high_pass(cv2.cvtColor(np.asarray(im[..., :3], np.float32), cv2.COLOR_RGB2GRAY))
-                     for im in images])
-    next_tower = functools.partial(next_tower_lib.next_tower, gray, c2w, intr, centre, up, ground_at_centre,
-                                   float(height), 0.5 * max(lv["span"] for lv in levels))
+    # (searched only without a span length)
+    next_tower = None if span_length is not None else functools.partial(
+        next_tower_lib.next_tower, next_tower_lib.grey_high_passed(images), c2w, intr, centre, up, ground_at_centre,
+        float(height), 0.5 * max(lv["span"] for lv in levels))
     fits = conductors_lib.find_spans(views, centre, psi, half_length, heights, across, step, float(height), up,
                                      seeds=seeds, span_length=span_length,
                                      seed_window=tuple(v * float(height) for v in SEED_WINDOW),
                                      next_tower=next_tower)
-    del gray
+    del next_tower
     plane_band = float(meas["ground"]["clearance"])
     for fit in fits:
         rec = conductors_lib.span_record(fit, centre, up)

@@ -1161,7 +1161,7 @@ def test_conductor_step_hands_the_span_length_and_the_arm_tips_to_find_spans_and
     out = export_run._conductors(ds, np.arange(4), meas, np.zeros((0, 3)), [-5.0, -5.0, 0.0], [5.0, 5.0, 31.0],
                                  "metres", None, False, span_length=320.0)
     assert len(calls) == 1
-    assert calls[0]["span_length"] == 320.0
+    assert calls[0]["span_length"] == 320.0 and calls[0]["next_tower"] is None   # a given span: no search
     np.testing.assert_allclose(calls[0]["seeds"], [[-7.0, 17.5], [7.0, 17.5]], atol=1e-12)
     np.testing.assert_allclose(calls[0]["seed_window"], np.array(export_run.SEED_WINDOW) * 30.0)
     assert out["span_length"] == 320.0 and out["seeds"] == [[-7.0, 17.5], [7.0, 17.5]]
