@@ -95,7 +95,8 @@ class DepthConfig:
       rendered each step beside the batch (split over the devices like it); tolerance: the
       relative distance within which a ray's weight costs nothing; max_error_px: points with a
       larger reprojection error are not used; min_views: a point must be seen by this many
-      training photos. `--set train.depth=W` sets the weight (SHORTHAND).
+      training photos; start: the term is off for this share of max_steps, while the colours
+      alone lay out the scene. `--set train.depth=W` sets the weight (SHORTHAND).
     """
 
     weight: float = 0.0
@@ -104,12 +105,13 @@ class DepthConfig:
     tolerance: float = 0.01
     max_error_px: float = 2.0
     min_views: int = 2
+    start: float = 0.0
 
     SHORTHAND: typing.ClassVar[str] = "weight"
     RANGES: typing.ClassVar[dict] = {
         "weight": config_lib.NONNEGATIVE, "decay": config_lib.POSITIVE, "rays": config_lib.AT_LEAST_ONE,
         "tolerance": config_lib.NONNEGATIVE, "max_error_px": config_lib.POSITIVE,
-        "min_views": config_lib.AT_LEAST_ONE}
+        "min_views": config_lib.AT_LEAST_ONE, "start": config_lib.FRACTION}
 
 
 # Older train dicts held the robust settings flat: train.robust the mode string, the others as

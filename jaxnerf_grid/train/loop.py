@@ -261,7 +261,7 @@ def depth_term(params: dict, cfg: RunConfig, table: dict, key, count, num_device
     far = jnp.broadcast_to(table["far"], rays["t"].shape)
     out = models.render_rays(params, mcfg, rays["origins"], rays["directions"], near, far, keys, rays["camera"])
     per_ray = sparse_depth.ray_loss(out["final"]["t_edges"], out["final"]["weights"], rays["t"], dcfg.tolerance)
-    weight = sparse_depth.weight_at(count, dcfg.weight, dcfg.decay, cfg.train.max_steps)
+    weight = sparse_depth.weight_at(count, dcfg.weight, dcfg.decay, cfg.train.max_steps, dcfg.start)
     return weight * jnp.sum(per_ray) / dcfg.rays, jnp.sum(per_ray) / dcfg.rays
 
 

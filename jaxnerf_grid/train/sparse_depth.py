@@ -143,11 +143,11 @@ def ray_loss(t_edges: jnp.ndarray, weights: jnp.ndarray, t_target: jnp.ndarray, 
     return jnp.sum(weights * jnp.minimum(jnp.maximum(gap - tolerance, 0.0), cap), axis=-1)
 
 
-def weight_at(step, weight: float, decay: float, max_steps: int) -> jnp.ndarray:
-    """The term's weight at optimiser step `step` (traceable): weight * decay ** (step / max_steps),
-    held at weight * decay after max_steps. Returns float32 []."""
+def weight_at(step, weight: float, decay: float, max_steps: int, start: float = 0.0) -> jnp.ndarray:
+    """The term's weight at optimiser step `step` (traceable): zero before start * max_steps, then
+    weight * decay ** (step / max_steps), held at weight * decay after max_steps. Returns float32 []."""
     u = jnp.clip(jnp.asarray(step, jnp.float32) / max(int(max_steps), 1), 0.0, 1.0)
-    return jnp.float32(weight) * jnp.power(jnp.float32(decay), u)
+    return jnp.where(u < start, 0.0, jnp.float32(weight) * jnp.power(jnp.float32(decay), u)).astype(jnp.float32)
 
 
 RAY_KEYS = ("origins", "directions", "t", "camera")

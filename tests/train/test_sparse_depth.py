@@ -135,6 +135,11 @@ def test_the_weight_decays_log_linearly_over_the_run():
     np.testing.assert_allclose(at, [0.2, 0.2 * 0.1 ** 0.5, 0.02, 0.02], rtol=1e-6)
 
 
+def test_the_term_is_off_before_its_start_and_on_its_schedule_after():
+    at = [float(sparse_depth.weight_at(s, 0.2, 0.1, 1000, start=0.25)) for s in (0, 249, 250, 500, 1000)]
+    np.testing.assert_allclose(at, [0.0, 0.0, 0.2 * 0.1 ** 0.25, 0.2 * 0.1 ** 0.5, 0.02], rtol=1e-6)
+
+
 def test_the_depth_step_matches_on_one_and_two_devices_and_moves_the_parameters(tmp_path):
     assert jax.local_device_count() >= 2, "run with XLA_FLAGS=--xla_force_host_platform_device_count=2"
     ds, *_ = dataset_with_model(tmp_path)
@@ -150,6 +155,19 @@ def test_the_depth_step_matches_on_one_and_two_devices_and_moves_the_parameters(
     assert record["used"] and record["rays"] > 20
     logged = [json.loads(line) for line in (tmp_path / "two" / "metrics.jsonl").read_text().splitlines()]
     assert all(np.isfinite(r["depth_loss"]) for r in logged)
+
+
+def test_a_late_start_leaves_the_first_steps_to_the_colours(tmp_path):
+    ds, *_ = dataset_with_model(tmp_path)
+    runs = {}
+    for name, depth in (("late", {"weight": 1.0, "rays": 16, "start": 0.5}), ("off", {"weight": 0.0}),
+                        ("early", {"weight": 1.0, "rays": 16})):
+        cfg = tiny_config(num_devices=1, depth=depth)  # max_steps 30: steps 0-14 before the start
+        runs[name] = train.train(ds, cfg, tmp_path / name, progress=False, stop_at=4).params
+    gap = lambda a, b: max(jax.tree_util.tree_leaves(  # noqa: E731
+        jax.tree_util.tree_map(lambda x, y: float(np.max(np.abs(x - y))), a, b)))
+    assert gap(runs["late"], runs["off"]) == 0.0
+    assert gap(runs["early"], runs["off"]) > 1e-4
 
 
 def test_depth_on_without_a_model_trains_without_it_and_says_why(tmp_path):
