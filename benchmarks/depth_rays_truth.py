@@ -42,7 +42,8 @@ def rays_in_truth_frame(syn: Path, data: Path) -> tuple[dict, dict, list[dict], 
     truth = json.loads((syn / "transforms.json").read_text())
     posed = json.loads((data / "transforms.json").read_text())
     by_stem = {stem(f["file_path"]): f for f in posed["frames"]}
-    frames = [f for f in truth["frames"] if stem(f["file_path"]).startswith("train") and stem(f["file_path"]) in by_stem]
+    frames = [f for f in truth["frames"]
+              if stem(f["file_path"]).startswith("train") and stem(f["file_path"]) in by_stem]
     c2w = np.asarray([f["transform_matrix"] for f in frames], np.float64)
     data_c2w = np.asarray([by_stem[stem(f["file_path"])]["transform_matrix"] for f in frames], np.float64)
     intrinsics = np.asarray([[by_stem[stem(f["file_path"])].get(k, posed.get(k)) for k in ("fl_x", "fl_y", "cx", "cy")]
@@ -91,7 +92,8 @@ def classify(syn: Path, truth: dict, frames: list[dict], c2w: np.ndarray, rays: 
         out[name] = {"rays": int(sel.sum()), "on_surface": float(np.mean(np.abs(rel_all[sel]) < ON)),
                      "behind": float(np.mean(behind))}
         if name == "tower" and np.any(behind):
-            out[name]["edge_px_of_rays_behind"] = [float(q) for q in np.percentile(edge_all[sel][behind], [25, 50, 75, 90])]
+            quartiles = np.percentile(edge_all[sel][behind], [25, 50, 75, 90])
+            out[name]["edge_px_of_rays_behind"] = [float(q) for q in quartiles]
     return out
 
 
@@ -102,7 +104,8 @@ def main(argv=None) -> None:
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
     rays, truth, frames, c2w = rays_in_truth_frame(args.syn, args.data)
-    record = {"benchmark": "depth_rays_truth", "command": " ".join(["python -m benchmarks.depth_rays_truth", *(argv or sys.argv[1:])]),
+    command = " ".join(["python -m benchmarks.depth_rays_truth", *(argv or sys.argv[1:])])
+    record = {"benchmark": "depth_rays_truth", "command": command,
               "rays": int(len(rays["t"])), "by_class": classify(args.syn, truth, frames, c2w, rays)}
     text = json.dumps(record, indent=1)
     print(text)
