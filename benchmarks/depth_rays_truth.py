@@ -103,6 +103,9 @@ def main(argv=None) -> None:
     parser.add_argument("--data", type=Path, required=True)
     parser.add_argument("--out", type=Path)
     args = parser.parse_args(argv)
+    for folder in (args.syn, args.data):
+        if not (folder / "transforms.json").is_file():
+            sys.exit(f"depth_rays_truth: {folder}: no transforms.json")
     rays, truth, frames, c2w = rays_in_truth_frame(args.syn, args.data)
     command = " ".join(["python -m benchmarks.depth_rays_truth", *(argv or sys.argv[1:])])
     record = {"benchmark": "depth_rays_truth", "command": command,

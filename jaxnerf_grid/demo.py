@@ -214,6 +214,11 @@ def mask_plan(choice: str, domain: dict | None, capture: bool = False) -> dict:
 # train.depth.weight on a capture from `poses` (docs/RECIPES.md "The depth prior"; measured in
 # docs/RESULTS.md, "Real photos")
 DEPTH_WEIGHT = 0.1
+# Cameras that surround the scene (an orbit of a tower) over this arc start the prior late: the
+# colours settle every surface there, and the points seen past a thin member would thin it
+# before the colours have laid it out (docs/RECIPES.md "The depth prior").
+SURROUNDING_ARC_DEG = 240.0
+SURROUNDING_DEPTH_START = 0.2
 
 
 def capture_defaults(capture: bool, data: Path) -> dict:
@@ -221,14 +226,28 @@ def capture_defaults(capture: bool, data: Path) -> dict:
     on a capture"): the per-photo appearance embedding (cameras change exposure and white balance
     between photos), held-out views rendered with the training photos' mean embedding
     (train.appearance_steps 0: no test-time fit, whole views scored) and, when its sparse model
-    (DATA/sparse/0) is there, train.depth at DEPTH_WEIGHT; nothing for other datasets. A default
-    layer (`build.build`'s defaults), so a user's --set or config file changes it."""
+    (DATA/sparse/0) is there, train.depth at DEPTH_WEIGHT, starting at SURROUNDING_DEPTH_START of
+    the run where the cameras surround the scene (`surrounding`); nothing for other datasets. A
+    default layer (`build.build`'s defaults), so a user's --set or config file changes it."""
     if not capture:
         return {}
     train: dict = {"appearance_steps": 0}
     if colmap_model.find_model_files(sparse_depth.model_folder(data)) is not None:
         train["depth"] = {"weight": DEPTH_WEIGHT}
+        if surrounding(data):
+            train["depth"]["start"] = SURROUNDING_DEPTH_START
     return {"model": {"use_appearance": True}, "train": train}
+
+
+def surrounding(data: Path) -> bool:
+    """Whether the cameras of DATA's transforms.json (z up, as `poses` writes it) cover
+    SURROUNDING_ARC_DEG or more about the point they look at; False when it cannot be read."""
+    try:
+        frames = read_meta(data).get("frames") or []
+        c2w = np.asarray([f["transform_matrix"] for f in frames], np.float64).reshape(-1, 4, 4)
+    except (DataError, OSError, ValueError, KeyError, TypeError):
+        return False
+    return len(c2w) >= 3 and camera_set.arc_around_deg(c2w) >= SURROUNDING_ARC_DEG
 
 
 def is_capture(data: Path, meta: dict | None = None) -> bool:

@@ -55,6 +55,13 @@ def look_at_point(c2w: np.ndarray) -> np.ndarray:
     return np.linalg.solve(proj.sum(0), np.einsum("kij,kj->i", proj, origins))
 
 
+def arc_around_deg(c2w: np.ndarray) -> float:
+    """The arc (degrees) cameras cover about the vertical through the point they look at
+    (`look_at_point`, `azimuths_deg`, `arc_covered_deg`). c2w: [N, 4, 4] OpenGL, z up."""
+    c2w = np.asarray(c2w, np.float64)
+    return arc_covered_deg(azimuths_deg(c2w[:, :3, 3], look_at_point(c2w)))
+
+
 def camera_set_record(photos: int, kept: int, arc_kept_deg: float, arc_flight_deg: float, arc_from: str) -> dict:
     """The record transforms.json keeps (poses.camera_set) and `camera_set_verdict` judges."""
     return {"photos": int(photos), "kept": int(kept), "arc_kept_deg": round(float(arc_kept_deg), 1),

@@ -650,6 +650,7 @@ def train(dataset: Dataset, cfg: RunConfig, run_dir, *, progress: bool = True,
                 tcfg, depth=dataclasses.replace(tcfg.depth, weight=0.0)))
             tcfg = cfg.train
         else:
+            why += f"; off for the first {tcfg.depth.start:.0%} of the steps" if tcfg.depth.start > 0 else ""
             logger.info("depth prior: %s", why)
         if distributed.is_main():
             io.write_json(run_dir / DEPTH_RECORD, {"used": depth_rays is not None, "why": why,

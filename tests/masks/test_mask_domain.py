@@ -213,6 +213,35 @@ def test_a_capture_trains_appearance_and_the_depth_prior_when_its_sparse_model_i
     assert demo.capture_defaults(False, made) == {}  # a generated scene keeps the recipe
 
 
+def cameras_on_an_arc(degrees: float, count: int = 12) -> list[dict]:
+    """Frames whose cameras stand on a circle of radius 10, 5 up, over `degrees` of azimuth, each
+    looking at the origin (OpenGL c2w, z up)."""
+    frames = []
+    for a in np.radians(np.linspace(0.0, degrees, count, endpoint=degrees < 360)):
+        centre = np.array([10 * np.cos(a), 10 * np.sin(a), 5.0])
+        back = centre / np.linalg.norm(centre)  # the camera looks down -z: z points away from the target
+        right = np.cross([0.0, 0.0, 1.0], back)
+        right /= np.linalg.norm(right)
+        c2w = np.eye(4)
+        c2w[:3, :3] = np.stack([right, np.cross(back, right), back], axis=1)
+        c2w[:3, 3] = centre
+        frames.append({"file_path": f"images/{len(frames):03d}.png", "transform_matrix": c2w.tolist()})
+    return frames
+
+
+@pytest.mark.parametrize("degrees, late", [(360, True), (250, True), (230, False), (100, False)])
+def test_the_depth_prior_starts_late_only_where_the_cameras_surround_the_scene(tmp_path, degrees, late):
+    from jaxnerf_grid.data.formats import colmap_model
+
+    (tmp_path / "sparse" / "0").mkdir(parents=True)
+    colmap_model.write_model(tmp_path / "sparse" / "0", {}, {}, {})
+    # 12 cameras over `degrees`: the arc covered is degrees (less one step where they close the circle)
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": cameras_on_an_arc(degrees)}))
+    depth = demo.capture_defaults(True, tmp_path)["train"]["depth"]
+    assert depth == ({"weight": demo.DEPTH_WEIGHT, "start": demo.SURROUNDING_DEPTH_START} if late
+                     else {"weight": demo.DEPTH_WEIGHT})
+
+
 def test_mask_plan_refuses_an_unknown_choice():
     with pytest.raises(ConfigError, match="demo.masks"):
         demo.mask_plan("sometimes", None)
