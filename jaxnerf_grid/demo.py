@@ -221,29 +221,31 @@ SURROUNDING_ARC_DEG = 240.0
 SURROUNDING_DEPTH_START = 0.2
 
 
-def capture_defaults(capture: bool, data: Path) -> dict:
+def capture_defaults(capture: bool, data: Path, meta: dict | None = None) -> dict:
     """The demo's defaults for a capture from `poses` (docs/RECIPES.md "The appearance embedding
     on a capture"): the per-photo appearance embedding (cameras change exposure and white balance
     between photos), held-out views rendered with the training photos' mean embedding
     (train.appearance_steps 0: no test-time fit, whole views scored) and, when its sparse model
     (DATA/sparse/0) is there, train.depth at DEPTH_WEIGHT, starting at SURROUNDING_DEPTH_START of
     the run where the cameras surround the scene (`surrounding`); nothing for other datasets. A
-    default layer (`build.build`'s defaults), so a user's --set or config file changes it."""
+    default layer (`build.build`'s defaults), so a user's --set or config file changes it. meta:
+    its transforms.json already read."""
     if not capture:
         return {}
     train: dict = {"appearance_steps": 0}
     if colmap_model.find_model_files(sparse_depth.model_folder(data)) is not None:
         train["depth"] = {"weight": DEPTH_WEIGHT}
-        if surrounding(data):
+        if surrounding(data, meta):
             train["depth"]["start"] = SURROUNDING_DEPTH_START
     return {"model": {"use_appearance": True}, "train": train}
 
 
-def surrounding(data: Path) -> bool:
+def surrounding(data: Path, meta: dict | None = None) -> bool:
     """Whether the cameras of DATA's transforms.json (z up, as `poses` writes it) cover
-    SURROUNDING_ARC_DEG or more about the point they look at; False when it cannot be read."""
+    SURROUNDING_ARC_DEG or more about the point they look at; False when it cannot be read.
+    meta: its transforms.json already read."""
     try:
-        frames = read_meta(data).get("frames") or []
+        frames = (read_meta(data) if meta is None else meta).get("frames") or []
         c2w = np.asarray([f["transform_matrix"] for f in frames], np.float64).reshape(-1, 4, 4)
     except (DataError, OSError, ValueError, KeyError, TypeError):
         return False
@@ -418,7 +420,7 @@ def run_demo(data: str | Path | None, out: str | Path, steps: int | None = None,
                     "layout, so it has no masks and `mask` cannot write any")
     # the dataset's bounds, --set and --max-side on top, the mask plan, then the training budget
     built = build.build(request, data=data, extra=_with_plan({}, plan), devices_of=train.step_devices,
-                        platform=distributed.jax.default_backend(), defaults=capture_defaults(capture, data_dir),
+                        platform=distributed.jax.default_backend(), defaults=capture_defaults(capture, data_dir, meta),
                         measure=speed.planner(out / "run", overwrite,
                                               _say if progress and distributed.is_main() else None))
     bounds = built.bounds

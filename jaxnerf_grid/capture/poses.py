@@ -1155,7 +1155,7 @@ def camera_set_of(model, readable: int, registered_centres: np.ndarray, priors: 
     poses_now = model_poses(model)
     c2w = np.stack(list(poses_now.values()))
     centre = camera_set.look_at_point(c2w)
-    arc_kept = camera_set.arc_around_deg(c2w)
+    arc_kept = camera_set.arc_covered_deg(camera_set.azimuths_deg(c2w[:, :3, 3], centre))
     flight, arc_from = registered_centres, "registered"
     registered = set(poses_now) | {row["name"] for row in (georeference.get("gps") or {}).get("residuals") or []}
     missing = [name for name in priors if name not in registered]
