@@ -495,6 +495,7 @@ def fit_covariance(jac: np.ndarray, residuals: np.ndarray, jmap: np.ndarray | No
 # --- the guided track ------------------------------------------------------------------------------
 
 DEFAULT_MAX_ANGLE = 25.0          # degrees: a detection supports a curve when its ridge runs this close to the curve's
+TRACK_MAX_TURN = 0.002            # rad: the azimuth a track may correct (`track_span`'s max_turn)
 DEFAULT_TRACK_SUPPORT = 0.3       # share of the photos seeing a station's best cell that support it
 DEFAULT_WINDOW_SUPPORT = 0.25     # the track from a cross-arm window's peak (a wire hangs there)
 DEFAULT_WINDOW_SHARE = 0.4        # the share of its stations tried (to its last found) that track, or one from
@@ -623,7 +624,7 @@ def track_span(views: Views, centre, psi: float, c0: float, z0: float, s_start: 
                fallback_px: float, length_scale: float, up=(0.0, 0.0, 1.0), tol_px: float = DEFAULT_TOL_PX,
                min_share: float = DEFAULT_TRACK_SUPPORT, min_views: int = DEFAULT_MIN_VIEWS,
                span_length: float | None = None, chunk: int = 6, max_misses: int = 12,
-               max_turn: float = 0.002) -> dict:
+               max_turn: float = TRACK_MAX_TURN) -> dict:
     """Follow a wire from a seed (across offset c0, height z0 at horizontal distance s_start along
     e_line(psi) from centre) outwards to s_end: stations every length_scale / 15; at each one the
     cell of a small grid across the predicted curve (across x height, half a pixel's footprint
@@ -878,7 +879,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
                refine: bool = True,
                shared_azimuth: bool = True, shared_span: bool = True, shared_sag: bool = True,
                settle: bool = True, top_window: bool = True, shared_curvature: bool = True,
-               min_photos: float = MIN_EFFECTIVE_PHOTOS, next_tower=None) -> list[dict]:
+               min_photos: float = MIN_EFFECTIVE_PHOTOS, next_tower=None,
+               side_turns: tuple[float, float] = (0.0, 0.0)) -> list[dict]:
     """The spans leaving a tower on both sides of the line (module docstring).
 
     centre [3]: the tower's axis; psi: the line's azimuth (`line_axes`); half_length: the tower's
@@ -928,7 +930,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     support there is moved and its attachment refined again (`settled`, `_settled`), and of wires
     that then lie on one another the one whose curve gathers the most support is kept. With seeds
     and a seed_window, of the wires hung from one tip only the best supported is kept
-    (`one_per_tip`: one insulator string a phase conductor). Then a
+    (`one_per_tip`: one insulator string a phase conductor). side_turns (rad, side +1's and side
+    -1's): each side searched along its azimuth turned by this (`turned_search`). Then a
     wire whose support rests on fewer than min_photos photos is dropped (`single_view_dropped`,
     `effective_photos`: one photo's plane of sight through a wire holds any curve). With
     shared_sag, after both sides: a wire whose own slope ran off takes the attachment of its span
@@ -953,8 +956,8 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     # below every tip is not hung there (the window's depth is the fall to the station)
     windowed = seed_window is not None and len(seeds) > 0
     hung_floor = min(float(z) for _, z in seeds) - max_insulator * tower_height if windowed else -math.inf
-    for side in (1, -1):
-        psi_side = psi if side == 1 else psi + math.pi
+    for side, turn in zip((1, -1), side_turns):
+        psi_side = (psi if side == 1 else psi + math.pi) + float(turn)
         peaks = cross_section_peaks(views, centre, psi_side, station, (-across, across), heights, step, up,
                                     tol_px, max(min_support, peak_support) if windowed else min_support, min_views,
                                     separation=3 * tol_px * step)
@@ -1058,6 +1061,37 @@ def find_spans(views: Views, centre, psi: float, half_length: float, heights: tu
     if refine and shared_sag and not span_length:
         spans = _lone_earth_shared(views, spans, centre, half_length, up, tol_px, kappa_bounds)
     return spans
+
+
+def side_turns(spans: list[dict], psi: float) -> tuple[float, float]:
+    """Each side's azimuth as its wires measured it (`side_azimuth` of the spans' theta[2] with
+    their image variances) less the one searched (side +1: psi, side -1: psi + pi), wrapped to
+    (-pi, pi]; 0 for a side without a wire. Returns (turn +1, turn -1) [rad]."""
+    out = []
+    for side in (1, -1):
+        kept = [f for f in spans if f["side"] == side]
+        if not kept:
+            out.append(0.0)
+            continue
+        found, _ = side_azimuth(np.array([f["theta"][2] for f in kept]),
+                                np.array([f["image_cov"][2, 2] for f in kept]))
+        searched = psi if side == 1 else psi + math.pi
+        out.append(float(math.remainder(found - searched, 2.0 * math.pi)))
+    return out[0], out[1]
+
+
+def turned_search(views: Views, centre, psi: float, *args, **kwargs) -> tuple[list[dict], tuple[float, float]]:
+    """`find_spans`, and once more with each side's azimuth turned to the one its wires measured
+    (`side_turns`) when either side's is more than TRACK_MAX_TURN off: the line's direction from
+    the tower's mesh is good to about a centiradian, and a track that may turn by 2 mrad loses a
+    weak wire tens of metres out where the azimuth is 10 mrad off (a metre at 100 m). The second
+    search is kept when it finds at least as many spans. Returns (spans, the turns searched)."""
+    spans = find_spans(views, centre, psi, *args, **kwargs)
+    turns = side_turns(spans, psi)
+    if max(abs(t) for t in turns) <= TRACK_MAX_TURN:
+        return spans, (0.0, 0.0)
+    again = find_spans(views, centre, psi, *args, **kwargs, side_turns=turns)
+    return (again, turns) if len(again) >= len(spans) else (spans, (0.0, 0.0))
 
 
 def earth_window(seeds, seed_window: tuple, heights: tuple) -> tuple[tuple, tuple]:

@@ -167,6 +167,52 @@ def cross_arms(points: np.ndarray, normal, d: float, axis_a, axis_b, slice_heigh
     return out
 
 
+ARM_MIN_SHARE = 1.0 / 3.0   # of the tower's height: a cross-arm lower than this would hang its wires on the ground
+ARM_DEPTH_SHARE = 0.08      # of the tower's height: an arm's truss is shallower; a level within it is its top chord
+
+
+def arm_levels(arms: dict, height: float) -> dict:
+    """The levels of `cross_arms` that are cross-arms carrying conductors, and those left out with
+    why: of the levels along the axis most of them lie along (the tie broken by the longest span:
+    a tower's arms lie one way), at or above ARM_MIN_SHARE of height (lower down the legs' spread
+    and the footings are wide too), the longest of those within ARM_DEPTH_SHARE of height of one
+    another (an arm's bottom chord and its top chord, running from the tip up to the body, make
+    two wide slices one truss deep; the bottom one reaches the tip).
+    Returns arms with "levels" those kept (by height) and "left_out" [{"height", "span", "axis",
+    "why"}]."""
+    levels = list(arms.get("levels") or [])
+    out = {**arms, "levels": [], "left_out": []}
+    if not levels:
+        return out
+    names = [lv["axis"] for lv in levels]
+    longest = max(levels, key=lambda lv: lv["span"])["axis"]
+    axis = "a" if names.count("a") > names.count("b") or (names.count("a") == names.count("b") and longest == "a") \
+        else "b"
+    candidates = []
+    for lv in levels:
+        why = None
+        if lv["axis"] != axis:
+            why = "across the other levels' arms"
+        elif lv["height"] < ARM_MIN_SHARE * height:
+            why = f"below a third of the tower's height ({ARM_MIN_SHARE * height:.3g}): the legs or the footings"
+        if why:
+            out["left_out"].append({"height": lv["height"], "span": lv["span"], "axis": lv["axis"], "why": why})
+        else:
+            candidates.append(lv)
+    depth = ARM_DEPTH_SHARE * height
+    kept: list[dict] = []
+    for lv in sorted(candidates, key=lambda lv: -lv["span"]):
+        near = [k for k in kept if abs(k["height"] - lv["height"]) < depth]
+        if near:
+            out["left_out"].append({"height": lv["height"], "span": lv["span"], "axis": lv["axis"],
+                                    "why": f"within an arm's depth ({depth:.3g}) of the longer level at "
+                                           f"{near[0]['height']:.3g}: its top chord"})
+        else:
+            kept.append(lv)
+    out["levels"] = sorted(kept, key=lambda lv: lv["height"])
+    return out
+
+
 def orthographic_views(points: np.ndarray, colours: np.ndarray, normals: np.ndarray | None = None,
                        size: int = 400, background: float = 1.0, labels: bool = True, splat: int = 0) -> np.ndarray:
     """Front (x-z, seen from -y), side (y-z, seen from +x) and top (x-y, seen from +z) views of

@@ -325,8 +325,9 @@ def export_run(run_dir, out=None, resolution: int = DEFAULT_RESOLUTION, box="aut
         meas["height"] = height
         fp = measure.footprint(verts_m, n_m, d_m, max(0.05 * (height - float(heights.min())), 2 * h / scale))
         meas["footprint"] = fp
-        meas["cross_arms"] = measure.cross_arms(verts_m, n_m, d_m, *measure.arm_axes(verts_m, n_m, d_m),
-                                                max(0.01 * height, 2 * h / scale))
+        arms = measure.cross_arms(verts_m, n_m, d_m, *measure.arm_axes(verts_m, n_m, d_m),
+                                  max(0.01 * height, 2 * h / scale))
+        meas["cross_arms"] = measure.arm_levels(arms, height)
         meas["tilt"] = measure.axis_tilt(verts_m, n_m, d_m, fp["axis_a"], fp["axis_b"],
                                          max(0.01 * height, 2 * h / scale))
         levels = meas["cross_arms"]["levels"]
@@ -433,7 +434,8 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
     found in the training photos, each with its figures, its clearance, whether the ground beneath
     its lowest point is seen (`clearance.ground_seen`) and its flag; "_picture"
     (conductors_views.png's image, taken out before writing). Seeds: the cross-arms' direction,
-    heights and span (the module's find_spans), the cross-arms' tips (`arm_seeds`, each searched
+    heights and span (the module's find_spans, searched again along the azimuth its wires measured:
+    `turned_search`, the turns in "azimuth_turns"), the cross-arms' tips (`arm_seeds`, each searched
     in a window below it: SEED_WINDOW), the tower's axis and box; span_length: the towers'
     spacing given (a level span of that length), None: the curvature from the photos."""
     n_m = np.asarray((meas.get("ground") or {}).get("normal", [0.0, 0.0, 1.0]), np.float64)
@@ -444,7 +446,7 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
     images = np.asarray(ds.images)[train_ids]
     out = {"found": 0, "spans": [], "why": None, "up": [float(v) for v in up],
            "min_clearance": min_clearance, "flagged": 0, "photos": int(len(train_ids)),
-           "span_length": None if span_length is None else float(span_length), "seeds": [],
+           "span_length": None if span_length is None else float(span_length), "seeds": [], "azimuth_turns": [0.0, 0.0],
            "_picture": np.ones((8, 8, 3), np.float32)}
     height = meas.get("height")
     psi = _line_azimuth(meas, up)
@@ -480,10 +482,11 @@ def _conductors(ds, train_ids, meas: dict, cloud_m: np.ndarray, lo_m, hi_m, unit
     next_tower = None if span_length is not None else functools.partial(
         next_tower_lib.next_tower, next_tower_lib.grey_high_passed(images), c2w, intr, centre, up, ground_at_centre,
         float(height), 0.5 * max(lv["span"] for lv in levels))
-    fits = conductors_lib.find_spans(views, centre, psi, half_length, heights, across, step, float(height), up,
-                                     seeds=seeds, span_length=span_length,
-                                     seed_window=tuple(v * float(height) for v in SEED_WINDOW),
-                                     next_tower=next_tower)
+    fits, turns = conductors_lib.turned_search(views, centre, psi, half_length, heights, across, step, float(height),
+                                               up, seeds=seeds, span_length=span_length,
+                                               seed_window=tuple(v * float(height) for v in SEED_WINDOW),
+                                               next_tower=next_tower)
+    out["azimuth_turns"] = [float(t) for t in turns]
     del next_tower
     plane_band = float(meas["ground"]["clearance"])
     for fit in fits:

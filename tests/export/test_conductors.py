@@ -1137,3 +1137,63 @@ def test_of_two_curves_under_one_tip_the_better_supported_stays():
     bare = [{k: v for k, v in f.items() if k != "support"} for f in (wire, beside)]
     bare[1]["inlier_share"] = 0.5
     assert cond.one_per_tip(bare, tips, 4.6, 1.0) == [bare[1]]
+
+
+def _side_record(side: int, psi: float, variance: float = 1e-6) -> dict:
+    return {"side": side, "theta": np.array([7.6, 14.9, psi, -0.1, 0.0]), "image_cov": np.eye(5) * variance}
+
+
+def test_side_turns_are_each_sides_wires_azimuth_less_the_one_searched_wrapped():
+    """psi = pi/2 + 0.012 searched: side +1's wires at pi/2 (precise) and pi/2 + 0.05 (a hundred
+    times the variance: the weighted median follows the precise one) turn it by -0.012; side -1
+    searched at psi + pi = 3 pi/2 + 0.012, its wire at -pi/2 (the same direction less 2 pi) by
+    -0.012 too, not by 2 pi; a side without a wire by 0."""
+    psi = math.pi / 2 + 0.012
+    spans = [_side_record(1, math.pi / 2), _side_record(1, math.pi / 2 + 0.05, 1e-4), _side_record(-1, -math.pi / 2)]
+    np.testing.assert_allclose(cond.side_turns(spans, psi), [-0.012, -0.012], atol=1e-12)
+    np.testing.assert_allclose(cond.side_turns(spans[:2], psi), [-0.012, 0.0], atol=1e-12)
+
+
+def test_turned_search_searches_again_along_the_wires_azimuth_only_beyond_a_tracks_turn(monkeypatch):
+    """A stand-in `find_spans` whose first search returns one wire a side at the line's azimuth
+    less `off`, and a second (side_turns given) three: off 0.012 rad (over TRACK_MAX_TURN) is
+    searched again with the turns (-0.012, -0.012) and the three kept; off 0.0015 is not searched
+    again; a second search finding fewer leaves the first."""
+    calls = []
+
+    def stand_in(off, second_count):
+        def find(views, centre, psi, *args, side_turns=(0.0, 0.0), **kwargs):
+            calls.append(tuple(side_turns))
+            if side_turns == (0.0, 0.0):
+                return [_side_record(1, psi - off), _side_record(-1, psi + math.pi - off)]
+            return [_side_record(1, psi - off)] * second_count
+        return find
+
+    monkeypatch.setattr(cond, "find_spans", stand_in(0.012, 3))
+    spans, turns = cond.turned_search(None, np.zeros(3), 1.0)
+    assert len(spans) == 3 and len(calls) == 2
+    np.testing.assert_allclose(turns, [-0.012, -0.012], atol=1e-12)
+    np.testing.assert_allclose(calls[1], [-0.012, -0.012], atol=1e-12)
+    calls.clear()
+    monkeypatch.setattr(cond, "find_spans", stand_in(0.0015, 3))
+    spans, turns = cond.turned_search(None, np.zeros(3), 1.0)
+    assert len(spans) == 2 and len(calls) == 1 and turns == (0.0, 0.0)
+    monkeypatch.setattr(cond, "find_spans", stand_in(0.012, 1))
+    spans, turns = cond.turned_search(None, np.zeros(3), 1.0)
+    assert len(spans) == 2 and turns == (0.0, 0.0)
+
+
+def test_a_side_turn_searches_that_side_as_the_line_given_along_the_turned_azimuth():
+    """Wires along +y on both sides in 16 cluttered photos: `find_spans` given the line's azimuth
+    12 mrad off and side_turns (-0.012, -0.012) finds what it finds given the true azimuth, the
+    same wires at the same figures (both searches run along pi/2 and 3 pi/2)."""
+    rng = np.random.default_rng(3)
+    c2w = ring_cameras()
+    views = views_of(render_photos(c2w, [true_curve(1), true_curve(-1)], rng), c2w)
+    args = (4.5, (7.5, 33.0), 18.0, 0.11, 30.4)
+    exact = cond.find_spans(views, np.zeros(3), math.pi / 2, *args)
+    turned = cond.find_spans(views, np.zeros(3), math.pi / 2 + 0.012, *args, side_turns=(-0.012, -0.012))
+    assert sorted(f["side"] for f in exact) == [-1, 1]
+    assert [f["side"] for f in turned] == [f["side"] for f in exact]
+    for a, b in zip(exact, turned):
+        np.testing.assert_allclose(a["theta"], b["theta"], atol=1e-6)

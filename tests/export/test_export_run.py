@@ -1219,7 +1219,8 @@ def test_conductor_step_records_whether_the_ground_beneath_each_span_is_seen(mon
                                        "ends": [[7.0, 0.0, 17.5], [-7.0, 0.0, 17.5]]}]}}
     a, xv = 1600.0, 160.0
     fit = {"theta": np.array([-7.6, 14.9, math.pi / 2, -math.sinh(xv / a), 1.0 / a]),
-           "cov": np.diag([1e-4, 1e-4, 1e-8, 1e-8, 1e-14]), "side": 1, "sigma_px": 0.5, "inlier_share": 0.9,
+           "cov": np.diag([1e-4, 1e-4, 1e-8, 1e-8, 1e-14]), "image_cov": np.diag([1e-4, 1e-4, 1e-8, 1e-8, 1e-14]),
+           "side": 1, "sigma_px": 0.5, "inlier_share": 0.9,
            "residuals": 100, "seen": 110, "stations": np.array([4.5, 320.0])}
     monkeypatch.setattr(cond, "find_spans", lambda *a, **k: [fit])
 

@@ -97,6 +97,37 @@ def test_cross_arms_median_counts_only_the_slices_with_points():
     assert _levels(arms) == [(3.5, 4.0, "a")]
 
 
+def _level(height: float, span: float, axis: str = "a") -> dict:
+    return {"height": height, "span": span, "axis": axis, "ends": []}
+
+
+def test_arm_levels_leave_out_the_footings_a_level_across_the_arms_and_an_arms_top_chord():
+    """A 30 m tower's levels as an export measured them: the pad at 0.4 m (10 long), a bracing at
+    9.9 m along b, the arms at 17.3, 21.6 and 25.5 m along a, and 19.1 m (8.6 long, the 17.3 m
+    arm's top chord). Along a: 5 levels against 1. A third of 30 is 10: the pad goes (9.9 goes as
+    across); an arm's depth is 0.08 x 30 = 2.4: 19.1 lies 1.8 above 17.3 (13.8 long) and 2.5 below
+    21.6, so it goes against 17.3's longer span; 17.3, 21.6 and 25.5 stay, 4 m apart."""
+    arms = {"slice_height": 0.3, "levels": [_level(0.4, 10.0), _level(9.9, 5.7, "b"), _level(17.3, 13.8),
+                                            _level(19.1, 8.6), _level(21.7, 17.7), _level(25.5, 15.5)]}
+    out = measure.arm_levels(arms, 30.0)
+    assert [lv["height"] for lv in out["levels"]] == [17.3, 21.7, 25.5]
+    assert out["slice_height"] == 0.3
+    why = {lv["height"]: lv["why"] for lv in out["left_out"]}
+    assert sorted(why) == [0.4, 9.9, 19.1]
+    assert "third" in why[0.4] and "across" in why[9.9] and "17.3" in why[19.1]
+
+
+def test_arm_levels_keep_the_longer_of_two_within_an_arms_depth_whichever_is_higher_and_break_an_axis_tie():
+    """Two levels 1 m apart on a 30 m tower (depth 2.4): the upper one longer (16 against 9) is
+    kept. Levels along a and b two each: the tie goes to the axis of the longest level (b, 18)."""
+    out = measure.arm_levels({"levels": [_level(20.0, 9.0), _level(21.0, 16.0)]}, 30.0)
+    assert [lv["height"] for lv in out["levels"]] == [21.0]
+    tie = measure.arm_levels({"levels": [_level(15.0, 12.0), _level(20.0, 12.0), _level(24.0, 18.0, "b"),
+                                         _level(28.0, 10.0, "b")]}, 30.0)
+    assert [lv["height"] for lv in tie["levels"]] == [24.0, 28.0]
+    assert measure.arm_levels({"levels": []}, 30.0)["levels"] == []
+
+
 def _lattice_tower(theta_deg: float) -> tuple[np.ndarray, list[float]]:
     """A tower's surface points [N, 3] on level ground z = 0: four legs from (+-4, +-4) at z = 0 to
     (+-1, +-1) at z = 30 (the +x+y leg and the -x-y one reach down to z = 0, the other two stop

@@ -79,7 +79,18 @@ def exported(tmp_path_factory):
     (out / ".jaxnerf-grid-export").write_text("an earlier export\n")
     (out / "report.md").write_text("stale")
     (out / "notes.txt").write_text("mine")
+    from jaxnerf_grid.export import measure
+
+    real_cross_arms = measure.cross_arms
+
+    def with_footing(*args, **kwargs):
+        """cross_arms' levels and a wide one at the mesh's foot (a pad): `arm_levels` must leave it out."""
+        arms = real_cross_arms(*args, **kwargs)
+        axis = arms["levels"][0]["axis"] if arms["levels"] else "a"
+        return {**arms, "levels": [{"height": 0.0, "span": 1.0, "axis": axis, "ends": []}, *arms["levels"]]}
+
     with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(measure, "cross_arms", with_footing)
         mp.setattr(fields, "apply", af.apply)
         mp.setattr(runs, "load_run", load_run)
         mp.setattr(runs, "dataset_of_run", dataset_of_run)
@@ -220,9 +231,10 @@ def test_the_measures_get_their_bands_and_slices_by_hand(exported):
     """The footprint's band, the cross-arms' and the tilt's slices and the conductors' lowest
     height as export's rules set them, worked out here from tower_mesh.ply and the published
     plane: heights = normal . x + offset; the band max(5 % of the height range, 2 voxels) from
-    the lowest vertex; slices max(1 % of the height, 2 voxels); conductors looked for above half
-    the lowest arm. The tilt is `measure.axis_tilt` (its own tests: tests/export/test_survey.py)
-    of the written mesh with that slice (export_run mutants 462, 477-487, 510-518, 538-546, 573-581)."""
+    the lowest vertex; slices max(1 % of the height, 2 voxels); the cross-arm levels those of the
+    mesh's slices that can carry wires; conductors looked for above half the lowest arm. The tilt
+    is `measure.axis_tilt` (its own tests: tests/export/test_survey.py) of the written mesh with
+    that slice (export_run mutants 462, 477-487, 510-518, 538-546, 573-581)."""
     from jaxnerf_grid.export import measure
 
     meas, out, _ = exported
@@ -238,6 +250,12 @@ def test_the_measures_get_their_bands_and_slices_by_hand(exported):
     levels = meas["cross_arms"]["levels"]
     assert levels and meas["conductors"]["min_height"] == pytest.approx(0.5 * min(lv["height"] for lv in levels),
                                                                         rel=1e-12)
+    # the levels are the mesh's cross-arm slices that can carry wires (`measure.arm_levels`)
+    arms = measure.cross_arms(verts, n, d, *measure.arm_axes(verts, n, d), slice_height)
+    want_levels = measure.arm_levels(arms, float(heights.max()))["levels"]
+    np.testing.assert_allclose([lv["height"] for lv in levels], [lv["height"] for lv in want_levels], atol=1e-3)
+    assert all(lv["height"] >= measure.ARM_MIN_SHARE * meas["height"] for lv in levels)
+    assert [lv["height"] for lv in meas["cross_arms"]["left_out"] if "third" in lv["why"]] == [0.0]   # the footing
     fp = meas["footprint"]
     want = measure.axis_tilt(verts, n, d, fp["axis_a"], fp["axis_b"], slice_height)
     got = meas["tilt"]
