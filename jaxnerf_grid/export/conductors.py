@@ -1090,7 +1090,7 @@ def turned_search(views: Views, centre, psi: float, *args, **kwargs) -> tuple[li
     turns = side_turns(spans, psi)
     if max(abs(t) for t in turns) <= TRACK_MAX_TURN:
         return spans, (0.0, 0.0)
-    again = find_spans(views, centre, psi, *args, **kwargs, side_turns=turns)
+    again = find_spans(views, centre, psi, *args, **{**kwargs, "side_turns": turns})
     return (again, turns) if len(again) >= len(spans) else (spans, (0.0, 0.0))
 
 
