@@ -193,6 +193,9 @@ def z_up_normalization(c2w: np.ndarray, points: np.ndarray | None = None, method
 # The up axis of a capture, for scenes whose world frame is arbitrary (structure from motion)
 
 
+NADIR_MARGIN = 0.3   # the viewing directions agree this much more than the image-up vectors: a nadir survey
+
+
 def up_from_cameras(c2w: np.ndarray, *, spread: float = 0.05, flatness: float = 0.25,
                     max_tilt_deg: float = 45.0) -> np.ndarray:
     """World up direction of a capture, from its cameras. Returns a unit vector [3].
@@ -210,17 +213,25 @@ def up_from_cameras(c2w: np.ndarray, *, spread: float = 0.05, flatness: float = 
        which is at least `flatness` times the largest: a plane, not a line): one heading
        over a flat survey pattern;
     3. the mean of the cameras' up vectors `c2w[:, :3, 1]` (exact for level, unpitched cameras).
+    A nadir survey (cameras looking down, headings turning back and forth) has its image-up
+    vectors horizontal and cancelling, its viewing directions all alike: where the mean of the
+    cameras' backward axes `c2w[:, :3, 2]` (towards the sky for a camera looking down) is longer
+    than the mean up vector's by NADIR_MARGIN, it takes the mean up vector's place as the
+    direction estimates 1 and 2 must lie near (the last resort stays 3).
     """
     c2w = np.asarray(c2w, dtype=np.float64)
     mean_up = c2w[:, :3, 1].mean(0)
     norm = np.linalg.norm(mean_up)
     mean_up = mean_up / norm if norm > 1e-9 else np.array([0.0, 0.0, 1.0])
+    mean_back = c2w[:, :3, 2].mean(0)
+    nadir = np.linalg.norm(mean_back) > norm + NADIR_MARGIN
+    reference = mean_back / np.linalg.norm(mean_back) if nadir else mean_up
     min_cos = np.cos(np.radians(max_tilt_deg))
 
     def oriented(v):
         v = v / np.linalg.norm(v)
-        v = v if v @ mean_up >= 0 else -v
-        return v if v @ mean_up >= min_cos else None
+        v = v if v @ reference >= 0 else -v
+        return v if v @ reference >= min_cos else None
 
     right = c2w[:, :3, 0] / np.linalg.norm(c2w[:, :3, 0], axis=-1, keepdims=True)
     eig, vec = np.linalg.eigh(right.T @ right / len(right))

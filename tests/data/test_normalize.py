@@ -266,3 +266,30 @@ def test_scene_center_of_two_cameras_nearly_parallel_axes_and_bad_requests():
             normalize.normalize_poses(c2w, none, "points")
     with pytest.raises(ValueError, match="method must be 'cameras' or 'points', got 'median'"):
         normalize.scene_center(c2w, points, "median")
+
+
+def _nadir(eye, heading_deg):
+    """OpenGL c2w at eye looking straight down, the image's top towards heading_deg from +x."""
+    h = np.radians(heading_deg)
+    forward = np.array([np.cos(h), np.sin(h), 0.0])
+    m = np.eye(4)
+    m[:3, 1], m[:3, 2] = forward, [0.0, 0.0, 1.0]          # image up along the flight, backward to the sky
+    m[:3, 0] = np.cross(m[:3, 1], m[:3, 2])
+    m[:3, 3] = eye
+    return m
+
+
+def test_up_from_cameras_of_a_nadir_survey_is_the_sky_not_the_flight_direction():
+    """A lawnmower survey 40 m up, legs flown north and south (headings 90 and 270 degrees) and one
+    east (0): the image-up vectors are horizontal, their mean (1/5, 0, 0) a fifth long; the
+    backward axes all +z, their mean 1 long: a nadir survey (longer by more than NADIR_MARGIN). The
+    right vectors are horizontal with headings that vary, so up is the normal to them, +z, taken on
+    the sky's side; before, it fell back to the mean image-up vector (+x, the flight's east leg)."""
+    legs = [(0.0, 0.0, 90.0), (10.0, 0.0, 270.0), (20.0, 0.0, 90.0), (30.0, 0.0, 270.0), (30.0, 10.0, 0.0)]
+    c2w = np.stack([_nadir([x, y, 40.0], h) for x, y, h in legs])
+    np.testing.assert_allclose(c2w[:, :3, 1].mean(0), [0.2, 0.0, 0.0], atol=1e-12)
+    np.testing.assert_allclose(normalize.up_from_cameras(c2w), [0.0, 0.0, 1.0], atol=1e-9)
+    # an orbit pitched 30 degrees down keeps its up from the image-up vectors (its backward axes cancel)
+    orbit = np.stack([look_at(np.array([20 * np.cos(a), 20 * np.sin(a), 11.5]), np.zeros(3))
+                      for a in np.linspace(0, 2 * np.pi, 12, endpoint=False)])
+    np.testing.assert_allclose(normalize.up_from_cameras(orbit), [0.0, 0.0, 1.0], atol=1e-9)
