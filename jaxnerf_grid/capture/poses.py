@@ -1078,9 +1078,12 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                 summary.update(seconds=round(time.monotonic() - start, 1), timings_s=dict(timings))
                 kept_in = keep_refused(out, key, raw_model, database, summary, model, relaxed, extended,
                                        timings if reused is None else reused[1]["timings_s"])
+                hint = gps_disagrees(len(far), len(registered))
                 raise DataError(f"{images_dir}: {verdict}; not written (a NeRF trained on them renders the rest as "
-                                f"a ghost); which photos and why: {kept_in / REPORT}; accept_few_cameras=True "
-                                "writes it anyway, reusing this run's reconstruction (docs/POSES.md)")
+                                f"a ghost); which photos and why: {kept_in / REPORT}; "
+                                + (f"{hint}; " if hint else "")
+                                + "accept_few_cameras=True writes it anyway, reusing this run's reconstruction "
+                                "(docs/POSES.md)")
             undistort(pycolmap, model, photo_dir, stage_dir)
             shutil.rmtree(stage_dir / "_work")
             summary["seconds"] = round(time.monotonic() - start, 1)
@@ -1219,6 +1222,18 @@ def gps_outliers(georeference: dict) -> list[tuple[str, str]]:
     rows = (georeference.get("gps") or {}).get("residuals") or []
     return [(r["name"], f"{r['error']:.1f} m from its GPS position (more than {georef.INLIER_METRES:.0f} m)")
             for r in rows if not r["inlier"]]
+
+
+def gps_disagrees(far: int, registered: int) -> str | None:
+    """A hint for a refusal where the GPS residuals' outliers (`gps_outliers`, far of the registered
+    photos) are half of them or more: then the receiver, not the mapping, is wrong (a camera's own
+    GPS that lags the shutter or drifts in height), and leaving those photos out is no cure. None
+    under half."""
+    if registered <= 0 or far < 0.5 * registered:
+        return None
+    return (f"the GPS disagrees with the photos' reconstruction ({far} of {registered} registered photos more than "
+            f"{georef.INLIER_METRES:.0f} m from their fixes): a receiver that lags or drifts; ignore_gps=True poses "
+            "without it")
 
 
 def mark_left_out(rows: list[dict], far: list[tuple[str, str]]) -> None:
