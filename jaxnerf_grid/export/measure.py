@@ -19,6 +19,9 @@ with the ground plane n . x + d = 0 (|n| = 1, n_z > 0; `export.ground`).
   extent of the vertices within one slice of it along the wide axis, and its end points are that
   extent's two ends at the level's height, placed across the wide axis at the middle of those
   vertices' extent (the arm's centre line).
+* the cross-arms that carry wires (`arm_levels`): of those levels, the ones along the axis most
+  lie along, at or above a third of the height, the longest within an arm's depth of another
+  (the footings, a bracing across the arms and an arm's top chord make wide slices too).
 * `orthographic_views`: front (x-z), side (y-z) and top (x-y) views of coloured points, drawn
   with a z-buffer (nearest point wins), shaded by the normal when given.
 """
