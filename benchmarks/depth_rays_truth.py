@@ -25,6 +25,7 @@ from PIL import Image
 from scipy import ndimage
 
 from jaxnerf_grid.capture import georef
+from jaxnerf_grid.export import fuse
 from jaxnerf_grid.train import sparse_depth
 from jaxnerf_grid.util import io
 
@@ -77,10 +78,10 @@ def classify(syn: Path, truth: dict, frames: list[dict], c2w: np.ndarray, rays: 
         sem = sem[..., 0] if sem.ndim == 3 else sem
         inside = ndimage.distance_transform_edt(sem == classes.index("tower"))
         points = rays["origins"][sel] + rays["directions"][sel] * rays["t"][sel][:, None]
-        local = (points - c2w[k, :3, 3]) @ c2w[k, :3, :3]  # OpenGL: the camera looks down -z
-        u = np.clip((cx + fx * local[:, 0] / -local[:, 2]).astype(int), 0, width - 1)
-        v = np.clip((cy - fy * local[:, 1] / -local[:, 2]).astype(int), 0, height - 1)
-        rel.append(-local[:, 2] / depth[v, u] - 1)
+        u_px, v_px, z = fuse.project(points, c2w[k], (fx, fy, cx, cy))
+        u = np.clip(u_px.astype(int), 0, width - 1)
+        v = np.clip(v_px.astype(int), 0, height - 1)
+        rel.append(z / depth[v, u] - 1)
         label.append(sem[v, u])
         edge.append(inside[v, u])
     rel_all, label_all, edge_all = np.concatenate(rel), np.concatenate(label), np.concatenate(edge)
