@@ -384,28 +384,38 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
             write_gps_priors(pycolmap, database, priors)
     with _stage(f"matching ({matcher})", show, timings, "matching"):
         match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree, small_photos)
-    n = len(names)
+    best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
+                                              priors=priors_hold(priors or {}), keep_all=keep_all, show=show,
+                                              timings=timings)
+    if best is None:
+        raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
+                        f"more texture or more photos help; see docs/POSES.md)")
+    return best, relaxed_used, extended
+
+
+def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, *, priors: bool, keep_all: bool,
+               show: bool, timings: dict, key: str = "mapping", label: str = "mapping"):
+    """Incremental mapping of a matched database (`total` photos): the default run, the relaxed
+    one when it registers under RELAX_BELOW of the photos (`choose_model`), then the photos left
+    out tried again (`register_left_out`, kept when the poses agree). priors: the database's pose
+    priors (GPS) enter the bundle adjustment. Its models go under `work_dir` (sparse0, sparse1,
+    extend); `timings[key]` gets its seconds. Returns (the model or None, from the relaxed run, extended)."""
     start = time.monotonic()
-    use_priors = priors_hold(priors or {})
-    default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", n, False, "mapping", show,
-                   priors=use_priors)
+    default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", total, False, label, show, priors=priors)
     best = default
     count = _registered_count if keep_all else vetted_count
-    if default is None or default.num_reg_images() < RELAX_BELOW * n:
-        relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", n, True,
-                       "mapping again (relaxed thresholds)", show, priors=use_priors)
+    if default is None or default.num_reg_images() < RELAX_BELOW * total:
+        relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", total, True,
+                       f"{label} again (relaxed thresholds)", show, priors=priors)
         best = choose_model(default, relaxed, show, count=count)
     relaxed_used, extended = best is not default, False
-    if best is not None and best.num_reg_images() < n:
-        more = register_left_out(pycolmap, database, photo_dir, best, n, work_dir / "extend", show, use_priors)
+    if best is not None and best.num_reg_images() < total:
+        more = register_left_out(pycolmap, database, photo_dir, best, total, work_dir / "extend", show, priors)
         if more is not None and count(more) > count(best) and poses_agree(model_poses(best), model_poses(more)):
             _say(f"poses: registered {more.num_reg_images() - best.num_reg_images()} more photo(s) the first model "
                  "left out", show)
             best, extended = more, True
-    timings["mapping"] = round(time.monotonic() - start, 1)
-    if best is None:
-        raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
-                        f"more texture or more photos help; see docs/POSES.md)")
+    timings[key] = round(time.monotonic() - start, 1)
     return best, relaxed_used, extended
 
 
@@ -898,6 +908,14 @@ def format_summary(summary: dict) -> str:
                      "and options)")
     if summary.get("gps_priors"):
         lines.append(f"GPS as pose priors in the bundle adjustment: {summary['gps_priors']} photos")
+    judged = summary.get("gps_disagreed")
+    if judged:
+        lines.append(f"the GPS disagreed with the reconstruction ({judged['far']} of {judged['registered']} registered "
+                     f"photos over {georef.INLIER_METRES:.0f} m from their fixes): "
+                     + ("mapped again without the GPS priors, " if judged["remapped"] else "")
+                     + (f"then {judged['far_after']} over; " if judged["remapped"] else "")
+                     + ("scale and georeference without the GPS" if judged["georeference"] != "GPS"
+                        else "scale and georeference from the GPS"))
     vet = summary.get("vetting") or {}
     if vet.get("left_out"):
         why = {row["name"]: "; ".join(row["reasons"]) for row in vet.get("photos", [])}
@@ -1024,32 +1042,41 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
             relaxed, extended = bool(record["relaxed"]), bool(record["extended"])
             _say(f"poses: features, matching and mapping taken from the refused run in {refused.folder_of(out)} "
                  "(the same photos and options)", progress)
+        without_gps = reused is not None and bool(reused[1].get("without_gps"))
         raw_model.mkdir(parents=True, exist_ok=True)
         model.write(raw_model)  # as COLMAP returned it: what a refused run keeps
-        registered = sorted(model.images[i].name for i in model.reg_image_ids())
-        unregistered = sorted(set(names) - set(registered))
-        why_unregistered = unregistered_reasons(pycolmap, database, unregistered, registered)
-        rows = vetting.vet(vetting.records_from_pycolmap(model))
-        left_out = [] if keep_all else [row["name"] for row in rows if not row["kept"]]
-        registered_centres = np.stack([c2w[:3, 3] for c2w in model_poses(model).values()])
-        leave_out(model, left_out)
-        kept = len(registered) - len(left_out)
-        if kept < enough_registered(len(names)):
-            missing = unregistered + left_out
-            shown = ", ".join(missing[:5]) + (", ..." if len(missing) > 5 else "")
-            raise DataError(f"{images_dir}: only {kept} of {len(names)} photos registered and passed the vetting "
-                            f"(a dataset needs {enough_registered(len(names))}; not registered or left out: "
-                            f"{shown}); more overlap and texture between photos help (docs/POSES.md)")
+        align_options = {"crs_name": crs, "gcp_path": gcp, "scale_bar": scale_bar, "sizes": sizes, "ratios": ratios,
+                         "source": images_dir}
+        placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, positions, align_options)
+        disagreed = None if keep_all else gps_disagrees(len(placed["far"]), len(placed["registered"]))
+        gps_judged: dict[str, Any] | None = None
+        if disagreed is not None:
+            gps_judged = {"far": len(placed["far"]), "registered": len(placed["registered"]), "remapped": False,
+                          "georeference": "GPS"}
+            if priors_hold(priors) and not without_gps:
+                _say(f"poses: {disagreed}; mapping again without it", progress)
+                again = map_photos(pycolmap, database, photo_dir, len(names), stage_dir / "_work" / "without_gps",
+                                   priors=False, keep_all=keep_all, show=progress, timings=timings,
+                                   key="mapping_without_gps", label="mapping without the GPS")
+                if again[0] is not None:
+                    (model, relaxed, extended), without_gps = again, True
+                    shutil.rmtree(raw_model)
+                    raw_model.mkdir()
+                    model.write(raw_model)
+                    gps_judged["remapped"] = True
+                    placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, positions, align_options)
+            still = gps_disagrees(len(placed["far"]), len(placed["registered"]))
+            gps_judged["far_after"] = len(placed["far"])
+            if still is not None:  # the receiver is wrong: the model keeps its photos, not the GPS's frame
+                placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, {},
+                                       dict(align_options, crs_name=crs if gcp is not None else None))
+                placed["georeference"]["gps_ignored"] = still
+                gps_judged["georeference"] = "without the GPS"
+        model, registered, rows, left_out = placed["model"], placed["registered"], placed["rows"], placed["left_out"]
+        unregistered, registered_centres, far = placed["unregistered"], placed["centres"], placed["far"]
+        georeference, kept = placed["georeference"], len(registered) - len(left_out)
         writing = time.monotonic()
         with _stage("undistortion to PINHOLE, orientation, transforms.json", progress):
-            rot = orient_z_up(pycolmap, model)
-            sim, georeference = georef.align_model(model, positions, crs_name=crs, gcp_path=gcp, scale_bar=scale_bar,
-                                                   sizes=sizes, ratios=ratios, source=images_dir)
-            registered_centres = registered_centres @ rot.T
-            if sim is not None:
-                model.transform(pycolmap.Sim3d(sim[0], pycolmap.Rotation3d(sim[1]), sim[2]))
-                registered_centres = georef.apply_similarity(sim, registered_centres)
-            far = [] if keep_all else gps_outliers(georeference)
             if far:  # a camera far from its GPS fix was registered in the wrong place: vetted out too
                 leave_out(model, [name for name, _ in far])
                 mark_left_out(rows, far)
@@ -1067,8 +1094,9 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "camera_model": camera_model, "single_camera": bool(single_camera),
                        "camera_sharing": camera_reason,
                        "max_side": max_side, "feature_side": feature_side, "relaxed_mapping": bool(relaxed),
-                       "up_rotation": rot.tolist(),
-                       "registered_left_out": bool(extended), "unregistered_why": why_unregistered,
+                       "up_rotation": placed["up_rotation"].tolist(),
+                       "registered_left_out": bool(extended), "unregistered_why": placed["unregistered_why"],
+                       "gps_disagreed": gps_judged,
                        "gps_priors": len(priors) if priors_hold(priors) else 0,
                        "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
@@ -1077,12 +1105,10 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
             if verdict is not None and not accept_few_cameras:
                 summary.update(seconds=round(time.monotonic() - start, 1), timings_s=dict(timings))
                 kept_in = keep_refused(out, key, raw_model, database, summary, model, relaxed, extended,
-                                       timings if reused is None else reused[1]["timings_s"])
-                hint = gps_disagrees(len(far), len(registered))
+                                       timings if reused is None else reused[1]["timings_s"], without_gps)
                 raise DataError(f"{images_dir}: {verdict}; not written (a NeRF trained on them renders the rest as "
                                 f"a ghost); which photos and why: {kept_in / REPORT}; "
-                                + (f"{hint}; " if hint else "")
-                                + "accept_few_cameras=True writes it anyway, reusing this run's reconstruction "
+                                "accept_few_cameras=True writes it anyway, reusing this run's reconstruction "
                                 "(docs/POSES.md)")
             undistort(pycolmap, model, photo_dir, stage_dir)
             shutil.rmtree(stage_dir / "_work")
@@ -1112,11 +1138,12 @@ def colmap_settings() -> dict:
 
 
 def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: dict, model, relaxed: bool,
-                 extended: bool, colmap_timings: dict) -> Path:
+                 extended: bool, colmap_timings: dict, without_gps: bool = False) -> Path:
     """`refused.keep` of a run whose camera set was refused: the model as COLMAP returned it
     (raw_model), the database, poses_report.md (the summary and vetting table, no scene bounds)
     and the top view of the kept cameras. colmap_timings: the seconds of COLMAP's stages, kept
-    for the run that reuses them. Returns the folder."""
+    for the run that reuses them; without_gps: the model was mapped again without the GPS priors
+    (`gps_disagrees`), so the run that reuses it does not do so again. Returns the folder."""
     c2w = np.stack(list(model_poses(model).values()))
     points = np.array([p.xyz for p in model.points3D.values()], np.float64).reshape(-1, 3)
     c2w_norm, norm = normalize_orbit(c2w, points if len(points) else None)
@@ -1126,7 +1153,8 @@ def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: 
                         "and options writes it from this reconstruction (docs/POSES.md).", "",
                         *report_lines(summary, None)])
     return refused.keep(out, key, raw_model, database,
-                        {"relaxed": relaxed, "extended": extended, "timings_s": colmap_timings}, report,
+                        {"relaxed": relaxed, "extended": extended, "timings_s": colmap_timings,
+                         "without_gps": bool(without_gps)}, report,
                         lambda path: draw_topview(path, c2w_norm, points_norm))
 
 
@@ -1145,6 +1173,41 @@ def gps_local_positions(positions: dict, crs_name: str | None) -> tuple[dict, np
     xyz = georef.geodetic_to_projected(crs, lat, lon, heights)
     origin = georef.local_origin(xyz)
     return {n: (p - origin) for n, p in zip(names, xyz)}, origin
+
+
+def vet_and_place(pycolmap, model_dir: Path, database, names: list[str], keep_all: bool, positions: dict,
+                  align_options: dict) -> dict:
+    """The model COLMAP returned (read from `model_dir`, pycolmap's model folder) vetted
+    (`vetting.vet`; the photos that fail left out unless `keep_all`), turned z-up (`orient_z_up`)
+    and aligned (`georef.align_model` with the photos' GPS `positions` and `align_options`).
+    DataError (naming align_options["source"]) when fewer than `enough_registered` photos pass.
+    Returns {"model", "registered" (names, before the vetting), "unregistered", "unregistered_why",
+    "rows" (the vetting's), "left_out", "centres" [R, 3] (the registered cameras, in the aligned
+    frame), "up_rotation" [3, 3], "georeference", "far" (`gps_outliers`, [] with keep_all)}."""
+    model = pycolmap.Reconstruction(str(model_dir))
+    registered = sorted(model.images[i].name for i in model.reg_image_ids())
+    unregistered = sorted(set(names) - set(registered))
+    rows = vetting.vet(vetting.records_from_pycolmap(model))
+    left_out = [] if keep_all else [row["name"] for row in rows if not row["kept"]]
+    centres = np.stack([c2w[:3, 3] for c2w in model_poses(model).values()])
+    leave_out(model, left_out)
+    kept = len(registered) - len(left_out)
+    if kept < enough_registered(len(names)):
+        missing = unregistered + left_out
+        shown = ", ".join(missing[:5]) + (", ..." if len(missing) > 5 else "")
+        raise DataError(f"{align_options['source']}: only {kept} of {len(names)} photos registered and passed the "
+                        f"vetting (a dataset needs {enough_registered(len(names))}; not registered or left out: "
+                        f"{shown}); more overlap and texture between photos help (docs/POSES.md)")
+    rot = orient_z_up(pycolmap, model)
+    sim, georeference = georef.align_model(model, positions, **align_options)
+    centres = centres @ rot.T
+    if sim is not None:
+        model.transform(pycolmap.Sim3d(sim[0], pycolmap.Rotation3d(sim[1]), sim[2]))
+        centres = georef.apply_similarity(sim, centres)
+    return {"model": model, "registered": registered, "unregistered": unregistered,
+            "unregistered_why": unregistered_reasons(pycolmap, database, unregistered, registered), "rows": rows,
+            "left_out": left_out, "centres": centres, "up_rotation": rot, "georeference": georeference,
+            "far": [] if keep_all else gps_outliers(georeference)}
 
 
 def camera_set_of(model, readable: int, registered_centres: np.ndarray, priors: dict, priors_origin,
@@ -1225,15 +1288,15 @@ def gps_outliers(georeference: dict) -> list[tuple[str, str]]:
 
 
 def gps_disagrees(far: int, registered: int) -> str | None:
-    """A hint for a refusal where the GPS residuals' outliers (`gps_outliers`, far of the registered
-    photos) are half of them or more: then the receiver, not the mapping, is wrong (a camera's own
-    GPS that lags the shutter or drifts in height), and leaving those photos out is no cure. None
-    under half."""
+    """Why the GPS is not to be trusted when the GPS residuals' outliers (`gps_outliers`, far of the
+    registered photos) are half of them or more: then the receiver, not the mapping, is wrong (a
+    camera's own GPS that lags the shutter or drifts in height), and leaving those photos out is
+    no cure: `poses` maps again without the GPS priors, and georeferences without the GPS when it
+    still disagrees. None under half."""
     if registered <= 0 or far < 0.5 * registered:
         return None
     return (f"the GPS disagrees with the photos' reconstruction ({far} of {registered} registered photos more than "
-            f"{georef.INLIER_METRES:.0f} m from their fixes): a receiver that lags or drifts; ignore_gps=True poses "
-            "without it")
+            f"{georef.INLIER_METRES:.0f} m from their fixes): a receiver that lags or drifts")
 
 
 def mark_left_out(rows: list[dict], far: list[tuple[str, str]]) -> None:

@@ -110,15 +110,14 @@ def test_a_camera_far_from_its_gps_fix_is_left_out():
     assert gps_outliers({"units": "unknown"}) == []
 
 
-def test_a_refusal_blames_the_gps_when_half_the_registered_photos_or_more_are_far_from_their_fixes():
+def test_the_gps_is_distrusted_when_half_the_registered_photos_or_more_are_far_from_their_fixes():
     """49 of 57 registered photos over 9 m from their GPS fixes (a camera's GPS that lagged and
-    drifted 90 m in height): the hint names the count and ignore_gps; exactly half still does
-    (5 of 10); 4 of 10, or no photo registered, gives none."""
+    drifted 90 m in height): the reason names the count; exactly half still is distrust (5 of
+    10); 4 of 10, or no photo registered, is not."""
     from jaxnerf_grid.capture.poses import gps_disagrees
 
     assert gps_disagrees(49, 57) == ("the GPS disagrees with the photos' reconstruction (49 of 57 registered photos "
-                                     "more than 9 m from their fixes): a receiver that lags or drifts; "
-                                     "ignore_gps=True poses without it")
+                                     "more than 9 m from their fixes): a receiver that lags or drifts")
     assert gps_disagrees(5, 10) is not None
     assert gps_disagrees(4, 10) is None and gps_disagrees(0, 0) is None
 

@@ -162,6 +162,7 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
     assert {k: cameras[k] for k in ("photos", "kept", "arc_from", "verdict", "accepted")} == {
         "photos": 13, "kept": 11, "arc_from": "registered", "verdict": None, "accepted": False}
     assert (summary.pop("registered_left_out"), summary.pop("gps_priors")) == (False, 0)
+    assert summary.pop("gps_disagreed") is None   # no GPS to judge
     assert summary.pop("unregistered_why") == {}   # no matching database from the stand-in
     assert summary == {
         "photos": 14, "registered": 12, "in_dataset": 11, "unregistered": ["v12.png"], "skipped": ["broken.png"],

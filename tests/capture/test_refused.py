@@ -105,34 +105,3 @@ def test_a_users_folder_of_that_name_is_neither_read_nor_removed(tmp_path, monke
     monkeypatch.setattr(poses, "run_colmap", colmap)
     poses.poses_from_images(photos, tmp_path / "data", progress=False, accept_few_cameras=True)
     assert len(colmap.calls) == 1 and (users / "run.json").read_text() == '{"key": "anything"}'
-
-
-def test_a_refusal_where_most_photos_lie_far_from_their_gps_fixes_blames_the_gps(tmp_path, monkeypatch):
-    """The stand-in run with GPS on every photo and an alignment whose residuals put all but 3 of
-    the cameras it sees over 9 m from their fixes: those are left out, the camera set is refused,
-    and the refusal says the GPS disagrees (the count of far photos of the 9 registered) and how
-    to pose without it."""
-    from jaxnerf_grid.capture import georef, gps
-
-    photos, model_dir, _ = _scene(tmp_path, registered=9, photos=13, turned=(5,))
-    monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
-    names = [f"v{k:02d}.png" for k in range(13)]
-    monkeypatch.setattr(gps, "positions_of", lambda records: {n: {"latitude": 47.0, "longitude": 8.0,
-                                                                  "altitude": 400.0} for n in names})
-    monkeypatch.setattr(georef, "precheck_gps", lambda *args: None)
-    seen = []
-
-    def align(model, positions, **kwargs):
-        regs = sorted(model.images[i].name for i in model.reg_image_ids())
-        seen.append(len(regs))
-        rows = [{"name": n, "error": 2.0 if k < 3 else 50.0, "horizontal": 1.0, "inlier": k < 3}
-                for k, n in enumerate(regs)]
-        return None, {"units": "unknown", "source": None, "gps": {"residuals": rows}}
-
-    monkeypatch.setattr(georef, "align_model", align)
-    with pytest.raises(DataError) as err:
-        poses.poses_from_images(photos, tmp_path / "data", progress=False)
-    far = seen[0] - 3
-    assert (f"the GPS disagrees with the photos' reconstruction ({far} of 9 registered photos more than 9 m from "
-            "their fixes): a receiver that lags or drifts; ignore_gps=True poses without it; accept_few_cameras=True"
-            ) in str(err.value)
