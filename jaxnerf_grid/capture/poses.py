@@ -1063,13 +1063,14 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                     shutil.rmtree(raw_model)
                     raw_model.mkdir()
                     model.write(raw_model)
-                    gps_judged["remapped"] = True
                     placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, positions, align_options)
             still = gps_disagrees(len(placed["far"]), len(placed["registered"]))
-            gps_judged["far_after"] = len(placed["far"])
+            gps_judged.update(remapped=without_gps, far_after=len(placed["far"]))
+            if still is not None and crs is not None and gcp is None:
+                raise DataError(f"{images_dir}: poses.crs = {crs}: {still}; ground control points (poses.gcp) place "
+                                "the model in the CRS without it")
             if still is not None:  # the receiver is wrong: the model keeps its photos, not the GPS's frame
-                placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, {},
-                                       dict(align_options, crs_name=crs if gcp is not None else None))
+                placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, {}, align_options)
                 placed["georeference"]["gps_ignored"] = still
                 gps_judged["georeference"] = "without the GPS"
         model, registered, rows, left_out = placed["model"], placed["registered"], placed["rows"], placed["left_out"]
@@ -1097,7 +1098,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "up_rotation": placed["up_rotation"].tolist(),
                        "registered_left_out": bool(extended), "unregistered_why": placed["unregistered_why"],
                        "gps_disagreed": gps_judged,
-                       "gps_priors": len(priors) if priors_hold(priors) else 0,
+                       "gps_priors": len(priors) if priors_hold(priors) and not without_gps else 0,
                        "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
                        "reconstruction_reused": reused is not None,

@@ -69,7 +69,7 @@ def test_gps_that_still_disagrees_after_mapping_without_it_is_left_out_of_the_ge
     assert summary["georeference"]["gps_ignored"] == (
         "the GPS disagrees with the photos' reconstruction (8 of 12 registered photos more than 9 m from their "
         "fixes): a receiver that lags or drifts")
-    assert summary["timings_s"]["mapping_without_gps"] == 4.0
+    assert summary["timings_s"]["mapping_without_gps"] == 4.0 and summary["gps_priors"] == 0
     report = (tmp_path / "data" / "poses_report.md").read_text()
     assert ("the GPS disagreed with the reconstruction (8 of 12 registered photos over 9 m from their fixes): mapped "
             "again without the GPS priors, then 8 over; scale and georeference without the GPS") in report
@@ -111,5 +111,19 @@ def test_a_refused_run_mapped_without_the_gps_is_reused_without_mapping_again(tm
     assert len(stand.remaps) == 1
     summary = poses.poses_from_images(photos, tmp_path / "data", progress=False, accept_few_cameras=True)
     assert len(colmap.calls) == 1 and len(stand.remaps) == 1 and summary["reconstruction_reused"]
-    assert summary["gps_disagreed"]["remapped"] is False and summary["gps_disagreed"]["georeference"] != "GPS"
+    assert summary["gps_disagreed"] == {"far": 5, "registered": 9, "remapped": True, "far_after": 5,
+                                        "georeference": "without the GPS"}
+    assert summary["gps_priors"] == 0   # the model was mapped without them
     assert summary["in_dataset"] == 8
+
+
+def test_gps_that_still_disagrees_with_a_crs_asked_is_a_one_line_error_naming_it(tmp_path, monkeypatch):
+    photos, model_dir, _ = _scene(tmp_path, registered=12, photos=13, turned=(5,))
+    _Stand(monkeypatch, model_dir)
+    monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
+    with pytest.raises(DataError) as err:
+        poses.poses_from_images(photos, tmp_path / "data", progress=False, crs="EPSG:2056")
+    assert str(err.value) == (f"{photos}: poses.crs = EPSG:2056: the GPS disagrees with the photos' reconstruction "
+                              "(8 of 12 registered photos more than 9 m from their fixes): a receiver that lags or "
+                              "drifts; ground control points (poses.gcp) place the model in the CRS without it")
+    assert not (tmp_path / "data").exists()
