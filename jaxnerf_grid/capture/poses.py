@@ -401,6 +401,7 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
     priors (GPS) enter the bundle adjustment. Its models go under `work_dir` (sparse0, sparse1,
     extend); `timings[key]` gets its seconds. Returns (the model or None, from the relaxed run, extended)."""
     start = time.monotonic()
+    work_dir.mkdir(parents=True, exist_ok=True)  # COLMAP makes its output folder, not the parents
     default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", total, False, label, show, priors=priors)
     best = default
     count = _registered_count if keep_all else vetted_count

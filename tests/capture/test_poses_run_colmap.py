@@ -79,6 +79,8 @@ class _StandIn:
     def incremental_mapping(self, database_path, image_path, output_path, options=None, input_path="",
                             initial_image_pair_callback=None, next_image_callback=None):
         options = options or pycolmap.IncrementalPipelineOptions()
+        if not Path(output_path).parent.is_dir():  # as COLMAP: it makes its output folder, not the parents
+            raise RuntimeError(f"filesystem error: cannot create directory: {output_path}")
         self.calls.append(("mapping", database_path, image_path, output_path, options.random_seed,
                            options.mapper.filter_max_reproj_error, options.mapper.abs_pose_min_num_inliers,
                            options.mapper.init_min_num_inliers, options.mapper.init_min_tri_angle))
@@ -330,3 +332,16 @@ def test_mapping_progress_counts_registered_photos_never_more_than_the_photos(tm
               re.finditer(r"poses: mapping: (\d+)/(\d+) photos", capsys.readouterr().err)]
     assert len(counts) > 10 and all(total == 12 and done <= 12 for done, total in counts), counts
     assert counts[-1] == (12, 12)
+
+
+def test_map_photos_maps_into_a_work_folder_not_made_yet(tmp_path):
+    """The mapping without the GPS priors runs into a new folder under the work folder: its
+    models go to that folder's sparse0, the priors off, the seconds under its own key."""
+    stand_in = _StandIn([{0: _model(tmp_path / "m", 12, 30)}])
+    timings: dict = {}
+    model, relaxed, extended = poses.map_photos(stand_in, tmp_path / "db", tmp_path / "photos", 12,
+                                                tmp_path / "work" / "without_gps", priors=False, keep_all=False,
+                                                show=False, timings=timings, key="mapping_without_gps")
+    assert model.num_reg_images() == 12 and (relaxed, extended) == (False, False)
+    assert [c[3] for c in stand_in.calls] == [tmp_path / "work" / "without_gps" / "sparse0"]
+    assert list(timings) == ["mapping_without_gps"]
