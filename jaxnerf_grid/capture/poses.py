@@ -1048,7 +1048,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         model.write(raw_model)  # as COLMAP returned it: what a refused run keeps
         align_options = {"crs_name": crs, "gcp_path": gcp, "scale_bar": scale_bar, "sizes": sizes, "ratios": ratios,
                          "source": images_dir}
-        placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, positions, align_options)
+        placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options)
         disagreed = None if keep_all else gps_disagrees(len(placed["far"]), len(placed["registered"]))
         gps_judged: dict[str, Any] | None = None
         if disagreed is not None:
@@ -1064,14 +1064,14 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                     shutil.rmtree(raw_model)
                     raw_model.mkdir()
                     model.write(raw_model)
-                    placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, positions, align_options)
+                    placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options)
             still = gps_disagrees(len(placed["far"]), len(placed["registered"]))
             gps_judged.update(remapped=without_gps, far_after=len(placed["far"]))
             if still is not None and crs is not None and gcp is None:
                 raise DataError(f"{images_dir}: poses.crs = {crs}: {still}; ground control points (poses.gcp) place "
                                 "the model in the CRS without it")
             if still is not None:  # the receiver is wrong: the model keeps its photos, not the GPS's frame
-                placed = vet_and_place(pycolmap, raw_model, database, names, keep_all, {}, align_options)
+                placed = vet_and_place(pycolmap, raw_model, names, keep_all, {}, align_options)
                 placed["georeference"]["gps_ignored"] = still
                 gps_judged["georeference"] = "without the GPS"
         model, registered, rows, left_out = placed["model"], placed["registered"], placed["rows"], placed["left_out"]
@@ -1097,7 +1097,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "camera_sharing": camera_reason,
                        "max_side": max_side, "feature_side": feature_side, "relaxed_mapping": bool(relaxed),
                        "up_rotation": placed["up_rotation"].tolist(),
-                       "registered_left_out": bool(extended), "unregistered_why": placed["unregistered_why"],
+                       "registered_left_out": bool(extended),
+                       "unregistered_why": unregistered_reasons(pycolmap, database, unregistered, registered),
                        "gps_disagreed": gps_judged,
                        "gps_priors": len(priors) if priors_hold(priors) and not without_gps else 0,
                        "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),
@@ -1177,15 +1178,15 @@ def gps_local_positions(positions: dict, crs_name: str | None) -> tuple[dict, np
     return {n: (p - origin) for n, p in zip(names, xyz)}, origin
 
 
-def vet_and_place(pycolmap, model_dir: Path, database, names: list[str], keep_all: bool, positions: dict,
+def vet_and_place(pycolmap, model_dir: Path, names: list[str], keep_all: bool, positions: dict,
                   align_options: dict) -> dict:
     """The model COLMAP returned (read from `model_dir`, pycolmap's model folder) vetted
     (`vetting.vet`; the photos that fail left out unless `keep_all`), turned z-up (`orient_z_up`)
     and aligned (`georef.align_model` with the photos' GPS `positions` and `align_options`).
     DataError (naming align_options["source"]) when fewer than `enough_registered` photos pass.
-    Returns {"model", "registered" (names, before the vetting), "unregistered", "unregistered_why",
-    "rows" (the vetting's), "left_out", "centres" [R, 3] (the registered cameras, in the aligned
-    frame), "up_rotation" [3, 3], "georeference", "far" (`gps_outliers`, [] with keep_all)}."""
+    Returns {"model", "registered" (names, before the vetting), "unregistered", "rows" (the
+    vetting's), "left_out", "centres" [R, 3] (the registered cameras, in the aligned frame),
+    "up_rotation" [3, 3], "georeference", "far" (`gps_outliers`, [] with keep_all)}."""
     model = pycolmap.Reconstruction(str(model_dir))
     registered = sorted(model.images[i].name for i in model.reg_image_ids())
     unregistered = sorted(set(names) - set(registered))
@@ -1206,8 +1207,7 @@ def vet_and_place(pycolmap, model_dir: Path, database, names: list[str], keep_al
     if sim is not None:
         model.transform(pycolmap.Sim3d(sim[0], pycolmap.Rotation3d(sim[1]), sim[2]))
         centres = georef.apply_similarity(sim, centres)
-    return {"model": model, "registered": registered, "unregistered": unregistered,
-            "unregistered_why": unregistered_reasons(pycolmap, database, unregistered, registered), "rows": rows,
+    return {"model": model, "registered": registered, "unregistered": unregistered, "rows": rows,
             "left_out": left_out, "centres": centres, "up_rotation": rot, "georeference": georeference,
             "far": [] if keep_all else gps_outliers(georeference)}
 

@@ -189,8 +189,7 @@ def arm_levels(arms: dict, height: float) -> dict:
         return out
     names = [lv["axis"] for lv in levels]
     longest = max(levels, key=lambda lv: lv["span"])["axis"]
-    axis = "a" if names.count("a") > names.count("b") or (names.count("a") == names.count("b") and longest == "a") \
-        else "b"
+    axis = max(("a", "b"), key=lambda name: (names.count(name), name == longest))
     candidates = []
     for lv in levels:
         why = None
