@@ -17,8 +17,9 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      file), or `auto` (`choose_matcher`: exhaustive while the pairs are few, spatial when every
      photo has GPS, sequential when the names are numbered in sequence);
   4. mapping: incremental mapping (`pycolmap.incremental_mapping`), with the photos' GPS as
-     position priors in its bundle adjustment (`write_gps_priors`, `mapper_options`), once
-     more with relaxed thresholds when under 90 % of the photos register (`choose_model` keeps
+     position priors in its bundle adjustment (`write_gps_priors`, `mapper_options`; GPS that
+     disagrees with the growing model stops it, and the photos are mapped without it:
+     `gps_watch`), once more with relaxed thresholds when under 90 % of the photos register (`choose_model` keeps
      the relaxed model only when it is consistent with the first); the photos the kept model
      left out are then tried again, continuing that model with looser thresholds
      (`register_left_out`, kept when it agrees); the largest model is kept, the photos outside
@@ -57,6 +58,7 @@ import numpy as np
 
 from jaxnerf_grid.capture import camera_set, camera_sharing, georef, gps, pairing, photo_exif, refused, vetting
 from jaxnerf_grid.capture.bounds import scene_bounds
+from jaxnerf_grid.capture.gps_watch import GpsStopped, MappingWatch, gps_disagrees
 from jaxnerf_grid.data.formats.colmap import collect_colmap, observation_depths
 from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
 from jaxnerf_grid.data.normalize import (
@@ -352,7 +354,8 @@ def choose_matcher(matcher: str, names: list[str], with_gps: int = 0,
 def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, matcher: str,
                camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None,
                keep_all: bool = False, overlap: int = SEQUENTIAL_OVERLAP, timings: dict | None = None,
-               priors: dict | None = None, small_photos: bool = False, feature_side: int = FEATURE_SIDE):
+               priors: dict | None = None, small_photos: bool = False, feature_side: int = FEATURE_SIDE,
+               watch: MappingWatch | None = None):
     """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
     whether it comes from the relaxed mapping, whether photos left out by the first model were
     registered afterwards (`register_left_out`)). The relaxed model is judged by its photos that
@@ -364,7 +367,10 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL,
     MATCHING_SMALL and TWO_VIEW_SMALL on top of SIFT, MATCHING and TWO_VIEW (every working photo
     at most SMALL_SIDE px on its long side). feature_side: the
-    long side SIFT sees at most (FEATURE_SIDE; 0: COLMAP's own).
+    long side SIFT sees at most (FEATURE_SIDE; 0: COLMAP's own). watch: judges the mapping with
+    the priors as it grows (`gps_watch.MappingWatch`); when it stops it, the photos are mapped
+    without the priors at once (under work_dir/without_gps, timings' "mapping_without_gps"), and
+    `watch.stopped` says so.
 
     DataError (naming `source`, the input folder) when no model could be built.
     """
@@ -384,9 +390,15 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
             write_gps_priors(pycolmap, database, priors)
     with _stage(f"matching ({matcher})", show, timings, "matching"):
         match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree, small_photos)
-    best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
-                                              priors=priors_hold(priors or {}), keep_all=keep_all, show=show,
-                                              timings=timings)
+    try:
+        best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
+                                                  priors=priors_hold(priors or {}), keep_all=keep_all, show=show,
+                                                  timings=timings, watch=watch)
+    except GpsStopped as stop:
+        _say(f"poses: {stop}: a receiver that lags or drifts; mapping without it", show)
+        best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir / "without_gps",
+                                                  priors=False, keep_all=keep_all, show=show, timings=timings,
+                                                  key="mapping_without_gps", label="mapping without the GPS")
     if best is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
@@ -394,15 +406,23 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
 
 
 def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, *, priors: bool, keep_all: bool,
-               show: bool, timings: dict, key: str = "mapping", label: str = "mapping"):
+               show: bool, timings: dict, key: str = "mapping", label: str = "mapping",
+               watch: MappingWatch | None = None):
     """Incremental mapping of a matched database (`total` photos): the default run, the relaxed
     one when it registers under RELAX_BELOW of the photos (`choose_model`), then the photos left
     out tried again (`register_left_out`, kept when the poses agree). priors: the database's pose
     priors (GPS) enter the bundle adjustment. Its models go under `work_dir` (sparse0, sparse1,
-    extend); `timings[key]` gets its seconds. Returns (the model or None, from the relaxed run, extended)."""
+    extend); `timings[key]` gets its seconds. watch: judges the default run as it grows
+    (`watched_mapping`); its GpsStopped is raised on, `timings[key]` holding the seconds until then.
+    Returns (the model or None, from the relaxed run, extended)."""
     start = time.monotonic()
     work_dir.mkdir(parents=True, exist_ok=True)  # COLMAP makes its output folder, not the parents
-    default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", total, False, label, show, priors=priors)
+    try:
+        default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", total, False, label, show, priors=priors,
+                       watch=watch)
+    except GpsStopped:
+        timings[key] = round(time.monotonic() - start, 1)
+        raise
     best = default
     count = _registered_count if keep_all else vetted_count
     if default is None or default.num_reg_images() < RELAX_BELOW * total:
@@ -610,23 +630,59 @@ def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | 
 
 
 def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show, *, priors=False, start_from=None,
-         extra=None, triangulation=None):
+         extra=None, triangulation=None, watch: MappingWatch | None = None):
     """One incremental mapping run (`pycolmap.incremental_mapping`), from scratch or continuing
     the model in the folder `start_from`. Returns its largest model or None. The progress line
-    counts registered photos (`RegisteredCount`), at most `total`."""
+    counts registered photos (`RegisteredCount`), at most `total`. With `watch`, the growing
+    model is judged as it grows (`watched_mapping`; GpsStopped stops it)."""
     bar = progress.bar(total=total, desc=f"poses: {label}", unit="photo", enabled=show)
     count = RegisteredCount(bar, total, start=0 if start_from is None else _model_size(pycolmap, start_from))
     kwargs = {} if start_from is None else {"input_path": start_from}
+    options = mapper_options(pycolmap, relaxed, priors, extra, triangulation)
     try:
-        models = pycolmap.incremental_mapping(database, photo_dir, out_dir,
-                                              options=mapper_options(pycolmap, relaxed, priors, extra, triangulation),
-                                              initial_image_pair_callback=count.new_model,
-                                              next_image_callback=count.next_image, **kwargs)
+        if watch is not None and start_from is None:
+            models = watched_mapping(pycolmap, database, photo_dir, out_dir, options, count, watch)
+        else:
+            models = pycolmap.incremental_mapping(database, photo_dir, out_dir, options=options,
+                                                  initial_image_pair_callback=count.new_model,
+                                                  next_image_callback=count.next_image, **kwargs)
     finally:
         bar.close()
     if not models:
         return None
     return max(models.values(), key=lambda m: (m.num_reg_images(), m.num_points3D()))
+
+
+def watched_mapping(pycolmap, database, photo_dir, out_dir: Path, options, count: RegisteredCount,
+                    watch: MappingWatch) -> dict:
+    """`pycolmap.incremental_mapping` as COLMAP's pipeline run here (`IncrementalPipeline`), so that
+    the model can be read as it grows: after each photo registered (when `watch.due`), the
+    placed cameras go to `watch.check`, whose GpsStopped ends the mapping. Each model is
+    written to out_dir/<index>, as `incremental_mapping` writes them. Returns {index: model}."""
+    options.image_path = str(photo_dir)
+    manager = pycolmap.ReconstructionManager()
+    db = pycolmap.Database.open(str(database))
+    try:
+        pipeline = pycolmap.IncrementalPipeline(options, db, manager)
+
+        def next_image():
+            count.next_image()
+            model = manager.get(manager.size() - 1)
+            if watch.due(model.num_reg_images()):
+                watch.check(model_poses(model))
+
+        pipeline.add_callback(pycolmap.IncrementalPipelineCallback.INITIAL_IMAGE_PAIR_REG_CALLBACK, count.new_model)
+        pipeline.add_callback(pycolmap.IncrementalPipelineCallback.NEXT_IMAGE_REG_CALLBACK, next_image)
+        pipeline.run()
+    finally:
+        db.close()
+    models = {}
+    for index in range(manager.size()):
+        folder = Path(out_dir) / str(index)
+        folder.mkdir(parents=True, exist_ok=True)
+        models[index] = manager.get(index)
+        models[index].write(folder)
+    return models
 
 
 def _model_size(pycolmap, folder) -> int:
@@ -911,8 +967,11 @@ def format_summary(summary: dict) -> str:
         lines.append(f"GPS as pose priors in the bundle adjustment: {summary['gps_priors']} photos")
     judged = summary.get("gps_disagreed")
     if judged:
-        lines.append(f"the GPS disagreed with the reconstruction ({judged['far']} of {judged['registered']} registered "
-                     f"photos over {georef.INLIER_METRES:.0f} m from their fixes): "
+        early = judged.get("stopped_early")
+        lines.append(f"the GPS disagreed with the reconstruction {'as it grew ' if early else ''}({judged['far']} of "
+                     f"{judged['registered']} {'photos placed' if early else 'registered photos'} over "
+                     f"{georef.INLIER_METRES:.0f} m from their fixes): "
+                     + ("the mapping with the GPS priors stopped there, " if early else "")
                      + ("mapped again without the GPS priors, " if judged["remapped"] else "")
                      + (f"then {judged['far_after']} over; " if judged["remapped"] else "")
                      + ("scale and georeference without the GPS" if judged["georeference"] != "GPS"
@@ -1032,18 +1091,23 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
             "code": colmap_settings()})
         database, raw_model = stage_dir / "_work" / "database.db", stage_dir / "_work" / "model"
         reused = refused.load(pycolmap, out, key)
+        # GPS that disagrees stops the mapping with the priors as the model grows (not with keep_all,
+        # which keeps every photo whatever its GPS)
+        watch = MappingWatch(priors) if priors_hold(priors) and not keep_all else None
         if reused is None:
             model, relaxed, extended = run_colmap(
                 pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
                 single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir,
                 keep_all=keep_all, overlap=overlap, timings=timings, priors=priors,
-                small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE, feature_side=feature_side)
+                small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE, feature_side=feature_side,
+                watch=watch)
         else:
             model, record, database = reused
             relaxed, extended = bool(record["relaxed"]), bool(record["extended"])
             _say(f"poses: features, matching and mapping taken from the refused run in {refused.folder_of(out)} "
                  "(the same photos and options)", progress)
-        without_gps = reused is not None and bool(reused[1].get("without_gps"))
+        stopped = None if reused is not None or watch is None else watch.stopped
+        without_gps = stopped is not None or (reused is not None and bool(reused[1].get("without_gps")))
         raw_model.mkdir(parents=True, exist_ok=True)
         model.write(raw_model)  # as COLMAP returned it: what a refused run keeps
         align_options = {"crs_name": crs, "gcp_path": gcp, "scale_bar": scale_bar, "sizes": sizes, "ratios": ratios,
@@ -1051,9 +1115,12 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options)
         disagreed = None if keep_all else gps_disagrees(len(placed["far"]), len(placed["registered"]))
         gps_judged: dict[str, Any] | None = None
+        if stopped is not None:  # judged on the growing model: far of the photos placed when it stopped
+            gps_judged = {"far": stopped["far"], "registered": stopped["placed"], "stopped_early": True,
+                          "remapped": True, "far_after": len(placed["far"]), "georeference": "GPS"}
         if disagreed is not None:
-            gps_judged = {"far": len(placed["far"]), "registered": len(placed["registered"]), "remapped": False,
-                          "georeference": "GPS"}
+            gps_judged = gps_judged or {"far": len(placed["far"]), "registered": len(placed["registered"]),
+                                        "stopped_early": False, "remapped": False, "georeference": "GPS"}
             if priors_hold(priors) and not without_gps:
                 _say(f"poses: {disagreed}; mapping again without it", progress)
                 again = map_photos(pycolmap, database, photo_dir, len(names), stage_dir / "_work" / "without_gps",
@@ -1287,18 +1354,6 @@ def gps_outliers(georeference: dict) -> list[tuple[str, str]]:
     rows = (georeference.get("gps") or {}).get("residuals") or []
     return [(r["name"], f"{r['error']:.1f} m from its GPS position (more than {georef.INLIER_METRES:.0f} m)")
             for r in rows if not r["inlier"]]
-
-
-def gps_disagrees(far: int, registered: int) -> str | None:
-    """Why the GPS is not to be trusted when the GPS residuals' outliers (`gps_outliers`, far of the
-    registered photos) are half of them or more: then the receiver, not the mapping, is wrong (a
-    camera's own GPS that lags the shutter or drifts in height), and leaving those photos out is
-    no cure: `poses` maps again without the GPS priors, and georeferences without the GPS when it
-    still disagrees. None under half."""
-    if registered <= 0 or far < 0.5 * registered:
-        return None
-    return (f"the GPS disagrees with the photos' reconstruction ({far} of {registered} registered photos more than "
-            f"{georef.INLIER_METRES:.0f} m from their fixes): a receiver that lags or drifts")
 
 
 def mark_left_out(rows: list[dict], far: list[tuple[str, str]]) -> None:

@@ -64,8 +64,8 @@ def test_gps_that_still_disagrees_after_mapping_without_it_is_left_out_of_the_ge
         (13, "without_gps", False, "mapping_without_gps")]
     assert stand.aligned == [(13, None), (13, None), (0, None)]
     assert (summary["in_dataset"], summary["vetting"]["left_out"]) == (11, ["v05.png"])
-    assert summary["gps_disagreed"] == {"far": 8, "registered": 12, "remapped": True, "far_after": 8,
-                                        "georeference": "without the GPS"}
+    assert summary["gps_disagreed"] == {"far": 8, "registered": 12, "stopped_early": False, "remapped": True,
+                                        "far_after": 8, "georeference": "without the GPS"}
     assert summary["georeference"]["gps_ignored"] == (
         "the GPS disagrees with the photos' reconstruction (8 of 12 registered photos more than 9 m from their "
         "fixes): a receiver that lags or drifts")
@@ -82,8 +82,8 @@ def test_gps_that_agrees_with_the_model_mapped_without_it_keeps_the_georeference
     monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
     summary = poses.poses_from_images(photos, tmp_path / "data", progress=False, crs="EPSG:2056")
     assert len(stand.remaps) == 1 and stand.aligned == [(13, "EPSG:2056"), (13, "EPSG:2056")]
-    assert summary["gps_disagreed"] == {"far": 8, "registered": 12, "remapped": True, "far_after": 0,
-                                        "georeference": "GPS"}
+    assert summary["gps_disagreed"] == {"far": 8, "registered": 12, "stopped_early": False, "remapped": True,
+                                        "far_after": 0, "georeference": "GPS"}
     assert summary["in_dataset"] == 11 and "gps_ignored" not in summary["georeference"]
 
 
@@ -94,8 +94,8 @@ def test_gps_too_close_together_to_be_priors_is_not_mapped_again_but_left_out_of
     monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
     summary = poses.poses_from_images(photos, tmp_path / "data", progress=False)
     assert stand.remaps == [] and stand.aligned == [(13, None), (0, None)]
-    assert summary["gps_disagreed"] == {"far": 8, "registered": 12, "remapped": False, "far_after": 8,
-                                        "georeference": "without the GPS"}
+    assert summary["gps_disagreed"] == {"far": 8, "registered": 12, "stopped_early": False, "remapped": False,
+                                        "far_after": 8, "georeference": "without the GPS"}
     assert summary["in_dataset"] == 11
 
 
@@ -111,8 +111,8 @@ def test_a_refused_run_mapped_without_the_gps_is_reused_without_mapping_again(tm
     assert len(stand.remaps) == 1
     summary = poses.poses_from_images(photos, tmp_path / "data", progress=False, accept_few_cameras=True)
     assert len(colmap.calls) == 1 and len(stand.remaps) == 1 and summary["reconstruction_reused"]
-    assert summary["gps_disagreed"] == {"far": 5, "registered": 9, "remapped": True, "far_after": 5,
-                                        "georeference": "without the GPS"}
+    assert summary["gps_disagreed"] == {"far": 5, "registered": 9, "stopped_early": False, "remapped": True,
+                                        "far_after": 5, "georeference": "without the GPS"}
     assert summary["gps_priors"] == 0   # the model was mapped without them
     assert summary["in_dataset"] == 8
 
@@ -127,3 +127,48 @@ def test_gps_that_still_disagrees_with_a_crs_asked_is_a_one_line_error_naming_it
                               "(8 of 12 registered photos more than 9 m from their fixes): a receiver that lags or "
                               "drifts; ground control points (poses.gcp) place the model in the CRS without it")
     assert not (tmp_path / "data").exists()
+
+
+class _StoppedColmap(_Colmap):
+    """`run_colmap` whose mapping with the priors was stopped by its watch (6 of the first 10 placed
+    photos far from their fixes) and which mapped without them: the watch says so."""
+
+    def __call__(self, module, photo_dir, names, work_dir, **kwargs):
+        kwargs["watch"].stopped = {"far": 6, "placed": 10}
+        return super().__call__(module, photo_dir, names, work_dir, **kwargs)
+
+
+@pytest.mark.parametrize("agrees_after", [False, True])
+def test_a_mapping_stopped_as_it_grew_is_not_mapped_again_and_the_report_says_where_it_stopped(
+        tmp_path, monkeypatch, agrees_after):
+    """The watch stopped the mapping with the priors at 10 photos: the model mapped without them is
+    judged once (no second mapping here); still disagreeing (8 far) it is georeferenced without the
+    GPS, agreeing it keeps the GPS; the summary and the report say where the mapping stopped."""
+    photos, model_dir, _ = _scene(tmp_path, registered=12, photos=13, turned=(5,))
+    stand = _Stand(monkeypatch, model_dir)
+    stand.agrees_after = agrees_after
+    if agrees_after:
+        stand.remaps.append("stopped")   # the stand-in's alignment agrees once a mapping without the GPS ran
+    colmap = _StoppedColmap(model_dir)
+    monkeypatch.setattr(poses, "run_colmap", colmap)
+    summary = poses.poses_from_images(photos, tmp_path / "data", progress=False)
+    assert colmap.calls[0]["watch"].fixes.keys() == set(NAMES)
+    assert stand.remaps == (["stopped"] if agrees_after else [])
+    assert summary["gps_disagreed"] == {"far": 6, "registered": 10, "stopped_early": True, "remapped": True,
+                                        "far_after": 0 if agrees_after else 8,
+                                        "georeference": "GPS" if agrees_after else "without the GPS"}
+    assert summary["gps_priors"] == 0 and summary["in_dataset"] == 11
+    report = (tmp_path / "data" / "poses_report.md").read_text()
+    assert ("the GPS disagreed with the reconstruction as it grew (6 of 10 photos placed over 9 m from their fixes): "
+            "the mapping with the GPS priors stopped there, mapped again without the GPS priors, then "
+            f"{0 if agrees_after else 8} over; scale and georeference "
+            f"{'from' if agrees_after else 'without'} the GPS") in report
+
+
+def test_keep_all_maps_with_the_gps_priors_unwatched(tmp_path, monkeypatch):
+    photos, model_dir, _ = _scene(tmp_path, registered=12, photos=13, turned=(5,))
+    _Stand(monkeypatch, model_dir)
+    colmap = _Colmap(model_dir)
+    monkeypatch.setattr(poses, "run_colmap", colmap)
+    poses.poses_from_images(photos, tmp_path / "data", progress=False, keep_all=True)
+    assert colmap.calls[0]["watch"] is None and colmap.calls[0]["priors"]
