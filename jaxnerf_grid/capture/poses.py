@@ -1113,13 +1113,13 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         align_options = {"crs_name": crs, "gcp_path": gcp, "scale_bar": scale_bar, "sizes": sizes, "ratios": ratios,
                          "source": images_dir}
         placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options)
-        disagreed = None if keep_all else gps_disagrees(len(placed["far"]), len(placed["registered"]))
+        disagreed = None if keep_all else gps_disagrees(placed["off"], len(placed["registered"]))
         gps_judged: dict[str, Any] | None = None
         if stopped is not None:  # judged on the growing model: far of the photos placed when it stopped
             gps_judged = {"far": stopped["far"], "registered": stopped["placed"], "stopped_early": True,
-                          "remapped": True, "far_after": len(placed["far"]), "georeference": "GPS"}
+                          "remapped": True, "far_after": placed["off"], "georeference": "GPS"}
         if disagreed is not None:
-            gps_judged = gps_judged or {"far": len(placed["far"]), "registered": len(placed["registered"]),
+            gps_judged = gps_judged or {"far": placed["off"], "registered": len(placed["registered"]),
                                         "stopped_early": False, "remapped": False, "georeference": "GPS"}
             if priors_hold(priors) and not without_gps:
                 _say(f"poses: {disagreed}; mapping again without it", progress)
@@ -1132,8 +1132,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                     raw_model.mkdir()
                     model.write(raw_model)
                     placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options)
-            still = gps_disagrees(len(placed["far"]), len(placed["registered"]))
-            gps_judged.update(remapped=without_gps, far_after=len(placed["far"]))
+            still = gps_disagrees(placed["off"], len(placed["registered"]))
+            gps_judged.update(remapped=without_gps, far_after=placed["off"])
             if still is not None and crs is not None and gcp is None:
                 raise DataError(f"{images_dir}: poses.crs = {crs}: {still}; ground control points (poses.gcp) place "
                                 "the model in the CRS without it")
@@ -1253,7 +1253,8 @@ def vet_and_place(pycolmap, model_dir: Path, names: list[str], keep_all: bool, p
     DataError (naming align_options["source"]) when fewer than `enough_registered` photos pass.
     Returns {"model", "registered" (names, before the vetting), "unregistered", "rows" (the
     vetting's), "left_out", "centres" [R, 3] (the registered cameras, in the aligned frame),
-    "up_rotation" [3, 3], "georeference", "far" (`gps_outliers`, [] with keep_all)}."""
+    "up_rotation" [3, 3], "georeference", "far" (`gps_outliers`, [] with keep_all), "off"
+    (`gps_off_count`)}."""
     model = pycolmap.Reconstruction(str(model_dir))
     registered = sorted(model.images[i].name for i in model.reg_image_ids())
     unregistered = sorted(set(names) - set(registered))
@@ -1276,7 +1277,7 @@ def vet_and_place(pycolmap, model_dir: Path, names: list[str], keep_all: bool, p
         centres = georef.apply_similarity(sim, centres)
     return {"model": model, "registered": registered, "unregistered": unregistered, "rows": rows,
             "left_out": left_out, "centres": centres, "up_rotation": rot, "georeference": georeference,
-            "far": [] if keep_all else gps_outliers(georeference)}
+            "far": [] if keep_all else gps_outliers(georeference), "off": gps_off_count(georeference)}
 
 
 def camera_set_of(model, readable: int, registered_centres: np.ndarray, priors: dict, priors_origin,
@@ -1345,15 +1346,37 @@ def unregistered_reasons(pycolmap, database, unregistered: list[str], registered
     return out
 
 
+GPS_OUTLIER_MEDIANS = 2.5   # a camera further from its fix than this many median residuals (and 9 m) is off
+
+
+def gps_outlier_metres(errors) -> float:
+    """The distance from its GPS fix beyond which a camera was put in the wrong place:
+    `georef.INLIER_METRES` (three times a consumer receiver's error), or GPS_OUTLIER_MEDIANS times
+    the median of the photos' residuals [N] when that is larger: a receiver noisier than a drone's
+    (5 m RMS) spreads right cameras 9-11 m from their fixes, while a misplaced camera lies tens of
+    metres off (2.5 medians is about 3.9 sigma of a Gaussian receiver's error)."""
+    errors = np.asarray(errors, np.float64)
+    if not len(errors):
+        return georef.INLIER_METRES
+    return max(georef.INLIER_METRES, GPS_OUTLIER_MEDIANS * float(np.median(errors)))
+
+
 def gps_outliers(georeference: dict) -> list[tuple[str, str]]:
-    """The registered photos whose camera lies more than `georef.INLIER_METRES` from its GPS
-    position after the alignment (the GPS residuals' outliers), with the reason in words:
-    [(name, reason)]. A consumer receiver errs by 1-5 m; a camera 9 m or more off was put in
-    the wrong place by the mapping (on a 30-photo orbit one such camera was kept by the
-    vetting 105 degrees off, and tilted the rest by 10 degrees in the alignment)."""
+    """The registered photos whose camera lies further from its GPS position after the alignment
+    than `gps_outlier_metres` of the residuals, with the reason in words: [(name, reason)]. A
+    consumer receiver errs by 1-5 m; a camera 9 m or more off (more on a noisier receiver) was put
+    in the wrong place by the mapping (on a 30-photo orbit one such camera was kept by the vetting
+    105 degrees off, and tilted the rest by 10 degrees in the alignment)."""
     rows = (georeference.get("gps") or {}).get("residuals") or []
-    return [(r["name"], f"{r['error']:.1f} m from its GPS position (more than {georef.INLIER_METRES:.0f} m)")
-            for r in rows if not r["inlier"]]
+    limit = gps_outlier_metres([r["error"] for r in rows])
+    return [(r["name"], f"{r['error']:.1f} m from its GPS position (more than {limit:.0f} m)")
+            for r in rows if r["error"] > limit]
+
+
+def gps_off_count(georeference: dict) -> int:
+    """The registered photos over `georef.INLIER_METRES` from their GPS fixes after the alignment
+    (the alignment's outliers): half of them or more and the GPS disagrees (`gps_disagrees`)."""
+    return sum(not r["inlier"] for r in (georeference.get("gps") or {}).get("residuals") or [])
 
 
 def mark_left_out(rows: list[dict], far: list[tuple[str, str]]) -> None:

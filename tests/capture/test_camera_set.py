@@ -95,19 +95,36 @@ def test_demo_camera_line_says_how_many_photos_trained(tmp_path):
 
 
 def test_a_camera_far_from_its_gps_fix_is_left_out():
-    """The GPS residuals' outliers (more than 9 m after the alignment, `georef.INLIER_METRES`)
-    are left out with the distance as the reason; inliers stay; no GPS, nothing."""
-    from jaxnerf_grid.capture.poses import gps_outliers, mark_left_out
+    """The GPS residuals' outliers (more than 9 m after the alignment, `georef.INLIER_METRES`, on a
+    receiver whose median residual is 3 m) are left out with the distance as the reason; inliers
+    stay; no GPS, nothing."""
+    from jaxnerf_grid.capture.poses import gps_off_count, gps_outliers, mark_left_out
 
-    geo = {"gps": {"residuals": [{"name": "a.jpg", "error": 2.5, "inlier": True},
-                                 {"name": "b.jpg", "error": 31.04, "inlier": False}]}}
+    near = [{"name": f"n{k}.jpg", "error": e, "inlier": True} for k, e in enumerate((2.0, 2.5, 3.0, 3.5, 4.0))]
+    geo = {"gps": {"residuals": [*near, {"name": "b.jpg", "error": 31.04, "inlier": False}]}}
     far = gps_outliers(geo)
     assert far == [("b.jpg", "31.0 m from its GPS position (more than 9 m)")]
+    assert gps_off_count(geo) == 1
     rows = [{"name": "a.jpg", "kept": True, "reasons": []}, {"name": "b.jpg", "kept": True, "reasons": []}]
     mark_left_out(rows, far)
     assert rows == [{"name": "a.jpg", "kept": True, "reasons": []},
                     {"name": "b.jpg", "kept": False, "reasons": ["31.0 m from its GPS position (more than 9 m)"]}]
-    assert gps_outliers({"units": "unknown"}) == []
+    assert gps_outliers({"units": "unknown"}) == [] and gps_off_count({"units": "unknown"}) == 0
+
+
+def test_a_noisy_receivers_spread_leaves_no_camera_out_but_a_misplaced_one():
+    """A receiver with a 5.5 m median residual (1 to 11 m, the alignment's 9 m leaving 4 outside):
+    the limit is 2.5 medians, 13.75 m by hand, so those 4 stay and a camera 40 m off is left out;
+    the alignment's outliers over 9 m still count 5 (for `gps_disagrees`)."""
+    from jaxnerf_grid.capture.poses import gps_off_count, gps_outlier_metres, gps_outliers
+
+    errors = [1.0, 2.0, 3.0, 4.0, 5.0, 5.0, 5.0, 6.0, 7.0, 9.5, 10.0, 10.5, 11.0, 40.0]
+    assert gps_outlier_metres(errors) == 13.75
+    geo = {"gps": {"residuals": [{"name": f"p{k:02d}.jpg", "error": e, "inlier": e <= 9.0}
+                                 for k, e in enumerate(errors)]}}
+    assert gps_outliers(geo) == [("p13.jpg", "40.0 m from its GPS position (more than 14 m)")]
+    assert gps_off_count(geo) == 5
+    assert gps_outlier_metres([2.0, 3.0, 3.0]) == 9.0 and gps_outlier_metres([]) == 9.0
 
 
 def test_the_gps_is_distrusted_when_half_the_registered_photos_or_more_are_far_from_their_fixes():
