@@ -3,14 +3,14 @@ and while the mapping with the GPS as pose priors is still growing (`MappingWatc
 
 A camera's own receiver can drift by tens of metres in height over a flight (docs/POSES.md, "GPS
 that disagrees"). COLMAP's bundle adjustment with such priors fights the photos: on a 57-photo
-flight it placed a photo every 20-40 s where the mapping without them placed one every 3 s, and
-its model then disagreed with the GPS anyway. The watch looks at the model as it grows: after
+flight it placed 20 photos in the time the mapping without them placed all 57, and its model
+then disagreed with the GPS anyway. The watch looks at the model as it grows: after
 each photo placed, from `CHECK_MIN` photos on, the placed cameras turned z-up
 (`normalize.up_from_cameras`) and fitted to their fixes (`georef.ransac_similarity` about z, as
 `georef.align_model` fits the finished model); when half of them or more lie over
 `georef.INLIER_METRES` from their fixes, the mapping stops there (`GpsStopped`) and `poses` maps
-without the priors at once, instead of after a whole mapping with them. (On that flight half
-were over when 20 photos were placed: the prior pulls the early cameras onto their fixes.)
+without the priors at once, instead of after a whole mapping with them (on that flight, when
+20 photos were placed: the prior pulls the early cameras onto their fixes).
 """
 
 from __future__ import annotations
