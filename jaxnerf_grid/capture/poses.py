@@ -19,8 +19,8 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
   4. mapping: incremental mapping (`pycolmap.incremental_mapping`), with the photos' GPS as
      position priors in its bundle adjustment (`write_gps_priors`, `mapper_options`; GPS that
      disagrees with the growing model stops it, and the photos are mapped without it:
-     `gps_watch`), once more with relaxed thresholds when under 90 % of the photos register (`choose_model` keeps
-     the relaxed model only when it is consistent with the first); the photos the kept model
+     `gps_watch`), once more with relaxed thresholds when under 90 % of the photos register
+     (`choose_model` keeps the relaxed model only when it is consistent with the first); the photos the kept model
      left out are then tried again, continuing that model with looser thresholds
      (`register_left_out`, kept when it agrees); the largest model is kept, the photos outside
      it are named with why (`unregistered_reasons`); a camera set too thin to train on is
