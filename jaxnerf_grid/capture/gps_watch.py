@@ -6,7 +6,7 @@ that disagrees"). COLMAP's bundle adjustment with such priors fights the photos:
 flight it placed 20 photos in the time the mapping without them placed all 57, and its model
 then disagreed with the GPS anyway. The watch looks at the model as it grows: after
 each photo placed, from `CHECK_MIN` photos on, the placed cameras turned z-up
-(`normalize.up_from_cameras`) and fitted to their fixes (`georef.ransac_similarity` about z, as
+(`normalize.z_up_turn`) and fitted to their fixes (`georef.ransac_similarity` about z, as
 `georef.align_model` fits the finished model); when half of them or more lie over
 `georef.INLIER_METRES` from their fixes, the mapping stops there (`GpsStopped`) and `poses` maps
 without the priors at once, instead of after a whole mapping with them (on that flight, when
@@ -18,7 +18,7 @@ from __future__ import annotations
 import numpy as np
 
 from jaxnerf_grid.capture import georef
-from jaxnerf_grid.data.normalize import rotation_between, up_from_cameras
+from jaxnerf_grid.data.normalize import z_up_turn
 
 CHECK_MIN = 10   # placed photos before the growing model is judged: a fit to a few cameras is noise
 
@@ -46,7 +46,7 @@ def far_from_fixes(c2w: dict, fixes: dict) -> tuple[int, int]:
     if len(names) < 3:
         return 0, len(names)
     poses = np.stack([np.asarray(c2w[name], np.float64) for name in names])
-    turn = rotation_between(up_from_cameras(poses), np.array([0.0, 0.0, 1.0]))
+    turn = z_up_turn(poses)
     src = poses[:, :3, 3] @ turn.T
     dst = np.stack([np.asarray(fixes[name], np.float64) for name in names])
     sim, _ = georef.ransac_similarity(src, dst, georef.INLIER_METRES, yaw_only=True)

@@ -64,8 +64,7 @@ from jaxnerf_grid.data.formats.writing import MASK_OUTPUT_DIRS, transforms_top
 from jaxnerf_grid.data.normalize import (
     apply_normalization_to_points,
     normalize_orbit,
-    rotation_between,
-    up_from_cameras,
+    z_up_turn,
 )
 from jaxnerf_grid.util import folders, io, progress, staging
 from jaxnerf_grid.util.io import DataError
@@ -747,7 +746,7 @@ def c2w_gl_from_cam_from_world(matrix) -> np.ndarray:
 def orient_z_up(pycolmap, model) -> np.ndarray:
     """Rotates a pycolmap.Reconstruction in place so its cameras' up axis is +z. Returns R [3, 3]."""
     c2w = np.stack(list(model_poses(model).values()))
-    rot = rotation_between(up_from_cameras(c2w), np.array([0.0, 0.0, 1.0]))
+    rot = z_up_turn(c2w)
     model.transform(pycolmap.Sim3d(1.0, pycolmap.Rotation3d(rot), np.zeros(3)))
     return rot
 
@@ -1106,7 +1105,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
             relaxed, extended = bool(record["relaxed"]), bool(record["extended"])
             _say(f"poses: features, matching and mapping taken from the refused run in {refused.folder_of(out)} "
                  "(the same photos and options)", progress)
-        stopped = None if reused is not None or watch is None else watch.stopped
+        stopped = None if watch is None else watch.stopped   # None too for a reused run: nothing was mapped
         without_gps = stopped is not None or (reused is not None and bool(reused[1].get("without_gps")))
         raw_model.mkdir(parents=True, exist_ok=True)
         model.write(raw_model)  # as COLMAP returned it: what a refused run keeps

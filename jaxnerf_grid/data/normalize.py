@@ -172,6 +172,12 @@ def check_rotation(rotation, source: str, tol: float = 1e-5) -> np.ndarray:
     return r
 
 
+def z_up_turn(c2w: np.ndarray) -> np.ndarray:
+    """The rotation [3, 3] that turns the cameras' up axis (`up_from_cameras`, c2w [N, 3|4, 4]
+    OpenGL) onto +z."""
+    return rotation_between(up_from_cameras(c2w), np.array([0.0, 0.0, 1.0]))
+
+
 def z_up_normalization(c2w: np.ndarray, points: np.ndarray | None = None, method: str = "cameras",
                        **kwargs) -> tuple[np.ndarray, dict]:
     """`normalize_poses` after turning the scene so the up axis found from the cameras
@@ -181,7 +187,7 @@ def z_up_normalization(c2w: np.ndarray, points: np.ndarray | None = None, method
     c2w = np.asarray(c2w, dtype=np.float64)
     if c2w.ndim != 3 or c2w.shape[1:] not in ((3, 4), (4, 4)) or len(c2w) == 0:
         raise DataError(f"z_up_normalization: c2w must be [N, 3|4, 4] with N > 0, got {c2w.shape}")
-    rot = rotation_between(up_from_cameras(c2w), np.array([0.0, 0.0, 1.0]))
+    rot = z_up_turn(c2w)
     if np.array_equal(rot, np.eye(3)):
         return normalize_poses(c2w, points, method, **kwargs)
     turned, pts = rotate_scene(c2w, rot, points)
