@@ -111,7 +111,11 @@ JPEG_QUALITY = 95
 # Mapping runs again with RELAXED mapper thresholds when the first run registers fewer than
 # RELAX_BELOW of the photos (small working sizes give a few hundred features per photo, below
 # COLMAP's defaults of 30 inliers to register a photo); the run registering more is kept.
+# Larger photos (over SMALL_SIDE) are mapped again only below RELAX_BELOW_LARGE: above it the
+# photos left out go straight to `register_left_out` (the relaxed thresholds, continuing the
+# model), which places them as well for a third of the time (`remap_relaxed`; docs/POSES.md).
 RELAX_BELOW = 0.9
+RELAX_BELOW_LARGE = 0.5
 RELAXED = {"abs_pose_min_num_inliers": 15, "init_min_num_inliers": 50, "init_min_tri_angle": 8.0}
 # ... and kept only when it agrees with the first run's model on the photos both register
 # (median rotation difference and centre distance, `poses_agree`), or when the first failed.
@@ -392,24 +396,34 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     try:
         best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
                                                   priors=priors_hold(priors or {}), keep_all=keep_all, show=show,
-                                                  timings=timings, watch=watch)
+                                                  timings=timings, watch=watch, small_photos=small_photos)
     except GpsStopped as stop:
         _say(f"poses: {stop}: a receiver that lags or drifts; mapping without it", show)
         best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir / "without_gps",
                                                   priors=False, keep_all=keep_all, show=show, timings=timings,
-                                                  key="mapping_without_gps", label="mapping without the GPS")
+                                                  key="mapping_without_gps", label="mapping without the GPS",
+                                                  small_photos=small_photos)
     if best is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
     return best, relaxed_used, extended
 
 
+def remap_relaxed(registered: int | None, total: int, small_photos: bool) -> bool:
+    """Whether the photos are mapped again from scratch with the relaxed thresholds after a first
+    model of `registered` of `total` photos (None: no model): below RELAX_BELOW of them for
+    small photos, below RELAX_BELOW_LARGE for larger ones."""
+    if registered is None:
+        return True
+    return registered < (RELAX_BELOW if small_photos else RELAX_BELOW_LARGE) * total
+
+
 def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, *, priors: bool, keep_all: bool,
                show: bool, timings: dict, key: str = "mapping", label: str = "mapping",
-               watch: MappingWatch | None = None):
+               watch: MappingWatch | None = None, small_photos: bool = False):
     """Incremental mapping of a matched database (`total` photos): the default run, the relaxed
-    one when it registers under RELAX_BELOW of the photos (`choose_model`), then the photos left
-    out tried again (`register_left_out`, kept when the poses agree). priors: the database's pose
+    one when `remap_relaxed` says so (`choose_model`), then the photos left out tried again
+    (`register_left_out`, kept when the poses agree). priors: the database's pose
     priors (GPS) enter the bundle adjustment. Its models go under `work_dir` (sparse0, sparse1,
     extend); `timings[key]` gets its seconds. watch: judges the default run as it grows
     (`watched_mapping`); its GpsStopped is raised on, `timings[key]` holding the seconds until then.
@@ -424,7 +438,7 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
         raise
     best = default
     count = _registered_count if keep_all else vetted_count
-    if default is None or default.num_reg_images() < RELAX_BELOW * total:
+    if remap_relaxed(None if default is None else default.num_reg_images(), total, small_photos):
         relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", total, True,
                        f"{label} again (relaxed thresholds)", show, priors=priors)
         best = choose_model(default, relaxed, show, count=count)
@@ -1093,12 +1107,13 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         # GPS that disagrees stops the mapping with the priors as the model grows (not with keep_all,
         # which keeps every photo whatever its GPS)
         watch = MappingWatch(priors) if priors_hold(priors) and not keep_all else None
+        small_photos = max(max(working_sizes[n]) for n in names) <= SMALL_SIDE
         if reused is None:
             model, relaxed, extended = run_colmap(
                 pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
                 single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir,
                 keep_all=keep_all, overlap=overlap, timings=timings, priors=priors,
-                small_photos=max(max(working_sizes[n]) for n in names) <= SMALL_SIDE, feature_side=feature_side,
+                small_photos=small_photos, feature_side=feature_side,
                 watch=watch)
         else:
             model, record, database = reused
@@ -1124,7 +1139,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                 _say(f"poses: {disagreed}; mapping again without it", progress)
                 again = map_photos(pycolmap, database, photo_dir, len(names), stage_dir / "_work" / "without_gps",
                                    priors=False, keep_all=keep_all, show=progress, timings=timings,
-                                   key="mapping_without_gps", label="mapping without the GPS")
+                                   key="mapping_without_gps", label="mapping without the GPS",
+                                   small_photos=small_photos)
                 if again[0] is not None:
                     (model, relaxed, extended), without_gps = again, True
                     shutil.rmtree(raw_model)
@@ -1201,7 +1217,8 @@ def colmap_settings() -> dict:
     `refused.run_key`: a reconstruction kept under other settings is not reused)."""
     return {"sift": SIFT, "sift_small": SIFT_SMALL, "small_side": SMALL_SIDE, "matching": MATCHING,
             "matching_sift": MATCHING_SIFT, "two_view": TWO_VIEW, "matching_small": MATCHING_SMALL,
-            "two_view_small": TWO_VIEW_SMALL, "mapper": MAPPER, "relax_below": RELAX_BELOW, "relaxed": RELAXED,
+            "two_view_small": TWO_VIEW_SMALL, "mapper": MAPPER, "relax_below": RELAX_BELOW,
+            "relax_below_large": RELAX_BELOW_LARGE, "relaxed": RELAXED,
             "left_out": LEFT_OUT, "left_out_triangulation": LEFT_OUT_TRIANGULATION, "prior_sigma_m": PRIOR_SIGMA_M,
             "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "spatial_neighbours": SPATIAL_NEIGHBOURS}
 

@@ -178,9 +178,9 @@ def test_run_colmap_hands_small_photos_guided_matching_and_ten_inliers(tmp_path,
     assert (stand_in.guided, stand_in.min_inliers) == (guided, min_inliers)
 
 
-def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_agreeing_model(
+def test_run_colmap_sequential_maps_small_photos_again_relaxed_below_90_percent_and_keeps_an_agreeing_model(
         tmp_path, monkeypatch, capsys):
-    """9 of 12 photos register (under 0.9 x 12): a second, relaxed mapping into sparse1; its 12
+    """Small photos, 9 of 12 register (under 0.9 x 12): a second, relaxed mapping into sparse1; its 12
     photos, agreeing with the first model's 9, are kept. Sequential matching: each photo with
     its next `overlap`, no quadratic overlap, no loop detection; AUTO camera mode without
     --single-camera. Each stage is said on stderr by default, and each mapping run's progress
@@ -190,7 +190,7 @@ def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_
     monkeypatch.setattr(poses, "time", _Clock([0.0, 1.0, 2.0, 3.0, 4.0, 5.0]))
     model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                       matcher="sequential", camera_model="PINHOLE", single_camera=False, overlap=4,
-                                      keep_all=True)
+                                      keep_all=True, small_photos=True)
     assert model is second and relaxed is True and extended is False
     db, photos = tmp_path / "work" / "database.db", tmp_path / "photos"
     assert stand_in.calls == [
@@ -211,27 +211,60 @@ def test_run_colmap_sequential_maps_again_relaxed_below_90_percent_and_keeps_an_
 
 
 def test_run_colmap_counts_the_relaxed_model_by_the_vetting_unless_keep_all(tmp_path, monkeypatch):
-    """The relaxed model registers 12 photos to the first model's 9, but its 3 new ones are
-    turned 20 degrees (they fail the vetting): by the vetted count (9 against 9) the first model
-    stays; with keep_all, by the registered count, the relaxed model is kept. And 9 of 10
-    photos (0.9 x 10, not under it) map once."""
+    """Small photos: the relaxed model registers 12 photos to the first model's 9, but its 3 new
+    ones are turned 20 degrees (they fail the vetting): by the vetted count (9 against 9) the
+    first model stays; with keep_all, by the registered count, the relaxed model is kept. And 9
+    of 10 photos (0.9 x 10, not under it) map once."""
     first = _model(tmp_path / "first", 9)
     second = _model(tmp_path / "second", 12, turned=(9, 10, 11))
     for keep_all, expected in ((False, first), (True, second)):
         stand_in = _StandIn([{0: first}, {0: second}])
         model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                           matcher="exhaustive", camera_model="OPENCV", single_camera=True,
-                                          show=False, keep_all=keep_all)
+                                          show=False, keep_all=keep_all, small_photos=True)
         assert model is expected and relaxed is (expected is second) and extended is False, keep_all
         assert [c[3].name for c in stand_in.calls if c[0] == "mapping"][:2] == ["sparse0", "sparse1"]
     stand_in = _StandIn([{0: first}, {0: second}])                    # keep_all left out: the vetted count
     assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
-                            camera_model="OPENCV", single_camera=True, show=False) == (first, False, False)
+                            camera_model="OPENCV", single_camera=True, show=False,
+                            small_photos=True) == (first, False, False)
     stand_in = _StandIn([{0: first}])
     assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:10], tmp_path / "work", matcher="exhaustive",
-                            camera_model="OPENCV", single_camera=True, show=False) == (first, False, False)
+                            camera_model="OPENCV", single_camera=True, show=False,
+                            small_photos=True) == (first, False, False)
     # one mapping, then the one photo it left out tried again continuing its model (no model back here)
     assert [c[3].name for c in stand_in.calls if c[0] == "mapping"] == ["sparse0", "sparse"]
+
+
+def test_remap_relaxed_below_90_percent_for_small_photos_and_below_half_for_larger_ones():
+    """The relaxed mapping from scratch: always without a first model; for small photos when the
+    first registers under 0.9 of them, for larger ones under 0.5 (RELAX_BELOW, RELAX_BELOW_LARGE)."""
+    assert poses.remap_relaxed(None, 20, False) and poses.remap_relaxed(None, 20, True)
+    assert poses.remap_relaxed(17, 20, True) and not poses.remap_relaxed(18, 20, True)
+    assert poses.remap_relaxed(9, 20, False) and not poses.remap_relaxed(10, 20, False)
+    assert not poses.remap_relaxed(17, 20, False)
+
+
+def test_run_colmap_takes_larger_photos_a_first_model_left_out_straight_to_registering_them(tmp_path):
+    """Larger photos, 9 of 12 registered (over half): no relaxed mapping from scratch; the photos
+    left out are registered continuing the first model (extend/sparse), kept when that model
+    registers more and agrees. 5 of 12 (under half): the relaxed mapping into sparse1 first."""
+    first, more = _model(tmp_path / "first", 9), _model(tmp_path / "more", 12)
+    stand_in = _StandIn([{0: first}, {0: more}])
+    model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+                                                matcher="exhaustive", camera_model="OPENCV", single_camera=True,
+                                                show=False, keep_all=True)
+    assert (model, relaxed, extended) == (more, False, True)
+    mappings = [c for c in stand_in.calls if c[0] == "mapping"]
+    assert [c[3].relative_to(tmp_path / "work").as_posix() for c in mappings] == ["sparse0", "extend/sparse"]
+    assert mappings[1][6:] == (10, 50, 8.0)                  # LEFT_OUT's inliers on the relaxed thresholds
+    few = _model(tmp_path / "few", 5)
+    stand_in = _StandIn([{0: few}, {0: more}])
+    model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work2",
+                                                matcher="exhaustive", camera_model="OPENCV", single_camera=True,
+                                                show=False, keep_all=True)
+    assert (model, relaxed) == (more, True)
+    assert [c[3].name for c in stand_in.calls if c[0] == "mapping"][:2] == ["sparse0", "sparse1"]
 
 
 def test_run_colmap_vocab_hands_on_the_tree_and_names_the_folder_when_no_model_is_built(tmp_path):
