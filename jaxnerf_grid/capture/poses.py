@@ -113,7 +113,8 @@ JPEG_QUALITY = 95
 # COLMAP's defaults of 30 inliers to register a photo); the run registering more is kept.
 # Larger photos (over SMALL_SIDE) are mapped again only below RELAX_BELOW_LARGE: above it the
 # photos left out go straight to `register_left_out` (the relaxed thresholds, continuing the
-# model), which places them as well for a third of the time (`remap_relaxed`; docs/POSES.md).
+# model), which on the seneca flight kept as many photos in 60 % of the mapping time
+# (`remap_relaxed`; docs/POSES.md).
 RELAX_BELOW = 0.9
 RELAX_BELOW_LARGE = 0.5
 RELAXED = {"abs_pose_min_num_inliers": 15, "init_min_num_inliers": 50, "init_min_tri_angle": 8.0}
