@@ -20,7 +20,8 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      position priors in its bundle adjustment (`write_gps_priors`, `mapper_options`; GPS that
      disagrees with the growing model stops it, and the photos are mapped without it:
      `gps_watch`), once more with relaxed thresholds when under 90 % of the photos register
-     (`choose_model` keeps the relaxed model only when it is consistent with the first); the photos the kept model
+     (photos over 800 px: under half, `remap_relaxed`; `choose_model` keeps the relaxed model
+     only when it is consistent with the first); the photos the kept model
      left out are then tried again, continuing that model with looser thresholds
      (`register_left_out`, kept when it agrees); the largest model is kept, the photos outside
      it are named with why (`unregistered_reasons`); a camera set too thin to train on is
@@ -369,7 +370,8 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     priors: {photo name: [3] GPS position in local metres of a projected CRS}: written to the
     database as pose priors (`write_gps_priors`), used by the spatial matcher and by the
     mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL,
-    MATCHING_SMALL and TWO_VIEW_SMALL on top of SIFT, MATCHING and TWO_VIEW (every working photo
+    MATCHING_SMALL and TWO_VIEW_SMALL on top of SIFT, MATCHING and TWO_VIEW, and the relaxed
+    mapping below RELAX_BELOW rather than RELAX_BELOW_LARGE (`remap_relaxed`) (every working photo
     at most SMALL_SIDE px on its long side). feature_side: the
     long side SIFT sees at most (FEATURE_SIDE; 0: COLMAP's own). watch: judges the mapping with
     the priors as it grows (`gps_watch.MappingWatch`); when it stops it, the photos are mapped
