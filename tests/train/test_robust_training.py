@@ -12,8 +12,7 @@ from tests.train.test_loop import last_state, tiny_config, tiny_dataset
 
 
 @pytest.mark.parametrize("method,mode,confirm,scattered", [
-    ("ours", "dpt+robust", 0.01, 0.0), ("ours", "dpt+robust", 0.01, 0.5), ("nerfw", "robust", 0.0, 0.0),
-    ("nerf", "robust", 0.0, 0.0)])
+    ("ours", "dpt+robust", 0.01, 0.5), ("nerfw", "robust", 0.0, 0.0), ("nerf", "robust", 0.0, 0.0)])
 def test_robust_two_devices_match_one_device(tmp_path, method, mode, confirm, scattered):
     """Patches, scattered rays, the all-gathered quantiles, the multi-view confirmation and the
     per-pixel record do not depend on the device count, for every method."""
