@@ -130,6 +130,9 @@ def reference_errors(true: dict, dataset: Path) -> dict:
     centre_m}} (centre_m in the reference's units), "rotation_deg_median", "rotation_deg_max",
     "scene_bounds", "near_points"}."""
     found = frames_by_name(dataset / "transforms.json")
+    if not set(true) & set(found):   # the generator writes PNGs, the photos given to `poses` were JPEGs
+        true = {Path(n).stem: c for n, c in true.items()}
+        found = {Path(n).stem: c for n, c in found.items()}
     names = sorted(set(true) & set(found))
     t, f = np.stack([true[n] for n in names]), np.stack([found[n] for n in names])
     scale, rot, shift = similarity_fit(f[:, :3, 3], t[:, :3, 3])

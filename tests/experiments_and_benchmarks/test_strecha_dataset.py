@@ -132,3 +132,29 @@ def test_poses_accuracy_scores_a_dataset_against_a_captures_own_transforms(tmp_p
     assert max(v["rotation_deg"] for n, v in row["per_photo"].items() if n != "frame_00002.png") < 0.1
     assert row["per_photo"]["frame_00002.png"]["rotation_deg_oriented"] == pytest.approx(2.0, abs=0.5)
     assert row["rotation_deg_oriented_median"] < 0.5
+
+
+def test_reference_cameras_named_png_match_a_datasets_jpegs_by_their_stem(tmp_path):
+    """The generator names its frames .png, the photos `poses` was given are .jpg: the cameras pair
+    by the name's stem, a frame turned 2 degrees scores 2, the others 0."""
+    import json
+
+    from benchmarks import poses_accuracy
+
+    ref, found = {}, []
+    for i in range(5):
+        c = 4 * np.array([np.cos(0.6 * i), np.sin(0.6 * i), 0.4])
+        z = c / np.linalg.norm(c)
+        x = np.cross([0, 0, 1.0], z)
+        x /= np.linalg.norm(x)
+        m = np.eye(4)
+        m[:3, :3], m[:3, 3] = np.stack([x, np.cross(z, x), z], axis=1), c
+        ref[f"train_{i:03d}.png"] = m.copy()
+        if i == 1:
+            m[:3, :3] = _rotation([0.0, 1.0, 0.2], np.radians(2.0)) @ m[:3, :3]
+        found.append({"file_path": f"images/train_{i:03d}.jpg", "transform_matrix": m.tolist()})
+    (tmp_path / "transforms.json").write_text(json.dumps({"frames": found}))
+    per_photo = poses_accuracy.reference_errors(ref, tmp_path)["per_photo"]
+    assert sorted(per_photo) == [f"train_{i:03d}" for i in range(5)]
+    assert per_photo["train_001"]["rotation_deg"] == pytest.approx(2.0, abs=0.05)
+    assert max(v["rotation_deg"] for n, v in per_photo.items() if n != "train_001") < 0.1
