@@ -297,13 +297,15 @@ def _say(message: str, show: bool) -> None:
 # Stages 2-5: COLMAP
 
 
-def check_options(matcher: str, camera_model: str, vocab_tree, overlap: int = SEQUENTIAL_OVERLAP) -> None:
-    """DataError for an unknown matcher / camera model, a sequential overlap that is not a
-    positive integer, or `vocab` without a readable tree file."""
+def check_options(matcher: str, camera_model: str, vocab_tree, overlap: int = SEQUENTIAL_OVERLAP,
+                  neighbours: int = SPATIAL_NEIGHBOURS) -> None:
+    """DataError for an unknown matcher / camera model, a sequential overlap or a spatial
+    neighbour count that is not a positive integer, or `vocab` without a readable tree file."""
     if matcher not in MATCHERS:
         raise DataError(f"unknown poses.matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
-    if isinstance(overlap, bool) or not isinstance(overlap, int) or overlap < 1:
-        raise DataError(f"poses.overlap must be a whole number of photos, at least 1, got {overlap!r}")
+    for key, count in (("overlap", overlap), ("neighbours", neighbours)):
+        if isinstance(count, bool) or not isinstance(count, int) or count < 1:
+            raise DataError(f"poses.{key} must be a whole number of photos, at least 1, got {count!r}")
     if camera_model not in CAMERA_MODELS:
         raise DataError(f"unknown camera model {camera_model!r}; choose one of {', '.join(CAMERA_MODELS)}")
     if matcher == "vocab":
@@ -347,8 +349,7 @@ def choose_matcher(matcher: str, names: list[str], with_gps: int = 0,
     if pairs <= max_pairs:
         return "exhaustive", f"auto: {n} photos, {pairs} pairs, at most {max_pairs}"
     if with_gps == n:
-        return "spatial", (f"auto: {n} photos, {pairs} pairs, more than {max_pairs}; every photo has GPS: each "
-                           f"with its {SPATIAL_NEIGHBOURS} nearest")
+        return "spatial", (f"auto: {n} photos, {pairs} pairs, more than {max_pairs}; every photo has GPS")
     if names_look_ordered(names):
         return "sequential", (f"auto: {n} photos, {pairs} pairs, more than {max_pairs}, named in sequence: with "
                               "loop closure")
@@ -360,13 +361,14 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
                camera_model: str, single_camera: bool, vocab_tree=None, show: bool = True, source=None,
                keep_all: bool = False, overlap: int = SEQUENTIAL_OVERLAP, timings: dict | None = None,
                priors: dict | None = None, small_photos: bool = False, feature_side: int = FEATURE_SIDE,
-               watch: MappingWatch | None = None):
+               watch: MappingWatch | None = None, neighbours: int = SPATIAL_NEIGHBOURS):
     """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
     whether it comes from the relaxed mapping, whether photos left out by the first model were
     registered afterwards (`register_left_out`)). The relaxed model is judged by its photos that
     pass the vetting (`vetted_count`; all its photos with `keep_all`). `matcher`: exhaustive,
-    spatial, sequential (each photo with its next `overlap`, with loop closure) or vocab.
-    `timings` ({stage: seconds}, when given) gets the seconds of features, matching and mapping.
+    spatial (each photo with its `neighbours` nearest by GPS), sequential (each photo with its
+    next `overlap`, with loop closure) or vocab. `timings` ({stage: seconds}, when given) gets
+    the seconds of features, matching and mapping.
     priors: {photo name: [3] GPS position in local metres of a projected CRS}: written to the
     database as pose priors (`write_gps_priors`), used by the spatial matcher and by the
     mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL,
@@ -395,7 +397,7 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         if priors:
             write_gps_priors(pycolmap, database, priors)
     with _stage(f"matching ({matcher})", show, timings, "matching"):
-        match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree, small_photos)
+        match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree, small_photos, neighbours)
     try:
         best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
                                                   priors=priors_hold(priors or {}), keep_all=keep_all, show=show,
@@ -518,18 +520,19 @@ def two_view_options(pycolmap, small_photos: bool = False):
 
 
 def match_photos(pycolmap, database, matcher: str, names: list[str], work_dir: Path, overlap: int,
-                 vocab_tree=None, small_photos: bool = False) -> None:
+                 vocab_tree=None, small_photos: bool = False, neighbours: int = SPATIAL_NEIGHBOURS) -> None:
     """Stage 3: COLMAP's matcher for `matcher` (module docstring) on the database's photos.
     sequential: the pairs of `pairing.sequential_pairs` (next `overlap`, wrap-around, quadratic)
     through `pycolmap.match_image_pairs`; with a space in a name (COLMAP's pair list splits on
     spaces) COLMAP's own sequential matcher with its quadratic overlap instead (no wrap).
+    spatial: each photo with its `neighbours` nearest by the database's pose priors (GPS).
     small_photos: MATCHING_SMALL and TWO_VIEW_SMALL on top (every photo at most SMALL_SIDE px)."""
     matching, verify = matching_options(pycolmap, small_photos), two_view_options(pycolmap, small_photos)
     if matcher == "exhaustive":
         pycolmap.match_exhaustive(database, matching_options=matching, verification_options=verify)
     elif matcher == "spatial":
         options = pycolmap.SpatialPairingOptions()
-        options.max_num_neighbors, options.max_distance = SPATIAL_NEIGHBOURS, SPATIAL_MAX_DISTANCE
+        options.max_num_neighbors, options.max_distance = neighbours, SPATIAL_MAX_DISTANCE
         pycolmap.match_spatial(database, matching_options=matching, pairing_options=options,
                                verification_options=verify)
     elif matcher == "sequential" and not any(" " in name for name in names):
@@ -955,6 +958,8 @@ def format_summary(summary: dict) -> str:
              f"{summary['points3d']} 3-D points, mean reprojection error {summary['mean_reprojection_error']:.3f} px"]
     if "matcher_reason" in summary:
         overlap = f", each photo with its next {summary['overlap']}" if summary.get("overlap") else ""
+        if summary.get("neighbours"):
+            overlap = f", each photo with its {summary['neighbours']} nearest by GPS"
         lines.append(f"matcher: {summary['matcher']} ({summary['matcher_reason']}{overlap})")
     if "camera_sharing" in summary:
         shared = "one shared by every photo" if summary["single_camera"] else "one per photo"
@@ -1038,7 +1043,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                       overlap: int = SEQUENTIAL_OVERLAP,
                       overwrite: bool = False, progress: bool = True, keep_all: bool = False, crs: str | None = None,
                       gcp=None, scale_bar: str | None = None, ignore_gps: bool = False,
-                      accept_few_cameras: bool = False, feature_side: int = FEATURE_SIDE) -> dict:
+                      accept_few_cameras: bool = False, feature_side: int = FEATURE_SIDE,
+                      neighbours: int = SPATIAL_NEIGHBOURS) -> dict:
     """Camera poses for a folder of photos, written as a dataset in `out_dir` (module docstring).
 
     Returns the summary: photos, registered, in_dataset (registered less those left out),
@@ -1047,7 +1053,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
     photos that fail are left out of the dataset unless `keep_all`}), skipped (names of unreadable
     files), mean_reprojection_error (px), points3d, matcher (the one that ran: `matcher`, or
     `choose_matcher`'s pick for auto), matcher_asked, matcher_reason, overlap (sequential:
-    each photo matched with its next `overlap`; else None), camera_model, relaxed_mapping
+    each photo matched with its next `overlap`; else None), neighbours (spatial: each photo
+    matched with its `neighbours` nearest by GPS; else None), camera_model, relaxed_mapping
     (the model came from the relaxed second mapping), seconds, timings_s ({stage: seconds}:
     photos, features, matching, mapping, writing), up_rotation ([3, 3] applied to
     COLMAP's frame), georeference (`georef.align_model`'s record: the photos' GPS, `gcp` (a
@@ -1059,7 +1066,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
     DataError (one line, naming the path) for bad input; nothing is written then.
     """
     start = time.monotonic()
-    check_options(matcher, camera_model, vocab_tree, overlap)
+    check_options(matcher, camera_model, vocab_tree, overlap, neighbours)
     if max_side is not None and max_side < 16:
         raise DataError(f"poses.max_side must be at least 16 pixels, got {max_side}")
     if feature_side != 0 and feature_side < 16:
@@ -1102,7 +1109,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         priors, priors_origin = gps_local_positions(positions, crs)
         key = refused.run_key([images_dir / n for n in names], {
             "matcher": used, "camera_model": camera_model, "single_camera": single_camera, "max_side": max_side,
-            "vocab_tree": str(vocab_tree), "overlap": overlap, "keep_all": keep_all, "priors": priors,
+            "vocab_tree": str(vocab_tree), "overlap": overlap, "neighbours": neighbours, "keep_all": keep_all,
+            "priors": priors,
             "feature_side": feature_side, "pycolmap": str(getattr(pycolmap, "__version__", "")),
             "code": colmap_settings()})
         database, raw_model = stage_dir / "_work" / "database.db", stage_dir / "_work" / "model"
@@ -1117,7 +1125,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                 single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir,
                 keep_all=keep_all, overlap=overlap, timings=timings, priors=priors,
                 small_photos=small_photos, feature_side=feature_side,
-                watch=watch)
+                watch=watch, neighbours=neighbours)
         else:
             model, record, database = reused
             relaxed, extended = bool(record["relaxed"]), bool(record["extended"])
@@ -1178,6 +1186,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "mean_reprojection_error": float(model.compute_mean_reprojection_error()),
                        "matcher": used, "matcher_asked": matcher, "matcher_reason": reason,
                        "overlap": overlap if used == "sequential" else None,
+                       "neighbours": neighbours if used == "spatial" else None,
                        "camera_model": camera_model, "single_camera": bool(single_camera),
                        "camera_sharing": camera_reason,
                        "max_side": max_side, "feature_side": feature_side, "relaxed_mapping": bool(relaxed),

@@ -20,7 +20,8 @@ _DISTRIBUTED = {"distributed.num_processes": "--num-processes", "distributed.pro
 
 FLAGS = {  # subcommand -> {key: flag}
     "synth": {"synth.gps_origin": "--gps-origin", "synth.gcp_layout": "--gcp-layout", **_SWITCHES},
-    "poses": {"poses.matcher": "--matcher", "poses.overlap": "--overlap", "poses.vocab_tree": "--vocab-tree",
+    "poses": {"poses.matcher": "--matcher", "poses.overlap": "--overlap", "poses.neighbours": "--neighbours",
+              "poses.vocab_tree": "--vocab-tree",
               "poses.max_side": "--max-side",
               "poses.single_camera": "--single-camera",
               "poses.out": "--out", "poses.crs": "--crs", "poses.gcp": "--gcp", "poses.scale_bar": "--scale-bar",

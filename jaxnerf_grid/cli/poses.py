@@ -4,7 +4,7 @@ Python bindings, pycolmap), written as a dataset that `mask`, `train` and `demo 
 The work is `data.poses.poses_from_images`; this module parses the arguments.
 
     jaxnerf-grid poses --images DIR --out DATA_DIR [--matcher auto|exhaustive|spatial|sequential|vocab]
-                       [--overlap K]
+                       [--overlap K] [--neighbours K]
                        [--camera-model SIMPLE_RADIAL] [--single-camera | --camera-per-photo]
                        [--max-side N] [--feature-side N]
                        [--keep-all] [--overwrite]
@@ -43,13 +43,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="dataset folder to write (DATA_DIR)")
     p.add_argument("--matcher", default="auto", metavar="{" + ",".join(MATCHERS) + "}",
                    help=f"exhaustive: every pair (up to a few hundred photos); spatial: each photo with its "
-                        f"{SPATIAL_NEIGHBOURS} nearest by GPS; sequential: each photo with its next --overlap in "
+                        f"--neighbours nearest by GPS; sequential: each photo with its next --overlap in "
                         f"name order (a flight's sequence), the pairs across the end that close an orbit and "
                         f"COLMAP's quadratic overlap; vocab: a vocabulary tree (needs --vocab-tree); auto "
                         f"(default): exhaustive up to {EXHAUSTIVE_MAX_PAIRS} pairs, above it spatial when every "
                         f"photo has GPS, else sequential when the names are numbered in sequence, else exhaustive")
     p.add_argument("--overlap", type=int, default=SEQUENTIAL_OVERLAP,
                    help="sequential matching: the next photos (in name order) each photo is matched with")
+    p.add_argument("--neighbours", type=int, default=SPATIAL_NEIGHBOURS,
+                   help=f"spatial matching: the photos nearest by GPS each photo is matched with (default "
+                        f"{SPATIAL_NEIGHBOURS}; more place each camera closer at more matching time, docs/POSES.md)")
     p.add_argument("--vocab-tree", default=None, help="COLMAP vocabulary tree file for --matcher vocab")
     p.add_argument("--camera-model", choices=CAMERA_MODELS, default="SIMPLE_RADIAL",
                    help="COLMAP camera model fitted to the photos (undistorted to PINHOLE afterwards)")
@@ -97,7 +100,7 @@ def main(argv: list[str] | None = None) -> int:
                                 vocab_tree=args.vocab_tree, overwrite=args.overwrite, progress=not args.quiet,
                                 keep_all=args.keep_all, crs=args.crs, gcp=args.gcp, scale_bar=args.scale_bar,
                                 ignore_gps=args.ignore_gps, accept_few_cameras=args.accept_few_cameras,
-                                feature_side=args.feature_side)
+                                feature_side=args.feature_side, neighbours=args.neighbours)
     print(format_summary(summary))
     print(f"wrote {summary['transforms']}")
     return 0

@@ -626,8 +626,9 @@ def test_poses_vocab_needs_a_tree_file(tmp_path, capsys):
 
 
 @pytest.mark.parametrize("argv, flag, text", [(["--matcher", "nearest"], "--matcher", "'nearest'"),
-                                               (["--overlap", "0"], "--overlap", "got 0")])
-def test_poses_bad_matcher_or_overlap_says_which_flag(tmp_path, capsys, argv, flag, text):
+                                               (["--overlap", "0"], "--overlap", "got 0"),
+                                               (["--neighbours", "0"], "--neighbours", "got 0")])
+def test_poses_bad_matcher_overlap_or_neighbours_says_which_flag(tmp_path, capsys, argv, flag, text):
     _few_photos(tmp_path / "p", 3)
     err = _one_line_error(capsys, ["--images", str(tmp_path / "p"), "--out", str(tmp_path / "d")] + argv)
     assert flag in err and text in err, err

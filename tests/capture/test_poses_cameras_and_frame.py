@@ -600,6 +600,9 @@ def test_check_options_refuses_each_bad_option_and_names_the_choices(tmp_path):
     for overlap in (0, -3, True, 2.0, "5"):
         with pytest.raises(DataError, match=r"^poses\.overlap must be a whole number of photos, at least 1, got "):
             poses.check_options("sequential", "OPENCV", None, overlap)
+        with pytest.raises(DataError, match=r"^poses\.neighbours must be a whole number of photos, at least 1, got "):
+            poses.check_options("spatial", "OPENCV", None, 10, overlap)
+    poses.check_options("spatial", "OPENCV", None, 10, 1)
     with pytest.raises(DataError) as err:
         poses.check_options("exhaustive", "FISHEYE", None)
     assert str(err.value) == ("unknown camera model 'FISHEYE'; choose one of SIMPLE_PINHOLE, PINHOLE, SIMPLE_RADIAL, "
@@ -879,3 +882,18 @@ def test_summary_and_report_lines_word_for_word_with_several_names():
     keep = poses.report_lines({**plain, "vetting": {"keep_all": True}}, bounds)
     assert keep[keep.index("## Vetting (docs/POSES.md)"):][:4] == [
         "## Vetting (docs/POSES.md)", "", "`--keep-all`: every registered photo kept, whatever its scores.", ""]
+
+
+def test_summary_names_the_spatial_neighbours_and_the_sequential_overlap_of_the_matcher_that_ran():
+    """The matcher line says each photo's nearest by GPS for spatial matching and its next photos for
+    sequential matching, from the summary's counts."""
+    base = {"registered": 3, "photos": 3, "points3d": 9, "mean_reprojection_error": 0.5, "unregistered": [],
+            "skipped": []}
+    spatial = {**base, "matcher": "spatial", "matcher_reason": "auto: 60 photos, 1770 pairs, more than 1225; every "
+               "photo has GPS", "neighbours": 40, "overlap": None}
+    assert poses.format_summary(spatial).splitlines()[1] == (
+        "matcher: spatial (auto: 60 photos, 1770 pairs, more than 1225; every photo has GPS, each photo with its 40 "
+        "nearest by GPS)")
+    sequential = {**spatial, "matcher": "sequential", "matcher_reason": "asked for", "neighbours": None, "overlap": 7}
+    assert poses.format_summary(sequential).splitlines()[1] == (
+        "matcher: sequential (asked for, each photo with its next 7)")

@@ -36,7 +36,8 @@ class _StandIn:
         self.maps, self.calls = list(maps), []
         for name in ("ImageReaderOptions", "CameraMode", "FeatureExtractionOptions", "FeatureMatchingOptions",
                      "TwoViewGeometryOptions",
-                     "SequentialPairingOptions", "VocabTreePairingOptions", "IncrementalPipelineOptions",
+                     "SequentialPairingOptions", "SpatialPairingOptions", "VocabTreePairingOptions",
+                     "IncrementalPipelineOptions",
                      "Reconstruction", "ImportedPairingOptions"):
             setattr(self, name, getattr(pycolmap, name))
 
@@ -64,6 +65,12 @@ class _StandIn:
         pairing = pairing_options or pycolmap.SequentialPairingOptions()
         self._matching("sequential", database_path, matching_options,
                        (pairing.overlap, pairing.quadratic_overlap, pairing.loop_detection), verification_options)
+
+    def match_spatial(self, database_path, matching_options=None, pairing_options=None,
+                      verification_options=None):
+        pairing = pairing_options or pycolmap.SpatialPairingOptions()
+        self._matching("spatial", database_path, matching_options, (pairing.max_num_neighbors, pairing.max_distance),
+                       verification_options)
 
     def match_image_pairs(self, database_path, matching_options=None, pairing_options=None,
                           verification_options=None):
@@ -165,6 +172,18 @@ def test_run_colmap_exhaustive_single_camera_sets_its_options_and_keeps_the_larg
     assert stand_in.guided is True
     assert timings == {"photos": 0.4, "features": 1.3, "matching": 0.5, "mapping": 7.3}
     assert capsys.readouterr().err == ""
+
+
+@pytest.mark.parametrize("neighbours", [poses.SPATIAL_NEIGHBOURS, 37])
+def test_run_colmap_spatial_pairs_each_photo_with_the_neighbours_asked_at_any_distance(tmp_path, neighbours):
+    """Spatial matching hands COLMAP the neighbour count (20 unless asked; 37 here) and a distance
+    bound that never binds (1e6 m): the count alone bounds the pairs."""
+    stand_in = _StandIn([{0: _model(tmp_path / "m", 12)}])
+    kwargs = {} if neighbours == poses.SPATIAL_NEIGHBOURS else {"neighbours": neighbours}
+    poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="spatial",
+                     camera_model="SIMPLE_RADIAL", single_camera=True, show=False, **kwargs)
+    assert ("spatial", tmp_path / "work" / "database.db", 0.9, (neighbours, 1e6)) in stand_in.calls
+    assert poses.SPATIAL_NEIGHBOURS == 20
 
 
 @pytest.mark.parametrize("small, guided, min_inliers", [(True, True, 10), (False, False, 15)])
