@@ -303,9 +303,9 @@ def check_options(matcher: str, camera_model: str, vocab_tree, overlap: int = SE
     neighbour count that is not a positive integer, or `vocab` without a readable tree file."""
     if matcher not in MATCHERS:
         raise DataError(f"unknown poses.matcher {matcher!r}; choose one of {', '.join(MATCHERS)}")
-    for key, count in (("overlap", overlap), ("neighbours", neighbours)):
+    for key, count in (("poses.overlap", overlap), ("poses.neighbours", neighbours)):
         if isinstance(count, bool) or not isinstance(count, int) or count < 1:
-            raise DataError(f"poses.{key} must be a whole number of photos, at least 1, got {count!r}")
+            raise DataError(f"{key} must be a whole number of photos, at least 1, got {count!r}")
     if camera_model not in CAMERA_MODELS:
         raise DataError(f"unknown camera model {camera_model!r}; choose one of {', '.join(CAMERA_MODELS)}")
     if matcher == "vocab":

@@ -167,7 +167,7 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
     assert summary == {
         "photos": 14, "registered": 12, "in_dataset": 11, "unregistered": ["v12.png"], "skipped": ["broken.png"],
         "points3d": 40, "matcher": "exhaustive", "matcher_asked": "auto",
-        "matcher_reason": "auto: 13 photos, 78 pairs, at most 1225", "overlap": None,
+        "matcher_reason": "auto: 13 photos, 78 pairs, at most 1225", "overlap": None, "neighbours": None,
         "camera_model": "SIMPLE_RADIAL",
         "single_camera": True, "camera_sharing": "one size, 80x60, and one camera: no EXIF camera",
         "max_side": None, "feature_side": 1600, "relaxed_mapping": False,
