@@ -957,10 +957,9 @@ def format_summary(summary: dict) -> str:
     lines = [f"registered {summary['registered']}/{summary['photos']} photos, "
              f"{summary['points3d']} 3-D points, mean reprojection error {summary['mean_reprojection_error']:.3f} px"]
     if "matcher_reason" in summary:
-        overlap = f", each photo with its next {summary['overlap']}" if summary.get("overlap") else ""
-        if summary.get("neighbours"):
-            overlap = f", each photo with its {summary['neighbours']} nearest by GPS"
-        lines.append(f"matcher: {summary['matcher']} ({summary['matcher_reason']}{overlap})")
+        pairing = (f", each photo with its {summary['neighbours']} nearest by GPS" if summary.get("neighbours")
+                   else f", each photo with its next {summary['overlap']}" if summary.get("overlap") else "")
+        lines.append(f"matcher: {summary['matcher']} ({summary['matcher_reason']}{pairing})")
     if "camera_sharing" in summary:
         shared = "one shared by every photo" if summary["single_camera"] else "one per photo"
         lines.append(f"cameras: {shared} ({summary['camera_sharing']})")
@@ -1232,7 +1231,7 @@ def colmap_settings() -> dict:
             "two_view_small": TWO_VIEW_SMALL, "mapper": MAPPER, "relax_below": RELAX_BELOW,
             "relax_below_large": RELAX_BELOW_LARGE, "relaxed": RELAXED,
             "left_out": LEFT_OUT, "left_out_triangulation": LEFT_OUT_TRIANGULATION, "prior_sigma_m": PRIOR_SIGMA_M,
-            "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "spatial_neighbours": SPATIAL_NEIGHBOURS}
+            "prior_min_spread_m": PRIOR_MIN_SPREAD_M}
 
 
 def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: dict, model, relaxed: bool,
