@@ -17,7 +17,8 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      file), or `auto` (`choose_matcher`: exhaustive while the pairs are few, spatial when every
      photo has GPS, sequential when the names are numbered in sequence);
   4. mapping: incremental mapping (`pycolmap.incremental_mapping`), with the photos' GPS as
-     position priors in its bundle adjustment (`write_gps_priors`, `mapper_options`; GPS that
+     position priors in its bundle adjustment where they hold (`priors_hold`: spread over
+     PRIOR_MIN_SPREAD_M, photos of at most SMALL_SIDE px; `write_gps_priors`, `mapper_options`; GPS that
      disagrees with the growing model stops it, and the photos are mapped without it:
      `gps_watch`), once more with relaxed thresholds when under 90 % of the photos register
      (photos over 800 px: under half, `remap_relaxed`; `choose_model` keeps the relaxed model
@@ -95,6 +96,12 @@ PRIOR_SIGMA_M = (3.0, 5.0)
 # photographed from 5 m would pull the cameras about, not hold them (monstree, 23 photos: with
 # the priors the GPS alignment came out mirrored, docs/POSES.md); a drone orbit spreads 40-60 m.
 PRIOR_MIN_SPREAD_M = 30.0
+# ... and only for small photos (every working photo at most SMALL_SIDE px), whose few hundred
+# features a photo leave an orbit weakly tied. Larger photos are mapped without them and the
+# finished model aligned to the GPS: on 57 photos of a drone survey (3600x2700, SIFT at 1600 px)
+# the priors' global bundle adjustments took the mapping from 139 s to 294 s for the same 52
+# photos kept, the two models within 3 cm and 0.02 degrees of each other (docs/POSES.md).
+PRIORS_SMALL_ONLY = True
 CAMERA_MODELS = ("SIMPLE_PINHOLE", "PINHOLE", "SIMPLE_RADIAL", "RADIAL", "OPENCV")
 PHOTO_SUFFIXES = (".png", ".jpg", ".jpeg")
 INSTALL_HINT = "pip install -e '.[sfm]' (or: bash scripts/setup.sh)"
@@ -140,9 +147,11 @@ SIFT_SMALL: dict[str, Any] = {"peak_threshold": 0.004}
 SMALL_SIDE = 800
 # SIFT runs on the photos scaled to at most FEATURE_SIDE px on the long side (COLMAP's
 # max_image_size; its own default 3200); the keypoints come back in the photos' pixels and the
-# dataset keeps the photos' size. Feature extraction is most of a full-size run's time; the
-# measured trade-off is in docs/POSES.md ("Feature size"). 0: COLMAP's own size.
-FEATURE_SIDE = 1600
+# dataset keeps the photos' size. Feature extraction is most of a full-size run's time: at 1200
+# against 1600 px the Strecha scenes keep their accuracy to the hundredth of a degree and a
+# 57-photo 11 MP flight is posed in 405 s against 544 s; the measured trade-off is in
+# docs/POSES.md ("Feature size"). 0: COLMAP's own size.
+FEATURE_SIDE = 1200
 MATCHING: dict[str, Any] = {}
 MATCHING_SIFT: dict[str, Any] = {"max_ratio": 0.9}
 # TWO_VIEW: COLMAP's geometric verification of each matched pair (`TwoViewGeometryOptions`) on
@@ -370,8 +379,9 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     next `overlap`, with loop closure) or vocab. `timings` ({stage: seconds}, when given) gets
     the seconds of features, matching and mapping.
     priors: {photo name: [3] GPS position in local metres of a projected CRS}: written to the
-    database as pose priors (`write_gps_priors`), used by the spatial matcher and by the
-    mapper's bundle adjustment (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL,
+    database as pose priors (`write_gps_priors`), used by the spatial matcher and, when they hold
+    (`priors_hold`: spread wide enough, small photos), by the mapper's bundle adjustment
+    (`mapper_options`, use_prior_position). small_photos: SIFT_SMALL,
     MATCHING_SMALL and TWO_VIEW_SMALL on top of SIFT, MATCHING and TWO_VIEW, and the relaxed
     mapping below RELAX_BELOW rather than RELAX_BELOW_LARGE (`remap_relaxed`) (every working photo
     at most SMALL_SIDE px on its long side). feature_side: the
@@ -400,8 +410,8 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree, small_photos, neighbours)
     try:
         best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
-                                                  priors=priors_hold(priors or {}), keep_all=keep_all, show=show,
-                                                  timings=timings, watch=watch, small_photos=small_photos)
+                                                  priors=priors_hold(priors or {}, small_photos), keep_all=keep_all,
+                                                  show=show, timings=timings, watch=watch, small_photos=small_photos)
     except GpsStopped as stop:
         _say(f"poses: {stop}: a receiver that lags or drifts; mapping without it", show)
         best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir / "without_gps",
@@ -458,10 +468,25 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
     return best, relaxed_used, extended
 
 
-def priors_hold(priors: dict) -> bool:
-    """Whether GPS positions ({name: [3]}) enter the mapping as priors: any, spread over
-    PRIOR_MIN_SPREAD_M at least."""
-    return bool(priors) and gps_spread_m(priors) >= PRIOR_MIN_SPREAD_M
+def priors_hold(priors: dict, small_photos: bool) -> bool:
+    """Whether GPS positions ({name: [3]}) enter the mapping as priors: any, and no reason
+    against them (`priors_skipped`)."""
+    return bool(priors) and priors_skipped(priors, small_photos) is None
+
+
+def priors_skipped(priors: dict, small_photos: bool) -> str | None:
+    """Why GPS positions ({name: [3]}, some) stay out of the mapping, or None when they go in:
+    spread under PRIOR_MIN_SPREAD_M, or photos over SMALL_SIDE px (not small_photos: PRIORS_SMALL_ONLY).
+    None without positions."""
+    if not priors:
+        return None
+    if gps_spread_m(priors) < PRIOR_MIN_SPREAD_M:
+        return (f"the GPS positions spread {gps_spread_m(priors):.0f} m, under {PRIOR_MIN_SPREAD_M:.0f} m: "
+                "priors would pull the cameras about; the GPS aligns the finished model")
+    if PRIORS_SMALL_ONLY and not small_photos:
+        return (f"photos over {SMALL_SIDE} px: their features tie the model, and the priors' bundle adjustments "
+                "would double the mapping's time; the GPS aligns the finished model")
+    return None
 
 
 def gps_spread_m(priors: dict) -> float:
@@ -985,6 +1010,8 @@ def format_summary(summary: dict) -> str:
                      "and options)")
     if summary.get("gps_priors"):
         lines.append(f"GPS as pose priors in the bundle adjustment: {summary['gps_priors']} photos")
+    elif summary.get("gps_priors_skipped"):
+        lines.append(f"GPS as pose priors: not in the mapping ({summary['gps_priors_skipped']})")
     judged = summary.get("gps_disagreed")
     if judged:
         early = judged.get("stopped_early")
@@ -1116,8 +1143,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         reused = refused.load(pycolmap, out, key)
         # GPS that disagrees stops the mapping with the priors as the model grows (not with keep_all,
         # which keeps every photo whatever its GPS)
-        watch = MappingWatch(priors) if priors_hold(priors) and not keep_all else None
         small_photos = max(max(working_sizes[n]) for n in names) <= SMALL_SIDE
+        watch = MappingWatch(priors) if priors_hold(priors, small_photos) and not keep_all else None
         if reused is None:
             model, relaxed, extended = run_colmap(
                 pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
@@ -1145,7 +1172,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         if disagreed is not None:
             gps_judged = gps_judged or {"far": placed["off"], "registered": len(placed["registered"]),
                                         "stopped_early": False, "remapped": False, "georeference": "GPS"}
-            if priors_hold(priors) and not without_gps:
+            if priors_hold(priors, small_photos) and not without_gps:
                 _say(f"poses: {disagreed}; mapping again without it", progress)
                 again = map_photos(pycolmap, database, photo_dir, len(names), stage_dir / "_work" / "without_gps",
                                    priors=False, keep_all=keep_all, show=progress, timings=timings,
@@ -1193,7 +1220,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "registered_left_out": bool(extended),
                        "unregistered_why": unregistered_reasons(pycolmap, database, unregistered, registered),
                        "gps_disagreed": gps_judged,
-                       "gps_priors": len(priors) if priors_hold(priors) and not without_gps else 0,
+                       "gps_priors": len(priors) if priors_hold(priors, small_photos) and not without_gps else 0,
+                       "gps_priors_skipped": priors_skipped(priors, small_photos),
                        "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
                        "reconstruction_reused": reused is not None,
@@ -1231,7 +1259,7 @@ def colmap_settings() -> dict:
             "two_view_small": TWO_VIEW_SMALL, "mapper": MAPPER, "relax_below": RELAX_BELOW,
             "relax_below_large": RELAX_BELOW_LARGE, "relaxed": RELAXED,
             "left_out": LEFT_OUT, "left_out_triangulation": LEFT_OUT_TRIANGULATION, "prior_sigma_m": PRIOR_SIGMA_M,
-            "prior_min_spread_m": PRIOR_MIN_SPREAD_M}
+            "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "priors_small_only": PRIORS_SMALL_ONLY}
 
 
 def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: dict, model, relaxed: bool,

@@ -151,12 +151,17 @@ def test_gps_places_cameras_only_when_its_error_is_small_against_the_capture():
     assert not gps_places_cameras({"units": "unknown"}, 60.0 * ring, np.zeros(3))
 
 
-def test_gps_priors_hold_only_over_a_wide_capture():
+def test_gps_priors_hold_only_over_a_wide_capture_of_small_photos():
     """GPS enters the mapping only when the positions spread over 30 m (their median distance
-    from their mean): a 60 m orbit yes, a 5 m walk round a tree no, none no."""
-    from jaxnerf_grid.capture.poses import priors_hold
+    from their mean) and the photos are small (at most 800 px): a 60 m orbit of small photos yes,
+    of larger ones no, a 5 m walk round a tree no, none no; each no with its reason."""
+    from jaxnerf_grid.capture.poses import priors_hold, priors_skipped
 
     ring = {f"p{k}": np.array([np.cos(a), np.sin(a), 0.0]) for k, a in enumerate(np.linspace(0, 6, 12))}
-    assert priors_hold({k: 60.0 * v for k, v in ring.items()})
-    assert not priors_hold({k: 5.0 * v for k, v in ring.items()})
-    assert not priors_hold({})
+    wide, walk = ({k: r * v for k, v in ring.items()} for r in (60.0, 5.0))
+    assert priors_hold(wide, True) and priors_skipped(wide, True) is None
+    assert not priors_hold(wide, False)
+    assert priors_skipped(wide, False).startswith("photos over 800 px: ")
+    assert not priors_hold(walk, True)
+    assert priors_skipped(walk, True).startswith("the GPS positions spread 5 m, under 30 m: ")
+    assert not priors_hold({}, True) and priors_skipped({}, True) is None

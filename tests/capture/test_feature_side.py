@@ -37,8 +37,8 @@ def _extraction_size(tmp_path, **kwargs) -> int:
 
 
 def test_sift_sees_at_most_the_feature_side_and_zero_leaves_colmaps_own(tmp_path):
-    assert poses.FEATURE_SIDE == 1600
-    assert _extraction_size(tmp_path) == 1600
+    assert poses.FEATURE_SIDE == 1200
+    assert _extraction_size(tmp_path) == 1200
     assert _extraction_size(tmp_path, feature_side=800) == 800
     assert _extraction_size(tmp_path, feature_side=0) == -1      # COLMAP's own: 3200 for SIFT
     assert pycolmap.FeatureExtractionOptions().eff_max_image_size() == 3200

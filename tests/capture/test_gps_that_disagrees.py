@@ -172,3 +172,26 @@ def test_keep_all_maps_with_the_gps_priors_unwatched(tmp_path, monkeypatch):
     monkeypatch.setattr(poses, "run_colmap", colmap)
     poses.poses_from_images(photos, tmp_path / "data", progress=False, keep_all=True)
     assert colmap.calls[0]["watch"] is None and colmap.calls[0]["priors"]
+
+
+def test_gps_of_larger_photos_stays_out_of_the_mapping_and_a_disagreement_maps_nothing_again(tmp_path, monkeypatch):
+    """Photos over SMALL_SIDE (set to 50 px here; the photos are 80 x 60): the GPS fixes, 100 m
+    apart, are handed on (the spatial matcher pairs by them) but neither watched nor in the
+    mapping; when they disagree with the finished model nothing is mapped again, the model is
+    georeferenced without them; the summary and the report say why the priors stayed out."""
+    monkeypatch.setattr(poses, "SMALL_SIDE", 50)
+    photos, model_dir, _ = _scene(tmp_path, registered=12, photos=13, turned=(5,))
+    stand = _Stand(monkeypatch, model_dir)
+    colmap = _Colmap(model_dir)
+    monkeypatch.setattr(poses, "run_colmap", colmap)
+    summary = poses.poses_from_images(photos, tmp_path / "data", progress=False)
+    call = colmap.calls[0]
+    assert call["watch"] is None and call["small_photos"] is False and len(call["priors"]) == 13
+    assert stand.remaps == [] and stand.aligned == [(13, None), (0, None)]
+    reason = ("photos over 50 px: their features tie the model, and the priors' bundle adjustments would double "
+              "the mapping's time; the GPS aligns the finished model")
+    assert summary["gps_priors"] == 0 and summary["gps_priors_skipped"] == reason
+    assert summary["gps_disagreed"] == {"far": 8, "registered": 12, "stopped_early": False, "remapped": False,
+                                        "far_after": 8, "georeference": "without the GPS"}
+    report = (tmp_path / "data" / "poses_report.md").read_text()
+    assert f"GPS as pose priors: not in the mapping ({reason})" in report.splitlines()

@@ -163,6 +163,7 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
         "photos": 13, "kept": 11, "arc_from": "registered", "verdict": None, "accepted": False}
     assert (summary.pop("registered_left_out"), summary.pop("gps_priors")) == (False, 0)
     assert summary.pop("gps_disagreed") is None   # no GPS to judge
+    assert summary.pop("gps_priors_skipped") is None   # no GPS to leave out of the mapping
     assert summary.pop("unregistered_why") == {}   # no matching database from the stand-in
     assert summary == {
         "photos": 14, "registered": 12, "in_dataset": 11, "unregistered": ["v12.png"], "skipped": ["broken.png"],
@@ -170,7 +171,7 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
         "matcher_reason": "auto: 13 photos, 78 pairs, at most 1225", "overlap": None, "neighbours": None,
         "camera_model": "SIMPLE_RADIAL",
         "single_camera": True, "camera_sharing": "one size, 80x60, and one camera: no EXIF camera",
-        "max_side": None, "feature_side": 1600, "relaxed_mapping": False,
+        "max_side": None, "feature_side": 1200, "relaxed_mapping": False,
         "pycolmap": pycolmap.__version__, "georeference": {"units": "unknown", "source": None},
         "reconstruction_reused": False,
         "seconds": 12.3, "timings_s": {"photos": 0.5, **TIMES, "writing": 9.4},

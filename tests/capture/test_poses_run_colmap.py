@@ -88,6 +88,7 @@ class _StandIn:
         options = options or pycolmap.IncrementalPipelineOptions()
         if not Path(output_path).parent.is_dir():  # as COLMAP: it makes its output folder, not the parents
             raise RuntimeError(f"filesystem error: cannot create directory: {output_path}")
+        self.prior_position = options.use_prior_position
         self.calls.append(("mapping", database_path, image_path, output_path, options.random_seed,
                            options.mapper.filter_max_reproj_error, options.mapper.abs_pose_min_num_inliers,
                            options.mapper.init_min_num_inliers, options.mapper.init_min_tri_angle))
@@ -195,6 +196,20 @@ def test_run_colmap_hands_small_photos_guided_matching_and_ten_inliers(tmp_path,
     poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
                      camera_model="SIMPLE_RADIAL", single_camera=True, show=False, small_photos=small)
     assert (stand_in.guided, stand_in.min_inliers) == (guided, min_inliers)
+
+
+@pytest.mark.parametrize("small", [True, False])
+def test_run_colmap_maps_with_the_gps_priors_for_small_photos_only(tmp_path, monkeypatch, small):
+    """GPS fixes 60 m around the scene: written to the database either way (the spatial matcher
+    pairs by them), in the mapping's bundle adjustment only for small photos."""
+    written = []
+    monkeypatch.setattr(poses, "write_gps_priors", lambda module, database, priors: written.append(len(priors)))
+    fixes = {n: [60.0 * np.cos(k), 60.0 * np.sin(k), 0.0] for k, n in enumerate(NAMES[:12])}
+    stand_in = _StandIn([{0: _model(tmp_path / "m", 12)}])
+    poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="spatial",
+                     camera_model="SIMPLE_RADIAL", single_camera=True, show=False, priors=fixes, small_photos=small)
+    assert written == [12]
+    assert stand_in.prior_position is small
 
 
 def test_run_colmap_sequential_maps_small_photos_again_relaxed_below_90_percent_and_keeps_an_agreeing_model(
