@@ -480,8 +480,9 @@ def priors_skipped(priors: dict, small_photos: bool) -> str | None:
     None without positions."""
     if not priors:
         return None
-    if gps_spread_m(priors) < PRIOR_MIN_SPREAD_M:
-        return (f"the GPS positions spread {gps_spread_m(priors):.0f} m, under {PRIOR_MIN_SPREAD_M:.0f} m: "
+    spread = gps_spread_m(priors)
+    if spread < PRIOR_MIN_SPREAD_M:
+        return (f"the GPS positions spread {spread:.0f} m, under {PRIOR_MIN_SPREAD_M:.0f} m: "
                 "priors would pull the cameras about; the GPS aligns the finished model")
     if PRIORS_SMALL_ONLY and not small_photos:
         return (f"photos over {SMALL_SIDE} px: their features tie the model, and the priors' bundle adjustments "
@@ -1144,7 +1145,8 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         # GPS that disagrees stops the mapping with the priors as the model grows (not with keep_all,
         # which keeps every photo whatever its GPS)
         small_photos = max(max(working_sizes[n]) for n in names) <= SMALL_SIDE
-        watch = MappingWatch(priors) if priors_hold(priors, small_photos) and not keep_all else None
+        priors_in_mapping = priors_hold(priors, small_photos)
+        watch = MappingWatch(priors) if priors_in_mapping and not keep_all else None
         if reused is None:
             model, relaxed, extended = run_colmap(
                 pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
@@ -1172,7 +1174,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         if disagreed is not None:
             gps_judged = gps_judged or {"far": placed["off"], "registered": len(placed["registered"]),
                                         "stopped_early": False, "remapped": False, "georeference": "GPS"}
-            if priors_hold(priors, small_photos) and not without_gps:
+            if priors_in_mapping and not without_gps:
                 _say(f"poses: {disagreed}; mapping again without it", progress)
                 again = map_photos(pycolmap, database, photo_dir, len(names), stage_dir / "_work" / "without_gps",
                                    priors=False, keep_all=keep_all, show=progress, timings=timings,
@@ -1220,7 +1222,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "registered_left_out": bool(extended),
                        "unregistered_why": unregistered_reasons(pycolmap, database, unregistered, registered),
                        "gps_disagreed": gps_judged,
-                       "gps_priors": len(priors) if priors_hold(priors, small_photos) and not without_gps else 0,
+                       "gps_priors": len(priors) if priors_in_mapping and not without_gps else 0,
                        "gps_priors_skipped": priors_skipped(priors, small_photos),
                        "camera_set": dict(cameras, verdict=verdict, accepted=bool(accept_few_cameras)),
                        "pycolmap": str(getattr(pycolmap, "__version__", "unknown")),
