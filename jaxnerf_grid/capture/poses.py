@@ -58,7 +58,17 @@ from typing import Any
 
 import numpy as np
 
-from jaxnerf_grid.capture import camera_set, camera_sharing, georef, gps, pairing, photo_exif, refused, vetting
+from jaxnerf_grid.capture import (
+    camera_set,
+    camera_sharing,
+    georef,
+    gps,
+    pairing,
+    photo_exif,
+    refused,
+    structure_less,
+    vetting,
+)
 from jaxnerf_grid.capture.bounds import scene_bounds
 from jaxnerf_grid.capture.gps_watch import GpsStopped, MappingWatch, gps_disagrees
 from jaxnerf_grid.data.formats.colmap import collect_colmap, observation_depths
@@ -373,7 +383,8 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
                watch: MappingWatch | None = None, neighbours: int = SPATIAL_NEIGHBOURS):
     """Features, matching and incremental mapping. Returns (the kept pycolmap.Reconstruction,
     whether it comes from the relaxed mapping, whether photos left out by the first model were
-    registered afterwards (`register_left_out`)). The relaxed model is judged by its photos that
+    registered afterwards (`register_left_out`), the photos placed from their 2-D matches alone
+    (`structure_less.register`)). The relaxed model is judged by its photos that
     pass the vetting (`vetted_count`; all its photos with `keep_all`). `matcher`: exhaustive,
     spatial (each photo with its `neighbours` nearest by GPS), sequential (each photo with its
     next `overlap`, with loop closure) or vocab. `timings` ({stage: seconds}, when given) gets
@@ -409,19 +420,19 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     with _stage(f"matching ({matcher})", show, timings, "matching"):
         match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree, small_photos, neighbours)
     try:
-        best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
+        mapped = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
                                                   priors=priors_hold(priors or {}, small_photos), keep_all=keep_all,
                                                   show=show, timings=timings, watch=watch, small_photos=small_photos)
     except GpsStopped as stop:
         _say(f"poses: {stop}: a receiver that lags or drifts; mapping without it", show)
-        best, relaxed_used, extended = map_photos(pycolmap, database, photo_dir, len(names), work_dir / "without_gps",
+        mapped = map_photos(pycolmap, database, photo_dir, len(names), work_dir / "without_gps",
                                                   priors=False, keep_all=keep_all, show=show, timings=timings,
                                                   key="mapping_without_gps", label="mapping without the GPS",
                                                   small_photos=small_photos)
-    if best is None:
+    if mapped[0] is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
-    return best, relaxed_used, extended
+    return mapped
 
 
 def remap_relaxed(registered: int | None, total: int, small_photos: bool) -> bool:
@@ -442,7 +453,9 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
     priors (GPS) enter the bundle adjustment. Its models go under `work_dir` (sparse0, sparse1,
     extend); `timings[key]` gets its seconds. watch: judges the default run as it grows
     (`watched_mapping`); its GpsStopped is raised on, `timings[key]` holding the seconds until then.
-    Returns (the model or None, from the relaxed run, extended)."""
+    The photos still out after that are placed from their 2-D matches alone
+    (`structure_less.register`, kept likewise).
+    Returns (the model or None, from the relaxed run, extended, [the photos placed structure-less])."""
     start = time.monotonic()
     work_dir.mkdir(parents=True, exist_ok=True)  # COLMAP makes its output folder, not the parents
     try:
@@ -457,15 +470,27 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
         relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", total, True,
                        f"{label} again (relaxed thresholds)", show, priors=priors)
         best = choose_model(default, relaxed, show, count=count)
-    relaxed_used, extended = best is not default, False
+    relaxed_used, extended, placed = best is not default, False, []
     if best is not None and best.num_reg_images() < total:
         more = register_left_out(pycolmap, database, photo_dir, best, total, work_dir / "extend", show, priors)
-        if more is not None and count(more) > count(best) and poses_agree(model_poses(best), model_poses(more)):
+        if _adds_photos(best, more, count):
             _say(f"poses: registered {more.num_reg_images() - best.num_reg_images()} more photo(s) the first model "
                  "left out", show)
             best, extended = more, True
+    if best is not None and best.num_reg_images() < total:
+        more, names = structure_less.register(pycolmap, database, best, mapper_options(
+            pycolmap, True, priors, LEFT_OUT, LEFT_OUT_TRIANGULATION))
+        if _adds_photos(best, more, count):
+            _say(f"poses: placed {len(names)} more photo(s) from their 2-D matches alone (structure-less)", show)
+            best, placed = more, names
     timings[key] = round(time.monotonic() - start, 1)
-    return best, relaxed_used, extended
+    return best, relaxed_used, extended, placed
+
+
+def _adds_photos(model, more, count) -> bool:
+    """Whether `more` (a model grown from `model`, or None) is worth more photos by `count` and
+    agrees with `model` on the photos both hold (`poses_agree`)."""
+    return more is not None and count(more) > count(model) and poses_agree(model_poses(model), model_poses(more))
 
 
 def priors_hold(priors: dict, small_photos: bool) -> bool:
@@ -998,6 +1023,10 @@ def format_summary(summary: dict) -> str:
                      + ", ".join(f"{name} ({why[name]})" if name in why else name for name in summary["unregistered"]))
     if summary.get("registered_left_out"):
         lines.append("the photos the first model left out were tried again (relaxed thresholds, continuing the model)")
+    if summary.get("registered_structure_less"):
+        lines.append(f"placed from their 2-D matches alone ({len(summary['registered_structure_less'])}; too few of "
+                     "their features on the model's 3-D points to register, COLMAP's structure-less resectioning): "
+                     + ", ".join(summary["registered_structure_less"]))
     cameras = summary.get("camera_set")
     if cameras:
         where = "the photos' GPS" if cameras["arc_from"] == "gps" else "the registered cameras"
@@ -1148,7 +1177,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         priors_in_mapping = priors_hold(priors, small_photos)
         watch = MappingWatch(priors) if priors_in_mapping and not keep_all else None
         if reused is None:
-            model, relaxed, extended = run_colmap(
+            model, relaxed, extended, from_2d = run_colmap(
                 pycolmap, photo_dir, names, stage_dir / "_work", matcher=used, camera_model=camera_model,
                 single_camera=single_camera, vocab_tree=vocab_tree, show=progress, source=images_dir,
                 keep_all=keep_all, overlap=overlap, timings=timings, priors=priors,
@@ -1157,6 +1186,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         else:
             model, record, database = reused
             relaxed, extended = bool(record["relaxed"]), bool(record["extended"])
+            from_2d = list(record.get("structure_less", []))
             _say(f"poses: features, matching and mapping taken from the refused run in {refused.folder_of(out)} "
                  "(the same photos and options)", progress)
         stopped = None if watch is None else watch.stopped   # None too for a reused run: nothing was mapped
@@ -1181,7 +1211,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                                    key="mapping_without_gps", label="mapping without the GPS",
                                    small_photos=small_photos)
                 if again[0] is not None:
-                    (model, relaxed, extended), without_gps = again, True
+                    (model, relaxed, extended, from_2d), without_gps = again, True
                     shutil.rmtree(raw_model)
                     raw_model.mkdir()
                     model.write(raw_model)
@@ -1220,6 +1250,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "max_side": max_side, "feature_side": feature_side, "relaxed_mapping": bool(relaxed),
                        "up_rotation": placed["up_rotation"].tolist(),
                        "registered_left_out": bool(extended),
+                       "registered_structure_less": [name for name in from_2d if name in registered],
                        "unregistered_why": unregistered_reasons(pycolmap, database, unregistered, registered),
                        "gps_disagreed": gps_judged,
                        "gps_priors": len(priors) if priors_in_mapping and not without_gps else 0,
@@ -1230,7 +1261,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "georeference": georeference}
             if verdict is not None and not accept_few_cameras:
                 summary.update(seconds=round(time.monotonic() - start, 1), timings_s=dict(timings))
-                kept_in = keep_refused(out, key, raw_model, database, summary, model, relaxed, extended,
+                kept_in = keep_refused(out, key, raw_model, database, summary, model, relaxed, (extended, from_2d),
                                        timings if reused is None else reused[1]["timings_s"], without_gps)
                 raise DataError(f"{images_dir}: {verdict}; not written (a NeRF trained on them renders the rest as "
                                 f"a ghost); which photos and why: {kept_in / REPORT}; "
@@ -1261,14 +1292,16 @@ def colmap_settings() -> dict:
             "two_view_small": TWO_VIEW_SMALL, "mapper": MAPPER, "relax_below": RELAX_BELOW,
             "relax_below_large": RELAX_BELOW_LARGE, "relaxed": RELAXED,
             "left_out": LEFT_OUT, "left_out_triangulation": LEFT_OUT_TRIANGULATION, "prior_sigma_m": PRIOR_SIGMA_M,
-            "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "priors_small_only": PRIORS_SMALL_ONLY}
+            "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "priors_small_only": PRIORS_SMALL_ONLY,
+            "structure_less_min_correspondences": structure_less.MIN_CORRESPONDENCES}
 
 
 def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: dict, model, relaxed: bool,
-                 extended: bool, colmap_timings: dict, without_gps: bool = False) -> Path:
+                 extended: tuple[bool, list[str]], colmap_timings: dict, without_gps: bool = False) -> Path:
     """`refused.keep` of a run whose camera set was refused: the model as COLMAP returned it
     (raw_model), the database, poses_report.md (the summary and vetting table, no scene bounds)
-    and the top view of the kept cameras. colmap_timings: the seconds of COLMAP's stages, kept
+    and the top view of the kept cameras. extended: (whether photos were registered after the first
+    model, the photos placed structure-less). colmap_timings: the seconds of COLMAP's stages, kept
     for the run that reuses them; without_gps: the model was mapped again without the GPS priors
     (`gps_disagrees`), so the run that reuses it does not do so again. Returns the folder."""
     c2w = np.stack(list(model_poses(model).values()))
@@ -1280,7 +1313,8 @@ def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: 
                         "and options writes it from this reconstruction (docs/POSES.md).", "",
                         *report_lines(summary, None)])
     return refused.keep(out, key, raw_model, database,
-                        {"relaxed": relaxed, "extended": extended, "timings_s": colmap_timings,
+                        {"relaxed": relaxed, "extended": extended[0], "structure_less": list(extended[1]),
+                         "timings_s": colmap_timings,
                          "without_gps": bool(without_gps)}, report,
                         lambda path: draw_topview(path, c2w_norm, points_norm))
 

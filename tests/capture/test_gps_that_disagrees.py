@@ -38,7 +38,7 @@ class _Stand:
     def map_photos(self, module, database, photo_dir, total, work_dir, **kwargs):
         self.remaps.append({"total": total, "folder": work_dir.name, **kwargs})
         kwargs["timings"][kwargs["key"]] = 4.0
-        return pycolmap.Reconstruction(self.model_dir), False, False
+        return pycolmap.Reconstruction(self.model_dir), False, False, []
 
     def align(self, model, positions, **kwargs):
         regs = sorted(model.images[i].name for i in model.reg_image_ids())

@@ -119,7 +119,7 @@ def test_a_mapping_whose_fixes_climb_stops_at_ten_photos_and_the_true_fixes_map_
         work = tmp_path / label
         work.mkdir()
         watch, timings = gps_watch.MappingWatch(fixes), {}
-        model, _, _ = poses.run_colmap(pycolmap, photos, names, work, matcher="exhaustive",
+        model, _, _, _ = poses.run_colmap(pycolmap, photos, names, work, matcher="exhaustive",
                                        camera_model="SIMPLE_RADIAL", single_camera=True, show=False,
                                        timings=timings, priors=truth, watch=watch, small_photos=True)
         runs[label] = (model.num_reg_images(), watch.stopped, sorted(timings), (work / "without_gps").is_dir(),

@@ -61,10 +61,12 @@ def _write_photos(folder, names, size=(80, 60)):
 
 class _Colmap:
     """Stand-in for `poses.run_colmap`: records its arguments and what the staging folder holds
-    when it is called, adds known seconds to `timings`, and returns (the model, relaxed, extended)."""
+    when it is called, adds known seconds to `timings`, and returns (the model, relaxed, extended,
+    the photos placed structure-less: `from_2d`)."""
 
-    def __init__(self, model_dir, relaxed=False, fail=None):
+    def __init__(self, model_dir, relaxed=False, fail=None, from_2d=()):
         self.model_dir, self.relaxed, self.fail, self.calls = model_dir, relaxed, fail, []
+        self.from_2d = list(from_2d)
 
     def __call__(self, module, photo_dir, names, work_dir, **kwargs):
         stage = work_dir.parent
@@ -75,7 +77,7 @@ class _Colmap:
         if self.fail is not None:
             raise self.fail
         kwargs["timings"].update(TIMES)
-        return pycolmap.Reconstruction(self.model_dir), self.relaxed, False
+        return pycolmap.Reconstruction(self.model_dir), self.relaxed, False, self.from_2d
 
 
 def _scene(tmp_path, registered=12, photos=13, turned=(5,), tilt=None, camera=(80, 60, FOCAL, FOCAL, 40, 30),
@@ -161,7 +163,8 @@ def test_poses_from_images_writes_the_dataset_of_the_hand_written_model(tmp_path
     cameras = summary.pop("camera_set")   # 11 of the 13 readable kept: 85 %, at least 75 %
     assert {k: cameras[k] for k in ("photos", "kept", "arc_from", "verdict", "accepted")} == {
         "photos": 13, "kept": 11, "arc_from": "registered", "verdict": None, "accepted": False}
-    assert (summary.pop("registered_left_out"), summary.pop("gps_priors")) == (False, 0)
+    assert (summary.pop("registered_left_out"), summary.pop("registered_structure_less"),
+            summary.pop("gps_priors")) == (False, [], 0)
     assert summary.pop("gps_disagreed") is None   # no GPS to judge
     assert summary.pop("gps_priors_skipped") is None   # no GPS to leave out of the mapping
     assert summary.pop("unregistered_why") == {}   # no matching database from the stand-in
@@ -288,6 +291,18 @@ def test_keep_all_keeps_the_photo_the_vetting_would_leave_out(tmp_path, monkeypa
     assert [r["kept"] for r in summary["vetting"]["photos"]].count(False) == 1    # v05 fails, and stays
     top = io.read_json(tmp_path / "data" / "transforms.json")
     assert "images/v05.png" in [f["file_path"] for f in top["frames"]] and len(top["frames"]) == 12
+
+
+def test_the_photos_placed_from_2d_matches_alone_are_named_in_summary_and_report(tmp_path, monkeypatch):
+    """run_colmap says v03 and v12 were placed structure-less; v12 is not in the model it hands
+    back (v00-v11): the summary and poses_report.md name v03 alone."""
+    photos, model_dir, _ = _scene(tmp_path)
+    monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir, from_2d=["v03.png", "v12.png"]))
+    summary = poses.poses_from_images(photos, tmp_path / "data", progress=False)
+    assert summary["registered_structure_less"] == ["v03.png"]
+    report = (tmp_path / "data" / "poses_report.md").read_text()
+    line, = [x for x in report.splitlines() if x.startswith("placed from their 2-D matches alone")]
+    assert line.startswith("placed from their 2-D matches alone (1; ") and line.endswith("): v03.png")
 
 
 def test_poses_from_images_hands_on_the_vocabulary_tree(tmp_path, monkeypatch):

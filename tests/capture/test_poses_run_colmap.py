@@ -28,6 +28,28 @@ from tests.capture.test_poses_cameras_and_frame import FOCAL, _rings, _write_mod
 pycolmap = pytest.importorskip("pycolmap")
 
 
+class _StructureLess:
+    """Stand-in for `structure_less.register` (COLMAP's mapper on a real database:
+    tests/capture/test_structure_less.py): records (the model it is handed, its options'
+    abs_pose_min_num_inliers) and hands back the next of `results` ((model, names); none left:
+    nothing placed)."""
+
+    def __init__(self):
+        self.calls: list = []
+        self.results: list = []
+
+    def __call__(self, module, database, model, options):
+        self.calls.append((model, options.mapper.abs_pose_min_num_inliers))
+        return self.results.pop(0) if self.results else (None, [])
+
+
+@pytest.fixture(autouse=True)
+def structure_less(monkeypatch):
+    stand_in = _StructureLess()
+    monkeypatch.setattr(poses.structure_less, "register", stand_in)
+    return stand_in
+
+
 class _StandIn:
     """pycolmap with its running calls replaced: records what they are handed; each mapping run
     hands back the next of `maps` ({id: model})."""
@@ -160,7 +182,7 @@ def test_run_colmap_exhaustive_single_camera_sets_its_options_and_keeps_the_larg
     monkeypatch.setattr(poses, "time", _Clock([100.0, 101.26, 101.3, 101.8, 102.0, 109.34]))
     monkeypatch.setattr(poses, "MATCHING", {"guided_matching": True})
     timings = {"photos": 0.4}
-    model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+    model, relaxed, extended, from_2d = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                       matcher="exhaustive", camera_model="OPENCV", single_camera=True, show=False,
                                       timings=timings)
     assert model is largest and relaxed is False and extended is False
@@ -222,7 +244,7 @@ def test_run_colmap_sequential_maps_small_photos_again_relaxed_below_90_percent_
     first, second = _model(tmp_path / "first", 9), _model(tmp_path / "second", 12)
     stand_in = _StandIn([{0: first}, {0: second}])
     monkeypatch.setattr(poses, "time", _Clock([0.0, 1.0, 2.0, 3.0, 4.0, 5.0]))
-    model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+    model, relaxed, extended, from_2d = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                       matcher="sequential", camera_model="PINHOLE", single_camera=False, overlap=4,
                                       keep_all=True, small_photos=True)
     assert model is second and relaxed is True and extended is False
@@ -253,21 +275,53 @@ def test_run_colmap_counts_the_relaxed_model_by_the_vetting_unless_keep_all(tmp_
     second = _model(tmp_path / "second", 12, turned=(9, 10, 11))
     for keep_all, expected in ((False, first), (True, second)):
         stand_in = _StandIn([{0: first}, {0: second}])
-        model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
-                                          matcher="exhaustive", camera_model="OPENCV", single_camera=True,
-                                          show=False, keep_all=keep_all, small_photos=True)
+        model, relaxed, extended, from_2d = poses.run_colmap(
+            stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
+            camera_model="OPENCV", single_camera=True, show=False, keep_all=keep_all, small_photos=True)
         assert model is expected and relaxed is (expected is second) and extended is False, keep_all
         assert [c[3].name for c in stand_in.calls if c[0] == "mapping"][:2] == ["sparse0", "sparse1"]
     stand_in = _StandIn([{0: first}, {0: second}])                    # keep_all left out: the vetted count
     assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
                             camera_model="OPENCV", single_camera=True, show=False,
-                            small_photos=True) == (first, False, False)
+                            small_photos=True) == (first, False, False, [])
     stand_in = _StandIn([{0: first}])
     assert poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:10], tmp_path / "work", matcher="exhaustive",
                             camera_model="OPENCV", single_camera=True, show=False,
-                            small_photos=True) == (first, False, False)
+                            small_photos=True) == (first, False, False, [])
     # one mapping, then the one photo it left out tried again continuing its model (no model back here)
     assert [c[3].name for c in stand_in.calls if c[0] == "mapping"] == ["sparse0", "sparse"]
+
+
+def test_run_colmap_places_the_photos_still_out_from_their_2d_matches_when_that_agrees(tmp_path, structure_less):
+    """Larger photos, 9 of 12 registered, continuing the model registers none: the structure-less
+    step is handed the first model with LEFT_OUT's 10 inliers; its 12-photo model, agreeing, is
+    kept with the names it placed. A grown model whose 3 new photos are turned 20 degrees (they
+    fail the vetting: no more photos kept) or that disagrees is not; with every photo
+    registered it is not called."""
+    first, more = _model(tmp_path / "first", 9), _model(tmp_path / "more", 12)
+    turned = _model(tmp_path / "turned", 12, turned=(9, 10, 11))
+    placed = ["v09.png", "v10.png", "v11.png"]
+    for grown, kept in ((more, more), (turned, first)):
+        structure_less.results.append((grown, placed))
+        stand_in = _StandIn([{0: first}, {}])
+        result = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+                                  matcher="exhaustive", camera_model="OPENCV", single_camera=True, show=False)
+        assert result == (kept, False, False, placed if kept is more else [])
+        assert structure_less.calls[-1] == (first, 10)
+    shifted = _model(tmp_path / "shifted", 12)
+    for k in range(9):               # the first 9 photos turned: the models disagree on them
+        image = shifted.images[k + 1]
+        image.frame.rig_from_world = pycolmap.Rigid3d(pycolmap.Rotation3d([0.0, 0.3, 0.0]), [0.0, 0.0, 0.0]) \
+            * image.frame.rig_from_world
+    structure_less.results.append((shifted, placed))
+    result = poses.run_colmap(_StandIn([{0: first}, {}]), tmp_path / "photos", NAMES[:12], tmp_path / "work",
+                              matcher="exhaustive", camera_model="OPENCV", single_camera=True, show=False,
+                              keep_all=True)
+    assert result == (first, False, False, [])
+    calls = len(structure_less.calls)
+    poses.run_colmap(_StandIn([{0: more}]), tmp_path / "photos", NAMES[:12], tmp_path / "work",
+                     matcher="exhaustive", camera_model="OPENCV", single_camera=True, show=False)
+    assert len(structure_less.calls) == calls
 
 
 def test_remap_relaxed_below_90_percent_for_small_photos_and_below_half_for_larger_ones():
@@ -285,7 +339,7 @@ def test_run_colmap_takes_larger_photos_a_first_model_left_out_straight_to_regis
     registers more and agrees. 5 of 12 (under half): the relaxed mapping into sparse1 first."""
     first, more = _model(tmp_path / "first", 9), _model(tmp_path / "more", 12)
     stand_in = _StandIn([{0: first}, {0: more}])
-    model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
+    model, relaxed, extended, from_2d = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work",
                                                 matcher="exhaustive", camera_model="OPENCV", single_camera=True,
                                                 show=False, keep_all=True)
     assert (model, relaxed, extended) == (more, False, True)
@@ -294,7 +348,7 @@ def test_run_colmap_takes_larger_photos_a_first_model_left_out_straight_to_regis
     assert mappings[1][6:] == (10, 50, 8.0)                  # LEFT_OUT's inliers on the relaxed thresholds
     few = _model(tmp_path / "few", 5)
     stand_in = _StandIn([{0: few}, {0: more}])
-    model, relaxed, extended = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work2",
+    model, relaxed, extended, from_2d = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work2",
                                                 matcher="exhaustive", camera_model="OPENCV", single_camera=True,
                                                 show=False, keep_all=True)
     assert (model, relaxed) == (more, True)
@@ -406,9 +460,9 @@ def test_map_photos_maps_into_a_work_folder_not_made_yet(tmp_path):
     models go to that folder's sparse0, the priors off, the seconds under its own key."""
     stand_in = _StandIn([{0: _model(tmp_path / "m", 12, 30)}])
     timings: dict = {}
-    model, relaxed, extended = poses.map_photos(stand_in, tmp_path / "db", tmp_path / "photos", 12,
+    model, relaxed, extended, from_2d = poses.map_photos(stand_in, tmp_path / "db", tmp_path / "photos", 12,
                                                 tmp_path / "work" / "without_gps", priors=False, keep_all=False,
                                                 show=False, timings=timings, key="mapping_without_gps")
-    assert model.num_reg_images() == 12 and (relaxed, extended) == (False, False)
+    assert model.num_reg_images() == 12 and (relaxed, extended, from_2d) == (False, False, [])
     assert [c[3] for c in stand_in.calls] == [tmp_path / "work" / "without_gps" / "sparse0"]
     assert list(timings) == ["mapping_without_gps"]
