@@ -24,7 +24,8 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      (photos over 800 px: under half, `remap_relaxed`; `choose_model` keeps the relaxed model
      only when it is consistent with the first); the photos the kept model
      left out are then tried again, continuing that model with looser thresholds
-     (`register_left_out`, kept when it agrees); the largest model is kept, the photos outside
+     (`register_left_out`, kept when it agrees), and those still out placed from their 2-D
+     matches alone (`structure_less.register`, likewise); the largest model is kept, the photos outside
      it are named with why (`unregistered_reasons`); a camera set too thin to train on is
      refused (`camera_set`, unless `accept_few_cameras`), its reconstruction and report kept in
      DATA_DIR.refused, which the same run with `accept_few_cameras` reuses (`refused`);
