@@ -44,6 +44,8 @@ def register(pycolmap, database: Path, model, options) -> tuple[object | None, l
         placed_now = 0
         for image_id in waiting:
             if not mapper.register_next_structure_less_image(mapper_options, image_id):
+                if grown.images[image_id].has_pose:  # COLMAP leaves a photo whose pose refinement failed registered
+                    seen.deregister_frame(grown.images[image_id].frame_id)
                 continue
             mapper.triangulate_image(triangulation, image_id)
             mapper.iterative_local_refinement(options.ba_local_max_refinements,

@@ -33,16 +33,18 @@ def _in_view(points, rot, centre):
     return (cam[:, 2] > 0.1) & (xy >= 0).all(1) & (xy[:, 0] < SIZE[0]) & (xy[:, 1] < SIZE[1])
 
 
-def _scene(tmp_path, seen_by_model=6, second_cloud=300, registered=8):
+def _scene(tmp_path, seen_by_model=6, second_cloud=300, registered=8, third_cloud=0):
     """Database and model of 12 ring cameras (v00-v11). The model: v00..v{registered-1} and the
     first cloud (400 points) as its 3-D points. v{registered} (the photo left out) sees
     `seen_by_model` of those points and the second cloud (`second_cloud` points, seen by it and
-    its two neighbours on either side only: no 3-D point). v{registered+1}.. see nothing of the
-    model. Returns (database, model folder, true w2c (R, t) per name)."""
+    its two neighbours on one side only: no 3-D point). v{registered+1} sees the third cloud
+    (`third_cloud` points) with v{registered-1} and v{registered} and nothing of the model; the
+    photos after it nothing. Returns (database, model folder, true w2c (R, t) per name)."""
     rng = np.random.default_rng(4)
     centres, rots = _ring()
     first = rng.uniform(-2.0, 2.0, (400, 3))
     second = rng.uniform(-2.0, 2.0, (second_cloud, 3)) + [0.0, 0.0, 0.5]
+    third = rng.uniform(-2.0, 2.0, (third_cloud, 3)) + [0.0, 0.0, -0.5]
     left = registered
     seen = {}   # name -> [(cloud, point index)] in keypoint order
     for k, (centre, rot) in enumerate(zip(centres, rots)):
@@ -53,8 +55,10 @@ def _scene(tmp_path, seen_by_model=6, second_cloud=300, registered=8):
             own += [("a", i) for i in np.flatnonzero(_in_view(first, rot, centre))[:seen_by_model]]
         if abs(k - left) <= 2 and k <= left:
             own += [("b", i) for i in np.flatnonzero(_in_view(second, rot, centre))]
+        if left - 1 <= k <= left + 1:
+            own += [("c", i) for i in np.flatnonzero(_in_view(third, rot, centre))]
         seen[f"v{k:02d}.png"] = own
-    names = sorted(seen)
+    names, clouds = sorted(seen), {"a": first, "b": second, "c": third}
     database = tmp_path / "database.db"
     db = pycolmap.Database.open(str(database))
     camera = pycolmap.Camera(model="PINHOLE", width=SIZE[0], height=SIZE[1],
@@ -73,7 +77,7 @@ def _scene(tmp_path, seen_by_model=6, second_cloud=300, registered=8):
         db.write_frame(frame)
         rot, centre = rots[k], centres[k]
         truth[name] = (rot, -rot @ centre)
-        xyz = np.array([(first if c == "a" else second)[i] for c, i in seen[name]]).reshape(-1, 3)
+        xyz = np.array([clouds[c][i] for c, i in seen[name]]).reshape(-1, 3)
         db.write_keypoints(ids[name], _pixels(xyz, rot, -rot @ centre, FOCAL, FOCAL, SIZE[0] / 2,
                                               SIZE[1] / 2).astype(np.float32))
     for a in range(len(names)):
@@ -97,7 +101,7 @@ def _scene(tmp_path, seen_by_model=6, second_cloud=300, registered=8):
         rot, t = truth[name]
         q = pycolmap.Rotation3d(rot).quat   # x, y, z, w
         lines.append(f"{ids[name]} {_numbers([q[3], *q[:3]])} {_numbers(t)} {camera.camera_id} {name}")
-        xyz = np.array([(first if c == "a" else second)[i] for c, i in seen[name]])
+        xyz = np.array([clouds[c][i] for c, i in seen[name]])
         xy = _pixels(xyz, rot, t, FOCAL, FOCAL, SIZE[0] / 2, SIZE[1] / 2)   # the keypoints, in their order
         lines.append(" ".join(f"{_numbers(p)} {i + 1 if c == 'a' else -1}" for p, (c, i) in zip(xy, seen[name])))
         for j, (c, i) in enumerate(seen[name]):
@@ -164,3 +168,38 @@ def test_a_photo_is_tried_from_twenty_matches_with_registered_photos(tmp_path, s
     module = _Tried()
     structure_less.register(module, database, pycolmap.Reconstruction(folder), _options())
     assert module.tried == tried
+
+
+class _FailsAfterRegistering(_Tried):
+    """As COLMAP's structure-less resectioning when its pose refinement fails: `failing` is given
+    a pose and registered (the observation manager's register_frame), and False is returned."""
+
+    def __init__(self, failing: str, truth: dict):
+        super().__init__()
+        base, tried = self.IncrementalMapper, self.tried
+
+        class Mapper(base):
+            def register_next_structure_less_image(self, options, image_id):
+                image = self.reconstruction.images[image_id]
+                if image.name != failing:
+                    return super().register_next_structure_less_image(options, image_id)
+                tried.append(failing)
+                rot, t = truth[failing]
+                self.reconstruction.frames[image.frame_id].rig_from_world = pycolmap.Rigid3d(
+                    pycolmap.Rotation3d(rot), t)
+                self.observation_manager.register_frame(image.frame_id)
+                return False
+
+        self.IncrementalMapper = Mapper
+
+
+def test_a_photo_whose_placement_fails_after_colmap_registered_it_is_left_out(tmp_path):
+    """v09 sees a third cloud with v07 and v08; its structure-less resectioning registers it and
+    then fails (COLMAP does so when the pose refinement that follows fails): it is deregistered,
+    so the model holds v00-v08 alone."""
+    database, folder, truth = _scene(tmp_path, third_cloud=300)
+    module = _FailsAfterRegistering("v09.png", truth)
+    grown, names = structure_less.register(module, database, pycolmap.Reconstruction(folder), _options())
+    assert "v09.png" in module.tried and names == ["v08.png"]
+    assert sorted(grown.images[i].name for i in grown.reg_image_ids()) == [f"v{k:02d}.png" for k in range(9)]
+    assert grown.num_images() == 9
