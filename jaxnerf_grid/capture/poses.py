@@ -422,14 +422,14 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
         match_photos(pycolmap, database, matcher, names, work_dir, overlap, vocab_tree, small_photos, neighbours)
     try:
         mapped = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
-                                                  priors=priors_hold(priors or {}, small_photos), keep_all=keep_all,
-                                                  show=show, timings=timings, watch=watch, small_photos=small_photos)
+                            priors=priors_hold(priors or {}, small_photos), keep_all=keep_all,
+                            show=show, timings=timings, watch=watch, small_photos=small_photos)
     except GpsStopped as stop:
         _say(f"poses: {stop}: a receiver that lags or drifts; mapping without it", show)
         mapped = map_photos(pycolmap, database, photo_dir, len(names), work_dir / "without_gps",
-                                                  priors=False, keep_all=keep_all, show=show, timings=timings,
-                                                  key="mapping_without_gps", label="mapping without the GPS",
-                                                  small_photos=small_photos)
+                            priors=False, keep_all=keep_all, show=show, timings=timings,
+                            key="mapping_without_gps", label="mapping without the GPS",
+                            small_photos=small_photos)
     if mapped[0] is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
