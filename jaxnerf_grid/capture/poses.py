@@ -194,6 +194,13 @@ MIN_COMPARED = 8  # a smaller first model is no judge: the relaxed one is kept
 # Two-view tracks are kept there: a photo seen only with one registered neighbour gets its 2-D -
 # 3-D matches from them (on that orbit 35 of 36 against 33 without).
 LEFT_OUT = {"abs_pose_min_num_inliers": 10, "max_reg_trials": 6}
+# A grown model (the photos left out registered into it) is also judged against the photos' GPS:
+# kept only when its cameras fit their fixes (RMS after a similarity fit) within GROWN_GPS_RATIO of
+# the first model's fit, or within GROWN_GPS_FLOOR_M. The models are otherwise compared only on
+# the photos both hold, so a strip of new photos registered turned passes that comparison (on a
+# 57-photo survey at 3600x2700, 8 photos 63 degrees off and 46 of 57 over 9 m from their fixes).
+GROWN_GPS_RATIO = 2.0
+GROWN_GPS_FLOOR_M = 9.0
 LEFT_OUT_TRIANGULATION = {"ignore_two_view_tracks": False}
 
 
@@ -423,13 +430,13 @@ def run_colmap(pycolmap, photo_dir: Path, names: list[str], work_dir: Path, *, m
     try:
         mapped = map_photos(pycolmap, database, photo_dir, len(names), work_dir,
                             priors=priors_hold(priors or {}, small_photos), keep_all=keep_all,
-                            show=show, timings=timings, watch=watch, small_photos=small_photos)
+                            show=show, timings=timings, watch=watch, small_photos=small_photos, positions=priors)
     except GpsStopped as stop:
         _say(f"poses: {stop}: a receiver that lags or drifts; mapping without it", show)
         mapped = map_photos(pycolmap, database, photo_dir, len(names), work_dir / "without_gps",
                             priors=False, keep_all=keep_all, show=show, timings=timings,
                             key="mapping_without_gps", label="mapping without the GPS",
-                            small_photos=small_photos)
+                            small_photos=small_photos)  # the GPS stopped it: no judge of the grown models
     if mapped[0] is None:
         raise DataError(f"{source or photo_dir}: no reconstruction: the photos share too few features (more overlap, "
                         f"more texture or more photos help; see docs/POSES.md)")
@@ -447,7 +454,7 @@ def remap_relaxed(registered: int | None, total: int, small_photos: bool) -> boo
 
 def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, *, priors: bool, keep_all: bool,
                show: bool, timings: dict, key: str = "mapping", label: str = "mapping",
-               watch: MappingWatch | None = None, small_photos: bool = False):
+               watch: MappingWatch | None = None, small_photos: bool = False, positions: dict | None = None):
     """Incremental mapping of a matched database (`total` photos): the default run, the relaxed
     one when `remap_relaxed` says so (`choose_model`), then the photos left out tried again
     (`register_left_out`, kept when the poses agree). priors: the database's pose
@@ -455,7 +462,9 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
     extend); `timings[key]` gets its seconds. watch: judges the default run as it grows
     (`watched_mapping`); its GpsStopped is raised on, `timings[key]` holding the seconds until then.
     The photos still out after that are placed from their 2-D matches alone
-    (`structure_less.register`, kept likewise).
+    (`structure_less.register`, kept likewise). positions: {photo name: [3] GPS position in local
+    metres}: a grown model is kept only when it fits them about as well as the one it grew from
+    (`gps_fit_rms`, GROWN_GPS_RATIO).
     Returns (the model or None, from the relaxed run, extended, [the photos placed structure-less])."""
     start = time.monotonic()
     work_dir.mkdir(parents=True, exist_ok=True)  # COLMAP makes its output folder, not the parents
@@ -474,24 +483,46 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
     relaxed_used, extended, placed = best is not default, False, []
     if best is not None and best.num_reg_images() < total:
         more = register_left_out(pycolmap, database, photo_dir, best, total, work_dir / "extend", show, priors)
-        if _adds_photos(best, more, count):
+        if _adds_photos(best, more, count, positions, show):
             _say(f"poses: registered {more.num_reg_images() - best.num_reg_images()} more photo(s) the first model "
                  "left out", show)
             best, extended = more, True
     if best is not None and best.num_reg_images() < total:
         more, names = structure_less.register(pycolmap, database, best, mapper_options(
             pycolmap, True, priors, LEFT_OUT, LEFT_OUT_TRIANGULATION))
-        if _adds_photos(best, more, count):
+        if _adds_photos(best, more, count, positions, show):
             _say(f"poses: placed {len(names)} more photo(s) from their 2-D matches alone (structure-less)", show)
             best, placed = more, names
     timings[key] = round(time.monotonic() - start, 1)
     return best, relaxed_used, extended, placed
 
 
-def _adds_photos(model, more, count) -> bool:
-    """Whether `more` (a model grown from `model`, or None) is worth more photos by `count` and
-    agrees with `model` on the photos both hold (`poses_agree`)."""
-    return more is not None and count(more) > count(model) and poses_agree(model_poses(model), model_poses(more))
+def _adds_photos(model, more, count, positions: dict | None = None, show: bool = False) -> bool:
+    """Whether `more` (a model grown from `model`, or None) is worth more photos by `count`,
+    agrees with `model` on the photos both hold (`poses_agree`) and, with `positions` (GPS),
+    fits them within GROWN_GPS_RATIO of `model`'s fit or GROWN_GPS_FLOOR_M (`gps_fit_rms`)."""
+    if more is None or count(more) <= count(model) or not poses_agree(model_poses(model), model_poses(more)):
+        return False
+    before, after = gps_fit_rms(model, positions or {}), gps_fit_rms(more, positions or {})
+    if before is None or after is None or after <= max(GROWN_GPS_RATIO * before, GROWN_GPS_FLOOR_M):
+        return True
+    _say(f"poses: the model with {more.num_reg_images() - model.num_reg_images()} more photo(s) fits the GPS "
+         f"{after:.1f} m RMS against {before:.1f} m without them; kept without them", show)
+    return False
+
+
+def gps_fit_rms(model, positions: dict) -> float | None:
+    """RMS distance (m) of a model's registered cameras from their GPS positions ({name: [3]}
+    local metres) after a least-squares similarity fit of the centres (`georef.umeyama`); None
+    with fewer than 3 such photos."""
+    centres = {name: c2w[:3, 3] for name, c2w in model_poses(model).items() if name in positions}
+    if len(centres) < 3:
+        return None
+    names = sorted(centres)
+    src = np.stack([centres[n] for n in names])
+    dst = np.asarray([positions[n] for n in names], np.float64)
+    scale, rot, t = georef.umeyama(src, dst)
+    return float(np.sqrt(np.mean(np.sum((scale * src @ rot.T + t - dst) ** 2, axis=1))))
 
 
 def priors_hold(priors: dict, small_photos: bool) -> bool:
@@ -1294,7 +1325,8 @@ def colmap_settings() -> dict:
             "relax_below_large": RELAX_BELOW_LARGE, "relaxed": RELAXED,
             "left_out": LEFT_OUT, "left_out_triangulation": LEFT_OUT_TRIANGULATION, "prior_sigma_m": PRIOR_SIGMA_M,
             "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "priors_small_only": PRIORS_SMALL_ONLY,
-            "structure_less_min_correspondences": structure_less.MIN_CORRESPONDENCES}
+            "structure_less_min_correspondences": structure_less.MIN_CORRESPONDENCES,
+            "grown_gps": (GROWN_GPS_RATIO, GROWN_GPS_FLOOR_M)}
 
 
 def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: dict, model, relaxed: bool,

@@ -147,15 +147,17 @@ class _Clock:
         return self.times.pop(0)
 
 
-def _model(folder, count, num_points=30, turned=()):
+def _model(folder, count, num_points=30, turned=(), moved=()):
     """A pycolmap.Reconstruction of the first `count` of 18 ring cameras (names v00..v17), each
     seeing `num_points` points where it projects them; the cameras in `turned` are written
-    turned by 20 degrees about their own y axis (their observations kept: they fail the vetting)."""
+    turned by 20 degrees about their own y axis, those in `moved` 10 units along x (their
+    observations kept: they fail the vetting)."""
     centres, w2cs = _rings()
     points = np.array([1.0, -2.0, 3.0]) + np.random.default_rng(7).uniform(-2, 2, (num_points, 3))
     images = [(f"v{k:02d}.png", 1, r, -r @ c) for k, (c, r) in enumerate(zip(centres, w2cs))][:count]
     turn = Rotation.from_rotvec([0.0, np.radians(20.0), 0.0]).as_matrix()
     written = {k: (turn @ w2cs[k], -turn @ w2cs[k] @ centres[k]) for k in turned}
+    written.update({k: (w2cs[k], -w2cs[k] @ (centres[k] + [10.0, 0.0, 0.0])) for k in moved})
     _write_model(folder, {1: (80, 60, FOCAL, FOCAL, 40, 30)}, images, points, written=written)
     return pycolmap.Reconstruction(folder)
 
@@ -322,6 +324,33 @@ def test_run_colmap_places_the_photos_still_out_from_their_2d_matches_when_that_
     poses.run_colmap(_StandIn([{0: more}]), tmp_path / "photos", NAMES[:12], tmp_path / "work",
                      matcher="exhaustive", camera_model="OPENCV", single_camera=True, show=False)
     assert len(structure_less.calls) == calls
+
+
+def test_a_grown_model_is_kept_only_while_it_fits_the_gps_as_the_first_did(tmp_path, structure_less, capsys,
+                                                                           monkeypatch):
+    """GPS fixes at the ring cameras' true centres in metres (x 10: a ring of 90-120 m, plus 0-2 m
+    of noise): continuing the 9-photo model gives 12, the 3 new photos in place (RMS about 1 m:
+    kept) or moved 100 m (RMS tens of metres, over twice the first model's and over 9 m: the first
+    kept, said on stderr). Without GPS the moved model is kept (keep_all: counted by its photos)."""
+    centres, _ = _rings()
+    noise = np.random.default_rng(1).uniform(-2.0, 2.0, (len(centres), 3))
+    fixes = {NAMES[k]: 10.0 * centres[k] + noise[k] for k in range(12)}
+    first, more = _model(tmp_path / "first", 9), _model(tmp_path / "more", 12)
+    moved = _model(tmp_path / "moved", 12, moved=(9, 10, 11))
+    assert poses.gps_fit_rms(more, fixes) < 2.0 * np.sqrt(3) and poses.gps_fit_rms(first, fixes) < 2.0 * np.sqrt(3)
+    assert poses.gps_fit_rms(moved, fixes) > 30.0
+    for grown, positions, kept in ((more, fixes, more), (moved, fixes, first), (moved, None, moved)):
+        model, _, extended, _ = poses.map_photos(
+            _StandIn([{0: first}, {0: grown}]), tmp_path / "db", tmp_path / "photos", 12, tmp_path / "work",
+            priors=False, keep_all=True, show=True, timings={}, positions=positions)
+        assert model is kept and extended is (kept is not first)
+    assert "fits the GPS" in capsys.readouterr().err
+    assert poses.gps_fit_rms(first, {NAMES[0]: fixes[NAMES[0]], NAMES[1]: fixes[NAMES[1]]}) is None
+    monkeypatch.setattr(poses, "write_gps_priors", lambda module, database, priors: len(priors))
+    result = poses.run_colmap(_StandIn([{0: first}, {0: moved}]), tmp_path / "photos", NAMES[:12], tmp_path / "w2",
+                              matcher="spatial", camera_model="OPENCV", single_camera=True, show=False, keep_all=True,
+                              priors=fixes)                  # run_colmap hands its GPS positions on as the judge
+    assert result[0] is first
 
 
 def test_remap_relaxed_below_90_percent_for_small_photos_and_below_half_for_larger_ones():
