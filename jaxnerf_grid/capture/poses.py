@@ -521,8 +521,8 @@ def gps_fit_rms(model, positions: dict) -> float | None:
     names = sorted(centres)
     src = np.stack([centres[n] for n in names])
     dst = np.asarray([positions[n] for n in names], np.float64)
-    scale, rot, t = georef.umeyama(src, dst)
-    return float(np.sqrt(np.mean(np.sum((scale * src @ rot.T + t - dst) ** 2, axis=1))))
+    error = georef.apply_similarity(georef.umeyama(src, dst), src) - dst
+    return float(np.sqrt(np.mean(np.sum(error ** 2, axis=1))))
 
 
 def priors_hold(priors: dict, small_photos: bool) -> bool:
@@ -1293,7 +1293,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                        "georeference": georeference}
             if verdict is not None and not accept_few_cameras:
                 summary.update(seconds=round(time.monotonic() - start, 1), timings_s=dict(timings))
-                kept_in = keep_refused(out, key, raw_model, database, summary, model, relaxed, (extended, from_2d),
+                kept_in = keep_refused(out, key, raw_model, database, summary, model, relaxed, extended, from_2d,
                                        timings if reused is None else reused[1]["timings_s"], without_gps)
                 raise DataError(f"{images_dir}: {verdict}; not written (a NeRF trained on them renders the rest as "
                                 f"a ghost); which photos and why: {kept_in / REPORT}; "
@@ -1330,11 +1330,11 @@ def colmap_settings() -> dict:
 
 
 def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: dict, model, relaxed: bool,
-                 extended: tuple[bool, list[str]], colmap_timings: dict, without_gps: bool = False) -> Path:
+                 extended: bool, from_2d: list[str], colmap_timings: dict, without_gps: bool = False) -> Path:
     """`refused.keep` of a run whose camera set was refused: the model as COLMAP returned it
     (raw_model), the database, poses_report.md (the summary and vetting table, no scene bounds)
-    and the top view of the kept cameras. extended: (whether photos were registered after the first
-    model, the photos placed structure-less). colmap_timings: the seconds of COLMAP's stages, kept
+    and the top view of the kept cameras. extended: whether photos were registered after the first
+    model; from_2d: the photos placed structure-less. colmap_timings: the seconds of COLMAP's stages, kept
     for the run that reuses them; without_gps: the model was mapped again without the GPS priors
     (`gps_disagrees`), so the run that reuses it does not do so again. Returns the folder."""
     c2w = np.stack(list(model_poses(model).values()))
@@ -1346,7 +1346,7 @@ def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: 
                         "and options writes it from this reconstruction (docs/POSES.md).", "",
                         *report_lines(summary, None)])
     return refused.keep(out, key, raw_model, database,
-                        {"relaxed": relaxed, "extended": extended[0], "structure_less": list(extended[1]),
+                        {"relaxed": relaxed, "extended": extended, "structure_less": list(from_2d),
                          "timings_s": colmap_timings,
                          "without_gps": bool(without_gps)}, report,
                         lambda path: draw_topview(path, c2w_norm, points_norm))
