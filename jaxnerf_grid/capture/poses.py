@@ -23,9 +23,9 @@ layout (docs/DATASET.md). How to run it and its limits: docs/POSES.md.
      `gps_watch`), once more with relaxed thresholds when under 90 % of the photos register
      (photos over 800 px: under half, `remap_relaxed`; `choose_model` keeps the relaxed model
      only when it is consistent with the first); the photos the kept model
-     left out are then tried again, continuing that model with looser thresholds
-     (`register_left_out`, kept when it agrees), and those still out placed from their 2-D
-     matches alone (`structure_less.register`, likewise); the largest model is kept, the photos outside
+     left out are then placed from their 2-D matches alone (`structure_less.register`, kept
+     when it agrees), and those still out tried again, continuing that model with looser
+     thresholds (`register_left_out`, likewise); the largest model is kept, the photos outside
      it are named with why (`unregistered_reasons`); a camera set too thin to train on is
      refused (`camera_set`, unless `accept_few_cameras`), its reconstruction and report kept in
      DATA_DIR.refused, which the same run with `accept_few_cameras` reuses (`refused`);
@@ -456,13 +456,13 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
                show: bool, timings: dict, key: str = "mapping", label: str = "mapping",
                watch: MappingWatch | None = None, small_photos: bool = False, positions: dict | None = None):
     """Incremental mapping of a matched database (`total` photos): the default run, the relaxed
-    one when `remap_relaxed` says so (`choose_model`), then the photos left out tried again
-    (`register_left_out`, kept when the poses agree). priors: the database's pose
-    priors (GPS) enter the bundle adjustment. Its models go under `work_dir` (sparse0, sparse1,
-    extend); `timings[key]` gets its seconds. watch: judges the default run as it grows
+    one when `remap_relaxed` says so (`choose_model`), then the photos left out placed from their
+    2-D matches alone (`structure_less.register`, kept when the poses agree), then those still out
+    tried again continuing the model (`register_left_out`, kept likewise). priors: the database's
+    pose priors (GPS) enter the bundle adjustment. Its models go under `work_dir` (sparse0,
+    sparse1, extend); `timings[key]` gets its seconds. watch: judges the default run as it grows
     (`watched_mapping`); its GpsStopped is raised on, `timings[key]` holding the seconds until then.
-    The photos still out after that are placed from their 2-D matches alone
-    (`structure_less.register`, kept likewise). positions: {photo name: [3] GPS position in local
+    positions: {photo name: [3] GPS position in local
     metres}: a grown model is kept only when it fits them about as well as the one it grew from
     (`gps_fit_rms`, GROWN_GPS_RATIO).
     Returns (the model or None, from the relaxed run, extended, [the photos placed structure-less])."""
@@ -481,18 +481,20 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
                        f"{label} again (relaxed thresholds)", show, priors=priors)
         best = choose_model(default, relaxed, show, count=count)
     relaxed_used, extended, placed = best is not default, False, []
-    if best is not None and best.num_reg_images() < total:
-        more = register_left_out(pycolmap, database, photo_dir, best, total, work_dir / "extend", show, priors)
-        if _adds_photos(best, more, count, positions, show):
-            _say(f"poses: registered {more.num_reg_images() - best.num_reg_images()} more photo(s) the first model "
-                 "left out", show)
-            best, extended = more, True
+    # structure-less first: seconds where continuing the model takes a minute, and what it places
+    # is not offered to `register_left_out`, whose relaxed thresholds can fold a weakly tied strip
     if best is not None and best.num_reg_images() < total:
         more, names = structure_less.register(pycolmap, database, best, mapper_options(
             pycolmap, True, priors, LEFT_OUT, LEFT_OUT_TRIANGULATION))
         if _adds_photos(best, more, count, positions, show):
             _say(f"poses: placed {len(names)} more photo(s) from their 2-D matches alone (structure-less)", show)
             best, placed = more, names
+    if best is not None and best.num_reg_images() < total:
+        more = register_left_out(pycolmap, database, photo_dir, best, total, work_dir / "extend", show, priors)
+        if _adds_photos(best, more, count, positions, show):
+            _say(f"poses: registered {more.num_reg_images() - best.num_reg_images()} more photo(s) the first model "
+                 "left out", show)
+            best, extended = more, True
     timings[key] = round(time.monotonic() - start, 1)
     return best, relaxed_used, extended, placed
 

@@ -326,6 +326,28 @@ def test_run_colmap_places_the_photos_still_out_from_their_2d_matches_when_that_
     assert len(structure_less.calls) == calls
 
 
+def test_the_photos_still_out_are_placed_from_their_2d_matches_before_the_model_is_continued(tmp_path,
+                                                                                           structure_less):
+    """Larger photos, 9 of 12 registered: the structure-less step is handed the first model and
+    places 2 (11 photos); continuing the model (`register_left_out`) then starts from those 11
+    and registers the last (12). When the structure-less step places all 3, the model is not
+    continued at all."""
+    first, eleven, twelve = _model(tmp_path / "first", 9), _model(tmp_path / "eleven", 11), _model(tmp_path / "all", 12)
+    structure_less.results.append((eleven, ["v09.png", "v10.png"]))
+    stand_in = _StandIn([{0: first}, {0: twelve}])
+    result = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work", matcher="exhaustive",
+                              camera_model="OPENCV", single_camera=True, show=False)
+    assert result == (twelve, False, True, ["v09.png", "v10.png"])
+    assert structure_less.calls[-1][0] is first
+    assert pycolmap.Reconstruction(tmp_path / "work" / "extend" / "start").num_reg_images() == 11
+    structure_less.results.append((twelve, ["v09.png", "v10.png", "v11.png"]))
+    stand_in = _StandIn([{0: first}, {0: twelve}])
+    result = poses.run_colmap(stand_in, tmp_path / "photos", NAMES[:12], tmp_path / "work2", matcher="exhaustive",
+                              camera_model="OPENCV", single_camera=True, show=False)
+    assert result == (twelve, False, False, ["v09.png", "v10.png", "v11.png"])
+    assert [c[3].name for c in stand_in.calls if c[0] == "mapping"] == ["sparse0"]
+
+
 def test_a_grown_model_is_kept_only_while_it_fits_the_gps_as_the_first_did(tmp_path, structure_less, capsys,
                                                                            monkeypatch):
     """GPS fixes at the ring cameras' true centres in metres (x 10: a ring of 90-120 m, plus 0-2 m
