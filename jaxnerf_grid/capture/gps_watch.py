@@ -25,14 +25,15 @@ CHECK_MIN = 10   # placed photos before the growing model is judged: a fit to a 
 
 def gps_disagrees(far: int, registered: int) -> str | None:
     """Why the GPS is not to be trusted when the GPS residuals' outliers (far of the registered
-    photos) are half of them or more: then the receiver, not the mapping, is wrong (a camera's
-    own GPS that lags the shutter or drifts in height), and leaving those photos out is no cure:
-    `poses` maps again without the GPS priors, and georeferences without the GPS when it still
-    disagrees. None under half."""
+    photos) are half of them or more: then the receiver (a camera's own GPS that lags the
+    shutter or drifts in height) or the model as a whole (a part of it registered turned) is
+    wrong, not a few photos, and leaving those photos out is no cure: `poses` maps again without
+    the GPS priors, and georeferences without the GPS when it still disagrees. None under half."""
     if registered <= 0 or far < 0.5 * registered:
         return None
     return (f"the GPS disagrees with the photos' reconstruction ({far} of {registered} registered photos more than "
-            f"{georef.INLIER_METRES:.0f} m from their fixes): a receiver that lags or drifts")
+            f"{georef.INLIER_METRES:.0f} m from their fixes): a receiver that lags or drifts, or photos registered "
+            "in the wrong place")
 
 
 def far_from_fixes(c2w: dict, fixes: dict) -> tuple[int, int]:

@@ -202,6 +202,12 @@ LEFT_OUT = {"abs_pose_min_num_inliers": 10, "max_reg_trials": 6}
 GROWN_GPS_RATIO = 2.0
 GROWN_GPS_FLOOR_M = 9.0
 LEFT_OUT_TRIANGULATION = {"ignore_two_view_tracks": False}
+# The first mapping and the continuation of a model stop after one model: only the largest model
+# is kept, and the photos a model leaves out go on to the steps above, so further models started
+# from them (COLMAP's multiple_models) are time for nothing: on a 57-photo survey at 3600x2700
+# COLMAP was caught building one in a mapping of 739 s, against 100-300 s in the other runs of those
+# matches. The relaxed mapping from scratch, the remedy when the first model is small, still tries several.
+SINGLE_MODEL = True
 
 
 def import_pycolmap():
@@ -463,14 +469,14 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
     sparse1, extend); `timings[key]` gets its seconds. watch: judges the default run as it grows
     (`watched_mapping`); its GpsStopped is raised on, `timings[key]` holding the seconds until then.
     positions: {photo name: [3] GPS position in local
-    metres}: a grown model is kept only when it fits them about as well as the one it grew from
-    (`gps_fit_rms`, GROWN_GPS_RATIO).
+    metres}: a grown or relaxed model is kept only when it fits them about as well as the model
+    it would replace (`fits_gps_as_well`).
     Returns (the model or None, from the relaxed run, extended, [the photos placed structure-less])."""
     start = time.monotonic()
     work_dir.mkdir(parents=True, exist_ok=True)  # COLMAP makes its output folder, not the parents
     try:
         default = _map(pycolmap, database, photo_dir, work_dir / "sparse0", total, False, label, show, priors=priors,
-                       watch=watch)
+                       watch=watch, single_model=SINGLE_MODEL)
     except GpsStopped:
         timings[key] = round(time.monotonic() - start, 1)
         raise
@@ -479,7 +485,7 @@ def map_photos(pycolmap, database, photo_dir: Path, total: int, work_dir: Path, 
     if remap_relaxed(None if default is None else default.num_reg_images(), total, small_photos):
         relaxed = _map(pycolmap, database, photo_dir, work_dir / "sparse1", total, True,
                        f"{label} again (relaxed thresholds)", show, priors=priors)
-        best = choose_model(default, relaxed, show, count=count)
+        best = choose_model(default, relaxed, show, count=count, positions=positions)
     relaxed_used, extended, placed = best is not default, False, []
     # structure-less first: seconds where continuing the model takes a minute, and what it places
     # is not offered to `register_left_out`, whose relaxed thresholds can fold a weakly tied strip
@@ -505,6 +511,13 @@ def _adds_photos(model, more, count, positions: dict | None = None, show: bool =
     fits them within GROWN_GPS_RATIO of `model`'s fit or GROWN_GPS_FLOOR_M (`gps_fit_rms`)."""
     if more is None or count(more) <= count(model) or not poses_agree(model_poses(model), model_poses(more)):
         return False
+    return fits_gps_as_well(model, more, positions, show)
+
+
+def fits_gps_as_well(model, more, positions: dict | None, show: bool = False) -> bool:
+    """Whether `more` (a model with more photos than `model`) fits the GPS `positions`
+    ({name: [3]} local metres; None or too few: True) within GROWN_GPS_RATIO of `model`'s RMS
+    or GROWN_GPS_FLOOR_M (`gps_fit_rms`); says so on stderr when it does not."""
     before, after = gps_fit_rms(model, positions or {}), gps_fit_rms(more, positions or {})
     if before is None or after is None or after <= max(GROWN_GPS_RATIO * before, GROWN_GPS_FLOOR_M):
         return True
@@ -651,7 +664,8 @@ def register_left_out(pycolmap, database, photo_dir, model, total: int, work_dir
     out.mkdir(parents=True, exist_ok=True)
     model.write(start)
     return _map(pycolmap, database, photo_dir, out, total, True, "registering the photos left out", show,
-                priors=priors, start_from=start, extra=LEFT_OUT, triangulation=LEFT_OUT_TRIANGULATION)
+                priors=priors, start_from=start, extra=LEFT_OUT, triangulation=LEFT_OUT_TRIANGULATION,
+                single_model=SINGLE_MODEL)
 
 
 def _registered_count(model) -> int:
@@ -663,21 +677,23 @@ def vetted_count(model) -> int:
     return sum(row["kept"] for row in vetting.vet(vetting.records_from_pycolmap(model)))
 
 
-def choose_model(default, relaxed, show: bool = False, count=_registered_count):
+def choose_model(default, relaxed, show: bool = False, count=_registered_count, positions: dict | None = None):
     """The default mapping's model or the relaxed one's (either may be None).
 
     `count(model)`: the photos a model is worth (its registered photos, or those that pass the
     vetting: relaxed thresholds may add photos only when they pass it).
     The relaxed model is kept when it counts more photos and either the default model is
     too small to judge it (fewer than MIN_COMPARED photos) or it agrees with the default model
-    on the photos both hold (`poses_agree`): relaxed thresholds can also register photos
+    on the photos both hold (`poses_agree`) and, with `positions` ({name: [3]} GPS, local metres),
+    fits them about as well (`fits_gps_as_well`): relaxed thresholds can also register photos
     wrongly, e.g. across the look-alike faces of a lattice tower.
     """
     if relaxed is None or (default is not None and count(relaxed) <= count(default)):
         return default
     if default is None or default.num_reg_images() < MIN_COMPARED:
         return relaxed
-    if poses_agree(model_poses(default), model_poses(relaxed)):
+    if poses_agree(model_poses(default), model_poses(relaxed)) and fits_gps_as_well(default, relaxed, positions,
+                                                                                    show):
         _say(f"poses: kept the relaxed model ({relaxed.num_reg_images()} photos)", show)
         return relaxed
     _say(f"poses: the relaxed model ({relaxed.num_reg_images()} photos) disagrees with the default one; "
@@ -716,15 +732,18 @@ def poses_agree(a: dict, b: dict, *, max_deg: float = AGREE_DEG, max_centre: flo
 
 
 def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | None = None,
-                   triangulation: dict | None = None):
+                   triangulation: dict | None = None, single_model: bool = False):
     """COLMAP's incremental mapper options: its defaults, or with `relaxed` the thresholds for
     small or texture-poor photos (RELAXED: fewer inliers to start a model and to register a
     photo, a smaller starting triangulation angle); `extra` / `triangulation`: more mapper /
     triangulation options on top; with
     `priors` the database's pose priors (GPS) enter the bundle adjustment
-    (`use_prior_position`, a robust loss: a GPS outlier does not bend the model)."""
+    (`use_prior_position`, a robust loss: a GPS outlier does not bend the model); with
+    `single_model` COLMAP stops after its first model (no further models started from the
+    photos it left out: `SINGLE_MODEL`)."""
     options = pycolmap.IncrementalPipelineOptions()
     options.random_seed = 0
+    options.multiple_models = not single_model
     set_options(options.mapper, MAPPER, RELAXED if relaxed else {}, extra or {})
     set_options(options.triangulation, triangulation or {})
     if priors:
@@ -734,7 +753,7 @@ def mapper_options(pycolmap, relaxed: bool, priors: bool = False, extra: dict | 
 
 
 def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show, *, priors=False, start_from=None,
-         extra=None, triangulation=None, watch: MappingWatch | None = None):
+         extra=None, triangulation=None, watch: MappingWatch | None = None, single_model: bool = False):
     """One incremental mapping run (`pycolmap.incremental_mapping`), from scratch or continuing
     the model in the folder `start_from`. Returns its largest model or None. The progress line
     counts registered photos (`RegisteredCount`), at most `total`. With `watch`, the growing
@@ -742,7 +761,7 @@ def _map(pycolmap, database, photo_dir, out_dir, total, relaxed, label, show, *,
     bar = progress.bar(total=total, desc=f"poses: {label}", unit="photo", enabled=show)
     count = RegisteredCount(bar, total, start=0 if start_from is None else _model_size(pycolmap, start_from))
     kwargs = {} if start_from is None else {"input_path": start_from}
-    options = mapper_options(pycolmap, relaxed, priors, extra, triangulation)
+    options = mapper_options(pycolmap, relaxed, priors, extra, triangulation, single_model)
     try:
         if watch is not None and start_from is None:
             models = watched_mapping(pycolmap, database, photo_dir, out_dir, options, count, watch)
@@ -1328,7 +1347,8 @@ def colmap_settings() -> dict:
             "left_out": LEFT_OUT, "left_out_triangulation": LEFT_OUT_TRIANGULATION, "prior_sigma_m": PRIOR_SIGMA_M,
             "prior_min_spread_m": PRIOR_MIN_SPREAD_M, "priors_small_only": PRIORS_SMALL_ONLY,
             "structure_less_min_correspondences": structure_less.MIN_CORRESPONDENCES,
-            "grown_gps": (GROWN_GPS_RATIO, GROWN_GPS_FLOOR_M)}
+            "grown_gps": (GROWN_GPS_RATIO, GROWN_GPS_FLOOR_M), "single_model": SINGLE_MODEL,
+            "left_out_steps": ("structure_less", "continued")}
 
 
 def keep_refused(out: Path, key: str, raw_model: Path, database: Path, summary: dict, model, relaxed: bool,

@@ -134,7 +134,8 @@ def test_the_gps_is_distrusted_when_half_the_registered_photos_or_more_are_far_f
     from jaxnerf_grid.capture.poses import gps_disagrees
 
     assert gps_disagrees(49, 57) == ("the GPS disagrees with the photos' reconstruction (49 of 57 registered photos "
-                                     "more than 9 m from their fixes): a receiver that lags or drifts")
+                                     "more than 9 m from their fixes): a receiver that lags or drifts, "
+                                     "or photos registered in the wrong place")
     assert gps_disagrees(5, 10) is not None
     assert gps_disagrees(4, 10) is None and gps_disagrees(0, 0) is None
 

@@ -68,7 +68,7 @@ def test_gps_that_still_disagrees_after_mapping_without_it_is_left_out_of_the_ge
                                         "far_after": 8, "georeference": "without the GPS"}
     assert summary["georeference"]["gps_ignored"] == (
         "the GPS disagrees with the photos' reconstruction (8 of 12 registered photos more than 9 m from their "
-        "fixes): a receiver that lags or drifts")
+        "fixes): a receiver that lags or drifts, or photos registered in the wrong place")
     assert summary["timings_s"]["mapping_without_gps"] == 4.0 and summary["gps_priors"] == 0
     report = (tmp_path / "data" / "poses_report.md").read_text()
     assert ("the GPS disagreed with the reconstruction (8 of 12 registered photos over 9 m from their fixes): mapped "
@@ -125,7 +125,7 @@ def test_gps_that_still_disagrees_with_a_crs_asked_is_a_one_line_error_naming_it
         poses.poses_from_images(photos, tmp_path / "data", progress=False, crs="EPSG:2056")
     assert str(err.value) == (f"{photos}: poses.crs = EPSG:2056: the GPS disagrees with the photos' reconstruction "
                               "(8 of 12 registered photos more than 9 m from their fixes): a receiver that lags or "
-                              "drifts; ground control points (poses.gcp) place the model in the CRS without it")
+                              "drifts, or photos registered in the wrong place; ground control points (poses.gcp) place the model in the CRS without it")
     assert not (tmp_path / "data").exists()
 
 

@@ -77,7 +77,8 @@ def test_far_from_fixes_counts_only_cameras_with_a_fix_and_fits_none_under_three
 def test_gps_disagrees_from_half_the_photos():
     assert gps_watch.gps_disagrees(5, 11) is None
     assert gps_watch.gps_disagrees(6, 12) == ("the GPS disagrees with the photos' reconstruction (6 of 12 registered "
-                                              "photos more than 9 m from their fixes): a receiver that lags or drifts")
+                                              "photos more than 9 m from their fixes): a receiver that lags or drifts, "
+                                              "or photos registered in the wrong place")
     assert gps_watch.gps_disagrees(0, 0) is None
 
 

@@ -111,6 +111,7 @@ class _StandIn:
         if not Path(output_path).parent.is_dir():  # as COLMAP: it makes its output folder, not the parents
             raise RuntimeError(f"filesystem error: cannot create directory: {output_path}")
         self.prior_position = options.use_prior_position
+        self.multiple_models = getattr(self, "multiple_models", []) + [options.multiple_models]
         self.calls.append(("mapping", database_path, image_path, output_path, options.random_seed,
                            options.mapper.filter_max_reproj_error, options.mapper.abs_pose_min_num_inliers,
                            options.mapper.init_min_num_inliers, options.mapper.init_min_tri_angle))
@@ -373,6 +374,34 @@ def test_a_grown_model_is_kept_only_while_it_fits_the_gps_as_the_first_did(tmp_p
                               matcher="spatial", camera_model="OPENCV", single_camera=True, show=False, keep_all=True,
                               priors=fixes)                  # run_colmap hands its GPS positions on as the judge
     assert result[0] is first
+
+
+def test_the_relaxed_model_is_kept_only_while_it_fits_the_gps_as_the_first_did(tmp_path, capsys):
+    """Small photos, 9 of 12 registered: the relaxed mapping from scratch registers 12, agreeing
+    with the first on their 9; its 3 new photos moved 100 m from their fixes (RMS tens of metres):
+    with the GPS the first model is kept, said on stderr; without it the relaxed one."""
+    centres, _ = _rings()
+    fixes = {NAMES[k]: 10.0 * centres[k] for k in range(12)}
+    first, moved = _model(tmp_path / "first", 9), _model(tmp_path / "moved", 12, moved=(9, 10, 11))
+    for positions, kept in ((fixes, first), (None, moved)):
+        model, relaxed, _, _ = poses.map_photos(
+            _StandIn([{0: first}, {0: moved}]), tmp_path / "db", tmp_path / "photos", 12, tmp_path / "work",
+            priors=False, keep_all=True, show=True, timings={}, small_photos=True, positions=positions)
+        assert model is kept and relaxed is (kept is moved)
+    assert "poses: the model with 3 more photo(s) fits the GPS" in capsys.readouterr().err
+
+
+def test_the_first_mapping_and_its_continuation_build_one_model_the_relaxed_mapping_several(tmp_path):
+    """Small photos, 9 of 12 registered: the first mapping (sparse0) asks COLMAP for one model,
+    the relaxed mapping from scratch (sparse1) for several, the continuation of the kept model
+    (extend/sparse) for one."""
+    first = _model(tmp_path / "first", 9)
+    stand_in = _StandIn([{0: first}, {}, {}])
+    poses.map_photos(stand_in, tmp_path / "db", tmp_path / "photos", 12, tmp_path / "work", priors=False,
+                     keep_all=True, show=False, timings={}, small_photos=True)
+    assert [c[3].relative_to(tmp_path / "work").as_posix() for c in stand_in.calls if c[0] == "mapping"] == [
+        "sparse0", "sparse1", "extend/sparse"]
+    assert stand_in.multiple_models == [False, True, False]
 
 
 def test_remap_relaxed_below_90_percent_for_small_photos_and_below_half_for_larger_ones():
