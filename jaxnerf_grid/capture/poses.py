@@ -1248,7 +1248,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
         model.write(raw_model)  # as COLMAP returned it: what a refused run keeps
         align_options = {"crs_name": crs, "gcp_path": gcp, "scale_bar": scale_bar, "sizes": sizes, "ratios": ratios,
                          "source": images_dir}
-        placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options)
+        placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options, priors)
         disagreed = None if keep_all else gps_disagrees(placed["off"], len(placed["registered"]))
         gps_judged: dict[str, Any] | None = None
         if stopped is not None:  # judged on the growing model: far of the photos placed when it stopped
@@ -1268,7 +1268,7 @@ def poses_from_images(images_dir, out_dir, *, matcher: str = "auto", camera_mode
                     shutil.rmtree(raw_model)
                     raw_model.mkdir()
                     model.write(raw_model)
-                    placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options)
+                    placed = vet_and_place(pycolmap, raw_model, names, keep_all, positions, align_options, priors)
             still = gps_disagrees(placed["off"], len(placed["registered"]))
             gps_judged.update(remapped=without_gps, far_after=placed["off"])
             if still is not None and crs is not None and gcp is None:
@@ -1392,10 +1392,11 @@ def gps_local_positions(positions: dict, crs_name: str | None) -> tuple[dict, np
 
 
 def vet_and_place(pycolmap, model_dir: Path, names: list[str], keep_all: bool, positions: dict,
-                  align_options: dict) -> dict:
+                  align_options: dict, fixes: dict | None = None) -> dict:
     """The model COLMAP returned (read from `model_dir`, pycolmap's model folder) vetted
     (`vetting.vet`; the photos that fail left out unless `keep_all`), turned z-up (`orient_z_up`)
-    and aligned (`georef.align_model` with the photos' GPS `positions` and `align_options`).
+    and aligned (`georef.align_model` with the photos' GPS `positions` and `align_options`);
+    fixes: {name: [3]} the GPS positions in local metres, for `gps_outliers`.
     DataError (naming align_options["source"]) when fewer than `enough_registered` photos pass.
     Returns {"model", "registered" (names, before the vetting), "unregistered", "rows" (the
     vetting's), "left_out", "centres" [R, 3] (the registered cameras, in the aligned frame),
@@ -1423,7 +1424,7 @@ def vet_and_place(pycolmap, model_dir: Path, names: list[str], keep_all: bool, p
         centres = georef.apply_similarity(sim, centres)
     return {"model": model, "registered": registered, "unregistered": unregistered, "rows": rows,
             "left_out": left_out, "centres": centres, "up_rotation": rot, "georeference": georeference,
-            "far": [] if keep_all else gps_outliers(georeference), "off": gps_off_count(georeference)}
+            "far": [] if keep_all else gps_outliers(georeference, fixes), "off": gps_off_count(georeference)}
 
 
 def camera_set_of(model, readable: int, registered_centres: np.ndarray, priors: dict, priors_origin,
@@ -1507,16 +1508,41 @@ def gps_outlier_metres(errors) -> float:
     return max(georef.INLIER_METRES, GPS_OUTLIER_MEDIANS * float(np.median(errors)))
 
 
-def gps_outliers(georeference: dict) -> list[tuple[str, str]]:
+GPS_NEIGHBOURS = 4   # the photos nearest by GPS whose residuals say where the receiver's error stood
+
+
+def gps_outliers(georeference: dict, positions: dict | None = None) -> list[tuple[str, str]]:
     """The registered photos whose camera lies further from its GPS position after the alignment
     than `gps_outlier_metres` of the residuals, with the reason in words: [(name, reason)]. A
     consumer receiver errs by 1-5 m; a camera 9 m or more off (more on a noisier receiver) was put
     in the wrong place by the mapping (on a 30-photo orbit one such camera was kept by the vetting
-    105 degrees off, and tilted the rest by 10 degrees in the alignment)."""
+    105 degrees off, and tilted the rest by 10 degrees in the alignment).
+    positions: {name: [3]} the fixes (local metres); with them a camera is off only when its
+    residual also differs by more than the limit from the median residual of its GPS_NEIGHBOURS
+    nearest photos (`local_residuals`): a receiver that drifts or lags moves neighbouring fixes
+    alike (seneca: the altitude of consecutive photos 7, 9 and 12 m off), a misplaced camera alone."""
     rows = (georeference.get("gps") or {}).get("residuals") or []
     limit = gps_outlier_metres([r["error"] for r in rows])
+    local = local_residuals(rows, positions or {})
     return [(r["name"], f"{r['error']:.1f} m from its GPS position (more than {limit:.0f} m)")
-            for r in rows if r["error"] > limit]
+            for r in rows if r["error"] > limit and local.get(r["name"], r["error"]) > limit]
+
+
+def local_residuals(rows: list[dict], positions: dict, neighbours: int = GPS_NEIGHBOURS) -> dict:
+    """{name: metres}: each GPS residual (rows of `georef.align_model`'s residuals: name, dx, dy,
+    dz) less the component-wise median residual of the `neighbours` photos whose fixes
+    (`positions`, {name: [3]}) are nearest its own. Photos without a fix, and every photo when
+    fewer than neighbours + 1 have one, are left out."""
+    rows = [r for r in rows if r["name"] in positions and "dx" in r]
+    if len(rows) <= neighbours:
+        return {}
+    fixes = np.asarray([positions[r["name"]] for r in rows], np.float64)
+    residual = np.asarray([[r["dx"], r["dy"], r["dz"]] for r in rows], np.float64)
+    gap = np.linalg.norm(fixes[:, None] - fixes[None], axis=-1)
+    np.fill_diagonal(gap, np.inf)
+    nearest = np.argsort(gap, axis=1)[:, :neighbours]
+    local = residual - np.median(residual[nearest], axis=1)
+    return {r["name"]: float(np.linalg.norm(d)) for r, d in zip(rows, local)}
 
 
 def gps_off_count(georeference: dict) -> int:

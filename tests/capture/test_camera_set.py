@@ -127,6 +127,28 @@ def test_a_noisy_receivers_spread_leaves_no_camera_out_but_a_misplaced_one():
     assert gps_outlier_metres([2.0, 3.0, 3.0]) == 9.0 and gps_outlier_metres([]) == 9.0
 
 
+def test_a_camera_as_far_from_its_fix_as_its_neighbours_stays_and_one_far_alone_is_left_out():
+    """15 fixes 10 m apart on a line; photos 0-9 1 m off in height, photos 10-14 a receiver's
+    drift (5, 8, 10, 12, 13 m in height), photo 4 placed 40 m off along x. The median residual is
+    1 m, so the limit is 9 m: by distance alone photos 12-14 and 4 are over it. Against the median
+    of their 4 nearest photos' residuals, by hand: photo 12 0 m (5, 8, 12, 13: 10), 13 3 m (9), 14
+    4 m (9), photo 4 40 m: only photo 4 is left out."""
+    from jaxnerf_grid.capture.poses import gps_outliers, local_residuals
+
+    heights = [1.0] * 10 + [5.0, 8.0, 10.0, 12.0, 13.0]
+    rows = [{"name": f"p{k:02d}.jpg", "dx": 0.0, "dy": 0.0, "dz": h, "error": h, "inlier": h <= 9.0}
+            for k, h in enumerate(heights)]
+    rows[4].update(dx=40.0, dz=0.0, error=40.0, inlier=False)
+    fixes = {row["name"]: [10.0 * k, 0.0, 0.0] for k, row in enumerate(rows)}
+    geo = {"gps": {"residuals": rows}}
+    assert [name for name, _ in gps_outliers(geo)] == ["p04.jpg", "p12.jpg", "p13.jpg", "p14.jpg"]
+    assert gps_outliers(geo, fixes) == [("p04.jpg", "40.0 m from its GPS position (more than 9 m)")]
+    local = local_residuals(rows, fixes)
+    assert local["p12.jpg"] == pytest.approx(0.0) and local["p13.jpg"] == pytest.approx(3.0)
+    assert local["p14.jpg"] == pytest.approx(4.0) and local["p04.jpg"] == pytest.approx(np.hypot(40.0, 1.0))
+    assert local_residuals(rows[:4], fixes) == {}           # too few photos to say where the receiver stood
+
+
 def test_the_gps_is_distrusted_when_half_the_registered_photos_or_more_are_far_from_their_fixes():
     """49 of 57 registered photos over 9 m from their GPS fixes (a camera's GPS that lagged and
     drifted 90 m in height): the reason names the count; exactly half still is distrust (5 of

@@ -10,6 +10,7 @@ alignment are stand-ins that record how they were called.
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 
 from jaxnerf_grid.capture import georef, gps, poses
@@ -195,3 +196,19 @@ def test_gps_of_larger_photos_stays_out_of_the_mapping_and_a_disagreement_maps_n
                                         "far_after": 8, "georeference": "without the GPS"}
     report = (tmp_path / "data" / "poses_report.md").read_text()
     assert f"GPS as pose priors: not in the mapping ({reason})" in report.splitlines()
+
+
+def test_the_cameras_far_from_their_fixes_are_judged_beside_the_fixes_in_local_metres(tmp_path, monkeypatch):
+    """`poses` hands the GPS outlier test the photos' fixes in local metres (here 0.0009 degrees of
+    latitude apart: about 100 m), so that a camera is judged beside its neighbours' residuals."""
+    photos, model_dir, _ = _scene(tmp_path, registered=12, photos=13, turned=(5,))
+    _Stand(monkeypatch, model_dir, agrees_after=True)
+    monkeypatch.setattr(poses, "run_colmap", _Colmap(model_dir))
+    handed = []
+    judge = poses.gps_outliers
+    monkeypatch.setattr(poses, "gps_outliers", lambda geo, fixes=None: handed.append(fixes) or judge(geo, fixes))
+    poses.poses_from_images(photos, tmp_path / "data", progress=False)
+    fixes = handed[0]
+    assert sorted(fixes) == NAMES
+    gaps = [float(np.linalg.norm(np.subtract(fixes[a], fixes[b]))) for a, b in zip(NAMES, NAMES[1:])]
+    assert gaps == pytest.approx([100.1] * 12, abs=0.5)
