@@ -1508,7 +1508,7 @@ def gps_outlier_metres(errors) -> float:
     return max(georef.INLIER_METRES, GPS_OUTLIER_MEDIANS * float(np.median(errors)))
 
 
-GPS_NEIGHBOURS = 4   # the photos nearest by GPS whose residuals say where the receiver's error stood
+GPS_NEIGHBOURS = 4   # the photos taken next (or nearest by GPS) whose residuals say where the receiver stood
 
 
 def gps_outliers(georeference: dict, positions: dict | None = None) -> list[tuple[str, str]]:
@@ -1517,10 +1517,11 @@ def gps_outliers(georeference: dict, positions: dict | None = None) -> list[tupl
     consumer receiver errs by 1-5 m; a camera 9 m or more off (more on a noisier receiver) was put
     in the wrong place by the mapping (on a 30-photo orbit one such camera was kept by the vetting
     105 degrees off, and tilted the rest by 10 degrees in the alignment).
-    positions: {name: [3]} the fixes (local metres); with them a camera is off only when its
-    residual also differs by more than the limit from the median residual of its GPS_NEIGHBOURS
-    nearest photos (`local_residuals`): a receiver that drifts or lags moves neighbouring fixes
-    alike (seneca: the altitude of consecutive photos 7, 9 and 12 m off), a misplaced camera alone."""
+    A camera is off only when its residual also differs by more than the limit from the median
+    residual of its GPS_NEIGHBOURS neighbours (`local_residuals`; positions: {name: [3]} the fixes
+    in local metres, for photos not named in sequence): a receiver that drifts or lags moves the
+    fixes of photos taken one after the other alike (seneca: the altitudes of consecutive photos
+    7, 9 and 12 m off), a misplaced camera alone."""
     rows = (georeference.get("gps") or {}).get("residuals") or []
     limit = gps_outlier_metres([r["error"] for r in rows])
     local = local_residuals(rows, positions or {})
@@ -1530,19 +1531,27 @@ def gps_outliers(georeference: dict, positions: dict | None = None) -> list[tupl
 
 def local_residuals(rows: list[dict], positions: dict, neighbours: int = GPS_NEIGHBOURS) -> dict:
     """{name: metres}: each GPS residual (rows of `georef.align_model`'s residuals: name, dx, dy,
-    dz) less the component-wise median residual of the `neighbours` photos whose fixes
-    (`positions`, {name: [3]}) are nearest its own. Photos without a fix, and every photo when
-    fewer than neighbours + 1 have one, are left out."""
-    rows = [r for r in rows if r["name"] in positions and "dx" in r]
+    dz) less the component-wise median residual of its `neighbours` neighbours: the photos taken
+    just before and after it when the names are numbered in sequence (`names_look_ordered`: the
+    capture order), else those whose fixes (`positions`, {name: [3]} local metres) are nearest
+    its own. Empty with `neighbours` photos or fewer (or without the fixes it needs)."""
+    rows = sorted((r for r in rows if "dx" in r), key=lambda r: r["name"])
+    names = [r["name"] for r in rows]
+    if names_look_ordered(names):
+        rank = np.arange(len(rows), dtype=np.float64)[:, None]
+        gap = np.abs(rank - rank.T)
+    elif all(name in positions for name in names):
+        fixes = np.asarray([positions[name] for name in names], np.float64).reshape(-1, 3)
+        gap = np.linalg.norm(fixes[:, None] - fixes[None], axis=-1)
+    else:
+        return {}
     if len(rows) <= neighbours:
         return {}
-    fixes = np.asarray([positions[r["name"]] for r in rows], np.float64)
-    residual = np.asarray([[r["dx"], r["dy"], r["dz"]] for r in rows], np.float64)
-    gap = np.linalg.norm(fixes[:, None] - fixes[None], axis=-1)
     np.fill_diagonal(gap, np.inf)
-    nearest = np.argsort(gap, axis=1)[:, :neighbours]
+    nearest = np.argsort(gap, axis=1, kind="stable")[:, :neighbours]
+    residual = np.asarray([[r["dx"], r["dy"], r["dz"]] for r in rows], np.float64)
     local = residual - np.median(residual[nearest], axis=1)
-    return {r["name"]: float(np.linalg.norm(d)) for r, d in zip(rows, local)}
+    return {name: float(np.linalg.norm(d)) for name, d in zip(names, local)}
 
 
 def gps_off_count(georeference: dict) -> int:

@@ -131,9 +131,9 @@ def test_a_camera_as_far_from_its_fix_as_its_neighbours_stays_and_one_far_alone_
     """15 fixes 10 m apart on a line; photos 0-9 1 m off in height, photos 10-14 a receiver's
     drift (5, 8, 10, 12, 13 m in height), photo 4 placed 40 m off along x. The median residual is
     1 m, so the limit is 9 m: by distance alone photos 12-14 and 4 are over it. Against the median
-    of their 4 nearest photos' residuals, by hand: photo 12 0 m (5, 8, 12, 13: 10), 13 3 m (9), 14
+    of the residuals of the 4 photos taken next (named in sequence; here also the nearest), by hand: photo 12 0 m (5, 8, 12, 13: 10), 13 3 m (9), 14
     4 m (9), photo 4 40 m: only photo 4 is left out."""
-    from jaxnerf_grid.capture.poses import gps_outliers, local_residuals
+    from jaxnerf_grid.capture.poses import gps_outlier_metres, gps_outliers, local_residuals
 
     heights = [1.0] * 10 + [5.0, 8.0, 10.0, 12.0, 13.0]
     rows = [{"name": f"p{k:02d}.jpg", "dx": 0.0, "dy": 0.0, "dz": h, "error": h, "inlier": h <= 9.0}
@@ -141,12 +141,29 @@ def test_a_camera_as_far_from_its_fix_as_its_neighbours_stays_and_one_far_alone_
     rows[4].update(dx=40.0, dz=0.0, error=40.0, inlier=False)
     fixes = {row["name"]: [10.0 * k, 0.0, 0.0] for k, row in enumerate(rows)}
     geo = {"gps": {"residuals": rows}}
-    assert [name for name, _ in gps_outliers(geo)] == ["p04.jpg", "p12.jpg", "p13.jpg", "p14.jpg"]
+    limit = gps_outlier_metres([row["error"] for row in rows])
+    assert limit == 9.0 and [r["name"] for r in rows if r["error"] > limit] == ["p04.jpg", "p12.jpg", "p13.jpg",
+                                                                                 "p14.jpg"]
+    assert gps_outliers(geo) == [("p04.jpg", "40.0 m from its GPS position (more than 9 m)")]   # named in sequence
     assert gps_outliers(geo, fixes) == [("p04.jpg", "40.0 m from its GPS position (more than 9 m)")]
     local = local_residuals(rows, fixes)
     assert local["p12.jpg"] == pytest.approx(0.0) and local["p13.jpg"] == pytest.approx(3.0)
     assert local["p14.jpg"] == pytest.approx(4.0) and local["p04.jpg"] == pytest.approx(np.hypot(40.0, 1.0))
     assert local_residuals(rows[:4], fixes) == {}           # too few photos to say where the receiver stood
+
+
+def test_a_residual_is_set_beside_the_photos_taken_next_or_without_a_sequence_beside_the_nearest_fixes():
+    """Six fixes: three on a line 100 m apart, then three back over them 1 m aside; the receiver
+    10 m high on the second line. Photo 4 beside its 2 neighbours: named in sequence, photos 3 and
+    5 (10 m high: 0 m apart); named out of sequence, the nearest fixes, photos 1 and 2 (0 m: 10 m)."""
+    from jaxnerf_grid.capture.poses import local_residuals
+
+    where = [(0.0, 0.0), (100.0, 0.0), (200.0, 0.0), (1.0, 1.0), (101.0, 1.0), (201.0, 1.0)]
+    for names, expected in ((["p0", "p1", "p2", "p3", "p4", "p5"], 0.0), (["pa", "pb", "pc", "pd", "pe", "pf"], 10.0)):
+        rows = [{"name": f"{n}.jpg", "dx": 0.0, "dy": 0.0, "dz": 10.0 if k >= 3 else 0.0} for k, n in enumerate(names)]
+        fixes = {row["name"]: [x, y, 0.0] for row, (x, y) in zip(rows, where)}
+        assert local_residuals(rows, fixes, neighbours=2)[rows[4]["name"]] == pytest.approx(expected), names
+    assert local_residuals(rows, {}, neighbours=2) == {}     # out of sequence and no fixes: no neighbours
 
 
 def test_the_gps_is_distrusted_when_half_the_registered_photos_or_more_are_far_from_their_fixes():
