@@ -131,8 +131,9 @@ def test_a_camera_as_far_from_its_fix_as_its_neighbours_stays_and_one_far_alone_
     """15 fixes 10 m apart on a line; photos 0-9 1 m off in height, photos 10-14 a receiver's
     drift (5, 8, 10, 12, 13 m in height), photo 4 placed 40 m off along x. The median residual is
     1 m, so the limit is 9 m: by distance alone photos 12-14 and 4 are over it. Against the median
-    of the residuals of the 4 photos taken next (named in sequence; here also the nearest), by hand: photo 12 0 m (5, 8, 12, 13: 10), 13 3 m (9), 14
-    4 m (9), photo 4 40 m: only photo 4 is left out."""
+    of the residuals of the 4 photos taken next (named in sequence; here also the nearest), by hand:
+    photo 12 0 m (5, 8, 12, 13: 10), 13 3 m (9), 14 4 m (9), photo 4 40 m: only photo 4 is left out.
+    """
     from jaxnerf_grid.capture.poses import gps_outlier_metres, gps_outliers, local_residuals
 
     heights = [1.0] * 10 + [5.0, 8.0, 10.0, 12.0, 13.0]

@@ -126,7 +126,8 @@ def test_gps_that_still_disagrees_with_a_crs_asked_is_a_one_line_error_naming_it
         poses.poses_from_images(photos, tmp_path / "data", progress=False, crs="EPSG:2056")
     assert str(err.value) == (f"{photos}: poses.crs = EPSG:2056: the GPS disagrees with the photos' reconstruction "
                               "(8 of 12 registered photos more than 9 m from their fixes): a receiver that lags or "
-                              "drifts, or photos registered in the wrong place; ground control points (poses.gcp) place the model in the CRS without it")
+                              "drifts, or photos registered in the wrong place; ground control points (poses.gcp) "
+                              "place the model in the CRS without it")
     assert not (tmp_path / "data").exists()
 
 
